@@ -1,0 +1,1 @@
+"""tirdeflect application: acquisition, buffers, recording, CLI and GUI."""

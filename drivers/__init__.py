@@ -1,0 +1,1 @@
+"""Camera drivers: GenICam (Aravis, harvesters/GenTL) and a synthetic camera. No optics here."""
