@@ -1,0 +1,171 @@
+"""The synthetic camera: paced clock, exact id gaps, triggers, settings read-back."""
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from drivers.base import CameraError, FetchTimeout, SettingError
+from drivers.synthetic import SyntheticCamera, moving_checkerboard
+
+
+def _stack(n=8, shape=(48, 64), dtype=np.uint8):
+    rng = np.random.default_rng(1)
+    return rng.integers(0, 255, size=(n,) + shape).astype(dtype)
+
+
+def test_paced_rate_matches_request_over_one_second():
+    rate_hz = 200.0
+    n = 201  # 200 intervals = 1 s
+    with SyntheticCamera(_stack(), frame_rate_hz=rate_hz) as cam:
+        cam.start()
+        frames = [cam.fetch(1.0) for _ in range(n)]
+        cam.stop()
+    ids = np.array([f.frame_id for f in frames])
+    host = np.array([f.host_timestamp_ns for f in frames], dtype=np.int64)
+    dev = np.array([f.timestamp_ns for f in frames], dtype=np.int64)
+    assert np.all(np.diff(ids) == 1)
+    measured_hz = (n - 1) / ((host[-1] - host[0]) * 1e-9)
+    assert measured_hz == pytest.approx(rate_hz, rel=0.03)
+    # device clock: exactly one period per frame (rounded to 1 ns)
+    assert np.all(np.abs(np.diff(dev) - 1e9 / rate_hz) <= 1)
+    # no frame is handed out before it is due on the device clock
+    assert np.all(host >= dev)
+
+
+def test_injected_drops_are_exact_id_gaps():
+    drops = (3, 7, 8, 20)
+    stack = _stack(n=5)
+    with SyntheticCamera(stack, max_rate=True, drop_frames=drops) as cam:
+        cam.start()
+        frames = [cam.fetch(1.0) for _ in range(20)]
+        stats = cam.statistics()
+    ids = [f.frame_id for f in frames]
+    expected = [i for i in range(24) if i not in drops][:20]
+    assert ids == expected
+    gaps = np.diff(ids) - 1
+    assert gaps.sum() == len(drops) == stats["n_dropped_injected"]
+    assert stats["n_completed_buffers"] == 20
+    for f in frames:  # frame id k shows image k mod n
+        np.testing.assert_array_equal(f.image, stack[f.frame_id % 5])
+        assert not f.image.flags.writeable
+
+
+def test_paced_drops_leave_time_gap():
+    with SyntheticCamera(_stack(), frame_rate_hz=500.0, drop_frames=(2,)) as cam:
+        cam.start()
+        f = [cam.fetch(1.0) for _ in range(3)]
+    assert [x.frame_id for x in f] == [0, 1, 3]
+    assert f[2].timestamp_ns - f[1].timestamp_ns == pytest.approx(2 * 2e6, abs=2)
+
+
+def test_slow_consumer_loses_frames_as_underruns():
+    n_buffers = 4
+    with SyntheticCamera(_stack(), frame_rate_hz=1000.0, n_buffers=n_buffers) as cam:
+        cam.start()
+        start = time.monotonic()
+        while time.monotonic() - start < 0.03:  # the consumer is busy for 30 ms
+            pass
+        first = cam.fetch(1.0)
+        stats = cam.statistics()
+    # >= 30 frames were due; only the newest n_buffers survived in the pool
+    assert first.frame_id >= 30 - n_buffers
+    assert stats["n_underruns"] == first.frame_id
+
+
+def test_software_trigger_one_frame_per_trigger():
+    with SyntheticCamera(_stack(), frame_rate_hz=1000.0) as cam:
+        s = cam.configure(trigger_mode="On", trigger_source="Software")
+        assert (s.trigger_mode, s.trigger_source) == ("On", "Software")
+        cam.start()
+        with pytest.raises(FetchTimeout, match="trigger"):
+            cam.fetch(0.05)
+        for _ in range(3):
+            cam.trigger_software()
+        ids = [cam.fetch(0.5).frame_id for _ in range(3)]
+        assert ids == [0, 1, 2]
+        with pytest.raises(FetchTimeout):
+            cam.fetch(0.05)
+        # a trigger from another thread wakes a waiting fetch promptly
+        t = threading.Timer(0.05, cam.trigger_software)
+        t.start()
+        t_call = time.monotonic_ns()
+        frame = cam.fetch(2.0)
+        t.join()
+        latency_s = (frame.host_timestamp_ns - frame.timestamp_ns) * 1e-9
+        assert frame.frame_id == 3
+        assert frame.timestamp_ns > t_call
+        assert latency_s < 0.05
+        assert cam.statistics()["n_triggers"] == 4
+
+
+def test_line_trigger_gives_no_frames_and_software_trigger_is_ignored():
+    with SyntheticCamera(_stack()) as cam:
+        cam.configure(trigger_mode="On", trigger_source="Line1")
+        cam.start()
+        cam.trigger_software()
+        with pytest.raises(FetchTimeout):
+            cam.fetch(0.05)
+        assert cam.statistics()["n_ignored_triggers"] == 1
+
+
+def test_configure_reads_back_and_rejects_with_ranges():
+    stack = _stack(n=2, shape=(48, 64))
+    with SyntheticCamera(stack) as cam:
+        s = cam.configure(width=32, height=16, offset_x=8, offset_y=4, frame_rate_hz=50, exposure_us=2000)
+        assert s.roi == (8, 4, 32, 16)
+        assert (s.frame_rate_hz, s.exposure_us) == (50.0, 2000.0)
+        with pytest.raises(SettingError, match=r"offset_x=40 .*0 \.\. 32"):
+            cam.configure(offset_x=40)
+        with pytest.raises(SettingError, match=r"width=65.*1 \.\. 64"):
+            cam.configure(width=65, offset_x=0)
+        with pytest.raises(SettingError, match="unknown setting 'shutter'"):
+            cam.configure(shutter=3)
+        with pytest.raises(SettingError, match="Mono16"):
+            cam.configure(pixel_format="Mono16")  # uint8 frames
+        with pytest.raises(SettingError, match="frame_rate_hz=-1"):
+            cam.configure(frame_rate_hz=-1)
+        assert cam.settings().roi == (8, 4, 32, 16)  # refused writes changed nothing
+        cam.start()
+        f = cam.fetch(1.0)
+        np.testing.assert_array_equal(f.image, stack[0, 4:20, 8:40])
+        with pytest.raises(SettingError, match="stop"):
+            cam.configure(width=16)
+        assert cam.configure(frame_rate_hz=60).frame_rate_hz == 60.0
+
+
+def test_loop_false_ends_with_timeout_and_close_is_idempotent():
+    cam = SyntheticCamera(_stack(n=3), max_rate=True, loop=False).open()
+    cam.start()
+    assert [cam.fetch(1.0).frame_id for _ in range(3)] == [0, 1, 2]
+    with pytest.raises(FetchTimeout, match="all 3 frames"):
+        cam.fetch(0.1)
+    cam.close()
+    cam.close()
+    with pytest.raises(CameraError, match="closed"):
+        cam.fetch(0.1)
+
+
+def test_callable_frames_and_uint16_bit_depth():
+    def frames(i):
+        return np.full((10, 12), 1000 + i, np.uint16)
+
+    with SyntheticCamera(frames, bit_depth=12, max_rate=True) as cam:
+        assert cam.settings().pixel_format == "Mono12"
+        cam.start()
+        f = [cam.fetch(1.0) for _ in range(3)]
+    assert [int(x.image[0, 0]) for x in f] == [1000, 1001, 1002]
+    assert all(x.bit_depth == 12 for x in f)
+
+
+def test_builtin_checkerboard_moves_and_fits_bit_depth():
+    cb = moving_checkerboard((64, 64), period_px=16, n_phases=8, bit_depth=10)
+    assert cb.dtype == np.uint16 and cb.max() <= 1023
+    # the pattern drifts 2 px per frame along the columns
+    np.testing.assert_array_equal(cb[1][:, 2:], cb[0][:, :-2])
+
+
+def test_rejects_non_camera_dtypes():
+    with pytest.raises(ValueError, match="float64"):
+        SyntheticCamera(np.zeros((2, 4, 4)))
