@@ -1,0 +1,615 @@
+"""Reading camera images and recordings from disk for ``tirdeflect process``.
+
+Supported inputs
+----------------
+- PNG, BMP, JPEG (8 or 16 bit, grey or colour; colour is converted to grey with
+  OpenCV's luma weights and a log message says so),
+- TIFF of 8 to 16 bit per sample, including camera TIFFs with *packed* 10- or
+  12-bit samples (tifffile decodes them through imagecodecs), float32/64 TIFF,
+  and multi-page TIFF stacks (each page one frame),
+- the app's HDF5 recordings (``docs/recording-format.md``): frames from the
+  ``/frames`` dataset ``(n, rows, cols)``, the reference from ``/reference``
+  when the recording holds one.
+
+Values are returned **unscaled**: a packed 10-bit TIFF gives ``uint16`` values in
+0..1023 and :attr:`ImageInfo.bits` says 10. Nothing is stretched to 16 bit, so
+noise and saturation keep their meaning (saturation is ``2**bits - 1``). The
+numerics accept any unsigned integer depth <= 16 and floats.
+
+Everything that goes wrong raises :class:`ImageReadError` (a
+:class:`processing.errors.TirdeflectError`) whose message names the file, the
+problem and what to do.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator, Sequence
+
+import numpy as np
+
+from processing.errors import TirdeflectError
+
+__all__ = [
+    "ImageReadError",
+    "ImageInfo",
+    "FrameItem",
+    "IMAGE_SUFFIXES",
+    "TIFF_SUFFIXES",
+    "HDF5_SUFFIXES",
+    "read_image",
+    "read_reference",
+    "image_info",
+    "count_frames",
+    "frame_count",
+    "iter_frames",
+    "write_image",
+]
+
+log = logging.getLogger(__name__)
+
+TIFF_SUFFIXES = frozenset({".tif", ".tiff"})
+HDF5_SUFFIXES = frozenset({".h5", ".hdf5", ".hdf"})
+CV2_SUFFIXES = frozenset({".png", ".bmp", ".jpg", ".jpeg", ".pgm", ".ppm"})
+IMAGE_SUFFIXES = TIFF_SUFFIXES | HDF5_SUFFIXES | CV2_SUFFIXES
+
+_HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
+
+
+class ImageReadError(TirdeflectError):
+    """An input file is missing, unreadable or not a single-channel image."""
+
+
+@dataclass(frozen=True)
+class ImageInfo:
+    """What an input file holds, without reading its pixels.
+
+    Attributes
+    ----------
+    path : pathlib.Path
+        The file.
+    kind : str
+        ``"image"`` (PNG/BMP/JPEG), ``"tiff"`` or ``"recording"`` (HDF5).
+    n_frames : int
+        Number of frames: 1 for a plain image, the page count of a TIFF
+        stack, the length of ``/frames`` of a recording.
+    shape : tuple of int
+        ``(rows, cols)`` of one frame, in pixels.
+    dtype : numpy.dtype
+        Sample type as returned by :func:`read_image` / :func:`iter_frames`.
+    bits : int
+        Significant bits per sample (10 for a packed 10-bit TIFF); for float
+        images the bit width of the float.
+    """
+
+    path: Path
+    kind: str
+    n_frames: int
+    shape: tuple
+    dtype: np.dtype
+    bits: int
+
+
+@dataclass(frozen=True)
+class FrameItem:
+    """One frame of an input sequence.
+
+    Attributes
+    ----------
+    image : numpy.ndarray
+        Shape ``(rows, cols)``, dtype uint8, uint16 or float32/64, unscaled.
+    source : str
+        Path of the file it came from.
+    index_in_source : int
+        Page of a TIFF stack or index into ``/frames`` of a recording; 0 for
+        plain images.
+    sequence_index : int
+        Position in the whole input sequence before ``first/last/step``
+        selection (0-based), which is what ``--first/--last/--step`` count.
+    """
+
+    image: np.ndarray
+    source: str
+    index_in_source: int
+    sequence_index: int
+
+    @property
+    def label(self) -> str:
+        """Human-readable name, e.g. ``rec.h5[17]`` or ``frame_0003.png``."""
+        if self.index_in_source == 0 and not _is_multi(self.source):
+            return self.source
+        return f"{self.source}[{self.index_in_source}]"
+
+
+def _is_multi(source: str) -> bool:
+    return Path(source).suffix.lower() in HDF5_SUFFIXES | TIFF_SUFFIXES
+
+
+# --------------------------------------------------------------------------- checks
+
+
+def _check_path(path) -> Path:
+    """Existence and file-type checks with messages that say what to do."""
+    p = Path(os.fspath(path))
+    if not p.exists():
+        hint = ""
+        if any(ch in str(p) for ch in "*?["):
+            hint = " (the pattern matched no file: check the directory and the spelling)"
+        raise ImageReadError(f"input file {str(p)!r} does not exist{hint}; check the path")
+    if p.is_dir():
+        raise ImageReadError(
+            f"input {str(p)!r} is a directory, not an image; pass the image files, "
+            f"e.g. {str(p / '*.png')!r} or {str(p / '*.tif')!r}"
+        )
+    if p.stat().st_size == 0:
+        raise ImageReadError(f"input file {str(p)!r} is empty (0 bytes); re-export or re-record it")
+    return p
+
+
+def _kind(p: Path) -> str:
+    suffix = p.suffix.lower()
+    with open(p, "rb") as fh:
+        head = fh.read(8)
+    if head == _HDF5_SIGNATURE or suffix in HDF5_SUFFIXES:
+        return "recording"
+    if head[:4] in (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+") or suffix in TIFF_SUFFIXES:
+        return "tiff"
+    return "image"
+
+
+def _to_gray(image: np.ndarray, p: Path) -> np.ndarray:
+    """Reduce a colour image to one channel, or raise if it cannot be an image."""
+    if image.ndim == 2:
+        return image
+    if image.ndim == 3 and image.shape[2] in (1, 3, 4):
+        import cv2
+
+        if image.shape[2] == 1:
+            return image[:, :, 0]
+        # A grey image stored as RGB has three equal channels: take one exactly.
+        if np.array_equal(image[:, :, 0], image[:, :, 1]) and np.array_equal(
+            image[:, :, 1], image[:, :, 2]
+        ):
+            return np.ascontiguousarray(image[:, :, 0])
+        log.info("%s is a colour image; converting to grey (OpenCV luma weights)", p)
+        code = cv2.COLOR_BGR2GRAY if image.shape[2] == 3 else cv2.COLOR_BGRA2GRAY
+        return cv2.cvtColor(np.ascontiguousarray(image), code)
+    raise ImageReadError(
+        f"{str(p)!r} holds an array of shape {image.shape}, not a single image of "
+        f"(rows, cols); save one grey frame per file or a TIFF stack of grey pages"
+    )
+
+
+def _check_dtype(image: np.ndarray, p: Path) -> np.ndarray:
+    if image.dtype in (np.uint8, np.uint16, np.float32, np.float64):
+        return image
+    if image.dtype == np.bool_:
+        return image.astype(np.uint8)
+    if np.issubdtype(image.dtype, np.integer):
+        info = np.iinfo(image.dtype)
+        lo, hi = int(image.min()), int(image.max())
+        if lo >= 0 and hi <= 65535:
+            log.info("%s: %s samples in %d..%d stored as uint16", p, image.dtype, lo, hi)
+            return image.astype(np.uint16)
+        raise ImageReadError(
+            f"{str(p)!r} has {image.dtype} samples in {lo}..{hi} (type range "
+            f"{info.min}..{info.max}); tirdeflect reads unsigned 8-16 bit or float images: "
+            f"convert it to uint16 or float32 TIFF"
+        )
+    if np.issubdtype(image.dtype, np.floating):
+        return image.astype(np.float32)
+    raise ImageReadError(
+        f"{str(p)!r} has samples of type {image.dtype}; tirdeflect reads unsigned "
+        f"8-16 bit integer or float images"
+    )
+
+
+def _bits_of(dtype: np.dtype) -> int:
+    return int(np.dtype(dtype).itemsize * 8)
+
+
+# --------------------------------------------------------------------------- TIFF
+
+
+def _tiff_open(p: Path):
+    import tifffile
+
+    try:
+        return tifffile.TiffFile(p)
+    except Exception as exc:  # tifffile raises TiffFileError, ValueError, struct errors...
+        raise ImageReadError(
+            f"{str(p)!r} is not a readable TIFF ({type(exc).__name__}: {exc}); "
+            f"check that the file is complete and really a TIFF"
+        ) from exc
+
+
+def _tiff_layout(tif, p: Path):
+    """Return (n_frames, shape, dtype, bits, reader) for a TIFF file.
+
+    ``reader(i)`` returns frame ``i`` as a 2-D array.
+    """
+    pages = tif.pages
+    n_pages = len(pages)
+    if n_pages == 0:
+        raise ImageReadError(f"{str(p)!r} is a TIFF with no image pages")
+    first = pages.first if hasattr(pages, "first") else pages[0]
+    bits = int(first.bitspersample)
+    spp = int(getattr(first, "samplesperpixel", 1))
+    depth = int(getattr(first, "imagedepth", 1) or 1)
+    if depth != 1:
+        raise ImageReadError(
+            f"{str(p)!r} has volume pages (image depth {depth}); tirdeflect reads TIFF "
+            f"pages of one grey (rows, cols) image each"
+        )
+    if spp not in (1, 3, 4):
+        raise ImageReadError(
+            f"{str(p)!r} has {spp} samples per pixel; save grey (1) or RGB (3) images"
+        )
+    rows, cols = int(first.imagelength), int(first.imagewidth)
+    dtype = np.dtype(first.dtype) if first.dtype is not None else None
+    if dtype is None:
+        raise ImageReadError(
+            f"{str(p)!r} uses a TIFF sample format tifffile cannot decode "
+            f"(bits per sample {bits}); install imagecodecs or re-save as 16-bit TIFF"
+        )
+
+    def reader(i: int) -> np.ndarray:
+        try:
+            page = pages[i]
+            arr = page.asarray()
+        except Exception as exc:
+            raise ImageReadError(
+                f"page {i} of {str(p)!r} cannot be decoded ({type(exc).__name__}: {exc}); "
+                f"the file may be truncated or use a compression imagecodecs lacks"
+            ) from exc
+        if arr.ndim == 3 and arr.shape[0] in (3, 4) and arr.shape[1:] == (rows, cols):
+            arr = np.moveaxis(arr, 0, -1)  # planar RGB (SYX) to YXS
+        if arr.shape[:2] != (rows, cols):
+            raise ImageReadError(
+                f"page {i} of {str(p)!r} has shape {arr.shape[:2]} but page 0 has "
+                f"{(rows, cols)}; a stack must hold frames of one size"
+            )
+        arr = _to_gray(arr, p)
+        return _check_dtype(arr, p)
+
+    out_dtype = np.dtype(np.float32) if dtype.kind == "f" else dtype
+    if dtype.kind == "f":
+        bits = _bits_of(dtype)
+    return n_pages, (rows, cols), out_dtype, bits, reader
+
+
+# --------------------------------------------------------------------------- HDF5
+
+
+def _h5_open(p: Path):
+    import h5py
+
+    try:
+        return h5py.File(p, "r")
+    except OSError as exc:
+        raise ImageReadError(
+            f"{str(p)!r} is not a readable HDF5 recording ({exc}); if the recording "
+            f"crashed, check it with h5dump, or record again"
+        ) from exc
+
+
+def _h5_frames(f, p: Path):
+    import h5py
+
+    ds = f.get("frames")
+    if not isinstance(ds, h5py.Dataset):
+        names = ", ".join(sorted(f.keys())) or "nothing"
+        hint = ""
+        if "height" in f:
+            hint = " (this looks like a `tirdeflect process` output, not a recording)"
+        raise ImageReadError(
+            f"{str(p)!r} has no /frames dataset{hint}; it holds {names}. "
+            f"tirdeflect process reads recordings made by `tirdeflect record` or the GUI"
+        )
+    if ds.ndim != 3:
+        raise ImageReadError(
+            f"/frames in {str(p)!r} has shape {ds.shape}; expected (n, rows, cols)"
+        )
+    n = int(ds.shape[0])
+    # A recording that stopped early may say how many frames are complete.
+    for key in ("frames_written", "frames_done", "n_frames"):
+        if key in ds.attrs or key in f.attrs:
+            done = int(ds.attrs.get(key, f.attrs.get(key)))
+            if 0 <= done < n:
+                n = done
+            break
+    return ds, n
+
+
+def _h5_bits(f, ds) -> int:
+    for holder in (ds.attrs, f.attrs):
+        for key in ("bits", "bit_depth", "pixel_bits"):
+            if key in holder:
+                try:
+                    return int(holder[key])
+                except (TypeError, ValueError):
+                    pass
+    return _bits_of(ds.dtype)
+
+
+# --------------------------------------------------------------------------- public API
+
+
+def image_info(path) -> ImageInfo:
+    """Inspect an input file without reading all its pixels.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Image, TIFF (stack) or HDF5 recording.
+
+    Returns
+    -------
+    ImageInfo
+
+    Raises
+    ------
+    ImageReadError
+        Missing file, directory, empty or unreadable file.
+    """
+    p = _check_path(path)
+    kind = _kind(p)
+    if kind == "tiff":
+        with _tiff_open(p) as tif:
+            n, shape, dtype, bits, _ = _tiff_layout(tif, p)
+        return ImageInfo(p, kind, n, shape, dtype, bits)
+    if kind == "recording":
+        with _h5_open(p) as f:
+            ds, n = _h5_frames(f, p)
+            bits = _h5_bits(f, ds)
+            dtype = np.dtype(np.float32) if ds.dtype.kind == "f" else np.dtype(ds.dtype)
+            return ImageInfo(p, kind, n, tuple(int(s) for s in ds.shape[1:]), dtype, bits)
+    image = read_image(p)
+    return ImageInfo(p, kind, 1, image.shape, image.dtype, _bits_of(image.dtype))
+
+
+def _read_cv2(p: Path) -> np.ndarray:
+    import cv2
+
+    # np.fromfile + imdecode copes with non-ASCII paths, which cv2.imread does not.
+    try:
+        buf = np.fromfile(p, dtype=np.uint8)
+    except OSError as exc:
+        raise ImageReadError(f"cannot read {str(p)!r}: {exc.strerror or exc}") from exc
+    image = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise ImageReadError(
+            f"{str(p)!r} is not a readable image (OpenCV cannot decode its "
+            f"{len(buf)} bytes as {p.suffix.upper().lstrip('.') or 'an image'}); "
+            f"check the file is a complete PNG/BMP/TIFF"
+        )
+    return _check_dtype(_to_gray(image, p), p)
+
+
+def read_image(path, *, index: int | None = None) -> np.ndarray:
+    """Read one grey frame.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        PNG/BMP/JPEG, TIFF (single page or stack) or HDF5 recording.
+    index : int, optional
+        Page of a TIFF stack / frame of a recording. Required when the file
+        holds more than one frame (so that a stack is never silently reduced
+        to its first page); ignored for single-frame files when 0 or None.
+
+    Returns
+    -------
+    numpy.ndarray
+        Shape ``(rows, cols)``, dtype uint8, uint16 (values unscaled, e.g.
+        0..1023 for a 10-bit camera) or float32.
+
+    Raises
+    ------
+    ImageReadError
+        The file is missing, a directory, unreadable, not grey-convertible or
+        the index is out of range.
+    """
+    p = _check_path(path)
+    kind = _kind(p)
+    if kind == "image":
+        if index not in (None, 0):
+            raise ImageReadError(f"{str(p)!r} holds one frame; index {index} does not exist")
+        return _read_cv2(p)
+    if kind == "tiff":
+        with _tiff_open(p) as tif:
+            n, _, _, _, reader = _tiff_layout(tif, p)
+            i = _resolve_index(index, n, p, what="pages")
+            return reader(i)
+    with _h5_open(p) as f:
+        ds, n = _h5_frames(f, p)
+        i = _resolve_index(index, n, p, what="frames")
+        return _check_dtype(_to_gray(np.asarray(ds[i]), p), p)
+
+
+def _resolve_index(index, n: int, p: Path, *, what: str) -> int:
+    if index is None:
+        if n == 1:
+            return 0
+        raise ImageReadError(
+            f"{str(p)!r} holds {n} {what}; say which one to use "
+            f"(for a reference, save one frame as its own image)"
+        )
+    if not -n <= index < n:
+        raise ImageReadError(f"{str(p)!r} holds {n} {what}; index {index} is out of range")
+    return index % n
+
+
+def read_reference(path) -> np.ndarray:
+    """Read the reference (undeformed) image.
+
+    A plain image or single-page TIFF is the reference itself. An HDF5
+    recording provides its stored reference (``/reference``) when it has one,
+    otherwise its first frame (logged). A multi-page TIFF is refused (ambiguous).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+
+    Returns
+    -------
+    numpy.ndarray
+        Shape ``(rows, cols)``, dtype uint8/uint16/float32.
+    """
+    p = _check_path(path)
+    if _kind(p) == "recording":
+        import h5py
+
+        with _h5_open(p) as f:
+            ref = f.get("reference")
+            if isinstance(ref, h5py.Dataset):
+                arr = np.asarray(ref[()])
+                if arr.ndim == 3 and arr.shape[0] == 1:
+                    arr = arr[0]
+                return _check_dtype(_to_gray(arr, p), p)
+            ds, n = _h5_frames(f, p)
+            if n == 0:
+                raise ImageReadError(f"recording {str(p)!r} holds no frames and no /reference")
+            log.warning("recording %s has no /reference; using its first frame as reference", p)
+            return _check_dtype(_to_gray(np.asarray(ds[0]), p), p)
+    return read_image(p)
+
+
+def frame_count(path) -> int:
+    """Number of frames in one file, reading headers only (plain images count 1
+    without being decoded, so a broken PNG is only found when it is read).
+
+    Raises
+    ------
+    ImageReadError
+        Missing file, directory, empty file, unreadable TIFF/HDF5 header.
+    """
+    p = _check_path(path)
+    kind = _kind(p)
+    if kind == "image":
+        return 1
+    if kind == "tiff":
+        with _tiff_open(p) as tif:
+            return _tiff_layout(tif, p)[0]
+    with _h5_open(p) as f:
+        return _h5_frames(f, p)[1]
+
+
+def count_frames(paths: Sequence) -> int:
+    """Total number of frames in ``paths`` (pages and recording frames counted)."""
+    return sum(frame_count(p) for p in paths)
+
+
+def iter_frames(
+    paths: Sequence,
+    *,
+    first: int = 0,
+    last: int | None = None,
+    step: int = 1,
+) -> Iterator[FrameItem]:
+    """Yield the frames of several files in order, one at a time.
+
+    Multi-frame files (TIFF stacks, recordings) are read page by page, so a
+    long recording never has to fit in memory.
+
+    Parameters
+    ----------
+    paths : sequence of path-like
+        Input files in processing order.
+    first, last : int
+        Sequence indices (0-based, counting every frame of every file in
+        order) of the first and last frame to yield, both **inclusive**;
+        ``last=None`` means to the end.
+    step : int
+        Yield every ``step``-th frame from ``first``.
+
+    Yields
+    ------
+    FrameItem
+
+    Raises
+    ------
+    ImageReadError
+        When a file cannot be read; frames before it have already been yielded.
+    ValueError
+        Bad ``first/last/step``.
+    """
+    if step < 1:
+        raise ImageReadError(f"--step must be >= 1; got {step}")
+    if first < 0:
+        raise ImageReadError(f"--first must be >= 0; got {first}")
+    if last is not None and last < first:
+        raise ImageReadError(f"--last ({last}) is before --first ({first}); nothing to process")
+
+    def wanted(k: int) -> bool:
+        return k >= first and (last is None or k <= last) and (k - first) % step == 0
+
+    seq = 0
+    for path in paths:
+        if last is not None and seq > last:
+            return
+        p = _check_path(path)
+        kind = _kind(p)
+        if kind == "image":
+            if wanted(seq):
+                yield FrameItem(_read_cv2(p), str(path), 0, seq)
+            seq += 1
+        elif kind == "tiff":
+            with _tiff_open(p) as tif:
+                n, _, _, _, reader = _tiff_layout(tif, p)
+                for i in range(n):
+                    if last is not None and seq > last:
+                        return
+                    if wanted(seq):
+                        yield FrameItem(reader(i), str(path), i, seq)
+                    seq += 1
+        else:
+            with _h5_open(p) as f:
+                ds, n = _h5_frames(f, p)
+                for i in range(n):
+                    if last is not None and seq > last:
+                        return
+                    if wanted(seq):
+                        arr = _check_dtype(_to_gray(np.asarray(ds[i]), p), p)
+                        yield FrameItem(arr, str(path), i, seq)
+                    seq += 1
+
+
+def write_image(path, image: np.ndarray) -> Path:
+    """Write one grey image losslessly; 8-bit as PNG/BMP/TIFF, 9-16 bit as PNG or TIFF.
+
+    Parameters
+    ----------
+    path : path-like
+        Suffix selects the format (``.png``, ``.bmp``, ``.tif``/``.tiff``).
+    image : numpy.ndarray
+        ``(rows, cols)`` uint8 or uint16 (float32 only to TIFF).
+
+    Returns
+    -------
+    pathlib.Path
+    """
+    p = Path(path)
+    image = np.asarray(image)
+    if image.ndim != 2:
+        raise ValueError(f"write_image expects a (rows, cols) array; got shape {image.shape}")
+    suffix = p.suffix.lower()
+    if suffix in TIFF_SUFFIXES:
+        import tifffile
+
+        tifffile.imwrite(p, image, photometric="minisblack")
+        return p
+    if image.dtype not in (np.uint8, np.uint16):
+        raise ValueError(f"{suffix} stores uint8/uint16 only; got {image.dtype}: use .tif")
+    if suffix == ".bmp" and image.dtype != np.uint8:
+        raise ValueError("BMP stores 8-bit images only; use .png or .tif for 16 bit")
+    import cv2
+
+    ok, buf = cv2.imencode(suffix, image)
+    if not ok:
+        raise OSError(f"OpenCV could not encode {p} as {suffix}")
+    buf.tofile(p)
+    return p

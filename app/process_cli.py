@@ -1,0 +1,635 @@
+"""``tirdeflect process`` (images to heights in HDF5) and ``tirdeflect simulate``.
+
+``process`` reads a reference and frames (PNG/BMP/TIFF/TIFF stacks/HDF5
+recordings, see :mod:`app.imageio`), reconstructs each frame with
+:class:`processing.Reconstructor` and writes one HDF5 file laid out as
+documented in ``docs/output-format.md``. The file is written frame by frame
+and flushed after each, so that a crash or a bad frame leaves every completed
+frame readable, with ``frames_done`` saying how many.
+
+``simulate`` writes a synthetic data set (reference, frames, true heights,
+geometry) made by exact ray tracing (:func:`processing.forward.simulate`),
+so the whole chain can be checked before going to the tank::
+
+    tirdeflect simulate --out sim
+    tirdeflect process sim/reference.png sim/frame_*.png --geometry sim/geometry.toml --out out.h5
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime as _dt
+import inspect
+import logging
+import math
+import os
+import shlex
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from app import imageio
+from processing.errors import (
+    AllInvalidError,
+    ShapeMismatchError,
+    TirdeflectError,
+)
+
+__all__ = [
+    "add_process_parser",
+    "add_simulate_parser",
+    "cmd_process",
+    "cmd_simulate",
+    "OutputExistsError",
+    "OUTPUT_FORMAT_VERSION",
+]
+
+log = logging.getLogger(__name__)
+
+#: Version of the layout of OUT.h5 described in docs/output-format.md.
+OUTPUT_FORMAT_VERSION = 1
+
+
+class OutputExistsError(TirdeflectError):
+    """The output file exists and ``--overwrite`` was not given."""
+
+
+# =========================================================================== parsers
+
+
+def _nonnegative_int(text: str) -> int:
+    import argparse
+
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
+    return value
+
+
+def _positive_int(text: str) -> int:
+    import argparse
+
+    value = _nonnegative_int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
+def add_process_parser(sub) -> None:
+    """Add the ``process`` subcommand to an argparse subparsers object."""
+    p = sub.add_parser(
+        "process",
+        help="reconstruct surface heights from a reference and frames, to HDF5",
+        description="Reconstruct water-surface heights (mm) from a reference image and "
+        "deformed frames and write them to an HDF5 file (layout: docs/output-format.md). "
+        "Inputs: PNG, BMP, TIFF (8-16 bit, packed 10/12-bit, multi-page stacks) and "
+        "tirdeflect HDF5 recordings.",
+    )
+    p.add_argument("reference", help="reference image of the flat surface (or a recording "
+                   "holding a /reference)")
+    p.add_argument("frames", nargs="+", metavar="FRAME",
+                   help="frames to process, in order (files, stacks or recordings)")
+    p.add_argument("--geometry", required=True, metavar="G.toml",
+                   help="optical geometry (TOML; see `tirdeflect simulate` for an example)")
+    p.add_argument("--out", required=True, metavar="OUT.h5", help="output HDF5 file")
+    p.add_argument("--grid", choices=("full", "decimated"), default="full",
+                   help="full: heights on every input pixel; decimated: faster, on a coarser "
+                   "grid (coordinates in x_mm, y_mm)")
+    p.add_argument("--no-unwrap", action="store_true",
+                   help="do not unwrap carrier phases (only for small displacements)")
+    p.add_argument("--first", type=_nonnegative_int, default=0, metavar="K",
+                   help="first frame to process (0-based, counting every frame of every "
+                   "input in order)")
+    p.add_argument("--last", type=_nonnegative_int, default=None, metavar="K",
+                   help="last frame to process (inclusive)")
+    p.add_argument("--step", type=_positive_int, default=1, metavar="S",
+                   help="process every S-th frame")
+    p.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
+    p.add_argument("--compression", choices=("none", "gzip", "lzf"), default="none",
+                   help="HDF5 compression of the per-frame datasets (default none)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_process)
+
+
+def add_simulate_parser(sub) -> None:
+    """Add the ``simulate`` subcommand to an argparse subparsers object."""
+    p = sub.add_parser(
+        "simulate",
+        help="write a ray-traced synthetic data set with known heights",
+        description="Write reference, frames, true heights (heights.h5, mm) and "
+        "geometry.toml made by exact ray tracing, to check the processing chain.",
+    )
+    p.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    p.add_argument("--surface", default="bump",
+                   choices=("bump", "dimple", "waves", "deep-dimple"),
+                   help="surface deformation to simulate")
+    p.add_argument("--size", type=_positive_int, default=512, metavar="PX",
+                   help="image size in pixels (square)")
+    p.add_argument("--frames", type=_positive_int, default=1, metavar="N",
+                   help="number of frames (time steps)")
+    p.add_argument("--bits", type=int, choices=(8, 12), default=8,
+                   help="bit depth of the images (12 bit: 16-bit TIFF)")
+    p.add_argument("--noise", type=float, default=0.0, metavar="RMS",
+                   help="camera noise, RMS in grey levels of the output bit depth")
+    p.add_argument("--geometry", default=None, metavar="G.toml",
+                   help="optical geometry (default: a typical TIR set-up)")
+    p.add_argument("--seed", type=int, default=0, help="random seed of the noise")
+    p.add_argument("--overwrite", action="store_true",
+                   help="write into DIR even if it already holds a data set")
+    p.set_defaults(func=cmd_simulate)
+
+
+# =========================================================================== helpers
+
+
+def _check_input_file(path: str, what: str) -> None:
+    p = Path(path)
+    if not p.exists():
+        raise TirdeflectError(f"{what} {path!r} does not exist; check the path")
+    if p.is_dir():
+        raise TirdeflectError(f"{what} {path!r} is a directory; give the file itself")
+
+
+def _load_geometry(path: str):
+    _check_input_file(path, "geometry file")
+    from processing import Geometry
+
+    return Geometry.from_toml(path)
+
+
+def _check_output(out: Path, overwrite: bool) -> None:
+    if out.is_dir():
+        raise TirdeflectError(
+            f"--out {str(out)!r} is a directory; give a file name, e.g. {str(out / 'heights.h5')!r}"
+        )
+    if out.exists() and not overwrite:
+        raise OutputExistsError(
+            f"output {str(out)!r} already exists; choose another --out or add --overwrite"
+        )
+    parent = out.parent if str(out.parent) else Path(".")
+    if not parent.is_dir():
+        raise TirdeflectError(
+            f"the directory of --out {str(out)!r} does not exist; create {str(parent)!r} first"
+        )
+    if not os.access(parent, os.W_OK):
+        raise TirdeflectError(f"cannot write to {str(parent)!r}; choose another --out")
+
+
+def _selected_count(total: int, first: int, last: int | None, step: int) -> int:
+    stop = total - 1 if last is None else min(last, total - 1)
+    if first > stop:
+        return 0
+    return (stop - first) // step + 1
+
+
+def _make_reconstructor(reference: np.ndarray, geometry, *, unwrap: bool):
+    from processing import Reconstructor
+
+    kwargs = {}
+    try:
+        params = inspect.signature(Reconstructor).parameters
+    except (TypeError, ValueError):  # pragma: no cover
+        params = {}
+    if "unwrap" in params or any(p.kind is p.VAR_KEYWORD for p in params.values()):
+        kwargs["unwrap"] = unwrap
+    elif not unwrap:
+        log.warning("this Reconstructor has no 'unwrap' option; --no-unwrap is ignored")
+    return Reconstructor(reference, geometry, **kwargs)
+
+
+def _call_reconstruct(reconstruct, image, grid: str):
+    try:
+        return reconstruct(image, grid=grid)
+    except TypeError as exc:
+        if "grid" not in str(exc):
+            raise
+        if grid != "full":
+            raise TirdeflectError("this Reconstructor does not support --grid decimated") from exc
+        return reconstruct(image)
+
+
+def _attr_value(value):
+    """Convert a value to something HDF5 stores as an attribute, or None to skip."""
+    if value is None:
+        return None
+    if isinstance(value, (bool, np.bool_)):
+        return np.bool_(value)
+    if isinstance(value, (int, float, str, np.integer, np.floating)):
+        return value
+    if isinstance(value, Path):
+        return str(value)
+    if isinstance(value, complex):
+        return np.array([value.real, value.imag])
+    try:
+        arr = np.asarray(value)
+    except Exception:
+        return str(value)
+    if arr.dtype == object:
+        return str(value)
+    if np.iscomplexobj(arr):
+        arr = np.stack([arr.real, arr.imag], axis=-1)
+    if arr.dtype.kind in "US":
+        return arr.astype(str).tolist()
+    return arr
+
+
+def _flatten(obj, prefix: str = "") -> dict:
+    """Flatten a dataclass / dict / object of scalars and arrays to ``{dotted.key: value}``."""
+    out: dict = {}
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        items = ((f.name, getattr(obj, f.name)) for f in dataclasses.fields(obj))
+    elif isinstance(obj, dict):
+        items = obj.items()
+    elif hasattr(obj, "_asdict"):
+        items = obj._asdict().items()
+    elif hasattr(obj, "__dict__"):
+        items = ((k, v) for k, v in vars(obj).items() if not k.startswith("_"))
+    else:
+        value = _attr_value(obj)
+        if value is not None:
+            out[prefix or "value"] = value
+        return out
+    for key, value in items:
+        name = f"{prefix}.{key}" if prefix else str(key)
+        if isinstance(value, dict) or (dataclasses.is_dataclass(value) and not isinstance(value, type)):
+            out.update(_flatten(value, name))
+            continue
+        if isinstance(value, (list, tuple)) and value and all(isinstance(v, (list, tuple)) for v in value):
+            # e.g. fsss_layers ((thickness_mm, n), ...): a 2-D array if rectangular
+            try:
+                arr = np.asarray(value, dtype=float)
+                out[name] = arr
+                continue
+            except (TypeError, ValueError):
+                pass
+        converted = _attr_value(value)
+        if converted is not None:
+            out[name] = converted
+    return out
+
+
+def _carrier_attrs(carriers) -> dict:
+    """Carrier information (periods, rotation, wavevectors...) as attributes."""
+    if carriers is None:
+        return {}
+    attrs = _flatten(carriers)
+    # Properties are not dataclass fields: pick up the documented ones explicitly.
+    for name in ("periods_px", "periods", "rotation_deg", "rotation", "wavevectors",
+                 "theta_estimate_deg", "theta_deg"):
+        if name not in attrs and hasattr(carriers, name):
+            try:
+                value = _attr_value(getattr(carriers, name))
+            except Exception:
+                value = None
+            if value is not None:
+                attrs[name] = value
+    return attrs
+
+
+def _geometry_attrs(geometry) -> tuple[str, dict]:
+    toml_text = ""
+    try:
+        toml_text = geometry.to_toml_text()
+    except Exception as exc:  # keep processing; the flattened attrs still describe it
+        log.warning("could not render the geometry as TOML (%s)", exc)
+    try:
+        flat = _flatten(geometry.to_dict())
+    except Exception:
+        flat = _flatten(geometry)
+    return toml_text, flat
+
+
+def _utc_now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+
+
+def _set_attrs(node, attrs: dict) -> None:
+    for key, value in attrs.items():
+        try:
+            node.attrs[key] = value
+        except (TypeError, ValueError) as exc:
+            log.debug("attribute %s=%r not stored (%s)", key, value, exc)
+            node.attrs[key] = str(value)
+
+
+# =========================================================================== writer
+
+
+class _ResultWriter:
+    """Write results to OUT.h5 one frame at a time (see docs/output-format.md).
+
+    Per-frame datasets are created with the first result (its grid fixes their
+    shape), grow by one frame per :meth:`append` and are flushed each time.
+    """
+
+    PER_FRAME = ("height", "slope_x", "slope_y")
+
+    def __init__(self, path: Path, *, overwrite: bool, compression: str, attrs: dict,
+                 geometry_toml: str, geometry_attrs: dict, carrier_attrs: dict,
+                 reference: np.ndarray, expected: int):
+        import h5py
+
+        self.path = path
+        self.compression = None if compression == "none" else compression
+        self.f = h5py.File(path, "w" if overwrite else "x")
+        f = self.f
+        _set_attrs(f, attrs)
+        f.attrs["frames_done"] = 0
+        f.attrs["frames_expected"] = int(expected)
+        f.attrs["status"] = "running"
+        f.attrs["geometry_toml"] = geometry_toml
+        _set_attrs(f.create_group("geometry"), geometry_attrs)
+        _set_attrs(f.create_group("carriers"), carrier_attrs)
+        ref = f.create_dataset("reference", data=reference, compression=self.compression)
+        ref.attrs["description"] = "reference image as read (unscaled samples)"
+        self.n = 0
+        self._shape = None
+        f.flush()
+
+    def _create(self, result) -> None:
+        import h5py
+
+        f = self.f
+        height = np.asarray(result.height)
+        rows, cols = height.shape
+        self._shape = (rows, cols)
+        kw = dict(shape=(0, rows, cols), maxshape=(None, rows, cols), chunks=(1, rows, cols),
+                  compression=self.compression)
+        units = {"height": "mm", "slope_x": "1 (dh/dx)", "slope_y": "1 (dh/dy)"}
+        for name in self.PER_FRAME:
+            ds = f.create_dataset(name, dtype=np.float32, fillvalue=np.nan, **kw)
+            ds.attrs["units"] = units[name]
+        f["height"].attrs["description"] = "surface height, mm, NaN where invalid"
+        f["slope_x"].attrs["description"] = "dh/dx, x along increasing column"
+        f["slope_y"].attrs["description"] = "dh/dy, y along increasing row"
+        valid = f.create_dataset("valid", dtype=np.uint8, fillvalue=0, **kw)
+        valid.attrs["description"] = "1 where the height was measured, 0 where masked"
+        x = f.create_dataset("x_mm", data=np.asarray(result.x_mm, dtype=np.float64))
+        y = f.create_dataset("y_mm", data=np.asarray(result.y_mm, dtype=np.float64))
+        x.attrs["units"] = "mm"
+        y.attrs["units"] = "mm"
+        x.attrs["description"] = "surface x of each column (increasing column)"
+        y.attrs["description"] = "surface y of each row (increasing row)"
+        x.make_scale("x_mm")
+        y.make_scale("y_mm")
+        for name in (*self.PER_FRAME, "valid"):
+            f[name].dims[1].attach_scale(y)
+            f[name].dims[2].attach_scale(x)
+        f.create_dataset("frame_index", shape=(0,), maxshape=(None,), dtype=np.int64, chunks=(1024,))
+        f["frame_index"].attrs["description"] = (
+            "0-based index of each output frame in the whole input sequence")
+        f.create_dataset("source_index", shape=(0,), maxshape=(None,), dtype=np.int64, chunks=(1024,))
+        f["source_index"].attrs["description"] = "page / recording frame within its source file"
+        f.create_dataset("source", shape=(0,), maxshape=(None,), dtype=h5py.string_dtype(),
+                         chunks=(1024,))
+        f["source"].attrs["description"] = "input file of each output frame"
+        f.attrs["grid"] = str(getattr(result, "grid", "full"))
+
+    def append(self, item: imageio.FrameItem, result) -> None:
+        if self._shape is None:
+            self._create(result)
+        f = self.f
+        height = np.asarray(result.height, dtype=np.float32)
+        if height.shape != self._shape:
+            raise ShapeMismatchError(
+                f"result grid {height.shape} differs from the first frame's {self._shape}"
+            )
+        valid = np.asarray(result.valid, dtype=bool)
+        k = self.n
+        for name in (*self.PER_FRAME, "valid", "frame_index", "source_index", "source"):
+            f[name].resize(k + 1, axis=0)
+        f["height"][k] = np.where(valid, height, np.float32(np.nan))
+        f["slope_x"][k] = np.asarray(result.slope_x, dtype=np.float32)
+        f["slope_y"][k] = np.asarray(result.slope_y, dtype=np.float32)
+        f["valid"][k] = valid.astype(np.uint8)
+        f["frame_index"][k] = item.sequence_index
+        f["source_index"][k] = item.index_in_source
+        f["source"][k] = item.source
+        self.n = k + 1
+        f.attrs["frames_done"] = self.n
+        f.flush()
+
+    def close(self, status: str) -> None:
+        if self.f is None:
+            return
+        try:
+            self.f.attrs["status"] = status
+            self.f.attrs["finished_utc"] = _utc_now()
+            self.f.flush()
+        finally:
+            self.f.close()
+            self.f = None
+
+
+# =========================================================================== process
+
+
+def cmd_process(args) -> int:
+    """Run ``tirdeflect process``; returns the exit status (errors raise)."""
+    out = Path(args.out)
+    _check_output(out, args.overwrite)
+
+    # Cheap checks of every input before any work: existence, directories,
+    # stack/recording headers; decoding errors of plain images show up per frame.
+    _check_input_file(args.reference, "reference")
+    counts = [imageio.frame_count(path) for path in args.frames]
+    total = sum(counts)
+    selected = _selected_count(total, args.first, args.last, args.step)
+    if selected == 0:
+        raise TirdeflectError(
+            f"--first {args.first} --last {args.last} --step {args.step} selects no frame "
+            f"of the {total} input frame(s); frames are counted from 0"
+        )
+
+    geometry = _load_geometry(args.geometry)
+    reference = imageio.read_reference(args.reference)
+
+    from app import cache
+
+    cache.restore_fftw_wisdom()
+    reconstruct = _make_reconstructor(reference, geometry, unwrap=not args.no_unwrap)
+    if hasattr(reconstruct, "reset_series"):
+        reconstruct.reset_series()
+
+    geometry_toml, geometry_attrs = _geometry_attrs(geometry)
+    attrs = {
+        "software": "tirdeflect",
+        "software_version": _version(),
+        "format_version": OUTPUT_FORMAT_VERSION,
+        "created_utc": _utc_now(),
+        "command": shlex.join([Path(sys.argv[0]).name or "tirdeflect", *sys.argv[1:]])
+        if sys.argv else "",
+        "reference_file": str(args.reference),
+        "geometry_file": str(args.geometry),
+        "input_files": [str(p) for p in args.frames],
+        "first": args.first,
+        "last": -1 if args.last is None else args.last,
+        "step": args.step,
+        "unwrap": not args.no_unwrap,
+        "grid_requested": args.grid,
+        "height_units": "mm",
+        "reference_bits": _bits_hint(args.reference, reference),
+    }
+    writer = _ResultWriter(
+        out, overwrite=args.overwrite, compression=args.compression, attrs=attrs,
+        geometry_toml=geometry_toml, geometry_attrs=geometry_attrs,
+        carrier_attrs=_carrier_attrs(getattr(reconstruct, "carriers", None)),
+        reference=reference, expected=selected,
+    )
+    status = "failed"
+    progress = _progress(selected, disable=args.no_progress)
+    try:
+        item = None
+        frames = imageio.iter_frames(args.frames, first=args.first, last=args.last, step=args.step)
+        while True:
+            try:
+                item = next(frames)
+            except StopIteration:
+                break
+            except TirdeflectError as exc:
+                raise _frame_failed(exc, None, writer) from exc
+            try:
+                result = _process_one(reconstruct, item, reference.shape, args.grid)
+                writer.append(item, result)
+            except TirdeflectError as exc:
+                raise _frame_failed(exc, item, writer) from exc
+            log.debug("frame %d (%s) written to %s", item.sequence_index, item.label, out)
+            progress.update(1)
+        status = "complete"
+    except KeyboardInterrupt:
+        status = f"interrupted after {writer.n} frame(s)"
+        raise
+    except BaseException as exc:
+        status = f"failed after {writer.n} frame(s): {exc}"
+        raise
+    finally:
+        progress.close()
+        writer.close(status)
+        cache.store_fftw_wisdom()
+    print(f"tirdeflect: wrote {writer.n} frame(s) to {out}", file=sys.stderr)
+    return 0
+
+
+def _process_one(reconstruct, item: imageio.FrameItem, ref_shape, grid: str):
+    if item.image.shape != tuple(ref_shape):
+        raise ShapeMismatchError(
+            f"frame has shape {item.image.shape} (rows, cols) but the reference has "
+            f"{tuple(ref_shape)}; use frames and reference from the same camera and region"
+        )
+    result = _call_reconstruct(reconstruct, item.image, grid)
+    valid = np.asarray(result.valid, dtype=bool)
+    if not valid.any():
+        raise AllInvalidError(
+            "no pixel of the frame could be measured (no pattern contrast: black, "
+            "saturated or fully blurred frame); check exposure and that the pattern is in view"
+        )
+    return result
+
+
+def _frame_failed(exc: Exception, item, writer: _ResultWriter) -> TirdeflectError:
+    where = f"frame {item.sequence_index} ({item.label})" if item is not None else "reading the next frame"
+    saved = (
+        f"the {writer.n} frame(s) before it are saved in {str(writer.path)!r}"
+        if writer.n
+        else f"no frame was saved ({str(writer.path)!r} holds only the reference and metadata)"
+    )
+    new = type(exc)(f"{where} failed: {exc}; {saved}")
+    return new if isinstance(new, TirdeflectError) else TirdeflectError(str(new))
+
+
+def _bits_hint(path: str, image: np.ndarray) -> int:
+    try:
+        return int(imageio.image_info(path).bits)
+    except Exception:
+        return int(image.dtype.itemsize * 8)
+
+
+def _version() -> str:
+    from app.cli import version
+
+    return version()
+
+
+class _NoProgress:
+    def update(self, n=1):
+        pass
+
+    def close(self):
+        pass
+
+
+def _progress(total: int, *, disable: bool):
+    if disable:
+        return _NoProgress()
+    try:
+        from tqdm import tqdm
+    except ImportError:
+        return _NoProgress()
+    # disable=None: bar only when stderr is a terminal (log files stay clean)
+    return tqdm(total=total, unit="frame", file=sys.stderr, disable=None, dynamic_ncols=True)
+
+
+# =========================================================================== simulate
+
+
+def cmd_simulate(args) -> int:
+    """Run ``tirdeflect simulate``; returns the exit status (errors raise)."""
+    from processing import forward
+
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise TirdeflectError(f"--out {str(out)!r} exists and is not a directory; choose a directory")
+    if out.is_dir() and (out / "reference.png").exists() | (out / "reference.tif").exists() \
+            and not args.overwrite:
+        raise OutputExistsError(
+            f"{str(out)!r} already holds a simulated data set; choose another --out or add --overwrite"
+        )
+    if not math.isfinite(args.noise) or args.noise < 0:
+        raise TirdeflectError(f"--noise must be a finite RMS >= 0 grey levels; got {args.noise}")
+    geometry = _load_geometry(args.geometry) if args.geometry else None
+    out.mkdir(parents=True, exist_ok=True)
+
+    sim = forward.simulate(
+        surface=args.surface, size=args.size, frames=args.frames, bits=args.bits,
+        noise_rms=args.noise, geometry=geometry, rng=np.random.default_rng(args.seed),
+    )
+    _write_simulation(out, sim, args)
+    return 0
+
+
+def _write_simulation(out: Path, sim, args) -> None:
+    import h5py
+
+    suffix = ".png" if args.bits <= 8 else ".tif"
+    imageio.write_image(out / f"reference{suffix}", sim.reference)
+    names = []
+    for k, frame in enumerate(sim.frames):
+        name = f"frame_{k:04d}{suffix}"
+        imageio.write_image(out / name, frame)
+        names.append(name)
+    geometry_text = sim.geometry.to_toml_text()
+    (out / "geometry.toml").write_text(geometry_text, encoding="utf-8")
+    heights = np.asarray(sim.heights, dtype=np.float32)
+    with h5py.File(out / "heights.h5", "w") as f:
+        ds = f.create_dataset("height", data=heights, chunks=(1, *heights.shape[1:]))
+        ds.attrs["units"] = "mm"
+        ds.attrs["description"] = (
+            "true surface height sampled where each pixel's camera ray meets the surface")
+        f.create_dataset("frame_file", data=np.array(names, dtype=object),
+                         dtype=h5py.string_dtype())
+        f.attrs["surface"] = args.surface
+        f.attrs["bits"] = args.bits
+        f.attrs["noise_rms"] = args.noise
+        f.attrs["seed"] = args.seed
+        f.attrs["geometry_toml"] = geometry_text
+        f.attrs["software_version"] = _version()
+        f.attrs["created_utc"] = _utc_now()
+        for key in ("x_mm", "y_mm"):
+            if getattr(sim, key, None) is not None:
+                f.create_dataset(key, data=np.asarray(getattr(sim, key), dtype=np.float64))
+    print(f"tirdeflect: wrote reference, {len(names)} frame(s), heights.h5 and geometry.toml "
+          f"to {out}", file=sys.stderr)
