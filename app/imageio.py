@@ -184,7 +184,7 @@ def _to_gray(image: np.ndarray, p: Path) -> np.ndarray:
 
 
 def _check_dtype(image: np.ndarray, p: Path) -> np.ndarray:
-    if image.dtype in (np.uint8, np.uint16, np.float32, np.float64):
+    if image.dtype in (np.uint8, np.uint16, np.float32):
         return image
     if image.dtype == np.bool_:
         return image.astype(np.uint8)
