@@ -278,11 +278,12 @@ def _carrier_attrs(carriers) -> dict:
         return {}
     attrs = _flatten(carriers)
     # Properties are not dataclass fields: pick up the documented ones explicitly.
-    for name in ("periods_px", "periods", "rotation_deg", "rotation", "wavevectors",
-                 "theta_estimate_deg", "theta_deg"):
+    for name in ("periods_px", "angles_deg", "rotation_deg", "wavevectors",
+                 "theta_deg", "describe"):
         if name not in attrs and hasattr(carriers, name):
             try:
-                value = _attr_value(getattr(carriers, name))
+                value = getattr(carriers, name)
+                value = _attr_value(value() if callable(value) else value)
             except Exception:
                 value = None
             if value is not None:
