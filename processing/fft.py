@@ -1,0 +1,232 @@
+"""FFTW plans for the demodulation: float32/complex64, multithreaded, built once.
+
+The numerics need three kinds of transforms, each for one fixed shape per
+reference: a real-to-complex forward transform of the full frame, small
+complex inverse transforms of the windows cut around each carrier (decimated
+grid) and, optionally, full-size complex inverse transforms (full grid).
+
+:class:`FFTPlanner` builds a plan the first time a (kind, shape) is asked for
+and keeps it; planning happens on scratch arrays (FFTW_MEASURE overwrites
+its arrays), so callers never lose data to the planner.  One planner belongs
+to one :class:`~processing.reconstruct.Reconstructor`: plans own their
+arrays, so two threads must not share a planner.
+
+FFTW's *wisdom* (what the planner measured) is global to the process;
+:func:`export_wisdom` packs it into one ``bytes`` object that the app stores
+on disk, and :func:`import_wisdom` loads it back, so that FFTW_MEASURE plans
+cost milliseconds on the next start.  Processing never touches files.
+"""
+
+from __future__ import annotations
+
+import struct
+import threading
+
+import numpy as np
+import pyfftw
+
+__all__ = [
+    "FFTPlanner",
+    "PLANNER_EFFORTS",
+    "export_wisdom",
+    "import_wisdom",
+]
+
+#: Planner efforts FFTW accepts, cheapest first.  Tests use FFTW_ESTIMATE
+#: (no measuring), the app FFTW_MEASURE together with cached wisdom.
+PLANNER_EFFORTS = ("FFTW_ESTIMATE", "FFTW_MEASURE", "FFTW_PATIENT", "FFTW_EXHAUSTIVE")
+
+_WISDOM_MAGIC = b"TIRDFFTW1\n"
+_wisdom_lock = threading.Lock()
+
+
+def export_wisdom() -> bytes:
+    """Return FFTW's accumulated wisdom (all precisions) as one bytes object.
+
+    Returns
+    -------
+    bytes
+        Opaque blob for :func:`import_wisdom`; store it as a binary file.
+    """
+    with _wisdom_lock:
+        parts = pyfftw.export_wisdom()
+    out = [_WISDOM_MAGIC, struct.pack("<I", len(parts))]
+    for part in parts:
+        out.append(struct.pack("<Q", len(part)))
+        out.append(bytes(part))
+    return b"".join(out)
+
+
+def import_wisdom(wisdom: bytes) -> bool:
+    """Load wisdom produced by :func:`export_wisdom` (possibly by another run).
+
+    Parameters
+    ----------
+    wisdom : bytes
+        Blob from :func:`export_wisdom`.
+
+    Returns
+    -------
+    bool
+        True if FFTW accepted the wisdom of every precision.  False means the
+        blob came from another FFTW build: plans will simply be measured
+        again (slower start, same results).
+
+    Raises
+    ------
+    ValueError
+        If ``wisdom`` is not a tirdeflect wisdom blob (wrong file?).
+    """
+    if not isinstance(wisdom, (bytes, bytearray, memoryview)):
+        raise ValueError(
+            f"FFTW wisdom must be bytes from export_wisdom(); got {type(wisdom).__name__}"
+        )
+    blob = bytes(wisdom)
+    if not blob.startswith(_WISDOM_MAGIC):
+        raise ValueError(
+            "FFTW wisdom blob does not start with the tirdeflect header "
+            f"(first bytes {blob[:12]!r}); delete the wisdom file, it is rebuilt on the next run"
+        )
+    pos = len(_WISDOM_MAGIC)
+    try:
+        (count,) = struct.unpack_from("<I", blob, pos)
+        pos += 4
+        parts = []
+        for _ in range(count):
+            (length,) = struct.unpack_from("<Q", blob, pos)
+            pos += 8
+            if pos + length > len(blob):
+                raise struct.error("truncated")
+            parts.append(blob[pos:pos + length])
+            pos += length
+    except struct.error:
+        raise ValueError(
+            f"FFTW wisdom blob is truncated ({len(blob)} bytes); delete the wisdom "
+            "file, it is rebuilt on the next run"
+        ) from None
+    with _wisdom_lock:
+        ok = pyfftw.import_wisdom(tuple(parts))
+    return bool(np.all(ok))
+
+
+class FFTPlanner:
+    """Cache of FFTW plans (float32/complex64) for fixed shapes.
+
+    Parameters
+    ----------
+    threads : int, optional
+        Threads FFTW may use per transform (default 2).
+    planner_effort : str, optional
+        One of :data:`PLANNER_EFFORTS`.  ``"FFTW_ESTIMATE"`` plans instantly
+        (tests); ``"FFTW_MEASURE"`` (default) times candidate algorithms once
+        per shape, which pays off for live processing, especially with wisdom
+        imported from an earlier run.
+
+    Notes
+    -----
+    Each plan owns aligned input and output arrays.  The methods copy the
+    caller's data into the plan's input array and return the plan's output
+    array, which the next call of the same plan overwrites: copy it if it must
+    live longer.
+    """
+
+    def __init__(self, *, threads: int = 2, planner_effort: str = "FFTW_MEASURE"):
+        if planner_effort not in PLANNER_EFFORTS:
+            raise ValueError(
+                f"planner_effort must be one of {PLANNER_EFFORTS}; got {planner_effort!r}"
+            )
+        threads = int(threads)
+        if threads < 1:
+            raise ValueError(f"threads must be >= 1; got {threads}")
+        self.threads = threads
+        self.planner_effort = planner_effort
+        self._plans = {}
+
+    def _plan(self, kind, shape):
+        key = (kind, tuple(int(s) for s in shape))
+        plan = self._plans.get(key)
+        if plan is not None:
+            return plan
+        rows, cols = key[1]
+        if kind == "rfft2":
+            src = pyfftw.empty_aligned((rows, cols), dtype="float32")
+            dst = pyfftw.empty_aligned((rows, cols // 2 + 1), dtype="complex64")
+            direction = "FFTW_FORWARD"
+        elif kind == "fft2":
+            src = pyfftw.empty_aligned((rows, cols), dtype="complex64")
+            dst = pyfftw.empty_aligned((rows, cols), dtype="complex64")
+            direction = "FFTW_FORWARD"
+        elif kind == "ifft2":
+            src = pyfftw.empty_aligned((rows, cols), dtype="complex64")
+            dst = pyfftw.empty_aligned((rows, cols), dtype="complex64")
+            direction = "FFTW_BACKWARD"
+        else:  # pragma: no cover - internal misuse
+            raise ValueError(f"unknown transform kind {kind!r}")
+        # Small transforms gain nothing from threads (and lose to the overhead).
+        threads = self.threads if rows * cols >= 128 * 128 else 1
+        with _wisdom_lock:
+            plan = pyfftw.FFTW(
+                src, dst, axes=(0, 1), direction=direction,
+                flags=(self.planner_effort, "FFTW_DESTROY_INPUT"), threads=threads,
+            )
+        self._plans[key] = plan
+        return plan
+
+    def prepare(self, kind: str, shape) -> None:
+        """Build (plan) a transform ahead of time so that no call pays for it.
+
+        Parameters
+        ----------
+        kind : {"rfft2", "fft2", "ifft2"}
+        shape : tuple of int
+            ``(rows, cols)`` of the real input (rfft2) or of the complex array.
+        """
+        self._plan(kind, shape)
+
+    def input_array(self, kind: str, shape) -> np.ndarray:
+        """The plan's own input array: write into it, then call ``execute(kind, shape)``.
+
+        Saves one copy per transform on the live path.
+        """
+        return self._plan(kind, shape).input_array
+
+    def execute(self, kind: str, shape) -> np.ndarray:
+        """Run the plan on whatever its input array holds; return its output array.
+
+        Inverse transforms are normalised by ``1 / (rows * cols)``.
+        """
+        plan = self._plan(kind, shape)
+        plan.execute()
+        out = plan.output_array
+        if kind == "ifft2":
+            out *= np.float32(1.0 / (out.shape[0] * out.shape[1]))
+        return out
+
+    def rfft2(self, image: np.ndarray) -> np.ndarray:
+        """Forward real FFT of a 2-D float image.
+
+        Parameters
+        ----------
+        image : ndarray, shape (rows, cols)
+            Any real dtype; converted to float32.
+
+        Returns
+        -------
+        ndarray, complex64, shape (rows, cols // 2 + 1)
+            Unnormalised spectrum (the plan's output array).
+        """
+        shape = image.shape
+        self.input_array("rfft2", shape)[...] = image
+        return self.execute("rfft2", shape)
+
+    def fft2(self, array: np.ndarray) -> np.ndarray:
+        """Forward complex FFT (complex64), unnormalised; the plan's output array."""
+        shape = array.shape
+        self.input_array("fft2", shape)[...] = array
+        return self.execute("fft2", shape)
+
+    def ifft2(self, spectrum: np.ndarray) -> np.ndarray:
+        """Inverse complex FFT (complex64), normalised; the plan's output array."""
+        shape = spectrum.shape
+        self.input_array("ifft2", shape)[...] = spectrum
+        return self.execute("ifft2", shape)
