@@ -1,0 +1,1 @@
+"""The live window (PySide6 + pyqtgraph): ``python3 -m app.gui`` or ``tirdeflect gui``."""

@@ -1,0 +1,54 @@
+"""Entry point of the live window: ``main(argv=None) -> int``."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from typing import Optional, Sequence
+
+__all__ = ["main", "build_parser"]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="tirdeflect gui", description="Live TIR deflectometry window.")
+    p.add_argument("--camera", default=None,
+                   help="camera id (synthetic, aravis:..., gentl:...); default: first found, else synthetic")
+    p.add_argument("--geometry", default=None, help="geometry TOML to load at start")
+    p.add_argument("--reference", default=None, help="reference image to load at start")
+    p.add_argument("--size", type=int, default=512, help="synthetic camera frame size in pixels (square)")
+    p.add_argument("--rate", type=float, default=60.0, help="synthetic camera frame rate (Hz)")
+    p.add_argument("--quit-after", type=float, default=None, metavar="S",
+                   help="close the window after S seconds (smoke tests)")
+    p.add_argument("--debug", action="store_true", help="log debug messages")
+    return p
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    """Open the live window; returns the exit code of the Qt event loop (0 normally, 2 on bad arguments)."""
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.debug else logging.INFO,
+                        format="%(asctime)s %(name)s %(levelname)s: %(message)s")
+    import pyqtgraph as pg
+    from pyqtgraph.Qt import QtCore
+
+    from .window import MainWindow
+
+    app = pg.mkQApp("tirdeflect")
+    window = MainWindow(args.camera, synthetic_options={"shape": (args.size, args.size),
+                                                        "frame_rate_hz": args.rate})
+    if args.geometry:
+        window.load_geometry(args.geometry)
+    if args.reference:
+        window.load_reference(args.reference)
+    window.show()
+    if args.quit_after is not None:
+        QtCore.QTimer.singleShot(int(1000 * args.quit_after), window.close)
+    try:
+        return int(app.exec())
+    finally:
+        window.shutdown()
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

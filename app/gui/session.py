@@ -1,0 +1,277 @@
+"""The live pipeline behind the window, wired in one place (no widgets here).
+
+::
+
+    camera (drivers) -> Acquisition thread -> RingBuffer -> recorder (every frame, own cursor)
+                                                         -> ProcessingWorker (newest only) -> window
+
+Everything here may block (opening cameras, capturing a reference, arming a
+recording); the window calls those methods from background threads. Status
+getters never block.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import threading
+import time
+from typing import Optional
+
+import numpy as np
+
+from app.worker import ProcessingWorker
+
+__all__ = ["LiveSession", "Opened"]
+
+
+@dataclasses.dataclass
+class Opened:
+    """What :meth:`LiveSession.open` found and started."""
+
+    camera_id: str
+    settings: object
+    cameras: list
+    note: str = ""
+    reference: Optional[np.ndarray] = None
+    geometry: object = None
+    use_scene_reference: bool = False
+
+
+class LiveSession:
+    """Camera, acquisition, processing worker, trigger and recorder of the live window.
+
+    Parameters
+    ----------
+    synthetic_options : dict, optional
+        Keyword arguments for :func:`app.scene.open_synthetic_camera`.
+    ring_bytes : int
+        Memory for the camera ring buffer (bytes); the pre-trigger length must fit.
+    stall_timeout_s : float
+        A free-running camera that delivers nothing for this long is declared lost.
+    """
+
+    def __init__(self, *, synthetic_options: Optional[dict] = None, ring_bytes: int = 512 * 2**20,
+                 stall_timeout_s: float = 3.0):
+        self.synthetic_options = dict(synthetic_options or {})
+        self.ring_bytes = int(ring_bytes)
+        self.stall_timeout_s = float(stall_timeout_s)
+        self.camera = None
+        self.acquisition = None
+        self.camera_id: Optional[str] = None
+        self.reference: Optional[np.ndarray] = None
+        self._lock = threading.RLock()
+        self._settings = None
+        self._latest_out = None
+        self._source_acq = None
+        self._seq_base = 0
+        self.worker = ProcessingWorker(self._newest_frame, grid="decimated")
+        self.worker.start()
+        self.capture = None  # app.trigger capture (pre/post) while armed
+        self.recording: Optional[dict] = None
+        self._auto_trigger = None
+
+    # ------------------------------------------------------------ cameras
+    @staticmethod
+    def list_cameras():
+        """``(infos, note)`` from :func:`drivers.list_cameras` (synthetic always offered)."""
+        import drivers
+
+        infos = list(drivers.list_cameras())
+        real = [i for i in infos if i.backend != "synthetic"]
+        note = (f"{len(real)} camera(s) found" if real else
+                "no camera found: the synthetic camera (ray-traced water surface) stands in")
+        return infos, note
+
+    def open(self, camera_id: Optional[str] = None) -> Opened:
+        """Open ``camera_id`` (None: first real camera, else synthetic) and start streaming."""
+        infos, note = self.list_cameras()
+        if camera_id is None:
+            real = [i for i in infos if i.backend != "synthetic"]
+            camera_id = real[0].camera_id if real else "synthetic"
+        reference = geometry = None
+        if camera_id == "synthetic":
+            from app.scene import open_synthetic_camera
+
+            camera, reference, geometry, _ = open_synthetic_camera(**self.synthetic_options)
+        else:
+            import drivers
+
+            camera = drivers.open_camera(camera_id)
+        opened = self.use_camera(camera, camera_id=camera_id)
+        opened.cameras, opened.note = infos, note
+        opened.reference, opened.geometry = reference, geometry
+        opened.use_scene_reference = False
+        return opened
+
+    def use_camera(self, camera, *, camera_id: Optional[str] = None) -> Opened:
+        """Stream from an already constructed camera (opened here if needed); the old one is closed."""
+        self.close_camera()
+        if hasattr(camera, "open") and not getattr(camera, "_opened", False):
+            camera.open()
+        with self._lock:
+            self.camera = camera
+            self.camera_id = camera_id or getattr(camera, "camera_id", "camera")
+        self._restart_acquisition()
+        return Opened(self.camera_id, self._settings, [], "")
+
+    def _restart_acquisition(self):
+        from app.acquisition import Acquisition
+
+        with self._lock:
+            old = self.acquisition
+            self.acquisition = None
+        if old is not None:
+            try:
+                old.stop(timeout_s=5.0)
+            except Exception:  # noqa: BLE001 - the old camera may be gone already
+                pass
+        settings = self.camera.settings()
+        acq = Acquisition(self.camera, ring_bytes=self.ring_bytes, stall_timeout_s=self.stall_timeout_s)
+        acq.start()
+        with self._lock:
+            self._settings = settings
+            self.acquisition = acq
+            self._latest_out = None
+        self.worker.set_bit_depth(settings.bit_depth)
+
+    def camera_settings(self):
+        return self._settings
+
+    def configure(self, values: dict):
+        """Write camera settings (acquisition restarted around it); returns the accepted settings."""
+        if self.camera is None:
+            raise RuntimeError("no camera is open: open one first (Controls ▸ Camera ▸ Open)")
+        if self.capture is not None:
+            raise RuntimeError("a recording is armed: disarm it before changing camera settings")
+        with self._lock:
+            acq, self.acquisition = self.acquisition, None
+        if acq is not None:
+            acq.stop(timeout_s=5.0)
+        try:
+            accepted = self.camera.configure(**values)
+        finally:
+            self._restart_acquisition()
+        return accepted
+
+    def close_camera(self):
+        self.disarm()
+        with self._lock:
+            acq, self.acquisition = self.acquisition, None
+            cam, self.camera = self.camera, None
+        if acq is not None:
+            try:
+                acq.stop(timeout_s=5.0)
+            except Exception:  # noqa: BLE001
+                pass
+        if cam is not None:
+            try:
+                cam.close()
+            except Exception:  # noqa: BLE001
+                pass
+
+    # ------------------------------------------------------------- frames
+    def _newest_frame(self, after_seq: int, timeout_s: float):
+        """The worker's source: newest ring frame (copied), numbered on across camera restarts."""
+        acq = self.acquisition
+        if acq is None:
+            time.sleep(min(timeout_s, 0.05))
+            return None
+        if acq is not self._source_acq:  # a new acquisition numbers from 0 again
+            self._source_acq = acq
+            self._seq_base = after_seq + 1
+        f = acq.ring.latest(timeout_s)
+        if f is None:
+            if acq.ring.closed:
+                time.sleep(min(timeout_s, 0.05))
+            return None
+        return self._seq_base + f.sequence, f.image, f.host_timestamp_ns
+
+    def latest_frame(self):
+        """``(seq, image, host_ns)`` of the newest frame in the ring, copied; None if none. Never blocks."""
+        acq = self.acquisition
+        if acq is None:
+            return None
+        ring = acq.ring
+        head = ring.head
+        if head == 0:
+            return None
+        out = self._latest_out
+        if out is None or out.shape != ring.shape or out.dtype != ring.dtype:
+            out = self._latest_out = np.empty(ring.shape, ring.dtype)
+        f = ring.copy(head - 1, out)
+        if f is None:
+            return None
+        return f.sequence, f.image, f.host_timestamp_ns
+
+    def capture_reference(self, n_frames: int, timeout_s: Optional[float] = None) -> np.ndarray:
+        """Average the next ``n_frames`` frames (float32, counts); blocks up to ``timeout_s``."""
+        acq = self.acquisition
+        if acq is None:
+            raise RuntimeError("no camera is streaming: open a camera first")
+        if n_frames < 1:
+            raise ValueError(f"average at least 1 frame; got {n_frames}")
+        rate = (self._settings.frame_rate_hz or 10.0) if self._settings is not None else 10.0
+        if timeout_s is None:
+            timeout_s = 5.0 + 3.0 * n_frames / rate
+        cursor = acq.ring.cursor()
+        total = np.zeros(acq.ring.shape, np.float64)
+        got = 0
+        deadline = time.monotonic() + timeout_s
+        while got < n_frames:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise TimeoutError(f"only {got} of {n_frames} frames arrived within {timeout_s:.1f} s: "
+                                   "is the camera delivering (trigger mode, frame rate)?")
+            try:
+                f = cursor.read(min(left, 0.5))
+            except Exception as exc:  # RingClosed: camera lost
+                raise RuntimeError(f"camera stopped while capturing the reference: {exc}") from None
+            if f is None:
+                continue
+            total += f.image
+            got += 1
+        return (total / n_frames).astype(np.float32)
+
+    # ------------------------------------------------------------- status
+    def status(self) -> dict:
+        """Counters for the status bar (never blocks)."""
+        acq = self.acquisition
+        out = {"camera_text": "no camera" if self.camera_id is None else f"camera {self.camera_id}"}
+        if acq is None:
+            return out
+        s = acq.stats()
+        out["camera_fps"] = s["fps"]
+        out["dropped_camera"] = s["lost_upstream"] + s["lost_by_time"] + s["incomplete"]
+        out["error"] = s["error"]
+        rec = self.recording
+        if rec is not None:
+            out["dropped_ring"] = rec.get("ring_lost", 0)
+            out["dropped_recorder"] = rec.get("recorder_dropped", 0)
+            out["ring_fill"] = rec.get("ring_fill")
+        if out.get("ring_fill") is None:
+            out["ring_fill"] = None
+        return out
+
+    # ---------------------------------------------------------- recording
+    def arm(self, folder: str, pre_frames: int, post_frames: int, *, reference=None, geometry_toml=None,
+            auto_threshold=None) -> str:
+        raise RuntimeError("recording is not available yet: app.trigger / app.recorder have not landed")
+
+    def trigger_now(self):
+        raise RuntimeError("nothing armed: press Arm first")
+
+    def disarm(self):
+        self.capture = None
+
+    def recording_status(self) -> Optional[dict]:
+        return self.recording
+
+    # -------------------------------------------------------------- close
+    def close(self):
+        """Stop everything (idempotent)."""
+        self.close_camera()
+        try:
+            self.worker.stop(timeout_s=5.0)
+        except TimeoutError:
+            pass

@@ -1,0 +1,261 @@
+"""Live image views: a pyqtgraph ImageItem with axes in mm and a colour bar in physical units.
+
+Live video follows /work/shared/style.md: ``ImageItem`` in a plot (not ``ImageView``),
+explicit levels, ``autoLevels=False``, C-contiguous float32/uint8 arrays. Levels
+follow the data (robust percentiles of a subsample, at most a few times per
+second) until the user drags the colour bar; "Auto levels" in the view's context
+menu gives control back.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Optional, Sequence, Tuple
+
+import numpy as np
+import pyqtgraph as pg
+from pyqtgraph.Qt import QtCore, QtGui, QtWidgets
+
+__all__ = ["ImageView", "ProfileView", "HistogramView", "SpectrumView", "robust_levels"]
+
+pg.setConfigOptions(imageAxisOrder="row-major", antialias=False)
+
+
+def robust_levels(data: np.ndarray, *, symmetric: bool = False, lo_pct: float = 1.0,
+                  hi_pct: float = 99.0, max_samples: int = 20000) -> Tuple[float, float]:
+    """Display levels from percentiles of a subsample, ignoring NaN.
+
+    Parameters
+    ----------
+    data : ndarray
+        Any 2-D array (NaN allowed).
+    symmetric : bool
+        Levels ``(-m, m)`` around zero (heights, slopes).
+    lo_pct, hi_pct : float
+        Percentiles for the low and high level.
+
+    Returns
+    -------
+    (float, float)
+        Low and high level, ``low < high`` always.
+    """
+    flat = data.ravel()
+    step = max(1, flat.size // max_samples)
+    sub = flat[::step]
+    if sub.dtype.kind == "f":
+        sub = sub[np.isfinite(sub)]
+    if sub.size == 0:
+        return (0.0, 1.0)
+    if symmetric:
+        m = float(np.percentile(np.abs(sub), hi_pct))
+        m = m if m > 0 else 1.0
+        return (-m, m)
+    lo, hi = (float(v) for v in np.percentile(sub, [lo_pct, hi_pct]))
+    if not hi > lo:
+        hi = lo + 1.0
+    return (lo, hi)
+
+
+class ImageView(QtWidgets.QWidget):
+    """One live map: title, image with axes (mm or px), colour bar with units.
+
+    Parameters
+    ----------
+    title : str
+        Shown above the image.
+    units : str
+        Colour-bar label, e.g. "height (µm)".
+    cmap : str
+        pyqtgraph colour map name.
+    symmetric : bool
+        Auto levels symmetric around zero.
+    axis_units : str
+        Label of both axes ("mm" or "px").
+    """
+
+    def __init__(self, title: str, units: str, *, cmap: str = "viridis", symmetric: bool = False,
+                 axis_units: str = "mm", parent=None, levels_interval_s: float = 0.5):
+        super().__init__(parent)
+        self.title = title
+        self.units = units
+        self.symmetric = symmetric
+        self.auto_levels = True
+        self._levels_interval_s = levels_interval_s
+        self._levels_t = 0.0
+        self._levels: Tuple[float, float] = (0.0, 1.0)
+        self._rect = None
+        self._shape = None
+        self.updates = 0
+        layout = QtWidgets.QVBoxLayout(self)
+        layout.setContentsMargins(0, 0, 0, 0)
+        self.graphics = pg.GraphicsLayoutWidget()
+        self.graphics.setBackground("w")
+        layout.addWidget(self.graphics)
+        self.plot = self.graphics.addPlot()
+        self.plot.setTitle(f"<b>{title}</b>", color="#111", size="11pt")
+        self.plot.setAspectLocked(True)
+        self.plot.invertY(True)  # row 0 at the top, like the camera image
+        for side, name in (("bottom", "x"), ("left", "y")):
+            axis = self.plot.getAxis(side)
+            axis.enableAutoSIPrefix(False)
+            axis.setLabel(f"{name} ({axis_units})")
+        self.image = pg.ImageItem(axisOrder="row-major")
+        self.image.setAutoDownsample(True)
+        self.plot.addItem(self.image)
+        self.colorbar = pg.ColorBarItem(values=(0, 1), colorMap=pg.colormap.get(cmap), label=units,
+                                        interactive=True, width=14)
+        self.colorbar.setImageItem(self.image, insert_in=self.plot)
+        self.colorbar.sigLevelsChangeFinished.connect(self._user_levels)
+        self._setting_levels = False
+        act = self.plot.getViewBox().menu.addAction("Auto levels")
+        act.triggered.connect(self.reset_levels)
+        self.message = pg.TextItem("", color=(200, 0, 0), anchor=(0, 0))
+        self.message.setZValue(100)
+        self.plot.addItem(self.message)
+
+    # ------------------------------------------------------------------
+    def _user_levels(self, *_):
+        if not self._setting_levels:
+            self.auto_levels = False
+
+    def reset_levels(self) -> None:
+        """Let the levels follow the data again."""
+        self.auto_levels = True
+        self._levels_t = 0.0
+
+    def set_levels(self, levels: Tuple[float, float]) -> None:
+        """Fix the levels (stops auto levels)."""
+        self.auto_levels = False
+        self._apply_levels(levels)
+
+    def _apply_levels(self, levels):
+        self._levels = (float(levels[0]), float(levels[1]))
+        self._setting_levels = True
+        try:
+            self.colorbar.setLevels(self._levels)
+        finally:
+            self._setting_levels = False
+
+    @property
+    def levels(self) -> Tuple[float, float]:
+        return self._levels
+
+    def set_data(self, data: np.ndarray, *, x: Optional[np.ndarray] = None,
+                 y: Optional[np.ndarray] = None, levels: Optional[Tuple[float, float]] = None) -> None:
+        """Show ``data`` (2-D), placed at coordinates ``x`` (cols) and ``y`` (rows) if given.
+
+        Parameters
+        ----------
+        data : ndarray, shape (rows, cols)
+            float32 (NaN shown transparent) or uint8/uint16.
+        x, y : ndarray, optional
+            Column and row coordinates (mm) of the pixel centres; pixels otherwise.
+        levels : (float, float), optional
+            Explicit levels for this frame (otherwise auto/held levels).
+        """
+        if data.dtype.kind == "f" and data.dtype != np.float32:
+            data = data.astype(np.float32)
+        data = np.ascontiguousarray(data)
+        now = time.monotonic()
+        if levels is not None:
+            self._apply_levels(levels)
+        elif self.auto_levels and (now - self._levels_t >= self._levels_interval_s
+                                   or self._shape != data.shape):
+            self._apply_levels(robust_levels(data, symmetric=self.symmetric))
+            self._levels_t = now
+        self.image.setImage(data, autoLevels=False, levels=self._levels)
+        rect = self._rect_for(data.shape, x, y)
+        if rect != self._rect:
+            self.image.setRect(QtCore.QRectF(*rect))
+            self._rect = rect
+            self.plot.getViewBox().autoRange(padding=0.0)
+        self._shape = data.shape
+        self.updates += 1
+
+    @staticmethod
+    def _rect_for(shape, x, y):
+        rows, cols = shape
+        if x is None or y is None or len(x) < 2 or len(y) < 2:
+            return (0.0, 0.0, float(cols), float(rows))
+        dx = (float(x[-1]) - float(x[0])) / (len(x) - 1)
+        dy = (float(y[-1]) - float(y[0])) / (len(y) - 1)
+        return (float(x[0]) - dx / 2, float(y[0]) - dy / 2, dx * cols, dy * rows)
+
+    def show_message(self, text: str) -> None:
+        """Overlay a (red) message, e.g. why there is no map; empty string hides it."""
+        self.message.setText(text)
+        if self._rect is not None:
+            self.message.setPos(self._rect[0], self._rect[1])
+
+    def current_data(self) -> Optional[np.ndarray]:
+        return self.image.image
+
+
+class ProfileView(QtWidgets.QWidget):
+    """Height profile along a line: a plot of value vs distance along the line (mm)."""
+
+    def __init__(self, title: str = "Profile", units: str = "height (µm)", parent=None):
+        super().__init__(parent)
+        layout = QtWidgets.QVBoxLayout(self)
+        layout.setContentsMargins(0, 0, 0, 0)
+        self.plot = pg.PlotWidget()
+        self.plot.setTitle(f"<b>{title}</b>", color="#111", size="11pt")
+        self.plot.setBackground("w")
+        self.plot.setLabel("bottom", "distance along the line (mm)")
+        self.plot.setLabel("left", units)
+        self.plot.showGrid(x=True, y=True, alpha=0.3)
+        self.curve = self.plot.plot(pen=pg.mkPen("#1f77b4", width=2))
+        layout.addWidget(self.plot)
+
+    def set_profile(self, distance_mm: np.ndarray, values: np.ndarray) -> None:
+        self.curve.setData(np.asarray(distance_mm, float), np.asarray(values, float), connect="finite")
+
+
+class HistogramView(QtWidgets.QWidget):
+    """Histogram of raw pixel values (log counts) with the saturation percentage."""
+
+    def __init__(self, parent=None):
+        super().__init__(parent)
+        layout = QtWidgets.QVBoxLayout(self)
+        layout.setContentsMargins(0, 0, 0, 0)
+        self.plot = pg.PlotWidget()
+        self.plot.setBackground("w")
+        self.plot.setLabel("bottom", "pixel value")
+        self.plot.setLabel("left", "pixels (log10)")
+        self.plot.setMaximumHeight(170)
+        self.curve = self.plot.plot(stepMode="center", fillLevel=0, brush=(80, 80, 200, 120),
+                                    pen=pg.mkPen("#3040a0"))
+        layout.addWidget(self.plot)
+        self._title = ""
+
+    def set_image(self, image: np.ndarray, bit_depth: int, saturation_pct: float) -> None:
+        top = (1 << int(bit_depth)) - 1
+        sub = image[::4, ::4].ravel()
+        nbins = 256
+        if image.dtype == np.uint8 and bit_depth == 8:
+            counts = np.bincount(sub, minlength=256)[:256]
+        else:
+            counts, _ = np.histogram(sub, bins=nbins, range=(0, top + 1))
+        edges = np.linspace(0, top + 1, nbins + 1)
+        self.curve.setData(edges, np.log10(counts.astype(float) + 1.0))
+        title = f"<b>Raw histogram</b> — saturated: {saturation_pct:.2f} %"
+        if title != self._title:
+            self.plot.setTitle(title, color="#b00000" if saturation_pct > 0.5 else "#222")
+            self._title = title
+
+
+class SpectrumView(ImageView):
+    """Log-magnitude spectrum with the detected carrier peaks marked."""
+
+    def __init__(self, parent=None):
+        super().__init__("Spectrum (log |FFT|)", "log10 |F|", cmap="inferno", axis_units="cycles/px",
+                         parent=parent)
+        self.carriers = pg.ScatterPlotItem(size=18, pen=pg.mkPen("c", width=2), brush=None, symbol="o")
+        self.plot.addItem(self.carriers)
+
+    def set_spectrum(self, magnitude: np.ndarray, freq_x: Optional[np.ndarray],
+                     freq_y: Optional[np.ndarray], carriers: Sequence[Tuple[float, float]]) -> None:
+        """Show ``magnitude`` at frequencies ``freq_x`` (cols) ``freq_y`` (rows), circles at ``carriers`` (fx, fy)."""
+        self.set_data(np.asarray(magnitude, np.float32), x=freq_x, y=freq_y)
+        pts = [{"pos": (float(fx), float(fy))} for fx, fy in carriers]
+        self.carriers.setData(pts)

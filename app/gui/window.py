@@ -1,0 +1,909 @@
+"""The main window: live maps, alignment, reference and geometry, trigger and recording, replay.
+
+Threads: the GUI thread only draws. The camera thread (``app.acquisition``) fills
+the ring buffer, the recorder (``app.recorder``) writes every frame from its own
+cursor, the processing worker (``app.worker``) takes the newest frame. The GUI
+thread reads the newest published result from a single-shot timer re-armed
+after each draw (<= 60 Hz), so redraws never pile up and never wait on the
+camera or an FFT. Anything that can block (opening a camera, capturing a
+reference, exporting) runs in a background thread; its outcome comes back as
+a queued Qt signal.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import logging
+import os
+import time
+import traceback
+from typing import Callable, Optional
+
+import numpy as np
+import pyqtgraph as pg
+from pyqtgraph.Qt import QtCore, QtGui, QtWidgets
+
+from .panels import CameraPanel, GeometryPanel, RecordingPanel, human_bytes
+from .replay import Recording, ReplayTab
+from .session import LiveSession
+from .views import HistogramView, ImageView, ProfileView, SpectrumView
+
+__all__ = ["MainWindow"]
+
+log = logging.getLogger(__name__)
+
+DISPLAY_PERIOD_MS = 16  # <= 60 Hz
+
+
+class _Bridge(QtCore.QObject):
+    """Carries results of background threads into the GUI thread (queued signal)."""
+
+    done = QtCore.Signal(object, object, object)  # callback, result, error message
+
+
+class MainWindow(QtWidgets.QMainWindow):
+    """The live window.
+
+    Parameters
+    ----------
+    camera_id : str, optional
+        Camera to open at start ("synthetic", "aravis:...", "gentl:..."); None: the
+        first camera found, the synthetic scene when none is.
+    synthetic_options : dict, optional
+        Keyword arguments for :func:`app.scene.open_synthetic_camera` (shape, frame rate...).
+    open_camera : bool
+        Open the camera at start (tests may first set options).
+    """
+
+    def __init__(self, camera_id: Optional[str] = None, *, synthetic_options: Optional[dict] = None,
+                 open_at_start: bool = True, parent=None):
+        super().__init__(parent)
+        self.setWindowTitle("tirdeflect — live TIR deflectometry")
+        self.resize(1500, 950)
+        self._executor = concurrent.futures.ThreadPoolExecutor(max_workers=2, thread_name_prefix="gui-bg")
+        self._bridge = _Bridge()
+        self._bridge.done.connect(self._background_done)
+        self.session = LiveSession(synthetic_options=synthetic_options)
+        self.geometry = None
+        self.reference = None
+        self._last_raw_seq = -1
+        self._last_result_seq = -1
+        self._shown = 0
+        self._shown_t = time.monotonic()
+        self.displayed_fps = 0.0
+        self.latency_ms = float("nan")
+        self.result_latency_ms = float("nan")
+        self._closing = False
+        self.last_error: Optional[str] = None
+        self.replay_recording: Optional[Recording] = None
+        self._replay_reconstructor = None
+        self._busy = set()
+
+        self._build_ui()
+        self._display_timer = QtCore.QTimer(self)
+        self._display_timer.setSingleShot(True)
+        self._display_timer.timeout.connect(self._refresh)
+        self._status_timer = QtCore.QTimer(self)
+        self._status_timer.setInterval(250)
+        self._status_timer.timeout.connect(self._update_status)
+        self._status_timer.start()
+        self._display_timer.start(DISPLAY_PERIOD_MS)
+        if open_at_start:
+            self.open_camera(camera_id)
+
+    # ------------------------------------------------------------------ UI
+    def _build_ui(self):
+        self.banner = QtWidgets.QLabel("")
+        self.banner.setWordWrap(True)
+        self.banner.setVisible(False)
+        self.banner.setStyleSheet("background: #ffe0e0; color: #900; padding: 6px; font-weight: bold;"
+                                  "border: 1px solid #c00;")
+        self.banner.setTextInteractionFlags(QtCore.Qt.TextSelectableByMouse)
+        self.banner_close = QtWidgets.QPushButton("×")
+        self.banner_close.setFixedWidth(28)
+        self.banner_close.setVisible(False)
+        self.banner_close.clicked.connect(self.clear_error)
+
+        self.tabs = QtWidgets.QTabWidget()
+        # Live tab
+        live = QtWidgets.QWidget()
+        grid = QtWidgets.QGridLayout(live)
+        grid.setContentsMargins(2, 2, 2, 2)
+        self.raw_view = ImageView("Raw frame", "counts", cmap="CET-L1", axis_units="px")
+        self.height_view = ImageView("Height", "height (µm)", cmap="CET-D1", symmetric=True)
+        self.disp_view = ImageView("Displacement |u|", "|u| (px)", cmap="viridis")
+        self.slope_x_view = ImageView("Slope ∂h/∂x", "slope (mrad)", cmap="CET-D1", symmetric=True)
+        self.slope_y_view = ImageView("Slope ∂h/∂y", "slope (mrad)", cmap="CET-D1", symmetric=True)
+        self.valid_view = ImageView("Valid mask", "valid (1) / masked (0)", cmap="CET-L1")
+        self.profile_view = ProfileView("Height profile along the line", "height (µm)")
+        self.histogram = HistogramView()
+        raw_box = QtWidgets.QWidget()
+        rb = QtWidgets.QVBoxLayout(raw_box)
+        rb.setContentsMargins(0, 0, 0, 0)
+        rb.addWidget(self.raw_view, 1)
+        rb.addWidget(self.histogram)
+        grid.addWidget(raw_box, 0, 0)
+        grid.addWidget(self.height_view, 0, 1, 1, 2)
+        grid.addWidget(self.profile_view, 0, 3)
+        grid.addWidget(self.disp_view, 1, 0)
+        grid.addWidget(self.slope_x_view, 1, 1)
+        grid.addWidget(self.slope_y_view, 1, 2)
+        grid.addWidget(self.valid_view, 1, 3)
+        self.valid_view.set_levels((0.0, 1.0))
+        for col in range(4):
+            grid.setColumnStretch(col, 1)
+        grid.setRowStretch(0, 3)
+        grid.setRowStretch(1, 2)
+        # saturated pixels overlay on the raw view
+        self.saturation_overlay = pg.ImageItem(axisOrder="row-major")
+        self.saturation_overlay.setLookupTable(np.array([[0, 0, 0, 0], [255, 0, 0, 255]], np.uint8))
+        self.saturation_overlay.setZValue(10)
+        self.raw_view.plot.addItem(self.saturation_overlay)
+        # reference region box on the raw view (pixels)
+        self.region_roi = pg.RectROI([0, 0], [64, 64], pen=pg.mkPen("#00c000", width=2), movable=True)
+        self.region_roi.setZValue(20)
+        self.raw_view.plot.addItem(self.region_roi)
+        self.region_roi.sigRegionChangeFinished.connect(self._region_dragged)
+        self._region_label = pg.TextItem("reference region (h = 0)", color="#00a000", anchor=(0, 1))
+        self.raw_view.plot.addItem(self._region_label)
+        # profile line on the height view (mm)
+        self.profile_roi = pg.LineSegmentROI([[0, 0], [1, 1]], pen=pg.mkPen("#ff00ff", width=2))
+        self.profile_roi.setZValue(20)
+        self.height_view.plot.addItem(self.profile_roi)
+        self._profile_placed = False
+        self.tabs.addTab(live, "Live")
+
+        # Alignment tab
+        align = QtWidgets.QWidget()
+        ag = QtWidgets.QGridLayout(align)
+        self.spectrum_view = SpectrumView()
+        self.modulation_view = ImageView("Contrast (modulation)", "modulation", cmap="viridis")
+        self.modulation_view.set_levels((0.0, 1.0))
+        self.align_raw_view = ImageView("Camera", "counts", cmap="CET-L1", axis_units="px")
+        self.ready_label = QtWidgets.QLabel("waiting for frames…")
+        self.ready_label.setAlignment(QtCore.Qt.AlignCenter)
+        self.ready_label.setWordWrap(True)
+        self.ready_label.setMinimumHeight(70)
+        self.metrics_label = QtWidgets.QLabel("")
+        self.metrics_label.setTextFormat(QtCore.Qt.RichText)
+        self.metrics_label.setAlignment(QtCore.Qt.AlignTop | QtCore.Qt.AlignLeft)
+        self.metrics_label.setStyleSheet("font-size: 14px")
+        metrics = QtWidgets.QWidget()
+        ml = QtWidgets.QVBoxLayout(metrics)
+        ml.addWidget(self.ready_label)
+        ml.addWidget(self.metrics_label, 1)
+        ag.addWidget(self.align_raw_view, 0, 0)
+        ag.addWidget(self.spectrum_view, 0, 1)
+        ag.addWidget(self.modulation_view, 1, 0)
+        ag.addWidget(metrics, 1, 1)
+        self.tabs.addTab(align, "Alignment")
+
+        # Replay tab
+        self.replay = ReplayTab()
+        self.replay.open_requested.connect(self._choose_recording)
+        self.replay.frame_changed.connect(self._show_replay_frame)
+        self.replay.export_requested.connect(self._choose_export)
+        self.tabs.addTab(self.replay, "Replay")
+        self.tabs.currentChanged.connect(self._tab_changed)
+
+        central = QtWidgets.QWidget()
+        cl = QtWidgets.QVBoxLayout(central)
+        cl.setContentsMargins(2, 2, 2, 2)
+        bl = QtWidgets.QHBoxLayout()
+        bl.addWidget(self.banner, 1)
+        bl.addWidget(self.banner_close)
+        cl.addLayout(bl)
+        cl.addWidget(self.tabs, 1)
+        self.setCentralWidget(central)
+
+        # side panels
+        self.camera_panel = CameraPanel()
+        self.geometry_panel = GeometryPanel()
+        self.recording_panel = RecordingPanel()
+        side = QtWidgets.QToolBox()
+        side.addItem(self._scroll(self.camera_panel), "Camera")
+        side.addItem(self._scroll(self.geometry_panel), "Reference && geometry")
+        side.addItem(self._scroll(self.recording_panel), "Trigger && recording")
+        side.setMinimumWidth(360)
+        self.side = side
+        dock = QtWidgets.QDockWidget("Controls")
+        dock.setObjectName("controls")
+        dock.setFeatures(QtWidgets.QDockWidget.DockWidgetMovable | QtWidgets.QDockWidget.DockWidgetFloatable)
+        dock.setWidget(side)
+        self.addDockWidget(QtCore.Qt.LeftDockWidgetArea, dock)
+
+        self.camera_panel.open_requested.connect(self.open_camera)
+        self.camera_panel.refresh_requested.connect(self.search_cameras)
+        self.camera_panel.configure_requested.connect(self.configure_camera)
+        self.geometry_panel.capture_requested.connect(self.capture_reference)
+        self.geometry_panel.save_reference_requested.connect(self._choose_save_reference)
+        self.geometry_panel.load_reference_requested.connect(self._choose_load_reference)
+        self.geometry_panel.geometry_changed.connect(self.apply_geometry_editor)
+        self.geometry_panel.load_geometry_requested.connect(self._choose_load_geometry)
+        self.geometry_panel.save_geometry_requested.connect(self._choose_save_geometry)
+        self.recording_panel.arm_requested.connect(self.arm)
+        self.recording_panel.disarm_requested.connect(self.disarm)
+        self.recording_panel.trigger_requested.connect(self.trigger_now)
+        self.recording_panel.browse_requested.connect(self._choose_folder)
+        self.recording_panel.lengths_changed.connect(self._update_cost)
+        self.recording_panel.folder.setText(os.getcwd())
+
+        # status bar
+        sb = self.statusBar()
+        self.status_labels = {}
+        for key in ("camera", "fps", "drops", "ring", "latency", "state"):
+            lab = QtWidgets.QLabel("")
+            lab.setStyleSheet("padding: 0 8px")
+            sb.addPermanentWidget(lab, 1 if key in ("drops",) else 0)
+            self.status_labels[key] = lab
+
+    @staticmethod
+    def _scroll(widget):
+        area = QtWidgets.QScrollArea()
+        area.setWidget(widget)
+        area.setWidgetResizable(True)
+        area.setFrameShape(QtWidgets.QFrame.NoFrame)
+        return area
+
+    # --------------------------------------------------------- background
+    def run_background(self, name: str, fn: Callable, on_done: Callable, *args):
+        """Run ``fn(*args)`` in a worker thread; ``on_done(result, error_message)`` in the GUI thread."""
+        self._busy.add(name)
+
+        def job():
+            try:
+                result = fn(*args)
+            except BaseException as exc:  # noqa: BLE001 - shown to the user
+                log.debug("background %s failed:\n%s", name, traceback.format_exc())
+                msg = str(exc) or type(exc).__name__
+                if not isinstance(exc, (ValueError, OSError, RuntimeError)):
+                    msg = f"{type(exc).__name__}: {msg}"
+                self._bridge.done.emit((name, on_done), None, msg)
+                return
+            self._bridge.done.emit((name, on_done), result, None)
+
+        return self._executor.submit(job)
+
+    @QtCore.Slot(object, object, object)
+    def _background_done(self, tag, result, error):
+        name, on_done = tag
+        self._busy.discard(name)
+        if self._closing:
+            return
+        on_done(result, error)
+
+    def busy(self, name: str) -> bool:
+        return name in self._busy
+
+    # ------------------------------------------------------------- errors
+    def show_error(self, text: str) -> None:
+        """Show a problem in the window (banner + status bar); the app keeps running."""
+        self.last_error = text
+        self.banner.setText(text)
+        self.banner.setVisible(True)
+        self.banner_close.setVisible(True)
+        self.statusBar().showMessage(text.splitlines()[0], 15000)
+        log.warning("%s", text)
+
+    def clear_error(self) -> None:
+        self.banner.setVisible(False)
+        self.banner_close.setVisible(False)
+        self.last_error = None
+
+    def info(self, text: str) -> None:
+        self.statusBar().showMessage(text, 8000)
+
+    # ------------------------------------------------------------- camera
+    def search_cameras(self):
+        def found(result, error):
+            if error:
+                self.show_error(f"Searching cameras failed: {error}")
+                return
+            infos, note = result
+            self.camera_panel.set_cameras(infos, note)
+        self.run_background("search", self.session.list_cameras, found)
+
+    def open_camera(self, camera_id: Optional[str] = None):
+        """Open ``camera_id`` (None: first found, else the synthetic scene) and start streaming."""
+        self.info(f"opening camera {camera_id or '(first found)'}…")
+        self.run_background("open", self.session.open, self._camera_opened, camera_id)
+
+    def _camera_opened(self, result, error):
+        if error:
+            self.show_error(f"Could not open the camera: {error}\nPick another camera in Controls ▸ Camera "
+                            "and press Open; the synthetic camera always works.")
+            return
+        opened = result
+        self.camera_panel.set_cameras(opened.cameras, opened.note)
+        self.camera_panel.select_camera(opened.camera_id)
+        self.camera_panel.show_settings(opened.settings)
+        self.clear_error()
+        if opened.note:
+            self.info(opened.note)
+        if opened.geometry is not None and self.geometry is None:
+            self.set_geometry(opened.geometry)
+        self.session.worker.set_alignment(self.tabs.currentIndex() == 1)
+        self._update_cost()
+        if opened.reference is not None and self.reference is None and opened.use_scene_reference:
+            self.set_reference(opened.reference, "synthetic scene's flat-surface frame")
+
+    def configure_camera(self, values: dict):
+        def done(settings, error):
+            if error:
+                self.show_error(f"Camera refused the settings: {error}")
+                settings = self.session.camera_settings()
+            if settings is not None:
+                self.camera_panel.show_settings(settings)
+                self._update_cost()
+        self.run_background("configure", self.session.configure, done, values)
+
+    # ---------------------------------------------------------- reference
+    def capture_reference(self, n_frames: int):
+        """Average ``n_frames`` new camera frames into the reference (in the background)."""
+        self.geometry_panel.reference_label.setText(f"capturing {n_frames} frames…")
+
+        def done(image, error):
+            if error:
+                self.geometry_panel.reference_label.setText("capture failed")
+                self.show_error(f"Reference capture failed: {error}")
+                return
+            self.set_reference(image, f"average of {n_frames} frames")
+        self.run_background("reference", self.session.capture_reference, done, int(n_frames))
+
+    def set_reference(self, image: np.ndarray, origin: str = "") -> bool:
+        """Use ``image`` as the flat-surface reference: rebuild the reconstructor (background)."""
+        self.reference = np.asarray(image)
+        self.geometry_panel.reference_label.setText(
+            f"reference: {origin}, {image.shape[1]}×{image.shape[0]} px — building…")
+        self._rebuild_reconstructor()
+        return True
+
+    def _rebuild_reconstructor(self):
+        if self.reference is None or self.geometry is None:
+            self.session.worker.set_reconstructor(None)
+            return
+        reference, geometry = self.reference, self.geometry
+
+        def build():
+            from processing import Reconstructor
+            return Reconstructor(reference, geometry)
+
+        def done(rec, error):
+            if error:
+                self.session.worker.set_reconstructor(None)
+                self.geometry_panel.reference_label.setText("reference NOT usable")
+                self.show_error(f"Bad reference: {error}")
+                return
+            if reference is not self.reference or geometry is not self.geometry:
+                return  # superseded by a newer reference/geometry
+            self.session.worker.set_reconstructor(rec)
+            self.session.reference = reference
+            text = self.geometry_panel.reference_label.text().replace(" — building…", "")
+            try:
+                c = rec.carriers
+                periods = getattr(c, "periods_px", None)
+                if periods is not None:
+                    text += " — periods " + ", ".join(f"{p:.2f}" for p in np.ravel(periods)) + " px"
+            except Exception:  # noqa: BLE001 - information only
+                pass
+            self.geometry_panel.reference_label.setText(text + " ✓")
+            self.clear_error()
+        self.run_background("reconstructor", build, done)
+
+    def _choose_save_reference(self):
+        if self.reference is None:
+            self.show_error("No reference to save: capture one first (Reference ▸ Capture reference).")
+            return
+        path, _ = QtWidgets.QFileDialog.getSaveFileName(self, "Save reference", "reference.tif",
+                                                        "Images (*.tif *.tiff *.png)")
+        if path:
+            self.save_reference(path)
+
+    def save_reference(self, path: str) -> None:
+        from app.imageio import write_image
+        image = self.reference
+        if image.dtype.kind == "f":  # averaged: keep precision in a float TIFF
+            import tifffile
+            if not path.lower().endswith((".tif", ".tiff")):
+                path += ".tif"
+            tifffile.imwrite(path, image.astype(np.float32))
+        else:
+            write_image(path, image)
+        self.info(f"reference saved to {path}")
+
+    def _choose_load_reference(self):
+        path, _ = QtWidgets.QFileDialog.getOpenFileName(self, "Load reference", "",
+                                                        "Images (*.tif *.tiff *.png *.bmp *.h5)")
+        if path:
+            self.load_reference(path)
+
+    def load_reference(self, path: str) -> None:
+        try:
+            from app.imageio import read_reference
+            image = read_reference(path)
+        except Exception as exc:  # noqa: BLE001 - shown
+            self.show_error(f"Cannot load reference {path!r}: {exc}")
+            return
+        self.set_reference(image, os.path.basename(path))
+
+    # ----------------------------------------------------------- geometry
+    def set_geometry(self, geometry) -> None:
+        self.geometry = geometry
+        d = geometry.to_dict()
+        self.geometry_panel.set_values(d)
+        self._show_region(d.get("reference_region"))
+        self.geometry_panel.geometry_label.setText("geometry OK")
+        self._rebuild_reconstructor()
+
+    def apply_geometry_editor(self):
+        from processing import Geometry
+        try:
+            values = self.geometry_panel.values()
+            base = self.geometry.to_dict() if self.geometry is not None else {}
+            base.update({k: v for k, v in values.items()})
+            if values["setup"] != "fsss":
+                for k in ("fsss_layers", "fsss_camera_distance_mm"):
+                    base.pop(k, None)
+            geometry = Geometry.from_dict(base)
+        except Exception as exc:  # noqa: BLE001 - GeometryError, ValueError
+            self.geometry_panel.geometry_label.setText(f"<span style='color:#c00'>{exc}</span>")
+            return
+        self.geometry_panel.geometry_label.setText("geometry OK")
+        self.geometry = geometry
+        self._show_region(geometry.to_dict().get("reference_region"))
+        self._rebuild_reconstructor()
+
+    def _show_region(self, region):
+        if region is None:
+            self.region_roi.setVisible(False)
+            self._region_label.setVisible(False)
+            return
+        r0, r1, c0, c1 = (float(v) for v in region)
+        self.region_roi.blockSignals(True)
+        self.region_roi.setPos([c0, r0])
+        self.region_roi.setSize([c1 - c0, r1 - r0])
+        self.region_roi.blockSignals(False)
+        self._region_label.setPos(c0, r0)
+        self.region_roi.setVisible(True)
+        self._region_label.setVisible(True)
+
+    def _region_dragged(self):
+        pos, size = self.region_roi.pos(), self.region_roi.size()
+        c0, r0 = int(round(pos.x())), int(round(pos.y()))
+        c1, r1 = int(round(pos.x() + size.x())), int(round(pos.y() + size.y()))
+        self._region_label.setPos(c0, r0)
+        self.geometry_panel.set_region((r0, r1, c0, c1))
+        self.apply_geometry_editor()
+
+    def _choose_load_geometry(self):
+        path, _ = QtWidgets.QFileDialog.getOpenFileName(self, "Load geometry", "", "TOML (*.toml)")
+        if path:
+            self.load_geometry(path)
+
+    def load_geometry(self, path: str) -> None:
+        from processing import Geometry
+        try:
+            geometry = Geometry.from_toml(path)
+        except Exception as exc:  # noqa: BLE001 - GeometryError, OSError
+            self.show_error(f"Cannot load geometry {path!r}: {exc}")
+            return
+        self.set_geometry(geometry)
+        self.info(f"geometry loaded from {path}")
+
+    def _choose_save_geometry(self):
+        path, _ = QtWidgets.QFileDialog.getSaveFileName(self, "Save geometry", "geometry.toml", "TOML (*.toml)")
+        if path:
+            self.save_geometry(path)
+
+    def save_geometry(self, path: str) -> None:
+        if self.geometry is None:
+            self.show_error("No valid geometry to save: fix the fields marked in red first.")
+            return
+        with open(path, "w", encoding="utf-8") as fh:
+            fh.write(self.geometry.to_toml_text())
+        self.info(f"geometry saved to {path}")
+
+    # ---------------------------------------------------------- recording
+    def _update_cost(self):
+        s = self.session.camera_settings()
+        if s is None:
+            return
+        bpp = 1 if s.bit_depth <= 8 else 2
+        self.recording_panel.set_cost(s.width * s.height * bpp, s.frame_rate_hz)
+
+    def _choose_folder(self):
+        path = QtWidgets.QFileDialog.getExistingDirectory(self, "Recording folder",
+                                                          self.recording_panel.folder.text())
+        if path:
+            self.recording_panel.folder.setText(path)
+
+    def arm(self):
+        """Arm a pre/post-trigger recording into the chosen folder."""
+        rp = self.recording_panel
+        folder = rp.folder.text().strip() or os.getcwd()
+        threshold = rp.threshold.value() if rp.auto.isChecked() else None
+        geometry_toml = self.geometry.to_toml_text() if self.geometry is not None else None
+        try:
+            path = self.session.arm(folder, rp.pre.value(), rp.post.value(), reference=self.reference,
+                                    geometry_toml=geometry_toml, auto_threshold=threshold)
+        except Exception as exc:  # noqa: BLE001 - disk space, RAM, no camera...
+            rp.set_state("error")
+            self.show_error(f"Cannot arm the recording: {exc}")
+            return
+        rp.result_label.setText(f"armed: will write {path}")
+        rp.set_state("armed")
+
+    def trigger_now(self):
+        try:
+            self.session.trigger_now()
+        except Exception as exc:  # noqa: BLE001
+            self.show_error(f"Trigger failed: {exc}")
+
+    def disarm(self):
+        try:
+            self.session.disarm()
+        except Exception as exc:  # noqa: BLE001
+            self.show_error(f"Disarm failed: {exc}")
+        self.recording_panel.set_state("idle")
+
+    def _update_recording(self):
+        rec = self.session.recording_status()
+        if rec is None:
+            return
+        rp = self.recording_panel
+        state = rec["state"]
+        if state != rp.state_label.text():
+            rp.set_state(state)
+        rp.progress.setValue(int(round(100 * rec.get("progress", 0.0))))
+        if state in ("done", "error") and rec.get("summary_text") and not rec.get("_shown"):
+            rec["_shown"] = True
+            rp.result_label.setText(rec["summary_text"])
+            if state == "error":
+                self.show_error(f"Recording stopped: {rec.get('error')}\nEvery frame received so far is kept "
+                                f"in {rec.get('path')}.")
+
+    # ------------------------------------------------------------- replay
+    def _choose_recording(self):
+        path, _ = QtWidgets.QFileDialog.getOpenFileName(self, "Open recording",
+                                                        self.recording_panel.folder.text(), "HDF5 (*.h5 *.hdf5)")
+        if path:
+            self.open_recording(path)
+
+    def open_recording(self, path: str) -> bool:
+        try:
+            rec = Recording(path)
+        except Exception as exc:  # noqa: BLE001
+            self.show_error(str(exc))
+            return False
+        if self.replay_recording is not None:
+            self.replay_recording.close()
+        self.replay_recording = rec
+        self._replay_reconstructor = None
+        self.replay.set_recording(rec)
+        reference = rec.reference if rec.reference is not None else self.reference
+        geometry = self.geometry
+        if rec.geometry_toml:
+            try:
+                from processing import Geometry
+                geometry = Geometry.from_toml_text(rec.geometry_toml)
+            except Exception as exc:  # noqa: BLE001
+                self.replay.message.setText(f"geometry stored in the file is unusable ({exc}); using the editor's")
+        if reference is not None and geometry is not None:
+            def build():
+                from processing import Reconstructor
+                return Reconstructor(reference, geometry)
+
+            def done(r, error):
+                if error:
+                    self.replay.message.setText(f"cannot process this recording: {error}")
+                    return
+                if self.replay_recording is rec:
+                    self._replay_reconstructor = r
+                    self._show_replay_frame(self.replay.slider.value())
+            self.run_background("replay-reconstructor", build, done)
+        else:
+            self.replay.message.setText("no reference in the file and none loaded: raw frames only")
+        self._show_replay_frame(0)
+        self.tabs.setCurrentWidget(self.replay)
+        return True
+
+    def _show_replay_frame(self, index: int):
+        rec = self.replay_recording
+        if rec is None or rec.n_frames == 0:
+            return
+        frame = rec.frame(int(index))
+        self.replay.raw.set_data(frame, levels=(0, float(frame.max()) or 1.0))
+        rel = rec.trigger_index(int(index))
+        self.replay.index_label.setText(f"frame {index + 1}/{rec.n_frames}"
+                                        + (f"  (trigger {rel:+d})" if rel is not None else ""))
+        r = self._replay_reconstructor
+        if r is None:
+            return
+        try:
+            result = r(frame, grid="decimated")
+        except Exception as exc:  # noqa: BLE001
+            self.replay.height.show_message(str(exc))
+            return
+        self.replay.height.show_message("")
+        self.replay.height.set_data(1e3 * result.height, x=result.x_mm, y=result.y_mm)
+        self.replay_last_result = result
+
+    def _choose_export(self):
+        rec = self.replay_recording
+        if rec is None:
+            return
+        default = os.path.splitext(rec.path)[0] + "-heights.h5"
+        path, _ = QtWidgets.QFileDialog.getSaveFileName(self, "Export heights", default, "HDF5 (*.h5)")
+        if path:
+            self.export_heights(path)
+
+    def export_heights(self, out_path: str) -> None:
+        """Process every frame of the open recording into ``out_path`` (background, with progress)."""
+        rec = self.replay_recording
+        if rec is None:
+            self.show_error("Open a recording first (Replay ▸ Open recording).")
+            return
+        self.replay.progress.setValue(0)
+        self._export_progress = 0.0
+        self.export_result = None
+
+        def progress(done, total):
+            self._export_progress = done / max(total, 1)
+
+        geometry_toml = rec.geometry_toml or (self.geometry.to_toml_text() if self.geometry else None)
+
+        def job():
+            from . import export
+            return export.export_heights(rec.path, out_path, geometry_toml=geometry_toml,
+                                         reference=None if rec.reference is not None else self.reference,
+                                         progress=progress)
+
+        def done(result, error):
+            self._export_progress = 1.0 if not error else self._export_progress
+            self.replay.progress.setValue(int(100 * self._export_progress))
+            if error:
+                self.show_error(f"Export failed: {error}\nFrames exported before the error are kept in {out_path}.")
+                self.export_result = ("error", error)
+                return
+            self.export_result = ("done", out_path)
+            self.replay.message.setText(f"heights exported to {out_path}")
+        self.run_background("export", job, done)
+
+    # ------------------------------------------------------------ refresh
+    def _tab_changed(self, index: int):
+        self.session.worker.set_alignment(index == 1)
+
+    def _refresh(self):
+        """Draw the newest frame/result; re-arm the single-shot timer afterwards."""
+        t0 = time.perf_counter()
+        try:
+            self._draw()
+        except Exception:  # noqa: BLE001 - a drawing bug must not stop the display
+            log.exception("display refresh failed")
+        finally:
+            if not self._closing:
+                # at most 60 Hz counted from the start of this draw; never piles up
+                spent_ms = 1e3 * (time.perf_counter() - t0)
+                self._display_timer.start(max(1, int(DISPLAY_PERIOD_MS - spent_ms)))
+
+    def _draw(self):
+        drew = False
+        tab = self.tabs.currentIndex()
+        now_ns = time.monotonic_ns()
+        if tab in (0, 1):
+            frame = self.session.latest_frame()
+            if frame is not None and frame[0] != self._last_raw_seq:
+                seq, image, host_ns = frame
+                self._last_raw_seq = seq
+                self._draw_raw(image, tab)
+                self.latency_ms = (time.monotonic_ns() - host_ns) / 1e6 if host_ns else float("nan")
+                drew = True
+        p = self.session.worker.latest()
+        if p is not None and p.seq != self._last_result_seq and tab in (0, 1):
+            self._last_result_seq = p.seq
+            if tab == 0:
+                self._draw_result(p)
+            else:
+                self._draw_alignment(p)
+            self.result_latency_ms = (time.monotonic_ns() - p.host_timestamp_ns) / 1e6 if p.host_timestamp_ns \
+                else float("nan")
+            drew = True
+        if drew:
+            self._shown += 1
+        t = time.monotonic()
+        if t - self._shown_t >= 1.0:
+            self.displayed_fps = self._shown / (t - self._shown_t)
+            self._shown, self._shown_t = 0, t
+        del now_ns
+
+    def _bit_depth(self):
+        s = self.session.camera_settings()
+        return s.bit_depth if s is not None else 8
+
+    def _draw_raw(self, image, tab):
+        bits = self._bit_depth()
+        top = float((1 << bits) - 1)
+        view = self.raw_view if tab == 0 else self.align_raw_view
+        view.set_data(image, levels=(0.0, top))
+        if tab == 0:
+            mask = (image >= top).view(np.uint8) if image.dtype != np.uint8 else (image == 255).view(np.uint8)
+            self.saturation_overlay.setImage(mask, autoLevels=False, levels=(0, 1))
+            p = self.session.worker.latest()
+            sat = p.saturation_pct if p is not None else 0.0
+            self._hist_count = getattr(self, "_hist_count", 0) + 1
+            if self._hist_count % 6 == 0:  # ~10 Hz is plenty for a histogram
+                self.histogram.set_image(image, bits, sat)
+
+    def _draw_result(self, p):
+        r = p.result
+        views = (self.height_view, self.disp_view, self.slope_x_view, self.slope_y_view, self.valid_view)
+        if r is None:
+            text = p.error or ("no reference yet: capture one (Controls ▸ Reference & geometry)"
+                               if self.session.worker.reconstructor is None else "")
+            for v in views:
+                v.show_message(text)
+            return
+        for v in views:
+            v.show_message("")
+        x, y = r.x_mm, r.y_mm
+        height_um = np.multiply(r.height, 1e3, dtype=np.float32)
+        self.height_view.set_data(height_um, x=x, y=y)
+        u = r.displacement
+        self.disp_view.set_data(np.hypot(u[0], u[1]).astype(np.float32), x=x, y=y)
+        self.slope_x_view.set_data(np.multiply(r.slope_x, 1e3, dtype=np.float32), x=x, y=y)
+        self.slope_y_view.set_data(np.multiply(r.slope_y, 1e3, dtype=np.float32), x=x, y=y)
+        self.valid_view.set_data(r.valid.astype(np.float32), x=x, y=y, levels=(0.0, 1.0))
+        self._draw_profile(height_um, x, y)
+
+    def _draw_profile(self, height_um, x, y):
+        if not self._profile_placed and len(x) > 1 and len(y) > 1:
+            ym = float(y[len(y) // 2])
+            self.profile_roi.setPos(0, 0)
+            h0, h1 = self.profile_roi.getHandles()[:2]
+            h0.setPos(float(x[0]), ym)
+            h1.setPos(float(x[-1]), ym)
+            self._profile_placed = True
+        values = self.profile_roi.getArrayRegion(height_um, self.height_view.image, axes=(0, 1), order=1)
+        if values is None or np.size(values) == 0:
+            return
+        values = np.asarray(values, float).ravel()
+        pts = [self.profile_roi.mapToParent(h.pos()) for h in self.profile_roi.getHandles()[:2]]
+        length = float(np.hypot(pts[1].x() - pts[0].x(), pts[1].y() - pts[0].y()))
+        self.profile_view.set_profile(np.linspace(0.0, length, values.size), values)
+
+    def _draw_alignment(self, p):
+        a = p.alignment
+        if a is None:
+            return
+        if p.spectrum is not None:
+            self._draw_spectrum(p.spectrum)
+        mod = a.get("modulation") if isinstance(a, dict) else None
+        if mod is not None:
+            self.modulation_view.set_data(np.asarray(mod, np.float32), levels=(0.0, 1.0))
+        ready, reasons, lines = self.assess_alignment(a, p.saturation_pct)
+        self.alignment_ready = ready
+        if ready:
+            self.ready_label.setText("READY TO MEASURE")
+            self.ready_label.setStyleSheet("background:#d8f5d8; color:#060; font-size:22px; font-weight:bold;"
+                                           "border:2px solid #060")
+        else:
+            self.ready_label.setText("NOT READY: " + "; ".join(reasons))
+            self.ready_label.setStyleSheet("background:#fff0d0; color:#930; font-size:16px; font-weight:bold;"
+                                           "border:2px solid #c60")
+        self.metrics_label.setText("<table cellpadding=3>" + "".join(
+            f"<tr><td>{k}</td><td><b>{v}</b></td></tr>" for k, v in lines) + "</table>")
+
+    def _draw_spectrum(self, spec):
+        get = (lambda k, d=None: spec.get(k, d)) if isinstance(spec, dict) else \
+            (lambda k, d=None: getattr(spec, k, d))
+        mag = get("log_magnitude")
+        if mag is None:
+            mag = get("magnitude")
+        if mag is None and isinstance(spec, np.ndarray):
+            mag = spec
+        if mag is None:
+            return
+        fx, fy = get("freq_x"), get("freq_y")
+        carriers = get("carriers_cycles_per_px") or get("carriers") or ()
+        try:
+            pts = [(float(c[0]), float(c[1])) for c in carriers]
+        except Exception:  # noqa: BLE001
+            pts = []
+        self.spectrum_view.set_spectrum(mag, fx, fy, pts)
+
+    def assess_alignment(self, a: dict, saturation_pct: float):
+        """Decide "ready to measure" from the alignment metrics; returns (ready, reasons, table lines)."""
+        reasons, lines = [], []
+        if "error" in a:
+            return False, [a["error"]], [("problem", a["error"])]
+
+        def num(*keys):
+            for k in keys:
+                v = a.get(k)
+                if v is not None:
+                    return v
+            return None
+
+        periods = num("periods_px", "periods")
+        if periods is not None:
+            lines.append(("pattern periods", ", ".join(f"{float(v):.2f} px" for v in np.ravel(periods))))
+            if min(np.ravel(periods)) < 4:
+                reasons.append("pattern period below 4 px: use a coarser pattern or zoom in")
+        rot = num("rotation_deg", "rotation")
+        if rot is not None:
+            lines.append(("pattern rotation", f"{float(rot):.2f}°"))
+        th_est = num("theta_estimate_deg", "theta_est_deg", "theta_deg_estimate")
+        th_cfg = num("theta_configured_deg", "theta_deg")
+        if th_cfg is None and self.geometry is not None:
+            th_cfg = getattr(self.geometry, "theta_deg", None)
+        if th_est is not None:
+            th_text = f"{float(th_est):.2f}° from the pattern"
+            if th_cfg is not None:
+                diff = float(th_est) - float(th_cfg)
+                th_text += f" vs {float(th_cfg):.2f}° configured (Δ {diff:+.2f}°)"
+                if abs(diff) > 1.0:
+                    reasons.append(f"θ from the pattern differs by {diff:+.1f}° from the geometry")
+            lines.append(("θ", th_text))
+        mod = a.get("modulation")
+        contrast = num("contrast", "modulation_median")
+        if contrast is None and mod is not None:
+            contrast = float(np.nanmedian(mod))
+        if contrast is not None:
+            lines.append(("contrast (median modulation)", f"{float(contrast):.2f}"))
+            if float(contrast) < 0.2:
+                reasons.append("low contrast: light the pattern, focus, check TIR")
+        focus = num("focus", "focus_metric")
+        if focus is not None:
+            lines.append(("focus metric", f"{float(focus):.3g}"))
+        sat = num("saturation_pct", "saturation_percent")
+        sat = float(sat) if sat is not None else saturation_pct
+        lines.append(("saturation", f"{sat:.2f} %"))
+        if sat > 1.0:
+            reasons.append(f"{sat:.1f} % of pixels saturated: lower exposure or gain")
+        if periods is None and th_est is None:
+            reasons.append("no carriers found")
+        return (not reasons), reasons, lines
+
+    # ------------------------------------------------------------- status
+    def _update_status(self):
+        st = self.session.status()
+        w = self.session.worker
+        lab = self.status_labels
+        lab["camera"].setText(st.get("camera_text", ""))
+        lab["fps"].setText(f"camera {st.get('camera_fps', 0):.1f} fps · processed {w.fps:.1f} fps · "
+                           f"shown {self.displayed_fps:.1f} fps")
+        lab["drops"].setText(
+            f"dropped: camera {st.get('dropped_camera', 0)} · ring→recorder {st.get('dropped_ring', 0)} · "
+            f"recorder {st.get('dropped_recorder', 0)} · display skipped {w.skipped}")
+        fill = st.get("ring_fill")
+        lab["ring"].setText(f"ring {100 * fill:.0f} % full" if fill is not None else "")
+        lab["latency"].setText(f"latency {self.latency_ms:.0f} ms" if np.isfinite(self.latency_ms) else "")
+        err = st.get("error")
+        if err and err != getattr(self, "_shown_camera_error", None):
+            self._shown_camera_error = err
+            self.show_error(f"Camera problem: {err}\nCheck the cable, power and network, then press Open in "
+                            "Controls ▸ Camera. The app keeps running; frames already recorded are kept.")
+        lab["state"].setText("camera stopped" if err else "")
+        self._update_recording()
+        if hasattr(self, "_export_progress") and self.busy("export"):
+            self.replay.progress.setValue(int(100 * self._export_progress))
+
+    # -------------------------------------------------------------- close
+    def closeEvent(self, event):
+        self.shutdown()
+        super().closeEvent(event)
+
+    def shutdown(self):
+        """Stop timers and threads; idempotent."""
+        if self._closing:
+            return
+        self._closing = True
+        self._display_timer.stop()
+        self._status_timer.stop()
+        try:
+            self.session.close()
+        finally:
+            self._executor.shutdown(wait=True, cancel_futures=True)
+            if self.replay_recording is not None:
+                self.replay_recording.close()
+                self.replay_recording = None

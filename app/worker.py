@@ -1,0 +1,352 @@
+"""Processing worker: the newest camera frame -> :class:`processing.Reconstructor` -> the newest result.
+
+One thread, no Qt. Queue policy: **newest only**. The worker never queues
+frames: each time it is free it takes the newest frame from the ring buffer and
+processes it on the decimated grid (live speed); frames that arrived meanwhile
+are skipped *for display only* and counted in :attr:`ProcessingWorker.skipped`
+(the recorder reads every frame from its own ring cursor, so skipping here never
+loses data).
+
+Publishes (all thread-safe reads)
+---------------------------------
+``latest()``
+    The newest :class:`Processed` (frame, result or error, alignment metrics), or None.
+``counters()``
+    ``processed``, ``skipped`` (frames passed over because a newer one was there),
+    ``failed`` (frames whose processing raised), ``fps`` (processed frames per
+    second, counted once per second), ``last_error`` (message or None),
+    ``processing_ms`` (duration of the last reconstruction).
+Listeners added with ``add_listener(fn)`` are called *in the worker thread*
+with each :class:`Processed` (the auto-trigger is fed this way); a listener
+that raises is reported in ``last_error`` and does not stop the worker.
+
+Takes (commands, thread-safe)
+-----------------------------
+``set_reconstructor(reconstructor_or_None)``, ``set_grid("decimated"|"full")``,
+``set_alignment(enabled, interval_s=...)``, ``start()``, ``stop(timeout_s)``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import threading
+import time
+import traceback
+from typing import Callable, List, Optional, Tuple
+
+import numpy as np
+
+__all__ = ["Processed", "ProcessingWorker", "saturation_percent", "ring_source"]
+
+log = logging.getLogger(__name__)
+
+# A frame source returns the newest frame strictly newer than ``after_seq`` or
+# None when there is none within ``timeout_s``: (seq, image, host_timestamp_ns).
+FrameSource = Callable[[int, float], Optional[Tuple[int, np.ndarray, int]]]
+
+
+@dataclasses.dataclass(frozen=True)
+class Processed:
+    """One published processing outcome.
+
+    Attributes
+    ----------
+    seq : int
+        Ring-buffer sequence number of the processed frame.
+    host_timestamp_ns : int
+        ``time.monotonic_ns()`` when the driver received the frame (camera-to-screen
+        latency = display time - this).
+    image : ndarray, shape (rows, cols), uint8/uint16
+        The raw frame that was processed (a private copy).
+    result : processing.Result or None
+        Reconstruction on the worker's grid; None without reference or on error.
+    error : str or None
+        Message of the processing error for this frame (e.g. all pixels invalid).
+    alignment : dict or None
+        ``Reconstructor.alignment(frame)`` (periods, rotation, theta, modulation, focus,
+        saturation), refreshed every ``interval_s`` while alignment is on.
+    spectrum : object or None
+        ``Reconstructor.spectrum(frame)`` refreshed with ``alignment``.
+    saturation_pct : float
+        Percentage of pixels at the top code value of the frame's bit depth.
+    processing_s : float
+        Wall time of the reconstruction in seconds.
+    done_ns : int
+        ``time.monotonic_ns()`` when processing finished.
+    """
+
+    seq: int
+    host_timestamp_ns: int
+    image: np.ndarray
+    result: object = None
+    error: Optional[str] = None
+    alignment: Optional[dict] = None
+    spectrum: object = None
+    saturation_pct: float = 0.0
+    processing_s: float = 0.0
+    done_ns: int = 0
+
+
+def saturation_percent(image: np.ndarray, bit_depth: Optional[int] = None, *, step: int = 2) -> float:
+    """Percentage of pixels at the sensor's top code value.
+
+    Parameters
+    ----------
+    image : ndarray, shape (rows, cols), uint8 or uint16
+        Raw camera frame.
+    bit_depth : int, optional
+        Significant bits (8, 10, 12, 16). Default: 8 for uint8, 16 for uint16.
+    step : int
+        Subsampling stride along both axes (speed; 2 reads a quarter of the pixels).
+
+    Returns
+    -------
+    float
+        Saturated pixels in percent, 0..100.
+    """
+    if image.dtype.kind == "f":
+        return 0.0
+    if bit_depth is None:
+        bit_depth = 8 * image.dtype.itemsize
+    top = (1 << int(bit_depth)) - 1
+    sub = image[::step, ::step]
+    return 100.0 * float(np.count_nonzero(sub >= top)) / max(sub.size, 1)
+
+
+def ring_source(ring) -> FrameSource:
+    """A :data:`FrameSource` on :meth:`app.ringbuffer.RingBuffer.latest` (newest frame, copied).
+
+    ``ring.latest`` is the ring's one newest-only consumer: give it to one worker only.
+    """
+
+    def source(after_seq: int, timeout_s: float):
+        f = ring.latest(timeout_s)
+        if f is None:
+            if ring.closed:  # camera gone: do not spin
+                time.sleep(min(timeout_s, 0.05))
+            return None
+        return f.sequence, f.image, f.host_timestamp_ns
+
+    return source
+
+
+class ProcessingWorker:
+    """Thread that turns the newest frame into the newest :class:`Processed`.
+
+    Parameters
+    ----------
+    source : callable
+        ``source(after_seq, timeout_s) -> (seq, image, host_timestamp_ns) or None``:
+        the newest frame newer than ``after_seq`` (see :func:`ring_source`).
+    reconstructor : processing.Reconstructor, optional
+        None until a reference exists: frames are then published raw (saturation only).
+    grid : {"decimated", "full"}
+        Grid passed to the reconstructor; "decimated" is the live default.
+    bit_depth : int, optional
+        Significant bits of the camera's pixels (for the saturation percentage).
+    alignment_fn : callable, optional
+        ``alignment_fn(frame) -> (alignment_dict, spectrum)`` used while alignment
+        is on and no reconstructor is set (e.g. carriers from the live frame).
+    """
+
+    def __init__(self, source: FrameSource, reconstructor=None, *, grid: str = "decimated",
+                 bit_depth: Optional[int] = None, alignment_fn=None, poll_timeout_s: float = 0.05):
+        if grid not in ("decimated", "full"):
+            raise ValueError(f"grid must be 'decimated' or 'full'; got {grid!r}")
+        self._source = source
+        self._lock = threading.Lock()
+        self._reconstructor = reconstructor
+        self._grid = grid
+        self._bit_depth = bit_depth
+        self._alignment_fn = alignment_fn
+        self._alignment = False
+        self._alignment_interval_s = 0.25
+        self._last_alignment_t = 0.0
+        self._poll_timeout_s = float(poll_timeout_s)
+        self._latest: Optional[Processed] = None
+        self._listeners: List[Callable[[Processed], None]] = []
+        self._stop = threading.Event()
+        self._thread: Optional[threading.Thread] = None
+        self._new_result = threading.Condition(self._lock)
+        self.processed = 0
+        self.skipped = 0
+        self.failed = 0
+        self.fps = 0.0
+        self.last_error: Optional[str] = None
+        self.processing_ms = 0.0
+        self._last_seq = -1
+        self._reset_series = False
+
+    # -- commands ------------------------------------------------------------
+    def set_reconstructor(self, reconstructor) -> None:
+        """Use ``reconstructor`` from the next frame on (None: publish raw frames only)."""
+        with self._lock:
+            self._reconstructor = reconstructor
+            self._reset_series = reconstructor is not None
+            self._latest = None if reconstructor is None else self._latest
+
+    @property
+    def reconstructor(self):
+        with self._lock:
+            return self._reconstructor
+
+    def set_grid(self, grid: str) -> None:
+        if grid not in ("decimated", "full"):
+            raise ValueError(f"grid must be 'decimated' or 'full'; got {grid!r}")
+        with self._lock:
+            self._grid = grid
+            self._reset_series = True
+
+    def set_bit_depth(self, bit_depth: Optional[int]) -> None:
+        with self._lock:
+            self._bit_depth = bit_depth
+
+    def set_alignment(self, enabled: bool, interval_s: float = 0.25) -> None:
+        """Compute alignment metrics and the spectrum every ``interval_s`` seconds while enabled."""
+        with self._lock:
+            self._alignment = bool(enabled)
+            self._alignment_interval_s = float(interval_s)
+            self._last_alignment_t = 0.0
+
+    def set_alignment_fn(self, alignment_fn) -> None:
+        with self._lock:
+            self._alignment_fn = alignment_fn
+
+    def add_listener(self, fn: Callable[[Processed], None]) -> None:
+        """Call ``fn(processed)`` in the worker thread after each frame."""
+        with self._lock:
+            self._listeners.append(fn)
+
+    def remove_listener(self, fn) -> None:
+        with self._lock:
+            if fn in self._listeners:
+                self._listeners.remove(fn)
+
+    def start(self) -> "ProcessingWorker":
+        if self._thread is not None and self._thread.is_alive():
+            return self
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name="tirdeflect-processing", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self, timeout_s: float = 5.0) -> None:
+        """Stop the thread; raises TimeoutError if it did not end within ``timeout_s``."""
+        self._stop.set()
+        thread, self._thread = self._thread, None
+        if thread is not None:
+            thread.join(timeout_s)
+            if thread.is_alive():
+                raise TimeoutError(
+                    f"processing worker did not stop within {timeout_s} s (a reconstruction is still "
+                    "running); it will end after the current frame")
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    # -- publications --------------------------------------------------------
+    def latest(self) -> Optional[Processed]:
+        with self._lock:
+            return self._latest
+
+    def wait_for(self, predicate: Callable[[Processed], bool], timeout_s: float) -> Optional[Processed]:
+        """Block until a published result satisfies ``predicate`` (or ``timeout_s`` passes)."""
+        deadline = time.monotonic() + timeout_s
+        with self._new_result:
+            while True:
+                if self._latest is not None and predicate(self._latest):
+                    return self._latest
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return None
+                self._new_result.wait(left)
+
+    def counters(self) -> dict:
+        return {"processed": self.processed, "skipped": self.skipped, "failed": self.failed,
+                "fps": self.fps, "last_error": self.last_error, "processing_ms": self.processing_ms}
+
+    # -- thread --------------------------------------------------------------
+    def _run(self) -> None:
+        count_start = time.monotonic()
+        count = 0
+        while not self._stop.is_set():
+            try:
+                got = self._source(self._last_seq, self._poll_timeout_s)
+            except Exception as exc:  # the source (ring) failed: report, keep trying
+                self.last_error = f"frame source failed: {exc}"
+                log.exception("frame source failed")
+                self._stop.wait(0.1)
+                continue
+            now = time.monotonic()
+            if now - count_start >= 1.0:
+                self.fps = count / (now - count_start)
+                count, count_start = 0, now
+            if got is None:
+                continue
+            seq, image, host_ns = got
+            if self._last_seq >= 0 and seq > self._last_seq + 1:
+                self.skipped += seq - self._last_seq - 1
+            self._last_seq = seq
+            processed = self._process(seq, image, host_ns)
+            count += 1
+            with self._new_result:
+                self._latest = processed
+                listeners = list(self._listeners)
+                self._new_result.notify_all()
+            for fn in listeners:
+                try:
+                    fn(processed)
+                except Exception as exc:
+                    self.last_error = f"listener {getattr(fn, '__name__', fn)!s} failed: {exc}"
+                    log.exception("worker listener failed")
+
+    def _process(self, seq: int, image: np.ndarray, host_ns: int) -> Processed:
+        with self._lock:
+            rec = self._reconstructor
+            grid = self._grid
+            bit_depth = self._bit_depth
+            do_alignment = self._alignment and (
+                time.monotonic() - self._last_alignment_t >= self._alignment_interval_s)
+            alignment_fn = self._alignment_fn
+            reset, self._reset_series = self._reset_series, False
+        result = error = alignment = spectrum = None
+        t0 = time.perf_counter()
+        if rec is not None:
+            try:
+                if reset and hasattr(rec, "reset_series"):
+                    rec.reset_series()
+                result = rec(image, grid=grid)
+            except Exception as exc:  # TirdeflectError: show it, keep going
+                error = _message(exc)
+                self.failed += 1
+                self.last_error = error
+                if not isinstance(exc, ValueError):
+                    log.error("processing failed:\n%s", traceback.format_exc())
+        dt = time.perf_counter() - t0
+        self.processing_ms = 1e3 * dt
+        if do_alignment:
+            try:
+                if rec is not None and hasattr(rec, "alignment"):
+                    alignment = rec.alignment(image)
+                    spectrum = rec.spectrum(image) if hasattr(rec, "spectrum") else None
+                elif alignment_fn is not None:
+                    alignment, spectrum = alignment_fn(image)
+            except Exception as exc:
+                alignment = {"error": _message(exc)}
+            with self._lock:
+                self._last_alignment_t = time.monotonic()
+        elif self._latest is not None and self._alignment:
+            alignment, spectrum = self._latest.alignment, self._latest.spectrum
+        if result is not None:
+            self.last_error = None
+        return Processed(seq=seq, host_timestamp_ns=host_ns, image=image, result=result, error=error,
+                         alignment=alignment, spectrum=spectrum,
+                         saturation_pct=saturation_percent(image, bit_depth),
+                         processing_s=dt, done_ns=time.monotonic_ns())
+
+
+def _message(exc: BaseException) -> str:
+    text = str(exc) or type(exc).__name__
+    return text if isinstance(exc, ValueError) else f"{type(exc).__name__}: {text}"
