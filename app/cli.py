@@ -52,13 +52,14 @@ def version() -> str:
 
 
 def _add_gui(sub) -> None:
-    p = sub.add_parser("gui", help="open the live window (default when no command is given)")
-    p.add_argument("--camera", metavar="ID", default=None,
-                   help="camera to open, e.g. synthetic, aravis:Fake_1 (see `tirdeflect cameras`)")
-    p.set_defaults(func=_cmd_gui)
+    # Listed for --help only: main() hands `gui ...` to app.gui.main.main unparsed,
+    # so every option of the window (`tirdeflect gui --help`) works here.
+    p = sub.add_parser("gui", help="open the live window (default when no command is given); "
+                   "`tirdeflect gui --help` lists its options (--camera ID, --geometry, ...)")
+    p.set_defaults(func=lambda args: _run_gui([]))
 
 
-def _cmd_gui(args) -> int:
+def _run_gui(gui_argv) -> int:
     try:
         from app.gui.main import main as gui_main
     except ImportError as exc:
@@ -66,10 +67,23 @@ def _cmd_gui(args) -> int:
             f"the live window is not available ({exc}); install PySide6-Essentials and "
             f"pyqtgraph (bash resources/install.sh), or use `tirdeflect process`"
         ) from exc
-    argv = []
-    if getattr(args, "camera", None):
-        argv += ["--camera", args.camera]
-    return int(gui_main(argv) or 0)
+    try:
+        return int(gui_main(list(gui_argv)) or 0)
+    except SystemExit as exc:  # its own argparse: --help or a usage error
+        return int(exc.code or 0) if not isinstance(exc.code, str) else EXIT_USAGE
+
+
+def _split_gui(argv):
+    """(global_flags, gui_argv) if argv asks for the live window, else None."""
+    flags = []
+    rest = list(argv)
+    while rest and rest[0] in ("--debug", "-v", "--verbose"):
+        flags.append(rest.pop(0))
+    if not rest:
+        return flags, []
+    if rest[0] == "gui":
+        return flags, rest[1:]
+    return None
 
 
 def _add_record_commands(sub) -> None:
@@ -160,6 +174,13 @@ def main(argv=None) -> int:
         130 interrupted.
     """
     argv = list(sys.argv[1:] if argv is None else argv)
+    gui = _split_gui(argv)
+    if gui is not None:
+        flags, gui_argv = gui
+        debug = "--debug" in flags
+        if debug and "--debug" not in gui_argv:
+            gui_argv = [*gui_argv, "--debug"]
+        return _guarded(lambda: _run_gui(gui_argv), debug)
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
@@ -167,14 +188,18 @@ def main(argv=None) -> int:
         return int(exc.code or 0) if not isinstance(exc.code, str) else EXIT_USAGE
     level = logging.DEBUG if args.debug else logging.INFO if args.verbose else logging.WARNING
     logging.basicConfig(level=level, format=f"{PROG}: %(levelname)s: %(message)s")
-    func = getattr(args, "func", None) or _cmd_gui
+    return _guarded(lambda: args.func(args), args.debug)
+
+
+def _guarded(run, debug: bool) -> int:
+    """Run a command; known errors become one line on stderr and exit status 2."""
     try:
-        return int(func(args) or 0)
+        return int(run() or 0)
     except KeyboardInterrupt:
         print(f"{PROG}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
     except _known_errors() as exc:
-        if args.debug:
+        if debug:
             traceback.print_exc()
         print(f"{PROG}: error: {_format_error(exc)}", file=sys.stderr)
         return EXIT_USAGE
