@@ -47,6 +47,7 @@ __all__ = [
     "frame_count",
     "iter_frames",
     "write_image",
+    "recording_geometry_toml",
 ]
 
 log = logging.getLogger(__name__)
@@ -496,6 +497,29 @@ def frame_count(path) -> int:
             return _tiff_layout(tif, p)[0]
     with _h5_open(p) as f:
         return _h5_frames(f, p)[1]
+
+
+def recording_geometry_toml(path) -> str | None:
+    """Geometry TOML text stored in a recording (``/geometry_toml``), else None.
+
+    Returns None for files that are not HDF5 recordings.
+    """
+    p = _check_path(path)
+    if _kind(p) != "recording":
+        return None
+    import h5py
+
+    with _h5_open(p) as f:
+        node = f.get("geometry_toml")
+        if isinstance(node, h5py.Dataset):
+            value = node[()]
+        elif "geometry_toml" in f.attrs:
+            value = f.attrs["geometry_toml"]
+        else:
+            return None
+    if isinstance(value, bytes):
+        value = value.decode("utf-8")
+    return str(value) if value else None
 
 
 def count_frames(paths: Sequence) -> int:

@@ -93,8 +93,10 @@ def add_process_parser(sub) -> None:
                    "holding a /reference)")
     p.add_argument("frames", nargs="+", metavar="FRAME",
                    help="frames to process, in order (files, stacks or recordings)")
-    p.add_argument("--geometry", required=True, metavar="G.toml",
-                   help="optical geometry (TOML; see `tirdeflect simulate` for an example)")
+    p.add_argument("--geometry", default=None, metavar="G.toml",
+                   help="optical geometry (TOML; see `tirdeflect simulate` for an example); "
+                   "may be omitted when the reference or first input is a recording that "
+                   "stores its geometry")
     p.add_argument("--out", required=True, metavar="OUT.h5", help="output HDF5 file")
     p.add_argument("--grid", choices=("full", "decimated"), default="full",
                    help="full: heights on every input pixel; decimated: faster, on a coarser "
@@ -159,6 +161,28 @@ def _load_geometry(path: str):
     from processing import Geometry
 
     return Geometry.from_toml(path)
+
+
+def _resolve_geometry(args):
+    """(Geometry, where it came from): --geometry, else a recording's /geometry_toml."""
+    if args.geometry is not None:
+        return _load_geometry(args.geometry), str(args.geometry)
+    from processing import Geometry
+    from processing.errors import GeometryError
+
+    for path in (args.reference, args.frames[0]):
+        text = imageio.recording_geometry_toml(path)
+        if text:
+            try:
+                return Geometry.from_toml_text(text), f"{path}:/geometry_toml"
+            except GeometryError as exc:
+                raise GeometryError(
+                    f"the geometry stored in {str(path)!r} is not usable: {exc}; pass --geometry G.toml"
+                ) from None
+    raise GeometryError(
+        "no geometry given: add --geometry G.toml (the inputs are not recordings that store one); "
+        "`tirdeflect simulate --out DIR` writes an example DIR/geometry.toml"
+    )
 
 
 def _check_output(out: Path, overwrite: bool) -> None:
@@ -446,7 +470,7 @@ def cmd_process(args) -> int:
             f"of the {total} input frame(s); frames are counted from 0"
         )
 
-    geometry = _load_geometry(args.geometry)
+    geometry, geometry_source = _resolve_geometry(args)
     reference = imageio.read_reference(args.reference)
 
     from app import cache
@@ -465,7 +489,7 @@ def cmd_process(args) -> int:
         "command": shlex.join([Path(sys.argv[0]).name or "tirdeflect", *sys.argv[1:]])
         if sys.argv else "",
         "reference_file": str(args.reference),
-        "geometry_file": str(args.geometry),
+        "geometry_file": geometry_source,
         "input_files": [str(p) for p in args.frames],
         "first": args.first,
         "last": -1 if args.last is None else args.last,
