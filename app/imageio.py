@@ -110,12 +110,20 @@ class FrameItem:
     sequence_index : int
         Position in the whole input sequence before ``first/last/step``
         selection (0-based), which is what ``--first/--last/--step`` count.
+    camera_frame_id, device_timestamp_ns, host_timestamp_ns, flags : int
+        From a recording's ``/frame_table`` row (camera block id, device and
+        host clocks in ns, :class:`drivers.base.FrameFlags`); -1 (flags 0)
+        when unknown, e.g. for image files.
     """
 
     image: np.ndarray
     source: str
     index_in_source: int
     sequence_index: int
+    camera_frame_id: int = -1
+    device_timestamp_ns: int = -1
+    host_timestamp_ns: int = -1
+    flags: int = 0
 
     @property
     def label(self) -> str:
@@ -334,6 +342,29 @@ def _h5_bits(f, ds) -> int:
                 except (TypeError, ValueError):
                     pass
     return _bits_of(ds.dtype)
+
+
+def _h5_frame_table(f, n: int):
+    """The recording's ``/frame_table`` rows 0..n-1 as a structured array, or None."""
+    import h5py
+
+    table = f.get("frame_table")
+    if not isinstance(table, h5py.Dataset) or table.dtype.names is None:
+        return None
+    return table[: min(n, table.shape[0])]
+
+
+def _table_fields(table, i: int) -> dict:
+    if table is None or i >= len(table):
+        return {}
+    row = table[i]
+    names = table.dtype.names
+    out = {}
+    for key, name in (("camera_frame_id", "frame_id"), ("device_timestamp_ns", "device_timestamp_ns"),
+                      ("host_timestamp_ns", "host_timestamp_ns"), ("flags", "flags")):
+        if name in names:
+            out[key] = int(row[name])
+    return out
 
 
 # --------------------------------------------------------------------------- public API
@@ -593,12 +624,13 @@ def iter_frames(
         else:
             with _h5_open(p) as f:
                 ds, n = _h5_frames(f, p)
+                table = _h5_frame_table(f, n)
                 for i in range(n):
                     if last is not None and seq > last:
                         return
                     if wanted(seq):
                         arr = _check_dtype(_to_gray(np.asarray(ds[i]), p), p)
-                        yield FrameItem(arr, str(path), i, seq)
+                        yield FrameItem(arr, str(path), i, seq, **_table_fields(table, i))
                     seq += 1
 
 

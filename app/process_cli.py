@@ -352,6 +352,8 @@ class _ResultWriter:
     """
 
     PER_FRAME = ("height", "slope_x", "slope_y")
+    PER_FRAME_1D = ("frame_index", "source_index", "source", "camera_frame_id",
+                    "device_timestamp_ns", "host_timestamp_ns", "frame_flags")
 
     def __init__(self, path: Path, *, overwrite: bool, compression: str, attrs: dict,
                  geometry_toml: str, geometry_attrs: dict, carrier_attrs: dict,
@@ -412,6 +414,15 @@ class _ResultWriter:
         f.create_dataset("source", shape=(0,), maxshape=(None,), dtype=h5py.string_dtype(),
                          chunks=(1024,))
         f["source"].attrs["description"] = "input file of each output frame"
+        per_frame_meta = {
+            "camera_frame_id": "camera block/frame id from the recording's frame table; -1 unknown",
+            "device_timestamp_ns": "camera clock of the frame, ns; -1 unknown",
+            "host_timestamp_ns": "host monotonic clock at reception, ns; -1 unknown",
+            "frame_flags": "drivers.base.FrameFlags of the recorded frame (0 for image files)",
+        }
+        for name, text in per_frame_meta.items():
+            f.create_dataset(name, shape=(0,), maxshape=(None,), dtype=np.int64, chunks=(1024,))
+            f[name].attrs["description"] = text
         f.attrs["grid"] = str(getattr(result, "grid", "full"))
 
     def append(self, item: imageio.FrameItem, result) -> None:
@@ -425,7 +436,7 @@ class _ResultWriter:
             )
         valid = np.asarray(result.valid, dtype=bool)
         k = self.n
-        for name in (*self.PER_FRAME, "valid", "frame_index", "source_index", "source"):
+        for name in (*self.PER_FRAME, "valid", *self.PER_FRAME_1D):
             f[name].resize(k + 1, axis=0)
         f["height"][k] = np.where(valid, height, np.float32(np.nan))
         f["slope_x"][k] = np.asarray(result.slope_x, dtype=np.float32)
@@ -434,6 +445,10 @@ class _ResultWriter:
         f["frame_index"][k] = item.sequence_index
         f["source_index"][k] = item.index_in_source
         f["source"][k] = item.source
+        f["camera_frame_id"][k] = item.camera_frame_id
+        f["device_timestamp_ns"][k] = item.device_timestamp_ns
+        f["host_timestamp_ns"][k] = item.host_timestamp_ns
+        f["frame_flags"][k] = item.flags
         self.n = k + 1
         f.attrs["frames_done"] = self.n
         f.flush()
