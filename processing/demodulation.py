@@ -1,0 +1,301 @@
+"""Fourier demodulation of checkerboard frames against a reference.
+
+For each carrier ``s`` the frame's spectrum is cut in a small window around
+the carrier, multiplied by a band-pass filter and inverse-transformed *at the
+window's size*: that yields the band-limited analytic signal ``g_s`` exactly,
+sampled on a decimated grid (every ``rows / m_rows`` pixels).  The band-pass
+is all the information Fourier demodulation has, so nothing is lost, and the
+small transforms are what makes live speed possible.  The same is done once
+to the reference (``g0_s``); then
+
+    arg(g_s conj(g0_s)) = -k_s . u          (u: displacement, pixels)
+
+Demodulating against the filtered reference (not against a pure carrier)
+cancels print defects and lens distortion, and makes a sub-bin error in the
+window's centre irrelevant to the phase.
+
+Border treatment: both images lose their mean and are multiplied by the same
+Tukey window (flat inside, cosine taper ``taper_px`` wide at each border), so
+the periodic wrap-around of the FFT does not smear the border's jump across
+the spectrum.  ``border="none"`` switches it off (measured in
+benchmarks/bench_processing.py).
+
+Filters (``filter_shape``):
+
+- ``"flattop"`` (default): radial Tukey in frequency around the carrier,
+  gain 1 up to ``filter_flat * radius``, cosine roll-off to 0 at ``radius``;
+  ``radius = filter_radius * spacing`` where ``spacing`` is the distance to
+  the nearest other peak (DC, other carrier, its mirror).
+- ``"disc"``: the usual hard disc of the same radius (the published method).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .carriers import Carriers
+from .fft import FFTPlanner
+
+__all__ = ["Demodulator", "nice_fft_size", "tukey"]
+
+
+def nice_fft_size(n: int) -> int:
+    """Smallest integer >= n whose prime factors are all 2, 3, 5 or 7 (fast FFTs)."""
+    n = max(int(math.ceil(n)), 1)
+    while True:
+        m = n
+        for p in (2, 3, 5, 7):
+            while m % p == 0:
+                m //= p
+        if m == 1:
+            return n
+        n += 1
+
+
+def tukey(n: int, taper: float) -> np.ndarray:
+    """1-D window of length n, 1 inside, cosine taper ``taper`` samples wide at both ends.
+
+    Returns float32 values in (0, 1].
+    """
+    x = np.arange(n, dtype=np.float64) + 0.5
+    d = np.minimum(x, n - x)
+    w = np.ones(n)
+    if taper > 0:
+        t = d < taper
+        w[t] = 0.5 - 0.5 * np.cos(np.pi * d[t] / taper)
+    return w.astype(np.float32)
+
+
+class Demodulator:
+    """Band-limited analytic signals of the two carriers, decimated or full grid.
+
+    Parameters
+    ----------
+    reference : ndarray, shape (rows, cols)
+        Reference image (any real dtype), pattern on the flat surface.
+    carriers : Carriers
+        Carriers of ``reference`` (:func:`processing.carriers.find_carriers`).
+    planner : FFTPlanner, optional
+        Plans to use (default: a new one with FFTW_ESTIMATE).
+    filter_radius : float, optional
+        Filter radius as a fraction of the carrier spacing (nearest other
+        peak); 0.5 (default) means the neighbouring bands just touch.
+    filter_flat : float, optional
+        Fraction of the radius where the flat-top filter has gain 1.
+    filter_shape : {"flattop", "disc"}
+    oversample : float, optional
+        Decimated grid density relative to the filter's Nyquist rate
+        (default 2: smooth enough for cubic interpolation to the full grid).
+    border : {"apodize", "none"}
+    taper_px : float, optional
+        Width of the border taper, pixels (default 1.5 carrier periods).
+    subbin : bool, optional
+        Centre the filter on the sub-bin carrier (default).  False rounds the
+        carriers to the nearest bin (the published method); the wavevectors
+        used to convert phase to displacement are rounded the same way.
+
+    Attributes
+    ----------
+    shape : tuple
+        ``(rows, cols)`` of frames.
+    window_shape : tuple
+        ``(m_rows, m_cols)`` of the decimated grid.
+    rows_px, cols_px : ndarray, float64
+        Pixel coordinates of the decimated samples, shapes (m_rows,), (m_cols,).
+    wavevectors : ndarray, shape (2, 2)
+        ``2 pi (f_row, f_col)`` of the carriers used, radians per pixel.
+    g0 : ndarray, complex64, shape (2, m_rows, m_cols)
+        Reference analytic signals on the decimated grid.
+    """
+
+    def __init__(self, reference, carriers: Carriers, *, planner: FFTPlanner | None = None,
+                 filter_radius: float = 0.5, filter_flat: float = 0.6,
+                 filter_shape: str = "flattop", oversample: float = 2.0,
+                 border: str = "apodize", taper_px: float | None = None, subbin: bool = True):
+        ref = np.asarray(reference)
+        if ref.ndim != 2:
+            raise ValueError(f"reference must be 2-D (rows, cols); got shape {ref.shape}")
+        if filter_shape not in ("flattop", "disc"):
+            raise ValueError(f"filter_shape must be 'flattop' or 'disc'; got {filter_shape!r}")
+        if border not in ("apodize", "none"):
+            raise ValueError(f"border must be 'apodize' or 'none'; got {border!r}")
+        if not 0.05 <= filter_radius <= 0.75:
+            raise ValueError(f"filter_radius must be within [0.05, 0.75] of the carrier spacing; got {filter_radius}")
+        if not 0.0 <= filter_flat < 1.0:
+            raise ValueError(f"filter_flat must be within [0, 1); got {filter_flat}")
+        if oversample < 1.0:
+            raise ValueError(f"oversample must be >= 1; got {oversample}")
+        self.shape = rows, cols = ref.shape
+        if tuple(carriers.shape) != self.shape:
+            raise ValueError(f"carriers were measured on shape {carriers.shape}, reference is {self.shape}")
+        self.planner = planner if planner is not None else FFTPlanner(planner_effort="FFTW_ESTIMATE")
+        self.filter_shape = filter_shape
+        self.border = border
+        freq = np.array(carriers.freq, dtype=np.float64)
+        if not subbin:
+            freq = np.round(freq * np.array([rows, cols])) / np.array([rows, cols])
+        self.freq = freq
+        self.wavevectors = 2.0 * np.pi * freq
+        spacing = Carriers(freq=freq, shape=self.shape, contrast=carriers.contrast,
+                           sharpness=carriers.sharpness).min_spacing
+        self.radius = float(filter_radius * spacing)  # cycles / px
+        self.flat = float(filter_flat)
+        # ---- border window
+        period = float(np.max(1.0 / np.hypot(freq[:, 0], freq[:, 1])))
+        self.taper_px = float(1.5 * period if taper_px is None else taper_px)
+        if border == "apodize":
+            self._window2d = tukey(rows, self.taper_px)[:, None] * tukey(cols, self.taper_px)[None, :]
+        else:
+            self._window2d = None
+        # ---- decimated windows: same size for both carriers
+        m_r = nice_fft_size(max(8, oversample * 2.0 * self.radius * rows + 2))
+        m_c = nice_fft_size(max(8, oversample * 2.0 * self.radius * cols + 2))
+        self.window_shape = (m_r, m_c)
+        self.rows_px = np.arange(m_r) * (rows / m_r)
+        self.cols_px = np.arange(m_c) * (cols / m_c)
+        self._centres = np.round(freq * np.array([rows, cols])).astype(np.int64)
+        q_r = np.fft.fftfreq(m_r, 1.0 / m_r).astype(np.int64)  # ifftshift order offsets
+        q_c = np.fft.fftfreq(m_c, 1.0 / m_c).astype(np.int64)
+        self._gather = []
+        self._filters = []
+        half_cols = cols // 2 + 1
+        for s in range(2):
+            cr, cc = self._centres[s]
+            kr = (cr + q_r)[:, None] + np.zeros((1, m_c), np.int64)
+            kc = np.zeros((m_r, 1), np.int64) + (cc + q_c)[None, :]
+            if np.any(np.abs(kc) >= half_cols) or np.any(np.abs(kr) > rows // 2):
+                raise ValueError(
+                    f"carrier {s} at {freq[s]} cycles/px is too close to the Nyquist "
+                    "frequency for its filter; use a coarser pattern (period >= 3 px)")
+            mirror = kc < 0
+            ridx = np.where(mirror, -kr, kr) % rows
+            cidx = np.where(mirror, -kc, kc)
+            flat_idx = (ridx * half_cols + cidx).ravel()
+            # frequency offset of each window bin from the exact carrier, cycles/px
+            df_r = kr / rows - freq[s, 0]
+            df_c = kc / cols - freq[s, 1]
+            dist = np.hypot(df_r, df_c) / self.radius
+            if filter_shape == "disc":
+                filt = (dist <= 1.0).astype(np.float32)
+            else:
+                filt = np.zeros_like(dist)
+                filt[dist <= self.flat] = 1.0
+                roll = (dist > self.flat) & (dist < 1.0)
+                filt[roll] = 0.5 + 0.5 * np.cos(np.pi * (dist[roll] - self.flat) / (1.0 - self.flat))
+                filt = filt.astype(np.float32)
+            self._gather.append((flat_idx, mirror.ravel()))
+            self._filters.append(filt)
+            # absolute bins for the full-grid variant (full complex spectrum)
+        self._full_index = [((self._centres[s][0] + q_r)[:, None] % rows,
+                             (self._centres[s][1] + q_c)[None, :] % cols) for s in range(2)]
+        for shape in ((rows, cols),):
+            self.planner.prepare("rfft2", shape)
+        self.planner.prepare("ifft2", self.window_shape)
+        self.g0 = self.decimated(ref)
+        self.g0_abs = np.abs(self.g0)
+
+    # ------------------------------------------------------------------ core
+    def prepare(self, image, out=None) -> np.ndarray:
+        """Mean-free, apodized float32 copy of ``image`` (what gets transformed).
+
+        Parameters
+        ----------
+        image : ndarray, shape (rows, cols)
+        out : ndarray, float32, optional
+            Where to write (e.g. the FFT plan's input array).
+        """
+        if out is None:
+            out = np.empty(self.shape, np.float32)
+        np.subtract(image, np.float32(np.mean(image, dtype=np.float64)), out=out, casting="unsafe")
+        if self._window2d is not None:
+            np.multiply(out, self._window2d, out=out)
+        return out
+
+    def spectrum(self, image) -> np.ndarray:
+        """rfft2 of the prepared image: complex64, (rows, cols // 2 + 1), transient."""
+        inp = self.planner.input_array("rfft2", self.shape)
+        self.prepare(image, out=inp)
+        return self.planner.execute("rfft2", self.shape)
+
+    def windows(self, spec) -> np.ndarray:
+        """Filtered windows around both carriers, ifftshift order: (2, m_rows, m_cols) complex64."""
+        flat = spec.reshape(-1)
+        out = np.empty((2,) + self.window_shape, np.complex64)
+        for s in range(2):
+            idx, mirror = self._gather[s]
+            w = flat[idx]
+            np.conjugate(w, out=w, where=mirror)
+            out[s] = w.reshape(self.window_shape) * self._filters[s]
+        return out
+
+    def decimated_from_windows(self, wins) -> np.ndarray:
+        """Analytic signals on the decimated grid from :meth:`windows` output."""
+        out = np.empty((2,) + self.window_shape, np.complex64)
+        for s in range(2):
+            inp = self.planner.input_array("ifft2", self.window_shape)
+            inp[...] = wins[s]
+            out[s] = self.planner.execute("ifft2", self.window_shape)
+        # samples sit at r = j * rows / m; the scale follows the window size
+        out *= np.float32(self.window_shape[0] * self.window_shape[1] / (self.shape[0] * self.shape[1]))
+        return out
+
+    def decimated(self, image) -> np.ndarray:
+        """Analytic signals ``g_s`` of ``image`` on the decimated grid.
+
+        Returns
+        -------
+        ndarray, complex64, shape (2, m_rows, m_cols)
+            Carrier ``s`` signal at pixels ``(rows_px[i], cols_px[j])``,
+            including the factor ``exp(2 pi i c_s . r)`` of the window centre
+            (it cancels in ``g conj(g0)``).
+        """
+        return self.decimated_from_windows(self.windows(self.spectrum(image)))
+
+    def full_from_windows(self, wins) -> np.ndarray:
+        """Analytic signals on the full pixel grid (zero-padded full-size inverse FFTs).
+
+        Returns
+        -------
+        ndarray, complex64, shape (2, rows, cols)
+        """
+        rows, cols = self.shape
+        out = np.empty((2, rows, cols), np.complex64)
+        for s in range(2):
+            inp = self.planner.input_array("ifft2", self.shape)
+            inp.fill(0)
+            ri, ci = self._full_index[s]
+            inp[ri, ci] = wins[s]
+            out[s] = self.planner.execute("ifft2", self.shape)
+        return out
+
+    # --------------------------------------------------------- conversions
+    def phase_to_displacement(self, phase) -> np.ndarray:
+        """Displacement ``u`` (pixels, (u_row, u_col)) from carrier phases.
+
+        Solves ``phase_s = -k_s . u`` pointwise.
+
+        Parameters
+        ----------
+        phase : ndarray, shape (2, ...)
+            Unwrapped phases of both carriers, radians.
+
+        Returns
+        -------
+        ndarray, float32, shape (2, ...)
+        """
+        K = self.wavevectors
+        inv = -np.linalg.inv(K)
+        u_r = inv[0, 0] * phase[0] + inv[0, 1] * phase[1]
+        u_c = inv[1, 0] * phase[0] + inv[1, 1] * phase[1]
+        return np.stack([u_r, u_c]).astype(np.float32, copy=False)
+
+    def displacement_to_phase(self, u) -> np.ndarray:
+        """Carrier phases (radians) ``-k_s . u`` of a displacement (2, ...) in pixels."""
+        K = self.wavevectors
+        return -np.stack([K[s, 0] * u[0] + K[s, 1] * u[1] for s in range(2)])
+
+    def filter_transfer(self) -> np.ndarray:
+        """Filter gains on the decimated spectrum grid, (2, m_rows, m_cols), ifftshift order."""
+        return np.stack(self._filters)

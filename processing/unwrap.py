@@ -1,0 +1,159 @@
+"""Phase unwrapping of carrier phases, in space and in time.
+
+Fourier demodulation reads displacement as a phase, known modulo 2 pi.
+Ordinary experiments exceed pi (notes.md: a 15 um dimple at H = 300 mm,
+theta = 55 deg, 2 mm period drives the y-carrier to about 5 rad), so the
+phase is unwrapped:
+
+- in space: :func:`unwrap_spatial` (reliability-sorted path following of
+  scikit-image, Herraez et al. 2002, with the invalid samples masked out);
+  the result is shifted by the multiple of 2 pi that puts the reference
+  region's median phase nearest to 0;
+- in time: :func:`unwrap_temporal` adds the wrapped change since the
+  previous frame of a series (itself unwrapped spatially, which is trivial
+  when frames come fast), so a phase that grew smoothly through several pi
+  over a series comes out right even where space alone is ambiguous
+  (islands cut off by a masked region).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+from skimage.restoration import unwrap_phase
+
+__all__ = ["wrap", "unwrap_spatial", "unwrap_temporal", "has_wraps"]
+
+TWO_PI = 2.0 * np.pi
+
+
+def wrap(phase):
+    """Phase wrapped into [-pi, pi)."""
+    return (phase + np.pi) % TWO_PI - np.pi
+
+
+def has_wraps(phase, valid=None) -> bool:
+    """True if neighbouring samples (both valid) differ by more than pi.
+
+    A phase map without such jumps is already unwrapped (up to 2 pi
+    overall), which skips the unwrapper on most live frames.
+    """
+    dr = np.abs(np.diff(phase, axis=0))
+    dc = np.abs(np.diff(phase, axis=1))
+    if valid is not None:
+        dr = np.where(valid[1:, :] & valid[:-1, :], dr, 0.0)
+        dc = np.where(valid[:, 1:] & valid[:, :-1], dc, 0.0)
+    return bool(dr.max(initial=0.0) > np.pi or dc.max(initial=0.0) > np.pi)
+
+
+def _align_components(phase, valid, ref_mask):
+    """Shift each connected valid region by 2 pi k: the one(s) holding the
+    reference region so that its median is nearest 0, the others so that
+    their median is nearest 0 as well (no other information links them)."""
+    labels, n = ndimage.label(valid)
+    if n == 0:
+        return phase
+    out = phase.copy()
+    if ref_mask is not None and np.any(ref_mask & valid):
+        ref_vals = phase[ref_mask & valid]
+        shift = TWO_PI * np.round(np.median(ref_vals) / TWO_PI)
+        ref_labels = np.unique(labels[ref_mask & valid])
+    else:
+        shift = None
+        ref_labels = np.array([], dtype=labels.dtype)
+    idx = np.arange(1, n + 1)
+    medians = ndimage.median(phase, labels, idx)
+    for lab, med in zip(idx, np.atleast_1d(medians)):
+        region = labels == lab
+        if lab in ref_labels:
+            out[region] -= shift
+        else:
+            out[region] -= TWO_PI * np.round(med / TWO_PI)
+    return out
+
+
+def unwrap_spatial(phase, valid=None, *, ref_mask=None) -> np.ndarray:
+    """Unwrap a wrapped phase map in space.
+
+    Parameters
+    ----------
+    phase : ndarray, float, shape (rows, cols)
+        Wrapped phase, radians.
+    valid : ndarray, bool, shape (rows, cols), optional
+        Samples to trust; others are ignored and returned as NaN.
+    ref_mask : ndarray, bool, shape (rows, cols), optional
+        Reference region: its median unwrapped phase is put nearest 0.
+
+    Returns
+    -------
+    ndarray, float64, shape (rows, cols)
+        Unwrapped phase, NaN outside ``valid``.
+    """
+    phase = np.asarray(phase, dtype=np.float64)
+    if valid is None:
+        valid = np.isfinite(phase)
+    valid = valid & np.isfinite(phase)
+    if not valid.any():
+        return np.full(phase.shape, np.nan)
+    work = np.where(valid, phase, 0.0)
+    if has_wraps(work, valid):
+        if valid.all():
+            out = unwrap_phase(work)
+        else:
+            out = unwrap_phase(np.ma.masked_array(work, mask=~valid)).filled(0.0)
+    else:
+        out = work
+    out = _align_components(out, valid, ref_mask)
+    return np.where(valid, out, np.nan)
+
+
+def unwrap_temporal(phase, previous, valid=None, previous_valid=None, *, ref_mask=None) -> np.ndarray:
+    """Unwrap against the previous frame's unwrapped phase.
+
+    ``result = previous + unwrap_spatial(wrap(phase - previous))`` where both
+    frames are valid; where only this frame is valid, the spatially unwrapped
+    phase is used, shifted by the 2 pi multiple that best matches the
+    temporal result on the common samples.
+
+    Parameters
+    ----------
+    phase : ndarray, shape (rows, cols)
+        Wrapped phase of this frame, radians.
+    previous : ndarray, shape (rows, cols)
+        Unwrapped phase of the previous frame (NaN where invalid).
+    valid, previous_valid : ndarray of bool, optional
+    ref_mask : ndarray of bool, optional
+        Reference region (see :func:`unwrap_spatial`).
+
+    Returns
+    -------
+    ndarray, float64
+        Unwrapped phase, NaN outside ``valid``.
+    """
+    phase = np.asarray(phase, dtype=np.float64)
+    previous = np.asarray(previous, dtype=np.float64)
+    if previous.shape != phase.shape:
+        raise ValueError(f"previous phase has shape {previous.shape}, this frame {phase.shape}; "
+                         "call reset_series() when the grid changes")
+    if valid is None:
+        valid = np.isfinite(phase)
+    if previous_valid is None:
+        previous_valid = np.isfinite(previous)
+    both = valid & previous_valid & np.isfinite(previous)
+    if not both.any():
+        return unwrap_spatial(phase, valid, ref_mask=ref_mask)
+    delta = wrap(np.where(both, phase - previous, 0.0))
+    if has_wraps(delta, both):
+        delta = unwrap_spatial(delta, both)  # each island's median change nearest 0
+    out = np.where(both, previous + delta, np.nan)
+    only_now = valid & ~both
+    if only_now.any():
+        spatial = unwrap_spatial(phase, valid, ref_mask=ref_mask)
+        diff = out[both] - spatial[both]
+        spatial += TWO_PI * np.round(np.median(diff) / TWO_PI)
+        out[only_now] = spatial[only_now]
+    # keep the reference region's phase nearest 0 (its median may drift by 2 pi
+    # only if the region itself jumped, which then was spatially ambiguous)
+    if ref_mask is not None and np.any(ref_mask & valid):
+        out -= TWO_PI * np.round(np.nanmedian(out[ref_mask & valid]) / TWO_PI)
+    return np.where(valid, out, np.nan)
