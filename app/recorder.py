@@ -1,0 +1,766 @@
+"""HDF5 recorder: every frame from the ring, in order, lossless or loudly counted.
+
+Layout of the file: ``docs/recording-format.md``. Two levels:
+
+* :class:`RecordingFile` -- the file itself (no threads): creates the layout,
+  appends frames (one HDF5 chunk per frame, written with
+  ``write_direct_chunk``, no int32 offsets anywhere, files > 4 GB are normal),
+  keeps the frame table, flushes, writes the summary, and never overwrites an
+  existing file.
+* :class:`Recorder` -- a writer thread that reads the ring buffer through a
+  :class:`~app.ringbuffer.RingCursor` (its bounded, lossless queue: it
+  never drops a frame itself; when it falls behind, the backlog is logged
+  loudly, and if the camera laps it the lost frames are counted exactly and
+  flagged on the next frame) and writes a :class:`RecordingFile`.
+
+Crash safety: data and frame-table rows are flushed every ``flush_interval_s``;
+only then is ``frames_written`` advanced (attribute on ``/frames`` and on the
+root). A process killed with SIGKILL or a full disk leaves a file that opens
+with plain ``h5py.File(path, "r")`` and is valid up to ``frames_written``
+(we do not use SWMR: a crashed SWMR writer leaves a file that HDF5 refuses to
+open until ``h5clear`` resets it).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import threading
+import time
+from pathlib import Path
+from typing import Callable, Dict, List, Optional
+
+import numpy as np
+
+from drivers.base import FrameFlags
+
+from .ringbuffer import RingBuffer, RingClosed, RingFrame, format_bytes
+
+__all__ = [
+    "FORMAT_VERSION",
+    "FRAME_TABLE_DTYPE",
+    "RecorderError",
+    "DiskSpaceError",
+    "RecordingFile",
+    "Recorder",
+    "unique_path",
+    "software_version",
+    "read_summary",
+    "format_summary",
+]
+
+log = logging.getLogger("tirdeflect.recorder")
+
+FORMAT_VERSION = "1.0"
+
+#: one row per frame of ``/frame_table``
+FRAME_TABLE_DTYPE = np.dtype(
+    [
+        ("sequence", "<i8"),  # host sequence number (contiguous over what the camera thread got)
+        ("frame_id", "<i8"),  # camera frame/block id
+        ("device_timestamp_ns", "<i8"),  # device clock, -1 when missing (flag NO_DEVICE_TIMESTAMP)
+        ("host_timestamp_ns", "<i8"),  # time.monotonic_ns() at reception
+        ("flags", "<u4"),  # drivers.base.FrameFlags
+        ("trigger_index", "<i8"),  # frames from the trigger frame (0), negative before it
+    ]
+)
+
+#: file-system overhead allowed on top of the raw frame bytes when checking free space
+SPACE_MARGIN_BYTES = 16 * 1024 * 1024
+
+
+class RecorderError(RuntimeError):
+    """Recording could not start or failed; the message says what happened and what to do."""
+
+
+class DiskSpaceError(RecorderError):
+    """Not enough free space for the planned recording."""
+
+
+def software_version() -> str:
+    """tirdeflect's version (installed metadata, else pyproject.toml of this tree)."""
+    try:
+        from importlib.metadata import PackageNotFoundError, version
+
+        try:
+            return version("tirdeflect")
+        except PackageNotFoundError:
+            pass
+    except ImportError:  # pragma: no cover
+        pass
+    try:
+        import tomllib
+
+        text = (Path(__file__).resolve().parent.parent / "pyproject.toml").read_text()
+        return str(tomllib.loads(text)["project"]["version"]) + "+source"
+    except Exception:  # pragma: no cover
+        return "unknown"
+
+
+def unique_path(path) -> Path:
+    """``path`` if it does not exist, else ``name-001.ext``, ``name-002.ext`` ... (first free one)."""
+    p = Path(path)
+    if not p.exists():
+        return p
+    for i in range(1, 10000):
+        q = p.with_name(f"{p.stem}-{i:03d}{p.suffix}")
+        if not q.exists():
+            return q
+    raise RecorderError(f"no free file name like {p.stem}-NNN{p.suffix} in {p.parent}; clean up the folder")
+
+
+def _attr_value(v):
+    if v is None:
+        return "None"
+    if isinstance(v, (bool, np.bool_)):
+        return int(v)
+    if isinstance(v, (int, float, str, np.integer, np.floating)):
+        return v
+    return json.dumps(v, default=str)
+
+
+class RecordingFile:
+    """One HDF5 recording (see ``docs/recording-format.md``); not thread-safe, one writer.
+
+    Parameters
+    ----------
+    path : str or Path
+        Where to write. Never overwritten: an existing file raises
+        :class:`RecorderError` (``on_exists="error"``) or a free name
+        ``name-NNN.h5`` is chosen (``on_exists="rename"``); see :attr:`path`.
+    shape : (int, int)
+        Frame shape (rows, cols) in pixels.
+    dtype : numpy dtype
+        ``uint8`` or ``uint16``.
+    n_frames : int or None
+        Planned number of frames (preallocated extent; the free space check uses
+        it). None: unknown, the datasets grow.
+    bit_depth : int
+        Significant bits per pixel.
+    check_space : bool
+        Refuse (:class:`DiskSpaceError`) when the disk has less free space than
+        the planned size.
+    camera_id : str
+    camera_settings : dict, optional
+        ``CameraSettings.as_dict()``, stored as attributes of ``/camera``.
+    geometry_toml : str, optional
+        Geometry as TOML text, stored as ``/geometry_toml``.
+    reference_image : ndarray (rows, cols), optional
+        Stored as ``/reference``.
+    attrs : dict, optional
+        Extra root attributes (trigger source, pre/post frames, frame rate ...).
+    """
+
+    def __init__(
+        self,
+        path,
+        *,
+        shape,
+        dtype,
+        n_frames: Optional[int] = None,
+        bit_depth: Optional[int] = None,
+        check_space: bool = True,
+        on_exists: str = "error",
+        camera_id: str = "",
+        camera_settings: Optional[dict] = None,
+        geometry_toml: Optional[str] = None,
+        reference_image: Optional[np.ndarray] = None,
+        attrs: Optional[dict] = None,
+    ):
+        import h5py
+
+        p = Path(path)
+        if on_exists not in ("error", "rename"):
+            raise ValueError(f"on_exists must be 'error' or 'rename'; got {on_exists!r}")
+        if p.exists():
+            if on_exists == "error":
+                raise RecorderError(
+                    f"{str(p)!r} already exists and recordings are never overwritten; "
+                    "choose another file name (or let tirdeflect number it: --auto-name)"
+                )
+            p = unique_path(p)
+        if not p.parent.is_dir():
+            raise RecorderError(f"folder {str(p.parent)!r} does not exist; create it or choose another --out")
+        self.shape = (int(shape[0]), int(shape[1]))
+        self.dtype = np.dtype(dtype)
+        if self.dtype not in (np.dtype(np.uint8), np.dtype(np.uint16)):
+            raise ValueError(f"recording dtype must be uint8 or uint16; got {self.dtype}")
+        self.bit_depth = int(bit_depth or self.dtype.itemsize * 8)
+        self.frame_bytes = self.shape[0] * self.shape[1] * self.dtype.itemsize
+        self.n_planned = None if n_frames is None else int(n_frames)
+        if self.n_planned is not None and self.n_planned < 1:
+            raise ValueError(f"n_frames must be >= 1 or None; got {n_frames}")
+        extra = 0 if reference_image is None else np.asarray(reference_image).nbytes
+        self.planned_bytes = (
+            None
+            if self.n_planned is None
+            else self.n_planned * (self.frame_bytes + FRAME_TABLE_DTYPE.itemsize) + extra + SPACE_MARGIN_BYTES
+        )
+        if check_space and self.planned_bytes is not None:
+            free = shutil.disk_usage(p.parent).free
+            if self.planned_bytes > free:
+                raise DiskSpaceError(
+                    f"recording {self.n_planned} frames of {self.shape[0]}x{self.shape[1]} {self.dtype} needs "
+                    f"{format_bytes(self.planned_bytes)} ({self.planned_bytes} bytes) but only {format_bytes(free)} "
+                    f"({free} bytes) are free on {str(p.parent)!r}; free space, record fewer frames or "
+                    "choose another disk"
+                )
+        self.path = p
+        # "w-": fail if the file appeared since we looked (never overwrite)
+        try:
+            self._f = h5py.File(p, "w-", libver="earliest")
+        except (FileExistsError, OSError) as exc:
+            raise RecorderError(f"cannot create {str(p)!r}: {exc}; choose another file name or folder") from exc
+        f = self._f
+        cap = self.n_planned if self.n_planned is not None else 256
+        self._capacity = cap
+        self.frames = f.create_dataset(
+            "frames",
+            shape=(cap,) + self.shape,
+            maxshape=(None,) + self.shape,
+            chunks=(1,) + self.shape,
+            dtype=self.dtype,
+            fillvalue=0,
+        )
+        self.table = f.create_dataset(
+            "frame_table",
+            shape=(cap,),
+            maxshape=(None,),
+            chunks=(min(max(cap, 1), 4096),),
+            dtype=FRAME_TABLE_DTYPE,
+            fillvalue=np.array((-1, -1, -1, -1, 0, 0), dtype=FRAME_TABLE_DTYPE),
+        )
+        fa = self.frames.attrs
+        fa["frames_written"] = 0
+        fa["frames_planned"] = -1 if self.n_planned is None else self.n_planned
+        fa["bit_depth"] = self.bit_depth
+        fa["axes"] = "frame, row, col"
+        ra = f.attrs
+        ra["format"] = "tirdeflect-recording"
+        ra["format_version"] = FORMAT_VERSION
+        ra["software"] = "tirdeflect"
+        ra["software_version"] = software_version()
+        ra["created_utc"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+        ra["camera_id"] = camera_id
+        ra["bit_depth"] = self.bit_depth
+        ra["frames_written"] = 0
+        ra["complete"] = 0
+        ra["error"] = ""
+        for k, v in (attrs or {}).items():
+            ra[k] = _attr_value(v)
+        cam = f.create_group("camera")
+        cam.attrs["camera_id"] = camera_id
+        settings = dict(camera_settings or {})
+        for k, v in settings.items():
+            cam.attrs[k] = _attr_value(v)
+        cam.attrs["settings_json"] = json.dumps(settings, default=str)
+        if geometry_toml is not None:
+            f.create_dataset("geometry_toml", data=str(geometry_toml), dtype=h5py.string_dtype())
+        if reference_image is not None:
+            ref = np.asarray(reference_image)
+            f.create_dataset("reference", data=ref)
+        self.n_written = 0  # frames written (data + table row in memory)
+        self.n_flushed = 0  # frames known to be on disk (frames_written)
+        self._rows = np.empty(1024, dtype=FRAME_TABLE_DTYPE)
+        self._rows_start = 0  # file row of self._rows[0]
+        self._n_rows = 0
+        self.events: List[dict] = []
+        self.closed = False
+        f.flush()
+
+    # ------------------------------------------------------------ writing
+    def _grow(self, need: int) -> None:
+        cap = self._capacity
+        while cap < need:
+            cap = max(cap * 2, 256)
+        self.frames.resize(cap, axis=0)
+        self.table.resize(cap, axis=0)
+        self._capacity = cap
+
+    def write(self, image: np.ndarray, row: tuple) -> int:
+        """Append one frame and its frame-table row; returns its index in the file.
+
+        ``row`` = (sequence, frame_id, device_timestamp_ns or -1, host_timestamp_ns, flags, trigger_index).
+        Raises OSError (e.g. disk full) from HDF5; the file stays valid up to
+        the last :meth:`flush`.
+        """
+        i = self.n_written
+        if i >= self._capacity:
+            self._grow(i + 1)
+        if image.shape != self.shape or image.dtype != self.dtype:
+            raise RecorderError(
+                f"frame {row[0]} is {image.dtype} {image.shape}; the recording holds {self.dtype} {self.shape}"
+            )
+        self.frames.id.write_direct_chunk((i, 0, 0), np.ascontiguousarray(image))
+        if self._n_rows == len(self._rows):
+            self._write_rows()
+        self._rows[self._n_rows] = row
+        self._n_rows += 1
+        self.n_written = i + 1
+        return i
+
+    def _write_rows(self) -> None:
+        if self._n_rows:
+            a = self._rows_start
+            self.table[a : a + self._n_rows] = self._rows[: self._n_rows]
+            self._rows_start = a + self._n_rows
+            self._n_rows = 0
+
+    def flush(self) -> None:
+        """Put everything written so far on disk and advance ``frames_written``."""
+        self._write_rows()
+        self._f.flush()  # frame data and table rows first ...
+        n = self.n_written
+        self.frames.attrs["frames_written"] = n  # ... then the counter that vouches for them
+        self._f.attrs["frames_written"] = n
+        self._f.flush()
+        self.n_flushed = n
+
+    def add_event(self, kind: str, message: str = "", *, sequence: int = -1, host_timestamp_ns: Optional[int] = None,
+                  **extra) -> None:
+        """Remember an event (trigger, error, note); all events go to ``/events`` at :meth:`close`."""
+        ev = dict(kind=kind, message=message, sequence=int(sequence),
+                  host_timestamp_ns=int(time.monotonic_ns() if host_timestamp_ns is None else host_timestamp_ns))
+        ev.update(extra)
+        self.events.append(ev)
+
+    def set_attrs(self, **attrs) -> None:
+        """Set root attributes (e.g. trigger sequence once the trigger came)."""
+        for k, v in attrs.items():
+            self._f.attrs[k] = _attr_value(v)
+
+    def close(self, summary: Optional[dict] = None, error: Optional[str] = None) -> None:
+        """Flush, trim the datasets to what was written, store events and summary, close.
+
+        Safe to call after a write error: it stores what it can and always
+        closes the file handle.
+        """
+        if self.closed:
+            return
+        import h5py
+
+        f = self._f
+        problems = []
+        try:
+            try:
+                self.flush()
+            except Exception as exc:  # disk full: what was flushed before stays valid
+                problems.append(f"final flush failed: {exc}")
+            try:
+                n = self.n_flushed
+                if n != self._capacity:
+                    self.frames.resize(n, axis=0)
+                    self.table.resize(n, axis=0)
+                    self._capacity = n
+                f.attrs["complete"] = int(error is None and not problems and
+                                          (self.n_planned is None or n == self.n_planned))
+                f.attrs["error"] = "; ".join(x for x in [error] + problems if x) or ""
+                if self.events:
+                    f.create_dataset("events", data=[json.dumps(e, default=str) for e in self.events],
+                                     dtype=h5py.string_dtype())
+                if summary is not None:
+                    g = f.create_group("summary")
+                    for k, v in summary.items():
+                        g.attrs[k] = _attr_value(v)
+                    g.attrs["summary_json"] = json.dumps(summary, default=str)
+                f.flush()
+            except Exception as exc:
+                problems.append(f"writing the summary failed: {exc}")
+                log.error("recording %s: %s", self.path, problems[-1])
+        finally:
+            self.closed = True
+            try:
+                f.close()
+            except Exception as exc:  # pragma: no cover - disk full during close
+                log.error("recording %s: closing failed: %s (the file is valid up to frame %d)",
+                          self.path, exc, self.n_flushed)
+
+
+class Recorder:
+    """Writer thread: ring cursor -> :class:`RecordingFile`, every frame in order.
+
+    Parameters
+    ----------
+    ring : RingBuffer
+        The ring the camera thread fills (``acquisition.ring``).
+    path : str or Path
+        Output file; never overwritten (see :class:`RecordingFile`).
+    n_frames : int or None
+        Frames to record (from ``start_sequence``); None: until :meth:`stop`.
+    acquisition : Acquisition, optional
+        For the camera id, settings and counters in the summary.
+    flush_interval_s : float
+        Seconds between flushes (what a crash can lose at most).
+    defer : bool
+        Burst-to-RAM: do not write while the camera runs; wait until all
+        ``n_frames`` are in the ring (or the acquisition ended), then write
+        them out (``progress`` reports it). Use when the disk is slower than
+        the camera and the burst fits into the ring.
+    backlog_warn_fraction : float
+        Log a warning when the backlog exceeds this fraction of the ring.
+    progress : callable, optional
+        ``progress(frames_written, n_frames_planned)`` from the writer thread.
+    **file_options
+        Passed to :class:`RecordingFile` (``check_space``, ``on_exists``,
+        ``geometry_toml``, ``reference_image``, ``attrs``, ``camera_id``,
+        ``camera_settings``).
+
+    Publishes: ``state`` ("armed", "recording", "done", "error"), ``error``,
+    ``frames_written``, ``lost_overrun`` (frames lost to ring overwrite),
+    ``backlog`` and ``backlog_max`` (frames), ``backlog_warnings``, ``path``,
+    :meth:`summary`. Takes: :meth:`begin`, :meth:`stop`, :meth:`wait`.
+    """
+
+    def __init__(
+        self,
+        ring: RingBuffer,
+        path,
+        *,
+        n_frames: Optional[int] = None,
+        acquisition=None,
+        flush_interval_s: float = 0.5,
+        defer: bool = False,
+        backlog_warn_fraction: float = 0.5,
+        progress: Optional[Callable[[int, Optional[int]], None]] = None,
+        read_timeout_s: float = 0.2,
+        **file_options,
+    ):
+        if defer and n_frames is None:
+            raise ValueError("defer=True (burst to RAM) needs n_frames: the burst must have a known length")
+        if defer and n_frames is not None and n_frames > ring.n_frames:
+            raise RecorderError(
+                f"burst of {n_frames} frames does not fit into the ring of {ring.n_frames} frames; "
+                "enlarge the ring (--ring-frames / more memory) or record without --burst"
+            )
+        self.ring = ring
+        self.acquisition = acquisition
+        self.n_frames = None if n_frames is None else int(n_frames)
+        self.flush_interval_s = float(flush_interval_s)
+        self.defer = bool(defer)
+        self.backlog_warn_fraction = float(backlog_warn_fraction)
+        self.progress = progress
+        self.read_timeout_s = float(read_timeout_s)
+        if acquisition is not None:
+            file_options.setdefault("camera_id", acquisition.camera.camera_id)
+            file_options.setdefault("camera_settings", acquisition.settings.as_dict())
+            file_options.setdefault("bit_depth", acquisition.settings.bit_depth)
+        self.file = RecordingFile(path, shape=ring.shape, dtype=ring.dtype, n_frames=self.n_frames, **file_options)
+        self.path = self.file.path
+        self.state = "armed"
+        self.error: Optional[str] = None
+        self.frames_written = 0
+        self.lost_overrun = 0
+        self.backlog = 0
+        self.backlog_max = 0
+        self.backlog_warnings = 0
+        self.start_sequence: Optional[int] = None
+        self.trigger_sequence: Optional[int] = None
+        self._cursor = None
+        self._thread: Optional[threading.Thread] = None
+        self._stop = threading.Event()
+        self._stop_at: Optional[int] = None
+        self._done = threading.Event()
+        self._t_begin = None
+        self._t_end = None
+        self._summary: Optional[dict] = None
+        self._stats = dict(id_gap_frames=0, id_gap_events=0, missing_ids=[], time_gaps=0, lost_by_time=0,
+                           incomplete=0, no_timestamp=0, overrun_events=[])
+
+    # ----------------------------------------------------------- commands
+    def begin(self, start_sequence: Optional[int] = None, *, trigger_sequence: Optional[int] = None) -> "Recorder":
+        """Start writing from ring sequence ``start_sequence`` (default: the next frame)."""
+        if self._thread is not None:
+            raise RecorderError("this recorder already began; create a new one for another recording")
+        start = self.ring.head if start_sequence is None else int(start_sequence)
+        if start < self.ring.oldest:
+            raise RecorderError(
+                f"recording should start at frame {start} but the ring only holds frames from {self.ring.oldest} "
+                f"on ({self.ring.n_frames} frames): enlarge the ring or use fewer pre-trigger frames"
+            )
+        self.start_sequence = start
+        self.trigger_sequence = trigger_sequence
+        self._cursor = self.ring.cursor(start)
+        if trigger_sequence is not None:
+            self.file.set_attrs(trigger_sequence=trigger_sequence)
+        self.file.set_attrs(start_sequence=start)
+        self.state = "recording"
+        self._t_begin = time.monotonic()
+        self._thread = threading.Thread(target=self._run, name="tirdeflect-recorder", daemon=True)
+        self._thread.start()
+        return self
+
+    def set_trigger(self, sequence: int, **event) -> None:
+        """Tell the recorder which ring sequence is the trigger frame (index 0)."""
+        self.trigger_sequence = int(sequence)
+        self.file.add_event("trigger", sequence=sequence, **event)
+
+    def stop(self, timeout_s: float = 10.0, *, drain: bool = True) -> bool:
+        """End the recording: write what is already in the ring (``drain``) and close; True if done in time."""
+        if self._thread is None:
+            self._finish(error=None)
+            return True
+        self._stop_at = self.ring.head if drain else (self._cursor.next_sequence if self._cursor else 0)
+        self._stop.set()
+        return self._done.wait(timeout_s)
+
+    def wait(self, timeout_s: float) -> bool:
+        """Wait until the recording ended (complete, stopped or failed); True if it did."""
+        return self._done.wait(timeout_s)
+
+    @property
+    def done(self) -> bool:
+        return self._done.is_set()
+
+    # -------------------------------------------------------------- thread
+    def _end_sequence(self) -> Optional[int]:
+        ends = []
+        if self.n_frames is not None:
+            ends.append(self.start_sequence + self.n_frames)
+        if self._stop_at is not None:
+            ends.append(self._stop_at)
+        return min(ends) if ends else None
+
+    def _run(self) -> None:
+        cur = self._cursor
+        ring = self.ring
+        rf = self.file
+        buf = np.empty(ring.shape, ring.dtype)
+        warn_at = max(1, int(self.backlog_warn_fraction * ring.n_frames))
+        warned = False
+        last_flush = time.monotonic()
+        prev: Optional[RingFrame] = None
+        error: Optional[str] = None
+        try:
+            if self.defer:
+                end = self.start_sequence + self.n_frames
+                while ring.head < end and not ring.closed and not self._stop.is_set():
+                    ring.wait_for(end - 1, self.read_timeout_s)
+            while True:
+                end = self._end_sequence()
+                if end is not None and cur.next_sequence >= end:
+                    break
+                if self._stop.is_set() and self._stop_at is None:
+                    break
+                try:
+                    fr = cur.read(self.read_timeout_s, out=buf)
+                except RingClosed as exc:
+                    if exc.error:
+                        error = f"acquisition ended with an error: {exc.error}"
+                    elif end is not None and self._stop_at is None:
+                        error = (f"acquisition stopped after {self.frames_written} of {self.n_frames} frames "
+                                 "were recorded")
+                    break
+                if fr is None:
+                    continue
+                if end is not None and fr.sequence >= end:
+                    # the frames up to `end` were lost to overwrite; they are counted already
+                    self._note_overrun(fr, end)
+                    break
+                if fr.lost_before:
+                    self._note_overrun(fr, None)
+                self._account(fr, prev)
+                trig = self.trigger_sequence
+                tidx = fr.sequence - trig if trig is not None else fr.sequence - self.start_sequence
+                flags = int(fr.flags)
+                if trig is not None and fr.sequence == trig:
+                    flags |= FrameFlags.TRIGGER
+                row = (fr.sequence, fr.frame_id, -1 if fr.device_timestamp_ns is None else fr.device_timestamp_ns,
+                       fr.host_timestamp_ns, flags, tidx)
+                rf.write(fr.image, row)
+                self.frames_written = rf.n_written
+                prev = _keep_meta(fr)
+                backlog = cur.backlog
+                self.backlog = backlog
+                if backlog > self.backlog_max:
+                    self.backlog_max = backlog
+                if backlog >= warn_at and not warned and not self.defer:
+                    warned = True
+                    self.backlog_warnings += 1
+                    log.warning("recorder %s is %d frames behind the camera (ring holds %d): the disk is too "
+                                "slow; frames will be lost if this goes on (use --burst)",
+                                rf.path.name, backlog, ring.n_frames)
+                elif backlog < warn_at // 2:
+                    warned = False
+                now = time.monotonic()
+                if now - last_flush >= self.flush_interval_s:
+                    rf.flush()
+                    last_flush = now
+                    if self.progress is not None:
+                        self.progress(rf.n_flushed, self.n_frames)
+        except OSError as exc:
+            error = (f"writing {str(rf.path)!r} failed at frame {rf.n_written} ({exc}); the file holds the "
+                     f"frames written before; free disk space or choose another disk")
+        except Exception as exc:
+            error = f"recorder crashed at frame {rf.n_written}: {type(exc).__name__}: {exc}"
+        self._finish(error)
+
+    def _note_overrun(self, fr: RingFrame, end: Optional[int]) -> None:
+        cur = self._cursor
+        self.lost_overrun = cur.lost if end is None else cur.lost - max(0, fr.sequence - end)
+        self._stats["overrun_events"] = [list(e) for e in cur.lost_events]
+        log.error("recorder %s lost %d frames to ring overwrite (the camera lapped the recorder); "
+                  "total lost %d: use --burst, a faster disk or a bigger ring",
+                  self.file.path.name, fr.lost_before, self.lost_overrun)
+
+    def _account(self, fr: RingFrame, prev) -> None:
+        st = self._stats
+        flags = fr.flags
+        if flags & FrameFlags.INCOMPLETE:
+            st["incomplete"] += 1
+        if flags & FrameFlags.NO_DEVICE_TIMESTAMP:
+            st["no_timestamp"] += 1
+        if prev is None:
+            return
+        seq_gap = fr.sequence - prev.sequence - 1  # lost to ring overwrite
+        id_gap = fr.frame_id - prev.frame_id - 1
+        upstream = id_gap - seq_gap
+        if upstream > 0:
+            st["id_gap_frames"] += upstream
+            st["id_gap_events"] += 1
+            if seq_gap == 0:
+                st["missing_ids"].append([prev.frame_id + 1, upstream])
+        if flags & FrameFlags.TIME_GAP_BEFORE:
+            st["time_gaps"] += 1
+            period = getattr(self.acquisition, "period_s", None) if self.acquisition is not None else None
+            if period and fr.device_timestamp_ns is not None and prev.device_timestamp_ns is not None:
+                n_periods = (fr.device_timestamp_ns - prev.device_timestamp_ns) * 1e-9 / period
+                st["lost_by_time"] += max(0, int(round(n_periods)) - 1 - max(id_gap, 0))
+
+    def _finish(self, error: Optional[str]) -> None:
+        self._t_end = time.monotonic()
+        if self._cursor is not None:
+            # frames the cursor skipped inside the requested range [start, end) are lost
+            events = [list(e) for e in self._cursor.lost_events]
+            end = self._end_sequence()
+            if end is not None:
+                events = [[a, min(a + c, end) - a] for a, c in events if a < end]
+            self._stats["overrun_events"] = events
+            self.lost_overrun = sum(c for _, c in events)
+        summary = self.summary(error=error)
+        if error is None and self.n_frames is not None and self.frames_written < self.n_frames and \
+                self.lost_overrun == 0 and self._stop_at is None:
+            error = f"only {self.frames_written} of {self.n_frames} frames were recorded"
+        try:
+            self.file.add_event("end", error or "ok", sequence=(self._cursor.next_sequence - 1) if self._cursor else -1)
+            self.file.close(summary=summary, error=error)
+        except Exception as exc:  # pragma: no cover - close never raises, but be sure
+            error = error or f"closing the file failed: {exc}"
+        self.frames_written = self.file.n_flushed
+        summary["frames_written"] = self.frames_written
+        self._summary = summary
+        self.error = error
+        self.state = "error" if error else "done"
+        if self.progress is not None:
+            try:
+                self.progress(self.frames_written, self.n_frames)
+            except Exception:
+                pass
+        if error:
+            log.error("recording %s: %s", self.path, error)
+        self._done.set()
+
+    # ------------------------------------------------------------- summary
+    def summary(self, error: Optional[str] = None) -> dict:
+        """Drop summary of this recording (also stored in the file as ``/summary``)."""
+        if self._summary is not None and error is None:
+            return dict(self._summary)
+        st = self._stats
+        elapsed = ((self._t_end or time.monotonic()) - self._t_begin) if self._t_begin else 0.0
+        written = self.file.n_written
+        s = dict(
+            path=str(self.path),
+            frames_planned=-1 if self.n_frames is None else self.n_frames,
+            frames_written=written,
+            start_sequence=-1 if self.start_sequence is None else self.start_sequence,
+            trigger_sequence=-1 if self.trigger_sequence is None else self.trigger_sequence,
+            lost_upstream_id_gaps=st["id_gap_frames"],
+            id_gap_events=st["id_gap_events"],
+            missing_frame_ids=st["missing_ids"],
+            time_gaps=st["time_gaps"],
+            lost_by_time_estimate=st["lost_by_time"],
+            incomplete=st["incomplete"],
+            no_device_timestamp=st["no_timestamp"],
+            lost_ring_overrun=self.lost_overrun,
+            ring_overrun_events=st["overrun_events"],
+            recorder_backlog_max=self.backlog_max,
+            recorder_backlog_warnings=self.backlog_warnings,
+            ring_frames=self.ring.n_frames,
+            elapsed_s=round(elapsed, 3),
+            write_rate_mb_s=round(written * self.file.frame_bytes / elapsed / 1e6, 1) if elapsed > 0 else 0.0,
+            error=error or "",
+        )
+        if self.acquisition is not None:
+            a = self.acquisition.stats()
+            s["camera_statistics"] = a.get("camera_statistics", {})
+            s["acquisition_fps"] = round(a.get("fps", 0.0), 2)
+        s["total_missing"] = s["lost_upstream_id_gaps"] + s["lost_by_time_estimate"] + s["lost_ring_overrun"]
+        return s
+
+
+def _keep_meta(fr: RingFrame) -> RingFrame:
+    """Remember the previous frame's metadata without keeping a reference to the reused image buffer."""
+    return RingFrame(None, fr.sequence, fr.frame_id, fr.device_timestamp_ns, fr.host_timestamp_ns, fr.flags)
+
+
+def format_summary(s: dict) -> str:
+    """Multi-line human summary of a recording (what ``tirdeflect record`` prints)."""
+    planned = s.get("frames_planned", -1)
+    lines = [
+        f"recording {s.get('path', '')}",
+        f"  frames written   {s.get('frames_written', 0)}" + (f" of {planned} planned" if planned and planned > 0 else ""),
+        f"  lost upstream    {s.get('lost_upstream_id_gaps', 0)} (camera frame-id gaps"
+        + (f"; missing ids {_ranges(s.get('missing_frame_ids', []))}" if s.get("missing_frame_ids") else "") + ")",
+        f"  timestamp gaps   {s.get('time_gaps', 0)} (about {s.get('lost_by_time_estimate', 0)} frames "
+        "missing beyond the id gaps)",
+        f"  incomplete       {s.get('incomplete', 0)}",
+        f"  ring overrun     {s.get('lost_ring_overrun', 0)} frames lost (recorder backlog max "
+        f"{s.get('recorder_backlog_max', 0)} of {s.get('ring_frames', 0)})",
+        f"  write rate       {s.get('write_rate_mb_s', 0)} MB/s over {s.get('elapsed_s', 0)} s",
+    ]
+    total = s.get("total_missing", 0)
+    if s.get("error"):
+        lines.append(f"  ERROR            {s['error']}")
+    lines.append("  result           " + ("no frame lost" if not total and not s.get("error") else
+                                          f"{total} frames missing" if total else "incomplete recording"))
+    return "\n".join(lines)
+
+
+def _ranges(pairs) -> str:
+    parts = []
+    for first, count in pairs[:20]:
+        parts.append(str(first) if count == 1 else f"{first}-{first + count - 1}")
+    if len(pairs) > 20:
+        parts.append(f"... ({len(pairs) - 20} more)")
+    return ", ".join(parts)
+
+
+def read_summary(path) -> Dict:
+    """The drop summary stored in a recording (``/summary``), or one rebuilt from ``/frame_table``.
+
+    A crashed recording has no ``/summary``; then the counts come from the
+    frame table up to ``frames_written`` (flags and frame-id gaps).
+    """
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        if "summary" in f and "summary_json" in f["summary"].attrs:
+            return json.loads(f["summary"].attrs["summary_json"])
+        n = int(f["frames"].attrs.get("frames_written", 0))
+        t = f["frame_table"][:n]
+    ids = t["frame_id"]
+    seqs = t["sequence"]
+    flags = t["flags"]
+    d_id = np.diff(ids) - 1
+    d_seq = np.diff(seqs) - 1
+    return dict(
+        path=str(path),
+        frames_written=n,
+        lost_upstream_id_gaps=int(np.clip(d_id - d_seq, 0, None).sum()) if n > 1 else 0,
+        lost_ring_overrun=int(d_seq.clip(0).sum()) if n > 1 else 0,
+        time_gaps=int(((flags & FrameFlags.TIME_GAP_BEFORE) != 0).sum()),
+        incomplete=int(((flags & FrameFlags.INCOMPLETE) != 0).sum()),
+        error="no /summary: the recording did not end normally (crash or power loss); counts rebuilt from "
+              "/frame_table",
+    )
