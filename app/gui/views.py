@@ -99,12 +99,15 @@ class ImageView(QtWidgets.QWidget):
             axis = self.plot.getAxis(side)
             axis.enableAutoSIPrefix(False)
             axis.setLabel(f"{name} ({axis_units})")
+            axis.setTextPen("#222")
+            axis.setPen("#444")
         self.image = pg.ImageItem(axisOrder="row-major")
         self.image.setAutoDownsample(True)
         self.plot.addItem(self.image)
         self.colorbar = pg.ColorBarItem(values=(0, 1), colorMap=pg.colormap.get(cmap), label=units,
                                         interactive=True, width=14)
         self.colorbar.setImageItem(self.image, insert_in=self.plot)
+        self.colorbar.getAxis("right").setTextPen("#222") if hasattr(self.colorbar, "getAxis") else None
         self.colorbar.sigLevelsChangeFinished.connect(self._user_levels)
         self._setting_levels = False
         act = self.plot.getViewBox().menu.addAction("Auto levels")
@@ -251,11 +254,14 @@ class SpectrumView(ImageView):
         super().__init__("Spectrum (log |FFT|)", "log10 |F|", cmap="inferno", axis_units="cycles/px",
                          parent=parent)
         self.carriers = pg.ScatterPlotItem(size=18, pen=pg.mkPen("c", width=2), brush=None, symbol="o")
+        self.carriers.setZValue(10)
         self.plot.addItem(self.carriers)
 
     def set_spectrum(self, magnitude: np.ndarray, freq_x: Optional[np.ndarray],
                      freq_y: Optional[np.ndarray], carriers: Sequence[Tuple[float, float]]) -> None:
         """Show ``magnitude`` at frequencies ``freq_x`` (cols) ``freq_y`` (rows), circles at ``carriers`` (fx, fy)."""
-        self.set_data(np.asarray(magnitude, np.float32), x=freq_x, y=freq_y)
+        mag = np.asarray(magnitude, np.float32)
+        self.set_data(mag, x=freq_x, y=freq_y,
+                      levels=robust_levels(mag, lo_pct=50.0, hi_pct=99.95) if self.auto_levels else None)
         pts = [{"pos": (float(fx), float(fy))} for fx, fy in carriers]
         self.carriers.setData(pts)

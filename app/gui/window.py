@@ -80,8 +80,10 @@ class MainWindow(QtWidgets.QMainWindow):
         self._busy = set()
 
         self._build_ui()
+        self.session.worker.set_alignment_fn(self._frame_alignment)
         self._display_timer = QtCore.QTimer(self)
         self._display_timer.setSingleShot(True)
+        self._display_timer.setTimerType(QtCore.Qt.PreciseTimer)
         self._display_timer.timeout.connect(self._refresh)
         self._status_timer = QtCore.QTimer(self)
         self._status_timer.setInterval(250)
@@ -157,7 +159,8 @@ class MainWindow(QtWidgets.QMainWindow):
         align = QtWidgets.QWidget()
         ag = QtWidgets.QGridLayout(align)
         self.spectrum_view = SpectrumView()
-        self.modulation_view = ImageView("Contrast (modulation)", "modulation", cmap="viridis")
+        self.modulation_view = ImageView("Contrast (modulation)", "modulation", cmap="viridis",
+                                         axis_units="px")
         self.modulation_view.set_levels((0.0, 1.0))
         self.align_raw_view = ImageView("Camera", "counts", cmap="CET-L1", axis_units="px")
         self.ready_label = QtWidgets.QLabel("waiting for frames…")
@@ -444,6 +447,8 @@ class MainWindow(QtWidgets.QMainWindow):
             if values["setup"] != "fsss":
                 for k in ("fsss_layers", "fsss_camera_distance_mm"):
                     base.pop(k, None)
+            else:
+                base.pop("theta_deg", None)
             geometry = Geometry.from_dict(base)
         except Exception as exc:  # noqa: BLE001 - GeometryError, ValueError
             self.geometry_panel.geometry_label.setText(f"<span style='color:#c00'>{exc}</span>")
@@ -561,6 +566,12 @@ class MainWindow(QtWidgets.QMainWindow):
             if state == "error":
                 self.show_error(f"Recording stopped: {rec.get('error')}\nEvery frame received so far is kept "
                                 f"in {rec.get('path')}.")
+
+    def _frame_alignment(self, frame):
+        """Alignment without reference (worker thread): carriers of the live frame."""
+        from .alignment import frame_alignment
+        geometry = self.geometry
+        return frame_alignment(frame, getattr(geometry, "theta_deg", None))
 
     # ------------------------------------------------------------- replay
     def _choose_recording(self):
@@ -779,7 +790,8 @@ class MainWindow(QtWidgets.QMainWindow):
             self._draw_spectrum(p.spectrum)
         mod = a.get("modulation") if isinstance(a, dict) else None
         if mod is not None:
-            self.modulation_view.set_data(np.asarray(mod, np.float32), levels=(0.0, 1.0))
+            self.modulation_view.set_data(np.asarray(mod, np.float32), x=a.get("modulation_cols_px"),
+                                          y=a.get("modulation_rows_px"), levels=(0.0, 1.0))
         ready, reasons, lines = self.assess_alignment(a, p.saturation_pct)
         self.alignment_ready = ready
         if ready:
@@ -844,6 +856,8 @@ class MainWindow(QtWidgets.QMainWindow):
                 if abs(diff) > 1.0:
                     reasons.append(f"θ from the pattern differs by {diff:+.1f}° from the geometry")
             lines.append(("θ", th_text))
+            if th_cfg is None:
+                reasons.append("no geometry: enter θ and H (Controls ▸ Reference & geometry)")
         mod = a.get("modulation")
         contrast = num("contrast", "modulation_median")
         if contrast is None and mod is not None:
