@@ -616,32 +616,91 @@ def _progress(total: int, *, disable: bool):
 # =========================================================================== simulate
 
 
+#: Geometry used by `tirdeflect simulate` when no --geometry is given: a typical
+#: TIR set-up (notes.md): theta 55 deg, pattern 300 mm below the surface,
+#: 0.1 mm per column, telecentric camera, rows running away from the camera.
+DEFAULT_SIM_GEOMETRY = {
+    "setup": "tir",
+    "theta_deg": 55.0,
+    "depth_mm": 300.0,
+    "pixel_mm": 0.1,
+    "rows_toward_camera": False,
+}
+
+#: Checkerboard period in columns (x) of the simulated pattern: 20 px, i.e. 2 mm
+#: at the default 0.1 mm/px (y period 20 cos(theta) px).
+SIM_PATTERN_PERIOD_PX = 20.0
+SIM_FPS = 100.0
+
+
+def _sim_scene(name: str, geometry, size: int, n_frames: int, seed: int):
+    """Surface (or scene with ``at(t_s)``) for a --surface name.
+
+    Features scale with the field (``size * pixel_mm``) and heights with
+    ``size / 512``, so the largest carrier phase ``|k . u|`` is the same at every
+    --size: at the default geometry about 1.2 rad (bump), 2.3 rad (dimple, last
+    frame), 2.5 rad (waves) -- all below pi, readable without unwrapping -- and
+    about 5 rad for deep-dimple (the notes.md example: 15 um deep at 512 px,
+    which needs unwrapping). Heights in mm, positions in the image frame
+    (mm from the image centre).
+    """
+    from processing import forward
+
+    fov_mm = size * geometry.pixel_mm  # field width along x
+    scale = size / 512.0
+    if name == "bump":
+        return forward.GaussianBump(amplitude_mm=0.002 * scale, sigma_mm=fov_mm / 8.0)
+    if name == "dimple":
+        # a dimple that deepens over the frames (a disc approaching the surface)
+        depth_mm, sigma_mm = 0.004 * scale, fov_mm / 8.0
+
+        def at(t_s: float):
+            i = int(round(t_s * SIM_FPS))
+            return forward.Dimple((i + 1) / n_frames * depth_mm, sigma_mm)
+
+        return at
+    if name == "deep-dimple":
+        return forward.Dimple(0.015 * scale, fov_mm / 4.65)
+    if name == "waves":
+        field = forward.WaveField.random(
+            6, amplitude_rms_mm=0.0007 * scale, wavelength_range_mm=(fov_mm / 4.0, fov_mm / 2.0),
+            seed=seed)
+        return forward.TravellingWaves(field.components)
+    raise TirdeflectError(f"unknown --surface {name!r}; choose bump, dimple, waves or deep-dimple")
+
+
 def cmd_simulate(args) -> int:
     """Run ``tirdeflect simulate``; returns the exit status (errors raise)."""
-    from processing import forward
+    from processing import Geometry, forward
 
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise TirdeflectError(f"--out {str(out)!r} exists and is not a directory; choose a directory")
-    if out.is_dir() and (out / "reference.png").exists() | (out / "reference.tif").exists() \
-            and not args.overwrite:
+    if out.is_dir() and any(out.glob("reference.*")) and not args.overwrite:
         raise OutputExistsError(
             f"{str(out)!r} already holds a simulated data set; choose another --out or add --overwrite"
         )
     if not math.isfinite(args.noise) or args.noise < 0:
         raise TirdeflectError(f"--noise must be a finite RMS >= 0 grey levels; got {args.noise}")
-    geometry = _load_geometry(args.geometry) if args.geometry else None
-    out.mkdir(parents=True, exist_ok=True)
-
+    if args.size < 32:
+        raise TirdeflectError(f"--size must be at least 32 px to hold a few pattern periods; got {args.size}")
+    if args.geometry:
+        geometry = _load_geometry(args.geometry)
+    else:
+        geometry = Geometry.from_dict(dict(DEFAULT_SIM_GEOMETRY))
+    scene = _sim_scene(args.surface, geometry, args.size, args.frames, args.seed)
+    pattern = forward.Checkerboard(period_mm=SIM_PATTERN_PERIOD_PX * geometry.pixel_mm,
+                                   edge_softness_mm=geometry.pixel_mm)
     sim = forward.simulate(
-        surface=args.surface, size=args.size, frames=args.frames, bits=args.bits,
-        noise_rms=args.noise, geometry=geometry, rng=np.random.default_rng(args.seed),
+        scene, geometry, (args.size, args.size), args.frames, pattern=pattern, fps=SIM_FPS,
+        bits=args.bits, noise_rms=args.noise, seed=args.seed,
     )
-    _write_simulation(out, sim, args)
+    out.mkdir(parents=True, exist_ok=True)
+    _write_simulation(out, sim, geometry, args)
     return 0
 
 
-def _write_simulation(out: Path, sim, args) -> None:
+def _write_simulation(out: Path, sim, geometry, args) -> None:
     import h5py
 
     suffix = ".png" if args.bits <= 8 else ".tif"
@@ -651,25 +710,28 @@ def _write_simulation(out: Path, sim, args) -> None:
         name = f"frame_{k:04d}{suffix}"
         imageio.write_image(out / name, frame)
         names.append(name)
-    geometry_text = sim.geometry.to_toml_text()
+    geometry_text = geometry.to_toml_text()
     (out / "geometry.toml").write_text(geometry_text, encoding="utf-8")
-    heights = np.asarray(sim.heights, dtype=np.float32)
+    heights = np.asarray(sim.heights_mm, dtype=np.float32)
     with h5py.File(out / "heights.h5", "w") as f:
         ds = f.create_dataset("height", data=heights, chunks=(1, *heights.shape[1:]))
         ds.attrs["units"] = "mm"
         ds.attrs["description"] = (
             "true surface height sampled where each pixel's camera ray meets the surface")
+        lost = f.create_dataset("lost", data=np.asarray(sim.lost, dtype=np.uint8),
+                                chunks=(1, *heights.shape[1:]))
+        lost.attrs["description"] = "1 where TIR is lost or rays cross (unmeasurable)"
+        f.create_dataset("time_s", data=np.asarray(sim.times_s, dtype=np.float64))
         f.create_dataset("frame_file", data=np.array(names, dtype=object),
                          dtype=h5py.string_dtype())
         f.attrs["surface"] = args.surface
         f.attrs["bits"] = args.bits
         f.attrs["noise_rms"] = args.noise
         f.attrs["seed"] = args.seed
+        f.attrs["pattern_period_mm"] = SIM_PATTERN_PERIOD_PX * geometry.pixel_mm
         f.attrs["geometry_toml"] = geometry_text
         f.attrs["software_version"] = _version()
         f.attrs["created_utc"] = _utc_now()
-        for key in ("x_mm", "y_mm"):
-            if getattr(sim, key, None) is not None:
-                f.create_dataset(key, data=np.asarray(getattr(sim, key), dtype=np.float64))
-    print(f"tirdeflect: wrote reference, {len(names)} frame(s), heights.h5 and geometry.toml "
-          f"to {out}", file=sys.stderr)
+    hmax = float(np.max(np.abs(heights))) * 1e3
+    print(f"tirdeflect: wrote reference, {len(names)} frame(s) ({args.bits} bit), heights.h5 "
+          f"(max |h| {hmax:.2f} um) and geometry.toml to {out}", file=sys.stderr)
