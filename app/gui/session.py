@@ -247,25 +247,116 @@ class LiveSession:
         rec = self.recording
         if rec is not None:
             out["dropped_ring"] = rec.get("ring_lost", 0)
-            out["dropped_recorder"] = rec.get("recorder_dropped", 0)
-            out["ring_fill"] = rec.get("ring_fill")
-        if out.get("ring_fill") is None:
-            out["ring_fill"] = None
+            out["recorder_backlog"] = rec.get("backlog", 0)
+        ring = acq.ring
+        out["ring_fill"] = min(ring.head, ring.n_frames) / ring.n_frames
+        out["ring_frames"] = ring.n_frames
         return out
 
     # ---------------------------------------------------------- recording
     def arm(self, folder: str, pre_frames: int, post_frames: int, *, reference=None, geometry_toml=None,
-            auto_threshold=None) -> str:
-        raise RuntimeError("recording is not available yet: app.trigger / app.recorder have not landed")
+            auto_threshold: Optional[float] = None, name: Optional[str] = None) -> str:
+        """Arm a pre/post-trigger capture into a new HDF5 file in ``folder``; returns its path.
 
-    def trigger_now(self):
-        raise RuntimeError("nothing armed: press Arm first")
+        The camera keeps running (live view stays on); the recorder writes while
+        capturing from its own ring cursor, so the display never slows it down.
+        With ``auto_threshold`` (RMS slope), the processing worker's slope maps
+        trigger it (:class:`app.trigger.AutoTrigger`).
+        """
+        from app.trigger import AutoTrigger, TriggeredCapture
+
+        acq = self.acquisition
+        if acq is None or not acq.running:
+            raise RuntimeError("no camera is streaming: open a camera before arming")
+        if self.capture is not None and self.recording and self.recording.get("state") in (
+                "armed", "capturing", "saving"):
+            raise RuntimeError("a recording is already armed or running: wait for it or disarm it")
+        if not os.path.isdir(folder):
+            raise OSError(f"recording folder {folder!r} does not exist: choose an existing folder")
+        name = name or time.strftime("tirdeflect-%Y%m%d-%H%M%S.h5")
+        path = os.path.join(folder, name)
+        status = {"state": "armed", "progress": 0.0, "path": path, "error": None, "summary_text": "",
+                  "pre": int(pre_frames), "post": int(post_frames)}
+
+        def progress(done, total):
+            status["written"] = int(done)
+            if total:
+                status["progress"] = float(done) / float(total)
+
+        capture = TriggeredCapture(acq, path, pre_frames=int(pre_frames), post_frames=int(post_frames),
+                                   source="auto" if auto_threshold else "software", burst=False,
+                                   stop_camera=False, progress=progress, geometry_toml=geometry_toml,
+                                   reference_image=None if reference is None else np.asarray(reference),
+                                   on_exists="rename")
+        status["path"] = str(capture.path)
+        self._capture_acq = acq
+        self.capture = capture
+        self.recording = status
+        if auto_threshold:
+            auto = AutoTrigger(float(auto_threshold), dead_time_s=0.0, callback=capture.auto_callback())
+            base = self._seq_base
+
+            def feed(p, auto=auto, acq=acq, base=base):
+                if p.result is None or self.acquisition is not acq or self.capture is not capture:
+                    return
+                auto.feed(p.result.slope_x, p.result.slope_y, sequence=p.seq - base)
+                status["auto_rms"] = auto.last_rms
+
+            self._auto_trigger = (auto, feed)
+            self.worker.add_listener(feed)
+        return status["path"]
+
+    def trigger_now(self) -> int:
+        """Trigger the armed capture on the newest frame; returns its ring sequence."""
+        capture = self.capture
+        if capture is None or capture.state != "armed":
+            raise RuntimeError("nothing armed: press Arm first")
+        return capture.trigger_now()
 
     def disarm(self):
-        self.capture = None
+        """Cancel an armed capture (a running one keeps what it wrote)."""
+        capture, self.capture = self.capture, None
+        self._drop_auto()
+        if capture is not None:
+            try:
+                capture.cancel(timeout_s=10.0)
+            finally:
+                if self.recording is not None:
+                    self.recording.update(state="idle", summary_text=f"disarmed; {capture.path} kept "
+                                          f"with {capture.recorder.frames_written} frames")
+
+    def _drop_auto(self):
+        auto, self._auto_trigger = self._auto_trigger, None
+        if auto is not None:
+            self.worker.remove_listener(auto[1])
 
     def recording_status(self) -> Optional[dict]:
-        return self.recording
+        """``state`` (armed, capturing, saving, done, error), ``progress`` 0..1, ``path``, ``summary_text``..."""
+        status, capture = self.recording, self.capture
+        if status is None or capture is None:
+            return status
+        from app.recorder import format_summary
+
+        rec = capture.recorder
+        status["ring_lost"] = rec.lost_overrun
+        status["backlog"] = rec.backlog
+        status["ring_fill"] = rec.backlog / max(rec.ring.n_frames, 1)
+        if capture.state == "armed":
+            status["state"] = "armed"
+        elif rec.done or capture.state in ("done", "error"):
+            capture.wait(0.0)
+            summary = capture.summary()
+            status["summary"] = summary
+            status["error"] = rec.error or None
+            status["state"] = "error" if rec.error else "done"
+            status["summary_text"] = format_summary(summary)
+            status["progress"] = 1.0 if not rec.error else status["progress"]
+            self.capture = None
+            self._drop_auto()
+        else:
+            last = (capture.trigger_sequence or 0) + capture.post_frames - 1
+            status["state"] = "saving" if capture.acquisition.ring.head > last else "capturing"
+        return status
 
     # -------------------------------------------------------------- close
     def close(self):

@@ -888,9 +888,10 @@ class MainWindow(QtWidgets.QMainWindow):
                            f"shown {self.displayed_fps:.1f} fps")
         lab["drops"].setText(
             f"dropped: camera {st.get('dropped_camera', 0)} · ring→recorder {st.get('dropped_ring', 0)} · "
-            f"recorder {st.get('dropped_recorder', 0)} · display skipped {w.skipped}")
+            f"recorder backlog {st.get('recorder_backlog', 0)} · display skipped {w.skipped} (by design)")
         fill = st.get("ring_fill")
-        lab["ring"].setText(f"ring {100 * fill:.0f} % full" if fill is not None else "")
+        lab["ring"].setText(f"ring {100 * fill:.0f} % of {st.get('ring_frames', 0)} frames"
+                            if fill is not None else "")
         lab["latency"].setText(f"latency {self.latency_ms:.0f} ms" if np.isfinite(self.latency_ms) else "")
         err = st.get("error")
         if err and err != getattr(self, "_shown_camera_error", None):
