@@ -1,0 +1,741 @@
+"""Exact ray tracing of TIR (and FS-SS) deflectometry: the truth tests check against.
+
+A camera ray is traced to the deformed water surface ``z = h(x, y)`` (the
+intersection solved by Newton iteration to 1e-9 mm), reflected about the
+exact normal ``(-h_x, -h_y, 1)/|.|`` (TIR) or refracted through it and through
+the layer stack below (FS-SS), and followed to the pattern plane where the
+pattern is sampled. Nothing here uses the linear model of the paper; the
+tests compare that model (and the reconstruction) against this tracer.
+
+Surfaces are defined in the *image frame* (``x`` along increasing column,
+``y`` along increasing row, mm on the water surface, origin where the
+central camera ray meets the surface; see :mod:`processing.geometry`). Each
+surface gives ``height(x_mm, y_mm)`` and the exact ``gradient(x_mm, y_mm) ->
+(dh/dx, dh/dy)``, in mm and dimensionless.
+
+Examples
+--------
+>>> from processing.geometry import Geometry
+>>> g = Geometry(theta_deg=55, depth_mm=300, pixel_mm=0.1, rows_toward_camera=False)
+>>> bump = GaussianBump(amplitude_mm=0.005, sigma_mm=3.0)
+>>> image, info = render_tir(bump, g, (64, 64), Checkerboard(period_mm=2.0))
+>>> image.shape, image.dtype
+((64, 64), dtype('float32'))
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+import numpy as np
+
+from .errors import GeometryError, ShapeMismatchError
+from .geometry import Geometry
+
+__all__ = [
+    "Surface",
+    "FlatSurface",
+    "GaussianBump",
+    "Dimple",
+    "WaveField",
+    "SumSurface",
+    "ApproachingDiscDimple",
+    "TravellingWaves",
+    "Checkerboard",
+    "RenderInfo",
+    "trace_tir",
+    "trace_fsss",
+    "render_tir",
+    "render_fsss",
+    "render",
+    "true_height",
+    "true_displacement",
+    "quantize",
+    "simulate",
+    "Simulation",
+]
+
+
+# ============================================================================ surfaces
+class Surface:
+    """A water surface ``z = h(x, y)`` in the image frame (mm).
+
+    Subclasses implement :meth:`height` and :meth:`gradient`; both take
+    broadcastable float arrays ``x_mm, y_mm`` and return float64 arrays.
+    """
+
+    def height(self, x_mm, y_mm) -> np.ndarray:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def gradient(self, x_mm, y_mm) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
+        raise NotImplementedError
+
+    def __add__(self, other: "Surface") -> "SumSurface":
+        return SumSurface([self, other])
+
+
+@dataclass(frozen=True)
+class FlatSurface(Surface):
+    """The surface at rest, ``h = 0``."""
+
+    def height(self, x_mm, y_mm):
+        return np.zeros(np.broadcast(np.asarray(x_mm), np.asarray(y_mm)).shape)
+
+    def gradient(self, x_mm, y_mm):
+        z = self.height(x_mm, y_mm)
+        return z, z.copy()
+
+
+@dataclass(frozen=True)
+class GaussianBump(Surface):
+    """``h = A exp(-((x-x0)^2 + (y-y0)^2) / (2 sigma^2))``; A < 0 is a dimple.
+
+    Parameters
+    ----------
+    amplitude_mm : float
+        Peak height A in mm (5 um = 0.005).
+    sigma_mm : float
+        Gaussian standard deviation in mm (full width at half maximum is
+        ``2.355 sigma``).
+    x0_mm, y0_mm : float
+        Centre in the image frame, mm.
+    """
+
+    amplitude_mm: float
+    sigma_mm: float
+    x0_mm: float = 0.0
+    y0_mm: float = 0.0
+
+    def __post_init__(self):
+        if not self.sigma_mm > 0:
+            raise GeometryError(f"sigma_mm must be positive, got {self.sigma_mm!r}")
+
+    def height(self, x_mm, y_mm):
+        dx = np.asarray(x_mm, dtype=np.float64) - self.x0_mm
+        dy = np.asarray(y_mm, dtype=np.float64) - self.y0_mm
+        return self.amplitude_mm * np.exp(-(dx * dx + dy * dy) / (2.0 * self.sigma_mm**2))
+
+    def gradient(self, x_mm, y_mm):
+        dx = np.asarray(x_mm, dtype=np.float64) - self.x0_mm
+        dy = np.asarray(y_mm, dtype=np.float64) - self.y0_mm
+        h = self.amplitude_mm * np.exp(-(dx * dx + dy * dy) / (2.0 * self.sigma_mm**2))
+        k = -h / self.sigma_mm**2
+        return k * dx, k * dy
+
+
+class Dimple(GaussianBump):
+    """A Gaussian dimple of depth ``depth_mm`` (> 0 pushes the surface down)."""
+
+    def __init__(self, depth_mm: float, sigma_mm: float, x0_mm: float = 0.0, y0_mm: float = 0.0):
+        super().__init__(-abs(float(depth_mm)), sigma_mm, x0_mm, y0_mm)
+
+
+@dataclass(frozen=True)
+class WaveField(Surface):
+    """Sum of plane waves ``sum A cos(kx x + ky y + phase)``.
+
+    Parameters
+    ----------
+    components : sequence of (amplitude_mm, kx_per_mm, ky_per_mm, phase_rad)
+    """
+
+    components: tuple = ()
+
+    def __post_init__(self):
+        comps = tuple(tuple(float(v) for v in c) for c in self.components)
+        for c in comps:
+            if len(c) != 4:
+                raise GeometryError(
+                    f"each wave component is (amplitude_mm, kx_per_mm, ky_per_mm, phase_rad), got {c!r}"
+                )
+        object.__setattr__(self, "components", comps)
+
+    @classmethod
+    def random(
+        cls,
+        n_waves: int,
+        *,
+        amplitude_rms_mm: float,
+        wavelength_range_mm: tuple[float, float],
+        seed: int,
+    ) -> "WaveField":
+        """Seeded random field of ``n_waves`` waves, random directions and phases.
+
+        Amplitudes are scaled so that the RMS height is ``amplitude_rms_mm``.
+        """
+        rng = np.random.default_rng(seed)
+        lam = rng.uniform(*wavelength_range_mm, size=n_waves)
+        ang = rng.uniform(0, 2 * np.pi, size=n_waves)
+        ph = rng.uniform(0, 2 * np.pi, size=n_waves)
+        amp = rng.uniform(0.5, 1.0, size=n_waves)
+        amp *= amplitude_rms_mm / math.sqrt(0.5 * float(np.sum(amp**2)))
+        k = 2 * np.pi / lam
+        return cls(tuple(zip(amp, k * np.cos(ang), k * np.sin(ang), ph)))
+
+    def height(self, x_mm, y_mm):
+        x = np.asarray(x_mm, dtype=np.float64)
+        y = np.asarray(y_mm, dtype=np.float64)
+        h = np.zeros(np.broadcast(x, y).shape)
+        for a, kx, ky, ph in self.components:
+            h += a * np.cos(kx * x + ky * y + ph)
+        return h
+
+    def gradient(self, x_mm, y_mm):
+        x = np.asarray(x_mm, dtype=np.float64)
+        y = np.asarray(y_mm, dtype=np.float64)
+        gx = np.zeros(np.broadcast(x, y).shape)
+        gy = np.zeros_like(gx)
+        for a, kx, ky, ph in self.components:
+            s = -a * np.sin(kx * x + ky * y + ph)
+            gx += kx * s
+            gy += ky * s
+        return gx, gy
+
+
+@dataclass(frozen=True)
+class SumSurface(Surface):
+    """Sum of surfaces."""
+
+    surfaces: tuple = ()
+
+    def __init__(self, surfaces: Sequence[Surface]):
+        object.__setattr__(self, "surfaces", tuple(surfaces))
+
+    def height(self, x_mm, y_mm):
+        h = np.zeros(np.broadcast(np.asarray(x_mm), np.asarray(y_mm)).shape)
+        for s in self.surfaces:
+            h = h + s.height(x_mm, y_mm)
+        return h
+
+    def gradient(self, x_mm, y_mm):
+        gx = np.zeros(np.broadcast(np.asarray(x_mm), np.asarray(y_mm)).shape)
+        gy = np.zeros_like(gx)
+        for s in self.surfaces:
+            a, b = s.gradient(x_mm, y_mm)
+            gx = gx + a
+            gy = gy + b
+        return gx, gy
+
+
+# ---------------------------------------------------------------------------- scenes
+@dataclass(frozen=True)
+class ApproachingDiscDimple:
+    """A disc approaching the surface from above pushes a growing dimple.
+
+    ``at(t_s)`` returns the surface at time ``t_s``: a Gaussian dimple of
+    width ``radius_mm / 2`` whose depth grows as ``max_depth_mm * (t/t_contact)^2``
+    up to ``t_contact_s`` and stays there.
+    """
+
+    radius_mm: float = 10.0
+    max_depth_mm: float = 0.015
+    t_contact_s: float = 1.0
+    x0_mm: float = 0.0
+    y0_mm: float = 0.0
+
+    def at(self, t_s: float) -> Surface:
+        f = min(max(float(t_s) / self.t_contact_s, 0.0), 1.0)
+        return GaussianBump(-self.max_depth_mm * f * f, self.radius_mm / 2.0, self.x0_mm, self.y0_mm)
+
+    __call__ = at
+
+
+@dataclass(frozen=True)
+class TravellingWaves:
+    """Gravity-capillary plane waves ``A cos(k.r - omega t + phase)``.
+
+    ``omega^2 = g k + (sigma/rho) k^3`` (deep water, g = 9810 mm/s^2,
+    sigma/rho = 72.8 mm^3/s^2 ... for clean water 7.28e4 mm^3/s^2).
+
+    Parameters
+    ----------
+    components : sequence of (amplitude_mm, kx_per_mm, ky_per_mm, phase_rad)
+    """
+
+    components: tuple = ()
+
+    def at(self, t_s: float) -> Surface:
+        out = []
+        for a, kx, ky, ph in self.components:
+            k = math.hypot(kx, ky)
+            omega = math.sqrt(9810.0 * k + 7.28e4 * k**3)
+            out.append((a, kx, ky, ph - omega * float(t_s)))
+        return WaveField(tuple(out))
+
+    __call__ = at
+
+
+# ============================================================================ pattern
+@dataclass(frozen=True)
+class Checkerboard:
+    """Checkerboard on the pattern plane.
+
+    ``period_mm`` is the full period along each side (one dark plus one
+    bright square, i.e. twice the square size). Values lie in
+    ``mean +- contrast/2``.
+
+    Parameters
+    ----------
+    period_mm : float
+        Full period (2 x square side), mm.
+    rotation_deg : float
+        Rotation of the board about the vertical, deg.
+    edge_softness_mm : float
+        0: sharp edges. > 0: ``tanh`` edges about this wide (mm).
+    sinusoidal : bool
+        Band-limited board ``sin(k x) sin(k y)`` (only the two diagonal carriers).
+    mean, contrast : float
+        Mean level and peak-to-peak contrast, in [0, 1].
+    """
+
+    period_mm: float
+    rotation_deg: float = 0.0
+    edge_softness_mm: float = 0.0
+    sinusoidal: bool = False
+    mean: float = 0.5
+    contrast: float = 0.8
+
+    def __post_init__(self):
+        if not self.period_mm > 0:
+            raise GeometryError(f"period_mm must be positive, got {self.period_mm!r}")
+        if self.edge_softness_mm < 0:
+            raise GeometryError(f"edge_softness_mm must be >= 0, got {self.edge_softness_mm!r}")
+
+    @property
+    def square_mm(self) -> float:
+        return self.period_mm / 2.0
+
+    def __call__(self, x_mm, y_mm) -> np.ndarray:
+        """Intensity at pattern-plane coordinates (mm), float64 in [0, 1]."""
+        c, s = math.cos(math.radians(self.rotation_deg)), math.sin(math.radians(self.rotation_deg))
+        x = np.asarray(x_mm, dtype=np.float64)
+        y = np.asarray(y_mm, dtype=np.float64)
+        u = c * x + s * y
+        v = -s * x + c * y
+        k = 2 * np.pi / self.period_mm
+        su, sv = np.sin(k * u), np.sin(k * v)
+        if self.sinusoidal:
+            val = su * sv
+        elif self.edge_softness_mm > 0:
+            eps = k * self.edge_softness_mm / 2.0
+            val = np.tanh(su / eps) * np.tanh(sv / eps)
+        else:
+            val = np.sign(su) * np.sign(sv)
+        return self.mean + 0.5 * self.contrast * val
+
+
+# ============================================================================ tracing
+@dataclass
+class RenderInfo:
+    """Side information of a render (all arrays of the frame shape).
+
+    Attributes
+    ----------
+    lost_tir : ndarray bool
+        Pixels where some ray's incidence on the surface is below the critical
+        angle (light escapes into the air: dark, low contrast).
+    crossing : ndarray bool
+        Pixels where the pixel -> pattern map folds (its Jacobian changes
+        sign against the flat map): ray crossing, caustics.
+    pattern_xy : ndarray, shape (2, rows, cols)
+        Pattern-plane point of each pixel's central ray (mm), frame of the tracer.
+    """
+
+    lost_tir: np.ndarray
+    crossing: np.ndarray
+    pattern_xy: np.ndarray = field(repr=False)
+
+
+def _intersect(surface: Surface, geometry: Geometry, origin, d, *, to_image, tol_mm=1e-9, max_iter=60):
+    """Newton solve of ``O_z + t d_z = h(O_xy + t d_xy)``; returns point and gradient (canonical)."""
+    t = -origin[..., 2] / d[..., 2]
+    for _ in range(max_iter):
+        P = origin + t[..., None] * d
+        xi, yi = to_image(P[..., 0], P[..., 1])
+        h = surface.height(xi, yi)
+        gx, gy_i = surface.gradient(xi, yi)
+        gy = gy_i * (geometry.row_sign if geometry.setup == "tir" else 1.0)
+        F = P[..., 2] - h
+        dF = d[..., 2] - gx * d[..., 0] - gy * d[..., 1]
+        step = F / dF
+        t = t - step
+        if np.max(np.abs(step)) < tol_mm:
+            break
+    else:  # pragma: no cover - only for pathological surfaces
+        raise GeometryError(
+            "ray-surface intersection did not converge; the surface is too steep for the camera rays"
+        )
+    P = origin + t[..., None] * d
+    xi, yi = to_image(P[..., 0], P[..., 1])
+    gx, gy_i = surface.gradient(xi, yi)
+    gy = gy_i * (geometry.row_sign if geometry.setup == "tir" else 1.0)
+    return P, gx, gy, surface.height(xi, yi)
+
+
+def trace_tir(surface: Surface, geometry: Geometry, rows_px, cols_px, frame_shape):
+    """Trace TIR camera rays for pixels ``(rows_px, cols_px)`` (broadcast).
+
+    Returns
+    -------
+    pattern_xy : ndarray, shape S + (2,), float64
+        Canonical-frame pattern-plane point ``(x, y)`` of each ray, mm.
+    lost : ndarray bool, shape S
+        Incidence below the critical angle (no TIR) or ray not going down.
+    hit : ndarray, shape S + (3,)
+        Canonical-frame point where the ray meets the surface, mm.
+    height_mm : ndarray, shape S
+        Surface height at the hit point.
+    cos_incidence : ndarray, shape S
+        Cosine of the incidence angle on the local normal.
+    """
+    if geometry.setup != "tir":
+        raise GeometryError(f"trace_tir needs a TIR geometry, got setup={geometry.setup!r}")
+    origin, d = geometry.camera_rays(rows_px, cols_px, frame_shape)
+    s = geometry.row_sign
+    P, gx, gy, h = _intersect(surface, geometry, origin, d, to_image=lambda x, y: (x, s * y))
+    nrm = np.stack([-gx, -gy, np.ones_like(gx)], axis=-1)
+    nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
+    cos_i = np.sum(d * nrm, axis=-1)
+    sin_i = np.sqrt(np.clip(1.0 - cos_i**2, 0.0, None))
+    r = d - 2.0 * cos_i[..., None] * nrm
+    lost = (sin_i <= geometry.n_air / geometry.n_water) | (r[..., 2] >= 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(r[..., 2] < 0, (-geometry.depth_mm - P[..., 2]) / r[..., 2], np.nan)
+    pat = P[..., :2] + t[..., None] * r[..., :2]
+    return pat, lost, P, h, cos_i
+
+
+def _refract(d, n, n1, n2):
+    """Vector Snell refraction of unit rays ``d`` through unit normals ``n`` (n opposite to d)."""
+    cos_i = -np.sum(d * n, axis=-1)
+    eta = n1 / n2
+    k = 1.0 - eta**2 * (1.0 - cos_i**2)
+    tir = k < 0
+    cos_t = np.sqrt(np.clip(k, 0.0, None))
+    out = eta * d + (eta * cos_i - cos_t)[..., None] * n
+    return out, tir
+
+
+def trace_fsss(surface: Surface, geometry: Geometry, rows_px, cols_px, frame_shape):
+    """Trace FS-SS camera rays (camera above) through the surface and the layers.
+
+    Returns
+    -------
+    pattern_xy : ndarray, shape S + (2,)
+        Image-frame pattern-plane point, mm.
+    lost : ndarray bool, shape S
+        Rays totally reflected somewhere on the way (none for gentle surfaces).
+    hit : ndarray, shape S + (3,)
+        Point on the surface (image frame).
+    height_mm : ndarray, shape S
+    """
+    if geometry.setup != "fsss":
+        raise GeometryError(f"trace_fsss needs an FS-SS geometry, got setup={geometry.setup!r}")
+    origin, d = geometry.camera_rays(rows_px, cols_px, frame_shape)
+    P, gx, gy, h = _intersect(surface, geometry, origin, d, to_image=lambda x, y: (x, y))
+    nrm = np.stack([-gx, -gy, np.ones_like(gx)], axis=-1)
+    nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
+    d2, lost = _refract(d, nrm, geometry.n_air, geometry.n_water)
+    # water layer: from the hit point down to the interface at -t_water
+    layers = list(reversed(geometry.fsss_layers))
+    z_level = 0.0
+    pos = P.copy()
+    n_prev = geometry.n_water
+    up = np.array([0.0, 0.0, 1.0])
+    for i, (t, n) in enumerate(layers):
+        if i > 0:
+            d2, tir = _refract(d2, np.broadcast_to(up, d2.shape), n_prev, n)
+            lost = lost | tir
+        z_level -= t
+        step = (z_level - pos[..., 2]) / d2[..., 2]
+        pos = pos + step[..., None] * d2
+        n_prev = n
+    return pos[..., :2], lost, P, h
+
+
+def _sub_offsets(supersample: int):
+    k = (np.arange(supersample) + 0.5) / supersample - 0.5
+    return k
+
+
+def _check_shape(shape):
+    if len(tuple(shape)) != 2 or min(shape) < 2:
+        raise ShapeMismatchError(f"shape must be (n_rows, n_cols) with both >= 2, got {tuple(shape)!r}")
+    return int(shape[0]), int(shape[1])
+
+
+def _fresnel_r(cos_i, n1, n2):
+    """Unpolarised Fresnel reflectance from medium n1 into n2 (1 beyond the critical angle)."""
+    sin_i = np.sqrt(np.clip(1 - cos_i**2, 0, None))
+    sin_t = n1 / n2 * sin_i
+    tir = sin_t >= 1
+    cos_t = np.sqrt(np.clip(1 - sin_t**2, 0, None))
+    rs = ((n1 * cos_i - n2 * cos_t) / (n1 * cos_i + n2 * cos_t)) ** 2
+    rp = ((n1 * cos_t - n2 * cos_i) / (n1 * cos_t + n2 * cos_i)) ** 2
+    return np.where(tir, 1.0, 0.5 * (rs + rp))
+
+
+def _crossing_mask(pat, flat):
+    """Pixels where the Jacobian of pixel -> pattern differs in sign from the flat map."""
+
+    def det(p):
+        a_r = np.gradient(p[..., 0], axis=0)
+        a_c = np.gradient(p[..., 0], axis=1)
+        b_r = np.gradient(p[..., 1], axis=0)
+        b_c = np.gradient(p[..., 1], axis=1)
+        return a_r * b_c - a_c * b_r
+
+    dj = det(pat)
+    d0 = det(flat)
+    return ~(np.sign(dj) == np.sign(d0))
+
+
+def render_tir(
+    surface: Surface,
+    geometry: Geometry,
+    shape,
+    pattern: Callable,
+    *,
+    supersample: int = 1,
+    pattern_offset_mm: tuple[float, float] = (0.0, 0.0),
+):
+    """Render the camera image of ``pattern`` reflected by the deformed surface.
+
+    Parameters
+    ----------
+    surface : Surface
+        Water surface (image frame, mm).
+    geometry : Geometry
+        TIR geometry (telecentric or finite camera distance).
+    shape : (int, int)
+        Frame shape (n_rows, n_cols).
+    pattern : callable
+        ``pattern(x_mm, y_mm) -> intensity in [0, 1]`` on the pattern plane,
+        coordinates centred under the image centre (``y`` canonical minus
+        ``H tan(theta)``), e.g. :class:`Checkerboard`.
+    supersample : int
+        Rays per pixel along each axis (area averaging; 2-3 makes sharp
+        boards realistic).
+    pattern_offset_mm : (float, float)
+        Shift of the pattern on its plane (x, y), mm.
+
+    Returns
+    -------
+    image : ndarray, shape (n_rows, n_cols), float32 in [0, 1]
+        Where TIR is lost the light escapes: the pixel gets the Fresnel
+        reflectance times the pattern (dark, low contrast).
+    info : RenderInfo
+    """
+    n_rows, n_cols = _check_shape(shape)
+    if supersample < 1:
+        raise GeometryError(f"supersample must be >= 1, got {supersample!r}")
+    y_off = geometry.depth_mm * math.tan(geometry.theta)
+    rows = np.arange(n_rows, dtype=np.float64)[:, None]
+    cols = np.arange(n_cols, dtype=np.float64)[None, :]
+    acc = np.zeros((n_rows, n_cols))
+    lost_any = np.zeros((n_rows, n_cols), dtype=bool)
+    centre_pat = None
+    offs = _sub_offsets(supersample)
+    for orow in offs:
+        for ocol in offs:
+            pat, lost, _, _, cos_i = trace_tir(surface, geometry, rows + orow, cols + ocol, (n_rows, n_cols))
+            px = np.nan_to_num(pat[..., 0] - pattern_offset_mm[0])
+            py = np.nan_to_num(pat[..., 1] - y_off - pattern_offset_mm[1])
+            val = pattern(px, py)
+            refl = np.where(lost, _fresnel_r(np.abs(cos_i), geometry.n_water, geometry.n_air), 1.0)
+            refl = np.where(pat[..., 0] == pat[..., 0], refl, 0.0)
+            acc += refl * val
+            lost_any |= lost
+    image = (acc / supersample**2).astype(np.float32)
+    pat, _, _, _, _ = trace_tir(surface, geometry, rows, cols, (n_rows, n_cols))
+    flat = np.stack(geometry.flat_pattern_point(rows, cols, (n_rows, n_cols)), axis=-1)
+    crossing = _crossing_mask(pat, flat)
+    centre_pat = np.moveaxis(pat, -1, 0)
+    return np.clip(image, 0.0, 1.0), RenderInfo(lost_any, crossing, centre_pat)
+
+
+def render_fsss(surface: Surface, geometry: Geometry, shape, pattern: Callable, *, supersample: int = 1):
+    """FS-SS render: the pattern seen from above through the deformed surface.
+
+    Same returns as :func:`render_tir`; pattern coordinates are image-frame
+    pattern-plane mm centred under the image centre.
+    """
+    n_rows, n_cols = _check_shape(shape)
+    rows = np.arange(n_rows, dtype=np.float64)[:, None]
+    cols = np.arange(n_cols, dtype=np.float64)[None, :]
+    acc = np.zeros((n_rows, n_cols))
+    lost_any = np.zeros((n_rows, n_cols), dtype=bool)
+    for orow in _sub_offsets(supersample):
+        for ocol in _sub_offsets(supersample):
+            pat, lost, _, _ = trace_fsss(surface, geometry, rows + orow, cols + ocol, (n_rows, n_cols))
+            acc += np.where(lost, 0.0, pattern(pat[..., 0], pat[..., 1]))
+            lost_any |= lost
+    pat, _, _, _ = trace_fsss(surface, geometry, rows, cols, (n_rows, n_cols))
+    flat = np.stack(geometry.flat_pattern_point(rows, cols, (n_rows, n_cols)), axis=-1)
+    crossing = _crossing_mask(pat, flat)
+    image = (acc / supersample**2).astype(np.float32)
+    return np.clip(image, 0.0, 1.0), RenderInfo(lost_any, crossing, np.moveaxis(pat, -1, 0))
+
+
+def render(surface: Surface, geometry: Geometry, shape, pattern: Callable, *, supersample: int = 1):
+    """:func:`render_tir` or :func:`render_fsss` according to ``geometry.setup``."""
+    if geometry.setup == "tir":
+        return render_tir(surface, geometry, shape, pattern, supersample=supersample)
+    return render_fsss(surface, geometry, shape, pattern, supersample=supersample)
+
+
+def _grid(shape, rows_px=None, cols_px=None):
+    n_rows, n_cols = _check_shape(shape)
+    r = np.arange(n_rows, dtype=np.float64) if rows_px is None else np.asarray(rows_px, dtype=np.float64)
+    c = np.arange(n_cols, dtype=np.float64) if cols_px is None else np.asarray(cols_px, dtype=np.float64)
+    return r[:, None], c[None, :], (n_rows, n_cols)
+
+
+def true_height(surface: Surface, geometry: Geometry, shape, *, rows_px=None, cols_px=None) -> np.ndarray:
+    """Height (mm) where each pixel's central ray meets the deformed surface.
+
+    Returns
+    -------
+    ndarray, shape (len(rows_px), len(cols_px)) (default: the full frame), float64
+    """
+    rows, cols, shape = _grid(shape, rows_px, cols_px)
+    if geometry.setup == "tir":
+        _, _, _, h, _ = trace_tir(surface, geometry, rows, cols, shape)
+    else:
+        _, _, _, h = trace_fsss(surface, geometry, rows, cols, shape)
+    return h
+
+
+def true_displacement(surface: Surface, geometry: Geometry, shape, *, rows_px=None, cols_px=None):
+    """Exact displacement ``u`` (pixels) that FD measures: ``I(r) = I0(r - u(r))``.
+
+    For pixel ``r`` the deformed image shows the pattern point ``P(r)``; the
+    reference showed it at ``r' = P0^-1(P(r))``; ``u = r - r'``.
+
+    Returns
+    -------
+    u : ndarray, shape (2, n_rows, n_cols), float64
+        ``(u_row, u_col)`` in pixels; NaN where TIR is lost.
+    lost : ndarray bool, shape (n_rows, n_cols)
+    """
+    rows, cols, shape = _grid(shape, rows_px, cols_px)
+    if geometry.setup == "tir":
+        pat, lost, _, _, _ = trace_tir(surface, geometry, rows, cols, shape)
+    else:
+        pat, lost, _, _ = trace_fsss(surface, geometry, rows, cols, shape)
+    r0, c0 = geometry.pixel_of_pattern_point(pat[..., 0], pat[..., 1], shape)
+    u = np.stack([rows - r0, cols - c0])
+    u[:, lost] = np.nan
+    return u, lost
+
+
+def quantize(image, *, bits: int = 8, noise_rms: float = 0.0, rng=None, full_well_e: float | None = None):
+    """Digitise a [0, 1] image with read (and optional photon) noise.
+
+    Parameters
+    ----------
+    image : ndarray float in [0, 1]
+    bits : int
+        1..16; output uint8 for bits <= 8, else uint16 (values < 2**bits).
+    noise_rms : float
+        Gaussian read noise in digital numbers (DN).
+    rng : numpy.random.Generator
+        Required when any noise is asked for (fixed seeds in tests).
+    full_well_e : float or None
+        Electrons at full scale; if given adds Poisson photon noise.
+
+    Returns
+    -------
+    ndarray uint8 or uint16, same shape
+    """
+    if not 1 <= int(bits) <= 16:
+        raise GeometryError(f"bits must be between 1 and 16, got {bits!r}")
+    full = 2 ** int(bits) - 1
+    x = np.clip(np.asarray(image, dtype=np.float64), 0.0, 1.0)
+    if (noise_rms > 0 or full_well_e) and rng is None:
+        raise GeometryError("quantize needs rng=np.random.default_rng(seed) when noise is requested")
+    if full_well_e:
+        x = rng.poisson(x * full_well_e) / full_well_e
+    x = x * full
+    if noise_rms > 0:
+        x = x + rng.normal(0.0, noise_rms, size=x.shape)
+    out = np.clip(np.rint(x), 0, full)
+    return out.astype(np.uint8 if bits <= 8 else np.uint16)
+
+
+@dataclass
+class Simulation:
+    """Output of :func:`simulate`.
+
+    Attributes
+    ----------
+    reference : ndarray (rows, cols) uint8/uint16
+        Image of the flat surface.
+    frames : ndarray (n_frames, rows, cols) uint8/uint16
+    heights_mm : ndarray (n_frames, rows, cols) float32
+        True height where each pixel's ray meets the surface.
+    times_s : ndarray (n_frames,) float64
+    lost : ndarray (n_frames, rows, cols) bool
+        Pixels with lost TIR or ray crossing.
+    """
+
+    reference: np.ndarray
+    frames: np.ndarray
+    heights_mm: np.ndarray
+    times_s: np.ndarray
+    lost: np.ndarray
+
+
+def simulate(
+    surface_or_scene,
+    geometry: Geometry,
+    shape,
+    n_frames: int = 1,
+    *,
+    pattern: Callable | None = None,
+    fps: float = 100.0,
+    bits: int = 8,
+    noise_rms: float = 0.0,
+    supersample: int = 2,
+    seed: int = 0,
+) -> Simulation:
+    """Render a reference and a series of deformed frames with true heights.
+
+    Parameters
+    ----------
+    surface_or_scene : Surface or object with ``at(t_s) -> Surface`` or callable
+        Static surface, or a scene giving the surface at time ``t_s``.
+    geometry : Geometry
+    shape : (int, int)
+    n_frames : int
+    pattern : callable, default ``Checkerboard(period_mm=12 * geometry.pixel_mm, edge_softness_mm=pixel_mm)``
+    fps : float
+        Frame rate; frame i is at ``t = i / fps`` s.
+    bits, noise_rms, seed : see :func:`quantize`.
+    supersample : int
+        Rays per pixel and axis.
+    """
+    if pattern is None:
+        pattern = Checkerboard(period_mm=12 * geometry.pixel_mm, edge_softness_mm=geometry.pixel_mm)
+    rng = np.random.default_rng(seed)
+    n_rows, n_cols = _check_shape(shape)
+    ref, _ = render(FlatSurface(), geometry, shape, pattern, supersample=supersample)
+    reference = quantize(ref, bits=bits, noise_rms=noise_rms, rng=rng)
+    times = np.arange(n_frames) / float(fps)
+    frames = np.empty((n_frames, n_rows, n_cols), dtype=reference.dtype)
+    heights = np.empty((n_frames, n_rows, n_cols), dtype=np.float32)
+    lost = np.empty((n_frames, n_rows, n_cols), dtype=bool)
+    for i, t in enumerate(times):
+        if isinstance(surface_or_scene, Surface):
+            surf = surface_or_scene
+        elif hasattr(surface_or_scene, "at"):
+            surf = surface_or_scene.at(t)
+        else:
+            surf = surface_or_scene(t)
+        img, info = render(surf, geometry, shape, pattern, supersample=supersample)
+        frames[i] = quantize(img, bits=bits, noise_rms=noise_rms, rng=rng)
+        heights[i] = true_height(surf, geometry, shape)
+        lost[i] = info.lost_tir | info.crossing
+    return Simulation(reference, frames, heights, times, lost)

@@ -1,0 +1,556 @@
+"""Heights from displacement: least squares of the exact TIR operator.
+
+The displacement ``u`` (pixels, FD convention ``I(r) = I0(r - u)``) is linear in
+the height and its gradient (see :meth:`Geometry.linear_response`):
+``u = a h + B grad_px(h)`` per sample, ``grad_px`` the derivatives along
+(row, col). Hence ``grad_px(h) + kappa h = g`` with ``g = B^-1 u`` and
+``kappa = B^-1 a``. For a telecentric TIR camera this is the paper's
+``(d/dx, d/dy + T/H) h = -(u_x, u_y cos^2 theta) / 2H`` in surface units (the
+sign of the ``T/H`` term flips with the direction of the image rows); for
+FS-SS ``kappa = 0`` and ``g`` is Moisy's ``grad h`` (see
+:meth:`Geometry.fsss_gradient_per_px`).
+
+Discretisation and solvers
+--------------------------
+With ``n = exp(-Phi)``, ``grad Phi ~ kappa`` (the integrating factor of the
+paper; exact for a telecentric camera) and ``h = n f``, the equations become
+``grad f + (kappa - grad Phi) f = g / n``. They are imposed on every edge
+between two neighbouring samples: the difference ``(f_j - f_i) / spacing``
+against the *cell average* of ``g/n`` over the edge, from the four-point
+formula ``(-G_{i-1} + 13 G_i + 13 G_j - G_{j+1}) / 24`` (fourth-order; it falls
+back to ``(G_i + G_j)/2`` at borders and masks). Least squares over all
+edges with weight 1 (valid edges) or 0 (an edge touching an invalid sample).
+
+* ``spectral``: all samples valid and ``kappa`` constant (telecentric): the
+  normal equations are the Neumann Poisson problem, solved exactly by a DCT-II
+  in O(N log N). This is the least-squares solution of the exact operator
+  with the paper's integrating-factor weights ``exp(2 Phi)`` (they vary by
+  ``exp(2 T L_y / H)`` across a field of length ``L_y``, a few per cent).
+* ``masked``: any validity mask and variable ``kappa`` (finite camera
+  distance): preconditioned conjugate gradients on the normal equations,
+  preconditioned by the spectral solver; invalid samples carry no equation,
+  so they cannot pollute the heights elsewhere.
+
+Null space: ``f`` is defined up to one constant per connected piece of the
+valid samples, i.e. ``h`` up to ``alpha exp(-Phi)`` (``exp(-T y/H)`` for TIR, a
+constant for FS-SS). Each piece is pinned by the samples of
+``geometry.reference_region`` it contains (least squares of ``alpha n`` there,
+i.e. mean height 0 in the reference region); a piece without reference
+samples is reported invalid (NaN), since its offset was not measured.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import OrderedDict
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+import scipy.fft as sfft
+from scipy import ndimage
+
+from .errors import GeometryError, ShapeMismatchError, TirdeflectError
+from .geometry import Geometry
+
+__all__ = [
+    "SurfaceResult",
+    "HeightSolver",
+    "surface_from_displacement",
+    "poisson_neumann",
+]
+
+_WORKERS = 2
+
+
+class SurfaceResult(NamedTuple):
+    """Heights and slopes on the sample grid, image frame.
+
+    Attributes
+    ----------
+    height_mm : ndarray (n_rows, n_cols) float32
+        Height in mm, NaN where not valid.
+    slope_x, slope_y : ndarray (n_rows, n_cols) float32
+        ``dh/dx`` (x along increasing column) and ``dh/dy`` (y along
+        increasing row), dimensionless, NaN where not valid.
+    x_mm : ndarray (n_cols,) float64
+        Surface x of each column (along the central row), mm.
+    y_mm : ndarray (n_rows,) float64
+        Surface y of each row (along the central column), mm.
+    valid : ndarray (n_rows, n_cols) bool
+        Samples with a measured height (input validity minus pieces that no
+        reference sample pins).
+    iterations : int
+        Conjugate-gradient iterations (0 for the spectral solver).
+    surface_xy_mm : ndarray (2, n_rows, n_cols) float64 or None
+        Exact surface position (x, y) of each sample for a finite camera
+        distance (the grid is not separable then); None when telecentric.
+    """
+
+    height_mm: np.ndarray
+    slope_x: np.ndarray
+    slope_y: np.ndarray
+    x_mm: np.ndarray
+    y_mm: np.ndarray
+    valid: np.ndarray
+    iterations: int = 0
+    surface_xy_mm: np.ndarray | None = None
+
+
+# ============================================================================ kernels
+def _eigen(n: int, spacing: float) -> np.ndarray:
+    k = np.arange(n)
+    return (2.0 * np.sin(np.pi * k / (2.0 * n)) / spacing) ** 2
+
+
+def poisson_neumann(div_rhs: np.ndarray, denom: np.ndarray) -> np.ndarray:
+    """Solve the Neumann Poisson normal equations by DCT-II.
+
+    Parameters
+    ----------
+    div_rhs : ndarray (n_rows, n_cols) float64
+        ``D^T G`` (minus the divergence of the edge data, zero flux outside).
+    denom : ndarray (n_rows, n_cols) float64
+        Eigenvalues of ``D^T D`` in the DCT-II basis; ``denom[0, 0]`` is
+        ignored (the constant mode, returned as zero).
+    """
+    c = sfft.dctn(div_rhs, type=2, norm="ortho", workers=_WORKERS)
+    c[0, 0] = 0.0
+    c /= denom
+    return sfft.idctn(c, type=2, norm="ortho", workers=_WORKERS)
+
+
+def _cell_average(G: np.ndarray, axis: int, ok: np.ndarray | None) -> np.ndarray:
+    """Average of G over each edge along ``axis`` (fourth order where possible).
+
+    ``ok`` (bool, same shape as G or None) marks samples usable in the wide
+    stencil; edges whose outer neighbours are missing use the trapezoid.
+    """
+    G = np.moveaxis(G, axis, 0)
+    n = G.shape[0]
+    out = 0.5 * (G[:-1] + G[1:])
+    if n >= 4:
+        # (-G[i-1] + 13 G[i] + 13 G[j] - G[j+1]) / 24 = trapezoid + this correction
+        corr = (-G[:-3] + G[1:-2] + G[2:-1] - G[3:]) / 24.0
+        if ok is not None:
+            okm = np.moveaxis(ok, axis, 0)
+            good = okm[:-3] & okm[1:-2] & okm[2:-1] & okm[3:]
+            corr = np.where(good, corr, 0.0)
+        out[1:-1] += corr
+    return np.moveaxis(out, 0, axis)
+
+
+def _div_T(ec: np.ndarray | None, er: np.ndarray | None, shape, dc: float, dr: float) -> np.ndarray:
+    """``D^T e`` for edge data ec (rows, cols-1) and er (rows-1, cols)."""
+    out = np.zeros(shape)
+    if ec is not None:
+        out[:, :-1] -= ec / dc
+        out[:, 1:] += ec / dc
+    if er is not None:
+        out[:-1, :] -= er / dr
+        out[1:, :] += er / dr
+    return out
+
+
+# ============================================================================ solver
+@dataclass
+class _Grid:
+    rows_px: np.ndarray
+    cols_px: np.ndarray
+    frame_shape: tuple
+    dr: float
+    dc: float
+
+
+def _check_grid(rows_px, cols_px, frame_shape) -> _Grid:
+    rows_px = np.asarray(rows_px, dtype=np.float64).ravel()
+    cols_px = np.asarray(cols_px, dtype=np.float64).ravel()
+    if len(frame_shape) != 2:
+        raise ShapeMismatchError(f"frame_shape must be (n_rows, n_cols), got {frame_shape!r}")
+    frame_shape = (int(frame_shape[0]), int(frame_shape[1]))
+    steps = []
+    for name, v in (("rows_px", rows_px), ("cols_px", cols_px)):
+        if v.size < 2:
+            raise ShapeMismatchError(f"{name} needs at least 2 samples, got {v.size}")
+        d = np.diff(v)
+        if not (d[0] > 0 and np.allclose(d, d[0], rtol=1e-6, atol=1e-9)):
+            raise ShapeMismatchError(
+                f"{name} must be evenly spaced and increasing (a full or strided grid), "
+                f"got steps from {d.min():g} to {d.max():g}"
+            )
+        steps.append(float(d[0]))
+    return _Grid(rows_px, cols_px, frame_shape, steps[0], steps[1])
+
+
+class HeightSolver:
+    """Displacement -> heights for one geometry and one sample grid.
+
+    Construction precomputes the per-sample optics and the spectral
+    eigenvalues; calling it is then cheap. :func:`surface_from_displacement`
+    keeps a small cache of these.
+
+    Parameters
+    ----------
+    geometry : Geometry
+    rows_px : ndarray (n_rows,)
+        Pixel row of each sample row (evenly spaced: full or strided grid).
+    cols_px : ndarray (n_cols,)
+        Pixel column of each sample column.
+    frame_shape : (int, int)
+        Shape of the camera frame the pixels belong to.
+    tol : float
+        Relative residual at which conjugate gradients stop.
+    max_iter : int
+        Conjugate-gradient iteration cap (a TirdeflectError says if reached).
+    """
+
+    def __init__(self, geometry: Geometry, rows_px, cols_px, frame_shape, *, tol: float = 1e-7, max_iter: int = 500):
+        if not isinstance(geometry, Geometry):
+            raise GeometryError(f"geometry must be a processing.Geometry, got {type(geometry).__name__}")
+        self.geometry = geometry
+        self.grid = grid = _check_grid(rows_px, cols_px, frame_shape)
+        self.tol = float(tol)
+        self.max_iter = int(max_iter)
+        n_rows, n_cols = grid.rows_px.size, grid.cols_px.size
+        self.shape = (n_rows, n_cols)
+        g = geometry
+        R = grid.rows_px[:, None]
+        C = grid.cols_px[None, :]
+        self.surface_xy = None
+        if g.setup == "tir":
+            if g.telecentric:
+                rc = np.array([[(grid.frame_shape[0] - 1) / 2.0]])
+                cc = np.array([[(grid.frame_shape[1] - 1) / 2.0]])
+                lr = g.linear_response(rc, cc, grid.frame_shape)
+                Binv = np.linalg.inv(lr.B[0, 0])
+                kappa = Binv @ lr.a[0, 0]
+                self.Binv = Binv  # (2, 2)
+                self.kappa = kappa  # (2,) per pixel along (row, col)
+                self.Kinv_T = np.swapaxes(np.linalg.inv(lr.jac_surface[0, 0]), -1, -2)
+                self.constant = True
+            else:
+                lr = g.linear_response(R, C, grid.frame_shape)
+                self.Binv = np.linalg.inv(lr.B)  # (n_rows, n_cols, 2, 2)
+                self.kappa = np.einsum("...ij,...j->...i", self.Binv, lr.a)
+                self.Kinv_T = np.swapaxes(np.linalg.inv(lr.jac_surface), -1, -2)
+                self.constant = False
+                self.surface_xy = np.moveaxis(lr.surface_xy, -1, 0)
+        else:
+            s = g.fsss_gradient_per_px() * g.pixel_mm  # mm of height per px, per px of u
+            self.Binv = np.eye(2) * s
+            self.kappa = np.zeros(2)
+            self.Kinv_T = np.eye(2) / g.pixel_mm
+            self.constant = True
+            if not g.telecentric:
+                xs, ys = g.surface_point(R, C, grid.frame_shape)
+                self.surface_xy = np.stack(np.broadcast_arrays(xs, ys))
+        rcen = np.array([(grid.frame_shape[0] - 1) / 2.0])
+        ccen = np.array([(grid.frame_shape[1] - 1) / 2.0])
+        self.x_mm = np.asarray(g.surface_point(rcen[:, None], grid.cols_px[None, :], grid.frame_shape)[0]).ravel()
+        self.y_mm = np.asarray(g.surface_point(grid.rows_px[:, None], ccen[None, :], grid.frame_shape)[1]).ravel()
+        self.x_mm = np.broadcast_to(self.x_mm, (n_cols,)).astype(np.float64)
+        self.y_mm = np.broadcast_to(self.y_mm, (n_rows,)).astype(np.float64)
+        self.denom = _eigen(n_rows, grid.dr)[:, None] + _eigen(n_cols, grid.dc)[None, :]
+        self.denom[0, 0] = 1.0
+        # integrating factor Phi (grad Phi ~ kappa), centred on the grid
+        if self.constant:
+            yy = (np.arange(n_rows) - (n_rows - 1) / 2.0) * grid.dr
+            xx = (np.arange(n_cols) - (n_cols - 1) / 2.0) * grid.dc
+            self.phi = self.kappa[0] * yy[:, None] + self.kappa[1] * xx[None, :]
+            self.dk_c = None
+            self.dk_r = None
+        else:
+            kr, kc = self.kappa[..., 0], self.kappa[..., 1]
+            ec = _cell_average(kc, 1, None)
+            er = _cell_average(kr, 0, None)
+            phi = poisson_neumann(_div_T(ec, er, self.shape, grid.dc, grid.dr), self.denom)
+            self.phi = phi - phi[n_rows // 2, n_cols // 2]
+            self.dk_c = 0.5 * (kc[:, 1:] + kc[:, :-1]) - np.diff(self.phi, axis=1) / grid.dc
+            self.dk_r = 0.5 * (kr[1:, :] + kr[:-1, :]) - np.diff(self.phi, axis=0) / grid.dr
+        self.null = np.exp(-self.phi)
+        self.ref = geometry.reference_mask(grid.rows_px, grid.cols_px, grid.frame_shape)
+        if not self.ref.any():
+            raise GeometryError(
+                f"reference region {geometry.reference_region!r} contains no sample of the grid "
+                f"(rows {grid.rows_px[0]:g}..{grid.rows_px[-1]:g}, cols {grid.cols_px[0]:g}..{grid.cols_px[-1]:g}); "
+                f"choose a larger region inside the frame"
+            )
+
+    # ------------------------------------------------------------------ pieces
+    def gradients(self, displacement_px: np.ndarray):
+        """``g = B^-1 u``: pixel derivatives (dh/drow, dh/dcol) in mm/px, float64."""
+        ur = np.asarray(displacement_px[0], dtype=np.float64)
+        uc = np.asarray(displacement_px[1], dtype=np.float64)
+        Bi = self.Binv
+        if Bi.ndim == 2:
+            gr = Bi[0, 0] * ur if Bi[0, 1] == 0 else Bi[0, 0] * ur + Bi[0, 1] * uc
+            gc = Bi[1, 1] * uc if Bi[1, 0] == 0 else Bi[1, 0] * ur + Bi[1, 1] * uc
+        else:
+            gr = Bi[..., 0, 0] * ur + Bi[..., 0, 1] * uc
+            gc = Bi[..., 1, 0] * ur + Bi[..., 1, 1] * uc
+        return gr, gc
+
+    def _edge_data(self, gr, gc, valid):
+        G_r = gr / self.null
+        G_c = gc / self.null
+        ok = None if valid is None else valid
+        er = _cell_average(G_r, 0, ok)
+        ec = _cell_average(G_c, 1, ok)
+        return ec, er
+
+    def _apply_A(self, f):
+        dr, dc = self.grid.dr, self.grid.dc
+        ac = np.diff(f, axis=1) / dc
+        ar = np.diff(f, axis=0) / dr
+        if self.dk_c is not None:
+            ac += self.dk_c * 0.5 * (f[:, 1:] + f[:, :-1])
+            ar += self.dk_r * 0.5 * (f[1:, :] + f[:-1, :])
+        return ac, ar
+
+    def _apply_AT(self, ec, er):
+        dr, dc = self.grid.dr, self.grid.dc
+        out = _div_T(ec, er, self.shape, dc, dr)
+        if self.dk_c is not None:
+            t = 0.5 * self.dk_c * ec
+            out[:, :-1] += t
+            out[:, 1:] += t
+            t = 0.5 * self.dk_r * er
+            out[:-1, :] += t
+            out[1:, :] += t
+        return out
+
+    # ------------------------------------------------------------------ solve
+    def solve(self, displacement_px, valid=None, *, solver: str = "auto") -> SurfaceResult:
+        """Heights (mm) and slopes from a displacement field.
+
+        Parameters
+        ----------
+        displacement_px : ndarray (2, n_rows, n_cols) float
+            ``(u_row, u_col)`` in pixels on this solver's grid.
+        valid : ndarray (n_rows, n_cols) bool or None
+            Samples to use; non-finite displacements are invalid too.
+        solver : {"auto", "spectral", "masked"}
+            "auto": spectral when every sample is valid and the optics are
+            uniform (telecentric), masked otherwise.
+
+        Returns
+        -------
+        SurfaceResult
+        """
+        u = np.asarray(displacement_px)
+        if u.ndim != 3 or u.shape[0] != 2 or u.shape[1:] != self.shape:
+            raise ShapeMismatchError(
+                f"displacement_px must have shape (2, {self.shape[0]}, {self.shape[1]}) (u_row, u_col on the grid), "
+                f"got {u.shape}"
+            )
+        finite = np.isfinite(u[0]) & np.isfinite(u[1])
+        if valid is None:
+            v = finite
+        else:
+            valid = np.asarray(valid)
+            if valid.shape != self.shape:
+                raise ShapeMismatchError(
+                    f"valid must have shape {self.shape} like the displacement grid, got {valid.shape}"
+                )
+            v = valid.astype(bool) & finite
+        all_valid = bool(v.all())
+        if solver not in ("auto", "spectral", "masked"):
+            raise TirdeflectError(f"solver must be 'auto', 'spectral' or 'masked', got {solver!r}")
+        if solver == "spectral" and not (all_valid and self.constant):
+            raise TirdeflectError(
+                "the spectral solver needs every sample valid and a telecentric camera; "
+                f"{int((~v).sum())} samples are invalid: use solver='masked' (or 'auto')"
+            )
+        if not v.any():
+            from .errors import AllInvalidError
+
+            raise AllInvalidError("no valid displacement sample: nothing to integrate; check the mask and the frame")
+        use_spectral = solver == "spectral" or (solver == "auto" and all_valid and self.constant)
+        uz = np.where(v, u, 0.0) if not all_valid else u
+        gr, gc = self.gradients(uz)
+        iterations = 0
+        if use_spectral:
+            ec, er = self._edge_data(gr, gc, None)
+            f = poisson_neumann(self._apply_AT(ec, er), self.denom)
+            pieces, n_pieces = None, 1
+        else:
+            f, iterations = self._solve_masked(gr, gc, v)
+            pieces, n_pieces = ndimage.label(v)
+        h = f * self.null
+        v = self._pin(h, v, pieces, n_pieces)
+        # slopes from the data: grad_px h = g - kappa h, then to surface units
+        kr = self.kappa[..., 0]
+        kc = self.kappa[..., 1]
+        sr = gr - kr * h
+        sc = gc - kc * h
+        Kt = self.Kinv_T
+        if Kt.ndim == 2:
+            sy = Kt[0, 0] * sr + Kt[0, 1] * sc
+            sx = Kt[1, 0] * sr + Kt[1, 1] * sc
+        else:
+            sy = Kt[..., 0, 0] * sr + Kt[..., 0, 1] * sc
+            sx = Kt[..., 1, 0] * sr + Kt[..., 1, 1] * sc
+        nan = np.float32(np.nan)
+        if v.all():
+            hh, sx, sy = h.astype(np.float32), sx.astype(np.float32), sy.astype(np.float32)
+        else:
+            hh = np.where(v, h, nan).astype(np.float32)
+            sx = np.where(v, sx, nan).astype(np.float32)
+            sy = np.where(v, sy, nan).astype(np.float32)
+        return SurfaceResult(hh, sx, sy, self.x_mm.copy(), self.y_mm.copy(), v, iterations, self.surface_xy)
+
+    def _pin(self, h, v, pieces, n_pieces):
+        """Subtract alpha * null mode per connected piece (in place); returns the final validity."""
+        ref = self.ref & v
+        if not ref.any():
+            raise GeometryError(
+                f"reference region {self.geometry.reference_region or 'default border band'} has no valid pixel "
+                f"in this frame, so the height offset cannot be measured; choose another reference_region "
+                f"where the surface is at rest and the pattern is visible"
+            )
+        n = self.null
+        if pieces is None:
+            nr = n[ref]
+            alpha = float(np.dot(h[ref], nr) / np.dot(nr, nr))
+            h -= alpha * n
+            return v
+        v = v.copy()
+        idx = np.arange(1, n_pieces + 1)
+        num = ndimage.sum_labels(h * n, pieces * ref, idx)
+        den = ndimage.sum_labels(n * n, pieces * ref, idx)
+        has_ref = den > 0
+        alpha = np.zeros(n_pieces + 1)
+        alpha[1:][has_ref] = num[has_ref] / den[has_ref]
+        h -= alpha[pieces] * n
+        pinned = np.zeros(n_pieces + 1, dtype=bool)
+        pinned[1:] = has_ref
+        v &= pinned[pieces]
+        return v
+
+    def _solve_masked(self, gr, gc, v):
+        """PCG on the weighted normal equations, preconditioned by the DCT Poisson solver."""
+        wc = (v[:, 1:] & v[:, :-1]).astype(np.float64)
+        wr = (v[1:, :] & v[:-1, :]).astype(np.float64)
+        ec, er = self._edge_data(gr, gc, v)
+        b = self._apply_AT(wc * ec, wr * er)
+        vf = v.astype(np.float64)
+
+        def op(x):
+            ac, ar = self._apply_A(x)
+            return self._apply_AT(wc * ac, wr * ar) * vf
+
+        def prec(r):
+            z = poisson_neumann(r, self.denom)
+            return z * vf
+
+        bnorm = math.sqrt(float(np.sum(b * b)))
+        x = np.zeros(self.shape)
+        if bnorm == 0:
+            return x, 0
+        # warm start: the spectral solution of the unmasked problem
+        x = prec(b)
+        r = b - op(x)
+        z = prec(r)
+        p = z.copy()
+        rz = float(np.sum(r * z))
+        it = 0
+        for it in range(1, self.max_iter + 1):
+            if math.sqrt(float(np.sum(r * r))) <= self.tol * bnorm:
+                it -= 1
+                break
+            q = op(p)
+            pq = float(np.sum(p * q))
+            if pq <= 0:
+                break
+            a = rz / pq
+            x += a * p
+            r -= a * q
+            z = prec(r)
+            rz_new = float(np.sum(r * z))
+            p = z + (rz_new / rz) * p
+            rz = rz_new
+        else:
+            if math.sqrt(float(np.sum(r * r))) > 1e3 * self.tol * bnorm:
+                raise TirdeflectError(
+                    f"masked height solver did not converge in {self.max_iter} iterations "
+                    f"(relative residual {math.sqrt(float(np.sum(r * r))) / bnorm:.1e}); "
+                    "the valid region is probably fragmented: enlarge the mask or use a decimated grid"
+                )
+        return x, it
+
+
+_CACHE: "OrderedDict[tuple, HeightSolver]" = OrderedDict()
+_CACHE_SIZE = 8
+
+
+def _solver_for(geometry, rows_px, cols_px, frame_shape) -> HeightSolver:
+    r = np.asarray(rows_px, dtype=np.float64).ravel()
+    c = np.asarray(cols_px, dtype=np.float64).ravel()
+    key = (
+        geometry,
+        r.size,
+        float(r[0]) if r.size else None,
+        float(r[-1]) if r.size else None,
+        c.size,
+        float(c[0]) if c.size else None,
+        float(c[-1]) if c.size else None,
+        tuple(int(s) for s in frame_shape),
+    )
+    s = _CACHE.get(key)
+    if s is None:
+        s = HeightSolver(geometry, r, c, frame_shape)
+        _CACHE[key] = s
+        while len(_CACHE) > _CACHE_SIZE:
+            _CACHE.popitem(last=False)
+    else:
+        _CACHE.move_to_end(key)
+    return s
+
+
+def surface_from_displacement(displacement_px, valid, geometry, *, rows_px, cols_px, frame_shape, solver="auto"):
+    """Surface heights and slopes from a displacement field (pixels).
+
+    Parameters
+    ----------
+    displacement_px : ndarray (2, n_rows, n_cols) float32
+        ``(u_row, u_col)`` in image pixels, FD convention ``I(r) = I0(r - u)``,
+        sampled at pixel coordinates ``rows_px x cols_px``.
+    valid : ndarray (n_rows, n_cols) bool or None
+        Samples to use (None: all finite samples).
+    geometry : Geometry
+    rows_px : ndarray (n_rows,)
+        Pixel rows of the samples (evenly spaced: full grid or every k-th row).
+    cols_px : ndarray (n_cols,)
+        Pixel columns of the samples.
+    frame_shape : (int, int)
+        Shape of the camera frame (its centre is the optical axis).
+    solver : {"auto", "spectral", "masked"}
+
+    Returns
+    -------
+    SurfaceResult
+        ``height_mm``, ``slope_x``, ``slope_y`` (image frame: x along
+        increasing column, y along increasing row, mm on the surface), NaN
+        where not valid; ``x_mm`` (n_cols,), ``y_mm`` (n_rows,). The null
+        space is pinned by ``geometry.reference_region`` (mean height 0
+        there).
+
+    Raises
+    ------
+    GeometryError
+        The reference region holds no valid sample.
+    ShapeMismatchError
+        Arrays and grid disagree.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from processing.geometry import Geometry
+    >>> g = Geometry(theta_deg=60, depth_mm=300, pixel_mm=0.1, rows_toward_camera=False)
+    >>> u = np.zeros((2, 64, 64), np.float32)
+    >>> r = surface_from_displacement(u, None, g, rows_px=np.arange(64), cols_px=np.arange(64), frame_shape=(64, 64))
+    >>> float(np.abs(r.height_mm).max())
+    0.0
+    """
+    s = _solver_for(geometry, rows_px, cols_px, frame_shape)
+    return s.solve(displacement_px, valid, solver=solver)
