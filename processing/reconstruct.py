@@ -1,0 +1,589 @@
+"""Reference + frame -> surface height: the :class:`Reconstructor`.
+
+Pipeline (docs/processing.md has the measured accuracy and speed):
+
+1. carriers of the reference (:mod:`processing.carriers`), sub-bin;
+2. Fourier demodulation on the decimated grid (:mod:`processing.demodulation`):
+   ``g_s conj(g0_s)`` for both carriers, amplitude ratio ``|g_s| / |g0_s|``;
+3. quality mask: amplitude ratio (TIR lost, caustics, blur), reference
+   contrast, fold test ``det(I - grad u) > min_fold`` (rays crossing), dilated;
+4. phase unwrapping (:mod:`processing.unwrap`), in time against the previous
+   frame of the series when there is one, else in space; the 2 pi multiple
+   puts the reference region's phase nearest 0;
+5. displacement ``u = -K^-1 phase`` (pixels);
+6. bias removal (``refine_iterations``): warp the band-limited reference by
+   the current ``u``, demodulate the frame against it, add the residual;
+7. height by least squares of the exact operator
+   (:func:`processing.height.surface_from_displacement`), null space pinned by
+   the reference region;
+8. full grid: band-limited decimated results interpolated (bicubic) to every
+   pixel (``full_method="interpolate"``), or full-size inverse FFTs
+   (``full_method="ifft"``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from typing import Optional
+
+import cv2
+import numpy as np
+
+from .carriers import Carriers, check_pattern_match, find_carriers, match_error
+from .demodulation import Demodulator
+from .errors import AllInvalidError, ShapeMismatchError
+from .fft import FFTPlanner
+from .unwrap import unwrap_spatial, unwrap_temporal, wrap
+
+__all__ = ["Reconstructor", "Result"]
+
+_DEFAULT_ITERATIONS = {"decimated": 0, "full": 2}
+
+
+@dataclasses.dataclass
+class Result:
+    """One reconstructed frame.
+
+    Attributes
+    ----------
+    height : ndarray, float32, shape (rows, cols)
+        Surface height, mm, NaN where invalid.  ``rows, cols`` is the frame
+        shape (``grid == "full"``) or the decimated grid.
+    valid : ndarray, bool, shape (rows, cols)
+    slope_x, slope_y : ndarray, float32, shape (rows, cols)
+        ``dh/dx`` (x along increasing column) and ``dh/dy`` (y along
+        increasing row), dimensionless, NaN where invalid.
+    displacement : ndarray, float32, shape (2, rows, cols)
+        ``(u_row, u_col)`` in pixels, FD convention ``I(r) = I0(r - u(r))``.
+    amplitude : ndarray, float32, shape (rows, cols)
+        ``|g| / |g0|``, the smaller of both carriers (1: full contrast).
+    x_mm, y_mm : ndarray, float64, shapes (cols,), (rows,)
+        Surface coordinates of the grid's columns and rows.
+    grid : str
+        ``"full"`` or ``"decimated"``.
+    rows_px, cols_px : ndarray, float64
+        Pixel coordinates of the grid's rows and columns.
+    carriers : Carriers
+        The reference's carriers used.
+    phase : ndarray, float32, shape (2, m_rows, m_cols)
+        Unwrapped carrier phases on the decimated grid, radians.
+    valid_fraction : float
+        Fraction of valid samples.
+    timings_ms : dict
+        Time spent per stage.
+    """
+
+    height: np.ndarray
+    valid: np.ndarray
+    slope_x: np.ndarray
+    slope_y: np.ndarray
+    displacement: np.ndarray
+    amplitude: np.ndarray
+    x_mm: np.ndarray
+    y_mm: np.ndarray
+    grid: str
+    rows_px: np.ndarray
+    cols_px: np.ndarray
+    carriers: Carriers
+    phase: np.ndarray
+    valid_fraction: float
+    timings_ms: dict
+
+
+class _Upsampler:
+    """Bicubic interpolation from the decimated grid to every pixel."""
+
+    def __init__(self, shape, window_shape):
+        rows, cols = shape
+        m_r, m_c = window_shape
+        # decimated sample j sits at pixel j * rows / m_r
+        self.map_r = np.broadcast_to((np.arange(rows, dtype=np.float32) * np.float32(m_r / rows))[:, None],
+                                     (rows, cols)).copy()
+        self.map_c = np.broadcast_to((np.arange(cols, dtype=np.float32) * np.float32(m_c / cols))[None, :],
+                                     (rows, cols)).copy()
+        self.map_c, self.map_r = cv2.convertMaps(self.map_c, self.map_r, cv2.CV_16SC2)
+
+    def __call__(self, field, interpolation=cv2.INTER_CUBIC):
+        src = np.ascontiguousarray(field, dtype=np.float32)
+        return cv2.remap(src, self.map_c, self.map_r, interpolation, borderMode=cv2.BORDER_REPLICATE)
+
+    def mask(self, valid):
+        v = self(valid.astype(np.float32), cv2.INTER_LINEAR)
+        return v > 0.999
+
+
+def _dilate(invalid, n):
+    if n <= 0:
+        return invalid
+    k = np.ones((2 * n + 1, 2 * n + 1), np.uint8)
+    return cv2.dilate(invalid.astype(np.uint8), k).astype(bool)
+
+
+class Reconstructor:
+    """Turns camera frames into surface heights against one reference image.
+
+    Parameters
+    ----------
+    reference_image : ndarray, shape (rows, cols)
+        The pattern seen via the flat, resting surface (uint8/uint16/float).
+    geometry : processing.Geometry
+        Optical geometry (TIR or FS-SS).
+    grid : {"full", "decimated"}, optional
+        Default output grid: every pixel (batch) or the decimated grid of the
+        demodulation (live, about one sample per half carrier period).
+    unwrap : bool, optional
+        Unwrap carrier phases (default True).  Off reproduces FD without
+        unwrapping (wrong where ``|k . u| > pi``).
+    temporal : bool, optional
+        Unwrap against the previous frame of the series (default True);
+        :meth:`reset_series` forgets it.
+    refine_iterations : int or None, optional
+        Warp-and-redemodulate iterations that remove the band-pass bias
+        (notes.md).  None: 0 on the decimated grid (live), 2 on the full grid.
+    filter_radius, filter_flat, filter_shape, oversample, border, subbin :
+        Demodulation options, see :class:`processing.demodulation.Demodulator`.
+    full_method : {"interpolate", "ifft"}, optional
+        How the full grid is made (see module docstring).
+    min_amplitude : float, optional
+        Smallest accepted ``|g| / |g0|`` (both carriers), default 0.3.
+    min_fold : float, optional
+        Smallest accepted ``det(I - grad u)`` (1: no distortion, 0: rays
+        cross), default 0.2.
+    dilate : int, optional
+        Invalid regions grow by this many decimated samples (default 1).
+    check_pattern : bool, optional
+        Refuse frames whose pattern (period, rotation) differs from the
+        reference's (default True).
+    solver : str, optional
+        Passed to :func:`processing.height.surface_from_displacement`.
+    threads : int, optional
+        FFTW threads (default 2).
+    planner_effort : str, optional
+        FFTW planner effort (default "FFTW_ESTIMATE"; the app uses
+        "FFTW_MEASURE" with wisdom from :func:`processing.fft.import_wisdom`).
+    carriers : Carriers, optional
+        Use these instead of searching the reference.
+
+    Raises
+    ------
+    NoCarrierError
+        The reference shows no checkerboard.
+    """
+
+    def __init__(self, reference_image, geometry, *, grid: str = "full", unwrap: bool = True,
+                 temporal: bool = True, refine_iterations: Optional[int] = None,
+                 filter_radius: float = 0.5, filter_flat: float = 0.6, filter_shape: str = "flattop",
+                 oversample: float = 2.0, border: str = "apodize", subbin: bool = True,
+                 full_method: str = "interpolate", min_amplitude: float = 0.3, min_fold: float = 0.2,
+                 dilate: int = 1, check_pattern: bool = True, solver: str = "auto", threads: int = 2,
+                 planner_effort: str = "FFTW_ESTIMATE", carriers: Optional[Carriers] = None):
+        ref = self._validate_image(reference_image, "reference image")
+        self._check_grid(grid)
+        if full_method not in ("interpolate", "ifft"):
+            raise ValueError(f"full_method must be 'interpolate' or 'ifft'; got {full_method!r}")
+        if refine_iterations is not None and int(refine_iterations) < 0:
+            raise ValueError(f"refine_iterations must be >= 0 or None; got {refine_iterations!r}")
+        self.geometry = geometry
+        self.shape = ref.shape
+        self.reference_dtype = ref.dtype
+        self.grid = grid
+        self.unwrap = bool(unwrap)
+        self.temporal = bool(temporal)
+        self.refine_iterations = refine_iterations
+        self.full_method = full_method
+        self.min_amplitude = float(min_amplitude)
+        self.min_fold = float(min_fold)
+        self.dilate = int(dilate)
+        self.check_pattern = bool(check_pattern)
+        self.solver = solver
+        self.planner = FFTPlanner(threads=threads, planner_effort=planner_effort)
+        self.carriers = carriers if carriers is not None else find_carriers(ref)
+        self.demod = Demodulator(ref, self.carriers, planner=self.planner, filter_radius=filter_radius,
+                                 filter_flat=filter_flat, filter_shape=filter_shape, oversample=oversample,
+                                 border=border, subbin=subbin)
+        d = self.demod
+        self.rows_px, self.cols_px = d.rows_px, d.cols_px
+        # reference contrast, border taper divided out: blank or dirty parts of the pattern
+        taper = self._taper_decimated()
+        g0_min = d.g0_abs.min(axis=0) / np.maximum(taper, 1e-6)
+        self._ref_ok = (g0_min >= 0.25 * np.median(g0_min)) & (taper >= 0.1)
+        self._ref_mask = geometry.reference_mask(self.rows_px, self.cols_px, self.shape)
+        self._ref_mask_full = None
+        self._up = _Upsampler(self.shape, d.window_shape)
+        self._smooth_ref = None
+        self._g0_full = None
+        self._ref_f32 = ref.astype(np.float32)
+        # pattern-check tolerance in bins: 4 % of the carrier frequency
+        self._check_tol_bins = 0.04 * np.hypot(*(d.freq * np.array(self.shape)).T)
+        self._win_centre = (d.freq * np.array(self.shape)) - d._centres
+        self.reset_series()
+
+    # ------------------------------------------------------------ helpers
+    def _taper_decimated(self):
+        """Border window at the decimated samples (1 without apodization)."""
+        w = self.demod._window2d
+        if w is None:
+            return np.ones(self.demod.window_shape, np.float32)
+        rows, cols = self.shape
+        return w[np.ix_(np.round(self.rows_px).astype(int) % rows, np.round(self.cols_px).astype(int) % cols)]
+
+    @staticmethod
+    def _check_grid(grid):
+        if grid not in ("full", "decimated"):
+            raise ValueError(f"grid must be 'full' or 'decimated'; got {grid!r}")
+
+    def _validate_image(self, image, name):
+        a = np.asarray(image)
+        if a.ndim != 2:
+            raise ValueError(f"{name} must be a 2-D grey image (rows, cols); got shape {a.shape}. "
+                             "Convert colour images to grey first")
+        if a.dtype.kind not in "uif" or a.dtype.itemsize > 8:
+            raise ValueError(f"{name} must be uint8, uint16 or float; got dtype {a.dtype}")
+        if a.dtype.kind == "f" and not np.all(np.isfinite(a)):
+            raise ValueError(f"{name} contains NaN or infinite pixels; pass the raw camera image")
+        return a
+
+    def _validate_frame(self, frame):
+        a = np.asarray(frame)
+        if a.shape != self.shape:
+            raise ShapeMismatchError(
+                f"reference and frame must have equal shapes; got {self.shape} and {a.shape}: "
+                "use the reference recorded with the same camera region of interest and binning")
+        return self._validate_image(a, "frame")
+
+    def reset_series(self) -> None:
+        """Forget the previous frame: the next frame is unwrapped in space only."""
+        self._prev_phase = None
+        self._prev_valid = None
+
+    # ----------------------------------------------------------- pattern
+    def _cheap_pattern_check(self, wins, frame):
+        """Peak of each carrier window near the reference's?  Otherwise run the
+        full carrier search on the frame (raises PatternMismatchError)."""
+        if not self.check_pattern:
+            return
+        suspicious = False
+        m_r, m_c = self.demod.window_shape
+        for s in range(2):
+            mag = np.abs(wins[s])
+            idx = int(np.argmax(mag))
+            r, c = divmod(idx, m_c)
+            r = r if r < m_r // 2 else r - m_r
+            c = c if c < m_c // 2 else c - m_c
+            off = math.hypot(r - self._win_centre[s, 0], c - self._win_centre[s, 1])
+            if off > max(1.5, self._check_tol_bins[s]):
+                suspicious = True
+        if suspicious:
+            check_pattern_match(self.carriers, frame)
+
+    # ------------------------------------------------------------- stages
+    def _unwrap(self, wrapped, valid):
+        if not self.unwrap:
+            return np.where(valid, wrapped, np.nan)
+        out = np.empty_like(wrapped)
+        for s in range(2):
+            if self.temporal and self._prev_phase is not None:
+                out[s] = unwrap_temporal(wrapped[s], self._prev_phase[s], valid, self._prev_valid,
+                                         ref_mask=self._ref_mask)
+            else:
+                out[s] = unwrap_spatial(wrapped[s], valid, ref_mask=self._ref_mask)
+        return out
+
+    def _fold_ok(self, u):
+        """det(I - grad u) > min_fold on the decimated grid (u in pixels)."""
+        dr = self.rows_px[1] - self.rows_px[0]
+        dc = self.cols_px[1] - self.cols_px[0]
+        uf = np.nan_to_num(u)
+        dur_dr, dur_dc = np.gradient(uf[0], dr, dc)
+        duc_dr, duc_dc = np.gradient(uf[1], dr, dc)
+        det = (1.0 - dur_dr) * (1.0 - duc_dc) - dur_dc * duc_dr
+        return det > self.min_fold
+
+    def _smooth_reference(self):
+        """Reference band-limited around the two carriers (no apodization): what
+        gets warped in the refinement.  Its band (flat to 1.1, zero at 1.6
+        filter radii) holds everything the band-pass can see after warping,
+        and it is smooth, so that cubic interpolation is exact enough."""
+        if self._smooth_ref is None:
+            d = self.demod
+            rows, cols = self.shape
+            ref = self._ref_f32 - np.float32(self._ref_f32.mean())
+            spec = np.fft.rfft2(ref)
+            fr = np.fft.fftfreq(rows)[:, None]
+            fc = np.fft.rfftfreq(cols)[None, :]
+            keep = np.zeros(spec.shape)
+            for s in range(2):
+                for sign in (1.0, -1.0):
+                    dist = np.hypot(fr - sign * d.freq[s, 0], fc - sign * d.freq[s, 1]) / d.radius
+                    t = np.clip((dist - 1.1) / 0.5, 0.0, 1.0)
+                    keep = np.maximum(keep, 0.5 + 0.5 * np.cos(np.pi * t))
+            self._smooth_ref = np.fft.irfft2(spec * keep, s=self.shape).astype(np.float32)
+        return self._smooth_ref
+
+    def _refine(self, frame_wins, g, u, valid, iterations):
+        """Remove the band-pass bias: warp the smooth reference by u, demodulate
+        the frame against it and add the residual displacement."""
+        d = self.demod
+        smooth = self._smooth_reference()
+        rows, cols = self.shape
+        grid_r = np.arange(rows, dtype=np.float32)[:, None]
+        grid_c = np.arange(cols, dtype=np.float32)[None, :]
+        for _ in range(iterations):
+            uf = np.where(valid, u, 0.0)
+            u_r = self._up(uf[0])
+            u_c = self._up(uf[1])
+            warped = cv2.remap(smooth, grid_c - u_c, grid_r - u_r, cv2.INTER_CUBIC,
+                               borderMode=cv2.BORDER_REFLECT)
+            gw = d.decimated(warped)
+            dphi = np.angle(g * np.conj(gw))
+            du = d.phase_to_displacement(dphi)
+            u = u + np.where(valid, du, 0.0)
+        return u
+
+    # ---------------------------------------------------------------- call
+    def __call__(self, frame, *, grid: Optional[str] = None) -> Result:
+        """Reconstruct one frame.
+
+        Parameters
+        ----------
+        frame : ndarray, shape (rows, cols)
+            Camera frame, same shape as the reference (uint8/uint16/float).
+        grid : {"full", "decimated"}, optional
+            Overrides the default grid for this frame.
+
+        Returns
+        -------
+        Result
+
+        Raises
+        ------
+        ShapeMismatchError, PatternMismatchError, AllInvalidError
+        """
+        t0 = time.perf_counter()
+        frame = self._validate_frame(frame)
+        grid = self.grid if grid is None else grid
+        self._check_grid(grid)
+        d = self.demod
+        timings = {}
+        spec = d.spectrum(frame)
+        wins = d.windows(spec)
+        g = d.decimated_from_windows(wins)
+        self._cheap_pattern_check(wins, frame)
+        t1 = time.perf_counter()
+        timings["demodulate"] = 1e3 * (t1 - t0)
+        z = g * np.conj(d.g0)
+        wrapped = np.angle(z)
+        ratio = np.abs(g) / np.maximum(d.g0_abs, 1e-30)
+        amplitude = ratio.min(axis=0).astype(np.float32)
+        valid = (amplitude >= self.min_amplitude) & self._ref_ok
+        valid &= ~_dilate(~valid, self.dilate)
+        phase = self._unwrap(wrapped, valid)
+        u = d.phase_to_displacement(np.nan_to_num(phase))
+        fold = self._fold_ok(np.where(valid, u, 0.0))
+        valid &= ~_dilate(~fold, self.dilate)
+        if not valid.any():
+            raise AllInvalidError(
+                f"no part of the frame could be measured: pattern contrast relative to the reference "
+                f"is {float(np.median(amplitude)):.2f} (median; need >= {self.min_amplitude}); check "
+                "that TIR holds (theta, water level), the light and the exposure, and that nothing "
+                "blocks the view")
+        t2 = time.perf_counter()
+        timings["unwrap_mask"] = 1e3 * (t2 - t1)
+        iterations = self.refine_iterations
+        if iterations is None:
+            iterations = _DEFAULT_ITERATIONS[grid]
+        u_first = u
+        if iterations > 0:
+            u = self._refine(wins, g, u, valid, iterations)
+        t3 = time.perf_counter()
+        timings["refine"] = 1e3 * (t3 - t2)
+        # series memory (unwrapped phase of the final displacement)
+        if self.temporal:
+            self._prev_phase = np.where(valid, phase, np.nan)
+            self._prev_valid = valid.copy()
+        u = np.where(valid, u, np.nan).astype(np.float32)
+        from .height import surface_from_displacement
+
+        if grid == "decimated":
+            surf = surface_from_displacement(u, valid, self.geometry, rows_px=self.rows_px,
+                                             cols_px=self.cols_px, frame_shape=self.shape,
+                                             solver=self.solver)
+            t4 = time.perf_counter()
+            timings["height"] = 1e3 * (t4 - t3)
+            res = Result(height=np.asarray(surf.height_mm, np.float32), valid=valid,
+                         slope_x=np.asarray(surf.slope_x, np.float32),
+                         slope_y=np.asarray(surf.slope_y, np.float32), displacement=u,
+                         amplitude=amplitude, x_mm=surf.x_mm, y_mm=surf.y_mm, grid="decimated",
+                         rows_px=self.rows_px, cols_px=self.cols_px, carriers=self.carriers,
+                         phase=np.asarray(phase, np.float32), valid_fraction=float(valid.mean()),
+                         timings_ms=timings)
+        else:
+            res = self._full(frame, wins, u, u_first, valid, amplitude, phase, timings, t3)
+        timings["total"] = 1e3 * (time.perf_counter() - t0)
+        return res
+
+    def _full(self, frame, wins, u, u_first, valid, amplitude, phase, timings, t3):
+        from .height import surface_from_displacement
+
+        rows, cols = self.shape
+        up = self._up
+        valid_full = up.mask(valid)
+        if self.full_method == "ifft":
+            d = self.demod
+            gf = d.full_from_windows(wins)
+            if self._g0_full is None:
+                self._g0_full = d.full_from_windows(d.windows(d.spectrum(self._ref_f32)))
+            wrapped = np.angle(gf * np.conj(self._g0_full))
+            guide = np.stack([up(np.nan_to_num(phase[s])) for s in range(2)])
+            full_phase = wrapped + 2 * np.pi * np.round((guide - wrapped) / (2 * np.pi))
+            uf = d.phase_to_displacement(full_phase)
+            corr = np.where(valid, u - u_first, 0.0)
+            uf = uf + np.stack([up(corr[0]), up(corr[1])])
+        else:
+            uz = np.nan_to_num(u)
+            uf = np.stack([up(uz[0]), up(uz[1])])
+        uf = np.where(valid_full, uf, np.nan).astype(np.float32)
+        surf = surface_from_displacement(uf, valid_full, self.geometry, rows_px=np.arange(rows, dtype=float),
+                                         cols_px=np.arange(cols, dtype=float), frame_shape=self.shape,
+                                         solver=self.solver)
+        t4 = time.perf_counter()
+        timings["height"] = 1e3 * (t4 - t3)
+        amp = up(amplitude)
+        return Result(height=np.asarray(surf.height_mm, np.float32), valid=valid_full,
+                      slope_x=np.asarray(surf.slope_x, np.float32), slope_y=np.asarray(surf.slope_y, np.float32),
+                      displacement=uf, amplitude=amp, x_mm=surf.x_mm, y_mm=surf.y_mm, grid="full",
+                      rows_px=np.arange(rows, dtype=float), cols_px=np.arange(cols, dtype=float),
+                      carriers=self.carriers, phase=np.asarray(phase, np.float32),
+                      valid_fraction=float(valid_full.mean()), timings_ms=timings)
+
+    # ----------------------------------------------------------- alignment
+    def alignment(self, frame) -> dict:
+        """Live alignment metrics of a frame against this reference.
+
+        Returns
+        -------
+        dict
+            ``periods_px`` (2,) and ``rotation_deg`` of the frame's pattern
+            (NaN if none found), ``reference_periods_px``,
+            ``reference_rotation_deg``, ``theta_estimate_deg`` (from the
+            frame's aspect, telecentric square board), ``theta_configured_deg``
+            (geometry; None for FS-SS), ``focus`` (carrier peak sharpness 0..1,
+            smaller of both), ``modulation`` (decimated map, fundamental-band
+            contrast std/mean, about 0.8 for full-scale sharp squares),
+            ``modulation_rows_px``, ``modulation_cols_px``, ``contrast`` (its
+            median), ``amplitude`` (map ``|g|/|g0|``), ``saturation_pct``
+            (pixels at the top code of the frame's bit depth), ``error``
+            (only when the frame shows no pattern).
+        """
+        frame = self._validate_frame(frame)
+        d = self.demod
+        out = {
+            "reference_periods_px": np.asarray(self.carriers.periods_px, float),
+            "reference_rotation_deg": float(self.carriers.rotation_deg),
+            "theta_configured_deg": (float(self.geometry.theta_deg)
+                                     if getattr(self.geometry, "setup", "tir") == "tir" else None),
+            "saturation_pct": saturation_pct(frame),
+        }
+        spec = d.spectrum(frame)
+        wins = d.windows(spec)
+        g = d.decimated_from_windows(wins)
+        mean = self._local_mean(spec, frame)
+        std = np.sqrt(2.0 * (np.abs(g[0]) ** 2 + np.abs(g[1]) ** 2))
+        if d._window2d is not None:
+            # both g and the local mean carry the border window: divide it out of neither
+            pass
+        mod = (std / np.maximum(mean, 1e-6 * max(float(np.abs(mean).max()), 1e-30))).astype(np.float32)
+        out.update(modulation=mod, modulation_rows_px=self.rows_px, modulation_cols_px=self.cols_px,
+                   contrast=float(np.median(mod)),
+                   amplitude=(np.abs(g) / np.maximum(d.g0_abs, 1e-30)).min(axis=0).astype(np.float32))
+        try:
+            c = find_carriers(frame)
+        except ValueError as exc:
+            out.update(periods_px=np.full(2, np.nan), rotation_deg=float("nan"),
+                       theta_estimate_deg=float("nan"), focus=0.0, error=str(exc))
+            return out
+        out.update(periods_px=np.asarray(c.periods_px, float), rotation_deg=float(c.rotation_deg),
+                   theta_estimate_deg=float(c.theta_deg), focus=float(np.min(c.sharpness)),
+                   pattern_mismatch=dict(zip(("period_rel", "angle_deg"), match_error(self.carriers, c.freq))))
+        return out
+
+    def _local_mean(self, spec, frame):
+        """Local mean intensity on the decimated grid (low-pass window at DC)."""
+        d = self.demod
+        m_r, m_c = d.window_shape
+        rows, cols = self.shape
+        q_r = np.fft.fftfreq(m_r, 1.0 / m_r).astype(np.int64)
+        q_c = np.fft.fftfreq(m_c, 1.0 / m_c).astype(np.int64)
+        kr = q_r[:, None] % rows
+        kc = np.broadcast_to(q_c[None, :], (m_r, m_c))
+        mirror = kc < 0
+        ridx = np.where(mirror, (-q_r[:, None]) % rows, kr)
+        vals = spec[ridx, np.abs(kc)]
+        vals = np.where(mirror, np.conj(vals), vals)
+        f = np.hypot(q_r[:, None] / rows, q_c[None, :] / cols) / d.radius
+        lp = np.clip(1.0 - f, 0.0, 1.0) ** 2
+        small = np.fft.ifft2(vals * lp).real * (m_r * m_c / (rows * cols))
+        # prepare() removed the global mean (times the border window): add it back
+        mean = float(np.mean(frame, dtype=np.float64))
+        if d._window2d is not None:
+            wdec = d._window2d[np.ix_(np.round(self.rows_px).astype(int) % rows,
+                                      np.round(self.cols_px).astype(int) % cols)]
+            return small + mean * wdec
+        return small + mean
+
+    def spectrum(self, frame, *, size: int = 256, max_freq: float = 0.25) -> dict:
+        """Centred log-magnitude spectrum for display, with the carriers.
+
+        Returns
+        -------
+        dict
+            ``log_magnitude`` float32 (n, m): log10 |FFT| of the prepared
+            frame; ``freq_x`` (m,), ``freq_y`` (n,): cycles per pixel
+            (columns, rows), increasing; ``carriers``: list of
+            ``(f_col, f_row)`` of both carriers and their mirrors.
+        """
+        frame = self._validate_frame(frame)
+        spec = np.abs(self.demod.spectrum(frame))
+        rows, cols = self.shape
+        full = np.empty((rows, cols), np.float32)
+        h = spec.shape[1]
+        full[:, :h] = spec
+        # negative column frequencies: conjugate symmetry |X(-k)| = |X(k)|
+        neg_c = np.arange(h, cols)
+        full[:, h:] = spec[(-np.arange(rows)) % rows][:, cols - neg_c]
+        full = np.fft.fftshift(full)
+        fy = np.fft.fftshift(np.fft.fftfreq(rows))
+        fx = np.fft.fftshift(np.fft.fftfreq(cols))
+        keep_r = np.flatnonzero(np.abs(fy) <= max_freq)
+        keep_c = np.flatnonzero(np.abs(fx) <= max_freq)
+        step_r = max(1, len(keep_r) // size)
+        step_c = max(1, len(keep_c) // size)
+        sub = full[np.ix_(keep_r, keep_c)]
+        # block maximum keeps the carrier peaks visible after decimation
+        nr, nc = sub.shape[0] // step_r, sub.shape[1] // step_c
+        sub = sub[:nr * step_r, :nc * step_c].reshape(nr, step_r, nc, step_c).max(axis=(1, 3))
+        mag = np.log10(sub + 1e-6 * float(sub.max() or 1.0)).astype(np.float32)
+        fr_k = fy[keep_r][:nr * step_r].reshape(nr, step_r).mean(axis=1)
+        fc_k = fx[keep_c][:nc * step_c].reshape(nc, step_c).mean(axis=1)
+        carriers = [(float(f[1]), float(f[0])) for f in self.demod.freq]
+        return {"log_magnitude": mag, "freq_x": fc_k, "freq_y": fr_k,
+                "carriers": carriers + [(-a, -b) for a, b in carriers]}
+
+
+def saturation_pct(frame) -> float:
+    """Percentage of pixels at the top code of the frame's bit depth.
+
+    For integer frames the bit depth is the smallest that holds the frame's
+    maximum (a 10-bit camera in uint16 saturates at 1023); float frames
+    saturate at 1.0 or at their maximum if above 1.
+    """
+    a = np.asarray(frame)
+    top = float(a.max()) if a.size else 0.0
+    if a.dtype.kind in "ui":
+        bits = max(1, int(math.ceil(math.log2(top + 1)))) if top > 0 else 1
+        level = 2 ** bits - 1
+    else:
+        level = 1.0 if top <= 1.0 else top
+    return float(100.0 * np.count_nonzero(a >= level) / max(a.size, 1))
