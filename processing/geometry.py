@@ -631,26 +631,32 @@ class Geometry:
         return LinearResponse(a=a, B=B, surface_xy=np.stack([x, y], axis=-1), jac_surface=K)
 
     def fsss_gradient_per_px(self) -> float:
-        """FS-SS: surface slope per pixel of displacement, ``grad h = s * u_px``.
+        """FS-SS: surface slope per pixel of displacement, ``grad h = -s * u_px``.
+
+        Returns ``s`` (dimensionless slope per pixel; image frame, both axes).
 
         Paraxial refraction through the layer stack (camera looking down):
-        a surface slope ``grad h`` turns the ray in the water by
-        ``-alpha grad h`` (``alpha = 1 - n_air/n_water``) and in layer k by
-        ``-alpha grad h * n_water/n_k``, so the pattern point moves by
-        ``dP = -alpha h_p grad h`` with ``h_p = sum(t_k n_water / n_k)``.
-        The flat image maps one pixel to ``m = pixel_mm (1 + h_a / L)`` mm of
-        pattern (``h_a = sum(t_k n_air / n_k)`` the apparent depth, ``L`` the
-        camera height; ``m = pixel_mm`` telecentric). With ``I(r) = I0(r-u)``,
-        ``-m u = dP`` hence ``grad h = m u / (alpha h_p)``. In Moisy et al.
-        (2009) notation, with the displacement measured at the surface scale
-        ``pixel_mm`` this is ``1/h* = (1 + h_a/L) / (alpha h_p)``.
+        a surface slope ``grad h`` turns the ray entering the water towards
+        the rising side by ``alpha grad h`` (``alpha = 1 - n_air/n_water``)
+        and by ``alpha grad h * n_water/n_k`` in layer k (Snell at the flat
+        interfaces), so the pattern point moves by ``dP = +alpha h_p grad h``
+        with ``h_p = sum(t_k n_water / n_k)`` (thickness of water with the same
+        lateral ray shift). The flat image maps one pixel to
+        ``m = pixel_mm (1 + h_a / L)`` mm of pattern (``h_a = sum(t_k n_air /
+        n_k)`` the apparent depth of the pattern, ``L`` the camera height;
+        ``m = pixel_mm`` telecentric). With ``I(r) = I0(r - u)``, ``-m u = dP``
+        hence ``grad h = -m u / (alpha h_p)``: Moisy et al. (2009)
+        ``grad h = -dr / h*`` with ``h* = alpha h_p`` for the displacement
+        ``dr = m u`` expressed at the pattern's scale; at the surface scale
+        ``pixel_mm``, ``1/h* = (1 + h_a/L) / (alpha h_p)``. Checked against
+        the exact refraction tracer of :mod:`processing.forward`.
         """
         if self.setup != "fsss":
             raise GeometryError("fsss_gradient_per_px is for the FS-SS setup")
         m = self.pixel_mm
         if self.fsss_camera_distance_mm is not None:
             m = m * (1.0 + self.fsss_apparent_depth_mm / self.fsss_camera_distance_mm)
-        return m / (self.fsss_alpha * self.fsss_hp_mm)
+        return m / (self.fsss_alpha * self.fsss_hp_mm)  # grad h = -this * u_px
 
     def reference_mask(self, rows_px, cols_px, frame_shape) -> np.ndarray:
         """Bool (len(rows_px), len(cols_px)): samples inside the reference region."""

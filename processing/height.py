@@ -236,7 +236,7 @@ class HeightSolver:
                 self.constant = False
                 self.surface_xy = np.moveaxis(lr.surface_xy, -1, 0)
         else:
-            s = g.fsss_gradient_per_px() * g.pixel_mm  # mm of height per px, per px of u
+            s = -g.fsss_gradient_per_px() * g.pixel_mm  # dh/dpixel (mm/px) per px of u
             self.Binv = np.eye(2) * s
             self.kappa = np.zeros(2)
             self.Kinv_T = np.eye(2) / g.pixel_mm
@@ -268,6 +268,7 @@ class HeightSolver:
             self.dk_c = 0.5 * (kc[:, 1:] + kc[:, :-1]) - np.diff(self.phi, axis=1) / grid.dc
             self.dk_r = 0.5 * (kr[1:, :] + kr[:-1, :]) - np.diff(self.phi, axis=0) / grid.dr
         self.null = np.exp(-self.phi)
+        self._fast = None
         self.ref = geometry.reference_mask(grid.rows_px, grid.cols_px, grid.frame_shape)
         if not self.ref.any():
             raise GeometryError(
@@ -275,6 +276,75 @@ class HeightSolver:
                 f"(rows {grid.rows_px[0]:g}..{grid.rows_px[-1]:g}, cols {grid.cols_px[0]:g}..{grid.cols_px[-1]:g}); "
                 f"choose a larger region inside the frame"
             )
+        self._fast = self._prepare_fast()
+
+    # ------------------------------------------------------------------ fast path
+    def _prepare_fast(self):
+        """Coefficients of the float32 spectral path (telecentric, diagonal optics)."""
+        Bi, Kt, k = self.Binv, self.Kinv_T, self.kappa
+        if not (self.constant and Bi[0, 1] == 0 and Bi[1, 0] == 0 and Kt[0, 1] == 0 and Kt[1, 0] == 0
+                and k[1] == 0 and min(self.shape) >= 6):
+            return None
+        null_r = self.null[:, :1].astype(np.float64)  # varies along rows only
+        ref = self.ref
+        w = (ref * null_r).astype(np.float32)  # n on reference samples, 0 elsewhere
+        nn = float(np.sum((ref * null_r) ** 2))
+        return dict(
+            gr=(Bi[0, 0] / null_r).astype(np.float32),  # (n_rows, 1)
+            gc=(Bi[1, 1] / null_r).astype(np.float32),
+            null=null_r.astype(np.float32),
+            w=w,
+            nn=nn,
+            denom=self.denom.astype(np.float32),
+            sx=np.float32(Bi[1, 1] * Kt[1, 1]),
+            sy_u=np.float32(Bi[0, 0] * Kt[0, 0]),
+            sy_h=np.float32(k[0] * Kt[0, 0]),
+        )
+
+    @staticmethod
+    def _divT_cellavg(G, axis, spacing, out):
+        """Add ``D^T cellavg(G) / spacing`` along ``axis`` to ``out`` (float32, in place)."""
+        G = np.moveaxis(G, axis, 0)
+        o = np.moveaxis(out, axis, 0)
+        s = np.float32(1.0 / (24.0 * spacing))
+        # interior nodes 2..n-3: (-G[i-2] + 14 G[i-1] - 14 G[i+1] + G[i+2]) / 24
+        t = G[1:-3] - G[3:-1]
+        t *= np.float32(14.0)
+        t -= G[:-4]
+        t += G[4:]
+        t *= s
+        o[2:-2] += t
+        # edges 0 and n-2 (trapezoid), 1 and n-3 (four-point), for nodes 0, 1, n-2, n-1
+        e0 = (G[0] + G[1]) * np.float32(0.5 / spacing)
+        e1 = (-G[0] + 13 * G[1] + 13 * G[2] - G[3]) * s
+        el = (G[-2] + G[-1]) * np.float32(0.5 / spacing)
+        el1 = (-G[-4] + 13 * G[-3] + 13 * G[-2] - G[-1]) * s
+        o[0] -= e0
+        o[1] += e0 - e1
+        o[-2] += el1 - el
+        o[-1] += el
+
+    def _solve_fast(self, u, v):
+        F = self._fast
+        ur = np.asarray(u[0], dtype=np.float32)
+        uc = np.asarray(u[1], dtype=np.float32)
+        rhs = np.zeros(self.shape, dtype=np.float32)
+        # D^T of the cell averages of g / n, in the order (row edges, column edges)
+        self._divT_cellavg(ur * F["gr"], 0, self.grid.dr, rhs)
+        self._divT_cellavg(uc * F["gc"], 1, self.grid.dc, rhs)
+        c = sfft.dctn(rhs, type=2, norm="ortho", workers=_WORKERS, overwrite_x=True)
+        c[0, 0] = 0.0
+        c /= F["denom"]
+        f = sfft.idctn(c, type=2, norm="ortho", workers=_WORKERS, overwrite_x=True)
+        # pin: h = (f - alpha) n with alpha the n^2-weighted mean of f on the reference samples
+        alpha = float(np.vdot(F["w"], f * F["null"])) / F["nn"] if F["nn"] > 0 else 0.0
+        f -= np.float32(alpha)
+        h = f
+        h *= F["null"]
+        sx = uc * F["sx"]
+        sy = ur * F["sy_u"]
+        sy -= F["sy_h"] * h
+        return SurfaceResult(h, sx, sy, self.x_mm.copy(), self.y_mm.copy(), v, 0, self.surface_xy)
 
     # ------------------------------------------------------------------ pieces
     def gradients(self, displacement_px: np.ndarray):
@@ -366,6 +436,8 @@ class HeightSolver:
 
             raise AllInvalidError("no valid displacement sample: nothing to integrate; check the mask and the frame")
         use_spectral = solver == "spectral" or (solver == "auto" and all_valid and self.constant)
+        if use_spectral and self._fast is not None:
+            return self._solve_fast(u, v)
         uz = np.where(v, u, 0.0) if not all_valid else u
         gr, gc = self.gradients(uz)
         iterations = 0
