@@ -1,0 +1,120 @@
+"""Camera thread on the real synthetic camera: exact drop accounting, clean stop, clear errors."""
+
+import time
+
+import numpy as np
+import pytest
+
+from app.acquisition import Acquisition, AcquisitionError
+from app.ringbuffer import MemoryBudgetError, RingClosed
+from drivers.base import FrameFlags
+from drivers.synthetic import SyntheticCamera
+
+
+def _frames(n=64, shape=(32, 32)):
+    """Frame k is uniform with value k (mod 256): content identifies the frame."""
+    return (np.arange(n) % 256).astype(np.uint8)[:, None, None] * np.ones((1,) + shape, np.uint8)
+
+
+def _read(cursor, n, timeout_s=5.0):
+    out = []
+    for _ in range(n):
+        f = cursor.read(timeout_s)
+        assert f is not None, f"no frame within {timeout_s} s"
+        out.append((f.sequence, f.frame_id, int(f.flags), int(f.image[0, 0])))
+    return out
+
+
+def test_injected_drops_counted_exactly_with_flags():
+    drops = {5, 6, 7, 40}
+    with SyntheticCamera(_frames(), frame_rate_hz=400, drop_frames=drops) as cam:
+        acq = Acquisition(cam, ring_frames=256)
+        cur = acq.ring.cursor(0)
+        with acq:
+            got = _read(cur, 80)
+    ids = [g[1] for g in got]
+    assert [g[0] for g in got] == list(range(80))  # host sequence contiguous
+    assert set(range(ids[-1] + 1)) - set(ids) == drops  # the camera ids show exactly the drops
+    assert acq.lost_upstream == 4 and acq.id_gaps[:2] == [(5, 3), (40, 1)]
+    flagged = [g[1] for g in got if g[2] & FrameFlags.ID_GAP_BEFORE]
+    assert flagged == [8, 41]
+    # images belong to their ids (copy into the ring is right)
+    assert all(g[3] == g[1] % 64 for g in got)
+    # the id gaps also show as timestamp jumps of (missing + 1) periods, but no extra frames are inferred
+    assert acq.lost_by_time == 0
+    assert acq.stats()["state"] == "stopped"
+
+
+def test_timestamp_gap_with_contiguous_ids_is_flagged_and_estimated():
+    """GenICam software trigger paced by the camera thread; a 50 ms pause in the triggers keeps the
+    ids contiguous but makes the device clock jump: the gap detector must see it (about 10 periods)."""
+    with SyntheticCamera(_frames(), frame_rate_hz=200) as cam:
+        cam.configure(trigger_mode="On", trigger_source="Software")
+        acq = Acquisition(cam, ring_frames=256)
+        acq.set_software_trigger_rate(200.0)
+        cur = acq.ring.cursor(0)
+        with acq:
+            before = _read(cur, 20)
+            acq.set_software_trigger_rate(None)
+            time.sleep(0.05)  # the pause *is* the stimulus (50 ms of no triggers), not a wait for a result
+            acq.set_software_trigger_rate(200.0)
+            after = _read(cur, 5)
+    ids = [g[1] for g in before + after]
+    assert ids == list(range(ids[0], ids[0] + 25))  # contiguous: ids alone cannot see anything
+    gaps = [g for g in before + after if g[2] & FrameFlags.TIME_GAP_BEFORE]
+    assert len(gaps) >= 1 and gaps[-1][0] >= 20  # flagged on the first frame after the pause
+    # the pause lasted >= 50 ms = 10 periods at 200 Hz: at least 9 frame slots were empty
+    assert acq.lost_by_time >= 9
+
+
+def test_stall_is_an_error_within_its_timeout_and_reaches_consumers():
+    with SyntheticCamera(_frames(10), frame_rate_hz=500, loop=False) as cam:
+        acq = Acquisition(cam, ring_frames=16, stall_timeout_s=0.5, fetch_timeout_s=0.1)
+        cur = acq.ring.cursor(0)
+        t0 = time.monotonic()
+        acq.start()
+        assert acq.wait(5.0), "camera thread did not end"
+        took = time.monotonic() - t0
+    assert 0.5 <= took < 2.0
+    assert acq.state == "error" and "no frame from camera" in acq.error and "0.5 s" in acq.error
+    assert len(_read(cur, 10)) == 10  # everything received is still readable
+    with pytest.raises(RingClosed, match="stall"):
+        cur.read(1.0)
+
+
+def test_waiting_for_a_trigger_is_not_a_stall_and_stop_is_prompt():
+    with SyntheticCamera(_frames(), frame_rate_hz=100) as cam:
+        cam.configure(trigger_mode="On", trigger_source="Line1")  # no line here: no frames ever
+        acq = Acquisition(cam, ring_frames=8, stall_timeout_s=0.2, fetch_timeout_s=0.1)
+        acq.start()
+        assert not acq.wait(0.6)  # still running after 3 stall timeouts
+        t0 = time.monotonic()
+        acq.stop(timeout_s=2.0)
+        assert time.monotonic() - t0 < 1.0
+    assert acq.state == "stopped" and acq.error is None and acq.fetch_timeouts >= 3
+
+
+def test_stop_after_makes_an_exact_burst():
+    with SyntheticCamera(_frames(), frame_rate_hz=1000) as cam:
+        acq = Acquisition(cam, ring_frames=64)
+        acq.stop_after(49)
+        acq.start()
+        assert acq.wait(5.0)
+    assert acq.acquired == 50 and acq.ring.head == 50 and acq.state == "stopped"
+
+
+def test_ring_memory_is_checked_before_allocation():
+    with SyntheticCamera(_frames(2, (1024, 1024)), frame_rate_hz=10) as cam:
+        with pytest.raises(MemoryBudgetError, match=r"ring buffer of 100000000 frames 1024x1024 uint8 needs"):
+            Acquisition(cam, ring_frames=10**8)
+        assert Acquisition.ring_bytes_for((1024, 1024), np.uint8, 10) == 10 * (1024 * 1024 + 36)
+        acq = Acquisition(cam, ring_bytes=10 * (1024 * 1024 + 36))
+        assert acq.ring.n_frames == 10
+
+
+def test_start_twice_is_refused():
+    with SyntheticCamera(_frames(), frame_rate_hz=100) as cam:
+        acq = Acquisition(cam, ring_frames=8)
+        with acq:
+            with pytest.raises(AcquisitionError, match="already started"):
+                acq.start()
