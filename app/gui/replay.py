@@ -25,7 +25,7 @@ class Recording:
 
         self.path = os.fspath(path)
         try:
-            self._file = h5py.File(self.path, "r", locking=False)
+            self._file = h5py.File(self.path, "r")
         except OSError as exc:
             raise OSError(f"cannot open recording {self.path!r}: {exc}. Is it an HDF5 file "
                           "written by tirdeflect (record / the Record panel)?") from None

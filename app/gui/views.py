@@ -162,8 +162,9 @@ class ImageView(QtWidgets.QWidget):
         now = time.monotonic()
         if levels is not None:
             self._apply_levels(levels)
-        elif self.auto_levels and (now - self._levels_t >= self._levels_interval_s
+        elif self.auto_levels and (data.size <= 65536 or now - self._levels_t >= self._levels_interval_s
                                    or self._shape != data.shape):
+            # small (decimated) maps: every frame (< 1 ms); large ones a few times per second
             self._apply_levels(robust_levels(data, symmetric=self.symmetric))
             self._levels_t = now
         self.image.setImage(data, autoLevels=False, levels=self._levels)

@@ -75,9 +75,11 @@ class MainWindow(QtWidgets.QMainWindow):
         self.result_latency_ms = float("nan")
         self._closing = False
         self.last_error: Optional[str] = None
+        self.errors: list = []  # problems shown in the banner, oldest first (cleared by its × button)
         self.replay_recording: Optional[Recording] = None
         self._replay_reconstructor = None
         self._busy = set()
+        self.last_drawn = None  # the Processed whose maps are on screen
 
         self._build_ui()
         self.session.worker.set_alignment_fn(self._frame_alignment)
@@ -282,7 +284,9 @@ class MainWindow(QtWidgets.QMainWindow):
     def show_error(self, text: str) -> None:
         """Show a problem in the window (banner + status bar); the app keeps running."""
         self.last_error = text
-        self.banner.setText(text)
+        if text not in self.errors:
+            self.errors.append(text)
+        self.banner.setText("\n\n".join(reversed(self.errors[-3:])))  # newest first
         self.banner.setVisible(True)
         self.banner_close.setVisible(True)
         self.statusBar().showMessage(text.splitlines()[0], 15000)
@@ -292,6 +296,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.banner.setVisible(False)
         self.banner_close.setVisible(False)
         self.last_error = None
+        self.errors.clear()
 
     def info(self, text: str) -> None:
         self.statusBar().showMessage(text, 8000)
@@ -311,6 +316,15 @@ class MainWindow(QtWidgets.QMainWindow):
         self.info(f"opening camera {camera_id or '(first found)'}…")
         self.run_background("open", self.session.open, self._camera_opened, camera_id)
 
+    def use_camera(self, camera, *, geometry=None, reference=None, camera_id: Optional[str] = None):
+        """Stream from an already built camera (scripts, tests, benchmarks); blocks while it starts."""
+        opened = self.session.use_camera(camera, camera_id=camera_id)
+        opened.geometry = geometry
+        self._camera_opened(opened, None)
+        if reference is not None:
+            self.set_reference(reference, "given")
+        return opened
+
     def _camera_opened(self, result, error):
         if error:
             self.show_error(f"Could not open the camera: {error}\nPick another camera in Controls ▸ Camera "
@@ -323,7 +337,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.clear_error()
         if opened.note:
             self.info(opened.note)
-        if opened.geometry is not None and self.geometry is None:
+        if opened.geometry is not None:
             self.set_geometry(opened.geometry)
         self.session.worker.set_alignment(self.tabs.currentIndex() == 1)
         self._update_cost()
@@ -756,6 +770,7 @@ class MainWindow(QtWidgets.QMainWindow):
             return
         for v in views:
             v.show_message("")
+        self.last_drawn = p
         x, y = r.x_mm, r.y_mm
         height_um = np.multiply(r.height, 1e3, dtype=np.float32)
         self.height_view.set_data(height_um, x=x, y=y)

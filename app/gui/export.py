@@ -1,0 +1,64 @@
+"""Export heights of a recording from the Replay tab: runs ``tirdeflect process`` (P3's batch) in-process."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import tempfile
+from typing import Callable, Optional
+
+import numpy as np
+
+__all__ = ["export_heights"]
+
+
+def export_heights(recording_path: str, out_path: str, *, geometry_toml: Optional[str] = None,
+                   reference: Optional[np.ndarray] = None, grid: str = "full",
+                   progress: Optional[Callable[[int, int], None]] = None) -> str:
+    """Process every frame of ``recording_path`` into ``out_path`` (layout: docs/output-format.md).
+
+    Parameters
+    ----------
+    recording_path : str
+        HDF5 recording (``/frames``; its ``/reference`` and ``/geometry_toml`` are used when present).
+    out_path : str
+        Output file; an existing file is an error (never overwritten).
+    geometry_toml : str, optional
+        Geometry to use when the recording stores none.
+    reference : ndarray, optional
+        Reference image to use when the recording stores none.
+    grid : {"full", "decimated"}
+        Output grid.
+    progress : callable, optional
+        ``progress(done, total)``; called at start and end (the batch reports no finer steps).
+
+    Returns
+    -------
+    str
+        ``out_path``.
+    """
+    from app import imageio
+    from app.process_cli import cmd_process
+
+    total = imageio.frame_count(recording_path)
+    if progress is not None:
+        progress(0, total)
+    with tempfile.TemporaryDirectory(prefix="tirdeflect-export-") as tmp:
+        ref_arg = recording_path
+        if reference is not None:
+            import tifffile
+
+            ref_arg = os.path.join(tmp, "reference.tif")
+            tifffile.imwrite(ref_arg, np.asarray(reference, np.float32))
+        geo_arg = None
+        if geometry_toml is not None:
+            geo_arg = os.path.join(tmp, "geometry.toml")
+            with open(geo_arg, "w", encoding="utf-8") as fh:
+                fh.write(geometry_toml)
+        args = argparse.Namespace(reference=ref_arg, frames=[recording_path], geometry=geo_arg, out=out_path,
+                                  grid=grid, no_unwrap=False, first=0, last=None, step=1, overwrite=False,
+                                  compression="none", no_progress=True)
+        cmd_process(args)
+    if progress is not None:
+        progress(total, total)
+    return out_path

@@ -1,0 +1,194 @@
+"""The real main window, driven headless (pytest-qt, QT_QPA_PLATFORM=offscreen) on synthetic cameras.
+
+Each test streams ray-traced frames (processing.forward) through the real
+synthetic camera, acquisition thread, ring buffer, processing worker, recorder
+and window, and waits on conditions (qtbot.waitUntil), never on fixed sleeps.
+"""
+
+from __future__ import annotations
+
+import h5py
+import numpy as np
+import pytest
+
+pytest.importorskip("pytestqt")
+
+from drivers.synthetic import SyntheticCamera  # noqa: E402
+
+pytestmark = pytest.mark.gui
+
+SHAPE = (256, 256)
+BUMP_PX = (80.0, 170.0)  # (row, col) of the bump centre: upper right, clear of the border reference band
+BUMP_AMPLITUDE_MM = 0.002  # 2 um (a 5 um, 2.5 mm bump already crosses rays here)
+BUMP_SIGMA_MM = 3.0
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """Flat and bumped frames of one geometry, and the true height map (mm)."""
+    from app.scene import default_geometry
+    from processing import forward
+
+    geometry = default_geometry(SHAPE)
+    pattern = forward.Checkerboard(period_mm=12 * geometry.pixel_mm, edge_softness_mm=geometry.pixel_mm)
+    x0, y0 = geometry.surface_point(np.array(BUMP_PX[0]), np.array(BUMP_PX[1]), SHAPE)
+    bump = forward.GaussianBump(amplitude_mm=BUMP_AMPLITUDE_MM, sigma_mm=BUMP_SIGMA_MM,
+                                x0_mm=float(x0), y0_mm=float(y0))
+    rng = np.random.default_rng(7)
+    flat_img, _ = forward.render_tir(forward.FlatSurface(), geometry, SHAPE, pattern)
+    bump_img, _ = forward.render_tir(bump, geometry, SHAPE, pattern)
+    flat = forward.quantize(flat_img, bits=8, noise_rms=0.5, rng=rng)
+    bumped = forward.quantize(bump_img, bits=8, noise_rms=0.5, rng=rng)
+    truth = forward.true_height(bump, geometry, SHAPE)
+    return {"geometry": geometry, "flat": flat, "bump": bumped, "truth_mm": truth}
+
+
+class Switchable:
+    """Frames for SyntheticCamera: whatever image ``self.image`` is when the frame is made."""
+
+    def __init__(self, image):
+        self.image = image
+
+    def __call__(self, index):
+        return self.image
+
+
+@pytest.fixture
+def window(qtbot):
+    from app.gui.window import MainWindow
+
+    w = MainWindow(open_at_start=False)
+    qtbot.addWidget(w)
+    w.show()
+    yield w
+    w.shutdown()
+
+
+def _wait_reconstructor(qtbot, w, timeout=20000):
+    qtbot.waitUntil(lambda: w.session.worker.reconstructor is not None and not w.busy("reconstructor"),
+                    timeout=timeout)
+
+
+def test_live_height_shows_the_bump_where_it_is(qtbot, window, scene):
+    """Capture a reference through the window, then the live height map peaks at the bump, in um."""
+    frames = Switchable(scene["flat"])
+    window.use_camera(SyntheticCamera(frames, frame_rate_hz=100.0), geometry=scene["geometry"])
+    qtbot.waitUntil(lambda: window._last_raw_seq >= 0, timeout=10000)
+    window.geometry_panel.n_average.setValue(5)
+    window.geometry_panel.capture_button.click()
+    _wait_reconstructor(qtbot, window)
+    assert window.reference is not None and window.reference.shape == SHAPE
+    assert window.last_error is None
+
+    frames.image = scene["bump"]
+
+    def bump_drawn():
+        p = window.last_drawn
+        return p is not None and p.result is not None and np.array_equal(p.image, scene["bump"])
+
+    qtbot.waitUntil(bump_drawn, timeout=15000)
+    p = window.last_drawn
+    r = p.result
+    shown_um = window.height_view.image.image  # what the view displays (float32, um)
+    assert shown_um.shape == r.height.shape
+    np.testing.assert_allclose(shown_um, 1e3 * r.height, rtol=1e-5, equal_nan=True)
+    i, j = np.unravel_index(np.nanargmax(shown_um), shown_um.shape)
+    peak_px = (r.rows_px[i], r.cols_px[j])
+    # the extremum lies on the bump: within half a sigma of the true centre (sigma = 19 px here)
+    sigma_px = BUMP_SIGMA_MM / scene["geometry"].pixel_mm
+    truth = scene["truth_mm"]
+    ti, tj = np.unravel_index(np.argmax(truth), truth.shape)
+    dist = np.hypot(peak_px[0] - ti, peak_px[1] - tj)
+    assert dist < 0.5 * sigma_px, f"height peak at {peak_px}, bump at {(ti, tj)} px: {dist:.1f} px apart"
+    # and its height is the bump's, 2 um, within 15 % (live decimated grid)
+    assert shown_um[i, j] == pytest.approx(1e3 * truth.max(), rel=0.15)
+    # colour bar in physical units, levels follow the data
+    assert "µm" in window.height_view.units
+    lo, hi = window.height_view.levels
+    assert hi > 0.5 * 1e3 * BUMP_AMPLITUDE_MM
+
+
+def test_record_pre_post_trigger_then_replay_and_export(qtbot, window, scene, tmp_path):
+    """Arm, trigger now: the file has exactly pre + post frames around the trigger; replay and export it."""
+    frames = Switchable(scene["flat"])
+    window.use_camera(SyntheticCamera(frames, frame_rate_hz=100.0), geometry=scene["geometry"],
+                      reference=scene["flat"])
+    _wait_reconstructor(qtbot, window)
+    rp = window.recording_panel
+    rp.folder.setText(str(tmp_path))
+    rp.pre.setValue(12)
+    rp.post.setValue(20)
+    rp.arm_button.click()
+    assert rp.state_label.text() == "armed", window.last_error
+    ring = window.session.acquisition.ring
+    armed_head = ring.head
+    qtbot.waitUntil(lambda: ring.head >= armed_head + 15, timeout=5000)  # the pre-trigger frames exist
+    frames.image = scene["bump"]
+    rp.trigger_button.click()
+    qtbot.waitUntil(lambda: rp.state_label.text() in ("done", "error"), timeout=15000)
+    assert rp.state_label.text() == "done", window.last_error
+    assert "no frame lost" in rp.result_label.text()
+    path = window.session.recording["path"]
+    with h5py.File(path, "r") as f:
+        n = int(f.attrs["frames_written"])
+        table = f["frame_table"][:n]
+        assert n == 12 + 20
+        assert list(table["trigger_index"]) == list(range(-12, 20))
+        assert np.all(np.diff(table["frame_id"]) == 1)  # contiguous camera ids: nothing lost
+        assert f["reference"].shape == SHAPE
+
+    # replay: open, scrub to the last frame (bumped), see its height map
+    assert window.open_recording(path)
+    assert window.tabs.currentWidget() is window.replay
+    qtbot.waitUntil(lambda: window._replay_reconstructor is not None, timeout=15000)
+    window.replay.slider.setValue(n - 1)
+    assert "trigger +19" in window.replay.index_label.text()
+    hmax_um = np.nanmax(window.replay.height.image.image)
+    assert hmax_um == pytest.approx(1e3 * scene["truth_mm"].max(), rel=0.15)
+
+    # export heights through the batch processing, in the background
+    out = tmp_path / "heights.h5"
+    window.export_heights(str(out))
+    qtbot.waitUntil(lambda: window.export_result is not None, timeout=60000)
+    assert window.export_result == ("done", str(out)), window.export_result
+    with h5py.File(out, "r") as f:
+        assert f["height"].shape[0] == n
+
+
+def test_camera_that_stops_delivering_shows_error_and_window_lives(qtbot, window, scene, tmp_path):
+    """A camera that stops mid-recording is declared lost: error shown, frames recorded so far kept, app runs."""
+    window.session.stall_timeout_s = 0.5
+    n_delivered = 40
+    cam = SyntheticCamera(np.stack([scene["flat"]] * n_delivered), frame_rate_hz=100.0, loop=False)
+    window.use_camera(cam, geometry=scene["geometry"])
+    rp = window.recording_panel
+    rp.folder.setText(str(tmp_path))
+    rp.pre.setValue(5)
+    rp.post.setValue(200)  # more than the camera will deliver
+    ring = window.session.acquisition.ring
+    qtbot.waitUntil(lambda: ring.head >= 10, timeout=5000)
+    rp.arm_button.click()
+    trigger_seq = window.session.trigger_now()
+    qtbot.waitUntil(lambda: any("Camera problem" in e for e in window.errors), timeout=10000)
+    assert window.banner.isVisible()
+    assert "lost" in window.banner.text() and "Open" in window.banner.text()  # what happened, what to do
+    assert window.isVisible()
+    # the recording ends with the error, and keeps every frame the camera delivered from pre-trigger on
+    qtbot.waitUntil(lambda: rp.state_label.text() == "error", timeout=10000)
+    path = window.session.recording["path"]
+    assert any(path in e and "kept" in e for e in window.errors)
+    with h5py.File(path, "r") as f:
+        n = int(f.attrs["frames_written"])
+        table = f["frame_table"][:n]
+    assert n == n_delivered - (trigger_seq - 5)
+    assert table["trigger_index"][0] == -5 and np.all(np.diff(table["frame_id"]) == 1)
+    # the GUI thread still runs: the display timer keeps re-arming and the status bar updates
+    shown = window.status_labels["state"]
+    qtbot.waitUntil(lambda: shown.text() == "camera stopped", timeout=3000)
+    assert window._display_timer.isActive() or window._display_timer.remainingTime() >= 0
+    # and a new camera can be opened in the same window
+    window.use_camera(SyntheticCamera(Switchable(scene["flat"]), frame_rate_hz=100.0))
+    seq0 = window._last_raw_seq
+    qtbot.waitUntil(lambda: window._last_raw_seq not in (seq0, -1) and window.session.status().get("error") is None,
+                    timeout=5000)
+    assert window.session.worker.running
