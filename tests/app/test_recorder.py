@@ -1,0 +1,180 @@
+"""HDF5 recorder: layout, never overwrites, space check, crash-valid after SIGKILL, files > 2 GB."""
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from app.acquisition import Acquisition
+from app.recorder import (
+    DiskSpaceError,
+    Recorder,
+    RecorderError,
+    RecordingFile,
+    format_summary,
+    read_summary,
+)
+from drivers.synthetic import SyntheticCamera
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _frames(n=50, shape=(40, 56), dtype=np.uint16):
+    rng = np.random.default_rng(7)
+    return rng.integers(0, 4096, size=(n,) + shape).astype(dtype)
+
+
+def test_round_trip_layout_and_metadata(tmp_path):
+    frames = _frames()
+    ref = frames[0] // 2
+    geom = 'setup = "tir"\ntheta_deg = 55.0\n'
+    with SyntheticCamera(frames, frame_rate_hz=400, bit_depth=12) as cam:
+        acq = Acquisition(cam, ring_frames=128)
+        rec = Recorder(acq.ring, tmp_path / "r.h5", n_frames=120, acquisition=acq, geometry_toml=geom,
+                       reference_image=ref, attrs=dict(note="tank 2"))
+        rec.begin(0)
+        acq.stop_after(119)
+        with acq:
+            assert rec.wait(10.0)
+    assert rec.error is None and rec.frames_written == 120
+    with h5py.File(tmp_path / "r.h5", "r") as f:
+        ds = f["frames"]
+        assert ds.shape == (120, 40, 56) and ds.dtype == np.uint16 and ds.chunks == (1, 40, 56)
+        assert ds.maxshape == (None, 40, 56)
+        assert ds.attrs["frames_written"] == 120 and ds.attrs["bit_depth"] == 12
+        t = f["frame_table"][:]
+        assert list(t["sequence"]) == list(range(120)) and list(t["frame_id"]) == list(range(120))
+        for i in (0, 49, 50, 119):
+            np.testing.assert_array_equal(ds[i], frames[t["frame_id"][i] % 50])
+        assert f["geometry_toml"][()].decode() == geom
+        np.testing.assert_array_equal(f["reference"][:], ref)
+        assert f.attrs["format"] == "tirdeflect-recording" and f.attrs["software_version"]
+        assert f.attrs["note"] == "tank 2" and f.attrs["complete"] == 1
+        cam_attrs = f["camera"].attrs
+        assert cam_attrs["pixel_format"] == "Mono12" and cam_attrs["frame_rate_hz"] == 400.0
+        assert json.loads(cam_attrs["settings_json"])["width"] == 56
+        s = json.loads(f["summary"].attrs["summary_json"])
+    assert s["frames_written"] == 120 and s["total_missing"] == 0
+    assert read_summary(tmp_path / "r.h5")["frames_written"] == 120
+    assert "no frame lost" in format_summary(s)
+
+
+def test_never_overwrites(tmp_path):
+    p = tmp_path / "x.h5"
+    p.write_bytes(b"precious")
+    with pytest.raises(RecorderError, match="already exists and recordings are never overwritten"):
+        RecordingFile(p, shape=(4, 4), dtype=np.uint8, n_frames=1)
+    assert p.read_bytes() == b"precious"
+    rf = RecordingFile(p, shape=(4, 4), dtype=np.uint8, n_frames=1, on_exists="rename")
+    rf.close()
+    assert rf.path.name == "x-001.h5" and p.read_bytes() == b"precious"
+
+
+def test_free_space_is_checked_and_named(tmp_path):
+    free = shutil.disk_usage(tmp_path).free
+    n = free // (2048 * 2048 * 2) + 10  # just more than the disk holds
+    with pytest.raises(DiskSpaceError, match=r"needs .* bytes\) but only .* \(\d+ bytes\) are free") as info:
+        RecordingFile(tmp_path / "big.h5", shape=(2048, 2048), dtype=np.uint16, n_frames=n)
+    assert f"recording {n} frames of 2048x2048 uint16" in str(info.value)
+    assert not (tmp_path / "big.h5").exists()
+
+
+def test_unknown_length_grows_and_stops_on_request(tmp_path):
+    frames = _frames(20, (16, 16), np.uint8)
+    with SyntheticCamera(frames, frame_rate_hz=1000) as cam:
+        acq = Acquisition(cam, ring_frames=1024)
+        rec = Recorder(acq.ring, tmp_path / "u.h5", acquisition=acq)
+        rec.begin(0)
+        with acq:
+            assert acq.ring.wait_for(299, 5.0)  # more than the initial 256-frame extent
+            acq.stop()
+            assert rec.stop(10.0)
+    assert rec.error is None
+    with h5py.File(tmp_path / "u.h5", "r") as f:
+        n = f["frames"].shape[0]
+        assert n == acq.acquired == f["frames"].attrs["frames_written"] >= 300
+        assert list(f["frame_table"]["sequence"]) == list(range(n))
+
+
+_KILL_CHILD = r"""
+import sys, numpy as np
+sys.path.insert(0, sys.argv[2])
+from drivers.synthetic import SyntheticCamera
+from app.acquisition import Acquisition
+from app.recorder import Recorder
+frames = (np.arange(97) * 2).astype(np.uint8)[:, None, None] * np.ones((1, 64, 64), np.uint8)
+cam = SyntheticCamera(frames, frame_rate_hz=1000).open()
+acq = Acquisition(cam, ring_frames=512)
+rec = Recorder(acq.ring, sys.argv[1], n_frames=100000, acquisition=acq, flush_interval_s=0.05,
+               progress=lambda n, total: print(n, flush=True))
+rec.begin(0)
+acq.start()
+acq.wait(600)
+"""
+
+
+def test_sigkill_mid_recording_leaves_a_valid_file(tmp_path):
+    path = tmp_path / "killed.h5"
+    proc = subprocess.Popen([sys.executable, "-c", _KILL_CHILD, str(path), str(ROOT)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 30
+        flushed = 0
+        while flushed < 300:  # wait (bounded) until the recorder says 300 frames are on disk
+            line = proc.stdout.readline()
+            assert line, f"recorder subprocess ended early: {proc.stderr.read()}"
+            flushed = int(line)
+            assert time.monotonic() < deadline, "recorder subprocess too slow"
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(10)
+        proc.stdout.close()
+        proc.stderr.close()
+    with h5py.File(path, "r") as f:  # opens with plain h5py: no repair step needed
+        n = int(f["frames"].attrs["frames_written"])
+        assert n >= flushed
+        t = f["frame_table"][:n]
+        data = f["frames"][:n]
+        assert f.attrs["complete"] == 0 and "summary" not in f
+    assert list(t["sequence"]) == list(range(n))
+    assert np.all(np.diff(t["frame_id"]) == 1)
+    # every frame vouched for by frames_written holds its camera frame's image
+    expect = (t["frame_id"] % 97 * 2).astype(np.uint8)
+    assert np.array_equal(data.reshape(n, -1).min(axis=1), expect)
+    assert np.array_equal(data.reshape(n, -1).max(axis=1), expect)
+    s = read_summary(path)
+    assert s["frames_written"] == n and s["lost_upstream_id_gaps"] == 0 and "did not end normally" in s["error"]
+
+
+def test_files_larger_than_2_gb(tmp_path):
+    """2.2 GB of 16-bit frames: frame offsets beyond 2**31 bytes read back exactly."""
+    frame_bytes = 1024 * 1024 * 2
+    n = 1100  # 2.31 GB
+    if shutil.disk_usage(tmp_path).free < n * frame_bytes + 2 * 10**9:
+        pytest.skip("needs 4.3 GB free in the temporary folder")
+    rf = RecordingFile(tmp_path / "big.h5", shape=(1024, 1024), dtype=np.uint16, n_frames=n)
+    img = np.zeros((1024, 1024), np.uint16)
+    try:
+        for i in range(n):
+            img[0, :4] = (i, i >> 16, 7, 9)
+            rf.write(img, (i, i, i, i, 0, i))
+        rf.close()
+        assert os.path.getsize(rf.path) > 2**31
+        with h5py.File(rf.path, "r") as f:
+            ds = f["frames"]
+            assert ds.attrs["frames_written"] == n
+            for i in (0, 1023, 1024, 1025, n - 1):  # 1024 * 2 MiB = 2**31: the int32 limit
+                np.testing.assert_array_equal(ds[i, 0, :4], (i, i >> 16, 7, 9))
+            assert f["frame_table"]["sequence"][-1] == n - 1
+    finally:
+        if not rf.closed:
+            rf.close()
+        os.remove(rf.path)
