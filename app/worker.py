@@ -286,10 +286,11 @@ class ProcessingWorker:
             if got is None:
                 continue
             seq, image, host_ns = got
-            if self._last_seq >= 0 and seq > self._last_seq + 1:
+            if seq > self._last_seq + 1:  # frames never seen (also before the first one)
                 self.skipped += seq - self._last_seq - 1
             self._last_seq = seq
             processed = self._process(seq, image, host_ns)
+            self.processed += 1
             count += 1
             with self._new_result:
                 self._latest = processed
