@@ -1,0 +1,573 @@
+"""GigE Vision and USB3 Vision cameras through Aravis 0.8 (PyGObject).
+
+Camera ids: ``aravis:<device id or address>``, e.g. ``aravis:Fake_1`` (Aravis'
+in-process fake camera), ``aravis:127.0.0.1`` (``arv-fake-gv-camera-0.8 -i
+127.0.0.1``), ``aravis:Basler-21234567``.
+
+Streaming uses a pool of ``n_buffers`` preallocated Aravis buffers; every
+fetched image is copied out once and the buffer goes straight back into the
+pool, so a :class:`~drivers.base.Frame` outlives the fetch. Buffers that the
+transport did not fill completely (missing packets, timeouts) are delivered
+with ``incomplete=True``, never hidden.
+
+A watchdog thread reads a bootstrap register every ``probe_period_s``; when no
+read has succeeded for ``lost_timeout_s`` (or Aravis emits ``control-lost``),
+:meth:`AravisCamera.fetch` raises :class:`~drivers.base.CameraLost`. So a
+camera that vanishes is reported within about ``lost_timeout_s`` + 0.1 s, even
+while waiting for a trigger.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import List, Optional
+
+import numpy as np
+
+from .base import (
+    Camera,
+    CameraError,
+    CameraInfo,
+    CameraLost,
+    CameraSettings,
+    FetchTimeout,
+    Frame,
+    SettingError,
+)
+from .genicam_util import PFNC, PIXEL_BITS, Features, apply_settings, read_settings, unwrap_block_id
+
+__all__ = ["AravisCamera", "list_devices", "available"]
+
+_Aravis = None
+_GLib = None
+_import_error: Optional[BaseException] = None
+_lock = threading.Lock()
+
+
+def _aravis():
+    """Import Aravis 0.8 lazily; raise CameraError saying how to install it."""
+    global _Aravis, _GLib, _import_error
+    with _lock:
+        if _Aravis is None and _import_error is None:
+            try:
+                import gi
+
+                gi.require_version("Aravis", "0.8")
+                from gi.repository import Aravis, GLib
+
+                _Aravis, _GLib = Aravis, GLib
+            except (ImportError, ValueError) as exc:  # ValueError: namespace not available
+                _import_error = exc
+    if _Aravis is None:
+        raise CameraError(
+            f"Aravis 0.8 GObject bindings are not available ({_import_error}); install "
+            "gir1.2-aravis-0.8 and 'pip install tirdeflect[aravis]'"
+        )
+    return _Aravis
+
+
+def available() -> bool:
+    """True when the Aravis bindings import."""
+    try:
+        _aravis()
+        return True
+    except CameraError:
+        return False
+
+
+def list_devices(*, timeout_s: float = 3.0, include_fake: bool = False) -> List[CameraInfo]:
+    """Aravis devices (GigE Vision discovery + USB3 Vision), bounded by ``timeout_s`` seconds.
+
+    Discovery runs in a daemon thread; if it takes longer than ``timeout_s``
+    an empty list is returned (never hangs).
+    """
+    Aravis = _aravis()
+    result: List[CameraInfo] = []
+
+    def discover():
+        if include_fake:
+            Aravis.enable_interface("Fake")
+        Aravis.update_device_list()
+        for i in range(Aravis.get_n_devices()):
+            dev_id = Aravis.get_device_id(i)
+            if Aravis.get_device_protocol(i) == "Fake" and not include_fake:
+                continue
+            result.append(
+                CameraInfo(
+                    camera_id=f"aravis:{dev_id}",
+                    backend="aravis",
+                    vendor=Aravis.get_device_vendor(i) or "",
+                    model=Aravis.get_device_model(i) or "",
+                    serial=Aravis.get_device_serial_nbr(i) or "",
+                    address=Aravis.get_device_address(i) or "",
+                )
+            )
+
+    t = threading.Thread(target=discover, name="aravis-discovery", daemon=True)
+    t.start()
+    t.join(timeout_s)
+    return list(result) if not t.is_alive() else []
+
+
+def _release_in_background(box: list) -> None:
+    """Empty ``box`` (the only holder of some GObjects) in a daemon thread.
+
+    Finalizers of a dead GigE device or stream write registers and wait for
+    GVCP timeouts (seconds); the caller must keep no other reference.
+    """
+    threading.Thread(target=box.clear, name="aravis-release", daemon=True).start()
+
+
+class _AravisFeatures(Features):
+    """Node-map access on an ArvDevice (see :class:`drivers.genicam_util.Features`)."""
+
+    def __init__(self, device):
+        self.dev = device
+        self.A = _aravis()
+
+    def kind(self, name):
+        A = self.A
+        node = self.dev.get_feature(name)
+        if node is None or not self.dev.is_feature_available(name):
+            return None
+        if isinstance(node, A.GcEnumeration):
+            return "enum"
+        if isinstance(node, A.GcCommand):
+            return "command"
+        if isinstance(node, A.GcBoolean):
+            return "bool"
+        if isinstance(node, A.GcFloat):
+            return "float"
+        if isinstance(node, A.GcInteger):
+            return "int"
+        if isinstance(node, A.GcString):
+            return "string"
+        return None
+
+    def get(self, name):
+        k = self.kind(name)
+        d = self.dev
+        if k == "int":
+            return d.get_integer_feature_value(name)
+        if k == "float":
+            return d.get_float_feature_value(name)
+        if k == "bool":
+            return d.get_boolean_feature_value(name)
+        return d.get_string_feature_value(name)
+
+    def set(self, name, value):
+        k = self.kind(name)
+        d = self.dev
+        if k == "int":
+            d.set_integer_feature_value(name, int(value))
+        elif k == "float":
+            d.set_float_feature_value(name, float(value))
+        elif k == "bool":
+            d.set_boolean_feature_value(name, bool(value))
+        else:
+            d.set_string_feature_value(name, str(value))
+
+    def int_bounds(self, name):
+        lo, hi = self.dev.get_integer_feature_bounds(name)
+        try:
+            inc = self.dev.get_integer_feature_increment(name)
+        except Exception:
+            inc = 1
+        return int(lo), int(hi), int(inc or 1)
+
+    def float_bounds(self, name):
+        lo, hi = self.dev.get_float_feature_bounds(name)
+        return float(lo), float(hi)
+
+    def enum_values(self, name):
+        return list(self.dev.dup_available_enumeration_feature_values_as_strings(name) or [])
+
+    def writable(self, name):
+        node = self.dev.get_feature(name)
+        try:
+            mode = node.get_actual_access_mode()
+            return mode in (self.A.GcAccessMode.RW, self.A.GcAccessMode.WO) and not node.is_locked()
+        except Exception:
+            return True
+
+    def execute(self, name):
+        self.dev.execute_command(name)
+
+
+class AravisCamera(Camera):
+    """One Aravis device behind the :class:`~drivers.base.Camera` protocol.
+
+    Parameters
+    ----------
+    device : str
+        Aravis device id or address (``Fake_1``, ``127.0.0.1``, ``Basler-21234567``).
+    n_buffers : int
+        Preallocated stream buffers.
+    lost_timeout_s : float
+        Seconds without a successful register read before fetch raises CameraLost.
+    probe_period_s : float
+        Seconds between watchdog register reads.
+    packet_resend : bool
+        GigE Vision: ask the camera to resend lost packets (Aravis default).
+
+    Publishes :attr:`camera_id`, :meth:`settings`, :meth:`statistics`, :attr:`info`.
+    """
+
+    def __init__(
+        self,
+        device: str,
+        *,
+        n_buffers: int = 32,
+        lost_timeout_s: float = 2.0,
+        probe_period_s: float = 0.25,
+        packet_resend: bool = True,
+    ):
+        if not device:
+            raise CameraError("aravis: give a device id or address, e.g. 'aravis:Fake_1' or 'aravis:192.168.1.10'")
+        if n_buffers < 2:
+            raise ValueError(f"n_buffers must be >= 2; got {n_buffers}")
+        if not lost_timeout_s > 0 or not probe_period_s > 0:
+            raise ValueError(
+                f"lost_timeout_s and probe_period_s must be > 0 seconds; got {lost_timeout_s!r}, {probe_period_s!r}"
+            )
+        self.device = device
+        self.camera_id = f"aravis:{device}"
+        self.n_buffers = int(n_buffers)
+        self.lost_timeout_s = float(lost_timeout_s)
+        self.probe_period_s = float(probe_period_s)
+        self.packet_resend = bool(packet_resend)
+        self.info: Optional[CameraInfo] = None
+        self._cam = None
+        self._dev = None
+        self._features: Optional[_AravisFeatures] = None
+        self._stream = None
+        self._acquiring = False
+        self._lost = threading.Event()
+        self._lost_reason = ""
+        self._last_alive = time.monotonic()
+        self._probe_stop = threading.Event()
+        self._probe_thread: Optional[threading.Thread] = None
+        self._closed = False
+        self._final_stats = {}
+        self._reset_counters()
+
+    def _reset_counters(self):
+        self._last_id = None
+        self._n_delivered = 0
+        self._n_incomplete = 0
+        self._n_id_gaps = 0
+        self._n_late = 0
+        self._n_leader_lost = 0
+        self._status_counts = {}
+
+    # -- lifecycle -----------------------------------------------------------
+    def open(self) -> "AravisCamera":
+        if self._closed:
+            raise CameraError(f"{self.camera_id} was closed; create a new AravisCamera")
+        if self._cam is not None:
+            return self
+        Aravis = _aravis()
+        if self.device.startswith("Fake"):
+            Aravis.enable_interface("Fake")
+        try:
+            cam = Aravis.Camera.new(self.device)
+        except Exception as exc:
+            raise CameraError(
+                f"cannot open Aravis device {self.device!r}: {getattr(exc, 'message', exc)}. "
+                "Check the id/address ('tirdeflect cameras' lists them), the cable/network and that no other program holds it."
+            ) from exc
+        if cam is None:
+            raise CameraError(f"no Aravis device {self.device!r}; 'tirdeflect cameras' lists the ids")
+        self._cam = cam
+        self._dev = cam.get_device()
+        self._features = _AravisFeatures(self._dev)
+        self._dev.connect("control-lost", self._on_control_lost)
+        try:
+            self.info = CameraInfo(
+                camera_id=self.camera_id,
+                backend="aravis",
+                vendor=cam.get_vendor_name() or "",
+                model=cam.get_model_name() or "",
+                serial=cam.get_device_serial_number() or "",
+                address=self.device,
+            )
+        except Exception:
+            self.info = CameraInfo(camera_id=self.camera_id, backend="aravis", address=self.device)
+        self._last_alive = time.monotonic()
+        self._probe_stop.clear()
+        self._probe_thread = threading.Thread(target=self._probe_loop, name=f"{self.camera_id}-watchdog", daemon=True)
+        self._probe_thread.start()
+        return self
+
+    def close(self) -> None:
+        """Stop, free the stream and release the device (idempotent, bounded in time)."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self.stop()
+        finally:
+            self._probe_stop.set()
+            if self._probe_thread is not None:
+                # a probe blocked on a dead device returns after Aravis' own GVCP timeout;
+                # it only holds a reference, so do not wait for it for long
+                self._probe_thread.join(0.05 if self._lost.is_set() else 1.0)
+                self._probe_thread = None
+            box = [self._stream, self._features, self._dev, self._cam]
+            self._stream = self._features = self._dev = self._cam = None
+            if self._lost.is_set():
+                # finalizing a dead GigE device/stream writes registers and waits for
+                # GVCP timeouts (seconds): let a daemon thread drop the last references
+                _release_in_background(box)
+            else:
+                box.clear()
+
+    # -- liveness ------------------------------------------------------------
+    def _on_control_lost(self, *args):
+        self._lost_reason = "Aravis reported control-lost (heartbeat failed)"
+        self._lost.set()
+
+    def _probe_loop(self):
+        dev = self._dev
+        protocol_gv = self._cam.is_gv_device() if self._cam is not None else False
+        address = 0x0A00 if protocol_gv else 0x0000  # GVCP CCP register; ABRM GenCP version
+        while not self._probe_stop.wait(self.probe_period_s):
+            try:
+                if dev is None:
+                    return
+                dev.read_register(address)
+                self._last_alive = time.monotonic()
+            except Exception as exc:
+                if not self._lost.is_set():
+                    self._lost_reason = f"register read failed: {getattr(exc, 'message', exc)}"
+                if time.monotonic() - self._last_alive > self.lost_timeout_s:
+                    self._lost.set()
+
+    def _check_alive(self):
+        if not self._lost.is_set():
+            silent_s = time.monotonic() - self._last_alive
+            if silent_s > self.lost_timeout_s:
+                self._lost_reason = self._lost_reason or f"no register read succeeded for {silent_s:.1f} s"
+                self._lost.set()
+        if self._lost.is_set():
+            raise CameraLost(
+                f"{self.camera_id} stopped answering ({self._lost_reason}); check power, cable and network, then reopen it"
+            )
+
+    def _require_open(self, what):
+        if self._cam is None:
+            raise CameraError(f"{what}: {self.camera_id} is not open; call open() or use 'with camera:'")
+
+    # -- settings --------------------------------------------------------------
+    def settings(self) -> CameraSettings:
+        self._require_open("settings")
+        self._check_alive()
+        try:
+            return read_settings(self._features)
+        except Exception as exc:
+            self._check_alive()
+            raise CameraError(f"{self.camera_id}: reading settings failed: {getattr(exc, 'message', exc)}") from exc
+
+    def configure(self, **values) -> CameraSettings:
+        """Write settings, read them back; see :class:`~drivers.base.CameraSettings` for names.
+
+        Raises :class:`~drivers.base.SettingError` naming the feature and the range/values it allows.
+        """
+        self._require_open("configure")
+        self._check_alive()
+        apply_settings(self._features, values, acquiring=self._acquiring)
+        return self.settings()
+
+    # -- acquisition -----------------------------------------------------------
+    def start(self) -> None:
+        self._require_open("start")
+        self._check_alive()
+        if self._acquiring:
+            return
+        Aravis = _aravis()
+        cam = self._cam
+        s = read_settings(self._features)
+        if s.pixel_format not in PIXEL_BITS:
+            raise SettingError(
+                f"pixel_format {s.pixel_format!r} cannot be streamed as a mono image; "
+                f"configure(pixel_format=...) one of {list(PIXEL_BITS)}"
+            )
+        try:
+            stream = cam.create_stream(None, None)
+            if stream is None:
+                raise CameraError("Aravis could not create a stream")
+            if cam.is_gv_device():
+                stream.set_property("packet-resend", Aravis.GvStreamPacketResend.ALWAYS if self.packet_resend else Aravis.GvStreamPacketResend.NEVER)
+            payload = cam.get_payload()
+            for _ in range(self.n_buffers):
+                stream.push_buffer(Aravis.Buffer.new_allocate(payload))
+            cam.set_acquisition_mode(Aravis.AcquisitionMode.CONTINUOUS)
+            self._stream = stream
+            self._shape = (s.height, s.width)
+            self._bits = PIXEL_BITS[s.pixel_format]
+            self._dtype = np.uint8 if self._bits == 8 else np.uint16
+            self._reset_counters()
+            self._final_stats = {}
+            cam.start_acquisition()
+        except CameraError:
+            self._stream = None
+            raise
+        except Exception as exc:
+            self._stream = None
+            self._check_alive()
+            raise CameraError(f"{self.camera_id}: starting acquisition failed: {getattr(exc, 'message', exc)}") from exc
+        self._acquiring = True
+
+    def stop(self) -> None:
+        if not self._acquiring:
+            return
+        self._acquiring = False
+        if not self._lost.is_set() and self._cam is not None:
+            try:
+                self._cam.stop_acquisition()
+            except Exception:
+                pass  # the device may be gone; the stream is freed below anyway
+        self._final_stats = self._stream_stats()
+        box, self._stream = [self._stream], None
+        if self._lost.is_set():
+            _release_in_background(box)
+        else:
+            box.clear()
+
+    def trigger_software(self) -> None:
+        """Execute TriggerSoftware (ignored by Aravis' in-process fake camera in 0.8.26)."""
+        self._require_open("trigger_software")
+        self._check_alive()
+        try:
+            self._dev.execute_command("TriggerSoftware")
+        except Exception as exc:
+            self._check_alive()
+            raise CameraError(f"{self.camera_id}: TriggerSoftware failed: {getattr(exc, 'message', exc)}") from exc
+
+    def fetch(self, timeout_s: float) -> Frame:
+        """Wait at most ``timeout_s`` s for the next buffer and return it copied out.
+
+        Raises :class:`FetchTimeout` when none came and the device still
+        answers, :class:`CameraLost` when it does not.
+        """
+        if not timeout_s > 0:
+            raise ValueError(f"timeout_s must be > 0 seconds; got {timeout_s!r}")
+        self._require_open("fetch")
+        if not self._acquiring or self._stream is None:
+            raise CameraError(f"fetch: {self.camera_id} is not acquiring; call start() first")
+        stream = self._stream
+        deadline = time.monotonic() + timeout_s
+        while True:
+            self._check_alive()
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise FetchTimeout(f"no frame from {self.camera_id} within {timeout_s:g} s (waiting for a trigger?)")
+            buf = stream.timeout_pop_buffer(max(1, int(min(remaining, 0.1) * 1e6)))
+            if buf is not None:
+                break
+        host_ns = time.monotonic_ns()
+        try:
+            return self._to_frame(buf, host_ns)
+        finally:
+            stream.push_buffer(buf)
+
+    def _to_frame(self, buf, host_ns) -> Frame:
+        Aravis = _aravis()
+        status = buf.get_status()
+        name = status.value_nick if hasattr(status, "value_nick") else str(status)
+        self._status_counts[name] = self._status_counts.get(name, 0) + 1
+        incomplete = status != Aravis.BufferStatus.SUCCESS
+        height, width = self._shape
+        dtype, bits = self._dtype, self._bits
+        if not incomplete and buf.get_payload_type() in (
+            Aravis.BufferPayloadType.IMAGE,
+            Aravis.BufferPayloadType.EXTENDED_CHUNK_DATA,
+        ):
+            # a complete image buffer describes itself; trust it over the settings
+            width, height = buf.get_image_width(), buf.get_image_height()
+            fmt = PFNC.get(int(buf.get_image_pixel_format()))
+            bits = PIXEL_BITS.get(fmt, bits)
+            dtype = np.uint8 if bits == 8 else np.uint16
+            data = buf.get_image_data()
+        else:
+            # partial buffer: its leader may be missing, so use the geometry set at start()
+            data = buf.get_data()
+        raw = np.frombuffer(data, dtype=np.uint8) if data is not None else np.empty(0, np.uint8)
+        n = width * height * np.dtype(dtype).itemsize
+        if raw.size >= n:
+            image = raw[:n].view(dtype).reshape(height, width)
+        else:
+            # a short buffer: hand out what arrived, zero-padded, flagged incomplete
+            incomplete = True
+            flat = np.zeros(width * height, dtype)
+            got = raw[: (raw.size // flat.itemsize) * flat.itemsize].view(dtype)
+            flat[: got.size] = got
+            image = flat.reshape(height, width)
+        ts = buf.get_timestamp()
+        raw_id = int(buf.get_frame_id())
+        frame_id = unwrap_block_id(raw_id, self._last_id)  # GigE Vision 1 ids wrap 65535 -> 1
+        if incomplete and self._last_id is not None and (raw_id == 0 or frame_id <= self._last_id):
+            # the leader packet was lost: Aravis left this buffer's id and timestamp from
+            # its previous use (or 0). Failed buffers come out in order, so it is the next id.
+            frame_id = self._last_id + 1
+            ts = 0
+            self._n_leader_lost += 1
+        if self._last_id is None or frame_id > self._last_id:
+            if self._last_id is not None:
+                self._n_id_gaps += frame_id - self._last_id - 1
+            self._last_id = frame_id
+        else:
+            # a late buffer (completed after a newer one): it fills a gap counted before
+            self._n_late += 1
+            self._n_id_gaps -= 1
+        self._n_delivered += 1
+        self._n_incomplete += bool(incomplete)
+        return Frame(
+            image=image,
+            frame_id=frame_id,
+            timestamp_ns=int(ts) if ts else None,
+            host_timestamp_ns=host_ns,
+            incomplete=bool(incomplete),
+            bit_depth=bits,
+        )
+
+    def statistics(self) -> dict:
+        """Aravis stream infos (``n_completed_buffers``, ``n_failures``, ``n_underruns``,
+        ``n_missing_frames``, ``n_missing_packets``, ``n_resent_packets`` ...) plus
+        the driver's own: ``n_delivered``, ``n_incomplete_delivered``,
+        ``n_id_gap_frames`` (ids skipped and not delivered later), ``n_late_delivered``
+        (buffers that arrived after a newer one: their id is below the previous
+        frame's), ``n_leader_lost`` (failed buffers whose id and timestamp were
+        lost with the leader packet: numbered last id + 1, timestamp None),
+        ``buffer_status`` counts.
+        """
+        out = dict(self._stream_stats() if self._stream is not None else self._final_stats)
+        out.update({
+            "n_delivered": self._n_delivered,
+            "n_incomplete_delivered": self._n_incomplete,
+            "n_id_gap_frames": self._n_id_gaps,
+            "n_late_delivered": self._n_late,
+            "n_leader_lost": self._n_leader_lost,
+            "buffer_status": dict(self._status_counts),
+        })
+        out.setdefault("n_failed_buffers", out.get("n_failures", 0))
+        return out
+
+    def _stream_stats(self) -> dict:
+        out = {}
+        stream = self._stream
+        if stream is None:
+            return out
+        try:
+            for i in range(stream.get_n_infos()):
+                name = stream.get_info_name(i)
+                try:
+                    out[name] = int(stream.get_info_uint64(i))
+                except Exception:
+                    out[name] = float(stream.get_info_double(i))
+            n_in, n_out = stream.get_n_buffers()
+            out["n_input_buffers"], out["n_output_buffers"] = int(n_in), int(n_out)
+        except Exception:
+            pass
+        return out

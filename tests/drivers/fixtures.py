@@ -1,0 +1,161 @@
+"""Reusable fixtures that start and stop real GenICam endpoints for tests.
+
+Import the ones you need in a test module (pytest then finds them)::
+
+    from tests.drivers.fixtures import gv_fake_camera, gv_fake_camera_lossy, viky_cti  # noqa: F401
+
+* ``gv_fake_camera`` -- ``arv-fake-gv-camera-0.8 -i 127.0.0.1`` as a subprocess
+  (GigE Vision over loopback); yields a :class:`FakeGvCamera` with
+  ``camera_id`` (``"aravis:127.0.0.1"``), ``process`` and :meth:`FakeGvCamera.kill`.
+* ``gv_fake_camera_lossy`` -- the same with ``-r 20`` (2 % of GVSP packets lost).
+* ``viky_cti`` -- path of the ``viky.cti`` GenTL producer of the genicam wheel.
+
+Only one GigE fake camera can listen on 127.0.0.1:3956, so the fixtures take a
+machine-wide file lock (concurrent pytest runs wait for each other, at most
+``LOCK_TIMEOUT_S``). Every wait is bounded; the process is always killed.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import os
+import shutil
+import subprocess
+import tempfile
+import time
+
+import pytest
+
+FAKE_GV_EXE = "arv-fake-gv-camera-0.8"
+ADDRESS = "127.0.0.1"
+GVCP_PORT = 3956
+LOCK_TIMEOUT_S = 120.0
+START_TIMEOUT_S = 5.0
+
+
+def _udp_bound(address: str, port: int) -> bool:
+    """True when a UDP socket is bound to address:port (reads /proc/net/udp)."""
+    a, b, c, d = (int(x) for x in address.split("."))
+    want = f"{d:02X}{c:02X}{b:02X}{a:02X}:{port:04X}"
+    try:
+        with open("/proc/net/udp") as f:
+            return any(line.split()[1] == want for line in f.readlines()[1:])
+    except OSError:
+        return False
+
+
+class FakeGvCamera:
+    """A running ``arv-fake-gv-camera-0.8`` process on loopback.
+
+    Parameters
+    ----------
+    loss_per_thousand : int
+        GVSP packets dropped per thousand (the fake's ``-r``).
+    """
+
+    def __init__(self, loss_per_thousand: int = 0):
+        self.loss_per_thousand = int(loss_per_thousand)
+        self.address = ADDRESS
+        self.camera_id = f"aravis:{ADDRESS}"
+        self.process = None
+        self._lock_file = None
+
+    def start(self) -> "FakeGvCamera":
+        exe = shutil.which(FAKE_GV_EXE)
+        if exe is None:
+            raise RuntimeError(f"{FAKE_GV_EXE} not found; install the aravis-tools package (Debian: aravis-tools)")
+        lock_path = os.path.join(tempfile.gettempdir(), "tirdeflect-fake-gv-camera.lock")
+        self._lock_file = open(lock_path, "w")
+        deadline = time.monotonic() + LOCK_TIMEOUT_S
+        while True:
+            try:
+                fcntl.flock(self._lock_file, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() > deadline:
+                    raise RuntimeError(
+                        f"another test run held {lock_path} for {LOCK_TIMEOUT_S:g} s; is a test hanging?"
+                    ) from None
+                time.sleep(0.05)
+        if _udp_bound(ADDRESS, GVCP_PORT):
+            self._release_lock()
+            raise RuntimeError(
+                f"UDP {ADDRESS}:{GVCP_PORT} is already in use (a stray {FAKE_GV_EXE}?); stop it and rerun"
+            )
+        cmd = [exe, "-i", ADDRESS]
+        if self.loss_per_thousand:
+            cmd += ["-r", str(self.loss_per_thousand)]
+        self.process = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        deadline = time.monotonic() + START_TIMEOUT_S
+        while not _udp_bound(ADDRESS, GVCP_PORT):
+            if self.process.poll() is not None:
+                err = self.process.stderr.read().decode(errors="replace")
+                self.stop()
+                raise RuntimeError(f"{FAKE_GV_EXE} exited with {self.process.returncode}: {err.strip()}")
+            if time.monotonic() > deadline:
+                self.stop()
+                raise RuntimeError(f"{FAKE_GV_EXE} did not bind {ADDRESS}:{GVCP_PORT} within {START_TIMEOUT_S:g} s")
+            time.sleep(0.01)
+        return self
+
+    def kill(self) -> None:
+        """SIGKILL the camera process (simulates a camera unplugged mid-stream)."""
+        if self.process is not None and self.process.poll() is None:
+            self.process.kill()
+            self.process.wait(5)
+
+    def stop(self) -> None:
+        self.kill()
+        if self.process is not None and self.process.stderr is not None:
+            self.process.stderr.close()
+        self._release_lock()
+
+    def _release_lock(self):
+        if self._lock_file is not None:
+            fcntl.flock(self._lock_file, fcntl.LOCK_UN)
+            self._lock_file.close()
+            self._lock_file = None
+
+    def __enter__(self):
+        return self.start()
+
+    def __exit__(self, *exc):
+        self.stop()
+
+
+def _aravis_or_skip():
+    try:
+        import gi
+
+        gi.require_version("Aravis", "0.8")
+        from gi.repository import Aravis  # noqa: F401
+    except (ImportError, ValueError) as exc:
+        pytest.skip(f"Aravis GObject bindings missing: {exc}")
+    if shutil.which(FAKE_GV_EXE) is None:
+        pytest.skip(f"{FAKE_GV_EXE} not installed")
+
+
+@pytest.fixture
+def gv_fake_camera():
+    """A clean GigE Vision fake camera on 127.0.0.1 (killed afterwards)."""
+    _aravis_or_skip()
+    with FakeGvCamera() as cam:
+        yield cam
+
+
+@pytest.fixture
+def gv_fake_camera_lossy():
+    """A GigE Vision fake camera on 127.0.0.1 losing 20 per thousand GVSP packets."""
+    _aravis_or_skip()
+    with FakeGvCamera(loss_per_thousand=20) as cam:
+        yield cam
+
+
+@pytest.fixture
+def viky_cti():
+    """Path of viky.cti, the GenTL producer shipped in the genicam wheel."""
+    genicam = pytest.importorskip("genicam")
+    path = os.path.join(os.path.dirname(genicam.__file__), "viky.cti")
+    if not os.path.isfile(path):
+        pytest.skip(f"no viky.cti next to {genicam.__file__}")
+    return path
