@@ -253,6 +253,8 @@ class Geometry:
                 raise GeometryError("camera_distance_mm must be positive")  # pragma: no cover
         else:
             self._validate_layers()
+        if self.setup == "tir":
+            object.__setattr__(self, "fsss_layers", tuple(tuple(x) for x in self.fsss_layers))
 
     def _validate_reference_region(self) -> None:
         region = self.reference_region

@@ -1,0 +1,188 @@
+"""Geometry: TOML round trips, every bad-TOML error, and the camera model's scales."""
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from processing.errors import GeometryError
+from processing.geometry import Geometry
+
+ROOT = Path(__file__).resolve().parents[2]
+
+TIR_TEXT = """
+setup = "tir"
+theta_deg = 60.0
+depth_mm = 300.0
+pixel_mm = 0.1
+rows_toward_camera = true
+camera_distance_mm = 1500.0
+reference_region = [0, 40, 0, 512]
+"""
+
+FSSS_TEXT = """
+setup = "fsss"
+pixel_mm = 0.207
+fsss_camera_distance_mm = 800.0
+fsss_layers = [[57.0, 1.0003], [12.0, 1.48899], [43.0, 1.34]]
+n_water = 1.34
+"""
+
+
+def _tir(**kw):
+    d = dict(theta_deg=55.0, depth_mm=300.0, pixel_mm=0.1, rows_toward_camera=False)
+    d.update(kw)
+    return Geometry(**d)
+
+
+@pytest.mark.parametrize("text", [TIR_TEXT, FSSS_TEXT])
+def test_toml_round_trip(text, tmp_path):
+    g = Geometry.from_toml_text(text)
+    assert Geometry.from_toml_text(g.to_toml_text()) == g
+    assert Geometry.from_dict(g.to_dict()) == g
+    path = tmp_path / "g.toml"
+    path.write_text(g.to_toml_text())
+    assert Geometry.from_toml(path) == g
+    hash(g)  # frozen and hashable: usable as a cache key
+
+
+def test_toml_values_and_table():
+    g = Geometry.from_toml_text("[geometry]\n" + TIR_TEXT)
+    assert g.rows_toward_camera is True
+    assert g.camera_distance_mm == 1500.0
+    assert g.reference_region == (0, 40, 0, 512)
+    assert g.n_water == 1.333
+
+
+@pytest.mark.parametrize("name", ["geometry-example.toml", "geometry-fsss-example.toml"])
+def test_example_files_load(name):
+    g = Geometry.from_toml(ROOT / "resources" / name)
+    assert Geometry.from_toml_text(g.to_toml_text()) == g
+
+
+def _err(text):
+    with pytest.raises(GeometryError) as exc:
+        Geometry.from_toml_text(text)
+    return str(exc.value)
+
+
+def test_missing_key_names_it_and_shows_an_example():
+    msg = _err(TIR_TEXT.replace("depth_mm = 300.0\n", ""))
+    assert "depth_mm" in msg and "depth_mm = 300.0" in msg
+    msg = _err(TIR_TEXT.replace("rows_toward_camera = true\n", ""))
+    assert "rows_toward_camera" in msg and "rows_toward_camera = false" in msg
+    msg = _err(TIR_TEXT.replace('setup = "tir"\n', ""))
+    assert "setup" in msg and 'setup = "tir"' in msg
+    msg = _err(FSSS_TEXT.replace("fsss_layers", "# fsss_layers"))
+    assert "fsss_layers" in msg
+
+
+def test_wrong_type_echoes_value():
+    msg = _err(TIR_TEXT.replace("depth_mm = 300.0", 'depth_mm = "abc"'))
+    assert "depth_mm must be a number of millimetres, got 'abc'" in msg
+    msg = _err(TIR_TEXT.replace("rows_toward_camera = true", 'rows_toward_camera = "yes"'))
+    assert "rows_toward_camera must be true or false" in msg and "'yes'" in msg
+    msg = _err(TIR_TEXT.replace("theta_deg = 60.0", "theta_deg = true"))
+    assert "theta_deg must be a number of degrees" in msg
+
+
+def test_unknown_key_lists_allowed():
+    msg = _err(TIR_TEXT + "thetadeg = 3\n")
+    assert "'thetadeg'" in msg and "theta_deg" in msg and "allowed keys" in msg
+
+
+def test_theta_below_critical_angle():
+    msg = _err(TIR_TEXT.replace("theta_deg = 60.0", "theta_deg = 40"))
+    assert "no total internal reflection at theta=40 deg" in msg
+    assert "raise theta above 48.6 deg" in msg
+    assert "theta_deg must be below 90" in _err(TIR_TEXT.replace("theta_deg = 60.0", "theta_deg = 95.0"))
+
+
+@pytest.mark.parametrize("key", ["depth_mm", "pixel_mm", "camera_distance_mm"])
+def test_non_positive_lengths(key):
+    import re
+
+    text = re.sub(rf"{key} = [0-9.]+", f"{key} = -1.0", TIR_TEXT)
+    msg = _err(text)
+    assert f"{key} must be a positive length in mm, got -1.0" in msg
+
+
+def test_bad_reference_region_layers_and_syntax():
+    assert "four integers" in _err(TIR_TEXT.replace("[0, 40, 0, 512]", "[0, 40]"))
+    assert "row0 < row1" in _err(TIR_TEXT.replace("[0, 40, 0, 512]", "[40, 0, 0, 512]"))
+    msg = _err(FSSS_TEXT.replace("[43.0, 1.34]", "[43.0, 1.33]"))
+    assert "n_water=1.34" in msg and "water last" in msg
+    assert "not valid TOML" in _err("setup = ")
+    assert "0 < n_air < n_water" in _err(TIR_TEXT + "n_water = 0.9\n")
+
+
+def test_derived_quantities():
+    g = _tir(theta_deg=60.0)
+    assert g.theta == pytest.approx(math.pi / 3)
+    assert g.T == pytest.approx(0.5 * math.sin(2 * g.theta), rel=1e-12)
+    assert g.critical_angle_deg == pytest.approx(math.degrees(math.asin(1.0003 / 1.333)))
+    assert round(g.critical_angle_deg, 1) == 48.6
+    f = Geometry.from_toml_text(FSSS_TEXT)
+    # h_p: water-equivalent depth of the stack; alpha = 1 - n_air / n_water
+    assert f.fsss_hp_mm == pytest.approx(57.0 * 1.34 / 1.0003 + 12.0 * 1.34 / 1.48899 + 43.0)
+    assert f.fsss_alpha == pytest.approx(1 - 1.0003 / 1.34)
+
+
+@pytest.mark.parametrize("distance", [None, 1500.0])
+@pytest.mark.parametrize("rows_toward_camera", [False, True])
+def test_surface_scale_at_image_centre(distance, rows_toward_camera):
+    """pixel_mm per column and pixel_mm / cos(theta) per row at the centre, y along rows."""
+    g = _tir(theta_deg=60.0, camera_distance_mm=distance, rows_toward_camera=rows_toward_camera)
+    shape = (101, 101)
+    x0, y0 = g.surface_point(50.0, 50.0, shape)
+    x1, _ = g.surface_point(50.0, 51.0, shape)
+    _, y1 = g.surface_point(51.0, 50.0, shape)
+    assert abs(x0) < 1e-12 and abs(y0) < 1e-12
+    assert x1 - x0 == pytest.approx(0.1, rel=1e-3)
+    # image-frame y increases with the row index whichever way the camera looks
+    assert y1 - y0 == pytest.approx(0.1 / math.cos(g.theta), rel=2e-3)
+
+
+@pytest.mark.parametrize(
+    "g",
+    [
+        _tir(),
+        _tir(camera_distance_mm=1200.0, rows_toward_camera=True),
+        Geometry.from_toml_text(FSSS_TEXT),
+        Geometry.from_toml_text(FSSS_TEXT.replace("fsss_camera_distance_mm = 800.0\n", "")),
+    ],
+    ids=["tir-telecentric", "tir-pinhole", "fsss-finite", "fsss-telecentric"],
+)
+def test_pattern_map_inverse(g):
+    shape = (64, 80)
+    r, c = np.meshgrid(np.linspace(-3, 66, 9), np.linspace(-5, 84, 11), indexing="ij")
+    px, py = g.flat_pattern_point(r, c, shape)
+    r2, c2 = g.pixel_of_pattern_point(px, py, shape)
+    assert np.max(np.abs(r2 - r)) < 1e-8 and np.max(np.abs(c2 - c)) < 1e-8
+
+
+@pytest.mark.parametrize("rows_toward_camera", [False, True])
+def test_linear_response_is_the_papers_at_the_centre(rows_toward_camera):
+    """Telecentric: u_x = -2H h_x, u_y = -(2H/cos^2) h_y -/+ 2 tan(theta) h, in pixels."""
+    g = _tir(theta_deg=55.0, rows_toward_camera=rows_toward_camera)
+    p, H, th = g.pixel_mm, g.depth_mm, g.theta
+    lr = g.linear_response(31.5, 31.5, (64, 64))
+    s = -1.0 if rows_toward_camera else 1.0
+    # u_row per mm of h: (-s 2 tan(theta)) mm of surface y, times cos(theta)/p px per mm
+    assert lr.a == pytest.approx([-s * 2 * math.sin(th) / p, 0.0], abs=1e-9)
+    # per pixel-gradient: -2H/p^2 on both axes (the cos factors cancel)
+    assert lr.B == pytest.approx(-2 * H / p**2 * np.eye(2), rel=1e-6)
+
+
+def test_default_reference_region_is_a_border_band():
+    g = _tir()
+    m = g.reference_mask(np.arange(100), np.arange(200), (100, 200))
+    # 4 % of the smaller side = 4 px on every edge
+    assert m[:4].all() and m[-4:].all() and m[:, :4].all() and m[:, -4:].all()
+    assert not m[4:-4, 4:-4].any()
+    g2 = _tir(reference_region=(10, 20, 30, 40))
+    m2 = g2.reference_mask(np.arange(100), np.arange(200), (100, 200))
+    assert m2.sum() == 100 and m2[10, 30] and not m2[20, 30]
+    with pytest.raises(GeometryError, match="outside the frame"):
+        _tir(reference_region=(200, 210, 0, 10)).reference_mask(np.arange(100), np.arange(100), (100, 100))
