@@ -90,7 +90,7 @@ class Demodulator:
         (default 2: smooth enough for cubic interpolation to the full grid).
     border : {"apodize", "none"}
     taper_px : float, optional
-        Width of the border taper, pixels (default 1.5 carrier periods).
+        Width of the border taper, pixels (default one carrier period).
     subbin : bool, optional
         Centre the filter on the sub-bin carrier (default).  False rounds the
         carriers to the nearest bin (the published method); the wavevectors
@@ -144,7 +144,7 @@ class Demodulator:
         self.flat = float(filter_flat)
         # ---- border window
         period = float(np.max(1.0 / np.hypot(freq[:, 0], freq[:, 1])))
-        self.taper_px = float(1.5 * period if taper_px is None else taper_px)
+        self.taper_px = float(period if taper_px is None else taper_px)
         if border == "apodize":
             self._window2d = tukey(rows, self.taper_px)[:, None] * tukey(cols, self.taper_px)[None, :]
         else:
@@ -153,13 +153,20 @@ class Demodulator:
         m_r = nice_fft_size(max(8, oversample * 2.0 * self.radius * rows + 2))
         m_c = nice_fft_size(max(8, oversample * 2.0 * self.radius * cols + 2))
         self.window_shape = (m_r, m_c)
-        self.rows_px = np.arange(m_r) * (rows / m_r)
-        self.cols_px = np.arange(m_c) * (cols / m_c)
+        # Decimated sample j sits at pixel (j + 0.5) * rows / m_r - 0.5: the
+        # pixel-centre convention of cv2.resize, so that resizing the decimated
+        # grid to the frame shape lands every value on its own pixel.
+        shift_r = 0.5 * rows / m_r - 0.5
+        shift_c = 0.5 * cols / m_c - 0.5
+        self.rows_px = np.arange(m_r) * (rows / m_r) + shift_r
+        self.cols_px = np.arange(m_c) * (cols / m_c) + shift_c
         self._centres = np.round(freq * np.array([rows, cols])).astype(np.int64)
         q_r = np.fft.fftfreq(m_r, 1.0 / m_r).astype(np.int64)  # ifftshift order offsets
         q_c = np.fft.fftfreq(m_c, 1.0 / m_c).astype(np.int64)
         self._gather = []
         self._filters = []
+        self._gains = []
+        self._ramps = []
         half_cols = cols // 2 + 1
         for s in range(2):
             cr, cc = self._centres[s]
@@ -185,8 +192,13 @@ class Demodulator:
                 roll = (dist > self.flat) & (dist < 1.0)
                 filt[roll] = 0.5 + 0.5 * np.cos(np.pi * (dist[roll] - self.flat) / (1.0 - self.flat))
                 filt = filt.astype(np.float32)
+            # evaluate at the shifted sample positions: phase ramp per bin offset
+            # (the common factor of the window centre cancels in g conj(g0))
+            ramp = np.exp(2j * np.pi * (q_r[:, None] * shift_r / rows + q_c[None, :] * shift_c / cols))
             self._gather.append((flat_idx, mirror.ravel()))
-            self._filters.append(filt)
+            self._filters.append((filt * ramp).astype(np.complex64))
+            self._gains.append(filt)
+            self._ramps.append(np.conj(ramp).astype(np.complex64))
             # absolute bins for the full-grid variant (full complex spectrum)
         self._full_index = [((self._centres[s][0] + q_r)[:, None] % rows,
                              (self._centres[s][1] + q_c)[None, :] % cols) for s in range(2)]
@@ -266,7 +278,7 @@ class Demodulator:
             inp = self.planner.input_array("ifft2", self.shape)
             inp.fill(0)
             ri, ci = self._full_index[s]
-            inp[ri, ci] = wins[s]
+            inp[ri, ci] = wins[s] * self._ramps[s]  # full grid: no sample shift
             out[s] = self.planner.execute("ifft2", self.shape)
         return out
 
@@ -298,4 +310,4 @@ class Demodulator:
 
     def filter_transfer(self) -> np.ndarray:
         """Filter gains on the decimated spectrum grid, (2, m_rows, m_cols), ifftshift order."""
-        return np.stack(self._filters)
+        return np.stack(self._gains)

@@ -16,7 +16,7 @@ Pipeline (docs/processing.md has the measured accuracy and speed):
 7. height by least squares of the exact operator
    (:func:`processing.height.surface_from_displacement`), null space pinned by
    the reference region;
-8. full grid: band-limited decimated results interpolated (bicubic) to every
+8. full grid: the decimated results interpolated (Lanczos) to every
    pixel (``full_method="interpolate"``), or full-size inverse FFTs
    (``full_method="ifft"``).
 """
@@ -93,25 +93,34 @@ class Result:
 
 
 class _Upsampler:
-    """Bicubic interpolation from the decimated grid to every pixel."""
+    """Decimated grid -> every pixel (cv2.resize; the decimated samples sit at
+    the pixel-centre positions cv2.resize assumes, see Demodulator.rows_px)."""
 
-    def __init__(self, shape, window_shape):
-        rows, cols = shape
-        m_r, m_c = window_shape
-        # decimated sample j sits at pixel j * rows / m_r
-        self.map_r = np.broadcast_to((np.arange(rows, dtype=np.float32) * np.float32(m_r / rows))[:, None],
-                                     (rows, cols)).copy()
-        self.map_c = np.broadcast_to((np.arange(cols, dtype=np.float32) * np.float32(m_c / cols))[None, :],
-                                     (rows, cols)).copy()
-        self.map_c, self.map_r = cv2.convertMaps(self.map_c, self.map_r, cv2.CV_16SC2)
+    def __init__(self, shape, window_shape, interpolation="cubic"):
+        self.shape = shape
+        self.interpolation = {"cubic": cv2.INTER_CUBIC, "lanczos": cv2.INTER_LANCZOS4,
+                              "linear": cv2.INTER_LINEAR}[interpolation]
 
-    def __call__(self, field, interpolation=cv2.INTER_CUBIC):
+    def __call__(self, field, interpolation=None):
         src = np.ascontiguousarray(field, dtype=np.float32)
-        return cv2.remap(src, self.map_c, self.map_r, interpolation, borderMode=cv2.BORDER_REPLICATE)
+        ip = self.interpolation if interpolation is None else interpolation
+        return cv2.resize(src, (self.shape[1], self.shape[0]), interpolation=ip)
 
     def mask(self, valid):
         v = self(valid.astype(np.float32), cv2.INTER_LINEAR)
         return v > 0.999
+
+
+def _nearest_fill_index(valid):
+    """Index arrays that map every sample to its nearest valid one (None if all
+    valid): invalid samples must not drag their valid neighbours towards 0
+    when interpolating."""
+    if valid.all() or not valid.any():
+        return None
+    from scipy import ndimage
+
+    _, idx = ndimage.distance_transform_edt(~valid, return_indices=True)
+    return (idx[0], idx[1])
 
 
 def _dilate(invalid, n):
@@ -146,6 +155,15 @@ class Reconstructor:
         Demodulation options, see :class:`processing.demodulation.Demodulator`.
     full_method : {"interpolate", "ifft"}, optional
         How the full grid is made (see module docstring).
+    full_interpolation : {"lanczos", "cubic", "linear"}, optional
+        Kernel of ``full_method="interpolate"`` (cv2.resize).  Measured on
+        ray-traced waves (wavelengths >= 25 samples of the decimated grid):
+        interpolation alone adds 0.2 % (lanczos, default), 0.8 % (cubic),
+        0.5 % (linear) rms height error.
+    min_island : float, optional
+        Valid regions cut off from the reference region and smaller than this
+        fraction of the grid are dropped (their 2 pi offset is unknowable in
+        space); default 0.01.
     min_amplitude : float, optional
         Smallest accepted ``|g| / |g0|`` (both carriers), default 0.3.
     min_fold : float, optional
@@ -176,8 +194,8 @@ class Reconstructor:
                  temporal: bool = True, refine_iterations: Optional[int] = None,
                  filter_radius: float = 0.5, filter_flat: float = 0.6, filter_shape: str = "flattop",
                  oversample: float = 2.0, border: str = "apodize", subbin: bool = True,
-                 full_method: str = "interpolate", min_amplitude: float = 0.3, min_fold: float = 0.2,
-                 dilate: int = 1, check_pattern: bool = True, solver: str = "auto", threads: int = 2,
+                 full_method: str = "interpolate", full_interpolation: str = "lanczos", min_amplitude: float = 0.3, min_fold: float = 0.2,
+                 dilate: int = 1, min_island: float = 0.01, check_pattern: bool = True, solver: str = "auto", threads: int = 2,
                  planner_effort: str = "FFTW_ESTIMATE", carriers: Optional[Carriers] = None):
         ref = self._validate_image(reference_image, "reference image")
         self._check_grid(grid)
@@ -196,6 +214,7 @@ class Reconstructor:
         self.min_amplitude = float(min_amplitude)
         self.min_fold = float(min_fold)
         self.dilate = int(dilate)
+        self.min_island = float(min_island)
         self.check_pattern = bool(check_pattern)
         self.solver = solver
         self.planner = FFTPlanner(threads=threads, planner_effort=planner_effort)
@@ -208,10 +227,12 @@ class Reconstructor:
         # reference contrast, border taper divided out: blank or dirty parts of the pattern
         taper = self._taper_decimated()
         g0_min = d.g0_abs.min(axis=0) / np.maximum(taper, 1e-6)
-        self._ref_ok = (g0_min >= 0.25 * np.median(g0_min)) & (taper >= 0.1)
+        self._ref_ok = (g0_min >= 0.25 * np.median(g0_min)) & (taper >= 0.02)
         self._ref_mask = geometry.reference_mask(self.rows_px, self.cols_px, self.shape)
         self._ref_mask_full = None
-        self._up = _Upsampler(self.shape, d.window_shape)
+        if full_interpolation not in ("cubic", "lanczos", "linear"):
+            raise ValueError(f"full_interpolation must be 'cubic', 'lanczos' or 'linear'; got {full_interpolation!r}")
+        self._up = _Upsampler(self.shape, d.window_shape, full_interpolation)
         self._smooth_ref = None
         self._g0_full = None
         self._ref_f32 = ref.astype(np.float32)
@@ -290,6 +311,22 @@ class Reconstructor:
             else:
                 out[s] = unwrap_spatial(wrapped[s], valid, ref_mask=self._ref_mask)
         return out
+
+    def _drop_islands(self, valid):
+        """Remove small valid regions that do not reach the reference region."""
+        if self.min_island <= 0:
+            return valid
+        from scipy import ndimage
+
+        labels, n = ndimage.label(valid)
+        if n <= 1:
+            return valid
+        sizes = np.bincount(labels.ravel(), minlength=n + 1)
+        touches = np.zeros(n + 1, bool)
+        touches[np.unique(labels[self._ref_mask & valid])] = True
+        keep = (sizes >= self.min_island * valid.size) | touches
+        keep[0] = False
+        return keep[labels]
 
     def _fold_ok(self, u):
         """det(I - grad u) > min_fold on the decimated grid (u in pixels)."""
@@ -383,6 +420,7 @@ class Reconstructor:
         u = d.phase_to_displacement(np.nan_to_num(phase))
         fold = self._fold_ok(np.where(valid, u, 0.0))
         valid &= ~_dilate(~fold, self.dilate)
+        valid = self._drop_islands(valid)
         if not valid.any():
             raise AllInvalidError(
                 f"no part of the frame could be measured: pattern contrast relative to the reference "
@@ -406,54 +444,88 @@ class Reconstructor:
         u = np.where(valid, u, np.nan).astype(np.float32)
         from .height import surface_from_displacement
 
-        if grid == "decimated":
-            surf = surface_from_displacement(u, valid, self.geometry, rows_px=self.rows_px,
-                                             cols_px=self.cols_px, frame_shape=self.shape,
-                                             solver=self.solver)
-            t4 = time.perf_counter()
-            timings["height"] = 1e3 * (t4 - t3)
-            res = Result(height=np.asarray(surf.height_mm, np.float32), valid=valid,
-                         slope_x=np.asarray(surf.slope_x, np.float32),
-                         slope_y=np.asarray(surf.slope_y, np.float32), displacement=u,
-                         amplitude=amplitude, x_mm=surf.x_mm, y_mm=surf.y_mm, grid="decimated",
-                         rows_px=self.rows_px, cols_px=self.cols_px, carriers=self.carriers,
-                         phase=np.asarray(phase, np.float32), valid_fraction=float(valid.mean()),
-                         timings_ms=timings)
-        else:
-            res = self._full(frame, wins, u, u_first, valid, amplitude, phase, timings, t3)
+        if grid == "full" and self.full_method == "ifft":
+            res = self._full_ifft(wins, u, u_first, valid, amplitude, phase, timings, t3)
+            timings["total"] = 1e3 * (time.perf_counter() - t0)
+            return res
+        surf = surface_from_displacement(u, valid, self.geometry, rows_px=self.rows_px,
+                                         cols_px=self.cols_px, frame_shape=self.shape,
+                                         solver=self.solver)
+        t4 = time.perf_counter()
+        timings["height"] = 1e3 * (t4 - t3)
+        res = Result(height=np.asarray(surf.height_mm, np.float32), valid=valid,
+                     slope_x=np.asarray(surf.slope_x, np.float32),
+                     slope_y=np.asarray(surf.slope_y, np.float32), displacement=u,
+                     amplitude=amplitude, x_mm=np.asarray(surf.x_mm), y_mm=np.asarray(surf.y_mm),
+                     grid="decimated", rows_px=self.rows_px, cols_px=self.cols_px,
+                     carriers=self.carriers, phase=np.asarray(phase, np.float32),
+                     valid_fraction=float(valid.mean()), timings_ms=timings)
+        if grid == "full":
+            res = self._interpolate_full(res)
+            timings["interpolate"] = 1e3 * (time.perf_counter() - t4)
         timings["total"] = 1e3 * (time.perf_counter() - t0)
         return res
 
-    def _full(self, frame, wins, u, u_first, valid, amplitude, phase, timings, t3):
+    def _coords_full(self, res):
+        """x_mm, y_mm of every pixel column/row, by linear extension of the
+        decimated grid's coordinates (both are evenly spaced)."""
+        rows, cols = self.shape
+
+        def ext(v_mm, v_px, n):
+            slope = (v_mm[-1] - v_mm[0]) / (v_px[-1] - v_px[0]) if len(v_px) > 1 else 0.0
+            return v_mm[0] + slope * (np.arange(n) - v_px[0])
+
+        return (ext(np.asarray(res.x_mm, float), self.cols_px, cols),
+                ext(np.asarray(res.y_mm, float), self.rows_px, rows))
+
+    def _interpolate_full(self, res):
+        """Decimated result -> every pixel (the decimated grid is oversampled
+        twice, so Lanczos interpolation is within 0.2 % of band-limited)."""
+        up = self._up
+        valid = up.mask(res.valid)
+        fill = _nearest_fill_index(res.valid)
+
+        def full(field):
+            f = field if fill is None else field[fill]
+            return np.where(valid, up(np.nan_to_num(f)), np.nan).astype(np.float32)
+
+        x_mm, y_mm = self._coords_full(res)
+        rows, cols = self.shape
+        return dataclasses.replace(
+            res, height=full(res.height), valid=valid, slope_x=full(res.slope_x),
+            slope_y=full(res.slope_y),
+            displacement=np.stack([full(res.displacement[0]), full(res.displacement[1])]),
+            amplitude=up(res.amplitude), x_mm=x_mm, y_mm=y_mm, grid="full",
+            rows_px=np.arange(rows, dtype=float), cols_px=np.arange(cols, dtype=float),
+            valid_fraction=float(valid.mean()))
+
+    def _full_ifft(self, wins, u, u_first, valid, amplitude, phase, timings, t3):
+        """Full grid from full-size inverse FFTs, unwrapped against the
+        decimated phase; height solved on the full grid (slow, exact)."""
         from .height import surface_from_displacement
 
         rows, cols = self.shape
         up = self._up
+        d = self.demod
         valid_full = up.mask(valid)
-        if self.full_method == "ifft":
-            d = self.demod
-            gf = d.full_from_windows(wins)
-            if self._g0_full is None:
-                self._g0_full = d.full_from_windows(d.windows(d.spectrum(self._ref_f32)))
-            wrapped = np.angle(gf * np.conj(self._g0_full))
-            guide = np.stack([up(np.nan_to_num(phase[s])) for s in range(2)])
-            full_phase = wrapped + 2 * np.pi * np.round((guide - wrapped) / (2 * np.pi))
-            uf = d.phase_to_displacement(full_phase)
-            corr = np.where(valid, u - u_first, 0.0)
-            uf = uf + np.stack([up(corr[0]), up(corr[1])])
-        else:
-            uz = np.nan_to_num(u)
-            uf = np.stack([up(uz[0]), up(uz[1])])
+        gf = d.full_from_windows(wins)
+        if self._g0_full is None:
+            self._g0_full = d.full_from_windows(d.windows(d.spectrum(self._ref_f32))).copy()
+        wrapped = np.angle(gf * np.conj(self._g0_full))
+        guide = np.stack([up(np.nan_to_num(phase[s])) for s in range(2)])
+        full_phase = wrapped + 2 * np.pi * np.round((guide - wrapped) / (2 * np.pi))
+        uf = d.phase_to_displacement(full_phase)
+        corr = np.nan_to_num(np.where(valid, u - u_first, 0.0))
+        uf = uf + np.stack([up(corr[0]), up(corr[1])])
         uf = np.where(valid_full, uf, np.nan).astype(np.float32)
         surf = surface_from_displacement(uf, valid_full, self.geometry, rows_px=np.arange(rows, dtype=float),
                                          cols_px=np.arange(cols, dtype=float), frame_shape=self.shape,
                                          solver=self.solver)
-        t4 = time.perf_counter()
-        timings["height"] = 1e3 * (t4 - t3)
-        amp = up(amplitude)
+        timings["height"] = 1e3 * (time.perf_counter() - t3)
         return Result(height=np.asarray(surf.height_mm, np.float32), valid=valid_full,
                       slope_x=np.asarray(surf.slope_x, np.float32), slope_y=np.asarray(surf.slope_y, np.float32),
-                      displacement=uf, amplitude=amp, x_mm=surf.x_mm, y_mm=surf.y_mm, grid="full",
+                      displacement=uf, amplitude=up(amplitude), x_mm=np.asarray(surf.x_mm),
+                      y_mm=np.asarray(surf.y_mm), grid="full",
                       rows_px=np.arange(rows, dtype=float), cols_px=np.arange(cols, dtype=float),
                       carriers=self.carriers, phase=np.asarray(phase, np.float32),
                       valid_fraction=float(valid_full.mean()), timings_ms=timings)
