@@ -1,0 +1,221 @@
+"""Heights from displacement: exactness, null space, masks, grids, finite camera, FS-SS.
+
+Linear-model tests feed the paper's displacement of an analytic surface;
+end-to-end optics tests feed the exact ray-traced displacement of
+processing.forward and compare with the true heights along the camera rays.
+"""
+
+import math
+
+import numpy as np
+import pytest
+
+from processing.errors import GeometryError, ShapeMismatchError, TirdeflectError
+from processing.forward import GaussianBump, SumSurface, WaveField, true_displacement, true_height
+from processing.geometry import Geometry
+from processing.height import HeightSolver, surface_from_displacement
+
+SHAPE = (192, 208)
+
+
+def _tir(**kw):
+    d = dict(theta_deg=55.0, depth_mm=300.0, pixel_mm=0.1, rows_toward_camera=False)
+    d.update(kw)
+    return Geometry(**d)
+
+
+def _grid(shape=SHAPE):
+    return np.arange(shape[0], dtype=float), np.arange(shape[1], dtype=float)
+
+
+def _xy(g, shape=SHAPE):
+    """Image-frame surface coordinates of a telecentric grid (mm)."""
+    x = (np.arange(shape[1]) - (shape[1] - 1) / 2) * g.pixel_mm
+    y = (np.arange(shape[0]) - (shape[0] - 1) / 2) * g.pixel_mm / math.cos(g.theta)
+    return np.meshgrid(x, y)
+
+
+def _paper_u(h, hx, hy, g):
+    """Paper eq. (displfield), telecentric, canonical frame flipped to image rows; pixels."""
+    p, H, th, s = g.pixel_mm, g.depth_mm, g.theta, g.row_sign
+    u_yc = -(2 * H / math.cos(th) ** 2) * (s * hy) - 2 * math.tan(th) * h
+    return np.stack([s * u_yc * math.cos(th) / p, -2 * H * hx / p])
+
+
+def _rel_rms(a, b, where=None):
+    if where is None:
+        where = np.isfinite(a)
+    return float(np.sqrt(np.mean((a - b)[where] ** 2)) / np.sqrt(np.mean(b[where] ** 2)))
+
+
+def _solve(u, valid, g, shape=SHAPE, **kw):
+    r, c = _grid(shape)
+    return surface_from_displacement(u, valid, g, rows_px=r, cols_px=c, frame_shape=shape, **kw)
+
+
+BUMP = SumSurface([GaussianBump(0.005, 2.0, 1.5, -1.0), GaussianBump(-0.003, 1.2, -3.0, 2.5)])
+
+
+@pytest.mark.parametrize("rows_toward_camera", [False, True])
+def test_exact_on_linear_model(rows_toward_camera):
+    """notes.md: least squares of exact gradients reproduces h to 0.01 %."""
+    g = _tir(rows_toward_camera=rows_toward_camera)
+    X, Y = _xy(g)
+    h = BUMP.height(X, Y)
+    u = _paper_u(h, *BUMP.gradient(X, Y), g).astype(np.float32)
+    res = _solve(u, None, g)
+    assert res.height_mm.dtype == np.float32 and res.height_mm.shape == SHAPE
+    assert _rel_rms(res.height_mm, h) < 1e-3
+    hx, hy = BUMP.gradient(X, Y)
+    assert np.max(np.abs(res.slope_x - hx)) < 1e-3 * np.abs(hx).max()
+    assert np.max(np.abs(res.slope_y - hy)) < 1e-3 * np.abs(hy).max()
+    assert res.x_mm == pytest.approx(X[0]) and res.y_mm == pytest.approx(Y[:, 0])
+    # the wrong row direction is a different physical setup: the heights come out wrong
+    other = _solve(u, None, _tir(rows_toward_camera=not rows_toward_camera))
+    assert _rel_rms(other.height_mm, h) > 0.01
+
+
+def test_null_space_is_pinned_by_the_reference_region():
+    """h + f0 exp(-T y_c / H) produces the same u: pinning returns h, not h + f0 e^(...)."""
+    g = _tir(rows_toward_camera=True, reference_region=(0, 20, 0, 30))
+    X, Y = _xy(g)
+    c = g.T / g.depth_mm
+    yc = g.row_sign * Y
+    h = BUMP.height(X, Y)
+    hx, hy = BUMP.gradient(X, Y)
+    f0 = 0.004
+    null = f0 * np.exp(-c * yc)
+    u0 = _paper_u(h, hx, hy, g)
+    u1 = _paper_u(h + null, hx, hy + g.row_sign * (-c) * null, g)
+    assert np.max(np.abs(u1 - u0)) < 1e-12  # the paper's operator cannot see it
+    r0, r1 = _solve(u0, None, g), _solve(u1, None, g)
+    np.testing.assert_allclose(r1.height_mm, r0.height_mm, atol=1e-6 * np.abs(h).max())
+    assert _rel_rms(r1.height_mm, h) < 1e-3
+    assert abs(float(np.mean(r1.height_mm[0:20, 0:30]))) < 1e-4 * np.abs(h).max()
+    # a constant offset alone would leave 4 % of f0 tilt over the field (2.4 % of the bump)
+    tilt = null - null[0:20, 0:30].mean()
+    assert _rel_rms(h + tilt, h) > 0.01
+
+
+def test_masked_region_does_not_pollute(rng):
+    g = _tir()
+    X, Y = _xy(g)
+    h = BUMP.height(X, Y)
+    u = _paper_u(h, *BUMP.gradient(X, Y), g)
+    rr, cc = np.mgrid[: SHAPE[0], : SHAPE[1]]
+    hole = ((rr - 120) ** 2 + (cc - 90) ** 2 < 22**2) | ((abs(rr - 50) < 8) & (abs(cc - 150) < 35))
+    bad = u.copy()
+    bad[:, hole] = rng.normal(0.0, 30.0, size=(2, int(hole.sum())))
+    bad[0, hole & (rr % 7 == 0)] = np.nan
+    res = _solve(bad, ~hole, g)
+    assert np.isnan(res.height_mm[hole]).all() and np.isnan(res.slope_x[hole]).all()
+    assert not res.valid[hole].any() and res.valid[~hole].all()
+    assert _rel_rms(res.height_mm, h, ~hole) < 1e-3
+    assert np.max(np.abs(res.height_mm - h)[~hole]) < 1e-3 * np.abs(h).max()
+    assert 0 < res.iterations < 100
+
+
+def test_spectral_equals_masked_when_all_valid(rng):
+    g = _tir()
+    X, Y = _xy(g)
+    w = WaveField.random(6, amplitude_rms_mm=0.002, wavelength_range_mm=(4.0, 9.0), seed=4)
+    u = _paper_u(w.height(X, Y), *w.gradient(X, Y), g) + rng.normal(0, 0.05, size=(2, *SHAPE))
+    spec = _solve(u, None, g, solver="spectral")
+    mask = _solve(u, np.ones(SHAPE, bool), g, solver="masked")
+    scale = np.abs(spec.height_mm).max()
+    assert np.max(np.abs(spec.height_mm - mask.height_mm)) < 1e-3 * scale
+    with pytest.raises(TirdeflectError, match="solver='masked'"):
+        _solve(u, np.broadcast_to(np.arange(SHAPE[1]) > 3, SHAPE), g, solver="spectral")
+
+
+def test_unreferenced_pieces_are_invalid_and_empty_reference_raises():
+    g = _tir()
+    X, Y = _xy(g)
+    h = BUMP.height(X, Y)
+    u = _paper_u(h, *BUMP.gradient(X, Y), g)
+    rr, cc = np.mgrid[: SHAPE[0], : SHAPE[1]]
+    ring = (np.hypot(rr - 96, cc - 104) > 30) & (np.hypot(rr - 96, cc - 104) < 34)
+    res = _solve(u, ~ring, g)
+    island = np.hypot(rr - 96, cc - 104) <= 30  # cut off from the border band: offset unknown
+    assert not res.valid[island].any() and np.isnan(res.height_mm[island]).all()
+    assert _rel_rms(res.height_mm, h, res.valid) < 1e-3
+    band = g.reference_mask(*_grid(), SHAPE)
+    with pytest.raises(GeometryError, match="no valid pixel"):
+        _solve(u, ~band, g)
+
+
+def test_decimated_grid():
+    g = _tir()
+    shape = (256, 256)
+    surf = GaussianBump(0.005, 3.0, 1.0, -1.0)
+    r, c = _grid(shape)
+    u, _ = true_displacement(surf, g, shape)
+    ht = true_height(surf, g, shape)
+    rs, cs = np.arange(3, 256, 4, dtype=float), np.arange(1, 256, 4, dtype=float)
+    res = surface_from_displacement(u[:, 3::4, 1::4], None, g, rows_px=rs, cols_px=cs, frame_shape=shape)
+    assert res.height_mm.shape == (64, 64)
+    assert res.x_mm == pytest.approx((cs - 127.5) * 0.1)
+    assert res.y_mm == pytest.approx((rs - 127.5) * 0.1 / math.cos(g.theta))
+    assert _rel_rms(res.height_mm, ht[3::4, 1::4]) < 0.005
+    with pytest.raises(ShapeMismatchError, match="evenly spaced"):
+        surface_from_displacement(u[:, :3, :3], None, g, rows_px=[0, 1, 3], cols_px=[0, 1, 2], frame_shape=shape)
+    with pytest.raises(ShapeMismatchError, match="displacement_px must have shape"):
+        surface_from_displacement(u, None, g, rows_px=rs, cols_px=cs, frame_shape=shape)
+
+
+@pytest.mark.parametrize("rows_toward_camera", [False, True])
+def test_ray_traced_telecentric(rows_toward_camera):
+    g = _tir(rows_toward_camera=rows_toward_camera)
+    u, lost = true_displacement(BUMP, g, SHAPE)
+    res = _solve(u.astype(np.float32), None, g)
+    assert _rel_rms(res.height_mm, true_height(BUMP, g, SHAPE)) < 0.01
+
+
+@pytest.mark.parametrize("rows_toward_camera", [False, True])
+def test_ray_traced_finite_camera_distance(rows_toward_camera):
+    """Camera at 1.5 m, theta 60 deg: two magnifications and a varying theta -> <= 3 %."""
+    g = _tir(theta_deg=60.0, camera_distance_mm=1500.0, rows_toward_camera=rows_toward_camera)
+    u, _ = true_displacement(BUMP, g, SHAPE)
+    ht = true_height(BUMP, g, SHAPE)
+    res = _solve(u, None, g)
+    assert _rel_rms(res.height_mm, ht) < 0.03
+    assert res.surface_xy_mm.shape == (2, *SHAPE)
+    # the same displacement read as if telecentric is far off: the test can fail
+    tele = _solve(u, None, _tir(theta_deg=60.0, rows_toward_camera=rows_toward_camera))
+    assert _rel_rms(tele.height_mm, ht) > 0.1
+    # and with a masked hole (variable-coefficient masked solver)
+    rr, cc = np.mgrid[: SHAPE[0], : SHAPE[1]]
+    hole = np.hypot(rr - 60, cc - 150) < 15
+    u2 = u.copy()
+    u2[:, hole] = 99.0
+    res2 = _solve(u2, ~hole, g)
+    assert _rel_rms(res2.height_mm, ht, ~hole) < 0.03
+
+
+@pytest.mark.parametrize("distance", [None, 800.0])
+def test_fsss_through_layer_stack(distance):
+    """Refraction through air / glass / water (README setup) -> heights within 1.5 %."""
+    g = Geometry(setup="fsss", pixel_mm=0.207, fsss_layers=((57.0, 1.0003), (12.0, 1.48899), (43.0, 1.34)),
+                 n_water=1.34, fsss_camera_distance_mm=distance)
+    surf = GaussianBump(0.02, 4.0, 2.0, -3.0)
+    shape = (160, 176)
+    u, lost = true_displacement(surf, g, shape)
+    assert not lost.any() and np.nanmax(np.abs(u)) > 0.3  # a measurable displacement
+    res = _solve(u, None, g, shape=shape)
+    ht = true_height(surf, g, shape)
+    assert _rel_rms(res.height_mm, ht) < 0.015
+    X, Y = np.meshgrid(res.x_mm, res.y_mm)
+    hx, hy = surf.gradient(X, Y)
+    assert np.max(np.abs(res.slope_x - hx)) < 0.03 * np.abs(hx).max()
+
+
+def test_solver_object_reuse_and_errors():
+    g = _tir()
+    r, c = _grid((64, 64))
+    s = HeightSolver(g, r, c, (64, 64))
+    zero = s.solve(np.zeros((2, 64, 64), np.float32))
+    assert np.all(zero.height_mm == 0)
+    with pytest.raises(GeometryError, match="contains no sample"):
+        HeightSolver(_tir(reference_region=(10, 11, 10, 11)), r[::4], c[::4], (64, 64))
+    with pytest.raises(TirdeflectError, match="solver must be"):
+        s.solve(np.zeros((2, 64, 64)), solver="fast")
