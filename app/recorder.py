@@ -30,7 +30,7 @@ import shutil
 import threading
 import time
 from pathlib import Path
-from typing import Callable, Dict, List, Optional
+from typing import Callable, Dict, List, Optional, Tuple
 
 import numpy as np
 
@@ -43,6 +43,7 @@ __all__ = [
     "FRAME_TABLE_DTYPE",
     "RecorderError",
     "DiskSpaceError",
+    "DiskFullError",
     "RecordingFile",
     "Recorder",
     "unique_path",
@@ -77,6 +78,49 @@ class RecorderError(RuntimeError):
 
 class DiskSpaceError(RecorderError):
     """Not enough free space for the planned recording."""
+
+
+class DiskFullError(DiskSpaceError):
+    """The disk (or the file-size limit) ran out during the recording; the file is closed valid."""
+
+
+#: space kept free on the disk so that the file can still be closed validly (metadata, summary)
+RESERVE_BYTES = 4 * 1024 * 1024
+
+
+def room_bytes(path: Path, current_size: int) -> Tuple[int, str]:
+    """Bytes the file at ``path`` may still grow by, and what limits it ("disk" or "file size limit")."""
+    room, what = shutil.disk_usage(path.parent).free, "disk"
+    try:
+        import resource
+
+        soft, _ = resource.getrlimit(resource.RLIMIT_FSIZE)
+        if soft != resource.RLIM_INFINITY and soft - current_size < room:
+            room, what = soft - current_size, "file size limit (ulimit -f)"
+    except (ImportError, ValueError, OSError):  # pragma: no cover - not POSIX
+        pass
+    return room, what
+
+
+def _repair_eof(path: Path) -> bool:
+    """After a failed write HDF5 may record an end of file beyond the real one; extend the file (sparse) to it.
+
+    Returns True when the file was extended. Superblock version 0 (libver
+    "earliest", what we write) keeps the end-of-file address at byte 40.
+    """
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(48)
+        if len(head) < 48 or head[:8] != b"\x89HDF\r\n\x1a\n" or head[8] != 0 or head[13] != 8:
+            return False
+        stored = int.from_bytes(head[40:48], "little")
+        size = os.path.getsize(path)
+        if size < stored < size + (1 << 40):
+            os.truncate(path, stored)
+            return True
+    except OSError:
+        pass
+    return False
 
 
 def software_version() -> str:
@@ -199,12 +243,13 @@ class RecordingFile:
             else self.n_planned * (self.frame_bytes + FRAME_TABLE_DTYPE.itemsize) + extra + SPACE_MARGIN_BYTES
         )
         if check_space and self.planned_bytes is not None:
-            free = shutil.disk_usage(p.parent).free
+            free, what = room_bytes(p, 0)
             if self.planned_bytes > free:
+                where = f"on {str(p.parent)!r}" if what == "disk" else f"under the {what}"
                 raise DiskSpaceError(
                     f"recording {self.n_planned} frames of {self.shape[0]}x{self.shape[1]} {self.dtype} needs "
                     f"{format_bytes(self.planned_bytes)} ({self.planned_bytes} bytes) but only {format_bytes(free)} "
-                    f"({free} bytes) are free on {str(p.parent)!r}; free space, record fewer frames or "
+                    f"({free} bytes) are free {where}; free space, record fewer frames or "
                     "choose another disk"
                 )
         self.path = p
@@ -268,7 +313,9 @@ class RecordingFile:
         self._n_rows = 0
         self.events: List[dict] = []
         self.closed = False
+        self.failed = False  # a write failed: HDF5 may hold half-done allocations
         f.flush()
+        self._size_estimate = os.path.getsize(p)
 
     # ------------------------------------------------------------ writing
     def _grow(self, need: int) -> None:
@@ -293,13 +340,32 @@ class RecordingFile:
             raise RecorderError(
                 f"frame {row[0]} is {image.dtype} {image.shape}; the recording holds {self.dtype} {self.shape}"
             )
-        self.frames.id.write_direct_chunk((i, 0, 0), np.ascontiguousarray(image))
+        self._check_room()
+        try:
+            self.frames.id.write_direct_chunk((i, 0, 0), np.ascontiguousarray(image))
+        except OSError:
+            self.failed = True
+            raise
         if self._n_rows == len(self._rows):
             self._write_rows()
         self._rows[self._n_rows] = row
         self._n_rows += 1
         self.n_written = i + 1
         return i
+
+    def _check_room(self) -> None:
+        """Stop (DiskFullError) before the disk or the file-size limit is so full that closing could fail."""
+        size = self._size_estimate
+        room, what = room_bytes(self.path, size)
+        need = self.frame_bytes + FRAME_TABLE_DTYPE.itemsize + RESERVE_BYTES
+        if room < need:
+            raise DiskFullError(
+                f"{what} full: only {format_bytes(max(room, 0))} left for {str(self.path)!r}, kept in reserve so "
+                f"the file stays valid; recording stopped after {self.n_written} frames"
+                + (f" of {self.n_planned}" if self.n_planned else "")
+                + "; free disk space or choose another disk"
+            )
+        self._size_estimate += self.frame_bytes + FRAME_TABLE_DTYPE.itemsize
 
     def _write_rows(self) -> None:
         if self._n_rows:
@@ -310,12 +376,16 @@ class RecordingFile:
 
     def flush(self) -> None:
         """Put everything written so far on disk and advance ``frames_written``."""
-        self._write_rows()
-        self._f.flush()  # frame data and table rows first ...
-        n = self.n_written
-        self.frames.attrs["frames_written"] = n  # ... then the counter that vouches for them
-        self._f.attrs["frames_written"] = n
-        self._f.flush()
+        try:
+            self._write_rows()
+            self._f.flush()  # frame data and table rows first ...
+            n = self.n_written
+            self.frames.attrs["frames_written"] = n  # ... then the counter that vouches for them
+            self._f.attrs["frames_written"] = n
+            self._f.flush()
+        except OSError:
+            self.failed = True
+            raise
         self.n_flushed = n
 
     def add_event(self, kind: str, message: str = "", *, sequence: int = -1, host_timestamp_ns: Optional[int] = None,
@@ -343,6 +413,21 @@ class RecordingFile:
 
         f = self._f
         problems = []
+        if self.failed:
+            # a raw write failed (disk full, I/O error): allocate nothing more; keep what was flushed
+            try:
+                f.attrs["complete"] = 0
+            except Exception:
+                pass
+            self.closed = True
+            try:
+                f.close()
+            except Exception as exc:
+                log.error("recording %s: closing after a write error: %s", self.path, exc)
+            if _repair_eof(self.path):
+                log.warning("recording %s: extended the file to the end HDF5 recorded after the failed write",
+                            self.path)
+            return
         try:
             try:
                 self.flush()
@@ -370,12 +455,13 @@ class RecordingFile:
                 problems.append(f"writing the summary failed: {exc}")
                 log.error("recording %s: %s", self.path, problems[-1])
         finally:
-            self.closed = True
-            try:
-                f.close()
-            except Exception as exc:  # pragma: no cover - disk full during close
-                log.error("recording %s: closing failed: %s (the file is valid up to frame %d)",
-                          self.path, exc, self.n_flushed)
+            if not self.closed:
+                self.closed = True
+                try:
+                    f.close()
+                except Exception as exc:  # pragma: no cover - disk full during close
+                    log.error("recording %s: closing failed: %s (the file is valid up to frame %d)",
+                              self.path, exc, self.n_flushed)
 
 
 class Recorder:
@@ -589,6 +675,8 @@ class Recorder:
                     last_flush = now
                     if self.progress is not None:
                         self.progress(rf.n_flushed, self.n_frames)
+        except DiskFullError as exc:
+            error = str(exc)
         except OSError as exc:
             error = (f"writing {str(rf.path)!r} failed at frame {rf.n_written} ({exc}); the file holds the "
                      f"frames written before; free disk space or choose another disk")
