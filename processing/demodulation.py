@@ -24,8 +24,8 @@ Filters (``filter_shape``):
 
 - ``"flattop"`` (default): radial Tukey in frequency around the carrier,
   gain 1 up to ``filter_flat * radius``, cosine roll-off to 0 at ``radius``;
-  ``radius = filter_radius * spacing`` where ``spacing`` is the distance to
-  the nearest other peak (DC, other carrier, its mirror).
+  ``radius = min(filter_radius * |k|, |k1 +- k2| / 2)`` (DC may come closer
+  than the other pattern peaks: only slow lighting changes live there).
 - ``"disc"``: the usual hard disc of the same radius (the published method).
 """
 
@@ -80,8 +80,9 @@ class Demodulator:
     planner : FFTPlanner, optional
         Plans to use (default: a new one with FFTW_ESTIMATE).
     filter_radius : float, optional
-        Filter radius as a fraction of the carrier spacing (nearest other
-        peak); 0.5 (default) means the neighbouring bands just touch.
+        Filter radius as a fraction of the carrier's distance to DC (default
+        0.7; 0.5 is the usual filter), never more than half the distance to
+        the other carrier or the harmonics (``|k1 +- k2|``).
     filter_flat : float, optional
         Fraction of the radius where the flat-top filter has gain 1.
     filter_shape : {"flattop", "disc"}
@@ -111,7 +112,7 @@ class Demodulator:
     """
 
     def __init__(self, reference, carriers: Carriers, *, planner: FFTPlanner | None = None,
-                 filter_radius: float = 0.5, filter_flat: float = 0.6,
+                 filter_radius: float = 0.7, filter_flat: float = 0.6,
                  filter_shape: str = "flattop", oversample: float = 2.0,
                  border: str = "apodize", taper_px: float | None = None, subbin: bool = True):
         ref = np.asarray(reference)
@@ -138,9 +139,14 @@ class Demodulator:
             freq = np.round(freq * np.array([rows, cols])) / np.array([rows, cols])
         self.freq = freq
         self.wavevectors = 2.0 * np.pi * freq
-        spacing = Carriers(freq=freq, shape=self.shape, contrast=carriers.contrast,
-                           sharpness=carriers.sharpness).min_spacing
-        self.radius = float(filter_radius * spacing)  # cycles / px
+        k1, k2 = freq
+        dc_spacing = min(np.hypot(*k1), np.hypot(*k2))
+        pair_spacing = min(np.hypot(*(k1 - k2)), np.hypot(*(k1 + k2)))
+        # The DC band holds only slow illumination changes (the mean is removed),
+        # so the filter may reach further towards DC than towards the other
+        # carrier and the harmonics (at k1 +- k2 from each carrier), whose bands
+        # it must never touch: at most half the distance to them.
+        self.radius = float(min(filter_radius * dc_spacing, 0.5 * pair_spacing))  # cycles / px
         self.flat = float(filter_flat)
         # ---- border window
         period = float(np.max(1.0 / np.hypot(freq[:, 0], freq[:, 1])))

@@ -192,7 +192,7 @@ class Reconstructor:
 
     def __init__(self, reference_image, geometry, *, grid: str = "full", unwrap: bool = True,
                  temporal: bool = True, refine_iterations: Optional[int] = None,
-                 filter_radius: float = 0.5, filter_flat: float = 0.6, filter_shape: str = "flattop",
+                 filter_radius: float = 0.7, filter_flat: float = 0.6, filter_shape: str = "flattop",
                  oversample: float = 2.0, border: str = "apodize", subbin: bool = True,
                  full_method: str = "interpolate", full_interpolation: str = "lanczos", min_amplitude: float = 0.3, min_fold: float = 0.2,
                  dilate: int = 1, min_island: float = 0.01, check_pattern: bool = True, solver: str = "auto", threads: int = 2,

@@ -1,0 +1,139 @@
+"""Fourier demodulation on analytic warps I(r) = I0(r - u(r)) with known u."""
+
+import math
+
+import numpy as np
+import pytest
+
+from processing.carriers import find_carriers
+from processing.demodulation import Demodulator, nice_fft_size, tukey
+from processing.fft import FFTPlanner, export_wisdom, import_wisdom
+
+N = 256
+PERIOD = 16.0  # board edge period, px: carriers of period 11.3 px
+
+
+def board(r, c, rotation_deg=5.0):
+    t = math.radians(rotation_deg)
+    x = c * math.cos(t) + r * math.sin(t)
+    y = -c * math.sin(t) + r * math.cos(t)
+    k = 2 * np.pi / PERIOD
+    return 0.5 + 0.4 * np.tanh(3 * np.sin(k * x) * np.sin(k * y))
+
+
+def displacement(r, c, amp_px, sigma_px):
+    g = amp_px * np.exp(-((r - 120.0) ** 2 + (c - 140.0) ** 2) / (2 * sigma_px**2))
+    return np.array([0.8 * g, -0.5 * g])
+
+
+def warp_case(amp_px=1.0, sigma_px=25.0):
+    r, c = np.mgrid[:N, :N].astype(float)
+    u = displacement(r, c, amp_px, sigma_px)
+    return board(r, c), board(r - u[0], c - u[1])
+
+
+def rel_error(demod, frame, amp_px, sigma_px, margin=24):
+    g = demod.decimated(frame)
+    u = demod.phase_to_displacement(np.angle(g * np.conj(demod.g0)))
+    R, C = np.meshgrid(demod.rows_px, demod.cols_px, indexing="ij")
+    ut = displacement(R, C, amp_px, sigma_px)
+    inner = (R > margin) & (R < N - margin) & (C > margin) & (C < N - margin)
+    err = np.sqrt(np.mean((u - ut)[:, inner] ** 2))
+    return err / np.sqrt(np.mean(ut[:, inner] ** 2))
+
+
+def test_recovers_smooth_displacement():
+    ref, frame = warp_case(1.0, 25.0)
+    d = Demodulator(ref, find_carriers(ref))
+    assert rel_error(d, frame, 1.0, 25.0) < 0.005  # 0.5 % of u
+
+
+def test_flattop_filter_smooths_less_than_usual_disc():
+    # features about two carrier periods wide: the usual disc filter loses a few %
+    ref, frame = warp_case(0.5, 9.0)
+    c = find_carriers(ref)
+    e_flat = rel_error(Demodulator(ref, c, filter_shape="flattop"), frame, 0.5, 9.0)
+    e_disc = rel_error(Demodulator(ref, c, filter_shape="disc", filter_radius=0.5, subbin=False), frame, 0.5, 9.0)
+    assert e_flat < 0.03
+    assert e_disc > 1.5 * e_flat
+
+
+def test_apodization_keeps_borders_from_leaking():
+    # non-periodic board (rotated, period not dividing N) plus a lighting ramp:
+    # without apodization the wrap-around jump leaks into the carrier bands
+    r, c = np.mgrid[:N, :N].astype(float)
+    light = 1.0 + 0.6 * r / N
+    u = displacement(r, c, 1.0, 25.0)
+    ref = board(r, c) * light
+    frame = board(r - u[0], c - u[1]) * light
+    car = find_carriers(ref)
+    e_apo = rel_error(Demodulator(ref, car, border="apodize"), frame, 1.0, 25.0, margin=12)
+    e_none = rel_error(Demodulator(ref, car, border="none"), frame, 1.0, 25.0, margin=12)
+    assert e_apo < 0.01
+    assert e_apo <= e_none
+
+
+def test_decimated_grid_is_pixel_centred_and_small():
+    ref, _ = warp_case()
+    d = Demodulator(ref, find_carriers(ref))
+    m_r, m_c = d.window_shape
+    assert m_r < N / 2 and m_c < N / 2  # the live speed comes from here
+    np.testing.assert_allclose(d.rows_px, (np.arange(m_r) + 0.5) * N / m_r - 0.5)
+
+
+def test_full_grid_matches_decimated_at_samples():
+    ref, frame = warp_case(1.0, 25.0)
+    d = Demodulator(ref, find_carriers(ref))
+    wins = d.windows(d.spectrum(frame))
+    gd = d.decimated_from_windows(wins)
+    gf = d.full_from_windows(wins).copy()
+    g0f = d.full_from_windows(d.windows(d.spectrum(ref)))
+    phase_full = np.angle(gf * np.conj(g0f))
+    # the full grid, interpolated (cubic spline) at the decimated samples, agrees
+    from scipy.ndimage import map_coordinates
+
+    R, C = np.meshgrid(d.rows_px, d.cols_px, indexing="ij")
+    inner = (R > 16) & (R < N - 16) & (C > 16) & (C < N - 16)
+    pd = np.angle(gd * np.conj(d.g0))
+    for s in range(2):
+        pf = map_coordinates(phase_full[s], [R[inner], C[inner]], order=3)
+        assert np.max(np.abs(pf - pd[s][inner])) < 0.01  # rad, of up to ~0.6 rad
+
+
+def test_phase_displacement_round_trip():
+    ref, _ = warp_case()
+    d = Demodulator(ref, find_carriers(ref))
+    u = np.random.default_rng(1).normal(size=(2, 5, 7))
+    np.testing.assert_allclose(d.phase_to_displacement(d.displacement_to_phase(u)), u, atol=1e-5)
+
+
+def test_options_validated():
+    ref, _ = warp_case()
+    c = find_carriers(ref)
+    with pytest.raises(ValueError, match="filter_shape"):
+        Demodulator(ref, c, filter_shape="box")
+    with pytest.raises(ValueError, match="filter_radius"):
+        Demodulator(ref, c, filter_radius=2.0)
+
+
+def test_helpers():
+    assert nice_fft_size(97) == 98 and nice_fft_size(128) == 128
+    w = tukey(50, 10)
+    assert w.max() == 1.0 and w[0] < 0.05 and np.all(w[10:40] == 1.0)
+
+
+def test_fft_planner_and_wisdom_round_trip():
+    p = FFTPlanner(threads=2, planner_effort="FFTW_MEASURE")
+    x = np.random.default_rng(2).normal(size=(60, 80)).astype(np.float32)
+    np.testing.assert_allclose(p.rfft2(x), np.fft.rfft2(x), rtol=1e-4, atol=1e-3)
+    blob = export_wisdom()
+    assert isinstance(blob, bytes) and len(blob) > 20
+    assert import_wisdom(blob) is True
+    with pytest.raises(ValueError, match="header"):
+        import_wisdom(b"not wisdom")
+    with pytest.raises(ValueError, match="truncated"):
+        import_wisdom(blob[:-5])
+    with pytest.raises(ValueError, match="planner_effort"):
+        FFTPlanner(planner_effort="FFTW_FAST")
+    y = (np.random.default_rng(3).normal(size=(32, 48)) + 1j).astype(np.complex64)
+    np.testing.assert_allclose(p.ifft2(p.fft2(y).copy()), y, atol=1e-5)

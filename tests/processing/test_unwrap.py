@@ -1,0 +1,64 @@
+"""Spatial and temporal phase unwrapping."""
+
+import numpy as np
+
+from processing.unwrap import has_wraps, unwrap_spatial, unwrap_temporal, wrap
+
+
+def bowl(n=64, depth=12.0):
+    r, c = np.mgrid[:n, :n].astype(float)
+    return -depth * np.exp(-((r - 32) ** 2 + (c - 30) ** 2) / (2 * 12.0**2))
+
+
+def border(n=64, w=3):
+    m = np.zeros((n, n), bool)
+    m[:w], m[-w:], m[:, :w], m[:, -w:] = True, True, True, True
+    return m
+
+
+def test_spatial_unwraps_several_pi_with_reference_near_zero():
+    true = bowl()  # 12 rad deep, reference border at ~0
+    out = unwrap_spatial(wrap(true), ref_mask=border())
+    np.testing.assert_allclose(out, true, atol=1e-9)
+
+
+def test_spatial_ignores_masked_samples():
+    true = bowl()
+    valid = np.ones_like(true, bool)
+    valid[20:26, 5:60] = False  # a masked stripe across the bowl
+    garbage = np.where(valid, wrap(true), np.random.default_rng(0).uniform(-np.pi, np.pi, true.shape))
+    out = unwrap_spatial(garbage, valid, ref_mask=border())
+    assert np.all(np.isnan(out[~valid]))
+    np.testing.assert_allclose(out[valid], true[valid], atol=1e-9)
+
+
+def test_fast_path_when_no_wraps():
+    phase = 0.1 * bowl()
+    assert not has_wraps(phase)
+    np.testing.assert_allclose(unwrap_spatial(phase, ref_mask=border()), phase)
+
+
+def test_temporal_fixes_an_island_space_cannot():
+    # an island cut off by an invalid ring: space alone cannot know its 2 pi
+    # offset; the previous frame of the series can
+    n = 64
+    r, c = np.mgrid[:n, :n].astype(float)
+    rad = np.hypot(r - 32, c - 32)
+    valid = ~((rad > 10) & (rad < 14))
+    prev_true = -7.0 * np.exp(-(rad**2) / (2 * 6.0**2))
+    now_true = prev_true * 1.15
+    spatial = unwrap_spatial(wrap(now_true), valid, ref_mask=border())
+    island = rad <= 10
+    assert np.max(np.abs(spatial[island] - now_true[island])) > 3  # wrong by 2 pi
+    prev = np.where(valid, prev_true, np.nan)
+    out = unwrap_temporal(wrap(now_true), prev, valid, valid, ref_mask=border())
+    np.testing.assert_allclose(out[valid], now_true[valid], atol=1e-9)
+
+
+def test_temporal_new_valid_samples_join_consistently():
+    true = bowl()
+    prev_valid = np.ones_like(true, bool)
+    prev_valid[40:50, 40:50] = False
+    prev = np.where(prev_valid, true * 0.95, np.nan)
+    out = unwrap_temporal(wrap(true), prev, None, prev_valid, ref_mask=border())
+    np.testing.assert_allclose(out, true, atol=1e-9)
