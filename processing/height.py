@@ -60,7 +60,12 @@ __all__ = [
     "poisson_neumann",
 ]
 
-_WORKERS = 2
+_WORKERS = 2  # FFT threads for large grids (the target machine has 2 cores)
+
+
+def _workers(shape) -> int:
+    """Threads only pay off above about 256 x 256 samples."""
+    return _WORKERS if shape[0] * shape[1] > 300_000 else 1
 
 
 class SurfaceResult(NamedTuple):
@@ -114,10 +119,11 @@ def poisson_neumann(div_rhs: np.ndarray, denom: np.ndarray) -> np.ndarray:
         Eigenvalues of ``D^T D`` in the DCT-II basis; ``denom[0, 0]`` is
         ignored (the constant mode, returned as zero).
     """
-    c = sfft.dctn(div_rhs, type=2, norm="ortho", workers=_WORKERS)
+    w = _workers(div_rhs.shape)
+    c = sfft.dctn(div_rhs, type=2, norm="ortho", workers=w)
     c[0, 0] = 0.0
     c /= denom
-    return sfft.idctn(c, type=2, norm="ortho", workers=_WORKERS)
+    return sfft.idctn(c, type=2, norm="ortho", workers=w)
 
 
 def _cell_average(G: np.ndarray, axis: int, ok: np.ndarray | None) -> np.ndarray:
@@ -333,10 +339,11 @@ class HeightSolver:
         # D^T of the cell averages of g / n, in the order (row edges, column edges)
         self._divT_cellavg(ur * F["gr"], 0, self.grid.dr, rhs)
         self._divT_cellavg(uc * F["gc"], 1, self.grid.dc, rhs)
-        c = sfft.dctn(rhs, type=2, norm="ortho", workers=_WORKERS, overwrite_x=True)
+        w = _workers(self.shape)
+        c = sfft.dctn(rhs, type=2, norm="ortho", workers=w, overwrite_x=True)
         c[0, 0] = 0.0
         c /= F["denom"]
-        f = sfft.idctn(c, type=2, norm="ortho", workers=_WORKERS, overwrite_x=True)
+        f = sfft.idctn(c, type=2, norm="ortho", workers=w, overwrite_x=True)
         # pin: h = (f - alpha) n with alpha the n^2-weighted mean of f on the reference samples
         alpha = float(np.vdot(F["w"], f * F["null"])) / F["nn"] if F["nn"] > 0 else 0.0
         f -= np.float32(alpha)
@@ -522,11 +529,13 @@ class HeightSolver:
             out *= vf
             return out
 
+        w = _workers(self.shape)
+
         def prec(r):
-            c = sfft.dctn(r, type=2, norm="ortho", workers=_WORKERS)
+            c = sfft.dctn(r, type=2, norm="ortho", workers=w)
             c[0, 0] = 0.0
             c /= denom
-            z = sfft.idctn(c, type=2, norm="ortho", workers=_WORKERS, overwrite_x=True)
+            z = sfft.idctn(c, type=2, norm="ortho", workers=w, overwrite_x=True)
             z *= vf
             return z
 
