@@ -6,6 +6,7 @@
     tirdeflect gui [--camera ID]     open the live window on a camera
     tirdeflect process REF FRAME... --geometry G.toml --out OUT.h5
     tirdeflect simulate --out DIR [--surface bump] ...
+    tirdeflect compare OUT.h5 DIR/heights.h5   processed vs simulated heights
     tirdeflect cameras               list cameras
     tirdeflect record ...            record frames to HDF5 without the GUI
     tirdeflect --version
@@ -129,6 +130,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_gui(sub)
     process_cli.add_process_parser(sub)
     process_cli.add_simulate_parser(sub)
+    process_cli.add_compare_parser(sub)
     _add_record_commands(sub)
     return parser
 

@@ -588,9 +588,9 @@ def iter_frames(
     Raises
     ------
     ImageReadError
-        When a file cannot be read; frames before it have already been yielded.
-    ValueError
-        Bad ``first/last/step``.
+        When a file cannot be read; frames before it have already been
+        yielded. Its ``sequence_index`` attribute is the failing frame's index.
+        Also for bad ``first/last/step``.
     """
     if step < 1:
         raise ImageReadError(f"--step must be >= 1; got {step}")
@@ -603,35 +603,40 @@ def iter_frames(
         return k >= first and (last is None or k <= last) and (k - first) % step == 0
 
     seq = 0
-    for path in paths:
-        if last is not None and seq > last:
-            return
-        p = _check_path(path)
-        kind = _kind(p)
-        if kind == "image":
-            if wanted(seq):
-                yield FrameItem(_read_cv2(p), str(path), 0, seq)
-            seq += 1
-        elif kind == "tiff":
-            with _tiff_open(p) as tif:
-                n, _, _, _, reader = _tiff_layout(tif, p)
-                for i in range(n):
-                    if last is not None and seq > last:
-                        return
-                    if wanted(seq):
-                        yield FrameItem(reader(i), str(path), i, seq)
-                    seq += 1
-        else:
-            with _h5_open(p) as f:
-                ds, n = _h5_frames(f, p)
-                table = _h5_frame_table(f, n)
-                for i in range(n):
-                    if last is not None and seq > last:
-                        return
-                    if wanted(seq):
-                        arr = _check_dtype(_to_gray(np.asarray(ds[i]), p), p)
-                        yield FrameItem(arr, str(path), i, seq, **_table_fields(table, i))
-                    seq += 1
+    try:
+        for path in paths:
+            if last is not None and seq > last:
+                return
+            p = _check_path(path)
+            kind = _kind(p)
+            if kind == "image":
+                if wanted(seq):
+                    yield FrameItem(_read_cv2(p), str(path), 0, seq)
+                seq += 1
+            elif kind == "tiff":
+                with _tiff_open(p) as tif:
+                    n, _, _, _, reader = _tiff_layout(tif, p)
+                    for i in range(n):
+                        if last is not None and seq > last:
+                            return
+                        if wanted(seq):
+                            yield FrameItem(reader(i), str(path), i, seq)
+                        seq += 1
+            else:
+                with _h5_open(p) as f:
+                    ds, n = _h5_frames(f, p)
+                    table = _h5_frame_table(f, n)
+                    for i in range(n):
+                        if last is not None and seq > last:
+                            return
+                        if wanted(seq):
+                            arr = _check_dtype(_to_gray(np.asarray(ds[i]), p), p)
+                            yield FrameItem(arr, str(path), i, seq, **_table_fields(table, i))
+                        seq += 1
+    except ImageReadError as exc:
+        # say which frame of the sequence could not be read (the file is in the message)
+        exc.sequence_index = seq
+        raise
 
 
 def write_image(path, image: np.ndarray) -> Path:

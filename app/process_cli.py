@@ -39,8 +39,11 @@ from processing.errors import (
 __all__ = [
     "add_process_parser",
     "add_simulate_parser",
+    "add_compare_parser",
     "cmd_process",
     "cmd_simulate",
+    "cmd_compare",
+    "compare_heights",
     "OutputExistsError",
     "OUTPUT_FORMAT_VERSION",
 ]
@@ -143,6 +146,24 @@ def add_simulate_parser(sub) -> None:
     p.add_argument("--overwrite", action="store_true",
                    help="write into DIR even if it already holds a data set")
     p.set_defaults(func=cmd_simulate)
+
+
+def add_compare_parser(sub) -> None:
+    """Add the ``compare`` subcommand (processed heights against simulated truth)."""
+    p = sub.add_parser(
+        "compare",
+        help="compare processed heights (OUT.h5) with simulated truth (DIR/heights.h5)",
+        description="Print, per frame, the relative RMS height error of `tirdeflect process` "
+        "output against the true heights written by `tirdeflect simulate`, in the interior "
+        "of the field, after removing each map's mean over the geometry's reference region.",
+    )
+    p.add_argument("out", metavar="OUT.h5", help="output of tirdeflect process")
+    p.add_argument("truth", metavar="heights.h5", help="heights.h5 of tirdeflect simulate")
+    p.add_argument("--margin", type=float, default=0.125, metavar="F",
+                   help="border left out on each side, as a fraction of the size (default 0.125)")
+    p.add_argument("--max-error", type=float, default=None, metavar="REL",
+                   help="exit with status 1 if any frame's relative RMS error exceeds REL (e.g. 0.02)")
+    p.set_defaults(func=cmd_compare)
 
 
 # =========================================================================== helpers
@@ -571,7 +592,12 @@ def _process_one(reconstruct, item: imageio.FrameItem, ref_shape, grid: str):
 
 
 def _frame_failed(exc: Exception, item, writer: _ResultWriter) -> TirdeflectError:
-    where = f"frame {item.sequence_index} ({item.label})" if item is not None else "reading the next frame"
+    if item is not None:
+        where = f"frame {item.sequence_index} ({item.label})"
+    elif getattr(exc, "sequence_index", None) is not None:
+        where = f"frame {exc.sequence_index}"
+    else:
+        where = "reading the next frame"
     saved = (
         f"the {writer.n} frame(s) before it are saved in {str(writer.path)!r}"
         if writer.n
@@ -613,6 +639,96 @@ def _progress(total: int, *, disable: bool):
     return tqdm(total=total, unit="frame", file=sys.stderr, disable=None, dynamic_ncols=True)
 
 
+# =========================================================================== compare
+
+
+def compare_heights(out_path, truth_path, *, margin: float = 0.125) -> list:
+    """Per-frame errors of processed heights against simulated truth.
+
+    Both maps have their mean over the geometry's reference region removed
+    (the offset the method cannot measure); the comparison uses the interior,
+    ``margin * size`` pixels away from each border, and the valid samples.
+
+    Parameters
+    ----------
+    out_path : path-like
+        ``tirdeflect process`` output on the full grid.
+    truth_path : path-like
+        ``heights.h5`` from ``tirdeflect simulate`` (``/height`` in mm).
+    margin : float
+        Fraction of the rows/cols left out at each border.
+
+    Returns
+    -------
+    list of dict
+        One per output frame: ``frame`` (index into the truth), ``rel_rms``
+        (RMS error / RMS true height), ``rms_error_mm``, ``rms_true_mm``,
+        ``scale`` (least-squares factor estimate ~ scale * truth),
+        ``valid_fraction`` (interior).
+    """
+    import h5py
+    from processing import Geometry
+
+    with h5py.File(out_path, "r") as f:
+        if "height" not in f:
+            raise TirdeflectError(f"{str(out_path)!r} holds no /height; is it a tirdeflect process output?")
+        if f.attrs.get("grid", "full") != "full":
+            raise TirdeflectError(f"{str(out_path)!r} is on the decimated grid; process with --grid full to compare")
+        n = int(f.attrs.get("frames_done", f["height"].shape[0]))
+        est = f["height"][:n].astype(np.float64)
+        index = f["frame_index"][:n]
+        geometry = Geometry.from_toml_text(str(f.attrs["geometry_toml"]))
+    with h5py.File(truth_path, "r") as f:
+        if "height" not in f:
+            raise TirdeflectError(f"{str(truth_path)!r} holds no /height; give the heights.h5 of tirdeflect simulate")
+        truth = f["height"][()].astype(np.float64)
+    if est.shape[1:] != truth.shape[1:]:
+        raise ShapeMismatchError(
+            f"processed heights are {est.shape[1:]} but the truth is {truth.shape[1:]}; "
+            f"compare the output of the same data set")
+    rows, cols = truth.shape[1:]
+    ref = geometry.reference_mask(np.arange(rows), np.arange(cols), (rows, cols))
+    mr, mc = int(round(margin * rows)), int(round(margin * cols))
+    inner = (slice(mr, rows - mr), slice(mc, cols - mc))
+    report = []
+    for k in range(n):
+        j = int(index[k])
+        if j >= truth.shape[0]:
+            raise TirdeflectError(f"output frame {k} is input frame {j} but the truth has {truth.shape[0]} frames")
+        e = est[k] - np.nanmean(est[k][ref])
+        t = truth[j] - np.mean(truth[j][ref])
+        e, t = e[inner], t[inner]
+        ok = np.isfinite(e)
+        err = e[ok] - t[ok]
+        rms_true = float(np.sqrt(np.mean(t[ok] ** 2))) if ok.any() else float("nan")
+        rms_err = float(np.sqrt(np.mean(err ** 2))) if ok.any() else float("nan")
+        scale = float(np.dot(e[ok], t[ok]) / np.dot(t[ok], t[ok])) if ok.any() and rms_true > 0 else float("nan")
+        report.append(dict(frame=j, rel_rms=rms_err / rms_true if rms_true > 0 else float("nan"),
+                           rms_error_mm=rms_err, rms_true_mm=rms_true, scale=scale,
+                           valid_fraction=float(ok.mean())))
+    return report
+
+
+def cmd_compare(args) -> int:
+    """Run ``tirdeflect compare``; 0, or 1 if --max-error is exceeded."""
+    for path, what in ((args.out, "processed file"), (args.truth, "truth file")):
+        _check_input_file(path, what)
+    if not 0 <= args.margin < 0.5:
+        raise TirdeflectError(f"--margin must be in [0, 0.5); got {args.margin}")
+    report = compare_heights(args.out, args.truth, margin=args.margin)
+    print("frame  rel_rms_error  rms_error_um  rms_true_um  scale   valid")
+    worst = 0.0
+    for r in report:
+        print(f"{r['frame']:5d}  {r['rel_rms'] * 100:11.2f} %  {r['rms_error_mm'] * 1e3:12.4f}  "
+              f"{r['rms_true_mm'] * 1e3:11.4f}  {r['scale']:.4f}  {r['valid_fraction']:.3f}")
+        worst = max(worst, r["rel_rms"] if np.isfinite(r["rel_rms"]) else np.inf)
+    if args.max_error is not None and worst > args.max_error:
+        print(f"tirdeflect: worst relative RMS error {worst:.2%} exceeds --max-error {args.max_error:.2%}",
+              file=sys.stderr)
+        return 1
+    return 0
+
+
 # =========================================================================== simulate
 
 
@@ -638,7 +754,7 @@ def _sim_scene(name: str, geometry, size: int, n_frames: int, seed: int):
 
     Features scale with the field (``size * pixel_mm``) and heights with
     ``size / 512``, so the largest carrier phase ``|k . u|`` is the same at every
-    --size: at the default geometry about 1.2 rad (bump), 2.3 rad (dimple, last
+    --size: at the default geometry about 2.3 rad (bump), 2.3 rad (dimple, last
     frame), 2.5 rad (waves) -- all below pi, readable without unwrapping -- and
     about 5 rad for deep-dimple (the notes.md example: 15 um deep at 512 px,
     which needs unwrapping). Heights in mm, positions in the image frame
@@ -649,7 +765,7 @@ def _sim_scene(name: str, geometry, size: int, n_frames: int, seed: int):
     fov_mm = size * geometry.pixel_mm  # field width along x
     scale = size / 512.0
     if name == "bump":
-        return forward.GaussianBump(amplitude_mm=0.002 * scale, sigma_mm=fov_mm / 8.0)
+        return forward.GaussianBump(amplitude_mm=0.004 * scale, sigma_mm=fov_mm / 8.0)
     if name == "dimple":
         # a dimple that deepens over the frames (a disc approaching the surface)
         depth_mm, sigma_mm = 0.004 * scale, fov_mm / 8.0

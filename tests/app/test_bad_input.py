@@ -1,0 +1,185 @@
+"""Bad input to `tirdeflect process`: one clear line, exit status 2, no traceback.
+
+Each test runs the CLI in-process (``app.cli.main([...])``) and checks the exit
+status and that the message names the problem (and the offending value or
+file) and what to do.
+"""
+
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from app import imageio
+from app.cli import main
+
+DATA = Path("/work/shared/data")
+if not DATA.is_dir():
+    DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
+TRAPPED = DATA / "fsss-trapped-modes"
+SIZE = 192
+
+
+@pytest.fixture(scope="module")
+def sim(tmp_path_factory):
+    d = tmp_path_factory.mktemp("simbad")
+    assert main(["simulate", "--out", str(d), "--surface", "bump", "--size", str(SIZE),
+                 "--frames", "1"]) == 0
+    return d
+
+
+def run_cli(capsys, *argv):
+    code = main([str(a) for a in argv])
+    err = capsys.readouterr().err
+    return code, err
+
+
+def assert_clean_error(code, err, *needles):
+    assert code == 2, f"exit status {code}, stderr: {err}"
+    assert "Traceback" not in err
+    lines = [ln for ln in err.splitlines() if ln.startswith("tirdeflect: error:")]
+    assert len(lines) == 1, err
+    for needle in needles:
+        assert needle.lower() in lines[0].lower(), f"{needle!r} not in {lines[0]!r}"
+    return lines[0]
+
+
+def process_args(sim, tmp_path, *frames, reference=None, geometry=None):
+    return ["process", reference or sim / "reference.png", *(frames or [sim / "frame_0000.png"]),
+            "--geometry", geometry or sim / "geometry.toml", "--out", tmp_path / "out.h5"]
+
+
+def test_missing_frame_file(sim, tmp_path, capsys):
+    missing = tmp_path / "frame_9999.png"
+    code, err = run_cli(capsys, *process_args(sim, tmp_path, missing))
+    assert_clean_error(code, err, "does not exist", str(missing))
+    assert not (tmp_path / "out.h5").exists()  # nothing started
+
+
+def test_missing_reference(sim, tmp_path, capsys):
+    code, err = run_cli(capsys, *process_args(sim, tmp_path, reference=tmp_path / "nope.png"))
+    assert_clean_error(code, err, "reference", "nope.png", "does not exist")
+
+
+def test_directory_argument_gets_a_hint(sim, tmp_path, capsys):
+    code, err = run_cli(capsys, *process_args(sim, tmp_path, sim))
+    assert_clean_error(code, err, "is a directory", "*.png")
+
+
+def test_text_file_named_png(sim, tmp_path, capsys):
+    fake = tmp_path / "x.png"
+    fake.write_text("this is not an image\n")
+    code, err = run_cli(capsys, *process_args(sim, tmp_path, fake))
+    assert_clean_error(code, err, "x.png", "not a readable image")
+
+
+def test_frame_and_reference_of_different_sizes(sim, tmp_path, capsys):
+    small = imageio.read_image(sim / "frame_0000.png")[: SIZE - 32, :]
+    imageio.write_image(tmp_path / "small.png", small)
+    code, err = run_cli(capsys, *process_args(sim, tmp_path, tmp_path / "small.png"))
+    assert_clean_error(code, err, "small.png", f"({SIZE - 32}, {SIZE})", f"({SIZE}, {SIZE})")
+
+
+@pytest.mark.parametrize("kind", ["flat", "noise"])
+def test_reference_without_carrier(sim, tmp_path, capsys, rng, kind):
+    if kind == "flat":
+        image = np.full((SIZE, SIZE), 128, np.uint8)
+    else:
+        image = rng.integers(0, 256, size=(SIZE, SIZE), dtype=np.uint8)
+    imageio.write_image(tmp_path / f"{kind}.png", image)
+    code, err = run_cli(capsys, *process_args(sim, tmp_path, reference=tmp_path / f"{kind}.png"))
+    assert_clean_error(code, err, "carrier")
+    assert not (tmp_path / "out.h5").exists()
+
+
+def test_mismatched_real_pattern_is_refused(tmp_path, capsys):
+    """ellipse_10.tif has another pattern scale/rotation than reference_df.tif."""
+    geometry = tmp_path / "fsss.toml"
+    from processing import Geometry
+
+    g = Geometry.from_dict({
+        "setup": "fsss", "pixel_mm": 0.207,
+        "fsss_layers": [[57.0, 1.0003], [12.0, 1.48899], [43.0, 1.34]],
+        "n_water": 1.34, "n_air": 1.0003, "fsss_camera_distance_mm": 800.0,
+    })
+    geometry.write_text(g.to_toml_text())
+    code, err = run_cli(capsys, "process", TRAPPED / "reference_df.tif", TRAPPED / "ellipse_10.tif",
+                        "--geometry", geometry, "--out", tmp_path / "out.h5", "--grid", "decimated")
+    line = assert_clean_error(code, err, "ellipse_10.tif")
+    assert "pattern" in line.lower() or "carrier" in line.lower()
+
+
+def _edit_toml(sim, tmp_path, edit):
+    text = (sim / "geometry.toml").read_text()
+    new = edit(text)
+    assert new != text, "the edit did not apply: geometry.toml layout changed?"
+    path = tmp_path / "g.toml"
+    path.write_text(new)
+    return path
+
+
+def _replace_key(text, key, value):
+    import re
+
+    return re.sub(rf"(?m)^(\s*{key}\s*=\s*).*$", lambda m: m.group(1) + value, text, count=1)
+
+
+def test_theta_below_critical_angle(sim, tmp_path, capsys):
+    g = _edit_toml(sim, tmp_path, lambda t: _replace_key(t, "theta_deg", "40.0"))
+    code, err = run_cli(capsys, *process_args(sim, tmp_path, geometry=g))
+    assert_clean_error(code, err, "theta", "40")
+
+
+def test_toml_missing_key(sim, tmp_path, capsys):
+    import re
+
+    g = _edit_toml(sim, tmp_path, lambda t: re.sub(r"(?m)^\s*depth_mm\s*=.*\n", "", t))
+    code, err = run_cli(capsys, *process_args(sim, tmp_path, geometry=g))
+    assert_clean_error(code, err, "depth_mm")
+
+
+def test_toml_wrong_type(sim, tmp_path, capsys):
+    g = _edit_toml(sim, tmp_path, lambda t: _replace_key(t, "theta_deg", '"steep"'))
+    code, err = run_cli(capsys, *process_args(sim, tmp_path, geometry=g))
+    assert_clean_error(code, err, "theta_deg", "steep")
+
+
+def test_toml_syntax_error(sim, tmp_path, capsys):
+    g = tmp_path / "g.toml"
+    g.write_text("theta_deg = = 55\n")
+    code, err = run_cli(capsys, *process_args(sim, tmp_path, geometry=g))
+    assert_clean_error(code, err, "g.toml")
+
+
+def test_black_frame_is_all_invalid(sim, tmp_path, capsys):
+    imageio.write_image(tmp_path / "black.png", np.zeros((SIZE, SIZE), np.uint8))
+    code, err = run_cli(capsys, *process_args(sim, tmp_path, tmp_path / "black.png"))
+    assert_clean_error(code, err, "black.png")
+
+
+def test_failure_mid_batch_keeps_the_frames_already_written(sim, tmp_path, capsys):
+    good = sim / "frame_0000.png"
+    bad = tmp_path / "frame_broken.png"
+    bad.write_bytes(b"\x89PNG\r\n\x1a\n truncated")
+    code, err = run_cli(capsys, *process_args(sim, tmp_path, good, good, bad, good))
+    line = assert_clean_error(code, err, "frame 2", "frame_broken.png")
+    assert "2 frame(s) before it are saved" in line
+    with h5py.File(tmp_path / "out.h5", "r") as f:
+        assert f.attrs["frames_done"] == 2
+        assert f["height"].shape[0] == 2
+        assert f.attrs["status"].startswith("failed after 2 frame(s)")
+        h = f["height"][()]
+        assert np.isfinite(h).mean() > 0.9
+        np.testing.assert_array_equal(h[0], h[1])  # same input, deterministic
+
+
+def test_debug_shows_the_traceback(sim, tmp_path, capsys):
+    code = main(["--debug", *map(str, process_args(sim, tmp_path, tmp_path / "missing.png"))])
+    err = capsys.readouterr().err
+    assert code == 2 and "Traceback" in err and "tirdeflect: error:" in err
+
+
+def test_last_before_first(sim, tmp_path, capsys):
+    code, err = run_cli(capsys, *process_args(sim, tmp_path), "--first", "3", "--last", "1")
+    assert_clean_error(code, err, "--first 3", "selects no frame")

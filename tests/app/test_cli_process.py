@@ -1,0 +1,209 @@
+"""`tirdeflect simulate` then `tirdeflect process`, through the CLI, against ray-traced truth."""
+
+import os
+import re
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import tifffile
+
+from app import imageio
+from app.cli import main
+
+ROOT = Path(__file__).resolve().parents[2]
+SIZE = 256
+
+
+def _run(capsys, *argv):
+    code = main([str(a) for a in argv])
+    captured = capsys.readouterr()
+    return code, captured.err
+
+
+@pytest.fixture(scope="module")
+def sim(tmp_path_factory):
+    """A simulated data set written by the CLI (bump, 2 frames, 8 bit)."""
+    d = tmp_path_factory.mktemp("sim")
+    code = main(["simulate", "--out", str(d), "--surface", "bump", "--size", str(SIZE),
+                 "--frames", "2", "--bits", "8"])
+    assert code == 0
+    return d
+
+
+def _frames(d):
+    return sorted(str(p) for p in d.glob("frame_*.png"))
+
+
+def _reference_mask(geometry, shape):
+    """Bool (rows, cols): the region where h is pinned to 0 (geometry's own definition)."""
+    rows, cols = shape
+    return geometry.reference_mask(np.arange(rows), np.arange(cols), shape)
+
+
+def test_simulate_writes_a_complete_data_set(sim):
+    names = sorted(p.name for p in sim.iterdir())
+    assert names == ["frame_0000.png", "frame_0001.png", "geometry.toml", "heights.h5", "reference.png"]
+    ref = imageio.read_image(sim / "reference.png")
+    assert ref.shape == (SIZE, SIZE) and ref.dtype == np.uint8
+    assert ref.max() - ref.min() > 100  # a contrasted checkerboard
+    with h5py.File(sim / "heights.h5") as f:
+        h = f["height"][()]
+        assert h.shape == (2, SIZE, SIZE) and f["height"].attrs["units"] == "mm"
+    # a physical deformation: micrometres to a fraction of a mm, not zero
+    assert 5e-4 < np.ptp(h[0]) < 1.0
+
+
+@pytest.mark.parametrize("surface, bits, noise", [
+    ("bump", 8, 0.0),          # 8-bit PNG, phases below pi
+    ("deep-dimple", 12, 4.0),  # 16-bit TIFF with read noise; phases ~5 rad: needs unwrapping
+])
+def test_round_trip_height_error_within_2_percent(tmp_path, capsys, surface, bits, noise):
+    d = tmp_path / "sim"
+    code, err = _run(capsys, "simulate", "--out", d, "--surface", surface, "--size", SIZE,
+                     "--frames", 2, "--bits", bits, "--noise", noise)
+    assert code == 0, err
+    suffix = ".png" if bits == 8 else ".tif"
+    out = tmp_path / "out.h5"
+    code, err = _run(capsys, "process", d / f"reference{suffix}", *sorted(d.glob(f"frame_*{suffix}")),
+                     "--geometry", d / "geometry.toml", "--out", out)
+    assert code == 0, err
+    from processing import Geometry
+
+    geometry = Geometry.from_toml(d / "geometry.toml")
+    with h5py.File(d / "heights.h5") as f:
+        truth = f["height"][()].astype(np.float64)
+    with h5py.File(out) as f:
+        est = f["height"][()].astype(np.float64)
+        assert f.attrs["frames_done"] == 2 and f.attrs["status"] == "complete"
+    assert est.shape == truth.shape
+    ref = _reference_mask(geometry, truth.shape[1:])
+    m = SIZE // 8  # interior: away from the borders the band-pass cannot resolve
+    rels = []
+    for k in range(2):
+        e = est[k] - np.nanmean(est[k][ref])
+        t = truth[k] - np.mean(truth[k][ref])
+        e, t = e[m:-m, m:-m], t[m:-m, m:-m]
+        ok = np.isfinite(e)
+        assert ok.mean() > 0.95, f"frame {k}: only {ok.mean():.1%} of the interior is valid"
+        rel = np.sqrt(np.mean((e[ok] - t[ok]) ** 2)) / np.sqrt(np.mean(t[ok] ** 2))
+        assert rel <= 0.02, f"{surface} frame {k}: relative RMS height error {rel:.2%} > 2 %"
+        rels.append(rel)
+    # `tirdeflect compare` reports the same figures and enforces --max-error
+    code = main(["compare", str(out), str(d / "heights.h5"), "--max-error", "0.02"])
+    printed = capsys.readouterr().out
+    assert code == 0
+    figures = [float(x) for x in re.findall(r"^\s*\d+\s+([\d.]+) %", printed, re.M)]
+    np.testing.assert_allclose(figures, np.array(rels) * 100, atol=0.006)
+    assert main(["compare", str(out), str(d / "heights.h5"), "--max-error", str(min(rels) / 2)]) == 1
+
+
+def test_output_layout_matches_docs(sim, tmp_path, capsys):
+    out = tmp_path / "out.h5"
+    code, err = _run(capsys, "process", sim / "reference.png", _frames(sim)[1],
+                     "--geometry", sim / "geometry.toml", "--out", out, "--compression", "gzip")
+    assert code == 0, err
+    from processing import Geometry
+
+    with h5py.File(out) as f:
+        for name in ("height", "slope_x", "slope_y", "valid"):
+            ds = f[name]
+            assert ds.shape == (1, SIZE, SIZE) and ds.chunks == (1, SIZE, SIZE)
+            assert ds.compression == "gzip"
+        assert f["height"].dtype == np.float32 and f["height"].attrs["units"] == "mm"
+        assert f["valid"].dtype == np.uint8
+        # NaN exactly where invalid
+        assert np.array_equal(np.isfinite(f["height"][0]), f["valid"][0].astype(bool))
+        assert f["x_mm"].shape == (SIZE,) and f["y_mm"].shape == (SIZE,)
+        assert np.all(np.diff(f["x_mm"][()]) > 0)
+        assert list(f["frame_index"][()]) == [0]
+        assert f["source"][0].decode().endswith("frame_0001.png")
+        np.testing.assert_array_equal(f["reference"][()], imageio.read_image(sim / "reference.png"))
+        g = Geometry.from_toml_text(f.attrs["geometry_toml"])
+        assert g == Geometry.from_toml(sim / "geometry.toml")
+        assert f["geometry"].attrs["theta_deg"] == pytest.approx(g.theta_deg)
+        periods = f["carriers"].attrs["periods_px"]
+        assert periods.shape == (2,) and np.all((periods > 2) & (periods < SIZE / 2))
+        assert f.attrs["software"] == "tirdeflect" and f.attrs["format_version"] == 1
+        assert re.match(r"\d{4}-\d\d-\d\dT", f.attrs["created_utc"])
+
+
+def test_existing_output_is_kept_unless_overwrite(sim, tmp_path, capsys):
+    out = tmp_path / "out.h5"
+    out.write_bytes(b"precious")
+    args = ["process", sim / "reference.png", _frames(sim)[0], "--geometry", sim / "geometry.toml",
+            "--out", out]
+    code, err = _run(capsys, *args)
+    assert code == 2 and "already exists" in err and "--overwrite" in err
+    assert out.read_bytes() == b"precious"
+    code, err = _run(capsys, *args, "--overwrite")
+    assert code == 0, err
+    with h5py.File(out) as f:
+        assert f.attrs["frames_done"] == 1
+
+
+def test_tiff_stack_with_first_last_step(sim, tmp_path, capsys):
+    frames = [imageio.read_image(p) for p in _frames(sim)]
+    ref = imageio.read_image(sim / "reference.png")
+    stack = np.stack([ref, frames[0], frames[1], frames[0], frames[1]])
+    tifffile.imwrite(tmp_path / "stack.tif", stack, photometric="minisblack")
+    out = tmp_path / "out.h5"
+    code, err = _run(capsys, "process", sim / "reference.png", tmp_path / "stack.tif",
+                     "--geometry", sim / "geometry.toml", "--out", out,
+                     "--first", 1, "--last", 4, "--step", 2, "--grid", "decimated")
+    assert code == 0, err
+    with h5py.File(out) as f:
+        assert list(f["frame_index"][()]) == [1, 3]
+        assert list(f["source_index"][()]) == [1, 3]
+        h = f["height"][()]
+        assert f.attrs["grid"] == "decimated"
+        assert h.shape[1:] == (f["y_mm"].shape[0], f["x_mm"].shape[0])
+        # the same frame processed twice gives the same heights
+        np.testing.assert_allclose(h[0], h[1], atol=1e-6, equal_nan=True)
+
+
+def test_version_and_help(capsys):
+    assert main(["--version"]) == 0
+    assert re.search(r"tirdeflect \d+\.\d+", capsys.readouterr().out)
+    assert main(["process", "--help"]) == 0
+    assert "--geometry" in capsys.readouterr().out
+
+
+def test_killed_run_leaves_completed_frames_readable(sim, tmp_path):
+    """SIGKILL mid-run: every frame reported done is in the file and readable."""
+    frames = [imageio.read_image(p) for p in _frames(sim)]
+    stack = np.stack([frames[k % 2] for k in range(40)])
+    tifffile.imwrite(tmp_path / "long.tif", stack, photometric="minisblack")
+    out = tmp_path / "out.h5"
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "app.cli", "--debug", "process", str(sim / "reference.png"),
+         str(tmp_path / "long.tif"), "--geometry", str(sim / "geometry.toml"), "--out", str(out),
+         "--no-progress"],
+        cwd=ROOT, env=env, stderr=subprocess.PIPE, text=True,
+    )
+    done = 0
+    try:
+        for line in proc.stderr:  # blocks until the child logs; ends if it exits
+            if re.search(r"frame \d+ .* written", line):
+                done += 1
+                if done == 3:
+                    proc.send_signal(signal.SIGKILL)
+                    break
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        proc.wait(timeout=30)
+        proc.stderr.close()
+    assert done == 3, "the child finished or failed before three frames were written"
+    with h5py.File(out, "r") as f:
+        n = int(f.attrs["frames_done"])
+        assert n >= 3
+        assert f.attrs["status"] == "running"  # it never got to say complete
+        h = f["height"][:n]
+        assert np.isfinite(h).mean() > 0.9
+        np.testing.assert_allclose(h[0], h[2], atol=1e-6, equal_nan=True)  # same input frame
