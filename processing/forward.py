@@ -72,6 +72,11 @@ class Surface:
     def gradient(self, x_mm, y_mm) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
         raise NotImplementedError
 
+    def height_and_gradient(self, x_mm, y_mm):
+        """``(h, dh/dx, dh/dy)`` in one call (subclasses share the work)."""
+        gx, gy = self.gradient(x_mm, y_mm)
+        return self.height(x_mm, y_mm), gx, gy
+
     def __add__(self, other: "Surface") -> "SumSurface":
         return SumSurface([self, other])
 
@@ -123,6 +128,13 @@ class GaussianBump(Surface):
         h = self.amplitude_mm * np.exp(-(dx * dx + dy * dy) / (2.0 * self.sigma_mm**2))
         k = -h / self.sigma_mm**2
         return k * dx, k * dy
+
+    def height_and_gradient(self, x_mm, y_mm):
+        dx = np.asarray(x_mm, dtype=np.float64) - self.x0_mm
+        dy = np.asarray(y_mm, dtype=np.float64) - self.y0_mm
+        h = self.amplitude_mm * np.exp(-(dx * dx + dy * dy) / (2.0 * self.sigma_mm**2))
+        k = -h / self.sigma_mm**2
+        return h, k * dx, k * dy
 
 
 class Dimple(GaussianBump):
@@ -193,6 +205,20 @@ class WaveField(Surface):
             gy += ky * s
         return gx, gy
 
+    def height_and_gradient(self, x_mm, y_mm):
+        x = np.asarray(x_mm, dtype=np.float64)
+        y = np.asarray(y_mm, dtype=np.float64)
+        h = np.zeros(np.broadcast(x, y).shape)
+        gx = np.zeros_like(h)
+        gy = np.zeros_like(h)
+        for a, kx, ky, ph in self.components:
+            arg = kx * x + ky * y + ph
+            h += a * np.cos(arg)
+            s = -a * np.sin(arg)
+            gx += kx * s
+            gy += ky * s
+        return h, gx, gy
+
 
 @dataclass(frozen=True)
 class SumSurface(Surface):
@@ -217,6 +243,17 @@ class SumSurface(Surface):
             gx = gx + a
             gy = gy + b
         return gx, gy
+
+    def height_and_gradient(self, x_mm, y_mm):
+        h = np.zeros(np.broadcast(np.asarray(x_mm), np.asarray(y_mm)).shape)
+        gx = np.zeros_like(h)
+        gy = np.zeros_like(h)
+        for s in self.surfaces:
+            a, b, c = s.height_and_gradient(x_mm, y_mm)
+            h = h + a
+            gx = gx + b
+            gy = gy + c
+        return h, gx, gy
 
 
 # ---------------------------------------------------------------------------- scenes
@@ -349,29 +386,26 @@ class RenderInfo:
 
 
 def _intersect(surface: Surface, geometry: Geometry, origin, d, *, to_image, tol_mm=1e-9, max_iter=60):
-    """Newton solve of ``O_z + t d_z = h(O_xy + t d_xy)``; returns point and gradient (canonical)."""
+    """Newton solve of ``O_z + t d_z = h(O_xy + t d_xy)``; returns point, gradient (tracer frame), height."""
+    ysign = geometry.row_sign if geometry.setup == "tir" else 1.0
     t = -origin[..., 2] / d[..., 2]
     for _ in range(max_iter):
         P = origin + t[..., None] * d
         xi, yi = to_image(P[..., 0], P[..., 1])
-        h = surface.height(xi, yi)
-        gx, gy_i = surface.gradient(xi, yi)
-        gy = gy_i * (geometry.row_sign if geometry.setup == "tir" else 1.0)
+        h, gx, gy_i = surface.height_and_gradient(xi, yi)
+        gy = gy_i * ysign
         F = P[..., 2] - h
         dF = d[..., 2] - gx * d[..., 0] - gy * d[..., 1]
         step = F / dF
-        t = t - step
         if np.max(np.abs(step)) < tol_mm:
+            # the point is within tol_mm of the root: keep it and its (consistent) normal
             break
+        t = t - step
     else:  # pragma: no cover - only for pathological surfaces
         raise GeometryError(
             "ray-surface intersection did not converge; the surface is too steep for the camera rays"
         )
-    P = origin + t[..., None] * d
-    xi, yi = to_image(P[..., 0], P[..., 1])
-    gx, gy_i = surface.gradient(xi, yi)
-    gy = gy_i * (geometry.row_sign if geometry.setup == "tir" else 1.0)
-    return P, gx, gy, surface.height(xi, yi)
+    return P, gx, gy, h
 
 
 def trace_tir(surface: Surface, geometry: Geometry, rows_px, cols_px, frame_shape):
@@ -549,7 +583,8 @@ def render_tir(
             acc += refl * val
             lost_any |= lost
     image = (acc / supersample**2).astype(np.float32)
-    pat, _, _, _, _ = trace_tir(surface, geometry, rows, cols, (n_rows, n_cols))
+    if supersample != 1:
+        pat, _, _, _, _ = trace_tir(surface, geometry, rows, cols, (n_rows, n_cols))
     flat = np.stack(geometry.flat_pattern_point(rows, cols, (n_rows, n_cols)), axis=-1)
     crossing = _crossing_mask(pat, flat)
     centre_pat = np.moveaxis(pat, -1, 0)
@@ -572,7 +607,8 @@ def render_fsss(surface: Surface, geometry: Geometry, shape, pattern: Callable, 
             pat, lost, _, _ = trace_fsss(surface, geometry, rows + orow, cols + ocol, (n_rows, n_cols))
             acc += np.where(lost, 0.0, pattern(pat[..., 0], pat[..., 1]))
             lost_any |= lost
-    pat, _, _, _ = trace_fsss(surface, geometry, rows, cols, (n_rows, n_cols))
+    if supersample != 1:
+        pat, _, _, _ = trace_fsss(surface, geometry, rows, cols, (n_rows, n_cols))
     flat = np.stack(geometry.flat_pattern_point(rows, cols, (n_rows, n_cols)), axis=-1)
     crossing = _crossing_mask(pat, flat)
     image = (acc / supersample**2).astype(np.float32)
