@@ -5,7 +5,9 @@
 Also runnable alone: ``python3 -m app.record_cli record --camera synthetic --frames 100 --out x.h5``.
 
 Exit codes of ``record``: 0 every planned frame is in the file; 1 the file
-was written but frames are missing (the summary says which); 2 error (one
+was written but frames are missing (camera frame-id gaps or ring overruns;
+the summary says which; timestamp gaps alone are reported as a suspicion,
+not counted, because a late frame makes one too); 2 error (one
 line on stderr saying what to do; a partial file, if any, stays valid);
 130 interrupted (Ctrl-C; the file holds what was written).
 """

@@ -783,7 +783,8 @@ class Recorder:
             a = self.acquisition.stats()
             s["camera_statistics"] = a.get("camera_statistics", {})
             s["acquisition_fps"] = round(a.get("fps", 0.0), 2)
-        s["total_missing"] = s["lost_upstream_id_gaps"] + s["lost_by_time_estimate"] + s["lost_ring_overrun"]
+        # exact counts only; timestamp gaps are an estimate (a late frame also makes one) and are reported apart
+        s["total_missing"] = s["lost_upstream_id_gaps"] + s["lost_ring_overrun"]
         return s
 
 
@@ -808,10 +809,14 @@ def format_summary(s: dict) -> str:
         f"  write rate       {s.get('write_rate_mb_s', 0)} MB/s over {s.get('elapsed_s', 0)} s",
     ]
     total = s.get("total_missing", 0)
+    suspect = s.get("lost_by_time_estimate", 0)
     if s.get("error"):
         lines.append(f"  ERROR            {s['error']}")
-    lines.append("  result           " + ("no frame lost" if not total and not s.get("error") else
-                                          f"{total} frames missing" if total else "incomplete recording"))
+    result = ("no frame lost" if not total and not s.get("error") else
+              f"{total} frames missing" if total else "incomplete recording")
+    if suspect:
+        result += f"; timestamp gaps suggest about {suspect} more (frames the camera ids do not show, or late frames)"
+    lines.append("  result           " + result)
     return "\n".join(lines)
 
 
