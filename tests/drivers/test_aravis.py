@@ -39,6 +39,12 @@ def test_fake1_open_configure_stream_close():
         with pytest.raises(SettingError, match="unknown setting"):
             cam.configure(shutter_ms=1)
         assert cam.settings().roi == (32, 16, 256, 128)  # refused writes kept the region
+        with pytest.raises(SettingError, match=r"ExposureTimeAbs allows 10 \.\. 1e\+07"):
+            cam.configure(exposure_us=1.0)
+        t = cam.configure(trigger_source="Line0", trigger_activation="RisingEdge")
+        assert (t.trigger_source, t.trigger_activation, t.trigger_mode) == ("Line0", "RisingEdge", "Off")
+        with pytest.raises(SettingError, match=r"TriggerSource allows \['Line0', 'Software'\]"):
+            cam.configure(trigger_source="Line7")
         cam.start()
         frames = _stream(cam, 40)
         with pytest.raises(SettingError, match="stop"):
