@@ -150,6 +150,7 @@ class Camera:
     """
 
     camera_id: str = ""
+    info: Optional[CameraInfo] = None  # vendor, model, serial once opened (None before)
 
     # -- lifecycle ---------------------------------------------------------
     def open(self) -> "Camera":  # pragma: no cover - interface

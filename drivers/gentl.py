@@ -437,10 +437,12 @@ class GenTLCamera(Camera):
         return Frame(image=image, frame_id=frame_id, timestamp_ns=ts, host_timestamp_ns=host_ns, incomplete=False, bit_depth=bits)
 
     def statistics(self) -> dict:
-        """``n_delivered``, ``n_incomplete_discarded`` (dropped by harvesters), ``n_id_gap_frames``,
+        """``n_delivered``, ``n_incomplete_delivered`` (always 0: harvesters drops them),
+        ``n_incomplete_discarded`` (dropped by harvesters), ``n_id_gap_frames``,
         and harvesters' ``num_images`` / ``fps``."""
         out = {
             "n_delivered": self._n_delivered,
+            "n_incomplete_delivered": 0,
             "n_incomplete_discarded": self._n_incomplete_discarded,
             "n_id_gap_frames": self._n_id_gaps,
         }

@@ -36,6 +36,7 @@ import numpy as np
 from .base import (
     Camera,
     CameraError,
+    CameraInfo,
     CameraSettings,
     FetchTimeout,
     Frame,
@@ -176,6 +177,7 @@ class SyntheticCamera(Camera):
             raise ValueError(f"n_buffers must be >= 1; got {n_buffers}")
         self._check_range("frame_rate_hz", frame_rate_hz, _FRAME_RATE_RANGE_HZ)
         self.camera_id = camera_id
+        self.info = CameraInfo(camera_id=camera_id, backend="synthetic", vendor="tirdeflect", model="Synthetic")
         self._dtype = proto.dtype
         self._sensor_rows, self._sensor_cols = proto.shape
         self._loop = bool(loop)
@@ -479,10 +481,16 @@ class SyntheticCamera(Camera):
     def statistics(self) -> dict:
         """Counters since :meth:`start`.
 
-        Keys: ``n_completed_buffers`` (delivered), ``n_failed_buffers`` (always 0),
+        Keys common to all drivers: ``n_delivered``, ``n_incomplete_delivered`` (0),
+        ``n_id_gap_frames`` (ids skipped: underruns + injected drops).
+        Own keys: ``n_completed_buffers`` (delivered), ``n_failed_buffers`` (always 0),
         ``n_underruns`` (lost because the consumer fell more than ``n_buffers``
         behind), ``n_dropped_injected`` (ids in ``drop_frames`` skipped),
         ``n_triggers``, ``n_ignored_triggers``.
         """
         with self._cond:
-            return dict(self._stats)
+            out = dict(self._stats)
+        out["n_delivered"] = out["n_completed_buffers"]
+        out["n_incomplete_delivered"] = 0
+        out["n_id_gap_frames"] = out["n_underruns"] + out["n_dropped_injected"]
+        return out

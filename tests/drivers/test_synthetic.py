@@ -26,8 +26,9 @@ def test_paced_rate_matches_request_over_one_second():
     host = np.array([f.host_timestamp_ns for f in frames], dtype=np.int64)
     dev = np.array([f.timestamp_ns for f in frames], dtype=np.int64)
     assert np.all(np.diff(ids) == 1)
-    measured_hz = (n - 1) / ((host[-1] - host[0]) * 1e-9)
-    assert measured_hz == pytest.approx(rate_hz, rel=0.03)
+    # rate = slope of host receive time against frame index (one late frame barely moves it)
+    period_s = np.polyfit(np.arange(n), host * 1e-9, 1)[0]
+    assert 1 / period_s == pytest.approx(rate_hz, rel=0.02)
     # device clock: exactly one period per frame (rounded to 1 ns)
     assert np.all(np.abs(np.diff(dev) - 1e9 / rate_hz) <= 1)
     # no frame is handed out before it is due on the device clock
@@ -45,7 +46,7 @@ def test_injected_drops_are_exact_id_gaps():
     expected = [i for i in range(24) if i not in drops][:20]
     assert ids == expected
     gaps = np.diff(ids) - 1
-    assert gaps.sum() == len(drops) == stats["n_dropped_injected"]
+    assert gaps.sum() == len(drops) == stats["n_dropped_injected"] == stats["n_id_gap_frames"]
     assert stats["n_completed_buffers"] == 20
     for f in frames:  # frame id k shows image k mod n
         np.testing.assert_array_equal(f.image, stack[f.frame_id % 5])
