@@ -154,8 +154,12 @@ def test_tiff_stack_with_first_last_step(sim, tmp_path, capsys):
     out = tmp_path / "out.h5"
     code, err = _run(capsys, "process", sim / "reference.png", tmp_path / "stack.tif",
                      "--geometry", sim / "geometry.toml", "--out", out,
-                     "--first", 1, "--last", 4, "--step", 2, "--grid", "decimated")
+                     "--first", 1, "--last", 4, "--step", 2, "--grid", "decimated",
+                     "--fft-effort", "measure")
     assert code == 0, err
+    from app import cache
+
+    assert cache.load_wisdom(), "measured FFTW plans were not saved to the cache"
     with h5py.File(out) as f:
         assert list(f["frame_index"][()]) == [1, 3]
         assert list(f["source_index"][()]) == [1, 3]
@@ -207,3 +211,41 @@ def test_killed_run_leaves_completed_frames_readable(sim, tmp_path):
         h = f["height"][:n]
         assert np.isfinite(h).mean() > 0.9
         np.testing.assert_allclose(h[0], h[2], atol=1e-6, equal_nan=True)  # same input frame
+
+
+def test_recording_in_geometry_and_reference_from_the_file(sim, tmp_path, capsys):
+    """A recording made by the app's recorder: reference, geometry and frame table are used."""
+    from app.recorder import RecordingFile
+
+    frames = [imageio.read_image(p) for p in _frames(sim)]
+    ref = imageio.read_image(sim / "reference.png")
+    rec_path = tmp_path / "rec.h5"
+    rec = RecordingFile(rec_path, shape=ref.shape, dtype=ref.dtype, n_frames=3, check_space=False,
+                        camera_id="synthetic", geometry_toml=(sim / "geometry.toml").read_text(),
+                        reference_image=ref)
+    for i, frame in enumerate([frames[0], frames[1], frames[0]]):
+        # (sequence, frame_id, device_timestamp_ns, host_timestamp_ns, flags, trigger_index)
+        rec.write(frame, (i, 100 + i, 5_000_000 * i, 7_000_000 * i, 0, i))
+    rec.close()
+    out = tmp_path / "out.h5"
+    code, err = _run(capsys, "process", rec_path, rec_path, "--out", out, "--first", 1)
+    assert code == 0, err
+    with h5py.File(out) as f:
+        assert f.attrs["geometry_file"].endswith(":/geometry_toml")
+        assert list(f["frame_index"][()]) == [1, 2]
+        assert list(f["camera_frame_id"][()]) == [101, 102]
+        assert list(f["device_timestamp_ns"][()]) == [5_000_000, 10_000_000]
+        np.testing.assert_array_equal(f["reference"][()], ref)
+        h = f["height"][()]
+    # frame 2 of the recording is frames[0] again: same heights as a direct run on it
+    code, err = _run(capsys, "process", sim / "reference.png", _frames(sim)[0],
+                     "--geometry", sim / "geometry.toml", "--out", tmp_path / "direct.h5")
+    assert code == 0, err
+    with h5py.File(tmp_path / "direct.h5") as f:
+        np.testing.assert_allclose(h[1], f["height"][0], atol=1e-7, equal_nan=True)
+
+
+def test_gui_arguments_go_to_the_window(capsys):
+    assert main(["gui", "--help"]) == 0
+    out = capsys.readouterr().out
+    assert "tirdeflect gui" in out and "--camera" in out
