@@ -5,7 +5,6 @@ intgrad2-style approach) measured in the same run.
     python3 benchmarks/bench_optics.py
 """
 
-import math
 import os
 import sys
 import time
@@ -62,6 +61,27 @@ def accuracy():
     print(f"  {'(same 1.5 m data read as telecentric)':36s} {100 * rel_rms(res.height_mm, true_height(surf, g, shape)):7.3f} %")
 
 
+def ray_vs_linear():
+    """notes.md check: ray-traced u against the paper's linear model."""
+    bump = GaussianBump(0.005, 10.0 / 2.355, 1.0, -2.0)  # 5 um, 10 mm FWHM
+    shape = (256, 256)
+    print("ray-traced u vs paper linear model (5 um, 10 mm FWHM bump, H 300, theta 55, relative RMS)")
+    for rows_toward_camera in (False, True):
+        g = Geometry(theta_deg=55, depth_mm=300, pixel_mm=0.1, rows_toward_camera=rows_toward_camera)
+        u, _ = true_displacement(bump, g, shape)
+        p, H, th, s = g.pixel_mm, g.depth_mm, g.theta, g.row_sign
+        x = (np.arange(256) - 127.5) * p
+        y = (np.arange(256) - 127.5) * p / np.cos(th)
+        X, Y = np.meshgrid(x, y)
+        h = bump.height(X, Y)
+        hx, hy = bump.gradient(X, Y)
+        for sign, label in ((-1, "-2 tan(theta) h (canonical)"), (1, "+2 tan(theta) h (wrong sign)")):
+            u_yc = -(2 * H / np.cos(th) ** 2) * (s * hy) + sign * 2 * np.tan(th) * h
+            lin = np.stack([s * u_yc * np.cos(th) / p, -2 * H * hx / p])
+            err = np.sqrt(np.mean((u - lin) ** 2)) / np.sqrt(np.mean(u**2))
+            print(f"  rows_toward_camera={str(rows_toward_camera):5s} {label:30s} {100 * err:7.3f} %")
+
+
 def sparse_baseline(gr, gc, n):
     """Direct sparse least squares of the Neumann Poisson normal equations."""
     e = np.ones(n)
@@ -93,5 +113,6 @@ def speed():
 
 
 if __name__ == "__main__":
+    ray_vs_linear()
     accuracy()
     speed()

@@ -283,8 +283,8 @@ class ApproachingDiscDimple:
 class TravellingWaves:
     """Gravity-capillary plane waves ``A cos(k.r - omega t + phase)``.
 
-    ``omega^2 = g k + (sigma/rho) k^3`` (deep water, g = 9810 mm/s^2,
-    sigma/rho = 72.8 mm^3/s^2 ... for clean water 7.28e4 mm^3/s^2).
+    ``omega^2 = g k + (sigma/rho) k^3`` (deep water; g = 9810 mm/s^2 and
+    sigma/rho = 7.28e4 mm^3/s^2 for clean water), ``k`` in rad/mm.
 
     Parameters
     ----------

@@ -249,8 +249,6 @@ class Geometry:
                     f"arcsin(n_air/n_water) is {crit:.1f} deg; raise theta above {crit:.1f} deg "
                     f"(tilt the camera further from the vertical)"
                 )
-            if self.camera_distance_mm is not None and self.camera_distance_mm <= 0:
-                raise GeometryError("camera_distance_mm must be positive")  # pragma: no cover
         else:
             self._validate_layers()
         if self.setup == "tir":
@@ -386,14 +384,19 @@ class Geometry:
         return "\n".join(lines) + "\n"
 
     # ------------------------------------------------------------------ derived
+    def _need_tir(self, what: str) -> None:
+        if self.setup != "tir":
+            raise GeometryError(f"{what} is defined for the TIR setup only; this geometry has setup={self.setup!r}")
+
     @property
     def theta(self) -> float:
         """Incidence angle in radians (TIR)."""
+        self._need_tir("theta")
         return math.radians(self.theta_deg)
 
     @property
     def T(self) -> float:
-        """``cos^2(theta) tan(theta) = sin(2 theta)/2`` (paper eq. utildeT)."""
+        """``cos^2(theta) tan(theta) = sin(2 theta)/2`` (paper eq. utildeT; TIR)."""
         return math.cos(self.theta) ** 2 * math.tan(self.theta)
 
     @property

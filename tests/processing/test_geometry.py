@@ -186,3 +186,11 @@ def test_default_reference_region_is_a_border_band():
     assert m2.sum() == 100 and m2[10, 30] and not m2[20, 30]
     with pytest.raises(GeometryError, match="outside the frame"):
         _tir(reference_region=(200, 210, 0, 10)).reference_mask(np.arange(100), np.arange(100), (100, 100))
+
+
+def test_tir_quantities_refused_for_fsss():
+    f = Geometry.from_toml_text(FSSS_TEXT)
+    with pytest.raises(GeometryError, match="TIR setup only"):
+        f.theta
+    with pytest.raises(GeometryError, match="TIR setup only"):
+        f.T
