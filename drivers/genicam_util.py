@@ -10,7 +10,9 @@ first), and reads everything back.
 from __future__ import annotations
 
 import math
-from typing import Dict, Iterable, List, Optional, Sequence, Tuple
+from typing import Dict, Iterable, List, Optional, Tuple
+
+import numpy as np
 
 from .base import CameraSettings, SettingError
 
@@ -149,16 +151,10 @@ def read_settings(features: Features) -> CameraSettings:
 
 
 def _check_int(features, setting, name, value):
+    if isinstance(value, np.integer):
+        value = int(value)
     if isinstance(value, bool) or not isinstance(value, int):
-        try:
-            import numpy as np
-
-            if isinstance(value, np.integer):
-                value = int(value)
-            else:
-                raise TypeError
-        except TypeError:
-            raise SettingError(f"{setting} ({name}) must be an integer; got {value!r}") from None
+        raise SettingError(f"{setting} ({name}) must be an integer number of pixels; got {value!r}")
     lo, hi, inc = features.int_bounds(name)
     inc = max(int(inc or 1), 1)
     if not lo <= value <= hi or (value - lo) % inc:
