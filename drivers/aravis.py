@@ -279,6 +279,12 @@ class AravisCamera(Camera):
             ) from exc
         if cam is None:
             raise CameraError(f"no Aravis device {self.device!r}; 'tirdeflect cameras' lists the ids")
+        if cam.is_gv_device():
+            try:
+                # largest packet the link carries (jumbo frames where configured): fewer packets per frame
+                cam.gv_auto_packet_size()
+            except Exception:
+                pass  # keep the camera's packet size
         self._cam = cam
         self._dev = cam.get_device()
         self._features = _AravisFeatures(self._dev)
