@@ -114,6 +114,8 @@ class FrameItem:
         From a recording's ``/frame_table`` row (camera block id, device and
         host clocks in ns, :class:`drivers.base.FrameFlags`); -1 (flags 0)
         when unknown, e.g. for image files.
+    frames_in_source : int
+        Number of frames in the source file (1 for plain images).
     """
 
     image: np.ndarray
@@ -124,17 +126,14 @@ class FrameItem:
     device_timestamp_ns: int = -1
     host_timestamp_ns: int = -1
     flags: int = 0
+    frames_in_source: int = 1
 
     @property
     def label(self) -> str:
         """Human-readable name, e.g. ``rec.h5[17]`` or ``frame_0003.png``."""
-        if self.index_in_source == 0 and not _is_multi(self.source):
+        if self.frames_in_source == 1:
             return self.source
         return f"{self.source}[{self.index_in_source}]"
-
-
-def _is_multi(source: str) -> bool:
-    return Path(source).suffix.lower() in HDF5_SUFFIXES | TIFF_SUFFIXES
 
 
 # --------------------------------------------------------------------------- checks
@@ -620,7 +619,7 @@ def iter_frames(
                         if last is not None and seq > last:
                             return
                         if wanted(seq):
-                            yield FrameItem(reader(i), str(path), i, seq)
+                            yield FrameItem(reader(i), str(path), i, seq, frames_in_source=n)
                         seq += 1
             else:
                 with _h5_open(p) as f:
@@ -631,7 +630,8 @@ def iter_frames(
                             return
                         if wanted(seq):
                             arr = _check_dtype(_to_gray(np.asarray(ds[i]), p), p)
-                            yield FrameItem(arr, str(path), i, seq, **_table_fields(table, i))
+                            yield FrameItem(arr, str(path), i, seq, frames_in_source=n,
+                                            **_table_fields(table, i))
                         seq += 1
     except ImageReadError as exc:
         # say which frame of the sequence could not be read (the file is in the message)

@@ -536,8 +536,8 @@ def cmd_process(args) -> int:
         "software_version": _version(),
         "format_version": OUTPUT_FORMAT_VERSION,
         "created_utc": _utc_now(),
-        "command": shlex.join([Path(sys.argv[0]).name or "tirdeflect", *sys.argv[1:]])
-        if sys.argv else "",
+        "command": shlex.join(["tirdeflect", *args._argv]) if getattr(args, "_argv", None)
+        else "(called from Python, not the command line)",
         "reference_file": str(args.reference),
         "geometry_file": geometry_source,
         "input_files": [str(p) for p in args.frames],
@@ -585,6 +585,12 @@ def cmd_process(args) -> int:
     finally:
         progress.close()
         writer.close(status)
+        if status != "complete" and writer.n == 0:
+            # nothing worth keeping: do not leave a file that blocks the next attempt
+            try:
+                out.unlink()
+            except OSError:
+                pass
         cache.store_fftw_wisdom()
     print(f"tirdeflect: wrote {writer.n} frame(s) to {out}", file=sys.stderr)
     return 0
@@ -616,7 +622,7 @@ def _frame_failed(exc: Exception, item, writer: _ResultWriter) -> TirdeflectErro
     saved = (
         f"the {writer.n} frame(s) before it are saved in {str(writer.path)!r}"
         if writer.n
-        else f"no frame was saved ({str(writer.path)!r} holds only the reference and metadata)"
+        else f"nothing was written ({str(writer.path)!r} not created)"
     )
     new = type(exc)(f"{where} failed: {exc}; {saved}")
     return new if isinstance(new, TirdeflectError) else TirdeflectError(str(new))

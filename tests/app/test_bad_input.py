@@ -183,3 +183,14 @@ def test_debug_shows_the_traceback(sim, tmp_path, capsys):
 def test_last_before_first(sim, tmp_path, capsys):
     code, err = run_cli(capsys, *process_args(sim, tmp_path), "--first", "3", "--last", "1")
     assert_clean_error(code, err, "--first 3", "selects no frame")
+
+
+def test_failure_on_the_first_frame_leaves_no_output(sim, tmp_path, capsys):
+    imageio.write_image(tmp_path / "black.png", np.zeros((SIZE, SIZE), np.uint8))
+    args = process_args(sim, tmp_path, tmp_path / "black.png")
+    code, err = run_cli(capsys, *args)
+    assert_clean_error(code, err, "nothing was written")
+    assert not (tmp_path / "out.h5").exists()
+    # so the corrected rerun is not refused as "already exists"
+    code, err = run_cli(capsys, *process_args(sim, tmp_path))
+    assert code == 0, err

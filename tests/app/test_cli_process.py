@@ -190,6 +190,10 @@ def test_killed_run_leaves_completed_frames_readable(sim, tmp_path):
          "--no-progress"],
         cwd=ROOT, env=env, stderr=subprocess.PIPE, text=True,
     )
+    import threading
+
+    watchdog = threading.Timer(120.0, proc.kill)  # a hung child must not hang the suite
+    watchdog.start()
     done = 0
     try:
         for line in proc.stderr:  # blocks until the child logs; ends if it exits
@@ -199,6 +203,7 @@ def test_killed_run_leaves_completed_frames_readable(sim, tmp_path):
                     proc.send_signal(signal.SIGKILL)
                     break
     finally:
+        watchdog.cancel()
         if proc.poll() is None:
             proc.kill()
         proc.wait(timeout=30)
