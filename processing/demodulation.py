@@ -23,10 +23,12 @@ benchmarks/bench_processing.py).
 Filters (``filter_shape``):
 
 - ``"flattop"`` (default): radial Tukey in frequency around the carrier,
-  gain 1 up to ``filter_flat * radius``, cosine roll-off to 0 at ``radius``;
+  gain 1 up to ``filter_flat * radius`` (0.8), cosine roll-off to 0 at
   ``radius = min(filter_radius * |k|, |k1 +- k2| / 2)`` (DC may come closer
   than the other pattern peaks: only slow lighting changes live there).
-- ``"disc"``: the usual hard disc of the same radius (the published method).
+- ``"disc"``: hard disc of the same radius; with ``filter_radius=0.5`` and
+  ``subbin=False`` it is the usual filter of the published method.  Its
+  ringing lets borders leak (docs/processing.md has the measurements).
 """
 
 from __future__ import annotations
@@ -112,7 +114,7 @@ class Demodulator:
     """
 
     def __init__(self, reference, carriers: Carriers, *, planner: FFTPlanner | None = None,
-                 filter_radius: float = 0.7, filter_flat: float = 0.6,
+                 filter_radius: float = 0.7, filter_flat: float = 0.8,
                  filter_shape: str = "flattop", oversample: float = 2.0,
                  border: str = "apodize", taper_px: float | None = None, subbin: bool = True):
         ref = np.asarray(reference)

@@ -39,7 +39,7 @@ from .unwrap import unwrap_spatial, unwrap_temporal, wrap
 
 __all__ = ["Reconstructor", "Result"]
 
-_DEFAULT_ITERATIONS = {"decimated": 0, "full": 2}
+_DEFAULT_ITERATIONS = {"decimated": 0, "full": 0}
 
 
 @dataclasses.dataclass
@@ -150,7 +150,8 @@ class Reconstructor:
         :meth:`reset_series` forgets it.
     refine_iterations : int or None, optional
         Warp-and-redemodulate iterations that remove the band-pass bias
-        (notes.md).  None: 0 on the decimated grid (live), 2 on the full grid.
+        (notes.md).  None (default): 0 on the decimated grid (live), 1 on
+        the full grid (batch).
     filter_radius, filter_flat, filter_shape, oversample, border, subbin :
         Demodulation options, see :class:`processing.demodulation.Demodulator`.
     full_method : {"interpolate", "ifft"}, optional
@@ -192,7 +193,7 @@ class Reconstructor:
 
     def __init__(self, reference_image, geometry, *, grid: str = "full", unwrap: bool = True,
                  temporal: bool = True, refine_iterations: Optional[int] = None,
-                 filter_radius: float = 0.7, filter_flat: float = 0.6, filter_shape: str = "flattop",
+                 filter_radius: float = 0.7, filter_flat: float = 0.8, filter_shape: str = "flattop",
                  oversample: float = 2.0, border: str = "apodize", subbin: bool = True,
                  full_method: str = "interpolate", full_interpolation: str = "lanczos", min_amplitude: float = 0.3, min_fold: float = 0.2,
                  dilate: int = 1, min_island: float = 0.01, check_pattern: bool = True, solver: str = "auto", threads: int = 2,
@@ -234,6 +235,7 @@ class Reconstructor:
             raise ValueError(f"full_interpolation must be 'cubic', 'lanczos' or 'linear'; got {full_interpolation!r}")
         self._up = _Upsampler(self.shape, d.window_shape, full_interpolation)
         self._smooth_ref = None
+        self._smooth_static = None
         self._g0_full = None
         self._ref_f32 = ref.astype(np.float32)
         # pattern-check tolerance in bins: 4 % of the carrier frequency
@@ -364,17 +366,26 @@ class Reconstructor:
         the frame against it and add the residual displacement."""
         d = self.demod
         smooth = self._smooth_reference()
+        if self._smooth_static is None:
+            self._smooth_static = np.angle(d.g0 * np.conj(d.decimated(smooth)))
+        static = self._smooth_static
         rows, cols = self.shape
         grid_r = np.arange(rows, dtype=np.float32)[:, None]
         grid_c = np.arange(cols, dtype=np.float32)[None, :]
+        fill = _nearest_fill_index(valid)
         for _ in range(iterations):
-            uf = np.where(valid, u, 0.0)
+            # invalid samples take their nearest valid neighbour's u: a jump to
+            # 0 would tear the warped reference and ring through the band-pass
+            uf = np.nan_to_num(u if fill is None else u[:, fill[0], fill[1]])
             u_r = self._up(uf[0])
             u_c = self._up(uf[1])
-            warped = cv2.remap(smooth, grid_c - u_c, grid_r - u_r, cv2.INTER_CUBIC,
+            warped = cv2.remap(smooth, grid_c - u_c, grid_r - u_r, cv2.INTER_LANCZOS4,
                                borderMode=cv2.BORDER_REFLECT)
             gw = d.decimated(warped)
-            dphi = np.angle(g * np.conj(gw))
+            # minus the static difference between the smooth and the real
+            # reference (wrap-around leakage at the borders, where the
+            # reference region usually is): zero residual when u is right
+            dphi = wrap(np.angle(g * np.conj(gw)) - static)
             du = d.phase_to_displacement(dphi)
             u = u + np.where(valid, du, 0.0)
         return u
