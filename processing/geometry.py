@@ -569,6 +569,9 @@ class Geometry:
     def linear_response(self, rows_px, cols_px, frame_shape) -> LinearResponse:
         """First-order displacement of each pixel per unit height and gradient.
 
+        FS-SS: the exact refraction through the surface and the flat layers
+        (:meth:`_fsss_linear_response`), differentiated numerically.
+
         Linearising the exact reflection (TIR) about the flat surface, the
         pattern point of a ray ``d`` (unit, going up) moves by
         ``dP = 2 h d_xy / d_z + 2 H (I + d_xy d_xy^T / d_z^2) grad h`` and the
@@ -588,11 +591,11 @@ class Geometry:
         -------
         LinearResponse
         """
-        if self.setup != "tir":
-            raise GeometryError("linear_response is for the TIR setup; FS-SS uses fsss_gradient_per_px")
         rows_px, cols_px = np.broadcast_arrays(
             np.asarray(rows_px, dtype=np.float64), np.asarray(cols_px, dtype=np.float64)
         )
+        if self.setup == "fsss":
+            return self._fsss_linear_response(rows_px, cols_px, frame_shape)
         _, d = self.camera_rays(rows_px, cols_px, frame_shape)
         H = self.depth_mm
         dz = d[..., 2]
@@ -632,6 +635,78 @@ class Geometry:
         Kinv_T = np.swapaxes(np.linalg.inv(K), -1, -2)
         a = -np.einsum("...ij,...j->...i", Jinv, a_P)
         B = -2.0 * H * Jinv @ M @ Kinv_T
+        x, y = self.surface_point(rows_px, cols_px, frame_shape)
+        return LinearResponse(a=a, B=B, surface_xy=np.stack([x, y], axis=-1), jac_surface=K)
+
+    def _fsss_pattern_point(self, origin, d, h, hx, hy):
+        """FS-SS pattern point of rays meeting a surface of height h, gradient (hx, hy).
+
+        First order in ``h`` for the hit point (``S = S0 + h d / d_z``); exact
+        vector refraction about the normal ``(-hx, -hy, 1)``, then through the
+        flat layers (``n sin`` and the azimuth are conserved; the water column
+        is ``h`` taller).
+        """
+        s0 = -origin[..., 2] / d[..., 2]
+        S = origin[..., :2] + (s0 + h / d[..., 2])[..., None] * d[..., :2]
+        nrm = np.stack([-hx * np.ones_like(s0), -hy * np.ones_like(s0), np.ones_like(s0)], axis=-1)
+        nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
+        cos_i = -np.sum(d * nrm, axis=-1)
+        eta = self.n_air / self.n_water
+        cos_t = np.sqrt(1.0 - eta**2 * (1.0 - cos_i**2))
+        t = eta * d + (eta * cos_i - cos_t)[..., None] * nrm
+        txy = t[..., :2]
+        s2 = np.sum(txy * txy, axis=-1)
+        P = S.copy()
+        layers = _fsss_layers_from_surface(self)
+        for i, (thick, n) in enumerate(layers):
+            r = self.n_water / n
+            T = thick + (h if i == 0 else 0.0)
+            P = P + (T * r / np.sqrt(1.0 - r * r * s2))[..., None] * txy
+        return P
+
+    def _fsss_linear_response(self, rows_px, cols_px, frame_shape) -> LinearResponse:
+        """Per-pixel FS-SS response by central differences of :meth:`_fsss_pattern_point`."""
+        origin, d = self.camera_rays(rows_px, cols_px, frame_shape)
+        zero = np.zeros(rows_px.shape)
+        eh, eg = 1e-3, 1e-4  # mm, slope: P is smooth, errors ~ eps^2
+
+        def dP(h, hx, hy):
+            return self._fsss_pattern_point(origin, d, h, hx, hy)
+
+        # pattern shift per unit h and per unit gradient, image (y, x) ordering
+        a_P = (dP(zero + eh, zero, zero) - dP(zero - eh, zero, zero)) / (2 * eh)
+        gx = (dP(zero, zero + eg, zero) - dP(zero, zero - eg, zero)) / (2 * eg)
+        gy = (dP(zero, zero, zero + eg) - dP(zero, zero, zero - eg)) / (2 * eg)
+        a_P = a_P[..., ::-1]
+        Mg = np.stack([gy[..., ::-1], gx[..., ::-1]], axis=-1)  # d P_(y,x) / d (h_y, h_x)
+        eps = 0.5
+
+        def pat(r, c):
+            px, py = self.flat_pattern_point(r, c, frame_shape)
+            return np.stack([py, px], axis=-1)
+
+        def surf(r, c):
+            x, y = self.surface_point(r, c, frame_shape)
+            return np.stack([y, x], axis=-1)
+
+        J = np.stack(
+            [
+                (pat(rows_px + eps, cols_px) - pat(rows_px - eps, cols_px)) / (2 * eps),
+                (pat(rows_px, cols_px + eps) - pat(rows_px, cols_px - eps)) / (2 * eps),
+            ],
+            axis=-1,
+        )
+        K = np.stack(
+            [
+                (surf(rows_px + eps, cols_px) - surf(rows_px - eps, cols_px)) / (2 * eps),
+                (surf(rows_px, cols_px + eps) - surf(rows_px, cols_px - eps)) / (2 * eps),
+            ],
+            axis=-1,
+        )
+        Jinv = np.linalg.inv(J)
+        Kinv_T = np.swapaxes(np.linalg.inv(K), -1, -2)
+        a = -np.einsum("...ij,...j->...i", Jinv, a_P)
+        B = -Jinv @ Mg @ Kinv_T
         x, y = self.surface_point(rows_px, cols_px, frame_shape)
         return LinearResponse(a=a, B=B, surface_xy=np.stack([x, y], axis=-1), jac_surface=K)
 

@@ -6,9 +6,10 @@ the height and its gradient (see :meth:`Geometry.linear_response`):
 (row, col). Hence ``grad_px(h) + kappa h = g`` with ``g = B^-1 u`` and
 ``kappa = B^-1 a``. For a telecentric TIR camera this is the paper's
 ``(d/dx, d/dy + T/H) h = -(u_x, u_y cos^2 theta) / 2H`` in surface units (the
-sign of the ``T/H`` term flips with the direction of the image rows); for
-FS-SS ``kappa = 0`` and ``g`` is Moisy's ``grad h`` (see
-:meth:`Geometry.fsss_gradient_per_px`).
+sign of the ``T/H`` term flips with the direction of the image rows); for a
+telecentric FS-SS camera ``kappa = 0`` and ``g`` is Moisy's ``grad h`` (see
+:meth:`Geometry.fsss_gradient_per_px`); with a finite FS-SS camera height the
+oblique off-axis rays get their own response (exact refraction, linearised).
 
 Discretisation and solvers
 --------------------------
@@ -272,15 +273,17 @@ class HeightSolver:
                 self.Binv, self.kappa, self.Kinv_T, sxy = _variable_optics(g, grid)
                 self.constant = False
                 self.surface_xy = np.moveaxis(sxy, -1, 0)
-        else:
+        elif g.telecentric:
             s = -g.fsss_gradient_per_px() * g.pixel_mm  # dh/dpixel (mm/px) per px of u
             self.Binv = np.eye(2) * s
             self.kappa = np.zeros(2)
             self.Kinv_T = np.eye(2) / g.pixel_mm
             self.constant = True
-            if not g.telecentric:
-                xs, ys = g.surface_point(R, C, grid.frame_shape)
-                self.surface_xy = np.stack(np.broadcast_arrays(xs, ys))
+        else:
+            # off-axis rays are oblique: per-sample response from the exact refraction
+            self.Binv, self.kappa, self.Kinv_T, sxy = _variable_optics(g, grid)
+            self.constant = False
+            self.surface_xy = np.moveaxis(sxy, -1, 0)
         rcen = np.array([(grid.frame_shape[0] - 1) / 2.0])
         ccen = np.array([(grid.frame_shape[1] - 1) / 2.0])
         self.x_mm = np.asarray(g.surface_point(rcen[:, None], grid.cols_px[None, :], grid.frame_shape)[0]).ravel()
