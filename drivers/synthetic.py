@@ -421,7 +421,14 @@ class SyntheticCamera(Camera):
                     raise CameraError(f"fetch: the synthetic camera {self.camera_id!r} is closed")
                 if not self._acquiring:
                     raise CameraError("fetch: acquisition is not running; call start() first")
-                self._skip_drops()
+                if self._triggered:
+                    # a dropped triggered frame was taken (the trigger is used up) but never arrives
+                    while self._triggers and self._next_id in self._drops:
+                        self._triggers.popleft()
+                        self._next_id += 1
+                        self._stats["n_dropped_injected"] += 1
+                else:
+                    self._skip_drops()
                 if self.exhausted:
                     raise FetchTimeout(
                         f"the synthetic camera delivered all {self._frames.shape[0]} frames "

@@ -101,6 +101,18 @@ def test_software_trigger_one_frame_per_trigger():
         assert cam.statistics()["n_triggers"] == 4
 
 
+def test_dropped_triggered_frame_uses_up_its_trigger():
+    with SyntheticCamera(_stack(), drop_frames=(1,)) as cam:
+        cam.configure(trigger_mode="On", trigger_source="Software")
+        cam.start()
+        for _ in range(3):
+            cam.trigger_software()
+        assert [cam.fetch(0.5).frame_id for _ in range(2)] == [0, 2]
+        with pytest.raises(FetchTimeout):
+            cam.fetch(0.05)  # 3 triggers, one frame lost in transport: 2 frames
+        assert cam.statistics()["n_id_gap_frames"] == 1
+
+
 def test_line_trigger_gives_no_frames_and_software_trigger_is_ignored():
     with SyntheticCamera(_stack()) as cam:
         cam.configure(trigger_mode="On", trigger_source="Line1")
