@@ -298,6 +298,11 @@ def _h5_open(p: Path):
     try:
         return h5py.File(p, "r")
     except OSError as exc:
+        if "lock" in str(exc).lower():
+            raise ImageReadError(
+                f"{str(p)!r} is locked by another program (is it still being recorded?); "
+                f"stop the recording first, or read a copy of the file"
+            ) from exc
         raise ImageReadError(
             f"{str(p)!r} is not a readable HDF5 recording ({exc}); if the recording "
             f"crashed, check it with h5dump, or record again"

@@ -511,6 +511,9 @@ def cmd_process(args) -> int:
     counts = [imageio.frame_count(path) for path in args.frames]
     total = sum(counts)
     selected = _selected_count(total, args.first, args.last, args.step)
+    if total == 0:
+        raise TirdeflectError(
+            "the inputs hold no frames (an empty recording or stack?); give files with frames")
     if selected == 0:
         raise TirdeflectError(
             f"--first {args.first} --last {args.last} --step {args.step} selects no frame "
