@@ -249,10 +249,23 @@ class Geometry:
                     f"arcsin(n_air/n_water) is {crit:.1f} deg; raise theta above {crit:.1f} deg "
                     f"(tilt the camera further from the vertical)"
                 )
+            if self.fsss_camera_distance_mm is not None and self.camera_distance_mm is None:
+                raise GeometryError(
+                    f"fsss_camera_distance_mm={self.fsss_camera_distance_mm:g} is the FS-SS camera height, but "
+                    f"setup is \"tir\": give the TIR camera distance as camera_distance_mm (or remove the line "
+                    f"for a telecentric lens)"
+                )
         else:
+            if self.camera_distance_mm is not None and self.fsss_camera_distance_mm is None:
+                raise GeometryError(
+                    f"camera_distance_mm={self.camera_distance_mm:g} is the TIR camera distance, but setup is "
+                    f"\"fsss\": give the height of the camera above the water as fsss_camera_distance_mm "
+                    f"(or remove the line for a telecentric lens)"
+                )
+        if len(self.fsss_layers) or self.setup == "fsss":
             self._validate_layers()
-        if self.setup == "tir":
-            object.__setattr__(self, "fsss_layers", tuple(tuple(x) for x in self.fsss_layers))
+        else:
+            object.__setattr__(self, "fsss_layers", ())
 
     def _validate_reference_region(self) -> None:
         region = self.reference_region

@@ -194,3 +194,11 @@ def test_tir_quantities_refused_for_fsss():
         f.theta
     with pytest.raises(GeometryError, match="TIR setup only"):
         f.T
+
+
+def test_camera_distance_of_the_other_setup_is_refused():
+    """A silently ignored distance would change the heights by (1 + h_a/L), 12 % here."""
+    msg = _err(FSSS_TEXT.replace("fsss_camera_distance_mm", "camera_distance_mm"))
+    assert "camera_distance_mm=800 is the TIR camera distance" in msg and "fsss_camera_distance_mm" in msg
+    msg = _err(TIR_TEXT.replace("camera_distance_mm", "fsss_camera_distance_mm"))
+    assert "is the FS-SS camera height" in msg and "camera_distance_mm" in msg
