@@ -465,6 +465,8 @@ class AravisCamera(Camera):
         stream = self._stream
         deadline = time.monotonic() + timeout_s
         while True:
+            if not self._acquiring:
+                raise CameraError(f"fetch: {self.camera_id} was stopped or closed while waiting")
             self._check_alive()
             remaining = deadline - time.monotonic()
             if remaining <= 0:

@@ -169,3 +169,27 @@ def test_gige_camera_killed_mid_stream_raises_camera_lost_in_bounded_time(gv_fak
     # watchdog bound: lost_timeout_s + one probe period + one fetch slice (0.1 s), plus scheduling slack
     assert result["t"] < lost_timeout_s + 0.1 + 0.1 + 0.8
     assert close_s < 2.0
+
+
+def test_stop_from_another_thread_ends_a_waiting_fetch(gv_fake_camera):
+    with aravis.AravisCamera("127.0.0.1") as cam:
+        cam.configure(width=64, height=64, trigger_mode="On", trigger_source="Software")
+        cam.start()
+        result = {}
+
+        def consume():
+            t0 = time.monotonic()
+            try:
+                cam.fetch(5.0)  # no trigger will come
+            except Exception as exc:
+                result["exc"], result["t"] = exc, time.monotonic() - t0
+
+        t = threading.Thread(target=consume)
+        t.start()
+        t.join(0.2)
+        assert t.is_alive()  # it is waiting for a trigger
+        cam.stop()
+        t.join(2.0)
+        assert not t.is_alive()
+    assert isinstance(result["exc"], CameraError) and "stopped" in str(result["exc"])
+    assert result["t"] < 1.0  # well before its own 5 s timeout
