@@ -61,6 +61,10 @@ def test_fake1_open_configure_stream_close():
     # the fake paces frames at the configured rate: device clock says 5 ms apart
     assert np.median(np.diff(ts)) == pytest.approx(5e6, rel=0.05)
     assert all(f.image.shape == (128, 256) and f.image.dtype == np.uint8 and not f.incomplete for f in frames)
+    # the fake paints a diagonal ramp (value depends on x + y): rows are laid out right
+    img = frames[0].image
+    np.testing.assert_array_equal(img[1:, :-1], img[:-1, 1:])
+    assert img.std() > 10
     assert stats["n_completed_buffers"] == stats["n_delivered"] + stats.get("n_output_buffers", 0) == 40 + stats.get("n_output_buffers", 0)
     with pytest.raises(CameraError, match="not open"):
         cam.fetch(0.1)
@@ -73,6 +77,8 @@ def test_fake1_mono16_frames_are_uint16():
         cam.start()
         f = cam.fetch(2.0)
     assert f.image.dtype == np.uint16 and f.image.shape == (32, 64) and f.bit_depth == 16
+    np.testing.assert_array_equal(f.image[1:, :-1], f.image[:-1, 1:])  # 16-bit samples, not byte pairs
+    assert f.image.max() > 255
 
 
 def test_unknown_device_fails_with_a_message():
