@@ -43,6 +43,7 @@ samples is reported invalid (NaN), since its offset was not measured.
 from __future__ import annotations
 
 import math
+import threading
 from collections import OrderedDict
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -614,6 +615,7 @@ class HeightSolver:
 
 _CACHE: "OrderedDict[tuple, HeightSolver]" = OrderedDict()
 _CACHE_SIZE = 8
+_CACHE_LOCK = threading.Lock()  # the GUI and the processing worker may solve at once
 
 
 def _solver_for(geometry, rows_px, cols_px, frame_shape) -> HeightSolver:
@@ -629,14 +631,16 @@ def _solver_for(geometry, rows_px, cols_px, frame_shape) -> HeightSolver:
         float(c[-1]) if c.size else None,
         tuple(int(s) for s in frame_shape),
     )
-    s = _CACHE.get(key)
-    if s is None:
-        s = HeightSolver(geometry, r, c, frame_shape)
+    with _CACHE_LOCK:
+        s = _CACHE.get(key)
+        if s is not None:
+            _CACHE.move_to_end(key)
+            return s
+    s = HeightSolver(geometry, r, c, frame_shape)  # solvers are read-only once built
+    with _CACHE_LOCK:
         _CACHE[key] = s
         while len(_CACHE) > _CACHE_SIZE:
             _CACHE.popitem(last=False)
-    else:
-        _CACHE.move_to_end(key)
     return s
 
 
