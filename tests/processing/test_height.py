@@ -235,3 +235,39 @@ def test_fsss_off_axis_rays_are_oblique():
     res = _solve(u, None, g, shape=shape)
     bump = np.abs(ht) > 0.01 * np.abs(ht).max()
     assert _rel_rms(res.height_mm, ht, bump) < 0.003
+
+
+def test_concurrent_solves_agree_with_serial():
+    """The GUI thread and the processing worker share the solver cache."""
+    import threading
+
+    g = _tir(theta_deg=58.0)
+    X, Y = _xy(g)
+    u = _paper_u(BUMP.height(X, Y), *BUMP.gradient(X, Y), g)
+    grids = [(slice(None), slice(None)), (slice(1, None, 2), slice(0, None, 2)), (slice(0, None, 3), slice(2, None, 3))]
+    r, c = _grid()
+    serial = [
+        surface_from_displacement(u[:, a, b], None, g, rows_px=r[a], cols_px=c[b], frame_shape=SHAPE).height_mm
+        for a, b in grids
+    ]
+    from processing import height as hmod
+
+    with hmod._CACHE_LOCK:
+        hmod._CACHE.clear()
+    out, errors = {}, []
+
+    def work(i):
+        try:
+            a, b = grids[i % 3]
+            out[i] = surface_from_displacement(u[:, a, b], None, g, rows_px=r[a], cols_px=c[b], frame_shape=SHAPE)
+        except Exception as exc:  # noqa: BLE001 - reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=work, args=(i,)) for i in range(9)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=60)
+    assert not errors and len(out) == 9
+    for i, res in out.items():
+        np.testing.assert_array_equal(res.height_mm, serial[i % 3])
