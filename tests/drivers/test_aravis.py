@@ -138,6 +138,10 @@ def test_gige_packet_loss_is_counted_not_hidden(gv_fake_camera_lossy):
     # every failed buffer reached the consumer, flagged
     assert n_incomplete == stats["n_incomplete_delivered"] == stats["n_failures"]
     assert stats["n_completed_buffers"] + stats["n_failures"] == n + stats["n_output_buffers"]
+    # frames not flagged are whole: the fake's diagonal ramp is intact in every one
+    for f in frames:
+        if not f.incomplete:
+            np.testing.assert_array_equal(f.image[1:, :-1], f.image[:-1, 1:])
     # 2 % packet loss over ~1000 packets: losses certainly happened and were seen
     assert stats["n_missing_packets"] > 0
     assert n_incomplete + stats["n_id_gap_frames"] + stats["n_resent_packets"] > 0
