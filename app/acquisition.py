@@ -119,6 +119,11 @@ class Acquisition:
         setting, else the median frame interval measured on the fly.
     check_available_memory : bool
         Refuse a ring that does not fit into available memory (clear error).
+    thread_nice : int or None
+        Ask the OS to run the camera thread at this nice value (Linux; negative
+        = higher priority, needs root or CAP_SYS_NICE) so that other programs
+        cannot delay it past the camera's buffer pool. Not allowed: it keeps
+        normal priority (published as ``thread_nice_applied`` = False). None: leave it.
     """
 
     def __init__(
@@ -132,6 +137,7 @@ class Acquisition:
         time_gap_factor: float = 1.5,
         frame_rate_hz: Optional[float] = None,
         check_available_memory: bool = True,
+        thread_nice: Optional[int] = -10,
     ):
         if ring_frames is not None and ring_bytes is not None:
             raise ValueError(
@@ -158,6 +164,8 @@ class Acquisition:
         if check_available_memory:
             check_memory(need, f"ring buffer of {ring_frames} frames {self.shape[0]}x{self.shape[1]} {self.dtype}")
         self.ring = RingBuffer(self.shape, self.dtype, ring_frames, check_available_memory=False)
+        self.thread_nice = thread_nice
+        self.thread_nice_applied = False
         self.fetch_timeout_s = float(fetch_timeout_s)
         self.stall_timeout_s = None if stall_timeout_s is None else float(stall_timeout_s)
         self.time_gap_factor = float(time_gap_factor)
@@ -293,6 +301,7 @@ class Acquisition:
             latest_skipped=self.ring.latest_skipped,
             ring_frames=self.ring.n_frames,
             ring_bytes=self.ring.nbytes,
+            thread_nice_applied=self.thread_nice_applied,
             camera_statistics=dict(self.camera_statistics),
         )
 
@@ -314,7 +323,19 @@ class Acquisition:
             except Exception:  # a listener must never kill the camera thread
                 pass
 
+    def _raise_priority(self) -> None:
+        if self.thread_nice is None:
+            return
+        try:
+            import os
+
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), int(self.thread_nice))
+            self.thread_nice_applied = True
+        except (AttributeError, OSError, PermissionError):
+            self.thread_nice_applied = False
+
     def _run(self) -> None:
+        self._raise_priority()
         cam = self.camera
         ring = self.ring
         shape = self.shape

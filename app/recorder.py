@@ -551,6 +551,7 @@ class Recorder:
         self._t_begin = None
         self._t_end = None
         self._summary: Optional[dict] = None
+        self._last_overrun_log = -1e9
         self._stats = dict(id_gap_frames=0, id_gap_events=0, missing_ids=[], time_gaps=0, lost_by_time=0,
                            incomplete=0, no_timestamp=0, overrun_events=[])
 
@@ -688,9 +689,11 @@ class Recorder:
         cur = self._cursor
         self.lost_overrun = cur.lost if end is None else cur.lost - max(0, fr.sequence - end)
         self._stats["overrun_events"] = [list(e) for e in cur.lost_events]
-        log.error("recorder %s lost %d frames to ring overwrite (the camera lapped the recorder); "
-                  "total lost %d: use --burst, a faster disk or a bigger ring",
-                  self.file.path.name, fr.lost_before, self.lost_overrun)
+        now = time.monotonic()
+        if now - self._last_overrun_log >= 1.0:  # loud, but once a second, not once a frame
+            self._last_overrun_log = now
+            log.error("recorder %s lost frames to ring overwrite (the camera lapped the recorder): %d so far; "
+                      "use --burst, a faster disk or a bigger ring", self.file.path.name, self.lost_overrun)
 
     def _account(self, fr: RingFrame, prev) -> None:
         st = self._stats
