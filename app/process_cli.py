@@ -151,6 +151,10 @@ def add_simulate_parser(sub) -> None:
                    help="camera noise, RMS in grey levels of the output bit depth")
     p.add_argument("--geometry", default=None, metavar="G.toml",
                    help="optical geometry (default: a typical TIR set-up)")
+    p.add_argument("--max-phase", type=float, default=None, metavar="RAD",
+                   help="scale the heights so the largest carrier phase |k.u| is RAD radians "
+                   "(default: 2.3 bump/dimple, 2.6 waves, 5.0 deep-dimple, which needs "
+                   "unwrapping); the same on every geometry, TIR or FS-SS")
     p.add_argument("--seed", type=int, default=0, help="random seed of the noise")
     p.add_argument("--overwrite", action="store_true",
                    help="write into DIR even if it already holds a data set")
@@ -773,21 +777,27 @@ SIM_PATTERN_PERIOD_PX = 20.0
 SIM_FPS = 100.0
 
 
-def _sim_scene(name: str, geometry, size: int, n_frames: int, seed: int):
+#: Largest carrier phase |k . u| (rad) each --surface is scaled to reach (on any
+#: geometry): below pi for all but deep-dimple, which needs unwrapping, as the
+#: notes.md example (15 um deep at H = 300 mm, theta = 55 deg) does.
+SIM_MAX_PHASE_RAD = {"bump": 2.3, "dimple": 2.3, "waves": 2.6, "deep-dimple": 5.0}
+
+
+def _sim_scene(name: str, geometry, size: int, n_frames: int, seed: int, amplitude: float = 1.0):
     """Surface (or scene with ``at(t_s)``) for a --surface name.
 
-    Features scale with the field (``size * pixel_mm``) and heights with
-    ``size / 512``, so the largest carrier phase ``|k . u|`` is the same at every
-    --size: at the default geometry about 2.3 rad (bump), 2.3 rad (dimple, last
-    frame), 2.5 rad (waves) -- all below pi, readable without unwrapping -- and
-    about 5 rad for deep-dimple (the notes.md example: 15 um deep at 512 px,
-    which needs unwrapping). Heights in mm, positions in the image frame
-    (mm from the image centre).
+    Features scale with the field (``size * pixel_mm``); heights are the
+    nominal ones below times ``amplitude`` (:func:`_sim_amplitude` picks it so
+    the largest carrier phase is :data:`SIM_MAX_PHASE_RAD`). Nominal, at
+    512 px: bump 4 um, sigma 1/8 of the field; dimple deepening over the frames
+    to 4 um; deep-dimple 15 um, sigma field/4.65; waves 0.7 um RMS, six
+    travelling waves of 1/4 to 1/2 the field. Heights in mm, positions in the
+    image frame (mm from the image centre).
     """
     from processing import forward
 
     fov_mm = size * geometry.pixel_mm  # field width along x
-    scale = size / 512.0
+    scale = size / 512.0 * amplitude
     if name == "bump":
         return forward.GaussianBump(amplitude_mm=0.004 * scale, sigma_mm=fov_mm / 8.0)
     if name == "dimple":
@@ -809,6 +819,42 @@ def _sim_scene(name: str, geometry, size: int, n_frames: int, seed: int):
     raise TirdeflectError(f"unknown --surface {name!r}; choose bump, dimple, waves or deep-dimple")
 
 
+def _surface_at(scene, t_s: float):
+    from processing import forward
+
+    if isinstance(scene, forward.Surface):
+        return scene
+    return scene.at(t_s) if hasattr(scene, "at") else scene(t_s)
+
+
+def _sim_amplitude(name, geometry, size, n_frames, seed, pattern, target_rad) -> tuple:
+    """Amplitude factor making the largest carrier phase ``target_rad``.
+
+    The phase is ``|k_s . u|`` with ``u`` the exact displacement (ray traced,
+    on a 64 x 64 subgrid) and ``k_s`` the carriers found on the rendered flat
+    reference; it is evaluated at the first and last frame times (phase is
+    linear in amplitude while rays do not cross). Returns (factor, phase at
+    factor 1).
+    """
+    from processing import forward
+    from processing.carriers import find_carriers
+
+    shape = (size, size)
+    flat, _ = forward.render(forward.FlatSurface(), geometry, shape, pattern)
+    k = find_carriers(flat).wavevectors  # (2, 2) rad/px, (row, col)
+    sub = np.linspace(0, size - 1, min(size, 64))
+    scene = _sim_scene(name, geometry, size, n_frames, seed)
+    phase = 0.0
+    for t_s in {0.0, (n_frames - 1) / SIM_FPS}:
+        u, _ = forward.true_displacement(_surface_at(scene, t_s), geometry, shape,
+                                         rows_px=sub, cols_px=sub)
+        phase = max(phase, float(np.nanmax(np.abs(np.tensordot(k, u, axes=([1], [0]))))))
+    if not phase > 0:
+        raise TirdeflectError(f"--surface {name} moves no pattern point in this geometry; "
+                              f"check --geometry")
+    return target_rad / phase, phase
+
+
 def cmd_simulate(args) -> int:
     """Run ``tirdeflect simulate``; returns the exit status (errors raise)."""
     from processing import Geometry, forward
@@ -828,14 +874,20 @@ def cmd_simulate(args) -> int:
         geometry = _load_geometry(args.geometry)
     else:
         geometry = Geometry.from_dict(dict(DEFAULT_SIM_GEOMETRY))
-    scene = _sim_scene(args.surface, geometry, args.size, args.frames, args.seed)
     pattern = forward.Checkerboard(period_mm=SIM_PATTERN_PERIOD_PX * geometry.pixel_mm,
                                    edge_softness_mm=geometry.pixel_mm)
+    target = SIM_MAX_PHASE_RAD[args.surface] if args.max_phase is None else args.max_phase
+    if not (math.isfinite(target) and target > 0):
+        raise TirdeflectError(f"--max-phase must be a positive number of radians; got {target}")
+    factor, _ = _sim_amplitude(args.surface, geometry, args.size, args.frames, args.seed,
+                               pattern, target)
+    scene = _sim_scene(args.surface, geometry, args.size, args.frames, args.seed, factor)
     sim = forward.simulate(
         scene, geometry, (args.size, args.size), args.frames, pattern=pattern, fps=SIM_FPS,
         bits=args.bits, noise_rms=args.noise, seed=args.seed,
     )
     out.mkdir(parents=True, exist_ok=True)
+    args.max_phase = target
     _write_simulation(out, sim, geometry, args)
     return 0
 
@@ -865,6 +917,7 @@ def _write_simulation(out: Path, sim, geometry, args) -> None:
         f.create_dataset("frame_file", data=np.array(names, dtype=object),
                          dtype=h5py.string_dtype())
         f.attrs["surface"] = args.surface
+        f.attrs["max_phase_rad"] = args.max_phase
         f.attrs["bits"] = args.bits
         f.attrs["noise_rms"] = args.noise
         f.attrs["seed"] = args.seed
