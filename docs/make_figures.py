@@ -145,7 +145,8 @@ def compose(reference, frame, height_mm, *, pixel_mm: float, caption: str,
     height_um = np.asarray(height_mm, dtype=np.float64) * 1e3
     finite = height_um[np.isfinite(height_um)]
     limit = float(np.percentile(np.abs(finite), 99.5)) if finite.size else 1.0
-    limit = float(np.ceil(max(limit, 1e-3) / 5.0) * 5.0)
+    step = 20.0 if limit >= 40 else 4.0 if limit >= 4 else 0.4  # ticks at quarters stay round
+    limit = float(np.ceil(max(limit, 1e-3) / step) * step)
     mm_per_panel_px = pixel_mm * reference.shape[1] / PANEL
     p_ref = _grey_panel(reference)
     p_frame = _grey_panel(frame)
