@@ -564,6 +564,7 @@ def cmd_process(args) -> int:
         reference=reference, expected=selected,
     )
     status = "failed"
+    flagged = _FlagCounter()
     progress = _progress(selected, disable=args.no_progress)
     try:
         item = None
@@ -581,6 +582,7 @@ def cmd_process(args) -> int:
             except TirdeflectError as exc:
                 raise _frame_failed(exc, item, writer) from exc
             log.debug("frame %d (%s) written to %s", item.sequence_index, item.label, out)
+            flagged.add(item)
             progress.update(1)
         status = "complete"
     except KeyboardInterrupt:
@@ -591,6 +593,8 @@ def cmd_process(args) -> int:
         raise
     finally:
         progress.close()
+        if writer.f is not None:
+            _set_attrs(writer.f, flagged.attrs())
         writer.close(status)
         if status != "complete" and writer.n == 0:
             # nothing worth keeping: do not leave a file that blocks the next attempt
@@ -600,7 +604,46 @@ def cmd_process(args) -> int:
                 pass
         cache.store_fftw_wisdom()
     print(f"tirdeflect: wrote {writer.n} frame(s) to {out}", file=sys.stderr)
+    for line in flagged.notes():
+        print(f"tirdeflect: note: {line}", file=sys.stderr)
     return 0
+
+
+class _FlagCounter:
+    """Counts the recorder's per-frame flags of the processed frames (never silent)."""
+
+    def __init__(self):
+        from drivers.base import FrameFlags
+
+        self.INCOMPLETE = int(FrameFlags.INCOMPLETE)
+        self.LOSS = int(FrameFlags.ID_GAP_BEFORE | FrameFlags.TIME_GAP_BEFORE
+                        | FrameFlags.RING_OVERRUN_BEFORE)
+        self.incomplete = []
+        self.gaps = []
+
+    def add(self, item) -> None:
+        if item.flags & self.INCOMPLETE:
+            self.incomplete.append(item.sequence_index)
+            log.warning("frame %d (%s) was flagged INCOMPLETE by the camera: its heights may be wrong",
+                        item.sequence_index, item.label)
+        if item.flags & self.LOSS:
+            self.gaps.append(item.sequence_index)
+
+    def attrs(self) -> dict:
+        return {"frames_flagged_incomplete": len(self.incomplete),
+                "frames_with_loss_before": len(self.gaps)}
+
+    def notes(self) -> list:
+        out = []
+        if self.incomplete:
+            out.append(f"{len(self.incomplete)} processed frame(s) were recorded INCOMPLETE "
+                       f"(missing packets), e.g. frame {self.incomplete[0]}: their heights may be wrong; "
+                       f"see /frame_flags in the output")
+        if self.gaps:
+            out.append(f"the recording lost frames before {len(self.gaps)} processed frame(s), "
+                       f"e.g. before frame {self.gaps[0]}: time steps are not uniform; "
+                       f"see /frame_flags and /device_timestamp_ns")
+        return out
 
 
 def _process_one(reconstruct, item: imageio.FrameItem, ref_shape, grid: str):

@@ -251,9 +251,12 @@ def test_recording_in_geometry_and_reference_from_the_file(sim, tmp_path, capsys
     rec = RecordingFile(rec_path, shape=ref.shape, dtype=ref.dtype, n_frames=3, check_space=False,
                         camera_id="synthetic", geometry_toml=(sim / "geometry.toml").read_text(),
                         reference_image=ref)
+    from drivers.base import FrameFlags
+
+    flags = [0, int(FrameFlags.INCOMPLETE), int(FrameFlags.ID_GAP_BEFORE)]
     for i, frame in enumerate([frames[0], frames[1], frames[0]]):
         # (sequence, frame_id, device_timestamp_ns, host_timestamp_ns, flags, trigger_index)
-        rec.write(frame, (i, 100 + i, 5_000_000 * i, 7_000_000 * i, 0, i))
+        rec.write(frame, (i, 100 + i, 5_000_000 * i, 7_000_000 * i, flags[i], i))
     rec.close()
     out = tmp_path / "out.h5"
     code, err = _run(capsys, "process", rec_path, rec_path, "--out", out, "--first", 1)
@@ -263,6 +266,11 @@ def test_recording_in_geometry_and_reference_from_the_file(sim, tmp_path, capsys
         assert list(f["frame_index"][()]) == [1, 2]
         assert list(f["camera_frame_id"][()]) == [101, 102]
         assert list(f["device_timestamp_ns"][()]) == [5_000_000, 10_000_000]
+        assert list(f["frame_flags"][()]) == flags[1:]
+        assert f.attrs["frames_flagged_incomplete"] == 1 and f.attrs["frames_with_loss_before"] == 1
+    # the flags are said out loud, not only stored
+    assert "INCOMPLETE" in err and "lost frames before 1" in err
+    with h5py.File(out) as f:
         np.testing.assert_array_equal(f["reference"][()], ref)
         h = f["height"][()]
     # frame 2 of the recording is frames[0] again: same heights as a direct run on it
