@@ -209,7 +209,7 @@ def cmd_record(args) -> int:
     from .trigger import AutoTrigger, TriggerError, TriggeredCapture, configure_trigger
 
     prog = "tirdeflect record"
-    cam = acq = None
+    cam = acq = rec = None
     result = None
     try:
         mode = _plan(args)
@@ -264,7 +264,6 @@ def cmd_record(args) -> int:
         file_options = dict(check_space=not args.no_space_check, on_exists="error",
                             geometry_toml=geometry_toml, reference_image=reference)
         bar = _progress(args, total, out.name)
-        progress = None
         duration = total / rate if rate else 10.0
         timeout = args.timeout_s if args.timeout_s is not None else 3 * duration + 30.0
 
@@ -273,7 +272,7 @@ def cmd_record(args) -> int:
             if args.burst and not burst:
                 raise _UsageError(f"--burst of {total} frames does not fit into the ring of {acq.ring.n_frames} "
                                   "frames; give --ring-frames or record without --burst")
-            rec = Recorder(acq.ring, out, n_frames=total, acquisition=acq, defer=burst, progress=progress,
+            rec = Recorder(acq.ring, out, n_frames=total, acquisition=acq, defer=burst,
                            attrs=dict(trigger_source="none", pre_frames=0, post_frames=total,
                                       frame_rate_hz=rate or -1.0, burst=int(burst)), **file_options)
             rec.begin(0)
@@ -283,7 +282,7 @@ def cmd_record(args) -> int:
             summary_src = rec
         else:
             cap = TriggeredCapture(acq, out, pre_frames=pre, post_frames=post, source=trig, burst=args.burst,
-                                   progress=progress, **file_options)
+                                   **file_options)
             rec = cap.recorder
             if trig == "genicam":
                 acq.set_software_trigger_rate(rate)
@@ -337,6 +336,9 @@ def cmd_record(args) -> int:
                 acq.stop(5.0)
             except AcquisitionError:
                 pass
+        if rec is not None:
+            rec.stop(30.0, drain=True)  # write what is in the ring, then close the file properly
+            print(format_summary(rec.summary()))
         return 130
     except (_UsageError, CameraError, AcquisitionError, RecorderError, TriggerError, MemoryBudgetError,
             ValueError, OSError) as exc:

@@ -101,3 +101,21 @@ def test_main_entry_runs_record(tmp_path):
     out = tmp_path / "m.h5"
     assert record_cli.main(["record", "--frames", "4", "--out", str(out), *SMALL_SCENE]) == 0
     assert out.exists()
+
+
+def test_record_with_auto_trigger_on_the_growing_dimple(tmp_path, capsys):
+    """The scene's dimple deepens frame by frame; the RMS slope the reconstruction measures crosses the
+    threshold and the trigger frame is stored with the RMS that fired it."""
+    import json
+
+    out = tmp_path / "auto.h5"
+    rc = record_cli.cmd_record(_parse("--camera", "synthetic", "--synthetic-size", "128", "--synthetic-frames", "16",
+                                      "--frame-rate-hz", "50", "--pre", "5", "--post", "5", "--trigger", "auto",
+                                      "--threshold", "0.0005", "--trigger-timeout-s", "60", "--out", str(out),
+                                      "--no-progress"))
+    assert rc == 0, capsys.readouterr()
+    with h5py.File(out, "r") as f:
+        ev = json.loads(f["events"][0])
+        t = f["frame_table"][:]
+    assert ev["kind"] == "trigger" and ev["source"] == "auto" and ev["rms"] > 0.0005
+    assert list(t["trigger_index"]) == list(range(-5, 5)) and t["sequence"][5] == ev["sequence"]
