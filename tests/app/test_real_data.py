@@ -1,0 +1,80 @@
+"""Real camera images through `tirdeflect process` (no ground truth: checks what is known).
+
+The needle pair (fsss-needle-waves) is documented: the frame is shifted as a
+whole by about (0.8, 1.7) px (x, y) against the reference, and ring waves
+spread from a needle whose tip is in the upper right. The packed 10-bit
+trapped-modes TIFFs must read at their 10-bit scale and process end to end.
+"""
+
+import importlib.util
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from app.cli import main
+
+ROOT = Path(__file__).resolve().parents[2]
+DATA = Path("/work/shared/data")
+if not DATA.is_dir():
+    DATA = ROOT.parent / "shared" / "data"
+NEEDLE = DATA / "fsss-needle-waves"
+TRAPPED = DATA / "fsss-trapped-modes"
+
+# where the needle's shadow ends in 202406_1457001661.bmp (row, col), read off the image
+NEEDLE_TIP_PX = (320, 830)
+
+
+def _figures():
+    spec = importlib.util.spec_from_file_location("make_figures", ROOT / "docs" / "make_figures.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def fsss_toml(tmp_path_factory):
+    path = tmp_path_factory.mktemp("geom") / "fsss.toml"
+    path.write_text(_figures().needle_geometry().to_toml_text())
+    return path
+
+
+def test_needle_rings_centred_near_the_needle(tmp_path, fsss_toml, capsys):
+    out = tmp_path / "needle.h5"
+    code = main(["process", str(NEEDLE / "reference_2.png"), str(NEEDLE / "202406_1457001661.bmp"),
+                 "--geometry", str(fsss_toml), "--out", str(out)])
+    assert code == 0, capsys.readouterr().err
+    figures = _figures()
+    with h5py.File(out) as f:
+        height = f["height"][0].astype(np.float64)
+        valid = f["valid"][0].astype(bool)
+        periods = f["carriers"].attrs["periods_px"]
+    # README: carrier period about 9.8 px
+    np.testing.assert_allclose(periods, 9.8, atol=0.15)
+    assert valid.mean() > 0.85  # needle, its shadow and thin arcs only
+    flat, (_, slope_row, slope_col) = figures.remove_plane(height)
+    # README: the frame is shifted as a whole; in FS-SS that is a uniform slope,
+    # of the same sign along rows and columns, larger along rows (1.7 vs 0.8 px)
+    assert slope_row < 0 and slope_col < 0 and 1.5 < slope_row / slope_col < 2.5
+    r, c = figures.ring_centre(flat)
+    assert r < 512 and c > 512, f"ring centre ({r:.0f}, {c:.0f}) is not in the upper right"
+    dist_mm = np.hypot(r - NEEDLE_TIP_PX[0], c - NEEDLE_TIP_PX[1]) * 0.207
+    assert dist_mm < 50.0, f"ring centre {dist_mm:.0f} mm from the needle tip"
+    # capillary ring waves of tens of micrometres, not a flat map nor millimetres
+    p1, p99 = np.nanpercentile(flat, [1, 99])
+    assert 0.03 < p99 - p1 < 1.0
+
+
+def test_packed_10bit_camera_tiffs_process_end_to_end(tmp_path, fsss_toml, capsys):
+    ref = TRAPPED / "prueba1_20250317_122608_C1S0001000001.tif"
+    frame = TRAPPED / "prueba1_20250317_122608_C1S0001000211.tif"
+    out = tmp_path / "tm.h5"
+    code = main(["process", str(ref), str(frame), "--geometry", str(fsss_toml), "--out", str(out),
+                 "--grid", "decimated"])
+    assert code == 0, capsys.readouterr().err
+    with h5py.File(out) as f:
+        assert f.attrs["reference_bits"] == 10
+        assert f["reference"].dtype == np.uint16 and f["reference"][()].max() <= 1023
+        assert f["valid"][0].mean() > 0.9
+        assert f["source"][0].decode().endswith("C1S0001000211.tif")
