@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as _dt
-import inspect
 import logging
 import math
 import os
@@ -244,32 +243,12 @@ def _selected_count(total: int, first: int, last: int | None, step: int) -> int:
     return (stop - first) // step + 1
 
 
-def _make_reconstructor(reference: np.ndarray, geometry, *, unwrap: bool, effort: str = "estimate"):
+def _make_reconstructor(reference: np.ndarray, geometry, *, unwrap: bool, grid: str,
+                        effort: str = "estimate"):
     from processing import Reconstructor
 
-    kwargs = {}
-    try:
-        params = inspect.signature(Reconstructor).parameters
-    except (TypeError, ValueError):  # pragma: no cover
-        params = {}
-    if "unwrap" in params or any(p.kind is p.VAR_KEYWORD for p in params.values()):
-        kwargs["unwrap"] = unwrap
-    elif not unwrap:
-        log.warning("this Reconstructor has no 'unwrap' option; --no-unwrap is ignored")
-    if "planner_effort" in params:
-        kwargs["planner_effort"] = "FFTW_MEASURE" if effort == "measure" else "FFTW_ESTIMATE"
-    return Reconstructor(reference, geometry, **kwargs)
-
-
-def _call_reconstruct(reconstruct, image, grid: str):
-    try:
-        return reconstruct(image, grid=grid)
-    except TypeError as exc:
-        if "grid" not in str(exc):
-            raise
-        if grid != "full":
-            raise TirdeflectError("this Reconstructor does not support --grid decimated") from exc
-        return reconstruct(image)
+    return Reconstructor(reference, geometry, grid=grid, unwrap=unwrap,
+                         planner_effort="FFTW_MEASURE" if effort == "measure" else "FFTW_ESTIMATE")
 
 
 def _attr_value(value):
@@ -533,7 +512,8 @@ def cmd_process(args) -> int:
     effort = getattr(args, "fft_effort", "auto")
     if effort == "auto":
         effort = "measure" if selected >= MEASURE_MIN_FRAMES else "estimate"
-    reconstruct = _make_reconstructor(reference, geometry, unwrap=not args.no_unwrap, effort=effort)
+    reconstruct = _make_reconstructor(reference, geometry, unwrap=not args.no_unwrap, grid=args.grid,
+                                      effort=effort)
     if hasattr(reconstruct, "reset_series"):
         reconstruct.reset_series()
 
@@ -652,7 +632,7 @@ def _process_one(reconstruct, item: imageio.FrameItem, ref_shape, grid: str):
             f"frame has shape {item.image.shape} (rows, cols) but the reference has "
             f"{tuple(ref_shape)}; use frames and reference from the same camera and region"
         )
-    result = _call_reconstruct(reconstruct, item.image, grid)
+    result = reconstruct(item.image, grid=grid)
     valid = np.asarray(result.valid, dtype=bool)
     if not valid.any():
         raise AllInvalidError(
