@@ -484,7 +484,12 @@ class _ResultWriter:
 
 
 def cmd_process(args) -> int:
-    """Run ``tirdeflect process``; returns the exit status (errors raise)."""
+    """Run ``tirdeflect process``; returns the exit status (errors raise).
+
+    ``args`` is the argparse namespace of the ``process`` subcommand. Callers
+    from Python (the GUI's export) may add ``args.on_progress = f(done, total)``,
+    called after each frame is written and flushed.
+    """
     out = Path(args.out)
     _check_output(out, args.overwrite)
 
@@ -546,6 +551,7 @@ def cmd_process(args) -> int:
     status = "failed"
     flagged = _FlagCounter()
     progress = _progress(selected, disable=args.no_progress)
+    on_progress = getattr(args, "on_progress", None)  # callers in Python (GUI export): f(done, total)
     try:
         item = None
         frames = imageio.iter_frames(args.frames, first=args.first, last=args.last, step=args.step)
@@ -564,6 +570,8 @@ def cmd_process(args) -> int:
             log.debug("frame %d (%s) written to %s", item.sequence_index, item.label, out)
             flagged.add(item)
             progress.update(1)
+            if on_progress is not None:
+                on_progress(writer.n, selected)
         status = "complete"
     except KeyboardInterrupt:
         status = f"interrupted after {writer.n} frame(s)"

@@ -281,6 +281,21 @@ def test_recording_in_geometry_and_reference_from_the_file(sim, tmp_path, capsys
         np.testing.assert_allclose(h[1], f["height"][0], atol=1e-7, equal_nan=True)
 
 
+def test_progress_callback_for_python_callers(sim, tmp_path):
+    import argparse
+
+    from app.process_cli import cmd_process
+
+    calls = []
+    args = argparse.Namespace(
+        reference=str(sim / "reference.png"), frames=_frames(sim), geometry=str(sim / "geometry.toml"),
+        out=str(tmp_path / "o.h5"), grid="decimated", no_unwrap=False, first=0, last=None, step=1,
+        overwrite=False, compression="none", no_progress=True,
+        on_progress=lambda done, total: calls.append((done, total)))
+    assert cmd_process(args) == 0
+    assert calls == [(1, 2), (2, 2)]
+
+
 def test_gui_arguments_go_to_the_window(capsys):
     assert main(["gui", "--help"]) == 0
     out = capsys.readouterr().out
