@@ -147,26 +147,28 @@ class FFTPlanner:
         plan = self._plans.get(key)
         if plan is not None:
             return plan
-        rows, cols = key[1]
+        rows, cols = key[1][-2:]
+        lead = key[1][:-2]  # batch dimensions: transforms along the last two axes
         if kind == "rfft2":
-            src = pyfftw.empty_aligned((rows, cols), dtype="float32")
-            dst = pyfftw.empty_aligned((rows, cols // 2 + 1), dtype="complex64")
+            src = pyfftw.empty_aligned(lead + (rows, cols), dtype="float32")
+            dst = pyfftw.empty_aligned(lead + (rows, cols // 2 + 1), dtype="complex64")
             direction = "FFTW_FORWARD"
         elif kind == "fft2":
-            src = pyfftw.empty_aligned((rows, cols), dtype="complex64")
-            dst = pyfftw.empty_aligned((rows, cols), dtype="complex64")
+            src = pyfftw.empty_aligned(lead + (rows, cols), dtype="complex64")
+            dst = pyfftw.empty_aligned(lead + (rows, cols), dtype="complex64")
             direction = "FFTW_FORWARD"
         elif kind == "ifft2":
-            src = pyfftw.empty_aligned((rows, cols), dtype="complex64")
-            dst = pyfftw.empty_aligned((rows, cols), dtype="complex64")
+            src = pyfftw.empty_aligned(lead + (rows, cols), dtype="complex64")
+            dst = pyfftw.empty_aligned(lead + (rows, cols), dtype="complex64")
             direction = "FFTW_BACKWARD"
         else:  # pragma: no cover - internal misuse
             raise ValueError(f"unknown transform kind {kind!r}")
-        # Small transforms gain nothing from threads (and lose to the overhead).
-        threads = self.threads if rows * cols >= 128 * 128 else 1
+        # Small transforms gain nothing from threads (and lose to the overhead,
+        # badly so on a loaded machine).
+        threads = self.threads if rows * cols >= 384 * 384 else 1
         with _wisdom_lock:
             plan = pyfftw.FFTW(
-                src, dst, axes=(0, 1), direction=direction,
+                src, dst, axes=(-2, -1), direction=direction,
                 flags=(self.planner_effort, "FFTW_DESTROY_INPUT"), threads=threads,
             )
         self._plans[key] = plan
@@ -179,7 +181,8 @@ class FFTPlanner:
         ----------
         kind : {"rfft2", "fft2", "ifft2"}
         shape : tuple of int
-            ``(rows, cols)`` of the real input (rfft2) or of the complex array.
+            ``(rows, cols)`` of the real input (rfft2) or of the complex array;
+            leading dimensions make a batch of transforms over the last two axes.
         """
         self._plan(kind, shape)
 
@@ -199,7 +202,7 @@ class FFTPlanner:
         plan.execute()
         out = plan.output_array
         if kind == "ifft2":
-            out *= np.float32(1.0 / (out.shape[0] * out.shape[1]))
+            out *= np.float32(1.0 / (out.shape[-2] * out.shape[-1]))
         return out
 
     def rfft2(self, image: np.ndarray) -> np.ndarray:

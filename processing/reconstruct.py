@@ -101,10 +101,13 @@ class _Upsampler:
         self.interpolation = {"cubic": cv2.INTER_CUBIC, "lanczos": cv2.INTER_LANCZOS4,
                               "linear": cv2.INTER_LINEAR}[interpolation]
 
-    def __call__(self, field, interpolation=None):
+    def __call__(self, field, interpolation=None, out=None):
         src = np.ascontiguousarray(field, dtype=np.float32)
         ip = self.interpolation if interpolation is None else interpolation
-        return cv2.resize(src, (self.shape[1], self.shape[0]), interpolation=ip)
+        if out is None:
+            return cv2.resize(src, (self.shape[1], self.shape[0]), interpolation=ip)
+        cv2.resize(src, (self.shape[1], self.shape[0]), dst=out, interpolation=ip)
+        return out
 
     def mask(self, valid):
         v = self(valid.astype(np.float32), cv2.INTER_LINEAR)
@@ -493,22 +496,27 @@ class Reconstructor:
         """Decimated result -> every pixel (the decimated grid is oversampled
         twice, so Lanczos interpolation is within 0.2 % of band-limited)."""
         up = self._up
+        rows, cols = self.shape
         valid = up.mask(res.valid)
+        invalid = ~valid
         fill = _nearest_fill_index(res.valid)
 
-        def full(field):
+        def full(field, out=None):
             f = field if fill is None else field[fill]
-            return np.where(valid, up(np.nan_to_num(f)), np.nan).astype(np.float32)
+            out = up(np.nan_to_num(f), out=out)
+            np.copyto(out, np.float32(np.nan), where=invalid)
+            return out
 
+        disp = np.empty((2, rows, cols), np.float32)
+        full(res.displacement[0], disp[0])
+        full(res.displacement[1], disp[1])
         x_mm, y_mm = self._coords_full(res)
-        rows, cols = self.shape
         return dataclasses.replace(
             res, height=full(res.height), valid=valid, slope_x=full(res.slope_x),
-            slope_y=full(res.slope_y),
-            displacement=np.stack([full(res.displacement[0]), full(res.displacement[1])]),
-            amplitude=up(res.amplitude), x_mm=x_mm, y_mm=y_mm, grid="full",
+            slope_y=full(res.slope_y), displacement=disp, amplitude=up(res.amplitude),
+            x_mm=x_mm, y_mm=y_mm, grid="full",
             rows_px=np.arange(rows, dtype=float), cols_px=np.arange(cols, dtype=float),
-            valid_fraction=float(valid.mean()))
+            valid_fraction=float(np.count_nonzero(valid)) / valid.size)
 
     def _full_ifft(self, wins, u, u_first, valid, amplitude, phase, timings, t3):
         """Full grid from full-size inverse FFTs, unwrapped against the

@@ -5,8 +5,11 @@ Ordinary experiments exceed pi (notes.md: a 15 um dimple at H = 300 mm,
 theta = 55 deg, 2 mm period drives the y-carrier to about 5 rad), so the
 phase is unwrapped:
 
-- in space: :func:`unwrap_spatial` (reliability-sorted path following of
-  scikit-image, Herraez et al. 2002, with the invalid samples masked out);
+- in space: :func:`unwrap_spatial`: least squares of the wrapped phase
+  differences (DCT Poisson solve, Ghiglia & Romero 1994) rounded to the
+  congruent 2 pi multiple, accepted only if every valid neighbour pair then
+  differs by less than pi; otherwise reliability-sorted path following of
+  scikit-image (Herraez et al. 2002) with the invalid samples masked out;
   the result is shifted by the multiple of 2 pi that puts the reference
   region's median phase nearest to 0;
 - in time: :func:`unwrap_temporal` adds the wrapped change since the
@@ -19,6 +22,7 @@ phase is unwrapped:
 from __future__ import annotations
 
 import numpy as np
+import scipy.fft
 from scipy import ndimage
 from skimage.restoration import unwrap_phase
 
@@ -46,6 +50,40 @@ def has_wraps(phase, valid=None) -> bool:
     return bool(dr.max(initial=0.0) > np.pi or dc.max(initial=0.0) > np.pi)
 
 
+def _unwrap_lsq_congruent(phase, valid):
+    """Least-squares unwrapping rounded to the congruent solution, or None.
+
+    Differences across invalid samples are dropped (set to 0).  The result is
+    ``phase + 2 pi k`` with integer k everywhere, and is returned only if no
+    pair of valid neighbours then differs by pi or more (a residue-free,
+    consistent unwrapping); None tells the caller to use path following.
+    """
+    dr = wrap(np.diff(phase, axis=0))
+    dc = wrap(np.diff(phase, axis=1))
+    dr[~(valid[1:, :] & valid[:-1, :])] = 0.0
+    dc[~(valid[:, 1:] & valid[:, :-1])] = 0.0
+    rows, cols = phase.shape
+    rho = np.zeros_like(phase)
+    rho[:-1, :] += dr
+    rho[1:, :] -= dr
+    rho[:, :-1] += dc
+    rho[:, 1:] -= dc
+    rho_hat = scipy.fft.dctn(-rho, type=2, norm="ortho", workers=2)
+    i = np.arange(rows)[:, None]
+    j = np.arange(cols)[None, :]
+    denom = 4.0 - 2.0 * np.cos(np.pi * i / rows) - 2.0 * np.cos(np.pi * j / cols)
+    denom[0, 0] = 1.0
+    sol_hat = rho_hat / denom
+    sol_hat[0, 0] = 0.0
+    sol = scipy.fft.idctn(sol_hat, type=2, norm="ortho", workers=2)
+    out = phase + TWO_PI * np.round((sol - phase) / TWO_PI)
+    if has_wraps(out, valid):
+        return None
+    # one connected region: consistent.  Several: each got its own offset from
+    # the smooth solution, which _align_components then resets.
+    return out
+
+
 def _align_components(phase, valid, ref_mask):
     """Shift each connected valid region by 2 pi k: the one(s) holding the
     reference region so that its median is nearest 0, the others so that
@@ -53,6 +91,9 @@ def _align_components(phase, valid, ref_mask):
     labels, n = ndimage.label(valid)
     if n == 0:
         return phase
+    if n == 1:
+        sel = valid if ref_mask is None or not np.any(ref_mask & valid) else (ref_mask & valid)
+        return phase - TWO_PI * np.round(np.median(phase[sel]) / TWO_PI)
     out = phase.copy()
     if ref_mask is not None and np.any(ref_mask & valid):
         ref_vals = phase[ref_mask & valid]
@@ -97,10 +138,12 @@ def unwrap_spatial(phase, valid=None, *, ref_mask=None) -> np.ndarray:
         return np.full(phase.shape, np.nan)
     work = np.where(valid, phase, 0.0)
     if has_wraps(work, valid):
-        if valid.all():
-            out = unwrap_phase(work)
-        else:
-            out = unwrap_phase(np.ma.masked_array(work, mask=~valid)).filled(0.0)
+        out = _unwrap_lsq_congruent(work, valid)
+        if out is None:
+            if valid.all():
+                out = unwrap_phase(work)
+            else:
+                out = unwrap_phase(np.ma.masked_array(work, mask=~valid)).filled(0.0)
     else:
         out = work
     out = _align_components(out, valid, ref_mask)

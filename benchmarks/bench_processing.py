@@ -1,0 +1,246 @@
+"""Processing speed and accuracy, against a peer-style baseline measured in the same run.
+
+Run from the repository root::
+
+    python3 benchmarks/bench_processing.py              # speed at 512^2, 1024^2, 2048^2 + accuracy
+    python3 benchmarks/bench_processing.py --sizes 1024 --repeats 30
+    python3 benchmarks/bench_processing.py --no-accuracy
+
+Speed: median milliseconds per frame, FFTW plans (FFTW_MEASURE) built outside
+the timed loop, one warm-up call.  The baseline is what peers do: numpy FFT in
+float64, one full-size fft2 of the frame, two full-size masked ifft2 (one per
+carrier), phase of the product with the conjugate reference and the 2 x 2
+solve for the displacement; no unwrapping, no mask, no height.  Goals:
+reference-to-height on the decimated grid >= 15x faster than the baseline's
+displacement alone, full pixel grid >= 5x.
+
+Frames for speed are analytic warps ``I0(r - u(r))`` of a soft checkerboard
+(ray tracing 2048^2 frames would take minutes) with a dimple-like
+displacement whose carrier phase reaches about 5 rad, so the unwrapper runs.
+
+Accuracy: ray-traced TIR frames (processing.forward), relative RMS height
+error in the interior after removing the null space, for the default
+settings, the options, and the published method.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import statistics
+import sys
+import time
+
+import cv2
+import numpy as np
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+
+from processing.geometry import Geometry  # noqa: E402
+from processing.reconstruct import Reconstructor  # noqa: E402
+
+GEOMETRY = Geometry(theta_deg=55, depth_mm=300, pixel_mm=0.1, rows_toward_camera=False)
+
+
+# ---------------------------------------------------------------- frames
+def board(shape, period_px=20.0, aspect=math.cos(math.radians(55))):
+    r, c = np.mgrid[: shape[0], : shape[1]].astype(np.float32)
+    k = 2 * np.pi / period_px
+    return r, c, lambda rr, cc: (0.5 + 0.4 * np.tanh(3 * np.sin(k * cc) * np.sin(k * rr / aspect)))
+
+
+def speed_frames(n, count=6):
+    """Reference and ``count`` frames of a dimple growing from 85 % to 100 %
+    (a live series: consecutive frames differ a little)."""
+    r, c, pat = board((n, n))
+    ref = (pat(r, c) * 255).astype(np.uint8)
+    s = 0.12 * n
+    g = np.exp(-((r - 0.45 * n) ** 2 + (c - 0.55 * n) ** 2) / (2 * s * s))
+    frames = []
+    for a in np.linspace(0.85, 1.0, count):
+        u_r = a * 8.0 * g  # px: about 5 rad on the row-dominated carrier
+        u_c = a * 3.0 * g
+        frames.append((pat(r - u_r, c - u_c) * 255).astype(np.uint8))
+    return ref, frames
+
+
+# --------------------------------------------------------------- baseline
+class Baseline:
+    """Peer-style FD: numpy float64, full-size masks, two full-size inverse FFTs."""
+
+    def __init__(self, reference, carriers):
+        ref = np.asarray(reference, np.float64)
+        rows, cols = ref.shape
+        self.shape = ref.shape
+        fr = np.fft.fftfreq(rows)[:, None]
+        fc = np.fft.fftfreq(cols)[None, :]
+        self.masks = []
+        kb = np.round(carriers.freq * np.array([rows, cols])) / np.array([rows, cols])
+        radius = 0.5 * carriers.min_spacing
+        for s in range(2):
+            self.masks.append(np.hypot(fr - kb[s, 0], fc - kb[s, 1]) < radius)
+        self.K = 2 * np.pi * kb
+        spec = np.fft.fft2(ref)
+        self.g0c = [np.conj(np.fft.ifft2(spec * m)) for m in self.masks]
+
+    def __call__(self, frame):
+        spec = np.fft.fft2(np.asarray(frame, np.float64))
+        phases = [np.angle(np.fft.ifft2(spec * m) * g0c) for m, g0c in zip(self.masks, self.g0c)]
+        inv = -np.linalg.inv(self.K)
+        u_r = inv[0, 0] * phases[0] + inv[0, 1] * phases[1]
+        u_c = inv[1, 0] * phases[0] + inv[1, 1] * phases[1]
+        return u_r, u_c
+
+
+def interleaved_medians(fns, repeats, every=None):
+    """Median ms of each fn(i), calling them in turn on every repeat so that
+    all see the same machine load (the machine may be shared).  ``every[k]``
+    > 1 runs fn k only on every that-many repeats (slow variants)."""
+    every = every or [1] * len(fns)
+    for fn in fns:
+        fn(0)  # warm-up
+    times = [[] for _ in fns]
+    for i in range(repeats):
+        for k, fn in enumerate(fns):
+            if i % every[k]:
+                continue
+            t = time.perf_counter()
+            fn(i)
+            times[k].append(1e3 * (time.perf_counter() - t))
+    return [statistics.median(t) for t in times]
+
+
+def bench_speed(sizes, repeats):
+    print("Speed (median ms/frame, 2 FFTW threads, FFTW_MEASURE planned before timing;")
+    print("all variants timed in turn on every repeat, so they share the machine's load)")
+    print("  series: consecutive frames of a live series (temporal unwrapping);")
+    print("  single: every frame unwrapped in space from scratch (reset_series before each)")
+    print(f"{'size':>6} {'baseline':>9} {'dec series':>11} {'x':>6} {'dec single':>11} {'x':>6} "
+          f"{'full series':>12} {'x':>6} {'full single':>12} {'x':>6} {'full ifft':>10} {'x':>5}  grid     verdict")
+    for n in sizes:
+        ref, frames = speed_frames(n)
+        nf = len(frames)
+        opts = dict(planner_effort="FFTW_MEASURE")
+        rec_dec = Reconstructor(ref, GEOMETRY, grid="decimated", **opts)
+        carriers = rec_dec.carriers
+        rec_full = Reconstructor(ref, GEOMETRY, grid="full", carriers=carriers, **opts)
+        rec_single = Reconstructor(ref, GEOMETRY, carriers=carriers, **opts)
+        rec_ifft = Reconstructor(ref, GEOMETRY, grid="full", full_method="ifft", carriers=carriers, **opts)
+        base = Baseline(ref, carriers)
+
+        def series(rec):
+            return lambda i: rec(frames[i % nf])
+
+        def single(rec, grid):
+            def call(i):
+                rec.reset_series()
+                return rec(frames[i % nf], grid=grid)
+            return call
+
+        fns = [lambda i: base(frames[i % nf]), series(rec_dec), single(rec_single, "decimated"),
+               series(rec_full), single(rec_single, "full"), single(rec_ifft, "full")]
+        slow = 4 if n >= 2048 else 2
+        t = interleaved_medians(fns, repeats, every=[slow, 1, 1, 1, 1, 2 * slow])
+        t_base = t[0]
+        ratios = [t_base / x for x in t[1:]]
+        verdict = ("PASS" if ratios[0] >= 15 else "FAIL") + " dec>=15x, " + \
+                  ("PASS" if ratios[2] >= 5 else "FAIL") + " full>=5x (series)"
+        m = rec_dec.demod.window_shape
+        print(f"{n:>6} {t_base:>9.1f} {t[1]:>11.2f} {ratios[0]:>6.1f} {t[2]:>11.2f} {ratios[1]:>6.1f} "
+              f"{t[3]:>12.2f} {ratios[2]:>6.1f} {t[4]:>12.2f} {ratios[3]:>6.1f} "
+              f"{t[5]:>10.1f} {ratios[4]:>5.1f}  {m[0]}x{m[1]}  {verdict}")
+        res = rec_full(frames[1])
+        stages = ", ".join(f"{k} {v:.1f}" for k, v in res.timings_ms.items())
+        print(f"{'':>6} stages of one full-grid series call (ms): {stages}")
+    print()
+
+
+# --------------------------------------------------------------- accuracy
+def bench_accuracy():
+    from processing import forward as F
+
+    board_ = F.Checkerboard(period_mm=2.0, edge_softness_mm=0.1)
+
+    def render(surface, geometry=GEOMETRY, n=256, bits=8, noise=0.0, pattern=board_):
+        rng = np.random.default_rng(0)
+        ref, _ = F.render_tir(F.FlatSurface(), geometry, (n, n), pattern, supersample=2)
+        img, _ = F.render_tir(surface, geometry, (n, n), pattern, supersample=2)
+        return (F.quantize(ref, bits=bits, noise_rms=noise, rng=rng),
+                F.quantize(img, bits=bits, noise_rms=noise, rng=rng))
+
+    def rel(res, surface, geometry=GEOMETRY, margin=0.08):
+        n_rows, n_cols = res.carriers.shape
+        truth = F.true_height(surface, geometry, (n_rows, n_cols), rows_px=res.rows_px, cols_px=res.cols_px)
+        R, C = np.meshgrid(res.rows_px, res.cols_px, indexing="ij")
+        inner = res.valid & (R > margin * n_rows) & (R < (1 - margin) * n_rows)
+        inner &= (C > margin * n_cols) & (C < (1 - margin) * n_cols)
+        _, y = geometry.to_canonical_xy(res.x_mm, res.y_mm)
+        null = np.broadcast_to(np.exp(-geometry.T * np.asarray(y)[:, None] / geometry.depth_mm), truth.shape)[inner]
+        d = (res.height - truth)[inner]
+        t = truth[inner]
+        d = d - null * (null @ d) / (null @ null)
+        t = t - null * (null @ t) / (null @ null)
+        return 100 * float(np.sqrt(np.mean(d**2)) / np.sqrt(np.mean(t**2)))
+
+    cases = [
+        ("bump 4 um, sigma 5 mm", F.GaussianBump(0.004, 5.0), {}),
+        ("bump 2 um, sigma 4 mm", F.GaussianBump(0.002, 4.0), {}),
+        ("bump 2 um, sigma 2.5 mm (narrow)", F.GaussianBump(0.002, 2.5), {}),
+        ("waves 1 um rms, 12-30 mm", F.WaveField.random(6, amplitude_rms_mm=0.001, wavelength_range_mm=(12, 30), seed=3), {}),
+        ("dimple 5 um, 12 bit, noise 20 DN", F.Dimple(0.005, 6.0), dict(bits=12, noise=20.0)),
+        ("deep dimple 15 um, sigma 9 mm", F.Dimple(0.015, 9.0), {}),
+        ("board soft 0.4 mm, period 2.1 mm, bump", F.GaussianBump(0.004, 5.0),
+         dict(pattern=F.Checkerboard(period_mm=2.1, edge_softness_mm=0.4))),
+        ("board sharp 0.1 mm, period 2.1 mm, bump", F.GaussianBump(0.004, 5.0),
+         dict(pattern=F.Checkerboard(period_mm=2.1, edge_softness_mm=0.1))),
+    ]
+    variants = [
+        ("decimated", dict(grid="decimated")),
+        ("full", dict(grid="full")),
+        ("full ifft", dict(grid="full", full_method="ifft")),
+        ("full cubic", dict(grid="full", full_interpolation="cubic")),
+        ("dec disc", dict(grid="decimated", filter_shape="disc")),
+        ("dec no-apod", dict(grid="decimated", border="none")),
+        ("dec refine 1", dict(grid="decimated", refine_iterations=1)),
+        ("published", dict(grid="full", filter_shape="disc", filter_radius=0.5, subbin=False,
+                           unwrap=False, border="none")),
+    ]
+    print("Accuracy: rel. RMS height error (%), ray-traced TIR 256^2, H 300 mm, theta 55 deg,")
+    print("2 mm board (20 x 11.5 px), interior, null space removed")
+    print(f"{'case':42s}" + "".join(f"{name:>13s}" for name, _ in variants))
+    for label, surface, kw in cases:
+        ref, img = render(surface, **kw)
+        cells = []
+        for _, opts in variants:
+            try:
+                cells.append(f"{rel(Reconstructor(ref, GEOMETRY, **opts)(img), surface):13.2f}")
+            except Exception as exc:  # noqa: BLE001 - a failing variant is a result
+                cells.append(f"{type(exc).__name__[:12]:>13s}")
+        print(f"{label:42s}" + "".join(cells))
+    g = Geometry(theta_deg=60, depth_mm=300, pixel_mm=0.1, rows_toward_camera=False, camera_distance_mm=1500.0)
+    bump = F.GaussianBump(0.004, 5.0)
+    ref, img = render(bump, geometry=g)
+    print(f"{'camera at 1.5 m, theta 60, bump (decimated/full)':42s}"
+          f"{rel(Reconstructor(ref, g, grid='decimated')(img), bump, g):13.2f}"
+          f"{rel(Reconstructor(ref, g, grid='full')(img), bump, g):13.2f}")
+    print()
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--sizes", type=int, nargs="+", default=[512, 1024, 2048])
+    ap.add_argument("--repeats", type=int, default=20)
+    ap.add_argument("--no-accuracy", action="store_true")
+    ap.add_argument("--no-speed", action="store_true")
+    args = ap.parse_args(argv)
+    cv2.setNumThreads(2)
+    print(f"tirdeflect processing benchmark, {os.cpu_count()} CPUs visible, numpy {np.__version__}\n")
+    if not args.no_speed:
+        bench_speed(args.sizes, args.repeats)
+    if not args.no_accuracy:
+        bench_accuracy()
+
+
+if __name__ == "__main__":
+    main()
