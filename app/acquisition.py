@@ -28,7 +28,9 @@ error : str or None
 acquired : int
     Frames copied into the ring (= ``ring.head``).
 lost_upstream : int
-    Frames missing according to camera frame-id gaps.
+    Frames missing according to camera frame-id gaps (after the first frame).
+first_frame_id : int or None
+    Camera id of the first frame received (frames before it belong to no recording).
 id_gaps : list of (int, int)
     ``(first_missing_frame_id, count)`` per id gap.
 time_gaps : int
@@ -52,8 +54,9 @@ camera_statistics : dict
 
 Takes (commands, callable from any thread)
 ------------------------------------------
-start()
-    Open the ring (allocated in the constructor), start the camera and the thread.
+start(timeout_s)
+    Start the thread, which starts the camera and fetches right away (the ring
+    was allocated in the constructor); raises if the camera refuses.
 stop(timeout_s)
     Stop the thread and the camera; returns when both stopped (or raises on timeout).
 stop_after(sequence)
@@ -185,6 +188,7 @@ class Acquisition:
         self.no_timestamp = 0
         self.fetch_timeouts = 0
         self.software_triggers_sent = 0
+        self.first_frame_id: Optional[int] = None
         self.fps = 0.0
         self.camera_statistics: dict = {}
         self.started_host_ns: Optional[int] = None
@@ -196,6 +200,8 @@ class Acquisition:
         self._trigger_rate_hz: Optional[float] = None
         self._listeners: List[Callable[[str, "Acquisition"], None]] = []
         self._done = threading.Event()
+        self._started = threading.Event()
+        self._start_error: Optional[BaseException] = None
         self._lock = threading.Lock()
 
     # ------------------------------------------------------------- sizing
@@ -213,21 +219,22 @@ class Acquisition:
         """Call ``callback(event, self)`` on "started", "stopped", "error" (from the camera thread)."""
         self._listeners.append(callback)
 
-    def start(self) -> "Acquisition":
-        """Start the camera and the thread; raises :class:`AcquisitionError` if the camera refuses."""
+    def start(self, timeout_s: float = 10.0) -> "Acquisition":
+        """Start the thread, which starts the camera and fetches at once (no frames lost to a late thread).
+
+        Raises :class:`AcquisitionError` if the camera refuses to start or does not within ``timeout_s``.
+        """
         if self._thread is not None:
             raise AcquisitionError("this Acquisition was already started; create a new one to start again")
-        try:
-            self.camera.start()
-        except CameraError as exc:
-            self.state = "error"
-            self.error = f"camera {self.camera.camera_id!r} did not start: {exc}"
-            self.ring.close(self.error)
-            raise AcquisitionError(self.error) from exc
-        self.state = "running"
-        self.started_host_ns = time.monotonic_ns()
         self._thread = threading.Thread(target=self._run, name="tirdeflect-camera", daemon=True)
         self._thread.start()
+        if not self._started.wait(timeout_s):
+            self._stop_event.set()
+            raise AcquisitionError(
+                f"camera {self.camera.camera_id!r} did not start within {timeout_s:g} s; check it and try again"
+            )
+        if self._start_error is not None:
+            raise AcquisitionError(self.error) from self._start_error
         self._notify("started")
         return self
 
@@ -296,6 +303,7 @@ class Acquisition:
             no_timestamp=self.no_timestamp,
             fetch_timeouts=self.fetch_timeouts,
             software_triggers_sent=self.software_triggers_sent,
+            first_frame_id=self.first_frame_id,
             fps=self.fps,
             period_s=self.period_s,
             latest_skipped=self.ring.latest_skipped,
@@ -337,6 +345,19 @@ class Acquisition:
     def _run(self) -> None:
         self._raise_priority()
         cam = self.camera
+        try:
+            cam.start()
+        except Exception as exc:
+            self.error = f"camera {cam.camera_id!r} did not start: {exc}"
+            self.state = "error"
+            self._start_error = exc
+            self.ring.close(self.error)
+            self._started.set()
+            self._done.set()
+            return
+        self.started_host_ns = time.monotonic_ns()
+        self.state = "running"
+        self._started.set()
         ring = self.ring
         shape = self.shape
         triggered_mode = self.settings.trigger_mode == "On"
@@ -401,7 +422,9 @@ class Acquisition:
                     flags |= FrameFlags.INCOMPLETE
                     self.incomplete += 1
                 id_missing = 0
-                if last_id is not None and fid != last_id + 1:
+                if last_id is None:
+                    self.first_frame_id = fid
+                elif fid != last_id + 1:
                     flags |= FrameFlags.ID_GAP_BEFORE
                     if fid > last_id + 1:
                         id_missing = fid - last_id - 1

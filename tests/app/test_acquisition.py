@@ -118,3 +118,12 @@ def test_start_twice_is_refused():
         with acq:
             with pytest.raises(AcquisitionError, match="already started"):
                 acq.start()
+
+
+def test_camera_that_refuses_to_start_is_a_clear_error():
+    cam = SyntheticCamera(_frames(), frame_rate_hz=100).open()
+    acq = Acquisition(cam, ring_frames=8)
+    cam.close()  # e.g. unplugged between configuration and start
+    with pytest.raises(AcquisitionError, match="camera 'synthetic' did not start: .*closed"):
+        acq.start()
+    assert acq.state == "error" and acq.ring.closed and acq.wait(1.0)
