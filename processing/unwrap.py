@@ -32,8 +32,10 @@ TWO_PI = 2.0 * np.pi
 
 
 def wrap(phase):
-    """Phase wrapped into [-pi, pi)."""
-    return (phase + np.pi) % TWO_PI - np.pi
+    """Phase wrapped into [-pi, pi] (same dtype; +-pi may come out either way)."""
+    phase = np.asarray(phase)
+    two_pi = phase.dtype.type(TWO_PI) if phase.dtype.kind == "f" else TWO_PI
+    return phase - two_pi * np.rint(phase / two_pi)
 
 
 def has_wraps(phase, valid=None) -> bool:
@@ -173,8 +175,8 @@ def unwrap_temporal(phase, previous, valid=None, previous_valid=None, *, ref_mas
     ndarray, float64
         Unwrapped phase, NaN outside ``valid``.
     """
-    phase = np.asarray(phase, dtype=np.float64)
-    previous = np.asarray(previous, dtype=np.float64)
+    phase = np.asarray(phase)
+    previous = np.asarray(previous)
     if previous.shape != phase.shape:
         raise ValueError(f"previous phase has shape {previous.shape}, this frame {phase.shape}; "
                          "call reset_series() when the grid changes")
@@ -182,13 +184,14 @@ def unwrap_temporal(phase, previous, valid=None, previous_valid=None, *, ref_mas
         valid = np.isfinite(phase)
     if previous_valid is None:
         previous_valid = np.isfinite(previous)
-    both = valid & previous_valid & np.isfinite(previous)
+    both = valid & previous_valid
     if not both.any():
         return unwrap_spatial(phase, valid, ref_mask=ref_mask)
-    delta = wrap(np.where(both, phase - previous, 0.0))
+    prev0 = np.where(both, previous, 0.0)
+    delta = wrap(np.where(both, phase, 0.0) - prev0)
     if has_wraps(delta, both):
         delta = unwrap_spatial(delta, both)  # each island's median change nearest 0
-    out = np.where(both, previous + delta, np.nan)
+    out = prev0 + delta
     only_now = valid & ~both
     if only_now.any():
         spatial = unwrap_spatial(phase, valid, ref_mask=ref_mask)
@@ -197,6 +200,9 @@ def unwrap_temporal(phase, previous, valid=None, previous_valid=None, *, ref_mas
         out[only_now] = spatial[only_now]
     # keep the reference region's phase nearest 0 (its median may drift by 2 pi
     # only if the region itself jumped, which then was spatially ambiguous)
-    if ref_mask is not None and np.any(ref_mask & valid):
-        out -= TWO_PI * np.round(np.nanmedian(out[ref_mask & valid]) / TWO_PI)
-    return np.where(valid, out, np.nan)
+    if ref_mask is not None:
+        sel = ref_mask & valid
+        if sel.any():
+            out -= TWO_PI * np.round(np.median(out[sel]) / TWO_PI)
+    out[~valid] = np.nan
+    return out
