@@ -44,6 +44,7 @@ __all__ = [
     "cmd_compare",
     "compare_heights",
     "OutputExistsError",
+    "DiskFullError",
     "OUTPUT_FORMAT_VERSION",
 ]
 
@@ -358,6 +359,55 @@ def _set_attrs(node, attrs: dict) -> None:
 
 # =========================================================================== writer
 
+#: Space kept free so that the output can still be closed validly after the last frame.
+RESERVE_BYTES = 2 * 1024 * 1024
+
+
+class DiskFullError(TirdeflectError):
+    """No room left for the next frame (disk or file-size limit); the file was closed valid."""
+
+
+def _room_bytes(path: Path) -> tuple:
+    """Bytes ``path`` may still grow by, and what limits it (disk or ulimit -f)."""
+    import shutil
+
+    size = path.stat().st_size if path.exists() else 0
+    room, what = shutil.disk_usage(path.parent if str(path.parent) else ".").free, "disk"
+    try:
+        import resource
+
+        soft, _ = resource.getrlimit(resource.RLIMIT_FSIZE)
+        if soft != resource.RLIM_INFINITY and soft - size < room:
+            room, what = soft - size, "file size limit (ulimit -f)"
+    except (ImportError, ValueError, OSError):  # not POSIX
+        pass
+    return room, what
+
+
+def _repair_eof(path: Path) -> bool:
+    """After a failed write HDF5 may have recorded an end of file beyond what
+    reached the disk; extend the file (sparse, needs no space) to that end so
+    it opens again. Returns True if it did."""
+    import re
+
+    import h5py
+
+    try:
+        h5py.File(path, "r").close()
+        return False
+    except OSError as exc:
+        m = re.search(r"stored_eof = (\d+)", str(exc))
+        if not m:
+            return False
+        try:
+            if int(m.group(1)) > path.stat().st_size:
+                os.truncate(path, int(m.group(1)))
+                log.warning("%s: extended to the end of file HDF5 recorded before the failed write", path)
+                return True
+        except OSError as err:
+            log.error("%s: could not repair the end of file (%s); frames_done frames are intact", path, err)
+    return False
+
 
 class _ResultWriter:
     """Write results to OUT.h5 one frame at a time (see docs/output-format.md).
@@ -390,6 +440,7 @@ class _ResultWriter:
         ref.attrs["description"] = "reference image as read (unscaled samples)"
         self.n = 0
         self._shape = None
+        self.failed = False
         f.flush()
 
     def _create(self, result) -> None:
@@ -440,7 +491,19 @@ class _ResultWriter:
             f[name].attrs["description"] = text
         f.attrs["grid"] = str(getattr(result, "grid", "full"))
 
+    def _check_room(self, shape) -> None:
+        """Refuse the next frame (DiskFullError) while the file can still be closed validly."""
+        need = int(np.prod(shape)) * (3 * 4 + 1) + 4096 + RESERVE_BYTES
+        room, what = _room_bytes(self.path)
+        if room < need:
+            raise DiskFullError(
+                f"{what} full: {room / 2**20:.1f} MiB left for {str(self.path)!r}, less than one "
+                f"more frame plus a reserve that keeps the file valid; free space or write --out "
+                f"to another disk, then resume with --first"
+            )
+
     def append(self, item: imageio.FrameItem, result) -> None:
+        self._check_room(np.shape(result.height))
         if self._shape is None:
             self._create(result)
         f = self.f
@@ -451,33 +514,61 @@ class _ResultWriter:
             )
         valid = np.asarray(result.valid, dtype=bool)
         k = self.n
-        for name in (*self.PER_FRAME, "valid", *self.PER_FRAME_1D):
-            f[name].resize(k + 1, axis=0)
-        f["height"][k] = np.where(valid, height, np.float32(np.nan))
-        f["slope_x"][k] = np.asarray(result.slope_x, dtype=np.float32)
-        f["slope_y"][k] = np.asarray(result.slope_y, dtype=np.float32)
-        f["valid"][k] = valid.astype(np.uint8)
-        f["frame_index"][k] = item.sequence_index
-        f["source_index"][k] = item.index_in_source
-        f["source"][k] = item.source
-        f["camera_frame_id"][k] = item.camera_frame_id
-        f["device_timestamp_ns"][k] = item.device_timestamp_ns
-        f["host_timestamp_ns"][k] = item.host_timestamp_ns
-        f["frame_flags"][k] = item.flags
+        names = (*self.PER_FRAME, "valid", *self.PER_FRAME_1D)
+        try:
+            for name in names:
+                f[name].resize(k + 1, axis=0)
+            f["height"][k] = np.where(valid, height, np.float32(np.nan))
+            f["slope_x"][k] = np.asarray(result.slope_x, dtype=np.float32)
+            f["slope_y"][k] = np.asarray(result.slope_y, dtype=np.float32)
+            f["valid"][k] = valid.astype(np.uint8)
+            f["frame_index"][k] = item.sequence_index
+            f["source_index"][k] = item.index_in_source
+            f["source"][k] = item.source
+            f["camera_frame_id"][k] = item.camera_frame_id
+            f["device_timestamp_ns"][k] = item.device_timestamp_ns
+            f["host_timestamp_ns"][k] = item.host_timestamp_ns
+            f["frame_flags"][k] = item.flags
+        except BaseException as exc:
+            # e.g. disk full: drop the half-written frame so the file holds exactly frames_done
+            try:
+                for name in names:
+                    if f[name].shape[0] > k:
+                        f[name].resize(k, axis=0)
+            except Exception:
+                self.failed = True
+            if isinstance(exc, RuntimeError):  # HDF5 reports failed writes as RuntimeError
+                self.failed = True
+                raise OSError(f"writing frame {k} to {str(self.path)!r} failed: {exc}") from exc
+            raise
+        try:
+            f.flush()  # the frame's data first ...
+            f.attrs["frames_done"] = k + 1  # ... then the counter that vouches for it
+            f.flush()
+        except (RuntimeError, OSError) as exc:
+            self.failed = True
+            raise OSError(f"writing frame {k} to {str(self.path)!r} failed: {exc}; the file is valid "
+                          f"up to the frames before it") from exc
         self.n = k + 1
-        f.attrs["frames_done"] = self.n
-        f.flush()
 
     def close(self, status: str) -> None:
         if self.f is None:
             return
+        f, self.f = self.f, None
         try:
-            self.f.attrs["status"] = status
-            self.f.attrs["finished_utc"] = _utc_now()
-            self.f.flush()
+            if not self.failed:  # after a failed write, add nothing: what was flushed stays valid
+                f.attrs["status"] = status
+                f.attrs["finished_utc"] = _utc_now()
+                f.flush()
+        except Exception as exc:
+            log.error("could not record the final status in %s: %s", self.path, exc)
         finally:
-            self.f.close()
-            self.f = None
+            try:
+                f.close()
+            except Exception as exc:
+                log.error("closing %s failed: %s (valid up to frame %d)", self.path, exc, self.n)
+            if self.failed:
+                _repair_eof(self.path)
 
 
 # =========================================================================== process
@@ -565,7 +656,7 @@ def cmd_process(args) -> int:
             try:
                 result = _process_one(reconstruct, item, reference.shape, args.grid)
                 writer.append(item, result)
-            except TirdeflectError as exc:
+            except (TirdeflectError, OSError) as exc:  # bad frame; disk full while writing
                 raise _frame_failed(exc, item, writer) from exc
             log.debug("frame %d (%s) written to %s", item.sequence_index, item.label, out)
             flagged.add(item)
@@ -581,7 +672,7 @@ def cmd_process(args) -> int:
         raise
     finally:
         progress.close()
-        if writer.f is not None:
+        if writer.f is not None and not writer.failed:
             _set_attrs(writer.f, flagged.attrs())
         writer.close(status)
         if status != "complete" and writer.n == 0:
@@ -662,8 +753,10 @@ def _frame_failed(exc: Exception, item, writer: _ResultWriter) -> TirdeflectErro
         if writer.n
         else f"nothing was written ({str(writer.path)!r} not created)"
     )
-    new = type(exc)(f"{where} failed: {exc}; {saved}")
-    return new if isinstance(new, TirdeflectError) else TirdeflectError(str(new))
+    message = f"{where} failed: {exc}; {saved}"
+    if isinstance(exc, TirdeflectError):
+        return type(exc)(message)
+    return TirdeflectError(message)
 
 
 def _bits_hint(path: str, image: np.ndarray) -> int:

@@ -194,3 +194,40 @@ def test_failure_on_the_first_frame_leaves_no_output(sim, tmp_path, capsys):
     # so the corrected rerun is not refused as "already exists"
     code, err = run_cli(capsys, *process_args(sim, tmp_path))
     assert code == 0, err
+
+
+_FULL_DISK_CHILD = r"""
+import resource, signal, sys
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # EFBIG like a full disk, instead of being killed
+limit = int(sys.argv[1])
+resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+from app.cli import main
+sys.exit(main(sys.argv[2:]))
+"""
+
+
+def test_disk_full_mid_batch_keeps_a_valid_file(sim, tmp_path):
+    """The file system refuses writes after a few frames: clear error, completed frames readable."""
+    import subprocess
+    import sys
+
+    frames = [str(sim / "frame_0000.png")] * 12
+    out = tmp_path / "out.h5"
+    from app.process_cli import RESERVE_BYTES
+
+    # each frame adds about rows*cols*13 bytes (3 float32 maps + uint8 mask); room for ~4
+    limit = 64 * 1024 + RESERVE_BYTES + int(4.5 * SIZE * SIZE * 13)
+    root = Path(__file__).resolve().parents[2]
+    proc = subprocess.run(
+        [sys.executable, "-c", _FULL_DISK_CHILD, str(limit), "process", str(sim / "reference.png"),
+         *frames, "--geometry", str(sim / "geometry.toml"), "--out", str(out), "--no-progress"],
+        cwd=root, capture_output=True, text=True, timeout=120,
+    )
+    assert proc.returncode == 2, proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert "full" in proc.stderr and "before it are saved" in proc.stderr, proc.stderr
+    with h5py.File(out, "r") as f:
+        n = int(f.attrs["frames_done"])
+        assert 1 <= n < 12
+        assert f["height"].shape[0] == n  # the half-written frame was dropped
+        assert np.isfinite(f["height"][n - 1]).mean() > 0.9
