@@ -163,9 +163,13 @@ def _configure(cam, args):
     values = {}
     if args.roi is not None:
         x, y, w, h = args.roi
-        values.update(offset_x=0, offset_y=0)
-        cam.configure(**values)
-        values = dict(width=w, height=h, offset_x=x, offset_y=y)
+        cur = cam.settings()
+        values = dict(width=w, height=h)
+        # offsets only when they change: some cameras have no OffsetX/OffsetY at all
+        if x != cur.offset_x:
+            values["offset_x"] = x
+        if y != cur.offset_y:
+            values["offset_y"] = y
     for name in ("exposure_us", "gain_db", "frame_rate_hz", "pixel_format"):
         v = getattr(args, name)
         if v is not None:

@@ -85,6 +85,9 @@ def configure_trigger(camera, source: str, *, activation: str = "RisingEdge") ->
         want = dict(trigger_mode="On", trigger_source="Software")
     else:
         want = dict(trigger_mode="On", trigger_source="Line" + source[4:], trigger_activation=activation)
+    current = camera.settings()
+    if all(getattr(current, k) == v for k, v in want.items()):
+        return current  # nothing to change (and cameras without trigger features stay usable free running)
     try:
         got = camera.configure(**want)
     except SettingError as exc:

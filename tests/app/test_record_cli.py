@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from app import record_cli
-from tests.drivers.fixtures import gv_fake_camera  # noqa: F401  (pytest fixture)
+from drivers.base import FrameFlags
+from tests.drivers.fixtures import gv_fake_camera, viky_cti  # noqa: F401  (pytest fixtures)
 
 
 def _parse(*argv):
@@ -119,3 +120,19 @@ def test_record_with_auto_trigger_on_the_growing_dimple(tmp_path, capsys):
         t = f["frame_table"][:]
     assert ev["kind"] == "trigger" and ev["source"] == "auto" and ev["rms"] > 0.0005
     assert list(t["trigger_index"]) == list(range(-5, 5)) and t["sequence"][5] == ev["sequence"]
+
+
+@pytest.mark.gentl
+def test_record_from_a_gentl_producer(tmp_path, capsys, viky_cti):
+    """viky.cti (the genicam wheel's producer) has no trigger and no offset features: still records."""
+    out = tmp_path / "v.h5"
+    rc = record_cli.cmd_record(_parse("--camera", f"gentl:{viky_cti}:1", "--frames", "10", "--roi", "0,0,128,112",
+                                      "--pixel-format", "Mono8", "--frame-rate-hz", "50", "--out", str(out),
+                                      "--no-progress"))
+    assert rc == 0, capsys.readouterr()
+    with h5py.File(out, "r") as f:
+        assert f["frames"].shape == (10, 112, 128) and f.attrs["complete"] == 1
+        t = f["frame_table"][:]
+    assert np.all(np.diff(t["frame_id"]) == 1) and np.all(np.diff(t["host_timestamp_ns"]) > 0)
+    # this producer gives no device timestamps: stored as -1 and flagged, never a silent 0
+    assert np.all(t["device_timestamp_ns"] == -1) and np.all(t["flags"] & FrameFlags.NO_DEVICE_TIMESTAMP)
