@@ -241,9 +241,13 @@ class Reconstructor:
         self._smooth_static = None
         self._g0_full = None
         self._ref_f32 = ref.astype(np.float32)
-        # pattern-check tolerance in bins: 4 % of the carrier frequency
-        self._check_tol_bins = 0.04 * np.hypot(*(d.freq * np.array(self.shape)).T)
+        # pattern-check tolerance in bins: 2 % of the carrier frequency (a
+        # pattern 4 % off moves the centroid about 3 %; the full check decides)
+        self._check_tol_bins = np.maximum(0.02 * np.hypot(*(d.freq * np.array(self.shape)).T), 0.75)
         self._win_centre = (d.freq * np.array(self.shape)) - d._centres
+        self._q_r = np.fft.fftfreq(d.window_shape[0], 1.0 / d.window_shape[0])
+        self._q_c = np.fft.fftfreq(d.window_shape[1], 1.0 / d.window_shape[1])
+        self._check_threshold = 1.0
         self.reset_series()
 
     # ------------------------------------------------------------ helpers
@@ -286,23 +290,27 @@ class Reconstructor:
 
     # ----------------------------------------------------------- pattern
     def _cheap_pattern_check(self, wins, frame):
-        """Peak of each carrier window near the reference's?  Otherwise run the
-        full carrier search on the frame (raises PatternMismatchError)."""
+        """Is the spectral centroid of each carrier window where the reference's
+        carrier is?  A deformed frame keeps it there (its mean local frequency
+        is the carrier's); another period or rotation moves it.  Only when it
+        moved run the full carrier search on the frame, which raises
+        PatternMismatchError for a different pattern.  A frame that passes the
+        full search raises the threshold to what it showed, so a series of
+        strongly deformed frames does not pay for the search every time."""
         if not self.check_pattern:
             return
-        suspicious = False
-        m_r, m_c = self.demod.window_shape
+        worst = 0.0
         for s in range(2):
-            mag = np.abs(wins[s])
-            idx = int(np.argmax(mag))
-            r, c = divmod(idx, m_c)
-            r = r if r < m_r // 2 else r - m_r
-            c = c if c < m_c // 2 else c - m_c
-            off = math.hypot(r - self._win_centre[s, 0], c - self._win_centre[s, 1])
-            if off > max(1.5, self._check_tol_bins[s]):
-                suspicious = True
-        if suspicious:
+            p = np.abs(wins[s]) ** 2
+            total = float(p.sum())
+            if total <= 0:
+                continue
+            cr = float(np.dot(p.sum(axis=1), self._q_r)) / total - self._win_centre[s, 0]
+            cc = float(np.dot(p.sum(axis=0), self._q_c)) / total - self._win_centre[s, 1]
+            worst = max(worst, math.hypot(cr, cc) / self._check_tol_bins[s])
+        if worst > self._check_threshold:
             check_pattern_match(self.carriers, frame)
+            self._check_threshold = max(self._check_threshold, 1.5 * worst)
 
     # ------------------------------------------------------------- stages
     def _unwrap(self, wrapped, valid):
