@@ -992,8 +992,9 @@ def cmd_simulate(args) -> int:
         )
     if not math.isfinite(args.noise) or args.noise < 0:
         raise TirdeflectError(f"--noise must be a finite RMS >= 0 grey levels; got {args.noise}")
-    if args.size < 32:
-        raise TirdeflectError(f"--size must be at least 32 px to hold a few pattern periods; got {args.size}")
+    if args.size < 96:
+        raise TirdeflectError(f"--size must be at least 96 px (about ten pattern periods, what the "
+                              f"carrier search needs); got {args.size}")
     if args.geometry:
         geometry = _load_geometry(args.geometry)
     else:
