@@ -14,10 +14,11 @@ Demodulating against the filtered reference (not against a pure carrier)
 cancels print defects and lens distortion, and makes a sub-bin error in the
 window's centre irrelevant to the phase.
 
-Border treatment: both images lose their mean and are multiplied by the same
-Tukey window (flat inside, cosine taper ``taper_px`` wide at each border), so
+Border treatment: both images are multiplied by the same Tukey window (flat inside, cosine taper ``taper_px`` wide at each border), so
 the periodic wrap-around of the FFT does not smear the border's jump across
-the spectrum.  ``border="none"`` switches it off (measured in
+the spectrum; the window's own spectrum times the image mean is subtracted
+from the carrier windows (exactly what removing the mean first would do, for
+one pass over the image less).  ``border="none"`` switches it off (measured in
 benchmarks/bench_processing.py).
 
 Filters (``filter_shape``):
@@ -35,6 +36,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 
 from .carriers import Carriers
@@ -210,6 +212,10 @@ class Demodulator:
             # absolute bins for the full-grid variant (full complex spectrum)
         self._full_index = [((self._centres[s][0] + q_r)[:, None] % rows,
                              (self._centres[s][1] + q_c)[None, :] % cols) for s in range(2)]
+        self.last_mean = 0.0
+        self._dc_leak = None
+        if self._window2d is not None:
+            self._dc_leak = self.windows(np.fft.rfft2(self._window2d).astype(np.complex64), mean=0.0)
         for shape in ((rows, cols),):
             self.planner.prepare("rfft2", shape)
         self.planner.prepare("ifft2", (2,) + self.window_shape)
@@ -218,7 +224,12 @@ class Demodulator:
 
     # ------------------------------------------------------------------ core
     def prepare(self, image, out=None) -> np.ndarray:
-        """Mean-free, apodized float32 copy of ``image`` (what gets transformed).
+        """Apodized float32 copy of ``image`` (what gets transformed).
+
+        The image keeps its mean: the mean times the border window would leak
+        into the carrier bands, so :meth:`windows` subtracts that leakage
+        exactly (``mean * W``, the window's own spectrum) instead of a second
+        pass over the full image here.  :attr:`last_mean` holds the mean used.
 
         Parameters
         ----------
@@ -228,11 +239,16 @@ class Demodulator:
         """
         if out is None:
             out = np.empty(self.shape, np.float32)
-        # the mean of every 4th row and column is close enough to remove DC
-        mean = np.float32(np.mean(image[::4, ::4], dtype=np.float64))
-        np.subtract(image, mean, out=out, casting="unsafe")
-        if self._window2d is not None:
-            np.multiply(out, self._window2d, out=out)
+        # the mean of every 4th row and column is all the leakage correction needs
+        self.last_mean = float(np.mean(image[::4, ::4], dtype=np.float64))
+        if self._window2d is None:
+            np.subtract(image, np.float32(self.last_mean), out=out, casting="unsafe")
+            self.last_mean = 0.0
+        else:
+            try:
+                cv2.multiply(image, self._window2d, dst=out, dtype=cv2.CV_32F)  # one pass, any dtype
+            except cv2.error:
+                np.multiply(image, self._window2d, out=out, casting="unsafe")
         return out
 
     def spectrum(self, image) -> np.ndarray:
@@ -241,8 +257,13 @@ class Demodulator:
         self.prepare(image, out=inp)
         return self.planner.execute("rfft2", self.shape)
 
-    def windows(self, spec) -> np.ndarray:
-        """Filtered windows around both carriers, ifftshift order: (2, m_rows, m_cols) complex64."""
+    def windows(self, spec, mean=None) -> np.ndarray:
+        """Filtered windows around both carriers, ifftshift order: (2, m_rows, m_cols) complex64.
+
+        ``mean`` (default: :attr:`last_mean` of the last :meth:`prepare`) times
+        the border window's spectrum is subtracted: the image's mean removed
+        exactly, where it matters.
+        """
         flat = spec.reshape(-1)
         out = np.empty((2,) + self.window_shape, np.complex64)
         for s in range(2):
@@ -250,6 +271,9 @@ class Demodulator:
             w = flat[idx]
             np.conjugate(w, out=w, where=mirror)
             out[s] = w.reshape(self.window_shape) * self._filters[s]
+        m = self.last_mean if mean is None else mean
+        if m and self._dc_leak is not None:
+            out -= np.complex64(m) * self._dc_leak
         return out
 
     def decimated_from_windows(self, wins) -> np.ndarray:

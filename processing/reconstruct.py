@@ -239,6 +239,7 @@ class Reconstructor:
         self._up = _Upsampler(self.shape, d.window_shape, full_interpolation)
         self._smooth_ref = None
         self._smooth_static = None
+        self._window_spectrum = None
         self._g0_full = None
         self._ref_f32 = ref.astype(np.float32)
         # pattern-check tolerance in bins: 2 % of the carrier frequency (a
@@ -624,13 +625,11 @@ class Reconstructor:
         f = np.hypot(q_r[:, None] / rows, q_c[None, :] / cols) / d.radius
         lp = np.clip(1.0 - f, 0.0, 1.0) ** 2
         small = np.fft.ifft2(vals * lp).real * (m_r * m_c / (rows * cols))
-        # prepare() removed the global mean (times the border window): add it back
-        mean = float(np.mean(frame, dtype=np.float64))
-        if d._window2d is not None:
-            wdec = d._window2d[np.ix_(np.round(self.rows_px).astype(int) % rows,
-                                      np.round(self.cols_px).astype(int) % cols)]
-            return small + mean * wdec
-        return small + mean
+        if d._window2d is None:
+            # prepare() removed the mean (no border window to leak): add it back
+            return small + float(np.mean(frame, dtype=np.float64))
+        # the spectrum holds frame x border window; so does the modulation
+        return small
 
     def spectrum(self, frame, *, size: int = 256, max_freq: float = 0.25) -> dict:
         """Centred log-magnitude spectrum for display, with the carriers.
@@ -644,7 +643,14 @@ class Reconstructor:
             ``(f_col, f_row)`` of both carriers and their mirrors.
         """
         frame = self._validate_frame(frame)
-        spec = np.abs(self.demod.spectrum(frame))
+        d = self.demod
+        spec = d.spectrum(frame)
+        if d._window2d is not None:
+            # remove the mean x border-window peak at DC, as for the carriers
+            if self._window_spectrum is None:
+                self._window_spectrum = np.fft.rfft2(d._window2d).astype(np.complex64)
+            spec = spec - np.complex64(d.last_mean) * self._window_spectrum
+        spec = np.abs(spec)
         rows, cols = self.shape
         full = np.empty((rows, cols), np.float32)
         h = spec.shape[1]
