@@ -463,22 +463,30 @@ class AravisCamera(Camera):
         if not self._acquiring or self._stream is None:
             raise CameraError(f"fetch: {self.camera_id} is not acquiring; call start() first")
         stream = self._stream
-        deadline = time.monotonic() + timeout_s
-        while True:
-            if not self._acquiring:
-                raise CameraError(f"fetch: {self.camera_id} was stopped or closed while waiting")
-            self._check_alive()
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                raise FetchTimeout(f"no frame from {self.camera_id} within {timeout_s:g} s (waiting for a trigger?)")
-            buf = stream.timeout_pop_buffer(max(1, int(min(remaining, 0.1) * 1e6)))
-            if buf is not None:
-                break
-        host_ns = time.monotonic_ns()
+        buf = None
         try:
-            return self._to_frame(buf, host_ns)
-        finally:
-            stream.push_buffer(buf)
+            deadline = time.monotonic() + timeout_s
+            while True:
+                if not self._acquiring:
+                    raise CameraError(f"fetch: {self.camera_id} was stopped or closed while waiting")
+                self._check_alive()
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise FetchTimeout(f"no frame from {self.camera_id} within {timeout_s:g} s (waiting for a trigger?)")
+                buf = stream.timeout_pop_buffer(max(1, int(min(remaining, 0.1) * 1e6)))
+                if buf is not None:
+                    break
+            host_ns = time.monotonic_ns()
+            try:
+                return self._to_frame(buf, host_ns)
+            finally:
+                stream.push_buffer(buf)
+        except BaseException:
+            # the traceback keeps this frame alive: hold no GObject in it, or the garbage
+            # collector may finalize a dead camera's stream later in whatever thread it
+            # runs, blocking that thread for Aravis' GVCP timeouts (seconds)
+            stream = buf = None
+            raise
 
     def _to_frame(self, buf, host_ns) -> Frame:
         Aravis = _aravis()
