@@ -787,8 +787,12 @@ def _progress(total: int, *, disable: bool):
         from tqdm import tqdm
     except ImportError:
         return _NoProgress()
-    # disable=None: bar only when stderr is a terminal (log files stay clean)
-    return tqdm(total=total, unit="frame", file=sys.stderr, disable=None, dynamic_ncols=True)
+    import shutil
+
+    # disable=None: bar only when stderr is a terminal (log files stay clean);
+    # shutil falls back to 80 columns where the terminal reports a width of 0
+    return tqdm(total=total, unit="frame", file=sys.stderr, disable=None,
+                ncols=shutil.get_terminal_size().columns)
 
 
 # =========================================================================== compare
