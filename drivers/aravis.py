@@ -329,6 +329,14 @@ class AravisCamera(Camera):
             else:
                 box.clear()
 
+    def __del__(self):
+        # backup for a camera dropped without close(): release the device (bounded; a dead
+        # device's objects are finalized in a daemon thread)
+        try:
+            self.close()
+        except Exception:
+            pass
+
     # -- liveness ------------------------------------------------------------
     def _on_control_lost(self, *args):
         self._lost_reason = "Aravis reported control-lost (heartbeat failed)"

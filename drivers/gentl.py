@@ -348,6 +348,14 @@ class GenTLCamera(Camera):
                 self._h = None
                 _release_harvester(self.cti)
 
+    def __del__(self):
+        # backup for a camera dropped without close(): release the device (bounded; a dead
+        # device's objects are finalized in a daemon thread)
+        try:
+            self.close()
+        except Exception:
+            pass
+
     def _require_open(self, what):
         if self._ia is None:
             raise CameraError(f"{what}: {self.camera_id} is not open; call open() or use 'with camera:'")
