@@ -240,6 +240,7 @@ class Reconstructor:
         self._smooth_ref = None
         self._smooth_static = None
         self._window_spectrum = None
+        self._full_coords = None
         self._g0_full = None
         self._ref_f32 = ref.astype(np.float32)
         # pattern-check tolerance in bins: 2 % of the carrier frequency (a
@@ -490,16 +491,19 @@ class Reconstructor:
         return res
 
     def _coords_full(self, res):
-        """x_mm, y_mm of every pixel column/row, by linear extension of the
-        decimated grid's coordinates (both are evenly spaced)."""
-        rows, cols = self.shape
-
-        def ext(v_mm, v_px, n):
-            slope = (v_mm[-1] - v_mm[0]) / (v_px[-1] - v_px[0]) if len(v_px) > 1 else 0.0
-            return v_mm[0] + slope * (np.arange(n) - v_px[0])
-
-        return (ext(np.asarray(res.x_mm, float), self.cols_px, cols),
-                ext(np.asarray(res.y_mm, float), self.rows_px, rows))
+        """x_mm (cols,), y_mm (rows,) of every pixel column and row: where the
+        rays through the frame's central row / column meet the resting
+        surface (the convention of processing.height)."""
+        if self._full_coords is None:
+            rows, cols = self.shape
+            g = self.geometry
+            rcen = np.array([[(rows - 1) / 2.0]])
+            ccen = np.array([[(cols - 1) / 2.0]])
+            x = np.asarray(g.surface_point(rcen, np.arange(cols, dtype=float)[None, :], self.shape)[0], float)
+            y = np.asarray(g.surface_point(np.arange(rows, dtype=float)[:, None], ccen, self.shape)[1], float)
+            self._full_coords = (np.broadcast_to(x.ravel(), (cols,)).copy(),
+                                 np.broadcast_to(y.ravel(), (rows,)).copy())
+        return self._full_coords
 
     def _interpolate_full(self, res):
         """Decimated result -> every pixel (the decimated grid is oversampled
