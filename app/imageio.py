@@ -472,23 +472,26 @@ def _resolve_index(index, n: int, p: Path, *, what: str) -> int:
             return 0
         raise ImageReadError(
             f"{str(p)!r} holds {n} {what}; say which one to use "
-            f"(for a reference, save one frame as its own image)"
+            f"(for the reference: --reference-index K)"
         )
     if not -n <= index < n:
         raise ImageReadError(f"{str(p)!r} holds {n} {what}; index {index} is out of range")
     return index % n
 
 
-def read_reference(path) -> np.ndarray:
+def read_reference(path, *, index: int | None = None) -> np.ndarray:
     """Read the reference (undeformed) image.
 
     A plain image or single-page TIFF is the reference itself. An HDF5
     recording provides its stored reference (``/reference``) when it has one,
-    otherwise its first frame (logged). A multi-page TIFF is refused (ambiguous).
+    otherwise its first frame (logged). A multi-page TIFF needs ``index``.
 
     Parameters
     ----------
     path : str or os.PathLike
+    index : int, optional
+        Use this page of a TIFF stack / frame of a recording (``/frames``)
+        as the reference, instead of the rules above.
 
     Returns
     -------
@@ -496,6 +499,8 @@ def read_reference(path) -> np.ndarray:
         Shape ``(rows, cols)``, dtype uint8/uint16/float32.
     """
     p = _check_path(path)
+    if index is not None:
+        return read_image(p, index=index)
     if _kind(p) == "recording":
         import h5py
 

@@ -101,6 +101,9 @@ def add_process_parser(sub) -> None:
                    "holding a /reference)")
     p.add_argument("frames", nargs="+", metavar="FRAME",
                    help="frames to process, in order (files, stacks or recordings)")
+    p.add_argument("--reference-index", type=_nonnegative_int, default=None, metavar="K",
+                   help="use page/frame K (0-based) of a TIFF stack or recording as the "
+                   "reference (default: a recording's stored /reference, else its frame 0)")
     p.add_argument("--geometry", default=None, metavar="G.toml",
                    help="optical geometry (TOML; see `tirdeflect simulate` for an example); "
                    "may be omitted when the reference or first input is a recording that "
@@ -600,7 +603,8 @@ def cmd_process(args) -> int:
         )
 
     geometry, geometry_source = _resolve_geometry(args)
-    reference = imageio.read_reference(args.reference)
+    reference_index = getattr(args, "reference_index", None)
+    reference = imageio.read_reference(args.reference, index=reference_index)
 
     from app import cache
 
@@ -622,6 +626,7 @@ def cmd_process(args) -> int:
         "command": shlex.join(["tirdeflect", *args._argv]) if getattr(args, "_argv", None)
         else "(called from Python, not the command line)",
         "reference_file": str(args.reference),
+        "reference_index": -1 if reference_index is None else reference_index,
         "geometry_file": geometry_source,
         "input_files": [str(p) for p in args.frames],
         "first": args.first,

@@ -175,8 +175,8 @@ def test_tiff_stack_with_first_last_step(sim, tmp_path, capsys):
     stack = np.stack([ref, frames[0], frames[1], frames[0], frames[1]])
     tifffile.imwrite(tmp_path / "stack.tif", stack, photometric="minisblack")
     out = tmp_path / "out.h5"
-    code, err = _run(capsys, "process", sim / "reference.png", tmp_path / "stack.tif",
-                     "--geometry", sim / "geometry.toml", "--out", out,
+    code, err = _run(capsys, "process", tmp_path / "stack.tif", tmp_path / "stack.tif",
+                     "--reference-index", 0, "--geometry", sim / "geometry.toml", "--out", out,
                      "--first", 1, "--last", 4, "--step", 2, "--grid", "decimated",
                      "--fft-effort", "measure")
     assert code == 0, err
@@ -184,6 +184,8 @@ def test_tiff_stack_with_first_last_step(sim, tmp_path, capsys):
 
     assert cache.load_wisdom(), "measured FFTW plans were not saved to the cache"
     with h5py.File(out) as f:
+        np.testing.assert_array_equal(f["reference"][()], ref)  # page 0 of the stack
+        assert f.attrs["reference_index"] == 0
         assert list(f["frame_index"][()]) == [1, 3]
         assert list(f["source_index"][()]) == [1, 3]
         h = f["height"][()]
