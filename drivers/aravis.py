@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import threading
 import time
+import weakref
 from typing import List, Optional
 
 import numpy as np
@@ -288,7 +289,14 @@ class AravisCamera(Camera):
         self._cam = cam
         self._dev = cam.get_device()
         self._features = _AravisFeatures(self._dev)
-        self._dev.connect("control-lost", self._on_control_lost)
+        ref = weakref.ref(self)  # no strong cycle camera -> device -> handler -> camera
+
+        def on_control_lost(*_):
+            me = ref()
+            if me is not None:
+                me._on_control_lost()
+
+        self._dev.connect("control-lost", on_control_lost)
         try:
             self.info = CameraInfo(
                 camera_id=self.camera_id,
@@ -302,7 +310,13 @@ class AravisCamera(Camera):
             self.info = CameraInfo(camera_id=self.camera_id, backend="aravis", address=self.device)
         self._last_alive = time.monotonic()
         self._probe_stop.clear()
-        self._probe_thread = threading.Thread(target=self._probe_loop, name=f"{self.camera_id}-watchdog", daemon=True)
+        address = 0x0A00 if cam.is_gv_device() else 0x0000  # GVCP CCP register; ABRM GenCP version
+        self._probe_thread = threading.Thread(
+            target=self._probe_loop,
+            args=(ref, self._dev, self._probe_stop, self.probe_period_s, address),
+            name=f"{self.camera_id}-watchdog",
+            daemon=True,
+        )
         self._probe_thread.start()
         return self
 
@@ -342,21 +356,27 @@ class AravisCamera(Camera):
         self._lost_reason = "Aravis reported control-lost (heartbeat failed)"
         self._lost.set()
 
-    def _probe_loop(self):
-        dev = self._dev
-        protocol_gv = self._cam.is_gv_device() if self._cam is not None else False
-        address = 0x0A00 if protocol_gv else 0x0000  # GVCP CCP register; ABRM GenCP version
-        while not self._probe_stop.wait(self.probe_period_s):
+    @staticmethod
+    def _probe_loop(ref, dev, stop, period_s, address):
+        """Watchdog thread body. Holds only a weak reference to the camera, so a
+        camera dropped without close() is still collected (its finalizer stops this)."""
+        while not stop.wait(period_s):
             try:
-                if dev is None:
-                    return
                 dev.read_register(address)
-                self._last_alive = time.monotonic()
+                error = None
             except Exception as exc:
-                if not self._lost.is_set():
-                    self._lost_reason = f"register read failed: {getattr(exc, 'message', exc)}"
-                if time.monotonic() - self._last_alive > self.lost_timeout_s:
-                    self._lost.set()
+                error = f"register read failed: {getattr(exc, 'message', exc)}"
+            me = ref()
+            if me is None:
+                return
+            if error is None:
+                me._last_alive = time.monotonic()
+            else:
+                if not me._lost.is_set():
+                    me._lost_reason = error
+                if time.monotonic() - me._last_alive > me.lost_timeout_s:
+                    me._lost.set()
+            del me
 
     def _check_alive(self):
         if not self._lost.is_set():

@@ -212,3 +212,18 @@ def test_stop_from_another_thread_ends_a_waiting_fetch(gv_fake_camera):
         assert not t.is_alive()
     assert isinstance(result["exc"], CameraError) and "stopped" in str(result["exc"])
     assert result["t"] < 1.0  # well before its own 5 s timeout
+
+
+def test_camera_dropped_without_close_is_released():
+    import weakref
+
+    cam = aravis.AravisCamera("Fake_1").open()
+    cam.start()
+    cam.fetch(2.0)
+    watchdog = cam._probe_thread
+    ref = weakref.ref(cam)
+    del cam
+    gc.collect()
+    assert ref() is None  # no reference cycle through the signal handler or the watchdog
+    watchdog.join(2.0)
+    assert not watchdog.is_alive()
