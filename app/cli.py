@@ -132,6 +132,15 @@ def build_parser() -> argparse.ArgumentParser:
     process_cli.add_simulate_parser(sub)
     process_cli.add_compare_parser(sub)
     _add_record_commands(sub)
+    # `tirdeflect process ... --debug` works as well as `tirdeflect --debug process ...`
+    # (SUPPRESS: an absent flag does not reset the global one)
+    for name, subparser in sub.choices.items():
+        if name == "gui":
+            continue
+        subparser.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
+                               help="show tracebacks and debug log messages")
+        subparser.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS,
+                               help="show informational log messages")
     return parser
 
 
