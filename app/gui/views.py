@@ -9,6 +9,7 @@ menu gives control back.
 
 from __future__ import annotations
 
+import collections
 import time
 from typing import Optional, Sequence, Tuple
 
@@ -56,6 +57,35 @@ def robust_levels(data: np.ndarray, *, symmetric: bool = False, lo_pct: float = 
     return (lo, hi)
 
 
+def _cache_axes(plot_item) -> None:
+    """Paint a plot's axes and title from pixmap caches (redrawn only when they change)."""
+    cache = QtWidgets.QGraphicsItem.CacheMode.DeviceCoordinateCache
+    for side in ("left", "bottom", "top", "right"):
+        axis = plot_item.getAxis(side)
+        if axis is not None:
+            axis.setCacheMode(cache)
+    plot_item.titleLabel.setCacheMode(cache)
+
+
+class _Graphics(pg.GraphicsLayoutWidget):
+    """GraphicsLayoutWidget that records when it really painted (for shown fps and camera-to-screen latency)."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.painted = 0
+        self.last_paint_ns = 0
+        self.pending_stamp_ns = 0  # host timestamp of data set but not yet painted
+        self.latencies_ms = collections.deque(maxlen=2000)
+
+    def paintEvent(self, ev):
+        super().paintEvent(ev)
+        self.painted += 1
+        self.last_paint_ns = time.monotonic_ns()
+        if self.pending_stamp_ns:
+            self.latencies_ms.append((self.last_paint_ns - self.pending_stamp_ns) / 1e6)
+            self.pending_stamp_ns = 0
+
+
 class ImageView(QtWidgets.QWidget):
     """One live map: title, image with axes (mm or px), colour bar with units.
 
@@ -83,12 +113,13 @@ class ImageView(QtWidgets.QWidget):
         self._levels_interval_s = levels_interval_s
         self._levels_t = 0.0
         self._levels: Tuple[float, float] = (0.0, 1.0)
+        self._levels_set = False
         self._rect = None
         self._shape = None
         self.updates = 0
         layout = QtWidgets.QVBoxLayout(self)
         layout.setContentsMargins(0, 0, 0, 0)
-        self.graphics = pg.GraphicsLayoutWidget()
+        self.graphics = _Graphics()
         self.graphics.setBackground("w")
         layout.addWidget(self.graphics)
         self.plot = self.graphics.addPlot()
@@ -102,7 +133,9 @@ class ImageView(QtWidgets.QWidget):
             axis.setTextPen("#222")
             axis.setPen("#444")
         self.image = pg.ImageItem(axisOrder="row-major")
-        self.image.setAutoDownsample(True)
+        # decimate by striding in set_data (pyqtgraph's auto downsample averages: ~10 ms at 1024^2)
+        self.image.setAutoDownsample(False)
+        self.stride = 1
         self.plot.addItem(self.image)
         self.colorbar = pg.ColorBarItem(values=(0, 1), colorMap=pg.colormap.get(cmap), label=units,
                                         interactive=True, width=14)
@@ -112,9 +145,20 @@ class ImageView(QtWidgets.QWidget):
         self._setting_levels = False
         act = self.plot.getViewBox().menu.addAction("Auto levels")
         act.triggered.connect(self.reset_levels)
+        self._cache_static_items()
         self.message = pg.TextItem("", color=(200, 0, 0), anchor=(0, 0))
         self.message.setZValue(100)
         self.plot.addItem(self.message)
+
+    def _cache_static_items(self):
+        """Paint axes, colour bar and title from pixmap caches: only the image is redrawn per frame."""
+        cache = QtWidgets.QGraphicsItem.CacheMode.DeviceCoordinateCache
+        items = [self.plot.getAxis(side) for side in ("left", "bottom", "top", "right")]
+        items += [self.plot.titleLabel, self.colorbar]
+        items += [c for c in self.colorbar.childItems()]
+        for item in items:
+            if item is not None:
+                item.setCacheMode(cache)
 
     # ------------------------------------------------------------------
     def _user_levels(self, *_):
@@ -132,7 +176,11 @@ class ImageView(QtWidgets.QWidget):
         self._apply_levels(levels)
 
     def _apply_levels(self, levels):
-        self._levels = (float(levels[0]), float(levels[1]))
+        levels = (float(levels[0]), float(levels[1]))
+        if levels == self._levels and self._levels_set:
+            return  # unchanged: do not invalidate the colour bar's cached axis
+        self._levels_set = True
+        self._levels = levels
         self._setting_levels = True
         try:
             self.colorbar.setLevels(self._levels)
@@ -144,7 +192,8 @@ class ImageView(QtWidgets.QWidget):
         return self._levels
 
     def set_data(self, data: np.ndarray, *, x: Optional[np.ndarray] = None,
-                 y: Optional[np.ndarray] = None, levels: Optional[Tuple[float, float]] = None) -> None:
+                 y: Optional[np.ndarray] = None, levels: Optional[Tuple[float, float]] = None,
+                 stamp_ns: int = 0) -> None:
         """Show ``data`` (2-D), placed at coordinates ``x`` (cols) and ``y`` (rows) if given.
 
         Parameters
@@ -155,26 +204,49 @@ class ImageView(QtWidgets.QWidget):
             Column and row coordinates (mm) of the pixel centres; pixels otherwise.
         levels : (float, float), optional
             Explicit levels for this frame (otherwise auto/held levels).
+        stamp_ns : int
+            ``time.monotonic_ns()`` when the camera delivered the data; the
+            view records camera-to-screen latency when it next paints.
         """
         if data.dtype.kind == "f" and data.dtype != np.float32:
             data = data.astype(np.float32)
+        full_shape = data.shape
+        stride = self._stride_for(full_shape)
+        if stride > 1:  # never draw more pixels than the screen shows
+            data = data[::stride, ::stride]
         data = np.ascontiguousarray(data)
         now = time.monotonic()
         if levels is not None:
             self._apply_levels(levels)
         elif self.auto_levels and (data.size <= 65536 or now - self._levels_t >= self._levels_interval_s
-                                   or self._shape != data.shape):
-            # small (decimated) maps: every frame (< 1 ms); large ones a few times per second
-            self._apply_levels(robust_levels(data, symmetric=self.symmetric))
+                                   or self._shape != full_shape):
+            # small (decimated) maps: every frame (< 1 ms); large ones a few times per second.
+            # Hysteresis: the colour bar only moves when the range changed by > 10 %.
+            lo, hi = robust_levels(data, symmetric=self.symmetric)
+            old_lo, old_hi = self._levels
+            span = max(old_hi - old_lo, 1e-30)
+            if (self._shape != full_shape or abs(lo - old_lo) > 0.1 * span or abs(hi - old_hi) > 0.1 * span):
+                self._apply_levels((lo, hi))
             self._levels_t = now
         self.image.setImage(data, autoLevels=False, levels=self._levels)
-        rect = self._rect_for(data.shape, x, y)
+        rect = self._rect_for(full_shape, x, y)
         if rect != self._rect:
             self.image.setRect(QtCore.QRectF(*rect))
             self._rect = rect
             self.plot.getViewBox().autoRange(padding=0.0)
-        self._shape = data.shape
+        self._shape = full_shape
         self.updates += 1
+        if stamp_ns:
+            self.graphics.pending_stamp_ns = stamp_ns
+
+    def _stride_for(self, shape) -> int:
+        """Integer decimation so that the drawn image has about as many pixels as the view on screen."""
+        vb = self.plot.getViewBox()
+        w = max(int(vb.width()), 64)
+        h = max(int(vb.height()), 64)
+        stride = int(min(shape[0] / h, shape[1] / w))
+        self.stride = max(1, stride)
+        return self.stride
 
     @staticmethod
     def _rect_for(shape, x, y):
@@ -209,10 +281,23 @@ class ProfileView(QtWidgets.QWidget):
         self.plot.setLabel("left", units)
         self.plot.showGrid(x=True, y=True, alpha=0.3)
         self.curve = self.plot.plot(pen=pg.mkPen("#1f77b4", width=2))
+        self.plot.enableAutoRange(False)  # ranges set explicitly: axes are not redrawn every frame
+        _cache_axes(self.plot.getPlotItem())
+        self._range = None
         layout.addWidget(self.plot)
 
-    def set_profile(self, distance_mm: np.ndarray, values: np.ndarray) -> None:
-        self.curve.setData(np.asarray(distance_mm, float), np.asarray(values, float), connect="finite")
+    def set_profile(self, distance_mm: np.ndarray, values: np.ndarray,
+                    y_range: Optional[Tuple[float, float]] = None) -> None:
+        """Plot ``values`` against ``distance_mm``; ``y_range`` (e.g. the map's colour levels) fixes the y axis."""
+        d = np.asarray(distance_mm, float)
+        v = np.asarray(values, float)
+        self.curve.setData(d, v, connect="finite")
+        if y_range is None:
+            y_range = robust_levels(v[np.isfinite(v)], lo_pct=0.0, hi_pct=100.0) if np.isfinite(v).any() else (0, 1)
+        rng = (0.0, float(d[-1]) if d.size else 1.0, float(y_range[0]), float(y_range[1]))
+        if rng != self._range:
+            self.plot.setRange(xRange=rng[:2], yRange=rng[2:], padding=0.02)
+            self._range = rng
 
 
 class HistogramView(QtWidgets.QWidget):
@@ -229,8 +314,11 @@ class HistogramView(QtWidgets.QWidget):
         self.plot.setMaximumHeight(170)
         self.curve = self.plot.plot(stepMode="center", fillLevel=0, brush=(80, 80, 200, 120),
                                     pen=pg.mkPen("#3040a0"))
+        self.plot.enableAutoRange(False)
+        _cache_axes(self.plot.getPlotItem())
         layout.addWidget(self.plot)
         self._title = ""
+        self._range = None
 
     def set_image(self, image: np.ndarray, bit_depth: int, saturation_pct: float) -> None:
         top = (1 << int(bit_depth)) - 1
@@ -241,7 +329,12 @@ class HistogramView(QtWidgets.QWidget):
         else:
             counts, _ = np.histogram(sub, bins=nbins, range=(0, top + 1))
         edges = np.linspace(0, top + 1, nbins + 1)
-        self.curve.setData(edges, np.log10(counts.astype(float) + 1.0))
+        logc = np.log10(counts.astype(float) + 1.0)
+        self.curve.setData(edges, logc)
+        ymax = float(np.ceil(logc.max() + 0.25)) if logc.size else 1.0
+        if self._range != (top, ymax):
+            self.plot.setRange(xRange=(0, top + 1), yRange=(0, ymax), padding=0.02)
+            self._range = (top, ymax)
         title = f"<b>Raw histogram</b> — saturated: {saturation_pct:.2f} %"
         if title != self._title:
             self.plot.setTitle(title, color="#b00000" if saturation_pct > 0.5 else "#222")

@@ -32,7 +32,8 @@ __all__ = ["MainWindow"]
 
 log = logging.getLogger(__name__)
 
-DISPLAY_PERIOD_MS = 16  # <= 60 Hz
+DISPLAY_PERIOD_MS = 16  # first tick
+DISPLAY_MAX_HZ = 60.0  # views refresh at most this often
 
 
 class _Bridge(QtCore.QObject):
@@ -99,6 +100,7 @@ class MainWindow(QtWidgets.QMainWindow):
     def _build_ui(self):
         self.banner = QtWidgets.QLabel("")
         self.banner.setWordWrap(True)
+        self.banner.setSizePolicy(QtWidgets.QSizePolicy.Ignored, QtWidgets.QSizePolicy.Preferred)
         self.banner.setVisible(False)
         self.banner.setStyleSheet("background: #ffe0e0; color: #900; padding: 6px; font-weight: bold;"
                                   "border: 1px solid #c00;")
@@ -173,6 +175,10 @@ class MainWindow(QtWidgets.QMainWindow):
         self.metrics_label.setTextFormat(QtCore.Qt.RichText)
         self.metrics_label.setAlignment(QtCore.Qt.AlignTop | QtCore.Qt.AlignLeft)
         self.metrics_label.setStyleSheet("font-size: 14px")
+        self.metrics_label.setWordWrap(True)
+        for lab in (self.ready_label, self.metrics_label):
+            # long messages wrap instead of widening the window
+            lab.setSizePolicy(QtWidgets.QSizePolicy.Ignored, QtWidgets.QSizePolicy.Preferred)
         metrics = QtWidgets.QWidget()
         ml = QtWidgets.QVBoxLayout(metrics)
         ml.addWidget(self.ready_label)
@@ -700,16 +706,22 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def _refresh(self):
         """Draw the newest frame/result; re-arm the single-shot timer afterwards."""
-        t0 = time.perf_counter()
+        now = time.perf_counter()
+        # fixed cadence of at most 60 Hz: the next tick is due one period after this one was due,
+        # so drawing and painting time does not stretch the period; a late tick never piles up
+        period = 1.0 / DISPLAY_MAX_HZ
+        due = getattr(self, "_next_due", now) + period
+        if due < now:
+            due = now + period
+        self._next_due = due
         try:
             self._draw()
         except Exception:  # noqa: BLE001 - a drawing bug must not stop the display
             log.exception("display refresh failed")
         finally:
             if not self._closing:
-                # at most 60 Hz counted from the start of this draw; never piles up
-                spent_ms = 1e3 * (time.perf_counter() - t0)
-                self._display_timer.start(max(1, int(DISPLAY_PERIOD_MS - spent_ms)))
+                wait_ms = 1e3 * (due - time.perf_counter())
+                self._display_timer.start(max(1, int(round(wait_ms))))
 
     def _draw(self):
         drew = False
@@ -720,7 +732,7 @@ class MainWindow(QtWidgets.QMainWindow):
             if frame is not None and frame[0] != self._last_raw_seq:
                 seq, image, host_ns = frame
                 self._last_raw_seq = seq
-                self._draw_raw(image, tab)
+                self._draw_raw(image, tab, host_ns)
                 self.latency_ms = (time.monotonic_ns() - host_ns) / 1e6 if host_ns else float("nan")
                 drew = True
         p = self.session.worker.latest()
@@ -745,14 +757,20 @@ class MainWindow(QtWidgets.QMainWindow):
         s = self.session.camera_settings()
         return s.bit_depth if s is not None else 8
 
-    def _draw_raw(self, image, tab):
+    def _draw_raw(self, image, tab, host_ns=0):
         bits = self._bit_depth()
         top = float((1 << bits) - 1)
         view = self.raw_view if tab == 0 else self.align_raw_view
-        view.set_data(image, levels=(0.0, top))
+        view.set_data(image, levels=(0.0, top), stamp_ns=host_ns)
         if tab == 0:
-            mask = (image >= top).view(np.uint8) if image.dtype != np.uint8 else (image == 255).view(np.uint8)
+            k = view.stride
+            sub = image[::k, ::k] if k > 1 else image
+            mask = (sub >= top).view(np.uint8)
             self.saturation_overlay.setImage(mask, autoLevels=False, levels=(0, 1))
+            if self.saturation_overlay.width() != sub.shape[1] or not getattr(self, "_overlay_rect", None) == \
+                    (image.shape, k):
+                self.saturation_overlay.setRect(QtCore.QRectF(0, 0, image.shape[1], image.shape[0]))
+                self._overlay_rect = (image.shape, k)
             p = self.session.worker.latest()
             sat = p.saturation_pct if p is not None else 0.0
             self._hist_count = getattr(self, "_hist_count", 0) + 1
@@ -773,7 +791,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.last_drawn = p
         x, y = r.x_mm, r.y_mm
         height_um = np.multiply(r.height, 1e3, dtype=np.float32)
-        self.height_view.set_data(height_um, x=x, y=y)
+        self.height_view.set_data(height_um, x=x, y=y, stamp_ns=p.host_timestamp_ns)
         u = r.displacement
         self.disp_view.set_data(np.hypot(u[0], u[1]).astype(np.float32), x=x, y=y)
         self.slope_x_view.set_data(np.multiply(r.slope_x, 1e3, dtype=np.float32), x=x, y=y)
@@ -795,7 +813,8 @@ class MainWindow(QtWidgets.QMainWindow):
         values = np.asarray(values, float).ravel()
         pts = [self.profile_roi.mapToParent(h.pos()) for h in self.profile_roi.getHandles()[:2]]
         length = float(np.hypot(pts[1].x() - pts[0].x(), pts[1].y() - pts[0].y()))
-        self.profile_view.set_profile(np.linspace(0.0, length, values.size), values)
+        self.profile_view.set_profile(np.linspace(0.0, length, values.size), values,
+                                      y_range=self.height_view.levels)
 
     def _draw_alignment(self, p):
         a = p.alignment
@@ -841,8 +860,9 @@ class MainWindow(QtWidgets.QMainWindow):
     def assess_alignment(self, a: dict, saturation_pct: float):
         """Decide "ready to measure" from the alignment metrics; returns (ready, reasons, table lines)."""
         reasons, lines = [], []
-        if "error" in a:
-            return False, [a["error"]], [("problem", a["error"])]
+        if a.get("error"):
+            short = a["error"] if len(a["error"]) < 90 else a["error"][:87] + "…"
+            return False, [a["error"]], [("problem", short)]
 
         def num(*keys):
             for k in keys:

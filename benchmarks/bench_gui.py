@@ -1,0 +1,212 @@
+#!/usr/bin/env python3
+"""GUI benchmark: frames shown per second and camera-to-screen latency with every live view open.
+
+For each frame size the real main window runs on the synthetic camera
+(ray-traced TIR frames of the app's scene) with a reference set, so the
+processing worker reconstructs heights continuously, while a pre/post-trigger
+recording writes every frame to disk. Measured over the recording:
+
+* shown fps  -- repaints of the raw-frame view that showed a new camera frame, per second;
+* latency    -- camera-to-screen: from the driver's host timestamp of a frame to
+  the end of the paint that put it on screen (median and 95th percentile), for the
+  raw view and for the height map (which adds the reconstruction);
+* processed fps, camera fps, recorder drops (frames missing from the file: must be 0).
+
+Baseline, measured in the same run: pyqtgraph's ``ImageView`` (histogram and
+auto levels recomputed per frame, the usual peer approach) showing the same raw
+frames as fast as it can, alone; the ratio compares the raw display rate.
+
+Goal (issue): >= 60 fps shown at 1024^2 with all views open, < 50 ms latency, 0 recorder drops.
+
+Run: ``QT_QPA_PLATFORM=offscreen python3 benchmarks/bench_gui.py`` (or under Xvfb
+with ``--xvfb``). Options: ``--sizes 512 1024 --seconds 4 --rate 100``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+
+def _run_loop(app, seconds):
+    from pyqtgraph.Qt import QtCore
+
+    loop = QtCore.QEventLoop()
+    QtCore.QTimer.singleShot(int(1000 * seconds), loop.quit)
+    loop.exec()
+
+
+def baseline_imageview(app, frames, seconds):
+    """pyqtgraph ImageView fed the newest frame from a 0-ms timer, as fast as it goes: shown fps."""
+    import pyqtgraph as pg
+    from pyqtgraph.Qt import QtCore
+
+    view = pg.ImageView()
+    view.resize(700, 600)
+    view.show()
+    state = {"i": 0, "n": 0}
+
+    def tick():
+        view.setImage(frames[state["i"] % len(frames)], autoLevels=True, autoHistogramRange=True)
+        state["i"] += 1
+        view.repaint()  # make it paint now, like a visible update would
+        state["n"] += 1
+        timer.start(0)
+
+    timer = QtCore.QTimer()
+    timer.setSingleShot(True)
+    timer.timeout.connect(tick)
+    timer.start(0)
+    _run_loop(app, 0.5)
+    n0, t0 = state["n"], time.monotonic()
+    _run_loop(app, seconds)
+    fps = (state["n"] - n0) / (time.monotonic() - t0)
+    timer.stop()
+    view.close()
+    return fps
+
+
+def measure_window(app, size, rate_hz, seconds, n_frames):
+    import numpy as np
+
+    from app.gui.window import MainWindow
+    from app.scene import build_scene
+    from drivers.synthetic import SyntheticCamera
+
+    t = time.monotonic()
+    sim, geometry = build_scene((size, size), n_frames, frame_rate_hz=rate_hz)
+    build_s = time.monotonic() - t
+    w = MainWindow(open_at_start=False)
+    w.resize(1600, 1000)
+    w.show()
+    tmp = tempfile.mkdtemp(prefix="bench-gui-")
+    try:
+        w.use_camera(SyntheticCamera(sim.frames, frame_rate_hz=rate_hz), geometry=geometry,
+                     reference=sim.reference)
+        t_end = time.monotonic() + 60
+        while (w.session.worker.reconstructor is None or w.last_drawn is None) and time.monotonic() < t_end:
+            _run_loop(app, 0.1)
+        _run_loop(app, 1.0)  # warm up (plans, levels)
+        rp = w.recording_panel
+        rp.folder.setText(tmp)
+        rp.pre.setValue(20)
+        post = int(rate_hz * (seconds + 1.0))
+        rp.post.setValue(post)
+        w.arm()
+        _run_loop(app, 0.3)
+        w.trigger_now()
+        raw, height = w.raw_view.graphics, w.height_view.graphics
+        raw.latencies_ms.clear()
+        height.latencies_ms.clear()
+        acq = w.session.acquisition
+        p0, h0, k0, a0 = raw.painted, w.height_view.updates, w.session.worker.processed, acq.acquired
+        t0 = time.monotonic()
+        _run_loop(app, seconds)
+        dt = time.monotonic() - t0
+        shown_new = len(raw.latencies_ms)  # paints that showed a new camera frame
+        out = {
+            "size": size,
+            "build_scene_s": build_s,
+            "camera_fps": (acq.acquired - a0) / dt,
+            "shown_fps": shown_new / dt,
+            "paints_fps": (raw.painted - p0) / dt,
+            "height_fps": (w.height_view.updates - h0) / dt,
+            "processed_fps": (w.session.worker.processed - k0) / dt,
+            "lat_raw_ms": np.percentile(list(raw.latencies_ms), [50, 95]) if raw.latencies_ms else [np.nan] * 2,
+            "lat_height_ms": (np.percentile(list(height.latencies_ms), [50, 95]) if height.latencies_ms
+                              else [np.nan] * 2),
+        }
+        t_end = time.monotonic() + 120
+        while w.recording_panel.state_label.text() not in ("done", "error") and time.monotonic() < t_end:
+            _run_loop(app, 0.2)
+        st = w.session.recording or {}
+        s = st.get("summary", {})
+        out["record_state"] = w.recording_panel.state_label.text()
+        out["recorded"] = s.get("frames_written", 0)
+        out["planned"] = 20 + post
+        out["recorder_missing"] = s.get("total_missing", -1)
+        out["ring_overrun"] = s.get("lost_ring_overrun", -1)
+        out["camera_lost"] = acq.lost_upstream + acq.lost_by_time
+        out["write_mb_s"] = s.get("write_rate_mb_s", 0)
+        return out
+    finally:
+        w.shutdown()
+        w.close()
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description="GUI shown fps / latency benchmark")
+    p.add_argument("--sizes", type=int, nargs="+", default=[512, 1024])
+    p.add_argument("--seconds", type=float, default=4.0, help="measurement time per size (s)")
+    p.add_argument("--rate", type=float, default=100.0, help="synthetic camera frame rate (Hz)")
+    p.add_argument("--frames", type=int, default=4, help="ray-traced frames the camera loops over")
+    p.add_argument("--xvfb", action="store_true", help="run on a private Xvfb display (xcb) instead of offscreen")
+    args = p.parse_args(argv)
+    if args.xvfb and os.environ.get("_BENCH_GUI_CHILD") is None:
+        n = next(i for i in range(90, 200) if not os.path.exists(f"/tmp/.X11-unix/X{i}"))
+        xvfb = subprocess.Popen(["Xvfb", f":{n}", "-screen", "0", "1600x1000x24", "-nolisten", "tcp"],
+                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        try:
+            t_end = time.monotonic() + 10
+            while not os.path.exists(f"/tmp/.X11-unix/X{n}") and time.monotonic() < t_end:
+                time.sleep(0.05)
+            env = dict(os.environ, DISPLAY=f":{n}", QT_QPA_PLATFORM="xcb", _BENCH_GUI_CHILD="1")
+            return subprocess.call([sys.executable, __file__, *[a for a in (argv or sys.argv[1:]) if a != "--xvfb"]],
+                                   env=env)
+        finally:
+            xvfb.terminate()
+            xvfb.wait(5)
+    os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
+    import numpy as np
+    import pyqtgraph as pg
+
+    app = pg.mkQApp("bench")
+    print(f"platform {app.platformName()}, {os.cpu_count()} cores, camera {args.rate:g} Hz, "
+          f"{args.seconds:g} s per size")
+    rows = []
+    for size in args.sizes:
+        rng = np.random.default_rng(0)
+        frames = [rng.integers(0, 256, (size, size), dtype=np.uint8) for _ in range(4)]
+        base = baseline_imageview(app, frames, min(args.seconds, 3.0))
+        r = measure_window(app, size, args.rate, args.seconds, args.frames)
+        r["baseline_fps"] = base
+        rows.append(r)
+    print()
+    print(f"{'size':>6} {'camera':>7} {'shown':>6} {'paints':>7} {'height':>7} {'proc':>6} {'baseline':>9} "
+          f"{'ratio':>6} {'lat raw p50/p95':>16} {'lat height p50/p95':>19} {'recorded':>10} {'missing':>8} "
+          f"{'MB/s':>6}")
+    ok = True
+    for r in rows:
+        print(f"{r['size']:>5}² {r['camera_fps']:7.1f} {r['shown_fps']:6.1f} {r['paints_fps']:7.1f} "
+              f"{r['height_fps']:7.1f} {r['processed_fps']:6.1f} {r['baseline_fps']:9.1f} "
+              f"{r['shown_fps'] / max(r['baseline_fps'], 1e-9):5.2f}x "
+              f"{r['lat_raw_ms'][0]:7.1f}/{r['lat_raw_ms'][1]:6.1f} ms {r['lat_height_ms'][0]:8.1f}/"
+              f"{r['lat_height_ms'][1]:7.1f} ms {r['recorded']:>4}/{r['planned']:<5} {r['recorder_missing']:>8} "
+              f"{r['write_mb_s']:6.1f}")
+        if r["size"] >= 1024:
+            goal = r["shown_fps"] >= 60 and r["lat_raw_ms"][0] < 50
+            print(f"goal at {r['size']}²: >= 60 fps shown and < 50 ms latency: "
+                  f"{'PASS' if goal else 'FAIL'} ({r['shown_fps']:.1f} fps, {r['lat_raw_ms'][0]:.1f} ms)")
+            ok &= goal
+        rec_ok = r["recorder_missing"] == 0 and r["recorded"] == r["planned"] and r["camera_lost"] == 0
+        print(f"recorder at {r['size']}²: {r['recorded']} of {r['planned']} frames, missing {r['recorder_missing']}, "
+              f"camera lost {r['camera_lost']}: {'PASS' if rec_ok else 'FAIL'} ({r['record_state']})")
+        ok &= rec_ok
+    print("shown = new camera frames painted per second (<= 60 by design); paints = all repaints of the raw view;")
+    print("height = height-map updates per second; proc = frames reconstructed per second; baseline = pyqtgraph "
+          "ImageView alone, raw frames only")
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
