@@ -350,12 +350,15 @@ class SyntheticCamera(Camera):
                 )
             s["trigger_activation"] = values["trigger_activation"]
         with self._cond:
-            old_rate = self._settings.frame_rate_hz
+            old = self._settings
             self._settings = CameraSettings(**s)
-            if self._acquiring and s["frame_rate_hz"] != old_rate:
-                # keep the clock continuous: re-anchor it at the next frame's due time
+            resumes_free_run = old.trigger_mode == "On" and s["trigger_mode"] == "Off"
+            if self._acquiring and (s["frame_rate_hz"] != old.frame_rate_hz or resumes_free_run):
+                # keep the clock continuous: the next frame is due now, then one per period
                 now = time.monotonic_ns()
                 self._t0_ns = now - int(round(self._next_id * 1e9 / s["frame_rate_hz"]))
+            if s["trigger_mode"] == "Off":
+                self._triggers.clear()
             self._cond.notify_all()
         return self._settings
 

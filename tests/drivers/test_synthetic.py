@@ -113,6 +113,18 @@ def test_dropped_triggered_frame_uses_up_its_trigger():
         assert cam.statistics()["n_id_gap_frames"] == 1
 
 
+def test_switching_trigger_off_while_acquiring_resumes_the_clock_without_fake_losses():
+    with SyntheticCamera(_stack(), frame_rate_hz=1000.0, n_buffers=4) as cam:
+        cam.configure(trigger_mode="On", trigger_source="Software")
+        cam.start()
+        with pytest.raises(FetchTimeout):
+            cam.fetch(0.05)  # 50 frame periods pass without a trigger
+        cam.configure(trigger_mode="Off")
+        ids = [cam.fetch(0.5).frame_id for _ in range(5)]
+        assert ids == [0, 1, 2, 3, 4]
+        assert cam.statistics()["n_underruns"] == 0
+
+
 def test_line_trigger_gives_no_frames_and_software_trigger_is_ignored():
     with SyntheticCamera(_stack()) as cam:
         cam.configure(trigger_mode="On", trigger_source="Line1")
