@@ -156,7 +156,10 @@ class Reconstructor:
         (notes.md).  None (default): 0 on the decimated grid (live), 1 on
         the full grid (batch).
     filter_radius, filter_flat, filter_shape, oversample, border, subbin :
-        Demodulation options, see :class:`processing.demodulation.Demodulator`.
+        Demodulation options, see :class:`processing.demodulation.Demodulator`
+        (``oversample`` defaults to 1.5 here: measured on ray-traced frames,
+        1.25 to 2 change the height error by < 0.05 %, while the decimated
+        grid, where unwrapping, masking and the height solve run, shrinks).
     full_method : {"interpolate", "ifft"}, optional
         How the full grid is made (see module docstring).
     full_interpolation : {"lanczos", "cubic", "linear"}, optional
@@ -197,7 +200,7 @@ class Reconstructor:
     def __init__(self, reference_image, geometry, *, grid: str = "full", unwrap: bool = True,
                  temporal: bool = True, refine_iterations: Optional[int] = None,
                  filter_radius: float = 0.7, filter_flat: float = 0.8, filter_shape: str = "flattop",
-                 oversample: float = 2.0, border: str = "apodize", subbin: bool = True,
+                 oversample: float = 1.5, border: str = "apodize", subbin: bool = True,
                  full_method: str = "interpolate", full_interpolation: str = "lanczos", min_amplitude: float = 0.3, min_fold: float = 0.2,
                  dilate: int = 1, min_island: float = 0.01, check_pattern: bool = True, solver: str = "auto", threads: int = 2,
                  planner_effort: str = "FFTW_ESTIMATE", carriers: Optional[Carriers] = None):
