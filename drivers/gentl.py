@@ -152,9 +152,14 @@ def list_devices(*, timeout_s: float = 3.0, producers: Optional[List[str]] = Non
         found: List[CameraInfo] = []
 
         def discover(cti=cti, found=found):
+            with _h_lock:
+                in_use = os.path.realpath(cti) in _harvesters
             h = _acquire_harvester(cti)
             try:
-                h.update()
+                if not in_use:
+                    # harvesters' update() invalidates open acquirers of this producer: a
+                    # producer with an open camera reports the list it had when opened
+                    h.update()
                 for i, d in enumerate(h.device_info_list):
                     found.append(_info_of(os.path.realpath(cti), i, d))
             finally:

@@ -56,9 +56,9 @@ def test_viky_open_configure_stream_close(viky_cti):
     assert np.all(np.diff(ids) == 1)
     assert all(f.image.shape == (240, 320) and f.image.dtype == np.uint8 for f in frames)
     assert all(f.timestamp_ns is None for f in frames)  # Viky has no timestamps: None, not 0
-    host = np.array([f.host_timestamp_ns for f in frames])
-    rate_hz = (len(frames) - 1) / ((host[-1] - host[0]) * 1e-9)
-    assert rate_hz == pytest.approx(50.0, rel=0.15)
+    host = np.array([f.host_timestamp_ns for f in frames]) * 1e-9
+    period_s = np.polyfit(np.arange(len(frames)), host, 1)[0]  # robust to one late frame
+    assert 1 / period_s == pytest.approx(50.0, rel=0.1)
     assert frames[0].image.std() > 0  # a real picture, not an empty buffer
     assert stats["n_delivered"] == 26 and stats["n_id_gap_frames"] == 0
     assert stats["n_incomplete_discarded"] == 0
@@ -75,7 +75,8 @@ def test_fetch_timeout_is_bounded_and_in_seconds(viky_cti):
         with pytest.raises(FetchTimeout, match="within 0.3 s"):
             cam.fetch(0.3)  # the next is due in ~1 s
         waited = time.monotonic() - t0
-    assert 0.3 <= waited < 0.5
+    # seconds, not milliseconds (harvesters mixes both): 0.3 s plus its 5 ms poll and scheduling slack
+    assert 0.3 <= waited < 0.6
 
 
 def test_device_search_on_genicam_path(viky_cti, monkeypatch):
@@ -88,3 +89,13 @@ def test_device_search_on_genicam_path(viky_cti, monkeypatch):
         assert cam.info.serial == "2"
     with pytest.raises(CameraError, match="no GenTL device matches"):
         drivers.open_camera("gentl:nosuchcamera")
+
+
+def test_listing_cameras_while_one_streams_does_not_disturb_it(viky_cti):
+    with gentl.GenTLCamera(f"{viky_cti}:0") as cam:
+        cam.configure(pixel_format="Mono8", width=200, height=200, frame_rate_hz=100.0)
+        cam.start()
+        first = cam.fetch(1.0).frame_id
+        assert len(gentl.list_devices(producers=[viky_cti])) == 3
+        ids = [cam.fetch(1.0).frame_id for _ in range(3)]
+    assert ids == [first + 1, first + 2, first + 3]
