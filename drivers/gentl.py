@@ -416,7 +416,11 @@ class GenTLCamera(Camera):
         self._features.execute("TriggerSoftware")
 
     def fetch(self, timeout_s: float) -> Frame:
-        """Wait at most ``timeout_s`` s (+ about 5 ms) for the next complete buffer; copy it out."""
+        """Wait at most ``timeout_s`` s (+ about 5 ms) for the next complete buffer; copy it out.
+
+        Raises :class:`FetchTimeout` when none came, :class:`CameraLost` on a
+        producer error, :class:`CameraError` when stopped/closed meanwhile.
+        """
         if not timeout_s > 0:
             raise ValueError(f"timeout_s must be > 0 seconds; got {timeout_s!r}")
         self._require_open("fetch")
@@ -424,11 +428,25 @@ class GenTLCamera(Camera):
             raise CameraError(f"fetch: {self.camera_id} is not acquiring; call start() first")
         from genicam.gentl import TimeoutException
 
+        deadline = time.monotonic() + timeout_s
         try:
-            buf = self._ia.fetch(timeout=float(timeout_s))
-        except TimeoutException:
-            raise FetchTimeout(f"no frame from {self.camera_id} within {timeout_s:g} s (waiting for a trigger?)") from None
+            while True:  # 0.1 s slices, so stop()/close() from another thread ends the wait
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise FetchTimeout(
+                        f"no frame from {self.camera_id} within {timeout_s:g} s (waiting for a trigger?)"
+                    )
+                try:
+                    buf = self._ia.fetch(timeout=min(remaining, 0.1))
+                    break
+                except TimeoutException:
+                    if not self._acquiring:
+                        raise CameraError(f"fetch: {self.camera_id} was stopped or closed while waiting") from None
+        except CameraError:
+            raise
         except Exception as exc:
+            if not self._acquiring:
+                raise CameraError(f"fetch: {self.camera_id} was stopped or closed while waiting") from exc
             raise CameraLost(f"{self.camera_id}: the GenTL producer failed while fetching ({exc}); check the camera and reopen it") from exc
         host_ns = time.monotonic_ns()
         with buf:

@@ -99,3 +99,30 @@ def test_listing_cameras_while_one_streams_does_not_disturb_it(viky_cti):
         assert len(gentl.list_devices(producers=[viky_cti])) == 3
         ids = [cam.fetch(1.0).frame_id for _ in range(3)]
     assert ids == [first + 1, first + 2, first + 3]
+
+
+def test_stop_from_another_thread_ends_a_waiting_fetch(viky_cti):
+    import threading
+    import time
+
+    with gentl.GenTLCamera(f"{viky_cti}:0") as cam:
+        cam.configure(pixel_format="Mono8", width=100, height=100, frame_rate_hz=1.0)
+        cam.start()
+        cam.fetch(2.5)
+        result = {}
+
+        def consume():
+            t0 = time.monotonic()
+            try:
+                cam.fetch(5.0)  # the next frame is ~1 s away; stop() comes first
+            except Exception as exc:
+                result["exc"], result["t"] = exc, time.monotonic() - t0
+
+        t = threading.Thread(target=consume)
+        t.start()
+        t.join(0.1)
+        cam.stop()
+        t.join(3.0)
+        assert not t.is_alive()
+    assert isinstance(result["exc"], CameraError) and "stopped" in str(result["exc"])
+    assert result["t"] < 1.5  # well before its own 5 s timeout
