@@ -7,7 +7,9 @@ Run from the repository root::
     python3 benchmarks/bench_processing.py --no-accuracy
 
 Speed: median milliseconds per frame, FFTW plans (FFTW_MEASURE) built outside
-the timed loop, one warm-up call.  The baseline is what peers do: numpy FFT in
+the timed loop, one warm-up call; all variants, baseline included, are timed
+in rounds of 4 calls each so that they share the (possibly shared) machine's
+load.  The baseline is what peers do: numpy FFT in
 float64, one full-size fft2 of the frame, two full-size masked ifft2 (one per
 carrier), phase of the product with the conjugate reference and the 2 x 2
 solve for the displacement; no unwrapping, no mask, no height.  Goals:
@@ -93,27 +95,31 @@ class Baseline:
         return u_r, u_c
 
 
-def interleaved_medians(fns, repeats, every=None):
-    """Median ms of each fn(i), calling them in turn on every repeat so that
-    all see the same machine load (the machine may be shared).  ``every[k]``
-    > 1 runs fn k only on every that-many repeats (slow variants)."""
+def interleaved_medians(fns, repeats, every=None, block=4):
+    """Median ms of each fn(i).  Rounds visit every fn in turn, ``block``
+    calls at a time, so that all see the same machine load (the machine may
+    be shared) while each runs with its own data in cache, as a live loop
+    does.  ``every[k]`` > 1 visits fn k only every that-many rounds."""
     every = every or [1] * len(fns)
     for fn in fns:
         fn(0)  # warm-up
     times = [[] for _ in fns]
-    for i in range(repeats):
+    rounds = max(1, repeats // block)
+    for r in range(rounds):
         for k, fn in enumerate(fns):
-            if i % every[k]:
+            if r % every[k]:
                 continue
-            t = time.perf_counter()
-            fn(i)
-            times[k].append(1e3 * (time.perf_counter() - t))
+            for j in range(block):
+                i = r * block + j
+                t = time.perf_counter()
+                fn(i)
+                times[k].append(1e3 * (time.perf_counter() - t))
     return [statistics.median(t) for t in times]
 
 
 def bench_speed(sizes, repeats):
     print("Speed (median ms/frame, 2 FFTW threads, FFTW_MEASURE planned before timing;")
-    print("all variants timed in turn on every repeat, so they share the machine's load)")
+    print("variants timed in turn, 4 calls each per round, so they share the machine's load)")
     print("  series: consecutive frames of a live series (temporal unwrapping);")
     print("  single: every frame unwrapped in space from scratch (reset_series before each)")
     print(f"{'size':>6} {'baseline':>9} {'dec series':>11} {'x':>6} {'dec single':>11} {'x':>6} "
@@ -140,7 +146,7 @@ def bench_speed(sizes, repeats):
 
         fns = [lambda i: base(frames[i % nf]), series(rec_dec), single(rec_single, "decimated"),
                series(rec_full), single(rec_single, "full"), single(rec_ifft, "full")]
-        slow = 4 if n >= 2048 else 2
+        slow = 3 if n >= 2048 else 1
         t = interleaved_medians(fns, repeats, every=[slow, 1, 1, 1, 1, 2 * slow])
         t_base = t[0]
         ratios = [t_base / x for x in t[1:]]
