@@ -402,14 +402,14 @@ class Acquisition:
                     continue
                 try:
                     img = frame.image
-                    if img.shape != shape:
+                    if img.shape != shape or img.dtype != ring.dtype:
                         raise AcquisitionError(
-                            f"camera delivered a {img.shape[0]}x{img.shape[1]} frame but the ring holds "
-                            f"{shape[0]}x{shape[1]}: settings changed during acquisition; stop, reconfigure, "
-                            "start again"
+                            f"camera delivered a {img.shape[0]}x{img.shape[1]} {img.dtype} frame but the ring holds "
+                            f"{shape[0]}x{shape[1]} {ring.dtype}: settings changed during acquisition; stop, "
+                            "reconfigure, start again"
                         )
                     seq, slot = ring.begin_write()
-                    np.copyto(slot, img, casting="unsafe")
+                    np.copyto(slot, img)
                     fid = int(frame.frame_id)
                     dts = frame.timestamp_ns
                     hts = int(frame.host_timestamp_ns)

@@ -127,3 +127,20 @@ def test_camera_that_refuses_to_start_is_a_clear_error():
     with pytest.raises(AcquisitionError, match="camera 'synthetic' did not start: .*closed"):
         acq.start()
     assert acq.state == "error" and acq.ring.closed and acq.wait(1.0)
+
+
+def test_driver_error_mid_stream_ends_the_thread_cleanly():
+    base = _frames(4)
+
+    def frames(k):  # the 21st frame comes back at another size: the driver refuses it
+        return base[k % 4] if k < 20 else np.zeros((16, 16), np.uint8)
+
+    with SyntheticCamera(frames, frame_rate_hz=500) as cam:
+        acq = Acquisition(cam, ring_frames=32)
+        cur = acq.ring.cursor(0)
+        acq.start()
+        assert acq.wait(5.0)
+    assert acq.state == "error" and "failed" in acq.error and "frames(20)" in acq.error
+    assert acq.acquired == 20 and len(_read(cur, 20)) == 20
+    with pytest.raises(RingClosed, match=r"frames\(20\)"):
+        cur.read(1.0)
