@@ -88,9 +88,45 @@ class DiskFullError(DiskSpaceError):
 RESERVE_BYTES = 4 * 1024 * 1024
 
 
-def room_bytes(path: Path, current_size: int) -> Tuple[int, str]:
-    """Bytes the file at ``path`` may still grow by, and what limits it ("disk" or "file size limit")."""
+#: largest file some file systems can hold, bytes (FAT32 and its kin: 4 GiB - 1)
+FS_MAX_FILE_BYTES = {"vfat": 2**32 - 1, "msdos": 2**32 - 1, "fat": 2**32 - 1, "umsdos": 2**32 - 1}
+
+
+def filesystem_type(path, mounts_text: Optional[str] = None) -> str:
+    """File-system type of the mount holding ``path`` (from /proc/mounts; "" when unknown)."""
+    try:
+        if mounts_text is None:
+            with open("/proc/mounts") as fh:
+                mounts_text = fh.read()
+    except OSError:  # pragma: no cover - not Linux
+        return ""
+    target = os.path.realpath(str(path))
+    best, kind = "", ""
+    for line in mounts_text.splitlines():
+        parts = line.split()
+        if len(parts) < 3:
+            continue
+        mnt = parts[1].replace("\\040", " ")
+        inside = target == mnt or target.startswith(mnt.rstrip("/") + "/")
+        if inside and len(mnt) >= len(best):
+            best, kind = mnt, parts[2]
+    return kind
+
+
+def max_file_bytes(path) -> Optional[int]:
+    """The file-size limit of the file system holding ``path`` (None: none known), e.g. 4 GiB - 1 on FAT32."""
+    return FS_MAX_FILE_BYTES.get(filesystem_type(path))
+
+
+def room_bytes(path: Path, current_size: int, fs_max_bytes: Optional[int] = None) -> Tuple[int, str]:
+    """Bytes the file at ``path`` may still grow by, and what limits it.
+
+    The smallest of: free space on the disk ("disk"), the process's
+    ``ulimit -f`` and the file system's largest file (FAT32: 4 GiB).
+    """
     room, what = shutil.disk_usage(path.parent).free, "disk"
+    if fs_max_bytes is not None and fs_max_bytes - current_size < room:
+        room, what = fs_max_bytes - current_size, f"file system's largest file ({format_bytes(fs_max_bytes)})"
     try:
         import resource
 
@@ -242,8 +278,9 @@ class RecordingFile:
             if self.n_planned is None
             else self.n_planned * (self.frame_bytes + FRAME_TABLE_DTYPE.itemsize) + extra + SPACE_MARGIN_BYTES
         )
+        self._fs_max_bytes = max_file_bytes(p.parent)
         if check_space and self.planned_bytes is not None:
-            free, what = room_bytes(p, 0)
+            free, what = room_bytes(p, 0, self._fs_max_bytes)
             if self.planned_bytes > free:
                 where = f"on {str(p.parent)!r}" if what == "disk" else f"under the {what}"
                 raise DiskSpaceError(
@@ -356,7 +393,7 @@ class RecordingFile:
     def _check_room(self) -> None:
         """Stop (DiskFullError) before the disk or the file-size limit is so full that closing could fail."""
         size = self._size_estimate
-        room, what = room_bytes(self.path, size)
+        room, what = room_bytes(self.path, size, self._fs_max_bytes)
         need = self.frame_bytes + FRAME_TABLE_DTYPE.itemsize + RESERVE_BYTES
         if room < need:
             raise DiskFullError(

@@ -178,3 +178,35 @@ def test_files_larger_than_2_gb(tmp_path):
         if not rf.closed:
             rf.close()
         os.remove(rf.path)
+
+
+def test_fat32_file_size_limit_is_known_up_front():
+    from app.recorder import filesystem_type
+
+    mounts = ("/dev/vda / ext4 rw 0 0\n/dev/sdb1 /media/usb\\040stick vfat rw 0 0\n"
+              "tmpfs /media/usb\\040stick/tmp tmpfs rw 0 0\n")
+    assert filesystem_type("/media/usb stick/run.h5", mounts) == "vfat"
+    assert filesystem_type("/media/usb stick/tmp/run.h5", mounts) == "tmpfs"  # the deepest mount wins
+    assert filesystem_type("/media/usb", mounts) == "ext4"
+
+
+def test_recording_larger_than_the_file_system_allows_is_refused(tmp_path, monkeypatch):
+    import app.recorder
+
+    # the folder behaves as if it were on a FAT32 stick (4 GiB per file at most)
+    monkeypatch.setattr(app.recorder, "max_file_bytes", lambda path: 2**32 - 1)
+    with pytest.raises(DiskSpaceError, match=r"are free under the file system's largest file \(4\.29 GB\)"):
+        RecordingFile(tmp_path / "fat.h5", shape=(1024, 1024), dtype=np.uint16, n_frames=2100, check_space=True)
+    # and while recording, growth stops before the limit with the file closed properly
+    monkeypatch.setattr(app.recorder, "max_file_bytes", lambda path: 6 * 1024 * 1024)
+    rf = RecordingFile(tmp_path / "fat2.h5", shape=(64, 64), dtype=np.uint8, check_space=False)
+    img = np.ones((64, 64), np.uint8)
+    with pytest.raises(app.recorder.DiskFullError, match="file system's largest file .* full"):
+        for i in range(10_000):
+            rf.write(img, (i, i, i, i, 0, i))
+    n = rf.n_written
+    rf.close(error="stopped")
+    assert 200 < n < 600  # (6 MB - 4 MB reserve) / 4 kB per frame
+    with h5py.File(rf.path, "r") as f:
+        assert f["frames"].shape[0] == f["frames"].attrs["frames_written"] == n
+    assert os.path.getsize(rf.path) < 6 * 1024 * 1024
