@@ -846,7 +846,7 @@ def format_summary(s: dict) -> str:
         f"  incomplete       {s.get('incomplete', 0)}",
         f"  ring overrun     {s.get('lost_ring_overrun', 0)} frames lost (recorder backlog max "
         f"{s.get('recorder_backlog_max', 0)} of {s.get('ring_frames', 0)})",
-        f"  write rate       {s.get('write_rate_mb_s', 0)} MB/s over {s.get('elapsed_s', 0)} s",
+        f"  data rate        {s.get('write_rate_mb_s', 0)} MB/s on average over {s.get('elapsed_s', 0)} s",
     ]
     total = s.get("total_missing", 0)
     suspect = s.get("lost_by_time_estimate", 0)
