@@ -11,8 +11,10 @@ Pipeline (docs/processing.md has the measured accuracy and speed):
    frame of the series when there is one, else in space; the 2 pi multiple
    puts the reference region's phase nearest 0;
 5. displacement ``u = -K^-1 phase`` (pixels);
-6. bias removal (``refine_iterations``): warp the band-limited reference by
-   the current ``u``, demodulate the frame against it, add the residual;
+6. optional bias removal (``refine_iterations``, off by default): warp the
+   band-limited reference by the current ``u``, demodulate the frame against
+   it, add the residual (the wide flat-top band-pass and sub-bin carriers
+   already remove most of the bias FD is known for);
 7. height by least squares of the exact operator
    (:func:`processing.height.surface_from_displacement`), null space pinned by
    the reference region;
@@ -153,8 +155,11 @@ class Reconstructor:
         :meth:`reset_series` forgets it.
     refine_iterations : int or None, optional
         Warp-and-redemodulate iterations that remove the band-pass bias
-        (notes.md).  None (default): 0 on the decimated grid (live), 1 on
-        the full grid (batch).
+        (notes.md).  None (default): 0 on both grids.  Measured (docs/
+        processing.md): one iteration halves the error on features narrower
+        than two carrier periods, but on sharp-edged boards whose harmonics
+        alias into the carrier bands it can make things worse, and it costs a
+        full-size warp and FFT per iteration.
     filter_radius, filter_flat, filter_shape, oversample, border, subbin :
         Demodulation options, see :class:`processing.demodulation.Demodulator`
         (``oversample`` defaults to 1.5 here: measured on ray-traced frames,
