@@ -133,7 +133,7 @@ def test_camera_at_1p5_m_theta_60():
     g = Geometry(theta_deg=60, depth_mm=300, pixel_mm=0.1, rows_toward_camera=False, camera_distance_mm=1500.0)
     ref, img, _ = render(BUMP, geometry=g)
     for res in both_grids(ref, img, geometry=g):
-        assert rel_error(res, BUMP, geometry=g) <= 0.03
+        assert rel_error(res, BUMP, geometry=g) <= 0.015  # brief: <= 3 %; measured 0.4 % (local carriers)
 
 
 def test_ray_crossing_spot_masked_rest_accurate():
