@@ -126,15 +126,26 @@ def child(size: int) -> int:
                 break
 
     spin_until(lambda: w.session.acquisition is not None and w.geometry is not None, 120)
-    # the open step keeps the scene's flat frame for us: use it as the reference later
+    scene_camera = w.session.camera
+    # Alignment is done on still water, before any reference exists: stream the scene's
+    # flat-surface frame (with fresh read noise per frame) through a synthetic camera.
+    from app.scene import synthetic_reference
+    from drivers.synthetic import SyntheticCamera
+    from processing.forward import quantize
+
+    flat = synthetic_reference((size, size))
+    rng = np.random.default_rng(1)
+    still = np.stack([quantize(flat / 255.0, bits=8, noise_rms=0.7, rng=rng) for _ in range(8)])
+    w.session.camera = None  # keep the scene camera open for later
+    w.use_camera(SyntheticCamera(still, frame_rate_hz=60.0), geometry=w.geometry)
     w.tabs.setCurrentIndex(1)
     w.side.setCurrentIndex(0)
     spin_until(lambda: w.spectrum_view.updates > 2 and w.modulation_view.updates > 2, 60)
     shot("alignment")
 
-    from app.scene import synthetic_reference
-
-    w.set_reference(synthetic_reference((size, size)), "synthetic scene, flat surface")
+    # then the reference (averaged still water) and the moving scene: waves and an approaching disc
+    w.set_reference(flat, "synthetic scene, flat surface")
+    w.use_camera(scene_camera, geometry=w.geometry, camera_id="synthetic")
     w.tabs.setCurrentIndex(0)
     w.side.setCurrentIndex(1)
     spin_until(lambda: w.last_drawn is not None and w.height_view.updates > 10, 60)

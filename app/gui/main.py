@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 from typing import Optional, Sequence
 
@@ -18,6 +19,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--reference", default=None, help="reference image to load at start")
     p.add_argument("--size", type=int, default=512, help="synthetic camera frame size in pixels (square)")
     p.add_argument("--rate", type=float, default=60.0, help="synthetic camera frame rate (Hz)")
+    p.add_argument("--frames", type=int, default=24,
+                   help="frames of the synthetic scene, ray-traced once at start (it loops over them)")
     p.add_argument("--quit-after", type=float, default=None, metavar="S",
                    help="close the window after S seconds (smoke tests)")
     p.add_argument("--debug", action="store_true", help="log debug messages")
@@ -27,6 +30,12 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Optional[Sequence[str]] = None) -> int:
     """Open the live window; returns the exit code of the Qt event loop (0 normally, 2 on bad arguments)."""
     args = build_parser().parse_args(argv)
+    if (sys.platform.startswith("linux") and not os.environ.get("QT_QPA_PLATFORM")
+            and not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY")):
+        print("tirdeflect: error: no display to open the window on (DISPLAY and WAYLAND_DISPLAY are unset): "
+              "run it in a desktop session or with ssh -X, or use the headless commands "
+              "(tirdeflect record / process)", file=sys.stderr)
+        return 2
     logging.basicConfig(level=logging.DEBUG if args.debug else logging.INFO,
                         format="%(asctime)s %(name)s %(levelname)s: %(message)s")
     import pyqtgraph as pg
@@ -35,7 +44,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     from .window import MainWindow
 
     app = pg.mkQApp("tirdeflect")
-    window = MainWindow(args.camera, synthetic_options={"shape": (args.size, args.size),
+    window = MainWindow(args.camera, synthetic_options={"shape": (args.size, args.size), "n_frames": args.frames,
                                                         "frame_rate_hz": args.rate})
     if args.geometry:
         window.load_geometry(args.geometry)

@@ -137,10 +137,14 @@ class ImageView(QtWidgets.QWidget):
         self.image.setAutoDownsample(False)
         self.stride = 1
         self.plot.addItem(self.image)
-        self.colorbar = pg.ColorBarItem(values=(0, 1), colorMap=pg.colormap.get(cmap), label=units,
+        cmap_obj = cmap if isinstance(cmap, pg.ColorMap) else pg.colormap.get(cmap)
+        self.colorbar = pg.ColorBarItem(values=(0, 1), colorMap=cmap_obj, label=units,
                                         interactive=True, width=14)
         self.colorbar.setImageItem(self.image, insert_in=self.plot)
-        self.colorbar.getAxis("right").setTextPen("#222") if hasattr(self.colorbar, "getAxis") else None
+        cb_axis = getattr(self.colorbar, "axis", None)
+        if cb_axis is not None:
+            cb_axis.setTextPen("#222")
+            cb_axis.setLabel(units, color="#222")
         self.colorbar.sigLevelsChangeFinished.connect(self._user_levels)
         self._setting_levels = False
         act = self.plot.getViewBox().menu.addAction("Auto levels")
@@ -335,7 +339,7 @@ class HistogramView(QtWidgets.QWidget):
         if self._range != (top, ymax):
             self.plot.setRange(xRange=(0, top + 1), yRange=(0, ymax), padding=0.02)
             self._range = (top, ymax)
-        title = f"<b>Raw histogram</b> — saturated: {saturation_pct:.2f} %"
+        title = f"<b>Histogram</b> · {saturation_pct:.2f} % saturated"
         if title != self._title:
             self.plot.setTitle(title, color="#b00000" if saturation_pct > 0.5 else "#222")
             self._title = title

@@ -120,7 +120,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self.disp_view = ImageView("Displacement |u|", "|u| (px)", cmap="viridis")
         self.slope_x_view = ImageView("Slope ∂h/∂x", "slope (mrad)", cmap="CET-D1", symmetric=True)
         self.slope_y_view = ImageView("Slope ∂h/∂y", "slope (mrad)", cmap="CET-D1", symmetric=True)
-        self.valid_view = ImageView("Valid mask", "valid (1) / masked (0)", cmap="CET-L1")
+        mask_cmap = pg.ColorMap([0.0, 1.0], [(190, 30, 30), (215, 240, 215)])  # masked red, valid pale green
+        self.valid_view = ImageView("Valid mask", "valid (1) / masked (0)", cmap=mask_cmap)
         self.profile_view = ProfileView("Height profile along the line", "height (µm)")
         self.histogram = HistogramView()
         raw_box = QtWidgets.QWidget()
@@ -376,8 +377,8 @@ class MainWindow(QtWidgets.QMainWindow):
     def set_reference(self, image: np.ndarray, origin: str = "") -> bool:
         """Use ``image`` as the flat-surface reference: rebuild the reconstructor (background)."""
         self.reference = np.asarray(image)
-        self.geometry_panel.reference_label.setText(
-            f"reference: {origin}, {image.shape[1]}×{image.shape[0]} px — building…")
+        self._reference_text = f"reference: {origin}, {image.shape[1]}×{image.shape[0]} px"
+        self.geometry_panel.reference_label.setText(self._reference_text + " — building…")
         self._rebuild_reconstructor()
         return True
 
@@ -401,7 +402,7 @@ class MainWindow(QtWidgets.QMainWindow):
                 return  # superseded by a newer reference/geometry
             self.session.worker.set_reconstructor(rec)
             self.session.reference = reference
-            text = self.geometry_panel.reference_label.text().replace(" — building…", "")
+            text = getattr(self, "_reference_text", "reference")
             try:
                 c = rec.carriers
                 periods = getattr(c, "periods_px", None)
@@ -674,7 +675,8 @@ class MainWindow(QtWidgets.QMainWindow):
         if rec is None:
             self.show_error("Open a recording first (Replay ▸ Open recording).")
             return
-        self.replay.progress.setValue(0)
+        self.replay.progress.setRange(0, 0)  # busy: the batch reports no per-frame progress to us
+        self.replay.message.setText(f"exporting {rec.n_frames} frames to {out_path}…")
         self._export_progress = 0.0
         self.export_result = None
 
@@ -691,6 +693,7 @@ class MainWindow(QtWidgets.QMainWindow):
 
         def done(result, error):
             self._export_progress = 1.0 if not error else self._export_progress
+            self.replay.progress.setRange(0, 100)
             self.replay.progress.setValue(int(100 * self._export_progress))
             if error:
                 self.show_error(f"Export failed: {error}\nFrames exported before the error are kept in {out_path}.")
@@ -935,8 +938,7 @@ class MainWindow(QtWidgets.QMainWindow):
                             "Controls ▸ Camera. The app keeps running; frames already recorded are kept.")
         lab["state"].setText("camera stopped" if err else "")
         self._update_recording()
-        if hasattr(self, "_export_progress") and self.busy("export"):
-            self.replay.progress.setValue(int(100 * self._export_progress))
+
 
     # -------------------------------------------------------------- close
     def closeEvent(self, event):

@@ -192,3 +192,79 @@ def test_camera_that_stops_delivering_shows_error_and_window_lives(qtbot, window
     qtbot.waitUntil(lambda: window._last_raw_seq not in (seq0, -1) and window.session.status().get("error") is None,
                     timeout=5000)
     assert window.session.worker.running
+
+
+def test_camera_settings_show_what_the_camera_accepted(qtbot, window, scene):
+    """Apply settings: the panel shows the camera's read-back; a refused value is an error, not a crash."""
+    window.use_camera(SyntheticCamera(Switchable(scene["flat"]), frame_rate_hz=100.0))
+    cp = window.camera_panel
+    cp.rate.setValue(40.0)
+    cp.exposure.setValue(2500.0)
+    cp.apply_button.click()
+    qtbot.waitUntil(lambda: not window.busy("configure"), timeout=10000)
+    s = window.session.camera_settings()
+    assert s.frame_rate_hz == pytest.approx(40.0) and s.exposure_us == pytest.approx(2500.0)
+    assert "40 Hz" in cp.accepted_label.text() and "2500 µs" in cp.accepted_label.text()
+    # the stream restarted at the new rate
+    acq = window.session.acquisition
+    qtbot.waitUntil(lambda: acq.acquired >= 50, timeout=5000)
+    assert acq.fps == pytest.approx(40.0, rel=0.15)
+    cp.gain.setValue(47.0)  # in range
+    cp.width.setValue(10_000)  # larger than the sensor: refused by the camera
+    cp.apply_button.click()
+    qtbot.waitUntil(lambda: not window.busy("configure"), timeout=10000)
+    assert any("refused" in e and "width" in e for e in window.errors), window.errors
+    assert window.session.acquisition.running  # still streaming with the previous settings
+    assert cp.width.value() == SHAPE[1]  # editors show the accepted values again
+
+
+def test_geometry_editor_and_toml_round_trip(qtbot, window, scene, tmp_path):
+    """Edit theta in the panel, save TOML, load it back: the same Geometry; an unphysical theta is refused."""
+    from processing import Geometry
+
+    window.use_camera(SyntheticCamera(Switchable(scene["flat"]), frame_rate_hz=100.0), geometry=scene["geometry"])
+    gp = window.geometry_panel
+    gp.theta.setValue(60.0)
+    assert window.geometry.theta_deg == pytest.approx(60.0)
+    gp.region.setText("0, 20, 0, 256")
+    gp.region.editingFinished.emit()
+    assert window.geometry.reference_region == (0, 20, 0, 256)
+    assert window.region_roi.isVisible() and window.region_roi.size().y() == pytest.approx(20)
+    path = tmp_path / "g.toml"
+    window.save_geometry(str(path))
+    assert Geometry.from_toml(path) == window.geometry
+    gp.theta.setValue(40.0)  # below the critical angle of water: refused, old geometry kept
+    assert "critical" in gp.geometry_label.text().lower() or "48.6" in gp.geometry_label.text()
+    assert window.geometry.theta_deg == pytest.approx(60.0)
+    window.set_geometry(scene["geometry"])
+    window.load_geometry(str(path))
+    assert window.geometry.theta_deg == pytest.approx(60.0) and gp.theta.value() == pytest.approx(60.0)
+
+
+def test_auto_trigger_fires_on_the_bump(qtbot, window, scene, tmp_path):
+    """Auto-trigger on the live slopes: the trigger frame is the first bumped frame the worker saw."""
+    frames = Switchable(scene["flat"])
+    window.use_camera(SyntheticCamera(frames, frame_rate_hz=50.0), geometry=scene["geometry"],
+                      reference=scene["flat"])
+    _wait_reconstructor(qtbot, window)
+    qtbot.waitUntil(lambda: window.session.worker.latest() is not None
+                    and window.session.worker.latest().result is not None, timeout=10000)
+    rp = window.recording_panel
+    rp.folder.setText(str(tmp_path))
+    rp.pre.setValue(5)
+    rp.post.setValue(5)
+    rp.auto.setChecked(True)
+    rp.threshold.setValue(2e-5)  # RMS slope over the map: still water ~0 (noise), the bump ~7e-5
+    rp.arm_button.click()
+    assert rp.state_label.text() == "armed"
+    qtbot.waitUntil(lambda: window.session.acquisition.ring.head > 20, timeout=5000)
+    assert rp.state_label.text() == "armed"  # still water does not trigger
+    frames.image = scene["bump"]
+    qtbot.waitUntil(lambda: rp.state_label.text() == "done", timeout=15000)
+    with h5py.File(window.session.recording["path"], "r") as f:
+        n = int(f.attrs["frames_written"])
+        frames_rec = f["frames"][:n]
+        idx = f["frame_table"]["trigger_index"][:n]
+    k0 = int(np.flatnonzero(idx == 0)[0])
+    assert np.array_equal(frames_rec[k0], scene["bump"])  # the trigger frame shows the bump
+    assert np.array_equal(frames_rec[0], scene["flat"])  # the pre-trigger frames show still water
