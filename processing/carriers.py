@@ -97,6 +97,18 @@ class Carriers:
         (0: edges along rows and columns)."""
         return rotation_from_carriers(self.freq)
 
+    def surface_rotation_deg(self, theta_deg: float | None = None) -> float:
+        """Rotation (deg, (-45, 45]) of the board on the surface: row
+        frequencies scaled by cos(theta) first (default theta: the estimate
+        from the aspect; NaN if there is none).  0: edges along and across
+        the plane of incidence."""
+        theta = self.theta_deg if theta_deg is None else float(theta_deg)
+        if not np.isfinite(theta):
+            return float("nan")
+        f = np.array(self.freq, dtype=float)
+        f[:, 0] *= math.cos(math.radians(theta))
+        return rotation_from_carriers(f)
+
     @property
     def theta_deg(self) -> float:
         """Viewing angle theta estimated from the aspect of a square board
@@ -329,21 +341,32 @@ def find_carriers(reference, *, min_period_px: float = 2.5, max_period_px: float
     excess = np.where(allowed, logspec - ring_mean[ring], -np.inf)
 
     def best_peak(score):
-        """Strongest candidate that is an isolated peak, not a streak or a ridge."""
+        """Among isolated peaks standing ``min_contrast`` above their ring, the
+        strongest in amplitude (a fundamental, not a harmonic that merely
+        stands higher above a weaker ring).  Negative contrast: the best
+        candidate was not isolated (a streak or a smear)."""
         flat = score.ravel()
         n_cand = min(64, flat.size)
         cand = np.argpartition(-flat, n_cand - 1)[:n_cand]
         cand = cand[np.argsort(-flat[cand])]
-        best = (0, 0, float("-inf"))
+        best = None
+        fallback = (0, 0, float("-inf"))
         for idx in cand:
             if not np.isfinite(flat[idx]):
                 break
             r, c = divmod(int(idx), score.shape[1])
-            if _isolation(spec, r, c, rows) >= MIN_ISOLATION:
-                return r, c, float(np.exp(flat[idx]))
-            if best[2] == float("-inf"):
-                best = (r, c, -float(np.exp(flat[idx])))  # negative: not isolated
-        return best
+            contrast = float(np.exp(flat[idx]))
+            if _isolation(spec, r, c, rows) < MIN_ISOLATION:
+                if fallback[2] == float("-inf"):
+                    fallback = (r, c, -contrast)
+                continue
+            if contrast < min_contrast:
+                if fallback[2] == float("-inf") or fallback[2] < 0:
+                    fallback = (r, c, contrast)
+                continue
+            if best is None or spec[r, c] > spec[best[0], best[1]]:
+                best = (r, c, contrast)
+        return best if best is not None else fallback
 
     r1, c1, contrast1 = best_peak(excess)
     if not np.isfinite(contrast1) or contrast1 < min_contrast:

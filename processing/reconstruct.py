@@ -578,7 +578,9 @@ class Reconstructor:
         -------
         dict
             ``periods_px`` (2,) and ``rotation_deg`` of the frame's pattern
-            (NaN if none found), ``reference_periods_px``,
+            in the image (NaN if none found), ``surface_rotation_deg`` (the
+            board's rotation on the surface, rows scaled by the configured
+            cos(theta); FS-SS: as seen), ``reference_periods_px``,
             ``reference_rotation_deg``, ``theta_estimate_deg`` (from the
             frame's aspect, telecentric square board), ``theta_configured_deg``
             (geometry; None for FS-SS), ``focus`` (carrier peak sharpness 0..1,
@@ -616,7 +618,9 @@ class Reconstructor:
             out.update(periods_px=np.full(2, np.nan), rotation_deg=float("nan"),
                        theta_estimate_deg=float("nan"), focus=0.0, error=str(exc))
             return out
+        theta_cfg = out["theta_configured_deg"]
         out.update(periods_px=np.asarray(c.periods_px, float), rotation_deg=float(c.rotation_deg),
+                   surface_rotation_deg=c.surface_rotation_deg(theta_cfg if theta_cfg is not None else 0.0),
                    theta_estimate_deg=float(c.theta_deg), focus=float(np.min(c.sharpness)),
                    pattern_mismatch=dict(zip(("period_rel", "angle_deg"), match_error(self.carriers, c.freq))))
         return out

@@ -41,10 +41,17 @@ def test_periods_and_rotation_sub_bin(period_px, rotation_deg):
 
 
 @pytest.mark.parametrize("theta_deg", [55.0, 62.0, 70.0])
-@pytest.mark.parametrize("rotation_deg", [0.0, 12.0, 45.0])
+@pytest.mark.parametrize("rotation_deg", [0.0, 12.0, 30.0, 45.0])
 def test_theta_from_aspect_of_square_board(theta_deg, rotation_deg):
     c = find_carriers(board((256, 256), 18.0, rotation_deg, aspect=math.cos(math.radians(theta_deg))))
     assert abs(c.theta_deg - theta_deg) < 0.3
+
+
+def test_surface_rotation_undoes_the_compression():
+    c = find_carriers(board((256, 256), 18.0, 30.0, aspect=math.cos(math.radians(60))))
+    assert abs(c.surface_rotation_deg(60.0) - 30.0) < 0.2
+    assert abs(c.surface_rotation_deg() - 30.0) < 0.3  # with the estimated theta
+    assert abs(c.rotation_deg - 30.0) > 5  # in the image the compression bends it
 
 
 def test_theta_from_ray_traced_reference():

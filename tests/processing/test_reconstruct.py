@@ -186,6 +186,7 @@ def test_alignment_and_spectrum(bump_frames):
     np.testing.assert_allclose(a["periods_px"], rec.carriers.periods_px, rtol=1e-3)
     assert abs(a["theta_estimate_deg"] - 55.0) < 0.3
     assert a["theta_configured_deg"] == 55.0
+    assert abs(a["surface_rotation_deg"]) < 0.3  # the board is square to the plane of incidence
     assert 0.3 < a["contrast"] < 1.0 and a["modulation"].shape == rec.demod.window_shape
     assert 0.5 < a["focus"] <= 1.0
     assert a["saturation_pct"] < 1.0
