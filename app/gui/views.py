@@ -224,14 +224,19 @@ class ImageView(QtWidgets.QWidget):
             self._apply_levels(levels)
         elif self.auto_levels and (data.size <= 65536 or now - self._levels_t >= self._levels_interval_s
                                    or self._shape != full_shape):
-            # small (decimated) maps: every frame (< 1 ms); large ones a few times per second.
-            # Hysteresis: the colour bar only moves when the range changed by > 10 %.
+            # Small (decimated) maps are checked every frame (< 1 ms), large ones a few times per second.
+            # The colour bar (whose axis is costly to redraw) moves at once when the data range doubled or
+            # shrank to a quarter, otherwise at most every levels_interval_s and only by > 10 %.
             lo, hi = robust_levels(data, symmetric=self.symmetric)
             old_lo, old_hi = self._levels
             span = max(old_hi - old_lo, 1e-30)
-            if (self._shape != full_shape or abs(lo - old_lo) > 0.1 * span or abs(hi - old_hi) > 0.1 * span):
+            new_span = hi - lo
+            jump = new_span > 2 * span or new_span < 0.25 * span or lo < old_lo - span or hi > old_hi + span
+            due = now - self._levels_t >= self._levels_interval_s
+            moved = abs(lo - old_lo) > 0.1 * span or abs(hi - old_hi) > 0.1 * span
+            if self._shape != full_shape or not self._levels_set or jump or (due and moved):
                 self._apply_levels((lo, hi))
-            self._levels_t = now
+                self._levels_t = now
         self.image.setImage(data, autoLevels=False, levels=self._levels)
         rect = self._rect_for(full_shape, x, y)
         if rect != self._rect:

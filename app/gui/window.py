@@ -33,7 +33,8 @@ __all__ = ["MainWindow"]
 log = logging.getLogger(__name__)
 
 DISPLAY_PERIOD_MS = 16  # first tick
-DISPLAY_MAX_HZ = 60.0  # views refresh at most this often
+DISPLAY_MAX_HZ = 60.0  # the raw camera view refreshes at most this often
+MAPS_MAX_HZ = 30.0  # processed maps (height, slopes, ...) at most this often: leaves time for the raw view
 
 
 class _Bridge(QtCore.QObject):
@@ -714,9 +715,9 @@ class MainWindow(QtWidgets.QMainWindow):
         # so drawing and painting time does not stretch the period; a late tick never piles up
         period = 1.0 / DISPLAY_MAX_HZ
         due = getattr(self, "_next_due", now) + period
-        if due < now:
-            due = now + period
-        self._next_due = due
+        if due < now - period:  # more than a period late (a long paint): restart the cadence from now
+            due = now
+        self._next_due = due  # ticks stay >= one period apart on average: never above 60 Hz
         try:
             self._draw()
         except Exception:  # noqa: BLE001 - a drawing bug must not stop the display
@@ -739,7 +740,9 @@ class MainWindow(QtWidgets.QMainWindow):
                 self.latency_ms = (time.monotonic_ns() - host_ns) / 1e6 if host_ns else float("nan")
                 drew = True
         p = self.session.worker.latest()
-        if p is not None and p.seq != self._last_result_seq and tab in (0, 1):
+        maps_due = time.monotonic() - getattr(self, "_maps_t", 0.0) >= 1.0 / MAPS_MAX_HZ
+        if p is not None and p.seq != self._last_result_seq and tab in (0, 1) and maps_due:
+            self._maps_t = time.monotonic()
             self._last_result_seq = p.seq
             if tab == 0:
                 self._draw_result(p)
