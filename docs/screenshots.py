@@ -149,7 +149,14 @@ def child(size: int) -> int:
     w.tabs.setCurrentIndex(0)
     w.side.setCurrentIndex(1)
     spin_until(lambda: w.last_drawn is not None and w.height_view.updates > 10, 60)
+    # freeze on a frame late in the scene's loop, when the disc's dimple is deep
+    frames = getattr(scene_camera, "_frames", None)
+    if frames is not None:
+        target = frames[int(0.8 * (len(frames) - 1))]
+        spin_until(lambda: w.last_drawn is not None and np.array_equal(w.last_drawn.image, target), 60)
+        w.pause_box.setChecked(True)
     shot("height")
+    w.pause_box.setChecked(False)
     print("DONE", flush=True)
     w.close()
     app.processEvents()

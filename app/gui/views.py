@@ -58,12 +58,16 @@ def robust_levels(data: np.ndarray, *, symmetric: bool = False, lo_pct: float = 
 
 
 def _cache_axes(plot_item) -> None:
-    """Paint a plot's axes and title from pixmap caches (redrawn only when they change)."""
+    """Paint a plot's axes and title from pixmap caches (redrawn only when they change); dark text."""
     cache = QtWidgets.QGraphicsItem.CacheMode.DeviceCoordinateCache
     for side in ("left", "bottom", "top", "right"):
         axis = plot_item.getAxis(side)
         if axis is not None:
             axis.setCacheMode(cache)
+            axis.setTextPen("#222")
+            axis.setPen("#444")
+            if axis.labelText:
+                axis.setLabel(axis.labelText, units=axis.labelUnits or None, color="#222")
     plot_item.titleLabel.setCacheMode(cache)
 
 
@@ -138,13 +142,14 @@ class ImageView(QtWidgets.QWidget):
         self.stride = 1
         self.plot.addItem(self.image)
         cmap_obj = cmap if isinstance(cmap, pg.ColorMap) else pg.colormap.get(cmap)
-        self.colorbar = pg.ColorBarItem(values=(0, 1), colorMap=cmap_obj, label=units,
+        self.colorbar = pg.ColorBarItem(values=(0, 1), colorMap=cmap_obj, label=None,
                                         interactive=True, width=14)
         self.colorbar.setImageItem(self.image, insert_in=self.plot)
         cb_axis = getattr(self.colorbar, "axis", None)
         if cb_axis is not None:
             cb_axis.setTextPen("#222")
             cb_axis.setLabel(units, color="#222")
+            cb_axis.enableAutoSIPrefix(False)  # units are in the label already
         self.colorbar.sigLevelsChangeFinished.connect(self._user_levels)
         self._setting_levels = False
         act = self.plot.getViewBox().menu.addAction("Auto levels")
@@ -293,6 +298,7 @@ class ProfileView(QtWidgets.QWidget):
         self.plot.enableAutoRange(False)  # ranges set explicitly: axes are not redrawn every frame
         _cache_axes(self.plot.getPlotItem())
         self._range = None
+        self._range_t = 0.0
         layout.addWidget(self.plot)
 
     def set_profile(self, distance_mm: np.ndarray, values: np.ndarray,
@@ -301,12 +307,22 @@ class ProfileView(QtWidgets.QWidget):
         d = np.asarray(distance_mm, float)
         v = np.asarray(values, float)
         self.curve.setData(d, v, connect="finite")
-        if y_range is None:
-            y_range = robust_levels(v[np.isfinite(v)], lo_pct=0.0, hi_pct=100.0) if np.isfinite(v).any() else (0, 1)
-        rng = (0.0, float(d[-1]) if d.size else 1.0, float(y_range[0]), float(y_range[1]))
-        if rng != self._range:
-            self.plot.setRange(xRange=rng[:2], yRange=rng[2:], padding=0.02)
+        finite = v[np.isfinite(v)]
+        lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
+        if y_range is not None:  # at least the map's colour levels, and everything on the line
+            lo, hi = min(lo, float(y_range[0])), max(hi, float(y_range[1]))
+        if not hi > lo:
+            hi = lo + 1.0
+        now = time.monotonic()
+        x1 = float(d[-1]) if d.size else 1.0
+        old = self._range
+        # expand at once when the curve leaves the plot; shrink or move at most once a second
+        grow = old is None or lo < old[2] or hi > old[3] or x1 != old[1]
+        if grow or (now - self._range_t > 1.0 and (lo, hi) != old[2:]):
+            rng = (0.0, x1, lo, hi)
+            self.plot.setRange(xRange=rng[:2], yRange=rng[2:], padding=0.05)
             self._range = rng
+            self._range_t = now
 
 
 class HistogramView(QtWidgets.QWidget):

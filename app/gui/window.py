@@ -37,6 +37,12 @@ DISPLAY_MAX_HZ = 60.0  # the raw camera view refreshes at most this often
 MAPS_MAX_HZ = 30.0  # processed maps (height, slopes, ...) at most this often: leaves time for the raw view
 
 
+def _nz(value, digits: int = 2) -> float:
+    """Round for display without showing "-0.00"."""
+    v = round(float(value), digits)
+    return 0.0 if v == 0 else v
+
+
 class _Bridge(QtCore.QObject):
     """Carries results of background threads into the GUI thread (queued signal)."""
 
@@ -243,6 +249,10 @@ class MainWindow(QtWidgets.QMainWindow):
 
         # status bar
         sb = self.statusBar()
+        self.pause_box = QtWidgets.QCheckBox("Pause display")
+        self.pause_box.setToolTip("Freeze the views to look at a frame; acquisition, processing and "
+                                  "recording go on")
+        sb.addPermanentWidget(self.pause_box)
         self.status_labels = {}
         for key in ("camera", "fps", "drops", "ring", "latency", "state"):
             lab = QtWidgets.QLabel("")
@@ -719,7 +729,8 @@ class MainWindow(QtWidgets.QMainWindow):
             due = now
         self._next_due = due  # ticks stay >= one period apart on average: never above 60 Hz
         try:
-            self._draw()
+            if not self.pause_box.isChecked():
+                self._draw()
         except Exception:  # noqa: BLE001 - a drawing bug must not stop the display
             log.exception("display refresh failed")
         finally:
@@ -884,7 +895,7 @@ class MainWindow(QtWidgets.QMainWindow):
                 reasons.append("pattern period below 4 px: use a coarser pattern or zoom in")
         rot = num("rotation_deg", "rotation")
         if rot is not None:
-            lines.append(("pattern rotation", f"{float(rot):.2f}°"))
+            lines.append(("pattern rotation", f"{_nz(rot):.2f}°"))
         th_est = num("theta_estimate_deg", "theta_est_deg", "theta_deg_estimate")
         th_cfg = num("theta_configured_deg", "theta_deg")
         if th_cfg is None and self.geometry is not None:
@@ -893,7 +904,7 @@ class MainWindow(QtWidgets.QMainWindow):
             th_text = f"{float(th_est):.2f}° from the pattern"
             if th_cfg is not None:
                 diff = float(th_est) - float(th_cfg)
-                th_text += f" vs {float(th_cfg):.2f}° configured (Δ {diff:+.2f}°)"
+                th_text += f" vs {float(th_cfg):.2f}° configured (Δ {_nz(diff):+.2f}°)"
                 if abs(diff) > 1.0:
                     reasons.append(f"θ from the pattern differs by {diff:+.1f}° from the geometry")
             lines.append(("θ", th_text))
