@@ -381,7 +381,8 @@ def _run_auto(args, acq, cap, geometry_toml, reference, AutoTrigger, t0):
                 raise TriggerError("no frame for the auto-trigger's reference")
         reference = first.image
     recon = Reconstructor(reference, geometry)
-    auto = AutoTrigger(args.threshold, args.region, dead_time_s=0.0, rearm=False, callback=cap.auto_callback())
+    auto = AutoTrigger(args.threshold, args.region, dead_time_s=0.0, rearm=False, callback=cap.auto_callback(),
+                       ready=cap.ready_for)
     while cap.trigger_sequence is None:
         if time.monotonic() - t0 > args.trigger_timeout_s:
             cap.cancel()

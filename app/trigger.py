@@ -118,14 +118,20 @@ class AutoTrigger:
         until :meth:`rearm` (one shot).
     callback : callable, optional
         ``callback(sequence, rms)`` when it fires (from the feeding thread).
+    ready : callable, optional
+        ``ready(sequence) -> bool``: whether a trigger on that frame can be
+        taken now (e.g. :meth:`TriggeredCapture.ready_for`: its pre-trigger
+        frames are in the ring). A crossing on a frame that is not ready is
+        ignored and counted in ``not_ready``; the trigger stays armed.
 
-    Publishes ``armed``, ``last_rms``, ``fired`` (count), ``last_fired_sequence``.
+    Publishes ``armed``, ``last_rms``, ``fired`` (count), ``last_fired_sequence``, ``not_ready``.
     NaN slopes (masked pixels) are ignored; a region with no valid slope never fires.
     """
 
     def __init__(self, threshold: float, region: Optional[Tuple[int, int, int, int]] = None, *,
                  dead_time_s: float = 1.0, rearm: bool = False,
-                 callback: Optional[Callable[[int, float], None]] = None):
+                 callback: Optional[Callable[[int, float], None]] = None,
+                 ready: Optional[Callable[[int], bool]] = None):
         if not threshold > 0:
             raise ValueError(f"auto-trigger threshold must be a positive RMS slope; got {threshold!r}")
         if dead_time_s < 0:
@@ -139,6 +145,8 @@ class AutoTrigger:
         self.dead_time_s = float(dead_time_s)
         self.auto_rearm = bool(rearm)
         self.callback = callback
+        self.ready = ready
+        self.not_ready = 0
         self.armed = True
         self.last_rms = float("nan")
         self.fired = 0
@@ -177,6 +185,9 @@ class AutoTrigger:
             if self._last_fire_t is not None and t - self._last_fire_t < self.dead_time_s:
                 return False
             if not (value > self.threshold):
+                return False
+            if self.ready is not None and not self.ready(int(sequence)):
+                self.not_ready += 1
                 return False
             self.armed = False
             self._last_fire_t = t
@@ -322,6 +333,16 @@ class TriggeredCapture:
                 self.state = "error"
                 raise
             return seq
+
+    def ready_for(self, sequence: int) -> bool:
+        """True when a trigger on ring frame ``sequence`` would get all ``pre_frames`` before it.
+
+        An auto-trigger passes this as its ``ready`` gate, so that a signal
+        already above threshold at arming cannot make a file with fewer
+        pre-trigger frames than asked for.
+        """
+        ring = self.acquisition.ring
+        return int(sequence) - self.pre_frames >= max(ring.oldest, 0)
 
     def auto_callback(self) -> Callable[[int, float], None]:
         """A callback for :class:`AutoTrigger` that triggers this capture on the frame that crossed."""

@@ -293,7 +293,8 @@ class LiveSession:
         self.capture = capture
         self.recording = status
         if auto_threshold:
-            auto = AutoTrigger(float(auto_threshold), dead_time_s=0.0, callback=capture.auto_callback())
+            auto = AutoTrigger(float(auto_threshold), dead_time_s=0.0, callback=capture.auto_callback(),
+                               ready=capture.ready_for)
             base = self._seq_base
 
             def feed(p, auto=auto, acq=acq, base=base):

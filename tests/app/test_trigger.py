@@ -177,3 +177,22 @@ def test_auto_trigger_drives_the_capture(tmp_path):
             assert cap.wait(10.0)
     t = _check_file(tmp_path / "a.h5", 20, 30, frames)
     assert t["sequence"][20] == 35
+
+
+def test_auto_trigger_waits_for_the_pre_trigger_frames(tmp_path):
+    """A signal already above threshold when arming must not make a short file:
+    crossings on frames without their pre-trigger history are ignored (and counted)."""
+    frames = _frames()
+    with SyntheticCamera(frames, frame_rate_hz=500) as cam:
+        acq = Acquisition(cam, ring_frames=128)
+        cap = TriggeredCapture(acq, tmp_path / "g.h5", pre_frames=20, post_frames=10, source="auto")
+        auto = AutoTrigger(1e-3, callback=cap.auto_callback(), ready=cap.ready_for)
+        wave = np.full((16, 16), 0.01)
+        with acq:
+            assert acq.ring.wait_for(40, 5.0)
+            assert not auto.feed(wave, wave, sequence=5)  # only 5 frames before it: not ready
+            assert auto.not_ready == 1 and auto.armed and cap.state == "armed"
+            assert auto.feed(wave, wave, sequence=30)
+            assert cap.wait(10.0)
+    t = _check_file(tmp_path / "g.h5", 20, 10, frames)
+    assert t["sequence"][20] == 30
