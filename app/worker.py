@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import threading
 import time
 import traceback
@@ -148,10 +149,17 @@ class ProcessingWorker:
     alignment_fn : callable, optional
         ``alignment_fn(frame) -> (alignment_dict, spectrum)`` used while alignment
         is on and no reconstructor is set (e.g. carriers from the live frame).
+    poll_timeout_s : float
+        Longest wait for a new frame before checking for stop (bounds :meth:`stop`).
+    nice : int
+        Linux nice increment of the worker thread (0: none). A positive value lets
+        the camera, recorder and display threads win the CPU; the worker then
+        skips more frames.
     """
 
     def __init__(self, source: FrameSource, reconstructor=None, *, grid: str = "decimated",
-                 bit_depth: Optional[int] = None, alignment_fn=None, poll_timeout_s: float = 0.05):
+                 bit_depth: Optional[int] = None, alignment_fn=None, poll_timeout_s: float = 0.05,
+                 nice: int = 0):
         if grid not in ("decimated", "full"):
             raise ValueError(f"grid must be 'decimated' or 'full'; got {grid!r}")
         self._source = source
@@ -164,6 +172,7 @@ class ProcessingWorker:
         self._alignment_interval_s = 0.25
         self._last_alignment_t = 0.0
         self._poll_timeout_s = float(poll_timeout_s)
+        self._nice = int(nice)
         self._latest: Optional[Processed] = None
         self._listeners: List[Callable[[Processed], None]] = []
         self._stop = threading.Event()
@@ -269,6 +278,13 @@ class ProcessingWorker:
 
     # -- thread --------------------------------------------------------------
     def _run(self) -> None:
+        if self._nice:
+            # newest-only consumer: under CPU pressure it should yield to the camera, recorder and
+            # display threads (it just skips more frames); Linux lets a thread have its own nice value
+            try:
+                os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), self._nice)
+            except (AttributeError, OSError):
+                pass
         count_start = time.monotonic()
         count = 0
         while not self._stop.is_set():

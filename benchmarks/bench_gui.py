@@ -75,7 +75,7 @@ def baseline_imageview(app, frames, seconds):
     return fps
 
 
-def measure_window(app, size, rate_hz, seconds, n_frames):
+def measure_window(app, size, rate_hz, seconds, n_frames, nice=0):
     import numpy as np
 
     from app.gui.window import MainWindow
@@ -85,7 +85,7 @@ def measure_window(app, size, rate_hz, seconds, n_frames):
     t = time.monotonic()
     sim, geometry = build_scene((size, size), n_frames, frame_rate_hz=rate_hz)
     build_s = time.monotonic() - t
-    w = MainWindow(open_at_start=False)
+    w = MainWindow(open_at_start=False, session_options={"worker_nice": nice})
     w.resize(1600, 1000)
     w.show()
     tmp = tempfile.mkdtemp(prefix="bench-gui-")
@@ -150,6 +150,7 @@ def main(argv=None) -> int:
     p.add_argument("--seconds", type=float, default=4.0, help="measurement time per size (s)")
     p.add_argument("--rate", type=float, default=100.0, help="synthetic camera frame rate (Hz)")
     p.add_argument("--frames", type=int, default=4, help="ray-traced frames the camera loops over")
+    p.add_argument("--nice", type=int, default=0, help="nice increment of the processing worker thread")
     p.add_argument("--xvfb", action="store_true", help="run on a private Xvfb display (xcb) instead of offscreen")
     args = p.parse_args(argv)
     if args.xvfb and os.environ.get("_BENCH_GUI_CHILD") is None:
@@ -178,7 +179,7 @@ def main(argv=None) -> int:
         rng = np.random.default_rng(0)
         frames = [rng.integers(0, 256, (size, size), dtype=np.uint8) for _ in range(4)]
         base = baseline_imageview(app, frames, min(args.seconds, 3.0))
-        r = measure_window(app, size, args.rate, args.seconds, args.frames)
+        r = measure_window(app, size, args.rate, args.seconds, args.frames, args.nice)
         r["baseline_fps"] = base
         rows.append(r)
     print()

@@ -52,7 +52,7 @@ class LiveSession:
     """
 
     def __init__(self, *, synthetic_options: Optional[dict] = None, ring_bytes: int = 512 * 2**20,
-                 stall_timeout_s: float = 3.0):
+                 stall_timeout_s: float = 3.0, worker_nice: int = 0):
         self.synthetic_options = dict(synthetic_options or {})
         self.ring_bytes = int(ring_bytes)
         self.stall_timeout_s = float(stall_timeout_s)
@@ -65,7 +65,7 @@ class LiveSession:
         self._latest_out = None
         self._source_acq = None
         self._seq_base = 0
-        self.worker = ProcessingWorker(self._newest_frame, grid="decimated")
+        self.worker = ProcessingWorker(self._newest_frame, grid="decimated", nice=worker_nice)
         self.worker.start()
         self.capture = None  # app.trigger capture (pre/post) while armed
         self.recording: Optional[dict] = None

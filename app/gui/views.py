@@ -15,11 +15,11 @@ from typing import Optional, Sequence, Tuple
 
 import numpy as np
 import pyqtgraph as pg
-from pyqtgraph.Qt import QtCore, QtGui, QtWidgets
+from pyqtgraph.Qt import QtCore, QtWidgets
 
 __all__ = ["ImageView", "ProfileView", "HistogramView", "SpectrumView", "robust_levels"]
 
-pg.setConfigOptions(imageAxisOrder="row-major", antialias=False)
+# every ImageItem here is created with axisOrder="row-major"; no global pyqtgraph options are changed
 
 
 def robust_levels(data: np.ndarray, *, symmetric: bool = False, lo_pct: float = 1.0,

@@ -21,9 +21,9 @@ from typing import Callable, Optional
 
 import numpy as np
 import pyqtgraph as pg
-from pyqtgraph.Qt import QtCore, QtGui, QtWidgets
+from pyqtgraph.Qt import QtCore, QtWidgets
 
-from .panels import CameraPanel, GeometryPanel, RecordingPanel, human_bytes
+from .panels import CameraPanel, GeometryPanel, RecordingPanel
 from .replay import Recording, ReplayTab
 from .session import LiveSession
 from .views import HistogramView, ImageView, ProfileView, SpectrumView
@@ -35,6 +35,37 @@ log = logging.getLogger(__name__)
 DISPLAY_PERIOD_MS = 16  # first tick
 DISPLAY_MAX_HZ = 60.0  # the raw camera view refreshes at most this often
 MAPS_MAX_HZ = 30.0  # processed maps (height, slopes, ...) at most this often: leaves time for the raw view
+
+
+def line_profile(data: np.ndarray, x: np.ndarray, y: np.ndarray, p0, p1):
+    """Values of ``data`` along the segment ``p0 -> p1`` (both ``(x_mm, y_mm)``), bilinear.
+
+    Parameters
+    ----------
+    data : ndarray, shape (rows, cols)
+        Map sampled at column coordinates ``x`` (cols,) and row coordinates ``y`` (rows,), mm, uniform.
+    p0, p1 : (float, float)
+        Segment ends in mm.
+
+    Returns
+    -------
+    distance_mm, values : ndarray
+        Distance from ``p0`` along the segment (mm) and the sampled values (NaN outside the map
+        or where the map is NaN). About two samples per grid step.
+    """
+    from scipy.ndimage import map_coordinates
+
+    dx = (x[-1] - x[0]) / (len(x) - 1) if len(x) > 1 else 1.0
+    dy = (y[-1] - y[0]) / (len(y) - 1) if len(y) > 1 else 1.0
+    c0, r0 = (p0[0] - x[0]) / dx, (p0[1] - y[0]) / dy
+    c1, r1 = (p1[0] - x[0]) / dx, (p1[1] - y[0]) / dy
+    n = int(max(2, 2 * np.ceil(np.hypot(c1 - c0, r1 - r0)) + 1))
+    t = np.linspace(0.0, 1.0, n)
+    rows, cols = r0 + t * (r1 - r0), c0 + t * (c1 - c0)
+    values = map_coordinates(np.asarray(data, np.float64), [rows, cols], order=1, mode="constant", cval=np.nan)
+    values[(rows < -0.5) | (rows > data.shape[0] - 0.5) | (cols < -0.5) | (cols > data.shape[1] - 0.5)] = np.nan
+    length = float(np.hypot(p1[0] - p0[0], p1[1] - p0[1]))
+    return t * length, values
 
 
 def _nz(value, digits: int = 2) -> float:
@@ -59,19 +90,21 @@ class MainWindow(QtWidgets.QMainWindow):
         first camera found, the synthetic scene when none is.
     synthetic_options : dict, optional
         Keyword arguments for :func:`app.scene.open_synthetic_camera` (shape, frame rate...).
-    open_camera : bool
+    open_at_start : bool
         Open the camera at start (tests may first set options).
+    session_options : dict, optional
+        Keyword arguments for :class:`app.gui.session.LiveSession` (ring_bytes, stall_timeout_s, worker_nice).
     """
 
     def __init__(self, camera_id: Optional[str] = None, *, synthetic_options: Optional[dict] = None,
-                 open_at_start: bool = True, parent=None):
+                 open_at_start: bool = True, session_options: Optional[dict] = None, parent=None):
         super().__init__(parent)
         self.setWindowTitle("tirdeflect — live TIR deflectometry")
         self.resize(1500, 950)
         self._executor = concurrent.futures.ThreadPoolExecutor(max_workers=2, thread_name_prefix="gui-bg")
         self._bridge = _Bridge()
         self._bridge.done.connect(self._background_done)
-        self.session = LiveSession(synthetic_options=synthetic_options)
+        self.session = LiveSession(synthetic_options=synthetic_options, **(session_options or {}))
         self.geometry = None
         self.reference = None
         self._last_raw_seq = -1
@@ -752,11 +785,18 @@ class MainWindow(QtWidgets.QMainWindow):
                 drew = True
         p = self.session.worker.latest()
         maps_due = time.monotonic() - getattr(self, "_maps_t", 0.0) >= 1.0 / MAPS_MAX_HZ
-        if p is not None and p.seq != self._last_result_seq and tab in (0, 1) and maps_due:
+        second_half, self._second_half = getattr(self, "_second_half", None), None
+        if second_half is not None and tab == 0:
+            # the other half of the maps of the result drawn on the previous tick: spreading the
+            # work over two ticks keeps every tick short, so the raw view keeps its cadence
+            self._draw_result(second_half, part=1)
+            drew = True
+        elif p is not None and p.seq != self._last_result_seq and tab in (0, 1) and maps_due:
             self._maps_t = time.monotonic()
             self._last_result_seq = p.seq
             if tab == 0:
-                self._draw_result(p)
+                self._draw_result(p, part=0)
+                self._second_half = p
             else:
                 self._draw_alignment(p)
             self.result_latency_ms = (time.monotonic_ns() - p.host_timestamp_ns) / 1e6 if p.host_timestamp_ns \
@@ -794,27 +834,31 @@ class MainWindow(QtWidgets.QMainWindow):
             if self._hist_count % 6 == 0:  # ~10 Hz is plenty for a histogram
                 self.histogram.set_image(image, bits, sat)
 
-    def _draw_result(self, p):
+    def _draw_result(self, p, part: int = -1):
+        """Draw the maps of ``p``: part 0 height, profile, mask; part 1 displacement and slopes; -1 all."""
         r = p.result
         views = (self.height_view, self.disp_view, self.slope_x_view, self.slope_y_view, self.valid_view)
         if r is None:
-            text = p.error or ("no reference yet: capture one (Controls ▸ Reference & geometry)"
-                               if self.session.worker.reconstructor is None else "")
-            for v in views:
-                v.show_message(text)
+            if part in (0, -1):
+                text = p.error or ("no reference yet: capture one (Controls ▸ Reference & geometry)"
+                                   if self.session.worker.reconstructor is None else "")
+                for v in views:
+                    v.show_message(text)
             return
-        for v in views:
-            v.show_message("")
-        self.last_drawn = p
         x, y = r.x_mm, r.y_mm
-        height_um = np.multiply(r.height, 1e3, dtype=np.float32)
-        self.height_view.set_data(height_um, x=x, y=y, stamp_ns=p.host_timestamp_ns)
-        u = r.displacement
-        self.disp_view.set_data(np.hypot(u[0], u[1]).astype(np.float32), x=x, y=y)
-        self.slope_x_view.set_data(np.multiply(r.slope_x, 1e3, dtype=np.float32), x=x, y=y)
-        self.slope_y_view.set_data(np.multiply(r.slope_y, 1e3, dtype=np.float32), x=x, y=y)
-        self.valid_view.set_data(r.valid.astype(np.float32), x=x, y=y, levels=(0.0, 1.0))
-        self._draw_profile(height_um, x, y)
+        if part in (0, -1):
+            for v in views:
+                v.show_message("")
+            self.last_drawn = p
+            height_um = np.multiply(r.height, 1e3, dtype=np.float32)
+            self.height_view.set_data(height_um, x=x, y=y, stamp_ns=p.host_timestamp_ns)
+            self.valid_view.set_data(r.valid.astype(np.float32), x=x, y=y, levels=(0.0, 1.0))
+            self._draw_profile(height_um, x, y)
+        if part in (1, -1):
+            u = r.displacement
+            self.disp_view.set_data(np.hypot(u[0], u[1]).astype(np.float32), x=x, y=y)
+            self.slope_x_view.set_data(np.multiply(r.slope_x, 1e3, dtype=np.float32), x=x, y=y)
+            self.slope_y_view.set_data(np.multiply(r.slope_y, 1e3, dtype=np.float32), x=x, y=y)
 
     def _draw_profile(self, height_um, x, y):
         if not self._profile_placed and len(x) > 1 and len(y) > 1:
@@ -824,14 +868,10 @@ class MainWindow(QtWidgets.QMainWindow):
             h0.setPos(float(x[0]), ym)
             h1.setPos(float(x[-1]), ym)
             self._profile_placed = True
-        values = self.profile_roi.getArrayRegion(height_um, self.height_view.image, axes=(0, 1), order=1)
-        if values is None or np.size(values) == 0:
-            return
-        values = np.asarray(values, float).ravel()
         pts = [self.profile_roi.mapToParent(h.pos()) for h in self.profile_roi.getHandles()[:2]]
-        length = float(np.hypot(pts[1].x() - pts[0].x(), pts[1].y() - pts[0].y()))
-        self.profile_view.set_profile(np.linspace(0.0, length, values.size), values,
-                                      y_range=self.height_view.levels)
+        distance_mm, values = line_profile(height_um, x, y, (pts[0].x(), pts[0].y()), (pts[1].x(), pts[1].y()))
+        self.profile_line_mm = ((pts[0].x(), pts[0].y()), (pts[1].x(), pts[1].y()))
+        self.profile_view.set_profile(distance_mm, values, y_range=self.height_view.levels)
 
     def _draw_alignment(self, p):
         a = p.alignment

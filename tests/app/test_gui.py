@@ -102,6 +102,17 @@ def test_live_height_shows_the_bump_where_it_is(qtbot, window, scene):
     assert dist < 0.5 * sigma_px, f"height peak at {peak_px}, bump at {(ti, tj)} px: {dist:.1f} px apart"
     # and its height is the bump's, 2 um, within 15 % (live decimated grid)
     assert shown_um[i, j] == pytest.approx(1e3 * truth.max(), rel=0.15)
+    # the profile along a line dragged through the bump shows it, at the right distance
+    xp, yp = float(r.x_mm[j]), float(r.y_mm[i])
+    h0, h1 = window.profile_roi.getHandles()[:2]
+    h0.setPos(float(r.x_mm[0]), yp)
+    h1.setPos(float(r.x_mm[-1]), yp)
+    seq = window._last_result_seq
+    qtbot.waitUntil(lambda: window._last_result_seq != seq, timeout=5000)  # redrawn with the new line
+    dist, prof = window.profile_view.curve.getData()
+    k = int(np.nanargmax(prof))
+    assert prof[k] == pytest.approx(1e3 * truth.max(), rel=0.15)
+    assert abs(dist[k] - (xp - float(r.x_mm[0]))) < 0.5 * BUMP_SIGMA_MM
     # colour bar in physical units, levels follow the data
     assert "µm" in window.height_view.units
     lo, hi = window.height_view.levels
