@@ -44,6 +44,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     from .window import MainWindow
 
     app = pg.mkQApp("tirdeflect")
+    from app import cache
+
+    try:  # FFTW plans measured in earlier sessions (a corrupt file is ignored with a warning)
+        cache.restore_fftw_wisdom()
+    except Exception as exc:  # noqa: BLE001 - never fatal
+        logging.getLogger(__name__).warning("FFTW wisdom not restored: %s", exc)
     window = MainWindow(args.camera, synthetic_options={"shape": (args.size, args.size), "n_frames": args.frames,
                                                         "frame_rate_hz": args.rate})
     if args.geometry:
@@ -57,6 +63,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         return int(app.exec())
     finally:
         window.shutdown()
+        try:
+            cache.store_fftw_wisdom()
+        except Exception as exc:  # noqa: BLE001 - never fatal
+            logging.getLogger(__name__).warning("FFTW wisdom not stored: %s", exc)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -120,6 +120,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.replay_recording: Optional[Recording] = None
         self._replay_reconstructor = None
         self._busy = set()
+        self.replay_shown_index: Optional[int] = None  # frame whose height map the Replay tab shows
         self.last_drawn = None  # the Processed whose maps are on screen
 
         self._build_ui()
@@ -692,17 +693,36 @@ class MainWindow(QtWidgets.QMainWindow):
         rel = rec.trigger_index(int(index))
         self.replay.index_label.setText(f"frame {index + 1}/{rec.n_frames}"
                                         + (f"  (trigger {rel:+d})" if rel is not None else ""))
+        self._replay_wanted = (frame, int(index))
+        self._process_replay_frame()
+
+    def _process_replay_frame(self):
+        """Reconstruct the wanted replay frame in the background (newest request only; never in the GUI thread)."""
         r = self._replay_reconstructor
-        if r is None:
-            return
-        try:
-            result = r(frame, grid="decimated")
-        except Exception as exc:  # noqa: BLE001
-            self.replay.height.show_message(str(exc))
-            return
-        self.replay.height.show_message("")
-        self.replay.height.set_data(1e3 * result.height, x=result.x_mm, y=result.y_mm)
-        self.replay_last_result = result
+        wanted = getattr(self, "_replay_wanted", None)
+        if r is None or wanted is None or self.busy("replay-frame"):
+            return  # a running job picks up the newest wanted frame when it ends
+        self._replay_wanted = None
+        frame, index = wanted
+        rec = self.replay_recording
+
+        def job():
+            r.reset_series()  # frames may be visited in any order: no temporal unwrapping across them
+            return r(frame, grid="decimated")
+
+        def done(result, error):
+            if self.replay_recording is not rec:
+                return
+            if error:
+                self.replay.height.show_message(error)
+            else:
+                self.replay.height.show_message("")
+                self.replay.height.set_data(np.multiply(result.height, 1e3, dtype=np.float32),
+                                            x=result.x_mm, y=result.y_mm)
+                self.replay_last_result = result
+                self.replay_shown_index = index
+            self._process_replay_frame()
+        self.run_background("replay-frame", job, done)
 
     def _choose_export(self):
         rec = self.replay_recording

@@ -154,6 +154,7 @@ def test_record_pre_post_trigger_then_replay_and_export(qtbot, window, scene, tm
     qtbot.waitUntil(lambda: window._replay_reconstructor is not None, timeout=15000)
     window.replay.slider.setValue(n - 1)
     assert "trigger +19" in window.replay.index_label.text()
+    qtbot.waitUntil(lambda: window.replay_shown_index == n - 1, timeout=10000)
     hmax_um = np.nanmax(window.replay.height.image.image)
     assert hmax_um == pytest.approx(1e3 * scene["truth_mm"].max(), rel=0.15)
 
@@ -279,3 +280,22 @@ def test_auto_trigger_fires_on_the_bump(qtbot, window, scene, tmp_path):
     k0 = int(np.flatnonzero(idx == 0)[0])
     assert np.array_equal(frames_rec[k0], scene["bump"])  # the trigger frame shows the bump
     assert np.array_equal(frames_rec[0], scene["flat"])  # the pre-trigger frames show still water
+
+
+def test_bad_reference_is_explained_and_the_live_view_goes_on(qtbot, window, scene, tmp_path):
+    """A reference without a pattern (noise) is refused with NoCarrierError's advice; streaming continues."""
+    import tifffile
+
+    window.use_camera(SyntheticCamera(Switchable(scene["flat"]), frame_rate_hz=100.0), geometry=scene["geometry"])
+    noise = np.random.default_rng(3).integers(0, 256, SHAPE, dtype=np.uint8)
+    path = tmp_path / "noise.tif"
+    tifffile.imwrite(path, noise)
+    window.load_reference(str(path))
+    qtbot.waitUntil(lambda: any(e.startswith("Bad reference") for e in window.errors), timeout=10000)
+    err = next(e for e in window.errors if e.startswith("Bad reference"))
+    assert "carrier" in err and ("focus" in err or "pattern" in err)  # says what is wrong and what to check
+    assert window.session.worker.reconstructor is None
+    assert "NOT usable" in window.geometry_panel.reference_label.text()
+    seq = window._last_raw_seq
+    qtbot.waitUntil(lambda: window._last_raw_seq != seq, timeout=3000)  # the raw view still updates
+    qtbot.waitUntil(lambda: "no reference" in window.height_view.message.toPlainText(), timeout=3000)
