@@ -94,10 +94,14 @@ class MainWindow(QtWidgets.QMainWindow):
         Open the camera at start (tests may first set options).
     session_options : dict, optional
         Keyword arguments for :class:`app.gui.session.LiveSession` (ring_bytes, stall_timeout_s, worker_nice).
+    planner_effort : str
+        FFTW planner effort of the reconstructors (plans are built in the background and the
+        wisdom is kept on disk by ``app.cache``; tests use "FFTW_ESTIMATE").
     """
 
     def __init__(self, camera_id: Optional[str] = None, *, synthetic_options: Optional[dict] = None,
-                 open_at_start: bool = True, session_options: Optional[dict] = None, parent=None):
+                 open_at_start: bool = True, session_options: Optional[dict] = None,
+                 planner_effort: str = "FFTW_MEASURE", parent=None):
         super().__init__(parent)
         self.setWindowTitle("tirdeflect — live TIR deflectometry")
         self.resize(1500, 950)
@@ -105,6 +109,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self._bridge = _Bridge()
         self._bridge.done.connect(self._background_done)
         self.session = LiveSession(synthetic_options=synthetic_options, **(session_options or {}))
+        self.planner_effort = planner_effort
         self.geometry = None
         self.reference = None
         self._last_raw_seq = -1
@@ -435,7 +440,7 @@ class MainWindow(QtWidgets.QMainWindow):
 
         def build():
             from processing import Reconstructor
-            return Reconstructor(reference, geometry)
+            return Reconstructor(reference, geometry, planner_effort=self.planner_effort)
 
         def done(rec, error):
             if error:
@@ -668,7 +673,7 @@ class MainWindow(QtWidgets.QMainWindow):
         if reference is not None and geometry is not None:
             def build():
                 from processing import Reconstructor
-                return Reconstructor(reference, geometry)
+                return Reconstructor(reference, geometry, planner_effort=self.planner_effort)
 
             def done(r, error):
                 if error:

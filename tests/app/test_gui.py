@@ -57,7 +57,7 @@ class Switchable:
 def window(qtbot):
     from app.gui.window import MainWindow
 
-    w = MainWindow(open_at_start=False)
+    w = MainWindow(open_at_start=False, planner_effort="FFTW_ESTIMATE")
     qtbot.addWidget(w)
     w.show()
     yield w
