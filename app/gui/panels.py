@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Optional
 
-from pyqtgraph.Qt import QtCore, QtWidgets
+from pyqtgraph.Qt import QtCore, QtGui, QtWidgets
 
 __all__ = ["CameraPanel", "GeometryPanel", "RecordingPanel", "human_bytes"]
 
@@ -398,6 +398,9 @@ class RecordingPanel(QtWidgets.QWidget):
         self.result_label = QtWidgets.QLabel("")
         self.result_label.setWordWrap(True)
         self.result_label.setTextInteractionFlags(QtCore.Qt.TextSelectableByMouse)
+        mono = QtGui.QFontDatabase.systemFont(QtGui.QFontDatabase.FixedFont)
+        mono.setPointSizeF(max(7.0, mono.pointSizeF() - 1))
+        self.result_label.setFont(mono)  # the drop summary is a column layout
         form.addRow(self.result_label)
         self.arm_button.clicked.connect(self.arm_requested.emit)
         self.disarm_button.clicked.connect(self.disarm_requested.emit)

@@ -168,7 +168,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.slope_y_view = ImageView("Slope ∂h/∂y", "slope (mrad)", cmap="CET-D1", symmetric=True)
         mask_cmap = pg.ColorMap([0.0, 1.0], [(190, 30, 30), (215, 240, 215)])  # masked red, valid pale green
         self.valid_view = ImageView("Valid mask", "valid (1) / masked (0)", cmap=mask_cmap)
-        self.profile_view = ProfileView("Height profile along the line", "height (µm)")
+        self.profile_view = ProfileView("Profile along the line", "height (µm)")
         self.histogram = HistogramView()
         raw_box = QtWidgets.QWidget()
         rb = QtWidgets.QVBoxLayout(raw_box)
@@ -262,7 +262,7 @@ class MainWindow(QtWidgets.QMainWindow):
         side.addItem(self._scroll(self.camera_panel), "Camera")
         side.addItem(self._scroll(self.geometry_panel), "Reference && geometry")
         side.addItem(self._scroll(self.recording_panel), "Trigger && recording")
-        side.setMinimumWidth(360)
+        side.setMinimumWidth(400)
         self.side = side
         dock = QtWidgets.QDockWidget("Controls")
         dock.setObjectName("controls")
