@@ -52,7 +52,8 @@ def parent(out_dir: Path, size: int, timeout_s: float) -> int:
                 return 2
             time.sleep(0.05)
         env = dict(os.environ, DISPLAY=f":{n}", QT_QPA_PLATFORM="xcb")
-        child = subprocess.Popen([sys.executable, str(Path(__file__).resolve()), "--child", "--size", str(size)],
+        child = subprocess.Popen([sys.executable, str(Path(__file__).resolve()), "--child", "--size", str(size),
+                                  "--out", str(out_dir)],
                                  cwd=ROOT, env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
         shots = 0
         end = time.monotonic() + timeout_s
@@ -75,6 +76,9 @@ def parent(out_dir: Path, size: int, timeout_s: float) -> int:
                 shots += 1
                 child.stdin.write("NEXT\n")
                 child.stdin.flush()
+            elif line.startswith("WROTE "):
+                print(f"wrote {line.split(' ', 1)[1]} (grabbed by the app from the X screen)")
+                shots += 1
             elif line == "DONE":
                 break
         rc = child.wait(timeout=30)
@@ -89,7 +93,7 @@ def parent(out_dir: Path, size: int, timeout_s: float) -> int:
             xvfb.kill()
 
 
-def child(size: int) -> int:
+def child(size: int, out_dir: str) -> int:
     sys.path.insert(0, str(ROOT))
     import numpy as np
     import pyqtgraph as pg
@@ -149,14 +153,34 @@ def child(size: int) -> int:
     w.tabs.setCurrentIndex(0)
     w.side.setCurrentIndex(1)
     spin_until(lambda: w.last_drawn is not None and w.height_view.updates > 10, 60)
-    # freeze on a frame late in the scene's loop, when the disc's dimple is deep
+    # a frame late in the scene's loop, when the disc's dimple is deep: the live view moves on
+    # within milliseconds, so grab the X screen from here the moment that frame is painted
     frames = getattr(scene_camera, "_frames", None)
     if frames is not None:
         target = frames[int(0.8 * (len(frames) - 1))]
+        t_end = time.monotonic() + 1.5
+        while time.monotonic() < t_end:  # let levels and status settle first
+            app.processEvents()
+            time.sleep(0.01)
         spin_until(lambda: w.last_drawn is not None and np.array_equal(w.last_drawn.image, target), 60)
-        w.pause_box.setChecked(True)
-    shot("height")
-    w.pause_box.setChecked(False)
+        # part 0 (height, profile, mask) is drawn; wait until part 1 (displacement, slopes) of the same
+        # result is drawn and every map has painted it
+        updates = w.slope_y_view.updates
+        spin_until(lambda: w.slope_y_view.updates > updates, 5)
+        views = (w.height_view, w.disp_view, w.slope_x_view, w.slope_y_view, w.valid_view)
+        painted = [v.graphics.painted for v in views]
+        spin_until(lambda: all(v.graphics.painted > n for v, n in zip(views, painted)), 5)
+        w.frozen = True  # hold this frame on screen while every pending paint reaches the X server
+        t_end = time.monotonic() + 0.3
+        while time.monotonic() < t_end:
+            app.processEvents()
+            time.sleep(0.01)
+        path = Path(out_dir) / "screenshot-height.png"
+        app.primaryScreen().grabWindow(0).save(str(path))
+        w.frozen = False
+        print(f"WROTE {path}", flush=True)
+    else:
+        shot("height")
     print("DONE", flush=True)
     w.close()
     app.processEvents()
@@ -171,7 +195,7 @@ def main(argv=None) -> int:
     p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.child:
-        return child(args.size)
+        return child(args.size, args.out)
     return parent(Path(args.out), args.size, args.timeout)
 
 

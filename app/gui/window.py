@@ -127,6 +127,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self._busy = set()
         self.replay_shown_index: Optional[int] = None  # frame whose height map the Replay tab shows
         self.last_drawn = None  # the Processed whose maps are on screen
+        self.frozen = False  # True: views keep what they show (scripts; the Pause box does the same)
 
         self._build_ui()
         self.session.worker.set_alignment_fn(self._frame_alignment)
@@ -787,7 +788,7 @@ class MainWindow(QtWidgets.QMainWindow):
             due = now
         self._next_due = due  # ticks stay >= one period apart on average: never above 60 Hz
         try:
-            if not self.pause_box.isChecked():
+            if not (self.pause_box.isChecked() or self.frozen):
                 self._draw()
         except Exception:  # noqa: BLE001 - a drawing bug must not stop the display
             log.exception("display refresh failed")
