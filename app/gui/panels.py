@@ -368,7 +368,7 @@ class RecordingPanel(QtWidgets.QWidget):
         form.addRow("Pre-trigger", self.pre)
         form.addRow("Post-trigger", self.post)
         self.cost_label = QtWidgets.QLabel("")
-        form.addRow("RAM", self.cost_label)
+        form.addRow("Cost", self.cost_label)
         row = QtWidgets.QHBoxLayout()
         self.folder = QtWidgets.QLineEdit()
         self.browse_button = QtWidgets.QPushButton("…")
@@ -410,12 +410,19 @@ class RecordingPanel(QtWidgets.QWidget):
         self.post.valueChanged.connect(lambda *_: self.lengths_changed.emit())
         self.set_state("idle")
 
-    def set_cost(self, frame_bytes: int, rate_hz: Optional[float]) -> None:
-        n = self.pre.value() + self.post.value()
-        text = f"{human_bytes(n * frame_bytes)} for {n} frames"
+    def set_cost(self, frame_bytes: int, rate_hz: Optional[float], ring_frames: Optional[int] = None) -> None:
+        """Show what the capture costs: pre-trigger frames held in RAM (the ring), the file on disk."""
+        pre, post = self.pre.value(), self.post.value()
+        text = f"pre-trigger {human_bytes(pre * frame_bytes)} in RAM"
+        if ring_frames:
+            text += f" (ring holds {ring_frames} frames, {human_bytes(ring_frames * frame_bytes)})"
+        text += f"; file {human_bytes((pre + post) * frame_bytes)}"
         if rate_hz:
-            text += f" ({self.pre.value() / rate_hz:.3g} s before, {self.post.value() / rate_hz:.3g} s after)"
+            text += f"; {pre / rate_hz:.3g} s before, {post / rate_hz:.3g} s after"
         self.cost_label.setText(text)
+        self.cost_label.setWordWrap(True)
+        too_many = ring_frames is not None and pre + 1 > ring_frames
+        self.cost_label.setStyleSheet("color: #c00000" if too_many else "")
 
     def set_state(self, state: str) -> None:
         colours = {"idle": "#444", "armed": "#b06000", "capturing": "#c00000", "saving": "#0050b0",

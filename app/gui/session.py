@@ -65,6 +65,7 @@ class LiveSession:
         self._latest_out = None
         self._source_acq = None
         self._seq_base = 0
+        self._closed = False
         self.worker = ProcessingWorker(self._newest_frame, grid="decimated", nice=worker_nice)
         self.worker.start()
         self.capture = None  # app.trigger capture (pre/post) while armed
@@ -106,6 +107,11 @@ class LiveSession:
 
     def use_camera(self, camera, *, camera_id: Optional[str] = None) -> Opened:
         """Stream from an already constructed camera (opened here if needed); the old one is closed."""
+        if self._closed:
+            try:
+                camera.close()
+            finally:
+                raise RuntimeError("the window is closing: camera not started")
         self.close_camera()
         if hasattr(camera, "open") and not getattr(camera, "_opened", False):
             camera.open()
@@ -361,7 +367,8 @@ class LiveSession:
 
     # -------------------------------------------------------------- close
     def close(self):
-        """Stop everything (idempotent)."""
+        """Stop everything (idempotent); a camera opened later by a background job is refused."""
+        self._closed = True
         self.close_camera()
         try:
             self.worker.stop(timeout_s=5.0)

@@ -586,7 +586,9 @@ class MainWindow(QtWidgets.QMainWindow):
         if s is None:
             return
         bpp = 1 if s.bit_depth <= 8 else 2
-        self.recording_panel.set_cost(s.width * s.height * bpp, s.frame_rate_hz)
+        acq = self.session.acquisition
+        self.recording_panel.set_cost(s.width * s.height * bpp, s.frame_rate_hz,
+                                      acq.ring.n_frames if acq is not None else None)
 
     def _choose_folder(self):
         path = QtWidgets.QFileDialog.getExistingDirectory(self, "Recording folder",
@@ -964,8 +966,12 @@ class MainWindow(QtWidgets.QMainWindow):
             lines.append(("pattern rotation", f"{_nz(rot):.2f}°"))
         th_est = num("theta_estimate_deg", "theta_est_deg", "theta_deg_estimate")
         th_cfg = num("theta_configured_deg", "theta_deg")
+        fsss = getattr(self.geometry, "setup", "tir") == "fsss"
         if th_cfg is None and self.geometry is not None:
             th_cfg = getattr(self.geometry, "theta_deg", None)
+        if fsss:  # FS-SS looks straight down: theta is not part of its alignment
+            th_est = None
+            lines.append(("setup", "FS-SS (no θ to check)"))
         if th_est is not None:
             th_text = f"{float(th_est):.2f}° from the pattern"
             if th_cfg is not None:
@@ -994,6 +1000,8 @@ class MainWindow(QtWidgets.QMainWindow):
             reasons.append(f"{sat:.1f} % of pixels saturated: lower exposure or gain")
         if periods is None and th_est is None:
             reasons.append("no carriers found")
+        if self.geometry is None and not any(r.startswith("no geometry") for r in reasons):
+            reasons.append("no geometry: enter θ and H (Controls ▸ Reference & geometry)")
         return (not reasons), reasons, lines
 
     # ------------------------------------------------------------- status
