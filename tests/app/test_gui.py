@@ -11,9 +11,7 @@ import h5py
 import numpy as np
 import pytest
 
-pytest.importorskip("pytestqt")
-
-from drivers.synthetic import SyntheticCamera  # noqa: E402
+from drivers.synthetic import SyntheticCamera
 
 pytestmark = pytest.mark.gui
 
@@ -299,3 +297,29 @@ def test_bad_reference_is_explained_and_the_live_view_goes_on(qtbot, window, sce
     seq = window._last_raw_seq
     qtbot.waitUntil(lambda: window._last_raw_seq != seq, timeout=3000)  # the raw view still updates
     qtbot.waitUntil(lambda: "no reference" in window.height_view.message.toPlainText(), timeout=3000)
+
+
+def test_app_runs_as_a_program_and_quits_cleanly(tmp_path):
+    """`python3 -m app.gui` on the synthetic scene: runs, quits by itself, no traceback (style.md smoke test)."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    env = dict(os.environ, QT_QPA_PLATFORM="offscreen", TIRDEFLECT_CACHE_DIR=str(tmp_path / "cache"))
+    proc = subprocess.run([sys.executable, "-m", "app.gui", "--size", "96", "--frames", "2", "--quit-after", "3"],
+                          cwd=root, env=env, capture_output=True, text=True, timeout=60)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 0, out
+    assert "Traceback" not in out and "Error" not in out, out
+
+
+def test_no_display_is_a_clear_error(monkeypatch, capsys):
+    from app.gui.main import main
+
+    for var in ("DISPLAY", "WAYLAND_DISPLAY", "QT_QPA_PLATFORM"):
+        monkeypatch.delenv(var, raising=False)
+    assert main(["--camera", "synthetic"]) == 2
+    err = capsys.readouterr().err
+    assert "no display" in err and "tirdeflect record" in err
