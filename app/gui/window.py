@@ -993,8 +993,8 @@ class MainWindow(QtWidgets.QMainWindow):
         focus = num("focus", "focus_metric")
         if focus is not None:
             lines.append(("focus metric", f"{float(focus):.3g}"))
-        sat = num("saturation_pct", "saturation_percent")
-        sat = float(sat) if sat is not None else saturation_pct
+        # the worker's figure uses the camera's bit depth (a 12-bit camera in uint16 saturates at 4095)
+        sat = float(saturation_pct)
         lines.append(("saturation", f"{sat:.2f} %"))
         if sat > 1.0:
             reasons.append(f"{sat:.1f} % of pixels saturated: lower exposure or gain")

@@ -67,7 +67,7 @@ def _wait_reconstructor(qtbot, w, timeout=20000):
                     timeout=timeout)
 
 
-def test_live_height_shows_the_bump_where_it_is(qtbot, window, scene):
+def test_live_height_shows_the_bump_where_it_is(qtbot, window, scene, tmp_path):
     """Capture a reference through the window, then the live height map peaks at the bump, in um."""
     frames = Switchable(scene["flat"])
     window.use_camera(SyntheticCamera(frames, frame_rate_hz=100.0), geometry=scene["geometry"])
@@ -77,6 +77,14 @@ def test_live_height_shows_the_bump_where_it_is(qtbot, window, scene):
     _wait_reconstructor(qtbot, window)
     assert window.reference is not None and window.reference.shape == SHAPE
     assert window.last_error is None
+    # the average of 5 frames, float32 (the camera streamed the same still-water frame) survives save/load
+    assert window.reference.dtype == np.float32
+    np.testing.assert_allclose(window.reference, scene["flat"], atol=1e-4)
+    window.save_reference(str(tmp_path / "ref.tif"))
+    captured = window.reference
+    window.load_reference(str(tmp_path / "ref.tif"))
+    np.testing.assert_array_equal(window.reference, captured)
+    _wait_reconstructor(qtbot, window)
 
     frames.image = scene["bump"]
 
