@@ -800,9 +800,11 @@ class MainWindow(QtWidgets.QMainWindow):
                 self._display_timer.start(max(1, int(round(wait_ms))))
 
     def _draw(self):
-        drew = False
+        """One display tick: the newest camera frame, then (at <= 30 Hz) the newest processed maps.
+
+        ``displayed_fps`` counts new camera frames put on screen per second (the status bar's "shown").
+        """
         tab = self.tabs.currentIndex()
-        now_ns = time.monotonic_ns()
         if tab in (0, 1):
             frame = self.session.latest_frame()
             if frame is not None and frame[0] != self._last_raw_seq:
@@ -810,7 +812,7 @@ class MainWindow(QtWidgets.QMainWindow):
                 self._last_raw_seq = seq
                 self._draw_raw(image, tab, host_ns)
                 self.latency_ms = (time.monotonic_ns() - host_ns) / 1e6 if host_ns else float("nan")
-                drew = True
+                self._shown += 1
         p = self.session.worker.latest()
         maps_due = time.monotonic() - getattr(self, "_maps_t", 0.0) >= 1.0 / MAPS_MAX_HZ
         second_half, self._second_half = getattr(self, "_second_half", None), None
@@ -818,7 +820,6 @@ class MainWindow(QtWidgets.QMainWindow):
             # the other half of the maps of the result drawn on the previous tick: spreading the
             # work over two ticks keeps every tick short, so the raw view keeps its cadence
             self._draw_result(second_half, part=1)
-            drew = True
         elif p is not None and p.seq != self._last_result_seq and tab in (0, 1) and maps_due:
             self._maps_t = time.monotonic()
             self._last_result_seq = p.seq
@@ -829,14 +830,10 @@ class MainWindow(QtWidgets.QMainWindow):
                 self._draw_alignment(p)
             self.result_latency_ms = (time.monotonic_ns() - p.host_timestamp_ns) / 1e6 if p.host_timestamp_ns \
                 else float("nan")
-            drew = True
-        if drew:
-            self._shown += 1
         t = time.monotonic()
         if t - self._shown_t >= 1.0:
             self.displayed_fps = self._shown / (t - self._shown_t)
             self._shown, self._shown_t = 0, t
-        del now_ns
 
     def _bit_depth(self):
         s = self.session.camera_settings()
