@@ -3,13 +3,16 @@
 #   bash resources/install.sh          # the app
 #   bash resources/install.sh --test   # the app and the test tools
 # System packages: Aravis (GigE Vision / USB3 Vision cameras and the fake camera
-# the tests use), what PyGObject needs to build, Xvfb for screenshots.
+# the tests use), what PyGObject needs to build, Qt's X11 libraries, Xvfb for screenshots.
 set -euo pipefail
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 extras="aravis"
 [ "${1:-}" = "--test" ] && extras="aravis,test"
 
 apt_packages="aravis-tools gir1.2-aravis-0.8 libaravis-0.8-0 libcairo2-dev libgirepository1.0-dev pkg-config xvfb"
+# Qt's X11 (xcb) platform plugin: the live window on a desktop or under Xvfb
+apt_packages="$apt_packages libxcb-icccm4 libxcb-keysyms1 libxcb-cursor0 libxcb-image0 libxcb-render-util0"
+apt_packages="$apt_packages libxkbcommon-x11-0 libxcb-xkb1 libxcb-shape0 libxcb-randr0 libxcb-xinerama0 libegl1 libgl1"
 missing=""
 for p in $apt_packages; do
     dpkg -s "$p" >/dev/null 2>&1 || missing="$missing $p"
