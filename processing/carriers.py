@@ -35,6 +35,7 @@ __all__ = [
     "check_pattern_match",
     "theta_from_carriers",
     "rotation_from_carriers",
+    "display_spectrum",
 ]
 
 # A peak must stand this many times (in amplitude) above the spectrum's
@@ -209,6 +210,54 @@ def _spectrum(image):
     fr = scipy.fft.fftfreq(rows)[:, None]
     fc = scipy.fft.rfftfreq(cols)[None, :]
     return spec, fr, fc
+
+
+def display_spectrum(half_magnitude, cols: int, *, size: int = 256, max_freq: float = 0.25) -> dict:
+    """Centred log-magnitude spectrum for display, from an rfft2 magnitude.
+
+    Parameters
+    ----------
+    half_magnitude : ndarray, shape (rows, cols // 2 + 1)
+        ``|rfft2(image)|`` of a (rows, cols) image, any real dtype.
+    cols : int
+        Width of that image (the half spectrum cannot tell odd from even).
+    size : int
+        At most about this many samples per axis: the spectrum is reduced by
+        block maxima, so that carrier peaks stay visible.
+    max_freq : float
+        Show frequencies up to this many cycles per pixel (0.25: periods >= 4 px).
+
+    Returns
+    -------
+    dict
+        ``log_magnitude`` float32 (n_rows, n_cols): log10 |FFT|; ``freq_x``
+        (n_cols,), ``freq_y`` (n_rows,): cycles per pixel (columns, rows),
+        increasing, the centres of the blocks.
+    """
+    spec = np.asarray(half_magnitude, np.float32)
+    rows, h = spec.shape
+    cols = int(cols)
+    if h != cols // 2 + 1:
+        raise ValueError(f"half spectrum of width {h} does not belong to an image {cols} pixels wide")
+    full = np.empty((rows, cols), np.float32)
+    full[:, :h] = spec
+    # negative column frequencies: conjugate symmetry |X(-k)| = |X(k)|
+    neg_c = np.arange(h, cols)
+    full[:, h:] = spec[(-np.arange(rows)) % rows][:, cols - neg_c]
+    full = np.fft.fftshift(full)
+    fy = np.fft.fftshift(np.fft.fftfreq(rows))
+    fx = np.fft.fftshift(np.fft.fftfreq(cols))
+    keep_r = np.flatnonzero(np.abs(fy) <= max_freq)
+    keep_c = np.flatnonzero(np.abs(fx) <= max_freq)
+    step_r = max(1, len(keep_r) // size)
+    step_c = max(1, len(keep_c) // size)
+    nr, nc = len(keep_r) // step_r, len(keep_c) // step_c
+    sub = full[np.ix_(keep_r[: nr * step_r], keep_c[: nc * step_c])]
+    sub = sub.reshape(nr, step_r, nc, step_c).max(axis=(1, 3))
+    mag = np.log10(sub + 1e-6 * float(sub.max() or 1.0)).astype(np.float32)
+    fr_k = fy[keep_r][: nr * step_r].reshape(nr, step_r).mean(axis=1)
+    fc_k = fx[keep_c][: nc * step_c].reshape(nc, step_c).mean(axis=1)
+    return {"log_magnitude": mag, "freq_x": fc_k, "freq_y": fr_k}
 
 
 def _gather(spec, rr, cc, rows):

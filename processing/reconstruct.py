@@ -34,7 +34,7 @@ from typing import Optional
 import cv2
 import numpy as np
 
-from .carriers import Carriers, check_pattern_match, find_carriers, match_error
+from .carriers import Carriers, check_pattern_match, display_spectrum, find_carriers, match_error
 from .demodulation import Demodulator
 from .errors import AllInvalidError, ShapeMismatchError
 from .fft import FFTPlanner
@@ -668,31 +668,10 @@ class Reconstructor:
             if self._window_spectrum is None:
                 self._window_spectrum = np.fft.rfft2(d._window2d).astype(np.complex64)
             spec = spec - np.complex64(d.last_mean) * self._window_spectrum
-        spec = np.abs(spec)
-        rows, cols = self.shape
-        full = np.empty((rows, cols), np.float32)
-        h = spec.shape[1]
-        full[:, :h] = spec
-        # negative column frequencies: conjugate symmetry |X(-k)| = |X(k)|
-        neg_c = np.arange(h, cols)
-        full[:, h:] = spec[(-np.arange(rows)) % rows][:, cols - neg_c]
-        full = np.fft.fftshift(full)
-        fy = np.fft.fftshift(np.fft.fftfreq(rows))
-        fx = np.fft.fftshift(np.fft.fftfreq(cols))
-        keep_r = np.flatnonzero(np.abs(fy) <= max_freq)
-        keep_c = np.flatnonzero(np.abs(fx) <= max_freq)
-        step_r = max(1, len(keep_r) // size)
-        step_c = max(1, len(keep_c) // size)
-        sub = full[np.ix_(keep_r, keep_c)]
-        # block maximum keeps the carrier peaks visible after decimation
-        nr, nc = sub.shape[0] // step_r, sub.shape[1] // step_c
-        sub = sub[:nr * step_r, :nc * step_c].reshape(nr, step_r, nc, step_c).max(axis=(1, 3))
-        mag = np.log10(sub + 1e-6 * float(sub.max() or 1.0)).astype(np.float32)
-        fr_k = fy[keep_r][:nr * step_r].reshape(nr, step_r).mean(axis=1)
-        fc_k = fx[keep_c][:nc * step_c].reshape(nc, step_c).mean(axis=1)
+        out = display_spectrum(np.abs(spec), self.shape[1], size=size, max_freq=max_freq)
         carriers = [(float(f[1]), float(f[0])) for f in self.demod.freq]
-        return {"log_magnitude": mag, "freq_x": fc_k, "freq_y": fr_k,
-                "carriers": carriers + [(-a, -b) for a, b in carriers]}
+        out["carriers"] = carriers + [(-a, -b) for a, b in carriers]
+        return out
 
 
 def saturation_pct(frame) -> float:

@@ -25,7 +25,7 @@ def display_spectrum(frame: np.ndarray, *, size: int = 256, max_freq: float = 0.
     frame : ndarray, shape (rows, cols)
         Raw frame.
     size : int
-        At most this many samples per axis (the spectrum is subsampled).
+        At most about this many samples per axis (block maxima keep the peaks).
     max_freq : float
         Show frequencies up to this many cycles per pixel (0.25: periods >= 4 px).
 
@@ -33,22 +33,16 @@ def display_spectrum(frame: np.ndarray, *, size: int = 256, max_freq: float = 0.
     -------
     dict
         ``log_magnitude`` float32 (n_rows, n_cols): log10 |FFT| (Hann window);
-        ``freq_x`` (n_cols,), ``freq_y`` (n_rows,): cycles per pixel, increasing.
+        ``freq_x`` (n_cols,), ``freq_y`` (n_rows,): cycles per pixel, increasing
+        (see :func:`processing.carriers.display_spectrum`).
     """
+    from processing.carriers import display_spectrum as _display
+
     img = np.asarray(frame, np.float32)
     rows, cols = img.shape
     win = np.outer(np.hanning(rows).astype(np.float32), np.hanning(cols).astype(np.float32))
-    spec = np.abs(np.fft.fftshift(np.fft.fft2((img - img.mean()) * win)))
-    fy = np.fft.fftshift(np.fft.fftfreq(rows))
-    fx = np.fft.fftshift(np.fft.fftfreq(cols))
-    keep_r = np.flatnonzero(np.abs(fy) <= max_freq)
-    keep_c = np.flatnonzero(np.abs(fx) <= max_freq)
-    step_r = max(1, len(keep_r) // size)
-    step_c = max(1, len(keep_c) // size)
-    keep_r, keep_c = keep_r[::step_r], keep_c[::step_c]
-    spec = spec[np.ix_(keep_r, keep_c)]
-    mag = np.log10(spec + 1e-6 * float(spec.max() or 1.0)).astype(np.float32)
-    return {"log_magnitude": mag, "freq_x": fx[keep_c], "freq_y": fy[keep_r]}
+    half = np.abs(np.fft.rfft2((img - img.mean()) * win))
+    return _display(half, cols, size=size, max_freq=max_freq)
 
 
 def modulation_map(frame: np.ndarray, *, window_px: int = 32, step_px: int = 16):

@@ -116,3 +116,23 @@ def test_pattern_mismatch_rotated_synthetic():
     ref = board((256, 256), 16.0, 0.0)
     with pytest.raises(PatternMismatchError, match="rotation"):
         check_pattern_match(find_carriers(ref), board((256, 256), 16.0, 6.0))
+
+
+@pytest.mark.parametrize("cols", [300, 301])
+def test_display_spectrum_keeps_the_carrier_peak_where_it_is(cols):
+    """A grating of known frequency peaks at that frequency in the display
+    spectrum, after the block-maximum reduction, for odd and even widths."""
+    from processing.carriers import display_spectrum
+
+    rows = 280
+    f_row, f_col = 0.1, -0.15  # cycles per pixel
+    r, c = np.mgrid[:rows, :cols]
+    img = np.cos(2 * np.pi * (f_row * r + f_col * c))
+    out = display_spectrum(np.abs(np.fft.rfft2(img)), cols, size=64, max_freq=0.25)
+    mag = out["log_magnitude"]
+    assert mag.shape[0] <= 2 * 64 + 2 and mag.shape[1] <= 2 * 64 + 2
+    i, j = np.unravel_index(np.argmax(mag), mag.shape)
+    step = abs(out["freq_x"][1] - out["freq_x"][0])
+    # the peak and its mirror are equally strong: accept either
+    assert any(abs(out["freq_y"][i] - sy * f_row) <= step and abs(out["freq_x"][j] - sy * f_col) <= step
+               for sy in (1, -1))
