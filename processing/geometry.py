@@ -620,8 +620,6 @@ class Geometry:
         a_P = 2.0 * dyx / dz[..., None]
         M = np.eye(2) + dyx[..., :, None] * dyx[..., None, :] / (dz**2)[..., None, None]
         # Jacobians by central differences of the exact flat maps (image frame)
-        eps = 0.5
-
         def pat(r, c):
             px, py = self.flat_pattern_point(r, c, frame_shape)
             return np.stack([s * py, px], axis=-1)
@@ -630,20 +628,8 @@ class Geometry:
             x, y = self.surface_point(r, c, frame_shape)
             return np.stack([y, x], axis=-1)
 
-        J = np.stack(
-            [
-                (pat(rows_px + eps, cols_px) - pat(rows_px - eps, cols_px)) / (2 * eps),
-                (pat(rows_px, cols_px + eps) - pat(rows_px, cols_px - eps)) / (2 * eps),
-            ],
-            axis=-1,
-        )  # J[..., i, j] = d P_i / d pix_j
-        K = np.stack(
-            [
-                (surf(rows_px + eps, cols_px) - surf(rows_px - eps, cols_px)) / (2 * eps),
-                (surf(rows_px, cols_px + eps) - surf(rows_px, cols_px - eps)) / (2 * eps),
-            ],
-            axis=-1,
-        )
+        J = _pixel_jacobian(pat, rows_px, cols_px)  # J[..., i, j] = d P_i / d pix_j
+        K = _pixel_jacobian(surf, rows_px, cols_px)
         Jinv = np.linalg.inv(J)
         Kinv_T = np.swapaxes(np.linalg.inv(K), -1, -2)
         a = -np.einsum("...ij,...j->...i", Jinv, a_P)
@@ -692,8 +678,6 @@ class Geometry:
         gy = (dP(zero, zero, zero + eg) - dP(zero, zero, zero - eg)) / (2 * eg)
         a_P = a_P[..., ::-1]
         Mg = np.stack([gy[..., ::-1], gx[..., ::-1]], axis=-1)  # d P_(y,x) / d (h_y, h_x)
-        eps = 0.5
-
         def pat(r, c):
             px, py = self.flat_pattern_point(r, c, frame_shape)
             return np.stack([py, px], axis=-1)
@@ -702,20 +686,8 @@ class Geometry:
             x, y = self.surface_point(r, c, frame_shape)
             return np.stack([y, x], axis=-1)
 
-        J = np.stack(
-            [
-                (pat(rows_px + eps, cols_px) - pat(rows_px - eps, cols_px)) / (2 * eps),
-                (pat(rows_px, cols_px + eps) - pat(rows_px, cols_px - eps)) / (2 * eps),
-            ],
-            axis=-1,
-        )
-        K = np.stack(
-            [
-                (surf(rows_px + eps, cols_px) - surf(rows_px - eps, cols_px)) / (2 * eps),
-                (surf(rows_px, cols_px + eps) - surf(rows_px, cols_px - eps)) / (2 * eps),
-            ],
-            axis=-1,
-        )
+        J = _pixel_jacobian(pat, rows_px, cols_px)
+        K = _pixel_jacobian(surf, rows_px, cols_px)
         Jinv = np.linalg.inv(J)
         Kinv_T = np.swapaxes(np.linalg.inv(K), -1, -2)
         a = -np.einsum("...ij,...j->...i", Jinv, a_P)
@@ -767,6 +739,21 @@ class Geometry:
         rin = (rows_px >= r0) & (rows_px < r1)
         cin = (cols_px >= c0) & (cols_px < c1)
         return rin[:, None] & cin[None, :]
+
+
+def _pixel_jacobian(mapping, rows_px, cols_px, eps: float = 0.5) -> np.ndarray:
+    """Jacobian of ``mapping(rows_px, cols_px) -> (..., 2)`` with respect to (row, col), by central differences.
+
+    Returns ``J[..., i, j] = d mapping_i / d pixel_j`` (j = 0: row, 1: column), in
+    the mapping's units per pixel; ``eps`` is the half step in pixels.
+    """
+    return np.stack(
+        [
+            (mapping(rows_px + eps, cols_px) - mapping(rows_px - eps, cols_px)) / (2 * eps),
+            (mapping(rows_px, cols_px + eps) - mapping(rows_px, cols_px - eps)) / (2 * eps),
+        ],
+        axis=-1,
+    )
 
 
 def default_reference_region_mask(rows_px, cols_px, frame_shape) -> np.ndarray:
