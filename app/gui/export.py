@@ -30,7 +30,7 @@ def export_heights(recording_path: str, out_path: str, *, geometry_toml: Optiona
     grid : {"full", "decimated"}
         Output grid.
     progress : callable, optional
-        ``progress(done, total)``; called at start and end (the batch reports no finer steps).
+        ``progress(done, total)``; called at start and after every frame written.
 
     Returns
     -------
@@ -57,7 +57,7 @@ def export_heights(recording_path: str, out_path: str, *, geometry_toml: Optiona
                 fh.write(geometry_toml)
         args = argparse.Namespace(reference=ref_arg, frames=[recording_path], geometry=geo_arg, out=out_path,
                                   grid=grid, no_unwrap=False, first=0, last=None, step=1, overwrite=False,
-                                  compression="none", no_progress=True)
+                                  compression="none", no_progress=True, on_progress=progress)
         cmd_process(args)
     if progress is not None:
         progress(total, total)

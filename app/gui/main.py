@@ -33,7 +33,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if (sys.platform.startswith("linux") and not os.environ.get("QT_QPA_PLATFORM")
             and not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY")):
         print("tirdeflect: error: no display to open the window on (DISPLAY and WAYLAND_DISPLAY are unset): "
-              "run it in a desktop session or with ssh -X, or use the headless commands "
+              "run it in a desktop session, with ssh -X or under xvfb-run, or use the headless commands "
               "(tirdeflect record / process)", file=sys.stderr)
         return 2
     logging.basicConfig(level=logging.DEBUG if args.debug else logging.INFO,

@@ -747,7 +747,8 @@ class MainWindow(QtWidgets.QMainWindow):
         if rec is None:
             self.show_error("Open a recording first (Replay ▸ Open recording).")
             return
-        self.replay.progress.setRange(0, 0)  # busy: the batch reports no per-frame progress to us
+        self.replay.progress.setRange(0, 100)  # the batch reports every frame written; _refresh shows it
+        self.replay.progress.setValue(0)
         self.replay.message.setText(f"exporting {rec.n_frames} frames to {out_path}…")
         self._export_progress = 0.0
         self.export_result = None
@@ -782,6 +783,8 @@ class MainWindow(QtWidgets.QMainWindow):
     def _refresh(self):
         """Draw the newest frame/result; re-arm the single-shot timer afterwards."""
         now = time.perf_counter()
+        if getattr(self, "export_result", "idle") is None:  # an export is running in the background
+            self.replay.progress.setValue(int(100 * self._export_progress))
         # fixed cadence of at most 60 Hz: the next tick is due one period after this one was due,
         # so drawing and painting time does not stretch the period; a late tick never piles up
         period = 1.0 / DISPLAY_MAX_HZ

@@ -169,6 +169,7 @@ def test_record_pre_post_trigger_then_replay_and_export(qtbot, window, scene, tm
     window.export_heights(str(out))
     qtbot.waitUntil(lambda: window.export_result is not None, timeout=60000)
     assert window.export_result == ("done", str(out)), window.export_result
+    assert window.replay.progress.maximum() == 100 and window.replay.progress.value() == 100
     with h5py.File(out, "r") as f:
         assert f["height"].shape[0] == n
 
