@@ -165,7 +165,14 @@ class Demodulator:
         period = float(np.max(1.0 / np.hypot(freq[:, 0], freq[:, 1])))
         self.taper_px = float(period if taper_px is None else taper_px)
         if border == "apodize":
-            self._window2d = tukey(rows, self.taper_px)[:, None] * tukey(cols, self.taper_px)[None, :]
+            t_r = tukey(rows, self.taper_px)
+            t_c = tukey(cols, self.taper_px)
+            self._window2d = t_r[:, None] * t_c[None, :]
+            # the window is 1 inside: prepare() converts the image once and
+            # multiplies only the border strips (rows and columns below 1)
+            self._strip_r = int(np.count_nonzero(t_r[: (rows + 1) // 2] < 1.0))
+            self._strip_c = int(np.count_nonzero(t_c[: (cols + 1) // 2] < 1.0))
+            self._taper_c = t_c
         else:
             self._window2d = None
         # ---- decimated windows: same size for both carriers
@@ -221,6 +228,13 @@ class Demodulator:
             # absolute bins for the full-grid variant (full complex spectrum)
         self._full_index = [((self._centres[s][0] + q_r)[:, None] % rows,
                              (self._centres[s][1] + q_c)[None, :] % cols) for s in range(2)]
+        shape2 = (2,) + self.window_shape
+        self._gather_idx = np.stack([g[0] for g in self._gather]).reshape(shape2)
+        mirror = np.stack([g[1] for g in self._gather]).reshape(shape2)
+        self._gather_mirror = mirror if mirror.any() else None
+        self._filter_stack = np.stack(self._filters)
+        # inverse FFT normalisation 1 / (m_r m_c) times the window-size scale m_r m_c / (rows cols)
+        self._dec_scale = np.float32(1.0 / (rows * cols))
         self.last_mean = 0.0
         self._dc_leak = None
         if self._window2d is not None:
@@ -256,10 +270,19 @@ class Demodulator:
             np.subtract(image, np.float32(self.last_mean), out=out, casting="unsafe")
             self.last_mean = 0.0
         else:
-            try:
-                cv2.multiply(image, self._window2d, dst=out, dtype=cv2.CV_32F)  # one pass, any dtype
-            except cv2.error:
+            a, b = self._strip_r, self._strip_c
+            rows, cols = self.shape
+            if 2 * a >= rows or 2 * b >= cols:
                 np.multiply(image, self._window2d, out=out, casting="unsafe")
+                return out
+            # convert once; the window is 1 except in the border strips
+            np.copyto(out, image, casting="unsafe")
+            w = self._window2d
+            out[:a] *= w[:a]
+            out[rows - a:] *= w[rows - a:]
+            inner = out[a:rows - a]
+            inner[:, :b] *= self._taper_c[:b]
+            inner[:, cols - b:] *= self._taper_c[cols - b:]
         return out
 
     def spectrum(self, image) -> np.ndarray:
@@ -275,13 +298,10 @@ class Demodulator:
         the border window's spectrum is subtracted: the image's mean removed
         exactly, where it matters.
         """
-        flat = spec.reshape(-1)
-        out = np.empty((2,) + self.window_shape, np.complex64)
-        for s in range(2):
-            idx, mirror = self._gather[s]
-            w = flat[idx]
-            np.conjugate(w, out=w, where=mirror)
-            out[s] = w.reshape(self.window_shape) * self._filters[s]
+        out = np.take(spec.reshape(-1), self._gather_idx)
+        if self._gather_mirror is not None:
+            np.conjugate(out, out=out, where=self._gather_mirror)
+        out *= self._filter_stack
         m = self.last_mean if mean is None else mean
         if m and self._dc_leak is not None:
             out -= np.complex64(m) * self._dc_leak
@@ -291,9 +311,9 @@ class Demodulator:
         """Analytic signals on the decimated grid from :meth:`windows` output."""
         shape = (2,) + self.window_shape
         self.planner.input_array("ifft2", shape)[...] = wins
-        out = self.planner.execute("ifft2", shape)
+        out = self.planner.execute("ifft2", shape, normalise=False)
         # samples sit at r = j * rows / m; the scale follows the window size
-        return out * np.float32(self.window_shape[0] * self.window_shape[1] / (self.shape[0] * self.shape[1]))
+        return out * self._dec_scale
 
     def decimated(self, image) -> np.ndarray:
         """Analytic signals ``g_s`` of ``image`` on the decimated grid.
@@ -341,6 +361,10 @@ class Demodulator:
         """
         if self._local_inv is not None and tuple(np.shape(phase)[1:]) == self.window_shape:
             inv = self._local_inv  # (2, 2, m_rows, m_cols), decimated grid
+            phase = np.asarray(phase)
+            if phase.dtype == np.float32:
+                # u_i = inv_i0 phase_0 + inv_i1 phase_1, both rows in two passes
+                return (inv * phase[None]).sum(axis=1)
         else:
             inv = -np.linalg.inv(self.wavevectors)
         u_r = inv[0, 0] * phase[0] + inv[0, 1] * phase[1]

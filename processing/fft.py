@@ -193,15 +193,16 @@ class FFTPlanner:
         """
         return self._plan(kind, shape).input_array
 
-    def execute(self, kind: str, shape) -> np.ndarray:
+    def execute(self, kind: str, shape, normalise: bool = True) -> np.ndarray:
         """Run the plan on whatever its input array holds; return its output array.
 
-        Inverse transforms are normalised by ``1 / (rows * cols)``.
+        Inverse transforms are normalised by ``1 / (rows * cols)`` unless
+        ``normalise`` is False (callers that scale anyway save a pass).
         """
         plan = self._plan(kind, shape)
         plan.execute()
         out = plan.output_array
-        if kind == "ifft2":
+        if kind == "ifft2" and normalise:
             out *= np.float32(1.0 / (out.shape[-2] * out.shape[-1]))
         return out
 
