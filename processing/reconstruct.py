@@ -38,7 +38,7 @@ from .carriers import Carriers, check_pattern_match, display_spectrum, find_carr
 from .demodulation import Demodulator
 from .errors import AllInvalidError, ShapeMismatchError
 from .fft import FFTPlanner
-from .unwrap import unwrap_spatial, unwrap_temporal, wrap
+from .unwrap import TWO_PI, unwrap_spatial, unwrap_temporal, wrap
 
 __all__ = ["Reconstructor", "Result"]
 
@@ -260,6 +260,12 @@ class Reconstructor:
         self._q_r = np.fft.fftfreq(d.window_shape[0], 1.0 / d.window_shape[0])
         self._q_c = np.fft.fftfreq(d.window_shape[1], 1.0 / d.window_shape[1])
         self._check_threshold = 1.0
+        # per-grid constants of the live path
+        self._conj_g0 = np.conj(d.g0)
+        self._g0_den = np.maximum(d.g0_abs, np.float32(1e-30))
+        self._ref_ok_all = bool(self._ref_ok.all())
+        self._ref_idx = np.flatnonzero(self._ref_mask)
+        self._height_solver = None
         self.reset_series()
 
     # ------------------------------------------------------------ helpers
@@ -299,6 +305,7 @@ class Reconstructor:
         """Forget the previous frame: the next frame is unwrapped in space only."""
         self._prev_phase = None
         self._prev_valid = None
+        self._prev_all_valid = False
 
     # ----------------------------------------------------------- pattern
     def _cheap_pattern_check(self, wins, frame):
@@ -311,23 +318,31 @@ class Reconstructor:
         strongly deformed frames does not pay for the search every time."""
         if not self.check_pattern:
             return
-        worst = 0.0
-        for s in range(2):
-            p = np.abs(wins[s]) ** 2
-            total = float(p.sum())
-            if total <= 0:
-                continue
-            cr = float(np.dot(p.sum(axis=1), self._q_r)) / total - self._win_centre[s, 0]
-            cc = float(np.dot(p.sum(axis=0), self._q_c)) / total - self._win_centre[s, 1]
-            worst = max(worst, math.hypot(cr, cc) / self._check_tol_bins[s])
+        # |w|^2 summed along columns and along rows, both carriers in one pass each
+        p = np.abs(wins)
+        p *= p
+        rows_p = p.sum(axis=2)
+        cols_p = p.sum(axis=1)
+        total = rows_p.sum(axis=1)
+        ok = total > 0
+        if not ok.any():
+            return
+        tot = np.where(ok, total, 1.0)
+        cr = (rows_p @ self._q_r) / tot - self._win_centre[:, 0]
+        cc = (cols_p @ self._q_c) / tot - self._win_centre[:, 1]
+        worst = float(np.max(np.where(ok, np.hypot(cr, cc) / self._check_tol_bins, 0.0)))
         if worst > self._check_threshold:
             check_pattern_match(self.carriers, frame)
             self._check_threshold = max(self._check_threshold, 1.5 * worst)
 
     # ------------------------------------------------------------- stages
-    def _unwrap(self, wrapped, valid):
+    def _unwrap(self, wrapped, valid, all_valid=False):
         if not self.unwrap:
             return np.where(valid, wrapped, np.nan)
+        if all_valid and self.temporal and self._prev_phase is not None and self._prev_all_valid:
+            out = self._unwrap_temporal_all_valid(wrapped)
+            if out is not None:
+                return out
         out = np.empty_like(wrapped)
         for s in range(2):
             if self.temporal and self._prev_phase is not None:
@@ -337,12 +352,36 @@ class Reconstructor:
                 out[s] = unwrap_spatial(wrapped[s], valid, ref_mask=self._ref_mask)
         return out
 
+    def _unwrap_temporal_all_valid(self, wrapped):
+        """unwrap_temporal for both carriers when this and the previous frame
+        are valid everywhere (most live frames): the same arithmetic without
+        masks; None when the change since the previous frame has a 2 pi jump
+        (the general path unwraps it in space)."""
+        prev = self._prev_phase
+        delta = wrap(wrapped - prev)
+        pi = np.pi
+        if (np.abs(np.diff(delta, axis=1)).max(initial=0.0) > pi
+                or np.abs(np.diff(delta, axis=2)).max(initial=0.0) > pi):
+            return None
+        out = prev + delta
+        if self._ref_idx.size:
+            vals = out.reshape(2, -1)[:, self._ref_idx]
+            lo = vals.min(axis=1)
+            hi = vals.max(axis=1)
+            for s in range(2):
+                # median within (-pi, pi): the 2 pi multiple nearest it is 0
+                if not (lo[s] > -pi and hi[s] < pi):
+                    out[s] -= TWO_PI * np.round(np.median(vals[s]) / TWO_PI)
+        return out
+
     def _drop_islands(self, valid):
         """Remove small valid regions that do not reach the reference region."""
         if self.min_island <= 0:
             return valid
         from scipy import ndimage
 
+        if valid.all():
+            return valid  # one region
         labels, n = ndimage.label(valid)
         if n <= 1:
             return valid
@@ -353,11 +392,19 @@ class Reconstructor:
         keep[0] = False
         return keep[labels]
 
-    def _fold_ok(self, u):
-        """det(I - grad u) > min_fold on the decimated grid (u in pixels)."""
+    def _fold_ok(self, u, finite=False):
+        """det(I - grad u) > min_fold on the decimated grid (u in pixels);
+        None when it holds everywhere."""
         dr = self.rows_px[1] - self.rows_px[0]
         dc = self.cols_px[1] - self.cols_px[0]
-        uf = np.nan_to_num(u)
+        uf = u if finite else np.nan_to_num(u)
+        # |every partial derivative| <= t (central and one-sided differences
+        # are bounded by the largest neighbour difference) gives
+        # det >= (1 - t)^2 - t^2 = 1 - 2 t: no fold test needed below this
+        t = max(float(np.abs(np.diff(uf, axis=1)).max(initial=0.0)) / dr,
+                float(np.abs(np.diff(uf, axis=2)).max(initial=0.0)) / dc)
+        if 1.0 - 2.0 * t > self.min_fold + 1e-6:
+            return None
         dur_dr, dur_dc = np.gradient(uf[0], dr, dc)
         duc_dr, duc_dc = np.gradient(uf[1], dr, dc)
         det = (1.0 - dur_dr) * (1.0 - duc_dc) - dur_dc * duc_dr
@@ -444,18 +491,25 @@ class Reconstructor:
         self._cheap_pattern_check(wins, frame)
         t1 = time.perf_counter()
         timings["demodulate"] = 1e3 * (t1 - t0)
-        z = g * np.conj(d.g0)
-        wrapped = np.angle(z)
-        ratio = np.abs(g) / np.maximum(d.g0_abs, 1e-30)
-        amplitude = ratio.min(axis=0).astype(np.float32)
-        valid = (amplitude >= self.min_amplitude) & self._ref_ok
-        valid &= ~_dilate(~valid, self.dilate)
-        phase = self._unwrap(wrapped, valid)
-        u = d.phase_to_displacement(np.nan_to_num(phase))
-        fold = self._fold_ok(np.where(valid, u, 0.0))
-        valid &= ~_dilate(~fold, self.dilate)
-        valid = self._drop_islands(valid)
-        if not valid.any():
+        wrapped = np.angle(g * self._conj_g0)
+        ratio = np.abs(g)
+        ratio /= self._g0_den
+        amplitude = np.minimum(ratio[0], ratio[1])
+        valid = amplitude >= self.min_amplitude
+        if not self._ref_ok_all:
+            valid &= self._ref_ok
+        all_valid = bool(valid.all())
+        if not all_valid:
+            valid &= ~_dilate(~valid, self.dilate)
+        phase = self._unwrap(wrapped, valid, all_valid)
+        u = d.phase_to_displacement(phase if all_valid else np.nan_to_num(phase))
+        fold = self._fold_ok(u, finite=True) if all_valid else self._fold_ok(np.where(valid, u, 0.0))
+        if fold is not None:
+            valid &= ~_dilate(~fold, self.dilate)
+            all_valid = bool(valid.all())
+        if not all_valid:
+            valid = self._drop_islands(valid)
+        if not all_valid and not valid.any():
             raise AllInvalidError(
                 f"no part of the frame could be measured: pattern contrast relative to the reference "
                 f"is {float(np.median(amplitude)):.2f} (median; need >= {self.min_amplitude}); check "
@@ -472,19 +526,19 @@ class Reconstructor:
         t3 = time.perf_counter()
         timings["refine"] = 1e3 * (t3 - t2)
         # series memory (unwrapped phase of the final displacement)
+        all_valid = all_valid and bool(valid.all())
         if self.temporal:
-            self._prev_phase = np.where(valid, phase, np.nan)
+            self._prev_phase = phase.copy() if all_valid else np.where(valid, phase, np.nan)
             self._prev_valid = valid.copy()
-        u = np.where(valid, u, np.nan).astype(np.float32)
-        from .height import surface_from_displacement
+            self._prev_all_valid = all_valid
+        if not all_valid or u.dtype != np.float32:
+            u = np.where(valid, u, np.nan).astype(np.float32)
 
         if grid == "full" and self.full_method == "ifft":
             res = self._full_ifft(wins, u, u_first, valid, amplitude, phase, timings, t3)
             timings["total"] = 1e3 * (time.perf_counter() - t0)
             return res
-        surf = surface_from_displacement(u, valid, self.geometry, rows_px=self.rows_px,
-                                         cols_px=self.cols_px, frame_shape=self.shape,
-                                         solver=self.solver)
+        surf = self._solver().solve(u, valid, solver=self.solver)
         t4 = time.perf_counter()
         timings["height"] = 1e3 * (t4 - t3)
         res = Result(height=np.asarray(surf.height_mm, np.float32), valid=valid,
@@ -493,12 +547,20 @@ class Reconstructor:
                      amplitude=amplitude, x_mm=np.asarray(surf.x_mm), y_mm=np.asarray(surf.y_mm),
                      grid="decimated", rows_px=self.rows_px, cols_px=self.cols_px,
                      carriers=self.carriers, phase=np.asarray(phase, np.float32),
-                     valid_fraction=float(valid.mean()), timings_ms=timings)
+                     valid_fraction=1.0 if all_valid else float(valid.mean()), timings_ms=timings)
         if grid == "full":
             res = self._interpolate_full(res)
             timings["interpolate"] = 1e3 * (time.perf_counter() - t4)
         timings["total"] = 1e3 * (time.perf_counter() - t0)
         return res
+
+    def _solver(self):
+        """Height solver of the decimated grid (built once)."""
+        if self._height_solver is None:
+            from .height import _solver_for
+
+            self._height_solver = _solver_for(self.geometry, self.rows_px, self.cols_px, self.shape)
+        return self._height_solver
 
     def _coords_full(self, res):
         """x_mm (cols,), y_mm (rows,) of every pixel column and row: where the
@@ -517,29 +579,66 @@ class Reconstructor:
 
     def _interpolate_full(self, res):
         """Decimated result -> every pixel (the decimated grid is oversampled
-        twice, so Lanczos interpolation is within 0.2 % of band-limited)."""
+        twice, so Lanczos interpolation is within 0.2 % of band-limited).
+
+        With uniform optics the slopes are fixed linear combinations of u and
+        h (:meth:`HeightSolver.slope_coefficients`); interpolation is linear,
+        so they are formed from the interpolated u and h instead of being
+        interpolated themselves (two resizes fewer, same values up to
+        rounding)."""
         up = self._up
         rows, cols = self.shape
-        valid = up.mask(res.valid)
-        invalid = ~valid
-        fill = _nearest_fill_index(res.valid)
+        all_valid = bool(res.valid.all())
+        if all_valid:
+            valid = np.ones(self.shape, bool)
+            fill = None
+        else:
+            valid = up.mask(res.valid)
+            fill = _nearest_fill_index(res.valid)
+        invalid = None if all_valid else ~valid
 
-        def full(field, out=None):
-            f = field if fill is None else field[fill]
-            out = up(np.nan_to_num(f), out=out)
-            np.copyto(out, np.float32(np.nan), where=invalid)
+        def full(field, out=None, nan=True):
+            if not all_valid:
+                field = np.nan_to_num(field if fill is None else field[fill])
+            out = up(field, out=out)
+            if nan and invalid is not None:
+                np.copyto(out, np.float32(np.nan), where=invalid)
             return out
 
+        coef = self._solver().slope_coefficients() if self._height_solver is not None else None
         disp = np.empty((2, rows, cols), np.float32)
-        full(res.displacement[0], disp[0])
-        full(res.displacement[1], disp[1])
+        derive = coef is not None
+        full(res.displacement[0], disp[0], nan=not derive)
+        full(res.displacement[1], disp[1], nan=not derive)
+        height = full(res.height, nan=not derive)
+        if derive:
+            srcs = (disp[0], disp[1], height)
+            slopes = []
+            for row in coef:
+                out = None
+                for c, src in zip(row, srcs):
+                    if c == 0.0:
+                        continue
+                    if out is None:
+                        out = np.multiply(src, np.float32(c))
+                    else:
+                        cv2.scaleAdd(src, float(c), out, dst=out)
+                if out is None:
+                    out = np.zeros(self.shape, np.float32)
+                slopes.append(out)
+            slope_x, slope_y = slopes
+            if invalid is not None:
+                for a in (disp, height, slope_x, slope_y):
+                    np.copyto(a, np.float32(np.nan), where=invalid)
+        else:
+            slope_x, slope_y = full(res.slope_x), full(res.slope_y)
         x_mm, y_mm = self._coords_full(res)
         return dataclasses.replace(
-            res, height=full(res.height), valid=valid, slope_x=full(res.slope_x),
-            slope_y=full(res.slope_y), displacement=disp, amplitude=up(res.amplitude),
+            res, height=height, valid=valid, slope_x=slope_x,
+            slope_y=slope_y, displacement=disp, amplitude=up(res.amplitude),
             x_mm=x_mm, y_mm=y_mm, grid="full",
             rows_px=np.arange(rows, dtype=float), cols_px=np.arange(cols, dtype=float),
-            valid_fraction=float(np.count_nonzero(valid)) / valid.size)
+            valid_fraction=1.0 if all_valid else float(np.count_nonzero(valid)) / valid.size)
 
     def _full_ifft(self, wins, u, u_first, valid, amplitude, phase, timings, t3):
         """Full grid from full-size inverse FFTs, unwrapped against the
