@@ -276,7 +276,8 @@ class Demodulator:
                 np.multiply(image, self._window2d, out=out, casting="unsafe")
                 return out
             # convert once; the window is 1 except in the border strips
-            np.copyto(out, image, casting="unsafe")
+            if out is not image:
+                np.copyto(out, image, casting="unsafe")
             w = self._window2d
             out[:a] *= w[:a]
             out[rows - a:] *= w[rows - a:]
@@ -289,6 +290,14 @@ class Demodulator:
         """rfft2 of the prepared image: complex64, (rows, cols // 2 + 1), transient."""
         inp = self.planner.input_array("rfft2", self.shape)
         self.prepare(image, out=inp)
+        return self.planner.execute("rfft2", self.shape)
+
+    def spectrum_of(self, write) -> np.ndarray:
+        """Like :meth:`spectrum`, for an image that ``write(array)`` puts straight
+        into the transform's float32 input array (saves a full-size copy)."""
+        inp = self.planner.input_array("rfft2", self.shape)
+        write(inp)
+        self.prepare(inp, out=inp)
         return self.planner.execute("rfft2", self.shape)
 
     def windows(self, spec, mean=None) -> np.ndarray:

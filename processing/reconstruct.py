@@ -439,19 +439,30 @@ class Reconstructor:
         if self._smooth_static is None:
             self._smooth_static = np.angle(d.g0 * np.conj(d.decimated(smooth)))
         static = self._smooth_static
-        rows, cols = self.shape
-        grid_r = np.arange(rows, dtype=np.float32)[:, None]
-        grid_c = np.arange(cols, dtype=np.float32)[None, :]
         fill = _nearest_fill_index(valid)
+        relative = getattr(cv2, "WARP_RELATIVE_MAP", None)
         for _ in range(iterations):
             # invalid samples take their nearest valid neighbour's u: a jump to
             # 0 would tear the warped reference and ring through the band-pass
-            uf = np.nan_to_num(u if fill is None else u[:, fill[0], fill[1]])
-            u_r = self._up(uf[0])
-            u_c = self._up(uf[1])
-            warped = cv2.remap(smooth, grid_c - u_c, grid_r - u_r, self.warp_interpolation,
-                               borderMode=cv2.BORDER_REFLECT)
-            gw = d.decimated(warped)
+            uf = u if fill is None else u[:, fill[0], fill[1]]
+            if fill is not None or not np.isfinite(uf).all():
+                uf = np.nan_to_num(uf)
+            # sample the smooth reference at r - u(r), written straight into
+            # the FFT's input array; relative maps save two full-size passes
+            if relative is not None:
+                map_c = self._up(-uf[1])
+                map_r = self._up(-uf[0])
+                flags = self.warp_interpolation | relative
+            else:
+                rows, cols = self.shape
+                map_c = np.arange(cols, dtype=np.float32)[None, :] - self._up(uf[1])
+                map_r = np.arange(rows, dtype=np.float32)[:, None] - self._up(uf[0])
+                flags = self.warp_interpolation
+
+            def warp(dst):
+                cv2.remap(smooth, map_c, map_r, flags, dst=dst, borderMode=cv2.BORDER_REFLECT)
+
+            gw = d.decimated_from_windows(d.windows(d.spectrum_of(warp)))
             # minus the static difference between the smooth and the real
             # reference (wrap-around leakage at the borders, where the
             # reference region usually is): zero residual when u is right
