@@ -352,6 +352,8 @@ class HeightSolver:
             w=w,
             nn=nn,
             denom=self.denom.astype(np.float32),
+            inv_denom=np.where(np.arange(self.denom.size).reshape(self.shape) == 0, 0.0,
+                               1.0 / self.denom).astype(np.float32),
             sx=np.float32(Bi[1, 1] * Kt[1, 1]),
             sy_u=np.float32(Bi[0, 0] * Kt[0, 0]),
             sy_h=np.float32(k[0] * Kt[0, 0]),
@@ -397,8 +399,7 @@ class HeightSolver:
             self._divT_cellavg(uc * F["gc"], 1, self.grid.dc, rhs)
         w = _workers(self.shape)
         c = sfft.dctn(rhs, type=2, norm="ortho", workers=w, overwrite_x=True)
-        c[0, 0] = 0.0
-        c /= F["denom"]
+        c *= F["inv_denom"]  # 0 for the constant mode
         f = sfft.idctn(c, type=2, norm="ortho", workers=w, overwrite_x=True)
         # pin: h = (f - alpha) n with alpha the n^2-weighted mean of f on the reference samples
         alpha = float(np.vdot(F["w"], f * F["null"])) / F["nn"] if F["nn"] > 0 else 0.0
