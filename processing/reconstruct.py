@@ -389,12 +389,10 @@ class Reconstructor:
         (the general path unwraps it in space)."""
         prev = self._prev_phase
         pi = np.pi
-        delta = wrapped - prev
-        lo, hi = float(delta.min()), float(delta.max())
-        if not (-pi <= lo and hi <= pi and hi - lo <= pi):
-            # the usual case above needs no wrap (|delta| <= pi) and cannot hold a
-            # neighbour jump > pi (range <= pi); otherwise do both in full
-            delta = wrap(delta)
+        delta = wrap(wrapped - prev)
+        # a change spanning <= pi cannot hold a neighbour jump > pi (the usual
+        # case: two reductions instead of the difference test)
+        if float(delta.max()) - float(delta.min()) > pi:
             if (np.abs(np.diff(delta, axis=1)).max(initial=0.0) > pi
                     or np.abs(np.diff(delta, axis=2)).max(initial=0.0) > pi):
                 return None
