@@ -123,28 +123,38 @@ _POOL = None
 _POOL_LOCK = threading.Lock()
 
 
-def _resize_all(up, jobs):
-    """``up(src, out=dst)`` for every (src, dst) pair, two at a time in threads
-    (cv2 releases the GIL; measured at 1024^2: four Lanczos resizes 5.4 ms in
-    turn, 2.8 ms two at a time; no gain at 512^2, so small frames stay in turn)."""
+def _pool():
     global _POOL
-    if len(jobs) < 2 or jobs[0][1].size < 600_000:
-        for a, o in jobs:
-            up(a, out=o)
-        return
     if _POOL is None:
         with _POOL_LOCK:
             if _POOL is None:
                 _POOL = ThreadPoolExecutor(2, thread_name_prefix="tirdeflect-resize")
-    half = [jobs[0::2], jobs[1::2]]
+    return _POOL
 
+
+def _run_pair(shape, job_a, job_b):
+    """Run two full-size jobs (numpy/cv2 release the GIL), in parallel on large frames."""
+    if shape[0] * shape[1] < 600_000:
+        job_a()
+        job_b()
+        return
+    other = _pool().submit(job_b)
+    job_a()
+    other.result()
+
+
+def _resize_all(up, jobs):
+    """``up(src, out=dst)`` for every (src, dst) pair, two at a time in threads
+    (cv2 releases the GIL; measured at 1024^2: four Lanczos resizes 5.4 ms in
+    turn, 2.8 ms two at a time; no gain at 512^2, so small frames stay in turn)."""
     def run(part):
         for a, o in part:
             up(a, out=o)
 
-    other = _POOL.submit(run, half[1])
-    run(half[0])
-    other.result()
+    if len(jobs) < 2:
+        run(jobs)
+        return
+    _run_pair(jobs[0][1].shape, lambda: run(jobs[0::2]), lambda: run(jobs[1::2]))
 
 
 def _nearest_fill_index(valid):
@@ -663,20 +673,23 @@ class Reconstructor:
         _resize_all(up, jobs)
         if derive:
             srcs = (disp[0], disp[1], height)
-            slopes = []
-            for row in coef:
-                out = None
+            slope_x = np.empty(self.shape, np.float32)
+            slope_y = np.empty(self.shape, np.float32)
+
+            def combine(row, out):
+                first = True
                 for c, src in zip(row, srcs):
                     if c == 0.0:
                         continue
-                    if out is None:
-                        out = np.multiply(src, np.float32(c))
+                    if first:
+                        np.multiply(src, np.float32(c), out=out)
+                        first = False
                     else:
                         cv2.scaleAdd(src, float(c), out, dst=out)
-                if out is None:
-                    out = np.zeros(self.shape, np.float32)
-                slopes.append(out)
-            slope_x, slope_y = slopes
+                if first:
+                    out.fill(0.0)
+
+            _run_pair(self.shape, lambda: combine(coef[0], slope_x), lambda: combine(coef[1], slope_y))
         if invalid is not None:
             for a in (disp, height, slope_x, slope_y):
                 np.copyto(a, np.float32(np.nan), where=invalid)
