@@ -21,6 +21,8 @@ phase is unwrapped:
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import scipy.fft
 from scipy import ndimage
@@ -52,6 +54,19 @@ def has_wraps(phase, valid=None) -> bool:
     return bool(dr.max(initial=0.0) > np.pi or dc.max(initial=0.0) > np.pi)
 
 
+@functools.lru_cache(maxsize=8)
+def _inverse_laplacian(rows, cols):
+    """1 / eigenvalues of the Neumann Laplacian in the DCT-II basis (0 for the constant mode)."""
+    i = np.arange(rows)[:, None]
+    j = np.arange(cols)[None, :]
+    denom = 4.0 - 2.0 * np.cos(np.pi * i / rows) - 2.0 * np.cos(np.pi * j / cols)
+    denom[0, 0] = 1.0
+    inv = 1.0 / denom
+    inv[0, 0] = 0.0
+    inv.setflags(write=False)
+    return inv
+
+
 def _unwrap_lsq_congruent(phase, valid):
     """Least-squares unwrapping rounded to the congruent solution, or None.
 
@@ -70,14 +85,11 @@ def _unwrap_lsq_congruent(phase, valid):
     rho[1:, :] -= dr
     rho[:, :-1] += dc
     rho[:, 1:] -= dc
-    rho_hat = scipy.fft.dctn(-rho, type=2, norm="ortho", workers=2)
-    i = np.arange(rows)[:, None]
-    j = np.arange(cols)[None, :]
-    denom = 4.0 - 2.0 * np.cos(np.pi * i / rows) - 2.0 * np.cos(np.pi * j / cols)
-    denom[0, 0] = 1.0
-    sol_hat = rho_hat / denom
-    sol_hat[0, 0] = 0.0
-    sol = scipy.fft.idctn(sol_hat, type=2, norm="ortho", workers=2)
+    workers = 2 if rows * cols > 300_000 else 1  # threads cost more than they save on small grids
+    rho = np.negative(rho, out=rho)
+    sol_hat = scipy.fft.dctn(rho, type=2, norm="ortho", workers=workers, overwrite_x=True)
+    sol_hat *= _inverse_laplacian(rows, cols)
+    sol = scipy.fft.idctn(sol_hat, type=2, norm="ortho", workers=workers, overwrite_x=True)
     out = phase + TWO_PI * np.round((sol - phase) / TWO_PI)
     if has_wraps(out, valid):
         return None
