@@ -344,6 +344,15 @@ class HeightSolver:
             gr = (Bi[0, 0] / null_r).astype(np.float32)
             out["Mr"] = np.ascontiguousarray(op(self.shape[0], self.grid.dr) * gr.T)
             out["McT"] = np.ascontiguousarray(op(self.shape[1], self.grid.dc).T)
+
+            def dct_matrix(n):  # orthonormal DCT-II: X = C x
+                k = np.arange(n)[:, None]
+                c = np.sqrt(2.0 / n) * np.cos(np.pi * k * (2 * np.arange(n)[None, :] + 1) / (2 * n))
+                c[0] /= np.sqrt(2.0)
+                return c.astype(np.float32)
+            cr, cc = dct_matrix(self.shape[0]), dct_matrix(self.shape[1])
+            out["Cr"], out["CrT"] = cr, np.ascontiguousarray(cr.T)
+            out["Cc"], out["CcT"] = cc, np.ascontiguousarray(cc.T)
         return dict(
             **out,
             gr=(Bi[0, 0] / null_r).astype(np.float32),  # (n_rows, 1)
@@ -397,10 +406,15 @@ class HeightSolver:
             # D^T of the cell averages of g / n, in the order (row edges, column edges)
             self._divT_cellavg(ur * F["gr"], 0, self.grid.dr, rhs)
             self._divT_cellavg(uc * F["gc"], 1, self.grid.dc, rhs)
-        w = _workers(self.shape)
-        c = sfft.dctn(rhs, type=2, norm="ortho", workers=w, overwrite_x=True)
-        c *= F["inv_denom"]  # 0 for the constant mode
-        f = sfft.idctn(c, type=2, norm="ortho", workers=w, overwrite_x=True)
+        if "Cr" in F:  # small grid: the DCT pair as four small matrix products
+            c = F["Cr"] @ rhs @ F["CcT"]
+            c *= F["inv_denom"]  # 0 for the constant mode
+            f = F["CrT"] @ c @ F["Cc"]
+        else:
+            w = _workers(self.shape)
+            c = sfft.dctn(rhs, type=2, norm="ortho", workers=w, overwrite_x=True)
+            c *= F["inv_denom"]  # 0 for the constant mode
+            f = sfft.idctn(c, type=2, norm="ortho", workers=w, overwrite_x=True)
         # pin: h = (f - alpha) n with alpha the n^2-weighted mean of f on the reference samples
         alpha = float(np.vdot(F["w"], f * F["null"])) / F["nn"] if F["nn"] > 0 else 0.0
         f -= np.float32(alpha)
