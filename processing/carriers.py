@@ -365,6 +365,13 @@ def find_carriers(reference, *, min_period_px: float = 2.5, max_period_px: float
     """
     img = _as_float_image(reference, "reference image")
     rows, cols = img.shape
+    level = float(np.mean(np.abs(img)))
+    spread = float(np.std(img))
+    if spread <= 1e-3 * max(level, 1e-30) or spread == 0.0:
+        raise NoCarrierError(
+            f"the image is uniform (standard deviation {spread:.3g} around a mean of {level:.3g}): "
+            "no pattern, hence no carrier peak, is visible; check that the checkerboard is lit, in view and that the "
+            "exposure is not zero or saturated")
     if max_period_px is None:
         max_period_px = min(rows, cols) / 4.0
     spec_c, fr, fc = _spectrum(img)
@@ -419,9 +426,11 @@ def find_carriers(reference, *, min_period_px: float = 2.5, max_period_px: float
 
     r1, c1, contrast1 = best_peak(excess)
     if not np.isfinite(contrast1) or contrast1 < min_contrast:
-        what = (f"stands {contrast1:.1f}x above the background, need {min_contrast:.0f}x"
-                if contrast1 >= 0 else f"a candidate {-contrast1:.1f}x above the background "
-                "is a streak or smear, not an isolated peak")
+        if contrast1 >= 0 or -contrast1 < min_contrast:
+            what = f"the strongest stands {abs(contrast1):.1f}x above the background, need {min_contrast:.0f}x"
+        else:
+            what = (f"a candidate {-contrast1:.1f}x above the background is a streak or smear, "
+                    "not an isolated peak")
         raise NoCarrierError(
             f"the image shows no clear carrier peak ({what}): check that the "
             "checkerboard is in focus, lit, fills the view and that this is the pattern image")
