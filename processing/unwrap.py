@@ -8,8 +8,12 @@ phase is unwrapped:
 - in space: :func:`unwrap_spatial`: least squares of the wrapped phase
   differences (DCT Poisson solve, Ghiglia & Romero 1994) rounded to the
   congruent 2 pi multiple, accepted only if every valid neighbour pair then
-  differs by less than pi; otherwise reliability-sorted path following of
-  scikit-image (Herraez et al. 2002) with the invalid samples masked out;
+  differs by less than pi; otherwise the few inconsistent spots (residues
+  next to masked samples) are cut out with a margin, path-followed there
+  and re-anchored on the least-squares result, accepted under the same
+  test; only if that fails, reliability-sorted path following of
+  scikit-image (Herraez et al. 2002) over the whole map with the invalid
+  samples masked out;
   the result is shifted by the multiple of 2 pi that puts the reference
   region's median phase nearest to 0;
 - in time: :func:`unwrap_temporal` adds the wrapped change since the
@@ -67,14 +71,9 @@ def _inverse_laplacian(rows, cols):
     return inv
 
 
-def _unwrap_lsq_congruent(phase, valid):
-    """Least-squares unwrapping rounded to the congruent solution, or None.
-
-    Differences across invalid samples are dropped (set to 0).  The result is
-    ``phase + 2 pi k`` with integer k everywhere, and is returned only if no
-    pair of valid neighbours then differs by pi or more (a residue-free,
-    consistent unwrapping); None tells the caller to use path following.
-    """
+def _lsq_rounded(phase, valid):
+    """Least-squares unwrapping (differences across invalid samples dropped)
+    rounded to the congruent ``phase + 2 pi k``, unchecked."""
     dr = wrap(np.diff(phase, axis=0))
     dc = wrap(np.diff(phase, axis=1))
     dr[~(valid[1:, :] & valid[:-1, :])] = 0.0
@@ -90,11 +89,91 @@ def _unwrap_lsq_congruent(phase, valid):
     sol_hat = scipy.fft.dctn(rho, type=2, norm="ortho", workers=workers, overwrite_x=True)
     sol_hat *= _inverse_laplacian(rows, cols)
     sol = scipy.fft.idctn(sol_hat, type=2, norm="ortho", workers=workers, overwrite_x=True)
-    out = phase + TWO_PI * np.round((sol - phase) / TWO_PI)
+    return phase + TWO_PI * np.round((sol - phase) / TWO_PI)
+
+
+def _unwrap_lsq_congruent(phase, valid):
+    """Least-squares unwrapping rounded to the congruent solution, or None.
+
+    Differences across invalid samples are dropped (set to 0).  The result is
+    ``phase + 2 pi k`` with integer k everywhere, and is returned only if no
+    pair of valid neighbours then differs by pi or more (a residue-free,
+    consistent unwrapping); None tells the caller to repair or path-follow.
+    """
+    out = _lsq_rounded(phase, valid)
     if has_wraps(out, valid):
         return None
     # one connected region: consistent.  Several: each got its own offset from
     # the smooth solution, which _align_components then resets.
+    return out
+
+
+_REPAIR_MARGIN = 6        # samples of context around an inconsistent spot
+_REPAIR_MAX_FRACTION = 0.25  # beyond this, path following over the whole map
+
+
+def _unwrap_local_repair(phase, valid, rough=None):
+    """Least-squares unwrapping repaired by path following near its
+    inconsistencies, or None.
+
+    The rounded least-squares solution is usually right except close to
+    masked spots surrounded by residues (dropped differences bias the smooth
+    solution there).  Each cluster of valid neighbour pairs that differ by
+    pi or more is cut out with a margin, unwrapped by path following on its
+    own (scikit-image, invalid samples masked) and shifted, per connected
+    piece, by the 2 pi multiple that matches the least-squares result on the
+    piece's samples away from the inconsistency.  The repaired map is
+    returned only if no pair of valid neighbours anywhere then differs by pi
+    or more: a consistent unwrapping, which is unique up to 2 pi per
+    connected region, i.e. what path following over the whole map gives
+    when it succeeds.  None otherwise (the caller falls back to it).
+    """
+    rows, cols = phase.shape
+    if rough is None:
+        rough = _lsq_rounded(phase, valid)
+    bad_r = (np.abs(np.diff(rough, axis=0)) >= np.pi) & valid[1:, :] & valid[:-1, :]
+    bad_c = (np.abs(np.diff(rough, axis=1)) >= np.pi) & valid[:, 1:] & valid[:, :-1]
+    bad = np.zeros(phase.shape, dtype=bool)
+    bad[1:, :] |= bad_r
+    bad[:-1, :] |= bad_r
+    bad[:, 1:] |= bad_c
+    bad[:, :-1] |= bad_c
+    if not bad.any():
+        return rough
+    # invalid samples next to a bad pair belong to the same spot
+    zone = ndimage.binary_dilation(bad, iterations=2) & ~valid | bad
+    zone = ndimage.binary_dilation(zone, structure=np.ones((3, 3), bool), iterations=_REPAIR_MARGIN // 2)
+    labels, n = ndimage.label(zone, structure=np.ones((3, 3), bool))
+    out = rough.copy()
+    covered = 0
+    m = _REPAIR_MARGIN
+    for sl in ndimage.find_objects(labels):
+        r0 = max(sl[0].start - m, 0)
+        r1 = min(sl[0].stop + m, rows)
+        c0 = max(sl[1].start - m, 0)
+        c1 = min(sl[1].stop + m, cols)
+        covered += (r1 - r0) * (c1 - c0)
+        if covered > _REPAIR_MAX_FRACTION * rows * cols:
+            return None
+        box = (slice(r0, r1), slice(c0, c1))
+        v = valid[box]
+        if v.all():
+            patch = unwrap_phase(phase[box])
+        else:
+            patch = unwrap_phase(np.ma.masked_array(phase[box], mask=~v)).filled(0.0)
+        # anchor each piece of the box on the least-squares result away from the spot
+        anchor = v & ~zone[box]
+        plab, pn = ndimage.label(v)
+        target = out[box]
+        for k in range(1, pn + 1):
+            piece = plab == k
+            sel = piece & anchor
+            if not sel.any():
+                continue  # no anchor: keep the least-squares values (the check below decides)
+            shift = TWO_PI * np.round(np.median(target[sel] - patch[sel]) / TWO_PI)
+            target[piece] = patch[piece] + shift
+    if has_wraps(out, valid):
+        return None
     return out
 
 
@@ -152,7 +231,11 @@ def unwrap_spatial(phase, valid=None, *, ref_mask=None) -> np.ndarray:
         return np.full(phase.shape, np.nan)
     work = np.where(valid, phase, 0.0)
     if has_wraps(work, valid):
-        out = _unwrap_lsq_congruent(work, valid)
+        out = _lsq_rounded(work, valid)
+        if has_wraps(out, valid):
+            out = _unwrap_local_repair(work, valid, out)
+        # one connected region: consistent.  Several: each got its own offset
+        # from the smooth solution, which _align_components then resets.
         if out is None:
             if valid.all():
                 out = unwrap_phase(work)

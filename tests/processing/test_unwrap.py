@@ -62,3 +62,29 @@ def test_temporal_new_valid_samples_join_consistently():
     prev = np.where(prev_valid, true * 0.95, np.nan)
     out = unwrap_temporal(wrap(true), prev, None, prev_valid, ref_mask=border())
     np.testing.assert_allclose(out, true, atol=1e-9)
+
+
+def test_spatial_repairs_residues_next_to_a_masked_spot_locally():
+    """A masked spot holding a pair of phase singularities on the flank of a
+    steep bowl: least squares with the dropped differences is inconsistent
+    near the spot; the local path-following repair must be used and give the
+    phase exactly (up to 2 pi) everywhere outside the spot."""
+    from processing import unwrap as U
+
+    n = 120
+    y, x = np.mgrid[0:n, 0:n].astype(float)
+    bowl = 30.0 * np.exp(-((y - 60) ** 2 + (x - 60) ** 2) / 40.0 ** 2)
+    cy, cx = 60, 35
+    spot = (y - cy) ** 2 + (x - cx) ** 2 <= 4.0 ** 2
+    truth = bowl + np.arctan2(y - cy, x - cx - 2) - np.arctan2(y - cy, x - cx + 2)
+    rng = np.random.default_rng(1)
+    wrapped = wrap(np.where(spot, rng.uniform(-np.pi, np.pi, (n, n)), truth))
+    valid = ~spot
+    work = np.where(valid, wrapped, 0.0)
+    assert has_wraps(U._lsq_rounded(work, valid), valid)  # the plain LSQ result fails
+    assert U._unwrap_local_repair(work, valid) is not None  # the local repair succeeds
+    out = unwrap_spatial(wrapped, valid)
+    assert np.all(np.isnan(out[spot]))
+    d = (out - truth)[valid]
+    assert np.ptp(d) < 1e-9
+    assert abs(d.mean() / (2 * np.pi) - round(d.mean() / (2 * np.pi))) < 1e-9
