@@ -13,14 +13,17 @@ phase is unwrapped:
   and re-anchored on the least-squares result, accepted under the same
   test; only if that fails, reliability-sorted path following of
   scikit-image (Herraez et al. 2002) over the whole map with the invalid
-  samples masked out;
+  samples masked out (the repair is also accepted when its only jumps are
+  sides of residues among valid samples, which no unwrapping removes);
   the result is shifted by the multiple of 2 pi that puts the reference
   region's median phase nearest to 0;
 - in time: :func:`unwrap_temporal` adds the wrapped change since the
   previous frame of a series (itself unwrapped spatially, which is trivial
   when frames come fast), so a phase that grew smoothly through several pi
   over a series comes out right even where space alone is ambiguous
-  (islands cut off by a masked region).
+  (islands cut off by a masked region); samples valid only in this frame
+  (a masked spot moved) are path-followed from their unwrapped neighbours
+  (up to 16 steps), and only those beyond reach from a spatial unwrapping.
 """
 
 from __future__ import annotations
@@ -172,9 +175,34 @@ def _unwrap_local_repair(phase, valid, rough=None):
                 continue  # no anchor: keep the least-squares values (the check below decides)
             shift = TWO_PI * np.round(np.median(target[sel] - patch[sel]) / TWO_PI)
             target[piece] = patch[piece] + shift
-    if has_wraps(out, valid):
+    if has_wraps(out, valid) and not _wraps_only_at_residues(phase, valid, out):
         return None
     return out
+
+
+def _wraps_only_at_residues(phase, valid, out):
+    """True if every pair of valid neighbours of ``out`` that differs by more
+    than pi is a side of a residue: a 2 x 2 cell of valid samples whose
+    wrapped differences do not sum to 0.  No unwrapping removes those (the
+    data are inconsistent around the cell); whole-map path following cannot
+    do better than a jump on one of its sides."""
+    vr = valid[1:, :] & valid[:-1, :]
+    vc = valid[:, 1:] & valid[:, :-1]
+    jr = (np.abs(np.diff(out, axis=0)) > np.pi) & vr
+    jc = (np.abs(np.diff(out, axis=1)) > np.pi) & vc
+    dr = wrap(np.diff(phase, axis=0))
+    dc = wrap(np.diff(phase, axis=1))
+    circ = dr[:, :-1] + dc[1:, :] - dr[:, 1:] - dc[:-1, :]
+    res = (np.abs(circ) > np.pi) & vr[:, :-1] & vr[:, 1:]
+    # row pair (i, j)-(i+1, j) borders cells (i, j-1) and (i, j); column pair
+    # (i, j)-(i, j+1) borders cells (i-1, j) and (i, j)
+    near_r = np.zeros(jr.shape, dtype=bool)
+    near_r[:, :-1] |= res
+    near_r[:, 1:] |= res
+    near_c = np.zeros(jc.shape, dtype=bool)
+    near_c[:-1, :] |= res
+    near_c[1:, :] |= res
+    return not (np.any(jr & ~near_r) or np.any(jc & ~near_c))
 
 
 def _align_components(phase, valid, ref_mask):
@@ -247,6 +275,56 @@ def unwrap_spatial(phase, valid=None, *, ref_mask=None) -> np.ndarray:
     return np.where(valid, out, np.nan)
 
 
+_GROW_STEPS = 16  # samples newly valid within this many steps of the common ones are grown into
+
+
+def _grow_into(out, phase, known, todo):
+    """Unwrap the samples ``todo`` from their already unwrapped neighbours.
+
+    Each step gives every ``todo`` sample with a ``known`` 4-neighbour the
+    mean of ``neighbour + wrap(phase - neighbour)`` over those neighbours
+    (path following from the temporally unwrapped samples into the ones
+    valid only in this frame: usually a thin seam where a masked spot
+    moved).  Writes into ``out`` and returns what is still to do after
+    ``_GROW_STEPS`` steps, which the caller unwraps in space.  Works on the
+    ``todo`` samples only (a few hundred), not on the whole map.
+    """
+    rows, cols = out.shape
+    flat_out = out.reshape(-1)
+    flat_phase = phase.reshape(-1)
+    known = known.reshape(-1).copy()
+    idx = np.flatnonzero(todo)
+    r, c = np.divmod(idx, cols)
+    neighbours = []
+    for ok, off in ((r > 0, -cols), (r < rows - 1, cols), (c > 0, -1), (c < cols - 1, 1)):
+        neighbours.append((ok, np.where(ok, idx + off, idx)))
+    ph = flat_phase[idx]
+    for _ in range(_GROW_STEPS):
+        acc = np.zeros(idx.size)
+        cnt = np.zeros(idx.size)
+        for ok, nb in neighbours:
+            use = ok & known[nb]
+            v = flat_out[nb]
+            acc += np.where(use, v + wrap(ph - v), 0.0)
+            cnt += use
+        reach = cnt > 0
+        if not reach.any():
+            break
+        mean = acc[reach] / cnt[reach]
+        # neighbours normally agree; if not, the congruent value nearest their mean
+        flat_out[idx[reach]] = ph[reach] + TWO_PI * np.round((mean - ph[reach]) / TWO_PI)
+        known[idx[reach]] = True
+        keep = ~reach
+        if not keep.any():
+            idx = idx[keep]
+            break
+        idx, ph = idx[keep], ph[keep]
+        neighbours = [(ok[keep], nb[keep]) for ok, nb in neighbours]
+    left = np.zeros(out.shape, dtype=bool)
+    left.reshape(-1)[idx] = True
+    return left
+
+
 def unwrap_temporal(phase, previous, valid=None, previous_valid=None, *, ref_mask=None) -> np.ndarray:
     """Unwrap against the previous frame's unwrapped phase.
 
@@ -288,6 +366,8 @@ def unwrap_temporal(phase, previous, valid=None, previous_valid=None, *, ref_mas
         delta = unwrap_spatial(delta, both)  # each island's median change nearest 0
     out = prev0 + delta
     only_now = valid & ~both
+    if only_now.any():
+        only_now = _grow_into(out, np.where(valid, phase, 0.0), both, only_now)
     if only_now.any():
         spatial = unwrap_spatial(phase, valid, ref_mask=ref_mask)
         diff = out[both] - spatial[both]

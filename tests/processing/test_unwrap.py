@@ -88,3 +88,31 @@ def test_spatial_repairs_residues_next_to_a_masked_spot_locally():
     d = (out - truth)[valid]
     assert np.ptp(d) < 1e-9
     assert abs(d.mean() / (2 * np.pi) - round(d.mean() / (2 * np.pi))) < 1e-9
+
+
+def test_spatial_with_an_inherent_residue_matches_whole_map_path_following():
+    """A single phase singularity among valid samples: no unwrapping is
+    consistent; whatever path (local repair or whole map) is taken, the
+    result is the whole-map path-following one up to 2 pi per region."""
+    from skimage.restoration import unwrap_phase
+
+    n = 100
+    y, x = np.mgrid[0:n, 0:n].astype(float)
+    truth = 25.0 * np.exp(-((y - 50) ** 2 + (x - 50) ** 2) / 35.0 ** 2) + np.arctan2(y - 30.5, x - 70.5)
+    wrapped = wrap(truth)
+    valid = np.ones((n, n), bool)
+    valid[60:66, 20:26] = False
+    out = unwrap_spatial(wrapped, valid)
+    ref = unwrap_phase(np.ma.masked_array(np.where(valid, wrapped, 0.0), mask=~valid)).filled(0.0)
+    d = (out - ref)[valid]
+    assert np.ptp(d) < 1e-9
+
+
+def test_temporal_grows_into_newly_valid_samples_far_from_the_old_ones():
+    """Newly valid samples beyond the growth reach are unwrapped in space."""
+    true = bowl()
+    prev_valid = np.ones_like(true, bool)
+    prev_valid[20:70, 20:70] = False  # 25 samples deep: beyond _GROW_STEPS
+    prev = np.where(prev_valid, true * 0.97, np.nan)
+    out = unwrap_temporal(wrap(true), prev, None, prev_valid, ref_mask=border())
+    np.testing.assert_allclose(out, true, atol=1e-9)
