@@ -504,6 +504,11 @@ class HeightSolver:
         -------
         SurfaceResult
         """
+        return self._solve(displacement_px, valid, solver, self.tol)
+
+    def _solve(self, displacement_px, valid, solver, tol):
+        """:meth:`solve` with the conjugate-gradient tolerance given (the
+        Reconstructor's is tied to the noise of measured displacements)."""
         u = np.asarray(displacement_px)
         if u.ndim != 3 or u.shape[0] != 2 or u.shape[1:] != self.shape:
             raise ShapeMismatchError(
@@ -543,7 +548,7 @@ class HeightSolver:
             f = poisson_neumann(self._apply_AT(ec, er), self.denom)
             pieces, n_pieces = None, 1
         else:
-            f, iterations = self._solve_masked(gr, gc, v)
+            f, iterations = self._solve_masked(gr, gc, v, tol)
             pieces, n_pieces = ndimage.label(v)
         h = f * self.null
         v = self._pin(h, v, pieces, n_pieces)
@@ -596,12 +601,13 @@ class HeightSolver:
         v &= pinned[pieces]
         return v
 
-    def _solve_masked(self, gr, gc, v):
+    def _solve_masked(self, gr, gc, v, tol=None):
         """PCG on the weighted normal equations, preconditioned by the DCT Poisson solver.
 
         float32 arrays (float64 scalars); the warm start is the spectral
         solution of the unmasked problem.
         """
+        tol = self.tol if tol is None else float(tol)
         f32 = np.float32
         wc = (v[:, 1:] & v[:, :-1]).astype(f32)
         wr = (v[1:, :] & v[:-1, :]).astype(f32)
@@ -642,7 +648,7 @@ class HeightSolver:
         it = 0
         converged = False
         for it in range(1, self.max_iter + 1):
-            if math.sqrt(dot(r, r)) <= self.tol * bnorm:
+            if math.sqrt(dot(r, r)) <= tol * bnorm:
                 it -= 1
                 converged = True
                 break
@@ -659,7 +665,7 @@ class HeightSolver:
             p *= f32(rz_new / rz)
             p += z
             rz = rz_new
-        if not converged and math.sqrt(dot(r, r)) > 1e2 * self.tol * bnorm:
+        if not converged and math.sqrt(dot(r, r)) > 1e2 * tol * bnorm:
             raise TirdeflectError(
                 f"masked height solver did not converge in {self.max_iter} iterations "
                 f"(relative residual {math.sqrt(dot(r, r)) / bnorm:.1e}); "
