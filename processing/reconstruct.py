@@ -46,8 +46,8 @@ __all__ = ["Reconstructor", "Result"]
 
 _DEFAULT_ITERATIONS = {"decimated": 0, "full": 1}
 # Masked height solve (CG in float32): stop at a relative residual of 1e-4.
-# Against 1e-6 that moves heights by <= 3e-5 of the peak height on the app's
-# 1024^2 scene (measured: max 3.4e-5, rms 3e-6 relative), 30x below the best accuracy the method reaches on
+# Against 1e-6 that moves heights by at most 3.4e-5 of the peak (rms 3e-6)
+# on the app's 1024^2 scene (measured), 30x below the best accuracy the method reaches on
 # ray-traced frames (~0.1 % rms), and saves about a third of the iterations.
 _CG_TOL = 1e-4
 
