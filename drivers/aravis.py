@@ -132,19 +132,8 @@ class _AravisFeatures(Features):
         node = self.dev.get_feature(name)
         if node is None or not self.dev.is_feature_available(name):
             return None
-        if isinstance(node, A.GcEnumeration):
-            return "enum"
-        if isinstance(node, A.GcCommand):
-            return "command"
-        if isinstance(node, A.GcBoolean):
-            return "bool"
-        if isinstance(node, A.GcFloat):
-            return "float"
-        if isinstance(node, A.GcInteger):
-            return "int"
-        if isinstance(node, A.GcString):
-            return "string"
-        return None
+        return self.kind_of(node, (A.GcEnumeration, A.GcCommand, A.GcBoolean, A.GcFloat, A.GcInteger,
+                                   A.GcString))
 
     def get(self, name):
         k = self.kind(name)

@@ -73,6 +73,18 @@ class Features:
     def kind(self, name: str) -> Optional[str]:  # pragma: no cover - interface
         raise NotImplementedError
 
+    #: Node kinds in the order they are tested (an enumeration is also an integer
+    #: node in some bindings, so it comes first).
+    KINDS = ("enum", "command", "bool", "float", "int", "string")
+
+    @classmethod
+    def kind_of(cls, node, classes) -> Optional[str]:
+        """The kind of ``node`` given the binding's node classes, one per :attr:`KINDS` entry."""
+        for kind, node_class in zip(cls.KINDS, classes):
+            if isinstance(node, node_class):
+                return kind
+        return None
+
     def get(self, name: str):  # pragma: no cover - interface
         raise NotImplementedError
 

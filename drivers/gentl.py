@@ -193,19 +193,7 @@ class _GenApiFeatures(Features):
         g = self.g
         if n is None or not g.is_available(n):
             return None
-        if isinstance(n, g.IEnumeration):
-            return "enum"
-        if isinstance(n, g.ICommand):
-            return "command"
-        if isinstance(n, g.IBoolean):
-            return "bool"
-        if isinstance(n, g.IFloat):
-            return "float"
-        if isinstance(n, g.IInteger):
-            return "int"
-        if isinstance(n, g.IString):
-            return "string"
-        return None
+        return self.kind_of(n, (g.IEnumeration, g.ICommand, g.IBoolean, g.IFloat, g.IInteger, g.IString))
 
     def get(self, name):
         return self._node(name).value
