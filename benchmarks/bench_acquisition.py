@@ -9,7 +9,7 @@ Prints, all measured in this run:
 
 1. baseline: a plain ``np.copyto`` loop into a preallocated ring array (the
    memory-bandwidth ceiling of what any camera thread can do here);
-2. the synthetic camera at 1024x1024 Mono8 through :class:`app.acquisition.Acquisition`
+2. the synthetic camera at 1024x1024 Mono8 through :class:`app.capture.acquisition.Acquisition`
    into the ring: unpaced (``max_rate``: how fast the thread can go) and paced at
    rising frame rates, each checked for drops (camera frame-id gaps, i.e. the
    thread fell more than the camera's 16 buffers behind); the highest rate
@@ -37,9 +37,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from app.acquisition import Acquisition  # noqa: E402
-from app.recorder import Recorder, RecordingFile  # noqa: E402
-from app.ringbuffer import RingClosed  # noqa: E402
+from app.capture.acquisition import Acquisition  # noqa: E402
+from app.capture.recorder import Recorder, RecordingFile  # noqa: E402
+from app.capture.ringbuffer import RingClosed  # noqa: E402
 from drivers.synthetic import SyntheticCamera  # noqa: E402
 
 SHAPE = (1024, 1024)

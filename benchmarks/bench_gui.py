@@ -79,7 +79,7 @@ def measure_window(app, size, rate_hz, seconds, n_frames, nice=0):
     import numpy as np
 
     from app.gui.window import MainWindow
-    from app.scene import build_scene
+    from app.capture.scene import build_scene
     from drivers.synthetic import SyntheticCamera
 
     t = time.monotonic()

@@ -32,7 +32,7 @@ def main(argv=None) -> int:
 
     from app.cli import main as cli_main
     from processing import Geometry, Reconstructor, forward
-    from app.process_cli import DEFAULT_SIM_GEOMETRY, SIM_PATTERN_PERIOD_PX, _sim_scene
+    from app.batch.simulate import DEFAULT_SIM_GEOMETRY, SIM_PATTERN_PERIOD_PX, _sim_scene
 
     geometry = Geometry.from_dict(dict(DEFAULT_SIM_GEOMETRY))
     pattern = forward.Checkerboard(period_mm=SIM_PATTERN_PERIOD_PX * geometry.pixel_mm,

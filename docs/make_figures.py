@@ -175,7 +175,7 @@ def compose(reference, frame, height_mm, *, pixel_mm: float, caption: str,
 
 def process_needle(*, grid: str = "full"):
     """Process the needle pair; returns (reference, frame, result, seconds)."""
-    from app import imageio
+    from app.files import imageio
     from processing import Reconstructor
 
     reference = imageio.read_image(NEEDLE / "reference_2.png")

@@ -133,7 +133,7 @@ def child(size: int, out_dir: str) -> int:
     scene_camera = w.session.camera
     # Alignment is done on still water, before any reference exists: stream the scene's
     # flat-surface frame (with fresh read noise per frame) through a synthetic camera.
-    from app.scene import synthetic_reference
+    from app.capture.scene import synthetic_reference
     from drivers.synthetic import SyntheticCamera
     from processing.forward import quantize
 

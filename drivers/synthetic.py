@@ -1,7 +1,7 @@
 """A synthetic camera that streams images it is given, paced by a real-time clock.
 
 It knows nothing about optics: the caller hands it the frames (an array or a
-callable ``index -> image``); ``app/scene.py`` builds ray-traced ones from
+callable ``index -> image``); ``app/capture/scene.py`` builds ray-traced ones from
 ``processing.forward``. Without frames it shows a built-in moving checkerboard.
 
 It behaves like a GenICam camera where that matters to the acquisition code:

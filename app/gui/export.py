@@ -1,8 +1,7 @@
-"""Export heights of a recording from the Replay tab: runs ``tirdeflect process`` (P3's batch) in-process."""
+"""Export heights of a recording from the Replay tab through the batch engine (:mod:`app.batch`)."""
 
 from __future__ import annotations
 
-import argparse
 import os
 import tempfile
 from typing import Callable, Optional
@@ -37,8 +36,8 @@ def export_heights(recording_path: str, out_path: str, *, geometry_toml: Optiona
     str
         ``out_path``.
     """
-    from app import imageio
-    from app.process_cli import cmd_process
+    from app.batch import ProcessJob, run_process
+    from app.files import imageio
 
     total = imageio.frame_count(recording_path)
     if progress is not None:
@@ -55,10 +54,8 @@ def export_heights(recording_path: str, out_path: str, *, geometry_toml: Optiona
             geo_arg = os.path.join(tmp, "geometry.toml")
             with open(geo_arg, "w", encoding="utf-8") as fh:
                 fh.write(geometry_toml)
-        args = argparse.Namespace(reference=ref_arg, frames=[recording_path], geometry=geo_arg, out=out_path,
-                                  grid=grid, no_unwrap=False, first=0, last=None, step=1, overwrite=False,
-                                  compression="none", no_progress=True, on_progress=progress)
-        cmd_process(args)
+        run_process(ProcessJob(reference=ref_arg, frames=[recording_path], geometry=geo_arg, out=out_path,
+                               grid=grid, on_progress=progress))
     if progress is not None:
         progress(total, total)
     return out_path

@@ -44,7 +44,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     from .window import MainWindow
 
     app = pg.mkQApp("tirdeflect")
-    from app import cache
+    from app.files import cache
 
     try:  # FFTW plans measured in earlier sessions (a corrupt file is ignored with a warning)
         cache.restore_fftw_wisdom()

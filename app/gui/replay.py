@@ -14,7 +14,7 @@ __all__ = ["ReplayTab", "Recording"]
 
 
 class Recording:
-    """Read access to an HDF5 recording written by :mod:`app.recorder`.
+    """Read access to an HDF5 recording written by :mod:`app.capture.recorder`.
 
     Opened read-only; frames are read one at a time (recordings can exceed RAM).
     The reference image and geometry TOML stored in the file are used when present.

@@ -20,7 +20,7 @@ from typing import Optional
 
 import numpy as np
 
-from app.worker import ProcessingWorker
+from app.capture.worker import ProcessingWorker
 
 __all__ = ["LiveSession", "Opened"]
 
@@ -44,7 +44,7 @@ class LiveSession:
     Parameters
     ----------
     synthetic_options : dict, optional
-        Keyword arguments for :func:`app.scene.open_synthetic_camera`.
+        Keyword arguments for :func:`app.capture.scene.open_synthetic_camera`.
     ring_bytes : int
         Memory for the camera ring buffer (bytes); the pre-trigger length must fit.
     stall_timeout_s : float
@@ -68,7 +68,7 @@ class LiveSession:
         self._closed = False
         self.worker = ProcessingWorker(self._newest_frame, grid="decimated", nice=worker_nice)
         self.worker.start()
-        self.capture = None  # app.trigger capture (pre/post) while armed
+        self.capture = None  # app.capture.trigger capture (pre/post) while armed
         self.recording: Optional[dict] = None
         self._auto_trigger = None
 
@@ -92,7 +92,7 @@ class LiveSession:
             camera_id = real[0].camera_id if real else "synthetic"
         reference = geometry = None
         if camera_id == "synthetic":
-            from app.scene import open_synthetic_camera
+            from app.capture.scene import open_synthetic_camera
 
             camera, reference, geometry, _ = open_synthetic_camera(**self.synthetic_options)
         else:
@@ -122,7 +122,7 @@ class LiveSession:
         return Opened(self.camera_id, self._settings, [], "")
 
     def _restart_acquisition(self):
-        from app.acquisition import Acquisition
+        from app.capture.acquisition import Acquisition
 
         with self._lock:
             old = self.acquisition
@@ -267,9 +267,9 @@ class LiveSession:
         The camera keeps running (live view stays on); the recorder writes while
         capturing from its own ring cursor, so the display never slows it down.
         With ``auto_threshold`` (RMS slope), the processing worker's slope maps
-        trigger it (:class:`app.trigger.AutoTrigger`).
+        trigger it (:class:`app.capture.trigger.AutoTrigger`).
         """
-        from app.trigger import AutoTrigger, TriggeredCapture
+        from app.capture.trigger import AutoTrigger, TriggeredCapture
 
         acq = self.acquisition
         if acq is None or not acq.running:
@@ -342,7 +342,7 @@ class LiveSession:
         status, capture = self.recording, self.capture
         if status is None or capture is None:
             return status
-        from app.recorder import format_summary
+        from app.capture.recorder import format_summary
 
         rec = capture.recorder
         status["ring_lost"] = rec.lost_overrun

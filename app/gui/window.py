@@ -1,8 +1,8 @@
 """The main window: live maps, alignment, reference and geometry, trigger and recording, replay.
 
-Threads: the GUI thread only draws. The camera thread (``app.acquisition``) fills
-the ring buffer, the recorder (``app.recorder``) writes every frame from its own
-cursor, the processing worker (``app.worker``) takes the newest frame. The GUI
+Threads: the GUI thread only draws. The camera thread (``app.capture.acquisition``) fills
+the ring buffer, the recorder (``app.capture.recorder``) writes every frame from its own
+cursor, the processing worker (``app.capture.worker``) takes the newest frame. The GUI
 thread reads the newest published result from a single-shot timer re-armed
 after each draw (<= 60 Hz), so redraws never pile up and never wait on the
 camera or an FFT. Anything that can block (opening a camera, capturing a
@@ -89,14 +89,14 @@ class MainWindow(QtWidgets.QMainWindow):
         Camera to open at start ("synthetic", "aravis:...", "gentl:..."); None: the
         first camera found, the synthetic scene when none is.
     synthetic_options : dict, optional
-        Keyword arguments for :func:`app.scene.open_synthetic_camera` (shape, frame rate...).
+        Keyword arguments for :func:`app.capture.scene.open_synthetic_camera` (shape, frame rate...).
     open_at_start : bool
         Open the camera at start (tests may first set options).
     session_options : dict, optional
         Keyword arguments for :class:`app.gui.session.LiveSession` (ring_bytes, stall_timeout_s, worker_nice).
     planner_effort : str
         FFTW planner effort of the reconstructors (plans are built in the background and the
-        wisdom is kept on disk by ``app.cache``; tests use "FFTW_ESTIMATE").
+        wisdom is kept on disk by ``app.files.cache``; tests use "FFTW_ESTIMATE").
     """
 
     def __init__(self, camera_id: Optional[str] = None, *, synthetic_options: Optional[dict] = None,
@@ -475,7 +475,7 @@ class MainWindow(QtWidgets.QMainWindow):
             self.save_reference(path)
 
     def save_reference(self, path: str) -> None:
-        from app.imageio import write_image
+        from app.files.imageio import write_image
         image = self.reference
         if image.dtype.kind == "f":  # averaged: keep precision in a float TIFF
             import tifffile
@@ -494,7 +494,7 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def load_reference(self, path: str) -> None:
         try:
-            from app.imageio import read_reference
+            from app.files.imageio import read_reference
             image = read_reference(path)
         except Exception as exc:  # noqa: BLE001 - shown
             self.show_error(f"Cannot load reference {path!r}: {exc}")

@@ -5,8 +5,8 @@ import time
 import numpy as np
 import pytest
 
-from app.acquisition import Acquisition, AcquisitionError
-from app.ringbuffer import MemoryBudgetError, RingClosed
+from app.capture.acquisition import Acquisition, AcquisitionError
+from app.capture.ringbuffer import MemoryBudgetError, RingClosed
 from drivers.base import FrameFlags
 from drivers.synthetic import SyntheticCamera
 

@@ -11,7 +11,7 @@ import h5py
 import numpy as np
 import pytest
 
-from app import imageio
+from app.files import imageio
 from app.cli import main
 
 DATA = Path("/work/shared/data")
@@ -213,7 +213,7 @@ def test_disk_full_mid_batch_keeps_a_valid_file(sim, tmp_path):
 
     frames = [str(sim / "frame_0000.png")] * 12
     out = tmp_path / "out.h5"
-    from app.process_cli import RESERVE_BYTES
+    from app.batch.writer import RESERVE_BYTES
 
     # each frame adds about rows*cols*13 bytes (3 float32 maps + uint8 mask); room for ~4
     limit = 64 * 1024 + RESERVE_BYTES + int(4.5 * SIZE * SIZE * 13)

@@ -1,10 +1,10 @@
-"""app.cache: location, atomic writes, corrupt files ignored with a warning."""
+"""app.files.cache: location, atomic writes, corrupt files ignored with a warning."""
 
 import logging
 
 import pytest
 
-from app import cache
+from app.files import cache
 
 
 def test_env_override_and_xdg(tmp_path, monkeypatch):
@@ -38,7 +38,7 @@ def test_corrupt_wisdom_is_ignored_with_warning(tmp_path, monkeypatch, caplog, d
     else:
         data = bytearray(b"hello")
     path.write_bytes(bytes(data))
-    with caplog.at_level(logging.WARNING, logger="app.cache"):
+    with caplog.at_level(logging.WARNING, logger="app.files.cache"):
         assert cache.load_wisdom() is None
         assert cache.restore_fftw_wisdom() is False
     assert "FFTW wisdom" in caplog.text and "ignoring" in caplog.text
@@ -50,6 +50,6 @@ def test_settings_round_trip_and_corrupt(tmp_path, monkeypatch, caplog):
     cache.save_settings({"camera": "synthetic", "exposure_us": 500})
     assert cache.load_settings() == {"camera": "synthetic", "exposure_us": 500}
     cache.settings_path().write_text("{not json")
-    with caplog.at_level(logging.WARNING, logger="app.cache"):
+    with caplog.at_level(logging.WARNING, logger="app.files.cache"):
         assert cache.load_settings() == {}
     assert "corrupt" in caplog.text

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import tifffile
 
-from app import imageio
+from app.files import imageio
 from app.cli import main
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -180,7 +180,7 @@ def test_tiff_stack_with_first_last_step(sim, tmp_path, capsys):
                      "--first", 1, "--last", 4, "--step", 2, "--grid", "decimated",
                      "--fft-effort", "measure")
     assert code == 0, err
-    from app import cache
+    from app.files import cache
 
     assert cache.load_wisdom(), "measured FFTW plans were not saved to the cache"
     with h5py.File(out) as f:
@@ -245,7 +245,7 @@ def test_killed_run_leaves_completed_frames_readable(sim, tmp_path):
 
 def test_recording_in_geometry_and_reference_from_the_file(sim, tmp_path, capsys):
     """A recording made by the app's recorder: reference, geometry and frame table are used."""
-    from app.recorder import RecordingFile
+    from app.capture.recorder import RecordingFile
 
     frames = [imageio.read_image(p) for p in _frames(sim)]
     ref = imageio.read_image(sim / "reference.png")
@@ -284,17 +284,15 @@ def test_recording_in_geometry_and_reference_from_the_file(sim, tmp_path, capsys
 
 
 def test_progress_callback_for_python_callers(sim, tmp_path):
-    import argparse
-
-    from app.process_cli import cmd_process
+    from app.batch import ProcessJob, run_process
 
     calls = []
-    args = argparse.Namespace(
+    job = ProcessJob(
         reference=str(sim / "reference.png"), frames=_frames(sim), geometry=str(sim / "geometry.toml"),
-        out=str(tmp_path / "o.h5"), grid="decimated", no_unwrap=False, first=0, last=None, step=1,
-        overwrite=False, compression="none", no_progress=True,
+        out=str(tmp_path / "o.h5"), grid="decimated",
         on_progress=lambda done, total: calls.append((done, total)))
-    assert cmd_process(args) == 0
+    report = run_process(job)
+    assert report.frames_written == 2
     assert calls == [(1, 2), (2, 2)]
 
 

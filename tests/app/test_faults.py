@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 
 import drivers
-from app.acquisition import Acquisition
-from app.recorder import Recorder, format_summary
-from app.trigger import TriggeredCapture
+from app.capture.acquisition import Acquisition
+from app.capture.recorder import Recorder, format_summary
+from app.capture.trigger import TriggeredCapture
 from drivers.base import FrameFlags
 from drivers.synthetic import SyntheticCamera
 from tests.drivers.fixtures import gv_fake_camera  # noqa: F401  (pytest fixture)
@@ -81,8 +81,8 @@ signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # get EFBIG like ENOSPC instead o
 limit = int(sys.argv[2])
 resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
 from drivers.synthetic import SyntheticCamera
-from app.acquisition import Acquisition
-from app.recorder import Recorder
+from app.capture.acquisition import Acquisition
+from app.capture.recorder import Recorder
 frames = ((np.arange(97) * 2) % 256).astype(np.uint8)[:, None, None] * np.ones((1, 64, 64), np.uint8)
 cam = SyntheticCamera(frames, frame_rate_hz=2000).open()
 acq = Acquisition(cam, ring_frames=4096)
@@ -114,10 +114,10 @@ def test_disk_full_mid_recording(tmp_path, monkeypatch, reserve):
     open, valid up to ``frames_written``. Needs root to mount; without it the next test covers the
     path with RLIMIT_FSIZE.
     """
-    import app.recorder
+    import app.capture.recorder
 
     if not reserve:
-        monkeypatch.setattr(app.recorder, "RESERVE_BYTES", -(1 << 40))
+        monkeypatch.setattr(app.capture.recorder, "RESERVE_BYTES", -(1 << 40))
     mnt = tmp_path / "small_disk"
     mnt.mkdir()
     if not _try_tmpfs(mnt, 32 * 1024 * 1024):

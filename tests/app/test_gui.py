@@ -24,7 +24,7 @@ BUMP_SIGMA_MM = 3.0
 @pytest.fixture(scope="module")
 def scene():
     """Flat and bumped frames of one geometry, and the true height map (mm)."""
-    from app.scene import default_geometry
+    from app.capture.scene import default_geometry
     from processing import forward
 
     geometry = default_geometry(SHAPE)

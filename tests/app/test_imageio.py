@@ -1,4 +1,4 @@
-"""app.imageio: every supported input format reads back the exact samples written."""
+"""app.files.imageio: every supported input format reads back the exact samples written."""
 
 from pathlib import Path
 
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import tifffile
 
-from app import imageio
-from app.imageio import ImageReadError
+from app.files import imageio
+from app.files.imageio import ImageReadError
 
 DATA = Path("/work/shared/data")
 if not DATA.is_dir():  # a checkout elsewhere: the data sit beside the repository

@@ -1,4 +1,4 @@
-"""``tirdeflect cameras`` / ``tirdeflect record`` through their functions (what app/cli.py calls)."""
+"""``tirdeflect cameras`` / ``tirdeflect record`` through their functions (what app/cli/main.py calls)."""
 
 import argparse
 
@@ -6,7 +6,7 @@ import h5py
 import numpy as np
 import pytest
 
-from app import record_cli
+from app.cli import record as record_cli
 from drivers.base import FrameFlags
 from tests.drivers.fixtures import gv_fake_camera, viky_cti  # noqa: F401  (pytest fixtures)
 

@@ -13,8 +13,8 @@ import h5py
 import numpy as np
 import pytest
 
-from app.acquisition import Acquisition
-from app.recorder import (
+from app.capture.acquisition import Acquisition
+from app.capture.recorder import (
     DiskSpaceError,
     Recorder,
     RecorderError,
@@ -108,8 +108,8 @@ _KILL_CHILD = r"""
 import sys, numpy as np
 sys.path.insert(0, sys.argv[2])
 from drivers.synthetic import SyntheticCamera
-from app.acquisition import Acquisition
-from app.recorder import Recorder
+from app.capture.acquisition import Acquisition
+from app.capture.recorder import Recorder
 frames = (np.arange(97) * 2).astype(np.uint8)[:, None, None] * np.ones((1, 64, 64), np.uint8)
 cam = SyntheticCamera(frames, frame_rate_hz=1000).open()
 acq = Acquisition(cam, ring_frames=512)
@@ -181,7 +181,7 @@ def test_files_larger_than_2_gb(tmp_path):
 
 
 def test_fat32_file_size_limit_is_known_up_front():
-    from app.recorder import filesystem_type
+    from app.capture.recorder import filesystem_type
 
     mounts = ("/dev/vda / ext4 rw 0 0\n/dev/sdb1 /media/usb\\040stick vfat rw 0 0\n"
               "tmpfs /media/usb\\040stick/tmp tmpfs rw 0 0\n")
@@ -191,17 +191,17 @@ def test_fat32_file_size_limit_is_known_up_front():
 
 
 def test_recording_larger_than_the_file_system_allows_is_refused(tmp_path, monkeypatch):
-    import app.recorder
+    import app.capture.recorder
 
     # the folder behaves as if it were on a FAT32 stick (4 GiB per file at most)
-    monkeypatch.setattr(app.recorder, "max_file_bytes", lambda path: 2**32 - 1)
+    monkeypatch.setattr(app.capture.recorder, "max_file_bytes", lambda path: 2**32 - 1)
     with pytest.raises(DiskSpaceError, match=r"are free under the file system's largest file \(4\.29 GB\)"):
         RecordingFile(tmp_path / "fat.h5", shape=(1024, 1024), dtype=np.uint16, n_frames=2100, check_space=True)
     # and while recording, growth stops before the limit with the file closed properly
-    monkeypatch.setattr(app.recorder, "max_file_bytes", lambda path: 6 * 1024 * 1024)
+    monkeypatch.setattr(app.capture.recorder, "max_file_bytes", lambda path: 6 * 1024 * 1024)
     rf = RecordingFile(tmp_path / "fat2.h5", shape=(64, 64), dtype=np.uint8, check_space=False)
     img = np.ones((64, 64), np.uint8)
-    with pytest.raises(app.recorder.DiskFullError, match="file system's largest file .* full"):
+    with pytest.raises(app.capture.recorder.DiskFullError, match="file system's largest file .* full"):
         for i in range(10_000):
             rf.write(img, (i, i, i, i, 0, i))
     n = rf.n_written

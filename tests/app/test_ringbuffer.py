@@ -6,7 +6,7 @@ import time
 import numpy as np
 import pytest
 
-from app.ringbuffer import MemoryBudgetError, RingBuffer, RingClosed, check_memory
+from app.capture.ringbuffer import MemoryBudgetError, RingBuffer, RingClosed, check_memory
 from drivers.base import FrameFlags
 
 

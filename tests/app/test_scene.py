@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from app.scene import EvolvingScene, open_synthetic_camera
+from app.capture.scene import EvolvingScene, open_synthetic_camera
 
 
 def test_scene_camera_streams_the_rendered_frames_and_the_dimple_deepens():

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 import drivers
-from app.acquisition import Acquisition
-from app.trigger import AutoTrigger, TriggerError, TriggeredCapture, configure_trigger, frames_for_seconds
+from app.capture.acquisition import Acquisition
+from app.capture.trigger import AutoTrigger, TriggerError, TriggeredCapture, configure_trigger, frames_for_seconds
 from drivers.base import FrameFlags
 from drivers.synthetic import SyntheticCamera
 from tests.drivers.fixtures import gv_fake_camera  # noqa: F401  (pytest fixture)

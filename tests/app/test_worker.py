@@ -7,8 +7,8 @@ import time
 import numpy as np
 import pytest
 
-from app.acquisition import Acquisition
-from app.worker import ProcessingWorker, ring_source, saturation_percent
+from app.capture.acquisition import Acquisition
+from app.capture.worker import ProcessingWorker, ring_source, saturation_percent
 from drivers.synthetic import SyntheticCamera
 
 SHAPE = (128, 128)
@@ -16,7 +16,7 @@ SHAPE = (128, 128)
 
 @pytest.fixture(scope="module")
 def scene():
-    from app.scene import open_synthetic_camera
+    from app.capture.scene import open_synthetic_camera
 
     cam, reference, geometry, heights = open_synthetic_camera(shape=SHAPE, n_frames=6, frame_rate_hz=200.0)
     cam.close()

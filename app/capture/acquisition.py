@@ -1,7 +1,7 @@
 """The camera thread: camera -> preallocated ring buffer, with honest counters.
 
 :class:`Acquisition` owns one thread that fetches frames from a
-:class:`drivers.base.Camera`, copies each one into a :class:`~app.ringbuffer.RingBuffer`
+:class:`drivers.base.Camera`, copies each one into a :class:`~app.capture.ringbuffer.RingBuffer`
 slot with its metadata, and releases the driver's buffer at once. It never
 blocks on a consumer: consumers read the ring at their own pace (the recorder
 every frame through a cursor, the processing worker the newest frame only).

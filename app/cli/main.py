@@ -24,32 +24,13 @@ import logging
 import sys
 import traceback
 
+from app import version
+
 __all__ = ["main", "build_parser", "version"]
 
 PROG = "tirdeflect"
 EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130
-
-
-def version() -> str:
-    """The installed tirdeflect version, or the source tree's pyproject version."""
-    try:
-        from importlib.metadata import PackageNotFoundError, version as _v
-
-        try:
-            return _v("tirdeflect")
-        except PackageNotFoundError:
-            pass
-    except ImportError:  # pragma: no cover
-        pass
-    try:
-        import tomllib
-        from pathlib import Path
-
-        data = tomllib.loads((Path(__file__).resolve().parent.parent / "pyproject.toml").read_text())
-        return str(data["project"]["version"])
-    except Exception:
-        return "unknown"
 
 
 def _add_gui(sub) -> None:
@@ -88,9 +69,9 @@ def _split_gui(argv):
 
 
 def _add_record_commands(sub) -> None:
-    """Delegate `cameras` and `record` to app.record_cli when it exists."""
+    """Delegate `cameras` and `record` to app.cli.record when it exists."""
     try:
-        from app import record_cli
+        from app.cli import record as record_cli
     except ImportError as exc:
         reason = str(exc)
 
@@ -115,7 +96,7 @@ class _AppUnavailable(RuntimeError):
 
 def build_parser() -> argparse.ArgumentParser:
     """The full argument parser (subcommands included)."""
-    from app import process_cli
+    from app.cli import process as process_cli
 
     parser = argparse.ArgumentParser(
         prog=PROG,

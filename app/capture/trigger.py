@@ -204,7 +204,7 @@ class AutoTrigger:
 
 
 class TriggeredCapture:
-    """Pre/post-trigger recording from an :class:`~app.acquisition.Acquisition` into an HDF5 file.
+    """Pre/post-trigger recording from an :class:`~app.capture.acquisition.Acquisition` into an HDF5 file.
 
     Parameters
     ----------
@@ -229,7 +229,7 @@ class TriggeredCapture:
     progress : callable, optional
         ``progress(frames_written, frames_planned)``.
     **file_options
-        Passed to :class:`~app.recorder.RecordingFile` (geometry_toml,
+        Passed to :class:`~app.capture.recorder.RecordingFile` (geometry_toml,
         reference_image, check_space, on_exists, attrs).
 
     Publishes ``state`` ("armed", "triggered", "done", "error"), ``trigger_sequence``,

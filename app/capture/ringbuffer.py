@@ -1,6 +1,6 @@
 """Preallocated ring buffer of camera frames with per-frame metadata.
 
-One writer (the camera thread, :class:`app.acquisition.Acquisition`) and two
+One writer (the camera thread, :class:`app.capture.acquisition.Acquisition`) and two
 kinds of consumer, each with its own queue policy:
 
 * **newest only** -- :meth:`RingBuffer.latest` hands out the most recent frame

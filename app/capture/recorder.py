@@ -8,7 +8,7 @@ Layout of the file: ``docs/recording-format.md``. Two levels:
   keeps the frame table, flushes, writes the summary, and never overwrites an
   existing file.
 * :class:`Recorder` -- a writer thread that reads the ring buffer through a
-  :class:`~app.ringbuffer.RingCursor` (its bounded, lossless queue: it
+  :class:`~app.capture.ringbuffer.RingCursor` (its bounded, lossless queue: it
   never drops a frame itself; when it falls behind, the backlog is logged
   loudly, and if the camera laps it the lost frames are counted exactly and
   flagged on the next frame) and writes a :class:`RecordingFile`.
@@ -160,23 +160,10 @@ def _repair_eof(path: Path) -> bool:
 
 
 def software_version() -> str:
-    """tirdeflect's version (installed metadata, else pyproject.toml of this tree)."""
-    try:
-        from importlib.metadata import PackageNotFoundError, version
+    """tirdeflect's version (see :func:`app.version`)."""
+    from app import version
 
-        try:
-            return version("tirdeflect")
-        except PackageNotFoundError:
-            pass
-    except ImportError:  # pragma: no cover
-        pass
-    try:
-        import tomllib
-
-        text = (Path(__file__).resolve().parent.parent / "pyproject.toml").read_text()
-        return str(tomllib.loads(text)["project"]["version"]) + "+source"
-    except Exception:  # pragma: no cover
-        return "unknown"
+    return version()
 
 
 def unique_path(path) -> Path:

@@ -1,8 +1,8 @@
 """``tirdeflect cameras`` and ``tirdeflect record``: headless listing and recording.
 
-``app/cli.py`` builds the parsers with :func:`add_cameras_arguments` /
+``app/cli/main.py`` builds the parsers with :func:`add_cameras_arguments` /
 :func:`add_record_arguments` and calls :func:`cmd_cameras` / :func:`cmd_record`.
-Also runnable alone: ``python3 -m app.record_cli record --camera synthetic --frames 100 --out x.h5``.
+Also runnable alone: ``python3 -m app.cli.record record --camera synthetic --frames 100 --out x.h5``.
 
 Exit codes of ``record``: 0 every planned frame is in the file; 1 the file
 was written but frames are missing (camera frame-id gaps or ring overruns;
@@ -71,7 +71,7 @@ def _region(text: str):
 
 def add_record_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``tirdeflect record``."""
-    from .trigger import TRIGGER_SOURCES
+    from app.capture.trigger import TRIGGER_SOURCES
 
     p = parser
     p.add_argument("--camera", default="synthetic",
@@ -147,7 +147,7 @@ def _open_camera(args):
 
     if args.camera == "synthetic":
         try:
-            from .scene import open_synthetic_camera
+            from app.capture.scene import open_synthetic_camera
 
             size = int(args.synthetic_size)
             rate = args.frame_rate_hz or 100.0
@@ -207,10 +207,10 @@ def cmd_record(args) -> int:
     """Record headless; print the drop summary. Returns the exit code (see module docstring)."""
     from drivers.base import CameraError
 
-    from .acquisition import Acquisition, AcquisitionError
-    from .recorder import Recorder, RecorderError, format_summary
-    from .ringbuffer import MemoryBudgetError, RingBuffer, available_memory_bytes
-    from .trigger import AutoTrigger, TriggerError, TriggeredCapture, configure_trigger
+    from app.capture.acquisition import Acquisition, AcquisitionError
+    from app.capture.recorder import Recorder, RecorderError, format_summary
+    from app.capture.ringbuffer import MemoryBudgetError, RingBuffer, available_memory_bytes
+    from app.capture.trigger import AutoTrigger, TriggerError, TriggeredCapture, configure_trigger
 
     prog = "tirdeflect record"
     cam = acq = rec = None
@@ -219,7 +219,7 @@ def cmd_record(args) -> int:
         mode = _plan(args)
         out = Path(args.out)
         if out.exists() and args.auto_name:
-            from .recorder import unique_path
+            from app.capture.recorder import unique_path
 
             out = unique_path(out)
         elif out.exists():
@@ -228,7 +228,7 @@ def cmd_record(args) -> int:
         geometry_toml = Path(args.geometry).read_text() if args.geometry else None
         reference = None
         if args.reference:
-            from .imageio import read_image
+            from app.files.imageio import read_image
 
             reference = read_image(args.reference)
         cam, scene_ref, scene_geom = _open_camera(args)
@@ -243,7 +243,7 @@ def cmd_record(args) -> int:
         rate = settings.frame_rate_hz or args.frame_rate_hz
         if trig == "genicam" and not rate:
             raise _UsageError("--trigger genicam needs --frame-rate-hz (how often to send TriggerSoftware)")
-        from .trigger import frames_for_seconds
+        from app.capture.trigger import frames_for_seconds
 
         if mode == "frames":
             pre, post = 0, int(args.frames)
@@ -252,7 +252,7 @@ def cmd_record(args) -> int:
             post = (frames_for_seconds(args.post_s, rate, "--post-s") if args.post_s is not None else int(args.post))
         total = pre + post
         shape = (settings.height, settings.width)
-        from .acquisition import dtype_for_bit_depth
+        from app.capture.acquisition import dtype_for_bit_depth
 
         dtype = dtype_for_bit_depth(settings.bit_depth)
         if args.ring_frames:
@@ -363,7 +363,7 @@ def cmd_record(args) -> int:
 
 def _run_auto(args, acq, cap, geometry_toml, reference, AutoTrigger, t0):
     """Feed the auto-trigger with slope maps of the newest frames until it fires (main thread)."""
-    from .trigger import TriggerError
+    from app.capture.trigger import TriggerError
 
     if geometry_toml is None:
         raise TriggerError("--trigger auto needs --geometry FILE.toml (slopes need the optics)")
@@ -398,7 +398,7 @@ def _run_auto(args, acq, cap, geometry_toml, reference, AutoTrigger, t0):
 
 
 def main(argv: Optional[list] = None) -> int:
-    """Stand-alone entry: ``python3 -m app.record_cli cameras|record ...``."""
+    """Stand-alone entry: ``python3 -m app.cli.record cameras|record ...``."""
     parser = argparse.ArgumentParser(prog="tirdeflect")
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("cameras", help="list cameras")

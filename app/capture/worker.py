@@ -116,7 +116,7 @@ def saturation_percent(image: np.ndarray, bit_depth: Optional[int] = None, *, st
 
 
 def ring_source(ring) -> FrameSource:
-    """A :data:`FrameSource` on :meth:`app.ringbuffer.RingBuffer.latest` (newest frame, copied).
+    """A :data:`FrameSource` on :meth:`app.capture.ringbuffer.RingBuffer.latest` (newest frame, copied).
 
     ``ring.latest`` is the ring's one newest-only consumer: give it to one worker only.
     """

@@ -1,0 +1,81 @@
+"""Processed heights against the true heights of ``tirdeflect simulate``."""
+
+from __future__ import annotations
+
+
+import numpy as np
+
+from processing.errors import (
+    ShapeMismatchError,
+    TirdeflectError,
+)
+
+__all__ = ["compare_heights"]
+
+
+def compare_heights(out_path, truth_path, *, margin: float = 0.125) -> list:
+    """Per-frame errors of processed heights against simulated truth.
+
+    Both maps have their mean over the geometry's reference region removed
+    (the offset the method cannot measure); the comparison uses the interior,
+    ``margin * size`` pixels away from each border, and the valid samples.
+
+    Parameters
+    ----------
+    out_path : path-like
+        ``tirdeflect process`` output on the full grid.
+    truth_path : path-like
+        ``heights.h5`` from ``tirdeflect simulate`` (``/height`` in mm).
+    margin : float
+        Fraction of the rows/cols left out at each border.
+
+    Returns
+    -------
+    list of dict
+        One per output frame: ``frame`` (index into the truth), ``rel_rms``
+        (RMS error / RMS true height), ``rms_error_mm``, ``rms_true_mm``,
+        ``scale`` (least-squares factor estimate ~ scale * truth),
+        ``valid_fraction`` (interior).
+    """
+    import h5py
+    from processing import Geometry
+
+    with h5py.File(out_path, "r") as f:
+        if "height" not in f:
+            raise TirdeflectError(f"{str(out_path)!r} holds no /height; is it a tirdeflect process output?")
+        if f.attrs.get("grid", "full") != "full":
+            raise TirdeflectError(f"{str(out_path)!r} is on the decimated grid; process with --grid full to compare")
+        n = int(f.attrs.get("frames_done", f["height"].shape[0]))
+        est = f["height"][:n].astype(np.float64)
+        index = f["frame_index"][:n]
+        geometry = Geometry.from_toml_text(str(f.attrs["geometry_toml"]))
+    with h5py.File(truth_path, "r") as f:
+        if "height" not in f:
+            raise TirdeflectError(f"{str(truth_path)!r} holds no /height; give the heights.h5 of tirdeflect simulate")
+        truth = f["height"][()].astype(np.float64)
+    if est.shape[1:] != truth.shape[1:]:
+        raise ShapeMismatchError(
+            f"processed heights are {est.shape[1:]} but the truth is {truth.shape[1:]}; "
+            f"compare the output of the same data set")
+    rows, cols = truth.shape[1:]
+    ref = geometry.reference_mask(np.arange(rows), np.arange(cols), (rows, cols))
+    mr, mc = int(round(margin * rows)), int(round(margin * cols))
+    inner = (slice(mr, rows - mr), slice(mc, cols - mc))
+    report = []
+    for k in range(n):
+        j = int(index[k])
+        if j >= truth.shape[0]:
+            raise TirdeflectError(f"output frame {k} is input frame {j} but the truth has {truth.shape[0]} frames")
+        e = est[k] - np.nanmean(est[k][ref])
+        t = truth[j] - np.mean(truth[j][ref])
+        e, t = e[inner], t[inner]
+        ok = np.isfinite(e)
+        err = e[ok] - t[ok]
+        rms_true = float(np.sqrt(np.mean(t[ok] ** 2))) if ok.any() else float("nan")
+        rms_err = float(np.sqrt(np.mean(err ** 2))) if ok.any() else float("nan")
+        scale = float(np.dot(e[ok], t[ok]) / np.dot(t[ok], t[ok])) if ok.any() and rms_true > 0 else float("nan")
+        report.append(dict(frame=j, rel_rms=rms_err / rms_true if rms_true > 0 else float("nan"),
+                           rms_error_mm=rms_err, rms_true_mm=rms_true, scale=scale,
+                           valid_fraction=float(ok.mean())))
+    return report
+

@@ -1,0 +1,194 @@
+"""Ray-traced synthetic data sets with known heights (``tirdeflect simulate``)."""
+
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from app.files import imageio
+from processing.errors import (
+    TirdeflectError,
+)
+
+from app import version as _version
+from app.batch.engine import load_geometry
+from app.batch.writer import OutputExistsError, utc_now
+
+__all__ = ["run_simulate", "DEFAULT_SIM_GEOMETRY", "SIM_PATTERN_PERIOD_PX", "SIM_FPS", "SIM_MAX_PHASE_RAD"]
+
+# =========================================================================== simulate
+
+
+#: Geometry used by `tirdeflect simulate` when no --geometry is given: a typical
+#: TIR set-up (notes.md): theta 55 deg, pattern 300 mm below the surface,
+#: 0.1 mm per column, telecentric camera, rows running away from the camera.
+DEFAULT_SIM_GEOMETRY = {
+    "setup": "tir",
+    "theta_deg": 55.0,
+    "depth_mm": 300.0,
+    "pixel_mm": 0.1,
+    "rows_toward_camera": False,
+}
+
+#: Checkerboard period in columns (x) of the simulated pattern: 20 px, i.e. 2 mm
+#: at the default 0.1 mm/px (y period 20 cos(theta) px).
+SIM_PATTERN_PERIOD_PX = 20.0
+SIM_FPS = 100.0
+
+
+#: Largest carrier phase |k . u| (rad) each --surface is scaled to reach (on any
+#: geometry): below pi for all but deep-dimple, which needs unwrapping, as the
+#: notes.md example (15 um deep at H = 300 mm, theta = 55 deg) does.
+SIM_MAX_PHASE_RAD = {"bump": 2.3, "dimple": 2.3, "waves": 2.6, "deep-dimple": 5.0}
+
+
+def _sim_scene(name: str, geometry, size: int, n_frames: int, seed: int, amplitude: float = 1.0):
+    """Surface (or scene with ``at(t_s)``) for a --surface name.
+
+    Features scale with the field (``size * pixel_mm``); heights are the
+    nominal ones below times ``amplitude`` (:func:`_sim_amplitude` picks it so
+    the largest carrier phase is :data:`SIM_MAX_PHASE_RAD`). Nominal, at
+    512 px: bump 4 um, sigma 1/8 of the field; dimple deepening over the frames
+    to 4 um; deep-dimple 15 um, sigma field/4.65; waves 0.7 um RMS, six
+    travelling waves of 1/4 to 1/2 the field. Heights in mm, positions in the
+    image frame (mm from the image centre).
+    """
+    from processing import forward
+
+    fov_mm = size * geometry.pixel_mm  # field width along x
+    scale = size / 512.0 * amplitude
+    if name == "bump":
+        return forward.GaussianBump(amplitude_mm=0.004 * scale, sigma_mm=fov_mm / 8.0)
+    if name == "dimple":
+        # a dimple that deepens over the frames (a disc approaching the surface)
+        depth_mm, sigma_mm = 0.004 * scale, fov_mm / 8.0
+
+        def at(t_s: float):
+            i = int(round(t_s * SIM_FPS))
+            return forward.Dimple((i + 1) / n_frames * depth_mm, sigma_mm)
+
+        return at
+    if name == "deep-dimple":
+        return forward.Dimple(0.015 * scale, fov_mm / 4.65)
+    if name == "waves":
+        field = forward.WaveField.random(
+            6, amplitude_rms_mm=0.0007 * scale, wavelength_range_mm=(fov_mm / 4.0, fov_mm / 2.0),
+            seed=seed)
+        return forward.TravellingWaves(field.components)
+    raise TirdeflectError(f"unknown --surface {name!r}; choose bump, dimple, waves or deep-dimple")
+
+
+def _surface_at(scene, t_s: float):
+    from processing import forward
+
+    if isinstance(scene, forward.Surface):
+        return scene
+    return scene.at(t_s) if hasattr(scene, "at") else scene(t_s)
+
+
+def _sim_amplitude(name, geometry, size, n_frames, seed, pattern, target_rad) -> tuple:
+    """Amplitude factor making the largest carrier phase ``target_rad``.
+
+    The phase is ``|k_s . u|`` with ``u`` the exact displacement (ray traced,
+    on a 64 x 64 subgrid) and ``k_s`` the carriers found on the rendered flat
+    reference; it is evaluated at the first and last frame times (phase is
+    linear in amplitude while rays do not cross). Returns (factor, phase at
+    factor 1).
+    """
+    from processing import forward
+    from processing.carriers import find_carriers
+
+    shape = (size, size)
+    flat, _ = forward.render(forward.FlatSurface(), geometry, shape, pattern)
+    k = find_carriers(flat).wavevectors  # (2, 2) rad/px, (row, col)
+    sub = np.linspace(0, size - 1, min(size, 64))
+    scene = _sim_scene(name, geometry, size, n_frames, seed)
+    phase = 0.0
+    for t_s in {0.0, (n_frames - 1) / SIM_FPS}:
+        u, _ = forward.true_displacement(_surface_at(scene, t_s), geometry, shape,
+                                         rows_px=sub, cols_px=sub)
+        phase = max(phase, float(np.nanmax(np.abs(np.tensordot(k, u, axes=([1], [0]))))))
+    if not phase > 0:
+        raise TirdeflectError(f"--surface {name} moves no pattern point in this geometry; "
+                              f"check --geometry")
+    return target_rad / phase, phase
+
+
+def run_simulate(args) -> None:
+    """Write a simulated data set to ``args.out`` (the ``simulate`` subcommand's namespace;
+    errors raise :class:`TirdeflectError`)."""
+    from processing import Geometry, forward
+
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise TirdeflectError(f"--out {str(out)!r} exists and is not a directory; choose a directory")
+    if out.is_dir() and any(out.glob("reference.*")) and not args.overwrite:
+        raise OutputExistsError(
+            f"{str(out)!r} already holds a simulated data set; choose another --out or add --overwrite"
+        )
+    if not math.isfinite(args.noise) or args.noise < 0:
+        raise TirdeflectError(f"--noise must be a finite RMS >= 0 grey levels; got {args.noise}")
+    if args.size < 96:
+        raise TirdeflectError(f"--size must be at least 96 px (about ten pattern periods, what the "
+                              f"carrier search needs); got {args.size}")
+    if args.geometry:
+        geometry = load_geometry(args.geometry)
+    else:
+        geometry = Geometry.from_dict(dict(DEFAULT_SIM_GEOMETRY))
+    pattern = forward.Checkerboard(period_mm=SIM_PATTERN_PERIOD_PX * geometry.pixel_mm,
+                                   edge_softness_mm=geometry.pixel_mm)
+    target = SIM_MAX_PHASE_RAD[args.surface] if args.max_phase is None else args.max_phase
+    if not (math.isfinite(target) and target > 0):
+        raise TirdeflectError(f"--max-phase must be a positive number of radians; got {target}")
+    factor, _ = _sim_amplitude(args.surface, geometry, args.size, args.frames, args.seed,
+                               pattern, target)
+    scene = _sim_scene(args.surface, geometry, args.size, args.frames, args.seed, factor)
+    sim = forward.simulate(
+        scene, geometry, (args.size, args.size), args.frames, pattern=pattern, fps=SIM_FPS,
+        bits=args.bits, noise_rms=args.noise, seed=args.seed,
+    )
+    out.mkdir(parents=True, exist_ok=True)
+    args.max_phase = target
+    _write_simulation(out, sim, geometry, args)
+
+
+def _write_simulation(out: Path, sim, geometry, args) -> None:
+    import h5py
+
+    suffix = ".png" if args.bits <= 8 else ".tif"
+    imageio.write_image(out / f"reference{suffix}", sim.reference)
+    names = []
+    for k, frame in enumerate(sim.frames):
+        name = f"frame_{k:04d}{suffix}"
+        imageio.write_image(out / name, frame)
+        names.append(name)
+    geometry_text = geometry.to_toml_text()
+    (out / "geometry.toml").write_text(geometry_text, encoding="utf-8")
+    heights = np.asarray(sim.heights_mm, dtype=np.float32)
+    with h5py.File(out / "heights.h5", "w") as f:
+        ds = f.create_dataset("height", data=heights, chunks=(1, *heights.shape[1:]))
+        ds.attrs["units"] = "mm"
+        ds.attrs["description"] = (
+            "true surface height sampled where each pixel's camera ray meets the surface")
+        lost = f.create_dataset("lost", data=np.asarray(sim.lost, dtype=np.uint8),
+                                chunks=(1, *heights.shape[1:]))
+        lost.attrs["description"] = "1 where TIR is lost or rays cross (unmeasurable)"
+        f.create_dataset("time_s", data=np.asarray(sim.times_s, dtype=np.float64))
+        f.create_dataset("frame_file", data=np.array(names, dtype=object),
+                         dtype=h5py.string_dtype())
+        f.attrs["surface"] = args.surface
+        f.attrs["max_phase_rad"] = args.max_phase
+        f.attrs["bits"] = args.bits
+        f.attrs["noise_rms"] = args.noise
+        f.attrs["seed"] = args.seed
+        f.attrs["pattern_period_mm"] = SIM_PATTERN_PERIOD_PX * geometry.pixel_mm
+        f.attrs["geometry_toml"] = geometry_text
+        f.attrs["software_version"] = _version()
+        f.attrs["created_utc"] = utc_now()
+    hmax = float(np.max(np.abs(heights))) * 1e3
+    print(f"tirdeflect: wrote reference, {len(names)} frame(s) ({args.bits} bit), heights.h5 "
+          f"(max |h| {hmax:.2f} um) and geometry.toml to {out}", file=sys.stderr)
+

@@ -1,0 +1,370 @@
+"""OUT.h5 of ``tirdeflect process``: one frame at a time, flushed, valid after any failure
+(layout: docs/output-format.md)."""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime as _dt
+import logging
+import os
+from pathlib import Path
+
+import numpy as np
+
+from app.files import imageio
+from processing.errors import (
+    ShapeMismatchError,
+    TirdeflectError,
+)
+
+__all__ = ["ResultWriter", "OutputExistsError", "DiskFullError", "OUTPUT_FORMAT_VERSION",
+           "check_output", "set_attrs", "carrier_attrs", "geometry_attrs", "utc_now"]
+
+log = logging.getLogger(__name__)
+
+#: Version of the layout of OUT.h5 described in docs/output-format.md.
+OUTPUT_FORMAT_VERSION = 1
+
+
+class OutputExistsError(TirdeflectError):
+    """The output file exists and ``--overwrite`` was not given."""
+
+
+
+def check_output(out: Path, overwrite: bool) -> None:
+    if out.is_dir():
+        raise TirdeflectError(
+            f"--out {str(out)!r} is a directory; give a file name, e.g. {str(out / 'heights.h5')!r}"
+        )
+    if out.exists() and not overwrite:
+        raise OutputExistsError(
+            f"output {str(out)!r} already exists; choose another --out or add --overwrite"
+        )
+    parent = out.parent if str(out.parent) else Path(".")
+    if not parent.is_dir():
+        raise TirdeflectError(
+            f"the directory of --out {str(out)!r} does not exist; create {str(parent)!r} first"
+        )
+    if not os.access(parent, os.W_OK):
+        raise TirdeflectError(f"cannot write to {str(parent)!r}; choose another --out")
+
+
+
+def _attr_value(value):
+    """Convert a value to something HDF5 stores as an attribute, or None to skip."""
+    if value is None:
+        return None
+    if isinstance(value, (bool, np.bool_)):
+        return np.bool_(value)
+    if isinstance(value, (int, float, str, np.integer, np.floating)):
+        return value
+    if isinstance(value, Path):
+        return str(value)
+    if isinstance(value, complex):
+        return np.array([value.real, value.imag])
+    try:
+        arr = np.asarray(value)
+    except Exception:
+        return str(value)
+    if arr.dtype == object:
+        return str(value)
+    if np.iscomplexobj(arr):
+        arr = np.stack([arr.real, arr.imag], axis=-1)
+    if arr.dtype.kind in "US":
+        return arr.astype(str).tolist()
+    return arr
+
+
+def _flatten(obj, prefix: str = "") -> dict:
+    """Flatten a dataclass / dict / object of scalars and arrays to ``{dotted.key: value}``."""
+    out: dict = {}
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        items = ((f.name, getattr(obj, f.name)) for f in dataclasses.fields(obj))
+    elif isinstance(obj, dict):
+        items = obj.items()
+    elif hasattr(obj, "_asdict"):
+        items = obj._asdict().items()
+    elif hasattr(obj, "__dict__"):
+        items = ((k, v) for k, v in vars(obj).items() if not k.startswith("_"))
+    else:
+        value = _attr_value(obj)
+        if value is not None:
+            out[prefix or "value"] = value
+        return out
+    for key, value in items:
+        name = f"{prefix}.{key}" if prefix else str(key)
+        if isinstance(value, dict) or (dataclasses.is_dataclass(value) and not isinstance(value, type)):
+            out.update(_flatten(value, name))
+            continue
+        if isinstance(value, (list, tuple)) and value and all(isinstance(v, (list, tuple)) for v in value):
+            # e.g. fsss_layers ((thickness_mm, n), ...): a 2-D array if rectangular
+            try:
+                arr = np.asarray(value, dtype=float)
+                out[name] = arr
+                continue
+            except (TypeError, ValueError):
+                pass
+        converted = _attr_value(value)
+        if converted is not None:
+            out[name] = converted
+    return out
+
+
+def carrier_attrs(carriers) -> dict:
+    """Carrier information (periods, rotation, wavevectors...) as attributes."""
+    if carriers is None:
+        return {}
+    attrs = _flatten(carriers)
+    # Properties are not dataclass fields: pick up the documented ones explicitly.
+    for name in ("periods_px", "angles_deg", "rotation_deg", "wavevectors",
+                 "theta_deg", "describe"):
+        if name not in attrs and hasattr(carriers, name):
+            try:
+                value = getattr(carriers, name)
+                value = _attr_value(value() if callable(value) else value)
+            except Exception:
+                value = None
+            if value is not None:
+                attrs[name] = value
+    return attrs
+
+
+def geometry_attrs(geometry) -> tuple[str, dict]:
+    toml_text = ""
+    try:
+        toml_text = geometry.to_toml_text()
+    except Exception as exc:  # keep processing; the flattened attrs still describe it
+        log.warning("could not render the geometry as TOML (%s)", exc)
+    try:
+        flat = _flatten(geometry.to_dict())
+    except Exception:
+        flat = _flatten(geometry)
+    return toml_text, flat
+
+
+def utc_now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+
+
+def set_attrs(node, attrs: dict) -> None:
+    for key, value in attrs.items():
+        try:
+            node.attrs[key] = value
+        except (TypeError, ValueError) as exc:
+            log.debug("attribute %s=%r not stored (%s)", key, value, exc)
+            node.attrs[key] = str(value)
+
+
+# =========================================================================== writer
+
+#: Space kept free so that the output can still be closed validly after the last frame.
+RESERVE_BYTES = 2 * 1024 * 1024
+
+
+class DiskFullError(TirdeflectError):
+    """No room left for the next frame (disk or file-size limit); the file was closed valid."""
+
+
+def _room_bytes(path: Path) -> tuple:
+    """Bytes ``path`` may still grow by, and what limits it (disk or ulimit -f)."""
+    import shutil
+
+    size = path.stat().st_size if path.exists() else 0
+    room, what = shutil.disk_usage(path.parent if str(path.parent) else ".").free, "disk"
+    try:
+        import resource
+
+        soft, _ = resource.getrlimit(resource.RLIMIT_FSIZE)
+        if soft != resource.RLIM_INFINITY and soft - size < room:
+            room, what = soft - size, "file size limit (ulimit -f)"
+    except (ImportError, ValueError, OSError):  # not POSIX
+        pass
+    return room, what
+
+
+def _repair_eof(path: Path) -> bool:
+    """After a failed write HDF5 may have recorded an end of file beyond what
+    reached the disk; extend the file (sparse, needs no space) to that end so
+    it opens again. Returns True if it did."""
+    import re
+
+    import h5py
+
+    try:
+        h5py.File(path, "r").close()
+        return False
+    except OSError as exc:
+        m = re.search(r"stored_eof = (\d+)", str(exc))
+        if not m:
+            return False
+        try:
+            if int(m.group(1)) > path.stat().st_size:
+                os.truncate(path, int(m.group(1)))
+                log.warning("%s: extended to the end of file HDF5 recorded before the failed write", path)
+                return True
+        except OSError as err:
+            log.error("%s: could not repair the end of file (%s); frames_done frames are intact", path, err)
+    return False
+
+
+class ResultWriter:
+    """Write results to OUT.h5 one frame at a time (see docs/output-format.md).
+
+    Per-frame datasets are created with the first result (its grid fixes their
+    shape), grow by one frame per :meth:`append` and are flushed each time.
+    """
+
+    PER_FRAME = ("height", "slope_x", "slope_y")
+    PER_FRAME_1D = ("frame_index", "source_index", "source", "camera_frame_id",
+                    "device_timestamp_ns", "host_timestamp_ns", "frame_flags")
+
+    def __init__(self, path: Path, *, overwrite: bool, compression: str, attrs: dict,
+                 geometry_toml: str, geometry_attrs: dict, carrier_attrs: dict,
+                 reference: np.ndarray, expected: int):
+        import h5py
+
+        self.path = path
+        self.compression = None if compression == "none" else compression
+        self.f = h5py.File(path, "w" if overwrite else "x")
+        f = self.f
+        set_attrs(f, attrs)
+        f.attrs["frames_done"] = 0
+        f.attrs["frames_expected"] = int(expected)
+        f.attrs["status"] = "running"
+        f.attrs["geometry_toml"] = geometry_toml
+        set_attrs(f.create_group("geometry"), geometry_attrs)
+        set_attrs(f.create_group("carriers"), carrier_attrs)
+        ref = f.create_dataset("reference", data=reference, compression=self.compression)
+        ref.attrs["description"] = "reference image as read (unscaled samples)"
+        self.n = 0
+        self._shape = None
+        self.failed = False
+        f.flush()
+
+    def _create(self, result) -> None:
+        import h5py
+
+        f = self.f
+        height = np.asarray(result.height)
+        rows, cols = height.shape
+        self._shape = (rows, cols)
+        kw = dict(shape=(0, rows, cols), maxshape=(None, rows, cols), chunks=(1, rows, cols),
+                  compression=self.compression)
+        units = {"height": "mm", "slope_x": "1 (dh/dx)", "slope_y": "1 (dh/dy)"}
+        for name in self.PER_FRAME:
+            ds = f.create_dataset(name, dtype=np.float32, fillvalue=np.nan, **kw)
+            ds.attrs["units"] = units[name]
+        f["height"].attrs["description"] = "surface height, mm, NaN where invalid"
+        f["slope_x"].attrs["description"] = "dh/dx, x along increasing column"
+        f["slope_y"].attrs["description"] = "dh/dy, y along increasing row"
+        valid = f.create_dataset("valid", dtype=np.uint8, fillvalue=0, **kw)
+        valid.attrs["description"] = "1 where the height was measured, 0 where masked"
+        x = f.create_dataset("x_mm", data=np.asarray(result.x_mm, dtype=np.float64))
+        y = f.create_dataset("y_mm", data=np.asarray(result.y_mm, dtype=np.float64))
+        x.attrs["units"] = "mm"
+        y.attrs["units"] = "mm"
+        x.attrs["description"] = "surface x of each column (increasing column)"
+        y.attrs["description"] = "surface y of each row (increasing row)"
+        x.make_scale("x_mm")
+        y.make_scale("y_mm")
+        for name in (*self.PER_FRAME, "valid"):
+            f[name].dims[1].attach_scale(y)
+            f[name].dims[2].attach_scale(x)
+        f.create_dataset("frame_index", shape=(0,), maxshape=(None,), dtype=np.int64, chunks=(1024,))
+        f["frame_index"].attrs["description"] = (
+            "0-based index of each output frame in the whole input sequence")
+        f.create_dataset("source_index", shape=(0,), maxshape=(None,), dtype=np.int64, chunks=(1024,))
+        f["source_index"].attrs["description"] = "page / recording frame within its source file"
+        f.create_dataset("source", shape=(0,), maxshape=(None,), dtype=h5py.string_dtype(),
+                         chunks=(1024,))
+        f["source"].attrs["description"] = "input file of each output frame"
+        per_frame_meta = {
+            "camera_frame_id": "camera block/frame id from the recording's frame table; -1 unknown",
+            "device_timestamp_ns": "camera clock of the frame, ns; -1 unknown",
+            "host_timestamp_ns": "host monotonic clock at reception, ns; -1 unknown",
+            "frame_flags": "drivers.base.FrameFlags of the recorded frame (0 for image files)",
+        }
+        for name, text in per_frame_meta.items():
+            f.create_dataset(name, shape=(0,), maxshape=(None,), dtype=np.int64, chunks=(1024,))
+            f[name].attrs["description"] = text
+        f.attrs["grid"] = str(getattr(result, "grid", "full"))
+
+    def _check_room(self, shape) -> None:
+        """Refuse the next frame (DiskFullError) while the file can still be closed validly."""
+        need = int(np.prod(shape)) * (3 * 4 + 1) + 4096 + RESERVE_BYTES
+        room, what = _room_bytes(self.path)
+        if room < need:
+            raise DiskFullError(
+                f"{what} full: {room / 2**20:.1f} MiB left for {str(self.path)!r}, less than one "
+                f"more frame plus a reserve that keeps the file valid; free space or write --out "
+                f"to another disk, then resume with --first"
+            )
+
+    def append(self, item: imageio.FrameItem, result) -> None:
+        self._check_room(np.shape(result.height))
+        if self._shape is None:
+            self._create(result)
+        f = self.f
+        height = np.asarray(result.height, dtype=np.float32)
+        if height.shape != self._shape:
+            raise ShapeMismatchError(
+                f"result grid {height.shape} differs from the first frame's {self._shape}"
+            )
+        valid = np.asarray(result.valid, dtype=bool)
+        k = self.n
+        names = (*self.PER_FRAME, "valid", *self.PER_FRAME_1D)
+        try:
+            for name in names:
+                f[name].resize(k + 1, axis=0)
+            f["height"][k] = np.where(valid, height, np.float32(np.nan))
+            f["slope_x"][k] = np.asarray(result.slope_x, dtype=np.float32)
+            f["slope_y"][k] = np.asarray(result.slope_y, dtype=np.float32)
+            f["valid"][k] = valid.astype(np.uint8)
+            f["frame_index"][k] = item.sequence_index
+            f["source_index"][k] = item.index_in_source
+            f["source"][k] = item.source
+            f["camera_frame_id"][k] = item.camera_frame_id
+            f["device_timestamp_ns"][k] = item.device_timestamp_ns
+            f["host_timestamp_ns"][k] = item.host_timestamp_ns
+            f["frame_flags"][k] = item.flags
+        except BaseException as exc:
+            # e.g. disk full: drop the half-written frame so the file holds exactly frames_done
+            try:
+                for name in names:
+                    if f[name].shape[0] > k:
+                        f[name].resize(k, axis=0)
+            except Exception:
+                self.failed = True
+            if isinstance(exc, RuntimeError):  # HDF5 reports failed writes as RuntimeError
+                self.failed = True
+                raise OSError(f"writing frame {k} to {str(self.path)!r} failed: {exc}") from exc
+            raise
+        try:
+            f.flush()  # the frame's data first ...
+            f.attrs["frames_done"] = k + 1  # ... then the counter that vouches for it
+            f.flush()
+        except (RuntimeError, OSError) as exc:
+            self.failed = True
+            raise OSError(f"writing frame {k} to {str(self.path)!r} failed: {exc}; the file is valid "
+                          f"up to the frames before it") from exc
+        self.n = k + 1
+
+    def close(self, status: str) -> None:
+        if self.f is None:
+            return
+        f, self.f = self.f, None
+        try:
+            if not self.failed:  # after a failed write, add nothing: what was flushed stays valid
+                f.attrs["status"] = status
+                f.attrs["finished_utc"] = utc_now()
+                f.flush()
+        except Exception as exc:
+            log.error("could not record the final status in %s: %s", self.path, exc)
+        finally:
+            try:
+                f.close()
+            except Exception as exc:
+                log.error("closing %s failed: %s (valid up to frame %d)", self.path, exc, self.n)
+            if self.failed:
+                _repair_eof(self.path)
+

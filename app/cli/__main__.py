@@ -1,0 +1,7 @@
+"""``python3 -m app.cli`` is ``tirdeflect``."""
+
+import sys
+
+from app.cli.main import main
+
+sys.exit(main())

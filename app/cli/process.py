@@ -1,0 +1,188 @@
+"""``tirdeflect process`` (images to heights in HDF5) and ``tirdeflect simulate``.
+
+``process`` reads a reference and frames (PNG/BMP/TIFF/TIFF stacks/HDF5
+recordings, see :mod:`app.imageio`), reconstructs each frame with
+:class:`processing.Reconstructor` and writes one HDF5 file laid out as
+documented in ``docs/output-format.md``. The file is written frame by frame
+and flushed after each, so that a crash or a bad frame leaves every completed
+frame readable, with ``frames_done`` saying how many.
+
+``simulate`` writes a synthetic data set (reference, frames, true heights,
+geometry) made by exact ray tracing (:func:`processing.forward.simulate`),
+so the whole chain can be checked before going to the tank::
+
+    tirdeflect simulate --out sim
+    tirdeflect process sim/reference.png sim/frame_*.png --geometry sim/geometry.toml --out out.h5
+
+The work is done by :mod:`app.batch`; this module parses arguments and prints.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+
+from app.batch.compare import compare_heights
+from app.batch.engine import MEASURE_MIN_FRAMES, ProcessJob, check_input_file, run_process
+from app.batch.simulate import run_simulate
+from processing.errors import TirdeflectError
+
+__all__ = ["add_process_parser", "add_simulate_parser", "add_compare_parser",
+           "cmd_process", "cmd_simulate", "cmd_compare"]
+
+
+# =========================================================================== parsers
+
+
+def _nonnegative_int(text: str) -> int:
+    import argparse
+
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
+    return value
+
+
+def _positive_int(text: str) -> int:
+    import argparse
+
+    value = _nonnegative_int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
+def add_process_parser(sub) -> None:
+    """Add the ``process`` subcommand to an argparse subparsers object."""
+    p = sub.add_parser(
+        "process",
+        help="reconstruct surface heights from a reference and frames, to HDF5",
+        description="Reconstruct water-surface heights (mm) from a reference image and "
+        "deformed frames and write them to an HDF5 file (layout: docs/output-format.md). "
+        "Inputs: PNG, BMP, TIFF (8-16 bit, packed 10/12-bit, multi-page stacks) and "
+        "tirdeflect HDF5 recordings.",
+    )
+    p.add_argument("reference", help="reference image of the flat surface (or a recording "
+                   "holding a /reference)")
+    p.add_argument("frames", nargs="+", metavar="FRAME",
+                   help="frames to process, in order (files, stacks or recordings)")
+    p.add_argument("--reference-index", type=_nonnegative_int, default=None, metavar="K",
+                   help="use page/frame K (0-based) of a TIFF stack or recording as the "
+                   "reference (default: a recording's stored /reference, else its frame 0)")
+    p.add_argument("--geometry", default=None, metavar="G.toml",
+                   help="optical geometry (TOML; see `tirdeflect simulate` for an example); "
+                   "may be omitted when the reference or first input is a recording that "
+                   "stores its geometry")
+    p.add_argument("--out", required=True, metavar="OUT.h5", help="output HDF5 file")
+    p.add_argument("--grid", choices=("full", "decimated"), default="full",
+                   help="full: heights on every input pixel; decimated: faster, on a coarser "
+                   "grid (coordinates in x_mm, y_mm)")
+    p.add_argument("--no-unwrap", action="store_true",
+                   help="do not unwrap carrier phases (only for small displacements)")
+    p.add_argument("--first", type=_nonnegative_int, default=0, metavar="K",
+                   help="first frame to process (0-based, counting every frame of every "
+                   "input in order)")
+    p.add_argument("--last", type=_nonnegative_int, default=None, metavar="K",
+                   help="last frame to process (inclusive)")
+    p.add_argument("--step", type=_positive_int, default=1, metavar="S",
+                   help="process every S-th frame")
+    p.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
+    p.add_argument("--compression", choices=("none", "gzip", "lzf"), default="none",
+                   help="HDF5 compression of the per-frame datasets (default none)")
+    p.add_argument("--fft-effort", choices=("auto", "estimate", "measure"), default="auto",
+                   help="FFTW planning: measure costs seconds once (then cached as wisdom in "
+                   "the cache dir) and makes each frame faster; auto measures for >= "
+                   f"{MEASURE_MIN_FRAMES} frames")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_process)
+
+
+def add_simulate_parser(sub) -> None:
+    """Add the ``simulate`` subcommand to an argparse subparsers object."""
+    p = sub.add_parser(
+        "simulate",
+        help="write a ray-traced synthetic data set with known heights",
+        description="Write reference, frames, true heights (heights.h5, mm) and "
+        "geometry.toml made by exact ray tracing, to check the processing chain.",
+    )
+    p.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    p.add_argument("--surface", default="bump",
+                   choices=("bump", "dimple", "waves", "deep-dimple"),
+                   help="surface deformation to simulate")
+    p.add_argument("--size", type=_positive_int, default=512, metavar="PX",
+                   help="image size in pixels (square)")
+    p.add_argument("--frames", type=_positive_int, default=1, metavar="N",
+                   help="number of frames (time steps)")
+    p.add_argument("--bits", type=int, choices=(8, 12), default=8,
+                   help="bit depth of the images (12 bit: 16-bit TIFF)")
+    p.add_argument("--noise", type=float, default=0.0, metavar="RMS",
+                   help="camera noise, RMS in grey levels of the output bit depth")
+    p.add_argument("--geometry", default=None, metavar="G.toml",
+                   help="optical geometry (default: a typical TIR set-up)")
+    p.add_argument("--max-phase", type=float, default=None, metavar="RAD",
+                   help="scale the heights so the largest carrier phase |k.u| is RAD radians "
+                   "(default: 2.3 bump/dimple, 2.6 waves, 5.0 deep-dimple, which needs "
+                   "unwrapping); the same on every geometry, TIR or FS-SS")
+    p.add_argument("--seed", type=int, default=0, help="random seed of the noise")
+    p.add_argument("--overwrite", action="store_true",
+                   help="write into DIR even if it already holds a data set")
+    p.set_defaults(func=cmd_simulate)
+
+
+def add_compare_parser(sub) -> None:
+    """Add the ``compare`` subcommand (processed heights against simulated truth)."""
+    p = sub.add_parser(
+        "compare",
+        help="compare processed heights (OUT.h5) with simulated truth (DIR/heights.h5)",
+        description="Print, per frame, the relative RMS height error of `tirdeflect process` "
+        "output against the true heights written by `tirdeflect simulate`, in the interior "
+        "of the field, after removing each map's mean over the geometry's reference region.",
+    )
+    p.add_argument("out", metavar="OUT.h5", help="output of tirdeflect process")
+    p.add_argument("truth", metavar="heights.h5", help="heights.h5 of tirdeflect simulate")
+    p.add_argument("--margin", type=float, default=0.125, metavar="F",
+                   help="border left out on each side, as a fraction of the size (default 0.125)")
+    p.add_argument("--max-error", type=float, default=None, metavar="REL",
+                   help="exit with status 1 if any frame's relative RMS error exceeds REL (e.g. 0.02)")
+    p.set_defaults(func=cmd_compare)
+
+
+
+def cmd_process(args) -> int:
+    """Run ``tirdeflect process``; returns the exit status (errors raise)."""
+    report = run_process(ProcessJob.from_namespace(args))
+    print(f"tirdeflect: wrote {report.frames_written} frame(s) to {report.out}", file=sys.stderr)
+    for line in report.notes:
+        print(f"tirdeflect: note: {line}", file=sys.stderr)
+    return 0
+
+
+def cmd_simulate(args) -> int:
+    """Run ``tirdeflect simulate``; returns the exit status (errors raise)."""
+    run_simulate(args)
+    return 0
+
+
+def cmd_compare(args) -> int:
+    """Run ``tirdeflect compare``; 0, or 1 if --max-error is exceeded."""
+    for path, what in ((args.out, "processed file"), (args.truth, "truth file")):
+        check_input_file(path, what)
+    if not 0 <= args.margin < 0.5:
+        raise TirdeflectError(f"--margin must be in [0, 0.5); got {args.margin}")
+    report = compare_heights(args.out, args.truth, margin=args.margin)
+    print("frame  rel_rms_error  rms_error_um  rms_true_um  scale   valid")
+    worst = 0.0
+    for r in report:
+        print(f"{r['frame']:5d}  {r['rel_rms'] * 100:11.2f} %  {r['rms_error_mm'] * 1e3:12.4f}  "
+              f"{r['rms_true_mm'] * 1e3:11.4f}  {r['scale']:.4f}  {r['valid_fraction']:.3f}")
+        worst = max(worst, r["rel_rms"] if np.isfinite(r["rel_rms"]) else np.inf)
+    if args.max_error is not None and worst > args.max_error:
+        print(f"tirdeflect: worst relative RMS error {worst:.2%} exceeds --max-error {args.max_error:.2%}",
+              file=sys.stderr)
+        return 1
+    return 0
+

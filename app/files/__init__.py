@@ -1,0 +1,1 @@
+"""File reading (images, stacks, recordings) and the app's cache directory."""
