@@ -325,6 +325,16 @@ class Checkerboard:
         Band-limited board ``sin(k x) sin(k y)`` (only the two diagonal carriers).
     mean, contrast : float
         Mean level and peak-to-peak contrast, in [0, 1].
+    sharp_radius_mm : float or None
+        None: the board has its contrast everywhere. A radius: the board is
+        seen sharp only inside a disk of this radius (pattern-plane mm,
+        centred at ``sharp_centre_mm``) and blurred to no contrast outside it
+        (a shallow depth of field: the level is ``mean`` there, so only the
+        camera noise of :func:`quantize` varies).
+    sharp_edge_mm : float
+        Width of the cosine taper of the contrast across the disk's rim, mm.
+    sharp_centre_mm : (float, float)
+        Centre (x, y) of the sharp disk on the pattern plane, mm.
     """
 
     period_mm: float
@@ -333,12 +343,31 @@ class Checkerboard:
     sinusoidal: bool = False
     mean: float = 0.5
     contrast: float = 0.8
+    sharp_radius_mm: float | None = None
+    sharp_edge_mm: float = 2.0
+    sharp_centre_mm: tuple = (0.0, 0.0)
 
     def __post_init__(self):
         if not self.period_mm > 0:
             raise GeometryError(f"period_mm must be positive, got {self.period_mm!r}")
         if self.edge_softness_mm < 0:
             raise GeometryError(f"edge_softness_mm must be >= 0, got {self.edge_softness_mm!r}")
+        if self.sharp_radius_mm is not None and not self.sharp_radius_mm > 0:
+            raise GeometryError(f"sharp_radius_mm must be positive or None, got {self.sharp_radius_mm!r}")
+        if not self.sharp_edge_mm >= 0:
+            raise GeometryError(f"sharp_edge_mm must be >= 0, got {self.sharp_edge_mm!r}")
+
+    def contrast_window(self, x_mm, y_mm) -> np.ndarray | float:
+        """Fraction of the contrast seen at pattern-plane (x, y): 1 inside the
+        sharp disk, 0 outside, a cosine taper ``sharp_edge_mm`` wide across its rim."""
+        if self.sharp_radius_mm is None:
+            return 1.0
+        r = np.hypot(np.asarray(x_mm, float) - self.sharp_centre_mm[0],
+                     np.asarray(y_mm, float) - self.sharp_centre_mm[1])
+        if self.sharp_edge_mm == 0:
+            return (r <= self.sharp_radius_mm).astype(np.float64)
+        t = np.clip((r - self.sharp_radius_mm) / self.sharp_edge_mm + 0.5, 0.0, 1.0)
+        return 0.5 + 0.5 * np.cos(np.pi * t)
 
     @property
     def square_mm(self) -> float:
@@ -360,6 +389,8 @@ class Checkerboard:
             val = np.tanh(su / eps) * np.tanh(sv / eps)
         else:
             val = np.sign(su) * np.sign(sv)
+        if self.sharp_radius_mm is not None:
+            val = val * self.contrast_window(x, y)
         return self.mean + 0.5 * self.contrast * val
 
 
