@@ -34,14 +34,30 @@ edges with weight 1 (valid edges) or 0 (an edge touching an invalid sample).
 
 Null space: ``f`` is defined up to one constant per connected piece of the
 valid samples, i.e. ``h`` up to ``alpha exp(-Phi)`` (``exp(-T y/H)`` for TIR, a
-constant for FS-SS). Each piece is pinned by the samples of
-``geometry.reference_region`` it contains (least squares of ``alpha n`` there,
-i.e. mean height 0 in the reference region); a piece without reference
-samples is reported invalid (NaN), since its offset was not measured.
+constant for FS-SS). Each piece is pinned by the *pin samples* it contains
+(least squares of ``alpha n`` there, i.e. mean height 0 on them); a piece
+with fewer than :data:`PIN_MIN_PIECE_SAMPLES` pin samples is reported invalid
+(NaN), since its offset was not measured.
+
+What the pin needs (:func:`choose_pin_samples`): the pin samples are the
+valid samples of the reference region (``geometry.reference_region``, or the
+region the caller passes, e.g. the Reconstructor's border band of the
+reference's valid area) when there are at least
+``pin_samples_needed(region size)`` of them: :data:`PIN_MIN_SAMPLES` (the
+demodulation filter correlates about 2 x 2 neighbouring samples of the
+decimated grid, so 16 samples hold at least 4 independent measurements and
+halve the noise of one sample), and :data:`PIN_MIN_FRACTION` of the region (a
+region that lost most of its samples in this frame lost the pattern there:
+what survives sits at mask edges, where the phase is least reliable, and the
+frame would no longer be pinned on the same ground as its neighbours). Else
+the fallback rule applies, the same for every frame: ``"nearest"`` pins on
+the ``needed`` valid samples nearest the region (ties included), ``"refuse"``
+raises :class:`GeometryError`. Either way :class:`PinStatus` says which.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import threading
 from collections import OrderedDict
@@ -56,6 +72,12 @@ from .errors import GeometryError, ShapeMismatchError, TirdeflectError
 from .geometry import Geometry
 
 __all__ = [
+    "PIN_MIN_SAMPLES",
+    "PIN_MIN_FRACTION",
+    "PIN_MIN_PIECE_SAMPLES",
+    "PinStatus",
+    "choose_pin_samples",
+    "pin_samples_needed",
     "SurfaceResult",
     "HeightSolver",
     "surface_from_displacement",
@@ -68,6 +90,128 @@ _WORKERS = 2  # FFT threads for large grids (the target machine has 2 cores)
 def _workers(shape) -> int:
     """Threads only pay off above about 256 x 256 samples."""
     return _WORKERS if shape[0] * shape[1] > 300_000 else 1
+
+
+#: Fewest valid samples the pin of the null space needs (see the module docstring).
+PIN_MIN_SAMPLES = 16
+#: Smallest fraction of the reference region that must be valid for the pin.
+PIN_MIN_FRACTION = 0.25
+#: A connected piece of valid samples needs this many pin samples to be pinned
+#: (one independent filter footprint); smaller pieces are reported invalid.
+PIN_MIN_PIECE_SAMPLES = 4
+PIN_FALLBACKS = ("nearest", "refuse")
+
+
+def pin_samples_needed(region_samples: int) -> int:
+    """How many valid samples the pin needs in a region of ``region_samples`` samples."""
+    return max(PIN_MIN_SAMPLES, math.ceil(PIN_MIN_FRACTION * int(region_samples)))
+
+
+@dataclass(frozen=True)
+class PinStatus:
+    """Where the null space of one frame was pinned (one per reconstructed frame).
+
+    Attributes
+    ----------
+    rule : {"region", "nearest"}
+        "region": on the valid samples of the reference region;
+        "nearest": too few of them were valid, so the fallback took the valid
+        samples nearest the region.
+    region : str
+        Which region: ``"reference_region [r0, r1, c0, c1]"`` or the default.
+    region_samples : int
+        Samples of the grid in the region.
+    valid_samples : int
+        Of those, valid in this frame.
+    needed : int
+        Valid samples the pin needs (:func:`pin_samples_needed`).
+    used_samples : int
+        Samples the offset was measured on.
+    unpinned_fraction : float
+        Fraction of the frame's valid samples dropped (NaN) because their
+        connected piece held fewer than :data:`PIN_MIN_PIECE_SAMPLES` pin samples.
+    """
+
+    rule: str
+    region: str
+    region_samples: int
+    valid_samples: int
+    needed: int
+    used_samples: int
+    unpinned_fraction: float = 0.0
+
+    @property
+    def ok(self) -> bool:
+        """Pinned on the region itself, with as many samples as it needs."""
+        return self.rule == "region"
+
+    def describe(self) -> str:
+        """One line for logs and summaries."""
+        where = (f"{self.region}: {self.valid_samples} of {self.region_samples} samples valid"
+                 f" (needs {self.needed})")
+        if self.rule == "region":
+            text = f"pinned on {where}"
+        else:
+            text = f"FALLBACK: {where}, pinned on the {self.used_samples} valid samples nearest it"
+        if self.unpinned_fraction > 0:
+            text += f"; {100 * self.unpinned_fraction:.1f} % of valid samples dropped (no pin sample in their piece)"
+        return text
+
+
+def choose_pin_samples(region: np.ndarray, valid: np.ndarray, *, fallback: str = "nearest",
+                       region_name: str = "reference region", near: np.ndarray | None = None):
+    """Pin samples of one frame and their :class:`PinStatus`.
+
+    Parameters
+    ----------
+    region : ndarray bool (n_rows, n_cols)
+        The reference region on the sample grid (the same for every frame).
+    valid : ndarray bool (n_rows, n_cols)
+        Valid samples of this frame.
+    fallback : {"nearest", "refuse"}
+        What to do when the region holds fewer valid samples than
+        :func:`pin_samples_needed`: pin on the valid samples nearest the
+        region, or raise GeometryError.
+    region_name : str
+        How the status names the region.
+    near : ndarray bool or None
+        Where "nearest" measures from (default: ``region``; e.g. the user's box
+        when none of it is valid in the reference).
+
+    Returns
+    -------
+    samples : ndarray bool (n_rows, n_cols)
+    status : PinStatus (``unpinned_fraction`` still 0)
+    """
+    if fallback not in PIN_FALLBACKS:
+        raise TirdeflectError(f"pin fallback must be one of {PIN_FALLBACKS}, got {fallback!r}")
+    n_region = int(np.count_nonzero(region))
+    inside = region & valid
+    n_valid = int(np.count_nonzero(inside))
+    needed = pin_samples_needed(n_region)
+    if n_valid >= needed:
+        return inside, PinStatus("region", region_name, n_region, n_valid, needed, n_valid)
+    if fallback == "refuse":
+        raise GeometryError(
+            f"{region_name} has {n_valid} valid samples in this frame (of {n_region}); the height offset "
+            f"needs {needed} to be measured; choose a reference_region where the surface is at rest and the "
+            f"pattern is visible, or allow the 'nearest' fallback"
+        )
+    n_all = int(np.count_nonzero(valid))
+    if n_all == 0:
+        from .errors import AllInvalidError
+
+        raise AllInvalidError("no valid sample to pin the height offset on; check the mask and the frame")
+    anchor = region if near is None else near
+    if anchor.any():
+        dist = ndimage.distance_transform_edt(~anchor)
+    else:  # nothing to measure from: every valid sample is as near
+        dist = np.zeros(region.shape)
+    d = dist[valid]
+    k = min(needed, n_all)
+    cut = np.partition(d, k - 1)[k - 1]
+    samples = valid & (dist <= cut)
+    return samples, PinStatus("nearest", region_name, n_region, n_valid, needed, int(np.count_nonzero(samples)))
 
 
 class SurfaceResult(NamedTuple):
@@ -92,6 +236,10 @@ class SurfaceResult(NamedTuple):
     surface_xy_mm : ndarray (2, n_rows, n_cols) float64 or None
         Exact surface position (x, y) of each sample for a finite camera
         distance (the grid is not separable then); None when telecentric.
+    pin : PinStatus or None
+        Where the null space was pinned.
+    pin_samples : ndarray (n_rows, n_cols) bool or None
+        The samples it was pinned on.
     """
 
     height_mm: np.ndarray
@@ -102,6 +250,8 @@ class SurfaceResult(NamedTuple):
     valid: np.ndarray
     iterations: int = 0
     surface_xy_mm: np.ndarray | None = None
+    pin: PinStatus | None = None
+    pin_samples: np.ndarray | None = None
 
 
 # ============================================================================ kernels
@@ -310,6 +460,7 @@ class HeightSolver:
             self.dk_r = 0.5 * (kr[1:, :] + kr[:-1, :]) - np.diff(self.phi, axis=0) / grid.dr
         self.null = np.exp(-self.phi)
         self._fast = None
+        self._pin_cache = None
         self.ref = geometry.reference_mask(grid.rows_px, grid.cols_px, grid.frame_shape)
         if not self.ref.any():
             raise GeometryError(
@@ -327,9 +478,6 @@ class HeightSolver:
                 and k[1] == 0 and min(self.shape) >= 6):
             return None
         null_r = self.null[:, :1].astype(np.float64)  # varies along rows only
-        ref = self.ref
-        w = (ref * null_r).astype(np.float32)  # n on reference samples, 0 elsewhere
-        nn = float(np.sum((ref * null_r) ** 2))
         out = {}
         if max(self.shape) <= 96:
             # small grids: D^T cellavg along each axis as a dense matrix (one
@@ -358,8 +506,6 @@ class HeightSolver:
             gr=(Bi[0, 0] / null_r).astype(np.float32),  # (n_rows, 1)
             gc=(Bi[1, 1] / null_r).astype(np.float32),
             null=null_r.astype(np.float32),
-            w=w,
-            nn=nn,
             denom=self.denom.astype(np.float32),
             inv_denom=np.where(np.arange(self.denom.size).reshape(self.shape) == 0, 0.0,
                                1.0 / self.denom).astype(np.float32),
@@ -391,7 +537,33 @@ class HeightSolver:
         o[-2] += el1 - el
         o[-1] += el
 
-    def _solve_fast(self, u, v):
+    def region_name(self) -> str:
+        """How :class:`PinStatus` names ``geometry.reference_region``."""
+        r = self.geometry.reference_region
+        return "default border band of the frame" if r is None else f"reference_region {list(r)}"
+
+    def _pin_choice(self, v, all_valid, reference_mask, fallback, region_name, near):
+        """(pin samples, PinStatus, fast-path weights or None) of one frame; cached
+        for frames valid everywhere (the answer depends on the region only)."""
+        region = self.ref if reference_mask is None else np.asarray(reference_mask, bool)
+        if region.shape != self.shape:
+            raise ShapeMismatchError(f"reference_mask must have shape {self.shape} like the grid, got {region.shape}")
+        name = self.region_name() if region_name is None else region_name
+        key = (id(region), fallback, name)
+        if all_valid:
+            c = self._pin_cache
+            if c is not None and c[0] == key and c[1] is region:
+                return c[2], c[3], c[4]
+        samples, status = choose_pin_samples(region, v, fallback=fallback, region_name=name, near=near)
+        weights = None
+        if all_valid:
+            null = self.null[:, :1] if self.constant else self.null
+            wn = samples * null
+            weights = (wn.astype(np.float32), float(np.sum(wn.astype(np.float64) ** 2)))
+            self._pin_cache = (key, region, samples, status, weights)
+        return samples, status, weights
+
+    def _solve_fast(self, u, v, reference_mask=None, *, pin_fallback="nearest", region_name=None, near=None):
         F = self._fast
         ur = np.asarray(u[0], dtype=np.float32)
         uc = np.asarray(u[1], dtype=np.float32)
@@ -415,15 +587,17 @@ class HeightSolver:
             c = sfft.dctn(rhs, type=2, norm="ortho", workers=w, overwrite_x=True)
             c *= F["inv_denom"]  # 0 for the constant mode
             f = sfft.idctn(c, type=2, norm="ortho", workers=w, overwrite_x=True)
-        # pin: h = (f - alpha) n with alpha the n^2-weighted mean of f on the reference samples
-        alpha = float(np.vdot(F["w"], f * F["null"])) / F["nn"] if F["nn"] > 0 else 0.0
+        # pin: h = (f - alpha) n with alpha the n^2-weighted mean of f on the pin samples
+        samples, status, (w, nn) = self._pin_choice(v, True, reference_mask, pin_fallback, region_name, near)
+        alpha = float(np.vdot(w, f * F["null"])) / nn if nn > 0 else 0.0
         f -= np.float32(alpha)
         h = f
         h *= F["null"]
         sx = uc * F["sx"]
         sy = ur * F["sy_u"]
         sy -= F["sy_h"] * h
-        return SurfaceResult(h, sx, sy, self.x_mm.copy(), self.y_mm.copy(), v, 0, self.surface_xy)
+        return SurfaceResult(h, sx, sy, self.x_mm.copy(), self.y_mm.copy(), v, 0, self.surface_xy,
+                             status, samples)
 
     def slope_coefficients(self):
         """(2, 3) matrix M with ``(slope_x, slope_y) = M @ (u_row, u_col, h)`` per
@@ -487,7 +661,8 @@ class HeightSolver:
         return out
 
     # ------------------------------------------------------------------ solve
-    def solve(self, displacement_px, valid=None, *, solver: str = "auto") -> SurfaceResult:
+    def solve(self, displacement_px, valid=None, *, solver: str = "auto", reference_mask=None,
+              pin_fallback: str = "nearest", region_name: str | None = None) -> SurfaceResult:
         """Heights (mm) and slopes from a displacement field.
 
         Parameters
@@ -499,14 +674,25 @@ class HeightSolver:
         solver : {"auto", "spectral", "masked"}
             "auto": spectral when every sample is valid and the optics are
             uniform (telecentric), masked otherwise.
+        reference_mask : ndarray (n_rows, n_cols) bool or None
+            The reference region on this grid (None: ``geometry.reference_region``
+            or its default border band).
+        pin_fallback : {"nearest", "refuse"}
+            When the region holds fewer valid samples than the pin needs
+            (:func:`choose_pin_samples`).
+        region_name : str or None
+            How :class:`PinStatus` names the region.
 
         Returns
         -------
         SurfaceResult
+            with ``pin`` (:class:`PinStatus`) and ``pin_samples``.
         """
-        return self._solve(displacement_px, valid, solver, self.tol)
+        return self._solve(displacement_px, valid, solver, self.tol, reference_mask,
+                           pin_fallback=pin_fallback, region_name=region_name)
 
-    def _solve(self, displacement_px, valid, solver, tol):
+    def _solve(self, displacement_px, valid, solver, tol, reference_mask=None, *, pin_fallback="nearest",
+               region_name=None, near=None):
         """:meth:`solve` with the conjugate-gradient tolerance given (the
         Reconstructor's is tied to the noise of measured displacements)."""
         u = np.asarray(displacement_px)
@@ -539,7 +725,9 @@ class HeightSolver:
             raise AllInvalidError("no valid displacement sample: nothing to integrate; check the mask and the frame")
         use_spectral = solver == "spectral" or (solver == "auto" and all_valid and self.constant)
         if use_spectral and self._fast is not None:
-            return self._solve_fast(u, v)
+            return self._solve_fast(u, v, reference_mask, pin_fallback=pin_fallback, region_name=region_name,
+                                    near=near)
+        samples, status, _ = self._pin_choice(v, all_valid, reference_mask, pin_fallback, region_name, near)
         uz = np.where(v, u, 0.0) if not all_valid else u
         gr, gc = self.gradients(uz)
         iterations = 0
@@ -551,7 +739,11 @@ class HeightSolver:
             f, iterations = self._solve_masked(gr, gc, v, tol)
             pieces, n_pieces = ndimage.label(v)
         h = f * self.null
-        v = self._pin(h, v, pieces, n_pieces)
+        n_valid = int(np.count_nonzero(v))
+        v = self._pin(h, v, pieces, n_pieces, samples)
+        dropped = n_valid - int(np.count_nonzero(v))
+        if dropped:
+            status = dataclasses.replace(status, unpinned_fraction=dropped / n_valid)
         # slopes from the data: grad_px h = g - kappa h, then to surface units
         kr = self.kappa[..., 0]
         kc = self.kappa[..., 1]
@@ -571,17 +763,19 @@ class HeightSolver:
             hh = np.where(v, h, nan).astype(np.float32)
             sx = np.where(v, sx, nan).astype(np.float32)
             sy = np.where(v, sy, nan).astype(np.float32)
-        return SurfaceResult(hh, sx, sy, self.x_mm.copy(), self.y_mm.copy(), v, iterations, self.surface_xy)
+        return SurfaceResult(hh, sx, sy, self.x_mm.copy(), self.y_mm.copy(), v, iterations, self.surface_xy,
+                             status, samples)
 
-    def _pin(self, h, v, pieces, n_pieces):
-        """Subtract alpha * null mode per connected piece (in place); returns the final validity."""
-        ref = self.ref & v
+    def _pin(self, h, v, pieces, n_pieces, samples):
+        """Subtract alpha * null mode per connected piece (in place); returns the final validity.
+
+        A piece is pinned by the least squares of ``alpha n`` on its pin
+        samples; one with fewer than PIN_MIN_PIECE_SAMPLES of them is invalid."""
+        ref = samples & v
         if not ref.any():
-            raise GeometryError(
-                f"reference region {self.geometry.reference_region or 'default border band'} has no valid pixel "
-                f"in this frame, so the height offset cannot be measured; choose another reference_region "
-                f"where the surface is at rest and the pattern is visible"
-            )
+            from .errors import AllInvalidError
+
+            raise AllInvalidError("no valid pin sample: the height offset cannot be measured; check the mask")
         n = self.null
         if pieces is None:
             nr = n[ref]
@@ -592,7 +786,8 @@ class HeightSolver:
         idx = np.arange(1, n_pieces + 1)
         num = ndimage.sum_labels(h * n, pieces * ref, idx)
         den = ndimage.sum_labels(n * n, pieces * ref, idx)
-        has_ref = den > 0
+        count = ndimage.sum_labels(np.ones(v.shape), pieces * ref, idx)
+        has_ref = (den > 0) & (count >= min(PIN_MIN_PIECE_SAMPLES, int(np.count_nonzero(ref))))
         alpha = np.zeros(n_pieces + 1)
         alpha[1:][has_ref] = num[has_ref] / den[has_ref]
         h -= alpha[pieces] * n
@@ -705,7 +900,8 @@ def _solver_for(geometry, rows_px, cols_px, frame_shape) -> HeightSolver:
     return s
 
 
-def surface_from_displacement(displacement_px, valid, geometry, *, rows_px, cols_px, frame_shape, solver="auto"):
+def surface_from_displacement(displacement_px, valid, geometry, *, rows_px, cols_px, frame_shape, solver="auto",
+                              reference_mask=None, pin_fallback="nearest", region_name=None):
     """Surface heights and slopes from a displacement field (pixels).
 
     Parameters
@@ -723,6 +919,9 @@ def surface_from_displacement(displacement_px, valid, geometry, *, rows_px, cols
     frame_shape : (int, int)
         Shape of the camera frame (its centre is the optical axis).
     solver : {"auto", "spectral", "masked"}
+    reference_mask, pin_fallback, region_name :
+        See :meth:`HeightSolver.solve` (default: ``geometry.reference_region``,
+        fallback to the valid samples nearest it).
 
     Returns
     -------
@@ -731,12 +930,13 @@ def surface_from_displacement(displacement_px, valid, geometry, *, rows_px, cols
         increasing column, y along increasing row, mm on the surface), NaN
         where not valid; ``x_mm`` (n_cols,), ``y_mm`` (n_rows,). The null
         space is pinned by ``geometry.reference_region`` (mean height 0
-        there).
+        there); ``pin`` says where it was pinned (:class:`PinStatus`).
 
     Raises
     ------
     GeometryError
-        The reference region holds no valid sample.
+        The reference region holds fewer valid samples than the pin needs
+        and ``pin_fallback="refuse"``.
     ShapeMismatchError
         Arrays and grid disagree.
 
@@ -751,4 +951,5 @@ def surface_from_displacement(displacement_px, valid, geometry, *, rows_px, cols
     0.0
     """
     s = _solver_for(geometry, rows_px, cols_px, frame_shape)
-    return s.solve(displacement_px, valid, solver=solver)
+    return s.solve(displacement_px, valid, solver=solver, reference_mask=reference_mask,
+                   pin_fallback=pin_fallback, region_name=region_name)

@@ -18,7 +18,10 @@ Pipeline (docs/processing.md has the measured accuracy and speed):
    known for; this removes what features narrower than the band leave);
 7. height by least squares of the exact operator
    (:func:`processing.height.surface_from_displacement`), null space pinned by
-   the reference region;
+   the reference region (``Result.pin`` says where, :func:`reference_pin_region`
+   how the default region is found, :mod:`processing.height` what the pin
+   needs and the fallback); ``Result.series`` says whether the frame is
+   continuous with the previous one (:class:`SeriesCheck`);
 8. full grid: the decimated results interpolated (Lanczos) to every
    pixel (``full_method="interpolate"``), or full-size inverse FFTs
    (``full_method="ifft"``).
@@ -40,9 +43,11 @@ from .carriers import Carriers, check_pattern_match, display_spectrum, find_carr
 from .demodulation import Demodulator
 from .errors import AllInvalidError, ShapeMismatchError
 from .fft import FFTPlanner
+from .geometry import DEFAULT_REFERENCE_BAND, default_reference_region_mask
+from .height import PIN_FALLBACKS, PIN_MIN_PIECE_SAMPLES, PinStatus
 from .unwrap import TWO_PI, unwrap_spatial, unwrap_temporal, wrap
 
-__all__ = ["Reconstructor", "Result"]
+__all__ = ["Reconstructor", "Result", "SeriesCheck", "reference_pin_region"]
 
 _DEFAULT_ITERATIONS = {"decimated": 0, "full": 1}
 # Masked height solve (CG in float32): stop at a relative residual of 1e-4.
@@ -50,6 +55,97 @@ _DEFAULT_ITERATIONS = {"decimated": 0, "full": 1}
 # on the app's 1024^2 scene (measured), 30x below the best accuracy the method reaches on
 # ray-traced frames (~0.1 % rms), and saves about a third of the iterations.
 _CG_TOL = 1e-4
+
+#: Reference contrast below this fraction of the contrast where the pattern is
+#: seen best (90th percentile of the field) marks a blank, dirty or blurred
+#: part of the pattern.  The 90th percentile, not the median: where most of the
+#: field is blurred (a pattern sharp only in a central disk) the median is the
+#: camera noise, and noise samples would pass as pattern (measured on the four
+#: real references in /work/shared/data the two agree to 0.1 % of the samples).
+_REF_CONTRAST_FRACTION = 0.25
+_REF_CONTRAST_PERCENTILE = 90.0
+
+#: Series check: a frame is flagged when temporal unwrapping had to add 2 pi
+#: against what its images say (the wrapped phase change since the previous
+#: frame) on more than this fraction of the samples valid in both.
+SERIES_MAX_SLIP_FRACTION = 0.01
+#: ... or when its height offset, measured on the previous frame's pin
+#: samples, moved by more than this fraction of the frame's rms height (the
+#: method's accuracy is 2-4 % of the height, notes.md) and more than 4 times
+#: its own noise.
+SERIES_MAX_PIN_SHIFT = 0.02
+
+
+@dataclasses.dataclass(frozen=True)
+class SeriesCheck:
+    """Is a frame's result continuous with the previous frame of the series?
+
+    Its images and the result are compared on the samples valid in both
+    frames.  Two things can make a result jump while the images do not: the
+    temporal unwrapping adds 2 pi where the images changed by less than half a
+    carrier period, or the null-space pin moved to other samples.
+
+    Attributes
+    ----------
+    flagged : bool
+        The result is not continuous with the previous frame's (see reason).
+    reason : str
+        "" when not flagged, else one line saying why.
+    unwrap_slip_fraction : float
+        Fraction of the samples valid in both frames where the unwrapped
+        phase change differs from the wrapped one (the images') by 2 pi.
+    pin_shift_mm : float
+        Change of the height offset, measured as the mean height change on the
+        previous frame's pin samples (0 when the pin samples did not change;
+        NaN when none of them is valid now).
+    compared_samples : int
+        Samples valid in both frames.
+    """
+
+    flagged: bool
+    reason: str
+    unwrap_slip_fraction: float
+    pin_shift_mm: float
+    compared_samples: int
+
+
+def reference_pin_region(reference_valid, rows_px, cols_px, frame_shape, *, skip: int = 0) -> np.ndarray:
+    """The default reference region: the border band of where the reference is valid.
+
+    Parameters
+    ----------
+    reference_valid : ndarray bool (n_rows, n_cols)
+        Samples of the grid where the reference shows the pattern.
+    rows_px, cols_px : ndarray
+        Pixel rows and columns of the grid (evenly spaced).
+    frame_shape : (int, int)
+    skip : int
+        Samples next to an invalid part of the reference that every frame
+        loses anyway (the Reconstructor's mask dilation): the band starts
+        inside them.
+
+    Returns
+    -------
+    ndarray bool (n_rows, n_cols)
+        The frame's border band (:func:`processing.geometry.default_reference_region_mask`,
+        ``ceil(0.04 min(n_rows, n_cols))`` px wide) where the reference is
+        valid, plus a band as wide along the inner edge of the valid area
+        (after ``skip`` samples): the outermost valid ground, where a
+        deformation in the middle of the view has died out.  Where the
+        reference is valid everywhere this is the frame's border band.
+    """
+    valid = np.asarray(reference_valid, bool)
+    band = default_reference_region_mask(rows_px, cols_px, frame_shape)
+    if valid.all() or not valid.any():
+        return band & valid
+    from scipy import ndimage
+
+    spacing = 0.5 * (float(rows_px[1] - rows_px[0]) + float(cols_px[1] - cols_px[0]))
+    width_px = max(1, math.ceil(DEFAULT_REFERENCE_BAND * min(frame_shape)))
+    width = max(2, math.ceil(width_px / spacing))
+    # chessboard distance (samples) to the nearest invalid sample, as the dilation counts
+    dist = ndimage.distance_transform_cdt(valid, metric="chessboard")
+    return valid & (band | ((dist > skip) & (dist <= skip + width)))
 
 
 @dataclasses.dataclass
@@ -83,6 +179,12 @@ class Result:
         Fraction of valid samples.
     timings_ms : dict
         Time spent per stage.
+    pin : processing.height.PinStatus or None
+        Where the height offset (the operator's null space) was pinned, how
+        many valid samples it had, which rule.
+    series : SeriesCheck or None
+        Continuity with the previous frame of the series (None for the first
+        frame, and with ``full_method="ifft"``).
     """
 
     height: np.ndarray
@@ -100,6 +202,8 @@ class Result:
     phase: np.ndarray
     valid_fraction: float
     timings_ms: dict
+    pin: Optional[PinStatus] = None
+    series: Optional[SeriesCheck] = None
 
 
 class _Upsampler:
@@ -241,6 +345,23 @@ class Reconstructor:
         "FFTW_MEASURE" with wisdom from :func:`processing.fft.import_wisdom`).
     carriers : Carriers, optional
         Use these instead of searching the reference.
+    pin_fallback : {"nearest", "refuse"}, optional
+        When a frame's reference region holds fewer valid samples than the pin
+        needs (:func:`processing.height.choose_pin_samples`): pin on the valid
+        samples nearest the region (default; ``Result.pin.rule == "nearest"``)
+        or refuse the frame (GeometryError).  The same rule for every frame.
+
+    Attributes
+    ----------
+    reference_region : ndarray bool (n_rows, n_cols)
+        The reference region on the decimated grid (``rows_px``, ``cols_px``),
+        chosen once from the reference: ``geometry.reference_region`` where the
+        reference is valid, or by default :func:`reference_pin_region`.
+    reference_region_name : str
+        How ``Result.pin`` names it.
+    reference_region_valid_fraction : float
+        Fraction of the candidate region (the user's box, or the frame's
+        border band) where the reference is valid.
 
     Raises
     ------
@@ -254,7 +375,8 @@ class Reconstructor:
                  oversample: float = 1.5, border: str = "apodize", subbin: bool = True,
                  full_method: str = "interpolate", full_interpolation: str = "lanczos", min_amplitude: float = 0.3, min_fold: float = 0.2,
                  dilate: int = 1, min_island: float = 0.01, check_pattern: bool = True, solver: str = "auto", threads: int = 2,
-                 planner_effort: str = "FFTW_ESTIMATE", carriers: Optional[Carriers] = None):
+                 planner_effort: str = "FFTW_ESTIMATE", carriers: Optional[Carriers] = None,
+                 pin_fallback: str = "nearest"):
         ref = self._validate_image(reference_image, "reference image")
         self._check_grid(grid)
         if full_method not in ("interpolate", "ifft"):
@@ -275,6 +397,9 @@ class Reconstructor:
         self.min_island = float(min_island)
         self.warp_interpolation = cv2.INTER_LINEAR  # measured: as accurate as Lanczos here, 15x faster
         self.check_pattern = bool(check_pattern)
+        if pin_fallback not in PIN_FALLBACKS:
+            raise ValueError(f"pin_fallback must be one of {PIN_FALLBACKS}; got {pin_fallback!r}")
+        self.pin_fallback = pin_fallback
         self.solver = solver
         self.planner = FFTPlanner(threads=threads, planner_effort=planner_effort)
         self.carriers = carriers if carriers is not None else find_carriers(ref)
@@ -286,8 +411,10 @@ class Reconstructor:
         # reference contrast, border taper divided out: blank or dirty parts of the pattern
         taper = self._taper_decimated()
         g0_min = d.g0_abs.min(axis=0) / np.maximum(taper, 1e-6)
-        self._ref_ok = (g0_min >= 0.25 * np.median(g0_min)) & (taper >= 0.02)
-        self._ref_mask = geometry.reference_mask(self.rows_px, self.cols_px, self.shape)
+        inside = taper >= 0.02
+        best = np.percentile(g0_min[inside], _REF_CONTRAST_PERCENTILE) if inside.any() else 0.0
+        self._ref_ok = (g0_min >= _REF_CONTRAST_FRACTION * best) & inside
+        self._choose_reference_region(geometry)
         self._ref_mask_full = None
         if full_interpolation not in ("cubic", "lanczos", "linear"):
             raise ValueError(f"full_interpolation must be 'cubic', 'lanczos' or 'linear'; got {full_interpolation!r}")
@@ -314,6 +441,29 @@ class Reconstructor:
         self.reset_series()
 
     # ------------------------------------------------------------ helpers
+    def _choose_reference_region(self, geometry):
+        """The reference region on the decimated grid, once for the series."""
+        rows_px, cols_px = self.rows_px, self.cols_px
+        self._region_near = None
+        if geometry.reference_region is None:
+            candidate = default_reference_region_mask(rows_px, cols_px, self.shape)
+            region = reference_pin_region(self._ref_ok, rows_px, cols_px, self.shape, skip=self.dilate)
+            if self._ref_ok.all():
+                name = "default border band of the frame"
+            else:
+                name = "default border band of the reference's valid area"
+        else:
+            candidate = geometry.reference_mask(rows_px, cols_px, self.shape)
+            region = candidate & self._ref_ok
+            name = f"reference_region {list(geometry.reference_region)}"
+            if not region.any():
+                self._region_near = candidate  # the fallback measures "nearest" from the box
+        self.reference_region = region
+        self.reference_region_name = name
+        self.reference_region_valid_fraction = (float(np.count_nonzero(candidate & self._ref_ok))
+                                                / max(1, int(np.count_nonzero(candidate))))
+        self._ref_mask = region
+
     def _taper_decimated(self):
         """Border window at the decimated samples (1 without apodization)."""
         w = self.demod._window2d
@@ -351,6 +501,7 @@ class Reconstructor:
         self._prev_phase = None
         self._prev_valid = None
         self._prev_all_valid = False
+        self._series_prev = None
 
     # ----------------------------------------------------------- pattern
     def _cheap_pattern_check(self, wins, frame):
@@ -599,10 +750,19 @@ class Reconstructor:
             timings["total"] = 1e3 * (time.perf_counter() - t0)
             return res
         hs = self._solver()
+        pin_kw = dict(pin_fallback=self.pin_fallback, region_name=self.reference_region_name,
+                      near=self._region_near)
         if all_valid and hs._fast is not None and self.solver in ("auto", "spectral"):
-            surf = hs._solve_fast(u, valid)  # what solve() picks for finite u, all valid
+            # what solve() picks for finite u, all valid
+            surf = hs._solve_fast(u, valid, self._ref_mask, **pin_kw)
         else:
-            surf = hs._solve(u, valid, self.solver, _CG_TOL)
+            surf = hs._solve(u, valid, self.solver, _CG_TOL, self._ref_mask, **pin_kw)
+        if surf.valid is not valid and not np.array_equal(surf.valid, valid):
+            # pieces the pin could not reach: their offset was not measured
+            valid = np.asarray(surf.valid, bool)
+            all_valid = False
+            u = np.where(valid, u, np.float32(np.nan)).astype(np.float32)
+        series = self._check_series(phase, valid, surf)
         t4 = time.perf_counter()
         timings["height"] = 1e3 * (t4 - t3)
         res = Result(height=np.asarray(surf.height_mm, np.float32), valid=valid,
@@ -611,12 +771,58 @@ class Reconstructor:
                      amplitude=amplitude, x_mm=np.asarray(surf.x_mm), y_mm=np.asarray(surf.y_mm),
                      grid="decimated", rows_px=self.rows_px, cols_px=self.cols_px,
                      carriers=self.carriers, phase=np.asarray(phase, np.float32),
-                     valid_fraction=1.0 if all_valid else float(valid.mean()), timings_ms=timings)
+                     valid_fraction=1.0 if all_valid else float(valid.mean()), timings_ms=timings,
+                     pin=surf.pin, series=series)
         if grid == "full":
             res = self._interpolate_full(res)
             timings["interpolate"] = 1e3 * (time.perf_counter() - t4)
         timings["total"] = 1e3 * (time.perf_counter() - t0)
         return res
+
+    def _check_series(self, phase, valid, surf) -> Optional[SeriesCheck]:
+        """Compare this frame with the previous one (see :class:`SeriesCheck`);
+        None for the first frame of a series."""
+        prev = self._series_prev
+        height = np.asarray(surf.height_mm)
+        pin_samples = surf.pin_samples
+        self._series_prev = (phase, valid, height, pin_samples)
+        if prev is None:
+            return None
+        p_phase, p_valid, p_height, p_pin = prev
+        both = valid & p_valid
+        n = int(np.count_nonzero(both))
+        if n == 0:
+            return SeriesCheck(True, "no sample is valid in both this and the previous frame: "
+                               "its heights cannot be compared with the previous frame's", float("nan"),
+                               float("nan"), 0)
+        change = phase[:, both] - p_phase[:, both]
+        slip = np.any(np.abs(change - wrap(change)) > np.pi, axis=0)
+        slip_fraction = float(np.count_nonzero(slip)) / n
+        reasons = []
+        if slip_fraction > SERIES_MAX_SLIP_FRACTION:
+            reasons.append(
+                f"the unwrapped phase changed by more than half a carrier period since the previous frame on "
+                f"{100 * slip_fraction:.1f} % of the samples, where the images alone cannot tell how many periods "
+                f"(temporal unwrapping slipped, or the surface moved too fast for the frame rate)")
+        shift = 0.0
+        same = p_pin is not None and pin_samples is not None and np.array_equal(p_pin, pin_samples)
+        if not same and p_pin is not None:
+            common = p_pin & both
+            m = int(np.count_nonzero(common))
+            if m < PIN_MIN_PIECE_SAMPLES:
+                shift = float("nan")
+                reasons.append(f"the height offset was pinned on other samples than in the previous frame "
+                               f"({m} in common): the offsets of the two frames are not comparable")
+            else:
+                dh = (height[common] - p_height[common]).astype(np.float64)
+                shift = float(dh.mean())
+                noise = float(dh.std()) / math.sqrt(max(1.0, m / 4.0))  # ~4 samples per filter footprint
+                scale = float(np.sqrt(np.mean(np.square(height[valid], dtype=np.float64))))
+                if abs(shift) > max(SERIES_MAX_PIN_SHIFT * scale, 4.0 * noise):
+                    reasons.append(
+                        f"the height offset moved by {1e3 * shift:+.3g} um ({100 * abs(shift) / scale:.1f} % of the "
+                        f"rms height) on the previous frame's pin samples: the pin changed under this frame")
+        return SeriesCheck(bool(reasons), "; ".join(reasons), slip_fraction, shift, n)
 
     def _solver(self):
         """Height solver of the decimated grid (built once)."""
@@ -725,9 +931,13 @@ class Reconstructor:
         corr = np.nan_to_num(np.where(valid, u - u_first, 0.0))
         uf = uf + np.stack([up(corr[0]), up(corr[1])])
         uf = np.where(valid_full, uf, np.nan).astype(np.float32)
+        if self._ref_mask_full is None:
+            self._ref_mask_full = up.mask(self._ref_mask)
         surf = surface_from_displacement(uf, valid_full, self.geometry, rows_px=np.arange(rows, dtype=float),
                                          cols_px=np.arange(cols, dtype=float), frame_shape=self.shape,
-                                         solver=self.solver)
+                                         solver=self.solver, reference_mask=self._ref_mask_full,
+                                         pin_fallback=self.pin_fallback, region_name=self.reference_region_name)
+        valid_full = np.asarray(surf.valid, bool)
         timings["height"] = 1e3 * (time.perf_counter() - t3)
         return Result(height=np.asarray(surf.height_mm, np.float32), valid=valid_full,
                       slope_x=np.asarray(surf.slope_x, np.float32), slope_y=np.asarray(surf.slope_y, np.float32),
@@ -735,7 +945,7 @@ class Reconstructor:
                       y_mm=np.asarray(surf.y_mm), grid="full",
                       rows_px=np.arange(rows, dtype=float), cols_px=np.arange(cols, dtype=float),
                       carriers=self.carriers, phase=np.asarray(phase, np.float32),
-                      valid_fraction=float(valid_full.mean()), timings_ms=timings)
+                      valid_fraction=float(valid_full.mean()), timings_ms=timings, pin=surf.pin)
 
     # ----------------------------------------------------------- alignment
     def alignment(self, frame) -> dict:

@@ -128,7 +128,7 @@ def test_spectral_equals_masked_when_all_valid(rng):
         _solve(u, np.broadcast_to(np.arange(SHAPE[1]) > 3, SHAPE), g, solver="spectral")
 
 
-def test_unreferenced_pieces_are_invalid_and_empty_reference_raises():
+def test_unreferenced_pieces_are_invalid_and_an_empty_reference_falls_back_or_refuses():
     g = _tir()
     X, Y = _xy(g)
     h = BUMP.height(X, Y)
@@ -139,9 +139,27 @@ def test_unreferenced_pieces_are_invalid_and_empty_reference_raises():
     island = np.hypot(rr - 96, cc - 104) <= 30  # cut off from the border band: offset unknown
     assert not res.valid[island].any() and np.isnan(res.height_mm[island]).all()
     assert _rel_rms(res.height_mm, h, res.valid) < 1e-3
+    assert res.pin.rule == "region" and res.pin.used_samples == res.pin.valid_samples
+    assert res.pin.unpinned_fraction == pytest.approx(island.sum() / (~ring).sum(), rel=1e-6)
     band = g.reference_mask(*_grid(), SHAPE)
-    with pytest.raises(GeometryError, match="no valid pixel"):
-        _solve(u, ~band, g)
+    # the border band holds no valid sample: the documented fallback pins on the
+    # valid samples nearest it, and says so
+    res = _solve(u, ~band, g)
+    assert res.pin.rule == "nearest" and res.pin.valid_samples == 0 and not res.pin.ok
+    assert res.pin.used_samples >= res.pin.needed >= 16
+    nearest = res.pin_samples
+    assert not (nearest & band).any() and res.valid[nearest].all()
+    # the nearest samples hug the band: every valid sample nearer than the
+    # farthest one used is used (a quarter of the band's count: its first rings)
+    from scipy import ndimage
+
+    dist = ndimage.distance_transform_edt(~band)
+    cut = dist[nearest].max()
+    assert cut <= 3.0 and np.array_equal(nearest, ~band & (dist <= cut))
+    # the offset is measured there (the null mode varies by < 1 % across the ring)
+    assert abs(float(np.mean(res.height_mm[nearest]))) < 0.01 * np.abs(h).max()
+    with pytest.raises(GeometryError, match=f"0 valid samples.*needs {res.pin.needed}"):
+        _solve(u, ~band, g, pin_fallback="refuse")
 
 
 def test_decimated_grid():
