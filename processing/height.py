@@ -147,8 +147,11 @@ class PinStatus:
 
     def describe(self) -> str:
         """One line for logs and summaries."""
-        where = (f"{self.region}: {self.valid_samples} of {self.region_samples} samples valid"
-                 f" (needs {self.needed})")
+        if self.region_samples == 0:
+            where = f"{self.region}: no sample where the reference shows the pattern"
+        else:
+            where = (f"{self.region}: {self.valid_samples} of {self.region_samples} samples valid"
+                     f" (needs {self.needed})")
         if self.rule == "region":
             text = f"pinned on {where}"
         else:

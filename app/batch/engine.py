@@ -162,11 +162,13 @@ class ProcessJob:
 
 @dataclasses.dataclass
 class BatchReport:
-    """What a batch run wrote: ``frames_written`` frames to ``out``; ``notes`` for the user."""
+    """What a batch run wrote: ``frames_written`` frames to ``out``; ``notes`` for the user;
+    ``pin``: one line naming where the height offset was pinned (empty if unknown)."""
 
     out: Path
     frames_written: int
     notes: list
+    pin: str = ""
 
 
 def run_process(args: ProcessJob) -> BatchReport:
@@ -234,6 +236,8 @@ def run_process(args: ProcessJob) -> BatchReport:
         carrier_attrs=carrier_attrs(getattr(reconstruct, "carriers", None)),
         reference=reference, expected=selected,
     )
+    pins = _PinCounter(reconstruct)
+    pins.write_region(writer)
     status = "failed"
     flagged = _FlagCounter()
     progress = _progress(selected, disable=args.no_progress)
@@ -255,6 +259,7 @@ def run_process(args: ProcessJob) -> BatchReport:
                 raise _frame_failed(exc, item, writer) from exc
             log.debug("frame %d (%s) written to %s", item.sequence_index, item.label, out)
             flagged.add(item)
+            pins.add(item, result)
             progress.update(1)
             if on_progress is not None:
                 on_progress(writer.n, selected)
@@ -268,7 +273,7 @@ def run_process(args: ProcessJob) -> BatchReport:
     finally:
         progress.close()
         if writer.f is not None and not writer.failed:
-            set_attrs(writer.f, flagged.attrs())
+            set_attrs(writer.f, {**flagged.attrs(), **pins.attrs()})
         writer.close(status)
         if status != "complete" and writer.n == 0:
             # nothing worth keeping: do not leave a file that blocks the next attempt
@@ -277,7 +282,86 @@ def run_process(args: ProcessJob) -> BatchReport:
             except OSError:
                 pass
         cache.store_fftw_wisdom()
-    return BatchReport(out=out, frames_written=writer.n, notes=flagged.notes())
+    return BatchReport(out=out, frames_written=writer.n, notes=flagged.notes() + pins.notes(),
+                       pin=pins.summary())
+
+
+class _PinCounter:
+    """Where each frame's height offset was pinned, and the frames flagged as jumps
+    (Result.pin, Result.series): never silent, in the summary and the file."""
+
+    def __init__(self, reconstruct):
+        self.region = getattr(reconstruct, "reference_region", None)
+        self.name = getattr(reconstruct, "reference_region_name", "")
+        self.reference_valid_fraction = getattr(reconstruct, "reference_region_valid_fraction", float("nan"))
+        self.fallback = getattr(reconstruct, "pin_fallback", "")
+        self.rows_px = getattr(reconstruct, "rows_px", None)
+        self.cols_px = getattr(reconstruct, "cols_px", None)
+        self.frames = 0
+        self.nearest = []
+        self.jumps = []  # (sequence index, reason)
+        self.min_valid = None
+
+    def write_region(self, writer) -> None:
+        if self.region is None:
+            return
+        writer.write_pin_region(self.region, self.rows_px, self.cols_px, {
+            "region": self.name,
+            "region_samples": int(np.count_nonzero(self.region)),
+            "reference_valid_fraction": float(self.reference_valid_fraction),
+            "fallback": self.fallback,
+            "rule": ("pinned on the region's valid samples when at least max(16, 25 % of the region) are "
+                     "valid; else on that many valid samples nearest the region ('nearest'), the same rule "
+                     "for every frame (docs/processing.md, section 5)"),
+        })
+
+    def add(self, item, result) -> None:
+        pin = getattr(result, "pin", None)
+        if pin is None:
+            return
+        self.frames += 1
+        if pin.rule != "region":
+            self.nearest.append(item.sequence_index)
+            # the first one loudly, the rest in the summary (a long series would flood the terminal)
+            (log.warning if len(self.nearest) == 1 else log.debug)(
+                "frame %d (%s): %s", item.sequence_index, item.label, pin.describe())
+        if self.min_valid is None or pin.valid_samples < self.min_valid[0]:
+            self.min_valid = (pin.valid_samples, pin.region_samples)
+        series = getattr(result, "series", None)
+        if series is not None and series.flagged:
+            self.jumps.append((item.sequence_index, series.reason))
+            (log.warning if len(self.jumps) == 1 else log.debug)(
+                "frame %d (%s) jumps against the previous frame: %s", item.sequence_index, item.label,
+                series.reason)
+
+    def attrs(self) -> dict:
+        return {"pin_region": self.name, "frames_pin_fallback": len(self.nearest),
+                "frames_flagged_jump": len(self.jumps)}
+
+    def summary(self) -> str:
+        if not self.frames:
+            return ""
+        n_region = 0 if self.region is None else int(np.count_nonzero(self.region))
+        text = (f"height offset pinned on the {self.name} ({n_region} samples where the reference is valid) "
+                f"in {self.frames - len(self.nearest)} of {self.frames} frame(s)")
+        if self.min_valid is not None and n_region:
+            text += f", at least {self.min_valid[0]} of its samples valid"
+        if self.nearest:
+            text += (f"; {len(self.nearest)} frame(s) on the valid samples nearest it (fallback), "
+                     f"e.g. frame {self.nearest[0]}")
+        return text
+
+    def notes(self) -> list:
+        out = []
+        if self.nearest:
+            out.append(f"{len(self.nearest)} frame(s) had too few valid samples in the {self.name} and were "
+                       f"pinned on the valid samples nearest it, e.g. frame {self.nearest[0]}: choose a "
+                       f"reference_region where the surface is at rest and the pattern is sharp; see /pin_status")
+        if self.jumps:
+            idx, reason = self.jumps[0]
+            out.append(f"{len(self.jumps)} frame(s) jump against the previous frame while the images do not "
+                       f"explain it, e.g. frame {idx}: {reason}; see /pin_status")
+        return out
 
 
 class _FlagCounter:

@@ -26,6 +26,53 @@ log = logging.getLogger(__name__)
 OUTPUT_FORMAT_VERSION = 1
 
 
+_PIN_FIELDS = (
+    ("rule", "'region': pinned on the reference region; 'nearest': too few valid samples there, "
+             "pinned on the valid samples nearest it (fallback); '' unknown"),
+    ("region_samples", "samples of the grid in the region"),
+    ("valid_samples", "of those, valid in this frame"),
+    ("needed", "valid samples the pin needs: max(16, 25 % of the region)"),
+    ("used_samples", "samples the offset was measured on"),
+    ("unpinned_fraction", "fraction of the valid samples dropped: their piece held no pin sample"),
+    ("jump", "1: the result is not continuous with the previous frame's (see reason)"),
+    ("unwrap_slip_fraction", "fraction of samples where the unwrapped phase change differs by 2 pi "
+                             "from the images' wrapped one"),
+    ("pin_shift_um", "change of the height offset on the previous frame's pin samples, um (NaN: not comparable)"),
+    ("reason", "why the frame is flagged as a jump, '' if not"),
+)
+
+
+def _pin_status_dtype():
+    import h5py
+
+    s = h5py.string_dtype()
+    return np.dtype([("rule", s), ("region_samples", np.int32), ("valid_samples", np.int32),
+                     ("needed", np.int32), ("used_samples", np.int32), ("unpinned_fraction", np.float32),
+                     ("jump", np.uint8), ("unwrap_slip_fraction", np.float32), ("pin_shift_um", np.float32),
+                     ("reason", s)])
+
+
+def _pin_status_row(result) -> np.ndarray:
+    """One row of /pin_status from a Result's ``pin`` and ``series`` (either may be None)."""
+    row = np.zeros((), dtype=_pin_status_dtype())
+    row["rule"] = ""
+    row["reason"] = ""
+    row["pin_shift_um"] = np.nan
+    row["unwrap_slip_fraction"] = np.nan
+    pin = getattr(result, "pin", None)
+    if pin is not None:
+        row["rule"] = pin.rule
+        for name in ("region_samples", "valid_samples", "needed", "used_samples", "unpinned_fraction"):
+            row[name] = getattr(pin, name)
+    series = getattr(result, "series", None)
+    if series is not None:
+        row["jump"] = int(series.flagged)
+        row["unwrap_slip_fraction"] = series.unwrap_slip_fraction
+        row["pin_shift_um"] = 1e3 * series.pin_shift_mm
+        row["reason"] = series.reason
+    return row
+
+
 class OutputExistsError(TirdeflectError):
     """The output file exists and ``--overwrite`` was not given."""
 
@@ -288,6 +335,28 @@ class ResultWriter:
             f.create_dataset(name, shape=(0,), maxshape=(None,), dtype=np.int64, chunks=(1024,))
             f[name].attrs["description"] = text
         f.attrs["grid"] = str(getattr(result, "grid", "full"))
+        self._create_pin_status()
+
+    # ------------------------------------------------------------------ pin (issue 13)
+    def _create_pin_status(self) -> None:
+        """``/pin_status``: where each frame's height offset was pinned, and whether
+        its result is continuous with the previous frame's (one row per frame)."""
+        ds = self.f.create_dataset("pin_status", shape=(0,), maxshape=(None,), dtype=_pin_status_dtype(),
+                                   chunks=(256,))
+        ds.attrs["description"] = (
+            "per frame: where the height offset (the operator's null space) was pinned and whether the "
+            "result jumps against the previous frame; the region is /pin_region")
+        ds.attrs["fields"] = [f"{name}: {text}" for name, text in _PIN_FIELDS]
+
+    def write_pin_region(self, mask, rows_px, cols_px, attrs: dict) -> None:
+        """``/pin_region``: the reference region (chosen once for the series) on the grid
+        of ``rows_px`` x ``cols_px`` (the decimated grid), 1 inside."""
+        ds = self.f.create_dataset("pin_region", data=np.asarray(mask, dtype=np.uint8))
+        ds.attrs["description"] = "reference region the height offset is pinned on (1 inside), chosen once"
+        ds.attrs["rows_px"] = np.asarray(rows_px, dtype=np.float64)
+        ds.attrs["cols_px"] = np.asarray(cols_px, dtype=np.float64)
+        set_attrs(ds, attrs)
+        self.f.flush()
 
     def _check_room(self, shape) -> None:
         """Refuse the next frame (DiskFullError) while the file can still be closed validly."""
@@ -312,7 +381,7 @@ class ResultWriter:
             )
         valid = np.asarray(result.valid, dtype=bool)
         k = self.n
-        names = (*self.PER_FRAME, "valid", *self.PER_FRAME_1D)
+        names = (*self.PER_FRAME, "valid", *self.PER_FRAME_1D, "pin_status")
         try:
             for name in names:
                 f[name].resize(k + 1, axis=0)
@@ -327,6 +396,7 @@ class ResultWriter:
             f["device_timestamp_ns"][k] = item.device_timestamp_ns
             f["host_timestamp_ns"][k] = item.host_timestamp_ns
             f["frame_flags"][k] = item.flags
+            f["pin_status"][k] = _pin_status_row(result)
         except BaseException as exc:
             # e.g. disk full: drop the half-written frame so the file holds exactly frames_done
             try:

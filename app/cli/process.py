@@ -156,6 +156,8 @@ def cmd_process(args) -> int:
     """Run ``tirdeflect process``; returns the exit status (errors raise)."""
     report = run_process(ProcessJob.from_namespace(args))
     print(f"tirdeflect: wrote {report.frames_written} frame(s) to {report.out}", file=sys.stderr)
+    if report.pin:
+        print(f"tirdeflect: {report.pin}", file=sys.stderr)
     for line in report.notes:
         print(f"tirdeflect: note: {line}", file=sys.stderr)
     return 0
