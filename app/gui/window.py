@@ -200,6 +200,9 @@ class MainWindow(QtWidgets.QMainWindow):
         self.region_roi.sigRegionChangeFinished.connect(self._region_dragged)
         self._region_label = pg.TextItem("reference region (h = 0)", color="#00a000", anchor=(0, 1))
         self.raw_view.plot.addItem(self._region_label)
+        # where the height offset is really pinned (from the reference), with its valid fraction
+        from app.gui.pinregion import PinRegionOverlay
+        self.pin_overlay = PinRegionOverlay(self.raw_view.plot)
         # profile line on the height view (mm)
         self.profile_roi = pg.LineSegmentROI([[0, 0], [1, 1]], pen=pg.mkPen("#ff00ff", width=2))
         self.profile_roi.setZValue(20)
@@ -446,12 +449,14 @@ class MainWindow(QtWidgets.QMainWindow):
         def done(rec, error):
             if error:
                 self.session.worker.set_reconstructor(None)
+                self.pin_overlay.set_reconstructor(None)
                 self.geometry_panel.reference_label.setText("reference NOT usable")
                 self.show_error(f"Bad reference: {error}")
                 return
             if reference is not self.reference or geometry is not self.geometry:
                 return  # superseded by a newer reference/geometry
             self.session.worker.set_reconstructor(rec)
+            self.pin_overlay.set_reconstructor(rec)
             self.session.reference = reference
             text = getattr(self, "_reference_text", "reference")
             try:
@@ -878,6 +883,7 @@ class MainWindow(QtWidgets.QMainWindow):
             for v in views:
                 v.show_message("")
             self.last_drawn = p
+            self.pin_overlay.update(r)
             height_um = np.multiply(r.height, 1e3, dtype=np.float32)
             self.height_view.set_data(height_um, x=x, y=y, stamp_ns=p.host_timestamp_ns)
             self.valid_view.set_data(r.valid.astype(np.float32), x=x, y=y, levels=(0.0, 1.0))

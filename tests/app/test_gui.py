@@ -332,3 +332,42 @@ def test_no_display_is_a_clear_error(monkeypatch, capsys):
     assert main(["--camera", "synthetic"]) == 2
     err = capsys.readouterr().err
     assert "no display" in err and "tirdeflect record" in err
+
+
+def test_pin_region_is_drawn_from_the_reference_with_its_valid_fraction(qtbot, window):
+    """A board sharp only in a central disk: the raw view tints the rim band of the
+    reference's valid area (not the blurred frame border) and labels it with the
+    fraction valid in the newest frame; a box in the blur turns it red (fallback)."""
+    from app.capture.scene import default_geometry
+    from processing import forward
+
+    geometry = default_geometry(SHAPE)
+    board = forward.Checkerboard(period_mm=12 * geometry.pixel_mm, edge_softness_mm=geometry.pixel_mm,
+                                 sharp_radius_mm=0.3 * SHAPE[1] * geometry.pixel_mm, sharp_edge_mm=1.0)
+    image, _ = forward.render_tir(forward.FlatSurface(), geometry, SHAPE, board)
+    still = forward.quantize(image, bits=8, noise_rms=1.5, rng=np.random.default_rng(2))
+    window.use_camera(SyntheticCamera(Switchable(still), frame_rate_hz=50.0), geometry=geometry)
+    qtbot.waitUntil(lambda: window._last_raw_seq >= 0, timeout=10000)
+    window.geometry_panel.capture_button.click()
+    _wait_reconstructor(qtbot, window)
+    rec = window.session.worker.reconstructor
+    overlay = window.pin_overlay
+    assert overlay.image.isVisible() and overlay.label.isVisible()
+    assert overlay.samples == int(rec.reference_region.sum()) > 16
+    # drawn where the reference is valid: the tinted samples are sharp-disk samples, none on the blurred border
+    drawn = overlay.image.image.astype(bool)
+    assert np.array_equal(drawn, rec.reference_region)
+    assert not (drawn & ~rec._ref_ok).any()
+    rows_px, cols_px = rec.rows_px, rec.cols_px
+    assert not drawn[(rows_px < 10) | (rows_px > SHAPE[0] - 10), :].any()
+    assert not drawn[:, (cols_px < 10) | (cols_px > SHAPE[1] - 10)].any()
+    # a frame processed: the label gives the valid fraction of the region in it (the still frame: all of it)
+    qtbot.waitUntil(lambda: "% valid" in overlay.text and "reference," not in overlay.text, timeout=20000)
+    assert overlay.text == "default border band of the reference's valid area (h = 0): 100 % valid"
+    assert not overlay.bad
+    # a box in the blurred corner: nothing of it is valid, the fallback is shown in red
+    gp = window.geometry_panel
+    gp.region.setText("0, 12, 0, 12")
+    gp.region.editingFinished.emit()
+    qtbot.waitUntil(lambda: "too few, pinned on the" in overlay.text, timeout=20000)
+    assert overlay.bad and overlay.text.startswith("reference_region [0, 12, 0, 12] (h = 0): 0 % valid")

@@ -1,0 +1,88 @@
+"""The reference region the height offset is pinned on, drawn on the raw view.
+
+The Reconstructor chooses the region once from the reference
+(``Reconstructor.reference_region`` on its decimated grid: the user's box
+where the reference shows the pattern, or by default the border band of the
+reference's valid area). This overlay tints it green and labels it with the
+fraction of it valid in the newest frame (``Result.pin``), or where the
+reference is valid until a frame arrives; red when the pin fell back to the
+samples nearest the region or the frame jumps against the previous one.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pyqtgraph as pg
+from pyqtgraph.Qt import QtCore
+
+_LUT_OK = np.array([[0, 0, 0, 0], [0, 200, 0, 90]], np.uint8)
+_LUT_BAD = np.array([[0, 0, 0, 0], [220, 0, 0, 110]], np.uint8)
+
+
+class PinRegionOverlay:
+    """Green tint of the reference region on a pixel-coordinate plot, plus a label.
+
+    Parameters
+    ----------
+    plot : pyqtgraph PlotItem or ViewBox
+        The raw view's plot (coordinates in pixels: x = column, y = row).
+    """
+
+    def __init__(self, plot):
+        self.image = pg.ImageItem(axisOrder="row-major")
+        self.image.setLookupTable(_LUT_OK)
+        self.image.setZValue(15)
+        self.label = pg.TextItem("", color="#00a000", anchor=(0, 0))
+        self.label.setZValue(21)
+        plot.addItem(self.image)
+        plot.addItem(self.label)
+        self.name = ""
+        self.samples = 0
+        self.text = ""
+        self.bad = False
+        self.set_reconstructor(None)
+
+    def set_reconstructor(self, rec) -> None:
+        """Show the region of ``rec`` (None hides it)."""
+        region = getattr(rec, "reference_region", None)
+        if region is None:
+            self.image.setVisible(False)
+            self.label.setVisible(False)
+            self.text = ""
+            return
+        rows, cols = np.asarray(rec.rows_px, float), np.asarray(rec.cols_px, float)
+        dr = rows[1] - rows[0] if rows.size > 1 else 1.0
+        dc = cols[1] - cols[0] if cols.size > 1 else 1.0
+        self.image.setImage(np.ascontiguousarray(region, dtype=np.uint8), autoLevels=False, levels=(0, 1))
+        self.image.setRect(QtCore.QRectF(cols[0] - dc / 2, rows[0] - dr / 2, dc * cols.size, dr * rows.size))
+        self.name = rec.reference_region_name
+        self.samples = int(np.count_nonzero(region))
+        r, c = np.nonzero(region)
+        if r.size:
+            self.label.setPos(float(cols[c.min()]), float(rows[r.max()] + dr))
+        self._show(f"{self.name} (h = 0): {100 * rec.reference_region_valid_fraction:.0f} % valid in the "
+                   f"reference, {self.samples} samples", bad=self.samples == 0)
+
+    def update(self, result) -> None:
+        """Label the region with the fraction of it valid in ``result`` (a Result)."""
+        pin = getattr(result, "pin", None)
+        if pin is None or not self.name:
+            return
+        frac = pin.valid_samples / pin.region_samples if pin.region_samples else 0.0
+        text = f"{self.name} (h = 0): {100 * frac:.0f} % valid"
+        bad = not pin.ok
+        if bad:
+            text += f" — too few, pinned on the {pin.used_samples} nearest valid samples"
+        series = getattr(result, "series", None)
+        if series is not None and series.flagged:
+            text += " — JUMP against the previous frame"
+            bad = True
+        self._show(text, bad=bad)
+
+    def _show(self, text: str, *, bad: bool) -> None:
+        if text != self.text or bad != self.bad:
+            self.text, self.bad = text, bad
+            self.label.setText(text, color="#d00000" if bad else "#00a000")
+            self.image.setLookupTable(_LUT_BAD if bad else _LUT_OK)
+        self.image.setVisible(self.samples > 0)
+        self.label.setVisible(True)
