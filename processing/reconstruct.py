@@ -795,9 +795,14 @@ class Reconstructor:
             return SeriesCheck(True, "no sample is valid in both this and the previous frame: "
                                "its heights cannot be compared with the previous frame's", float("nan"),
                                float("nan"), 0)
-        change = phase[:, both] - p_phase[:, both]
-        slip = np.any(np.abs(change - wrap(change)) > np.pi, axis=0)
-        slip_fraction = float(np.count_nonzero(slip)) / n
+        # the unwrapped change differs from the wrapped one (the images') by 2 pi
+        # exactly where it exceeds pi; NaN (invalid) compares False
+        change = np.abs(phase - p_phase)
+        if float(np.nanmax(change, initial=0.0)) <= np.pi:
+            slip_fraction = 0.0
+        else:
+            slip = (change[0] > np.pi) | (change[1] > np.pi)
+            slip_fraction = float(np.count_nonzero(slip & both)) / n
         reasons = []
         if slip_fraction > SERIES_MAX_SLIP_FRACTION:
             reasons.append(
