@@ -16,8 +16,10 @@ __all__ = ["compare_heights"]
 def compare_heights(out_path, truth_path, *, margin: float = 0.125) -> list:
     """Per-frame errors of processed heights against simulated truth.
 
-    Both maps have their mean over the geometry's reference region removed
-    (the offset the method cannot measure); the comparison uses the interior,
+    Both maps have their mean over the reference region removed (the offset
+    the method cannot measure): the output's ``/pin_region`` (the region the
+    heights were pinned on), else the geometry's, else (a region with no
+    valid sample: the fallback pinned the frame) all valid samples; the comparison uses the interior,
     ``margin * size`` pixels away from each border, and the valid samples.
 
     Parameters
@@ -49,6 +51,10 @@ def compare_heights(out_path, truth_path, *, margin: float = 0.125) -> list:
         est = f["height"][:n].astype(np.float64)
         index = f["frame_index"][:n]
         geometry = Geometry.from_toml_text(str(f.attrs["geometry_toml"]))
+        pin_region = None
+        if "pin_region" in f:
+            ds = f["pin_region"]
+            pin_region = (ds[()].astype(bool), ds.attrs["rows_px"], ds.attrs["cols_px"])
     with h5py.File(truth_path, "r") as f:
         if "height" not in f:
             raise TirdeflectError(f"{str(truth_path)!r} holds no /height; give the heights.h5 of tirdeflect simulate")
@@ -58,7 +64,14 @@ def compare_heights(out_path, truth_path, *, margin: float = 0.125) -> list:
             f"processed heights are {est.shape[1:]} but the truth is {truth.shape[1:]}; "
             f"compare the output of the same data set")
     rows, cols = truth.shape[1:]
-    ref = geometry.reference_mask(np.arange(rows), np.arange(cols), (rows, cols))
+    if pin_region is not None:
+        # every pixel takes the region membership of its nearest grid sample
+        region, rows_px, cols_px = pin_region
+        ri = np.abs(np.arange(rows)[:, None] - np.asarray(rows_px)[None, :]).argmin(axis=1)
+        ci = np.abs(np.arange(cols)[:, None] - np.asarray(cols_px)[None, :]).argmin(axis=1)
+        ref = region[np.ix_(ri, ci)]
+    else:
+        ref = geometry.reference_mask(np.arange(rows), np.arange(cols), (rows, cols))
     mr, mc = int(round(margin * rows)), int(round(margin * cols))
     inner = (slice(mr, rows - mr), slice(mc, cols - mc))
     report = []
@@ -66,8 +79,11 @@ def compare_heights(out_path, truth_path, *, margin: float = 0.125) -> list:
         j = int(index[k])
         if j >= truth.shape[0]:
             raise TirdeflectError(f"output frame {k} is input frame {j} but the truth has {truth.shape[0]} frames")
-        e = est[k] - np.nanmean(est[k][ref])
-        t = truth[j] - np.mean(truth[j][ref])
+        r = ref & np.isfinite(est[k])  # both offsets on the same samples
+        if not r.any():  # pinned by the fallback (see /pin_status): compare shapes about the mean
+            r = np.isfinite(est[k])
+        e = est[k] - np.mean(est[k][r])
+        t = truth[j] - np.mean(truth[j][r])
         e, t = e[inner], t[inner]
         ok = np.isfinite(e)
         err = e[ok] - t[ok]

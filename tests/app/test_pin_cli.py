@@ -44,6 +44,8 @@ def series_dir(tmp_path_factory):
     (d / "geometry.toml").write_text(FSSS.to_toml_text())
     (d / "corner.toml").write_text(dataclasses.replace(FSSS, reference_region=(0, 20, 0, 20)).to_toml_text())
     np.save(d / "truth.npy", sim.heights_mm)
+    with h5py.File(d / "heights.h5", "w") as f:
+        f["height"] = sim.heights_mm
     return d
 
 
@@ -94,6 +96,11 @@ def test_process_names_the_default_pin_and_stores_its_status(series_dir, tmp_pat
     assert [r.decode() if isinstance(r, bytes) else r for r in st["rule"]] == ["region"] * 6
     assert np.all(st["valid_samples"] >= st["needed"]) and st["valid_samples"].min() == int(m.group(2))
     assert np.all(st["jump"] == 0) and np.isnan(st["pin_shift_um"][0]) and np.all(st["pin_shift_um"][1:] == 0)
+    # `tirdeflect compare` takes the offsets on /pin_region (the frame border would be all NaN here)
+    proc = subprocess.run([sys.executable, "-m", "app.cli", "compare", str(out), str(series_dir / "heights.h5"),
+                           "--max-error", "0.03"], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert len(re.findall(r"^\s+\d+\s+\d+\.\d+ %", proc.stdout, flags=re.M)) == 6, proc.stdout
 
 
 def test_process_says_when_the_pin_falls_back(series_dir, tmp_path):
