@@ -131,8 +131,10 @@ def reference_pin_region(reference_valid, rows_px, cols_px, frame_shape, *, skip
         ``ceil(0.04 min(n_rows, n_cols))`` px wide) where the reference is
         valid, plus a band as wide along the inner edge of the valid area
         (after ``skip`` samples): the outermost valid ground, where a
-        deformation in the middle of the view has died out.  Where the
-        reference is valid everywhere this is the frame's border band.
+        deformation in the middle of the view has died out.  Holes in the
+        valid area (invalid parts enclosed by valid ones) get no band.  Where
+        the reference is valid everywhere (but for holes) this is the frame's
+        border band.
     """
     valid = np.asarray(reference_valid, bool)
     band = default_reference_region_mask(rows_px, cols_px, frame_shape)
@@ -140,11 +142,16 @@ def reference_pin_region(reference_valid, rows_px, cols_px, frame_shape, *, skip
         return band & valid
     from scipy import ndimage
 
+    # only the outer edge: a hole in the valid area (a dirty spot of the
+    # pattern) lies in the middle of the view, where the surface may move
+    outer = ndimage.binary_fill_holes(valid)
+    if outer.all():
+        return band & valid
     spacing = 0.5 * (float(rows_px[1] - rows_px[0]) + float(cols_px[1] - cols_px[0]))
     width_px = max(1, math.ceil(DEFAULT_REFERENCE_BAND * min(frame_shape)))
     width = max(2, math.ceil(width_px / spacing))
     # chessboard distance (samples) to the nearest invalid sample, as the dilation counts
-    dist = ndimage.distance_transform_cdt(valid, metric="chessboard")
+    dist = ndimage.distance_transform_cdt(outer, metric="chessboard")
     return valid & (band | ((dist > skip) & (dist <= skip + width)))
 
 

@@ -152,3 +152,26 @@ def test_a_frame_the_images_cannot_unwrap_from_its_predecessor_is_flagged(series
     assert "half a carrier period" in res.series.reason
     rec.reset_series()
     assert rec(series.frames[-1]).series is None
+
+
+def test_default_region_follows_the_outer_edge_of_the_reference_valid_area_only():
+    """Unit check of reference_pin_region on a grid: a valid disk with a hole
+    (a dirty spot of the pattern) gets a band along the disk's rim, none
+    around the hole; a fully valid reference gets the frame's border band."""
+    from processing.geometry import default_reference_region_mask
+    from processing.reconstruct import reference_pin_region
+
+    shape = (256, 256)
+    px = np.arange(2.0, 256.0, 4.0)  # a decimated grid, 4 px spacing
+    r, c = np.meshgrid(px - 127.5, px - 127.5, indexing="ij")
+    radius = np.hypot(r, c)
+    valid = (radius < 90) & (np.hypot(r - 20, c + 10) > 16)
+    band = reference_pin_region(valid, px, px, shape, skip=1)
+    assert band.any() and not (band & ~valid).any()
+    # width: ceil(0.04 * 256) = 11 px -> 3 samples after the one skipped, in chessboard
+    # steps (as the mask dilation counts): 4 to 16 px inside the rim, up to 4 * 4 sqrt(2) on diagonals
+    assert radius[band].min() > 90 - 4 * 4 * np.sqrt(2) - 2 and radius[band].max() < 90 - 4
+    assert not (band & (np.hypot(r - 20, c + 10) < 40)).any()  # nothing around the hole
+    full = np.ones_like(valid)
+    assert np.array_equal(reference_pin_region(full, px, px, shape, skip=1),
+                          default_reference_region_mask(px, px, shape))
