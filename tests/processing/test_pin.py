@@ -175,3 +175,26 @@ def test_default_region_follows_the_outer_edge_of_the_reference_valid_area_only(
     full = np.ones_like(valid)
     assert np.array_equal(reference_pin_region(full, px, px, shape, skip=1),
                           default_reference_region_mask(px, px, shape))
+
+
+def test_a_piece_the_pin_cannot_reach_is_invalid_not_flat(series):
+    """An object blurs a vertical stripe through the disk: its right half is cut
+    off from the box on the left.  Its offset was not measured, so it is
+    invalid (NaN) and the status counts it; before issue 13 the solver dropped
+    it but the Reconstructor wrote it as height 0, valid: a flat half."""
+    g = dataclasses.replace(FSSS, reference_region=(100, 156, 50, 64))
+    rec = Reconstructor(series.reference, g)
+    frame = series.frames[-1].copy()
+    frame[:, 120:150] = int(frame.mean())
+    res = rec(frame)
+    right = np.zeros(SHAPE, bool)
+    right[:, 160:] = True
+    disk = _radius_mm(np.arange(SHAPE[0]), np.arange(SHAPE[1])) < DISK_MM - 4
+    assert not res.valid[right & disk].any() and np.isnan(res.height[right]).all()
+    assert 0.2 < res.pin.unpinned_fraction < 0.6
+    assert "dropped (no pin sample in their piece)" in res.pin.describe()
+    # the left half, pinned on the box, is right
+    left = np.zeros(SHAPE, bool)
+    left[:, :115] = True
+    assert res.valid[left & disk].mean() > 0.8
+    assert _rel_error(res, series.heights_mm[-1]) < TOLERANCE
