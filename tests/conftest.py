@@ -10,8 +10,9 @@ os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 
 @pytest.fixture(autouse=True)
 def _private_cache_dir(tmp_path_factory, monkeypatch):
-    """Keep FFTW wisdom and settings of tests away from the user's cache."""
+    """Keep FFTW wisdom and settings of tests away from the user's cache and settings."""
     monkeypatch.setenv("TIRDEFLECT_CACHE_DIR", str(tmp_path_factory.getbasetemp() / "cache"))
+    monkeypatch.setenv("TIRDEFLECT_CONFIG_DIR", str(tmp_path_factory.getbasetemp() / "config"))
 
 
 @pytest.fixture

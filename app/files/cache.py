@@ -1,10 +1,14 @@
-"""The app's cache directory: FFTW wisdom and remembered settings.
+"""The app's cache directory (FFTW wisdom) and settings directory (remembered settings).
 
-Location, first match wins:
+Both follow the platform's conventions through :mod:`platformdirs`, unless an
+environment variable names them (tests point both at temporary directories):
 
-1. ``$TIRDEFLECT_CACHE_DIR`` (tests point it at a temporary directory),
-2. ``$XDG_CACHE_HOME/tirdeflect``,
-3. ``~/.cache/tirdeflect``.
+* cache: ``$TIRDEFLECT_CACHE_DIR``; else on Linux ``$XDG_CACHE_HOME/tirdeflect`` or
+  ``~/.cache/tirdeflect``, on macOS ``~/Library/Caches/tirdeflect``, on Windows
+  ``%LOCALAPPDATA%/tirdeflect/Cache``;
+* settings: ``$TIRDEFLECT_CONFIG_DIR``; else on Linux ``$XDG_CONFIG_HOME/tirdeflect`` or
+  ``~/.config/tirdeflect``, on macOS ``~/Library/Application Support/tirdeflect``, on
+  Windows ``%LOCALAPPDATA%/tirdeflect``.
 
 Files there are written atomically (temporary file in the same directory, then
 ``os.replace``), so a crash or a second instance never leaves a half-written
@@ -26,8 +30,11 @@ import tempfile
 import zlib
 from pathlib import Path
 
+import platformdirs
+
 __all__ = [
     "cache_dir",
+    "config_dir",
     "wisdom_path",
     "settings_path",
     "load_wisdom",
@@ -54,13 +61,22 @@ def cache_dir(*, create: bool = True) -> Path:
     -------
     pathlib.Path
     """
-    env = os.environ.get("TIRDEFLECT_CACHE_DIR")
-    if env:
-        path = Path(env).expanduser()
-    else:
-        xdg = os.environ.get("XDG_CACHE_HOME")
-        base = Path(xdg).expanduser() if xdg else Path.home() / ".cache"
-        path = base / "tirdeflect"
+    return _app_dir("TIRDEFLECT_CACHE_DIR", platformdirs.user_cache_dir, create)
+
+
+def config_dir(*, create: bool = True) -> Path:
+    """Return the settings directory (created unless ``create=False``).
+
+    Returns
+    -------
+    pathlib.Path
+    """
+    return _app_dir("TIRDEFLECT_CONFIG_DIR", platformdirs.user_config_dir, create)
+
+
+def _app_dir(override: str, platform_dir, create: bool) -> Path:
+    env = os.environ.get(override)
+    path = Path(env).expanduser() if env else Path(platform_dir("tirdeflect", appauthor=False))
     if create:
         path.mkdir(parents=True, exist_ok=True)
     return path
@@ -73,7 +89,7 @@ def wisdom_path() -> Path:
 
 def settings_path() -> Path:
     """Path of the JSON settings file (may not exist yet)."""
-    return cache_dir(create=False) / _SETTINGS_NAME
+    return config_dir(create=False) / _SETTINGS_NAME
 
 
 def atomic_write_bytes(path, data: bytes) -> Path:
@@ -216,7 +232,7 @@ def save_settings(settings: dict) -> Path | None:
         raise TypeError(f"settings must be a dict; got {type(settings).__name__}")
     data = json.dumps(settings, indent=2, sort_keys=True).encode("utf-8")
     try:
-        return atomic_write_bytes(cache_dir() / _SETTINGS_NAME, data)
+        return atomic_write_bytes(settings_path(), data)
     except OSError as exc:
-        log.warning("could not save settings to the cache (%s)", exc)
+        log.warning("could not save settings to %s (%s)", config_dir(create=False), exc)
         return None

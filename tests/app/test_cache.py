@@ -1,6 +1,7 @@
 """app.files.cache: location, atomic writes, corrupt files ignored with a warning."""
 
 import logging
+import sys
 
 import pytest
 
@@ -12,7 +13,23 @@ def test_env_override_and_xdg(tmp_path, monkeypatch):
     assert cache.cache_dir() == tmp_path / "c" and (tmp_path / "c").is_dir()
     monkeypatch.delenv("TIRDEFLECT_CACHE_DIR")
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
-    assert cache.cache_dir(create=False) == tmp_path / "xdg" / "tirdeflect"
+    if sys.platform.startswith("linux"):  # macOS and Windows have their own places (platformdirs)
+        assert cache.cache_dir(create=False) == tmp_path / "xdg" / "tirdeflect"
+
+
+def test_settings_live_in_the_config_dir_not_the_cache(tmp_path, monkeypatch):
+    """Clearing the cache must not forget the settings: they follow XDG_CONFIG_HOME on Linux."""
+    monkeypatch.delenv("TIRDEFLECT_CACHE_DIR")
+    monkeypatch.delenv("TIRDEFLECT_CONFIG_DIR")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg-cache"))
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "xdg-config"))
+    if sys.platform.startswith("linux"):
+        assert cache.settings_path() == tmp_path / "xdg-config" / "tirdeflect" / "settings.json"
+    assert cache.settings_path().parent != cache.cache_dir(create=False)
+    monkeypatch.setenv("TIRDEFLECT_CONFIG_DIR", str(tmp_path / "conf"))
+    assert cache.save_settings({"camera": "synthetic"}) == tmp_path / "conf" / "settings.json"
+    assert cache.load_settings() == {"camera": "synthetic"}
+    assert not (tmp_path / "xdg-cache").exists()
 
 
 def test_wisdom_round_trip(tmp_path, monkeypatch):
@@ -45,7 +62,7 @@ def test_corrupt_wisdom_is_ignored_with_warning(tmp_path, monkeypatch, caplog, d
 
 
 def test_settings_round_trip_and_corrupt(tmp_path, monkeypatch, caplog):
-    monkeypatch.setenv("TIRDEFLECT_CACHE_DIR", str(tmp_path))
+    monkeypatch.setenv("TIRDEFLECT_CONFIG_DIR", str(tmp_path))
     assert cache.load_settings() == {}
     cache.save_settings({"camera": "synthetic", "exposure_us": 500})
     assert cache.load_settings() == {"camera": "synthetic", "exposure_us": 500}
