@@ -62,8 +62,9 @@ def _aravis():
                 _import_error = exc
     if _Aravis is None:
         raise CameraError(
-            f"Aravis 0.8 GObject bindings are not available ({_import_error}); install "
-            "gir1.2-aravis-0.8 and 'pip install tirdeflect[aravis]'"
+            f"Aravis 0.8 GObject bindings are not available ({_import_error}); on Debian/Ubuntu "
+            "run 'bash resources/install.sh' (gir1.2-aravis-0.8, python3-gi); on Windows and macOS "
+            "use the camera vendor's GenTL producer ('tirdeflect cameras' lists gentl:... ids)"
         )
     return _Aravis
 

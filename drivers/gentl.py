@@ -47,7 +47,12 @@ _INTERNAL_WAIT_MS = 5
 
 
 def producers_on_path() -> List[str]:
-    """Every ``*.cti`` file in the directories of ``GENICAM_GENTL64_PATH`` (sorted, unique)."""
+    """Every ``*.cti`` file in the directories of ``GENICAM_GENTL64_PATH`` (sorted, unique).
+
+    The variable lists directories (or ``.cti`` files) separated by :data:`os.pathsep`
+    (``:`` on Linux and macOS, ``;`` on Windows); the vendors' SDKs (pylon, Spinnaker,
+    Vimba, ...) set it when they are installed.
+    """
     found = []
     for d in os.environ.get("GENICAM_GENTL64_PATH", "").split(os.pathsep):
         if d and os.path.isdir(d):

@@ -46,8 +46,8 @@ def _run_gui(gui_argv) -> int:
         from app.gui.main import main as gui_main
     except ImportError as exc:
         raise _AppUnavailable(
-            f"the live window is not available ({exc}); install PySide6-Essentials and "
-            f"pyqtgraph (bash resources/install.sh), or use `tirdeflect process`"
+            f"the live window is not available ({exc}); reinstall tirdeflect (bash resources/install.sh "
+            f"on Debian/Ubuntu, pip install . elsewhere), or use `tirdeflect process`"
         ) from exc
     try:
         return int(gui_main(list(gui_argv)) or 0)
