@@ -203,7 +203,7 @@ if [ "$want_desktop" = 1 ]; then
     cat >"$new_entry" <<EOF
 [Desktop Entry]
 Type=Application
-Version=1.5
+Version=1.0
 Name=tirdeflect
 GenericName=TIR deflectometry
 Comment=Live water-surface height maps from a camera (total-internal-reflection deflectometry)
