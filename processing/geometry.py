@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -43,6 +42,11 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from .errors import GeometryError
+
+try:
+    import tomllib
+except ModuleNotFoundError:  # Python 3.10 (Ubuntu 22.04): the same parser from PyPI
+    import tomli as tomllib
 
 __all__ = [
     "Geometry",
