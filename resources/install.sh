@@ -70,8 +70,8 @@ apt_packages="$apt_packages libxkbcommon-x11-0 libxcb-xkb1 libxcb-shape0 libxcb-
 [ "$want_test" = 1 ] && apt_packages="$apt_packages git desktop-file-utils"
 missing=""
 if command -v dpkg >/dev/null; then
-    for p in $apt_packages; do
-        dpkg -s "$p" >/dev/null 2>&1 || missing="$missing $p"
+    for p in $apt_packages; do  # removed packages keep "config-files": only "installed" counts
+        [ "$(dpkg-query -W -f='${db:Status-Status}' "$p" 2>/dev/null)" = installed ] || missing="$missing $p"
     done
 fi
 if [ -n "$missing" ]; then
