@@ -35,6 +35,10 @@ done
 say() { echo "install.sh: $*"; }
 die() { echo "install.sh: error: $*" >&2; exit 1; }
 is_root() { [ "$(id -u)" = 0 ]; }
+if is_root && [ -n "${SUDO_USER:-}" ] && [ "$(stat -c %U "$here")" != root ]; then
+    echo "install.sh: warning: run as root through sudo, the environment in $here will belong to root;" \
+         "run 'bash resources/install.sh' as $SUDO_USER instead (it calls sudo where it must)" >&2
+fi
 
 # ---------------------------------------------------------------- the interpreter
 py_ok() {  # python >= 3.10 that runs
@@ -114,20 +118,14 @@ site="$("$vpy" -c 'import sysconfig; print(sysconfig.get_path("purelib"))')"
 # in the venv alone (a .pth naming a folder that holds only a link to gi), so nothing
 # else of the distribution's Python leaks in; else PyGObject from pip (the aravis extra).
 extras=""
-aravis_check='import gi; gi.require_version("Aravis", "0.8")'
-gi_dir="$("$py" -s -c "$aravis_check"'; import os; print(os.path.dirname(gi.__file__))' 2>/dev/null || true)"
+gi_dir="$("$py" -s -c 'import gi, os; print(os.path.dirname(gi.__file__))' 2>/dev/null || true)"
 if [ -n "$gi_dir" ]; then
     mkdir -p "$venv/distro-gi"
     [ "$(readlink "$venv/distro-gi/gi" 2>/dev/null)" = "$gi_dir" ] || ln -sfn "$gi_dir" "$venv/distro-gi/gi"
     pth="$site/tirdeflect-distro-gi.pth"
     [ "$(cat "$pth" 2>/dev/null)" = "$venv/distro-gi" ] || echo "$venv/distro-gi" >"$pth"
-elif [ -z "$gi_dir" ]; then
-    if pkg-config --exists gobject-introspection-1.0 2>/dev/null; then
-        extras="aravis"
-    else
-        echo "install.sh: warning: no Aravis GObject bindings for $py; Aravis cameras unavailable" \
-             "(GenTL producers and the synthetic camera still work)" >&2
-    fi
+elif pkg-config --exists gobject-introspection-1.0 cairo 2>/dev/null; then
+    extras="aravis"
 fi
 [ "$want_test" = 1 ] && extras="${extras:+$extras,}test"
 
@@ -154,6 +152,10 @@ else
     say "$venv is up to date"
 fi
 version="$("$venv/bin/tirdeflect" --version)" || die "$venv/bin/tirdeflect does not run"
+if ! "$vpy" -c 'import gi; gi.require_version("Aravis", "0.8")' >/dev/null 2>&1; then
+    echo "install.sh: warning: no Aravis 0.8 GObject bindings in $venv: aravis: cameras are unavailable" \
+         "(GenTL producers and the synthetic camera work); install python3-gi and gir1.2-aravis-0.8" >&2
+fi
 
 # ---------------------------------------------------------------- `tirdeflect` on PATH
 on_path() { case ":$PATH:" in *":$1:"*) return 0 ;; esac; return 1; }
