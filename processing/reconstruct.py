@@ -515,8 +515,9 @@ class Reconstructor:
         """Is the spectral centroid of each carrier window where the reference's
         carrier is?  A deformed frame keeps it there (its mean local frequency
         is the carrier's); another period or rotation moves it.  Only when it
-        moved run the full carrier search on the frame, which raises
-        PatternMismatchError for a different pattern.  A frame that passes the
+        moved run the full check on the frame (:func:`check_pattern_match`,
+        which always decides), which raises PatternMismatchError for a
+        different pattern and NoCarrierError for none at all.  A frame that passes the
         full search raises the threshold to what it showed, so a series of
         strongly deformed frames does not pay for the search every time."""
         if not self.check_pattern:
@@ -696,6 +697,9 @@ class Reconstructor:
         Raises
         ------
         ShapeMismatchError, PatternMismatchError, AllInvalidError
+        NoCarrierError
+            The frame shows no pattern at all (uniform, black, noise): the
+            pattern check found no carrier, neither compact nor smeared.
         """
         t0 = time.perf_counter()
         frame = self._validate_frame(frame)
