@@ -840,6 +840,19 @@ class Reconstructor:
                         f"rms height) on the previous frame's pin samples: the pin changed under this frame")
         return SeriesCheck(bool(reasons), "; ".join(reasons), slip_fraction, shift, n)
 
+    def grid_coordinates(self, grid: Optional[str] = None) -> tuple:
+        """``(x_mm, y_mm)`` of the columns and rows of a grid's results,
+        without a frame (what a writer needs for a frame that could not be
+        measured)."""
+        grid = self.grid if grid is None else grid
+        self._check_grid(grid)
+        if grid == "full":
+            x_mm, y_mm = self._coords_full(None)
+        else:
+            hs = self._solver()
+            x_mm, y_mm = hs.x_mm, hs.y_mm
+        return np.asarray(x_mm, np.float64).copy(), np.asarray(y_mm, np.float64).copy()
+
     def _solver(self):
         """Height solver of the decimated grid (built once)."""
         if self._height_solver is None:

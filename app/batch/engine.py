@@ -5,14 +5,18 @@ the GUI's export and any script. :func:`run_process` reads the inputs (see
 :mod:`app.files.imageio`), reconstructs each frame with
 :class:`processing.Reconstructor` and writes them with
 :class:`app.batch.writer.ResultWriter`, frame by frame and flushed after each,
-so that a crash or a bad frame leaves every completed frame readable, with
-``frames_done`` saying how many.
+so that a crash leaves every completed frame readable, with ``frames_done``
+saying how many. A frame that cannot be measured is stored invalid with its
+reason and the run goes on (:mod:`app.batch.frame_status`). The file is
+written as ``NAME.partial.h5`` and renamed to the output only on success
+(docs/reliability.md, "Processing").
 """
 
 from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import shlex
 import sys
 from pathlib import Path
@@ -22,18 +26,23 @@ import numpy as np
 from app.files import imageio
 from processing.errors import (
     AllInvalidError,
+    NoCarrierError,
+    PatternMismatchError,
     ShapeMismatchError,
     TirdeflectError,
 )
 
 from app import version as _version
+from app.batch.frame_status import FrameStatus, FrameTally, measure_frame, outcome_of_error
 from app.batch.writer import (
     OUTPUT_FORMAT_VERSION,
     ResultWriter,
     carrier_attrs,
+    check_not_an_input,
     check_output,
     geometry_attrs,
-    set_attrs,
+    partial_path,
+    publish,
     utc_now,
 )
 
@@ -124,6 +133,9 @@ class ProcessJob:
     fft_effort : {"auto", "estimate", "measure"}
     no_progress : bool
         No progress bar on stderr.
+    strict : bool
+        Stop at the first frame that cannot be measured (default: store it
+        invalid with its reason and go on).
     reference_index : int or None
         Page/frame of a stack or recording to use as the reference.
     on_progress : callable or None
@@ -145,6 +157,7 @@ class ProcessJob:
     compression: str = "none"
     fft_effort: str = "auto"
     no_progress: bool = True
+    strict: bool = False
     reference_index: int | None = None
     on_progress: object = None
     command: str | None = None
@@ -162,23 +175,44 @@ class ProcessJob:
 
 @dataclasses.dataclass
 class BatchReport:
-    """What a batch run wrote: ``frames_written`` frames to ``out``; ``notes`` for the user;
+    """What a batch run wrote: ``frames_written`` frames to ``out``, of which
+    ``frames_invalid`` could not be measured (``invalid_summary`` says why);
+    ``frames_incomplete`` were recorded INCOMPLETE; ``notes`` for the user;
     ``pin``: one line naming where the height offset was pinned (empty if unknown)."""
 
     out: Path
     frames_written: int
     notes: list
     pin: str = ""
+    frames_invalid: int = 0
+    invalid_summary: str = ""
+    frames_incomplete: int = 0
+
+    @property
+    def clean(self) -> bool:
+        """Every frame measured and none recorded INCOMPLETE."""
+        return self.frames_invalid == 0 and self.frames_incomplete == 0
 
 
 def run_process(args: ProcessJob) -> BatchReport:
     """Process the frames of ``args`` (a :class:`ProcessJob`) into ``args.out``.
 
+    The output is written to ``NAME.partial.h5`` beside ``args.out`` and
+    renamed to ``args.out`` only when the run succeeded (with ``overwrite``
+    the old file is replaced then, not before). A frame that cannot be
+    measured is stored invalid with its reason (:mod:`app.batch.frame_status`)
+    and the run goes on, unless ``args.strict``.
+
     Errors the user can fix raise :class:`TirdeflectError` subclasses whose
-    message says which frame failed and what was saved before it.
+    message says which frame failed and where the frames before it are kept:
+    a run that fails or is interrupted leaves them in ``NAME.partial.h5``,
+    or nothing when no frame was measured. Refused before anything is
+    written: an ``out`` that is one of the inputs, a pattern that does not
+    match the reference before any frame matched it.
     """
     out = Path(args.out)
     check_output(out, args.overwrite)
+    check_not_an_input(out, [args.reference, *args.frames, args.geometry])
 
     # Cheap checks of every input before any work: existence, directories,
     # stack/recording headers; decoding errors of plain images show up per frame.
@@ -227,43 +261,59 @@ def run_process(args: ProcessJob) -> BatchReport:
         "unwrap": not args.no_unwrap,
         "grid_requested": args.grid,
         "fft_effort": effort,
+        "strict": bool(args.strict),
         "height_units": "mm",
         "reference_bits": _bits_hint(args.reference, reference),
     }
+    partial = partial_path(out)
     writer = ResultWriter(
-        out, overwrite=args.overwrite, compression=args.compression, attrs=attrs,
+        partial, compression=args.compression, attrs=attrs,
         geometry_toml=geometry_toml, geometry_attrs=geometry_info,
         carrier_attrs=carrier_attrs(getattr(reconstruct, "carriers", None)),
         reference=reference, expected=selected,
+        grid_coords=reconstruct.grid_coordinates(args.grid), grid=args.grid,
     )
     pins = _PinCounter(reconstruct)
     pins.write_region(writer)
+    writer.final = out
     status = "failed"
-    flagged = _FlagCounter()
+    tally = FrameTally()
     progress = _progress(selected, disable=args.no_progress)
     on_progress = args.on_progress
     try:
-        item = None
-        frames = imageio.iter_frames(args.frames, first=args.first, last=args.last, step=args.step)
+        frames = imageio.iter_frames(args.frames, first=args.first, last=args.last, step=args.step,
+                                     errors="yield")
         while True:
             try:
                 item = next(frames)
             except StopIteration:
                 break
-            except TirdeflectError as exc:
-                raise _frame_failed(exc, None, writer) from exc
+            except TirdeflectError as exc:  # a whole file became unreadable
+                raise _frame_failed(exc, None, writer, tally) from exc
+            if item.error is not None:
+                result, outcome = None, outcome_of_error(item.error)
+            else:
+                result, outcome = measure_frame(reconstruct, item.image, reference.shape, args.grid)
+            if outcome.status == FrameStatus.PATTERN_MISMATCH and tally.valid == 0:
+                # no frame has matched the reference yet: it is the reference that is wrong
+                raise _frame_failed(PatternMismatchError(outcome.reason), item, writer, tally)
+            if not outcome.ok and args.strict:
+                raise _frame_failed(_error_of(outcome), item, writer, tally, strict=True)
             try:
-                result = _process_one(reconstruct, item, reference.shape, args.grid)
-                writer.append(item, result)
-            except (TirdeflectError, OSError) as exc:  # bad frame; disk full while writing
-                raise _frame_failed(exc, item, writer) from exc
-            log.debug("frame %d (%s) written to %s", item.sequence_index, item.label, out)
-            flagged.add(item)
+                writer.append(item, result, outcome)
+            except (TirdeflectError, OSError) as exc:  # disk full while writing
+                raise _frame_failed(exc, item, writer, tally) from exc
+            if result is None and hasattr(reconstruct, "reset_series"):
+                reconstruct.reset_series()  # no temporal unwrapping across a hole
+            tally.add(item, outcome)
+            log.debug("frame %d (%s) written to %s", item.sequence_index, item.label, partial)
             pins.add(item, result)
             progress.update(1)
             if on_progress is not None:
                 on_progress(writer.n, selected)
-        status = "complete"
+        if tally.valid == 0:
+            raise _frame_failed(_error_of_none_valid(tally), None, writer, tally, whole_run=True)
+        status = "complete" if tally.n_invalid == 0 else f"complete, {tally.n_invalid} frame(s) invalid"
     except KeyboardInterrupt:
         status = f"interrupted after {writer.n} frame(s)"
         raise
@@ -272,18 +322,21 @@ def run_process(args: ProcessJob) -> BatchReport:
         raise
     finally:
         progress.close()
-        if writer.f is not None and not writer.failed:
-            set_attrs(writer.f, {**flagged.attrs(), **pins.attrs()})
-        writer.close(status)
-        if status != "complete" and writer.n == 0:
-            # nothing worth keeping: do not leave a file that blocks the next attempt
+        writer.close(status, {**tally.attrs(), **pins.attrs()})
+        if status.startswith("complete"):
+            publish(partial, out, overwrite=args.overwrite)
+        elif tally.valid == 0:
+            # nothing measured, nothing worth keeping: no file that blocks the next attempt
             try:
-                out.unlink()
+                partial.unlink()
             except OSError:
                 pass
+        else:
+            log.warning("the %d frame(s) written are kept in %s", writer.n, partial)
         cache.store_fftw_wisdom()
-    return BatchReport(out=out, frames_written=writer.n, notes=flagged.notes() + pins.notes(),
-                       pin=pins.summary())
+    return BatchReport(out=out, frames_written=writer.n, notes=tally.notes() + pins.notes(),
+                       frames_invalid=tally.n_invalid, invalid_summary=tally.invalid_summary(),
+                       frames_incomplete=len(tally.incomplete), pin=pins.summary())
 
 
 class _PinCounter:
@@ -364,72 +417,45 @@ class _PinCounter:
         return out
 
 
-class _FlagCounter:
-    """Counts the recorder's per-frame flags of the processed frames (never silent)."""
-
-    def __init__(self):
-        from drivers.base import FrameFlags
-
-        self.INCOMPLETE = int(FrameFlags.INCOMPLETE)
-        self.LOSS = int(FrameFlags.ID_GAP_BEFORE | FrameFlags.TIME_GAP_BEFORE
-                        | FrameFlags.RING_OVERRUN_BEFORE)
-        self.incomplete = []
-        self.gaps = []
-
-    def add(self, item) -> None:
-        if item.flags & self.INCOMPLETE:
-            self.incomplete.append(item.sequence_index)
-            log.warning("frame %d (%s) was flagged INCOMPLETE by the camera: its heights may be wrong",
-                        item.sequence_index, item.label)
-        if item.flags & self.LOSS:
-            self.gaps.append(item.sequence_index)
-
-    def attrs(self) -> dict:
-        return {"frames_flagged_incomplete": len(self.incomplete),
-                "frames_with_loss_before": len(self.gaps)}
-
-    def notes(self) -> list:
-        out = []
-        if self.incomplete:
-            out.append(f"{len(self.incomplete)} processed frame(s) were recorded INCOMPLETE "
-                       f"(missing packets), e.g. frame {self.incomplete[0]}: their heights may be wrong; "
-                       f"see /frame_flags in the output")
-        if self.gaps:
-            out.append(f"the recording lost frames before {len(self.gaps)} processed frame(s), "
-                       f"e.g. before frame {self.gaps[0]}: time steps are not uniform; "
-                       f"see /frame_flags and /device_timestamp_ns")
-        return out
+def _error_of(outcome) -> TirdeflectError:
+    """The error to raise for a bad frame under --strict."""
+    kind = {FrameStatus.PATTERN_MISMATCH: PatternMismatchError,
+            FrameStatus.NO_PATTERN: NoCarrierError,
+            FrameStatus.SHAPE_MISMATCH: ShapeMismatchError,
+            FrameStatus.UNREADABLE: imageio.ImageReadError}.get(outcome.status, AllInvalidError)
+    return kind(f"{outcome.status.label}: {outcome.reason}")
 
 
-def _process_one(reconstruct, item: imageio.FrameItem, ref_shape, grid: str):
-    if item.image.shape != tuple(ref_shape):
-        raise ShapeMismatchError(
-            f"frame has shape {item.image.shape} (rows, cols) but the reference has "
-            f"{tuple(ref_shape)}; use frames and reference from the same camera and region"
-        )
-    result = reconstruct(item.image, grid=grid)
-    valid = np.asarray(result.valid, dtype=bool)
-    if not valid.any():
-        raise AllInvalidError(
-            "no pixel of the frame could be measured (no pattern contrast: black, "
-            "saturated or fully blurred frame); check exposure and that the pattern is in view"
-        )
-    return result
+def _error_of_none_valid(tally: FrameTally) -> TirdeflectError:
+    k, label, reason = tally.first_invalid()
+    kinds = {status.label for status in tally.invalid}
+    more = "" if tally.frames == 1 else f" (all {tally.frames}: " + tally.invalid_summary().split(" (first")[0] + ")"
+    exc = AllInvalidError(f"no frame could be measured{more}; frame {k} ({label}): {reason}")
+    if kinds == {FrameStatus.UNREADABLE.label}:
+        exc = imageio.ImageReadError(str(exc))
+    return exc
 
 
-def _frame_failed(exc: Exception, item, writer: ResultWriter) -> TirdeflectError:
-    if item is not None:
+def _frame_failed(exc: Exception, item, writer: ResultWriter, tally: FrameTally, *,
+                  strict: bool = False, whole_run: bool = False) -> TirdeflectError:
+    if whole_run:
+        where = None
+    elif item is not None:
         where = f"frame {item.sequence_index} ({item.label})"
     elif getattr(exc, "sequence_index", None) is not None:
         where = f"frame {exc.sequence_index}"
     else:
         where = "reading the next frame"
-    saved = (
-        f"the {writer.n} frame(s) before it are saved in {str(writer.path)!r}"
-        if writer.n
-        else f"nothing was written ({str(writer.path)!r} not created)"
-    )
-    message = f"{where} failed: {exc}; {saved}"
+    if tally.valid:
+        saved = (f"the {writer.n} frame(s) before it are kept in {str(writer.path)!r} "
+                 f"(valid up to frames_done; rename it to use it)")
+    else:
+        out = getattr(writer, "final", writer.path)
+        saved = (f"nothing was written ({str(out)!r} left as it was)" if os.path.lexists(out)
+                 else f"nothing was written ({str(out)!r} not created)")
+    head = f"{where} failed: " if where else ""
+    tail = " (--strict stops at the first bad frame)" if strict else ""
+    message = f"{head}{exc}{tail}; {saved}"
     if isinstance(exc, TirdeflectError):
         return type(exc)(message)
     return TirdeflectError(message)

@@ -18,7 +18,7 @@ from processing.errors import (
 )
 
 __all__ = ["ResultWriter", "OutputExistsError", "DiskFullError", "OUTPUT_FORMAT_VERSION",
-           "check_output", "set_attrs", "carrier_attrs", "geometry_attrs", "utc_now"]
+           "check_output", "check_not_an_input", "partial_path", "publish", "set_attrs", "carrier_attrs", "geometry_attrs", "utc_now"]
 
 log = logging.getLogger(__name__)
 
@@ -95,6 +95,25 @@ def check_output(out: Path, overwrite: bool) -> None:
     if not os.access(parent, os.W_OK):
         raise TirdeflectError(f"cannot write to {str(parent)!r}; choose another --out")
 
+
+
+def check_not_an_input(out: Path, inputs, what: str = "--out") -> None:
+    """Refuse an output that is one of the ``inputs`` (same path, a link to it,
+    or the same file under another name), before anything is written."""
+    if not os.path.lexists(out):
+        return
+    for path in inputs:
+        if path is None:
+            continue
+        try:
+            same = os.path.samefile(out, path)
+        except OSError:
+            same = False
+        if same or os.path.realpath(out) == os.path.realpath(path):
+            raise TirdeflectError(
+                f"{what} {str(out)!r} is the input {str(path)!r}; choose another {what}: "
+                f"tirdeflect never writes over its inputs"
+            )
 
 
 def _attr_value(value):
@@ -257,22 +276,26 @@ def _repair_eof(path: Path) -> bool:
 class ResultWriter:
     """Write results to OUT.h5 one frame at a time (see docs/output-format.md).
 
-    Per-frame datasets are created with the first result (its grid fixes their
-    shape), grow by one frame per :meth:`append` and are flushed each time.
+    The file is created (never replaced: mode "x") at ``path``, which the
+    engine chooses beside the final output (:func:`partial_path`) and renames
+    into place with :func:`publish` only when the run succeeded. Per-frame
+    datasets are created with the file (``grid_coords`` fixes their shape),
+    grow by one frame per :meth:`append` and are flushed each time.
     """
 
     PER_FRAME = ("height", "slope_x", "slope_y")
     PER_FRAME_1D = ("frame_index", "source_index", "source", "camera_frame_id",
-                    "device_timestamp_ns", "host_timestamp_ns", "frame_flags")
+                    "device_timestamp_ns", "host_timestamp_ns", "frame_flags",
+                    "frame_status", "frame_status_text")
 
-    def __init__(self, path: Path, *, overwrite: bool, compression: str, attrs: dict,
+    def __init__(self, path: Path, *, compression: str, attrs: dict,
                  geometry_toml: str, geometry_attrs: dict, carrier_attrs: dict,
-                 reference: np.ndarray, expected: int):
+                 reference: np.ndarray, expected: int, grid_coords: tuple, grid: str):
         import h5py
 
         self.path = path
         self.compression = None if compression == "none" else compression
-        self.f = h5py.File(path, "w" if overwrite else "x")
+        self.f = h5py.File(path, "x")
         f = self.f
         set_attrs(f, attrs)
         f.attrs["frames_done"] = 0
@@ -284,16 +307,18 @@ class ResultWriter:
         ref = f.create_dataset("reference", data=reference, compression=self.compression)
         ref.attrs["description"] = "reference image as read (unscaled samples)"
         self.n = 0
-        self._shape = None
         self.failed = False
+        x_mm, y_mm = grid_coords
+        self._create(np.asarray(x_mm, np.float64), np.asarray(y_mm, np.float64), grid)
         f.flush()
 
-    def _create(self, result) -> None:
+    def _create(self, x_mm: np.ndarray, y_mm: np.ndarray, grid: str) -> None:
         import h5py
 
+        from app.batch.frame_status import FrameStatus
+
         f = self.f
-        height = np.asarray(result.height)
-        rows, cols = height.shape
+        rows, cols = len(y_mm), len(x_mm)
         self._shape = (rows, cols)
         kw = dict(shape=(0, rows, cols), maxshape=(None, rows, cols), chunks=(1, rows, cols),
                   compression=self.compression)
@@ -306,8 +331,8 @@ class ResultWriter:
         f["slope_y"].attrs["description"] = "dh/dy, y along increasing row"
         valid = f.create_dataset("valid", dtype=np.uint8, fillvalue=0, **kw)
         valid.attrs["description"] = "1 where the height was measured, 0 where masked"
-        x = f.create_dataset("x_mm", data=np.asarray(result.x_mm, dtype=np.float64))
-        y = f.create_dataset("y_mm", data=np.asarray(result.y_mm, dtype=np.float64))
+        x = f.create_dataset("x_mm", data=x_mm)
+        y = f.create_dataset("y_mm", data=y_mm)
         x.attrs["units"] = "mm"
         y.attrs["units"] = "mm"
         x.attrs["description"] = "surface x of each column (increasing column)"
@@ -334,7 +359,16 @@ class ResultWriter:
         for name, text in per_frame_meta.items():
             f.create_dataset(name, shape=(0,), maxshape=(None,), dtype=np.int64, chunks=(1024,))
             f[name].attrs["description"] = text
-        f.attrs["grid"] = str(getattr(result, "grid", "full"))
+        status_type = h5py.enum_dtype({s.name: int(s) for s in FrameStatus}, basetype="u1")
+        f.create_dataset("frame_status", shape=(0,), maxshape=(None,), dtype=status_type,
+                         chunks=(1024,))
+        f["frame_status"].attrs["description"] = (
+            "why a frame has no heights: " + ", ".join(f"{int(s)} {s.name}" for s in FrameStatus)
+            + " (app.batch.frame_status.FrameStatus); 0 = measured")
+        f.create_dataset("frame_status_text", shape=(0,), maxshape=(None,), dtype=h5py.string_dtype(),
+                         chunks=(1024,))
+        f["frame_status_text"].attrs["description"] = "the reason of a non-zero frame_status; empty if 0"
+        f.attrs["grid"] = str(grid)
         self._create_pin_status()
 
     # ------------------------------------------------------------------ pin (issue 13)
@@ -369,25 +403,36 @@ class ResultWriter:
                 f"to another disk, then resume with --first"
             )
 
-    def append(self, item: imageio.FrameItem, result) -> None:
-        self._check_room(np.shape(result.height))
-        if self._shape is None:
-            self._create(result)
+    def append(self, item: imageio.FrameItem, result, outcome=None) -> None:
+        """Append one frame: ``result`` (a processing Result), or None for a frame
+        that could not be measured (all-NaN heights, ``valid`` 0, ``outcome``'s
+        status and reason stored)."""
+        from app.batch.frame_status import FrameOutcome
+
+        outcome = FrameOutcome() if outcome is None else outcome
+        self._check_room(self._shape)
         f = self.f
-        height = np.asarray(result.height, dtype=np.float32)
-        if height.shape != self._shape:
-            raise ShapeMismatchError(
-                f"result grid {height.shape} differs from the first frame's {self._shape}"
-            )
-        valid = np.asarray(result.valid, dtype=bool)
+        if result is None:
+            nan = np.full(self._shape, np.nan, np.float32)
+            height = slope_x = slope_y = nan
+            valid = np.zeros(self._shape, bool)
+        else:
+            height = np.asarray(result.height, dtype=np.float32)
+            if height.shape != self._shape:
+                raise ShapeMismatchError(
+                    f"result grid {height.shape} differs from the output's {self._shape}"
+                )
+            valid = np.asarray(result.valid, dtype=bool)
+            slope_x = np.asarray(result.slope_x, dtype=np.float32)
+            slope_y = np.asarray(result.slope_y, dtype=np.float32)
         k = self.n
         names = (*self.PER_FRAME, "valid", *self.PER_FRAME_1D, "pin_status")
         try:
             for name in names:
                 f[name].resize(k + 1, axis=0)
             f["height"][k] = np.where(valid, height, np.float32(np.nan))
-            f["slope_x"][k] = np.asarray(result.slope_x, dtype=np.float32)
-            f["slope_y"][k] = np.asarray(result.slope_y, dtype=np.float32)
+            f["slope_x"][k] = slope_x
+            f["slope_y"][k] = slope_y
             f["valid"][k] = valid.astype(np.uint8)
             f["frame_index"][k] = item.sequence_index
             f["source_index"][k] = item.index_in_source
@@ -397,6 +442,8 @@ class ResultWriter:
             f["host_timestamp_ns"][k] = item.host_timestamp_ns
             f["frame_flags"][k] = item.flags
             f["pin_status"][k] = _pin_status_row(result)
+            f["frame_status"][k] = int(outcome.status)
+            f["frame_status_text"][k] = outcome.reason
         except BaseException as exc:
             # e.g. disk full: drop the half-written frame so the file holds exactly frames_done
             try:
@@ -419,22 +466,71 @@ class ResultWriter:
                           f"up to the frames before it") from exc
         self.n = k + 1
 
-    def close(self, status: str) -> None:
+    def close(self, status: str, attrs: dict | None = None) -> None:
+        """Record ``status`` (and ``attrs``) and close. After a failed write nothing
+        more is written; if recording the status fails (a disk filled by
+        someone else), the file is still closed and its end of file repaired,
+        so it stays valid up to ``frames_done``."""
         if self.f is None:
             return
         f, self.f = self.f, None
         try:
             if not self.failed:  # after a failed write, add nothing: what was flushed stays valid
+                set_attrs(f, attrs or {})
                 f.attrs["status"] = status
                 f.attrs["finished_utc"] = utc_now()
                 f.flush()
         except Exception as exc:
+            self.failed = True
             log.error("could not record the final status in %s: %s", self.path, exc)
         finally:
             try:
                 f.close()
             except Exception as exc:
+                self.failed = True
                 log.error("closing %s failed: %s (valid up to frame %d)", self.path, exc, self.n)
             if self.failed:
                 _repair_eof(self.path)
 
+
+# =========================================================================== publishing
+
+
+def partial_path(out: Path) -> Path:
+    """A name beside ``out`` that no file has: ``NAME.partial.h5``, else
+    ``NAME.partial-2.h5``, ... (the run writes there; :func:`publish` renames
+    it to ``out`` on success, a failed run leaves it there, named in its
+    message)."""
+    stem, suffix = out.stem, out.suffix or ".h5"
+    for k in range(1, 10_000):
+        candidate = out.with_name(f"{stem}.partial{'' if k == 1 else f'-{k}'}{suffix}")
+        if not os.path.lexists(candidate):
+            return candidate
+    raise TirdeflectError(f"too many {stem}.partial-*{suffix} files beside {str(out)!r}; remove "
+                          f"the ones you do not need")
+
+
+def publish(partial: Path, out: Path, *, overwrite: bool) -> None:
+    """Rename the finished ``partial`` to ``out`` (same directory: atomic).
+
+    Without ``overwrite`` an ``out`` that appeared meanwhile is never
+    replaced (OutputExistsError; ``partial`` stays). With it, the old ``out``
+    is replaced in one step, only now that the new one is complete.
+    """
+    if overwrite:
+        os.replace(partial, out)
+        return
+    try:
+        os.link(partial, out)  # fails if out exists: never replaces a file
+    except FileExistsError:
+        raise OutputExistsError(
+            f"output {str(out)!r} appeared while processing; the result is kept as "
+            f"{str(partial)!r}") from None
+    except OSError:  # no hard links on this file system (FAT, some network disks)
+        if os.path.lexists(out):
+            raise OutputExistsError(
+                f"output {str(out)!r} appeared while processing; the result is kept as "
+                f"{str(partial)!r}") from None
+        os.replace(partial, out)
+        return
+    os.unlink(partial)

@@ -15,6 +15,8 @@ Errors the user can fix (:class:`processing.errors.TirdeflectError`,
 :class:`drivers.base.CameraError`, file errors) are printed as one line
 ``tirdeflect: error: <message>`` with exit status 2 and no traceback;
 ``--debug`` shows the traceback as well. Ctrl-C exits with status 130.
+``process`` exits with 3 when it wrote its output but some frames could not
+be measured or were recorded INCOMPLETE (docs/reliability.md).
 """
 
 from __future__ import annotations
@@ -163,7 +165,8 @@ def main(argv=None) -> int:
     -------
     int
         Exit status: 0 success, 2 bad input / usage (message on stderr),
-        130 interrupted.
+        3 ``process`` wrote its output but some frames are invalid or
+        incomplete, 130 interrupted.
     """
     argv = list(sys.argv[1:] if argv is None else argv)
     gui = _split_gui(argv)

@@ -98,6 +98,9 @@ def add_process_parser(sub) -> None:
                    "the cache dir) and makes each frame faster; auto measures for >= "
                    f"{MEASURE_MIN_FRAMES} frames")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--strict", action="store_true",
+                   help="stop at the first frame that cannot be measured (default: store it "
+                   "invalid, with its reason in /frame_status, and go on)")
     p.set_defaults(func=cmd_process)
 
 
@@ -152,15 +155,64 @@ def add_compare_parser(sub) -> None:
 
 
 
+#: Exit status of ``process`` when the output was written but not every frame
+#: is a clean measurement (invalid frames, or frames recorded INCOMPLETE).
+EXIT_FRAMES_INVALID = 3
+
+
 def cmd_process(args) -> int:
-    """Run ``tirdeflect process``; returns the exit status (errors raise)."""
-    report = run_process(ProcessJob.from_namespace(args))
-    print(f"tirdeflect: wrote {report.frames_written} frame(s) to {report.out}", file=sys.stderr)
+    """Run ``tirdeflect process``; returns the exit status (errors raise).
+
+    0: every frame measured; 3: the output is written but some frames are
+    invalid or were recorded INCOMPLETE (the summary line counts them);
+    errors raise (exit 2 in :func:`app.cli.main.main`, 130 interrupted).
+    SIGTERM and SIGHUP stop the run like Ctrl-C: the frames written are kept
+    in the partial file the message names.
+    """
+    with _signals_interrupt():
+        report = run_process(ProcessJob.from_namespace(args))
+    line = f"tirdeflect: wrote {report.frames_written} frame(s) to {report.out}"
+    if report.frames_invalid:
+        line += (f", {report.frames_invalid} invalid (heights NaN, reason in /frame_status_text): "
+                 f"{report.invalid_summary}")
+    print(line, file=sys.stderr)
     if report.pin:
         print(f"tirdeflect: {report.pin}", file=sys.stderr)
-    for line in report.notes:
-        print(f"tirdeflect: note: {line}", file=sys.stderr)
-    return 0
+    for note in report.notes:
+        print(f"tirdeflect: note: {note}", file=sys.stderr)
+    return 0 if report.clean else EXIT_FRAMES_INVALID
+
+
+class _signals_interrupt:
+    """SIGTERM (timeout, systemd, kill) and SIGHUP (closed terminal) raise
+    KeyboardInterrupt in the main thread, so they end a run the way Ctrl-C
+    does: file closed valid, partial result named."""
+
+    SIGNALS = ("SIGTERM", "SIGHUP")
+
+    def __enter__(self):
+        import signal
+        import threading
+
+        self._old = {}
+        if threading.current_thread() is not threading.main_thread():
+            return self
+        for name in self.SIGNALS:
+            sig = getattr(signal, name, None)
+            if sig is not None:
+                self._old[sig] = signal.signal(sig, self._raise)
+        return self
+
+    @staticmethod
+    def _raise(signum, frame):
+        raise KeyboardInterrupt
+
+    def __exit__(self, *exc):
+        import signal
+
+        for sig, handler in self._old.items():
+            signal.signal(sig, handler)
+        return False
 
 
 def cmd_simulate(args) -> int:

@@ -116,9 +116,12 @@ class FrameItem:
         when unknown, e.g. for image files.
     frames_in_source : int
         Number of frames in the source file (1 for plain images).
+    error : ImageReadError or None
+        Set (and ``image`` None) when this frame could not be read and
+        :func:`iter_frames` was asked to go on (``errors="yield"``).
     """
 
-    image: np.ndarray
+    image: np.ndarray | None
     source: str
     index_in_source: int
     sequence_index: int
@@ -127,6 +130,7 @@ class FrameItem:
     host_timestamp_ns: int = -1
     flags: int = 0
     frames_in_source: int = 1
+    error: Exception | None = None
 
     @property
     def label(self) -> str:
@@ -191,9 +195,25 @@ def _to_gray(image: np.ndarray, p: Path) -> np.ndarray:
     )
 
 
+def _check_finite(image: np.ndarray, p: Path) -> np.ndarray:
+    """A float image must hold finite samples: a NaN or Inf pixel would spread
+    through every Fourier coefficient, so such an image is refused whole."""
+    bad = ~np.isfinite(image)
+    if bad.any():
+        n = int(np.count_nonzero(bad))
+        r, c = (int(v) for v in np.argwhere(bad)[0])
+        raise ImageReadError(
+            f"{str(p)!r} holds {n} NaN or infinite sample(s) (the first at row {r}, column {c}); "
+            f"tirdeflect needs finite pixel values: pass the raw camera image, not a processed one"
+        )
+    return image
+
+
 def _check_dtype(image: np.ndarray, p: Path) -> np.ndarray:
-    if image.dtype in (np.uint8, np.uint16, np.float32):
+    if image.dtype in (np.uint8, np.uint16):
         return image
+    if image.dtype == np.float32:
+        return _check_finite(image, p)
     if image.dtype == np.bool_:
         return image.astype(np.uint8)
     if np.issubdtype(image.dtype, np.integer):
@@ -208,7 +228,7 @@ def _check_dtype(image: np.ndarray, p: Path) -> np.ndarray:
             f"convert it to uint16 or float32 TIFF"
         )
     if np.issubdtype(image.dtype, np.floating):
-        return image.astype(np.float32)
+        return _check_finite(image.astype(np.float32, copy=False), p)
     raise ImageReadError(
         f"{str(p)!r} has samples of type {image.dtype}; tirdeflect reads unsigned "
         f"8-16 bit integer or float images"
@@ -225,6 +245,9 @@ def _bits_of(dtype: np.dtype) -> int:
 def _tiff_open(p: Path):
     import tifffile
 
+    # tifffile logs what it cannot parse (e.g. "invalid offset to first page");
+    # the ImageReadError raised here says it in the user's terms instead
+    logging.getLogger("tifffile").setLevel(logging.ERROR)
     try:
         return tifffile.TiffFile(p)
     except Exception as exc:  # tifffile raises TiffFileError, ValueError, struct errors...
@@ -232,6 +255,40 @@ def _tiff_open(p: Path):
             f"{str(p)!r} is not a readable TIFF ({type(exc).__name__}: {exc}); "
             f"check that the file is complete and really a TIFF"
         ) from exc
+
+
+def _tiff_truncated(p: Path) -> str:
+    """Why the TIFF ``p`` is cut short (its first image directory lies beyond
+    its end), or "" if it is not."""
+    import struct
+
+    size = p.stat().st_size
+    with open(p, "rb") as fh:
+        head = fh.read(16)
+    if len(head) < 8 or head[:2] not in (b"II", b"MM"):
+        return ""
+    order = "<" if head[:2] == b"II" else ">"
+    magic = struct.unpack(order + "H", head[2:4])[0]
+    if magic == 42:
+        offset, entry = struct.unpack(order + "I", head[4:8])[0], 2 + 12
+    elif magic == 43 and len(head) >= 16:
+        offset, entry = struct.unpack(order + "Q", head[8:16])[0], 8 + 20
+    else:
+        return ""
+    if offset + entry > size:
+        return (f"it is {size} bytes long but its first image directory starts at byte {offset} "
+                f"(an interrupted copy or recording)")
+    return ""
+
+
+def _page_data_end(pages, i: int) -> int:
+    """Byte just past the pixel data of TIFF page ``i`` (0 if unknown)."""
+    try:
+        page = pages[i]
+        return max((int(o) + int(n) for o, n in zip(page.dataoffsets, page.databytecounts)),
+                   default=0)
+    except Exception:
+        return 0
 
 
 def _tiff_layout(tif, p: Path):
@@ -242,6 +299,10 @@ def _tiff_layout(tif, p: Path):
     pages = tif.pages
     n_pages = len(pages)
     if n_pages == 0:
+        truncated = _tiff_truncated(p)
+        if truncated:
+            raise ImageReadError(f"{str(p)!r} is truncated: {truncated}; copy the file again "
+                                 f"from its source")
         raise ImageReadError(f"{str(p)!r} is a TIFF with no image pages")
     first = pages.first if hasattr(pages, "first") else pages[0]
     bits = int(first.bitspersample)
@@ -269,9 +330,17 @@ def _tiff_layout(tif, p: Path):
             page = pages[i]
             arr = page.asarray()
         except Exception as exc:
+            end = _page_data_end(pages, i)
+            size = p.stat().st_size
+            if end > size:
+                raise ImageReadError(
+                    f"page {i} of {str(p)!r} is truncated: its pixels end at byte {end} but the "
+                    f"file is {size} bytes long (an interrupted copy or recording); copy the file "
+                    f"again from its source"
+                ) from exc
             raise ImageReadError(
                 f"page {i} of {str(p)!r} cannot be decoded ({type(exc).__name__}: {exc}); "
-                f"the file may be truncated or use a compression imagecodecs lacks"
+                f"it may use a compression imagecodecs lacks: re-save it uncompressed"
             ) from exc
         if arr.ndim == 3 and arr.shape[0] in (3, 4) and arr.shape[1:] == (rows, cols):
             arr = np.moveaxis(arr, 0, -1)  # planar RGB (SYX) to YXS
@@ -573,6 +642,7 @@ def iter_frames(
     first: int = 0,
     last: int | None = None,
     step: int = 1,
+    errors: str = "raise",
 ) -> Iterator[FrameItem]:
     """Yield the frames of several files in order, one at a time.
 
@@ -589,6 +659,12 @@ def iter_frames(
         ``last=None`` means to the end.
     step : int
         Yield every ``step``-th frame from ``first``.
+    errors : {"raise", "yield"}
+        What a frame that cannot be read (undecodable image, truncated page,
+        NaN samples) does: "raise" ends the iteration with its
+        ImageReadError; "yield" yields a FrameItem with ``image=None`` and
+        ``error`` set, and goes on with the next frame.  A file whose frames
+        cannot even be counted (its header is unreadable) raises either way.
 
     Yields
     ------
@@ -611,6 +687,19 @@ def iter_frames(
     def wanted(k: int) -> bool:
         return k >= first and (last is None or k <= last) and (k - first) % step == 0
 
+    if errors not in ("raise", "yield"):
+        raise ValueError(f"errors must be 'raise' or 'yield'; got {errors!r}")
+
+    def frame(read, path, i, seq, **fields):
+        """The FrameItem of one frame; a read error raises or is yielded."""
+        try:
+            return FrameItem(read(), str(path), i, seq, **fields)
+        except ImageReadError as exc:
+            exc.sequence_index = seq
+            if errors == "raise":
+                raise
+            return FrameItem(None, str(path), i, seq, error=exc, **fields)
+
     seq = 0
     try:
         for path in paths:
@@ -620,7 +709,7 @@ def iter_frames(
             kind = _kind(p)
             if kind == "image":
                 if wanted(seq):
-                    yield FrameItem(_read_cv2(p), str(path), 0, seq)
+                    yield frame(lambda: _read_cv2(p), path, 0, seq)
                 seq += 1
             elif kind == "tiff":
                 with _tiff_open(p) as tif:
@@ -629,7 +718,7 @@ def iter_frames(
                         if last is not None and seq > last:
                             return
                         if wanted(seq):
-                            yield FrameItem(reader(i), str(path), i, seq, frames_in_source=n)
+                            yield frame(lambda: reader(i), path, i, seq, frames_in_source=n)
                         seq += 1
             else:
                 with _h5_open(p) as f:
@@ -639,14 +728,24 @@ def iter_frames(
                         if last is not None and seq > last:
                             return
                         if wanted(seq):
-                            arr = _check_dtype(_to_gray(np.asarray(ds[i]), p), p)
-                            yield FrameItem(arr, str(path), i, seq, frames_in_source=n,
-                                            **_table_fields(table, i))
+                            yield frame(lambda: _h5_read(ds, i, p), path, i, seq, frames_in_source=n,
+                                        **_table_fields(table, i))
                         seq += 1
     except ImageReadError as exc:
         # say which frame of the sequence could not be read (the file is in the message)
-        exc.sequence_index = seq
+        if getattr(exc, "sequence_index", None) is None:
+            exc.sequence_index = seq
         raise
+
+
+def _h5_read(ds, i: int, p: Path) -> np.ndarray:
+    """Frame ``i`` of a recording's ``/frames``; an HDF5 read error is an ImageReadError."""
+    try:
+        arr = np.asarray(ds[i])
+    except (OSError, RuntimeError) as exc:
+        raise ImageReadError(f"frame {i} of {str(p)!r} cannot be read ({exc}); the recording "
+                             f"may be damaged there") from exc
+    return _check_dtype(_to_gray(arr, p), p)
 
 
 def write_image(path, image: np.ndarray) -> Path:

@@ -158,19 +158,20 @@ def test_black_frame_is_all_invalid(sim, tmp_path, capsys):
     assert_clean_error(code, err, "black.png")
 
 
-def test_failure_mid_batch_keeps_the_frames_already_written(sim, tmp_path, capsys):
+def test_unreadable_frame_mid_batch_is_invalid_and_the_run_goes_on(sim, tmp_path, capsys):
     good = sim / "frame_0000.png"
     bad = tmp_path / "frame_broken.png"
     bad.write_bytes(b"\x89PNG\r\n\x1a\n truncated")
-    code, err = run_cli(capsys, *process_args(sim, tmp_path, good, good, bad, good))
-    line = assert_clean_error(code, err, "frame 2", "frame_broken.png")
-    assert "2 frame(s) before it are saved" in line
+    code = main([str(a) for a in process_args(sim, tmp_path, good, good, bad, good)])
+    err = capsys.readouterr().err
+    assert code == 3, err
+    assert "wrote 4 frame(s)" in err and "1 invalid" in err and "frame_broken.png" in err
     with h5py.File(tmp_path / "out.h5", "r") as f:
-        assert f.attrs["frames_done"] == 2
-        assert f["height"].shape[0] == 2
-        assert f.attrs["status"].startswith("failed after 2 frame(s)")
+        assert f.attrs["frames_done"] == 4 and f.attrs["frames_invalid"] == 1
+        assert list(f["frame_status"][()]) == [0, 0, 5, 0]  # 5: UNREADABLE
+        assert "not a readable image" in f["frame_status_text"].asstr()[2]
         h = f["height"][()]
-        assert np.isfinite(h).mean() > 0.9
+        assert np.isfinite(h[[0, 1, 3]]).mean() > 0.9 and not np.isfinite(h[2]).any()
         np.testing.assert_array_equal(h[0], h[1])  # same input, deterministic
 
 
@@ -225,8 +226,11 @@ def test_disk_full_mid_batch_keeps_a_valid_file(sim, tmp_path):
     )
     assert proc.returncode == 2, proc.stderr
     assert "Traceback" not in proc.stderr
-    assert "full" in proc.stderr and "before it are saved" in proc.stderr, proc.stderr
-    with h5py.File(out, "r") as f:
+    assert "full" in proc.stderr and "before it are kept in" in proc.stderr, proc.stderr
+    assert not out.exists()  # only a complete run is renamed to OUT
+    partial = tmp_path / "out.partial.h5"
+    assert str(partial) in proc.stderr
+    with h5py.File(partial, "r") as f:
         n = int(f.attrs["frames_done"])
         assert 1 <= n < 12
         assert f["height"].shape[0] == n  # the half-written frame was dropped

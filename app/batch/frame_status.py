@@ -1,0 +1,194 @@
+"""Per-frame outcome of a batch run: a bad frame is marked invalid with its reason, never silent.
+
+One frame is measured by :func:`measure_frame`, which never raises for a
+fault of the frame itself (black, no pattern, another pattern, unreadable...):
+it returns ``(None, FrameOutcome(status, reason))`` instead, and the writer
+stores that frame as all-NaN heights with ``valid = 0`` and its status (see
+docs/output-format.md, ``/frame_status``). :class:`FrameTally` counts the
+outcomes and the recorder's flags for the summary line. The serial engine
+(:mod:`app.batch.engine`) and any parallel one call these same pieces.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import logging
+
+import numpy as np
+
+from processing.errors import (
+    AllInvalidError,
+    NoCarrierError,
+    PatternMismatchError,
+    ShapeMismatchError,
+    TirdeflectError,
+)
+
+__all__ = ["FrameStatus", "FrameOutcome", "FrameTally", "measure_frame", "outcome_of_error"]
+
+log = logging.getLogger(__name__)
+
+
+class FrameStatus(enum.IntEnum):
+    """Why a frame has no heights (``/frame_status`` in OUT.h5; 0 = measured)."""
+
+    OK = 0
+    #: every pixel has the same value, e.g. all zero (packets lost, no light)
+    BLANK = 1
+    #: no checkerboard in the frame (noise, out of focus, pattern not in view)
+    NO_PATTERN = 2
+    #: the pattern is there but no pixel could be measured (contrast lost)
+    NO_CONTRAST = 3
+    #: the frame shows another pattern (period / rotation) than the reference
+    PATTERN_MISMATCH = 4
+    #: the frame could not be read (truncated, undecodable, NaN/Inf samples)
+    UNREADABLE = 5
+    #: the frame's size differs from the reference's
+    SHAPE_MISMATCH = 6
+
+    @property
+    def label(self) -> str:
+        """Lower-case words for messages, e.g. ``pattern mismatch``."""
+        return self.name.lower().replace("_", " ")
+
+
+@dataclasses.dataclass(frozen=True)
+class FrameOutcome:
+    """What became of one frame: ``status`` and a one-line ``reason`` (empty when OK)."""
+
+    status: FrameStatus = FrameStatus.OK
+    reason: str = ""
+
+    @property
+    def ok(self) -> bool:
+        return self.status == FrameStatus.OK
+
+
+#: error type -> status; the first match wins (PatternMismatchError before its base)
+_STATUS_OF_ERROR = (
+    (PatternMismatchError, FrameStatus.PATTERN_MISMATCH),
+    (NoCarrierError, FrameStatus.NO_PATTERN),
+    (AllInvalidError, FrameStatus.NO_CONTRAST),
+    (ShapeMismatchError, FrameStatus.SHAPE_MISMATCH),
+)
+
+
+def outcome_of_error(exc: BaseException) -> FrameOutcome | None:
+    """The outcome of a frame whose reading or measuring raised ``exc``;
+    None when ``exc`` is not the frame's fault (a full disk, a bug): the run
+    must stop then."""
+    from app.files.imageio import ImageReadError
+
+    message = " ".join(str(exc).split())
+    if isinstance(exc, ImageReadError):
+        return FrameOutcome(FrameStatus.UNREADABLE, message)
+    for kind, status in _STATUS_OF_ERROR:
+        if isinstance(exc, kind):
+            return FrameOutcome(status, message)
+    if isinstance(exc, TirdeflectError):
+        return FrameOutcome(FrameStatus.NO_CONTRAST, message)
+    return None
+
+
+def measure_frame(reconstruct, image: np.ndarray, ref_shape, grid: str):
+    """Reconstruct one frame: ``(Result, OK)`` or ``(None, FrameOutcome)`` for a bad frame.
+
+    Raises only what is not the frame's fault.
+    """
+    image = np.asarray(image)
+    if image.shape != tuple(ref_shape):
+        return None, FrameOutcome(
+            FrameStatus.SHAPE_MISMATCH,
+            f"frame has shape {image.shape} (rows, cols) but the reference has {tuple(ref_shape)}; "
+            f"use frames and reference from the same camera and region")
+    lo, hi = (image.min(), image.max()) if image.size else (0, 0)
+    if lo == hi:
+        return None, FrameOutcome(
+            FrameStatus.BLANK,
+            f"every pixel of the frame is {lo:g} (a {'black' if hi == 0 else 'uniform'} frame: "
+            f"lost packets, no light or a saturated exposure)")
+    try:
+        result = reconstruct(image, grid=grid)
+    except TirdeflectError as exc:
+        return None, outcome_of_error(exc)
+    if not np.asarray(result.valid, dtype=bool).any():
+        return None, FrameOutcome(
+            FrameStatus.NO_CONTRAST,
+            "no pixel of the frame could be measured (no pattern contrast: black, saturated or "
+            "fully blurred frame); check exposure and that the pattern is in view")
+    return result, FrameOutcome()
+
+
+class FrameTally:
+    """Counts the outcomes of the processed frames and the recorder's flags (never silent)."""
+
+    #: invalid frames logged one by one; the rest are counted in the summary
+    LOG_FIRST = 10
+
+    def __init__(self):
+        from drivers.base import FrameFlags
+
+        self._incomplete_flag = int(FrameFlags.INCOMPLETE)
+        self._loss_flags = int(FrameFlags.ID_GAP_BEFORE | FrameFlags.TIME_GAP_BEFORE
+                               | FrameFlags.RING_OVERRUN_BEFORE)
+        self.frames = 0
+        self.valid = 0
+        self.invalid: dict = {}  # FrameStatus -> list of (sequence_index, label, reason)
+        self.incomplete = []
+        self.gaps = []
+
+    def add(self, item, outcome: FrameOutcome) -> None:
+        self.frames += 1
+        if outcome.ok:
+            self.valid += 1
+        else:
+            self.invalid.setdefault(outcome.status, []).append(
+                (item.sequence_index, item.label, outcome.reason))
+            if self.n_invalid <= self.LOG_FIRST:
+                log.warning("frame %d (%s) is invalid (%s): %s%s", item.sequence_index, item.label,
+                            outcome.status.label, outcome.reason,
+                            "; further invalid frames are only counted" if self.n_invalid == self.LOG_FIRST
+                            else "")
+        if item.flags & self._incomplete_flag:
+            self.incomplete.append(item.sequence_index)
+            log.warning("frame %d (%s) was flagged INCOMPLETE by the camera: its heights may be wrong",
+                        item.sequence_index, item.label)
+        if item.flags & self._loss_flags:
+            self.gaps.append(item.sequence_index)
+
+    @property
+    def n_invalid(self) -> int:
+        return self.frames - self.valid
+
+    def first_invalid(self):
+        """(sequence_index, label, reason) of the earliest invalid frame, or None."""
+        rows = [row for rows in self.invalid.values() for row in rows]
+        return min(rows) if rows else None
+
+    def invalid_summary(self) -> str:
+        """e.g. ``9 blank, 3 pattern mismatch (first: frame 4 (a.tif): every pixel ...)``."""
+        if not self.invalid:
+            return ""
+        parts = ", ".join(f"{len(rows)} {status.label}" for status, rows in sorted(self.invalid.items()))
+        k, label, reason = self.first_invalid()
+        return f"{parts} (first: frame {k} ({label}): {reason})"
+
+    def attrs(self) -> dict:
+        counts = {f"frames_{status.name.lower()}": len(self.invalid.get(status, ()))
+                  for status in FrameStatus if status != FrameStatus.OK}
+        return {"frames_valid": self.valid, "frames_invalid": self.n_invalid, **counts,
+                "frames_flagged_incomplete": len(self.incomplete),
+                "frames_with_loss_before": len(self.gaps)}
+
+    def notes(self) -> list:
+        out = []
+        if self.incomplete:
+            out.append(f"{len(self.incomplete)} processed frame(s) were recorded INCOMPLETE "
+                       f"(missing packets), e.g. frame {self.incomplete[0]}: their heights may be wrong; "
+                       f"see /frame_flags in the output")
+        if self.gaps:
+            out.append(f"the recording lost frames before {len(self.gaps)} processed frame(s), "
+                       f"e.g. before frame {self.gaps[0]}: time steps are not uniform; "
+                       f"see /frame_flags and /device_timestamp_ns")
+        return out
