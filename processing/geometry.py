@@ -372,6 +372,11 @@ class Geometry:
             text = path.read_text(encoding="utf-8")
         except OSError as exc:
             raise GeometryError(f"cannot read geometry file {str(path)!r}: {exc.strerror}") from None
+        except UnicodeDecodeError as exc:
+            raise GeometryError(
+                f"geometry file {str(path)!r} is not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at "
+                f"offset {exc.start}); TOML files are UTF-8: save it as UTF-8 (e.g. iconv -f latin1 "
+                f"-t utf-8)") from None
         try:
             return cls.from_toml_text(text)
         except GeometryError as exc:
@@ -735,10 +740,11 @@ class Geometry:
             return default_reference_region_mask(rows_px, cols_px, frame_shape)
         r0, r1, c0, c1 = self.reference_region
         n_rows, n_cols = frame_shape
-        if r0 >= n_rows or c0 >= n_cols:
+        if r1 > n_rows or c1 > n_cols:
             raise GeometryError(
-                f"reference_region {list(self.reference_region)} lies outside the frame of shape "
-                f"{tuple(frame_shape)}; choose a box inside it"
+                f"reference_region {list(self.reference_region)} [row0, row1, col0, col1] reaches "
+                f"outside the frame: the image has {n_rows} rows x {n_cols} columns; choose a box "
+                f"inside it (row1 <= {n_rows}, col1 <= {n_cols})"
             )
         rin = (rows_px >= r0) & (rows_px < r1)
         cin = (cols_px >= c0) & (cols_px < c1)
