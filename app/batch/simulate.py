@@ -3,7 +3,11 @@
 from __future__ import annotations
 
 import math
+import os
+import re
+import shutil
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +19,7 @@ from processing.errors import (
 
 from app import version as _version
 from app.batch.engine import load_geometry
-from app.batch.writer import OutputExistsError, utc_now
+from app.batch.writer import OutputExistsError, is_same_file, utc_now
 
 __all__ = ["run_simulate", "DEFAULT_SIM_GEOMETRY", "SIM_PATTERN_PERIOD_PX", "SIM_FPS", "SIM_MAX_PHASE_RAD"]
 
@@ -129,6 +133,7 @@ def run_simulate(args) -> None:
         raise OutputExistsError(
             f"{str(out)!r} already holds a simulated data set; choose another --out or add --overwrite"
         )
+    _check_outputs_are_not_inputs(out, args.geometry)
     if not math.isfinite(args.noise) or args.noise < 0:
         raise TirdeflectError(f"--noise must be a finite RMS >= 0 grey levels; got {args.noise}")
     if args.size < 96:
@@ -150,12 +155,44 @@ def run_simulate(args) -> None:
         scene, geometry, (args.size, args.size), args.frames, pattern=pattern, fps=SIM_FPS,
         bits=args.bits, noise_rms=args.noise, seed=args.seed,
     )
-    out.mkdir(parents=True, exist_ok=True)
     args.max_phase = target
-    _write_simulation(out, sim, geometry, args)
+    out.mkdir(parents=True, exist_ok=True)
+    # Write into a temporary directory inside DIR and move the files into place
+    # only when all are written: a failure (disk full, Ctrl-C) leaves an earlier
+    # data set in DIR as it was.
+    tmp = Path(tempfile.mkdtemp(prefix=".simulate-", dir=out))
+    try:
+        n_frames, hmax_um = _write_simulation(tmp, sim, geometry, args)
+        stale = [p for p in out.iterdir() if _SIM_FILE.fullmatch(p.name)]
+        written = {p.name for p in tmp.iterdir()}
+        for item in sorted(tmp.iterdir()):
+            os.replace(item, out / item.name)
+        for old in stale:  # frames of an earlier, longer data set: not part of this one
+            if old.name not in written:
+                old.unlink()
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    print(f"tirdeflect: wrote reference, {n_frames} frame(s) ({args.bits} bit), heights.h5 "
+          f"(max |h| {hmax_um:.2f} um) and geometry.toml to {out}", file=sys.stderr)
 
 
-def _write_simulation(out: Path, sim, geometry, args) -> None:
+#: the files of a simulated data set (what --overwrite replaces)
+_SIM_FILE = re.compile(r"(reference|frame_\d{4,})\.(png|tif)|geometry\.toml|heights\.h5")
+
+
+def _check_outputs_are_not_inputs(out: Path, geometry_path) -> None:
+    """Refuse a DIR whose data-set files include the --geometry file given."""
+    if geometry_path is None or not out.is_dir():
+        return
+    for p in out.iterdir():
+        if _SIM_FILE.fullmatch(p.name) and is_same_file(p, geometry_path):
+            raise TirdeflectError(
+                f"--geometry {str(geometry_path)!r} is {str(p)!r}, a file of the data set that "
+                f"simulate writes into --out {str(out)!r}; copy the geometry elsewhere or choose "
+                f"another --out: tirdeflect never writes over its inputs")
+
+
+def _write_simulation(out: Path, sim, geometry, args) -> tuple:
     import h5py
 
     suffix = ".png" if args.bits <= 8 else ".tif"
@@ -188,7 +225,5 @@ def _write_simulation(out: Path, sim, geometry, args) -> None:
         f.attrs["geometry_toml"] = geometry_text
         f.attrs["software_version"] = _version()
         f.attrs["created_utc"] = utc_now()
-    hmax = float(np.max(np.abs(heights))) * 1e3
-    print(f"tirdeflect: wrote reference, {len(names)} frame(s) ({args.bits} bit), heights.h5 "
-          f"(max |h| {hmax:.2f} um) and geometry.toml to {out}", file=sys.stderr)
+    return len(names), float(np.max(np.abs(heights))) * 1e3
 

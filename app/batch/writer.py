@@ -18,7 +18,7 @@ from processing.errors import (
 )
 
 __all__ = ["ResultWriter", "OutputExistsError", "DiskFullError", "OUTPUT_FORMAT_VERSION",
-           "check_output", "check_not_an_input", "partial_path", "publish", "set_attrs", "carrier_attrs", "geometry_attrs", "utc_now"]
+           "check_output", "check_not_an_input", "is_same_file", "partial_path", "publish", "set_attrs", "carrier_attrs", "geometry_attrs", "utc_now"]
 
 log = logging.getLogger(__name__)
 
@@ -97,19 +97,26 @@ def check_output(out: Path, overwrite: bool) -> None:
 
 
 
+def is_same_file(a, b) -> bool:
+    """Whether paths ``a`` and ``b`` name the same file (same path, a symbolic
+    link to it, or a hard link: same device and inode)."""
+    if a is None or b is None:
+        return False
+    try:
+        if os.path.samefile(a, b):
+            return True
+    except OSError:
+        pass
+    return os.path.realpath(a) == os.path.realpath(b)
+
+
 def check_not_an_input(out: Path, inputs, what: str = "--out") -> None:
     """Refuse an output that is one of the ``inputs`` (same path, a link to it,
     or the same file under another name), before anything is written."""
     if not os.path.lexists(out):
         return
     for path in inputs:
-        if path is None:
-            continue
-        try:
-            same = os.path.samefile(out, path)
-        except OSError:
-            same = False
-        if same or os.path.realpath(out) == os.path.realpath(path):
+        if is_same_file(out, path):
             raise TirdeflectError(
                 f"{what} {str(out)!r} is the input {str(path)!r}; choose another {what}: "
                 f"tirdeflect never writes over its inputs"
