@@ -56,6 +56,11 @@ _DEFAULT_ITERATIONS = {"decimated": 0, "full": 1}
 # ray-traced frames (~0.1 % rms), and saves about a third of the iterations.
 _CG_TOL = 1e-4
 
+#: A frame with less than this fraction of valid samples always gets the full
+#: pattern check (:func:`check_pattern_match`), even when the cheap one passed:
+#: noise or another pattern can leave the windows' spectral centroid in place.
+POOR_FRAME_VALID_FRACTION = 0.5
+
 #: Reference contrast below this fraction of the contrast where the pattern is
 #: seen best (90th percentile of the field) marks a blank, dirty or blurred
 #: part of the pattern.  The 90th percentile, not the median: where most of the
@@ -521,7 +526,7 @@ class Reconstructor:
         full search raises the threshold to what it showed, so a series of
         strongly deformed frames does not pay for the search every time."""
         if not self.check_pattern:
-            return
+            return False
         # |w|^2 summed along columns and along rows, both carriers in one pass each
         p = np.abs(wins)
         p *= p
@@ -530,7 +535,7 @@ class Reconstructor:
         total = rows_p.sum(axis=1)
         ok = total > 0
         if not ok.any():
-            return
+            return False
         tot = np.where(ok, total, 1.0)
         cr = (rows_p @ self._q_r) / tot - self._win_centre[:, 0]
         cc = (cols_p @ self._q_c) / tot - self._win_centre[:, 1]
@@ -538,6 +543,8 @@ class Reconstructor:
         if worst > self._check_threshold:
             check_pattern_match(self.carriers, frame)
             self._check_threshold = max(self._check_threshold, 1.5 * worst)
+            return True
+        return False
 
     # ------------------------------------------------------------- stages
     def _unwrap(self, wrapped, valid, all_valid=False):
@@ -710,7 +717,7 @@ class Reconstructor:
         spec = d.spectrum(frame)
         wins = d.windows(spec)
         g = d.decimated_from_windows(wins)
-        self._cheap_pattern_check(wins, frame)
+        checked = self._cheap_pattern_check(wins, frame)
         t1 = time.perf_counter()
         timings["demodulate"] = 1e3 * (t1 - t0)
         wrapped = np.angle(g * self._conj_g0)
@@ -731,6 +738,11 @@ class Reconstructor:
             all_valid = bool(valid.all())
         if not all_valid:
             valid = self._drop_islands(valid)
+        if (self.check_pattern and not checked and not all_valid
+                and np.count_nonzero(valid) < POOR_FRAME_VALID_FRACTION * valid.size):
+            # noise or another pattern leaves the windows' centroid in place;
+            # a poor frame gets the full check, which names what is wrong
+            check_pattern_match(self.carriers, frame)
         if not all_valid and not valid.any():
             raise AllInvalidError(
                 f"no part of the frame could be measured: pattern contrast relative to the reference "
