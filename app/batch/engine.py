@@ -275,7 +275,6 @@ def run_process(args: ProcessJob) -> BatchReport:
     )
     pins = _PinCounter(reconstruct)
     pins.write_region(writer)
-    writer.final = out
     status = "failed"
     tally = FrameTally()
     progress = _progress(selected, disable=args.no_progress)
@@ -289,20 +288,20 @@ def run_process(args: ProcessJob) -> BatchReport:
             except StopIteration:
                 break
             except TirdeflectError as exc:  # a whole file became unreadable
-                raise _frame_failed(exc, None, writer, tally) from exc
+                raise _frame_failed(exc, None, writer, tally, out) from exc
             if item.error is not None:
                 result, outcome = None, outcome_of_error(item.error)
             else:
                 result, outcome = measure_frame(reconstruct, item.image, reference.shape, args.grid)
             if outcome.status == FrameStatus.PATTERN_MISMATCH and tally.valid == 0:
                 # no frame has matched the reference yet: it is the reference that is wrong
-                raise _frame_failed(PatternMismatchError(outcome.reason), item, writer, tally)
+                raise _frame_failed(PatternMismatchError(outcome.reason), item, writer, tally, out)
             if not outcome.ok and args.strict:
-                raise _frame_failed(_error_of(outcome), item, writer, tally, strict=True)
+                raise _frame_failed(_error_of(outcome), item, writer, tally, out, strict=True)
             try:
                 writer.append(item, result, outcome)
             except (TirdeflectError, OSError) as exc:  # disk full while writing
-                raise _frame_failed(exc, item, writer, tally) from exc
+                raise _frame_failed(exc, item, writer, tally, out) from exc
             if result is None and hasattr(reconstruct, "reset_series"):
                 reconstruct.reset_series()  # no temporal unwrapping across a hole
             tally.add(item, outcome)
@@ -312,7 +311,7 @@ def run_process(args: ProcessJob) -> BatchReport:
             if on_progress is not None:
                 on_progress(writer.n, selected)
         if tally.valid == 0:
-            raise _frame_failed(_error_of_none_valid(tally), None, writer, tally, whole_run=True)
+            raise _frame_failed(_error_of_none_valid(tally), None, writer, tally, out, whole_run=True)
         status = "complete" if tally.n_invalid == 0 else f"complete, {tally.n_invalid} frame(s) invalid"
     except KeyboardInterrupt:
         status = f"interrupted after {writer.n} frame(s)"
@@ -436,8 +435,9 @@ def _error_of_none_valid(tally: FrameTally) -> TirdeflectError:
     return exc
 
 
-def _frame_failed(exc: Exception, item, writer: ResultWriter, tally: FrameTally, *,
+def _frame_failed(exc: Exception, item, writer: ResultWriter, tally: FrameTally, out: Path, *,
                   strict: bool = False, whole_run: bool = False) -> TirdeflectError:
+    """The error to raise for a run that stops at ``item``: where, why, and what is kept."""
     if whole_run:
         where = None
     elif item is not None:
@@ -450,7 +450,6 @@ def _frame_failed(exc: Exception, item, writer: ResultWriter, tally: FrameTally,
         saved = (f"the {writer.n} frame(s) before it are kept in {str(writer.path)!r} "
                  f"(valid up to frames_done; rename it to use it)")
     else:
-        out = getattr(writer, "final", writer.path)
         saved = (f"nothing was written ({str(out)!r} left as it was)" if os.path.lexists(out)
                  else f"nothing was written ({str(out)!r} not created)")
     head = f"{where} failed: " if where else ""

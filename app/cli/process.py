@@ -64,7 +64,10 @@ def add_process_parser(sub) -> None:
         description="Reconstruct water-surface heights (mm) from a reference image and "
         "deformed frames and write them to an HDF5 file (layout: docs/output-format.md). "
         "Inputs: PNG, BMP, TIFF (8-16 bit, packed 10/12-bit, multi-page stacks) and "
-        "tirdeflect HDF5 recordings.",
+        "tirdeflect HDF5 recordings. A frame that cannot be measured is stored invalid with "
+        "its reason and the run goes on. Exit status: 0 every frame measured; 3 OUT written but "
+        "some frames invalid or recorded INCOMPLETE; 2 refused or failed (the frames measured "
+        "are kept in OUT.partial.h5, named in the message); 130 interrupted.",
     )
     p.add_argument("reference", help="reference image of the flat surface (or a recording "
                    "holding a /reference)")
@@ -172,6 +175,8 @@ def cmd_process(args) -> int:
     with _signals_interrupt():
         report = run_process(ProcessJob.from_namespace(args))
     line = f"tirdeflect: wrote {report.frames_written} frame(s) to {report.out}"
+    if report.frames_incomplete:
+        line += f", {report.frames_incomplete} recorded INCOMPLETE"
     if report.frames_invalid:
         line += (f", {report.frames_invalid} invalid (heights NaN, reason in /frame_status_text): "
                  f"{report.invalid_summary}")
