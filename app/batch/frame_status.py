@@ -46,6 +46,8 @@ class FrameStatus(enum.IntEnum):
     UNREADABLE = 5
     #: the frame's size differs from the reference's
     SHAPE_MISMATCH = 6
+    #: any other fault of the frame the numerics reported (see the reason)
+    OTHER = 7
 
     @property
     def label(self) -> str:
@@ -87,7 +89,7 @@ def outcome_of_error(exc: BaseException) -> FrameOutcome | None:
         if isinstance(exc, kind):
             return FrameOutcome(status, message)
     if isinstance(exc, TirdeflectError):
-        return FrameOutcome(FrameStatus.NO_CONTRAST, message)
+        return FrameOutcome(FrameStatus.OTHER, message)
     return None
 
 
