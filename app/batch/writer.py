@@ -255,29 +255,103 @@ def _room_bytes(path: Path) -> tuple:
     return room, what
 
 
+class _SpaceReserve:
+    """:data:`RESERVE_BYTES` held on the output's disk in a hidden file beside
+    it, freed when a write fails (or at the close), so that closing the file
+    validly never depends on space another program may have taken meanwhile."""
+
+    def __init__(self, beside: Path):
+        self.path = beside.with_name(f".{beside.name}.reserve")
+        self.held = False
+        if RESERVE_BYTES <= 0:
+            return
+        try:
+            fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        except OSError as exc:
+            log.debug("no space reserve beside %s (%s)", beside, exc)
+            return
+        try:
+            try:
+                os.posix_fallocate(fd, 0, RESERVE_BYTES)
+            except (AttributeError, OSError):  # no fallocate here: write the bytes
+                os.ftruncate(fd, 0)
+                os.write(fd, b"\0" * RESERVE_BYTES)
+            self.held = True
+        except OSError as exc:
+            log.debug("no space reserve beside %s (%s)", beside, exc)
+        finally:
+            os.close(fd)
+            if not self.held:
+                self._unlink()
+
+    def _unlink(self) -> None:
+        try:
+            self.path.unlink()
+        except OSError:
+            pass
+
+    def release(self) -> None:
+        if self.held:
+            self._unlink()
+            self.held = False
+
+
 def _repair_eof(path: Path) -> bool:
-    """After a failed write HDF5 may have recorded an end of file beyond what
-    reached the disk; extend the file (sparse, needs no space) to that end so
-    it opens again. Returns True if it did."""
+    """Make a file HDF5 left inconsistent after a failed write open again.
+
+    Two cases: the superblock records an end of file beyond what reached the
+    disk ("stored_eof"): extend the file (sparse, needs no space) to it; or
+    metadata written before the failure points beyond the end of allocation
+    the superblock records ("addr overflow ... eoa"): raise that end (format
+    version 0 superblock, the one this writer makes) and extend the file.
+    The frames up to ``frames_done`` were flushed before and stay as they
+    were. Returns True if it changed the file."""
     import re
 
     import h5py
 
-    try:
-        h5py.File(path, "r").close()
-        return False
-    except OSError as exc:
-        m = re.search(r"stored_eof = (\d+)", str(exc))
-        if not m:
-            return False
+    for _ in range(8):  # each repair may uncover the next address beyond the end
         try:
-            if int(m.group(1)) > path.stat().st_size:
+            h5py.File(path, "r").close()
+            return _ != 0
+        except OSError as exc:
+            text = str(exc)
+        try:
+            m = re.search(r"stored_eof = (\d+)", text)
+            if m and int(m.group(1)) > path.stat().st_size:
                 os.truncate(path, int(m.group(1)))
                 log.warning("%s: extended to the end of file HDF5 recorded before the failed write", path)
-                return True
+                continue
+            m = re.search(r"addr overflow, addr = (\d+), size = (\d+), eoa = (\d+)", text)
+            if m and _raise_eoa(path, int(m.group(1)) + int(m.group(2))):
+                log.warning("%s: end of allocation raised to cover what was written before the "
+                            "failed write", path)
+                continue
         except OSError as err:
             log.error("%s: could not repair the end of file (%s); frames_done frames are intact", path, err)
+        return False
     return False
+
+
+def _raise_eoa(path: Path, end: int) -> bool:
+    """Set the end-of-allocation address of a version 0/1 superblock with
+    8-byte offsets to at least ``end`` and extend the file to it (sparse)."""
+    import struct
+
+    with open(path, "r+b") as fh:
+        head = fh.read(64)
+        if head[:8] != b"\x89HDF\r\n\x1a\n" or head[8] not in (0, 1) or head[13] != 8:
+            return False
+        at = 40 if head[8] == 0 else 44  # version 1 has 4 more bytes (indexed storage K)
+        eoa = struct.unpack("<Q", head[at:at + 8])[0]
+        end = max(end, os.fstat(fh.fileno()).st_size)
+        if end <= eoa:
+            return False
+        fh.seek(at)
+        fh.write(struct.pack("<Q", end))
+    if end > path.stat().st_size:
+        os.truncate(path, end)
+    return True
 
 
 class ResultWriter:
@@ -302,7 +376,11 @@ class ResultWriter:
 
         self.path = path
         self.compression = None if compression == "none" else compression
-        self.f = h5py.File(path, "x")
+        # no chunk cache: every frame is one chunk, written through at once, so a
+        # failed write (disk full) raises here instead of being lost when h5py
+        # closes a dataset handle and HDF5 flushes its cache (errors ignored there)
+        self.f = h5py.File(path, "x", rdcc_nbytes=0)
+        self._reserve = _SpaceReserve(path)
         f = self.f
         set_attrs(f, attrs)
         f.attrs["frames_done"] = 0
@@ -401,7 +479,8 @@ class ResultWriter:
 
     def _check_room(self, shape) -> None:
         """Refuse the next frame (DiskFullError) while the file can still be closed validly."""
-        need = int(np.prod(shape)) * (3 * 4 + 1) + 4096 + RESERVE_BYTES
+        # the reserve is held in its own file while it can be: not counted twice
+        need = int(np.prod(shape)) * (3 * 4 + 1) + 4096 + (0 if self._reserve.held else RESERVE_BYTES)
         room, what = _room_bytes(self.path)
         if room < need:
             raise DiskFullError(
@@ -453,34 +532,78 @@ class ResultWriter:
             f["frame_status_text"][k] = outcome.reason
         except BaseException as exc:
             # e.g. disk full: drop the half-written frame so the file holds exactly frames_done
-            try:
-                for name in names:
-                    if f[name].shape[0] > k:
-                        f[name].resize(k, axis=0)
-            except Exception:
-                self.failed = True
-            if isinstance(exc, RuntimeError):  # HDF5 reports failed writes as RuntimeError
-                self.failed = True
-                raise OSError(f"writing frame {k} to {str(self.path)!r} failed: {exc}") from exc
+            self.failed = not self._recover(k, names)
+            if isinstance(exc, (RuntimeError, OSError)):  # HDF5 reports failed writes as RuntimeError
+                raise self._write_error(k, exc) from exc
             raise
         try:
             f.flush()  # the frame's data first ...
             f.attrs["frames_done"] = k + 1  # ... then the counter that vouches for it
             f.flush()
         except (RuntimeError, OSError) as exc:
-            self.failed = True
-            raise OSError(f"writing frame {k} to {str(self.path)!r} failed: {exc}; the file is valid "
-                          f"up to the frames before it") from exc
+            self.failed = not self._recover(k, names)
+            raise self._write_error(k, exc) from exc
         self.n = k + 1
 
+    def _write_error(self, k: int, exc: BaseException) -> OSError:
+        text = _one_line(exc)
+        if "errno = 28" in text or "No space left" in text or getattr(exc, "errno", None) == 28:
+            return DiskFullError(
+                f"disk full while writing frame {k} to {str(self.path)!r} (No space left on device: "
+                f"another program took the space); free space or write --out to another disk, "
+                f"then resume with --first")
+        if "errno = 27" in text or getattr(exc, "errno", None) == 27:
+            return DiskFullError(
+                f"file size limit (ulimit -f) reached while writing frame {k} to {str(self.path)!r}; "
+                f"raise the limit or write --out elsewhere, then resume with --first")
+        return OSError(f"writing frame {k} to {str(self.path)!r} failed: {text}")
+
+    def _recover(self, k: int, names) -> bool:
+        """After a failed write of frame ``k``: write nothing more through this
+        handle (:meth:`_abandon`), so the file stays as the flush after frame
+        ``k - 1`` left it: consistent, ``frames_done = k``. True if that worked."""
+        return self._abandon()
+
+    def _abandon(self) -> bool:
+        """Point HDF5's file descriptor at /dev/null opened read-only: every
+        write it still attempts (dirty metadata at the close) fails instead of
+        reaching the file half-way. Returns True if it could."""
+        try:
+            fd = self.f.id.get_vfd_handle()
+            null = os.open(os.devnull, os.O_RDONLY)
+            try:
+                os.dup2(null, fd)
+            finally:
+                os.close(null)
+        except Exception as exc:  # noqa: BLE001 - another file driver: repaired at the close
+            log.error("%s: could not stop writing after the failed write (%s)", self.path, _one_line(exc))
+            return False
+        self.abandoned = True
+        return True
+
     def close(self, status: str, attrs: dict | None = None) -> None:
-        """Record ``status`` (and ``attrs``) and close. After a failed write nothing
-        more is written; if recording the status fails (a disk filled by
-        someone else), the file is still closed and its end of file repaired,
-        so it stays valid up to ``frames_done``."""
+        """Record ``status`` (and ``attrs``) and close.
+
+        After a failed write the handle writes nothing more (it was
+        abandoned); the status is then recorded by reopening the file, with
+        the space reserve freed. If that fails too (another program took the
+        space), the file keeps ``status = running`` and stays valid up to
+        ``frames_done``; a file HDF5 still left inconsistent is repaired."""
         if self.f is None:
             return
         f, self.f = self.f, None
+        reserved = self._reserve.held
+        self._reserve.release()  # the room the status and the close need
+        if getattr(self, "abandoned", False):
+            try:
+                f.close()
+            except Exception:  # noqa: BLE001 - expected: its writes go nowhere now
+                pass
+            if reserved:
+                self._record_status(status, attrs)
+            if _repair_eof(self.path):
+                log.warning("%s: repaired after the failed write; valid up to frames_done", self.path)
+            return
         try:
             if not self.failed:  # after a failed write, add nothing: what was flushed stays valid
                 set_attrs(f, attrs or {})
@@ -498,6 +621,24 @@ class ResultWriter:
                 log.error("closing %s failed: %s (valid up to frame %d)", self.path, exc, self.n)
             if self.failed:
                 _repair_eof(self.path)
+
+    def _record_status(self, status: str, attrs: dict | None) -> None:
+        import h5py
+
+        try:
+            with h5py.File(self.path, "r+") as f:
+                set_attrs(f, attrs or {})
+                f.attrs["frames_done"] = self.n
+                f.attrs["status"] = status
+                f.attrs["finished_utc"] = utc_now()
+        except Exception as exc:  # noqa: BLE001
+            log.error("could not record the final status in %s: %s (valid up to frame %d)",
+                      self.path, _one_line(exc), self.n)
+
+
+def _one_line(exc: BaseException) -> str:
+    """An HDF5 error message on one line."""
+    return " ".join(str(exc).split())
 
 
 # =========================================================================== publishing

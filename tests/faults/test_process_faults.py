@@ -441,8 +441,21 @@ def _mount_tmpfs(mount_dir, size_bytes):
     return "" if r.returncode == 0 else f"cannot mount a tmpfs here: {r.stderr.strip()}"
 
 
-def test_disk_filled_by_another_process_leaves_a_valid_file(sim, tmp_path):
-    """`dd` fills the output's disk while `process` writes: the measured frames stay readable."""
+#: `tirdeflect` with the writer's free-space reserve switched off: the disk fills
+#: between the check and the write, so the HDF5 write itself fails
+_NO_RESERVE_CHILD = """
+import sys
+import app.batch.writer
+app.batch.writer.RESERVE_BYTES = -(1 << 40)
+from app.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+@pytest.mark.parametrize("reserve", [True, False], ids=["stops-before-full", "write-fails"])
+def test_disk_filled_by_another_process_leaves_a_valid_file(sim, tmp_path, reserve):
+    """`dd` fills the output's disk while `process` writes: the measured frames stay readable,
+    whether the writer sees it coming (its reserve) or the write itself fails."""
     mnt = tmp_path / "small_disk"
     mnt.mkdir()
     frame_bytes = SIZE * SIZE * 13  # three float32 maps and a uint8 mask
@@ -455,9 +468,9 @@ def test_disk_filled_by_another_process_leaves_a_valid_file(sim, tmp_path):
         stack = np.stack([imageio.read_image(p) for p in frames_of(sim)] * 7)[:n]
         tifffile.imwrite(tmp_path / "long.tif", stack, photometric="minisblack")
         out = mnt / "out.h5"
+        head = ["-m", "app.cli"] if reserve else ["-c", _NO_RESERVE_CHILD]
         proc = subprocess.Popen(
-            [sys.executable, "-m", "app.cli", "--debug",
-             *map(str, process(sim, out, tmp_path / "long.tif"))],
+            [sys.executable, *head, "--debug", *map(str, process(sim, out, tmp_path / "long.tif"))],
             cwd=ROOT, stderr=subprocess.PIPE, text=True)
         watchdog = threading.Timer(180.0, proc.kill)
         watchdog.start()
@@ -482,17 +495,27 @@ def test_disk_filled_by_another_process_leaves_a_valid_file(sim, tmp_path):
         # (--debug, for the per-frame lines, also prints the traceback)
         line = error_line(err.replace("Traceback", "(traceback)"))
         partial = mnt / "out.partial.h5"
-        assert "full" in line and str(partial) in line
+        assert "disk full" in line  # either the check before a frame or the failed write says so
+        if not reserve:
+            assert "No space left on device" in line
+        assert str(partial) in line
         assert not out.exists()
         with h5py.File(partial, "r") as f:  # opens: superblock and frame table consistent
-            k = int(f.attrs["frames_done"])
+            attrs = dict(f.attrs)  # every attribute readable, none half-written
+            k = int(attrs["frames_done"])
+            status = str(attrs["status"])
             assert 2 <= k < n
-            assert f["height"].shape[0] == k and f["frame_status"].shape[0] == k
+            for name in ("height", "slope_x", "slope_y", "valid", "frame_index", "source",
+                         "frame_flags", "frame_status", "frame_status_text"):
+                assert f[name].shape[0] == k, name
+            # with the reserve the status is recorded; without it the file stays as the
+            # last flush left it ("running"), the message having said what happened
+            assert status.startswith(f"failed after {k} frame(s)") or (not reserve and status == "running")
             h = f["height"][()]
             assert np.isfinite(h).mean() > 0.9
             # frame j is input frame j mod N_FRAMES: what was kept is what was measured
             for j in range(N_FRAMES, k):
                 np.testing.assert_allclose(h[j], h[j - N_FRAMES], atol=1e-6, equal_nan=True)
-        print(f"disk filled after frame 2: {k} of {n} frames kept and readable")
+        print(f"disk filled after frame 2: {k} of {n} frames kept and readable, status {status!r}")
     finally:
         subprocess.run(["umount", "-l", str(mnt)], capture_output=True, timeout=10)
