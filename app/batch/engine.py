@@ -265,14 +265,20 @@ def run_process(args: ProcessJob) -> BatchReport:
         "height_units": "mm",
         "reference_bits": _bits_hint(args.reference, reference),
     }
-    partial = partial_path(out)
-    writer = ResultWriter(
-        partial, compression=args.compression, attrs=attrs,
-        geometry_toml=geometry_toml, geometry_attrs=geometry_info,
-        carrier_attrs=carrier_attrs(getattr(reconstruct, "carriers", None)),
-        reference=reference, expected=selected,
-        grid_coords=reconstruct.grid_coordinates(args.grid), grid=args.grid,
-    )
+    for attempt in range(5):  # another run beside this one may take the name first
+        partial = partial_path(out)
+        try:
+            writer = ResultWriter(
+                partial, compression=args.compression, attrs=attrs,
+                geometry_toml=geometry_toml, geometry_attrs=geometry_info,
+                carrier_attrs=carrier_attrs(getattr(reconstruct, "carriers", None)),
+                reference=reference, expected=selected,
+                grid_coords=reconstruct.grid_coordinates(args.grid), grid=args.grid,
+            )
+            break
+        except FileExistsError:
+            if attempt == 4:
+                raise
     pins = _PinCounter(reconstruct)
     pins.write_region(writer)
     status = "failed"

@@ -314,6 +314,23 @@ def test_a_run_failing_at_its_first_frame_keeps_the_previous_result(sim, tmp_pat
     assert not list(tmp_path.glob("*.partial*"))
 
 
+def test_an_earlier_partial_result_is_never_overwritten(sim, tmp_path, capsys):
+    out = tmp_path / "out.h5"
+    earlier = tmp_path / "out.partial.h5"
+    earlier.write_bytes(b"frames of an earlier, failed run")
+    series = _series_with_black_frames(sim, tmp_path)
+    code, err = run(capsys, *process(sim, out, *series), "--strict")
+    line = error_line(err)
+    assert code == 2 and str(tmp_path / "out.partial-2.h5") in line
+    code, err = run(capsys, *process(sim, out, frames_of(sim)[0]))
+    assert code == 0, err
+    assert earlier.read_bytes() == b"frames of an earlier, failed run"
+    with h5py.File(out) as f:
+        assert f.attrs["frames_done"] == 1 and f.attrs["status"] == "complete"
+    assert sorted(p.name for p in tmp_path.glob("*.h5")) == ["out.h5", "out.partial-2.h5", "out.partial.h5"]
+    assert not list(tmp_path.glob(".*reserve"))  # the space reserve is gone after every run
+
+
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
 def test_interrupted_overwrite_keeps_the_old_file_and_names_the_partial_one(sim, tmp_path, sig):
     """--overwrite replaces the old output only at the end: a run stopped midway
