@@ -310,10 +310,10 @@ def _repair_eof(path: Path) -> bool:
 
     import h5py
 
-    for _ in range(8):  # each repair may uncover the next address beyond the end
+    for attempt in range(8):  # each repair may uncover the next address beyond the end
         try:
             h5py.File(path, "r").close()
-            return _ != 0
+            return attempt != 0
         except OSError as exc:
             text = str(exc)
         try:

@@ -536,3 +536,31 @@ def test_disk_filled_by_another_process_leaves_a_valid_file(sim, tmp_path, reser
         print(f"disk filled after frame 2: {k} of {n} frames kept and readable, status {status!r}")
     finally:
         subprocess.run(["umount", "-l", str(mnt)], capture_output=True, timeout=10)
+
+
+def test_superblock_whose_end_of_allocation_lags_is_repaired(sim, tmp_path, capsys):
+    """The last resort of the writer's close (docs/reliability.md): metadata written
+    beyond the end of allocation the superblock records ("addr overflow ... eoa",
+    what issue 7 saw after a disk filled during a recording) is made readable again,
+    every frame as it was."""
+    import struct
+
+    from app.batch.writer import _repair_eof
+
+    out = tmp_path / "out.h5"
+    code, err = run(capsys, *process(sim, out, *frames_of(sim)[:3]))
+    assert code == 0, err
+    with h5py.File(out) as f:
+        before = f["height"][()]
+    size = out.stat().st_size
+    with open(out, "r+b") as fh:  # version 0 superblock: end of allocation at byte 40
+        head = fh.read(48)
+        assert head[8] == 0 and struct.unpack("<Q", head[40:48])[0] == size
+        fh.seek(40)
+        fh.write(struct.pack("<Q", size - 4096))
+    with pytest.raises(OSError, match="addr overflow|eoa|truncated"):
+        h5py.File(out, "r")
+    assert _repair_eof(out)
+    with h5py.File(out) as f:
+        assert f.attrs["frames_done"] == 3 and f.attrs["status"] == "complete"
+        np.testing.assert_array_equal(f["height"][()], before)
