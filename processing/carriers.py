@@ -194,7 +194,8 @@ def _as_float_image(image, name):
     if a.dtype.kind not in "uif":
         raise ValueError(f"{name} must be an integer or float image; got dtype {a.dtype}")
     if min(a.shape) < 32:
-        raise ValueError(f"{name} is too small to hold a pattern: shape {a.shape}, need >= 32 x 32")
+        raise NoCarrierError(f"{name} is too small to hold a pattern: shape {a.shape}, need >= 32 x 32 "
+                             f"pixels; use the camera's full region of interest")
     a = a.astype(np.float32, copy=False)
     if not np.all(np.isfinite(a)):
         raise ValueError(f"{name} contains NaN or infinite pixels; pass the raw camera image")

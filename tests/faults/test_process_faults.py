@@ -441,6 +441,14 @@ def test_truncated_tiff_is_reported_truncated(sim, tmp_path, capsys, fsss_toml):
         assert "is truncated" in f["frame_status_text"].asstr()[1]
 
 
+def test_reference_too_small_for_a_pattern(sim, tmp_path, capsys, rng):
+    imageio.write_image(tmp_path / "tiny.png", rng.integers(0, 256, (20, 20), dtype=np.uint8))
+    code, err = run(capsys, *process(sim, tmp_path / "out.h5", tmp_path / "tiny.png",
+                                     reference=tmp_path / "tiny.png"))
+    line = error_line(err)  # was a traceback (ValueError)
+    assert code == 2 and "too small" in line and "(20, 20)" in line
+
+
 def test_reference_region_outside_the_image(sim, tmp_path, capsys):
     g = tmp_path / "g.toml"
     g.write_text((sim / "geometry.toml").read_text() + "reference_region = [0, 40, 0, 9999]\n")
