@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator, Sequence
@@ -367,7 +368,14 @@ def _h5_open(p: Path):
     try:
         return h5py.File(p, "r")
     except OSError as exc:
-        if "lock" in str(exc).lower():
+        text = str(exc)
+        m = re.search(r"truncated file: eof = (\d+).*stored_eof = (\d+)", text)
+        if m:
+            raise ImageReadError(
+                f"{str(p)!r} is truncated: it is {m.group(1)} bytes long but its header says "
+                f"{m.group(2)} (an interrupted copy?); copy the file again from its source"
+            ) from exc
+        if "unable to lock file" in text.lower():
             raise ImageReadError(
                 f"{str(p)!r} is locked by another program (is it still being recorded?); "
                 f"stop the recording first, or read a copy of the file"

@@ -441,6 +441,27 @@ def test_truncated_tiff_is_reported_truncated(sim, tmp_path, capsys, fsss_toml):
         assert "is truncated" in f["frame_status_text"].asstr()[1]
 
 
+def test_truncated_recording_is_reported_truncated(sim, tmp_path, capsys):
+    """A recording cut short (an interrupted copy) was reported as 'locked by another program'."""
+    from app.capture.recorder import RecordingFile
+
+    ref = imageio.read_image(sim / "reference.png")
+    rec = RecordingFile(tmp_path / "rec.h5", shape=ref.shape, dtype=ref.dtype, n_frames=20,
+                        check_space=False, camera_id="synthetic", reference_image=ref,
+                        geometry_toml=(sim / "geometry.toml").read_text())
+    frame = imageio.read_image(frames_of(sim)[0])
+    for i in range(20):
+        rec.write(frame, (i, i, i, i, 0, i))
+    rec.close()
+    data = (tmp_path / "rec.h5").read_bytes()
+    cut = tmp_path / "cut.h5"
+    cut.write_bytes(data[: 2 * len(data) // 3])
+    code, err = run(capsys, "process", cut, cut, "--out", tmp_path / "out.h5")
+    line = error_line(err)
+    assert code == 2 and "is truncated" in line and f"{2 * len(data) // 3} bytes" in line
+    assert "locked" not in line
+
+
 def test_reference_too_small_for_a_pattern(sim, tmp_path, capsys, rng):
     imageio.write_image(tmp_path / "tiny.png", rng.integers(0, 256, (20, 20), dtype=np.uint8))
     code, err = run(capsys, *process(sim, tmp_path / "out.h5", tmp_path / "tiny.png",
