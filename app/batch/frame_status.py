@@ -154,8 +154,11 @@ class FrameTally:
                             else "")
         if item.flags & self._incomplete_flag:
             self.incomplete.append(item.sequence_index)
-            log.warning("frame %d (%s) was flagged INCOMPLETE by the camera: its heights may be wrong",
-                        item.sequence_index, item.label)
+            if len(self.incomplete) <= self.LOG_FIRST:
+                log.warning("frame %d (%s) was flagged INCOMPLETE by the camera: its heights may be wrong%s",
+                            item.sequence_index, item.label,
+                            "; further INCOMPLETE frames are only counted"
+                            if len(self.incomplete) == self.LOG_FIRST else "")
         if item.flags & self._loss_flags:
             self.gaps.append(item.sequence_index)
 
