@@ -19,6 +19,14 @@ root). A process killed with SIGKILL or a full disk leaves a file that opens
 with plain ``h5py.File(path, "r")`` and is valid up to ``frames_written``
 (we do not use SWMR: a crashed SWMR writer leaves a file that HDF5 refuses to
 open until ``h5clear`` resets it).
+
+Full disks: the space a recording needs is allocated on disk ahead of HDF5
+(``fallocate``; the whole planned file at the start, else in steps), so a
+disk filled by another program makes *that* program fail, or stops the
+recording cleanly while the space to close the file is still in hand. HDF5
+itself never meets a full disk on a file system that can reserve space. If a
+write fails anyway (I/O error, no fallocate), :meth:`RecordingFile.close`
+writes nothing more (see there) and the file stays as the last flush left it.
 """
 
 from __future__ import annotations
@@ -84,8 +92,11 @@ class DiskFullError(DiskSpaceError):
     """The disk (or the file-size limit) ran out during the recording; the file is closed valid."""
 
 
-#: space kept free on the disk so that the file can still be closed validly (metadata, summary)
+#: space kept allocated beyond the data so that the file can always be closed validly (trim, events, summary)
 RESERVE_BYTES = 4 * 1024 * 1024
+
+#: smallest step in which space is allocated ahead of the data when the length is not known, bytes
+RESERVE_STEP_BYTES = 64 * 1024 * 1024
 
 
 #: largest file some file systems can hold, bytes (FAT32 and its kin: 4 GiB - 1)
@@ -138,25 +149,67 @@ def room_bytes(path: Path, current_size: int, fs_max_bytes: Optional[int] = None
     return room, what
 
 
-def _repair_eof(path: Path) -> bool:
-    """After a failed write HDF5 may record an end of file beyond the real one; extend the file (sparse) to it.
+_SUPERBLOCK_SIGNATURE = b"\x89HDF\r\n\x1a\n"
 
-    Returns True when the file was extended. Superblock version 0 (libver
-    "earliest", what we write) keeps the end-of-file address at byte 40.
-    """
+
+def _stored_eoa(path: Path) -> Optional[int]:
+    """End-of-allocation address HDF5 stored in the superblock (version 0, what we write), None if unreadable."""
     try:
         with open(path, "rb") as fh:
             head = fh.read(48)
-        if len(head) < 48 or head[:8] != b"\x89HDF\r\n\x1a\n" or head[8] != 0 or head[13] != 8:
-            return False
-        stored = int.from_bytes(head[40:48], "little")
-        size = os.path.getsize(path)
-        if size < stored < size + (1 << 40):
-            os.truncate(path, stored)
-            return True
     except OSError:
-        pass
-    return False
+        return None
+    if len(head) < 48 or head[:8] != _SUPERBLOCK_SIGNATURE or head[8] != 0 or head[13] != 8:
+        return None
+    return int.from_bytes(head[40:48], "little")
+
+
+def _set_stored_eoa(path: Path, eoa: int) -> bool:
+    """Rewrite the superblock's end-of-allocation address in place (8 bytes inside the first block: needs no space)."""
+    try:
+        with open(path, "r+b") as fh:
+            fh.seek(40)
+            fh.write(int(eoa).to_bytes(8, "little"))
+        return True
+    except OSError:
+        return False
+
+
+def _fit_to_eoa(path: Path) -> None:
+    """Cut the space reserved beyond HDF5's end of allocation (or extend, sparse, a file HDF5 thinks is longer)."""
+    eoa = _stored_eoa(path)
+    try:
+        if eoa is not None and 0 < eoa < (1 << 50) and os.path.getsize(path) != eoa:
+            os.truncate(path, eoa)
+    except OSError as exc:  # the file stays valid, only larger than needed
+        log.warning("recording %s: could not release the reserved space beyond the data: %s", path, exc)
+
+
+_libc = None
+
+
+def _fallocate(fd: int, offset: int, length: int) -> int:
+    """Allocate ``length`` bytes of ``fd`` from ``offset`` on disk (Linux fallocate, mode 0); 0 or an errno.
+
+    Unlike ``os.posix_fallocate`` this never falls back to writing zeros on
+    file systems without fallocate (that would take as long as writing the
+    data): they answer EOPNOTSUPP and the recorder checks free space instead.
+    """
+    global _libc
+    import ctypes
+    import errno
+
+    if _libc is None:
+        try:
+            _libc = ctypes.CDLL(None, use_errno=True)
+            _libc.fallocate.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.c_int64, ctypes.c_int64]
+        except (OSError, AttributeError):
+            _libc = False
+    if not _libc:
+        return errno.EOPNOTSUPP
+    if _libc.fallocate(int(fd), 0, int(offset), int(length)) == 0:
+        return 0
+    return ctypes.get_errno()
 
 
 def software_version() -> str:
@@ -280,8 +333,16 @@ class RecordingFile:
         # "w-": fail if the file appeared since we looked (never overwrite)
         try:
             self._f = h5py.File(p, "w-", libver="earliest")
-        except (FileExistsError, OSError) as exc:
+        except FileExistsError as exc:
             raise RecorderError(f"cannot create {str(p)!r}: {exc}; choose another file name or folder") from exc
+        except OSError as exc:
+            # HDF5 created the file but could not write its first block (disk full): leave nothing behind
+            try:
+                if p.exists() and p.stat().st_size < 4096:
+                    p.unlink()
+            except OSError:
+                pass
+            raise RecorderError(f"cannot create {str(p)!r}: {exc}; free disk space or choose another folder") from exc
         f = self._f
         cap = self.n_planned if self.n_planned is not None else 256
         self._capacity = cap
@@ -339,7 +400,78 @@ class RecordingFile:
         self.closed = False
         self.failed = False  # a write failed: HDF5 may hold half-done allocations
         f.flush()
-        self._size_estimate = os.path.getsize(p)
+        # Space is reserved on disk ahead of HDF5 (fallocate), so that another program filling the disk
+        # gets "disk full" instead of us, and so that closing (trim, events, summary) always has room.
+        self._fd = self._vfd_handle()
+        self._reserved = os.path.getsize(p)  # bytes of the file allocated on disk
+        self._can_reserve = self._fd is not None
+        self._size_limit = self._file_size_limit()
+        if self.planned_bytes is not None and not self._reserve(self.planned_bytes):
+            if check_space:  # the disk filled between the check above and now
+                self._abandon()
+                raise DiskSpaceError(
+                    f"cannot reserve {format_bytes(self.planned_bytes)} on {str(p.parent)!r} for {self.n_planned} "
+                    "frames: the disk is full; free space, record fewer frames or choose another disk"
+                )
+
+    # ------------------------------------------------------------ space
+    def _vfd_handle(self) -> Optional[int]:
+        try:
+            fd = int(self._f.id.get_vfd_handle())
+            return fd if fd >= 0 else None
+        except Exception:  # another HDF5 driver: no descriptor, no reservation
+            return None
+
+    def _file_size_limit(self) -> int:
+        """Largest size this file may reach: the file system's (FAT32) and the process's (ulimit -f) limits."""
+        limit = self._fs_max_bytes if self._fs_max_bytes is not None else 1 << 62
+        try:
+            import resource
+
+            soft, _ = resource.getrlimit(resource.RLIMIT_FSIZE)
+            if soft != resource.RLIM_INFINITY:
+                limit = min(limit, soft)
+        except (ImportError, ValueError, OSError):  # pragma: no cover - not POSIX
+            pass
+        return limit
+
+    def _reserve(self, target: int) -> bool:
+        """Make sure the first ``target`` bytes of the file are allocated on disk; False when there is no room.
+
+        Never asks for more than the file-size limit (that would raise SIGXFSZ).
+        A file system without fallocate turns reservation off: then
+        :meth:`_check_room` compares with the free space instead.
+        """
+        import errno
+
+        if not self._can_reserve or target <= self._reserved:
+            return True
+        if target > self._size_limit:
+            return False
+        err = _fallocate(self._fd, self._reserved, target - self._reserved)
+        if err == 0:
+            self._reserved = target
+            return True
+        if err in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):
+            return False
+        if err == errno.EINTR:
+            return self._reserve(target)
+        self._can_reserve = False  # EOPNOTSUPP, ENOSYS, EINVAL ...: fall back to the free-space check
+        log.info("recording %s: the file system cannot reserve space (errno %d); checking free space instead",
+                 self.path, err)
+        return True
+
+    def _abandon(self) -> None:
+        """Close and delete a file that never held a frame (creation could not complete)."""
+        try:
+            self._f.close()
+        except Exception:
+            pass
+        try:
+            os.unlink(self.path)
+        except OSError:
+            pass
+        self.closed = True
 
     # ------------------------------------------------------------ writing
     def _grow(self, need: int) -> None:
@@ -354,18 +486,22 @@ class RecordingFile:
         """Append one frame and its frame-table row; returns its index in the file.
 
         ``row`` = (sequence, frame_id, device_timestamp_ns or -1, host_timestamp_ns, flags, trigger_index).
-        Raises OSError (e.g. disk full) from HDF5; the file stays valid up to
-        the last :meth:`flush`.
+        Raises :class:`DiskFullError` (nothing written, the file closes
+        normally) when no room can be reserved for the frame, OSError from HDF5
+        (I/O error; :attr:`failed` is set and :meth:`close` writes nothing
+        more); the file stays valid up to the last :meth:`flush`.
         """
+        if self.failed:
+            raise RecorderError(f"{str(self.path)!r}: a write failed before; the file takes no more frames")
         i = self.n_written
-        if i >= self._capacity:
-            self._grow(i + 1)
         if image.shape != self.shape or image.dtype != self.dtype:
             raise RecorderError(
                 f"frame {row[0]} is {image.dtype} {image.shape}; the recording holds {self.dtype} {self.shape}"
             )
         self._check_room()
         try:
+            if i >= self._capacity:
+                self._grow(i + 1)
             self.frames.id.write_direct_chunk((i, 0, 0), np.ascontiguousarray(image))
         except OSError:
             self.failed = True
@@ -377,19 +513,44 @@ class RecordingFile:
         self.n_written = i + 1
         return i
 
+    def _disk_full(self, room: int, what: str) -> DiskFullError:
+        return DiskFullError(
+            f"{what} full: only {format_bytes(max(room, 0))} left for {str(self.path)!r}, kept in reserve so "
+            f"the file stays valid; recording stopped after {self.n_written} frames"
+            + (f" of {self.n_planned}" if self.n_planned else "")
+            + "; free disk space or choose another disk"
+        )
+
     def _check_room(self) -> None:
-        """Stop (DiskFullError) before the disk or the file-size limit is so full that closing could fail."""
-        size = self._size_estimate
+        """Stop (DiskFullError) before the disk or the file-size limit is so full that closing could fail.
+
+        With reservation: the next frame plus ``RESERVE_BYTES`` for closing must
+        lie inside the space already allocated to the file, else more is
+        allocated (in steps of at least ``RESERVE_STEP_BYTES``); when that fails
+        the recording stops here, with the reserve for closing still in hand.
+        """
+        frame = self.frame_bytes + FRAME_TABLE_DTYPE.itemsize
+        if self._can_reserve:
+            try:
+                end = int(self._f.id.get_filesize())  # HDF5's end of allocation
+            except Exception:
+                end = self._reserved
+            need = end + frame + RESERVE_BYTES
+            if need <= self._reserved:
+                return
+            if self._reserve(min(max(need, self._reserved + RESERVE_STEP_BYTES), self._size_limit)) or \
+                    self._reserve(need):
+                if need <= self._reserved or not self._can_reserve:
+                    return
+            room = self._reserved - end - RESERVE_BYTES
+            what = "disk" if need <= self._size_limit else (
+                "file size limit (ulimit -f)" if self._fs_max_bytes is None or self._size_limit < self._fs_max_bytes
+                else f"file system's largest file ({format_bytes(self._fs_max_bytes)})")
+            raise self._disk_full(room, what)
+        size = max(os.path.getsize(self.path), self._reserved)
         room, what = room_bytes(self.path, size, self._fs_max_bytes)
-        need = self.frame_bytes + FRAME_TABLE_DTYPE.itemsize + RESERVE_BYTES
-        if room < need:
-            raise DiskFullError(
-                f"{what} full: only {format_bytes(max(room, 0))} left for {str(self.path)!r}, kept in reserve so "
-                f"the file stays valid; recording stopped after {self.n_written} frames"
-                + (f" of {self.n_planned}" if self.n_planned else "")
-                + "; free disk space or choose another disk"
-            )
-        self._size_estimate += self.frame_bytes + FRAME_TABLE_DTYPE.itemsize
+        if room < frame + RESERVE_BYTES:
+            raise self._disk_full(room, what)
 
     def _write_rows(self) -> None:
         if self._n_rows:
@@ -400,6 +561,8 @@ class RecordingFile:
 
     def flush(self) -> None:
         """Put everything written so far on disk and advance ``frames_written``."""
+        if self.failed:
+            raise RecorderError(f"{str(self.path)!r}: a write failed before; nothing more is written")
         try:
             self._write_rows()
             self._f.flush()  # frame data and table rows first ...
@@ -422,50 +585,44 @@ class RecordingFile:
 
     def set_attrs(self, **attrs) -> None:
         """Set root attributes (e.g. trigger sequence once the trigger came)."""
+        if self.failed:
+            return
         for k, v in attrs.items():
             self._f.attrs[k] = _attr_value(v)
 
     def close(self, summary: Optional[dict] = None, error: Optional[str] = None) -> None:
-        """Flush, trim the datasets to what was written, store events and summary, close.
+        """The one way a recording ends: after success, a stop, a full disk or an I/O error.
 
-        Safe to call after a write error: it stores what it can and always
-        closes the file handle.
+        While no write has failed: flush, trim the datasets to what was
+        written, store the error, events and summary (all inside the space
+        reserved for closing). Once any write failed (:attr:`failed`), nothing
+        more reaches the file: HDF5's descriptor is swapped for a read-only one
+        before HDF5 closes, so the file stays exactly as the last successful
+        flush left it (superblock, frame table and ``frames_written`` agree).
+        Then the file is reopened read-only to check it; :attr:`n_flushed` is
+        what it really holds. Never raises.
         """
         if self.closed:
             return
         import h5py
 
         f = self._f
-        problems = []
-        if self.failed:
-            # a raw write failed (disk full, I/O error): allocate nothing more; keep what was flushed
-            try:
-                f.attrs["complete"] = 0
-            except Exception:
-                pass
-            self.closed = True
-            try:
-                f.close()
-            except Exception as exc:
-                log.error("recording %s: closing after a write error: %s", self.path, exc)
-            if _repair_eof(self.path):
-                log.warning("recording %s: extended the file to the end HDF5 recorded after the failed write",
-                            self.path)
-            return
-        try:
+        self.problems: List[str] = []
+        if not self.failed:
             try:
                 self.flush()
-            except Exception as exc:  # disk full: what was flushed before stays valid
-                problems.append(f"final flush failed: {exc}")
+            except Exception as exc:
+                self.failed = True
+                self.problems.append(f"final flush failed: {exc}")
+        if not self.failed:
             try:
                 n = self.n_flushed
                 if n != self._capacity:
                     self.frames.resize(n, axis=0)
                     self.table.resize(n, axis=0)
                     self._capacity = n
-                f.attrs["complete"] = int(error is None and not problems and
-                                          (self.n_planned is None or n == self.n_planned))
-                f.attrs["error"] = "; ".join(x for x in [error] + problems if x) or ""
+                f.attrs["complete"] = int(error is None and (self.n_planned is None or n == self.n_planned))
+                f.attrs["error"] = error or ""
                 if self.events:
                     f.create_dataset("events", data=[json.dumps(e, default=str) for e in self.events],
                                      dtype=h5py.string_dtype())
@@ -476,16 +633,72 @@ class RecordingFile:
                     g.attrs["summary_json"] = json.dumps(summary, default=str)
                 f.flush()
             except Exception as exc:
-                problems.append(f"writing the summary failed: {exc}")
-                log.error("recording %s: %s", self.path, problems[-1])
-        finally:
-            if not self.closed:
-                self.closed = True
+                self.failed = True
+                self.problems.append(f"writing the summary failed: {exc}")
+        if self.failed:
+            self._detach()
+        self.closed = True
+        self.frames = self.table = None
+        try:
+            f.close()
+        except Exception as exc:
+            if not self.failed:
+                self.problems.append(f"closing failed: {exc}")
+        self._f = None
+        self._check_closed_file()
+        for msg in self.problems:
+            log.error("recording %s: %s", self.path, msg)
+
+    def _detach(self) -> None:
+        """Point HDF5's descriptor at a read-only one: whatever HDF5 still wants to write is refused (EBADF)."""
+        if self._fd is None:
+            return
+        try:
+            ro = os.open(self.path, os.O_RDONLY)
+            try:
+                os.dup2(ro, self._fd)
+            finally:
+                os.close(ro)
+        except OSError as exc:  # pragma: no cover - the file vanished
+            log.error("recording %s: could not stop HDF5 writing: %s", self.path, exc)
+
+    def _check_closed_file(self) -> None:
+        """Reopen the closed file read-only; repair the superblock's end address if HDF5 left it short.
+
+        Sets :attr:`n_flushed` to the frames the file really vouches for
+        (``frames_written``, frame-table rows with sequence numbers).
+        """
+        import h5py
+
+        def frames_valid():
+            with h5py.File(self.path, "r") as g:
+                n = int(g["frames"].attrs.get("frames_written", 0))
+                if n > min(len(g["frames"]), len(g["frame_table"])):
+                    raise RecorderError(f"frames_written {n} exceeds the datasets")
+                seq = g["frame_table"]["sequence"][:n] if n else np.zeros(0, np.int64)
+                return n if np.all(seq >= 0) else int(np.argmax(seq < 0))
+
+        try:
+            n = frames_valid()
+        except Exception as exc:
+            size = os.path.getsize(self.path)
+            eoa = _stored_eoa(self.path)
+            repaired = False
+            if eoa is not None and size > eoa and _set_stored_eoa(self.path, size):
                 try:
-                    f.close()
-                except Exception as exc:  # pragma: no cover - disk full during close
-                    log.error("recording %s: closing failed: %s (the file is valid up to frame %d)",
-                              self.path, exc, self.n_flushed)
+                    n = frames_valid()
+                    repaired = True
+                    self.problems.append("the superblock's end address was short of the data; raised it to the "
+                                         "file size")
+                except Exception:
+                    _set_stored_eoa(self.path, eoa)
+            if not repaired:
+                self.problems.append(f"the file does not open after closing ({exc}); no frame can be vouched for")
+                self.n_flushed = 0
+                return
+        else:
+            _fit_to_eoa(self.path)
+        self.n_flushed = n
 
 
 class Recorder:
@@ -703,8 +916,8 @@ class Recorder:
         except DiskFullError as exc:
             error = str(exc)
         except OSError as exc:
-            error = (f"writing {str(rf.path)!r} failed at frame {rf.n_written} ({exc}); the file holds the "
-                     f"frames written before; free disk space or choose another disk")
+            error = (f"writing {str(rf.path)!r} failed at frame {rf.n_written} ({exc}); free disk space or "
+                     "choose another disk")
         except Exception as exc:
             error = f"recorder crashed at frame {rf.n_written}: {type(exc).__name__}: {exc}"
         self._finish(error)
@@ -764,6 +977,13 @@ class Recorder:
             error = error or f"closing the file failed: {exc}"
         self.frames_written = self.file.n_flushed
         summary["frames_written"] = self.frames_written
+        if self.file.failed or getattr(self.file, "problems", None):
+            # say what the file really holds (checked by reopening it), and why nothing more was stored
+            extra = "; ".join(getattr(self.file, "problems", []))
+            error = (error or "writing the file failed") + (f"; {extra}" if extra else "") + (
+                f"; the file holds {self.frames_written} valid frames (checked by reopening it; nothing was "
+                "written after the failure, so it has no /summary)")
+            summary["error"] = error
         self._summary = summary
         self.error = error
         self.state = "error" if error else "done"
