@@ -406,6 +406,7 @@ class RecordingFile:
         self._reserved = os.path.getsize(p)  # bytes of the file allocated on disk
         self._can_reserve = self._fd is not None
         self._size_limit = self._file_size_limit()
+        self._reserve_path: Optional[Path] = None
         if self.planned_bytes is not None and not self._reserve(self.planned_bytes):
             if check_space:  # the disk filled between the check above and now
                 self._abandon()
@@ -459,10 +460,43 @@ class RecordingFile:
         self._can_reserve = False  # EOPNOTSUPP, ENOSYS, EINVAL ...: fall back to the free-space check
         log.info("recording %s: the file system cannot reserve space (errno %d); checking free space instead",
                  self.path, err)
+        self._make_reserve_file()
         return True
+
+    def _make_reserve_file(self) -> None:
+        """Without fallocate: hold ``RESERVE_BYTES`` in a hidden sibling file, given back when the disk is full.
+
+        The space it frees is what the final flush, trim and summary are
+        written into; without it, HDF5 could be cut off halfway through
+        writing its metadata.
+        """
+        q = self.path.with_name(f".{self.path.name}.reserve")
+        try:
+            with open(q, "xb") as fh:
+                fh.write(b"\0" * RESERVE_BYTES)
+                fh.flush()
+                os.fsync(fh.fileno())
+            self._reserve_path = q
+        except OSError:
+            try:
+                q.unlink()
+            except OSError:
+                pass
+
+    def _release_reserve(self) -> bool:
+        """Give the reserve file's space to the file system (for closing); True if there was one."""
+        q, self._reserve_path = self._reserve_path, None
+        if q is None:
+            return False
+        try:
+            q.unlink()
+            return True
+        except OSError:
+            return False
 
     def _abandon(self) -> None:
         """Close and delete a file that never held a frame (creation could not complete)."""
+        self._release_reserve()
         try:
             self._f.close()
         except Exception:
@@ -503,7 +537,11 @@ class RecordingFile:
             if i >= self._capacity:
                 self._grow(i + 1)
             self.frames.id.write_direct_chunk((i, 0, 0), np.ascontiguousarray(image))
-        except OSError:
+        except OSError as exc:
+            if self._release_reserve():
+                # disk full on a file system that cannot reserve: frame i is not counted; the reserve's
+                # space lets close() flush, trim and summarize what was written
+                raise self._disk_full(0, "disk") from exc
             self.failed = True
             raise
         if self._n_rows == len(self._rows):
@@ -549,7 +587,8 @@ class RecordingFile:
             raise self._disk_full(room, what)
         size = max(os.path.getsize(self.path), self._reserved)
         room, what = room_bytes(self.path, size, self._fs_max_bytes)
-        if room < frame + RESERVE_BYTES:
+        if room < frame + (0 if self._reserve_path is not None else RESERVE_BYTES):
+            self._release_reserve()
             raise self._disk_full(room, what)
 
     def _write_rows(self) -> None:
@@ -563,17 +602,24 @@ class RecordingFile:
         """Put everything written so far on disk and advance ``frames_written``."""
         if self.failed:
             raise RecorderError(f"{str(self.path)!r}: a write failed before; nothing more is written")
-        try:
-            self._write_rows()
-            self._f.flush()  # frame data and table rows first ...
-            n = self.n_written
-            self.frames.attrs["frames_written"] = n  # ... then the counter that vouches for them
-            self._f.attrs["frames_written"] = n
-            self._f.flush()
-        except OSError:
-            self.failed = True
-            raise
+        n = self.n_written
+        for attempt in (0, 1):
+            try:
+                self._write_rows()
+                self._f.flush()  # frame data and table rows first ...
+                self.frames.attrs["frames_written"] = n  # ... then the counter that vouches for them
+                self._f.attrs["frames_written"] = n
+                self._f.flush()
+                break
+            except OSError as exc:
+                # HDF5 keeps what it could not write dirty: with the reserve's space it writes it all again
+                if attempt == 0 and self._release_reserve():
+                    continue
+                self.failed = True
+                raise
         self.n_flushed = n
+        if attempt == 1:
+            raise self._disk_full(0, "disk")
 
     def add_event(self, kind: str, message: str = "", *, sequence: int = -1, host_timestamp_ns: Optional[int] = None,
                   **extra) -> None:
@@ -596,7 +642,7 @@ class RecordingFile:
         While no write has failed: flush, trim the datasets to what was
         written, store the error, events and summary (all inside the space
         reserved for closing). Once any write failed (:attr:`failed`), nothing
-        more reaches the file: HDF5's descriptor is swapped for a read-only one
+        more reaches the file: HDF5's descriptor is swapped for /dev/null
         before HDF5 closes, so the file stays exactly as the last successful
         flush left it (superblock, frame table and ``frames_written`` agree).
         Then the file is reopened read-only to check it; :attr:`n_flushed` is
@@ -645,20 +691,25 @@ class RecordingFile:
             if not self.failed:
                 self.problems.append(f"closing failed: {exc}")
         self._f = None
+        self._release_reserve()
         self._check_closed_file()
         for msg in self.problems:
             log.error("recording %s: %s", self.path, msg)
 
     def _detach(self) -> None:
-        """Point HDF5's descriptor at a read-only one: whatever HDF5 still wants to write is refused (EBADF)."""
+        """Point HDF5's descriptor at /dev/null: what HDF5 still writes while closing never reaches the file.
+
+        (A read-only descriptor would make HDF5's close fail and leave a
+        half-closed library state behind; /dev/null lets it close cleanly.)
+        """
         if self._fd is None:
             return
         try:
-            ro = os.open(self.path, os.O_RDONLY)
+            sink = os.open(os.devnull, os.O_RDWR)
             try:
-                os.dup2(ro, self._fd)
+                os.dup2(sink, self._fd)
             finally:
-                os.close(ro)
+                os.close(sink)
         except OSError as exc:  # pragma: no cover - the file vanished
             log.error("recording %s: could not stop HDF5 writing: %s", self.path, exc)
 
