@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from tests.drivers.fixtures import gv_fake_camera  # noqa: F401  (pytest fixture)
-from tests.faults.disks import fill_disk, frames_written_line, small_disk, start_record, wait_until
+from tests.faults.tools import fill_disk, frames_written_line, small_disk, start_record, wait_until
 
 FRAME_BYTES = 512 * 512
 #: bound for the whole run after the disk filled: the camera sends 20 frames/s, the recorder stops at the next one

@@ -4,7 +4,8 @@
   on a loop device (no fallocate: HDF5 itself meets the full disk), mounted for
   the test and unmounted afterwards. Needs root; skips with the reason otherwise.
 * :func:`fill_disk` -- a second process (``dd``) takes all the space left.
-* :func:`start_record` -- ``python3 -m app.cli record ...`` from this checkout.
+* :func:`start_record` -- ``python3 -m app.cli record ...`` from this checkout;
+  :class:`RecordProcess` the same with its progress bar read as it goes.
 * :func:`wait_until` -- a condition with a bounded deadline (no sleep-and-hope).
 """
 
@@ -15,6 +16,7 @@ import os
 import re
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -78,3 +80,57 @@ def frames_written_line(stdout: str) -> int:
     m = re.search(r"frames written\s+(\d+)", stdout)
     assert m, f"no 'frames written' line in:\n{stdout}"
     return int(m.group(1))
+
+
+class RecordProcess:
+    """A real ``tirdeflect record`` subprocess whose progress bar (stderr) is read while it runs.
+
+    :meth:`progress` is the largest "N/TOTAL" count the bar has shown so far
+    (frames written; with --burst frames captured into RAM).
+    """
+
+    def __init__(self, *args: str):
+        self.proc = subprocess.Popen([sys.executable, "-m", "app.cli", "record", *args], cwd=ROOT,
+                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
+        self._err = bytearray()
+        self._out = bytearray()
+        self._threads = [threading.Thread(target=self._pump, args=(self.proc.stderr, self._err), daemon=True),
+                         threading.Thread(target=self._pump, args=(self.proc.stdout, self._out), daemon=True)]
+        for t in self._threads:
+            t.start()
+
+    @staticmethod
+    def _pump(stream, sink):
+        while True:
+            chunk = os.read(stream.fileno(), 4096)
+            if not chunk:
+                return
+            sink.extend(chunk)
+
+    def progress(self) -> int:
+        counts = [int(m) for m in re.findall(rb"(\d+)/\d+ \[", bytes(self._err))]
+        return max(counts, default=0)
+
+    def wait(self, timeout_s: float):
+        """(returncode, stdout, stderr) once the process ended; kills it and fails after ``timeout_s``."""
+        try:
+            self.proc.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait(10)
+            pytest.fail(f"tirdeflect record still running {timeout_s:g} s later (hang)")
+        self._close_pipes()
+        return self.proc.returncode, self._out.decode(errors="replace"), self._err.decode(errors="replace")
+
+    def kill(self):
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(10)
+        self._close_pipes()
+
+    def _close_pipes(self):
+        for t in self._threads:
+            t.join(10)
+        for stream in (self.proc.stdout, self.proc.stderr):
+            if not stream.closed:
+                stream.close()
