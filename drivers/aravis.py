@@ -19,6 +19,9 @@ while waiting for a trigger.
 
 from __future__ import annotations
 
+import ipaddress
+import socket
+import struct
 import threading
 import time
 import weakref
@@ -28,6 +31,7 @@ import numpy as np
 
 from .base import (
     Camera,
+    CameraBusy,
     CameraError,
     CameraInfo,
     CameraLost,
@@ -110,6 +114,60 @@ def list_devices(*, timeout_s: float = 3.0, include_fake: bool = False) -> List[
     t.start()
     t.join(timeout_s)
     return list(result) if not t.is_alive() else []
+
+
+#: GigE Vision control protocol: UDP port and bootstrap registers read before Aravis opens a camera
+GVCP_PORT = 3956
+GVCP_CCP = 0x0A00  # control channel privilege: bit 0 exclusive, bit 1 control (the value 0: free)
+GVCP_PRIMARY_APP_PORT = 0x0A04  # GigE Vision 2: UDP port of the controlling application (0: not told)
+GVCP_PRIMARY_APP_IP = 0x0A14  # GigE Vision 2: IPv4 address of the controlling application (0: not told)
+GVCP_HEARTBEAT_TIMEOUT = 0x0938  # ms after which the camera drops a silent controller
+
+
+def gvcp_read_registers(address: str, registers, *, timeout_s: float = 0.25, tries: int = 3):
+    """Read GigE Vision bootstrap registers (GVCP READREG, one per command); None when the camera does not answer.
+
+    Reading needs no privilege, so it tells whether another program holds
+    the camera before Aravis tries to take it (which, on a busy camera,
+    retries for seconds and leaves a half-open device). A register the
+    camera refuses reads as 0.
+    """
+    values = []
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.settimeout(timeout_s)
+        for k, reg in enumerate(registers):
+            req_id = 0x7A00 + k + 1
+            cmd = struct.pack(">BBHHHI", 0x42, 0x01, 0x0080, 4, req_id, int(reg))
+            value = None
+            for _ in range(tries):
+                try:
+                    sock.sendto(cmd, (address, GVCP_PORT))
+                    deadline = time.monotonic() + timeout_s
+                    while value is None and time.monotonic() < deadline:
+                        data, _ = sock.recvfrom(1024)
+                        if len(data) < 12:
+                            continue
+                        status, answer, length, ack_id = struct.unpack(">HHHH", data[:8])
+                        if answer == 0x0081 and ack_id == req_id:
+                            value = struct.unpack(">I", data[8:12])[0] if status == 0 else 0
+                except socket.timeout:
+                    pass
+                except OSError:
+                    return None
+                if value is not None:
+                    break
+            if value is None:
+                return None
+            values.append(value)
+    return values
+
+
+def _holder_text(values) -> str:
+    """' (held by 192.168.1.5:50123)' from the primary application registers, '' when the camera does not tell."""
+    port, ip = values[1], values[2]
+    if not ip:
+        return ""
+    return f" (held by {ipaddress.IPv4Address(ip)}" + (f":{port}" if port else "") + ")"
 
 
 def _release_in_background(box: list) -> None:
@@ -261,6 +319,7 @@ class AravisCamera(Camera):
         Aravis = _aravis()
         if self.device.startswith("Fake"):
             Aravis.enable_interface("Fake")
+        self._refuse_if_busy()
         try:
             cam = Aravis.Camera.new(self.device)
         except Exception as exc:
@@ -276,6 +335,11 @@ class AravisCamera(Camera):
                 cam.gv_auto_packet_size()
             except Exception:
                 pass  # keep the camera's packet size
+        if cam.is_gv_device() and not cam.get_device().is_controller():
+            # another program took the camera (the id was no address, or it won the race): write nothing
+            _release_in_background([cam])
+            raise CameraBusy(f"{self.camera_id} is controlled by another program; close that program and try "
+                             "again ('tirdeflect cameras' lists the cameras)")
         self._cam = cam
         self._dev = cam.get_device()
         self._features = _AravisFeatures(self._dev)
@@ -309,6 +373,22 @@ class AravisCamera(Camera):
         )
         self._probe_thread.start()
         return self
+
+    def _refuse_if_busy(self) -> None:
+        """GigE Vision camera given by IPv4 address: raise CameraBusy at once when another program controls it."""
+        try:
+            ipaddress.IPv4Address(self.device)
+        except ValueError:
+            return  # a device id: Aravis resolves it; is_controller() is checked after opening
+        values = gvcp_read_registers(self.device, [GVCP_CCP, GVCP_PRIMARY_APP_PORT, GVCP_PRIMARY_APP_IP,
+                                                   GVCP_HEARTBEAT_TIMEOUT])
+        if values is None or not values[0] & 0x3:
+            return  # free, or no answer (Aravis then says what is wrong)
+        heartbeat = f"{values[3]} ms" if values[3] else "its heartbeat timeout"
+        raise CameraBusy(
+            f"{self.camera_id} is controlled by another program{_holder_text(values)}; close that program and try "
+            f"again (a program that crashed releases the camera after {heartbeat})"
+        )
 
     def close(self) -> None:
         """Stop, free the stream and release the device (idempotent, bounded in time)."""

@@ -19,6 +19,7 @@ import numpy as np
 __all__ = [
     "CameraError",
     "CameraLost",
+    "CameraBusy",
     "FetchTimeout",
     "SettingError",
     "FrameFlags",
@@ -35,6 +36,10 @@ class CameraError(RuntimeError):
 
 class CameraLost(CameraError):
     """The camera stopped answering (unplugged, process killed, network gone)."""
+
+
+class CameraBusy(CameraError):
+    """Another program controls the camera (GigE Vision control channel privilege); nothing was changed on it."""
 
 
 class FetchTimeout(CameraError, TimeoutError):
