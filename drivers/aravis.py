@@ -4,11 +4,14 @@ Camera ids: ``aravis:<device id or address>``, e.g. ``aravis:Fake_1`` (Aravis'
 in-process fake camera), ``aravis:127.0.0.1`` (``arv-fake-gv-camera-0.8 -i
 127.0.0.1``), ``aravis:Basler-21234567``.
 
-Streaming uses a pool of ``n_buffers`` preallocated Aravis buffers; every
-fetched image is copied out once and the buffer goes straight back into the
-pool, so a :class:`~drivers.base.Frame` outlives the fetch. Buffers that the
-transport did not fill completely (missing packets, timeouts) are delivered
-with ``incomplete=True``, never hidden.
+Streaming uses a pool of ``n_buffers`` Aravis buffers on memory of our own;
+every fetched image is copied out once and the buffer goes straight back into
+the pool, so a :class:`~drivers.base.Frame` outlives the fetch. GigE Vision
+packet resend is on (Aravis asks the camera again for every lost packet).
+Buffers that the transport still did not fill completely are delivered with
+the pixels that arrived, the missing ones zero, ``incomplete=True`` and
+``missing_bytes`` counted exactly (each buffer is filled with a random canary
+before it goes to the camera; what still equals the canary never arrived).
 
 A watchdog thread reads a bootstrap register every ``probe_period_s``; when no
 read has succeeded for ``lost_timeout_s`` (or Aravis emits ``control-lost``),
@@ -170,6 +173,27 @@ def _holder_text(values) -> str:
     return f" (held by {ipaddress.IPv4Address(ip)}" + (f":{port}" if port else "") + ")"
 
 
+def _canary_bytes(data: np.ndarray, canary: np.ndarray, min_run: int = 8) -> np.ndarray:
+    """Bytes of ``data`` that still hold the random ``canary`` the buffer was filled with: never written.
+
+    A lost packet leaves a run of canary bytes as long as its payload. Runs
+    of at least ``min_run`` bytes are missing (a received run matches the
+    random canary by chance with probability 256**-min_run); so is a run of
+    any length at the very end (the last packet of a frame can be a few
+    bytes long).
+    """
+    eq = data == canary
+    lost = np.zeros(data.size, bool)
+    if not eq.any():
+        return lost
+    edges = np.diff(np.concatenate(([0], eq.view(np.int8), [0])))
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    keep = (ends - starts >= min_run) | (ends == data.size)
+    for a, b in zip(starts[keep], ends[keep]):
+        lost[a:b] = True
+    return lost
+
+
 def _release_in_background(box: list) -> None:
     """Empty ``box`` (the only holder of some GObjects) in a daemon thread.
 
@@ -308,6 +332,8 @@ class AravisCamera(Camera):
         self._n_id_gaps = 0
         self._n_late = 0
         self._n_leader_lost = 0
+        self._n_missing_bytes = 0
+        self._n_only_protocol_lost = 0
         self._status_counts = {}
 
     # -- lifecycle -----------------------------------------------------------
@@ -504,8 +530,15 @@ class AravisCamera(Camera):
             if cam.is_gv_device():
                 stream.set_property("packet-resend", Aravis.GvStreamPacketResend.ALWAYS if self.packet_resend else Aravis.GvStreamPacketResend.NEVER)
             payload = cam.get_payload()
-            for _ in range(self.n_buffers):
-                stream.push_buffer(Aravis.Buffer.new_allocate(payload))
+            # Our own memory behind every buffer: Aravis hides the data of a failed buffer (size 0), but the
+            # packets that did arrive are in it. Each buffer is filled with a random "canary" before it goes
+            # to the camera; after a failed transfer, the bytes still equal to the canary are the missing ones.
+            self._canary = np.random.default_rng().integers(0, 256, payload, dtype=np.uint8)
+            self._memory = []
+            for k in range(self.n_buffers):
+                mem = self._canary.copy()
+                self._memory.append(mem)
+                stream.push_buffer(Aravis.Buffer.new_full(payload, mem.ctypes.data, k, None))
             cam.set_acquisition_mode(Aravis.AcquisitionMode.CONTINUOUS)
             self._stream = stream
             self._shape = (s.height, s.width)
@@ -533,7 +566,9 @@ class AravisCamera(Camera):
             except Exception:
                 pass  # the device may be gone; the stream is freed below anyway
         self._final_stats = self._stream_stats()
-        box, self._stream = [self._stream], None
+        # the buffers' memory must outlive the stream (its thread may still write): list.clear() drops the
+        # last item first, so the stream goes before the memory
+        box, self._stream, self._memory = [self._memory, self._stream], None, []
         if self._lost.is_set():
             _release_in_background(box)
         else:
@@ -575,9 +610,11 @@ class AravisCamera(Camera):
                 if buf is not None:
                     break
             host_ns = time.monotonic_ns()
+            mem = self._memory[buf.get_user_data()]
             try:
-                return self._to_frame(buf, host_ns)
+                return self._to_frame(buf, mem, host_ns)
             finally:
+                mem[:] = self._canary  # re-arm the canary before the buffer goes back to the camera
                 stream.push_buffer(buf)
         except BaseException:
             # the traceback keeps this frame alive: hold no GObject in it, or the garbage
@@ -586,15 +623,15 @@ class AravisCamera(Camera):
             stream = buf = None
             raise
 
-    def _to_frame(self, buf, host_ns) -> Frame:
+    def _to_frame(self, buf, mem, host_ns) -> Frame:
         Aravis = _aravis()
         status = buf.get_status()
         name = status.value_nick if hasattr(status, "value_nick") else str(status)
         self._status_counts[name] = self._status_counts.get(name, 0) + 1
-        incomplete = status != Aravis.BufferStatus.SUCCESS
+        failed = status != Aravis.BufferStatus.SUCCESS
         height, width = self._shape
         dtype, bits = self._dtype, self._bits
-        if not incomplete and buf.get_payload_type() in (
+        if not failed and buf.get_payload_type() in (
             Aravis.BufferPayloadType.IMAGE,
             Aravis.BufferPayloadType.EXTENDED_CHUNK_DATA,
         ):
@@ -603,25 +640,32 @@ class AravisCamera(Camera):
             fmt = PFNC.get(int(buf.get_image_pixel_format()))
             bits = PIXEL_BITS.get(fmt, bits)
             dtype = np.uint8 if bits == 8 else np.uint16
-            data = buf.get_image_data()
-        else:
-            # partial buffer: its leader may be missing, so use the geometry set at start()
-            data = buf.get_data()
-        raw = np.frombuffer(data, dtype=np.uint8) if data is not None else np.empty(0, np.uint8)
         n = width * height * np.dtype(dtype).itemsize
-        if raw.size >= n:
-            image = raw[:n].view(dtype).reshape(height, width)
+        missing_bytes = 0
+        if n > mem.size:  # the camera sends more than the payload it announced
+            failed = True
+            flat = np.zeros(n, np.uint8)
+            flat[: mem.size] = mem
+            missing_bytes = n - mem.size
         else:
-            # a short buffer: hand out what arrived, zero-padded, flagged incomplete
-            incomplete = True
-            flat = np.zeros(width * height, dtype)
-            got = raw[: (raw.size // flat.itemsize) * flat.itemsize].view(dtype)
-            flat[: got.size] = got
-            image = flat.reshape(height, width)
+            flat = mem[:n].copy()
+        if failed:
+            # partial buffer (its leader may be missing: the geometry set at start() is used): keep the
+            # pixels that arrived, zero the ones that did not, and count them
+            lost = _canary_bytes(mem[: min(n, mem.size)], self._canary[: min(n, mem.size)])
+            missing_bytes += int(lost.sum())
+            if missing_bytes:
+                itemsize = np.dtype(dtype).itemsize
+                lost_px = lost.reshape(-1, itemsize).any(axis=1) if itemsize > 1 else lost
+                flat.view(dtype)[: lost_px.size][lost_px] = 0
+            else:
+                self._n_only_protocol_lost += 1  # only the leader/trailer was lost: every pixel is there
+        incomplete = missing_bytes > 0
+        image = flat.view(dtype).reshape(height, width)
         ts = buf.get_timestamp()
         raw_id = int(buf.get_frame_id())
         frame_id = unwrap_block_id(raw_id, self._last_id)  # GigE Vision 1 ids wrap 65535 -> 1
-        if incomplete and self._last_id is not None and (raw_id == 0 or frame_id <= self._last_id):
+        if failed and self._last_id is not None and (raw_id == 0 or frame_id <= self._last_id):
             # the leader packet was lost: Aravis left this buffer's id and timestamp from
             # its previous use (or 0). Failed buffers come out in order, so it is the next id.
             frame_id = self._last_id + 1
@@ -637,6 +681,7 @@ class AravisCamera(Camera):
             self._n_id_gaps -= 1
         self._n_delivered += 1
         self._n_incomplete += bool(incomplete)
+        self._n_missing_bytes += missing_bytes
         return Frame(
             image=image,
             frame_id=frame_id,
@@ -644,6 +689,7 @@ class AravisCamera(Camera):
             host_timestamp_ns=host_ns,
             incomplete=bool(incomplete),
             bit_depth=bits,
+            missing_bytes=missing_bytes,
         )
 
     def statistics(self) -> dict:
@@ -654,7 +700,11 @@ class AravisCamera(Camera):
         (buffers that arrived after a newer one: their id is below the previous
         frame's), ``n_leader_lost`` (failed buffers whose id and timestamp were
         lost with the leader packet: numbered last id + 1, timestamp None),
-        ``buffer_status`` counts.
+        ``buffer_status`` counts, ``n_missing_bytes`` (image bytes lost in the
+        incomplete frames delivered), ``n_failed_but_all_pixels`` (failed
+        buffers where only the leader or trailer packet was lost: delivered
+        complete). Aravis' ``n_resend_requests`` and ``n_resent_packets`` say
+        how many lost packets were asked for again and how many came.
         """
         out = dict(self._stream_stats() if self._stream is not None else self._final_stats)
         out.update({
@@ -663,6 +713,8 @@ class AravisCamera(Camera):
             "n_id_gap_frames": self._n_id_gaps,
             "n_late_delivered": self._n_late,
             "n_leader_lost": self._n_leader_lost,
+            "n_missing_bytes": self._n_missing_bytes,
+            "n_failed_but_all_pixels": self._n_only_protocol_lost,
             "buffer_status": dict(self._status_counts),
         })
         out.setdefault("n_failed_buffers", out.get("n_failures", 0))

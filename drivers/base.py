@@ -79,7 +79,9 @@ class Frame:
     host_timestamp_ns : int
         ``time.monotonic_ns()`` when the driver received the frame.
     incomplete : bool
-        True when the transport reported a partial buffer.
+        True when pixels are missing (the transport lost packets that a resend did not bring).
+    missing_bytes : int
+        How many image bytes never arrived (their pixels are 0 in ``image``); 0 for a complete frame.
     bit_depth : int
         Significant bits per pixel (8, 10, 12, 16).
     """
@@ -90,6 +92,7 @@ class Frame:
     host_timestamp_ns: int
     incomplete: bool = False
     bit_depth: int = 8
+    missing_bytes: int = 0
     _release: Optional[object] = dataclasses.field(default=None, repr=False)
 
     def release(self) -> None:

@@ -62,7 +62,7 @@ __all__ = [
 
 log = logging.getLogger("tirdeflect.recorder")
 
-FORMAT_VERSION = "1.0"
+FORMAT_VERSION = "1.1"  # 1.1: frame_table.missing_bytes
 
 #: one row per frame of ``/frame_table``
 FRAME_TABLE_DTYPE = np.dtype(
@@ -73,6 +73,7 @@ FRAME_TABLE_DTYPE = np.dtype(
         ("host_timestamp_ns", "<i8"),  # time.monotonic_ns() at reception
         ("flags", "<u4"),  # drivers.base.FrameFlags
         ("trigger_index", "<i8"),  # frames from the trigger frame (0), negative before it
+        ("missing_bytes", "<i8"),  # image bytes lost on the way (flag INCOMPLETE; their pixels are 0), else 0
     ]
 )
 
@@ -360,7 +361,7 @@ class RecordingFile:
             maxshape=(None,),
             chunks=(min(max(cap, 1), 4096),),
             dtype=FRAME_TABLE_DTYPE,
-            fillvalue=np.array((-1, -1, -1, -1, 0, 0), dtype=FRAME_TABLE_DTYPE),
+            fillvalue=np.array((-1, -1, -1, -1, 0, 0, 0), dtype=FRAME_TABLE_DTYPE),
         )
         fa = self.frames.attrs
         fa["frames_written"] = 0
@@ -519,7 +520,8 @@ class RecordingFile:
     def write(self, image: np.ndarray, row: tuple) -> int:
         """Append one frame and its frame-table row; returns its index in the file.
 
-        ``row`` = (sequence, frame_id, device_timestamp_ns or -1, host_timestamp_ns, flags, trigger_index).
+        ``row`` = (sequence, frame_id, device_timestamp_ns or -1, host_timestamp_ns, flags, trigger_index
+        [, missing_bytes]).
         Raises :class:`DiskFullError` (nothing written, the file closes
         normally) when no room can be reserved for the frame, OSError from HDF5
         (I/O error; :attr:`failed` is set and :meth:`close` writes nothing
@@ -546,7 +548,7 @@ class RecordingFile:
             raise
         if self._n_rows == len(self._rows):
             self._write_rows()
-        self._rows[self._n_rows] = row
+        self._rows[self._n_rows] = tuple(row) + (0,) * (len(FRAME_TABLE_DTYPE) - len(row))  # missing_bytes: 0
         self._n_rows += 1
         self.n_written = i + 1
         return i
@@ -841,7 +843,7 @@ class Recorder:
         self._summary: Optional[dict] = None
         self._last_overrun_log = -1e9
         self._stats = dict(id_gap_frames=0, id_gap_events=0, missing_ids=[], time_gaps=0, lost_by_time=0,
-                           incomplete=0, no_timestamp=0, overrun_events=[])
+                           incomplete=0, missing_bytes=0, no_timestamp=0, overrun_events=[])
 
     # ----------------------------------------------------------- commands
     def begin(self, start_sequence: Optional[int] = None, *, trigger_sequence: Optional[int] = None) -> "Recorder":
@@ -942,7 +944,7 @@ class Recorder:
                 if trig is not None and fr.sequence == trig:
                     flags |= FrameFlags.TRIGGER
                 row = (fr.sequence, fr.frame_id, -1 if fr.device_timestamp_ns is None else fr.device_timestamp_ns,
-                       fr.host_timestamp_ns, flags, tidx)
+                       fr.host_timestamp_ns, flags, tidx, fr.missing_bytes)
                 rf.write(fr.image, row)
                 self.frames_written = rf.n_written
                 prev = _keep_meta(fr)
@@ -988,6 +990,7 @@ class Recorder:
         flags = fr.flags
         if flags & FrameFlags.INCOMPLETE:
             st["incomplete"] += 1
+            st["missing_bytes"] += int(fr.missing_bytes)
         if flags & FrameFlags.NO_DEVICE_TIMESTAMP:
             st["no_timestamp"] += 1
         if prev is None:
@@ -1067,6 +1070,8 @@ class Recorder:
             time_gaps=st["time_gaps"],
             lost_by_time_estimate=st["lost_by_time"],
             incomplete=st["incomplete"],
+            incomplete_missing_bytes=st["missing_bytes"],
+            frame_bytes=self.file.frame_bytes,
             no_device_timestamp=st["no_timestamp"],
             lost_ring_overrun=self.lost_overrun,
             ring_overrun_events=st["overrun_events"],
@@ -1079,8 +1084,13 @@ class Recorder:
         )
         if self.acquisition is not None:
             a = self.acquisition.stats()
-            s["camera_statistics"] = a.get("camera_statistics", {})
+            cs = a.get("camera_statistics", {})
+            s["camera_statistics"] = cs
             s["acquisition_fps"] = round(a.get("fps", 0.0), 2)
+            for key, name in (("n_resend_requests", "packets_resend_requests"), ("n_resent_packets", "packets_resent"),
+                              ("n_missing_packets", "packets_missing")):
+                if key in cs:
+                    s[name] = cs[key]
         # exact counts only; timestamp gaps are an estimate (a late frame also makes one) and are reported apart
         s["total_missing"] = s["lost_upstream_id_gaps"] + s["lost_ring_overrun"]
         return s
@@ -1101,21 +1111,41 @@ def format_summary(s: dict) -> str:
         + (f"; missing ids {_ranges(s.get('missing_frame_ids', []))}" if s.get("missing_frame_ids") else "") + ")",
         f"  timestamp gaps   {s.get('time_gaps', 0)} (about {s.get('lost_by_time_estimate', 0)} frames "
         "missing beyond the id gaps)",
-        f"  incomplete       {s.get('incomplete', 0)}",
+        f"  incomplete       {_incomplete_text(s)}",
         f"  ring overrun     {s.get('lost_ring_overrun', 0)} frames lost (recorder backlog max "
         f"{s.get('recorder_backlog_max', 0)} of {s.get('ring_frames', 0)})",
         f"  data rate        {s.get('write_rate_mb_s', 0)} MB/s on average over {s.get('elapsed_s', 0)} s",
     ]
+    if "packets_resend_requests" in s:
+        lines.insert(-1, f"  network packets  {s.get('packets_resend_requests', 0)} resend requests, "
+                         f"{s.get('packets_resent', 0)} packets resent by the camera")
     total = s.get("total_missing", 0)
+    n_incomplete = s.get("incomplete", 0)
     suspect = s.get("lost_by_time_estimate", 0)
     if s.get("error"):
         lines.append(f"  ERROR            {s['error']}")
-    result = ("no frame lost" if not total and not s.get("error") else
-              f"{total} frames missing" if total else "incomplete recording")
+    parts = []
+    if total:
+        parts.append(f"{total} frames missing")
+    if n_incomplete:
+        parts.append(f"{n_incomplete} of {s.get('frames_written', 0)} frames incomplete")
+    result = ("; ".join(parts) if parts else "no frame lost" if not s.get("error") else "incomplete recording")
     if suspect:
         result += f"; timestamp gaps suggest about {suspect} more (frames the camera ids do not show, or late frames)"
     lines.append("  result           " + result)
     return "\n".join(lines)
+
+
+def _incomplete_text(s: dict) -> str:
+    """'12 of 200 frames (1.9 % of their pixels missing, set to 0; the rest kept)' or '0'."""
+    n = s.get("incomplete", 0)
+    if not n:
+        return "0"
+    missing = s.get("incomplete_missing_bytes", 0)
+    frame = s.get("frame_bytes", 0)
+    share = f"{100.0 * missing / (n * frame):.2g} % of their pixels missing" if frame else "pixels missing"
+    return (f"{n} of {s.get('frames_written', 0)} frames ({share}, stored as 0; the pixels that arrived are kept; "
+            "per frame: frame_table missing_bytes)")
 
 
 def _ranges(pairs) -> str:
@@ -1152,6 +1182,7 @@ def read_summary(path) -> Dict:
         lost_ring_overrun=int(d_seq.clip(0).sum()) if n > 1 else 0,
         time_gaps=int(((flags & FrameFlags.TIME_GAP_BEFORE) != 0).sum()),
         incomplete=int(((flags & FrameFlags.INCOMPLETE) != 0).sum()),
+        incomplete_missing_bytes=int(t["missing_bytes"].sum()) if "missing_bytes" in (t.dtype.names or ()) else 0,
         error="no /summary: the recording did not end normally (crash or power loss); counts rebuilt from "
               "/frame_table",
     )
