@@ -283,6 +283,11 @@ class AravisCamera(Camera):
         Seconds between watchdog register reads.
     packet_resend : bool
         GigE Vision: ask the camera to resend lost packets (Aravis default).
+    frame_retention_s : float
+        GigE Vision: how long Aravis keeps waiting for a frame's missing packets
+        (several resend rounds, each after its 20 ms packet timeout) before it
+        delivers the frame incomplete. Aravis' default, 0.1 s, allows about
+        one round; a resent packet lost again then costs the frame.
 
     Publishes :attr:`camera_id`, :meth:`settings`, :meth:`statistics`, :attr:`info`.
     """
@@ -295,6 +300,7 @@ class AravisCamera(Camera):
         lost_timeout_s: float = 2.0,
         probe_period_s: float = 0.25,
         packet_resend: bool = True,
+        frame_retention_s: float = 0.5,
     ):
         if not device:
             raise CameraError("aravis: give a device id or address, e.g. 'aravis:Fake_1' or 'aravis:192.168.1.10'")
@@ -310,6 +316,7 @@ class AravisCamera(Camera):
         self.lost_timeout_s = float(lost_timeout_s)
         self.probe_period_s = float(probe_period_s)
         self.packet_resend = bool(packet_resend)
+        self.frame_retention_s = float(frame_retention_s)
         self.info: Optional[CameraInfo] = None
         self._cam = None
         self._dev = None
@@ -528,7 +535,10 @@ class AravisCamera(Camera):
             if stream is None:
                 raise CameraError("Aravis could not create a stream")
             if cam.is_gv_device():
-                stream.set_property("packet-resend", Aravis.GvStreamPacketResend.ALWAYS if self.packet_resend else Aravis.GvStreamPacketResend.NEVER)
+                stream.set_property("packet-resend", Aravis.GvStreamPacketResend.ALWAYS if self.packet_resend
+                                    else Aravis.GvStreamPacketResend.NEVER)
+                # time for several resend rounds (a resent packet can be lost too) before a frame is given up
+                stream.set_property("frame-retention", int(self.frame_retention_s * 1e6))
             payload = cam.get_payload()
             # Our own memory behind every buffer: Aravis hides the data of a failed buffer (size 0), but the
             # packets that did arrive are in it. Each buffer is filled with a random "canary" before it goes

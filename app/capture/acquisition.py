@@ -268,6 +268,11 @@ class Acquisition:
     def running(self) -> bool:
         return self.state == "running"
 
+    @property
+    def ending(self) -> bool:
+        """True once the thread was told to stop (stop_after, stop) or has ended: its final counters will come."""
+        return self._stop_after is not None or self._stop_event.is_set() or self._done.is_set()
+
     def trigger_software(self) -> None:
         """Send one GenICam TriggerSoftware command to the camera now."""
         with self._lock:

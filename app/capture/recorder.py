@@ -1012,6 +1012,11 @@ class Recorder:
 
     def _finish(self, error: Optional[str]) -> None:
         self._t_end = time.monotonic()
+        acq = self.acquisition
+        if acq is not None and getattr(acq, "ending", False):
+            # the camera stops after our last frame: wait (briefly) for its final transport counters
+            # (packets resent, missing ...), so that the summary accounts for every packet
+            acq.wait(2.0)
         if self._cursor is not None:
             # frames the cursor skipped inside the requested range [start, end) are lost
             events = [list(e) for e in self._cursor.lost_events]

@@ -1,15 +1,21 @@
 """GigE packet loss during ``tirdeflect record`` (issue 7, case 3).
 
-The fake GigE camera drops ``-r`` packets per thousand. Packet resend is on
-(Aravis asks again for every lost packet), but ``arv-fake-gv-camera-0.8``
-never answers a resend request (its GVCP handler has no PACKETRESEND), so the
-losses stay. What the user must get: the pixels that did arrive kept (no
-black frames), every incomplete frame flagged in the frame table with the
-bytes it misses, the summary saying "N of M frames incomplete" with the same
-N as the file, and exit status 1.
+1. The fake GigE camera drops ``-r`` packets per thousand. Packet resend is
+   on (Aravis asks again for every lost packet), but ``arv-fake-gv-camera-0.8``
+   never answers a resend request (its GVCP handler has no PACKETRESEND), so
+   the losses stay. What the user must get: the pixels that did arrive kept
+   (no black frames), every incomplete frame flagged in the frame table with
+   the bytes it misses, the summary saying "N of M frames incomplete" with
+   the same N as the file, and exit status 1.
+2. A camera that resends (the loss-free fake behind
+   :class:`tests.faults.lossy_link.LossyLink`, a link losing 2 % of the stream
+   packets, resends included): >= 99 % of the frames complete, and every
+   packet the link lost accounted for (resent and received, or missing in a
+   flagged frame).
 """
 
 import json
+import math
 import re
 
 import h5py
@@ -72,3 +78,52 @@ def test_lost_packets_are_flagged_counted_and_the_rest_kept(tmp_path, loss_per_t
           f"packets resent {summary.get('packets_resent')}")
     # what was lost matches the loss rate the fake was given (binomial over ~190 packets a frame): within 3x
     assert lost_share < 3 * loss_per_thousand / 1000
+
+
+@pytest.mark.aravis
+def test_resend_recovers_a_lossy_link(tmp_path):
+    """2 % of stream packets lost (first sends and resends): >= 99 % of 200 frames complete, losses accounted."""
+    from tests.drivers.fixtures import FakeGvCamera, _aravis_or_skip
+    from tests.faults.lossy_link import LossyLink
+
+    _aravis_or_skip()
+    n_frames = 200
+    out = tmp_path / "resend.h5"
+    with FakeGvCamera() as _, LossyLink(loss_per_thousand=20) as link:
+        rec = RecordProcess("--camera", link.camera_id, "--frames", str(n_frames), "--frame-rate-hz", "20",
+                            "--out", str(out), "--no-progress")
+        try:
+            code, stdout, stderr = rec.wait(120)
+        finally:
+            rec.kill()
+    with h5py.File(out, "r") as f:
+        table = f["frame_table"][:]
+        summary = json.loads(f["summary"].attrs["summary_json"])
+        frame_bytes = f["frames"].shape[1] * f["frames"].shape[2]
+    flagged = (table["flags"] & 1) != 0
+    missing = table["missing_bytes"]
+    n_incomplete = int(flagged.sum())
+    assert len(table) == n_frames and np.array_equal(flagged, missing > 0)
+    assert summary["incomplete"] == n_incomplete and code == (1 if n_incomplete else 0), stdout + stderr
+    complete = 1 - n_incomplete / n_frames
+    # accounting: each first send the link lost was asked for again; what came back is Aravis' n_resent_packets,
+    # what never came is in the flagged frames' missing bytes (whole packets of payload 1364 B, the last one short)
+    received_again = link.resent - link.resent_dropped
+    lost_for_good = sum(math.ceil(m / 1364) for m in missing if m)
+    print(f"lossy link 2 %: {n_frames - n_incomplete} of {n_frames} frames complete ({100 * complete:.1f} %); "
+          f"link lost {link.dropped} first sends + {link.resent_dropped} resends, served {link.resend_requests} "
+          f"resend requests ({link.resent} packets); Aravis: {summary['packets_resend_requests']} requests, "
+          f"{summary['packets_resent']} resent packets received; {lost_for_good} packets lost for good")
+    assert link.dropped > 0.01 * link.forwarded  # the link really lost about 2 %
+    assert complete >= 0.99
+    cs = summary["camera_statistics"]
+    late = cs["n_duplicated_packets"] + cs["n_ignored_packets"]  # resent twice, or after the frame was closed
+    print(f"Aravis: {cs['n_resent_packets']} resent packets used, {late} duplicated or late")
+    assert link.dropped > 0.01 * link.forwarded  # the link really lost about 2 %
+    assert complete >= 0.99
+    # every packet Aravis asked for again was asked of the link; every one that came back was counted by Aravis
+    assert summary["packets_resend_requests"] == link.resent + link.resend_unknown
+    # (a few resent packets can still be in flight when the stream stops: at most 1 % of them)
+    assert cs["n_resent_packets"] <= received_again <= (cs["n_resent_packets"] + late) * 1.01
+    # every first send the link lost came back or is missing in a flagged frame
+    assert link.dropped <= cs["n_resent_packets"] + late + lost_for_good + link.resend_unknown
