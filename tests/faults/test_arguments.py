@@ -1,6 +1,6 @@
 """Argument errors of ``tirdeflect record`` are answered before any camera is opened (issue 7, case 7).
 
-The camera is ``aravis:192.0.2.1`` (TEST-NET-1: nothing answers there), so any
+The camera is ``aravis:198.51.100.7`` (TEST-NET-2: nothing answers there), so any
 answer that needed the camera would come after Aravis' timeouts, and would
 talk about the camera instead of the argument.
 """
@@ -14,7 +14,7 @@ import pytest
 
 from tests.faults.tools import ROOT
 
-NOWHERE = "aravis:192.0.2.1"
+NOWHERE = "aravis:198.51.100.7"
 #: an argument error comes at once: Python start-up and imports only
 ANSWER_WITHIN_S = 5.0
 
