@@ -60,7 +60,7 @@ def test_gige_recording_disk_filled_by_another_process(tmp_path, gv_fake_camera,
                 assert "disk full" in f.attrs["error"]
         # what the summary says is what the file holds, and the frames are really there
         assert n == n_said >= 6
-        assert list(table["sequence"]) == list(range(n)) and np.all(np.diff(table["frame_id"]) == 1)
+        assert list(table["sequence"]) == list(range(n)) and np.all(np.diff(table["frame_id"]) >= 1)
         assert np.all(frames.reshape(n, -1).max(axis=1) > 0), "a frame the file vouches for holds no pixels"
         print(f"{fs}: {n} frames kept, file {out.stat().st_size} bytes; {error_lines[0]}")
 
