@@ -356,6 +356,8 @@ def cmd_record(args) -> int:
     previous = _install_stop_signals()
     try:
         return _record(args, prog)
+    except _Signalled as exc:  # came while the camera was being released: the file is already closed
+        return 128 + exc.signum
     finally:
         _restore_signals(previous)
 
