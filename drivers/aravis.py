@@ -625,6 +625,10 @@ class AravisCamera(Camera):
                 return self._to_frame(buf, mem, host_ns)
             finally:
                 mem[:] = self._canary  # re-arm the canary before the buffer goes back to the camera
+                # only the leader packet sets these: a buffer whose leader is lost must not show the id and
+                # timestamp of its previous use (a stale timestamp made false "timestamp gap" suspicions)
+                buf.set_timestamp(0)
+                buf.set_frame_id(0)
                 stream.push_buffer(buf)
         except BaseException:
             # the traceback keeps this frame alive: hold no GObject in it, or the garbage

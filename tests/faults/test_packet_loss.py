@@ -46,6 +46,7 @@ def _record_lossy(tmp_path, loss_per_thousand):
 @pytest.mark.parametrize("loss_per_thousand", [20, 2])
 def test_lost_packets_are_flagged_counted_and_the_rest_kept(tmp_path, loss_per_thousand):
     out, code, stdout, stderr = _record_lossy(tmp_path, loss_per_thousand)
+    assert out.exists() and code in (0, 1), f"exit {code}\n{stdout}\n{stderr}"
     with h5py.File(out, "r") as f:
         table = f["frame_table"][:]
         frames = f["frames"][:]
