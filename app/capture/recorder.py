@@ -600,8 +600,13 @@ class RecordingFile:
             self._rows_start = a + self._n_rows
             self._n_rows = 0
 
-    def flush(self) -> None:
-        """Put everything written so far on disk and advance ``frames_written``."""
+    def flush(self, *, stop_when_full: bool = True) -> None:
+        """Put everything written so far on disk and advance ``frames_written``.
+
+        If the disk was full and only the reserve file's space let the flush
+        complete, raises :class:`DiskFullError` afterwards (the recording must
+        stop), unless ``stop_when_full`` is False (closing).
+        """
         if self.failed:
             raise RecorderError(f"{str(self.path)!r}: a write failed before; nothing more is written")
         n = self.n_written
@@ -620,7 +625,7 @@ class RecordingFile:
                 self.failed = True
                 raise
         self.n_flushed = n
-        if attempt == 1:
+        if attempt == 1 and stop_when_full:
             raise self._disk_full(0, "disk")
 
     def add_event(self, kind: str, message: str = "", *, sequence: int = -1, host_timestamp_ns: Optional[int] = None,
@@ -658,7 +663,7 @@ class RecordingFile:
         self.problems: List[str] = []
         if not self.failed:
             try:
-                self.flush()
+                self.flush(stop_when_full=False)
             except Exception as exc:
                 self.failed = True
                 self.problems.append(f"final flush failed: {exc}")
