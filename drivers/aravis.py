@@ -679,6 +679,14 @@ class AravisCamera(Camera):
         ts = buf.get_timestamp()
         raw_id = int(buf.get_frame_id())
         frame_id = unwrap_block_id(raw_id, self._last_id)  # GigE Vision 1 ids wrap 65535 -> 1
+        if failed and raw_id == 0 and self._last_id is None:
+            # leader lost before any frame told us where the camera's count stands: the id is unknown
+            self._n_leader_lost += 1
+            self._n_delivered += 1
+            self._n_incomplete += bool(incomplete)
+            self._n_missing_bytes += missing_bytes
+            return Frame(image=image, frame_id=-1, timestamp_ns=None, host_timestamp_ns=host_ns,
+                         incomplete=bool(incomplete), bit_depth=bits, missing_bytes=missing_bytes)
         if failed and self._last_id is not None and (raw_id == 0 or frame_id <= self._last_id):
             # the leader packet was lost: Aravis left this buffer's id and timestamp from
             # its previous use (or 0). Failed buffers come out in order, so it is the next id.

@@ -73,7 +73,8 @@ class Frame:
         until :meth:`release` (or the end of a ``with`` block); copy what must
         outlive it.
     frame_id : int
-        The camera's own frame/block id (monotonic; gaps mean lost frames).
+        The camera's own frame/block id (monotonic; gaps mean lost frames); -1 when unknown
+        (a GigE frame whose leader packet was lost before any id was seen).
     timestamp_ns : int or None
         Device timestamp in nanoseconds, None when the camera gives none.
     host_timestamp_ns : int

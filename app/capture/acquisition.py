@@ -433,7 +433,9 @@ class Acquisition:
                     self.incomplete += 1
                     self.missing_bytes += missing_bytes
                 id_missing = 0
-                if last_id is None:
+                if fid < 0:
+                    pass  # id unknown (the driver says -1): no id-gap check across it
+                elif last_id is None:
                     self.first_frame_id = fid
                 elif fid != last_id + 1:
                     flags |= FrameFlags.ID_GAP_BEFORE
@@ -443,7 +445,8 @@ class Acquisition:
                         self.id_gaps.append((last_id + 1, id_missing))
                     else:
                         self.id_gaps.append((fid, 0))  # id went backwards (camera restarted its counter)
-                last_id = fid
+                if fid >= 0:
+                    last_id = fid
                 if dts is None:
                     self.no_timestamp += 1
                 ts = dts if dts is not None else hts

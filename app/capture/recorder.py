@@ -952,7 +952,8 @@ class Recorder:
                        fr.host_timestamp_ns, flags, tidx, fr.missing_bytes)
                 rf.write(fr.image, row)
                 self.frames_written = rf.n_written
-                prev = _keep_meta(fr)
+                if fr.frame_id >= 0:  # -1: id unknown (lost GigE leader); gaps are counted between known ids
+                    prev = _keep_meta(fr)
                 backlog = cur.backlog
                 self.backlog = backlog
                 if backlog > self.backlog_max:
