@@ -485,12 +485,13 @@ def _record(args, prog: str) -> int:
         return result
     except KeyboardInterrupt as exc:
         _hold_stop_signals()
+        what = "closing the file" if rec is not None else "no recording had begun, no file was written"
         if isinstance(exc, _Signalled):
             name = signal.Signals(exc.signum).name
-            _say(f"{prog}: {name} received; closing the file", sys.stderr)
+            _say(f"{prog}: {name} received; {what}", sys.stderr)
             code = 128 + exc.signum
         else:
-            _say(f"{prog}: interrupted; closing the file", sys.stderr)
+            _say(f"{prog}: interrupted; {what}", sys.stderr)
             code = 130
         if acq is not None:
             try:
