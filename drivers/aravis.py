@@ -4,11 +4,14 @@ Camera ids: ``aravis:<device id or address>``, e.g. ``aravis:Fake_1`` (Aravis'
 in-process fake camera), ``aravis:127.0.0.1`` (``arv-fake-gv-camera-0.8 -i
 127.0.0.1``), ``aravis:Basler-21234567``.
 
-Streaming uses a pool of ``n_buffers`` preallocated Aravis buffers; every
-fetched image is copied out once and the buffer goes straight back into the
-pool, so a :class:`~drivers.base.Frame` outlives the fetch. Buffers that the
-transport did not fill completely (missing packets, timeouts) are delivered
-with ``incomplete=True``, never hidden.
+Streaming uses a pool of ``n_buffers`` Aravis buffers on memory of our own;
+every fetched image is copied out once and the buffer goes straight back into
+the pool, so a :class:`~drivers.base.Frame` outlives the fetch. GigE Vision
+packet resend is on (Aravis asks the camera again for every lost packet).
+Buffers that the transport still did not fill completely are delivered with
+the pixels that arrived, the missing ones zero, ``incomplete=True`` and
+``missing_bytes`` counted exactly (each buffer is filled with a random canary
+before it goes to the camera; what still equals the canary never arrived).
 
 A watchdog thread reads a bootstrap register every ``probe_period_s``; when no
 read has succeeded for ``lost_timeout_s`` (or Aravis emits ``control-lost``),
@@ -19,6 +22,9 @@ while waiting for a trigger.
 
 from __future__ import annotations
 
+import ipaddress
+import socket
+import struct
 import threading
 import time
 import weakref
@@ -28,6 +34,7 @@ import numpy as np
 
 from .base import (
     Camera,
+    CameraBusy,
     CameraError,
     CameraInfo,
     CameraLost,
@@ -110,6 +117,81 @@ def list_devices(*, timeout_s: float = 3.0, include_fake: bool = False) -> List[
     t.start()
     t.join(timeout_s)
     return list(result) if not t.is_alive() else []
+
+
+#: GigE Vision control protocol: UDP port and bootstrap registers read before Aravis opens a camera
+GVCP_PORT = 3956
+GVCP_CCP = 0x0A00  # control channel privilege: bit 0 exclusive, bit 1 control (the value 0: free)
+GVCP_PRIMARY_APP_PORT = 0x0A04  # GigE Vision 2: UDP port of the controlling application (0: not told)
+GVCP_PRIMARY_APP_IP = 0x0A14  # GigE Vision 2: IPv4 address of the controlling application (0: not told)
+GVCP_HEARTBEAT_TIMEOUT = 0x0938  # ms after which the camera drops a silent controller
+
+
+def gvcp_read_registers(address: str, registers, *, timeout_s: float = 0.25, tries: int = 3):
+    """Read GigE Vision bootstrap registers (GVCP READREG, one per command); None when the camera does not answer.
+
+    Reading needs no privilege, so it tells whether another program holds
+    the camera before Aravis tries to take it (which, on a busy camera,
+    retries for seconds and leaves a half-open device). A register the
+    camera refuses reads as 0.
+    """
+    values = []
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.settimeout(timeout_s)
+        for k, reg in enumerate(registers):
+            req_id = 0x7A00 + k + 1
+            cmd = struct.pack(">BBHHHI", 0x42, 0x01, 0x0080, 4, req_id, int(reg))
+            value = None
+            for _ in range(tries):
+                try:
+                    sock.sendto(cmd, (address, GVCP_PORT))
+                    deadline = time.monotonic() + timeout_s
+                    while value is None and time.monotonic() < deadline:
+                        data, _ = sock.recvfrom(1024)
+                        if len(data) < 12:
+                            continue
+                        status, answer, length, ack_id = struct.unpack(">HHHH", data[:8])
+                        if answer == 0x0081 and ack_id == req_id:
+                            value = struct.unpack(">I", data[8:12])[0] if status == 0 else 0
+                except socket.timeout:
+                    pass
+                except OSError:
+                    return None
+                if value is not None:
+                    break
+            if value is None:
+                return None
+            values.append(value)
+    return values
+
+
+def _holder_text(values) -> str:
+    """' (held by 192.168.1.5:50123)' from the primary application registers, '' when the camera does not tell."""
+    port, ip = values[1], values[2]
+    if not ip:
+        return ""
+    return f" (held by {ipaddress.IPv4Address(ip)}" + (f":{port}" if port else "") + ")"
+
+
+def _canary_bytes(data: np.ndarray, canary: np.ndarray, min_run: int = 8) -> np.ndarray:
+    """Bytes of ``data`` that still hold the random ``canary`` the buffer was filled with: never written.
+
+    A lost packet leaves a run of canary bytes as long as its payload. Runs
+    of at least ``min_run`` bytes are missing (a received run matches the
+    random canary by chance with probability 256**-min_run); so is a run of
+    any length at the very end (the last packet of a frame can be a few
+    bytes long).
+    """
+    eq = data == canary
+    lost = np.zeros(data.size, bool)
+    if not eq.any():
+        return lost
+    edges = np.diff(np.concatenate(([0], eq.view(np.int8), [0])))
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    keep = (ends - starts >= min_run) | (ends == data.size)
+    for a, b in zip(starts[keep], ends[keep]):
+        lost[a:b] = True
+    return lost
 
 
 def _release_in_background(box: list) -> None:
@@ -201,6 +283,11 @@ class AravisCamera(Camera):
         Seconds between watchdog register reads.
     packet_resend : bool
         GigE Vision: ask the camera to resend lost packets (Aravis default).
+    frame_retention_s : float
+        GigE Vision: how long Aravis keeps waiting for a frame's missing packets
+        (several resend rounds, each after its 20 ms packet timeout) before it
+        delivers the frame incomplete. Aravis' default, 0.1 s, allows about
+        one round; a resent packet lost again then costs the frame.
 
     Publishes :attr:`camera_id`, :meth:`settings`, :meth:`statistics`, :attr:`info`.
     """
@@ -213,6 +300,7 @@ class AravisCamera(Camera):
         lost_timeout_s: float = 2.0,
         probe_period_s: float = 0.25,
         packet_resend: bool = True,
+        frame_retention_s: float = 0.5,
     ):
         if not device:
             raise CameraError("aravis: give a device id or address, e.g. 'aravis:Fake_1' or 'aravis:192.168.1.10'")
@@ -228,6 +316,7 @@ class AravisCamera(Camera):
         self.lost_timeout_s = float(lost_timeout_s)
         self.probe_period_s = float(probe_period_s)
         self.packet_resend = bool(packet_resend)
+        self.frame_retention_s = float(frame_retention_s)
         self.info: Optional[CameraInfo] = None
         self._cam = None
         self._dev = None
@@ -250,6 +339,8 @@ class AravisCamera(Camera):
         self._n_id_gaps = 0
         self._n_late = 0
         self._n_leader_lost = 0
+        self._n_missing_bytes = 0
+        self._n_only_protocol_lost = 0
         self._status_counts = {}
 
     # -- lifecycle -----------------------------------------------------------
@@ -261,6 +352,7 @@ class AravisCamera(Camera):
         Aravis = _aravis()
         if self.device.startswith("Fake"):
             Aravis.enable_interface("Fake")
+        self._refuse_if_busy()
         try:
             cam = Aravis.Camera.new(self.device)
         except Exception as exc:
@@ -276,6 +368,11 @@ class AravisCamera(Camera):
                 cam.gv_auto_packet_size()
             except Exception:
                 pass  # keep the camera's packet size
+        if cam.is_gv_device() and not cam.get_device().is_controller():
+            # another program took the camera (the id was no address, or it won the race): write nothing
+            _release_in_background([cam])
+            raise CameraBusy(f"{self.camera_id} is controlled by another program; close that program and try "
+                             "again ('tirdeflect cameras' lists the cameras)")
         self._cam = cam
         self._dev = cam.get_device()
         self._features = _AravisFeatures(self._dev)
@@ -309,6 +406,22 @@ class AravisCamera(Camera):
         )
         self._probe_thread.start()
         return self
+
+    def _refuse_if_busy(self) -> None:
+        """GigE Vision camera given by IPv4 address: raise CameraBusy at once when another program controls it."""
+        try:
+            ipaddress.IPv4Address(self.device)
+        except ValueError:
+            return  # a device id: Aravis resolves it; is_controller() is checked after opening
+        values = gvcp_read_registers(self.device, [GVCP_CCP, GVCP_PRIMARY_APP_PORT, GVCP_PRIMARY_APP_IP,
+                                                   GVCP_HEARTBEAT_TIMEOUT])
+        if values is None or not values[0] & 0x3:
+            return  # free, or no answer (Aravis then says what is wrong)
+        heartbeat = f"{values[3]} ms" if values[3] else "its heartbeat timeout"
+        raise CameraBusy(
+            f"{self.camera_id} is controlled by another program{_holder_text(values)}; close that program and try "
+            f"again (a program that crashed releases the camera after {heartbeat})"
+        )
 
     def close(self) -> None:
         """Stop, free the stream and release the device (idempotent, bounded in time)."""
@@ -422,10 +535,20 @@ class AravisCamera(Camera):
             if stream is None:
                 raise CameraError("Aravis could not create a stream")
             if cam.is_gv_device():
-                stream.set_property("packet-resend", Aravis.GvStreamPacketResend.ALWAYS if self.packet_resend else Aravis.GvStreamPacketResend.NEVER)
+                stream.set_property("packet-resend", Aravis.GvStreamPacketResend.ALWAYS if self.packet_resend
+                                    else Aravis.GvStreamPacketResend.NEVER)
+                # time for several resend rounds (a resent packet can be lost too) before a frame is given up
+                stream.set_property("frame-retention", int(self.frame_retention_s * 1e6))
             payload = cam.get_payload()
-            for _ in range(self.n_buffers):
-                stream.push_buffer(Aravis.Buffer.new_allocate(payload))
+            # Our own memory behind every buffer: Aravis hides the data of a failed buffer (size 0), but the
+            # packets that did arrive are in it. Each buffer is filled with a random "canary" before it goes
+            # to the camera; after a failed transfer, the bytes still equal to the canary are the missing ones.
+            self._canary = np.random.default_rng().integers(0, 256, payload, dtype=np.uint8)
+            self._memory = []
+            for k in range(self.n_buffers):
+                mem = self._canary.copy()
+                self._memory.append(mem)
+                stream.push_buffer(Aravis.Buffer.new_full(payload, mem.ctypes.data, k, None))
             cam.set_acquisition_mode(Aravis.AcquisitionMode.CONTINUOUS)
             self._stream = stream
             self._shape = (s.height, s.width)
@@ -453,7 +576,9 @@ class AravisCamera(Camera):
             except Exception:
                 pass  # the device may be gone; the stream is freed below anyway
         self._final_stats = self._stream_stats()
-        box, self._stream = [self._stream], None
+        # the buffers' memory must outlive the stream (its thread may still write): list.clear() drops the
+        # last item first, so the stream goes before the memory
+        box, self._stream, self._memory = [self._memory, self._stream], None, []
         if self._lost.is_set():
             _release_in_background(box)
         else:
@@ -495,9 +620,15 @@ class AravisCamera(Camera):
                 if buf is not None:
                     break
             host_ns = time.monotonic_ns()
+            mem = self._memory[buf.get_user_data()]
             try:
-                return self._to_frame(buf, host_ns)
+                return self._to_frame(buf, mem, host_ns)
             finally:
+                mem[:] = self._canary  # re-arm the canary before the buffer goes back to the camera
+                # only the leader packet sets these: a buffer whose leader is lost must not show the id and
+                # timestamp of its previous use (a stale timestamp made false "timestamp gap" suspicions)
+                buf.set_timestamp(0)
+                buf.set_frame_id(0)
                 stream.push_buffer(buf)
         except BaseException:
             # the traceback keeps this frame alive: hold no GObject in it, or the garbage
@@ -506,15 +637,15 @@ class AravisCamera(Camera):
             stream = buf = None
             raise
 
-    def _to_frame(self, buf, host_ns) -> Frame:
+    def _to_frame(self, buf, mem, host_ns) -> Frame:
         Aravis = _aravis()
         status = buf.get_status()
         name = status.value_nick if hasattr(status, "value_nick") else str(status)
         self._status_counts[name] = self._status_counts.get(name, 0) + 1
-        incomplete = status != Aravis.BufferStatus.SUCCESS
+        failed = status != Aravis.BufferStatus.SUCCESS
         height, width = self._shape
         dtype, bits = self._dtype, self._bits
-        if not incomplete and buf.get_payload_type() in (
+        if not failed and buf.get_payload_type() in (
             Aravis.BufferPayloadType.IMAGE,
             Aravis.BufferPayloadType.EXTENDED_CHUNK_DATA,
         ):
@@ -523,25 +654,40 @@ class AravisCamera(Camera):
             fmt = PFNC.get(int(buf.get_image_pixel_format()))
             bits = PIXEL_BITS.get(fmt, bits)
             dtype = np.uint8 if bits == 8 else np.uint16
-            data = buf.get_image_data()
-        else:
-            # partial buffer: its leader may be missing, so use the geometry set at start()
-            data = buf.get_data()
-        raw = np.frombuffer(data, dtype=np.uint8) if data is not None else np.empty(0, np.uint8)
         n = width * height * np.dtype(dtype).itemsize
-        if raw.size >= n:
-            image = raw[:n].view(dtype).reshape(height, width)
+        missing_bytes = 0
+        if n > mem.size:  # the camera sends more than the payload it announced
+            failed = True
+            flat = np.zeros(n, np.uint8)
+            flat[: mem.size] = mem
+            missing_bytes = n - mem.size
         else:
-            # a short buffer: hand out what arrived, zero-padded, flagged incomplete
-            incomplete = True
-            flat = np.zeros(width * height, dtype)
-            got = raw[: (raw.size // flat.itemsize) * flat.itemsize].view(dtype)
-            flat[: got.size] = got
-            image = flat.reshape(height, width)
+            flat = mem[:n].copy()
+        if failed:
+            # partial buffer (its leader may be missing: the geometry set at start() is used): keep the
+            # pixels that arrived, zero the ones that did not, and count them
+            lost = _canary_bytes(mem[: min(n, mem.size)], self._canary[: min(n, mem.size)])
+            missing_bytes += int(lost.sum())
+            if missing_bytes:
+                itemsize = np.dtype(dtype).itemsize
+                lost_px = lost.reshape(-1, itemsize).any(axis=1) if itemsize > 1 else lost
+                flat.view(dtype)[: lost_px.size][lost_px] = 0
+            else:
+                self._n_only_protocol_lost += 1  # only the leader/trailer was lost: every pixel is there
+        incomplete = missing_bytes > 0
+        image = flat.view(dtype).reshape(height, width)
         ts = buf.get_timestamp()
         raw_id = int(buf.get_frame_id())
         frame_id = unwrap_block_id(raw_id, self._last_id)  # GigE Vision 1 ids wrap 65535 -> 1
-        if incomplete and self._last_id is not None and (raw_id == 0 or frame_id <= self._last_id):
+        if failed and raw_id == 0 and self._last_id is None:
+            # leader lost before any frame told us where the camera's count stands: the id is unknown
+            self._n_leader_lost += 1
+            self._n_delivered += 1
+            self._n_incomplete += bool(incomplete)
+            self._n_missing_bytes += missing_bytes
+            return Frame(image=image, frame_id=-1, timestamp_ns=None, host_timestamp_ns=host_ns,
+                         incomplete=bool(incomplete), bit_depth=bits, missing_bytes=missing_bytes)
+        if failed and self._last_id is not None and (raw_id == 0 or frame_id <= self._last_id):
             # the leader packet was lost: Aravis left this buffer's id and timestamp from
             # its previous use (or 0). Failed buffers come out in order, so it is the next id.
             frame_id = self._last_id + 1
@@ -557,6 +703,7 @@ class AravisCamera(Camera):
             self._n_id_gaps -= 1
         self._n_delivered += 1
         self._n_incomplete += bool(incomplete)
+        self._n_missing_bytes += missing_bytes
         return Frame(
             image=image,
             frame_id=frame_id,
@@ -564,6 +711,7 @@ class AravisCamera(Camera):
             host_timestamp_ns=host_ns,
             incomplete=bool(incomplete),
             bit_depth=bits,
+            missing_bytes=missing_bytes,
         )
 
     def statistics(self) -> dict:
@@ -574,7 +722,11 @@ class AravisCamera(Camera):
         (buffers that arrived after a newer one: their id is below the previous
         frame's), ``n_leader_lost`` (failed buffers whose id and timestamp were
         lost with the leader packet: numbered last id + 1, timestamp None),
-        ``buffer_status`` counts.
+        ``buffer_status`` counts, ``n_missing_bytes`` (image bytes lost in the
+        incomplete frames delivered), ``n_failed_but_all_pixels`` (failed
+        buffers where only the leader or trailer packet was lost: delivered
+        complete). Aravis' ``n_resend_requests`` and ``n_resent_packets`` say
+        how many lost packets were asked for again and how many came.
         """
         out = dict(self._stream_stats() if self._stream is not None else self._final_stats)
         out.update({
@@ -583,6 +735,8 @@ class AravisCamera(Camera):
             "n_id_gap_frames": self._n_id_gaps,
             "n_late_delivered": self._n_late,
             "n_leader_lost": self._n_leader_lost,
+            "n_missing_bytes": self._n_missing_bytes,
+            "n_failed_but_all_pixels": self._n_only_protocol_lost,
             "buffer_status": dict(self._status_counts),
         })
         out.setdefault("n_failed_buffers", out.get("n_failures", 0))

@@ -19,6 +19,7 @@ import numpy as np
 __all__ = [
     "CameraError",
     "CameraLost",
+    "CameraBusy",
     "FetchTimeout",
     "SettingError",
     "FrameFlags",
@@ -35,6 +36,10 @@ class CameraError(RuntimeError):
 
 class CameraLost(CameraError):
     """The camera stopped answering (unplugged, process killed, network gone)."""
+
+
+class CameraBusy(CameraError):
+    """Another program controls the camera (GigE Vision control channel privilege); nothing was changed on it."""
 
 
 class FetchTimeout(CameraError, TimeoutError):
@@ -68,13 +73,16 @@ class Frame:
         until :meth:`release` (or the end of a ``with`` block); copy what must
         outlive it.
     frame_id : int
-        The camera's own frame/block id (monotonic; gaps mean lost frames).
+        The camera's own frame/block id (monotonic; gaps mean lost frames); -1 when unknown
+        (a GigE frame whose leader packet was lost before any id was seen).
     timestamp_ns : int or None
         Device timestamp in nanoseconds, None when the camera gives none.
     host_timestamp_ns : int
         ``time.monotonic_ns()`` when the driver received the frame.
     incomplete : bool
-        True when the transport reported a partial buffer.
+        True when pixels are missing (the transport lost packets that a resend did not bring).
+    missing_bytes : int
+        How many image bytes never arrived (their pixels are 0 in ``image``); 0 for a complete frame.
     bit_depth : int
         Significant bits per pixel (8, 10, 12, 16).
     """
@@ -85,6 +93,7 @@ class Frame:
     host_timestamp_ns: int
     incomplete: bool = False
     bit_depth: int = 8
+    missing_bytes: int = 0
     _release: Optional[object] = dataclasses.field(default=None, repr=False)
 
     def release(self) -> None:

@@ -40,7 +40,9 @@ lost_by_time : int
     Frames missing according to timestamp gaps *in excess of* the id gaps
     (drops the ids did not show), estimated as ``round(dt / period) - 1``.
 incomplete : int
-    Frames the transport delivered incomplete.
+    Frames the transport delivered incomplete (pixels missing; the ones that arrived are kept).
+missing_bytes : int
+    Image bytes missing in those frames (per frame in the ring's metadata and the file's frame table).
 no_timestamp : int
     Frames without a device timestamp.
 fetch_timeouts : int
@@ -185,6 +187,7 @@ class Acquisition:
         self.time_gap_events: List[Tuple[int, float]] = []  # (sequence, dt in periods)
         self.lost_by_time = 0
         self.incomplete = 0
+        self.missing_bytes = 0
         self.no_timestamp = 0
         self.fetch_timeouts = 0
         self.software_triggers_sent = 0
@@ -265,6 +268,11 @@ class Acquisition:
     def running(self) -> bool:
         return self.state == "running"
 
+    @property
+    def ending(self) -> bool:
+        """True once the thread was told to stop (stop_after, stop) or has ended: its final counters will come."""
+        return self._stop_after is not None or self._stop_event.is_set() or self._done.is_set()
+
     def trigger_software(self) -> None:
         """Send one GenICam TriggerSoftware command to the camera now."""
         with self._lock:
@@ -300,6 +308,7 @@ class Acquisition:
             time_gaps=self.time_gaps,
             lost_by_time=self.lost_by_time,
             incomplete=self.incomplete,
+            missing_bytes=self.missing_bytes,
             no_timestamp=self.no_timestamp,
             fetch_timeouts=self.fetch_timeouts,
             software_triggers_sent=self.software_triggers_sent,
@@ -414,6 +423,7 @@ class Acquisition:
                     dts = frame.timestamp_ns
                     hts = int(frame.host_timestamp_ns)
                     incomplete = bool(frame.incomplete)
+                    missing_bytes = int(getattr(frame, "missing_bytes", 0))
                 finally:
                     frame.release()
                 last_frame_t = time.monotonic()
@@ -421,8 +431,11 @@ class Acquisition:
                 if incomplete:
                     flags |= FrameFlags.INCOMPLETE
                     self.incomplete += 1
+                    self.missing_bytes += missing_bytes
                 id_missing = 0
-                if last_id is None:
+                if fid < 0:
+                    pass  # id unknown (the driver says -1): no id-gap check across it
+                elif last_id is None:
                     self.first_frame_id = fid
                 elif fid != last_id + 1:
                     flags |= FrameFlags.ID_GAP_BEFORE
@@ -432,7 +445,8 @@ class Acquisition:
                         self.id_gaps.append((last_id + 1, id_missing))
                     else:
                         self.id_gaps.append((fid, 0))  # id went backwards (camera restarted its counter)
-                last_id = fid
+                if fid >= 0:
+                    last_id = fid
                 if dts is None:
                     self.no_timestamp += 1
                 ts = dts if dts is not None else hts
@@ -456,7 +470,7 @@ class Acquisition:
                             self.lost_by_time += max(0, int(round(n_periods)) - 1 - id_missing)
                 last_ts = ts
                 last_ts_is_device = is_device
-                ring.commit(fid, dts, hts, flags)
+                ring.commit(fid, dts, hts, flags, missing_bytes)
                 self.acquired = seq + 1
                 stop_after = self._stop_after
                 if stop_after is not None and seq >= stop_after:

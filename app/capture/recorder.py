@@ -19,6 +19,14 @@ root). A process killed with SIGKILL or a full disk leaves a file that opens
 with plain ``h5py.File(path, "r")`` and is valid up to ``frames_written``
 (we do not use SWMR: a crashed SWMR writer leaves a file that HDF5 refuses to
 open until ``h5clear`` resets it).
+
+Full disks: the space a recording needs is allocated on disk ahead of HDF5
+(``fallocate``; the whole planned file at the start, else in steps), so a
+disk filled by another program makes *that* program fail, or stops the
+recording cleanly while the space to close the file is still in hand. HDF5
+itself never meets a full disk on a file system that can reserve space. If a
+write fails anyway (I/O error, no fallocate), :meth:`RecordingFile.close`
+writes nothing more (see there) and the file stays as the last flush left it.
 """
 
 from __future__ import annotations
@@ -54,7 +62,7 @@ __all__ = [
 
 log = logging.getLogger("tirdeflect.recorder")
 
-FORMAT_VERSION = "1.0"
+FORMAT_VERSION = "1.1"  # 1.1: frame_table.missing_bytes
 
 #: one row per frame of ``/frame_table``
 FRAME_TABLE_DTYPE = np.dtype(
@@ -65,6 +73,7 @@ FRAME_TABLE_DTYPE = np.dtype(
         ("host_timestamp_ns", "<i8"),  # time.monotonic_ns() at reception
         ("flags", "<u4"),  # drivers.base.FrameFlags
         ("trigger_index", "<i8"),  # frames from the trigger frame (0), negative before it
+        ("missing_bytes", "<i8"),  # image bytes lost on the way (flag INCOMPLETE; their pixels are 0), else 0
     ]
 )
 
@@ -84,8 +93,11 @@ class DiskFullError(DiskSpaceError):
     """The disk (or the file-size limit) ran out during the recording; the file is closed valid."""
 
 
-#: space kept free on the disk so that the file can still be closed validly (metadata, summary)
+#: space kept allocated beyond the data so that the file can always be closed validly (trim, events, summary)
 RESERVE_BYTES = 4 * 1024 * 1024
+
+#: smallest step in which space is allocated ahead of the data when the length is not known, bytes
+RESERVE_STEP_BYTES = 64 * 1024 * 1024
 
 
 #: largest file some file systems can hold, bytes (FAT32 and its kin: 4 GiB - 1)
@@ -138,25 +150,67 @@ def room_bytes(path: Path, current_size: int, fs_max_bytes: Optional[int] = None
     return room, what
 
 
-def _repair_eof(path: Path) -> bool:
-    """After a failed write HDF5 may record an end of file beyond the real one; extend the file (sparse) to it.
+_SUPERBLOCK_SIGNATURE = b"\x89HDF\r\n\x1a\n"
 
-    Returns True when the file was extended. Superblock version 0 (libver
-    "earliest", what we write) keeps the end-of-file address at byte 40.
-    """
+
+def _stored_eoa(path: Path) -> Optional[int]:
+    """End-of-allocation address HDF5 stored in the superblock (version 0, what we write), None if unreadable."""
     try:
         with open(path, "rb") as fh:
             head = fh.read(48)
-        if len(head) < 48 or head[:8] != b"\x89HDF\r\n\x1a\n" or head[8] != 0 or head[13] != 8:
-            return False
-        stored = int.from_bytes(head[40:48], "little")
-        size = os.path.getsize(path)
-        if size < stored < size + (1 << 40):
-            os.truncate(path, stored)
-            return True
     except OSError:
-        pass
-    return False
+        return None
+    if len(head) < 48 or head[:8] != _SUPERBLOCK_SIGNATURE or head[8] != 0 or head[13] != 8:
+        return None
+    return int.from_bytes(head[40:48], "little")
+
+
+def _set_stored_eoa(path: Path, eoa: int) -> bool:
+    """Rewrite the superblock's end-of-allocation address in place (8 bytes inside the first block: needs no space)."""
+    try:
+        with open(path, "r+b") as fh:
+            fh.seek(40)
+            fh.write(int(eoa).to_bytes(8, "little"))
+        return True
+    except OSError:
+        return False
+
+
+def _fit_to_eoa(path: Path) -> None:
+    """Cut the space reserved beyond HDF5's end of allocation (or extend, sparse, a file HDF5 thinks is longer)."""
+    eoa = _stored_eoa(path)
+    try:
+        if eoa is not None and 0 < eoa < (1 << 50) and os.path.getsize(path) != eoa:
+            os.truncate(path, eoa)
+    except OSError as exc:  # the file stays valid, only larger than needed
+        log.warning("recording %s: could not release the reserved space beyond the data: %s", path, exc)
+
+
+_libc = None
+
+
+def _fallocate(fd: int, offset: int, length: int) -> int:
+    """Allocate ``length`` bytes of ``fd`` from ``offset`` on disk (Linux fallocate, mode 0); 0 or an errno.
+
+    Unlike ``os.posix_fallocate`` this never falls back to writing zeros on
+    file systems without fallocate (that would take as long as writing the
+    data): they answer EOPNOTSUPP and the recorder checks free space instead.
+    """
+    global _libc
+    import ctypes
+    import errno
+
+    if _libc is None:
+        try:
+            _libc = ctypes.CDLL(None, use_errno=True)
+            _libc.fallocate.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.c_int64, ctypes.c_int64]
+        except (OSError, AttributeError):
+            _libc = False
+    if not _libc:
+        return errno.EOPNOTSUPP
+    if _libc.fallocate(int(fd), 0, int(offset), int(length)) == 0:
+        return 0
+    return ctypes.get_errno()
 
 
 def software_version() -> str:
@@ -280,8 +334,16 @@ class RecordingFile:
         # "w-": fail if the file appeared since we looked (never overwrite)
         try:
             self._f = h5py.File(p, "w-", libver="earliest")
-        except (FileExistsError, OSError) as exc:
+        except FileExistsError as exc:
             raise RecorderError(f"cannot create {str(p)!r}: {exc}; choose another file name or folder") from exc
+        except OSError as exc:
+            # HDF5 created the file but could not write its first block (disk full): leave nothing behind
+            try:
+                if p.exists() and p.stat().st_size < 4096:
+                    p.unlink()
+            except OSError:
+                pass
+            raise RecorderError(f"cannot create {str(p)!r}: {exc}; free disk space or choose another folder") from exc
         f = self._f
         cap = self.n_planned if self.n_planned is not None else 256
         self._capacity = cap
@@ -299,7 +361,7 @@ class RecordingFile:
             maxshape=(None,),
             chunks=(min(max(cap, 1), 4096),),
             dtype=FRAME_TABLE_DTYPE,
-            fillvalue=np.array((-1, -1, -1, -1, 0, 0), dtype=FRAME_TABLE_DTYPE),
+            fillvalue=np.array((-1, -1, -1, -1, 0, 0, 0), dtype=FRAME_TABLE_DTYPE),
         )
         fa = self.frames.attrs
         fa["frames_written"] = 0
@@ -339,7 +401,112 @@ class RecordingFile:
         self.closed = False
         self.failed = False  # a write failed: HDF5 may hold half-done allocations
         f.flush()
-        self._size_estimate = os.path.getsize(p)
+        # Space is reserved on disk ahead of HDF5 (fallocate), so that another program filling the disk
+        # gets "disk full" instead of us, and so that closing (trim, events, summary) always has room.
+        self._fd = self._vfd_handle()
+        self._reserved = os.path.getsize(p)  # bytes of the file allocated on disk
+        self._can_reserve = self._fd is not None
+        self._size_limit = self._file_size_limit()
+        self._reserve_path: Optional[Path] = None
+        if self.planned_bytes is not None and not self._reserve(self.planned_bytes):
+            if check_space:  # the disk filled between the check above and now
+                self._abandon()
+                raise DiskSpaceError(
+                    f"cannot reserve {format_bytes(self.planned_bytes)} on {str(p.parent)!r} for {self.n_planned} "
+                    "frames: the disk is full; free space, record fewer frames or choose another disk"
+                )
+
+    # ------------------------------------------------------------ space
+    def _vfd_handle(self) -> Optional[int]:
+        try:
+            fd = int(self._f.id.get_vfd_handle())
+            return fd if fd >= 0 else None
+        except Exception:  # another HDF5 driver: no descriptor, no reservation
+            return None
+
+    def _file_size_limit(self) -> int:
+        """Largest size this file may reach: the file system's (FAT32) and the process's (ulimit -f) limits."""
+        limit = self._fs_max_bytes if self._fs_max_bytes is not None else 1 << 62
+        try:
+            import resource
+
+            soft, _ = resource.getrlimit(resource.RLIMIT_FSIZE)
+            if soft != resource.RLIM_INFINITY:
+                limit = min(limit, soft)
+        except (ImportError, ValueError, OSError):  # pragma: no cover - not POSIX
+            pass
+        return limit
+
+    def _reserve(self, target: int) -> bool:
+        """Make sure the first ``target`` bytes of the file are allocated on disk; False when there is no room.
+
+        Never asks for more than the file-size limit (that would raise SIGXFSZ).
+        A file system without fallocate turns reservation off: then
+        :meth:`_check_room` compares with the free space instead.
+        """
+        import errno
+
+        if not self._can_reserve or target <= self._reserved:
+            return True
+        if target > self._size_limit:
+            return False
+        err = _fallocate(self._fd, self._reserved, target - self._reserved)
+        if err == 0:
+            self._reserved = target
+            return True
+        if err in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):
+            return False
+        if err == errno.EINTR:
+            return self._reserve(target)
+        self._can_reserve = False  # EOPNOTSUPP, ENOSYS, EINVAL ...: fall back to the free-space check
+        log.info("recording %s: the file system cannot reserve space (errno %d); checking free space instead",
+                 self.path, err)
+        self._make_reserve_file()
+        return True
+
+    def _make_reserve_file(self) -> None:
+        """Without fallocate: hold ``RESERVE_BYTES`` in a hidden sibling file, given back when the disk is full.
+
+        The space it frees is what the final flush, trim and summary are
+        written into; without it, HDF5 could be cut off halfway through
+        writing its metadata.
+        """
+        q = self.path.with_name(f".{self.path.name}.reserve")
+        try:
+            with open(q, "xb") as fh:
+                fh.write(b"\0" * RESERVE_BYTES)
+                fh.flush()
+                os.fsync(fh.fileno())
+            self._reserve_path = q
+        except OSError:
+            try:
+                q.unlink()
+            except OSError:
+                pass
+
+    def _release_reserve(self) -> bool:
+        """Give the reserve file's space to the file system (for closing); True if there was one."""
+        q, self._reserve_path = self._reserve_path, None
+        if q is None:
+            return False
+        try:
+            q.unlink()
+            return True
+        except OSError:
+            return False
+
+    def _abandon(self) -> None:
+        """Close and delete a file that never held a frame (creation could not complete)."""
+        self._release_reserve()
+        try:
+            self._f.close()
+        except Exception:
+            pass
+        try:
+            os.unlink(self.path)
+        except OSError:
+            pass
+        self.closed = True
 
     # ------------------------------------------------------------ writing
     def _grow(self, need: int) -> None:
@@ -353,43 +520,78 @@ class RecordingFile:
     def write(self, image: np.ndarray, row: tuple) -> int:
         """Append one frame and its frame-table row; returns its index in the file.
 
-        ``row`` = (sequence, frame_id, device_timestamp_ns or -1, host_timestamp_ns, flags, trigger_index).
-        Raises OSError (e.g. disk full) from HDF5; the file stays valid up to
-        the last :meth:`flush`.
+        ``row`` = (sequence, frame_id, device_timestamp_ns or -1, host_timestamp_ns, flags, trigger_index
+        [, missing_bytes]).
+        Raises :class:`DiskFullError` (nothing written, the file closes
+        normally) when no room can be reserved for the frame, OSError from HDF5
+        (I/O error; :attr:`failed` is set and :meth:`close` writes nothing
+        more); the file stays valid up to the last :meth:`flush`.
         """
+        if self.failed:
+            raise RecorderError(f"{str(self.path)!r}: a write failed before; the file takes no more frames")
         i = self.n_written
-        if i >= self._capacity:
-            self._grow(i + 1)
         if image.shape != self.shape or image.dtype != self.dtype:
             raise RecorderError(
                 f"frame {row[0]} is {image.dtype} {image.shape}; the recording holds {self.dtype} {self.shape}"
             )
         self._check_room()
         try:
+            if i >= self._capacity:
+                self._grow(i + 1)
             self.frames.id.write_direct_chunk((i, 0, 0), np.ascontiguousarray(image))
-        except OSError:
+        except OSError as exc:
+            if self._release_reserve():
+                # disk full on a file system that cannot reserve: frame i is not counted; the reserve's
+                # space lets close() flush, trim and summarize what was written
+                raise self._disk_full(0, "disk") from exc
             self.failed = True
             raise
         if self._n_rows == len(self._rows):
             self._write_rows()
-        self._rows[self._n_rows] = row
+        self._rows[self._n_rows] = tuple(row) + (0,) * (len(FRAME_TABLE_DTYPE) - len(row))  # missing_bytes: 0
         self._n_rows += 1
         self.n_written = i + 1
         return i
 
+    def _disk_full(self, room: int, what: str) -> DiskFullError:
+        return DiskFullError(
+            f"{what} full: only {format_bytes(max(room, 0))} left for {str(self.path)!r}, kept in reserve so "
+            f"the file stays valid; recording stopped after {self.n_written} frames"
+            + (f" of {self.n_planned}" if self.n_planned else "")
+            + "; free disk space or choose another disk"
+        )
+
     def _check_room(self) -> None:
-        """Stop (DiskFullError) before the disk or the file-size limit is so full that closing could fail."""
-        size = self._size_estimate
+        """Stop (DiskFullError) before the disk or the file-size limit is so full that closing could fail.
+
+        With reservation: the next frame plus ``RESERVE_BYTES`` for closing must
+        lie inside the space already allocated to the file, else more is
+        allocated (in steps of at least ``RESERVE_STEP_BYTES``); when that fails
+        the recording stops here, with the reserve for closing still in hand.
+        """
+        frame = self.frame_bytes + FRAME_TABLE_DTYPE.itemsize
+        if self._can_reserve:
+            try:
+                end = int(self._f.id.get_filesize())  # HDF5's end of allocation
+            except Exception:
+                end = self._reserved
+            need = end + frame + RESERVE_BYTES
+            if need <= self._reserved:
+                return
+            if self._reserve(min(max(need, self._reserved + RESERVE_STEP_BYTES), self._size_limit)) or \
+                    self._reserve(need):
+                if need <= self._reserved or not self._can_reserve:
+                    return
+            room = self._reserved - end - RESERVE_BYTES
+            what = "disk" if need <= self._size_limit else (
+                "file size limit (ulimit -f)" if self._fs_max_bytes is None or self._size_limit < self._fs_max_bytes
+                else f"file system's largest file ({format_bytes(self._fs_max_bytes)})")
+            raise self._disk_full(room, what)
+        size = max(os.path.getsize(self.path), self._reserved)
         room, what = room_bytes(self.path, size, self._fs_max_bytes)
-        need = self.frame_bytes + FRAME_TABLE_DTYPE.itemsize + RESERVE_BYTES
-        if room < need:
-            raise DiskFullError(
-                f"{what} full: only {format_bytes(max(room, 0))} left for {str(self.path)!r}, kept in reserve so "
-                f"the file stays valid; recording stopped after {self.n_written} frames"
-                + (f" of {self.n_planned}" if self.n_planned else "")
-                + "; free disk space or choose another disk"
-            )
-        self._size_estimate += self.frame_bytes + FRAME_TABLE_DTYPE.itemsize
+        if room < frame + (0 if self._reserve_path is not None else RESERVE_BYTES):
+            self._release_reserve()
+            raise self._disk_full(room, what)
 
     def _write_rows(self) -> None:
         if self._n_rows:
@@ -398,19 +600,33 @@ class RecordingFile:
             self._rows_start = a + self._n_rows
             self._n_rows = 0
 
-    def flush(self) -> None:
-        """Put everything written so far on disk and advance ``frames_written``."""
-        try:
-            self._write_rows()
-            self._f.flush()  # frame data and table rows first ...
-            n = self.n_written
-            self.frames.attrs["frames_written"] = n  # ... then the counter that vouches for them
-            self._f.attrs["frames_written"] = n
-            self._f.flush()
-        except OSError:
-            self.failed = True
-            raise
+    def flush(self, *, stop_when_full: bool = True) -> None:
+        """Put everything written so far on disk and advance ``frames_written``.
+
+        If the disk was full and only the reserve file's space let the flush
+        complete, raises :class:`DiskFullError` afterwards (the recording must
+        stop), unless ``stop_when_full`` is False (closing).
+        """
+        if self.failed:
+            raise RecorderError(f"{str(self.path)!r}: a write failed before; nothing more is written")
+        n = self.n_written
+        for attempt in (0, 1):
+            try:
+                self._write_rows()
+                self._f.flush()  # frame data and table rows first ...
+                self.frames.attrs["frames_written"] = n  # ... then the counter that vouches for them
+                self._f.attrs["frames_written"] = n
+                self._f.flush()
+                break
+            except OSError as exc:
+                # HDF5 keeps what it could not write dirty: with the reserve's space it writes it all again
+                if attempt == 0 and self._release_reserve():
+                    continue
+                self.failed = True
+                raise
         self.n_flushed = n
+        if attempt == 1 and stop_when_full:
+            raise self._disk_full(0, "disk")
 
     def add_event(self, kind: str, message: str = "", *, sequence: int = -1, host_timestamp_ns: Optional[int] = None,
                   **extra) -> None:
@@ -422,50 +638,44 @@ class RecordingFile:
 
     def set_attrs(self, **attrs) -> None:
         """Set root attributes (e.g. trigger sequence once the trigger came)."""
+        if self.failed:
+            return
         for k, v in attrs.items():
             self._f.attrs[k] = _attr_value(v)
 
     def close(self, summary: Optional[dict] = None, error: Optional[str] = None) -> None:
-        """Flush, trim the datasets to what was written, store events and summary, close.
+        """The one way a recording ends: after success, a stop, a full disk or an I/O error.
 
-        Safe to call after a write error: it stores what it can and always
-        closes the file handle.
+        While no write has failed: flush, trim the datasets to what was
+        written, store the error, events and summary (all inside the space
+        reserved for closing). Once any write failed (:attr:`failed`), nothing
+        more reaches the file: HDF5's descriptor is swapped for /dev/null
+        before HDF5 closes, so the file stays exactly as the last successful
+        flush left it (superblock, frame table and ``frames_written`` agree).
+        Then the file is reopened read-only to check it; :attr:`n_flushed` is
+        what it really holds. Never raises.
         """
         if self.closed:
             return
         import h5py
 
         f = self._f
-        problems = []
-        if self.failed:
-            # a raw write failed (disk full, I/O error): allocate nothing more; keep what was flushed
+        self.problems: List[str] = []
+        if not self.failed:
             try:
-                f.attrs["complete"] = 0
-            except Exception:
-                pass
-            self.closed = True
-            try:
-                f.close()
+                self.flush(stop_when_full=False)
             except Exception as exc:
-                log.error("recording %s: closing after a write error: %s", self.path, exc)
-            if _repair_eof(self.path):
-                log.warning("recording %s: extended the file to the end HDF5 recorded after the failed write",
-                            self.path)
-            return
-        try:
-            try:
-                self.flush()
-            except Exception as exc:  # disk full: what was flushed before stays valid
-                problems.append(f"final flush failed: {exc}")
+                self.failed = True
+                self.problems.append(f"final flush failed: {exc}")
+        if not self.failed:
             try:
                 n = self.n_flushed
                 if n != self._capacity:
                     self.frames.resize(n, axis=0)
                     self.table.resize(n, axis=0)
                     self._capacity = n
-                f.attrs["complete"] = int(error is None and not problems and
-                                          (self.n_planned is None or n == self.n_planned))
-                f.attrs["error"] = "; ".join(x for x in [error] + problems if x) or ""
+                f.attrs["complete"] = int(error is None and (self.n_planned is None or n == self.n_planned))
+                f.attrs["error"] = error or ""
                 if self.events:
                     f.create_dataset("events", data=[json.dumps(e, default=str) for e in self.events],
                                      dtype=h5py.string_dtype())
@@ -476,16 +686,77 @@ class RecordingFile:
                     g.attrs["summary_json"] = json.dumps(summary, default=str)
                 f.flush()
             except Exception as exc:
-                problems.append(f"writing the summary failed: {exc}")
-                log.error("recording %s: %s", self.path, problems[-1])
-        finally:
-            if not self.closed:
-                self.closed = True
+                self.failed = True
+                self.problems.append(f"writing the summary failed: {exc}")
+        if self.failed:
+            self._detach()
+        self.closed = True
+        self.frames = self.table = None
+        try:
+            f.close()
+        except Exception as exc:
+            if not self.failed:
+                self.problems.append(f"closing failed: {exc}")
+        self._f = None
+        self._release_reserve()
+        self._check_closed_file()
+        for msg in self.problems:
+            log.error("recording %s: %s", self.path, msg)
+
+    def _detach(self) -> None:
+        """Point HDF5's descriptor at /dev/null: what HDF5 still writes while closing never reaches the file.
+
+        (A read-only descriptor would make HDF5's close fail and leave a
+        half-closed library state behind; /dev/null lets it close cleanly.)
+        """
+        if self._fd is None:
+            return
+        try:
+            sink = os.open(os.devnull, os.O_RDWR)
+            try:
+                os.dup2(sink, self._fd)
+            finally:
+                os.close(sink)
+        except OSError as exc:  # pragma: no cover - the file vanished
+            log.error("recording %s: could not stop HDF5 writing: %s", self.path, exc)
+
+    def _check_closed_file(self) -> None:
+        """Reopen the closed file read-only; repair the superblock's end address if HDF5 left it short.
+
+        Sets :attr:`n_flushed` to the frames the file really vouches for
+        (``frames_written``, frame-table rows with sequence numbers).
+        """
+        import h5py
+
+        def frames_valid():
+            with h5py.File(self.path, "r") as g:
+                n = int(g["frames"].attrs.get("frames_written", 0))
+                if n > min(len(g["frames"]), len(g["frame_table"])):
+                    raise RecorderError(f"frames_written {n} exceeds the datasets")
+                seq = g["frame_table"]["sequence"][:n] if n else np.zeros(0, np.int64)
+                return n if np.all(seq >= 0) else int(np.argmax(seq < 0))
+
+        try:
+            n = frames_valid()
+        except Exception as exc:
+            size = os.path.getsize(self.path)
+            eoa = _stored_eoa(self.path)
+            repaired = False
+            if eoa is not None and size > eoa and _set_stored_eoa(self.path, size):
                 try:
-                    f.close()
-                except Exception as exc:  # pragma: no cover - disk full during close
-                    log.error("recording %s: closing failed: %s (the file is valid up to frame %d)",
-                              self.path, exc, self.n_flushed)
+                    n = frames_valid()
+                    repaired = True
+                    self.problems.append("the superblock's end address was short of the data; raised it to the "
+                                         "file size")
+                except Exception:
+                    _set_stored_eoa(self.path, eoa)
+            if not repaired:
+                self.problems.append(f"the file does not open after closing ({exc}); no frame can be vouched for")
+                self.n_flushed = 0
+                return
+        else:
+            _fit_to_eoa(self.path)
+        self.n_flushed = n
 
 
 class Recorder:
@@ -577,7 +848,7 @@ class Recorder:
         self._summary: Optional[dict] = None
         self._last_overrun_log = -1e9
         self._stats = dict(id_gap_frames=0, id_gap_events=0, missing_ids=[], time_gaps=0, lost_by_time=0,
-                           incomplete=0, no_timestamp=0, overrun_events=[])
+                           incomplete=0, missing_bytes=0, no_timestamp=0, overrun_events=[])
 
     # ----------------------------------------------------------- commands
     def begin(self, start_sequence: Optional[int] = None, *, trigger_sequence: Optional[int] = None) -> "Recorder":
@@ -678,10 +949,11 @@ class Recorder:
                 if trig is not None and fr.sequence == trig:
                     flags |= FrameFlags.TRIGGER
                 row = (fr.sequence, fr.frame_id, -1 if fr.device_timestamp_ns is None else fr.device_timestamp_ns,
-                       fr.host_timestamp_ns, flags, tidx)
+                       fr.host_timestamp_ns, flags, tidx, fr.missing_bytes)
                 rf.write(fr.image, row)
                 self.frames_written = rf.n_written
-                prev = _keep_meta(fr)
+                if fr.frame_id >= 0:  # -1: id unknown (lost GigE leader); gaps are counted between known ids
+                    prev = _keep_meta(fr)
                 backlog = cur.backlog
                 self.backlog = backlog
                 if backlog > self.backlog_max:
@@ -703,8 +975,8 @@ class Recorder:
         except DiskFullError as exc:
             error = str(exc)
         except OSError as exc:
-            error = (f"writing {str(rf.path)!r} failed at frame {rf.n_written} ({exc}); the file holds the "
-                     f"frames written before; free disk space or choose another disk")
+            error = (f"writing {str(rf.path)!r} failed at frame {rf.n_written} ({exc}); free disk space or "
+                     "choose another disk")
         except Exception as exc:
             error = f"recorder crashed at frame {rf.n_written}: {type(exc).__name__}: {exc}"
         self._finish(error)
@@ -724,6 +996,7 @@ class Recorder:
         flags = fr.flags
         if flags & FrameFlags.INCOMPLETE:
             st["incomplete"] += 1
+            st["missing_bytes"] += int(fr.missing_bytes)
         if flags & FrameFlags.NO_DEVICE_TIMESTAMP:
             st["no_timestamp"] += 1
         if prev is None:
@@ -745,6 +1018,11 @@ class Recorder:
 
     def _finish(self, error: Optional[str]) -> None:
         self._t_end = time.monotonic()
+        acq = self.acquisition
+        if acq is not None and getattr(acq, "ending", False):
+            # the camera stops after our last frame: wait (briefly) for its final transport counters
+            # (packets resent, missing ...), so that the summary accounts for every packet
+            acq.wait(2.0)
         if self._cursor is not None:
             # frames the cursor skipped inside the requested range [start, end) are lost
             events = [list(e) for e in self._cursor.lost_events]
@@ -764,6 +1042,13 @@ class Recorder:
             error = error or f"closing the file failed: {exc}"
         self.frames_written = self.file.n_flushed
         summary["frames_written"] = self.frames_written
+        if self.file.failed or getattr(self.file, "problems", None):
+            # say what the file really holds (checked by reopening it), and why nothing more was stored
+            extra = "; ".join(getattr(self.file, "problems", []))
+            error = (error or "writing the file failed") + (f"; {extra}" if extra else "") + (
+                f"; the file holds {self.frames_written} valid frames (checked by reopening it; nothing was "
+                "written after the failure, so it has no /summary)")
+            summary["error"] = error
         self._summary = summary
         self.error = error
         self.state = "error" if error else "done"
@@ -796,6 +1081,8 @@ class Recorder:
             time_gaps=st["time_gaps"],
             lost_by_time_estimate=st["lost_by_time"],
             incomplete=st["incomplete"],
+            incomplete_missing_bytes=st["missing_bytes"],
+            frame_bytes=self.file.frame_bytes,
             no_device_timestamp=st["no_timestamp"],
             lost_ring_overrun=self.lost_overrun,
             ring_overrun_events=st["overrun_events"],
@@ -808,8 +1095,13 @@ class Recorder:
         )
         if self.acquisition is not None:
             a = self.acquisition.stats()
-            s["camera_statistics"] = a.get("camera_statistics", {})
+            cs = a.get("camera_statistics", {})
+            s["camera_statistics"] = cs
             s["acquisition_fps"] = round(a.get("fps", 0.0), 2)
+            for key, name in (("n_resend_requests", "packets_resend_requests"), ("n_resent_packets", "packets_resent"),
+                              ("n_missing_packets", "packets_missing")):
+                if key in cs:
+                    s[name] = cs[key]
         # exact counts only; timestamp gaps are an estimate (a late frame also makes one) and are reported apart
         s["total_missing"] = s["lost_upstream_id_gaps"] + s["lost_ring_overrun"]
         return s
@@ -830,21 +1122,41 @@ def format_summary(s: dict) -> str:
         + (f"; missing ids {_ranges(s.get('missing_frame_ids', []))}" if s.get("missing_frame_ids") else "") + ")",
         f"  timestamp gaps   {s.get('time_gaps', 0)} (about {s.get('lost_by_time_estimate', 0)} frames "
         "missing beyond the id gaps)",
-        f"  incomplete       {s.get('incomplete', 0)}",
+        f"  incomplete       {_incomplete_text(s)}",
         f"  ring overrun     {s.get('lost_ring_overrun', 0)} frames lost (recorder backlog max "
         f"{s.get('recorder_backlog_max', 0)} of {s.get('ring_frames', 0)})",
         f"  data rate        {s.get('write_rate_mb_s', 0)} MB/s on average over {s.get('elapsed_s', 0)} s",
     ]
+    if "packets_resend_requests" in s:
+        lines.insert(-1, f"  network packets  {s.get('packets_resend_requests', 0)} resend requests, "
+                         f"{s.get('packets_resent', 0)} packets resent by the camera")
     total = s.get("total_missing", 0)
+    n_incomplete = s.get("incomplete", 0)
     suspect = s.get("lost_by_time_estimate", 0)
     if s.get("error"):
         lines.append(f"  ERROR            {s['error']}")
-    result = ("no frame lost" if not total and not s.get("error") else
-              f"{total} frames missing" if total else "incomplete recording")
+    parts = []
+    if total:
+        parts.append(f"{total} frames missing")
+    if n_incomplete:
+        parts.append(f"{n_incomplete} of {s.get('frames_written', 0)} frames incomplete")
+    result = ("; ".join(parts) if parts else "no frame lost" if not s.get("error") else "incomplete recording")
     if suspect:
         result += f"; timestamp gaps suggest about {suspect} more (frames the camera ids do not show, or late frames)"
     lines.append("  result           " + result)
     return "\n".join(lines)
+
+
+def _incomplete_text(s: dict) -> str:
+    """'12 of 200 frames (1.9 % of their pixels missing, set to 0; the rest kept)' or '0'."""
+    n = s.get("incomplete", 0)
+    if not n:
+        return "0"
+    missing = s.get("incomplete_missing_bytes", 0)
+    frame = s.get("frame_bytes", 0)
+    share = f"{100.0 * missing / (n * frame):.2g} % of their pixels missing" if frame else "pixels missing"
+    return (f"{n} of {s.get('frames_written', 0)} frames ({share}, stored as 0; the pixels that arrived are kept; "
+            "per frame: frame_table missing_bytes)")
 
 
 def _ranges(pairs) -> str:
@@ -881,6 +1193,7 @@ def read_summary(path) -> Dict:
         lost_ring_overrun=int(d_seq.clip(0).sum()) if n > 1 else 0,
         time_gaps=int(((flags & FrameFlags.TIME_GAP_BEFORE) != 0).sum()),
         incomplete=int(((flags & FrameFlags.INCOMPLETE) != 0).sum()),
+        incomplete_missing_bytes=int(t["missing_bytes"].sum()) if "missing_bytes" in (t.dtype.names or ()) else 0,
         error="no /summary: the recording did not end normally (crash or power loss); counts rebuilt from "
               "/frame_table",
     )

@@ -45,8 +45,8 @@ __all__ = [
     "format_bytes",
 ]
 
-#: bytes of metadata stored per slot (sequence, frame id, device ts, host ts: int64; flags: uint32)
-META_BYTES_PER_FRAME = 4 * 8 + 4
+#: bytes of metadata stored per slot (sequence, frame id, device ts, host ts, missing bytes: int64; flags: uint32)
+META_BYTES_PER_FRAME = 5 * 8 + 4
 
 #: fraction of the available memory a ring may take before we refuse to allocate it
 MEMORY_FRACTION = 0.8
@@ -138,6 +138,8 @@ class RingFrame:
         Status bits; RING_OVERRUN_BEFORE when this consumer lost frames just before this one.
     lost_before : int
         Number of frames this consumer lost to ring overwrites right before this one (0 normally).
+    missing_bytes : int
+        Image bytes the transport never delivered (their pixels are 0; flag INCOMPLETE); 0 normally.
     """
 
     image: np.ndarray
@@ -147,6 +149,7 @@ class RingFrame:
     host_timestamp_ns: int
     flags: FrameFlags
     lost_before: int = 0
+    missing_bytes: int = 0
 
 
 class RingBuffer:
@@ -194,6 +197,7 @@ class RingBuffer:
         self.device_ts_ns = np.full(n_frames, -1, dtype=np.int64)
         self.host_ts_ns = np.zeros(n_frames, dtype=np.int64)
         self.flags = np.zeros(n_frames, dtype=np.uint32)
+        self.missing_bytes = np.zeros(n_frames, dtype=np.int64)
         self._head = 0  # number of frames committed == sequence of the next frame
         self._started = -1  # highest sequence the writer began writing (slot may be dirty)
         self._cond = threading.Condition(threading.Lock())
@@ -244,10 +248,12 @@ class RingBuffer:
         self._started = seq  # readers of seq - n_frames now know that slot is dirty
         return seq, self.frames[seq % self.n_frames]
 
-    def commit(self, frame_id: int, device_timestamp_ns: Optional[int], host_timestamp_ns: int, flags: int = 0) -> int:
+    def commit(self, frame_id: int, device_timestamp_ns: Optional[int], host_timestamp_ns: int, flags: int = 0,
+               missing_bytes: int = 0) -> int:
         """Publish the slot claimed by :meth:`begin_write`; returns its sequence number."""
         seq = self._head
         i = seq % self.n_frames
+        self.missing_bytes[i] = missing_bytes
         self.frame_id[i] = frame_id
         if device_timestamp_ns is None:
             self.device_ts_ns[i] = -1
@@ -323,9 +329,10 @@ class RingBuffer:
         dts = int(self.device_ts_ns[i])
         hts = int(self.host_ts_ns[i])
         flags = int(self.flags[i])
+        missing = int(self.missing_bytes[i])
         if not self._intact(sequence) or self.sequence[i] != sequence:
             return None  # the writer started overwriting the slot while we copied it
-        return RingFrame(out, sequence, fid, None if dts < 0 else dts, hts, FrameFlags(flags))
+        return RingFrame(out, sequence, fid, None if dts < 0 else dts, hts, FrameFlags(flags), missing_bytes=missing)
 
     def latest(self, timeout_s: float = 0.0, out: Optional[np.ndarray] = None) -> Optional[RingFrame]:
         """The newest frame not yet returned by ``latest`` (the processing worker's policy).

@@ -4,22 +4,32 @@
 :func:`add_record_arguments` and calls :func:`cmd_cameras` / :func:`cmd_record`.
 Also runnable alone: ``python3 -m app.cli.record record --camera synthetic --frames 100 --out x.h5``.
 
-Exit codes of ``record``: 0 every planned frame is in the file; 1 the file
-was written but frames are missing (camera frame-id gaps or ring overruns;
-the summary says which; timestamp gaps alone are reported as a suspicion,
-not counted, because a late frame makes one too); 2 error (one
-line on stderr saying what to do; a partial file, if any, stays valid);
-130 interrupted (Ctrl-C; the file holds what was written).
+Exit codes of ``record`` (docs/reliability.md lists the cases):
+
+* 0 -- every planned frame is in the file, complete;
+* 1 -- the file was written but frames are missing (camera frame-id gaps or
+  ring overruns) or incomplete (packets lost on the network: the pixels that
+  arrived are kept, the frame table says how many bytes are missing); the
+  summary says which ("12 of 200 frames incomplete"). Timestamp gaps alone
+  are reported as a suspicion, not counted, because a late frame makes one too;
+* 2 -- error: bad arguments (checked before a camera is opened), camera busy
+  or lost, disk full ... One line on stderr saying what to do; a partial
+  file, if any, is valid up to the frame count the summary prints;
+* 130 -- Ctrl-C, 143 -- SIGTERM, 129 -- SIGHUP: the frames already captured
+  (burst frames in RAM too) are written, the file is closed with its summary.
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+import signal
 import sys
 import time
 from pathlib import Path
 from typing import Optional
+
+import numpy as np
 
 __all__ = ["add_cameras_arguments", "cmd_cameras", "add_record_arguments", "cmd_record", "main"]
 
@@ -129,16 +139,93 @@ class _UsageError(Exception):
 
 
 def _plan(args):
-    """(mode, pre, post, n) from the arguments; raises _UsageError with a clear message."""
+    """"frames" or "trigger" from the arguments, every number checked; raises _UsageError (no camera is opened)."""
+    def need(value, ok, name, rule):
+        if value is not None and not ok(value):
+            raise _UsageError(f"{name} must be {rule}; got {value:g}")
+
+    need(args.frames, lambda v: v >= 1, "--frames", ">= 1")
+    need(args.pre, lambda v: v >= 0, "--pre", ">= 0 frames")
+    need(args.post, lambda v: v >= 1, "--post", ">= 1 frame (the trigger frame itself)")
+    need(args.pre_s, lambda v: v >= 0, "--pre-s", ">= 0 seconds")
+    need(args.post_s, lambda v: v > 0, "--post-s", "> 0 seconds")
+    need(args.ring_frames, lambda v: v >= 2, "--ring-frames", ">= 2")
+    need(args.timeout_s, lambda v: v > 0, "--timeout-s", "> 0 seconds")
+    need(args.trigger_timeout_s, lambda v: v > 0, "--trigger-timeout-s", "> 0 seconds")
+    need(args.trigger_after_s, lambda v: v >= 0, "--trigger-after-s", ">= 0 seconds")
+    need(args.frame_rate_hz, lambda v: v > 0, "--frame-rate-hz", "> 0 Hz")
+    need(args.exposure_us, lambda v: v > 0, "--exposure-us", "> 0 microseconds")
+    need(args.synthetic_size, lambda v: v >= 16, "--synthetic-size", ">= 16 pixels")
+    need(args.synthetic_frames, lambda v: v >= 1, "--synthetic-frames", ">= 1")
+    if args.roi is not None and (min(args.roi[:2]) < 0 or min(args.roi[2:]) < 1):
+        raise _UsageError(f"--roi needs X,Y >= 0 and WIDTH,HEIGHT >= 1 pixels; got {','.join(map(str, args.roi))}")
+    if args.pre is not None and args.pre_s is not None:
+        raise _UsageError("give either --pre (frames) or --pre-s (seconds), not both")
+    if args.post is not None and args.post_s is not None:
+        raise _UsageError("give either --post (frames) or --post-s (seconds), not both")
     if args.frames is not None:
         if any(v is not None for v in (args.pre, args.post, args.pre_s, args.post_s)):
             raise _UsageError("give either --frames N, or --pre/--post (with --trigger), not both")
-        if args.frames < 1:
-            raise _UsageError(f"--frames must be >= 1; got {args.frames}")
         return "frames"
     if args.post is None and args.post_s is None:
         raise _UsageError("say how much to record: --frames N, or --pre N --post M (--pre-s/--post-s in seconds)")
     return "trigger"
+
+
+def _frame_counts(args, mode: str, rate) -> tuple:
+    """(pre, post) in frames; seconds need the frame rate (``rate``, Hz)."""
+    from app.capture.trigger import frames_for_seconds
+
+    if mode == "frames":
+        return 0, int(args.frames)
+    pre = frames_for_seconds(args.pre_s, rate, "--pre-s") if args.pre_s is not None else int(args.pre or 0)
+    post = frames_for_seconds(args.post_s, rate, "--post-s") if args.post_s is not None else int(args.post)
+    return pre, post
+
+
+#: share of the available memory the ring buffer may take by default, and its cap in bytes
+RING_MEMORY_FRACTION = 0.5
+RING_MEMORY_CAP_BYTES = 8 * 10**9
+
+
+def _ring_frames(args, mode: str, pre: int, post: int, shape, dtype) -> int:
+    """Ring size in frames; refuses (_UsageError, naming the RAM) what must sit in RAM but cannot.
+
+    The pre-trigger frames (and with --burst the whole capture) live in the
+    ring, in RAM, before anything is written.
+    """
+    from app.capture.ringbuffer import RingBuffer, available_memory_bytes, format_bytes
+
+    total = pre + post
+    if args.ring_frames:
+        ring_frames = int(args.ring_frames)
+        needed = RingBuffer.bytes_for(shape, dtype, ring_frames)
+        avail = available_memory_bytes()
+        if needed > 0.8 * avail:
+            raise _UsageError(f"--ring-frames {ring_frames} of {shape[0]}x{shape[1]} {np.dtype(dtype)} needs "
+                              f"{format_bytes(needed)} of RAM but {format_bytes(avail)} are available; give fewer")
+    else:
+        avail = available_memory_bytes()
+        budget = min(int(RING_MEMORY_FRACTION * avail), RING_MEMORY_CAP_BYTES)
+        fit = RingBuffer.frames_for(shape, dtype, budget)
+        ring_frames = max(min(total + 16, fit), min(fit, 8))
+        if ring_frames < min(total, 64):
+            ring_frames = min(fit, 64)
+    in_ram = total if args.burst else pre + 1
+    what = (f"--burst of {total} frames" if args.burst else f"{pre} pre-trigger frames (--pre)")
+    if in_ram > ring_frames:
+        need = RingBuffer.bytes_for(shape, dtype, in_ram)
+        if args.ring_frames:
+            limit = f"the ring of --ring-frames {ring_frames}"
+        else:
+            limit = (f"the RAM the ring may use, {format_bytes(budget)} ({ring_frames} frames; "
+                     f"{RING_MEMORY_FRACTION:.0%} of the {format_bytes(avail)} available, at most "
+                     f"{format_bytes(RING_MEMORY_CAP_BYTES)})")
+        raise _UsageError(f"{what} of {shape[1]}x{shape[0]} {np.dtype(dtype)} must be held in RAM "
+                          f"({format_bytes(need)}) but exceed {limit}; "
+                          + ("record without --burst" if args.burst else "use fewer pre-trigger frames")
+                          + (f" or give --ring-frames {in_ram}" if args.ring_frames else ", or a smaller --roi"))
+    return ring_frames
 
 
 def _open_camera(args):
@@ -181,6 +268,7 @@ def _configure(cam, args):
 def _progress(args, total: int, desc: str):
     if args.no_progress:
         return None
+    desc = desc + (" (captured into RAM)" if args.burst else "")
     try:
         from tqdm import tqdm
     except ImportError:  # pragma: no cover - tqdm is a dependency
@@ -203,19 +291,89 @@ def _wait_with_bar(waitable, bar, counter, deadline: float, interval_s: float = 
             return False
 
 
+class _Signalled(KeyboardInterrupt):
+    """SIGTERM or SIGHUP arrived: end like Ctrl-C (close the file properly), exit 128 + signal number."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = signum
+
+
+#: signals that end a recording like Ctrl-C: what `timeout` and systemd send, and a closing terminal
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGHUP)
+
+
+def _say(text: str, stream=None) -> None:
+    """Print, but never fail: after SIGHUP the terminal may be gone (EIO) while the file is still being closed."""
+    try:
+        print(text, file=stream or sys.stdout, flush=True)
+    except (OSError, ValueError):
+        pass
+
+
+def _install_stop_signals():
+    """SIGTERM/SIGHUP raise _Signalled in the main thread; returns the previous handlers (to restore)."""
+    def handler(signum, frame):
+        _hold_stop_signals()  # a second signal must not cut the closing short
+        raise _Signalled(signum)
+
+    previous = {}
+    for sig in STOP_SIGNALS:
+        try:
+            previous[sig] = signal.signal(sig, handler)
+        except (ValueError, OSError):  # not the main thread: the caller handles it
+            pass
+    return previous
+
+
+def _hold_stop_signals() -> None:
+    """While the file is closed: SIGINT/SIGTERM/SIGHUP only print that closing goes on."""
+    def busy(signum, frame):
+        _say("tirdeflect record: still closing the file; please wait", sys.stderr)
+
+    for sig in STOP_SIGNALS + (signal.SIGINT,):
+        try:
+            signal.signal(sig, busy)
+        except (ValueError, OSError):
+            pass
+
+
+def _restore_signals(previous) -> None:
+    for sig, h in previous.items():
+        try:
+            signal.signal(sig, h)
+        except (ValueError, OSError, TypeError):
+            pass
+    try:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    except (ValueError, OSError):
+        pass
+
+
 def cmd_record(args) -> int:
     """Record headless; print the drop summary. Returns the exit code (see module docstring)."""
+    prog = "tirdeflect record"
+    previous = _install_stop_signals()
+    try:
+        return _record(args, prog)
+    except _Signalled as exc:  # came while the camera was being released: the file is already closed
+        return 128 + exc.signum
+    finally:
+        _restore_signals(previous)
+
+
+def _record(args, prog: str) -> int:
     from drivers.base import CameraError
 
-    from app.capture.acquisition import Acquisition, AcquisitionError
+    from app.capture.acquisition import Acquisition, AcquisitionError, dtype_for_bit_depth
     from app.capture.recorder import Recorder, RecorderError, format_summary
-    from app.capture.ringbuffer import MemoryBudgetError, RingBuffer, available_memory_bytes
+    from app.capture.ringbuffer import MemoryBudgetError
     from app.capture.trigger import AutoTrigger, TriggerError, TriggeredCapture, configure_trigger
 
-    prog = "tirdeflect record"
-    cam = acq = rec = None
+    cam = acq = rec = cap = None
     result = None
     try:
+        # everything that needs no camera is checked before one is opened
         mode = _plan(args)
         out = Path(args.out)
         if out.exists() and args.auto_name:
@@ -225,6 +383,14 @@ def cmd_record(args) -> int:
         elif out.exists():
             raise _UsageError(f"{str(out)!r} already exists and recordings are never overwritten; "
                               "choose another --out or add --auto-name")
+        if not out.parent.is_dir():
+            raise _UsageError(f"folder {str(out.parent)!r} does not exist; create it or choose another --out")
+        if args.camera == "synthetic":  # its frames are known before the (slow) scene is rendered
+            size = int(args.synthetic_size)
+            _ring_frames(args, mode, *_frame_counts(args, mode, args.frame_rate_hz or 100.0), (size, size), np.uint8)
+        elif args.roi is not None and (mode == "frames" or args.pre_s is None or args.frame_rate_hz):
+            # at least one byte per pixel of the ROI
+            _ring_frames(args, mode, *_frame_counts(args, mode, args.frame_rate_hz), args.roi[:1:-1], np.uint8)
         geometry_toml = Path(args.geometry).read_text() if args.geometry else None
         reference = None
         if args.reference:
@@ -243,26 +409,11 @@ def cmd_record(args) -> int:
         rate = settings.frame_rate_hz or args.frame_rate_hz
         if trig == "genicam" and not rate:
             raise _UsageError("--trigger genicam needs --frame-rate-hz (how often to send TriggerSoftware)")
-        from app.capture.trigger import frames_for_seconds
-
-        if mode == "frames":
-            pre, post = 0, int(args.frames)
-        else:
-            pre = (frames_for_seconds(args.pre_s, rate, "--pre-s") if args.pre_s is not None else int(args.pre or 0))
-            post = (frames_for_seconds(args.post_s, rate, "--post-s") if args.post_s is not None else int(args.post))
+        pre, post = _frame_counts(args, mode, rate)
         total = pre + post
         shape = (settings.height, settings.width)
-        from app.capture.acquisition import dtype_for_bit_depth
-
         dtype = dtype_for_bit_depth(settings.bit_depth)
-        if args.ring_frames:
-            ring_frames = int(args.ring_frames)
-        else:
-            budget = min(int(0.5 * available_memory_bytes()), 8 * 10**9)
-            fit = RingBuffer.frames_for(shape, dtype, budget)
-            ring_frames = max(min(total + 16, fit), min(fit, 8))
-            if ring_frames < min(total, 64):
-                ring_frames = min(fit, 64)
+        ring_frames = _ring_frames(args, mode, pre, post, shape, dtype)
         acq = Acquisition(cam, ring_frames=ring_frames, frame_rate_hz=rate if trig == "genicam" else None,
                           stall_timeout_s=5.0)
         file_options = dict(check_space=not args.no_space_check, on_exists="error",
@@ -273,16 +424,15 @@ def cmd_record(args) -> int:
 
         if mode == "frames":
             burst = bool(args.burst) and total <= acq.ring.n_frames
-            if args.burst and not burst:
-                raise _UsageError(f"--burst of {total} frames does not fit into the ring of {acq.ring.n_frames} "
-                                  "frames; give --ring-frames or record without --burst")
             rec = Recorder(acq.ring, out, n_frames=total, acquisition=acq, defer=burst,
                            attrs=dict(trigger_source="none", pre_frames=0, post_frames=total,
                                       frame_rate_hz=rate or -1.0, burst=int(burst)), **file_options)
             rec.begin(0)
             acq.stop_after(total - 1)
             acq.start()
-            finished = _wait_with_bar(rec.wait, bar, lambda: rec.frames_written, time.monotonic() + timeout)
+            # burst: the bar counts frames captured into RAM (nothing is written before the end)
+            counter = (lambda: min(acq.ring.head, total)) if burst else (lambda: rec.frames_written)
+            finished = _wait_with_bar(rec.wait, bar, counter, time.monotonic() + timeout)
             summary_src = rec
         else:
             cap = TriggeredCapture(acq, out, pre_frames=pre, post_frames=post, source=trig, burst=args.burst,
@@ -320,33 +470,45 @@ def cmd_record(args) -> int:
             bar.close()
         if not finished:
             rec.stop(10.0, drain=False)
-            print(f"{prog}: error: recording did not finish within {timeout:g} s; the file holds "
-                  f"{rec.frames_written} frames", file=sys.stderr)
+            _say(f"{prog}: error: recording did not finish within {timeout:g} s; the file holds "
+                 f"{rec.frames_written} frames", sys.stderr)
             result = 2
         acq.stop(10.0)
         summary = summary_src.summary()
-        print(format_summary(summary))
+        _say(format_summary(summary))
         if result is None:
             if rec.error:
-                print(f"{prog}: error: {rec.error}", file=sys.stderr)
+                _say(f"{prog}: error: {rec.error}", sys.stderr)
                 result = 2
             else:
-                result = 1 if summary.get("total_missing", 0) else 0
+                result = exit_status(summary)
         return result
-    except KeyboardInterrupt:
-        print(f"{prog}: interrupted; closing the file", file=sys.stderr)
+    except KeyboardInterrupt as exc:
+        _hold_stop_signals()
+        what = "closing the file" if rec is not None else "no recording had begun, no file was written"
+        if isinstance(exc, _Signalled):
+            name = signal.Signals(exc.signum).name
+            _say(f"{prog}: {name} received; {what}", sys.stderr)
+            code = 128 + exc.signum
+        else:
+            _say(f"{prog}: interrupted; {what}", sys.stderr)
+            code = 130
         if acq is not None:
             try:
                 acq.stop(5.0)
             except AcquisitionError:
                 pass
         if rec is not None:
-            rec.stop(30.0, drain=True)  # write what is in the ring, then close the file properly
-            print(format_summary(rec.summary()))
-        return 130
+            _close_on_stop(rec, cap)
+            _say(format_summary(rec.summary()))
+            _say(f"{prog}: stopped by {'Ctrl-C' if code == 130 else signal.Signals(code - 128).name}; "
+                 f"the file holds {rec.frames_written} frames", sys.stderr)
+        return code
     except (_UsageError, CameraError, AcquisitionError, RecorderError, TriggerError, MemoryBudgetError,
             ValueError, OSError) as exc:
-        print(f"{prog}: error: {exc}", file=sys.stderr)
+        _say(f"{prog}: error: {exc}", sys.stderr)
+        if rec is not None and not rec.done:
+            rec.stop(30.0, drain=True)
         return 2
     finally:
         if acq is not None and acq.state == "running":
@@ -359,6 +521,29 @@ def cmd_record(args) -> int:
                 cam.close()
             except Exception:
                 pass
+
+
+def _close_on_stop(rec, cap) -> None:
+    """After Ctrl-C/SIGTERM/SIGHUP: write every frame already captured, then close the file properly.
+
+    Burst mode: the frames wait in RAM; they are written now. Before a
+    trigger came, the pre-trigger frames in the ring are written (the stop
+    acts as the trigger, with no frame after it).
+    """
+    if rec.state == "armed" and cap is not None:
+        ring = rec.ring
+        start = max(ring.oldest, ring.head - cap.pre_frames)
+        if ring.head > start:
+            try:
+                rec.begin(start)
+            except Exception:
+                pass
+    rec.stop(60.0, drain=True)
+
+
+def exit_status(summary: dict) -> int:
+    """0 all planned frames complete; 1 frames missing or incomplete (see the module docstring)."""
+    return 1 if summary.get("total_missing", 0) or summary.get("incomplete", 0) else 0
 
 
 def _run_auto(args, acq, cap, geometry_toml, reference, AutoTrigger, t0):

@@ -107,8 +107,8 @@ def test_ring_memory_is_checked_before_allocation():
     with SyntheticCamera(_frames(2, (1024, 1024)), frame_rate_hz=10) as cam:
         with pytest.raises(MemoryBudgetError, match=r"ring buffer of 100000000 frames 1024x1024 uint8 needs"):
             Acquisition(cam, ring_frames=10**8)
-        assert Acquisition.ring_bytes_for((1024, 1024), np.uint8, 10) == 10 * (1024 * 1024 + 36)
-        acq = Acquisition(cam, ring_bytes=10 * (1024 * 1024 + 36))
+        assert Acquisition.ring_bytes_for((1024, 1024), np.uint8, 10) == 10 * (1024 * 1024 + 44)
+        acq = Acquisition(cam, ring_bytes=10 * (1024 * 1024 + 44))
         assert acq.ring.n_frames == 10
 
 

@@ -78,7 +78,7 @@ def test_record_pre_post_from_gige_fake_camera(tmp_path, capsys, gv_fake_camera)
         (("--pre", "5", "--post", "5", "--trigger", "line1", "--trigger-timeout-s", "0.3"),
          "no frames before it; got pre=5"),
         (("--post", "5", "--trigger", "line1", "--trigger-timeout-s", "0.3"), "no pulse on Line1"),
-        (("--frames", "5", "--exposure-us", "-3"), "exposure_us=-3.0 is out of range"),
+        (("--frames", "5", "--exposure-us", "-3"), "--exposure-us must be > 0 microseconds; got -3"),
     ],
 )
 def test_errors_are_one_line_and_exit_2(tmp_path, capsys, argv, message):

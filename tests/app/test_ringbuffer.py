@@ -124,7 +124,7 @@ def test_closed_with_error_reaches_the_consumer_after_draining():
 
 def test_memory_cost_is_known_before_allocation():
     need = RingBuffer.bytes_for((1024, 1024), np.uint16, 100)
-    assert need == 100 * (1024 * 1024 * 2 + 36)
+    assert need == 100 * (1024 * 1024 * 2 + 44)
     assert RingBuffer.frames_for((1024, 1024), np.uint16, need) == 100
     with pytest.raises(MemoryBudgetError, match=r"needs 209\.72 MB but only 100\.00 MB"):
         check_memory(need, "ring buffer of 100 frames", available_bytes=100_000_000)

@@ -136,8 +136,10 @@ def test_gige_packet_loss_is_counted_not_hidden(gv_fake_camera_lossy):
     # every id in the span was delivered (complete or flagged) or is a counted gap
     assert span == n + stats["n_id_gap_frames"]
     assert len(set(ids.tolist())) == n
-    # every failed buffer reached the consumer, flagged
-    assert n_incomplete == stats["n_incomplete_delivered"] == stats["n_failures"]
+    # every failed buffer reached the consumer, flagged -- unless only its leader/trailer was lost (all pixels there)
+    assert n_incomplete == stats["n_incomplete_delivered"] == stats["n_failures"] - stats["n_failed_but_all_pixels"]
+    assert sum(f.missing_bytes for f in frames) == stats["n_missing_bytes"]
+    assert all((f.missing_bytes > 0) == f.incomplete for f in frames)
     assert stats["n_completed_buffers"] + stats["n_failures"] == n + stats["n_output_buffers"]
     # frames not flagged are whole: the fake's diagonal ramp is intact in every one
     for f in frames:
