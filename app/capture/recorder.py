@@ -34,14 +34,25 @@ from __future__ import annotations
 import json
 import logging
 import os
-import shutil
 import threading
 import time
 from pathlib import Path
-from typing import Callable, Dict, List, Optional, Tuple
+from typing import Callable, Dict, List, Optional
 
 import numpy as np
 
+from app.files import h5safe
+from app.files.h5safe import (  # noqa: F401  (FS_MAX_FILE_BYTES, filesystem_type: importable from here as before)
+    FS_MAX_FILE_BYTES,
+    Preallocation,
+    SpaceReserve,
+    file_size_limit,
+    filesystem_type,
+    fit_to_eoa,
+    max_file_bytes,
+    repair_eof,
+    room_bytes,
+)
 from drivers.base import FrameFlags
 
 from .ringbuffer import RingBuffer, RingClosed, RingFrame, format_bytes
@@ -89,8 +100,11 @@ class DiskSpaceError(RecorderError):
     """Not enough free space for the planned recording."""
 
 
-class DiskFullError(DiskSpaceError):
-    """The disk (or the file-size limit) ran out during the recording; the file is closed valid."""
+class DiskFullError(DiskSpaceError, h5safe.DiskFullError):
+    """The disk (or the file-size limit) ran out during the recording; the file is closed valid.
+
+    Both a :class:`RecorderError` and the one :class:`app.files.h5safe.DiskFullError`.
+    """
 
 
 #: space kept allocated beyond the data so that the file can always be closed validly (trim, events, summary)
@@ -98,119 +112,6 @@ RESERVE_BYTES = 4 * 1024 * 1024
 
 #: smallest step in which space is allocated ahead of the data when the length is not known, bytes
 RESERVE_STEP_BYTES = 64 * 1024 * 1024
-
-
-#: largest file some file systems can hold, bytes (FAT32 and its kin: 4 GiB - 1)
-FS_MAX_FILE_BYTES = {"vfat": 2**32 - 1, "msdos": 2**32 - 1, "fat": 2**32 - 1, "umsdos": 2**32 - 1}
-
-
-def filesystem_type(path, mounts_text: Optional[str] = None) -> str:
-    """File-system type of the mount holding ``path`` (from /proc/mounts; "" when unknown)."""
-    try:
-        if mounts_text is None:
-            with open("/proc/mounts") as fh:
-                mounts_text = fh.read()
-    except OSError:  # pragma: no cover - not Linux
-        return ""
-    target = os.path.realpath(str(path))
-    best, kind = "", ""
-    for line in mounts_text.splitlines():
-        parts = line.split()
-        if len(parts) < 3:
-            continue
-        mnt = parts[1].replace("\\040", " ")
-        inside = target == mnt or target.startswith(mnt.rstrip("/") + "/")
-        if inside and len(mnt) >= len(best):
-            best, kind = mnt, parts[2]
-    return kind
-
-
-def max_file_bytes(path) -> Optional[int]:
-    """The file-size limit of the file system holding ``path`` (None: none known), e.g. 4 GiB - 1 on FAT32."""
-    return FS_MAX_FILE_BYTES.get(filesystem_type(path))
-
-
-def room_bytes(path: Path, current_size: int, fs_max_bytes: Optional[int] = None) -> Tuple[int, str]:
-    """Bytes the file at ``path`` may still grow by, and what limits it.
-
-    The smallest of: free space on the disk ("disk"), the process's
-    ``ulimit -f`` and the file system's largest file (FAT32: 4 GiB).
-    """
-    room, what = shutil.disk_usage(path.parent).free, "disk"
-    if fs_max_bytes is not None and fs_max_bytes - current_size < room:
-        room, what = fs_max_bytes - current_size, f"file system's largest file ({format_bytes(fs_max_bytes)})"
-    try:
-        import resource
-
-        soft, _ = resource.getrlimit(resource.RLIMIT_FSIZE)
-        if soft != resource.RLIM_INFINITY and soft - current_size < room:
-            room, what = soft - current_size, "file size limit (ulimit -f)"
-    except (ImportError, ValueError, OSError):  # pragma: no cover - not POSIX
-        pass
-    return room, what
-
-
-_SUPERBLOCK_SIGNATURE = b"\x89HDF\r\n\x1a\n"
-
-
-def _stored_eoa(path: Path) -> Optional[int]:
-    """End-of-allocation address HDF5 stored in the superblock (version 0, what we write), None if unreadable."""
-    try:
-        with open(path, "rb") as fh:
-            head = fh.read(48)
-    except OSError:
-        return None
-    if len(head) < 48 or head[:8] != _SUPERBLOCK_SIGNATURE or head[8] != 0 or head[13] != 8:
-        return None
-    return int.from_bytes(head[40:48], "little")
-
-
-def _set_stored_eoa(path: Path, eoa: int) -> bool:
-    """Rewrite the superblock's end-of-allocation address in place (8 bytes inside the first block: needs no space)."""
-    try:
-        with open(path, "r+b") as fh:
-            fh.seek(40)
-            fh.write(int(eoa).to_bytes(8, "little"))
-        return True
-    except OSError:
-        return False
-
-
-def _fit_to_eoa(path: Path) -> None:
-    """Cut the space reserved beyond HDF5's end of allocation (or extend, sparse, a file HDF5 thinks is longer)."""
-    eoa = _stored_eoa(path)
-    try:
-        if eoa is not None and 0 < eoa < (1 << 50) and os.path.getsize(path) != eoa:
-            os.truncate(path, eoa)
-    except OSError as exc:  # the file stays valid, only larger than needed
-        log.warning("recording %s: could not release the reserved space beyond the data: %s", path, exc)
-
-
-_libc = None
-
-
-def _fallocate(fd: int, offset: int, length: int) -> int:
-    """Allocate ``length`` bytes of ``fd`` from ``offset`` on disk (Linux fallocate, mode 0); 0 or an errno.
-
-    Unlike ``os.posix_fallocate`` this never falls back to writing zeros on
-    file systems without fallocate (that would take as long as writing the
-    data): they answer EOPNOTSUPP and the recorder checks free space instead.
-    """
-    global _libc
-    import ctypes
-    import errno
-
-    if _libc is None:
-        try:
-            _libc = ctypes.CDLL(None, use_errno=True)
-            _libc.fallocate.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.c_int64, ctypes.c_int64]
-        except (OSError, AttributeError):
-            _libc = False
-    if not _libc:
-        return errno.EOPNOTSUPP
-    if _libc.fallocate(int(fd), 0, int(offset), int(length)) == 0:
-        return 0
-    return ctypes.get_errno()
 
 
 def software_version() -> str:
@@ -404,10 +305,8 @@ class RecordingFile:
         # Space is reserved on disk ahead of HDF5 (fallocate), so that another program filling the disk
         # gets "disk full" instead of us, and so that closing (trim, events, summary) always has room.
         self._fd = self._vfd_handle()
-        self._reserved = os.path.getsize(p)  # bytes of the file allocated on disk
-        self._can_reserve = self._fd is not None
-        self._size_limit = self._file_size_limit()
-        self._reserve_path: Optional[Path] = None
+        self._alloc = Preallocation(self._fd, os.path.getsize(p), file_size_limit(self._fs_max_bytes))
+        self._spare: Optional[SpaceReserve] = None  # the hidden reserve file (file systems without fallocate)
         if self.planned_bytes is not None and not self._reserve(self.planned_bytes):
             if check_space:  # the disk filled between the check above and now
                 self._abandon()
@@ -424,45 +323,20 @@ class RecordingFile:
         except Exception:  # another HDF5 driver: no descriptor, no reservation
             return None
 
-    def _file_size_limit(self) -> int:
-        """Largest size this file may reach: the file system's (FAT32) and the process's (ulimit -f) limits."""
-        limit = self._fs_max_bytes if self._fs_max_bytes is not None else 1 << 62
-        try:
-            import resource
-
-            soft, _ = resource.getrlimit(resource.RLIMIT_FSIZE)
-            if soft != resource.RLIM_INFINITY:
-                limit = min(limit, soft)
-        except (ImportError, ValueError, OSError):  # pragma: no cover - not POSIX
-            pass
-        return limit
-
     def _reserve(self, target: int) -> bool:
         """Make sure the first ``target`` bytes of the file are allocated on disk; False when there is no room.
 
         Never asks for more than the file-size limit (that would raise SIGXFSZ).
         A file system without fallocate turns reservation off: then
-        :meth:`_check_room` compares with the free space instead.
+        :meth:`_check_room` compares with the free space instead, and a
+        reserve file is made (:meth:`_make_reserve_file`).
         """
-        import errno
-
-        if not self._can_reserve or target <= self._reserved:
-            return True
-        if target > self._size_limit:
-            return False
-        err = _fallocate(self._fd, self._reserved, target - self._reserved)
-        if err == 0:
-            self._reserved = target
-            return True
-        if err in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):
-            return False
-        if err == errno.EINTR:
-            return self._reserve(target)
-        self._can_reserve = False  # EOPNOTSUPP, ENOSYS, EINVAL ...: fall back to the free-space check
-        log.info("recording %s: the file system cannot reserve space (errno %d); checking free space instead",
-                 self.path, err)
-        self._make_reserve_file()
-        return True
+        could = self._alloc.supported
+        ok = self._alloc.ensure(target)
+        if could and not self._alloc.supported:
+            log.info("recording %s: the file system cannot reserve space; checking free space instead", self.path)
+            self._make_reserve_file()
+        return ok
 
     def _make_reserve_file(self) -> None:
         """Without fallocate: hold ``RESERVE_BYTES`` in a hidden sibling file, given back when the disk is full.
@@ -471,29 +345,12 @@ class RecordingFile:
         written into; without it, HDF5 could be cut off halfway through
         writing its metadata.
         """
-        q = self.path.with_name(f".{self.path.name}.reserve")
-        try:
-            with open(q, "xb") as fh:
-                fh.write(b"\0" * RESERVE_BYTES)
-                fh.flush()
-                os.fsync(fh.fileno())
-            self._reserve_path = q
-        except OSError:
-            try:
-                q.unlink()
-            except OSError:
-                pass
+        self._spare = SpaceReserve(self.path, RESERVE_BYTES)
 
     def _release_reserve(self) -> bool:
         """Give the reserve file's space to the file system (for closing); True if there was one."""
-        q, self._reserve_path = self._reserve_path, None
-        if q is None:
-            return False
-        try:
-            q.unlink()
-            return True
-        except OSError:
-            return False
+        spare, self._spare = self._spare, None
+        return spare is not None and spare.release()
 
     def _abandon(self) -> None:
         """Close and delete a file that never held a frame (creation could not complete)."""
@@ -570,26 +427,27 @@ class RecordingFile:
         the recording stops here, with the reserve for closing still in hand.
         """
         frame = self.frame_bytes + FRAME_TABLE_DTYPE.itemsize
-        if self._can_reserve:
+        alloc = self._alloc
+        if alloc.supported:
             try:
                 end = int(self._f.id.get_filesize())  # HDF5's end of allocation
             except Exception:
-                end = self._reserved
+                end = alloc.allocated_bytes
             need = end + frame + RESERVE_BYTES
-            if need <= self._reserved:
+            if need <= alloc.allocated_bytes:
                 return
-            if self._reserve(min(max(need, self._reserved + RESERVE_STEP_BYTES), self._size_limit)) or \
+            if self._reserve(min(max(need, alloc.allocated_bytes + RESERVE_STEP_BYTES), alloc.limit_bytes)) or \
                     self._reserve(need):
-                if need <= self._reserved or not self._can_reserve:
+                if need <= alloc.allocated_bytes or not alloc.supported:
                     return
-            room = self._reserved - end - RESERVE_BYTES
-            what = "disk" if need <= self._size_limit else (
-                "file size limit (ulimit -f)" if self._fs_max_bytes is None or self._size_limit < self._fs_max_bytes
+            room = alloc.allocated_bytes - end - RESERVE_BYTES
+            what = "disk" if need <= alloc.limit_bytes else (
+                "file size limit (ulimit -f)" if self._fs_max_bytes is None or alloc.limit_bytes < self._fs_max_bytes
                 else f"file system's largest file ({format_bytes(self._fs_max_bytes)})")
             raise self._disk_full(room, what)
-        size = max(os.path.getsize(self.path), self._reserved)
+        size = max(os.path.getsize(self.path), alloc.allocated_bytes)
         room, what = room_bytes(self.path, size, self._fs_max_bytes)
-        if room < frame + (0 if self._reserve_path is not None else RESERVE_BYTES):
+        if room < frame + (0 if self._spare is not None and self._spare.held else RESERVE_BYTES):
             self._release_reserve()
             raise self._disk_full(room, what)
 
@@ -736,26 +594,19 @@ class RecordingFile:
                 seq = g["frame_table"]["sequence"][:n] if n else np.zeros(0, np.int64)
                 return n if np.all(seq >= 0) else int(np.argmax(seq < 0))
 
+        found: List[int] = []
         try:
             n = frames_valid()
         except Exception as exc:
-            size = os.path.getsize(self.path)
-            eoa = _stored_eoa(self.path)
-            repaired = False
-            if eoa is not None and size > eoa and _set_stored_eoa(self.path, size):
-                try:
-                    n = frames_valid()
-                    repaired = True
-                    self.problems.append("the superblock's end address was short of the data; raised it to the "
-                                         "file size")
-                except Exception:
-                    _set_stored_eoa(self.path, eoa)
-            if not repaired:
+            # patch the superblock (app.files.h5safe.repair_eof), checking with frames_valid; else left as it was
+            if not repair_eof(self.path, check=lambda _path: found.append(frames_valid())):
                 self.problems.append(f"the file does not open after closing ({exc}); no frame can be vouched for")
                 self.n_flushed = 0
                 return
+            n = found[-1]
+            self.problems.append("the superblock's end address was short of the data; raised it to cover the data")
         else:
-            _fit_to_eoa(self.path)
+            fit_to_eoa(self.path)
         self.n_flushed = n
 
 
