@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from app.files import imageio
+from app.files.h5safe import DiskFullError, SpaceReserve, repair_eof, room_bytes
 from processing.errors import (
     ShapeMismatchError,
     TirdeflectError,
@@ -234,124 +235,9 @@ def set_attrs(node, attrs: dict) -> None:
 RESERVE_BYTES = 2 * 1024 * 1024
 
 
-class DiskFullError(TirdeflectError):
-    """No room left for the next frame (disk or file-size limit); the file was closed valid."""
-
-
-def _room_bytes(path: Path) -> tuple:
-    """Bytes ``path`` may still grow by, and what limits it (disk or ulimit -f)."""
-    import shutil
-
-    size = path.stat().st_size if path.exists() else 0
-    room, what = shutil.disk_usage(path.parent if str(path.parent) else ".").free, "disk"
-    try:
-        import resource
-
-        soft, _ = resource.getrlimit(resource.RLIMIT_FSIZE)
-        if soft != resource.RLIM_INFINITY and soft - size < room:
-            room, what = soft - size, "file size limit (ulimit -f)"
-    except (ImportError, ValueError, OSError):  # not POSIX
-        pass
-    return room, what
-
-
-class _SpaceReserve:
-    """:data:`RESERVE_BYTES` held on the output's disk in a hidden file beside
-    it, freed when a write fails (or at the close), so that closing the file
-    validly never depends on space another program may have taken meanwhile."""
-
-    def __init__(self, beside: Path):
-        self.path = beside.with_name(f".{beside.name}.reserve")
-        self.held = False
-        if RESERVE_BYTES <= 0:
-            return
-        try:
-            fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-        except OSError as exc:
-            log.debug("no space reserve beside %s (%s)", beside, exc)
-            return
-        try:
-            try:
-                os.posix_fallocate(fd, 0, RESERVE_BYTES)
-            except (AttributeError, OSError):  # no fallocate here: write the bytes
-                os.ftruncate(fd, 0)
-                os.write(fd, b"\0" * RESERVE_BYTES)
-            self.held = True
-        except OSError as exc:
-            log.debug("no space reserve beside %s (%s)", beside, exc)
-        finally:
-            os.close(fd)
-            if not self.held:
-                self._unlink()
-
-    def _unlink(self) -> None:
-        try:
-            self.path.unlink()
-        except OSError:
-            pass
-
-    def release(self) -> None:
-        if self.held:
-            self._unlink()
-            self.held = False
-
-
-def _repair_eof(path: Path) -> bool:
-    """Make a file HDF5 left inconsistent after a failed write open again.
-
-    Two cases: the superblock records an end of file beyond what reached the
-    disk ("stored_eof"): extend the file (sparse, needs no space) to it; or
-    metadata written before the failure points beyond the end of allocation
-    the superblock records ("addr overflow ... eoa"): raise that end (format
-    version 0 superblock, the one this writer makes) and extend the file.
-    The frames up to ``frames_done`` were flushed before and stay as they
-    were. Returns True if it changed the file."""
-    import re
-
-    import h5py
-
-    for attempt in range(8):  # each repair may uncover the next address beyond the end
-        try:
-            h5py.File(path, "r").close()
-            return attempt != 0
-        except OSError as exc:
-            text = str(exc)
-        try:
-            m = re.search(r"stored_eof = (\d+)", text)
-            if m and int(m.group(1)) > path.stat().st_size:
-                os.truncate(path, int(m.group(1)))
-                log.warning("%s: extended to the end of file HDF5 recorded before the failed write", path)
-                continue
-            m = re.search(r"addr overflow, addr = (\d+), size = (\d+), eoa = (\d+)", text)
-            if m and _raise_eoa(path, int(m.group(1)) + int(m.group(2))):
-                log.warning("%s: end of allocation raised to cover what was written before the "
-                            "failed write", path)
-                continue
-        except OSError as err:
-            log.error("%s: could not repair the end of file (%s); frames_done frames are intact", path, err)
-        return False
-    return False
-
-
-def _raise_eoa(path: Path, end: int) -> bool:
-    """Set the end-of-allocation address of a version 0/1 superblock with
-    8-byte offsets to at least ``end`` and extend the file to it (sparse)."""
-    import struct
-
-    with open(path, "r+b") as fh:
-        head = fh.read(64)
-        if head[:8] != b"\x89HDF\r\n\x1a\n" or head[8] not in (0, 1) or head[13] != 8:
-            return False
-        at = 40 if head[8] == 0 else 44  # version 1 has 4 more bytes (indexed storage K)
-        eoa = struct.unpack("<Q", head[at:at + 8])[0]
-        end = max(end, os.fstat(fh.fileno()).st_size)
-        if end <= eoa:
-            return False
-        fh.seek(at)
-        fh.write(struct.pack("<Q", end))
-    if end > path.stat().st_size:
-        os.truncate(path, end)
-    return True
+# DiskFullError: the one error for "no room for the next write" (app.files.h5safe), under the
+# name this module always exported; _repair_eof: the name tests and docs know for repair_eof
+_repair_eof = repair_eof
 
 
 class ResultWriter:
@@ -380,7 +266,7 @@ class ResultWriter:
         # failed write (disk full) raises here instead of being lost when h5py
         # closes a dataset handle and HDF5 flushes its cache (errors ignored there)
         self.f = h5py.File(path, "x", rdcc_nbytes=0)
-        self._reserve = _SpaceReserve(path)
+        self._reserve = SpaceReserve(path, RESERVE_BYTES)
         f = self.f
         set_attrs(f, attrs)
         f.attrs["frames_done"] = 0
@@ -481,7 +367,7 @@ class ResultWriter:
         """Refuse the next frame (DiskFullError) while the file can still be closed validly."""
         # the reserve is held in its own file while it can be: not counted twice
         need = int(np.prod(shape)) * (3 * 4 + 1) + 4096 + (0 if self._reserve.held else RESERVE_BYTES)
-        room, what = _room_bytes(self.path)
+        room, what = room_bytes(self.path)
         if room < need:
             raise DiskFullError(
                 f"{what} full: {room / 2**20:.1f} MiB left for {str(self.path)!r}, less than one "
@@ -601,7 +487,7 @@ class ResultWriter:
                 pass
             if reserved:
                 self._record_status(status, attrs)
-            if _repair_eof(self.path):
+            if repair_eof(self.path):
                 log.warning("%s: repaired after the failed write; valid up to frames_done", self.path)
             return
         try:
@@ -620,7 +506,7 @@ class ResultWriter:
                 self.failed = True
                 log.error("closing %s failed: %s (valid up to frame %d)", self.path, exc, self.n)
             if self.failed:
-                _repair_eof(self.path)
+                repair_eof(self.path)
 
     def _record_status(self, status: str, attrs: dict | None) -> None:
         import h5py

@@ -191,3 +191,15 @@ def test_preallocation_stops_at_the_limit_and_at_a_full_disk(tmp_path):
             assert not alloc.ensure(9 * MiB)  # more than the disk holds
             assert alloc.supported and alloc.allocated_bytes == 2 * MiB
 
+
+def test_the_one_disk_full_error():
+    """Recorder and batch writer raise the same error type (a subclass for the recorder), which the CLI
+    shows as a one-line message (TirdeflectError), and the recorder's stays a RecorderError."""
+    from app.batch import writer
+    from app.capture import recorder
+    from processing.errors import TirdeflectError
+
+    assert writer.DiskFullError is h5safe.DiskFullError
+    err = recorder.DiskFullError("disk full: only 3.9 MB left")
+    assert isinstance(err, h5safe.DiskFullError) and isinstance(err, TirdeflectError)
+    assert isinstance(err, recorder.DiskSpaceError) and isinstance(err, recorder.RecorderError)
