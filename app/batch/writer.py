@@ -1,5 +1,5 @@
 """OUT.h5 of ``tirdeflect process``: one frame at a time, flushed, valid after any failure
-(layout: docs/output-format.md)."""
+(layout: docs/output-format.md; room, space reserve and superblock repair: app.files.h5safe)."""
 
 from __future__ import annotations
 

@@ -27,6 +27,8 @@ recording cleanly while the space to close the file is still in hand. HDF5
 itself never meets a full disk on a file system that can reserve space. If a
 write fails anyway (I/O error, no fallocate), :meth:`RecordingFile.close`
 writes nothing more (see there) and the file stays as the last flush left it.
+Room, reservation and the superblock repair are :mod:`app.files.h5safe`'s,
+shared with the batch writer.
 """
 
 from __future__ import annotations
