@@ -117,7 +117,7 @@ site="$("$vpy" -c 'import sysconfig; print(sysconfig.get_path("purelib"))')"
 # Aravis' GObject bindings: the base interpreter's gi (Debian: python3-gi), made visible
 # in the venv alone (a .pth naming a folder that holds only a link to gi), so nothing
 # else of the distribution's Python leaks in; else PyGObject from pip (the aravis extra).
-extras=""
+extras="formats"  # Photron MRAW and Phantom CINE readers (docs/inputs.md)
 gi_dir="$("$py" -s -c 'import gi, os; print(os.path.dirname(gi.__file__))' 2>/dev/null || true)"
 if [ -n "$gi_dir" ]; then
     mkdir -p "$venv/distro-gi"
@@ -125,7 +125,7 @@ if [ -n "$gi_dir" ]; then
     pth="$site/tirdeflect-distro-gi.pth"
     [ "$(cat "$pth" 2>/dev/null)" = "$venv/distro-gi" ] || echo "$venv/distro-gi" >"$pth"
 elif pkg-config --exists gobject-introspection-1.0 cairo 2>/dev/null; then
-    extras="aravis"
+    extras="$extras,aravis"
 fi
 [ "$want_test" = 1 ] && extras="${extras:+$extras,}test"
 

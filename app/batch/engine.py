@@ -79,7 +79,7 @@ def _resolve_geometry(args):
     from processing import Geometry
     from processing.errors import GeometryError
 
-    for path in (args.reference, args.frames[0]):
+    for path in (args.reference, *imageio.expand_inputs(args.frames[:1])[:1]):
         text = imageio.recording_geometry_toml(path)
         if text:
             try:
@@ -128,6 +128,12 @@ class ProcessJob:
     no_unwrap : bool
     first, last, step : int
         Frame selection over the whole input sequence (``last`` inclusive, None = end).
+    frame_range : slice or None
+        ``--frames START:STOP:STEP`` (Python slice over the whole input sequence,
+        STOP exclusive, negatives from the end); replaces first/last/step.
+    reference_frames : slice or None
+        ``--reference-frames 0:20``: the reference is the mean of these frames of
+        ``reference`` (which may be the same file as the frames).
     overwrite : bool
     compression : {"none", "gzip", "lzf"}
     fft_effort : {"auto", "estimate", "measure"}
@@ -147,6 +153,8 @@ class ProcessJob:
     reference: str
     frames: list
     out: str
+    frame_range: slice | None = None
+    reference_frames: slice | None = None
     geometry: str | None = None
     grid: str = "full"
     no_unwrap: bool = False
@@ -216,9 +224,17 @@ def run_process(args: ProcessJob) -> BatchReport:
 
     # Cheap checks of every input before any work: existence, directories,
     # stack/recording headers; decoding errors of plain images show up per frame.
-    check_input_file(args.reference, "reference")
-    counts = [imageio.frame_count(path) for path in args.frames]
+    if args.reference_frames is None:
+        check_input_file(args.reference, "reference")
+    if not args.frames:
+        if args.reference_frames is None:
+            raise TirdeflectError("no frames given: add the FRAME files after the reference (or "
+                                  "--reference-frames A:B to take the reference from the frames' file)")
+        args.frames = [args.reference]
+    paths = imageio.expand_inputs(args.frames)
+    counts = [imageio.frame_count(path) for path in paths]
     total = sum(counts)
+    _apply_frame_range(args, total)
     selected = _selected_count(total, args.first, args.last, args.step)
     if total == 0:
         raise TirdeflectError(
@@ -231,7 +247,12 @@ def run_process(args: ProcessJob) -> BatchReport:
 
     geometry, geometry_source = _resolve_geometry(args)
     reference_index = args.reference_index
-    reference = imageio.read_reference(args.reference, index=reference_index)
+    reference = imageio.read_reference(args.reference, index=reference_index,
+                                       frames=args.reference_frames)
+    input_notes = imageio.input_notes(paths)
+    for line in input_notes:
+        log.warning("%s", line)
+    timing = _timing_attrs(paths[0])
 
     from app.files import cache
 
@@ -253,8 +274,9 @@ def run_process(args: ProcessJob) -> BatchReport:
         "command": args.command or "(called from Python, not the command line)",
         "reference_file": str(args.reference),
         "reference_index": -1 if reference_index is None else reference_index,
+        "reference_frames": _slice_text(args.reference_frames),
         "geometry_file": geometry_source,
-        "input_files": [str(p) for p in args.frames],
+        "input_files": [str(p) for p in paths],
         "first": args.first,
         "last": -1 if args.last is None else args.last,
         "step": args.step,
@@ -264,6 +286,7 @@ def run_process(args: ProcessJob) -> BatchReport:
         "strict": bool(args.strict),
         "height_units": "mm",
         "reference_bits": _bits_hint(args.reference, reference),
+        **timing,
     }
     for attempt in range(5):  # another run beside this one may take the name first
         partial = partial_path(out)
@@ -286,7 +309,7 @@ def run_process(args: ProcessJob) -> BatchReport:
     progress = _progress(selected, disable=args.no_progress)
     on_progress = args.on_progress
     try:
-        frames = imageio.iter_frames(args.frames, first=args.first, last=args.last, step=args.step,
+        frames = imageio.iter_frames(paths, first=args.first, last=args.last, step=args.step,
                                      errors="yield")
         while True:
             try:
@@ -339,9 +362,43 @@ def run_process(args: ProcessJob) -> BatchReport:
         else:
             log.warning("the %d frame(s) written are kept in %s", writer.n, partial)
         cache.store_fftw_wisdom()
-    return BatchReport(out=out, frames_written=writer.n, notes=tally.notes() + pins.notes(),
+    return BatchReport(out=out, frames_written=writer.n, notes=input_notes + tally.notes() + pins.notes(),
                        frames_invalid=tally.n_invalid, invalid_summary=tally.invalid_summary(),
                        frames_incomplete=len(tally.incomplete), pin=pins.summary())
+
+
+def _slice_text(s) -> str:
+    if s is None:
+        return ""
+    return ":".join("" if v is None else str(v) for v in (s.start, s.stop, s.step))
+
+
+def _apply_frame_range(args, total: int) -> None:
+    """Turn ``--frames START:STOP:STEP`` into first/last/step over ``total`` frames."""
+    sl = args.frame_range
+    if sl is None:
+        return
+    if args.first != 0 or args.last is not None or args.step != 1:
+        raise TirdeflectError("give either --frames START:STOP:STEP or --first/--last/--step, not both")
+    picked = range(total)[sl]
+    if len(picked) == 0:
+        raise TirdeflectError(
+            f"--frames {_slice_text(sl)} selects no frame of the {total} input frame(s); "
+            f"frames count from 0, STOP is exclusive")
+    args.first, args.last, args.step = picked.start, picked[-1], picked.step
+
+
+def _timing_attrs(path) -> dict:
+    """Frame rate and trigger of the first input (video, MRAW, CINE), for the output's attrs."""
+    try:
+        info = imageio.image_info(path) if imageio.formats.kind_of(Path(path)) else None
+    except TirdeflectError:
+        return {}
+    if info is None:
+        return {}
+    return {"input_frame_rate_hz": float(info.frame_rate_hz),
+            "input_trigger_index": -1 if info.trigger_index is None else int(info.trigger_index),
+            "input_codec": info.codec, "input_lossless": bool(info.lossless)}
 
 
 class _PinCounter:
@@ -468,6 +525,7 @@ def _frame_failed(exc: Exception, item, writer: ResultWriter, tally: FrameTally,
 
 def _bits_hint(path: str, image: np.ndarray) -> int:
     try:
+        path = imageio.expand_inputs([path])[0]
         return int(imageio.image_info(path).bits)
     except Exception:
         return int(image.dtype.itemsize * 8)

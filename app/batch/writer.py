@@ -253,7 +253,7 @@ class ResultWriter:
     PER_FRAME = ("height", "slope_x", "slope_y")
     PER_FRAME_1D = ("frame_index", "source_index", "source", "camera_frame_id",
                     "device_timestamp_ns", "host_timestamp_ns", "frame_flags",
-                    "frame_status", "frame_status_text")
+                    "frame_status", "frame_status_text", "time_s")
 
     def __init__(self, path: Path, *, compression: str, attrs: dict,
                  geometry_toml: str, geometry_attrs: dict, carrier_attrs: dict,
@@ -339,6 +339,12 @@ class ResultWriter:
         f.create_dataset("frame_status_text", shape=(0,), maxshape=(None,), dtype=h5py.string_dtype(),
                          chunks=(1024,))
         f["frame_status_text"].attrs["description"] = "the reason of a non-zero frame_status; empty if 0"
+        f.create_dataset("time_s", shape=(0,), maxshape=(None,), dtype=np.float64, chunks=(1024,),
+                         fillvalue=np.nan)
+        f["time_s"].attrs["units"] = "s"
+        f["time_s"].attrs["description"] = (
+            "time of the frame from its file: relative to the trigger (MRAW, CINE), the stream "
+            "start (video) or the recording's first frame (HDF5); NaN unknown (image files)")
         f.attrs["grid"] = str(grid)
         self._create_pin_status()
 
@@ -416,6 +422,7 @@ class ResultWriter:
             f["pin_status"][k] = _pin_status_row(result)
             f["frame_status"][k] = int(outcome.status)
             f["frame_status_text"][k] = outcome.reason
+            f["time_s"][k] = item.time_s
         except BaseException as exc:
             # e.g. disk full: drop the half-written frame so the file holds exactly frames_done
             self.failed = not self._recover(k, names)

@@ -56,6 +56,17 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _frame_range(text: str) -> slice:
+    import argparse
+
+    from app.files.imageio import parse_frame_range
+
+    try:
+        return parse_frame_range(text)
+    except TirdeflectError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def add_process_parser(sub) -> None:
     """Add the ``process`` subcommand to an argparse subparsers object."""
     p = sub.add_parser(
@@ -63,16 +74,28 @@ def add_process_parser(sub) -> None:
         help="reconstruct surface heights from a reference and frames, to HDF5",
         description="Reconstruct water-surface heights (mm) from a reference image and "
         "deformed frames and write them to an HDF5 file (layout: docs/output-format.md). "
-        "Inputs: PNG, BMP, TIFF (8-16 bit, packed 10/12-bit, multi-page stacks) and "
-        "tirdeflect HDF5 recordings. A frame that cannot be measured is stored invalid with "
+        "Inputs (docs/inputs.md): PNG, BMP, TIFF (8-16 bit, packed 10/12-bit, multi-page "
+        "stacks), folders and globs of images (natural order), tirdeflect HDF5 recordings, "
+        "video (AVI, MKV, MP4, MOV), Photron MRAW (.cih/.cihx) and Phantom CINE. "
+        "A frame that cannot be measured is stored invalid with "
         "its reason and the run goes on. Exit status: 0 every frame measured; 3 OUT written but "
         "some frames invalid or recorded INCOMPLETE; 2 refused or failed (the frames measured "
         "are kept in OUT.partial.h5, named in the message); 130 interrupted.",
     )
     p.add_argument("reference", help="reference image of the flat surface (or a recording "
-                   "holding a /reference)")
-    p.add_argument("frames", nargs="+", metavar="FRAME",
-                   help="frames to process, in order (files, stacks or recordings)")
+                   "holding a /reference, or a file whose --reference-frames are averaged)")
+    p.add_argument("frames", nargs="*", metavar="FRAME",
+                   help="frames to process, in order (files, stacks, recordings, videos, "
+                   "camera files, folders, quoted globs); may be left out with "
+                   "--reference-frames: then the reference's file is processed")
+    p.add_argument("--frames", dest="frame_range", type=_frame_range, default=None,
+                   metavar="START:STOP:STEP",
+                   help="frames to process, as a Python slice over the whole input sequence "
+                   "(0-based, STOP exclusive, negatives from the end; e.g. 20:, 0:1000:2); "
+                   "replaces --first/--last/--step")
+    p.add_argument("--reference-frames", type=_frame_range, default=None, metavar="START:STOP",
+                   help="average these frames of the reference file (e.g. 0:20 of a recording "
+                   "whose first frames show the flat surface) to make the reference")
     p.add_argument("--reference-index", type=_nonnegative_int, default=None, metavar="K",
                    help="use page/frame K (0-based) of a TIFF stack or recording as the "
                    "reference (default: a recording's stored /reference, else its frame 0)")

@@ -9,7 +9,16 @@ Supported inputs
   and multi-page TIFF stacks (each page one frame),
 - the app's HDF5 recordings (``docs/recording-format.md``): frames from the
   ``/frames`` dataset ``(n, rows, cols)``, the reference from ``/reference``
-  when the recording holds one.
+  when the recording holds one,
+- video (AVI, MKV, MP4, MOV through PyAV), Photron MRAW + CIH/CIHX (pyMRAW)
+  and Phantom CINE (PIMS): see :mod:`app.files.formats`,
+- folders and glob patterns of images, in natural order (``frame_2`` before
+  ``frame_10``): :func:`expand_inputs`.
+
+:func:`iter_frames` is the one reader of frame sequences: it yields
+:class:`FrameItem` lazily, one frame decoded at a time, with the frame's time
+in seconds (``time_s``) where the file has one. ``docs/inputs.md`` lists what
+each format provides.
 
 Values are returned **unscaled**: a packed 10-bit TIFF gives ``uint16`` values in
 0..1023 and :attr:`ImageInfo.bits` says 10. Nothing is stretched to 16 bit, so
@@ -23,7 +32,9 @@ problem and what to do.
 
 from __future__ import annotations
 
+import glob as _glob
 import logging
+import math
 import os
 import re
 from dataclasses import dataclass
@@ -32,6 +43,7 @@ from typing import Iterator, Sequence
 
 import numpy as np
 
+from app.files import formats
 from processing.errors import TirdeflectError
 
 __all__ = [
@@ -49,6 +61,11 @@ __all__ = [
     "iter_frames",
     "write_image",
     "recording_geometry_toml",
+    "expand_inputs",
+    "natural_key",
+    "input_notes",
+    "parse_frame_range",
+    "average_frames",
 ]
 
 log = logging.getLogger(__name__)
@@ -57,6 +74,11 @@ TIFF_SUFFIXES = frozenset({".tif", ".tiff"})
 HDF5_SUFFIXES = frozenset({".h5", ".hdf5", ".hdf"})
 CV2_SUFFIXES = frozenset({".png", ".bmp", ".jpg", ".jpeg", ".pgm", ".ppm"})
 IMAGE_SUFFIXES = TIFF_SUFFIXES | HDF5_SUFFIXES | CV2_SUFFIXES
+#: Every file suffix tirdeflect reads (images, stacks, recordings, video, camera files).
+INPUT_SUFFIXES = (IMAGE_SUFFIXES | formats.VIDEO_SUFFIXES | formats.MRAW_SUFFIXES
+                  | formats.CINE_SUFFIXES)
+#: Multi-frame kinds read through :mod:`app.files.formats`.
+_SOURCE_KINDS = ("video", "mraw", "cine")
 
 _HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
 
@@ -85,6 +107,16 @@ class ImageInfo:
     bits : int
         Significant bits per sample (10 for a packed 10-bit TIFF); for float
         images the bit width of the float.
+    frame_rate_hz : float
+        Frame rate the file states (video, MRAW, CINE); NaN otherwise.
+    trigger_index : int or None
+        Index of the trigger frame in the file (MRAW, CINE), when stated.
+    codec : str
+        Video codec or camera file layout ("" for images and recordings).
+    lossless : bool
+        False for lossy video codecs.
+    notes : tuple of str
+        Warnings about the file (lossy codec...).
     """
 
     path: Path
@@ -93,6 +125,11 @@ class ImageInfo:
     shape: tuple
     dtype: np.dtype
     bits: int
+    frame_rate_hz: float = math.nan
+    trigger_index: int | None = None
+    codec: str = ""
+    lossless: bool = True
+    notes: tuple = ()
 
 
 @dataclass(frozen=True)
@@ -120,6 +157,11 @@ class FrameItem:
     error : ImageReadError or None
         Set (and ``image`` None) when this frame could not be read and
         :func:`iter_frames` was asked to go on (``errors="yield"``).
+    time_s : float
+        Time of the frame in seconds where the file has one: relative to the
+        trigger (MRAW, CINE), the stream start (video) or the recording's
+        first frame (HDF5, from the device clock, else the host clock); NaN
+        for image files.
     """
 
     image: np.ndarray | None
@@ -132,6 +174,7 @@ class FrameItem:
     flags: int = 0
     frames_in_source: int = 1
     error: Exception | None = None
+    time_s: float = math.nan
 
     @property
     def label(self) -> str:
@@ -154,8 +197,8 @@ def _check_path(path) -> Path:
         raise ImageReadError(f"input file {str(p)!r} does not exist{hint}; check the path")
     if p.is_dir():
         raise ImageReadError(
-            f"input {str(p)!r} is a directory, not an image; pass the image files, "
-            f"e.g. {str(p / '*.png')!r} or {str(p / '*.tif')!r}"
+            f"input {str(p)!r} is a directory, not an image; pass the folder as a frame "
+            f"input (its images are read in natural order) or the files, e.g. {str(p / '*.png')!r}"
         )
     if p.stat().st_size == 0:
         raise ImageReadError(f"input file {str(p)!r} is empty (0 bytes); re-export or re-record it")
@@ -163,6 +206,9 @@ def _check_path(path) -> Path:
 
 
 def _kind(p: Path) -> str:
+    kind = formats.kind_of(p)
+    if kind is not None:
+        return kind
     suffix = p.suffix.lower()
     with open(p, "rb") as fh:
         head = fh.read(8)
@@ -445,7 +491,20 @@ def _table_fields(table, i: int) -> dict:
                       ("host_timestamp_ns", "host_timestamp_ns"), ("flags", "flags")):
         if name in names:
             out[key] = int(row[name])
+    # time since the recording's first frame: camera clock, else host clock
+    first = table[0]
+    for name in ("device_timestamp_ns", "host_timestamp_ns"):
+        if name in names and int(row[name]) >= 0 and int(first[name]) >= 0:
+            out["time_s"] = (int(row[name]) - int(first[name])) * 1e-9
+            break
     return out
+
+
+def _open_source(p: Path):
+    try:
+        return formats.open_source(p)
+    except formats.FormatError as exc:
+        raise ImageReadError(str(exc)) from exc
 
 
 # --------------------------------------------------------------------------- public API
@@ -470,6 +529,11 @@ def image_info(path) -> ImageInfo:
     """
     p = _check_path(path)
     kind = _kind(p)
+    if kind in _SOURCE_KINDS:
+        with _open_source(p) as src:
+            return ImageInfo(p, kind, src.n_frames, src.shape, src.dtype, src.bits,
+                             frame_rate_hz=src.frame_rate_hz, trigger_index=src.trigger_index,
+                             codec=src.codec, lossless=src.lossless, notes=tuple(src.notes))
     if kind == "tiff":
         with _tiff_open(p) as tif:
             n, shape, dtype, bits, _ = _tiff_layout(tif, p)
@@ -532,6 +596,12 @@ def read_image(path, *, index: int | None = None) -> np.ndarray:
         if index not in (None, 0):
             raise ImageReadError(f"{str(p)!r} holds one frame; index {index} does not exist")
         return _read_cv2(p)
+    if kind in _SOURCE_KINDS:
+        with _open_source(p) as src:
+            i = _resolve_index(index, src.n_frames, p, what="frames")
+            for _, image, _ in src.frames(range(i, i + 1)):
+                return _check_dtype(_to_gray(image, p), p)
+        raise ImageReadError(f"{str(p)!r}: frame {i} could not be decoded (the file ends early)")
     if kind == "tiff":
         with _tiff_open(p) as tif:
             n, _, _, _, reader = _tiff_layout(tif, p)
@@ -556,7 +626,7 @@ def _resolve_index(index, n: int, p: Path, *, what: str) -> int:
     return index % n
 
 
-def read_reference(path, *, index: int | None = None) -> np.ndarray:
+def read_reference(path, *, index: int | None = None, frames: slice | None = None) -> np.ndarray:
     """Read the reference (undeformed) image.
 
     A plain image or single-page TIFF is the reference itself. An HDF5
@@ -569,12 +639,19 @@ def read_reference(path, *, index: int | None = None) -> np.ndarray:
     index : int, optional
         Use this page of a TIFF stack / frame of a recording (``/frames``)
         as the reference, instead of the rules above.
+    frames : slice, optional
+        Average these frames of the file (``--reference-frames 0:20``):
+        :func:`average_frames`. Not together with ``index``.
 
     Returns
     -------
     numpy.ndarray
         Shape ``(rows, cols)``, dtype uint8/uint16/float32.
     """
+    if frames is not None:
+        if index is not None:
+            raise ImageReadError("give either --reference-index or --reference-frames, not both")
+        return average_frames(path, frames)
     p = _check_path(path)
     if index is not None:
         return read_image(p, index=index)
@@ -609,6 +686,9 @@ def frame_count(path) -> int:
     kind = _kind(p)
     if kind == "image":
         return 1
+    if kind in _SOURCE_KINDS:
+        with _open_source(p) as src:
+            return src.n_frames
     if kind == "tiff":
         with _tiff_open(p) as tif:
             return _tiff_layout(tif, p)[0]
@@ -640,8 +720,9 @@ def recording_geometry_toml(path) -> str | None:
 
 
 def count_frames(paths: Sequence) -> int:
-    """Total number of frames in ``paths`` (pages and recording frames counted)."""
-    return sum(frame_count(p) for p in paths)
+    """Total number of frames in ``paths`` (pages and recording frames counted;
+    folders and globs expanded by :func:`expand_inputs`)."""
+    return sum(frame_count(p) for p in expand_inputs(paths))
 
 
 def iter_frames(
@@ -660,7 +741,8 @@ def iter_frames(
     Parameters
     ----------
     paths : sequence of path-like
-        Input files in processing order.
+        Input files in processing order; folders and glob patterns are
+        expanded in natural order (:func:`expand_inputs`).
     first, last : int
         Sequence indices (0-based, counting every frame of every file in
         order) of the first and last frame to yield, both **inclusive**;
@@ -710,6 +792,7 @@ def iter_frames(
 
     seq = 0
     try:
+        paths = expand_inputs(paths)
         for path in paths:
             if last is not None and seq > last:
                 return
@@ -719,6 +802,22 @@ def iter_frames(
                 if wanted(seq):
                     yield frame(lambda: _read_cv2(p), path, 0, seq)
                 seq += 1
+            elif kind in _SOURCE_KINDS:
+                with _open_source(p) as src:
+                    picked = _local_range(seq, src.n_frames, first, last, step)
+                    i = picked.start
+                    try:
+                        for i, image, time_s in src.frames(picked):
+                            yield frame(lambda: _check_dtype(_to_gray(image, p), p), path, i, seq + i,
+                                        frames_in_source=src.n_frames, time_s=time_s)
+                    except ImageReadError as exc:  # a frame the decoder cannot read
+                        exc.sequence_index = seq + i
+                        if errors == "raise":
+                            raise
+                        # a decoder cannot go on past it: the rest of this file is not read
+                        yield FrameItem(None, str(path), i, seq + i, frames_in_source=src.n_frames,
+                                        error=exc)
+                    seq += src.n_frames
             elif kind == "tiff":
                 with _tiff_open(p) as tif:
                     n, _, _, _, reader = _tiff_layout(tif, p)
@@ -754,6 +853,150 @@ def _h5_read(ds, i: int, p: Path) -> np.ndarray:
         raise ImageReadError(f"frame {i} of {str(p)!r} cannot be read ({exc}); the recording "
                              f"may be damaged there") from exc
     return _check_dtype(_to_gray(arr, p), p)
+# --------------------------------------------------------------------------- sequences
+
+_DIGITS = re.compile(r"(\d+)")
+
+
+def natural_key(path) -> tuple:
+    """Sort key putting ``frame_2`` before ``frame_10`` (digit runs compare as numbers)."""
+    parts = _DIGITS.split(str(path))
+    return tuple((0, int(t), "") if t.isdigit() else (1, 0, t.lower()) for t in parts)
+
+
+def _folder_frames(folder: Path) -> list:
+    """A folder's image files (PNG/BMP/TIFF...) in natural order; a folder without
+    images gives its recordings, videos and camera files instead."""
+    files = [q for q in folder.iterdir() if q.is_file() and not q.name.startswith(".")]
+    images = [q for q in files if q.suffix.lower() in (CV2_SUFFIXES | TIFF_SUFFIXES)]
+    if not images:
+        images = [q for q in files if q.suffix.lower() in INPUT_SUFFIXES]
+        # a Photron recording is a .cih/.cihx + .mraw pair: open it once, through its header
+        stems = {}
+        for q in images:
+            stems.setdefault(q.with_suffix("").name, set()).add(q.suffix.lower())
+        images = [q for q in images if not (
+            (q.suffix.lower() == ".mraw" and stems[q.with_suffix("").name] & {".cih", ".cihx"})
+            or (q.suffix.lower() == ".cih" and ".cihx" in stems[q.with_suffix("").name]))]
+    if not images:
+        raise ImageReadError(
+            f"folder {str(folder)!r} holds no image, recording, video or camera file "
+            f"({', '.join(sorted(s.lstrip('.') for s in INPUT_SUFFIXES))}); check the folder")
+    return sorted(images, key=natural_key)
+
+
+def expand_inputs(paths: Sequence) -> list:
+    """Input arguments as the files to read, in order.
+
+    A folder gives its image files in natural order (``frame_2`` before
+    ``frame_10``), or, when it holds no image, its recordings, videos and
+    camera files; a glob pattern that is not itself a
+    file (``'frames/*.tif'``, quoted so the shell leaves it) gives its matches
+    in natural order; anything else is kept as given. A list of plain files
+    given in an order that differs from the natural one (the shell sorts
+    ``frame_10`` before ``frame_2``) is kept, with a warning.
+
+    Raises
+    ------
+    ImageReadError
+        A folder without input files, or a pattern matching nothing.
+    """
+    out = []
+    for path in paths:
+        p = Path(os.fspath(path))
+        if p.is_dir():
+            out.extend(str(q) for q in _folder_frames(p))
+        elif not p.exists() and any(ch in str(p) for ch in "*?["):
+            matches = [m for m in _glob.glob(str(p)) if Path(m).is_file()]
+            if not matches:
+                raise ImageReadError(
+                    f"the pattern {str(p)!r} matches no file; check the folder and the spelling")
+            out.extend(sorted(matches, key=natural_key))
+        else:
+            out.append(os.fspath(path))
+    if len(out) > 2 and out == sorted(out) and out != sorted(out, key=natural_key):
+        log.warning("the %d inputs are in alphabetical order (%s before %s), not natural order; "
+                    "they are processed as given: pass the folder or a quoted glob for natural order",
+                    len(out), Path(out[0]).name, Path(out[1]).name)
+    return out
+
+
+def input_notes(paths: Sequence) -> list:
+    """Warnings about the inputs that the user must see (lossy video, colour to grey).
+
+    Reads headers only (video, MRAW, CINE); plain images and recordings add nothing.
+    """
+    notes = []
+    for path in expand_inputs(paths):
+        p = Path(os.fspath(path))
+        if p.is_file() and formats.kind_of(p) is not None:
+            with _open_source(_check_path(p)) as src:
+                notes.extend(src.notes)
+    return notes
+
+
+def parse_frame_range(text: str) -> slice:
+    """``START:STOP:STEP`` (Python slice syntax, each part optional, negatives count
+    from the end) as a :class:`slice`; a single number ``K`` means frame K alone.
+
+    Raises
+    ------
+    ImageReadError
+        Not of that form, or a step that is not positive.
+    """
+    parts = str(text).strip().split(":")
+    try:
+        if len(parts) == 1:
+            k = int(parts[0])
+            return slice(k, k + 1 if k != -1 else None, 1)
+        if len(parts) > 3:
+            raise ValueError
+        values = [int(t) if t.strip() else None for t in parts] + [None] * (3 - len(parts))
+    except ValueError:
+        raise ImageReadError(
+            f"frame range {text!r} is not START:STOP:STEP (whole numbers, each optional, "
+            f"e.g. 0:20 or 100::2)") from None
+    start, stop, step = values
+    if step is not None and step < 1:
+        raise ImageReadError(f"the step of frame range {text!r} must be >= 1; got {step}")
+    return slice(start, stop, step)
+
+
+def average_frames(path, frames: slice) -> np.ndarray:
+    """Mean of the frames ``frames`` of one input (a file, or a folder / glob of
+    images counted as one sequence), float32 (an averaged reference).
+
+    Raises
+    ------
+    ImageReadError
+        Unreadable file, or a range that selects no frame.
+    """
+    p = expand_inputs([path])
+    n = count_frames(p)
+    picked = range(n)[frames]
+    if len(picked) == 0:
+        raise ImageReadError(
+            f"the reference frames {frames.start}:{frames.stop}:{frames.step or 1} select no frame "
+            f"of the {n} in {str(path)!r}; frames count from 0")
+    total = None
+    count = 0
+    for item in iter_frames(p, first=picked.start, last=picked[-1], step=picked.step):
+        image = item.image.astype(np.float64)
+        total = image if total is None else total + image
+        count += 1
+    log.info("reference: mean of %d frame(s) %d..%d of %s", count, picked[0], picked[-1], path)
+    return (total / count).astype(np.float32)
+
+
+def _local_range(seq: int, n: int, first: int, last: int | None, step: int) -> range:
+    """Indices within a file of ``n`` frames starting at sequence index ``seq``
+    that the selection ``first..last`` (inclusive) every ``step`` picks."""
+    stop = n if last is None else max(0, min(n, last - seq + 1))
+    i0 = max(0, first - seq)
+    r = (seq + i0 - first) % step
+    if r:
+        i0 += step - r
+    return range(i0, max(i0, stop), step)
 
 
 def write_image(path, image: np.ndarray) -> Path:

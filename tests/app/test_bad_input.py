@@ -62,9 +62,13 @@ def test_missing_reference(sim, tmp_path, capsys):
     assert_clean_error(code, err, "reference", "nope.png", "does not exist")
 
 
-def test_directory_argument_gets_a_hint(sim, tmp_path, capsys):
-    code, err = run_cli(capsys, *process_args(sim, tmp_path, sim))
-    assert_clean_error(code, err, "is a directory", "*.png")
+def test_folder_without_frames_gets_a_hint(sim, tmp_path, capsys):
+    # a folder is read as its images in natural order; one without any says so
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    (empty / "notes.txt").write_text("no frames here\n")
+    code, err = run_cli(capsys, *process_args(sim, tmp_path, empty))
+    assert_clean_error(code, err, "empty", "holds no image")
 
 
 def test_text_file_named_png(sim, tmp_path, capsys):

@@ -1,0 +1,402 @@
+"""High-speed camera files and video, each read through its own well-kept library.
+
+:mod:`app.files.imageio` dispatches to these for the formats below; nothing
+else should import this module (``imageio.iter_frames`` is the one reader).
+
+============  =====================================  ============================
+kind          files                                  library
+============  =====================================  ============================
+``video``     .avi .mkv .mp4 .mov .m4v .webm          PyAV (``av``, FFmpeg)
+``mraw``      Photron .cih / .cihx + .mraw           pyMRAW (header, 12-bit unpacking)
+``cine``      Phantom .cine                          PIMS (``pims.cine.Cine``)
+============  =====================================  ============================
+
+Each opens as a :class:`Source`: frame count, shape, dtype, significant bits,
+frame rate, the index of the trigger frame when the file says it, and
+:meth:`Source.frames` yielding ``(index, image, time_s)`` lazily (one frame
+decoded at a time; MRAW and CINE seek, video decodes forward). ``time_s`` is
+the frame's time in seconds: relative to the trigger for MRAW and CINE (the
+Phantom's per-frame time stamps; Photron: ``(start frame + i) / rate``), the
+presentation time stamp for video.
+
+Values are unscaled, as in :mod:`app.files.imageio`: a 12-bit Photron MRAW
+gives uint16 in 0..4095 (``bits`` 12), a ``gray12le`` FFV1 video likewise.
+Lossy video (H.264, MJPEG, MPEG-4, ...) is read, but :attr:`Source.notes`
+says that compression artefacts bias Fourier demodulation.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import re
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from processing.errors import TirdeflectError
+
+log = logging.getLogger(__name__)
+
+VIDEO_SUFFIXES = frozenset({".avi", ".mkv", ".mp4", ".mov", ".m4v", ".webm"})
+MRAW_SUFFIXES = frozenset({".cih", ".cihx", ".mraw"})
+CINE_SUFFIXES = frozenset({".cine"})
+
+#: Codecs that store every sample exactly (a frame decodes to what was encoded).
+LOSSLESS_CODECS = frozenset({
+    "ffv1", "rawvideo", "png", "apng", "huffyuv", "ffvhuff", "utvideo", "magicyuv",
+    "qtrle", "tiff", "zlib", "zmbv", "lagarith", "v210", "v410", "r210", "y41p", "yuv4",
+    "jpegls", "bmp", "gif",
+})
+
+
+
+class FormatError(TirdeflectError):
+    """A camera file or video cannot be read (message names file, problem, remedy)."""
+
+
+@dataclass
+class Source:
+    """One opened multi-frame file (see the module docstring).
+
+    Attributes
+    ----------
+    path : pathlib.Path
+    kind : str
+        ``"video"``, ``"mraw"`` or ``"cine"``.
+    n_frames : int
+    shape : tuple of int
+        ``(rows, cols)``.
+    dtype : numpy.dtype
+    bits : int
+        Significant bits per sample (12 for a 12-bit MRAW).
+    frame_rate_hz : float
+        NaN when the file does not say.
+    trigger_index : int or None
+        Index in the file of the trigger frame (time 0), when the file says it.
+    time_origin : str
+        What ``time_s`` is counted from: ``"trigger"`` or ``"stream start"``.
+    codec : str
+    lossless : bool
+    notes : list of str
+        Warnings for the user (lossy codec, colour converted to luma...).
+    """
+
+    path: Path
+    kind: str
+    n_frames: int
+    shape: tuple
+    dtype: np.dtype
+    bits: int
+    frame_rate_hz: float = math.nan
+    trigger_index: int | None = None
+    time_origin: str = "stream start"
+    codec: str = ""
+    lossless: bool = True
+    notes: list = field(default_factory=list)
+    _frames: object = None
+    _close: object = None
+
+    def frames(self, indices: range | None = None) -> Iterator[tuple]:
+        """Yield ``(index, image, time_s)`` for the frames of ``indices`` (an increasing
+        ``range``; default all), decoding only those (video decodes the ones
+        before them too, without converting them)."""
+        return self._frames(range(self.n_frames) if indices is None else indices)
+
+    def close(self) -> None:
+        if self._close is not None:
+            self._close()
+            self._close = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def kind_of(path: Path) -> str | None:
+    """``"video"``, ``"mraw"``, ``"cine"`` from the file name, else None."""
+    suffix = path.suffix.lower()
+    if suffix in VIDEO_SUFFIXES:
+        return "video"
+    if suffix in MRAW_SUFFIXES:
+        return "mraw"
+    if suffix in CINE_SUFFIXES:
+        return "cine"
+    return None
+
+
+def open_source(path: Path) -> Source:
+    """Open ``path`` (kind from its suffix, :func:`kind_of`) as a :class:`Source`."""
+    kind = kind_of(path)
+    if kind == "video":
+        return _open_video(path)
+    if kind == "mraw":
+        return _open_mraw(path)
+    if kind == "cine":
+        return _open_cine(path)
+    raise FormatError(f"{str(path)!r} is not a video, Photron or Phantom file")
+
+
+def _missing(library: str, package: str, what: str) -> FormatError:
+    return FormatError(
+        f"reading {what} needs the Python package {package!r} ({library}), which is not "
+        f"installed; run `pip install {package}` (or `pip install tirdeflect[formats]`)"
+    )
+
+
+# =========================================================================== video (PyAV)
+
+
+def _bits_of_pix_fmt(name: str) -> int:
+    m = re.search(r"(\d+)(le|be)$", name)
+    if m and name.startswith(("gray", "yuv", "p0")):
+        return int(m.group(1))
+    return 8
+
+
+def _video_plane0(frame, bits: int) -> np.ndarray:
+    """The grey (or luma) plane of a decoded frame, unscaled, without a colour conversion."""
+    plane = frame.planes[0]
+    rows, cols = frame.height, frame.width
+    dtype = np.dtype("<u2") if bits > 8 else np.dtype(np.uint8)
+    stride = plane.line_size // dtype.itemsize
+    arr = np.frombuffer(plane, dtype=dtype).reshape(-1, stride)[:rows, :cols]
+    return np.ascontiguousarray(arr).astype(np.uint16 if bits > 8 else np.uint8, copy=False)
+
+
+def _open_video(path: Path) -> Source:
+    try:
+        import av
+    except ImportError as exc:
+        raise _missing("PyAV", "av", "video files") from exc
+    try:
+        container = av.open(str(path))
+    except (av.error.FFmpegError, OSError) as exc:
+        raise FormatError(
+            f"{str(path)!r} is not a readable video ({exc}); check the file is complete, "
+            f"or convert it losslessly, e.g. ffmpeg -i IN -c:v ffv1 OUT.mkv"
+        ) from exc
+    if not container.streams.video:
+        container.close()
+        raise FormatError(f"{str(path)!r} has no video stream; give a video file")
+    stream = container.streams.video[0]
+    ctx = stream.codec_context
+    codec = ctx.name
+    pix_fmt = ctx.pix_fmt or ""
+    rows, cols = int(ctx.height), int(ctx.width)
+    rate = stream.average_rate or stream.guessed_rate
+    fps = float(rate) if rate else math.nan
+    n = int(stream.frames or 0)
+    if n <= 0:  # MKV and some MP4 do not store a frame count: count the packets
+        n = sum(1 for packet in container.demux(stream) if packet.size)
+        container.seek(0)
+    lossless = codec in LOSSLESS_CODECS
+    notes = []
+    if not lossless:
+        notes.append(
+            f"{path.name} is compressed with the lossy codec {codec!r}: block artefacts and "
+            f"smoothed edges bias Fourier demodulation (heights come out too small and "
+            f"noisy); record losslessly (FFV1, raw, PNG) for measurements"
+        )
+    direct = pix_fmt.startswith("gray")  # grey samples as stored, unscaled
+    bits = _bits_of_pix_fmt(pix_fmt) if direct else (16 if _bits_of_pix_fmt(pix_fmt) > 8 else 8)
+    if not direct:
+        notes.append(f"{path.name} stores {pix_fmt or 'colour'} frames; they are converted to "
+                     f"grey by FFmpeg (luma, full range)")
+    dtype = np.dtype(np.uint16 if bits > 8 else np.uint8)
+
+    def convert(frame) -> np.ndarray:
+        if not direct:
+            return frame.to_ndarray(format="gray16le" if bits > 8 else "gray")
+        if frame.format.name in ("gray", "gray8", "gray16le", "gray16be"):
+            return frame.to_ndarray()
+        return _video_plane0(frame, bits)
+
+    def frames(indices: range) -> Iterator[tuple]:
+        if not len(indices):
+            return
+        container.seek(0)
+        i = 0
+        try:
+            for frame in container.decode(stream):
+                if i >= indices.stop:
+                    break
+                if i in indices:
+                    t = frame.time
+                    time_s = float(t) if t is not None else (i / fps if fps == fps else math.nan)
+                    yield i, convert(frame), time_s
+                i += 1
+        except av.error.FFmpegError as exc:
+            raise FormatError(
+                f"frame {i} of {str(path)!r} cannot be decoded ({exc}); the file may be "
+                f"truncated: process the frames before it with --frames :{i}"
+            ) from exc
+
+    return Source(path, "video", n, (rows, cols), dtype, bits, frame_rate_hz=fps,
+                  time_origin="stream start", codec=codec, lossless=lossless, notes=notes,
+                  _frames=frames, _close=container.close)
+
+
+# =========================================================================== Photron MRAW (pyMRAW)
+
+
+def _mraw_files(path: Path) -> tuple:
+    """(header path, .mraw path) from either of them."""
+    if path.suffix.lower() == ".mraw":
+        for suffix in (".cihx", ".cih", ".CIHX", ".CIH"):
+            header = path.with_suffix(suffix)
+            if header.exists():
+                return header, path
+        raise FormatError(
+            f"{str(path)!r} has no header beside it ({path.with_suffix('.cihx').name} or "
+            f"{path.with_suffix('.cih').name}); copy the .cih/.cihx saved with it into the same folder"
+        )
+    data = path.with_suffix(".mraw")
+    if not data.exists():
+        alt = path.with_suffix(".MRAW")
+        if alt.exists():
+            return path, alt
+        raise FormatError(
+            f"the Photron header {str(path)!r} has no {data.name} beside it; copy the .mraw "
+            f"file saved with it into the same folder"
+        )
+    return path, data
+
+
+def _cihx_start_frame(header: Path):
+    """``frameInfo/startFrame`` of a .cihx (pyMRAW's header dict leaves it out)."""
+    import xmltodict
+
+    text = header.read_text(encoding="utf-8", errors="ignore")
+    a, b = text.find("<cih>"), text.rfind("</cih>")
+    if a < 0 or b < 0:
+        return None
+    info = xmltodict.parse(text[a:b + len("</cih>")])["cih"].get("frameInfo", {})
+    try:
+        return int(info.get("startFrame"))
+    except (TypeError, ValueError):
+        return None
+
+
+def _open_mraw(path: Path) -> Source:
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # numba / nose import noise
+            import pyMRAW
+    except ImportError as exc:
+        raise _missing("pyMRAW", "pyMRAW", "Photron MRAW files") from exc
+    header, data = _mraw_files(path)
+    try:
+        cih = pyMRAW.get_cih(str(header))
+    except Exception as exc:  # pyMRAW raises bare Exceptions, KeyError, ValueError
+        raise FormatError(
+            f"the Photron header {str(header)!r} cannot be read ({type(exc).__name__}: {exc}); "
+            f"check it is the .cih/.cihx saved by PFV with the recording"
+        ) from exc
+    try:
+        n = int(cih["Total Frame"])
+        rows, cols = int(cih["Image Height"]), int(cih["Image Width"])
+        color_bit = int(cih["Color Bit"])
+        fmt = str(cih.get("File Format", "MRaw"))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise FormatError(f"the Photron header {str(header)!r} lacks {exc}; re-save it from PFV") from exc
+    if fmt.lower() != "mraw":
+        raise FormatError(f"{str(header)!r} describes {fmt} files, not MRAW; open those images instead")
+    if color_bit not in (8, 12, 16):
+        raise FormatError(
+            f"{str(header)!r} says {color_bit} bits per pixel (colour or an unknown packing); "
+            f"tirdeflect reads 8, 12 and 16-bit monochrome MRAW: save monochrome in PFV")
+    if str(cih.get("Color Type", "Mono")).lower() not in ("mono", "monochrome", ""):
+        raise FormatError(f"{str(header)!r} is a colour recording; save it as monochrome MRAW in PFV")
+    effective = int(cih.get("EffectiveBit Depth", color_bit) or color_bit)
+    side = str(cih.get("EffectiveBit Side", "Lower")).lower()
+    bits = min(effective, color_bit) if color_bit == 16 else color_bit
+    shift = color_bit - bits if (side == "higher" and color_bit == 16) else 0
+    fps = float(cih.get("Record Rate(fps)", math.nan) or math.nan)
+    start = cih.get("Start Frame")
+    if start is None and header.suffix.lower() == ".cihx":
+        start = _cihx_start_frame(header)
+    start = int(start) if start is not None else None
+    frame_bytes = rows * cols * color_bit // 8
+    size = data.stat().st_size
+    if size < n * frame_bytes:
+        complete = size // frame_bytes
+        raise FormatError(
+            f"{str(data)!r} holds {size} bytes, fewer than the {n} frames of {rows} x {cols} x "
+            f"{color_bit} bit its header announces ({complete} complete); the copy is truncated: "
+            f"copy it again, or set 'Total Frame : {complete}' in {header.name}")
+    raw = np.memmap(data, dtype=np.uint8, mode="r", shape=(n * frame_bytes,))
+    dtype = np.dtype(np.uint8 if color_bit == 8 else np.uint16)
+
+    def frame(i: int) -> np.ndarray:
+        chunk = raw[i * frame_bytes:(i + 1) * frame_bytes]
+        if color_bit == 8:
+            return np.array(chunk).reshape(rows, cols)
+        if color_bit == 16:
+            # Photron writes 16-bit samples little-endian (pyMRAW reads them as native uint16)
+            image = np.frombuffer(chunk, dtype="<u2").reshape(rows, cols).astype(np.uint16)
+            return image >> shift if shift else image
+        # 12 bit: two samples in three bytes, unpacked by pyMRAW's own decoder
+        return pyMRAW.nb_read_uint12(np.ascontiguousarray(chunk)).reshape(rows, cols)
+
+    def frames(indices: range) -> Iterator[tuple]:
+        for i in indices:
+            time_s = (start + i) / fps if start is not None and fps > 0 else (
+                i / fps if fps > 0 else math.nan)
+            yield i, frame(i), time_s
+
+    trigger = -start if start is not None and 0 <= -start < n else None
+    source = Source(path, "mraw", n, (rows, cols), dtype, bits, frame_rate_hz=fps,
+                    trigger_index=trigger, time_origin="trigger" if start is not None else "first frame",
+                    codec=f"MRAW {color_bit} bit", lossless=True, _frames=frames,
+                    _close=lambda: raw._mmap.close() if getattr(raw, "_mmap", None) else None)
+    source.frame = frame
+    return source
+
+
+# =========================================================================== Phantom CINE (PIMS)
+
+
+def _open_cine(path: Path) -> Source:
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            from pims.cine import Cine
+    except ImportError as exc:
+        raise _missing("PIMS", "pims", "Phantom CINE files") from exc
+    try:
+        cine = Cine(str(path))
+    except Exception as exc:  # PIMS raises struct.error, ValueError, KeyError on bad headers
+        raise FormatError(
+            f"{str(path)!r} is not a readable Phantom CINE file ({type(exc).__name__}: {exc}); "
+            f"check the copy is complete, or export it again from PCC"
+        ) from exc
+    if cine.cfa != 0:
+        cine.close()
+        raise FormatError(f"{str(path)!r} is a colour (CFA) recording; export it as monochrome from PCC")
+    n = len(cine)
+    rows, cols = int(cine.frame_shape[0]), int(cine.frame_shape[1])
+    stored = int(cine.bitmapinfo_dict.get("bi_bit_count", 16))
+    bits = int(cine.setup_fields_dict.get("real_bpp", stored) or stored)
+    fps = float(cine.frame_rate or math.nan)
+    first_no = int(cine.header_dict.get("first_image_no", 0))
+    trigger = -first_no if 0 <= -first_no < n else None
+
+    def frames(indices: range) -> Iterator[tuple]:
+        for i in indices:
+            image = np.asarray(cine._get_frame(i))
+            try:
+                time_s = float(cine.get_time_to_trigger(i))
+            except Exception:  # no time stamp block in this file
+                time_s = (first_no + i) / fps if fps > 0 else math.nan
+            yield i, np.ascontiguousarray(image), time_s
+
+    dtype = np.dtype(np.uint8 if stored == 8 else np.uint16)
+    return Source(path, "cine", n, (rows, cols), dtype, min(bits, 16), frame_rate_hz=fps,
+                  trigger_index=trigger, time_origin="trigger", codec=f"CINE {stored} bit",
+                  lossless=True, _frames=frames, _close=cine.close)

@@ -1,0 +1,224 @@
+"""Video (PyAV), Photron MRAW (pyMRAW) and folders of images, read through
+``app.files.imageio.iter_frames``; every file here is written by the format's own
+library (PyAV encodes the videos, pyMRAW writes the MRAW + CIH)."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from app.files import imageio
+
+av = pytest.importorskip("av")
+pyMRAW = pytest.importorskip("pyMRAW")
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _frames(n=5, shape=(48, 64), hi=4096, seed=0):
+    rng = np.random.default_rng(seed)
+    dtype = np.uint16 if hi > 256 else np.uint8
+    return [rng.integers(0, hi, shape).astype(dtype) for _ in range(n)]
+
+
+def write_video(path, frames, *, codec="ffv1", pix_fmt="gray16le", rate=250):
+    """Encode ``frames`` with PyAV (the container from the suffix)."""
+    rows, cols = frames[0].shape
+    with av.open(str(path), "w") as container:
+        stream = container.add_stream(codec, rate=rate)
+        stream.width, stream.height, stream.pix_fmt = cols, rows, pix_fmt
+        for image in frames:
+            if pix_fmt.startswith("yuv"):
+                frame = av.VideoFrame.from_ndarray(np.dstack([image] * 3), format="rgb24")
+            else:
+                frame = av.VideoFrame.from_ndarray(image, format=pix_fmt)
+            for packet in stream.encode(frame):
+                container.mux(packet)
+        for packet in stream.encode():
+            container.mux(packet)
+    return path
+
+
+def write_mraw(path, frames, *, bits=16, fps=5000, start_frame=0):
+    """Photron MRAW + CIH written by pyMRAW; returns the .cih path."""
+    _, cih = pyMRAW.save_mraw(np.asarray(frames), str(path), bit_depth=bits,
+                              info_dict={"Record Rate(fps)": fps, "Start Frame": start_frame})
+    return Path(cih)
+
+
+# --------------------------------------------------------------------------- video
+
+
+@pytest.mark.parametrize("suffix,codec,pix_fmt,hi,bits", [
+    (".avi", "ffv1", "gray16le", 4096, 16),
+    (".avi", "ffv1", "gray12le", 4096, 12),
+    (".mkv", "ffv1", "gray", 256, 8),
+    (".avi", "rawvideo", "gray", 256, 8),
+    (".mov", "png", "gray16be", 65536, 16),
+])
+def test_lossless_video_reads_exactly(tmp_path, suffix, codec, pix_fmt, hi, bits):
+    frames = _frames(hi=hi)
+    path = write_video(tmp_path / f"rec{suffix}", frames, codec=codec, pix_fmt=pix_fmt, rate=250)
+    info = imageio.image_info(path)
+    assert (info.kind, info.n_frames, info.shape, info.bits) == ("video", 5, (48, 64), bits)
+    assert info.frame_rate_hz == pytest.approx(250.0)
+    assert info.lossless and info.notes == ()
+    items = list(imageio.iter_frames([path]))
+    assert len(items) == 5
+    for k, item in enumerate(items):
+        assert np.array_equal(item.image, frames[k]), f"frame {k} differs"
+        assert item.time_s == pytest.approx(k / 250.0, abs=1e-9)
+    # a frame range decodes to the same frames
+    picked = list(imageio.iter_frames([path], first=1, last=4, step=2))
+    assert [i.sequence_index for i in picked] == [1, 3]
+    assert np.array_equal(picked[1].image, frames[3])
+    assert np.array_equal(imageio.read_image(path, index=2), frames[2])
+
+
+def test_lossy_video_is_read_with_a_warning(tmp_path):
+    # smooth pattern, so H.264 keeps it close; a checkerboard would be worse
+    y, x = np.mgrid[0:64, 0:96]
+    frames = [(128 + 80 * np.sin(2 * np.pi * (x + k) / 16) * np.sin(2 * np.pi * y / 16)).astype(np.uint8)
+              for k in range(4)]
+    path = write_video(tmp_path / "talk.mp4", frames, codec="libx264", pix_fmt="yuv420p", rate=30)
+    info = imageio.image_info(path)
+    assert not info.lossless and info.codec == "h264"
+    notes = imageio.input_notes([path])
+    assert "lossy" in notes[0] and "Fourier demodulation" in notes[0]
+    items = list(imageio.iter_frames([path]))
+    assert len(items) == 4 and items[0].image.dtype == np.uint8
+    # the grey (luma) of what was encoded, within H.264 artefacts at default quality
+    err = np.abs(items[2].image.astype(float) - frames[2])
+    assert np.median(err) <= 4
+
+
+# --------------------------------------------------------------------------- Photron MRAW
+
+
+@pytest.mark.parametrize("bits,hi", [(8, 256), (16, 4096)])
+def test_mraw_frames_rate_and_trigger(tmp_path, bits, hi):
+    frames = _frames(n=6, hi=hi)
+    cih = write_mraw(tmp_path / "shot" / "shot.cih", frames, bits=bits, fps=5000, start_frame=-2)
+    for path in (cih, cih.with_suffix(".mraw"), cih.parent):  # header, data file, folder
+        items = list(imageio.iter_frames([path]))
+        assert len(items) == 6
+        for k, item in enumerate(items):
+            assert np.array_equal(item.image, frames[k])
+            # Start Frame -2: the trigger is frame 2 of the file, at t = 0
+            assert item.time_s == pytest.approx((k - 2) / 5000.0, abs=1e-12)
+    info = imageio.image_info(cih)
+    assert (info.kind, info.n_frames, info.shape) == ("mraw", 6, (48, 64))
+    assert info.frame_rate_hz == 5000.0 and info.trigger_index == 2
+    assert info.bits == (8 if bits == 8 else 12)  # pyMRAW writes EffectiveBit Depth 12 for 16 bit
+    assert np.array_equal(imageio.read_image(cih, index=5), frames[5])
+
+
+def test_mraw_12_bit_matches_pymraw_decoder(tmp_path):
+    """12-bit MRAW: pyMRAW has no 12-bit writer, so the CIH comes from pyMRAW and the
+    samples are packed two per three bytes; the frames read lazily, one at a time,
+    must equal pyMRAW's own whole-file decoder (``load_video``)."""
+    frames = np.asarray(_frames(n=3, hi=4096))
+    cih = write_mraw(tmp_path / "p12.cih", frames.astype(np.uint8) * 0, bits=8, fps=1000)
+    text = cih.read_text().replace("Color Bit : 8", "Color Bit : 12").replace(
+        "EffectiveBit Depth : 8", "EffectiveBit Depth : 12")
+    cih.write_text(text)
+    flat = frames.reshape(-1, 2).astype(np.uint16)
+    a, b = flat[:, 0], flat[:, 1]
+    packed = np.stack([a >> 4, ((a & 15) << 4) | (b >> 8), b & 255], axis=1).astype(np.uint8)
+    cih.with_suffix(".mraw").write_bytes(packed.tobytes())
+    expected, _ = pyMRAW.load_video(str(cih))
+    items = list(imageio.iter_frames([cih]))
+    assert len(items) == 3 and imageio.image_info(cih).bits == 12
+    for k, item in enumerate(items):
+        assert np.array_equal(item.image, expected[k])
+        assert np.array_equal(item.image, frames[k])
+
+
+def test_truncated_mraw_is_one_line_error(tmp_path):
+    cih = write_mraw(tmp_path / "cut.cih", _frames(n=4), bits=16)
+    data = cih.with_suffix(".mraw")
+    data.write_bytes(data.read_bytes()[: 48 * 64 * 2 * 2 + 100])
+    with pytest.raises(imageio.ImageReadError, match=r"2 complete.*truncated"):
+        imageio.frame_count(cih)
+
+
+# --------------------------------------------------------------------------- folders, globs, ranges
+
+
+def test_folder_and_glob_in_natural_order(tmp_path):
+    frames = _frames(n=12, hi=256)
+    for k, image in enumerate(frames):
+        imageio.write_image(tmp_path / f"frame_{k}.png", image)
+    by_folder = imageio.expand_inputs([tmp_path])
+    assert [Path(p).name for p in by_folder[:4]] == ["frame_0.png", "frame_1.png", "frame_2.png", "frame_3.png"]
+    assert Path(by_folder[10]).name == "frame_10.png"
+    assert imageio.expand_inputs([str(tmp_path / "frame_*.png")]) == by_folder
+    items = list(imageio.iter_frames([tmp_path], first=2, last=10, step=8))
+    assert [Path(i.source).name for i in items] == ["frame_2.png", "frame_10.png"]
+    assert np.array_equal(items[1].image, frames[10])
+    assert math.isnan(items[0].time_s)
+
+
+def test_frame_range_parsing():
+    assert imageio.parse_frame_range("0:20") == slice(0, 20, None)
+    assert imageio.parse_frame_range("100::2") == slice(100, None, 2)
+    assert range(50)[imageio.parse_frame_range("-10:")] == range(40, 50)
+    with pytest.raises(imageio.ImageReadError, match="START:STOP:STEP"):
+        imageio.parse_frame_range("a:b")
+    with pytest.raises(imageio.ImageReadError, match="step"):
+        imageio.parse_frame_range("0:10:0")
+
+
+# --------------------------------------------------------------------------- same heights from every format
+
+
+def _cli(*args):
+    return subprocess.run([sys.executable, "-m", "app.cli", *map(str, args)], cwd=ROOT,
+                          capture_output=True, text=True, timeout=600)
+
+
+@pytest.fixture(scope="module")
+def sim12(tmp_path_factory):
+    out = tmp_path_factory.mktemp("sim12")
+    r = _cli("simulate", "--out", out, "--surface", "waves", "--size", "128", "--frames", "4",
+             "--bits", "12", "--noise", "1.0", "--overwrite")
+    assert r.returncode == 0, r.stderr
+    return out
+
+
+def test_same_heights_from_tiff_folder_avi_and_mraw(sim12, tmp_path):
+    """The reference and 4 frames of a 12-bit simulation stored as a TIFF folder, a
+    lossless FFV1 AVI and a 16-bit MRAW give the same heights: the readers add nothing."""
+    reference = imageio.read_image(sim12 / "reference.tif")
+    frames = [imageio.read_image(sim12 / f"frame_{k:04d}.tif") for k in range(4)]
+    folder = tmp_path / "tiffs"
+    folder.mkdir()
+    for k, image in enumerate([reference, *frames]):
+        imageio.write_image(folder / f"img_{k}.tif", image)  # natural order: img_0 = reference
+    avi = write_video(tmp_path / "rec.avi", [reference, *frames], rate=1000)
+    cih = write_mraw(tmp_path / "rec.cih", [reference, *frames], bits=16, fps=1000)
+    outputs = {}
+    for name, source in (("tiff", folder), ("avi", avi), ("mraw", cih)):
+        out = tmp_path / f"{name}.h5"
+        r = _cli("process", source, "--reference-frames", "0:1", "--frames", "1:",
+                 "--geometry", sim12 / "geometry.toml", "--out", out, "--no-progress")
+        assert r.returncode == 0, r.stderr
+        with h5py.File(out, "r") as f:
+            outputs[name] = (f["height"][()], f["frame_index"][()], f["time_s"][()])
+    h_tiff, index, _ = outputs["tiff"]
+    assert h_tiff.shape == (4, 128, 128) and list(index) == [1, 2, 3, 4]
+    peak = np.nanmax(np.abs(h_tiff))
+    assert peak > 1e-4  # micrometres of waves, really measured
+    for name in ("avi", "mraw"):
+        h, idx, time_s = outputs[name]
+        assert list(idx) == [1, 2, 3, 4]
+        np.testing.assert_array_equal(np.isnan(h), np.isnan(h_tiff))
+        assert np.nanmax(np.abs(h - h_tiff)) <= 1e-6 * peak, name
+        assert time_s == pytest.approx(np.arange(1, 5) / 1000.0, abs=1e-9)
+    assert np.all(np.isnan(outputs["tiff"][2]))  # image files carry no time
