@@ -185,6 +185,7 @@ def _open_video(path: Path) -> Source:
         container.close()
         raise FormatError(f"{str(path)!r} has no video stream; give a video file")
     stream = container.streams.video[0]
+    stream.thread_type = "AUTO"  # frame and slice threads: FFV1 decodes on every core
     ctx = stream.codec_context
     codec = ctx.name
     pix_fmt = ctx.pix_fmt or ""
@@ -217,6 +218,13 @@ def _open_video(path: Path) -> Source:
             return frame.to_ndarray()
         return _video_plane0(frame, bits)
 
+    stoppers: list = []
+
+    def close():
+        for halt in list(stoppers):
+            halt()
+        container.close()
+
     def frames(indices: range) -> Iterator[tuple]:
         if not len(indices):
             return
@@ -239,7 +247,58 @@ def _open_video(path: Path) -> Source:
 
     return Source(path, "video", n, (rows, cols), dtype, bits, frame_rate_hz=fps,
                   time_origin="stream start", codec=codec, lossless=lossless, notes=notes,
-                  _frames=frames, _close=container.close)
+                  _frames=lambda indices: _prefetch(frames(indices), stoppers),
+                  _close=close)
+
+
+def _prefetch(frames: Iterator[tuple], stoppers: list, depth: int = 4) -> Iterator[tuple]:
+    """Decode ahead in a thread (FFmpeg releases the GIL), so that decoding a video
+    overlaps with processing the frames already decoded; errors are re-raised here,
+    in order. Leaving the loop early stops the thread."""
+    import queue
+    import threading
+
+    q: queue.Queue = queue.Queue(maxsize=depth)
+    stop = threading.Event()
+    done = object()
+
+    def put(item) -> bool:
+        while not stop.is_set():
+            try:
+                q.put(item, timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def run():
+        try:
+            for item in frames:
+                if not put(("frame", item)):
+                    return
+            put(("end", done))
+        except BaseException as exc:  # handed to the consumer, raised there
+            put(("error", exc))
+
+    thread = threading.Thread(target=run, name="tirdeflect-video-decode", daemon=True)
+
+    def halt():
+        stop.set()
+        thread.join(timeout=10)
+
+    stoppers.append(halt)  # the Source stops it before closing the file under it
+    thread.start()
+    try:
+        while True:
+            kind, value = q.get()
+            if kind == "end":
+                return
+            if kind == "error":
+                raise value
+            yield value
+    finally:
+        halt()
+        stoppers.remove(halt)
 
 
 # =========================================================================== Photron MRAW (pyMRAW)
