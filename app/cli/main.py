@@ -7,6 +7,8 @@
     tirdeflect process REF FRAME... --geometry G.toml --out OUT.h5
     tirdeflect simulate --out DIR [--surface bump] ...
     tirdeflect compare OUT.h5 DIR/heights.h5   processed vs simulated heights
+    tirdeflect movie OUT.h5 --out heights.mp4   movie of the maps, for talks
+    tirdeflect probe OUT.h5 --at X_MM,Y_MM      height time series at points (CSV, HDF5)
     tirdeflect cameras               list cameras
     tirdeflect record ...            record frames to HDF5 without the GUI
     tirdeflect --version
@@ -114,6 +116,10 @@ def build_parser() -> argparse.ArgumentParser:
     process_cli.add_process_parser(sub)
     process_cli.add_simulate_parser(sub)
     process_cli.add_compare_parser(sub)
+    from app.cli import outputs as outputs_cli
+
+    outputs_cli.add_movie_parser(sub)
+    outputs_cli.add_probe_parser(sub)
     _add_record_commands(sub)
     # `tirdeflect process ... --debug` works as well as `tirdeflect --debug process ...`
     # (SUPPRESS: an absent flag does not reset the global one)
@@ -177,6 +183,7 @@ def main(argv=None) -> int:
             gui_argv = [*gui_argv, "--debug"]
         return _guarded(lambda: _run_gui(gui_argv), debug)
     parser = build_parser()
+    argv = _join_negative_pairs(argv)
     try:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # argparse: --help, --version, usage errors
@@ -185,6 +192,27 @@ def main(argv=None) -> int:
     level = logging.DEBUG if args.debug else logging.INFO if args.verbose else logging.WARNING
     logging.basicConfig(level=level, format=f"{PROG}: %(levelname)s: %(message)s")
     return _guarded(lambda: args.func(args), args.debug)
+
+
+#: Options whose value is a comma-separated pair that may start with a minus sign.
+_PAIR_OPTIONS = ("--at", "--range", "--size-mm")
+
+
+def _join_negative_pairs(argv: list) -> list:
+    """``--at -2,3`` -> ``--at=-2,3``: argparse would take ``-2,3`` for an option."""
+    out = []
+    i = 0
+    while i < len(argv):
+        token = argv[i]
+        nxt = argv[i + 1] if i + 1 < len(argv) else None
+        if token in _PAIR_OPTIONS and nxt is not None and len(nxt) > 1 and nxt[0] == "-" \
+                and (nxt[1].isdigit() or nxt[1] == "."):
+            out.append(f"{token}={nxt}")
+            i += 2
+            continue
+        out.append(token)
+        i += 1
+    return out
 
 
 def _guarded(run, debug: bool) -> int:

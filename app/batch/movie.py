@@ -1,0 +1,233 @@
+"""Movies of processed maps for talks (``tirdeflect movie``), encoded with PyAV.
+
+Each movie frame shows one map of OUT.h5 (height in micrometres, or a slope in
+milliradians) in a fixed colour range for the whole movie, a colour bar with
+its scale, and the frame number and time stamp. Unmeasured samples are grey.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from app.batch.probe import frame_times, frames_done, open_output
+from processing.errors import TirdeflectError
+
+__all__ = ["MovieReport", "make_movie", "QUANTITIES", "colour_range"]
+
+#: quantity -> (dataset, factor from stored units to displayed, displayed unit, label)
+QUANTITIES = {
+    "height": ("height", 1e3, "um", "height"),
+    "slope_x": ("slope_x", 1e3, "mrad", "slope dh/dx"),
+    "slope_y": ("slope_y", 1e3, "mrad", "slope dh/dy"),
+}
+
+_BAR_W = 110   # colour bar panel, px
+_TOP_H = 34    # text band above the map, px
+_GREY = (96, 96, 96)
+
+
+@dataclass
+class MovieReport:
+    path: Path
+    frames: int
+    width: int
+    height: int
+    value_range: tuple
+    unit: str
+    codec: str
+
+
+def colour_range(ds, n: int, factor: float, percentile: float, max_samples: int = 60) -> tuple:
+    """(low, high) in displayed units: the ``percentile`` and ``100 - percentile``
+    percentiles of the finite values of up to ``max_samples`` frames spread over the movie."""
+    picks = np.unique(np.linspace(0, n - 1, min(n, max_samples)).round().astype(int))
+    values = []
+    for k in picks:
+        v = np.asarray(ds[k], dtype=np.float64).ravel()
+        v = v[np.isfinite(v)]
+        if v.size > 20000:
+            v = v[:: v.size // 20000]
+        values.append(v)
+    values = np.concatenate(values) * factor if values else np.empty(0)
+    if values.size == 0:
+        raise TirdeflectError("no frame of the file holds a measured value; nothing to show")
+    lo, hi = np.percentile(values, [percentile, 100.0 - percentile])
+    if not hi > lo:
+        lo, hi = lo - 0.5, hi + 0.5
+    return float(lo), float(hi)
+
+
+def _colormap(values: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    import cv2
+
+    scaled = np.clip((values - lo) / (hi - lo), 0.0, 1.0)
+    idx = np.nan_to_num(scaled * 255.0, nan=0.0).astype(np.uint8)
+    rgb = cv2.applyColorMap(idx, cv2.COLORMAP_VIRIDIS)[:, :, ::-1]
+    rgb = np.ascontiguousarray(rgb)
+    rgb[~np.isfinite(values)] = _GREY
+    return rgb
+
+
+def _ticks(lo: float, hi: float, count: int = 5) -> list:
+    span = hi - lo
+    raw = span / max(count - 1, 1)
+    mag = 10 ** math.floor(math.log10(raw)) if raw > 0 else 1.0
+    step = min((m * mag for m in (1, 2, 2.5, 5, 10) if m * mag >= raw), default=mag * 10)
+    first = math.ceil(lo / step) * step
+    ticks = []
+    v = first
+    while v <= hi + 1e-9 * span:
+        ticks.append(v)
+        v += step
+    return ticks
+
+
+def _compose(map_rgb, lo, hi, unit, label, stamp, scale, aspect):
+    """One movie frame (RGB, even width and height): text band, map, colour bar.
+
+    The map is magnified ``scale`` times along x and ``scale * aspect`` along y
+    (``aspect`` = mm per row / mm per column), so the surface shows at its true shape."""
+    import cv2
+
+    rows, cols = map_rgb.shape[:2]
+    out_rows = int(round(rows * scale * aspect))
+    if scale != 1 or out_rows != rows:
+        map_rgb = cv2.resize(map_rgb, (cols * scale, out_rows), interpolation=cv2.INTER_NEAREST)
+        rows, cols = out_rows, cols * scale
+    height = _TOP_H + rows + 10
+    width = cols + _BAR_W
+    height += height % 2
+    width += width % 2
+    canvas = np.full((height, width, 3), 255, np.uint8)
+    canvas[_TOP_H:_TOP_H + rows, :cols] = map_rgb
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    cv2.putText(canvas, stamp, (6, _TOP_H - 11), font, 0.55, (0, 0, 0), 1, cv2.LINE_AA)
+    # colour bar
+    x0, x1 = cols + 14, cols + 34
+    y0, y1 = _TOP_H + 8, _TOP_H + rows - 8
+    ramp = np.linspace(hi, lo, max(y1 - y0, 2))[:, None] * np.ones((1, x1 - x0))
+    canvas[y0:y0 + ramp.shape[0], x0:x1] = _colormap(ramp, lo, hi)
+    cv2.rectangle(canvas, (x0, y0), (x1 - 1, y0 + ramp.shape[0] - 1), (0, 0, 0), 1)
+    for t in _ticks(lo, hi):
+        y = int(round(y0 + (hi - t) / (hi - lo) * (ramp.shape[0] - 1)))
+        cv2.line(canvas, (x1, y), (x1 + 4, y), (0, 0, 0), 1)
+        text = f"{t:.3g}"
+        cv2.putText(canvas, text, (x1 + 7, y + 4), font, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+    cv2.putText(canvas, f"{label}", (cols + 6, _TOP_H - 18), font, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+    cv2.putText(canvas, f"[{unit}]", (cols + 6, _TOP_H - 5), font, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+    return canvas
+
+
+def _encoder(container, suffix: str, fps: float):
+    from fractions import Fraction
+
+    import av
+
+    rate = Fraction(fps).limit_denominator(1001)
+    for codec in (("mpeg4",) if suffix == ".avi" else ("libx264", "h264", "mpeg4")):
+        try:
+            av.codec.Codec(codec, "w")
+        except Exception:
+            continue
+        stream = container.add_stream(codec, rate=rate)
+        stream.pix_fmt = "yuv420p"
+        if codec != "mpeg4":
+            stream.options = {"crf": "18"}
+        else:
+            stream.bit_rate = 8_000_000
+        return stream
+    raise TirdeflectError("this FFmpeg (PyAV) has no H.264 or MPEG-4 encoder; reinstall av")
+
+
+def make_movie(out_h5, movie_path, *, quantity: str = "height", value_range=None,
+               percentile: float = 1.0, fps: float | None = None, overwrite: bool = False,
+               scale: int | None = None, on_progress=None) -> MovieReport:
+    """Write a movie of ``quantity`` from a ``tirdeflect process`` output.
+
+    Parameters
+    ----------
+    out_h5 : path-like
+        OUT.h5 of ``tirdeflect process``.
+    movie_path : path-like
+        .mp4, .mkv, .mov (H.264) or .avi (MPEG-4).
+    quantity : {"height", "slope_x", "slope_y"}
+    value_range : (low, high) or None
+        Colour range in displayed units (um for height, mrad for slopes); None:
+        the ``percentile`` .. ``100 - percentile`` percentiles over the movie.
+    fps : float or None
+        Movie frame rate; None: from the frames' time stamps (real time), else 25.
+    scale : int or None
+        Integer magnification of the map along x; None: enough to make it
+        >= 480 px wide. Rows are stretched by (mm per row) / (mm per column) on
+        top, so the surface keeps its true shape (TIR rows span 1/cos(theta) more).
+    on_progress : callable or None
+        ``on_progress(done, total)`` after each frame.
+    """
+    import av
+
+    if quantity not in QUANTITIES:
+        raise TirdeflectError(f"unknown quantity {quantity!r}; choose {', '.join(QUANTITIES)}")
+    movie = Path(movie_path)
+    if movie.suffix.lower() not in (".mp4", ".mkv", ".mov", ".avi"):
+        raise TirdeflectError(f"--out {str(movie)!r}: give a .mp4, .mkv, .mov or .avi file name")
+    if movie.exists() and not overwrite:
+        raise TirdeflectError(f"{str(movie)!r} already exists; choose another --out or add --overwrite")
+    if not (movie.parent if str(movie.parent) else Path(".")).is_dir():
+        raise TirdeflectError(f"the folder of --out {str(movie)!r} does not exist; create it first")
+    if not 0 <= percentile < 50:
+        raise TirdeflectError(f"--percentile must be in [0, 50); got {percentile}")
+    name, factor, unit, label = QUANTITIES[quantity]
+    with open_output(out_h5) as f:
+        n = frames_done(f)
+        if n == 0:
+            raise TirdeflectError(f"{str(out_h5)!r} holds no processed frame (frames_done = 0)")
+        ds = f[name]
+        if value_range is None:
+            lo, hi = colour_range(ds, n, factor, percentile)
+        else:
+            lo, hi = (float(v) for v in value_range)
+            if not hi > lo:
+                raise TirdeflectError(f"--range {lo:g},{hi:g}: the high end must exceed the low end")
+        times, _ = frame_times(f, n)
+        index = np.asarray(f["frame_index"][:n])
+        if fps is None:
+            dt = np.diff(times)
+            fps = 1.0 / float(np.median(dt)) if n > 1 and np.all(np.isfinite(dt)) and np.median(dt) > 0 else 25.0
+        if not (fps > 0 and math.isfinite(fps)):
+            raise TirdeflectError(f"--fps must be a positive number; got {fps}")
+        fps = min(max(fps, 1.0), 240.0)  # players cope with 1..240 frames/s
+        rows, cols = ds.shape[1:]
+        x_mm, y_mm = f["x_mm"][()], f["y_mm"][()]
+        aspect = 1.0
+        if rows > 1 and cols > 1:
+            aspect = abs(float(y_mm[-1] - y_mm[0]) / (rows - 1)) / abs(float(x_mm[-1] - x_mm[0]) / (cols - 1))
+        if scale is None:
+            scale = max(1, int(math.ceil(480 / cols)))
+        container = av.open(str(movie), "w")
+        try:
+            stream = None
+            for k in range(n):
+                values = np.asarray(ds[k], dtype=np.float64) * factor
+                t = times[k]
+                stamp = f"frame {int(index[k])}" + (f"   t = {t:.4f} s" if math.isfinite(t) else "")
+                image = _compose(_colormap(values, lo, hi), lo, hi, unit, label, stamp, scale, aspect)
+                if stream is None:
+                    stream = _encoder(container, movie.suffix.lower(), fps)
+                    stream.width, stream.height = image.shape[1], image.shape[0]
+                for packet in stream.encode(av.VideoFrame.from_ndarray(image, format="rgb24")):
+                    container.mux(packet)
+                if on_progress is not None:
+                    on_progress(k + 1, n)
+            for packet in stream.encode():
+                container.mux(packet)
+        except BaseException:
+            container.close()
+            movie.unlink(missing_ok=True)  # no half movie left behind
+            raise
+        container.close()
+    return MovieReport(movie, n, int(stream.width), int(stream.height), (lo, hi), unit,
+                       stream.codec_context.name)

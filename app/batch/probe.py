@@ -1,0 +1,184 @@
+"""Virtual probes: height time series at points of OUT.h5 (``tirdeflect probe``).
+
+A probe is a wave gauge you can move after the experiment: the height at a
+surface point ``(x_mm, y_mm)``, bilinearly interpolated between the four
+samples around it (NaN when any of them is invalid, never a value from an
+unmeasured sample), one value per processed frame, with the frame's time.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from processing.errors import TirdeflectError
+
+__all__ = ["ProbeSeries", "probe_series", "frame_times", "write_probes", "open_output"]
+
+
+@dataclass
+class ProbeSeries:
+    """Height time series at points.
+
+    Attributes
+    ----------
+    x_mm, y_mm : numpy.ndarray
+        ``(k,)`` probe positions on the surface, mm (image frame, docs/architecture.md).
+    frame_index : numpy.ndarray
+        ``(n,)`` input-sequence index of each processed frame.
+    time_s : numpy.ndarray
+        ``(n,)`` seconds; NaN where unknown.
+    time_source : str
+        Where the times come from (``"/time_s"``, ``"/device_timestamp_ns"``, ``"--fps"``, ``"none"``).
+    height_mm : numpy.ndarray
+        ``(n, k)`` height at each probe, mm; NaN where not measured.
+    """
+
+    x_mm: np.ndarray
+    y_mm: np.ndarray
+    frame_index: np.ndarray
+    time_s: np.ndarray
+    time_source: str
+    height_mm: np.ndarray
+
+
+def open_output(path):
+    """Open a ``tirdeflect process`` output for reading, with a one-line error otherwise."""
+    import h5py
+
+    p = Path(path)
+    if not p.is_file():
+        raise TirdeflectError(f"{str(p)!r} does not exist or is not a file; give the OUT.h5 of "
+                              f"`tirdeflect process`")
+    try:
+        f = h5py.File(p, "r")
+    except OSError as exc:
+        raise TirdeflectError(f"{str(p)!r} is not a readable HDF5 file ({exc})") from exc
+    if "height" not in f or "x_mm" not in f:
+        names = ", ".join(sorted(f.keys())) or "nothing"
+        f.close()
+        raise TirdeflectError(f"{str(p)!r} holds no /height (it holds {names}); give the output "
+                              f"of `tirdeflect process`, not a recording")
+    return f
+
+
+def frames_done(f) -> int:
+    return int(min(f.attrs.get("frames_done", f["height"].shape[0]), f["height"].shape[0]))
+
+
+def frame_times(f, n: int, fps: float | None = None) -> tuple:
+    """Times (s) of the first ``n`` frames of an opened OUT.h5, and where they came from.
+
+    The input files' own times (``/time_s``: trigger-relative for MRAW/CINE,
+    stream time for video, recording time for HDF5), else the camera clock
+    (``/device_timestamp_ns``, relative to the first processed frame), else
+    ``frame_index / fps`` when ``fps`` is given, else NaN.
+    """
+    if "time_s" in f:
+        t = np.asarray(f["time_s"][:n], dtype=np.float64)
+        if n and np.all(np.isfinite(t)):
+            return t, "/time_s"
+    for name in ("device_timestamp_ns", "host_timestamp_ns"):
+        if name in f:
+            ns = np.asarray(f[name][:n], dtype=np.int64)
+            if n and np.all(ns >= 0):
+                return (ns - ns[0]) * 1e-9, f"/{name}"
+    if fps:
+        return np.asarray(f["frame_index"][:n], dtype=np.float64) / float(fps), "--fps"
+    return np.full(n, np.nan), "none"
+
+
+def _fractional_index(coord: np.ndarray, value: float, what: str) -> float:
+    coord = np.asarray(coord, dtype=np.float64)
+    idx = np.arange(coord.size, dtype=np.float64)
+    if coord.size > 1 and coord[-1] < coord[0]:
+        coord, idx = coord[::-1], idx[::-1]
+    lo, hi = float(coord[0]), float(coord[-1])
+    if not lo <= value <= hi:
+        raise TirdeflectError(
+            f"probe {what} = {value:g} mm is outside the measured field ({what} from {lo:.3f} "
+            f"to {hi:.3f} mm); choose a point inside it")
+    return float(np.interp(value, coord, idx))
+
+
+def probe_series(path, points_mm, *, fps: float | None = None) -> ProbeSeries:
+    """Heights at ``points_mm`` (sequence of ``(x_mm, y_mm)``) over every frame of OUT.h5.
+
+    Raises
+    ------
+    TirdeflectError
+        Not an output file, no frames, or a point outside the field.
+    """
+    points = [(float(x), float(y)) for x, y in points_mm]
+    if not points:
+        raise TirdeflectError("no probe point given; add --at X_MM,Y_MM")
+    with open_output(path) as f:
+        n = frames_done(f)
+        if n == 0:
+            raise TirdeflectError(f"{str(path)!r} holds no processed frame (frames_done = 0)")
+        x_mm, y_mm = f["x_mm"][()], f["y_mm"][()]
+        height = f["height"]
+        rows, cols = height.shape[1:]
+        cells = []
+        for x, y in points:
+            c = _fractional_index(x_mm, x, "x")
+            r = _fractional_index(y_mm, y, "y")
+            r0, c0 = min(int(math.floor(r)), rows - 2), min(int(math.floor(c)), cols - 2)
+            cells.append((r0, c0, r - r0, c - c0))
+        out = np.empty((n, len(points)))
+        r_lo = min(cell[0] for cell in cells)
+        r_hi = max(cell[0] for cell in cells) + 2
+        for k in range(n):
+            band = height[k, r_lo:r_hi, :]  # one read per frame for all probes
+            for j, (r0, c0, fr, fc) in enumerate(cells):
+                q = band[r0 - r_lo:r0 - r_lo + 2, c0:c0 + 2].astype(np.float64)
+                w = np.array([[(1 - fr) * (1 - fc), (1 - fr) * fc], [fr * (1 - fc), fr * fc]])
+                used = w > 1e-12
+                out[k, j] = float(np.sum(q[used] * w[used])) if np.all(np.isfinite(q[used])) else np.nan
+        times, source = frame_times(f, n, fps)
+        index = np.asarray(f["frame_index"][:n], dtype=np.int64)
+    return ProbeSeries(np.array([p[0] for p in points]), np.array([p[1] for p in points]),
+                       index, times, source, out)
+
+
+def write_probes(series: ProbeSeries, csv_path, h5_path=None, *, source: str = "",
+                 overwrite: bool = False) -> list:
+    """Write the series as CSV (one row per frame) and, if ``h5_path``, as HDF5 datasets.
+
+    Returns the paths written.
+    """
+    import h5py
+
+    written = []
+    targets = [Path(csv_path)] + ([Path(h5_path)] if h5_path else [])
+    for p in targets:
+        if p.exists() and not overwrite:
+            raise TirdeflectError(f"{str(p)!r} already exists; choose another name or add --overwrite")
+        if not (p.parent if str(p.parent) else Path(".")).is_dir():
+            raise TirdeflectError(f"the folder of {str(p)!r} does not exist; create it first")
+    names = [f"height_mm@x={x:g},y={y:g}" for x, y in zip(series.x_mm, series.y_mm)]
+    with open(targets[0], "w", newline="", encoding="utf-8") as fh:
+        fh.write(f"# tirdeflect probe of {source}: height in mm at surface points (x_mm, y_mm); "
+                 f"time in s from {series.time_source}\n")
+        w = csv.writer(fh)
+        w.writerow(["frame_index", "time_s", *names])
+        for k in range(len(series.frame_index)):
+            w.writerow([int(series.frame_index[k]), f"{series.time_s[k]:.9g}",
+                        *(f"{v:.9g}" for v in series.height_mm[k])])
+    written.append(targets[0])
+    if h5_path:
+        with h5py.File(targets[1], "w") as f:
+            ds = f.create_dataset("height_mm", data=series.height_mm.astype(np.float64))
+            ds.attrs["description"] = "height at each probe (column) for each frame (row), mm; NaN unmeasured"
+            f.create_dataset("time_s", data=series.time_s).attrs["units"] = "s"
+            f["time_s"].attrs["source"] = series.time_source
+            f.create_dataset("frame_index", data=series.frame_index)
+            f.create_dataset("x_mm", data=series.x_mm).attrs["units"] = "mm"
+            f.create_dataset("y_mm", data=series.y_mm).attrs["units"] = "mm"
+            f.attrs["source"] = source
+        written.append(targets[1])
+    return written

@@ -1,0 +1,118 @@
+"""``tirdeflect movie``, ``tirdeflect probe`` and ``tirdeflect pattern``: argument
+parsing and messages; the work is in :mod:`app.batch.movie`,
+:mod:`app.batch.probe` and :mod:`app.batch.pattern`."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+__all__ = ["add_movie_parser", "add_probe_parser"]
+
+
+def _pair(text: str, what: str, sep: str = ",") -> tuple:
+    parts = text.replace(" ", "").split(sep)
+    try:
+        if len(parts) != 2:
+            raise ValueError
+        return float(parts[0]), float(parts[1])
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
+
+
+def _point(text: str) -> tuple:
+    return _pair(text, "X_MM,Y_MM (two numbers in mm, e.g. 3.5,-2)")
+
+
+def _range(text: str) -> tuple:
+    return _pair(text, "LOW,HIGH (e.g. -2,2)")
+
+
+def _positive(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {value:g}")
+    return value
+
+
+# =========================================================================== movie
+
+
+def add_movie_parser(sub) -> None:
+    p = sub.add_parser(
+        "movie", help="make a movie of processed height (or slope) maps, for talks",
+        description="Encode the maps of a `tirdeflect process` output as a movie (PyAV): "
+        "colour bar in micrometres (slopes: milliradians), frame number and time stamp, one "
+        "colour range for the whole movie.")
+    p.add_argument("out_h5", metavar="OUT.h5", help="output of tirdeflect process")
+    p.add_argument("--out", required=True, metavar="MOVIE", help="movie file (.mp4, .mkv, .mov, .avi)")
+    p.add_argument("--quantity", choices=("height", "slope_x", "slope_y"), default="height")
+    p.add_argument("--range", type=_range, default=None, metavar="LOW,HIGH",
+                   help="colour range in um (height) or mrad (slopes); default: percentiles")
+    p.add_argument("--percentile", type=float, default=1.0, metavar="P",
+                   help="default colour range from the P and 100-P percentiles over the movie (1)")
+    p.add_argument("--fps", type=_positive, default=None,
+                   help="movie frame rate (default: real time from the frames' time stamps, else 25)")
+    p.add_argument("--scale", type=int, default=None, metavar="K",
+                   help="magnify the map K times (default: at least 480 px wide)")
+    p.add_argument("--overwrite", action="store_true", help="replace MOVIE if it exists")
+    p.set_defaults(func=cmd_movie)
+
+
+def cmd_movie(args) -> int:
+    from app.batch.movie import make_movie
+
+    report = make_movie(args.out_h5, args.out, quantity=args.quantity, value_range=args.range,
+                        percentile=args.percentile, fps=args.fps, overwrite=args.overwrite,
+                        scale=args.scale)
+    lo, hi = report.value_range
+    print(f"tirdeflect: wrote {report.frames} frame(s), {report.width} x {report.height} px "
+          f"({report.codec}), colour range {lo:.4g} .. {hi:.4g} {report.unit}, to {report.path}",
+          file=sys.stderr)
+    return 0
+
+
+# =========================================================================== probe
+
+
+def add_probe_parser(sub) -> None:
+    p = sub.add_parser(
+        "probe", help="height time series at surface points (virtual wave gauges)",
+        description="Write the height (mm) at surface points of a `tirdeflect process` output, "
+        "for every frame, with its time in s (from the recording's time stamps), as CSV and HDF5.")
+    p.add_argument("out_h5", metavar="OUT.h5", help="output of tirdeflect process")
+    p.add_argument("--at", type=_point, action="append", required=True, metavar="X_MM,Y_MM",
+                   help="probe position on the surface in mm (x along columns, y along rows, "
+                   "as /x_mm and /y_mm of OUT.h5); repeat for several probes")
+    p.add_argument("--out", default=None, metavar="PROBES.csv",
+                   help="CSV file (default: OUT_probes.csv beside OUT.h5)")
+    p.add_argument("--h5", default=None, metavar="PROBES.h5",
+                   help="HDF5 file with the same series (default: the CSV name with .h5)")
+    p.add_argument("--fps", type=_positive, default=None,
+                   help="frame rate for inputs without time stamps (image files): time = frame / fps")
+    p.add_argument("--overwrite", action="store_true", help="replace the outputs if they exist")
+    p.set_defaults(func=cmd_probe)
+
+
+def cmd_probe(args) -> int:
+    from app.batch.probe import probe_series, write_probes
+
+    src = Path(args.out_h5)
+    csv_path = Path(args.out) if args.out else src.with_name(src.stem + "_probes.csv")
+    h5_path = Path(args.h5) if args.h5 else csv_path.with_suffix(".h5")
+    if h5_path == src:
+        from processing.errors import TirdeflectError
+
+        raise TirdeflectError("--h5 must not be OUT.h5 itself; give another file name")
+    series = probe_series(src, args.at, fps=args.fps)
+    paths = write_probes(series, csv_path, h5_path, source=str(src), overwrite=args.overwrite)
+    print(f"tirdeflect: {len(series.x_mm)} probe(s) x {len(series.frame_index)} frame(s), time from "
+          f"{series.time_source}, written to {', '.join(map(str, paths))}", file=sys.stderr)
+    if series.time_source == "none":
+        print("tirdeflect: note: the inputs had no time stamps (image files): time_s is NaN; "
+              "give --fps to count time from the frame index", file=sys.stderr)
+    return 0
