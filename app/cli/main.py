@@ -9,6 +9,8 @@
     tirdeflect compare OUT.h5 DIR/heights.h5   processed vs simulated heights
     tirdeflect movie OUT.h5 --out heights.mp4   movie of the maps, for talks
     tirdeflect probe OUT.h5 --at X_MM,Y_MM      height time series at points (CSV, HDF5)
+    tirdeflect pattern --period-mm P --size-mm W,H --out board.pdf   the printed checkerboard
+    tirdeflect pattern --suggest --theta-deg 55 --depth-mm 300 --pixel-mm 0.08 --camera 1024x1024
     tirdeflect cameras               list cameras
     tirdeflect record ...            record frames to HDF5 without the GUI
     tirdeflect --version
@@ -120,6 +122,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     outputs_cli.add_movie_parser(sub)
     outputs_cli.add_probe_parser(sub)
+    outputs_cli.add_pattern_parser(sub)
     _add_record_commands(sub)
     # `tirdeflect process ... --debug` works as well as `tirdeflect --debug process ...`
     # (SUPPRESS: an absent flag does not reset the global one)

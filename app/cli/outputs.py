@@ -8,7 +8,7 @@ import argparse
 import sys
 from pathlib import Path
 
-__all__ = ["add_movie_parser", "add_probe_parser"]
+__all__ = ["add_movie_parser", "add_probe_parser", "add_pattern_parser"]
 
 
 def _pair(text: str, what: str, sep: str = ",") -> tuple:
@@ -115,4 +115,83 @@ def cmd_probe(args) -> int:
     if series.time_source == "none":
         print("tirdeflect: note: the inputs had no time stamps (image files): time_s is NaN; "
               "give --fps to count time from the frame index", file=sys.stderr)
+    return 0
+
+
+# =========================================================================== pattern
+
+
+def _camera(text: str) -> tuple:
+    parts = text.lower().replace(" ", "").split("x")
+    try:
+        if len(parts) != 2:
+            raise ValueError
+        cols, rows = int(parts[0]), int(parts[1])
+        if cols < 16 or rows < 16:
+            raise ValueError
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT in pixels (e.g. 1024x1024), got {text!r}") from None
+    return cols, rows
+
+
+def _size(text: str) -> tuple:
+    return _pair(text, "W,H in mm (e.g. 297,210)")
+
+
+def add_pattern_parser(sub) -> None:
+    p = sub.add_parser(
+        "pattern", help="print the checkerboard at exact scale, or suggest its period",
+        description="Write the checkerboard pattern as a vector PDF at exact printed scale (a 100 mm "
+        "ruler and the parameters in the bottom margin), SVG (mm units) or PNG (--dpi); or, with "
+        "--suggest, propose the period for a camera and geometry (the rule is printed).")
+    p.add_argument("--period-mm", type=_positive, default=None, metavar="P",
+                   help="full period along x (one dark plus one bright square), mm")
+    p.add_argument("--size-mm", type=_size, default=None, metavar="W,H",
+                   help="page size in mm, e.g. 297,210 (A4 landscape); the board fills it above the margin")
+    p.add_argument("--stretch-y", type=_positive, default=1.0, metavar="F",
+                   help="cell height / width (1: square; 1/cos(theta) makes the camera see square cells; "
+                   "--suggest prints it)")
+    p.add_argument("--margin-mm", type=float, default=25.0, metavar="M",
+                   help="bottom strip for the ruler and the parameters, mm (default 25)")
+    p.add_argument("--out", default=None, metavar="BOARD", help="output file: .pdf, .svg or .png")
+    p.add_argument("--dpi", type=_positive, default=600.0, help="PNG resolution (default 600)")
+    p.add_argument("--overwrite", action="store_true", help="replace BOARD if it exists")
+    p.add_argument("--suggest", action="store_true",
+                   help="propose a period from --theta-deg, --depth-mm, --pixel-mm and --camera "
+                   "(and write it to --out if given, with --size-mm)")
+    p.add_argument("--theta-deg", type=float, default=None, help="incidence angle theta, deg")
+    p.add_argument("--depth-mm", type=_positive, default=None, help="pattern depth below the surface H, mm")
+    p.add_argument("--pixel-mm", type=_positive, default=None, help="surface mm per image column")
+    p.add_argument("--camera", type=_camera, default=None, metavar="WxH", help="image size in pixels")
+    p.set_defaults(func=cmd_pattern)
+
+
+def cmd_pattern(args) -> int:
+    from app.batch.pattern import PatternSpec, suggest_period, write_pattern
+    from processing.errors import TirdeflectError
+
+    period, stretch, note = args.period_mm, args.stretch_y, ""
+    if args.suggest:
+        missing = [name for name, value in (("--theta-deg", args.theta_deg), ("--depth-mm", args.depth_mm),
+                                            ("--pixel-mm", args.pixel_mm), ("--camera", args.camera))
+                   if value is None]
+        if missing:
+            raise TirdeflectError(f"--suggest needs {', '.join(missing)}")
+        s = suggest_period(args.theta_deg, args.depth_mm, args.pixel_mm, args.camera)
+        for line in s.lines():
+            print(line)
+        if period is None:
+            period = s.period_mm if stretch == 1.0 else s.period_stretched_mm
+        note = (f"for theta {args.theta_deg:g} deg, H {args.depth_mm:g} mm, {args.pixel_mm:g} mm/px, "
+                f"{args.camera[0]}x{args.camera[1]} px")
+        if args.out is None:
+            return 0
+    if period is None or args.size_mm is None or args.out is None:
+        raise TirdeflectError("give --period-mm P, --size-mm W,H and --out BOARD.pdf "
+                              "(or --suggest with --theta-deg, --depth-mm, --pixel-mm, --camera)")
+    spec = PatternSpec(period, args.size_mm[0], args.size_mm[1], stretch_y=stretch,
+                       margin_mm=args.margin_mm, note=note)
+    path = write_pattern(spec, args.out, dpi=args.dpi, overwrite=args.overwrite)
+    print(f"tirdeflect: wrote {spec.describe()} to {path}; print at 100 % and check the "
+          f"100 mm ruler", file=sys.stderr)
     return 0

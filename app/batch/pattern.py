@@ -1,0 +1,401 @@
+"""The printed checkerboard (``tirdeflect pattern``): a period suited to the camera
+and theta, and the board itself at exact printed scale.
+
+Scale
+-----
+The PDF page is exactly ``--size-mm W,H`` (1 mm = 72/25.4 pt, every
+coordinate written with 10 significant digits: a few nanometres on A0; the
+PDF is written directly because reportlab rounds to 6 digits, 0.06 um off on
+A3). The checkerboard fills the page above a margin
+strip (``margin_mm``, bottom) that holds a 100 mm ruler with millimetre ticks
+and the board's parameters, so a print can be checked with a ruler: print at
+100 % ("actual size"), never "fit to page". SVG is written in mm units (exact
+at any resolution); PNG at ``dpi`` pixels per inch, anti-aliased by exact
+area coverage of each pixel, with the DPI stored in the file.
+
+The period
+----------
+``period_mm`` is the full period (one dark plus one bright square), as in
+:class:`processing.forward.Checkerboard`. A telecentric camera looking at the
+surface under incidence theta sees a square board with an x-period
+``P / s`` and a y-period ``P cos(theta) / s`` pixels (``s`` = ``pixel_mm``,
+notes.md). A board stretched by ``1/cos(theta)`` along y (cells
+``P/2`` by ``P/(2 cos theta)``) shows square cells, ``P / s`` pixels along
+both axes; the theta estimate from the carriers must then be told the stretch
+(geometry key ``pattern_stretch_y``).
+
+Rule of :func:`suggest_period`: the two image periods should lie between
+:data:`MIN_PERIOD_PX` and :data:`MAX_PERIOD_PX` pixels. Below ~10 px the
+checkerboard's third harmonics fold back next to the carriers and the pass
+band (radius about half the carrier spacing) gets too narrow for the pixel
+blur of the edges; above ~20 px the demodulated displacement is smoothed over
+more surface (features of 25-45 px lose ~4 % of their amplitude at 11-20 px
+periods, notes.md) and fewer periods fit the field. The period chosen puts
+the geometric mean of the two image periods at :data:`TARGET_PERIOD_PX`
+(14 px), rounded to 0.05 mm; for the stretched board (equal periods) both
+at 14 px.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from processing.errors import TirdeflectError
+
+__all__ = ["PatternSpec", "Suggestion", "suggest_period", "write_pattern", "MM_TO_PT",
+           "RULER_MM", "TARGET_PERIOD_PX", "MIN_PERIOD_PX", "MAX_PERIOD_PX"]
+
+#: PDF points per millimetre (1 pt = 1/72 inch, 1 inch = 25.4 mm).
+MM_TO_PT = 72.0 / 25.4
+RULER_MM = 100.0
+TARGET_PERIOD_PX = 14.0
+MIN_PERIOD_PX = 10.0
+MAX_PERIOD_PX = 20.0
+N_CRITICAL_DEG = math.degrees(math.asin(1 / 1.333))
+
+
+@dataclass(frozen=True)
+class PatternSpec:
+    """A printable checkerboard.
+
+    Attributes
+    ----------
+    period_mm : float
+        Full period along x (two squares), mm.
+    width_mm, height_mm : float
+        Page size, mm.
+    stretch_y : float
+        Cell height / cell width (1: square cells; ``1/cos(theta)``: seen square).
+    margin_mm : float
+        Bottom strip for the ruler and the parameters, mm.
+    """
+
+    period_mm: float
+    width_mm: float
+    height_mm: float
+    stretch_y: float = 1.0
+    margin_mm: float = 25.0
+    note: str = ""
+
+    def check(self) -> None:
+        for name in ("period_mm", "width_mm", "height_mm", "stretch_y"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise TirdeflectError(f"{name.replace('_mm', '')} must be a positive number; got {value}")
+        if self.width_mm < RULER_MM + 10:
+            raise TirdeflectError(
+                f"the page is {self.width_mm:g} mm wide: the {RULER_MM:g} mm check ruler needs at least "
+                f"{RULER_MM + 10:g} mm; print on a wider sheet (and cut the board out)")
+        if not 15 <= self.margin_mm < self.height_mm:
+            raise TirdeflectError(f"--margin-mm must be >= 15 (ruler and text) and less than the page height; "
+                                  f"got {self.margin_mm:g}")
+        board_h = self.height_mm - self.margin_mm
+        if min(self.width_mm / self.period_mm, board_h / (self.period_mm * self.stretch_y)) < 4:
+            raise TirdeflectError(
+                f"a {self.period_mm:g} mm period gives fewer than 4 periods on a {self.width_mm:g} x "
+                f"{board_h:g} mm board; carriers need many periods: use a smaller period or a larger page")
+
+    @property
+    def cell_w_mm(self) -> float:
+        return self.period_mm / 2.0
+
+    @property
+    def cell_h_mm(self) -> float:
+        return self.period_mm * self.stretch_y / 2.0
+
+    def describe(self) -> str:
+        text = (f"tirdeflect checkerboard: period {self.period_mm:g} mm along x (squares "
+                f"{self.cell_w_mm:g} mm)")
+        if abs(self.stretch_y - 1) > 1e-12:
+            text += f", cells stretched {self.stretch_y:.4f}x along y ({self.cell_h_mm:.4f} mm)"
+        return text + f"; page {self.width_mm:g} x {self.height_mm:g} mm"
+
+
+def cells(spec: PatternSpec):
+    """Dark cells as (x_mm, y_mm, w_mm, h_mm) rectangles, y measured down from the top
+    of the page, clipped to the board (the page above the margin)."""
+    board_h = spec.height_mm - spec.margin_mm
+    cw, ch = spec.cell_w_mm, spec.cell_h_mm
+    out = []
+    for j in range(int(math.ceil(board_h / ch - 1e-9))):
+        y0, y1 = j * ch, min((j + 1) * ch, board_h)
+        for i in range(int(math.ceil(spec.width_mm / cw - 1e-9))):
+            if (i + j) % 2:
+                continue
+            x0, x1 = i * cw, min((i + 1) * cw, spec.width_mm)
+            out.append((x0, y0, x1 - x0, y1 - y0))
+    return out
+
+
+def ruler_ticks():
+    """(position_mm, length_mm, label) of the ruler's ticks, 0..100 mm."""
+    ticks = []
+    for k in range(int(RULER_MM) + 1):
+        if k % 10 == 0:
+            ticks.append((float(k), 4.0, str(k)))
+        elif k % 5 == 0:
+            ticks.append((float(k), 2.8, ""))
+        else:
+            ticks.append((float(k), 1.8, ""))
+    return ticks
+
+
+def _margin_lines(spec: PatternSpec) -> list:
+    lines = [spec.describe()]
+    if spec.note:
+        lines.append(spec.note)
+    lines.append(f"Print at 100 % (actual size, not 'fit to page'): the ruler must measure "
+                 f"{RULER_MM:g} mm.")
+    return lines
+
+
+# =========================================================================== writers
+
+
+def write_pattern(spec: PatternSpec, path, *, dpi: float = 600.0, overwrite: bool = False) -> Path:
+    """Write the board as .pdf (vector), .svg (vector, mm units) or .png (``dpi``)."""
+    spec.check()
+    p = Path(path)
+    suffix = p.suffix.lower()
+    if suffix not in (".pdf", ".svg", ".png"):
+        raise TirdeflectError(f"--out {str(p)!r}: give a .pdf, .svg or .png file name")
+    if p.exists() and not overwrite:
+        raise TirdeflectError(f"{str(p)!r} already exists; choose another --out or add --overwrite")
+    if not (p.parent if str(p.parent) else Path(".")).is_dir():
+        raise TirdeflectError(f"the folder of --out {str(p)!r} does not exist; create it first")
+    if suffix == ".pdf":
+        _write_pdf(spec, p)
+    elif suffix == ".svg":
+        _write_svg(spec, p)
+    else:
+        if not (50 <= dpi <= 4800):
+            raise TirdeflectError(f"--dpi must be between 50 and 4800; got {dpi:g}")
+        _write_png(spec, p, dpi)
+    return p
+
+
+def _num(value: float) -> str:
+    """A PDF number with 10 significant digits (reportlab keeps 6: 1190.551 pt for 420 mm)."""
+    text = f"{value:.10g}"
+    return "0" if text in ("-0", "0") else text
+
+
+def _pdf_text(text: str) -> str:
+    data = text.encode("cp1252", errors="replace").decode("latin-1")
+    return data.replace("\\", "\\\\").replace("(", "\\(").replace(")", "\\)")
+
+
+def _write_pdf(spec: PatternSpec, p: Path) -> None:
+    """One-page vector PDF written directly: filled rectangles, stroked lines and
+    Helvetica text (a standard font, nothing embedded); every coordinate in pt with
+    10 significant digits, so the printed scale is exact to far below a micrometre."""
+    W, H = spec.width_mm, spec.height_mm
+    pt = MM_TO_PT
+    ops = ["0 g 0 G"]
+    for x, y, w, h in cells(spec):  # PDF y runs up from the bottom of the page
+        ops.append(f"{_num(x * pt)} {_num((H - y - h) * pt)} {_num(w * pt)} {_num(h * pt)} re f")
+    x0, y0 = 5.0, 8.0  # ruler baseline: 100 mm long, 8 mm above the bottom edge
+    ops.append(f"{_num(0.15 * pt)} w 0 J")
+    ops.append(f"{_num(x0 * pt)} {_num(y0 * pt)} m {_num((x0 + RULER_MM) * pt)} {_num(y0 * pt)} l S")
+    size_small, size_text = 6.0, 7.0
+    labels = []
+    for pos, length, label in ruler_ticks():
+        x = (x0 + pos) * pt
+        ops.append(f"{_num(x)} {_num(y0 * pt)} m {_num(x)} {_num((y0 + length) * pt)} l S")
+        if label:  # Helvetica digits are 0.556 em wide: centre the label under its tick
+            labels.append((x - 0.556 * size_small * len(label) / 2, (y0 - 3.0) * pt, size_small, label))
+    labels.append(((x0 + RULER_MM + 2) * pt, y0 * pt, size_small, "mm"))
+    for k, text in enumerate(_margin_lines(spec)):
+        labels.append((x0 * pt, (spec.margin_mm - 5.0 - 3.2 * k) * pt, size_text, text))
+    for x, y, size, text in labels:
+        ops.append(f"BT /F1 {_num(size)} Tf {_num(x)} {_num(y)} Td ({_pdf_text(text)}) Tj ET")
+    import zlib
+
+    content = zlib.compress("\n".join(ops).encode("latin-1"), 9)
+    info = (f"<< /Title (tirdeflect checkerboard) /Subject ({_pdf_text(spec.describe())}) "
+            f"/Creator (tirdeflect pattern) >>")
+    objects = [
+        b"<< /Type /Catalog /Pages 2 0 R >>",
+        b"<< /Type /Pages /Kids [3 0 R] /Count 1 >>",
+        (f"<< /Type /Page /Parent 2 0 R /MediaBox [0 0 {_num(W * pt)} {_num(H * pt)}] "
+         f"/Resources << /Font << /F1 4 0 R >> >> /Contents 5 0 R >>").encode("latin-1"),
+        b"<< /Type /Font /Subtype /Type1 /BaseFont /Helvetica /Encoding /WinAnsiEncoding >>",
+        b"<< /Length " + str(len(content)).encode() + b" /Filter /FlateDecode >>\nstream\n"
+        + content + b"\nendstream",
+        info.encode("latin-1"),
+    ]
+    out = bytearray(b"%PDF-1.4\n%\xe2\xe3\xcf\xd3\n")
+    offsets = []
+    for k, body in enumerate(objects, start=1):
+        offsets.append(len(out))
+        out += f"{k} 0 obj\n".encode() + body + b"\nendobj\n"
+    xref = len(out)
+    out += f"xref\n0 {len(objects) + 1}\n0000000000 65535 f \n".encode()
+    for offset in offsets:
+        out += f"{offset:010d} 00000 n \n".encode()
+    out += (f"trailer\n<< /Size {len(objects) + 1} /Root 1 0 R /Info 6 0 R >>\n"
+            f"startxref\n{xref}\n%%EOF\n").encode()
+    p.write_bytes(bytes(out))
+
+
+def _write_svg(spec: PatternSpec, p: Path) -> None:
+    from xml.sax.saxutils import escape
+
+    W, H = spec.width_mm, spec.height_mm
+    parts = [
+        '<?xml version="1.0" encoding="UTF-8"?>',
+        f'<svg xmlns="http://www.w3.org/2000/svg" width="{W:.10g}mm" height="{H:.10g}mm" '
+        f'viewBox="0 0 {W:.10g} {H:.10g}">',
+        f"<title>{escape(spec.describe())}</title>",
+        f'<rect x="0" y="0" width="{W:.10g}" height="{H:.10g}" fill="white"/>',
+        '<g fill="black" shape-rendering="crispEdges">',
+    ]
+    parts += [f'<rect x="{x:.10g}" y="{y:.10g}" width="{w:.10g}" height="{h:.10g}"/>'
+              for x, y, w, h in cells(spec)]
+    parts.append("</g>")
+    x0, y0 = 5.0, H - 8.0
+    parts.append('<g stroke="black" stroke-width="0.15" fill="none">')
+    parts.append(f'<line x1="{x0}" y1="{y0:.10g}" x2="{x0 + RULER_MM}" y2="{y0:.10g}"/>')
+    for pos, length, _ in ruler_ticks():
+        parts.append(f'<line x1="{x0 + pos:.10g}" y1="{y0:.10g}" x2="{x0 + pos:.10g}" '
+                     f'y2="{y0 - length:.10g}"/>')
+    parts.append("</g>")
+    parts.append('<g font-family="Helvetica, Arial, sans-serif" font-size="2.1" fill="black">')
+    for pos, _, label in ruler_ticks():
+        if label:
+            parts.append(f'<text x="{x0 + pos:.10g}" y="{y0 + 3:.10g}" text-anchor="middle">{label}</text>')
+    parts.append(f'<text x="{x0 + RULER_MM + 2:.10g}" y="{y0:.10g}">mm</text>')
+    for k, text in enumerate(_margin_lines(spec)):
+        parts.append(f'<text x="{x0}" y="{H - spec.margin_mm + 5.0 + 3.2 * k + 2:.10g}" '
+                     f'font-size="2.5">{escape(text)}</text>')
+    parts += ["</g>", "</svg>", ""]
+    p.write_text("\n".join(parts), encoding="utf-8")
+
+
+def _square_wave_coverage(n_px: int, half_period_px: float, limit_px: float) -> np.ndarray:
+    """Fraction of pixel k (covering [k, k+1)) that lies in 'even' intervals
+    [2m h, (2m+1) h) of a square wave of half-period h, cut at ``limit_px``."""
+    def dark(x):
+        x = np.minimum(x, limit_px)
+        period = 2 * half_period_px
+        m = np.floor(x / period)
+        return m * half_period_px + np.minimum(x - m * period, half_period_px)
+    k = np.arange(n_px + 1, dtype=np.float64)
+    return np.diff(dark(k))
+
+
+def _write_png(spec: PatternSpec, p: Path, dpi: float) -> None:
+    from PIL import Image
+
+    px_per_mm = dpi / 25.4
+    cols = int(round(spec.width_mm * px_per_mm))
+    rows = int(round(spec.height_mm * px_per_mm))
+    board_rows = (spec.height_mm - spec.margin_mm) * px_per_mm
+    # exact area coverage: a cell is dark where (i + j) is even, i.e. where the
+    # x and y square waves agree: cov = cx*cy + (1-cx)*(1-cy) inside the board
+    cx = _square_wave_coverage(cols, spec.cell_w_mm * px_per_mm, cols)
+    inside_y = np.clip(board_rows - np.arange(rows), 0.0, 1.0)
+    cy = _square_wave_coverage(rows, spec.cell_h_mm * px_per_mm, board_rows)
+    dark = np.outer(cy, cx) + np.outer(inside_y - cy, 1.0 - cx)
+    image = np.round(255.0 * (1.0 - dark)).astype(np.uint8)
+    # ruler and text in the margin, drawn with Pillow at the same scale
+    from PIL import ImageDraw, ImageFont
+
+    im = Image.fromarray(image)
+    draw = ImageDraw.Draw(im)
+    try:  # Pillow >= 10.1: a scalable default font, sized in mm like the PDF's
+        small = ImageFont.load_default(size=max(8, int(round(2.1 * px_per_mm))))
+        text_font = ImageFont.load_default(size=max(8, int(round(2.5 * px_per_mm))))
+    except TypeError:
+        small = text_font = ImageFont.load_default()
+    x0, y0 = 5.0, spec.height_mm - 8.0
+    line_w = max(1, int(round(0.15 * px_per_mm)))
+    def xy(x_mm, y_mm):
+        return (x_mm * px_per_mm, y_mm * px_per_mm)
+    draw.line([xy(x0, y0), xy(x0 + RULER_MM, y0)], fill=0, width=line_w)
+    for pos, length, label in ruler_ticks():
+        draw.line([xy(x0 + pos, y0), xy(x0 + pos, y0 - length)], fill=0, width=line_w)
+        if label:
+            draw.text(xy(x0 + pos, y0 + 1), label, fill=0, font=small, anchor="mt")
+    for k, text in enumerate(_margin_lines(spec)):
+        draw.text(xy(x0, spec.height_mm - spec.margin_mm + 3 + 3.2 * k), text, fill=0, font=text_font)
+    im.save(p, dpi=(dpi, dpi))
+
+
+# =========================================================================== the period
+
+
+@dataclass
+class Suggestion:
+    """A period for the camera and geometry, and what it gives (see the module docstring)."""
+
+    period_mm: float
+    theta_deg: float
+    pixel_mm: float
+    depth_mm: float
+    camera: tuple
+    period_px_square: tuple  # (x/cols, y/rows) image periods of a square board, px
+    period_stretched_mm: float  # period for the board stretched by 1/cos(theta)
+    period_px_stretched: tuple  # its image periods, px
+    stretch_y: float
+    field_mm: tuple  # surface field of view (x, y), mm
+    board_mm: tuple  # suggested board size (x, y), mm
+    wrap_slope_x: float  # largest |dh/dx| before the x-carrier phase wraps (no unwrapping)
+    warnings: list = field(default_factory=list)
+
+    def lines(self) -> list:
+        sx, sy = self.period_px_square
+        tx, ty = self.period_px_stretched
+        out = [
+            f"rule: image periods between {MIN_PERIOD_PX:g} and {MAX_PERIOD_PX:g} px along both image "
+            f"axes, geometric mean {TARGET_PERIOD_PX:g} px (square board: x-period P/s, y-period "
+            f"P cos(theta)/s; s = {self.pixel_mm:g} mm per column)",
+            f"suggested period: {self.period_mm:g} mm (squares {self.period_mm / 2:g} mm)",
+            f"  square board:    {sx:.1f} px per period along x (columns), {sy:.1f} px along y (rows)",
+            f"or a board stretched by 1/cos(theta) = {self.stretch_y:.4f} along y (--stretch-y "
+            f"{self.stretch_y:.4f}), seen with square cells: period {self.period_stretched_mm:g} mm, cells "
+            f"{self.period_stretched_mm / 2:g} x {self.period_stretched_mm * self.stretch_y / 2:.4g} mm: "
+            f"{tx:.1f} px along x, {ty:.1f} px along y; then set pattern_stretch_y = {self.stretch_y:.4f} "
+            f"in the geometry so that theta estimated from the carriers accounts for the stretch",
+            f"field of view on the surface: {self.field_mm[0]:.1f} x {self.field_mm[1]:.1f} mm "
+            f"({self.camera[0]} x {self.camera[1]} px); board at least {self.board_mm[0]:g} x "
+            f"{self.board_mm[1]:g} mm (field + 20 %)",
+            f"phase of the x-carrier wraps at |dh/dx| = {self.wrap_slope_x:.2e} (P / 4H at H = "
+            f"{self.depth_mm:g} mm); steeper waves need unwrapping (on by default)",
+        ]
+        return out + [f"warning: {w}" for w in self.warnings]
+
+
+def suggest_period(theta_deg: float, depth_mm: float, pixel_mm: float, camera: tuple) -> Suggestion:
+    """Period (mm) putting the geometric mean of the two image periods at
+    :data:`TARGET_PERIOD_PX`, rounded to 0.05 mm (rule in the module docstring)."""
+    if not (N_CRITICAL_DEG < theta_deg < 90):
+        raise TirdeflectError(f"--theta-deg must be above the critical angle {N_CRITICAL_DEG:.1f} deg "
+                              f"(total internal reflection) and below 90; got {theta_deg:g}")
+    for name, value in (("--depth-mm", depth_mm), ("--pixel-mm", pixel_mm)):
+        if not (math.isfinite(value) and value > 0):
+            raise TirdeflectError(f"{name} must be a positive number of mm; got {value:g}")
+    cols, rows = camera
+    c = math.cos(math.radians(theta_deg))
+    # square board: x = P/s, y = P c/s; geometric mean P sqrt(c)/s = target
+    period = TARGET_PERIOD_PX * pixel_mm / math.sqrt(c)
+    period = max(0.05, round(period / 0.05) * 0.05)
+    square = (period / pixel_mm, period * c / pixel_mm)
+    period_st = max(0.05, round(TARGET_PERIOD_PX * pixel_mm / 0.05) * 0.05)
+    stretched = (period_st / pixel_mm, period_st / pixel_mm)
+    field_mm = (cols * pixel_mm, rows * pixel_mm / c)
+    board = tuple(float(math.ceil(1.2 * v / 10.0) * 10) for v in field_mm)
+    warnings = []
+    if not (MIN_PERIOD_PX <= square[1] and square[0] <= MAX_PERIOD_PX):
+        warnings.append(f"at theta {theta_deg:g} deg a square board cannot keep both image periods within "
+                        f"{MIN_PERIOD_PX:g}-{MAX_PERIOD_PX:g} px ({square[0]:.1f} and {square[1]:.1f}): "
+                        f"print the stretched board (--stretch-y {1 / c:.4f})")
+    if min(cols / square[0], rows / square[1]) < 10:
+        warnings.append("fewer than 10 periods fit across the image: the carrier search needs about ten; "
+                        "use more pixels or a smaller pixel_mm")
+    return Suggestion(period, theta_deg, pixel_mm, depth_mm, (cols, rows), square, period_st, stretched, 1 / c,
+                      field_mm, board, period / (4 * depth_mm), warnings)
