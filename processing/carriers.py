@@ -133,13 +133,17 @@ class Carriers:
                 f"{a[0]:.1f} and {a[1]:.1f} deg, rotation {self.rotation_deg:.1f} deg")
 
 
-def theta_from_carriers(freq) -> float:
+def theta_from_carriers(freq, stretch_y: float = 1.0) -> float:
     """Viewing angle (deg) that makes the two carriers orthogonal and equally long.
 
     Parameters
     ----------
     freq : array_like, shape (2, 2)
         ``(f_row, f_col)`` of both carriers, cycles per pixel.
+    stretch_y : float
+        Cell height / width of the printed board (``Geometry.pattern_stretch_y``):
+        a board stretched by ``s`` along y shows row frequencies ``1/s`` of a
+        square board's, so they are multiplied by ``s`` first.
 
     Returns
     -------
@@ -148,6 +152,7 @@ def theta_from_carriers(freq) -> float:
         is not square, or rows do not run along the plane of incidence).
     """
     (a1, b1), (a2, b2) = np.asarray(freq, dtype=float)
+    a1, a2 = a1 * float(stretch_y), a2 * float(stretch_y)
     # surface frame: (a * c, b), c = cos(theta); unknown C = c^2:
     # orthogonal:   a1 a2 C + b1 b2 = 0
     # equal length: (a1^2 - a2^2) C = b2^2 - b1^2

@@ -72,6 +72,7 @@ _EXAMPLES = {
     "n_water": "n_water = 1.333",
     "n_air": "n_air = 1.0003",
     "fsss_camera_distance_mm": "fsss_camera_distance_mm = 800.0",
+    "pattern_stretch_y": "pattern_stretch_y = 1.7434",
 }
 
 _MEANING = {
@@ -86,6 +87,8 @@ _MEANING = {
     "n_water": "refractive index of the water",
     "n_air": "refractive index of the air",
     "fsss_camera_distance_mm": "FS-SS: height of the camera above the water surface, mm (omit: telecentric)",
+    "pattern_stretch_y": "cell height / width of the printed board along y (omit: square cells; "
+                         "1/cos(theta) for a board printed to look square, `tirdeflect pattern --suggest`)",
 }
 
 _REQUIRED = {
@@ -101,6 +104,7 @@ _NUMBER_UNITS = {
     "fsss_camera_distance_mm": "a number of millimetres",
     "n_water": "a number (refractive index)",
     "n_air": "a number (refractive index)",
+    "pattern_stretch_y": "a number (cell height / width)",
 }
 
 
@@ -178,6 +182,12 @@ class Geometry:
     fsss_camera_distance_mm : float or None
         FS-SS: height of the camera above the water surface, mm. None:
         telecentric.
+    pattern_stretch_y : float or None
+        Cell height / cell width of the printed checkerboard along y (surface
+        y, along image rows). None: square cells. A board stretched by
+        ``1/cos(theta)`` looks square to a TIR camera; the theta estimate from
+        the carriers' aspect divides the stretch out. It does not enter the
+        heights (they depend on the displacement only).
 
     Examples
     --------
@@ -197,6 +207,7 @@ class Geometry:
     n_water: float = 1.333
     n_air: float = 1.0003
     fsss_camera_distance_mm: float | None = None
+    pattern_stretch_y: float | None = None
 
     # ------------------------------------------------------------------ validation
     def __post_init__(self) -> None:
@@ -227,6 +238,10 @@ class Geometry:
                 f"got {self.rows_toward_camera!r}"
             )
         object.__setattr__(self, "rows_toward_camera", bool(self.rows_toward_camera))
+        if self.pattern_stretch_y is not None and not self.pattern_stretch_y > 0:
+            raise GeometryError(
+                f"pattern_stretch_y must be a positive ratio (cell height / width), got "
+                f"{self.pattern_stretch_y!r}; omit it for square cells")
         for key in ("depth_mm", "pixel_mm", "camera_distance_mm", "fsss_camera_distance_mm"):
             value = getattr(self, key)
             if value is not None and value <= 0:

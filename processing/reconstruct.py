@@ -39,7 +39,7 @@ from typing import Optional
 import cv2
 import numpy as np
 
-from .carriers import Carriers, check_pattern_match, display_spectrum, find_carriers, match_error
+from .carriers import Carriers, check_pattern_match, display_spectrum, find_carriers, match_error, theta_from_carriers
 from .demodulation import Demodulator
 from .errors import AllInvalidError, ShapeMismatchError
 from .fft import FFTPlanner
@@ -1000,7 +1000,8 @@ class Reconstructor:
             board's rotation on the surface, rows scaled by the configured
             cos(theta); FS-SS: as seen), ``reference_periods_px``,
             ``reference_rotation_deg``, ``theta_estimate_deg`` (from the
-            frame's aspect, telecentric square board), ``theta_configured_deg``
+            frame's aspect, telecentric camera, a square board or one
+            stretched by the geometry's ``pattern_stretch_y``), ``theta_configured_deg``
             (geometry; None for FS-SS), ``focus`` (carrier peak sharpness 0..1,
             smaller of both), ``modulation`` (decimated map, fundamental-band
             contrast std/mean, about 0.8 for full-scale sharp squares),
@@ -1039,7 +1040,8 @@ class Reconstructor:
         theta_cfg = out["theta_configured_deg"]
         out.update(periods_px=np.asarray(c.periods_px, float), rotation_deg=float(c.rotation_deg),
                    surface_rotation_deg=c.surface_rotation_deg(theta_cfg if theta_cfg is not None else 0.0),
-                   theta_estimate_deg=float(c.theta_deg), focus=float(np.min(c.sharpness)),
+                   theta_estimate_deg=theta_from_carriers(
+                       c.freq, getattr(self.geometry, "pattern_stretch_y", None) or 1.0), focus=float(np.min(c.sharpness)),
                    pattern_mismatch=dict(zip(("period_rel", "angle_deg"), match_error(self.carriers, c.freq))))
         return out
 

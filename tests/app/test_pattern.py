@@ -141,3 +141,33 @@ def test_suggest_prints_the_rule():
     r = _cli("pattern", "--suggest", "--theta-deg", "40", "--depth-mm", "300", "--pixel-mm", "0.08",
              "--camera", "1024x1024")
     assert r.returncode == 2 and "critical angle" in r.stderr
+
+
+def test_stretched_board_looks_square_and_theta_accounts_for_it():
+    """The board stretched by 1/cos(theta) along y, ray traced: equal image periods along
+    both axes (the suggestion), and theta estimated from the carriers is right only once
+    the geometry's pattern_stretch_y divides the stretch out."""
+    from processing import Geometry, Reconstructor, forward
+    from processing.carriers import find_carriers, theta_from_carriers
+
+    theta, pixel_mm = 55.0, 0.08
+    s = suggest_period(theta, 300.0, pixel_mm, (1024, 1024))
+    board = forward.Checkerboard(period_mm=s.period_stretched_mm, edge_softness_mm=pixel_mm)
+
+    def stretched(x_mm, y_mm):
+        return board(x_mm, np.asarray(y_mm) / s.stretch_y)
+
+    geometry = Geometry.from_dict({"setup": "tir", "theta_deg": theta, "depth_mm": 300.0,
+                                   "pixel_mm": pixel_mm, "rows_toward_camera": False,
+                                   "pattern_stretch_y": s.stretch_y})
+    assert Geometry.from_toml_text(geometry.to_toml_text()) == geometry
+    image, _ = forward.render(forward.FlatSurface(), geometry, (256, 256), stretched)
+    carriers = find_carriers(image)
+    f_row, f_col = np.abs(np.asarray(carriers.freq)).max(axis=0)
+    assert 1 / f_col == pytest.approx(s.period_px_stretched[0], rel=0.01)
+    assert 1 / f_row == pytest.approx(s.period_px_stretched[1], rel=0.01)
+    # a square-board reading says the camera looks straight on; the stretch fixes it
+    assert not abs(theta_from_carriers(carriers.freq) - theta) < 5
+    assert theta_from_carriers(carriers.freq, s.stretch_y) == pytest.approx(theta, abs=0.5)
+    alignment = Reconstructor(image, geometry).alignment(image)
+    assert alignment["theta_estimate_deg"] == pytest.approx(theta, abs=0.5)
