@@ -54,8 +54,13 @@ LOSSLESS_CODECS = frozenset({
 
 
 
-class FormatError(TirdeflectError):
-    """A camera file or video cannot be read (message names file, problem, remedy)."""
+class ImageReadError(TirdeflectError):
+    """An input file is missing, unreadable or not a single-channel image (the message
+    names the file, the problem and what to do). Re-exported by :mod:`app.files.imageio`."""
+
+
+#: The name used in this module.
+FormatError = ImageReadError
 
 
 @dataclass
@@ -435,11 +440,10 @@ def _open_cine(path: Path) -> Source:
             f"{str(path)!r} is not a readable Phantom CINE file ({type(exc).__name__}: {exc}); "
             f"check the copy is complete, or export it again from PCC"
         ) from exc
-    if cine.cfa != 0:
-        cine.close()
-        raise FormatError(f"{str(path)!r} is a colour (CFA) recording; export it as monochrome from PCC")
+    colour = int(cine.cfa) != 0
     n = len(cine)
-    rows, cols = int(cine.frame_shape[0]), int(cine.frame_shape[1])
+    rows = int(cine.bitmapinfo_dict["bi_height"])
+    cols = int(cine.bitmapinfo_dict["bi_width"])
     stored = int(cine.bitmapinfo_dict.get("bi_bit_count", 16))
     bits = int(cine.setup_fields_dict.get("real_bpp", stored) or stored)
     fps = float(cine.frame_rate or math.nan)
@@ -447,6 +451,12 @@ def _open_cine(path: Path) -> Source:
     trigger = -first_no if 0 <= -first_no < n else None
 
     def frames(indices: range) -> Iterator[tuple]:
+        if colour and len(indices):
+            raise FormatError(
+                f"{str(path)!r} is a colour recording (Bayer pattern {int(cine.cfa)}, stored "
+                f"{'raw' if cine.compression == 2 else 'interpolated'}): a colour filter mosaic "
+                f"disturbs the pattern's carriers; record with a monochrome Phantom, or export "
+                f"grey frames (TIFF) from PCC")
         for i in indices:
             image = np.asarray(cine._get_frame(i))
             try:
@@ -456,6 +466,8 @@ def _open_cine(path: Path) -> Source:
             yield i, np.ascontiguousarray(image), time_s
 
     dtype = np.dtype(np.uint8 if stored == 8 else np.uint16)
+    notes = [f"{path.name} is a colour (CFA) recording; tirdeflect reads monochrome CINE"] if colour else []
+    codec = f"CINE {stored} bit" + (f", colour CFA {int(cine.cfa)}" if colour else "")
     return Source(path, "cine", n, (rows, cols), dtype, min(bits, 16), frame_rate_hz=fps,
-                  trigger_index=trigger, time_origin="trigger", codec=f"CINE {stored} bit",
-                  lossless=True, _frames=frames, _close=cine.close)
+                  trigger_index=trigger, time_origin="trigger", codec=codec,
+                  lossless=True, notes=notes, _frames=frames, _close=cine.close)

@@ -44,7 +44,7 @@ from typing import Iterator, Sequence
 import numpy as np
 
 from app.files import formats
-from processing.errors import TirdeflectError
+from app.files.formats import ImageReadError
 
 __all__ = [
     "ImageReadError",
@@ -81,10 +81,6 @@ INPUT_SUFFIXES = (IMAGE_SUFFIXES | formats.VIDEO_SUFFIXES | formats.MRAW_SUFFIXE
 _SOURCE_KINDS = ("video", "mraw", "cine")
 
 _HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
-
-
-class ImageReadError(TirdeflectError):
-    """An input file is missing, unreadable or not a single-channel image."""
 
 
 @dataclass(frozen=True)
@@ -501,10 +497,7 @@ def _table_fields(table, i: int) -> dict:
 
 
 def _open_source(p: Path):
-    try:
-        return formats.open_source(p)
-    except formats.FormatError as exc:
-        raise ImageReadError(str(exc)) from exc
+    return formats.open_source(p)
 
 
 # --------------------------------------------------------------------------- public API

@@ -222,3 +222,27 @@ def test_same_heights_from_tiff_folder_avi_and_mraw(sim12, tmp_path):
         assert np.nanmax(np.abs(h - h_tiff)) <= 1e-6 * peak, name
         assert time_s == pytest.approx(np.arange(1, 5) / 1000.0, abs=1e-9)
     assert np.all(np.isnan(outputs["tiff"][2]))  # image files carry no time
+
+
+# --------------------------------------------------------------------------- Phantom CINE (a real sample file)
+
+CINE_SAMPLE = Path(__file__).parent / "data" / "cine" / "chart1.cine"
+
+
+def test_cine_header_of_a_real_phantom_file():
+    pytest.importorskip("pims")
+    info = imageio.image_info(CINE_SAMPLE)
+    assert (info.kind, info.n_frames, info.shape) == ("cine", 1, (1080, 2048))
+    assert info.bits == 10 and info.frame_rate_hz == 25.0
+    assert info.trigger_index is None  # first image -123: the trigger frame is not in the file
+    assert "colour" in info.codec and info.notes
+
+
+def test_colour_cine_is_refused_in_one_line(tmp_path):
+    pytest.importorskip("pims")
+    r = _cli("process", CINE_SAMPLE, CINE_SAMPLE, "--geometry", ROOT / "tests" / "app" / "data"
+             / "cine" / "missing.toml", "--out", tmp_path / "o.h5")
+    assert r.returncode == 2 and r.stderr.count("\n") == 1
+    with pytest.raises(imageio.ImageReadError, match="colour recording.*monochrome"):
+        next(imageio.iter_frames([CINE_SAMPLE]))
+    assert not (tmp_path / "o.h5").exists()
