@@ -10,20 +10,32 @@ from pyqtgraph.Qt import QtCore, QtWidgets
 
 from .views import ImageView
 
-__all__ = ["ReplayTab", "Recording"]
+__all__ = ["ReplayTab", "Recording", "RECORDING_FILTER"]
+
+#: File-dialog filter of everything :class:`Recording` opens (docs/inputs.md).
+RECORDING_FILTER = ("Recordings and camera files (*.h5 *.hdf5 *.cih *.cihx *.mraw *.cine *.avi *.mkv "
+                    "*.mp4 *.mov *.tif *.tiff);;HDF5 (*.h5 *.hdf5);;Photron (*.cih *.cihx *.mraw);;"
+                    "Phantom (*.cine);;Video (*.avi *.mkv *.mp4 *.mov);;TIFF stacks (*.tif *.tiff)")
 
 
 class Recording:
-    """Read access to an HDF5 recording written by :mod:`app.capture.recorder`.
+    """Read access to a recording: the app's HDF5 (:mod:`app.capture.recorder`), or a
+    Photron MRAW, Phantom CINE, video or TIFF stack (through :mod:`app.files.imageio`).
 
     Opened read-only; frames are read one at a time (recordings can exceed RAM).
-    The reference image and geometry TOML stored in the file are used when present.
+    The reference image and geometry TOML stored in an HDF5 recording are used
+    when present; camera files and videos store neither.
     """
 
     def __init__(self, path: str):
         import h5py
 
         self.path = os.fspath(path)
+        self._source = None
+        self.time_origin = None
+        if not self._is_hdf5():
+            self._open_other()
+            return
         try:
             self._file = h5py.File(self.path, "r")
         except OSError as exc:
@@ -38,6 +50,32 @@ class Recording:
         self.reference = self._read_reference()
         self.geometry_toml = self._read_text("geometry_toml", "geometry")
         self.table = self._file["frame_table"][: self.n_frames] if "frame_table" in self._file else None
+
+    def _is_hdf5(self) -> bool:
+        try:
+            with open(self.path, "rb") as fh:
+                return fh.read(8) == b"\x89HDF\r\n\x1a\n"
+        except OSError:
+            return True  # let h5py say what is wrong
+
+    def _open_other(self) -> None:
+        """Camera files, videos, TIFF stacks: one frame decoded at a time."""
+        from app.files import formats, imageio
+
+        from pathlib import Path
+
+        info = imageio.image_info(self.path)  # ImageReadError: one line naming the file and the fix
+        self.info = info
+        self.n_frames = int(info.n_frames)
+        self.reference = None
+        self.geometry_toml = None
+        self.table = None
+        self._file = None
+        if formats.kind_of(Path(self.path)) is not None:
+            self._source = formats.open_source(Path(self.path))
+            self.time_origin = self._source.time_origin
+        self._iter = None
+        self._next = 0
 
     def _read_reference(self) -> Optional[np.ndarray]:
         for name in ("reference", "reference_image"):
@@ -60,10 +98,32 @@ class Recording:
     def frame(self, index: int) -> np.ndarray:
         if not 0 <= index < self.n_frames:
             raise IndexError(f"frame index {index} out of range 0..{self.n_frames - 1}")
-        return np.asarray(self.frames[index])
+        if self._file is not None:
+            return np.asarray(self.frames[index])
+        if self._source is None:  # TIFF stack
+            from app.files import imageio
+
+            return imageio.read_image(self.path, index=index)
+        # camera file or video: continue the open decoder when stepping forward
+        # (a video decodes from its start otherwise)
+        sequential = self._source.kind == "video"  # MRAW and CINE seek: start at the frame
+        if self._iter is None or index < self._next or not sequential:
+            if self._iter is not None:
+                self._iter.close()
+            self._iter = self._source.frames(range(index, self.n_frames))
+            self._next = index
+        for i, image, _ in self._iter:
+            self._next = i + 1
+            if i == index:
+                return image
+        self._iter = None
+        raise IndexError(f"frame {index} of {self.path!r} could not be decoded (the file ends early)")
 
     def trigger_index(self, index: int) -> Optional[int]:
         """Trigger-relative index of frame ``index`` (negative before the trigger), if recorded."""
+        if self._file is None:
+            trig = getattr(getattr(self, "info", None), "trigger_index", None)
+            return None if trig is None else int(index) - int(trig)
         if self.table is None:
             return None
         names = self.table.dtype.names or ()
@@ -73,7 +133,13 @@ class Recording:
         return None
 
     def close(self) -> None:
-        self._file.close()
+        if self._file is not None:
+            self._file.close()
+        if self._source is not None:
+            if self._iter is not None:
+                self._iter.close()  # stop a video decoder thread before its file closes
+                self._iter = None
+            self._source.close()
 
 
 class ReplayTab(QtWidgets.QWidget):

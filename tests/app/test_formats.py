@@ -246,3 +246,31 @@ def test_colour_cine_is_refused_in_one_line(tmp_path):
     with pytest.raises(imageio.ImageReadError, match="colour recording.*monochrome"):
         next(imageio.iter_frames([CINE_SAMPLE]))
     assert not (tmp_path / "o.h5").exists()
+
+
+# --------------------------------------------------------------------------- Replay opens them
+
+
+def test_replay_opens_mraw_and_video(tmp_path, qtbot):
+    """The Replay tab's Recording reads camera files and videos frame by frame, any order,
+    with trigger-relative indices from the Photron header."""
+    from app.gui.replay import RECORDING_FILTER, Recording, ReplayTab
+
+    frames = _frames(n=6, hi=4096)
+    cih = write_mraw(tmp_path / "shot.cih", frames, bits=16, fps=2000, start_frame=-2)
+    avi = write_video(tmp_path / "shot.avi", frames, rate=1000)
+    tab = ReplayTab()
+    qtbot.addWidget(tab)
+    for path in (cih, avi):
+        assert f"*{path.suffix}" in RECORDING_FILTER
+        rec = Recording(str(path))
+        try:
+            assert rec.n_frames == 6 and rec.reference is None
+            for k in (0, 1, 2, 5, 3, 4):  # forwards, backwards, jumps
+                assert np.array_equal(rec.frame(k), frames[k])
+            assert rec.trigger_index(0) == (-2 if path == cih else None)
+            tab.set_recording(rec)
+            assert tab.slider.maximum() == 5 and tab.export_button.isEnabled()
+            assert "6 frames" in tab.file_label.text()
+        finally:
+            rec.close()
