@@ -274,3 +274,20 @@ def test_replay_opens_mraw_and_video(tmp_path, qtbot):
             assert "6 frames" in tab.file_label.text()
         finally:
             rec.close()
+
+
+def test_frame_range_errors_are_one_line(tmp_path):
+    cih = write_mraw(tmp_path / "r.cih", _frames(n=4), bits=16)
+    geometry = tmp_path / "g.toml"
+    geometry.write_text('setup = "tir"\ntheta_deg = 55.0\ndepth_mm = 300.0\npixel_mm = 0.1\n'
+                        'rows_toward_camera = false\n')
+    for extra, needle in ((["--frames", "1:", "--first", "2"], "not both"),
+                          (["--frames", "10:20"], "selects no frame of the 4"),
+                          (["--frames", "1:2:0"], "step"),
+                          (["--reference-frames", "5:9"], "select no frame")):
+        r = _cli("process", cih, "--geometry", geometry, "--out", tmp_path / "o.h5",
+                 *(["--reference-frames", "0:1"] if "--reference-frames" not in extra else []), *extra)
+        assert r.returncode == 2, (extra, r.stderr)
+        assert r.stderr.count("\n") <= 1 or "usage:" in r.stderr, r.stderr
+        assert needle in r.stderr, (needle, r.stderr)
+        assert not (tmp_path / "o.h5").exists()
