@@ -153,8 +153,6 @@ class ProcessJob:
     reference: str
     frames: list
     out: str
-    frame_range: slice | None = None
-    reference_frames: slice | None = None
     geometry: str | None = None
     grid: str = "full"
     no_unwrap: bool = False
@@ -169,6 +167,8 @@ class ProcessJob:
     reference_index: int | None = None
     on_progress: object = None
     command: str | None = None
+    frame_range: slice | None = None
+    reference_frames: slice | None = None
 
     @classmethod
     def from_namespace(cls, args) -> "ProcessJob":
