@@ -119,25 +119,27 @@ def test_mraw_frames_rate_and_trigger(tmp_path, bits, hi):
     assert np.array_equal(imageio.read_image(cih, index=5), frames[5])
 
 
-def test_mraw_12_bit_matches_pymraw_decoder(tmp_path):
-    """12-bit MRAW: pyMRAW has no 12-bit writer, so the CIH comes from pyMRAW and the
-    samples are packed two per three bytes; the frames read lazily, one at a time,
-    must equal pyMRAW's own whole-file decoder (``load_video``)."""
-    frames = np.asarray(_frames(n=3, hi=4096))
-    cih = write_mraw(tmp_path / "p12.cih", frames.astype(np.uint8) * 0, bits=8, fps=1000)
-    text = cih.read_text().replace("Color Bit : 8", "Color Bit : 12").replace(
-        "EffectiveBit Depth : 8", "EffectiveBit Depth : 12")
-    cih.write_text(text)
-    flat = frames.reshape(-1, 2).astype(np.uint16)
-    a, b = flat[:, 0], flat[:, 1]
-    packed = np.stack([a >> 4, ((a & 15) << 4) | (b >> 8), b & 255], axis=1).astype(np.uint8)
-    cih.with_suffix(".mraw").write_bytes(packed.tobytes())
-    expected, _ = pyMRAW.load_video(str(cih))
-    items = list(imageio.iter_frames([cih]))
-    assert len(items) == 3 and imageio.image_info(cih).bits == 12
-    for k, item in enumerate(items):
-        assert np.array_equal(item.image, expected[k])
-        assert np.array_equal(item.image, frames[k])
+PHOTRON = Path(__file__).parent / "data" / "photron"
+
+
+@pytest.mark.parametrize("name,n,shape,bits,fps,start", [
+    ("beam", 4, (80, 1024), 12, 50000.0, 0),         # 16-bit storage, 12 significant bits
+    ("ball_12bit", 15, (384, 384), 12, 30000.0, 52),  # packed 12 bit
+])
+def test_real_photron_cihx_recordings(name, n, shape, bits, fps, start):
+    """Real PFV recordings (CIHX headers): frames read one at a time equal pyMRAW's own
+    whole-file decoder; rate, depth and the start frame come from the header."""
+    header = PHOTRON / f"{name}.cihx"
+    expected, _ = pyMRAW.load_video(str(header))
+    info = imageio.image_info(header)
+    assert (info.n_frames, info.shape, info.bits, info.frame_rate_hz) == (n, shape, bits, fps)
+    assert info.trigger_index == (0 if start == 0 else None)  # frame 52 on: trigger not in the file
+    items = list(imageio.iter_frames([header], first=1, step=2))
+    assert [i.sequence_index for i in items] == list(range(1, n, 2))
+    for item in items:
+        assert np.array_equal(item.image, expected[item.sequence_index])
+        assert item.time_s == pytest.approx((start + item.sequence_index) / fps, abs=1e-12)
+    assert int(expected.max()) <= 2 ** bits - 1
 
 
 def test_truncated_mraw_is_one_line_error(tmp_path):
