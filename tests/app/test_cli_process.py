@@ -270,6 +270,8 @@ def test_recording_in_geometry_and_reference_from_the_file(sim, tmp_path, capsys
         assert list(f["frame_index"][()]) == [1, 2]
         assert list(f["camera_frame_id"][()]) == [101, 102]
         assert list(f["device_timestamp_ns"][()]) == [5_000_000, 10_000_000]
+        # time since the recording's first frame, from the camera clock
+        np.testing.assert_allclose(f["time_s"][()], [0.005, 0.010], rtol=0, atol=1e-12)
         assert list(f["frame_flags"][()]) == flags[1:]
         assert f.attrs["frames_flagged_incomplete"] == 1 and f.attrs["frames_with_loss_before"] == 1
     # the flags are said out loud, not only stored
