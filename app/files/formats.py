@@ -230,24 +230,63 @@ def _open_video(path: Path) -> Source:
             halt()
         container.close()
 
+    pts_index: dict = {}  # presentation time stamp -> frame index, from one demux pass
+
+    def index_packets() -> bool:
+        if not pts_index:
+            container.seek(0)
+            stamps = [p.pts for p in container.demux(stream) if p.size]
+            if not stamps or any(t is None for t in stamps) or len(set(stamps)) != len(stamps):
+                return False
+            pts_index.update((t, k) for k, t in enumerate(sorted(stamps)))
+        return len(pts_index) > 0
+
+    def decode_from(first: int):
+        """(decoder, index of its first frame or None): seek to the keyframe at or before
+        frame ``first`` (found by time stamp) when that saves decoding; None means
+        that frames are counted from the start of the stream."""
+        if first > 0 and index_packets():
+            target = sorted(pts_index)[min(first, len(pts_index) - 1)]
+            container.seek(int(target), stream=stream, backward=True, any_frame=False)
+            ctx.flush_buffers()
+            return container.decode(stream), True
+        container.seek(0)
+        ctx.flush_buffers()
+        return container.decode(stream), False
+
+    def time_of(frame, i: int) -> float:
+        t = frame.time
+        return float(t) if t is not None else (i / fps if fps == fps else math.nan)
+
     def frames(indices: range) -> Iterator[tuple]:
         if not len(indices):
             return
-        container.seek(0)
-        i = 0
+        decoded, by_pts = decode_from(indices.start)
+        i = -1
         try:
-            for frame in container.decode(stream):
+            while True:
+                frame = next(decoded, None)
+                if frame is None:
+                    return
+                if by_pts:
+                    k = pts_index.get(frame.pts)
+                    if k is None or (i < 0 and k > indices.start):
+                        # a stamp not in the index, or the seek overshot: count from the start
+                        decoded.close()
+                        decoded, by_pts = decode_from(0)
+                        i = -1
+                        continue
+                    i = k
+                else:
+                    i += 1
                 if i >= indices.stop:
-                    break
+                    return
                 if i in indices:
-                    t = frame.time
-                    time_s = float(t) if t is not None else (i / fps if fps == fps else math.nan)
-                    yield i, convert(frame), time_s
-                i += 1
+                    yield i, convert(frame), time_of(frame, i)
         except av.error.FFmpegError as exc:
             raise FormatError(
-                f"frame {i} of {str(path)!r} cannot be decoded ({exc}); the file may be "
-                f"truncated: process the frames before it with --frames :{i}"
+                f"frame {i + 1} of {str(path)!r} cannot be decoded ({exc}); the file may be "
+                f"truncated: process the frames before it with --frames :{i + 1}"
             ) from exc
 
     return Source(path, "video", n, (rows, cols), dtype, bits, frame_rate_hz=fps,

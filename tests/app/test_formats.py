@@ -96,6 +96,10 @@ def test_lossy_video_is_read_with_a_warning(tmp_path):
     # the grey (luma) of what was encoded, within H.264 artefacts at default quality
     err = np.abs(items[2].image.astype(float) - frames[2])
     assert np.median(err) <= 4
+    # starting late seeks (to the keyframe before, by time stamp) and gives the same frames
+    late = list(imageio.iter_frames([path], first=2))
+    assert [i.sequence_index for i in late] == [2, 3]
+    assert all(np.array_equal(a.image, items[a.sequence_index].image) for a in late)
 
 
 # --------------------------------------------------------------------------- Photron MRAW
