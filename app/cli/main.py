@@ -197,8 +197,8 @@ def main(argv=None) -> int:
     return _guarded(lambda: args.func(args), args.debug)
 
 
-#: Options whose value is a comma-separated pair that may start with a minus sign.
-_PAIR_OPTIONS = ("--at", "--range", "--size-mm")
+#: Options whose value (a pair X,Y or a range START:STOP) may start with a minus sign.
+_PAIR_OPTIONS = ("--at", "--range", "--size-mm", "--frames", "--reference-frames")
 
 
 def _join_negative_pairs(argv: list) -> list:

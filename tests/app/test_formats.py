@@ -179,6 +179,12 @@ def test_frame_range_parsing():
         imageio.parse_frame_range("a:b")
     with pytest.raises(imageio.ImageReadError, match="step"):
         imageio.parse_frame_range("0:10:0")
+    # `--frames -100:` (the last 100 frames) reaches argparse as one value, not as an option
+    from app.cli.main import build_parser, _join_negative_pairs
+
+    argv = _join_negative_pairs(["process", "ref.tif", "rec.avi", "--frames", "-100:", "--out", "o.h5"])
+    args = build_parser().parse_args(argv)
+    assert args.frame_range == slice(-100, None, None) and args.frames == ["rec.avi"]
 
 
 # --------------------------------------------------------------------------- same heights from every format
