@@ -47,7 +47,11 @@ from .geometry import DEFAULT_REFERENCE_BAND, default_reference_region_mask
 from .height import PIN_FALLBACKS, PIN_MIN_PIECE_SAMPLES, PinStatus
 from .unwrap import TWO_PI, unwrap_spatial, unwrap_temporal, wrap
 
-__all__ = ["Reconstructor", "Result", "SeriesCheck", "reference_pin_region"]
+__all__ = ["Reconstructor", "Result", "SeriesCheck", "reference_pin_region", "PATTERNS"]
+
+#: Patterns the Reconstructor reads: checkerboards by Fourier demodulation,
+#: random dots by PIV (processing.piv).
+PATTERNS = ("checkerboard", "dots")
 
 _DEFAULT_ITERATIONS = {"decimated": 0, "full": 1}
 # Masked height solve (CG in float32): stop at a relative residual of 1e-4.
@@ -362,6 +366,13 @@ class Reconstructor:
         needs (:func:`processing.height.choose_pin_samples`): pin on the valid
         samples nearest the region (default; ``Result.pin.rule == "nearest"``)
         or refuse the frame (GeometryError).  The same rule for every frame.
+    pattern : {"checkerboard", "dots"} or None, optional
+        What the reference shows (None, default: ``geometry.pattern``).  "dots": a random-dot pattern, displacement
+        by PIV with window deformation (:class:`processing.piv.DotDisplacement`,
+        OpenPIV), last window ``window_px`` (default 16) px, one sample every
+        ``window_px / 2`` px; then the same mask, height solve and pin (the
+        carrier options, unwrapping, refinement, ``alignment`` and
+        ``spectrum`` do not apply; ``Result.carriers`` is None).
     refine_method : {"fd", "image"}, optional
         "fd" (default): the warp-and-redemodulate refinement only.  "image":
         after it, on the full grid, ``image_iterations`` (default 6) steps of
@@ -397,8 +408,18 @@ class Reconstructor:
                  full_method: str = "interpolate", full_interpolation: str = "lanczos", min_amplitude: float = 0.3, min_fold: float = 0.2,
                  dilate: int = 1, min_island: float = 0.01, check_pattern: bool = True, solver: str = "auto", threads: int = 2,
                  planner_effort: str = "FFTW_ESTIMATE", carriers: Optional[Carriers] = None,
-                 pin_fallback: str = "nearest", refine_method: str = "fd", image_iterations: int = 6):
+                 pin_fallback: str = "nearest", refine_method: str = "fd", image_iterations: int = 6,
+                 pattern: Optional[str] = None, window_px: int = 16):
         ref = self._validate_image(reference_image, "reference image")
+        if pattern is None:
+            pattern = getattr(geometry, "pattern", "checkerboard")
+        if pattern not in PATTERNS:
+            raise ValueError(f"pattern must be one of {PATTERNS}; got {pattern!r}")
+        self.pattern = pattern
+        if pattern == "dots":
+            self.min_island = float(min_island)
+            self._init_dots(ref, geometry, grid, window_px, solver, pin_fallback)
+            return
         if refine_method not in ("fd", "image"):
             raise ValueError(f"refine_method must be 'fd' or 'image'; got {refine_method!r}")
         if int(image_iterations) < 1:
@@ -406,6 +427,7 @@ class Reconstructor:
         self.refine_method = refine_method
         self.image_iterations = int(image_iterations)
         self._ref_gradient = None
+        self._ref_fine = None
         self._check_grid(grid)
         if full_method not in ("interpolate", "ifft"):
             raise ValueError(f"full_method must be 'interpolate' or 'ifft'; got {full_method!r}")
@@ -467,6 +489,86 @@ class Reconstructor:
         self._ref_idx = np.flatnonzero(self._ref_mask)
         self._height_solver = None
         self.reset_series()
+
+    # ------------------------------------------------------------ dots (PIV)
+    def _init_dots(self, ref, geometry, grid, window_px, solver, pin_fallback):
+        from .piv import DotDisplacement
+
+        self._check_grid(grid)
+        if pin_fallback not in PIN_FALLBACKS:
+            raise ValueError(f"pin_fallback must be one of {PIN_FALLBACKS}; got {pin_fallback!r}")
+        self.geometry = geometry
+        self.shape = ref.shape
+        self.reference_dtype = ref.dtype
+        self.grid = grid
+        self.solver = solver
+        self.pin_fallback = pin_fallback
+        self.carriers = None
+        self.piv = DotDisplacement(ref, window_px=window_px)
+        self.rows_px, self.cols_px = self.piv.rows_px, self.piv.cols_px
+        n = (self.rows_px.size, self.cols_px.size)
+        self._ref_ok = np.ones(n, bool)
+        self._ref_ok_all = True
+        self.dilate = 0
+        self._choose_reference_region(geometry)
+        self._height_solver = None
+        self._full_coords = None
+        self.reset_series()
+
+    def _call_dots(self, frame, grid):
+        t0 = time.perf_counter()
+        timings = {}
+        u, valid = self.piv(frame)
+        t1 = time.perf_counter()
+        timings["piv"] = 1e3 * (t1 - t0)
+        if not valid.any():
+            raise AllInvalidError("no interrogation window of the frame correlates with the reference: check that "
+                                  "the dots are in focus and lit, and that the frame shows the reference's pattern")
+        valid = self._drop_islands(valid)
+        hs = self._solver()
+        surf = hs._solve(np.where(valid, u, np.nan), valid, self.solver, _CG_TOL, self._ref_mask,
+                         pin_fallback=self.pin_fallback, region_name=self.reference_region_name,
+                         near=self._region_near)
+        valid = np.asarray(surf.valid, bool)
+        u = np.where(valid, u, np.float32(np.nan)).astype(np.float32)
+        timings["height"] = 1e3 * (time.perf_counter() - t1)
+        res = Result(height=np.asarray(surf.height_mm, np.float32), valid=valid,
+                     slope_x=np.asarray(surf.slope_x, np.float32), slope_y=np.asarray(surf.slope_y, np.float32),
+                     displacement=u, amplitude=valid.astype(np.float32), x_mm=np.asarray(surf.x_mm),
+                     y_mm=np.asarray(surf.y_mm), grid="decimated", rows_px=self.rows_px, cols_px=self.cols_px,
+                     carriers=None, phase=np.zeros((2, 0, 0), np.float32),
+                     valid_fraction=float(valid.mean()), timings_ms=timings, pin=surf.pin)
+        if grid == "full":
+            t2 = time.perf_counter()
+            res = self._dots_full(res)
+            timings["interpolate"] = 1e3 * (time.perf_counter() - t2)
+        timings["total"] = 1e3 * (time.perf_counter() - t0)
+        return res
+
+    def _dots_full(self, res):
+        """PIV grid -> every pixel (cubic; pixels beyond the outer window
+        centres take the border value; invalid where the nearest sample is)."""
+        rows, cols = self.shape
+        r = (np.arange(rows, dtype=np.float32) - np.float32(self.rows_px[0])) / np.float32(self.rows_px[1] - self.rows_px[0])
+        c = (np.arange(cols, dtype=np.float32) - np.float32(self.cols_px[0])) / np.float32(self.cols_px[1] - self.cols_px[0])
+        map_r = np.broadcast_to(r[:, None], self.shape).astype(np.float32)
+        map_c = np.broadcast_to(c[None, :], self.shape).astype(np.float32)
+        fill = _nearest_fill_index(res.valid)
+
+        def up(field, ip=cv2.INTER_CUBIC):
+            f = field if fill is None else field[fill]
+            return cv2.remap(np.ascontiguousarray(np.nan_to_num(f), np.float32), map_c, map_r, ip,
+                             borderMode=cv2.BORDER_REPLICATE)
+
+        valid = cv2.remap(res.valid.astype(np.uint8), map_c, map_r, cv2.INTER_NEAREST,
+                          borderMode=cv2.BORDER_REPLICATE).astype(bool)
+        nan = np.float32(np.nan)
+        out = {k: np.where(valid, up(getattr(res, k)), nan) for k in ("height", "slope_x", "slope_y")}
+        disp = np.stack([np.where(valid, up(res.displacement[i]), nan) for i in range(2)])
+        x_mm, y_mm = self._coords_full(res)
+        return dataclasses.replace(res, valid=valid, displacement=disp, amplitude=valid.astype(np.float32),
+                                   x_mm=x_mm, y_mm=y_mm, grid="full", rows_px=np.arange(rows, dtype=float),
+                                   cols_px=np.arange(cols, dtype=float), valid_fraction=float(valid.mean()), **out)
 
     # ------------------------------------------------------------ helpers
     def _choose_reference_region(self, geometry):
@@ -705,17 +807,19 @@ class Reconstructor:
     def _refine_image(self, frame, u, valid):
         """Image-domain refinement (:func:`processing.dic.refine_displacement`)
         on the decimated grid, residual counted on the pixels of valid samples."""
-        from .dic import reference_gradients, refine_displacement
+        from .dic import fine_reference, reference_gradients, refine_displacement
 
         if self._ref_gradient is None:
             self._ref_gradient = reference_gradients(self._ref_f32)
+            self._ref_fine = fine_reference(self._ref_f32)
         fill = _nearest_fill_index(valid)
         uf = u if fill is None else u[:, fill[0], fill[1]]
         uf = np.nan_to_num(uf).astype(np.float32)
         valid_px = None if fill is None else self._up.mask(valid)
         out = refine_displacement(self._ref_f32, frame, uf, valid, upsample=self._up,
                                   grid_shape=self.demod.window_shape, reference_gradient=self._ref_gradient,
-                                  valid_px=valid_px, iterations=self.image_iterations)
+                                  valid_px=valid_px, iterations=self.image_iterations,
+                                  fine_reference=self._ref_fine)
         return np.where(valid, out, u).astype(np.float32)
 
     # ---------------------------------------------------------------- call
@@ -744,6 +848,8 @@ class Reconstructor:
         frame = self._validate_frame(frame)
         grid = self.grid if grid is None else grid
         self._check_grid(grid)
+        if self.pattern == "dots":
+            return self._call_dots(frame, grid)
         d = self.demod
         timings = {}
         spec = d.spectrum(frame)
