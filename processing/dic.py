@@ -20,14 +20,12 @@ step, not on the result.  ``w`` is zero on pixels the Reconstructor marked
 invalid.
 
 Experimental (docs/processing.md, section 6): on ray-traced waves 3-6
-carrier periods long it halves what FD's band limit leaves (2.9 % -> 1.4 %
-rms height error), but on bumps and dimples it is worse than FD (up to
-2.4 % where FD has 0.4 %): with the true displacement the residual
-``I - I0(r - u)`` of ray-traced frames stays 5x above the interpolation
-floor of a pure translation, and the optimum of the image match is not the
-true ``u`` (cause not found).  A fully global solve (bilinear nodes, exact
-transpose, second-difference regulariser, CG) converged to that biased
-optimum and was dropped.
+carrier periods long it more than halves what FD's band limit leaves (2.9 %
+-> 1.3 % rms height error), is level with FD on most other cases and worse
+on a sharp board (0.39 -> 0.80 %) and a narrow 12-bit bump (0.37 -> 0.61 %).
+The iteration converges slowly on waves short along the (compressed) rows
+and diverges with smaller windows; a global solve (CG on the same
+equations) was tried with OpenCV's biased cubic warp only.
 """
 
 from __future__ import annotations

@@ -24,11 +24,15 @@ samples for the masked height solver.
 
 from __future__ import annotations
 
+import contextlib
+import io
+import math
+
 import numpy as np
 
 from .errors import TirdeflectError
 
-__all__ = ["DotDisplacement", "FINAL_REPEATS"]
+__all__ = ["DotDisplacement", "FINAL_REPEATS", "dot_alignment"]
 
 #: Extra passes at the last window size: each one re-deforms the windows by
 #: the displacement found so far.  Measured on a ray-traced 4 um bump (dots
@@ -106,12 +110,14 @@ class DotDisplacement:
         w = self._windef
         s = self.settings
         img = np.asarray(frame, np.float64)
-        x, y, u, v, s2n = w.first_pass(self._ref, img, s)
-        flags = np.zeros(u.shape, bool)
-        for it in range(1, s.num_iterations):
-            u = np.ma.masked_array(np.nan_to_num(u), mask=np.zeros(u.shape, bool))
-            v = np.ma.masked_array(np.nan_to_num(v), mask=np.zeros(v.shape, bool))
-            x, y, u, v, _grid_mask, flags = w.multipass_img_deform(self._ref, img, it, x, y, u, v, s)
+        # OpenPIV prints notes (fallback peak fits) on stdout: keep the CLI's output ours
+        with contextlib.redirect_stdout(io.StringIO()):
+            x, y, u, v, s2n = w.first_pass(self._ref, img, s)
+            flags = np.zeros(u.shape, bool)
+            for it in range(1, s.num_iterations):
+                u = np.ma.masked_array(np.nan_to_num(u), mask=np.zeros(u.shape, bool))
+                v = np.ma.masked_array(np.nan_to_num(v), mask=np.zeros(v.shape, bool))
+                x, y, u, v, _grid_mask, flags = w.multipass_img_deform(self._ref, img, it, x, y, u, v, s)
         if s.num_iterations == 1:
             flags = ~np.isfinite(u) | ~np.isfinite(v)
         u = np.ma.filled(u, np.nan).astype(np.float32)
@@ -145,3 +151,52 @@ class DotDisplacement:
             u = np.stack([ndimage.map_coordinates(coef[i], at, order=3, prefilter=False, mode="nearest")
                           for i in range(2)])
         return u.astype(np.float32)
+
+
+def dot_alignment(frame, *, window_px: int = 16) -> dict:
+    """What matters when aligning a random-dot set-up, from one frame.
+
+    Returns
+    -------
+    dict
+        ``dot_size_px`` (2,): full width at half maximum of the image's
+        autocorrelation peak along rows and columns divided by sqrt(2), i.e.
+        the FWHM of one dot (2-4 px is what PIV wants; below 2 px peak
+        locking biases the displacement towards whole pixels);
+        ``dots_per_window``: bright local maxima per final interrogation
+        window (``window_px`` squared; PIV wants about 5-10);
+        ``contrast``: ``(p99 - p1) / (p99 + p1)`` of the grey levels;
+        ``focus``: ``1 - acf(1 px)``, mean of both axes (0: blurred flat, 1:
+        white noise; dots in focus at 3 px give about 0.3-0.5).
+    """
+    a = np.asarray(frame, np.float64)
+    n_r, n_c = a.shape
+    crop = a[n_r // 2 - min(n_r, 512) // 2: n_r // 2 + min(n_r, 512) // 2,
+             n_c // 2 - min(n_c, 512) // 2: n_c // 2 + min(n_c, 512) // 2]
+    z = crop - crop.mean()
+    spec = np.fft.rfft2(z)
+    acf = np.fft.irfft2(spec * np.conj(spec), s=z.shape)
+    acf = acf / acf[0, 0] if acf[0, 0] > 0 else acf
+
+    def fwhm(profile):
+        # profile[0] = 1 at zero lag; first lag where it falls below 0.5
+        below = np.flatnonzero(profile < 0.5)
+        if below.size == 0:
+            return float("nan")
+        k = int(below[0])
+        p0, p1 = profile[k - 1], profile[k]
+        return 2.0 * (k - 1 + (p0 - 0.5) / (p0 - p1))
+
+    size = np.array([fwhm(acf[:, 0]), fwhm(acf[0, :])]) / math.sqrt(2.0)
+    from scipy import ndimage
+
+    smooth = ndimage.gaussian_filter(crop, 0.7)
+    peaks = (smooth == ndimage.maximum_filter(smooth, size=3)) & (smooth > smooth.mean() + smooth.std())
+    per_window = float(np.count_nonzero(peaks)) * window_px * window_px / crop.size
+    lo, hi = np.percentile(crop, [1, 99])
+    return {
+        "dot_size_px": size,
+        "dots_per_window": per_window,
+        "contrast": float((hi - lo) / (hi + lo)) if hi + lo > 0 else 0.0,
+        "focus": float(1.0 - 0.5 * (acf[1, 0] + acf[0, 1])),
+    }

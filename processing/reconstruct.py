@@ -379,9 +379,9 @@ class Reconstructor:
         windowed Gauss-Newton image matching (:mod:`processing.dic`): the
         reference warped by ``u`` matched to the frame pixel by pixel, which
         is not band-limited.  Experimental: measured on ray-traced waves 3-6
-        carrier periods long 2.9 % -> 1.4 % rms height error, but worse than
-        "fd" on every bump and dimple of the accuracy table (an image-match
-        bias of its own, docs/processing.md section 6), so not the default.
+        carrier periods long 2.9 % -> 1.3 % rms height error, level with
+        "fd" on most of the accuracy table but worse on a sharp board and a
+        narrow 12-bit bump (docs/processing.md section 6), so not the default.
 
     Attributes
     ----------
@@ -505,6 +505,7 @@ class Reconstructor:
         self.pin_fallback = pin_fallback
         self.carriers = None
         self.piv = DotDisplacement(ref, window_px=window_px)
+        self._ref_dots = ref
         self.rows_px, self.cols_px = self.piv.rows_px, self.piv.cols_px
         n = (self.rows_px.size, self.cols_px.size)
         self._ref_ok = np.ones(n, bool)
@@ -1147,9 +1148,20 @@ class Reconstructor:
             ``modulation_rows_px``, ``modulation_cols_px``, ``contrast`` (its
             median), ``amplitude`` (map ``|g|/|g0|``), ``saturation_pct``
             (pixels at the top code of the frame's bit depth), ``error``
-            (only when the frame shows no pattern).
+            (only when the frame shows no pattern).  Random dots
+            (``pattern="dots"``): :func:`processing.piv.dot_alignment` of the
+            frame (``dot_size_px``, ``dots_per_window``, ``contrast``,
+            ``focus``), ``saturation_pct``, and ``reference``: the same of the
+            reference.
         """
         frame = self._validate_frame(frame)
+        if self.pattern == "dots":
+            from .piv import dot_alignment
+
+            out = dot_alignment(frame, window_px=self.piv.window_px)
+            out["saturation_pct"] = saturation_pct(frame)
+            out["reference"] = dot_alignment(self._ref_dots, window_px=self.piv.window_px)
+            return out
         d = self.demod
         out = {
             "reference_periods_px": np.asarray(self.carriers.periods_px, float),

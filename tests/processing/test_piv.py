@@ -105,3 +105,17 @@ def test_cli_process_pattern_dots(tmp_path):
     d = (h - truth)[inner]
     d -= np.nanmean(d)
     assert np.sqrt(np.nanmean(d**2)) <= 0.03 * np.sqrt(np.mean(truth[inner] ** 2))
+
+
+def test_dot_alignment_reports_dot_size_and_density():
+    ref, img = render(F.GaussianBump(0.004, 5.0))
+    a = Reconstructor(ref, G55, pattern="dots").alignment(img)
+    # dots of 1/e^2 diameter 0.5 mm: FWHM 0.294 mm = 2.94 px along columns, x cos(55 deg) along rows
+    fwhm = 0.5 / 4 * 2.3548 / 0.1
+    assert abs(a["dot_size_px"][1] - fwhm) < 0.2 * fwhm
+    assert abs(a["dot_size_px"][0] - fwhm * np.cos(np.radians(55))) < 0.2 * fwhm * np.cos(np.radians(55))
+    # one dot per cell 0.913 mm wide: 9.1 x 5.2 px, i.e. 5.4 dots per 16 x 16 px window
+    expected = 256 / ((0.5 / np.sqrt(0.3) / 0.1) ** 2 * np.cos(np.radians(55)))
+    assert abs(a["dots_per_window"] - expected) < 0.25 * expected
+    assert 0.6 < a["contrast"] < 0.9 and 0.1 < a["focus"] < 0.6
+    assert set(a["reference"]) >= {"dot_size_px", "dots_per_window", "contrast", "focus"}
