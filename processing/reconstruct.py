@@ -375,13 +375,16 @@ class Reconstructor:
         ``spectrum`` do not apply; ``Result.carriers`` is None).
     refine_method : {"fd", "image"}, optional
         "fd" (default): the warp-and-redemodulate refinement only.  "image":
-        after it, on the full grid, ``image_iterations`` (default 6) steps of
-        windowed Gauss-Newton image matching (:mod:`processing.dic`): the
-        reference warped by ``u`` matched to the frame pixel by pixel, which
-        is not band-limited.  Experimental: measured on ray-traced waves 3-6
-        carrier periods long 2.9 % -> 1.3 % rms height error, level with
-        "fd" on most of the accuracy table but worse on a sharp board and a
-        narrow 12-bit bump (docs/processing.md section 6), so not the default.
+        after it, on the full grid, ``image_iterations`` (default 3) global
+        Gauss-Newton steps of image matching on a node grid every 4 px
+        (:func:`processing.dic.refine_global`): the reference warped by ``u``
+        matched to the frame pixel by pixel, which is not band-limited;
+        heights are solved on the node grid; ``Result.series`` is None.
+        Frame sides must be multiples of 4 px.  Measured on ray-traced
+        frames (docs/processing.md section 6): waves 3-6 carrier periods long
+        2.90 % -> 1.11 %, a bump of 1.25 periods 1.41 % -> 0.40 %, worse on a
+        sharp board (0.39 % -> 0.76 %); 18-27x the cost of "fd", so not
+        the batch default.
 
     Attributes
     ----------
@@ -408,7 +411,7 @@ class Reconstructor:
                  full_method: str = "interpolate", full_interpolation: str = "lanczos", min_amplitude: float = 0.3, min_fold: float = 0.2,
                  dilate: int = 1, min_island: float = 0.01, check_pattern: bool = True, solver: str = "auto", threads: int = 2,
                  planner_effort: str = "FFTW_ESTIMATE", carriers: Optional[Carriers] = None,
-                 pin_fallback: str = "nearest", refine_method: str = "fd", image_iterations: int = 6,
+                 pin_fallback: str = "nearest", refine_method: str = "fd", image_iterations: int = 3,
                  pattern: Optional[str] = None, window_px: int = 16):
         ref = self._validate_image(reference_image, "reference image")
         if pattern is None:
@@ -428,6 +431,10 @@ class Reconstructor:
         self.image_iterations = int(image_iterations)
         self._ref_gradient = None
         self._ref_fine = None
+        if refine_method == "image":
+            from .dic import NodeGrid
+
+            NodeGrid(ref.shape)  # frame sides must suit the node grid: say so now, not at the first frame
         self._check_grid(grid)
         if full_method not in ("interpolate", "ifft"):
             raise ValueError(f"full_method must be 'interpolate' or 'ifft'; got {full_method!r}")
@@ -805,23 +812,53 @@ class Reconstructor:
             u = u + np.where(valid, du, 0.0)
         return u
 
-    def _refine_image(self, frame, u, valid):
-        """Image-domain refinement (:func:`processing.dic.refine_displacement`)
-        on the decimated grid, residual counted on the pixels of valid samples."""
-        from .dic import fine_reference, reference_gradients, refine_displacement
+    def _image_full(self, frame, u, valid, amplitude, phase, timings, t0, t3):
+        """Full grid by the global image-domain refinement (:func:`processing.dic.refine_global`):
+        FD's u on every pixel is refined on a node grid every ``dic.NODE_PX``
+        pixels, heights are solved there (same masked solver and pin) and
+        interpolated to every pixel.  ``Result.series`` is None."""
+        from . import dic
 
         if self._ref_gradient is None:
-            self._ref_gradient = reference_gradients(self._ref_f32)
-            self._ref_fine = fine_reference(self._ref_f32)
-        fill = _nearest_fill_index(valid)
+            self._node_grid = dic.NodeGrid(self.shape)
+            self._ref_gradient = dic.reference_gradients(self._ref_f32)
+            self._ref_fine = dic.fine_reference(self._ref_f32)
+            ng = self._node_grid
+            pick_r = np.abs(ng.rows_px[:, None] - self.rows_px[None, :]).argmin(axis=1)
+            pick_c = np.abs(ng.cols_px[:, None] - self.cols_px[None, :]).argmin(axis=1)
+            self._node_ref_mask = self._ref_mask[np.ix_(pick_r, pick_c)]
+            self._node_near = None if self._region_near is None else self._region_near[np.ix_(pick_r, pick_c)]
+        ng = self._node_grid
+        all_valid = bool(valid.all())
+        fill = None if all_valid else _nearest_fill_index(valid)
         uf = u if fill is None else u[:, fill[0], fill[1]]
-        uf = np.nan_to_num(uf).astype(np.float32)
-        valid_px = None if fill is None else self._up.mask(valid)
-        out = refine_displacement(self._ref_f32, frame, uf, valid, upsample=self._up,
-                                  grid_shape=self.demod.window_shape, reference_gradient=self._ref_gradient,
-                                  valid_px=valid_px, iterations=self.image_iterations,
-                                  fine_reference=self._ref_fine)
-        return np.where(valid, out, u).astype(np.float32)
+        u_px = np.stack([self._up(np.nan_to_num(uf[i])) for i in range(2)])
+        valid_px = np.ones(self.shape, bool) if all_valid else self._up.mask(valid)
+        u_nodes, valid_nodes = dic.refine_global(self._ref_fine, self._ref_gradient, frame, u_px, valid_px, ng,
+                                                 outer=self.image_iterations)
+        t4 = time.perf_counter()
+        timings["refine"] += 1e3 * (t4 - t3)
+        from .height import _solver_for
+
+        hs = _solver_for(self.geometry, ng.rows_px, ng.cols_px, self.shape)
+        surf = hs._solve(np.where(valid_nodes, u_nodes, np.nan), valid_nodes, self.solver, _CG_TOL,
+                         self._node_ref_mask, pin_fallback=self.pin_fallback,
+                         region_name=self.reference_region_name, near=self._node_near)
+        valid_nodes = np.asarray(surf.valid, bool)
+        u_nodes = np.where(valid_nodes, u_nodes, np.float32(np.nan)).astype(np.float32)
+        t5 = time.perf_counter()
+        timings["height"] = 1e3 * (t5 - t4)
+        amp_nodes = ng.down(self._up(amplitude))
+        res = Result(height=np.asarray(surf.height_mm, np.float32), valid=valid_nodes,
+                     slope_x=np.asarray(surf.slope_x, np.float32), slope_y=np.asarray(surf.slope_y, np.float32),
+                     displacement=u_nodes, amplitude=amp_nodes, x_mm=np.asarray(surf.x_mm),
+                     y_mm=np.asarray(surf.y_mm), grid="decimated", rows_px=ng.rows_px, cols_px=ng.cols_px,
+                     carriers=self.carriers, phase=np.asarray(phase, np.float32),
+                     valid_fraction=float(valid_nodes.mean()), timings_ms=timings, pin=surf.pin, series=None)
+        res = self._interpolate_full(res, solver=hs)
+        timings["interpolate"] = 1e3 * (time.perf_counter() - t5)
+        timings["total"] = 1e3 * (time.perf_counter() - t0)
+        return res
 
     # ---------------------------------------------------------------- call
     def __call__(self, frame, *, grid: Optional[str] = None) -> Result:
@@ -896,8 +933,6 @@ class Reconstructor:
         u_first = u
         if iterations > 0:
             u = self._refine(wins, g, u, valid, iterations)
-        if self.refine_method == "image" and grid == "full":
-            u = self._refine_image(frame, u, valid)
         t3 = time.perf_counter()
         timings["refine"] = 1e3 * (t3 - t2)
         # series memory (unwrapped phase of the final displacement)
@@ -909,6 +944,8 @@ class Reconstructor:
         if not all_valid or u.dtype != np.float32:
             u = np.where(valid, u, np.nan).astype(np.float32)
 
+        if grid == "full" and self.refine_method == "image":
+            return self._image_full(frame, u, valid, amplitude, phase, timings, t0, t3)
         if grid == "full" and self.full_method == "ifft":
             res = self._full_ifft(wins, u, u_first, valid, amplitude, phase, timings, t3)
             timings["total"] = 1e3 * (time.perf_counter() - t0)
@@ -1029,7 +1066,7 @@ class Reconstructor:
                                  np.broadcast_to(y.ravel(), (rows,)).copy())
         return self._full_coords
 
-    def _interpolate_full(self, res):
+    def _interpolate_full(self, res, solver=None):
         """Decimated result -> every pixel (the decimated grid is oversampled
         twice, so Lanczos interpolation is within 0.2 % of band-limited).
 
@@ -1052,7 +1089,9 @@ class Reconstructor:
         def src(field):
             return field if all_valid else np.nan_to_num(field if fill is None else field[fill])
 
-        coef = self._solver().slope_coefficients() if self._height_solver is not None else None
+        if solver is None and self._height_solver is not None:
+            solver = self._solver()
+        coef = solver.slope_coefficients() if solver is not None else None
         derive = coef is not None
         disp = np.empty((2, rows, cols), np.float32)
         height = np.empty(self.shape, np.float32)
