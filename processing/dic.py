@@ -117,6 +117,8 @@ class NodeGrid:
         return cv2.resize(np.ascontiguousarray(x, np.float32), (cols, rows), interpolation=interpolation)
 
     def up_T(self, y):
+        """Exact transpose of :meth:`up` (pixels -> nodes).  (A cv2 tent filter
+        sampled at the nodes gives the same, 1.7x slower at 1024^2.)"""
         m_r, m_c = self.shape
         a = _resize_T_axis0(y, m_r, self.s)
         return _resize_T_axis0(np.ascontiguousarray(a.T), m_c, self.s).T
@@ -143,7 +145,7 @@ def _second_differences(x):
 
 
 def refine_global(fine, reference_gradient, frame, u_px, valid_px, grid: NodeGrid, *, outer: int = 3,
-                  cg_iterations: int = 30, regularisation: float = 0.1):
+                  cg_iterations: int = 6, regularisation: float = 0.1):
     """Global Gauss-Newton image matching on a node grid.
 
     Minimises ``sum_r w(r) [I(r) - I0(r - u(r))]^2 + lam |D2 u|^2`` over the
