@@ -383,7 +383,7 @@ class Reconstructor:
         Frame sides must be multiples of 4 px.  Measured on ray-traced
         frames (docs/processing.md section 6): waves 3-6 carrier periods long
         2.90 % -> 1.11 %, a bump of 1.25 periods 1.41 % -> 0.40 %, worse on a
-        sharp board (0.39 % -> 0.76 %); 18-27x the cost of "fd", so not
+        sharp board (0.39 % -> 0.76 %); 11-13x the cost of "fd", so not
         the batch default.
 
     Attributes
