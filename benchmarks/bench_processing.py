@@ -28,6 +28,7 @@ settings, the options, and the published method.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import os
 import statistics
@@ -136,6 +137,7 @@ def bench_speed(sizes, repeats):
         rec_single = Reconstructor(ref, GEOMETRY, carriers=carriers, **opts)
         rec_batch = Reconstructor(ref, GEOMETRY, grid="full", carriers=carriers, **opts)
         rec_ifft = Reconstructor(ref, GEOMETRY, grid="full", full_method="ifft", carriers=carriers, **opts)
+        rec_image = Reconstructor(ref, GEOMETRY, grid="full", refine_method="image", carriers=carriers, **opts)
         base = Baseline(ref, carriers)
 
         def series(rec):
@@ -148,9 +150,9 @@ def bench_speed(sizes, repeats):
             return call
 
         fns = [lambda i: base(frames[i % nf]), series(rec_dec), single(rec_single, "decimated"),
-               series(rec_full), single(rec_batch, "full"), single(rec_ifft, "full")]
+               series(rec_full), single(rec_batch, "full"), single(rec_ifft, "full"), single(rec_image, "full")]
         slow = 3 if n >= 2048 else 1
-        t = interleaved_medians(fns, repeats, every=[slow, 1, 1, 1, 1, 2 * slow])
+        t = interleaved_medians(fns, repeats, every=[slow, 1, 1, 1, 1, 2 * slow, slow])
         t_base = t[0]
         ratios = [t_base / x for x in t[1:]]
         verdict = ("PASS" if ratios[0] >= 15 else "FAIL") + " dec>=15x, " + \
@@ -160,7 +162,9 @@ def bench_speed(sizes, repeats):
         print(f"{n:>6} {t_base:>9.1f} {t[1]:>11.2f} {ratios[0]:>6.1f} {t[2]:>11.2f} {ratios[1]:>6.1f} "
               f"{t[3]:>10.2f} {ratios[2]:>6.1f} {t[4]:>11.2f} {ratios[3]:>6.1f} "
               f"{t[5]:>10.1f} {ratios[4]:>5.1f}  {m[0]}x{m[1]}  {verdict}")
-        for label, rec in (("full live", rec_full), ("full batch", rec_batch)):
+        print(f"{'':>6} full image (refine_method='image'): {t[6]:.1f} ms/frame, "
+              f"{t[6] / t[4]:.1f}x the full batch default ({t[4]:.1f} ms); goal <= 5x")
+        for label, rec in (("full live", rec_full), ("full batch", rec_batch), ("full image", rec_image)):
             res = rec(frames[1])
             stages = ", ".join(f"{k} {v:.1f}" for k, v in res.timings_ms.items())
             print(f"{'':>6} stages of one {label} call (ms): {stages}")
@@ -205,6 +209,10 @@ def bench_accuracy():
          dict(pattern=F.Checkerboard(period_mm=2.1, edge_softness_mm=0.4))),
         ("board sharp 0.1 mm, period 2.1 mm, bump", F.GaussianBump(0.004, 5.0),
          dict(pattern=F.Checkerboard(period_mm=2.1, edge_softness_mm=0.1))),
+        # issue 11: features 3-6 carrier periods long (2 mm board), 12 bit
+        ("waves 0.3 um rms, 6-12 mm, 12 bit", F.WaveField.random(8, amplitude_rms_mm=0.0003,
+                                                                 wavelength_range_mm=(6, 12), seed=1), dict(bits=12)),
+        ("bump 1 um, sigma 3 mm (1.5 periods), 12 bit", F.GaussianBump(0.001, 3.0), dict(bits=12)),
     ]
     variants = [
         ("decimated", dict(grid="decimated")),
@@ -215,6 +223,7 @@ def bench_accuracy():
         ("dec disc", dict(grid="decimated", filter_shape="disc")),
         ("dec no-apod", dict(grid="decimated", border="none")),
         ("dec refine 1", dict(grid="decimated", refine_iterations=1)),
+        ("full image", dict(grid="full", refine_method="image")),
         ("published", dict(grid="full", filter_shape="disc", filter_radius=0.5, subbin=False,
                            unwrap=False, border="none", refine_iterations=0)),
     ]
@@ -230,12 +239,59 @@ def bench_accuracy():
             except Exception as exc:  # noqa: BLE001 - a failing variant is a result
                 cells.append(f"{type(exc).__name__[:12]:>13s}")
         print(f"{label:42s}" + "".join(cells))
+    # random dots (issue 11): the same surfaces, dots 0.5 mm (5 x 2.9 px), 8 bit, noise 1 DN, PIV with
+    # 16 px final windows (a sample every 8 px); goal <= 2 % where features are >= 8 windows (128 px) wide
+    dots = F.RandomDots(dot_diameter_mm=0.5, density=0.3, seed=1)
+
+    class _Shape:
+        shape = (256, 256)
+
+    print(f"{'random dots, PIV 16 px windows (dec / full)':42s}")
+    for label, surface, kw in cases:
+        if "pattern" in kw:
+            continue
+        ref, img = render(surface, bits=8, noise=1.0, pattern=dots)
+        rec = Reconstructor(ref, GEOMETRY, pattern="dots")
+        cells = []
+        for grid in ("decimated", "full"):
+            try:
+                res = dataclasses.replace(rec(img, grid=grid), carriers=_Shape())
+                cells.append(f"{rel(res, surface):13.2f}")
+            except Exception as exc:  # noqa: BLE001 - a failing variant is a result
+                cells.append(f"{type(exc).__name__[:12]:>13s}")
+        print(f"{'  ' + label:42s}" + "".join(cells))
     g = Geometry(theta_deg=60, depth_mm=300, pixel_mm=0.1, rows_toward_camera=False, camera_distance_mm=1500.0)
     bump = F.GaussianBump(0.004, 5.0)
     ref, img = render(bump, geometry=g)
     print(f"{'camera at 1.5 m, theta 60, bump (decimated/full)':42s}"
           f"{rel(Reconstructor(ref, g, grid='decimated')(img), bump, g):13.2f}"
           f"{rel(Reconstructor(ref, g, grid='full')(img), bump, g):13.2f}")
+    print()
+
+
+def bench_dots_speed(sizes, repeats):
+    """Cost per frame of random-dot frames (PIV) against the checkerboard batch
+    default, interleaved in the same run (analytic warps, as for the speed table)."""
+    print("Random dots (PIV, 16 px final windows) vs checkerboard batch default, median ms/frame")
+    for n in sizes:
+        rng = np.random.default_rng(1)
+        ref_board, frames_board = speed_frames(n, count=3)
+        r, c = np.mgrid[:n, :n].astype(np.float32)
+        dots = np.zeros((n, n), np.float32)
+        k = int(0.3 * n * n / 25)
+        dots[rng.integers(0, n, k), rng.integers(0, n, k)] = 1.0
+        dots = cv2.GaussianBlur(dots, (0, 0), 1.0)
+        dots = dots / dots.max()
+        s = 0.12 * n
+        g = np.exp(-((r - 0.45 * n) ** 2 + (c - 0.55 * n) ** 2) / (2 * s * s))
+        frames_dots = [(cv2.remap(dots, c - a * 3.0 * g, r - a * 8.0 * g, cv2.INTER_CUBIC) * 255).clip(0, 255)
+                       .astype(np.uint8) for a in (0.9, 1.0)]
+        ref_dots = (dots * 255).astype(np.uint8)
+        rb = Reconstructor(ref_board, GEOMETRY, planner_effort="FFTW_MEASURE")
+        rd = Reconstructor(ref_dots, GEOMETRY, pattern="dots")
+        t = interleaved_medians([lambda i: (rb.reset_series(), rb(frames_board[i % 3])),
+                                 lambda i: rd(frames_dots[i % 2])], max(4, repeats // 4))
+        print(f"{n:>6} checkerboard batch {t[0]:8.1f}   dots {t[1]:8.1f}   ratio {t[1] / t[0]:5.1f}x")
     print()
 
 
@@ -250,6 +306,7 @@ def main(argv=None):
     print(f"tirdeflect processing benchmark, {os.cpu_count()} CPUs visible, numpy {np.__version__}\n")
     if not args.no_speed:
         bench_speed(args.sizes, args.repeats)
+        bench_dots_speed([n for n in args.sizes if n <= 1024], args.repeats)
     if not args.no_accuracy:
         bench_accuracy()
 

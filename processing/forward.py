@@ -44,6 +44,7 @@ __all__ = [
     "ApproachingDiscDimple",
     "TravellingWaves",
     "Checkerboard",
+    "RandomDots",
     "RenderInfo",
     "trace_tir",
     "trace_fsss",
@@ -392,6 +393,79 @@ class Checkerboard:
         if self.sharp_radius_mm is not None:
             val = val * self.contrast_window(x, y)
         return self.mean + 0.5 * self.contrast * val
+
+
+def _hash_uniform(i, j, seed, salt):
+    """Deterministic uniform numbers in [0, 1) for integer cell indices (i, j)."""
+    x = (np.asarray(i, np.int64) * 73856093) ^ (np.asarray(j, np.int64) * 19349663) ^ (int(seed) * 83492791 + salt * 2654435761)
+    x = x.astype(np.uint64) & np.uint64(0xFFFFFFFF)
+    # xorshift-multiply mixing (32 bit)
+    x ^= x >> np.uint64(16)
+    x = (x * np.uint64(0x7FEB352D)) & np.uint64(0xFFFFFFFF)
+    x ^= x >> np.uint64(15)
+    x = (x * np.uint64(0x846CA68B)) & np.uint64(0xFFFFFFFF)
+    x ^= x >> np.uint64(16)
+    return x.astype(np.float64) / 4294967296.0
+
+
+@dataclass(frozen=True)
+class RandomDots:
+    """Random-dot pattern on the pattern plane (the usual FS-SS / PIV target).
+
+    Bright Gaussian dots on a dark ground, placed by a jittered grid: the
+    plane is cut in square cells ``dot_diameter_mm / sqrt(density)`` wide
+    (``density``: fraction of the plane the dots' diameters would cover as
+    squares), each holding one dot at a random position inside it.  The
+    pattern is defined everywhere (no tiling period) and reproducible from
+    ``seed``.
+
+    Parameters
+    ----------
+    dot_diameter_mm : float
+        ``1/e^2`` diameter of a dot (``4 sigma`` of its Gaussian profile), mm.
+    density : float
+        ``(dot diameter / cell size)^2`` in (0, 1].
+    seed : int
+    mean, contrast : float
+        Ground level is ``mean - contrast / 2``; a dot's peak adds up to
+        ``contrast`` (overlapping dots saturate at ``mean + contrast / 2``).
+    """
+
+    dot_diameter_mm: float
+    density: float = 0.3
+    seed: int = 0
+    mean: float = 0.5
+    contrast: float = 0.8
+
+    def __post_init__(self):
+        if not self.dot_diameter_mm > 0:
+            raise GeometryError(f"dot_diameter_mm must be positive, got {self.dot_diameter_mm!r}")
+        if not 0 < self.density <= 1:
+            raise GeometryError(f"density must be in (0, 1], got {self.density!r}")
+
+    @property
+    def cell_mm(self) -> float:
+        return self.dot_diameter_mm / math.sqrt(self.density)
+
+    def __call__(self, x_mm, y_mm) -> np.ndarray:
+        """Intensity at pattern-plane coordinates (mm), float64 in [0, 1]."""
+        x = np.asarray(x_mm, dtype=np.float64)
+        y = np.asarray(y_mm, dtype=np.float64)
+        a = self.cell_mm
+        sigma = self.dot_diameter_mm / 4.0
+        ci = np.floor(x / a).astype(np.int64)
+        cj = np.floor(y / a).astype(np.int64)
+        acc = np.zeros(np.broadcast(x, y).shape)
+        reach = int(math.ceil(3.0 * sigma / a))
+        for di in range(-reach, reach + 1):
+            for dj in range(-reach, reach + 1):
+                i = ci + di
+                j = cj + dj
+                dx = (i + _hash_uniform(i, j, self.seed, 1)) * a - x
+                dy = (j + _hash_uniform(i, j, self.seed, 2)) * a - y
+                acc += np.exp(-(dx * dx + dy * dy) / (2.0 * sigma * sigma))
+        val = np.minimum(acc, 1.0)
+        return self.mean - 0.5 * self.contrast + self.contrast * val
 
 
 # ============================================================================ tracing

@@ -59,6 +59,8 @@ __all__ = [
 DEFAULT_REFERENCE_BAND = 0.04
 
 _SETUPS = ("tir", "fsss")
+#: What the pattern is: a checkerboard (Fourier demodulation) or random dots (PIV).
+_PATTERNS = ("checkerboard", "dots")
 
 _EXAMPLES = {
     "setup": 'setup = "tir"',
@@ -194,6 +196,10 @@ class Geometry:
     >>> g = Geometry(theta_deg=60, depth_mm=300, pixel_mm=0.1, rows_toward_camera=False)
     >>> round(g.critical_angle_deg, 1)
     48.6
+    pattern : {"checkerboard", "dots"}
+        What the camera sees through the surface: a checkerboard (default;
+        Fourier demodulation) or a random-dot pattern (PIV with window
+        deformation, :mod:`processing.piv`).
     """
 
     setup: str = "tir"
@@ -208,6 +214,7 @@ class Geometry:
     n_air: float = 1.0003
     fsss_camera_distance_mm: float | None = None
     pattern_stretch_y: float | None = None
+    pattern: str = "checkerboard"
 
     # ------------------------------------------------------------------ validation
     def __post_init__(self) -> None:
@@ -254,6 +261,12 @@ class Geometry:
                 f"refractive indices must satisfy 0 < n_air < n_water, got n_air={self.n_air!r}, "
                 f"n_water={self.n_water!r}; typical values are n_air = 1.0003, n_water = 1.333"
             )
+        if not isinstance(self.pattern, str) or self.pattern.lower() not in _PATTERNS:
+            raise GeometryError(
+                f"pattern must be \"checkerboard\" or \"dots\" (a random-dot pattern, read by PIV), "
+                f"got {self.pattern!r}; write for example: pattern = \"dots\""
+            )
+        object.__setattr__(self, "pattern", self.pattern.lower())
         self._validate_reference_region()
         if self.setup == "tir":
             theta = self.theta_deg
@@ -410,6 +423,8 @@ class Geometry:
                 v = [list(x) for x in v]
             elif f.name == "reference_region":
                 v = list(v)
+            elif f.name == "pattern" and v == "checkerboard":
+                continue  # the default: files written before the key existed read back equal
             out[f.name] = v
         return out
 

@@ -47,7 +47,11 @@ from .geometry import DEFAULT_REFERENCE_BAND, default_reference_region_mask
 from .height import PIN_FALLBACKS, PIN_MIN_PIECE_SAMPLES, PinStatus
 from .unwrap import TWO_PI, unwrap_spatial, unwrap_temporal, wrap
 
-__all__ = ["Reconstructor", "Result", "SeriesCheck", "reference_pin_region"]
+__all__ = ["Reconstructor", "Result", "SeriesCheck", "reference_pin_region", "PATTERNS"]
+
+#: Patterns the Reconstructor reads: checkerboards by Fourier demodulation,
+#: random dots by PIV (processing.piv).
+PATTERNS = ("checkerboard", "dots")
 
 _DEFAULT_ITERATIONS = {"decimated": 0, "full": 1}
 # Masked height solve (CG in float32): stop at a relative residual of 1e-4.
@@ -362,6 +366,25 @@ class Reconstructor:
         needs (:func:`processing.height.choose_pin_samples`): pin on the valid
         samples nearest the region (default; ``Result.pin.rule == "nearest"``)
         or refuse the frame (GeometryError).  The same rule for every frame.
+    pattern : {"checkerboard", "dots"} or None, optional
+        What the reference shows (None, default: ``geometry.pattern``).  "dots": a random-dot pattern, displacement
+        by PIV with window deformation (:class:`processing.piv.DotDisplacement`,
+        OpenPIV), last window ``window_px`` (default 16) px, one sample every
+        ``window_px / 2`` px; then the same mask, height solve and pin (the
+        carrier options, unwrapping, refinement, ``alignment`` and
+        ``spectrum`` do not apply; ``Result.carriers`` is None).
+    refine_method : {"fd", "image"}, optional
+        "fd" (default): the warp-and-redemodulate refinement only.  "image":
+        after it, on the full grid, ``image_iterations`` (default 3) global
+        Gauss-Newton steps of image matching on a node grid every 4 px
+        (:func:`processing.dic.refine_global`): the reference warped by ``u``
+        matched to the frame pixel by pixel, which is not band-limited;
+        heights are solved on the node grid; ``Result.series`` is None.
+        Frame sides must be multiples of 4 px.  Measured on ray-traced
+        frames (docs/processing.md section 6): waves 3-6 carrier periods long
+        2.90 % -> 1.11 %, a bump of 1.25 periods 1.41 % -> 0.40 %, worse on a
+        sharp board (0.39 % -> 0.76 %); 11-13x the cost of "fd", so not
+        the batch default.
 
     Attributes
     ----------
@@ -388,8 +411,30 @@ class Reconstructor:
                  full_method: str = "interpolate", full_interpolation: str = "lanczos", min_amplitude: float = 0.3, min_fold: float = 0.2,
                  dilate: int = 1, min_island: float = 0.01, check_pattern: bool = True, solver: str = "auto", threads: int = 2,
                  planner_effort: str = "FFTW_ESTIMATE", carriers: Optional[Carriers] = None,
-                 pin_fallback: str = "nearest"):
+                 pin_fallback: str = "nearest", refine_method: str = "fd", image_iterations: int = 3,
+                 pattern: Optional[str] = None, window_px: int = 16):
         ref = self._validate_image(reference_image, "reference image")
+        if pattern is None:
+            pattern = getattr(geometry, "pattern", "checkerboard")
+        if pattern not in PATTERNS:
+            raise ValueError(f"pattern must be one of {PATTERNS}; got {pattern!r}")
+        self.pattern = pattern
+        if pattern == "dots":
+            self.min_island = float(min_island)
+            self._init_dots(ref, geometry, grid, window_px, solver, pin_fallback)
+            return
+        if refine_method not in ("fd", "image"):
+            raise ValueError(f"refine_method must be 'fd' or 'image'; got {refine_method!r}")
+        if int(image_iterations) < 1:
+            raise ValueError(f"image_iterations must be >= 1; got {image_iterations!r}")
+        self.refine_method = refine_method
+        self.image_iterations = int(image_iterations)
+        self._ref_gradient = None
+        self._ref_fine = None
+        if refine_method == "image":
+            from .dic import NodeGrid
+
+            NodeGrid(ref.shape)  # frame sides must suit the node grid: say so now, not at the first frame
         self._check_grid(grid)
         if full_method not in ("interpolate", "ifft"):
             raise ValueError(f"full_method must be 'interpolate' or 'ifft'; got {full_method!r}")
@@ -451,6 +496,91 @@ class Reconstructor:
         self._ref_idx = np.flatnonzero(self._ref_mask)
         self._height_solver = None
         self.reset_series()
+
+    # ------------------------------------------------------------ dots (PIV)
+    def _init_dots(self, ref, geometry, grid, window_px, solver, pin_fallback):
+        from .piv import DotDisplacement
+
+        self._check_grid(grid)
+        if pin_fallback not in PIN_FALLBACKS:
+            raise ValueError(f"pin_fallback must be one of {PIN_FALLBACKS}; got {pin_fallback!r}")
+        self.geometry = geometry
+        self.shape = ref.shape
+        self.reference_dtype = ref.dtype
+        self.grid = grid
+        self.solver = solver
+        self.pin_fallback = pin_fallback
+        self.carriers = None
+        self.piv = DotDisplacement(ref, window_px=window_px)
+        self._ref_dots = ref
+        self.rows_px, self.cols_px = self.piv.rows_px, self.piv.cols_px
+        n = (self.rows_px.size, self.cols_px.size)
+        self._ref_ok = np.ones(n, bool)
+        self._ref_ok_all = True
+        self.dilate = 0
+        self._choose_reference_region(geometry)
+        self._height_solver = None
+        self._full_coords = None
+        self.reset_series()
+
+    def _call_dots(self, frame, grid):
+        t0 = time.perf_counter()
+        timings = {}
+        u, valid = self.piv(frame)
+        t1 = time.perf_counter()
+        timings["piv"] = 1e3 * (t1 - t0)
+        if not valid.any():
+            raise AllInvalidError("no interrogation window of the frame correlates with the reference: check that "
+                                  "the dots are in focus and lit, and that the frame shows the reference's pattern")
+        valid = self._drop_islands(valid)
+        hs = self._solver()
+        surf = hs._solve(np.where(valid, u, np.nan), valid, self.solver, _CG_TOL, self._ref_mask,
+                         pin_fallback=self.pin_fallback, region_name=self.reference_region_name,
+                         near=self._region_near)
+        valid = np.asarray(surf.valid, bool)
+        u = np.where(valid, u, np.float32(np.nan)).astype(np.float32)
+        timings["height"] = 1e3 * (time.perf_counter() - t1)
+        res = Result(height=np.asarray(surf.height_mm, np.float32), valid=valid,
+                     slope_x=np.asarray(surf.slope_x, np.float32), slope_y=np.asarray(surf.slope_y, np.float32),
+                     displacement=u, amplitude=valid.astype(np.float32), x_mm=np.asarray(surf.x_mm),
+                     y_mm=np.asarray(surf.y_mm), grid="decimated", rows_px=self.rows_px, cols_px=self.cols_px,
+                     carriers=None, phase=np.zeros((2, 0, 0), np.float32),
+                     valid_fraction=float(valid.mean()), timings_ms=timings, pin=surf.pin)
+        if grid == "full":
+            t2 = time.perf_counter()
+            res = self._dots_full(res)
+            timings["interpolate"] = 1e3 * (time.perf_counter() - t2)
+        timings["total"] = 1e3 * (time.perf_counter() - t0)
+        return res
+
+    def _dots_full(self, res):
+        """PIV grid -> every pixel (cubic spline; pixels beyond the outer
+        window centres take the border value; invalid where the nearest sample is)."""
+        rows, cols = self.shape
+        r = (np.arange(rows, dtype=np.float32) - np.float32(self.rows_px[0])) / np.float32(self.rows_px[1] - self.rows_px[0])
+        c = (np.arange(cols, dtype=np.float32) - np.float32(self.cols_px[0])) / np.float32(self.cols_px[1] - self.cols_px[0])
+        map_r = np.broadcast_to(r[:, None], self.shape).astype(np.float32)
+        map_c = np.broadcast_to(c[None, :], self.shape).astype(np.float32)
+        fill = _nearest_fill_index(res.valid)
+
+        from scipy import ndimage
+
+        def up(field):
+            # cubic spline through the samples (cv2's cubic kernel measured
+            # 2x the height error of the PIV grid itself on ray-traced bumps)
+            f = field if fill is None else field[fill]
+            return ndimage.map_coordinates(np.nan_to_num(f).astype(np.float64), [map_r, map_c], order=3,
+                                           mode="nearest").astype(np.float32)
+
+        valid = cv2.remap(res.valid.astype(np.uint8), map_c, map_r, cv2.INTER_NEAREST,
+                          borderMode=cv2.BORDER_REPLICATE).astype(bool)
+        nan = np.float32(np.nan)
+        out = {k: np.where(valid, up(getattr(res, k)), nan) for k in ("height", "slope_x", "slope_y")}
+        disp = np.stack([np.where(valid, up(res.displacement[i]), nan) for i in range(2)])
+        x_mm, y_mm = self._coords_full(res)
+        return dataclasses.replace(res, valid=valid, displacement=disp, amplitude=valid.astype(np.float32),
+                                   x_mm=x_mm, y_mm=y_mm, grid="full", rows_px=np.arange(rows, dtype=float),
+                                   cols_px=np.arange(cols, dtype=float), valid_fraction=float(valid.mean()), **out)
 
     # ------------------------------------------------------------ helpers
     def _choose_reference_region(self, geometry):
@@ -686,6 +816,54 @@ class Reconstructor:
             u = u + np.where(valid, du, 0.0)
         return u
 
+    def _image_full(self, frame, u, valid, amplitude, phase, timings, t0, t3):
+        """Full grid by the global image-domain refinement (:func:`processing.dic.refine_global`):
+        FD's u on every pixel is refined on a node grid every ``dic.NODE_PX``
+        pixels, heights are solved there (same masked solver and pin) and
+        interpolated to every pixel.  ``Result.series`` is None."""
+        from . import dic
+
+        if self._ref_gradient is None:
+            self._node_grid = dic.NodeGrid(self.shape)
+            self._ref_gradient = dic.reference_gradients(self._ref_f32)
+            self._ref_fine = dic.fine_reference(self._ref_f32)
+            ng = self._node_grid
+            pick_r = np.abs(ng.rows_px[:, None] - self.rows_px[None, :]).argmin(axis=1)
+            pick_c = np.abs(ng.cols_px[:, None] - self.cols_px[None, :]).argmin(axis=1)
+            self._node_ref_mask = self._ref_mask[np.ix_(pick_r, pick_c)]
+            self._node_near = None if self._region_near is None else self._region_near[np.ix_(pick_r, pick_c)]
+        ng = self._node_grid
+        all_valid = bool(valid.all())
+        fill = None if all_valid else _nearest_fill_index(valid)
+        uf = u if fill is None else u[:, fill[0], fill[1]]
+        u_px = np.stack([self._up(np.nan_to_num(uf[i])) for i in range(2)])
+        valid_px = np.ones(self.shape, bool) if all_valid else self._up.mask(valid)
+        u_nodes, valid_nodes = dic.refine_global(self._ref_fine, self._ref_gradient, frame, u_px, valid_px, ng,
+                                                 outer=self.image_iterations)
+        t4 = time.perf_counter()
+        timings["refine"] += 1e3 * (t4 - t3)
+        from .height import _solver_for
+
+        hs = _solver_for(self.geometry, ng.rows_px, ng.cols_px, self.shape)
+        surf = hs._solve(np.where(valid_nodes, u_nodes, np.nan), valid_nodes, self.solver, _CG_TOL,
+                         self._node_ref_mask, pin_fallback=self.pin_fallback,
+                         region_name=self.reference_region_name, near=self._node_near)
+        valid_nodes = np.asarray(surf.valid, bool)
+        u_nodes = np.where(valid_nodes, u_nodes, np.float32(np.nan)).astype(np.float32)
+        t5 = time.perf_counter()
+        timings["height"] = 1e3 * (t5 - t4)
+        amp_nodes = ng.down(self._up(amplitude))
+        res = Result(height=np.asarray(surf.height_mm, np.float32), valid=valid_nodes,
+                     slope_x=np.asarray(surf.slope_x, np.float32), slope_y=np.asarray(surf.slope_y, np.float32),
+                     displacement=u_nodes, amplitude=amp_nodes, x_mm=np.asarray(surf.x_mm),
+                     y_mm=np.asarray(surf.y_mm), grid="decimated", rows_px=ng.rows_px, cols_px=ng.cols_px,
+                     carriers=self.carriers, phase=np.asarray(phase, np.float32),
+                     valid_fraction=float(valid_nodes.mean()), timings_ms=timings, pin=surf.pin, series=None)
+        res = self._interpolate_full(res, solver=hs)
+        timings["interpolate"] = 1e3 * (time.perf_counter() - t5)
+        timings["total"] = 1e3 * (time.perf_counter() - t0)
+        return res
+
     # ---------------------------------------------------------------- call
     def __call__(self, frame, *, grid: Optional[str] = None) -> Result:
         """Reconstruct one frame.
@@ -712,6 +890,8 @@ class Reconstructor:
         frame = self._validate_frame(frame)
         grid = self.grid if grid is None else grid
         self._check_grid(grid)
+        if self.pattern == "dots":
+            return self._call_dots(frame, grid)
         d = self.demod
         timings = {}
         spec = d.spectrum(frame)
@@ -768,6 +948,8 @@ class Reconstructor:
         if not all_valid or u.dtype != np.float32:
             u = np.where(valid, u, np.nan).astype(np.float32)
 
+        if grid == "full" and self.refine_method == "image":
+            return self._image_full(frame, u, valid, amplitude, phase, timings, t0, t3)
         if grid == "full" and self.full_method == "ifft":
             res = self._full_ifft(wins, u, u_first, valid, amplitude, phase, timings, t3)
             timings["total"] = 1e3 * (time.perf_counter() - t0)
@@ -888,7 +1070,7 @@ class Reconstructor:
                                  np.broadcast_to(y.ravel(), (rows,)).copy())
         return self._full_coords
 
-    def _interpolate_full(self, res):
+    def _interpolate_full(self, res, solver=None):
         """Decimated result -> every pixel (the decimated grid is oversampled
         twice, so Lanczos interpolation is within 0.2 % of band-limited).
 
@@ -911,7 +1093,9 @@ class Reconstructor:
         def src(field):
             return field if all_valid else np.nan_to_num(field if fill is None else field[fill])
 
-        coef = self._solver().slope_coefficients() if self._height_solver is not None else None
+        if solver is None and self._height_solver is not None:
+            solver = self._solver()
+        coef = solver.slope_coefficients() if solver is not None else None
         derive = coef is not None
         disp = np.empty((2, rows, cols), np.float32)
         height = np.empty(self.shape, np.float32)
@@ -1008,9 +1192,20 @@ class Reconstructor:
             ``modulation_rows_px``, ``modulation_cols_px``, ``contrast`` (its
             median), ``amplitude`` (map ``|g|/|g0|``), ``saturation_pct``
             (pixels at the top code of the frame's bit depth), ``error``
-            (only when the frame shows no pattern).
+            (only when the frame shows no pattern).  Random dots
+            (``pattern="dots"``): :func:`processing.piv.dot_alignment` of the
+            frame (``dot_size_px``, ``dots_per_window``, ``contrast``,
+            ``focus``), ``saturation_pct``, and ``reference``: the same of the
+            reference.
         """
         frame = self._validate_frame(frame)
+        if self.pattern == "dots":
+            from .piv import dot_alignment
+
+            out = dot_alignment(frame, window_px=self.piv.window_px)
+            out["saturation_pct"] = saturation_pct(frame)
+            out["reference"] = dot_alignment(self._ref_dots, window_px=self.piv.window_px)
+            return out
         d = self.demod
         out = {
             "reference_periods_px": np.asarray(self.carriers.periods_px, float),

@@ -102,10 +102,10 @@ def _selected_count(total: int, first: int, last: int | None, step: int) -> int:
 
 
 def _make_reconstructor(reference: np.ndarray, geometry, *, unwrap: bool, grid: str,
-                        effort: str = "estimate"):
+                        effort: str = "estimate", pattern: str | None = None):
     from processing import Reconstructor
 
-    return Reconstructor(reference, geometry, grid=grid, unwrap=unwrap,
+    return Reconstructor(reference, geometry, grid=grid, unwrap=unwrap, pattern=pattern,
                          planner_effort="FFTW_MEASURE" if effort == "measure" else "FFTW_ESTIMATE")
 
 
@@ -148,6 +148,8 @@ class ProcessJob:
         ``on_progress(done, total)`` after each frame is written and flushed (the GUI's export).
     command : str or None
         The command line, stored in the output's attributes.
+    pattern : {"checkerboard", "dots"} or None
+        What the reference shows; None takes the geometry's ``pattern`` key.
     """
 
     reference: str
@@ -169,6 +171,7 @@ class ProcessJob:
     command: str | None = None
     frame_range: slice | None = None
     reference_frames: slice | None = None
+    pattern: str | None = None
 
     @classmethod
     def from_namespace(cls, args) -> "ProcessJob":
@@ -261,7 +264,7 @@ def run_process(args: ProcessJob) -> BatchReport:
     if effort == "auto":
         effort = "measure" if selected >= MEASURE_MIN_FRAMES else "estimate"
     reconstruct = _make_reconstructor(reference, geometry, unwrap=not args.no_unwrap, grid=args.grid,
-                                      effort=effort)
+                                      effort=effort, pattern=args.pattern)
     if hasattr(reconstruct, "reset_series"):
         reconstruct.reset_series()
 

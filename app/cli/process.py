@@ -107,6 +107,10 @@ def add_process_parser(sub) -> None:
     p.add_argument("--grid", choices=("full", "decimated"), default="full",
                    help="full: heights on every input pixel; decimated: faster, on a coarser "
                    "grid (coordinates in x_mm, y_mm)")
+    p.add_argument("--pattern", choices=("checkerboard", "dots"), default=None,
+                   help="what the reference shows: checkerboard (Fourier demodulation) or dots (a random-dot "
+                        "pattern, PIV with window deformation); default: the geometry's pattern key, "
+                        "else checkerboard")
     p.add_argument("--no-unwrap", action="store_true",
                    help="do not unwrap carrier phases (only for small displacements)")
     p.add_argument("--first", type=_nonnegative_int, default=0, metavar="K",

@@ -1,0 +1,121 @@
+"""Random-dot patterns: forward.RandomDots and ``Reconstructor(..., pattern="dots")`` (PIV via OpenPIV).
+
+Ray-traced TIR frames (processing.forward), dots 0.5 mm (5 x 2.9 px at
+0.1 mm/px, theta 55 deg), 8 bit, camera noise 1 DN; 16 px final
+interrogation windows (one sample every 8 px).  Error measure as in
+test_reconstruct (relative RMS height error, interior, null space removed).
+"""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import tifffile
+
+from processing import forward as F
+from processing.errors import GeometryError
+from processing.geometry import Geometry
+from processing.reconstruct import Reconstructor
+
+from .test_reconstruct import G55
+from .test_reconstruct import rel_error as _rel_error
+
+N = 256
+DOTS = F.RandomDots(dot_diameter_mm=0.5, density=0.3, seed=1)
+ROOT = Path(__file__).resolve().parents[2]
+
+
+class _Shape:
+    shape = (N, N)
+
+
+def rel_error(res, surface):
+    import dataclasses
+
+    return _rel_error(dataclasses.replace(res, carriers=_Shape()), surface)
+
+
+def render(surface, seed=0):
+    rng = np.random.default_rng(seed)
+    ref, _ = F.render_tir(F.FlatSurface(), G55, (N, N), DOTS, supersample=2)
+    img, _ = F.render_tir(surface, G55, (N, N), DOTS, supersample=2)
+    return F.quantize(ref, bits=8, noise_rms=1.0, rng=rng), F.quantize(img, bits=8, noise_rms=1.0, rng=rng)
+
+
+def test_random_dots_are_reproducible_and_dotted():
+    x, y = np.meshgrid(np.linspace(-5, 5, 400), np.linspace(-5, 5, 400))
+    a = DOTS(x, y)
+    assert np.array_equal(a, F.RandomDots(0.5, 0.3, seed=1)(x, y))
+    assert not np.array_equal(a, F.RandomDots(0.5, 0.3, seed=2)(x, y))
+    assert a.min() >= 0.1 - 1e-12 and a.max() <= 0.9 + 1e-12
+    # a Gaussian dot of 1/e^2 diameter d covers pi d^2 / 8 above half its peak;
+    # one dot per cell of area d^2 / density
+    bright = float(np.mean(a > 0.5))
+    assert 0.5 * 0.3 * np.pi / 8 < bright < 1.5 * 0.3 * np.pi / 8
+    with pytest.raises(GeometryError, match="density must be in"):
+        F.RandomDots(0.5, 1.5)
+
+
+@pytest.mark.parametrize("name,surface", [
+    ("bump 4 um, sigma 5 mm", F.GaussianBump(0.004, 5.0)),
+    ("waves 1 um rms, 12-30 mm", F.WaveField.random(6, amplitude_rms_mm=0.001, wavelength_range_mm=(12, 30), seed=3)),
+])
+def test_dots_heights_within_2_percent(name, surface):
+    ref, img = render(surface)
+    rec = Reconstructor(ref, G55, pattern="dots")
+    dec = rec(img, grid="decimated")
+    full = rec(img)
+    assert dec.grid == "decimated" and np.allclose(np.diff(dec.rows_px), 8.0)
+    assert full.height.shape == (N, N) and dec.valid.mean() > 0.95
+    # features >= 8 windows (128 px) wide; measured 0.51 / 0.51 % (bump), 0.75 / 0.75 % (waves)
+    assert rel_error(dec, surface) <= 0.02
+    assert rel_error(full, surface) <= 0.02
+
+
+def test_geometry_pattern_key_selects_piv_and_bad_value_is_named():
+    text = G55.to_toml_text()
+    assert "pattern" not in text  # the default stays out of the file
+    g = Geometry.from_toml_text(text + 'pattern = "dots"\n')
+    assert g.pattern == "dots" and Geometry.from_toml_text(g.to_toml_text()) == g
+    ref, _ = render(F.FlatSurface())
+    assert Reconstructor(ref, g).pattern == "dots"
+    with pytest.raises(GeometryError, match='pattern must be "checkerboard" or "dots"'):
+        Geometry.from_toml_text(text + 'pattern = "speckle"\n')
+
+
+def test_cli_process_pattern_dots(tmp_path):
+    surface = F.GaussianBump(0.004, 5.0)
+    ref, img = render(surface)
+    tifffile.imwrite(tmp_path / "ref.tif", ref)
+    tifffile.imwrite(tmp_path / "frame.tif", img)
+    (tmp_path / "g.toml").write_text(G55.to_toml_text())
+    out = tmp_path / "out.h5"
+    proc = subprocess.run([sys.executable, "-m", "app.cli", "process", str(tmp_path / "ref.tif"),
+                           str(tmp_path / "frame.tif"), "--geometry", str(tmp_path / "g.toml"),
+                           "--pattern", "dots", "--out", str(out), "--no-progress"],
+                          cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    with h5py.File(out) as f:
+        h = f["height"][0].astype(np.float64)
+    truth = F.true_height(surface, G55, (N, N))
+    inner = np.s_[24:-24, 24:-24]
+    d = (h - truth)[inner]
+    d -= np.nanmean(d)
+    assert np.sqrt(np.nanmean(d**2)) <= 0.03 * np.sqrt(np.mean(truth[inner] ** 2))
+
+
+def test_dot_alignment_reports_dot_size_and_density():
+    ref, img = render(F.GaussianBump(0.004, 5.0))
+    a = Reconstructor(ref, G55, pattern="dots").alignment(img)
+    # dots of 1/e^2 diameter 0.5 mm: FWHM 0.294 mm = 2.94 px along columns, x cos(55 deg) along rows
+    fwhm = 0.5 / 4 * 2.3548 / 0.1
+    assert abs(a["dot_size_px"][1] - fwhm) < 0.2 * fwhm
+    assert abs(a["dot_size_px"][0] - fwhm * np.cos(np.radians(55))) < 0.2 * fwhm * np.cos(np.radians(55))
+    # one dot per cell 0.913 mm wide: 9.1 x 5.2 px, i.e. 5.4 dots per 16 x 16 px window
+    expected = 256 / ((0.5 / np.sqrt(0.3) / 0.1) ** 2 * np.cos(np.radians(55)))
+    assert abs(a["dots_per_window"] - expected) < 0.25 * expected
+    assert 0.6 < a["contrast"] < 0.9 and 0.1 < a["focus"] < 0.6
+    assert set(a["reference"]) >= {"dot_size_px", "dots_per_window", "contrast", "focus"}
