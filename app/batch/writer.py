@@ -26,6 +26,9 @@ log = logging.getLogger(__name__)
 #: Version of the layout of OUT.h5 described in docs/output-format.md.
 OUTPUT_FORMAT_VERSION = 1
 
+#: ``/trigger_index`` of a frame whose source has none (image files, untriggered stacks).
+TRIGGER_INDEX_UNKNOWN = np.iinfo(np.int64).min
+
 
 _PIN_FIELDS = (
     ("rule", "'region': pinned on the reference region; 'nearest': too few valid samples there, "
@@ -252,7 +255,7 @@ class ResultWriter:
 
     PER_FRAME = ("height", "slope_x", "slope_y")
     PER_FRAME_1D = ("frame_index", "source_index", "source", "camera_frame_id",
-                    "device_timestamp_ns", "host_timestamp_ns", "frame_flags",
+                    "device_timestamp_ns", "host_timestamp_ns", "frame_flags", "trigger_index",
                     "frame_status", "frame_status_text", "time_s")
 
     def __init__(self, path: Path, *, compression: str, attrs: dict,
@@ -275,7 +278,9 @@ class ResultWriter:
         f.attrs["geometry_toml"] = geometry_toml
         set_attrs(f.create_group("geometry"), geometry_attrs)
         set_attrs(f.create_group("carriers"), carrier_attrs)
-        ref = f.create_dataset("reference", data=reference, compression=self.compression)
+        # shuffle before compressing: float32 maps shrink ~1.6x with gzip instead of ~1.2x
+        self._filters = dict(compression=self.compression, shuffle=self.compression is not None)
+        ref = f.create_dataset("reference", data=reference, **self._filters)
         ref.attrs["description"] = "reference image as read (unscaled samples)"
         self.n = 0
         self.failed = False
@@ -291,8 +296,7 @@ class ResultWriter:
         f = self.f
         rows, cols = len(y_mm), len(x_mm)
         self._shape = (rows, cols)
-        kw = dict(shape=(0, rows, cols), maxshape=(None, rows, cols), chunks=(1, rows, cols),
-                  compression=self.compression)
+        kw = dict(shape=(0, rows, cols), maxshape=(None, rows, cols), chunks=(1, rows, cols), **self._filters)
         units = {"height": "mm", "slope_x": "1 (dh/dx)", "slope_y": "1 (dh/dy)"}
         for name in self.PER_FRAME:
             ds = f.create_dataset(name, dtype=np.float32, fillvalue=np.nan, **kw)
@@ -326,6 +330,8 @@ class ResultWriter:
             "device_timestamp_ns": "camera clock of the frame, ns; -1 unknown",
             "host_timestamp_ns": "host monotonic clock at reception, ns; -1 unknown",
             "frame_flags": "drivers.base.FrameFlags of the recorded frame (0 for image files)",
+            "trigger_index": ("frames from the recording's trigger frame (0), negative before it; "
+                              f"{TRIGGER_INDEX_UNKNOWN} for frames of sources without one (image files)"),
         }
         for name, text in per_frame_meta.items():
             f.create_dataset(name, shape=(0,), maxshape=(None,), dtype=np.int64, chunks=(1024,))
@@ -419,6 +425,7 @@ class ResultWriter:
             f["device_timestamp_ns"][k] = item.device_timestamp_ns
             f["host_timestamp_ns"][k] = item.host_timestamp_ns
             f["frame_flags"][k] = item.flags
+            f["trigger_index"][k] = TRIGGER_INDEX_UNKNOWN if item.trigger_index is None else item.trigger_index
             f["pin_status"][k] = _pin_status_row(result)
             f["frame_status"][k] = int(outcome.status)
             f["frame_status_text"][k] = outcome.reason

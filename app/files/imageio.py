@@ -148,6 +148,9 @@ class FrameItem:
         From a recording's ``/frame_table`` row (camera block id, device and
         host clocks in ns, :class:`drivers.base.FrameFlags`); -1 (flags 0)
         when unknown, e.g. for image files.
+    trigger_index : int or None
+        Frames from the trigger frame (0; negative before it) from a triggered
+        recording's ``/frame_table``; None when the source has none.
     frames_in_source : int
         Number of frames in the source file (1 for plain images).
     error : ImageReadError or None
@@ -171,6 +174,7 @@ class FrameItem:
     frames_in_source: int = 1
     error: Exception | None = None
     time_s: float = math.nan
+    trigger_index: int | None = None
 
     @property
     def label(self) -> str:
@@ -484,7 +488,8 @@ def _table_fields(table, i: int) -> dict:
     names = table.dtype.names
     out = {}
     for key, name in (("camera_frame_id", "frame_id"), ("device_timestamp_ns", "device_timestamp_ns"),
-                      ("host_timestamp_ns", "host_timestamp_ns"), ("flags", "flags")):
+                      ("host_timestamp_ns", "host_timestamp_ns"), ("flags", "flags"),
+                      ("trigger_index", "trigger_index")):
         if name in names:
             out[key] = int(row[name])
     # time since the recording's first frame: camera clock, else host clock

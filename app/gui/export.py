@@ -11,9 +11,15 @@ import numpy as np
 __all__ = ["export_heights"]
 
 
+#: HDF5 compression of the GUI's export: gzip (with shuffle, one frame per chunk: app.batch.writer) shrinks
+#: the float32 maps of a 512^2 recording from 3.41 to 2.19 MB per frame; "none" is 3x faster to write.
+EXPORT_COMPRESSION = "gzip"
+
+
 def export_heights(recording_path: str, out_path: str, *, geometry_toml: Optional[str] = None,
                    reference: Optional[np.ndarray] = None, grid: str = "full",
-                   progress: Optional[Callable[[int, int], None]] = None) -> str:
+                   progress: Optional[Callable[[int, int], None]] = None,
+                   compression: str = EXPORT_COMPRESSION) -> str:
     """Process every frame of ``recording_path`` into ``out_path`` (layout: docs/output-format.md).
 
     Parameters
@@ -30,6 +36,8 @@ def export_heights(recording_path: str, out_path: str, *, geometry_toml: Optiona
         Output grid.
     progress : callable, optional
         ``progress(done, total)``; called at start and after every frame written.
+    compression : {"gzip", "lzf", "none"}
+        Of the per-frame maps and the reference (lossless; chunked one frame per chunk).
 
     Returns
     -------
@@ -55,7 +63,8 @@ def export_heights(recording_path: str, out_path: str, *, geometry_toml: Optiona
             with open(geo_arg, "w", encoding="utf-8") as fh:
                 fh.write(geometry_toml)
         run_process(ProcessJob(reference=ref_arg, frames=[recording_path], geometry=geo_arg, out=out_path,
-                               grid=grid, on_progress=progress))
+                               grid=grid, on_progress=progress, compression=compression,
+                               command=f"(tirdeflect gui: Replay ▸ Export heights of {recording_path})"))
     if progress is not None:
         progress(total, total)
     return out_path
