@@ -10,7 +10,7 @@ from typing import Optional
 
 from pyqtgraph.Qt import QtCore, QtGui, QtWidgets
 
-__all__ = ["CameraPanel", "GeometryPanel", "RecordingPanel", "human_bytes"]
+__all__ = ["CameraPanel", "GeometryPanel", "RecordingPanel", "ExactSpinBox", "human_bytes"]
 
 
 def human_bytes(n: float) -> str:
@@ -22,11 +22,55 @@ def human_bytes(n: float) -> str:
     return f"{n:.1f} TiB"
 
 
-def _spin(lo, hi, value, *, decimals=None, step=None, suffix="", special=None):
+class ExactSpinBox(QtWidgets.QDoubleSpinBox):
+    """A QDoubleSpinBox that keeps the full value it is given (0.078125 stays 0.078125).
+
+    Qt rounds a QDoubleSpinBox's value to its ``decimals``; a geometry loaded from
+    TOML and saved again would then lose digits. This one holds 15 decimals and
+    shows the value with up to ``shown_digits`` significant digits, never padding zeros.
+    """
+
+    def __init__(self, shown_digits: int = 10):
+        super().__init__()
+        self._digits = int(shown_digits)
+        super().setDecimals(15)
+
+    def setDecimals(self, _decimals: int) -> None:  # noqa: N802 - Qt name; precision is fixed at 15
+        pass
+
+    def textFromValue(self, value: float) -> str:  # noqa: N802 - Qt name
+        return f"{value:.{self._digits}g}"
+
+    def valueFromText(self, text: str) -> float:  # noqa: N802 - Qt name
+        text = text.strip()
+        if self.suffix() and text.endswith(self.suffix().strip()):
+            text = text[: -len(self.suffix().strip())]
+        try:
+            return float(text.strip().replace(",", "."))
+        except ValueError:
+            return self.value()
+
+    def validate(self, text: str, pos: int):
+        if self.specialValueText() and text == self.specialValueText():
+            return QtGui.QValidator.Acceptable, text, pos
+        body = text.strip()
+        if self.suffix():
+            body = body.replace(self.suffix().strip(), "")
+        body = body.strip().replace(",", ".")
+        if body in ("", "-", "+", ".", "-.") or body.lower().endswith(("e", "e-", "e+")):
+            return QtGui.QValidator.Intermediate, text, pos
+        try:
+            float(body)
+        except ValueError:
+            return QtGui.QValidator.Invalid, text, pos
+        return QtGui.QValidator.Acceptable, text, pos
+
+
+def _spin(lo, hi, value, *, decimals=None, step=None, suffix="", special=None, exact=False):
     if decimals is None:
         w = QtWidgets.QSpinBox()
     else:
-        w = QtWidgets.QDoubleSpinBox()
+        w = ExactSpinBox() if exact else QtWidgets.QDoubleSpinBox()
         w.setDecimals(decimals)
     w.setRange(lo, hi)
     if step is not None:
@@ -60,14 +104,18 @@ class CameraPanel(QtWidgets.QWidget):
     def __init__(self, parent=None):
         super().__init__(parent)
         form = QtWidgets.QFormLayout(self)
-        row = QtWidgets.QHBoxLayout()
+        form.setRowWrapPolicy(QtWidgets.QFormLayout.WrapLongRows)
+        row = QtWidgets.QVBoxLayout()
+        buttons = QtWidgets.QHBoxLayout()
         self.camera_box = QtWidgets.QComboBox()
-        self.camera_box.setMinimumContentsLength(16)
+        self.camera_box.setMinimumContentsLength(8)
+        self.camera_box.setSizeAdjustPolicy(QtWidgets.QComboBox.AdjustToMinimumContentsLengthWithIcon)
         self.refresh_button = QtWidgets.QPushButton("Search")
         self.open_button = QtWidgets.QPushButton("Open")
-        row.addWidget(self.camera_box, 1)
-        row.addWidget(self.refresh_button)
-        row.addWidget(self.open_button)
+        row.addWidget(self.camera_box)
+        buttons.addWidget(self.refresh_button)
+        buttons.addWidget(self.open_button)
+        row.addLayout(buttons)
         form.addRow("Camera", row)
         self.found_label = QtWidgets.QLabel("")
         self.found_label.setWordWrap(True)
@@ -99,6 +147,9 @@ class CameraPanel(QtWidgets.QWidget):
         roi.addWidget(self.width, 1, 1)
         roi.addWidget(QtWidgets.QLabel("h"), 1, 2)
         roi.addWidget(self.height, 1, 3)
+        for w in (self.offset_x, self.offset_y, self.width, self.height):
+            w.setMinimumWidth(60)
+            w.setMaximumWidth(90)
         form.addRow("ROI (px)", roi)
         form.addRow("Pixel format", self.pixel_format)
         form.addRow("Trigger", self.trigger_mode)
@@ -210,9 +261,9 @@ class GeometryPanel(QtWidgets.QWidget):
         row = QtWidgets.QHBoxLayout()
         row.addWidget(QtWidgets.QLabel("average"))
         row.addWidget(self.n_average)
-        row.addWidget(QtWidgets.QLabel("frames"))
-        row.addWidget(self.capture_button, 1)
+        row.addWidget(QtWidgets.QLabel("frames"), 1)
         rf.addRow(row)
+        rf.addRow(self.capture_button)
         row2 = QtWidgets.QHBoxLayout()
         self.save_ref_button = QtWidgets.QPushButton("Save…")
         self.load_ref_button = QtWidgets.QPushButton("Load…")
@@ -226,18 +277,22 @@ class GeometryPanel(QtWidgets.QWidget):
 
         geo = QtWidgets.QGroupBox("Geometry")
         gf = QtWidgets.QFormLayout(geo)
+        gf.setRowWrapPolicy(QtWidgets.QFormLayout.WrapLongRows)
         self.setup = QtWidgets.QComboBox()
         self.setup.addItems(["tir", "fsss"])
-        self.theta = _spin(0, 89.9, 55, decimals=2, step=0.1, suffix=" °")
-        self.depth = _spin(0.001, 100_000, 300, decimals=3, suffix=" mm")
-        self.pixel = _spin(0.0001, 100, 0.1, decimals=5, step=0.001, suffix=" mm/px")
-        self.rows_toward_camera = QtWidgets.QCheckBox("image rows run towards the camera")
-        self.camera_distance = _spin(0, 1e6, 0, decimals=1, suffix=" mm", special="telecentric")
+        # exact spin boxes: a geometry loaded from TOML is saved back with every digit it had
+        self.theta = _spin(0, 89.9, 55, decimals=2, step=0.1, suffix=" °", exact=True)
+        self.depth = _spin(0.001, 100_000, 300, decimals=3, suffix=" mm", exact=True)
+        self.pixel = _spin(0.0001, 100, 0.1, decimals=5, step=0.001, suffix=" mm/px", exact=True)
+        self.rows_toward_camera = QtWidgets.QCheckBox("rows run towards camera")
+        self.rows_toward_camera.setToolTip("image rows run towards the camera (checked) or away from it")
+        self.camera_distance = _spin(0, 1e6, 0, decimals=1, suffix=" mm", special="telecentric", exact=True)
         self.region = QtWidgets.QLineEdit()
         self.region.setPlaceholderText("row0, row1, col0, col1 (px) — or drag the box on the raw image")
         self.fsss_layers = QtWidgets.QLineEdit()
         self.fsss_layers.setPlaceholderText("thickness_mm:n, ... from pattern up to the surface")
-        self.fsss_camera_distance = _spin(0, 1e6, 0, decimals=1, suffix=" mm", special="telecentric")
+        self.fsss_camera_distance = _spin(0, 1e6, 0, decimals=1, suffix=" mm", special="telecentric",
+                                          exact=True)
         gf.addRow("Setup", self.setup)
         gf.addRow("θ (incidence)", self.theta)
         gf.addRow("H (pattern depth)", self.depth)
@@ -338,7 +393,7 @@ class GeometryPanel(QtWidgets.QWidget):
             self.camera_distance.setValue(float(d.get("camera_distance_mm") or 0))
             self.fsss_camera_distance.setValue(float(d.get("fsss_camera_distance_mm") or 0))
             layers = d.get("fsss_layers") or ()
-            self.fsss_layers.setText(", ".join(f"{t:g}:{n:g}" for t, n in layers))
+            self.fsss_layers.setText(", ".join(f"{t:.15g}:{n:.15g}" for t, n in layers))
             self.set_region(d.get("reference_region"))
         finally:
             for w in widgets:
@@ -363,6 +418,7 @@ class RecordingPanel(QtWidgets.QWidget):
     def __init__(self, parent=None):
         super().__init__(parent)
         form = QtWidgets.QFormLayout(self)
+        form.setRowWrapPolicy(QtWidgets.QFormLayout.WrapLongRows)
         self.pre = _spin(0, 10_000_000, 50, suffix=" frames")
         self.post = _spin(1, 10_000_000, 100, suffix=" frames")
         form.addRow("Pre-trigger", self.pre)
