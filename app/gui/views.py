@@ -15,9 +15,10 @@ from typing import Optional, Sequence, Tuple
 
 import numpy as np
 import pyqtgraph as pg
-from pyqtgraph.Qt import QtCore, QtWidgets
+from pyqtgraph.Qt import QtCore, QtGui, QtWidgets
 
-__all__ = ["ImageView", "ProfileView", "HistogramView", "SpectrumView", "robust_levels"]
+__all__ = ["ImageView", "ProfileView", "HistogramView", "SpectrumView", "ProfileLine", "robust_levels",
+           "format_age"]
 
 # every ImageItem here is created with axisOrder="row-major"; no global pyqtgraph options are changed
 
@@ -55,6 +56,120 @@ def robust_levels(data: np.ndarray, *, symmetric: bool = False, lo_pct: float = 
     if not hi > lo:
         hi = lo + 1.0
     return (lo, hi)
+
+
+def format_age(frame_id, age_s: float) -> str:
+    """``"frame 1234, 2.3 s ago"`` (the words the stale marks use)."""
+    age = f"{age_s:.1f} s" if age_s < 100 else f"{age_s / 60:.0f} min"
+    return f"frame {frame_id}, {age} ago" if frame_id is not None else f"{age} ago"
+
+
+class _Overlay(QtWidgets.QLabel):
+    """A wrapped message drawn over a plot; the full text is also its tooltip."""
+
+    def __init__(self, parent, style: str):
+        super().__init__(parent)
+        self.setWordWrap(True)
+        self.setStyleSheet(style)
+        self.setTextFormat(QtCore.Qt.PlainText)
+        self.setAttribute(QtCore.Qt.WA_TransparentForMouseEvents)
+        self.hide()
+
+    def toPlainText(self) -> str:
+        return self.text()
+
+    def set_message(self, text: str) -> None:
+        if text == self.text():
+            return
+        self.setText(text)
+        self.setToolTip(text)
+        self.setVisible(bool(text))
+        self.place()
+
+    def place(self) -> None:
+        """Across the top (or bottom) of the parent, as tall as the wrapped text needs."""
+        parent = self.parentWidget()
+        if parent is None or not self.text():
+            return
+        width = max(parent.width() - 12, 40)
+        height = min(self.heightForWidth(width), max(parent.height() // 2, 20))
+        y = 30 if self.property("at") != "bottom" else parent.height() - height - 34
+        self.setGeometry(6, max(y, 0), width, height)
+        self.raise_()
+
+
+class _LevelsRow(QtWidgets.QWidget):
+    """Typed colour range of one map: min, max, auto, symmetric about zero."""
+
+    def __init__(self, view: "ImageView"):
+        super().__init__()
+        self.view = view
+        row = QtWidgets.QHBoxLayout(self)
+        row.setContentsMargins(2, 0, 2, 0)
+        row.setSpacing(2)
+        font = self.font()
+        font.setPointSizeF(max(7.0, font.pointSizeF() - 1))
+        self.setFont(font)
+        self.min_edit = QtWidgets.QLineEdit()
+        self.max_edit = QtWidgets.QLineEdit()
+        for edit, what in ((self.min_edit, "lowest"), (self.max_edit, "highest")):
+            edit.setMinimumWidth(34)
+            edit.setMaximumWidth(80)
+            edit.setToolTip(f"{what} value of the colour range ({view.units}); type a number and press Enter")
+            edit.editingFinished.connect(self._typed)
+        self.auto_box = QtWidgets.QCheckBox("auto")
+        self.auto_box.setToolTip("colour range follows the data (1st-99th percentile)")
+        self.auto_box.setChecked(True)
+        self.symmetric_box = QtWidgets.QCheckBox("±")
+        self.symmetric_box.setToolTip("colour range symmetric about zero (-m … +m)")
+        self.symmetric_box.setChecked(view.symmetric)
+        row.addWidget(self.min_edit, 1)
+        row.addWidget(QtWidgets.QLabel("…"))
+        row.addWidget(self.max_edit, 1)
+        row.addWidget(self.auto_box)
+        row.addWidget(self.symmetric_box)
+        self.auto_box.toggled.connect(self._auto_toggled)
+        self.symmetric_box.toggled.connect(self._symmetric_toggled)
+
+    def show_levels(self, levels) -> None:
+        for edit, v in ((self.min_edit, levels[0]), (self.max_edit, levels[1])):
+            if not edit.hasFocus():
+                edit.setText(f"{v:.4g}")
+                edit.setStyleSheet("")
+
+    def sync(self) -> None:
+        for box, value in ((self.auto_box, self.view.auto_levels), (self.symmetric_box, self.view.symmetric)):
+            if box.isChecked() != value:
+                box.blockSignals(True)
+                box.setChecked(value)
+                box.blockSignals(False)
+
+    def _typed(self) -> None:
+        edit = self.sender()
+        try:
+            lo, hi = float(self.min_edit.text()), float(self.max_edit.text())
+        except ValueError:
+            edit.setStyleSheet("border: 1px solid #c00")
+            edit.setToolTip("not a number: type e.g. -1.5 or 2e-3")
+            return
+        if self.view.symmetric:  # the other end follows the one typed
+            m = abs(lo) if edit is self.min_edit else abs(hi)
+            lo, hi = -m, m
+        if not hi > lo:
+            edit.setStyleSheet("border: 1px solid #c00")
+            edit.setToolTip("the colour range needs min < max")
+            return
+        edit.setStyleSheet("")
+        self.view.set_levels((lo, hi))
+
+    def _auto_toggled(self, on: bool) -> None:
+        if on:
+            self.view.reset_levels()
+        else:
+            self.view.set_levels(self.view.levels)
+
+    def _symmetric_toggled(self, on: bool) -> None:
+        self.view.set_symmetric(on)
 
 
 def _cache_axes(plot_item) -> None:
@@ -105,10 +220,17 @@ class ImageView(QtWidgets.QWidget):
         Auto levels symmetric around zero.
     axis_units : str
         Label of both axes ("mm" or "px").
+    levels_controls : bool
+        Show the typed colour range row (min, max, auto, symmetric about zero) under the map.
+    pan : bool
+        Let a left-drag pan the view (off where the drag belongs to a line or box on the map).
+    colorbar : {"horizontal", "vertical"}
+        Colour bar under the map (narrow tiles: the map keeps the width) or beside it.
     """
 
     def __init__(self, title: str, units: str, *, cmap: str = "viridis", symmetric: bool = False,
-                 axis_units: str = "mm", parent=None, levels_interval_s: float = 0.5):
+                 axis_units: str = "mm", parent=None, levels_interval_s: float = 0.5,
+                 levels_controls: bool = True, pan: bool = True, colorbar: str = "horizontal"):
         super().__init__(parent)
         self.title = title
         self.units = units
@@ -121,13 +243,19 @@ class ImageView(QtWidgets.QWidget):
         self._rect = None
         self._shape = None
         self.updates = 0
+        self.frame_id = None  # frame (worker sequence) of the data shown, when the caller says
+        self.stale_text: Optional[str] = None
+        self._user_zoomed = False
         layout = QtWidgets.QVBoxLayout(self)
         layout.setContentsMargins(0, 0, 0, 0)
+        layout.setSpacing(0)
         self.graphics = _Graphics()
         self.graphics.setBackground("w")
-        layout.addWidget(self.graphics)
+        self.graphics.setMinimumSize(120, 100)
+        layout.addWidget(self.graphics, 1)
         self.plot = self.graphics.addPlot()
-        self.plot.setTitle(f"<b>{title}</b>", color="#111", size="11pt")
+        # the units go in the title: the colour bar under the map then needs no label of its own
+        self.plot.setTitle(f"<b>{title}</b> ({units})" if units else f"<b>{title}</b>", color="#111", size="10pt")
         self.plot.setAspectLocked(True)
         self.plot.invertY(True)  # row 0 at the top, like the camera image
         for side, name in (("bottom", "x"), ("left", "y")):
@@ -142,22 +270,35 @@ class ImageView(QtWidgets.QWidget):
         self.stride = 1
         self.plot.addItem(self.image)
         cmap_obj = cmap if isinstance(cmap, pg.ColorMap) else pg.colormap.get(cmap)
+        # no drag handles on the bar: the range is typed (levels row) or follows the data
         self.colorbar = pg.ColorBarItem(values=(0, 1), colorMap=cmap_obj, label=None,
-                                        interactive=True, width=14)
+                                        interactive=False, width=10, orientation=colorbar)
         self.colorbar.setImageItem(self.image, insert_in=self.plot)
         cb_axis = getattr(self.colorbar, "axis", None)
         if cb_axis is not None:
             cb_axis.setTextPen("#222")
-            cb_axis.setLabel(units, color="#222")
-            cb_axis.enableAutoSIPrefix(False)  # units are in the label already
+            cb_axis.enableAutoSIPrefix(False)  # units are in the title already
         self.colorbar.sigLevelsChangeFinished.connect(self._user_levels)
         self._setting_levels = False
-        act = self.plot.getViewBox().menu.addAction("Auto levels")
+        vb = self.plot.getViewBox()
+        act = vb.menu.addAction("Auto levels")
         act.triggered.connect(self.reset_levels)
+        fit = vb.menu.addAction("Fit image")
+        fit.triggered.connect(self.fit)
+        vb.sigRangeChangedManually.connect(self._zoomed)
+        vb.sigResized.connect(self._refit)
+        if not pan:  # a left-drag never moves the view (the wheel still zooms)
+            vb.mouseDragEvent = lambda ev, axis=None: ev.ignore()
         self._cache_static_items()
-        self.message = pg.TextItem("", color=(200, 0, 0), anchor=(0, 0))
-        self.message.setZValue(100)
-        self.plot.addItem(self.message)
+        # why there is no map (red) and whether what is shown is old (grey): wrapped, full text as tooltip
+        self.message = _Overlay(self.graphics, "background: rgba(255,255,255,215); color: #b00000; padding: 2px;")
+        self.stale_label = _Overlay(self.graphics, "background: rgba(235,235,235,230); color: #333;"
+                                                   "font-weight: bold; padding: 2px; border: 1px solid #888;")
+        self.stale_label.setProperty("at", "bottom")
+        self.levels_row = None
+        if levels_controls:
+            self.levels_row = _LevelsRow(self)
+            layout.addWidget(self.levels_row)
 
     def _cache_static_items(self):
         """Paint axes, colour bar and title from pixmap caches: only the image is redrawn per frame."""
@@ -178,11 +319,29 @@ class ImageView(QtWidgets.QWidget):
         """Let the levels follow the data again."""
         self.auto_levels = True
         self._levels_t = 0.0
+        self._levels_set = False  # the next frame sets them at once
+        if self.levels_row is not None:
+            self.levels_row.sync()
 
     def set_levels(self, levels: Tuple[float, float]) -> None:
         """Fix the levels (stops auto levels)."""
         self.auto_levels = False
+        if self.levels_row is not None:
+            self.levels_row.sync()
         self._apply_levels(levels)
+        if self.image.image is not None:
+            self.image.setLevels(self._levels)
+
+    def set_symmetric(self, symmetric: bool) -> None:
+        """Colour range symmetric about zero (auto levels ``(-m, m)``; fixed levels made symmetric)."""
+        self.symmetric = bool(symmetric)
+        if self.levels_row is not None:
+            self.levels_row.sync()
+        if self.auto_levels:
+            self._levels_set = False
+        elif self.symmetric:
+            m = max(abs(self._levels[0]), abs(self._levels[1])) or 1.0
+            self.set_levels((-m, m))
 
     def _apply_levels(self, levels):
         levels = (float(levels[0]), float(levels[1]))
@@ -195,6 +354,8 @@ class ImageView(QtWidgets.QWidget):
             self.colorbar.setLevels(self._levels)
         finally:
             self._setting_levels = False
+        if self.levels_row is not None:
+            self.levels_row.show_levels(self._levels)
 
     @property
     def levels(self) -> Tuple[float, float]:
@@ -202,7 +363,7 @@ class ImageView(QtWidgets.QWidget):
 
     def set_data(self, data: np.ndarray, *, x: Optional[np.ndarray] = None,
                  y: Optional[np.ndarray] = None, levels: Optional[Tuple[float, float]] = None,
-                 stamp_ns: int = 0) -> None:
+                 stamp_ns: int = 0, frame_id=None) -> None:
         """Show ``data`` (2-D), placed at coordinates ``x`` (cols) and ``y`` (rows) if given.
 
         Parameters
@@ -216,6 +377,8 @@ class ImageView(QtWidgets.QWidget):
         stamp_ns : int
             ``time.monotonic_ns()`` when the camera delivered the data; the
             view records camera-to-screen latency when it next paints.
+        frame_id : int, optional
+            Which frame the data belongs to (kept in :attr:`frame_id`; Pause and snapshots check it).
         """
         if data.dtype.kind == "f" and data.dtype != np.float32:
             data = data.astype(np.float32)
@@ -247,8 +410,10 @@ class ImageView(QtWidgets.QWidget):
         if rect != self._rect:
             self.image.setRect(QtCore.QRectF(*rect))
             self._rect = rect
-            self.plot.getViewBox().autoRange(padding=0.0)
+            self._user_zoomed = False
+            self._refit()
         self._shape = full_shape
+        self.frame_id = frame_id
         self.updates += 1
         if stamp_ns:
             self.graphics.pending_stamp_ns = stamp_ns
@@ -271,11 +436,41 @@ class ImageView(QtWidgets.QWidget):
         dy = (float(y[-1]) - float(y[0])) / (len(y) - 1)
         return (float(x[0]) - dx / 2, float(y[0]) - dy / 2, dx * cols, dy * rows)
 
+    def _zoomed(self, *_):
+        self._user_zoomed = True
+
+    def fit(self) -> None:
+        """Show the whole image again (after a zoom)."""
+        self._user_zoomed = False
+        self._refit()
+
+    def _refit(self, *_):
+        """The image fills the view (aspect 1:1, no margin) unless the user zoomed."""
+        if self._rect is not None and not self._user_zoomed:
+            self.plot.getViewBox().setRange(QtCore.QRectF(*self._rect), padding=0.0)
+        self.message.place()
+        self.stale_label.place()
+
+    def resizeEvent(self, ev):
+        super().resizeEvent(ev)
+        self.message.place()
+        self.stale_label.place()
+
     def show_message(self, text: str) -> None:
-        """Overlay a (red) message, e.g. why there is no map; empty string hides it."""
-        self.message.setText(text)
-        if self._rect is not None:
-            self.message.setPos(self._rect[0], self._rect[1])
+        """Overlay a (red) message, e.g. why there is no map; empty string hides it (wrapped, full text as tooltip)."""
+        self.message.set_message(text)
+
+    def set_stale(self, text: Optional[str]) -> None:
+        """Mark what is shown as old (greyed, with ``text`` such as "frame 12, 2.3 s ago"); None: live again."""
+        if text == self.stale_text:
+            return
+        self.stale_text = text
+        self.image.setOpacity(0.3 if text else 1.0)
+        self.stale_label.set_message(f"STALE: {text}" if text else "")
+
+    @property
+    def is_stale(self) -> bool:
+        return self.stale_text is not None
 
     def current_data(self) -> Optional[np.ndarray]:
         return self.image.image
@@ -289,7 +484,7 @@ class ProfileView(QtWidgets.QWidget):
         layout = QtWidgets.QVBoxLayout(self)
         layout.setContentsMargins(0, 0, 0, 0)
         self.plot = pg.PlotWidget()
-        self.plot.setTitle(f"<b>{title}</b>", color="#111", size="11pt")
+        self.plot.setTitle(f"<b>{title}</b>", color="#111", size="10pt")
         self.plot.setBackground("w")
         self.plot.setLabel("bottom", "distance along the line (mm)")
         self.plot.setLabel("left", units)
@@ -299,7 +494,24 @@ class ProfileView(QtWidgets.QWidget):
         _cache_axes(self.plot.getPlotItem())
         self._range = None
         self._range_t = 0.0
+        self.frame_id = None
+        self.stale_text = None
         layout.addWidget(self.plot)
+        self.stale_label = _Overlay(self.plot, "background: rgba(235,235,235,230); color: #333;"
+                                               "font-weight: bold; padding: 2px; border: 1px solid #888;")
+        self.stale_label.setProperty("at", "bottom")
+
+    def set_stale(self, text: Optional[str]) -> None:
+        """Grey the curve and label it (e.g. "frame 12, 2.3 s ago"); None: live again."""
+        if text == self.stale_text:
+            return
+        self.stale_text = text
+        self.curve.setOpacity(0.3 if text else 1.0)
+        self.stale_label.set_message(f"STALE: {text}" if text else "")
+
+    def resizeEvent(self, ev):
+        super().resizeEvent(ev)
+        self.stale_label.place()
 
     def set_profile(self, distance_mm: np.ndarray, values: np.ndarray,
                     y_range: Optional[Tuple[float, float]] = None) -> None:
@@ -336,7 +548,8 @@ class HistogramView(QtWidgets.QWidget):
         self.plot.setBackground("w")
         self.plot.setLabel("bottom", "pixel value")
         self.plot.setLabel("left", "pixels (log10)")
-        self.plot.setMaximumHeight(170)
+        self.plot.setMaximumHeight(150)
+        self.plot.setMinimumHeight(90)
         self.curve = self.plot.plot(stepMode="center", fillLevel=0, brush=(80, 80, 200, 120),
                                     pen=pg.mkPen("#3040a0"))
         self.plot.enableAutoRange(False)
@@ -360,9 +573,9 @@ class HistogramView(QtWidgets.QWidget):
         if self._range != (top, ymax):
             self.plot.setRange(xRange=(0, top + 1), yRange=(0, ymax), padding=0.02)
             self._range = (top, ymax)
-        title = f"<b>Histogram</b> · {saturation_pct:.2f} % saturated"
+        title = f"<b>Histogram</b> {saturation_pct:.2f} % saturated"
         if title != self._title:
-            self.plot.setTitle(title, color="#b00000" if saturation_pct > 0.5 else "#222")
+            self.plot.setTitle(title, color="#b00000" if saturation_pct > 0.5 else "#222", size="10pt")
             self._title = title
 
 
@@ -370,7 +583,7 @@ class SpectrumView(ImageView):
     """Log-magnitude spectrum with the detected carrier peaks marked."""
 
     def __init__(self, parent=None):
-        super().__init__("Spectrum (log |FFT|)", "log10 |F|", cmap="inferno", axis_units="cycles/px",
+        super().__init__("Spectrum", "log10 |FFT|", cmap="inferno", axis_units="cycles/px",
                          parent=parent)
         self.carriers = pg.ScatterPlotItem(size=18, pen=pg.mkPen("c", width=2), brush=None, symbol="o")
         self.carriers.setZValue(10)
@@ -384,3 +597,50 @@ class SpectrumView(ImageView):
                       levels=robust_levels(mag, lo_pct=50.0, hi_pct=99.95) if self.auto_levels else None)
         pts = [{"pos": (float(fx), float(fy))} for fx, fy in carriers]
         self.carriers.setData(pts)
+
+
+class ProfileLine(pg.LineSegmentROI):
+    """The profile line on a map: drag an end handle to move that end, the body to move the whole line.
+
+    The body can be grabbed within ``grab_px`` screen pixels of the line; the
+    view under it never pans (its ImageView is made with ``pan=False``).
+    """
+
+    def __init__(self, positions, *, grab_px: float = 8.0, colour: str = "#ff00ff"):
+        super().__init__(positions, pen=pg.mkPen(colour, width=2), hoverPen=pg.mkPen("#ffb0ff", width=3),
+                         handlePen=pg.mkPen(colour, width=2), handleHoverPen=pg.mkPen("#ffb0ff", width=3))
+        self.grab_px = float(grab_px)
+        for h in self.getHandles():
+            h.radius = 7  # end handles big enough to hit
+            h.buildPath()
+        self.setZValue(20)
+        self.setToolTip("profile line: drag an end to move it, the line to move both ends")
+
+    def set_ends(self, p0, p1) -> None:
+        """Put the ends at ``p0``, ``p1`` (map coordinates, mm), as a drag would (the ROI's state follows)."""
+        h0, h1 = self.getHandles()[:2]
+        self.movePoint(h0, QtCore.QPointF(*p0), finish=False)
+        self.movePoint(h1, QtCore.QPointF(*p1))
+
+    def ends(self):
+        """``((x0, y0), (x1, y1))`` of the ends in the map's coordinates (mm)."""
+        pts = [self.mapToParent(h.pos()) for h in self.getHandles()[:2]]
+        return (pts[0].x(), pts[0].y()), (pts[1].x(), pts[1].y())
+
+    def shape(self):
+        p = QtGui.QPainterPath()
+        h1 = self.endpoints[0].pos()
+        h2 = self.endpoints[1].pos()
+        dh = h2 - h1
+        if dh.length() == 0:
+            return p
+        pxv = self.pixelVectors(dh)[1]
+        if pxv is None:
+            return p
+        pxv *= self.grab_px
+        p.moveTo(h1 + pxv)
+        p.lineTo(h2 + pxv)
+        p.lineTo(h2 - pxv)
+        p.lineTo(h1 - pxv)
+        p.lineTo(h1 + pxv)
+        return p

@@ -17,7 +17,8 @@ import logging
 import os
 import time
 import traceback
-from typing import Callable, Optional
+import weakref
+from typing import Callable, NamedTuple, Optional
 
 import numpy as np
 import pyqtgraph as pg
@@ -26,7 +27,8 @@ from pyqtgraph.Qt import QtCore, QtWidgets
 from .panels import CameraPanel, GeometryPanel, RecordingPanel
 from .replay import Recording, ReplayTab
 from .session import LiveSession
-from .views import HistogramView, ImageView, ProfileView, SpectrumView
+from .views import HistogramView, ImageView, ProfileLine, ProfileView, SpectrumView, format_age
+from .widgets import ElidedLabel
 
 __all__ = ["MainWindow"]
 
@@ -35,6 +37,8 @@ log = logging.getLogger(__name__)
 DISPLAY_PERIOD_MS = 16  # first tick
 DISPLAY_MAX_HZ = 60.0  # the raw camera view refreshes at most this often
 MAPS_MAX_HZ = 30.0  # processed maps (height, slopes, ...) at most this often: leaves time for the raw view
+CONTROLS_WIDTH_PX = 330  # the Controls dock, the same for every section (fits 1280x800 beside the maps)
+STALE_AFTER_S = 1.0  # a view whose data is this much older than expected is marked stale
 
 
 def line_profile(data: np.ndarray, x: np.ndarray, y: np.ndarray, p0, p1):
@@ -74,6 +78,14 @@ def _nz(value, digits: int = 2) -> float:
     return 0.0 if v == 0 else v
 
 
+class _Shown(NamedTuple):
+    """What a view shows: worker frame number, driver host timestamp (ns), the acquisition it came from."""
+
+    seq: Optional[int]
+    host_ns: int
+    acq: Optional[weakref.ref]
+
+
 class _Bridge(QtCore.QObject):
     """Carries results of background threads into the GUI thread (queued signal)."""
 
@@ -104,7 +116,7 @@ class MainWindow(QtWidgets.QMainWindow):
                  planner_effort: str = "FFTW_MEASURE", parent=None):
         super().__init__(parent)
         self.setWindowTitle("tirdeflect — live TIR deflectometry")
-        self.resize(1500, 950)
+        self._fit_to_screen(1500, 950)
         self._executor = concurrent.futures.ThreadPoolExecutor(max_workers=2, thread_name_prefix="gui-bg")
         self._bridge = _Bridge()
         self._bridge.done.connect(self._background_done)
@@ -158,24 +170,29 @@ class MainWindow(QtWidgets.QMainWindow):
         self.banner_close.clicked.connect(self.clear_error)
 
         self.tabs = QtWidgets.QTabWidget()
-        # Live tab
+        # Live tab: the raw frame, the height map and the profile/histogram column on top, the other
+        # maps below; colour bars sit under the maps so that narrow tiles (1280x800) keep the map wide
         live = QtWidgets.QWidget()
         grid = QtWidgets.QGridLayout(live)
         grid.setContentsMargins(2, 2, 2, 2)
-        self.raw_view = ImageView("Raw frame", "counts", cmap="CET-L1", axis_units="px")
-        self.height_view = ImageView("Height", "height (µm)", cmap="CET-D1", symmetric=True)
-        self.disp_view = ImageView("Displacement |u|", "|u| (px)", cmap="viridis")
-        self.slope_x_view = ImageView("Slope ∂h/∂x", "slope (mrad)", cmap="CET-D1", symmetric=True)
-        self.slope_y_view = ImageView("Slope ∂h/∂y", "slope (mrad)", cmap="CET-D1", symmetric=True)
+        grid.setSpacing(4)
+        self.raw_view = ImageView("Raw frame", "counts", cmap="CET-L1", axis_units="px", pan=False)
+        self.height_view = ImageView("Height", "µm", cmap="CET-D1", symmetric=True, pan=False)
+        self.disp_view = ImageView("Displacement |u|", "px", cmap="viridis")
+        self.slope_x_view = ImageView("Slope ∂h/∂x", "mrad", cmap="CET-D1", symmetric=True)
+        self.slope_y_view = ImageView("Slope ∂h/∂y", "mrad", cmap="CET-D1", symmetric=True)
         mask_cmap = pg.ColorMap([0.0, 1.0], [(190, 30, 30), (215, 240, 215)])  # masked red, valid pale green
-        self.valid_view = ImageView("Valid mask", "valid (1) / masked (0)", cmap=mask_cmap)
+        self.valid_view = ImageView("Valid (1) / masked (0)", "", cmap=mask_cmap,
+                                    levels_controls=False)
         self.profile_view = ProfileView("Profile along the line", "height (µm)")
         self.histogram = HistogramView()
+        # the histogram under the raw frame: the narrow tile then has about the frame's aspect
         raw_box = QtWidgets.QWidget()
         rb = QtWidgets.QVBoxLayout(raw_box)
         rb.setContentsMargins(0, 0, 0, 0)
-        rb.addWidget(self.raw_view, 1)
-        rb.addWidget(self.histogram)
+        rb.setSpacing(2)
+        rb.addWidget(self.raw_view, 3)
+        rb.addWidget(self.histogram, 1)
         grid.addWidget(raw_box, 0, 0)
         grid.addWidget(self.height_view, 0, 1, 1, 2)
         grid.addWidget(self.profile_view, 0, 3)
@@ -186,8 +203,9 @@ class MainWindow(QtWidgets.QMainWindow):
         self.valid_view.set_levels((0.0, 1.0))
         for col in range(4):
             grid.setColumnStretch(col, 1)
-        grid.setRowStretch(0, 3)
-        grid.setRowStretch(1, 2)
+        grid.setRowStretch(0, 4)
+        grid.setRowStretch(1, 3)
+        self.map_views = (self.height_view, self.disp_view, self.slope_x_view, self.slope_y_view, self.valid_view)
         # saturated pixels overlay on the raw view
         self.saturation_overlay = pg.ImageItem(axisOrder="row-major")
         self.saturation_overlay.setLookupTable(np.array([[0, 0, 0, 0], [255, 0, 0, 255]], np.uint8))
@@ -204,8 +222,7 @@ class MainWindow(QtWidgets.QMainWindow):
         from app.gui.pinregion import PinRegionOverlay
         self.pin_overlay = PinRegionOverlay(self.raw_view.plot)
         # profile line on the height view (mm)
-        self.profile_roi = pg.LineSegmentROI([[0, 0], [1, 1]], pen=pg.mkPen("#ff00ff", width=2))
-        self.profile_roi.setZValue(20)
+        self.profile_roi = ProfileLine([[0, 0], [1, 1]])
         self.height_view.plot.addItem(self.profile_roi)
         self._profile_placed = False
         self.tabs.addTab(live, "Live")
@@ -214,7 +231,7 @@ class MainWindow(QtWidgets.QMainWindow):
         align = QtWidgets.QWidget()
         ag = QtWidgets.QGridLayout(align)
         self.spectrum_view = SpectrumView()
-        self.modulation_view = ImageView("Contrast (modulation)", "modulation", cmap="viridis",
+        self.modulation_view = ImageView("Contrast (modulation)", "", cmap="viridis",
                                          axis_units="px")
         self.modulation_view.set_levels((0.0, 1.0))
         self.align_raw_view = ImageView("Camera", "counts", cmap="CET-L1", axis_units="px")
@@ -266,13 +283,15 @@ class MainWindow(QtWidgets.QMainWindow):
         side.addItem(self._scroll(self.camera_panel), "Camera")
         side.addItem(self._scroll(self.geometry_panel), "Reference && geometry")
         side.addItem(self._scroll(self.recording_panel), "Trigger && recording")
-        side.setMinimumWidth(400)
+        # one width for every section: switching sections never moves the maps
+        side.setFixedWidth(CONTROLS_WIDTH_PX)
         self.side = side
         dock = QtWidgets.QDockWidget("Controls")
         dock.setObjectName("controls")
         dock.setFeatures(QtWidgets.QDockWidget.DockWidgetMovable | QtWidgets.QDockWidget.DockWidgetFloatable)
         dock.setWidget(side)
         self.addDockWidget(QtCore.Qt.LeftDockWidgetArea, dock)
+        self.controls_dock = dock
 
         self.camera_panel.open_requested.connect(self.open_camera)
         self.camera_panel.refresh_requested.connect(self.search_cameras)
@@ -290,18 +309,38 @@ class MainWindow(QtWidgets.QMainWindow):
         self.recording_panel.lengths_changed.connect(self._update_cost)
         self.recording_panel.folder.setText(os.getcwd())
 
-        # status bar
+        # status bar: every label elides to its room and keeps the full text as tooltip
         sb = self.statusBar()
         self.pause_box = QtWidgets.QCheckBox("Pause display")
-        self.pause_box.setToolTip("Freeze the views to look at a frame; acquisition, processing and "
-                                  "recording go on")
+        self.pause_box.setToolTip("Freeze the views on one frame (all maps of one frame id); acquisition, "
+                                  "processing and recording go on")
+        self.pause_box.toggled.connect(self._pause_toggled)
         sb.addPermanentWidget(self.pause_box)
+        self.message_label = ElidedLabel("")  # info() messages: where a snapshot went, what was loaded
+        self.message_label.setStyleSheet("padding: 0 4px; color: #004080")
+        sb.addPermanentWidget(self.message_label, 1)
+        self._message_timer = QtCore.QTimer(self)
+        self._message_timer.setSingleShot(True)
+        self._message_timer.timeout.connect(lambda: self.message_label.setText(""))
         self.status_labels = {}
+        stretch = {"camera": 0, "fps": 0, "drops": 1, "ring": 0, "latency": 0, "state": 0}
         for key in ("camera", "fps", "drops", "ring", "latency", "state"):
-            lab = QtWidgets.QLabel("")
-            lab.setStyleSheet("padding: 0 8px")
-            sb.addPermanentWidget(lab, 1 if key in ("drops",) else 0)
+            lab = ElidedLabel("")
+            lab.setStyleSheet("padding: 0 4px")
+            sb.addPermanentWidget(lab, stretch[key])
             self.status_labels[key] = lab
+        from .menus import build_menus
+        build_menus(self)
+
+    def _fit_to_screen(self, width: int, height: int) -> None:
+        """Open at ``width`` x ``height`` or the screen's free area, whichever is smaller (a 1280x800 laptop)."""
+        screen = QtWidgets.QApplication.primaryScreen()
+        if screen is not None:
+            avail = screen.availableGeometry()
+            frame = 8  # window-manager border, where there is one
+            width, height = min(width, avail.width() - frame), min(height, avail.height() - 2 * frame - 24)
+            self.move(avail.topLeft())
+        self.resize(width, height)
 
     @staticmethod
     def _scroll(widget):
@@ -359,8 +398,11 @@ class MainWindow(QtWidgets.QMainWindow):
         self.last_error = None
         self.errors.clear()
 
-    def info(self, text: str) -> None:
-        self.statusBar().showMessage(text, 8000)
+    def info(self, text: str, timeout_ms: int = 8000) -> None:
+        """A passing message in the status bar (full text as its tooltip)."""
+        self.statusBar().showMessage(text, timeout_ms)
+        self.message_label.setText(text)
+        self._message_timer.start(timeout_ms)
 
     # ------------------------------------------------------------- camera
     def search_cameras(self):
@@ -818,7 +860,7 @@ class MainWindow(QtWidgets.QMainWindow):
             if frame is not None and frame[0] != self._last_raw_seq:
                 seq, image, host_ns = frame
                 self._last_raw_seq = seq
-                self._draw_raw(image, tab, host_ns)
+                self._draw_raw(image, tab, host_ns, seq)
                 self.latency_ms = (time.monotonic_ns() - host_ns) / 1e6 if host_ns else float("nan")
                 self._shown += 1
         p = self.session.worker.latest()
@@ -847,11 +889,13 @@ class MainWindow(QtWidgets.QMainWindow):
         s = self.session.camera_settings()
         return s.bit_depth if s is not None else 8
 
-    def _draw_raw(self, image, tab, host_ns=0):
+    def _draw_raw(self, image, tab, host_ns=0, seq=None):
         bits = self._bit_depth()
         top = float((1 << bits) - 1)
         view = self.raw_view if tab == 0 else self.align_raw_view
-        view.set_data(image, levels=(0.0, top), stamp_ns=host_ns)
+        view.set_data(image, levels=(0.0, top), stamp_ns=host_ns, frame_id=seq)
+        self._raw_shown = _Shown(seq, host_ns, self._acquisition_ref())
+        view.set_stale(None)
         if tab == 0:
             k = view.stride
             sub = image[::k, ::k] if k > 1 else image
@@ -870,41 +914,47 @@ class MainWindow(QtWidgets.QMainWindow):
     def _draw_result(self, p, part: int = -1):
         """Draw the maps of ``p``: part 0 height, profile, mask; part 1 displacement and slopes; -1 all."""
         r = p.result
-        views = (self.height_view, self.disp_view, self.slope_x_view, self.slope_y_view, self.valid_view)
+        views = self.map_views
         if r is None:
             if part in (0, -1):
                 text = p.error or ("no reference yet: capture one (Controls ▸ Reference & geometry)"
                                    if self.session.worker.reconstructor is None else "")
                 for v in views:
                     v.show_message(text)
+                self._unmeasured = p  # the maps on screen (if any) are older than this frame: stale
+                self._update_staleness()
             return
         x, y = r.x_mm, r.y_mm
+        seq = p.seq
         if part in (0, -1):
             for v in views:
                 v.show_message("")
             self.last_drawn = p
             self.pin_overlay.update(r)
+            self._unmeasured = None
+            self._maps_shown = _Shown(seq, p.host_timestamp_ns, self._acquisition_ref())
             height_um = np.multiply(r.height, 1e3, dtype=np.float32)
-            self.height_view.set_data(height_um, x=x, y=y, stamp_ns=p.host_timestamp_ns)
-            self.valid_view.set_data(r.valid.astype(np.float32), x=x, y=y, levels=(0.0, 1.0))
+            self.height_view.set_data(height_um, x=x, y=y, stamp_ns=p.host_timestamp_ns, frame_id=seq)
+            self.valid_view.set_data(r.valid.astype(np.float32), x=x, y=y, levels=(0.0, 1.0), frame_id=seq)
             self._draw_profile(height_um, x, y)
+            self.profile_view.frame_id = seq
         if part in (1, -1):
             u = r.displacement
-            self.disp_view.set_data(np.hypot(u[0], u[1]).astype(np.float32), x=x, y=y)
-            self.slope_x_view.set_data(np.multiply(r.slope_x, 1e3, dtype=np.float32), x=x, y=y)
-            self.slope_y_view.set_data(np.multiply(r.slope_y, 1e3, dtype=np.float32), x=x, y=y)
+            self.disp_view.set_data(np.hypot(u[0], u[1]).astype(np.float32), x=x, y=y, frame_id=seq)
+            self.slope_x_view.set_data(np.multiply(r.slope_x, 1e3, dtype=np.float32), x=x, y=y, frame_id=seq)
+            self.slope_y_view.set_data(np.multiply(r.slope_y, 1e3, dtype=np.float32), x=x, y=y, frame_id=seq)
+            if not self.height_view.is_stale:
+                for v in views:
+                    v.set_stale(None)
 
     def _draw_profile(self, height_um, x, y):
         if not self._profile_placed and len(x) > 1 and len(y) > 1:
             ym = float(y[len(y) // 2])
-            self.profile_roi.setPos(0, 0)
-            h0, h1 = self.profile_roi.getHandles()[:2]
-            h0.setPos(float(x[0]), ym)
-            h1.setPos(float(x[-1]), ym)
+            self.profile_roi.set_ends((float(x[0]), ym), (float(x[-1]), ym))
             self._profile_placed = True
-        pts = [self.profile_roi.mapToParent(h.pos()) for h in self.profile_roi.getHandles()[:2]]
-        distance_mm, values = line_profile(height_um, x, y, (pts[0].x(), pts[0].y()), (pts[1].x(), pts[1].y()))
-        self.profile_line_mm = ((pts[0].x(), pts[0].y()), (pts[1].x(), pts[1].y()))
+        p0, p1 = self.profile_roi.ends()
+        distance_mm, values = line_profile(height_um, x, y, p0, p1)
+        self.profile_line_mm = (p0, p1)
         self.profile_view.set_profile(distance_mm, values, y_range=self.height_view.levels)
 
     def _draw_alignment(self, p):
@@ -1015,17 +1065,31 @@ class MainWindow(QtWidgets.QMainWindow):
         st = self.session.status()
         w = self.session.worker
         lab = self.status_labels
-        lab["camera"].setText(st.get("camera_text", ""))
-        lab["fps"].setText(f"camera {st.get('camera_fps', 0):.1f} fps · processed {w.fps:.1f} fps · "
+        err = st.get("error")
+        now = time.monotonic()
+        # rates fall to 0 when nothing new arrives (a lost camera keeps its last measured rate otherwise)
+        camera_fps = self._live_rate("camera", self._newest_raw_ns(), st.get("camera_fps", 0.0), now)
+        processed_fps = self._live_rate("processed", w.processed, w.fps, now)
+        if err or self.session.acquisition is None:
+            camera_fps = 0.0
+        if err:
+            lab["camera"].setText(f"{st.get('camera_text', 'camera')} LOST")
+            lab["camera"].setStyleSheet("padding: 0 4px; color: #c00000; font-weight: bold")
+        else:
+            lab["camera"].setText(st.get("camera_text", ""))
+            lab["camera"].setStyleSheet("padding: 0 4px")
+        lab["fps"].setText(f"camera {camera_fps:.1f} · processed {processed_fps:.1f} · "
                            f"shown {self.displayed_fps:.1f} fps")
+        self.camera_fps_shown = camera_fps
         lab["drops"].setText(
             f"dropped: camera {st.get('dropped_camera', 0)} · ring→recorder {st.get('dropped_ring', 0)} · "
             f"recorder backlog {st.get('recorder_backlog', 0)} · display skipped {w.skipped} (by design)")
         fill = st.get("ring_fill")
-        lab["ring"].setText(f"ring {100 * fill:.0f} % of {st.get('ring_frames', 0)} frames"
-                            if fill is not None else "")
+        lab["ring"].setText(f"ring {100 * fill:.0f} %" if fill is not None else "")
+        lab["ring"].setToolTip(f"ring buffer {100 * fill:.0f} % full, {st.get('ring_frames', 0)} frames"
+                               if fill is not None else "")
         lab["latency"].setText(f"latency {self.latency_ms:.0f} ms" if np.isfinite(self.latency_ms) else "")
-        err = st.get("error")
+        self._update_staleness()
         if err and err != getattr(self, "_shown_camera_error", None):
             self._shown_camera_error = err
             self.show_error(f"Camera problem: {err}\nCheck the cable, power and network, then press Open in "
@@ -1034,8 +1098,133 @@ class MainWindow(QtWidgets.QMainWindow):
         self._update_recording()
 
 
+    # ------------------------------------------- staleness, pause, snapshot
+    def _acquisition_ref(self):
+        acq = self.session.acquisition
+        return weakref.ref(acq) if acq is not None else None
+
+    def _newest_raw_ns(self):
+        acq = self.session.acquisition
+        return None if acq is None else (id(acq), acq.acquired)
+
+    def _live_rate(self, key: str, counter, measured: float, now: float) -> float:
+        """``measured`` while ``counter`` keeps changing; 0 once it has not changed for a second."""
+        rates = self.__dict__.setdefault("_rates", {})
+        last = rates.get(key)
+        if last is None or last[0] != counter:
+            rates[key] = (counter, now)
+            return float(measured) if last is not None else 0.0
+        return float(measured) if now - last[1] < STALE_AFTER_S else 0.0
+
+    def _why_stale(self, shown: Optional[_Shown], acq) -> Optional[str]:
+        """Why data from ``shown`` is not the camera's present (None: it is)."""
+        if shown is None:
+            return None
+        source = shown.acq() if shown.acq is not None else None
+        if source is None or source is not acq:
+            return "camera closed" if acq is None else "from the previous camera"
+        if acq.error:
+            return "camera lost"
+        return None
+
+    def _update_staleness(self) -> None:
+        """Grey out and label every view whose data is not the newest the camera gave (ages refreshed 4x/s)."""
+        if self.pause_box.isChecked() or self.frozen:
+            return  # the user froze the views on purpose
+        now_ns = time.monotonic_ns()
+        acq = self.session.acquisition
+        raw = getattr(self, "_raw_shown", None)
+        raw_text = None
+        if raw is not None:
+            age = (now_ns - raw.host_ns) / 1e9 if raw.host_ns else 0.0
+            why = self._why_stale(raw, acq)
+            rate = getattr(self.session.camera_settings(), "frame_rate_hz", None) or 10.0
+            if why is None and age > max(STALE_AFTER_S, 3.0 / rate):
+                why = "no newer frame"
+            raw_text = f"{why} — {format_age(raw.seq, age)}" if why else None
+        for v in (self.raw_view, self.align_raw_view):
+            v.set_stale(raw_text)
+        maps = getattr(self, "_maps_shown", None)
+        maps_text = None
+        if maps is not None:
+            age = (now_ns - maps.host_ns) / 1e9 if maps.host_ns else 0.0
+            why = self._why_stale(maps, acq)
+            unmeasured = getattr(self, "_unmeasured", None)
+            if why is None and unmeasured is not None and unmeasured.seq > maps.seq:
+                why = f"newer frame {unmeasured.seq} not measured"
+            elif why is None and raw is not None and raw.seq is not None and raw.seq > maps.seq \
+                    and raw.host_ns - maps.host_ns > STALE_AFTER_S * 1e9:
+                why = "processing behind the camera"
+            maps_text = f"{why} — {format_age(maps.seq, age)}" if why else None
+        for v in self.map_views:
+            v.set_stale(maps_text)
+        self.profile_view.set_stale(maps_text)
+
+    def _pause_toggled(self, paused: bool) -> None:
+        """Pause: finish drawing the maps of the frame on screen and show its raw frame, so all views show one frame."""
+        if not paused:
+            return
+        pending, self._second_half = getattr(self, "_second_half", None), None
+        if pending is not None:
+            self._draw_result(pending, part=1)
+        p = self.last_drawn
+        if p is None:
+            return
+        if self.raw_view.frame_id != p.seq and p.image is not None and not self.raw_view.is_stale:
+            self._draw_raw(p.image, 0, p.host_timestamp_ns, p.seq)
+        self.info(f"display paused on frame {p.seq}: the raw frame and every map show that frame")
+
+    def snapshot(self, folder: Optional[str] = None):
+        """Save the window as PNG and the maps on screen with their metadata as HDF5; returns both paths.
+
+        ``folder`` defaults to ``snapshots/`` in the recording folder (Controls ▸ Trigger & recording);
+        the status bar says where they went.
+        """
+        from .snapshot import write_snapshot
+
+        if folder is None:
+            folder = os.path.join(self.recording_panel.folder.text().strip() or os.getcwd(), "snapshots")
+        meta = {"camera_id": self.session.camera_id or "", "paused": bool(self.pause_box.isChecked()),
+                "stale": self.height_view.stale_text or "",
+                "reference": getattr(self, "_reference_text", "") or "",
+                "geometry_toml": self.geometry.to_toml_text() if self.geometry is not None else "",
+                "colour_levels": {v.units: v.levels for v in self.map_views}}
+        try:
+            png, h5 = write_snapshot(folder, self.grab().toImage(), self.last_drawn, meta)
+        except Exception as exc:  # noqa: BLE001 - disk full, no permission: shown
+            self.show_error(f"Snapshot failed: {exc}\nChoose a writable recording folder "
+                            "(Controls ▸ Trigger & recording).")
+            return None
+        self.last_snapshot = (png, h5)
+        self.info(f"snapshot saved in {folder}: {os.path.basename(png)} (window), {os.path.basename(h5)} (maps)",
+                  20000)
+        return png, h5
+
     # -------------------------------------------------------------- close
+    def recording_active(self) -> bool:
+        """True while a recording is armed, capturing or saving."""
+        rec = self.session.recording
+        return self.session.capture is not None and rec is not None and \
+            rec.get("state") in ("armed", "capturing", "saving")
+
+    def _confirm_close(self) -> bool:
+        rec = self.session.recording or {}
+        box = QtWidgets.QMessageBox(
+            QtWidgets.QMessageBox.Warning, "Recording in progress",
+            f"A recording is {rec.get('state', 'running')} ({rec.get('path', '')}).\n"
+            "Close anyway? The frames already written are kept; the rest of the recording is lost.",
+            QtWidgets.QMessageBox.Close | QtWidgets.QMessageBox.Cancel, self)
+        box.setDefaultButton(QtWidgets.QMessageBox.Cancel)
+        self.close_question = box
+        try:
+            return box.exec() == QtWidgets.QMessageBox.Close
+        finally:
+            self.close_question = None
+
     def closeEvent(self, event):
+        if not self._closing and self.recording_active() and not self._confirm_close():
+            event.ignore()
+            return
         self.shutdown()
         super().closeEvent(event)
 

@@ -1,0 +1,59 @@
+"""Small widgets shared by the window's parts."""
+
+from __future__ import annotations
+
+from pyqtgraph.Qt import QtCore, QtGui, QtWidgets
+
+__all__ = ["ElidedLabel"]
+
+
+class ElidedLabel(QtWidgets.QLabel):
+    """One line of text cut with "…" to the room it gets; the full text is its tooltip.
+
+    For the status bar and other single lines that must never widen the window.
+    ``text()`` returns the full text.
+    """
+
+    def __init__(self, text: str = "", parent=None, *, min_chars: int = 6):
+        super().__init__(parent)
+        self._full = ""
+        self._min_chars = int(min_chars)
+        self.setSizePolicy(QtWidgets.QSizePolicy.Preferred, QtWidgets.QSizePolicy.Preferred)
+        self.setText(text)
+
+    def setText(self, text: str) -> None:  # noqa: N802 - Qt name
+        text = str(text)
+        if text == self._full:
+            return
+        self._full = text
+        self.setToolTip(text)
+        self.updateGeometry()
+        self._elide()
+
+    def text(self) -> str:
+        return self._full
+
+    def shown_text(self) -> str:
+        """What is painted (possibly cut with "…")."""
+        return super().text()
+
+    def sizeHint(self):
+        fm = self.fontMetrics()
+        m = self.contentsMargins()
+        return QtCore.QSize(fm.horizontalAdvance(self._full) + m.left() + m.right() + 4,
+                            super().sizeHint().height())
+
+    def minimumSizeHint(self):
+        fm = self.fontMetrics()
+        return QtCore.QSize(fm.horizontalAdvance("x" * self._min_chars), super().minimumSizeHint().height())
+
+    def resizeEvent(self, ev):
+        super().resizeEvent(ev)
+        self._elide()
+
+    def _elide(self):
+        m = self.contentsMargins()
+        width = max(self.width() - m.left() - m.right() - 2, 0)
+        shown = self.fontMetrics().elidedText(self._full, QtCore.Qt.ElideRight, width)
+        if shown != super().text():
+            super().setText(shown)

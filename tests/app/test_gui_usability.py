@@ -1,0 +1,405 @@
+"""The live window in a user's hands: stale data marked, layout at 1280x800, controls, menus, snapshot, export.
+
+Real main window (pytest-qt, offscreen), real synthetic camera streaming
+ray-traced frames, real acquisition, worker and recorder; a real camera loss is
+the Aravis fake GigE camera process killed. Waits are on conditions with
+bounded deadlines (qtbot.waitUntil), never fixed sleeps.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+from pyqtgraph.Qt import QtCore, QtGui, QtTest, QtWidgets
+
+from drivers.synthetic import SyntheticCamera
+from tests.app.test_gui import SHAPE, Switchable, _wait_reconstructor, scene, window  # noqa: F401
+from tests.drivers.fixtures import gv_fake_camera  # noqa: F401
+
+pytestmark = pytest.mark.gui
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _live_with_maps(qtbot, w, scene, image_key="bump", rate_hz=50.0):
+    """Stream ``scene[image_key]`` with the still-water reference set; wait until its maps are drawn."""
+    frames = Switchable(scene[image_key])
+    w.use_camera(SyntheticCamera(frames, frame_rate_hz=rate_hz), geometry=scene["geometry"],
+                 reference=scene["flat"])
+    _wait_reconstructor(qtbot, w)
+
+    def drawn():
+        p = w.last_drawn
+        return (p is not None and np.array_equal(p.image, scene[image_key])
+                and all(v.frame_id == p.seq for v in w.map_views))
+
+    qtbot.waitUntil(drawn, timeout=20000)
+    return frames
+
+
+def _stale_age_s(text):
+    m = re.search(r"frame (\d+), ([\d.]+) s ago", text or "")
+    assert m, f"stale mark {text!r} does not say which frame and how old"
+    return int(m.group(1)), float(m.group(2))
+
+
+# ----------------------------------------------------------------------------------- 5: nothing stale looks live
+def test_unmeasurable_frames_mark_the_maps_stale_and_pause_freezes_one_frame(qtbot, window, scene):
+    frames = _live_with_maps(qtbot, window, scene)
+    assert not any(v.is_stale for v in window.map_views) and not window.raw_view.is_stale
+
+    # Pause: every map, the profile and the raw frame show one frame, and stay so while processing goes on
+    window.pause_box.click()
+    p = window.last_drawn
+    views = (*window.map_views, window.raw_view, window.profile_view)
+    assert {v.frame_id for v in views} == {p.seq}
+    r = p.result
+    for view, data in ((window.slope_x_view, 1e3 * r.slope_x), (window.valid_view, r.valid.astype(np.float32)),
+                       (window.height_view, 1e3 * r.height)):
+        k = view.stride  # the view draws every k-th sample
+        np.testing.assert_allclose(view.image.image, data[::k, ::k], rtol=1e-5, equal_nan=True)
+    np.testing.assert_array_equal(window.raw_view.image.image, p.image[::window.raw_view.stride,
+                                                                        ::window.raw_view.stride])
+    worker = window.session.worker
+    qtbot.waitUntil(lambda: worker.latest() is not None and worker.latest().seq >= p.seq + 3, timeout=10000)
+    qtbot.wait(100)  # several display ticks
+    assert {v.frame_id for v in views} == {p.seq}
+    window.pause_box.click()
+
+    # frames that cannot be measured (black): the maps on screen are the older frame's, marked stale
+    frames.image = np.zeros_like(scene["flat"])
+    qtbot.waitUntil(lambda: window.height_view.is_stale, timeout=10000)
+    shown = window._maps_shown
+    assert all(v.is_stale for v in window.map_views) and window.profile_view.stale_text
+    assert window.height_view.image.opacity() < 0.5  # greyed
+    assert "not measured" in window.height_view.stale_text
+    qtbot.waitUntil(lambda: _stale_age_s(window.height_view.stale_text)[1] >= 1.0, timeout=5000)
+    frame, age = _stale_age_s(window.height_view.stale_text)
+    true_age = (time.monotonic_ns() - shown.host_ns) / 1e9
+    assert frame == shown.seq and abs(age - true_age) < 0.6  # refreshed 4x a second
+    assert not window.raw_view.is_stale  # the raw view shows the newest (black) frame: live
+    # measurable again: live again, not grey
+    frames.image = scene["bump"]
+    qtbot.waitUntil(lambda: not window.height_view.is_stale, timeout=10000)
+    assert window.height_view.image.opacity() == 1.0 and window.profile_view.stale_text is None
+
+
+def test_maps_of_a_switched_camera_are_marked_stale(qtbot, window, scene):
+    _live_with_maps(qtbot, window, scene)
+    old_seq = window.last_drawn.seq
+    # the new camera's frames cannot be measured with this reference: the old camera's maps stay, marked
+    window.use_camera(SyntheticCamera(Switchable(np.zeros(SHAPE, np.uint8)), frame_rate_hz=50.0))
+    qtbot.waitUntil(lambda: window.height_view.is_stale, timeout=10000)
+    assert "previous camera" in window.height_view.stale_text
+    assert _stale_age_s(window.height_view.stale_text)[0] == old_seq
+    qtbot.waitUntil(lambda: window.raw_view.frame_id is not None and window.raw_view.frame_id > old_seq,
+                    timeout=10000)
+    assert not window.raw_view.is_stale  # the new camera's raw frames are live
+
+
+def test_lost_camera_shows_lost_at_0_fps_and_its_last_frame_stale(qtbot, window, gv_fake_camera):
+    """The Aravis fake GigE camera process is killed while streaming."""
+    window.session.stall_timeout_s = 1.0
+    window.camera_panel.camera_box.addItem(gv_fake_camera.camera_id, gv_fake_camera.camera_id)
+    window.camera_panel.camera_box.setCurrentIndex(window.camera_panel.camera_box.count() - 1)
+    window.camera_panel.open_button.click()
+    qtbot.waitUntil(lambda: window._last_raw_seq >= 5, timeout=30000)
+    fps = window.status_labels["fps"]
+    qtbot.waitUntil(lambda: window.camera_fps_shown > 1.0, timeout=10000)
+    assert "LOST" not in window.status_labels["camera"].text()
+    gv_fake_camera.kill()
+    qtbot.waitUntil(lambda: "LOST" in window.status_labels["camera"].text(), timeout=15000)
+    assert window.camera_fps_shown == 0.0 and fps.text().startswith("camera 0.0 ")
+    qtbot.waitUntil(lambda: window.raw_view.is_stale and "camera lost" in window.raw_view.stale_text,
+                    timeout=5000)
+    assert _stale_age_s(window.raw_view.stale_text)[0] == window.raw_view.frame_id
+    assert window.raw_view.image.opacity() < 0.5
+    assert any("Camera problem" in e for e in window.errors)
+
+
+# ----------------------------------------------------------------------------------------------- 6: layout
+def _outside(widget, window) -> list:
+    """Visible widgets under ``widget`` that stick out of the window or are squeezed below their minimum."""
+    bad = []
+    win = window.rect()
+    for child in widget.findChildren(QtWidgets.QWidget):
+        width = child.size().width()  # (CameraPanel has a spin box called "width")
+        if not child.isVisibleTo(window) or child.isWindow() or width == 0:
+            continue
+        if isinstance(child.parentWidget(), QtWidgets.QScrollBar) or isinstance(child, QtWidgets.QMenu):
+            continue
+        top_left = child.mapTo(window, QtCore.QPoint(0, 0))
+        rect = QtCore.QRect(top_left, child.size())
+        if not win.adjusted(-1, -1, 1, 1).contains(rect):
+            bad.append(f"{type(child).__name__} {child.objectName()!r} at {rect.getRect()} outside {win.getRect()}")
+        if isinstance(child, (QtWidgets.QPushButton, QtWidgets.QCheckBox)) and child.text():
+            if width < child.minimumSizeHint().width():
+                bad.append(f"{type(child).__name__} {child.text()!r} cut: {width} px "
+                           f"< {child.minimumSizeHint().width()}")
+        if type(child) is QtWidgets.QLabel and child.text() and not child.wordWrap():
+            if width + 1 < child.sizeHint().width():
+                bad.append(f"label {child.text()[:40]!r} cut: {width} px < {child.sizeHint().width()}")
+    return bad
+
+
+@pytest.mark.parametrize("size", [(1280, 800), (1600, 1000)])
+def test_nothing_cut_off_at_laptop_size(qtbot, window, scene, size):
+    """Every tab and Controls section at 1280x800 and 1600x1000: inside the window, no text cut, maps usable."""
+    window.resize(*size)
+    _live_with_maps(qtbot, window, scene)
+    qtbot.waitUntil(lambda: window.size() == QtCore.QSize(*size), timeout=3000)
+    widths = set()
+    for tab in range(window.tabs.count()):
+        window.tabs.setCurrentIndex(tab)
+        for section in range(window.side.count()):
+            window.side.setCurrentIndex(section)
+            qtbot.wait(30)
+            assert window.size() == QtCore.QSize(*size), "the window grew beyond the screen"
+            assert _outside(window, window) == []
+            area = window.side.widget(section)
+            assert not area.horizontalScrollBar().isVisible(), f"section {section} needs a horizontal scroll"
+            widths.add(window.controls_dock.width())
+    assert len(widths) == 1, f"the Controls dock changed width between sections: {widths}"
+    window.tabs.setCurrentIndex(0)
+    qtbot.wait(50)
+    # every map gets a usable area, and the raw frame fills its tile: its visible range exceeds the
+    # image by at most 50 % in the loose direction (the 120 px tile showed y from -300 to 800 for 512 rows)
+    for view in (*window.map_views, window.raw_view):
+        vb = view.plot.getViewBox()
+        assert vb.width() >= 100 and vb.height() >= 80, (view.title, vb.width(), vb.height())
+    vb = window.raw_view.plot.getViewBox()
+    (x0, x1), (y0, y1) = vb.viewRange()
+    rows, cols = SHAPE
+    assert min((x1 - x0) / cols, (y1 - y0) / rows) == pytest.approx(1.0, abs=0.02)
+    assert max((x1 - x0) / cols, (y1 - y0) / rows) <= 1.5
+    px = vb.viewPixelSize()
+    assert px[0] == pytest.approx(px[1], rel=0.02)  # the right aspect: square pixels
+
+
+def test_long_messages_wrap_or_elide_with_the_full_text_as_tooltip(qtbot, window, scene):
+    _live_with_maps(qtbot, window, scene)
+    window.frozen = True  # hold the views (new maps would clear the message)
+    text = ("the image shows no clear carrier peak (a candidate 219.8x above the background is a streak or "
+            "smear, not an isolated peak): check that the checkerboard is in focus")
+    view = window.disp_view
+    view.show_message(text)
+    qtbot.wait(20)
+    assert view.message.toPlainText() == text and view.message.toolTip() == text
+    assert view.message.wordWrap() and view.message.isVisible()
+    assert view.message.geometry().right() <= view.graphics.width()  # wrapped inside its map
+    assert view.message.height() >= 2 * view.message.fontMetrics().height()
+    label = window.status_labels["drops"]
+    assert label.toolTip() == label.text() and label.text().startswith("dropped:")
+    if label.fontMetrics().horizontalAdvance(label.text()) > label.width():
+        assert label.shown_text().endswith("…")
+
+
+def _view_point(view, x_mm, y_mm):
+    """Viewport pixel of the map coordinate (x_mm, y_mm) in an ImageView."""
+    scene_pt = view.plot.getViewBox().mapViewToScene(QtCore.QPointF(x_mm, y_mm))
+    return view.graphics.mapFromScene(scene_pt)
+
+
+def _mouse(widget, kind, pos, button, buttons):
+    pos = QtCore.QPointF(pos)
+    ev = QtGui.QMouseEvent(kind, pos, QtCore.QPointF(widget.mapToGlobal(pos.toPoint())), button, buttons,
+                           QtCore.Qt.NoModifier)
+    QtWidgets.QApplication.sendEvent(widget, ev)
+
+
+def _drag(view, start_mm, end_mm, steps=8):
+    """Press the left button at ``start_mm``, move in ``steps`` to ``end_mm``, release (as a hand does)."""
+    vp = view.graphics.viewport()
+    a, b = _view_point(view, *start_mm), _view_point(view, *end_mm)
+    left, none = QtCore.Qt.LeftButton, QtCore.Qt.NoButton
+    _mouse(vp, QtCore.QEvent.MouseMove, a, none, none)
+    _mouse(vp, QtCore.QEvent.MouseButtonPress, a, left, left)
+    for t in np.linspace(0, 1, steps + 1)[1:]:
+        QtTest.QTest.qWait(25)  # at a hand's pace: pyqtgraph drops mouse moves faster than its refresh rate
+        pos = QtCore.QPointF(a.x() + t * (b.x() - a.x()), a.y() + t * (b.y() - a.y()))
+        _mouse(vp, QtCore.QEvent.MouseMove, pos, none, left)
+    _mouse(vp, QtCore.QEvent.MouseButtonRelease, b, left, none)
+
+
+def test_profile_line_ends_move_ends_body_moves_line_view_never_pans(qtbot, window, scene):
+    _live_with_maps(qtbot, window, scene)
+    view, line = window.height_view, window.profile_roi
+    r = window.last_drawn.result
+    x, y = r.x_mm, r.y_mm
+    span_x, span_y = float(x[-1] - x[0]), float(y[-1] - y[0])
+    # put the line across the middle, then drag like a user
+    xa, xb, ym = float(x[0]) + 0.2 * span_x, float(x[0]) + 0.8 * span_x, float(y[0]) + 0.5 * span_y
+    line.set_ends((xa, ym), (xb, ym))
+    view_range = view.plot.getViewBox().viewRange()
+    tol = 0.02 * span_x  # 2 % of the map: a few screen pixels
+
+    # an end handle moves that end only
+    target = (xb, ym + 0.2 * span_y)
+    _drag(view, (xb, ym), target)
+    p0, p1 = line.ends()
+    assert p0 == pytest.approx((xa, ym), abs=tol) and p1 == pytest.approx(target, abs=tol)
+    assert view.plot.getViewBox().viewRange() == view_range
+
+    # the body moves the whole line
+    mid = ((p0[0] + p1[0]) / 2, (p0[1] + p1[1]) / 2)
+    shift = (0.05 * span_x, -0.15 * span_y)
+    _drag(view, mid, (mid[0] + shift[0], mid[1] + shift[1]))
+    q0, q1 = line.ends()
+    for before, after in ((p0, q0), (p1, q1)):
+        assert (after[0] - before[0], after[1] - before[1]) == pytest.approx(shift, abs=tol)
+    assert view.plot.getViewBox().viewRange() == view_range
+
+    # a drag on the map away from the line moves neither the line nor the view
+    _drag(view, (float(x[0]) + 0.1 * span_x, float(y[0]) + 0.1 * span_y),
+          (float(x[0]) + 0.3 * span_x, float(y[0]) + 0.3 * span_y))
+    assert line.ends() == (q0, q1)
+    assert view.plot.getViewBox().viewRange() == view_range
+    # the profile follows the line
+    seq = window._last_result_seq
+    qtbot.waitUntil(lambda: window._last_result_seq != seq, timeout=5000)
+    assert np.ravel(window.profile_line_mm) == pytest.approx(np.ravel((q0, q1)))
+
+
+def test_colour_range_typed_auto_and_symmetric(qtbot, window, scene):
+    _live_with_maps(qtbot, window, scene)
+    view = window.height_view
+    row = view.levels_row
+    assert not view.colorbar.interactive  # no unexplained drag handles on the bar
+    assert row.symmetric_box.isChecked() and row.auto_box.isChecked()
+    row.symmetric_box.click()
+    for edit, value in ((row.min_edit, "-1.25"), (row.max_edit, "3.5")):
+        edit.setFocus()
+        edit.selectAll()
+        QtTest.QTest.keyClicks(edit, value)
+        QtTest.QTest.keyClick(edit, QtCore.Qt.Key_Return)
+    assert view.levels == (-1.25, 3.5) and not row.auto_box.isChecked()
+    n = view.updates
+    qtbot.waitUntil(lambda: view.updates >= n + 3, timeout=5000)  # new frames keep the typed range
+    assert view.levels == (-1.25, 3.5) and tuple(view.image.levels) == (-1.25, 3.5)
+    row.min_edit.setText("4")  # min above max: refused, the range stays
+    row.min_edit.editingFinished.emit()
+    assert view.levels == (-1.25, 3.5) and "c00" in row.min_edit.styleSheet()
+    row.symmetric_box.click()  # symmetric about zero: -m..m with m the larger end
+    assert view.levels == (-3.5, 3.5)
+    row.auto_box.click()  # auto: follows the data again (symmetric, 99th percentile of |h|)
+    n = view.updates
+    qtbot.waitUntil(lambda: view.updates >= n + 2, timeout=5000)
+    data = view.image.image
+    m = float(np.nanpercentile(np.abs(data[np.isfinite(data)]), 99))
+    lo, hi = view.levels
+    assert lo == -hi and hi == pytest.approx(m, rel=0.25)
+
+
+# ----------------------------------------------------------------------------------------- menus, shortcuts
+def _docs_shortcuts() -> list:
+    text = (ROOT / "docs" / "gui.md").read_text(encoding="utf-8")
+    m = re.search(r"^#+ Shortcuts\s*\n(.*?)(?:\n#|\Z)", text, re.S | re.M)
+    assert m, "docs/gui.md has no 'Shortcuts' section"
+    rows = [line for line in m.group(1).splitlines() if line.startswith("|")]
+    assert [c.strip() for c in rows[0].strip("|").split("|")] == ["action", "keys"]
+    return [tuple(c.strip() for c in line.strip("|").split("|")) for line in rows[2:]]
+
+
+def test_menus_and_shortcuts_listed_in_help_and_docs(qtbot, window, scene):
+    from app.gui.menus import SHORTCUTS
+
+    titles = [a.text().replace("&", "") for a in window.menuBar().actions()]
+    assert titles[0] == "File" and "View" in titles and titles[-1] == "Help"
+    acts = window.actions_by_name
+    for name in ("open_recording", "open_experiment", "save_experiment", "snapshot", "export",
+                 "help_shortcuts", "help_docs", "help_about"):
+        assert name in acts
+    # docs/gui.md lists exactly the window's keys
+    assert _docs_shortcuts() == [(s.action, s.keys) for s in SHORTCUTS if s.keys]
+    for s in SHORTCUTS:
+        if s.keys:
+            assert acts[s.name].shortcut().toString() == QtGui.QKeySequence(s.keys).toString()
+    # Help lists them
+    acts["help_shortcuts"].trigger()
+    assert "Ctrl+R" in window.help_box.text() and "Capture reference" in window.help_box.text()
+    window.help_box.close()
+
+    frames = Switchable(scene["flat"])
+    window.use_camera(SyntheticCamera(frames, frame_rate_hz=50.0), geometry=scene["geometry"])
+    qtbot.waitUntil(lambda: window._last_raw_seq >= 0, timeout=10000)
+    window.activateWindow()
+    qtbot.waitUntil(window.isActiveWindow, timeout=3000)  # keys go to the active window
+    window.geometry_panel.n_average.setValue(3)
+
+    def key(k, mod=QtCore.Qt.ControlModifier):
+        QtTest.QTest.keyClick(window, k, mod)
+
+    key(QtCore.Qt.Key_2)
+    assert window.tabs.currentIndex() == 1
+    key(QtCore.Qt.Key_1)
+    assert window.tabs.currentIndex() == 0
+    key(QtCore.Qt.Key_Space)
+    assert window.pause_box.isChecked() and acts["pause"].isChecked()
+    key(QtCore.Qt.Key_Space)
+    assert not window.pause_box.isChecked()
+    key(QtCore.Qt.Key_R)  # capture reference: average of 3 frames of the still surface
+    _wait_reconstructor(qtbot, window)
+    np.testing.assert_allclose(window.reference, scene["flat"], atol=1e-4)
+
+
+def test_arm_trigger_by_keys_snapshot_and_close_while_recording_asks(qtbot, window, scene, tmp_path):
+    frames = _live_with_maps(qtbot, window, scene, image_key="flat")
+    rp = window.recording_panel
+    rp.folder.setText(str(tmp_path))
+    rp.pre.setValue(5)
+    rp.post.setValue(400)  # 8 s at 50 Hz: still capturing while we try to close
+    window.activateWindow()
+    qtbot.waitUntil(window.isActiveWindow, timeout=3000)  # keys go to the active window
+    QtTest.QTest.keyClick(window, QtCore.Qt.Key_A, QtCore.Qt.ControlModifier | QtCore.Qt.ShiftModifier)
+    assert rp.state_label.text() == "armed", window.last_error
+    ring = window.session.acquisition.ring
+    head = ring.head
+    qtbot.waitUntil(lambda: ring.head >= head + 8, timeout=5000)
+    frames.image = scene["bump"]
+    QtTest.QTest.keyClick(window, QtCore.Qt.Key_T, QtCore.Qt.ControlModifier)
+    qtbot.waitUntil(lambda: window.session.capture is not None and window.session.capture.state != "armed",
+                    timeout=5000)
+
+    # snapshot (F12): a PNG of the window and the maps of one frame with metadata, where the status bar says
+    qtbot.waitUntil(lambda: window.last_drawn is not None and np.array_equal(window.last_drawn.image,
+                                                                               scene["bump"]), timeout=10000)
+    QtTest.QTest.keyClick(window, QtCore.Qt.Key_F12)
+    png, h5 = window.last_snapshot
+    folder = tmp_path / "snapshots"
+    assert Path(png).parent == folder and Path(h5).parent == folder
+    assert str(folder) in window.message_label.text()
+    image = QtGui.QImage(png)
+    assert (image.width(), image.height()) == (window.width(), window.height())
+    with h5py.File(h5, "r") as f:
+        seq = int(f.attrs["frame_id"])
+        assert f["height"].shape == f["valid"].shape == (len(f["y_mm"]), len(f["x_mm"]))
+        assert f["raw"].shape == SHAPE and np.array_equal(f["raw"][()], scene["bump"])
+        h = f["height"][()]
+        assert np.nanmax(h) == pytest.approx(np.nanmax(window.last_drawn.result.height), rel=0.2)
+        assert "theta_deg" in f.attrs["geometry_toml"] and f.attrs["camera_id"]
+        assert float(np.nanmax(np.abs(h))) < 0.01  # mm: the 2 um bump, in mm as documented
+    assert seq >= 0
+
+    # closing while recording asks first; Cancel keeps the window and the recording
+    answered = []
+
+    def answer(button):
+        box = window.close_question
+        if box is None:
+            QtCore.QTimer.singleShot(20, lambda: answer(button))
+            return
+        answered.append(box.text())
+        box.button(button).click()
+
+    QtCore.QTimer.singleShot(20, lambda: answer(QtWidgets.QMessageBox.Cancel))
+    window.close()
+    assert answered and "recording" in answered[0].lower() and window.isVisible()
+    assert window.recording_active()
+    QtCore.QTimer.singleShot(20, lambda: answer(QtWidgets.QMessageBox.Close))
+    window.close()
+    assert len(answered) == 2 and not window.isVisible()
