@@ -173,7 +173,7 @@ class ReplayTab(QtWidgets.QWidget):
         outer.addLayout(bar)
         views = QtWidgets.QHBoxLayout()
         self.raw = ImageView("Recorded frame", "counts", cmap="CET-L1", axis_units="px")
-        self.height = ImageView("Height", "height (µm)", cmap="CET-D1", symmetric=True)
+        self.height = ImageView("Height", "µm", cmap="CET-D1", symmetric=True)
         views.addWidget(self.raw)
         views.addWidget(self.height)
         outer.addLayout(views, 1)

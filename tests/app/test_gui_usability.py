@@ -403,3 +403,74 @@ def test_arm_trigger_by_keys_snapshot_and_close_while_recording_asks(qtbot, wind
     QtCore.QTimer.singleShot(20, lambda: answer(QtWidgets.QMessageBox.Close))
     window.close()
     assert len(answered) == 2 and not window.isVisible()
+
+
+# ------------------------------------------------------------------------------------- 7: replay and export
+def test_replay_shows_maps_as_live_and_export_is_compressed_with_trigger_index(qtbot, window, scene, tmp_path):
+    frames = _live_with_maps(qtbot, window, scene, image_key="flat")
+    live_rect = window.height_view._rect
+    rp = window.recording_panel
+    rp.folder.setText(str(tmp_path))
+    rp.pre.setValue(4)
+    rp.post.setValue(6)
+    rp.arm_button.click()
+    ring = window.session.acquisition.ring
+    head = ring.head
+    qtbot.waitUntil(lambda: ring.head >= head + 6, timeout=5000)
+    frames.image = scene["bump"]
+    rp.trigger_button.click()
+    qtbot.waitUntil(lambda: rp.state_label.text() in ("done", "error"), timeout=15000)
+    path = window.session.recording["path"]
+
+    assert window.open_recording(path)  # what File ▸ Open recording… does with the chosen file
+    qtbot.waitUntil(lambda: window.replay_shown_index is not None, timeout=20000)
+    replay = window.replay.height
+    # the same grid in mm as Live, drawn with square pixels (not stretched)
+    assert replay._rect == pytest.approx(live_rect, rel=1e-6)
+    for view in (replay, window.height_view):
+        px = view.plot.getViewBox().viewPixelSize()
+        assert px[0] == pytest.approx(px[1], rel=0.02)
+        (x0, x1), (y0, y1) = view.plot.getViewBox().viewRange()
+        assert min((x1 - x0) / live_rect[2], (y1 - y0) / live_rect[3]) == pytest.approx(1.0, abs=0.02)
+
+    out = tmp_path / "heights.h5"
+    window.export_heights(str(out))
+    qtbot.waitUntil(lambda: window.export_result is not None, timeout=120000)
+    assert window.export_result == ("done", str(out)), window.export_result
+    with h5py.File(path, "r") as rec, h5py.File(out, "r") as f:
+        n = int(rec.attrs["frames_written"])
+        table = rec["frame_table"][:n]
+        assert int(f.attrs["frames_done"]) == n
+        np.testing.assert_array_equal(f["trigger_index"][()], table["trigger_index"])
+        np.testing.assert_array_equal(f["host_timestamp_ns"][()], table["host_timestamp_ns"])
+        np.testing.assert_array_equal(f["camera_frame_id"][()], table["frame_id"])
+        assert f["trigger_index"][0] == -4 and f["trigger_index"][-1] == 5
+        for name in ("height", "slope_x", "slope_y", "valid"):
+            ds = f[name]
+            assert ds.compression == "gzip" and ds.shuffle and ds.chunks == (1, *SHAPE)
+        stored = sum(f[name].id.get_storage_size() for name in ("height", "slope_x", "slope_y", "valid"))
+        raw_bytes = n * SHAPE[0] * SHAPE[1] * (3 * 4 + 1)
+        assert stored < 0.8 * raw_bytes, f"maps stored in {stored} bytes, uncompressed {raw_bytes}"
+
+
+def test_geometry_edited_in_the_window_is_saved_with_every_digit(qtbot, window, scene, tmp_path):
+    """Load a TOML with pixel_mm = 0.078125, change theta in the editor, save: pixel_mm is still 0.078125."""
+    from processing import Geometry
+
+    window.use_camera(SyntheticCamera(Switchable(scene["flat"]), frame_rate_hz=50.0))
+    src = tmp_path / "in.toml"
+    src.write_text('setup = "tir"\ntheta_deg = 55.0\ndepth_mm = 300.0\npixel_mm = 0.078125\n'
+                   'rows_toward_camera = false\n', encoding="utf-8")
+    window.load_geometry(str(src))
+    gp = window.geometry_panel
+    assert "0.078125" in gp.pixel.text()
+    gp.theta.setFocus()
+    gp.theta.selectAll()
+    QtTest.QTest.keyClicks(gp.theta, "56.25")
+    QtTest.QTest.keyClick(gp.theta, QtCore.Qt.Key_Return)
+    assert window.geometry.theta_deg == 56.25
+    out = tmp_path / "out.toml"
+    window.save_geometry(str(out))
+    text = out.read_text(encoding="utf-8")
+    assert "pixel_mm = 0.078125\n" in text and "theta_deg = 56.25\n" in text
+    assert Geometry.from_toml(out).pixel_mm == 0.078125

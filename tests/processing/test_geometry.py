@@ -47,6 +47,18 @@ def test_toml_round_trip(text, tmp_path):
     hash(g)  # frozen and hashable: usable as a cache key
 
 
+def test_toml_text_keeps_every_digit():
+    """Values that need all of a float's digits come back bit for bit (0.078125 must not become 0.07813)."""
+    g = _tir(pixel_mm=0.078125, theta_deg=55.123456789012345, depth_mm=300.1 + 1e-12,
+             camera_distance_mm=1234.5678901234567)
+    text = g.to_toml_text()
+    assert "pixel_mm = 0.078125\n" in text
+    back = Geometry.from_toml_text(text)
+    assert back == g
+    for key in ("pixel_mm", "theta_deg", "depth_mm", "camera_distance_mm"):
+        assert getattr(back, key) == getattr(g, key)  # exact, not approx
+
+
 def test_toml_values_and_table():
     g = Geometry.from_toml_text("[geometry]\n" + TIR_TEXT)
     assert g.rows_toward_camera is True
