@@ -16,6 +16,7 @@ import dataclasses
 import os
 import threading
 import time
+import weakref
 from typing import Optional
 
 import numpy as np
@@ -65,6 +66,10 @@ class LiveSession:
         self._latest_out = None
         self._source_acq = None
         self._seq_base = 0
+        # frame numbers run on across camera restarts: each acquisition's first frame is numbered after
+        # every frame of the ones before (the raw view, the worker and the stale marks use one numbering)
+        self._base_of = weakref.WeakKeyDictionary()
+        self._frames_before = 0
         self._closed = False
         self.worker = ProcessingWorker(self._newest_frame, grid="decimated", nice=worker_nice)
         self.worker.start()
@@ -134,12 +139,20 @@ class LiveSession:
                 pass
         settings = self.camera.settings()
         acq = Acquisition(self.camera, ring_bytes=self.ring_bytes, stall_timeout_s=self.stall_timeout_s)
+        with self._lock:
+            self._number_after(old)
+            self._base_of[acq] = self._frames_before
         acq.start()
         with self._lock:
             self._settings = settings
             self.acquisition = acq
             self._latest_out = None
         self.worker.set_bit_depth(settings.bit_depth)
+
+    def _number_after(self, acq) -> None:
+        """Frames of ``acq`` (a stopped or replaced acquisition) count before the next one's (under the lock)."""
+        if acq is not None and acq in self._base_of:
+            self._frames_before = max(self._frames_before, self._base_of.pop(acq) + acq.ring.head)
 
     def camera_settings(self):
         return self._settings
@@ -152,6 +165,7 @@ class LiveSession:
             raise RuntimeError("a recording is armed: disarm it before changing camera settings")
         with self._lock:
             acq, self.acquisition = self.acquisition, None
+            self._number_after(acq)
         if acq is not None:
             acq.stop(timeout_s=5.0)
         try:
@@ -165,6 +179,7 @@ class LiveSession:
         with self._lock:
             acq, self.acquisition = self.acquisition, None
             cam, self.camera = self.camera, None
+            self._number_after(acq)
         if acq is not None:
             try:
                 acq.stop(timeout_s=5.0)
@@ -183,9 +198,9 @@ class LiveSession:
         if acq is None:
             time.sleep(min(timeout_s, 0.05))
             return None
-        if acq is not self._source_acq:  # a new acquisition numbers from 0 again
+        if acq is not self._source_acq:  # a new acquisition: its ring numbers from 0 again
             self._source_acq = acq
-            self._seq_base = after_seq + 1
+            self._seq_base = max(self._base_of.get(acq, after_seq + 1), after_seq + 1)
         f = acq.ring.latest(timeout_s)
         if f is None:
             if acq.ring.closed:
@@ -194,7 +209,10 @@ class LiveSession:
         return self._seq_base + f.sequence, f.image, f.host_timestamp_ns
 
     def latest_frame(self):
-        """``(seq, image, host_ns)`` of the newest frame in the ring, copied; None if none. Never blocks."""
+        """``(seq, image, host_ns)`` of the newest frame in the ring, copied; None if none. Never blocks.
+
+        ``seq`` is numbered as the worker's ``Processed.seq`` (on across camera restarts).
+        """
         acq = self.acquisition
         if acq is None:
             return None
@@ -208,7 +226,7 @@ class LiveSession:
         f = ring.copy(head - 1, out)
         if f is None:
             return None
-        return f.sequence, f.image, f.host_timestamp_ns
+        return self._base_of.get(acq, 0) + f.sequence, f.image, f.host_timestamp_ns
 
     def capture_reference(self, n_frames: int, timeout_s: Optional[float] = None) -> np.ndarray:
         """Average the next ``n_frames`` frames (float32, counts); blocks up to ``timeout_s``."""

@@ -67,8 +67,9 @@ def format_age(frame_id, age_s: float) -> str:
 class _Overlay(QtWidgets.QLabel):
     """A wrapped message drawn over a plot; the full text is also its tooltip."""
 
-    def __init__(self, parent, style: str):
+    def __init__(self, parent, style: str, below: "_Overlay" = None):
         super().__init__(parent)
+        self.below = below  # placed under this one when it shows
         self.setWordWrap(True)
         self.setStyleSheet(style)
         self.setTextFormat(QtCore.Qt.PlainText)
@@ -93,8 +94,10 @@ class _Overlay(QtWidgets.QLabel):
             return
         width = max(parent.width() - 12, 40)
         height = min(self.heightForWidth(width), max(parent.height() // 2, 20))
-        y = 30 if self.property("at") != "bottom" else parent.height() - height - 34
-        self.setGeometry(6, max(y, 0), width, height)
+        y = 30
+        if self.below is not None and self.below.isVisible():
+            y = self.below.geometry().bottom() + 3
+        self.setGeometry(6, y, width, height)
         self.raise_()
 
 
@@ -290,11 +293,12 @@ class ImageView(QtWidgets.QWidget):
         if not pan:  # a left-drag never moves the view (the wheel still zooms)
             vb.mouseDragEvent = lambda ev, axis=None: ev.ignore()
         self._cache_static_items()
-        # why there is no map (red) and whether what is shown is old (grey): wrapped, full text as tooltip
-        self.message = _Overlay(self.graphics, "background: rgba(255,255,255,215); color: #b00000; padding: 2px;")
+        # whether what is shown is old (grey, under the title) and why there is no new map (red, under
+        # that): wrapped to the map's width, the full text also as tooltip
         self.stale_label = _Overlay(self.graphics, "background: rgba(235,235,235,230); color: #333;"
                                                    "font-weight: bold; padding: 2px; border: 1px solid #888;")
-        self.stale_label.setProperty("at", "bottom")
+        self.message = _Overlay(self.graphics, "background: rgba(255,255,255,215); color: #b00000; padding: 2px;",
+                                below=self.stale_label)
         self.levels_row = None
         if levels_controls:
             self.levels_row = _LevelsRow(self)
@@ -456,9 +460,13 @@ class ImageView(QtWidgets.QWidget):
         self.message.place()
         self.stale_label.place()
 
-    def show_message(self, text: str) -> None:
-        """Overlay a (red) message, e.g. why there is no map; empty string hides it (wrapped, full text as tooltip)."""
-        self.message.set_message(text)
+    def show_message(self, text: str, short: Optional[str] = None) -> None:
+        """Overlay a (red) message, e.g. why there is no map; empty string hides it.
+
+        ``short`` is shown instead where the tile is small; the full ``text`` is then the map's tooltip.
+        """
+        self.message.set_message(short if short else text)
+        self.graphics.setToolTip(text if short else "")
 
     def set_stale(self, text: Optional[str]) -> None:
         """Mark what is shown as old (greyed, with ``text`` such as "frame 12, 2.3 s ago"); None: live again."""
@@ -467,6 +475,7 @@ class ImageView(QtWidgets.QWidget):
         self.stale_text = text
         self.image.setOpacity(0.3 if text else 1.0)
         self.stale_label.set_message(f"STALE: {text}" if text else "")
+        self.message.place()
 
     @property
     def is_stale(self) -> bool:
@@ -499,7 +508,6 @@ class ProfileView(QtWidgets.QWidget):
         layout.addWidget(self.plot)
         self.stale_label = _Overlay(self.plot, "background: rgba(235,235,235,230); color: #333;"
                                                "font-weight: bold; padding: 2px; border: 1px solid #888;")
-        self.stale_label.setProperty("at", "bottom")
 
     def set_stale(self, text: Optional[str]) -> None:
         """Grey the curve and label it (e.g. "frame 12, 2.3 s ago"); None: live again."""

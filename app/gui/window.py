@@ -919,8 +919,10 @@ class MainWindow(QtWidgets.QMainWindow):
             if part in (0, -1):
                 text = p.error or ("no reference yet: capture one (Controls ▸ Reference & geometry)"
                                    if self.session.worker.reconstructor is None else "")
+                # the full text on the height map; the small maps say what happened in a few words
+                short = text.split(":")[0] + " (see Height)" if ":" in text else None
                 for v in views:
-                    v.show_message(text)
+                    v.show_message(text, None if v is self.height_view else short)
                 self._unmeasured = p  # the maps on screen (if any) are older than this frame: stale
                 self._update_staleness()
             return

@@ -193,6 +193,8 @@ def test_long_messages_wrap_or_elide_with_the_full_text_as_tooltip(qtbot, window
     assert view.message.wordWrap() and view.message.isVisible()
     assert view.message.geometry().right() <= view.graphics.width()  # wrapped inside its map
     assert view.message.height() >= 2 * view.message.fontMetrics().height()
+    view.show_message(text, short="no clear carrier peak (see Height)")  # small tiles: a few words
+    assert view.message.toPlainText().startswith("no clear") and view.graphics.toolTip() == text
     label = window.status_labels["drops"]
     assert label.toolTip() == label.text() and label.text().startswith("dropped:")
     if label.fontMetrics().horizontalAdvance(label.text()) > label.width():
