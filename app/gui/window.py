@@ -979,6 +979,7 @@ class MainWindow(QtWidgets.QMainWindow):
             self.ready_label.setText("NOT READY: " + "; ".join(reasons))
             self.ready_label.setStyleSheet("background:#fff0d0; color:#930; font-size:16px; font-weight:bold;"
                                            "border:2px solid #c60")
+        self.metrics_label.setToolTip(a.get("error") or "")  # the table shortens a long problem
         self.metrics_label.setText("<table cellpadding=3>" + "".join(
             f"<tr><td>{k}</td><td><b>{v}</b></td></tr>" for k, v in lines) + "</table>")
 
