@@ -177,6 +177,7 @@ class MainWindow(QtWidgets.QMainWindow):
         grid.setContentsMargins(2, 2, 2, 2)
         grid.setSpacing(4)
         self.raw_view = ImageView("Raw frame", "counts", cmap="CET-L1", axis_units="px", pan=False)
+        self.raw_view.levels_row.auto_box.setToolTip("grey levels over the sensor's full range (0 … 2^bits - 1)")
         self.height_view = ImageView("Height", "µm", cmap="CET-D1", symmetric=True, pan=False)
         self.disp_view = ImageView("Displacement |u|", "px", cmap="viridis")
         self.slope_x_view = ImageView("Slope ∂h/∂x", "mrad", cmap="CET-D1", symmetric=True)
@@ -744,7 +745,7 @@ class MainWindow(QtWidgets.QMainWindow):
         if rec is None or rec.n_frames == 0:
             return
         frame = rec.frame(int(index))
-        self.replay.raw.set_data(frame, levels=(0, float(frame.max()) or 1.0))
+        self.replay.raw.set_data(frame, levels=(0, float(frame.max()) or 1.0) if self.replay.raw.auto_levels else None)
         rel = rec.trigger_index(int(index))
         self.replay.index_label.setText(f"frame {index + 1}/{rec.n_frames}"
                                         + (f"  (trigger {rel:+d})" if rel is not None else ""))
@@ -893,7 +894,8 @@ class MainWindow(QtWidgets.QMainWindow):
         bits = self._bit_depth()
         top = float((1 << bits) - 1)
         view = self.raw_view if tab == 0 else self.align_raw_view
-        view.set_data(image, levels=(0.0, top), stamp_ns=host_ns, frame_id=seq)
+        # auto: the sensor's full range (saturation visible at a glance); a typed range is kept
+        view.set_data(image, levels=(0.0, top) if view.auto_levels else None, stamp_ns=host_ns, frame_id=seq)
         self._raw_shown = _Shown(seq, host_ns, self._acquisition_ref())
         view.set_stale(None)
         if tab == 0:

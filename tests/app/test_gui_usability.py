@@ -295,6 +295,15 @@ def test_colour_range_typed_auto_and_symmetric(qtbot, window, scene):
     m = float(np.nanpercentile(np.abs(data[np.isfinite(data)]), 99))
     lo, hi = view.levels
     assert lo == -hi and hi == pytest.approx(m, rel=0.25)
+    # the raw frame: auto is the sensor's full range; a typed contrast stretch stays on new frames
+    raw = window.raw_view
+    assert raw.levels == (0.0, 255.0)
+    raw.levels_row.min_edit.setText("40")
+    raw.levels_row.max_edit.setText("200")
+    raw.levels_row.max_edit.editingFinished.emit()
+    n = raw.updates
+    qtbot.waitUntil(lambda: raw.updates >= n + 3, timeout=5000)
+    assert raw.levels == (40.0, 200.0) and tuple(raw.image.levels) == (40.0, 200.0)
 
 
 # ----------------------------------------------------------------------------------------- menus, shortcuts
