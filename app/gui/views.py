@@ -481,6 +481,11 @@ class ImageView(QtWidgets.QWidget):
     def is_stale(self) -> bool:
         return self.stale_text is not None
 
+    def show_paused(self, text: Optional[str]) -> None:
+        """Label the view as held by Pause (e.g. "PAUSED: frame 12"); None: back to the stale mark, if any."""
+        self.stale_label.set_message(text or (f"STALE: {self.stale_text}" if self.stale_text else ""))
+        self.message.place()
+
     def current_data(self) -> Optional[np.ndarray]:
         return self.image.image
 
@@ -516,6 +521,10 @@ class ProfileView(QtWidgets.QWidget):
         self.stale_text = text
         self.curve.setOpacity(0.3 if text else 1.0)
         self.stale_label.set_message(f"STALE: {text}" if text else "")
+
+    def show_paused(self, text: Optional[str]) -> None:
+        """Label the plot as held by Pause; None: back to the stale mark, if any."""
+        self.stale_label.set_message(text or (f"STALE: {self.stale_text}" if self.stale_text else ""))
 
     def resizeEvent(self, ev):
         super().resizeEvent(ev)

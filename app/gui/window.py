@@ -1083,8 +1083,9 @@ class MainWindow(QtWidgets.QMainWindow):
         else:
             lab["camera"].setText(st.get("camera_text", ""))
             lab["camera"].setStyleSheet("padding: 0 4px")
+        shown_fps = 0.0 if self.pause_box.isChecked() or self.frozen else self.displayed_fps
         lab["fps"].setText(f"camera {camera_fps:.1f} · processed {processed_fps:.1f} · "
-                           f"shown {self.displayed_fps:.1f} fps")
+                           f"shown {shown_fps:.1f} fps")
         self.camera_fps_shown = camera_fps
         lab["drops"].setText(
             f"dropped: camera {st.get('dropped_camera', 0)} · ring→recorder {st.get('dropped_ring', 0)} · "
@@ -1167,17 +1168,23 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def _pause_toggled(self, paused: bool) -> None:
         """Pause: finish drawing the maps of the frame on screen and show its raw frame, so all views show one frame."""
+        views = (*self.map_views, self.raw_view, self.profile_view)
         if not paused:
+            for v in views:
+                v.show_paused(None)
             return
         pending, self._second_half = getattr(self, "_second_half", None), None
         if pending is not None:
             self._draw_result(pending, part=1)
         p = self.last_drawn
-        if p is None:
-            return
-        if self.raw_view.frame_id != p.seq and p.image is not None and not self.raw_view.is_stale:
+        if p is not None and self.raw_view.frame_id != p.seq and p.image is not None \
+                and not self.raw_view.is_stale:
             self._draw_raw(p.image, 0, p.host_timestamp_ns, p.seq)
-        self.info(f"display paused on frame {p.seq}: the raw frame and every map show that frame")
+        for v in views:
+            if v.frame_id is not None:
+                v.show_paused(f"PAUSED: frame {v.frame_id}")
+        if p is not None:
+            self.info(f"display paused on frame {p.seq}: the raw frame and every map show that frame")
 
     def snapshot(self, folder: Optional[str] = None):
         """Save the window as PNG and the maps on screen with their metadata as HDF5; returns both paths.

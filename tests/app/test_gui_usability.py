@@ -58,6 +58,7 @@ def test_unmeasurable_frames_mark_the_maps_stale_and_pause_freezes_one_frame(qtb
     p = window.last_drawn
     views = (*window.map_views, window.raw_view, window.profile_view)
     assert {v.frame_id for v in views} == {p.seq}
+    assert all(v.stale_label.text() == f"PAUSED: frame {p.seq}" for v in views)  # held, and says so
     r = p.result
     for view, data in ((window.slope_x_view, 1e3 * r.slope_x), (window.valid_view, r.valid.astype(np.float32)),
                        (window.height_view, 1e3 * r.height)):
@@ -70,6 +71,7 @@ def test_unmeasurable_frames_mark_the_maps_stale_and_pause_freezes_one_frame(qtb
     qtbot.wait(100)  # several display ticks
     assert {v.frame_id for v in views} == {p.seq}
     window.pause_box.click()
+    assert not any(v.stale_label.isVisible() for v in views)
 
     # frames that cannot be measured (black): the maps on screen are the older frame's, marked stale
     frames.image = np.zeros_like(scene["flat"])
