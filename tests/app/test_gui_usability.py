@@ -487,3 +487,59 @@ def test_geometry_edited_in_the_window_is_saved_with_every_digit(qtbot, window, 
     text = out.read_text(encoding="utf-8")
     assert "pixel_mm = 0.078125\n" in text and "theta_deg = 56.25\n" in text
     assert Geometry.from_toml(out).pixel_mm == 0.078125
+
+
+_XVFB_SCRIPT = r"""
+import json, sys
+import numpy as np
+import pyqtgraph as pg
+from pyqtgraph.Qt import QtCore
+app = pg.mkQApp("layout")
+from app.gui.window import MainWindow
+from app.capture.scene import open_synthetic_camera
+from tests.app.test_gui_usability import _outside
+w = MainWindow(open_at_start=False, planner_effort="FFTW_ESTIMATE")
+w.show()
+cam, ref, geo, _ = open_synthetic_camera(shape=(256, 256), n_frames=2, frame_rate_hz=30)
+w.use_camera(cam, geometry=geo, reference=ref, camera_id="synthetic")
+out = {}
+def check():
+    if w.last_drawn is None:
+        QtCore.QTimer.singleShot(200, check)
+        return
+    screen = w.screen().geometry()
+    out["screen"] = [screen.width(), screen.height()]
+    out["window"] = list(w.frameGeometry().getRect())
+    out["problems"] = _outside(w, w)
+    w.screen().grabWindow(0).save(sys.argv[1])
+    print("RESULT " + json.dumps(out), flush=True)
+    w.close()
+QtCore.QTimer.singleShot(500, check)
+QtCore.QTimer.singleShot(60000, w.close)
+app.exec()
+w.shutdown()
+"""
+
+
+@pytest.mark.skipif(__import__("shutil").which("xvfb-run") is None, reason="needs xvfb-run (apt: xvfb)")
+def test_window_opens_inside_a_1280x800_x_screen(tmp_path):
+    """The app on a real X server (Xvfb, xcb) of 1280x800: the window fits the screen, nothing is cut off."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    shot = tmp_path / "live-1280x800.png"
+    env = dict(os.environ, TIRDEFLECT_CACHE_DIR=str(tmp_path / "cache"))
+    env.pop("QT_QPA_PLATFORM", None)
+    proc = subprocess.run(["xvfb-run", "-a", "-s", "-screen 0 1280x800x24", sys.executable, "-c", _XVFB_SCRIPT,
+                           str(shot)], cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
+    line = next((x for x in proc.stdout.splitlines() if x.startswith("RESULT ")), None)
+    assert line, proc.stdout + proc.stderr
+    result = json.loads(line[len("RESULT "):])
+    assert result["screen"] == [1280, 800]
+    x, y, width, height = result["window"]
+    assert x >= 0 and y >= 0 and x + width <= 1280 and y + height <= 800, result["window"]
+    assert result["problems"] == []
+    image = QtGui.QImage(str(shot))
+    assert (image.width(), image.height()) == (1280, 800)
