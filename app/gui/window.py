@@ -965,6 +965,9 @@ class MainWindow(QtWidgets.QMainWindow):
         a = p.alignment
         if a is None:
             return
+        self._align_shown = _Shown(p.seq, p.host_timestamp_ns, self._acquisition_ref())
+        for v in (self.spectrum_view, self.modulation_view):
+            v.set_stale(None)
         if p.spectrum is not None:
             self._draw_spectrum(p.spectrum)
         mod = a.get("modulation") if isinstance(a, dict) else None
@@ -1165,6 +1168,16 @@ class MainWindow(QtWidgets.QMainWindow):
         for v in self.map_views:
             v.set_stale(maps_text)
         self.profile_view.set_stale(maps_text)
+        align = getattr(self, "_align_shown", None)  # spectrum and contrast map (refreshed 4x a second)
+        align_text = None
+        if align is not None:
+            age = (now_ns - align.host_ns) / 1e9 if align.host_ns else 0.0
+            why = self._why_stale(align, acq)
+            if why is None and raw is not None and raw.host_ns - align.host_ns > 2 * STALE_AFTER_S * 1e9:
+                why = "not refreshed"
+            align_text = f"{why} — {format_age(align.seq, age)}" if why else None
+        for v in (self.spectrum_view, self.modulation_view):
+            v.set_stale(align_text)
 
     def _pause_toggled(self, paused: bool) -> None:
         """Pause: finish drawing the maps of the frame on screen and show its raw frame, so all views show one frame."""
