@@ -1076,7 +1076,7 @@ class MainWindow(QtWidgets.QMainWindow):
         err = st.get("error")
         now = time.monotonic()
         # rates fall to 0 when nothing new arrives (a lost camera keeps its last measured rate otherwise)
-        camera_fps = self._live_rate("camera", self._newest_raw_ns(), st.get("camera_fps", 0.0), now)
+        camera_fps = self._live_rate("camera", self._frames_acquired(), st.get("camera_fps", 0.0), now)
         processed_fps = self._live_rate("processed", w.processed, w.fps, now)
         if err or self.session.acquisition is None:
             camera_fps = 0.0
@@ -1112,7 +1112,8 @@ class MainWindow(QtWidgets.QMainWindow):
         acq = self.session.acquisition
         return weakref.ref(acq) if acq is not None else None
 
-    def _newest_raw_ns(self):
+    def _frames_acquired(self):
+        """A counter that changes with every frame the camera delivers (which acquisition, how many)."""
         acq = self.session.acquisition
         return None if acq is None else (id(acq), acq.acquired)
 
