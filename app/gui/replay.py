@@ -9,6 +9,7 @@ import numpy as np
 from pyqtgraph.Qt import QtCore, QtWidgets
 
 from .views import ImageView
+from .widgets import ElidedLabel
 
 __all__ = ["ReplayTab", "Recording", "RECORDING_FILTER"]
 
@@ -160,7 +161,7 @@ class ReplayTab(QtWidgets.QWidget):
         outer = QtWidgets.QVBoxLayout(self)
         bar = QtWidgets.QHBoxLayout()
         self.open_button = QtWidgets.QPushButton("Open recording…")
-        self.file_label = QtWidgets.QLabel("no recording open")
+        self.file_label = ElidedLabel("no recording open")  # a long file name never widens the window
         self.export_button = QtWidgets.QPushButton("Export heights…")
         self.export_button.setEnabled(False)
         self.progress = QtWidgets.QProgressBar()
