@@ -47,7 +47,7 @@ from .geometry import DEFAULT_REFERENCE_BAND, default_reference_region_mask
 from .height import PIN_FALLBACKS, PIN_MIN_PIECE_SAMPLES, PinStatus
 from .unwrap import TWO_PI, unwrap_spatial, unwrap_temporal, wrap
 
-__all__ = ["Reconstructor", "Result", "SeriesCheck", "reference_pin_region", "PATTERNS"]
+__all__ = ["Reconstructor", "Result", "SeriesCheck", "SeriesState", "reference_pin_region", "PATTERNS"]
 
 #: Patterns the Reconstructor reads: checkerboards by Fourier demodulation,
 #: random dots by PIV (processing.piv).
@@ -220,6 +220,49 @@ class Result:
     timings_ms: dict
     pin: Optional[PinStatus] = None
     series: Optional[SeriesCheck] = None
+
+
+@dataclasses.dataclass
+class SeriesState:
+    """Temporal-unwrapping memory of a :class:`Reconstructor` after a frame.
+
+    Attributes
+    ----------
+    phase : ndarray, shape (2, m_rows, m_cols)
+        Unwrapped carrier phases of the last frame on the decimated grid,
+        radians, NaN where invalid.
+    valid : ndarray, bool, shape (m_rows, m_cols)
+        Its valid samples.
+    all_valid : bool
+        Every sample was valid.
+    check : tuple or None
+        What the series check (:class:`SeriesCheck`) compares the next frame
+        with: the last frame's phase, valid samples, decimated height and
+        pin samples.
+    """
+
+    phase: np.ndarray
+    valid: np.ndarray
+    all_valid: bool
+    check: Optional[tuple] = None
+
+    def agrees_with(self, other: Optional["SeriesState"], *, tol_rad: float = 0.5) -> bool:
+        """Same valid samples and the same unwrapped phase there.
+
+        Two unwrappings of one wrapped phase differ by whole multiples of
+        2 pi; anything below ``tol_rad`` (default 0.5 rad) is rounding (the
+        same frame through different FFT plans differs by about 1e-6 rad).
+        """
+        if other is None:
+            return False
+        if self.phase.shape != other.phase.shape or self.all_valid != other.all_valid:
+            return False
+        if not np.array_equal(self.valid, other.valid):
+            return False
+        if not self.valid.any():
+            return True
+        diff = np.abs(self.phase[:, self.valid].astype(np.float64) - other.phase[:, other.valid])
+        return bool(diff.max() < tol_rad)
 
 
 class _Upsampler:
@@ -644,6 +687,40 @@ class Reconstructor:
         self._prev_valid = None
         self._prev_all_valid = False
         self._series_prev = None
+
+    def series_state(self) -> Optional["SeriesState"]:
+        """What temporal unwrapping remembers of the last frame (a copy), or
+        None when the next frame would be unwrapped in space only.
+
+        Everything one frame passes to the next is in it, so a Reconstructor
+        given it with :meth:`restore_series` continues a series exactly as the
+        one that made it (how ``tirdeflect process`` splits a recording over
+        processes and checks where the pieces join).
+        """
+        if self._prev_phase is None:
+            return None
+        check = self._series_prev
+        if check is not None:
+            check = tuple(None if a is None else np.array(a, copy=True) for a in check)
+        return SeriesState(phase=self._prev_phase.copy(), valid=self._prev_valid.copy(),
+                           all_valid=bool(self._prev_all_valid), check=check)
+
+    def restore_series(self, state: Optional["SeriesState"]) -> None:
+        """Continue a series from ``state`` (:meth:`series_state`; None = :meth:`reset_series`)."""
+        if state is None:
+            self.reset_series()
+            return
+        expected = (2, *self.rows_px.shape, *self.cols_px.shape)
+        if tuple(state.phase.shape) != expected:
+            raise ShapeMismatchError(
+                f"series state has phase shape {tuple(state.phase.shape)}, this Reconstructor's "
+                f"decimated grid needs {expected}; use a state of a Reconstructor with the same "
+                "reference and options")
+        self._prev_phase = np.array(state.phase, copy=True)
+        self._prev_valid = np.array(state.valid, dtype=bool, copy=True)
+        self._prev_all_valid = bool(state.all_valid)
+        self._series_prev = None if state.check is None else tuple(
+            None if a is None else np.array(a, copy=True) for a in state.check)
 
     # ----------------------------------------------------------- pattern
     def _cheap_pattern_check(self, wins, frame):

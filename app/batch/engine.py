@@ -33,7 +33,8 @@ from processing.errors import (
 )
 
 from app import version as _version
-from app.batch.frame_status import FrameStatus, FrameTally, measure_frame, outcome_of_error
+from app.batch import parallel
+from app.batch.frame_status import FrameStatus, FrameTally
 from app.batch.writer import (
     OUTPUT_FORMAT_VERSION,
     ResultWriter,
@@ -102,11 +103,14 @@ def _selected_count(total: int, first: int, last: int | None, step: int) -> int:
 
 
 def _make_reconstructor(reference: np.ndarray, geometry, *, unwrap: bool, grid: str,
-                        effort: str = "estimate", pattern: str | None = None):
+                        effort: str = "estimate", pattern: str | None = None, **options):
+    """The batch Reconstructor; ``options``: threads, device, and the carriers app.batch.parallel's
+    workers take from the engine's own."""
     from processing import Reconstructor
 
     return Reconstructor(reference, geometry, grid=grid, unwrap=unwrap, pattern=pattern,
-                         planner_effort="FFTW_MEASURE" if effort == "measure" else "FFTW_ESTIMATE")
+                         planner_effort="FFTW_MEASURE" if effort == "measure" else "FFTW_ESTIMATE",
+                         **options)
 
 
 
@@ -150,6 +154,18 @@ class ProcessJob:
         The command line, stored in the output's attributes.
     pattern : {"checkerboard", "dots"} or None
         What the reference shows; None takes the geometry's ``pattern`` key.
+    workers : int or None
+        Processes reconstructing frames (:mod:`app.batch.parallel`): None = all cores
+        for long runs, 1 = in this process.
+    dask : str or None
+        ``local[:N]`` or ``tcp://HOST:8786``: on a Dask cluster instead (docs/cluster.md).
+    send_frames : bool
+        With ``dask``: read frames here and send them with the tasks (workers
+        without the input files); otherwise workers read the files themselves.
+    chunk_frames : int or None
+        Frames per parallel chunk (None: chosen from frames, workers and memory).
+    device : {"cpu", "cuda"}
+        "cuda": batches of frames on the GPU (processing/gpu.py, needs CuPy).
     """
 
     reference: str
@@ -172,6 +188,11 @@ class ProcessJob:
     frame_range: slice | None = None
     reference_frames: slice | None = None
     pattern: str | None = None
+    workers: int | None = None
+    dask: str | None = None
+    send_frames: bool = False
+    chunk_frames: int | None = None
+    device: str = "cpu"
 
     @classmethod
     def from_namespace(cls, args) -> "ProcessJob":
@@ -264,7 +285,7 @@ def run_process(args: ProcessJob) -> BatchReport:
     if effort == "auto":
         effort = "measure" if selected >= MEASURE_MIN_FRAMES else "estimate"
     reconstruct = _make_reconstructor(reference, geometry, unwrap=not args.no_unwrap, grid=args.grid,
-                                      effort=effort, pattern=args.pattern)
+                                      effort=effort, pattern=args.pattern, threads=parallel.fft_threads(1))
     if hasattr(reconstruct, "reset_series"):
         reconstruct.reset_series()
 
@@ -311,20 +332,18 @@ def run_process(args: ProcessJob) -> BatchReport:
     tally = FrameTally()
     progress = _progress(selected, disable=args.no_progress)
     on_progress = args.on_progress
+    frames = None
     try:
-        frames = imageio.iter_frames(paths, first=args.first, last=args.last, step=args.step,
-                                     errors="yield")
+        # (item, measured) in order: here, over processes or on Dask (app/batch/parallel.py)
+        frames = parallel.frame_results(args, reconstruct, reference, geometry, effort, selected, paths)
         while True:
             try:
-                item = next(frames)
+                item, measured = next(frames)
             except StopIteration:
                 break
             except TirdeflectError as exc:  # a whole file became unreadable
                 raise _frame_failed(exc, None, writer, tally, out) from exc
-            if item.error is not None:
-                result, outcome = None, outcome_of_error(item.error)
-            else:
-                result, outcome = measure_frame(reconstruct, item.image, reference.shape, args.grid)
+            result, outcome = measured()  # (Result, OK), or (None, why the frame is invalid)
             if outcome.status == FrameStatus.PATTERN_MISMATCH and tally.valid == 0:
                 # no frame has matched the reference yet: it is the reference that is wrong
                 raise _frame_failed(PatternMismatchError(outcome.reason), item, writer, tally, out)
@@ -353,7 +372,9 @@ def run_process(args: ProcessJob) -> BatchReport:
         raise
     finally:
         progress.close()
-        writer.close(status, {**tally.attrs(), **pins.attrs()})
+        if frames is not None:
+            frames.close()
+        writer.close(status, {**tally.attrs(), **pins.attrs(), **(frames.attrs if frames is not None else {})})
         if status.startswith("complete"):
             publish(partial, out, overwrite=args.overwrite)
         elif tally.valid == 0:

@@ -131,6 +131,21 @@ def add_process_parser(sub) -> None:
     p.add_argument("--strict", action="store_true",
                    help="stop at the first frame that cannot be measured (default: store it "
                    "invalid, with its reason in /frame_status, and go on)")
+    p.add_argument("--workers", type=_positive_int, default=None, metavar="N",
+                   help="processes reconstructing frames in parallel (default: every core for "
+                   "runs of 64 frames or more; 1: all in this process); same heights as serial")
+    p.add_argument("--dask", default=None, metavar="ADDRESS",
+                   help="run on a Dask cluster: local[:N] (N worker processes on this machine) "
+                   "or tcp://HOST:8786 (a running `dask scheduler`; see docs/cluster.md); "
+                   "needs pip install 'tirdeflect[dask]'")
+    p.add_argument("--dask-send-frames", dest="send_frames", action="store_true",
+                   help="with --dask: read the frames here and send them with the tasks (for "
+                   "workers that do not see the input files)")
+    p.add_argument("--device", choices=("cpu", "cuda"), default="cpu",
+                   help="cuda: reconstruct batches of frames on the GPU (needs pip install "
+                   "'tirdeflect[gpu]' and an NVIDIA GPU; not yet checked on hardware)")
+    p.add_argument("--chunk-frames", type=_positive_int, default=None, metavar="K",
+                   help="frames per parallel chunk (default: from frames, workers and memory)")
     p.set_defaults(func=cmd_process)
 
 

@@ -1,0 +1,495 @@
+"""The frames of one batch run, reconstructed in order: here, over processes, or on a Dask cluster.
+
+:func:`frame_results` is what :func:`app.batch.engine.run_process` loops
+over: ``(item, outcome)`` pairs in input order, where ``outcome()`` returns
+the frame's :class:`processing.reconstruct.Result` or raises what
+reconstructing it raised. Three ways to get them, same heights:
+
+- **serial** (``workers=1``, or few frames): one Reconstructor in this
+  process, frame after frame (what the engine always did);
+- **processes** (``workers=N``): ``N`` worker processes, each with its own
+  Reconstructor and ``cores // N`` FFT threads;
+- **Dask** (``dask="local:N"`` or ``"tcp://HOST:8786"``): the same work as
+  tasks on a Dask cluster (docs/cluster.md).
+
+Temporal unwrapping links each frame to the one before, so the selection is
+cut into contiguous *chunks*. A worker starts its chunk from the previous
+chunk's last frame (the one-frame overlap, unwrapped in space and only on
+the decimated grid), keeps the :class:`~processing.reconstruct.SeriesState`
+that frame left and goes on in time. Before a chunk's frames are handed on,
+that start state is checked against the state the previous chunk ended
+with (:meth:`SeriesState.agrees_with`: same valid samples, same unwrapped
+phase); a chunk that disagrees (spatial unwrapping alone was ambiguous
+there, e.g. an island cut off by a masked ring whose phase is beyond pi) is
+redone from the previous chunk's end state, i.e. exactly as a serial run
+continues. Frames come out in order; at most ``workers + 1`` chunks are in
+flight, and chunks are sized so that they hold no more than
+``memory_budget_bytes`` of results (never the whole recording).
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import functools
+import logging
+import math
+import os
+import uuid
+import warnings
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from app.files import imageio
+from processing.errors import TirdeflectError
+
+__all__ = ["available_cores", "fft_threads", "frame_results", "process_chunk", "plan_chunks",
+           "ReconstructorSpec", "Chunk", "ChunkOutcome", "AUTO_PARALLEL_MIN_FRAMES",
+           "MEMORY_BUDGET_BYTES"]
+
+log = logging.getLogger(__name__)
+
+#: Without --workers, runs shorter than this stay serial: starting a worker
+#: process (imports, FFT plans) costs about a second, 50 frames of 1024^2.
+AUTO_PARALLEL_MIN_FRAMES = 64
+
+#: Results (height, slopes, valid) of all chunks in flight stay below this.
+MEMORY_BUDGET_BYTES = 1 << 30
+
+#: Chunks per worker aimed at (load balance), as long as chunks keep at least
+#: MIN_CHUNK_FRAMES frames (each chunk costs one extra decimated frame).
+CHUNKS_PER_WORKER = 4
+MIN_CHUNK_FRAMES = 8
+
+
+def available_cores() -> int:
+    """Cores this process may run on (affinity / cgroup-aware where Python can tell)."""
+    count = getattr(os, "process_cpu_count", None)  # Python >= 3.13
+    if count is not None:
+        n = count()
+    else:
+        try:
+            n = len(os.sched_getaffinity(0))
+        except (AttributeError, OSError):
+            n = os.cpu_count()
+    return max(1, int(n or 1))
+
+
+def fft_threads(workers: int, cores: Optional[int] = None) -> int:
+    """FFTW threads per frame so that ``workers x threads`` fits the cores."""
+    cores = available_cores() if cores is None else cores
+    return max(1, cores // max(1, workers))
+
+
+# ----------------------------------------------------------------- tasks
+
+
+@dataclasses.dataclass(frozen=True)
+class ReconstructorSpec:
+    """What a worker needs to build its own Reconstructor (picklable, sent with each task).
+
+    ``carriers`` are the ones the engine found on the reference, so every
+    worker demodulates exactly as a serial run. ``threads`` None: the worker
+    picks its cores / tasks running at once.
+    """
+
+    key: str
+    reference: np.ndarray
+    geometry: object
+    grid: str
+    unwrap: bool
+    effort: str
+    carriers: object
+    threads: Optional[int] = None
+
+
+@dataclasses.dataclass(frozen=True)
+class Chunk:
+    """Frames ``first..last`` (sequence indices, inclusive, every ``step``-th) of ``paths``.
+
+    ``overlap``: sequence index of the previous chunk's last frame, processed
+    first (decimated grid) to start temporal unwrapping; None for the first
+    chunk. ``redo``: start from ``start`` instead (the previous chunk's end
+    state; None = in space, as after ``reset_series``), no overlap frame.
+    ``items``: the frames themselves (overlap frame first when there is one),
+    read by the client and sent with the task, for workers that cannot read
+    ``paths``.
+    """
+
+    index: int
+    paths: tuple
+    first: int
+    last: int
+    step: int
+    overlap: Optional[int]
+    redo: bool = False
+    start: object = None
+    items: Optional[tuple] = None
+
+    @property
+    def label(self) -> str:
+        return f"chunk {self.index} (frames {self.first}..{self.last})"
+
+
+@dataclasses.dataclass
+class ChunkOutcome:
+    """A chunk's results: ``frames`` is a list of ``(item, Result | TirdeflectError)``
+    (items without their image; a ``None`` item: reading failed there, nothing after it);
+    ``start``/``end`` the series states after the overlap frame (or the given start) and
+    after the last frame; ``pid`` and ``host`` of the worker that computed it."""
+
+    index: int
+    start: object
+    frames: list
+    end: object
+    pid: int
+    host: str
+
+
+_RECONSTRUCTORS: dict = {}
+
+
+def _reconstructor(spec: ReconstructorSpec):
+    """This process's Reconstructor of ``spec`` (built once per run and process)."""
+    recon = _RECONSTRUCTORS.get(spec.key)
+    if recon is not None:
+        return recon
+    _RECONSTRUCTORS.clear()  # a long-lived Dask worker keeps only the current run's
+    threads = spec.threads
+    if threads is None:
+        threads = fft_threads(_tasks_per_process())
+    import cv2
+
+    cv2.setNumThreads(threads)
+    from app.batch.engine import _make_reconstructor
+    from app.files import cache
+
+    cache.restore_fftw_wisdom()
+    recon = _make_reconstructor(spec.reference, spec.geometry, unwrap=spec.unwrap, grid=spec.grid,
+                                effort=spec.effort, threads=threads, carriers=spec.carriers)
+    _RECONSTRUCTORS[spec.key] = recon
+    return recon
+
+
+def _tasks_per_process() -> int:
+    """Tasks a Dask worker runs at once (its threads); 1 outside Dask."""
+    try:
+        from distributed import get_worker
+
+        return max(1, int(get_worker().state.nthreads))
+    except (ImportError, ValueError, AttributeError):
+        return 1
+
+
+def _slim(result):
+    """The fields the output stores (plus the small decimated ones): the full-size
+    displacement and amplitude would double what travels between processes."""
+    return dataclasses.replace(result, displacement=None, amplitude=None)
+
+
+def process_chunk(spec: ReconstructorSpec, chunk: Chunk) -> ChunkOutcome:
+    """Reconstruct one chunk in this process (a pool worker or a Dask task); see the module doc."""
+    from app.batch.engine import _process_one
+
+    recon = _reconstructor(spec)
+    shape = tuple(np.shape(spec.reference))
+    if chunk.redo or chunk.overlap is None:
+        recon.restore_series(chunk.start)
+        first = chunk.first
+    else:
+        recon.reset_series()
+        first = chunk.overlap
+    if chunk.items is not None:
+        frames = iter(chunk.items)
+    else:
+        frames = imageio.iter_frames(list(chunk.paths), first=first, last=chunk.last, step=chunk.step)
+    out = []
+    start = None
+    try:
+        if first != chunk.first:  # the overlap frame: only its series state is kept
+            item = next(frames)
+            try:
+                recon(item.image, grid="decimated")
+            except TirdeflectError:
+                recon.reset_series()  # the check against the previous chunk fails: redone
+        start = recon.series_state()
+        for item in frames:
+            try:
+                result = _slim(_process_one(recon, item, shape, spec.grid))
+            except TirdeflectError as exc:
+                result = exc
+            out.append((dataclasses.replace(item, image=None), result))
+    except TirdeflectError as exc:  # reading failed: frames before it stand
+        out.append((None, exc))
+    if spec.effort == "measure" and not getattr(recon, "_wisdom_stored", False):
+        from app.files import cache
+
+        cache.store_fftw_wisdom()
+        recon._wisdom_stored = True
+    import socket
+
+    return ChunkOutcome(index=chunk.index, start=start, frames=out, end=recon.series_state(),
+                        pid=os.getpid(), host=socket.gethostname())
+
+
+# ----------------------------------------------------------------- planning
+
+
+def plan_chunks(selected: int, *, first: int, step: int, paths, workers: int, frame_bytes: int,
+                chunk_frames: Optional[int] = None,
+                memory_budget_bytes: int = MEMORY_BUDGET_BYTES) -> list:
+    """Contiguous chunks of the ``selected`` frames ``first, first + step, ...``.
+
+    Chunk length: ``chunk_frames`` if given, else about ``selected / (4 workers)``,
+    at least 8, and small enough that ``workers + 2`` chunks of results
+    (``frame_bytes`` each frame) fit ``memory_budget_bytes``.
+    """
+    if chunk_frames is None:
+        size = max(MIN_CHUNK_FRAMES, math.ceil(selected / (CHUNKS_PER_WORKER * workers)))
+        size = min(size, max(1, memory_budget_bytes // ((workers + 2) * max(1, frame_bytes))))
+    else:
+        size = int(chunk_frames)
+    size = max(1, min(size, selected))
+    chunks = []
+    for index, k0 in enumerate(range(0, selected, size)):
+        k1 = min(k0 + size, selected)
+        chunks.append(Chunk(index=index, paths=tuple(paths), first=first + k0 * step,
+                            last=first + (k1 - 1) * step, step=step,
+                            overlap=None if k0 == 0 else first + (k0 - 1) * step))
+    return chunks
+
+
+def _states_agree(start, end) -> bool:
+    if start is None or end is None:
+        return start is None and end is None
+    return start.agrees_with(end)
+
+
+def _outcome(result):
+    if isinstance(result, BaseException):
+        raise result
+    return result
+
+
+# ----------------------------------------------------------------- runners
+
+
+class _Serial:
+    """One Reconstructor here, frame after frame."""
+
+    def __init__(self, job, reconstruct, reference):
+        from app.batch.engine import _process_one
+
+        self.attrs = {"workers": 1}
+        self._frames = imageio.iter_frames(job.frames, first=job.first, last=job.last, step=job.step)
+        self._one = functools.partial(_process_one, reconstruct, ref_shape=reference.shape,
+                                      grid=job.grid)
+
+    def __iter__(self):
+        return self
+
+    def __next__(self):
+        item = next(self._frames)
+        return item, functools.partial(self._one, item=item)
+
+    def close(self):
+        self._frames.close()
+
+
+class _Chunked:
+    """Chunks in flight on an executor (``submit(fn, *args) -> future``), frames out in order."""
+
+    def __init__(self, job, spec, chunks, submit, window, shutdown, description):
+        self.job = job
+        self.spec = spec
+        self.submit = submit
+        self.window = window
+        self._shutdown = shutdown
+        self._chunks = iter(chunks)
+        self._pending = collections.deque()
+        self._frames = iter(())
+        self._prev_end = None
+        self._sources = {}
+        self.redone = []
+        self.attrs = {"parallel": description, "chunks": len(chunks), "chunks_redone": 0}
+        self._closed = False
+        self._fill()
+
+    def _fill(self):
+        while len(self._pending) < self.window:
+            chunk = next(self._chunks, None)
+            if chunk is None:
+                return
+            if self.job.send_frames:
+                chunk = dataclasses.replace(chunk, items=self._read(chunk))
+            self._pending.append((chunk, self.submit(process_chunk, self.spec, chunk)))
+
+    def _read(self, chunk):
+        first = chunk.first if (chunk.redo or chunk.overlap is None) else chunk.overlap
+        return tuple(imageio.iter_frames(list(self.job.frames), first=first, last=chunk.last,
+                                         step=chunk.step))
+
+    def _next_chunk(self):
+        chunk, future = self._pending.popleft()
+        out = future.result()
+        if chunk.index > 0 and not _states_agree(out.start, self._prev_end):
+            log.info("%s: its start (unwrapped in space) disagrees with the end of the chunk before; "
+                     "redone in time from there", chunk.label)
+            self.redone.append(chunk.index)
+            self.attrs["chunks_redone"] = len(self.redone)
+            redo = dataclasses.replace(chunk, redo=True, start=self._prev_end, overlap=None, items=None)
+            if self.job.send_frames:
+                redo = dataclasses.replace(redo, items=self._read(redo))
+            self._fill()
+            out = self.submit(process_chunk, self.spec, redo).result()
+        self._prev_end = out.end
+        self._fill()  # keep the workers busy while the engine writes this chunk
+        return out
+
+    def __iter__(self):
+        return self
+
+    def __next__(self):
+        while True:
+            pair = next(self._frames, None)
+            if pair is not None:
+                item, result = pair
+                if item is None:  # reading failed in the worker
+                    raise result
+                item = dataclasses.replace(item, source=self._sources.get(item.source, item.source))
+                return item, functools.partial(_outcome, result)
+            if not self._pending:
+                raise StopIteration
+            self._frames = iter(self._next_chunk().frames)
+
+    def close(self):
+        if self._closed:
+            return
+        self._closed = True
+        for _, future in self._pending:
+            future.cancel()
+        self._pending.clear()
+        self._shutdown()
+
+
+def _spec(job, reconstruct, reference, geometry, effort, threads) -> ReconstructorSpec:
+    return ReconstructorSpec(key=uuid.uuid4().hex, reference=np.asarray(reference), geometry=geometry,
+                             grid=job.grid, unwrap=not job.no_unwrap, effort=effort,
+                             carriers=reconstruct.carriers, threads=threads)
+
+
+def _frame_bytes(reconstruct, grid: str) -> int:
+    if grid == "full":
+        rows, cols = reconstruct.shape
+    else:
+        rows, cols = len(reconstruct.rows_px), len(reconstruct.cols_px)
+    return rows * cols * (3 * 4 + 1)
+
+
+def _process_pool(workers: int):
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    # spawn: a fresh interpreter per worker, safe from a Qt GUI or threads (fork is not)
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
+    return pool.submit, functools.partial(pool.shutdown, wait=True, cancel_futures=True)
+
+
+def _dask_client(address: str):
+    """(client, close) for ``local``, ``local:N`` or a scheduler address."""
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError:
+        raise TirdeflectError(
+            "--dask needs Dask: pip install 'tirdeflect[dask]' (or pip install 'dask[distributed]')"
+        ) from None
+    if address == "local" or address.startswith("local:"):
+        text = address.partition(":")[2]
+        try:
+            n = int(text) if text else available_cores()
+        except ValueError:
+            n = 0
+        if n < 1:
+            raise TirdeflectError(f"--dask {address!r}: the number after local: must be a whole "
+                                  f"number >= 1 of worker processes, e.g. --dask local:4")
+        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                               dashboard_address=None, silence_logs=logging.ERROR)
+        client = Client(cluster)
+
+        def close():
+            client.close()
+            cluster.close()
+
+        return client, close
+    if "://" not in address and ":" not in address:
+        raise TirdeflectError(f"--dask {address!r} is not a scheduler address; give "
+                              f"tcp://HOST:8786 (see docs/cluster.md) or local[:N]")
+    try:
+        client = Client(address, timeout="20s")
+    except (OSError, TimeoutError) as exc:
+        raise TirdeflectError(f"cannot reach the Dask scheduler at {address!r} ({exc}); start "
+                              f"`dask scheduler` there and `dask worker {address}` on each "
+                              f"machine (docs/cluster.md)") from None
+    return client, client.close
+
+
+def _dask_submit(client):
+    def submit(fn, spec, chunk):
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=".*[Ll]arge.*", category=UserWarning)
+            return client.submit(fn, spec, chunk, pure=False,
+                                 key=f"tirdeflect-{spec.key[:8]}-chunk-{chunk.index}"
+                                     f"{'-redo' if chunk.redo else ''}")
+    return submit
+
+
+def frame_results(job, reconstruct, reference, geometry, effort: str, selected: int):
+    """``(item, outcome)`` of every selected frame in order; ``outcome()`` returns the
+    Result or raises. Has ``attrs`` (stored in the output) and ``close()``.
+
+    ``job.workers`` None: all cores for runs of at least
+    :data:`AUTO_PARALLEL_MIN_FRAMES` frames, else serial; 1: serial.
+    ``job.dask``: on a Dask cluster instead (docs/cluster.md).
+    """
+    workers = getattr(job, "workers", None)
+    dask_address = getattr(job, "dask", None)
+    if dask_address:
+        if workers is not None:
+            raise TirdeflectError("--workers and --dask exclude each other: a Dask cluster has "
+                                  "its own workers (--dask local:N for N on this machine)")
+        client, close = _dask_client(dask_address)
+        try:
+            if job.send_frames:
+                paths = tuple(str(p) for p in job.frames)
+            else:
+                paths = tuple(str(Path(p).resolve()) for p in job.frames)
+            n = max(1, sum(client.nthreads().values()))
+            spec = _spec(job, reconstruct, reference, geometry, effort, None)
+            chunks = plan_chunks(selected, first=job.first, step=job.step, paths=paths, workers=n,
+                                 frame_bytes=_frame_bytes(reconstruct, job.grid),
+                                 chunk_frames=job.chunk_frames)
+            runner = _Chunked(job, spec, chunks, _dask_submit(client), n + 1, close,
+                              f"dask {dask_address} ({n} worker threads)")
+        except BaseException:
+            close()
+            raise
+        runner._sources = {a: str(o) for a, o in zip(paths, job.frames)}
+        return runner
+    if workers is None:
+        workers = available_cores() if selected >= AUTO_PARALLEL_MIN_FRAMES else 1
+    workers = min(int(workers), selected)
+    if workers <= 1:
+        return _Serial(job, reconstruct, reference)
+    spec = _spec(job, reconstruct, reference, geometry, effort, fft_threads(workers))
+    chunks = plan_chunks(selected, first=job.first, step=job.step, paths=tuple(job.frames),
+                         workers=workers, frame_bytes=_frame_bytes(reconstruct, job.grid),
+                         chunk_frames=job.chunk_frames)
+    submit, shutdown = _process_pool(workers)
+    try:
+        return _Chunked(job, spec, chunks, submit, workers + 1, shutdown,
+                        f"{workers} processes x {spec.threads} FFT thread(s)")
+    except BaseException:
+        shutdown()
+        raise

@@ -1,0 +1,215 @@
+"""`tirdeflect process` over several processes and on Dask gives the heights of a serial run.
+
+The series: a ray-traced dimple deepening to a carrier phase of 9 rad, and
+from frame 5 on a ring of the pattern goes blank (no contrast: masked)
+around the flank where the phase is largest. The island inside the ring
+carries phase beyond pi: unwrapped in space alone it is off by 2 pi (frames
+5-7), so a chunk whose overlap frame is frame 5 starts wrong and must be
+caught by the consistency check and redone in time.
+"""
+
+import logging
+import os
+import signal
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from app.batch import ProcessJob, run_process
+from app.batch import parallel
+from app.cli import main
+from app.files import imageio
+
+SIZE = 256
+N_FRAMES = 12
+RING_FROM = 5  # first frame with the blank ring
+
+# Heights of the same frame through different FFT plans/threads differ by float32
+# rounding (measured 3.5e-7 of the peak); a 2 pi unwrapping slip on the island
+# moves them by ~2 % of the peak. 1e-5 of the peak separates the two.
+REL_TOL = 1e-5
+
+
+@pytest.fixture(scope="module")
+def series(tmp_path_factory):
+    d = tmp_path_factory.mktemp("dimple")
+    code = main(["simulate", "--out", str(d), "--surface", "dimple", "--size", str(SIZE),
+                 "--frames", str(N_FRAMES), "--max-phase", "9"])
+    assert code == 0
+    yy, xx = np.mgrid[:SIZE, :SIZE]
+    ring = (np.hypot(yy - 150, xx - 134) > 24) & (np.hypot(yy - 150, xx - 134) < 34)
+    frames = []
+    for k in range(N_FRAMES):
+        image = imageio.read_image(d / f"frame_{k:04d}.png")
+        if k >= RING_FROM:
+            image = image.copy()
+            image[ring] = int(image.mean())
+        path = d / f"ringed_{k:04d}.png"
+        imageio.write_image(path, image)
+        frames.append(str(path))
+    return d, frames
+
+
+def _job(series, out, **kw):
+    d, frames = series
+    return ProcessJob(reference=str(d / "reference.png"), frames=frames, out=str(out),
+                      geometry=str(d / "geometry.toml"), fft_effort="estimate", **kw)
+
+
+@pytest.fixture(scope="module")
+def serial(series, tmp_path_factory):
+    out = tmp_path_factory.mktemp("serial") / "serial.h5"
+    report = run_process(_job(series, out, workers=1))
+    assert report.frames_written == N_FRAMES
+    return _read(out)
+
+
+def _read(path):
+    with h5py.File(path) as f:
+        data = {name: f[name][()] for name in ("height", "slope_x", "slope_y", "valid",
+                                               "frame_index", "source")}
+        data["attrs"] = dict(f.attrs)
+    return data
+
+
+def _assert_same(serial, other):
+    assert other["attrs"]["status"] == "complete"
+    assert other["attrs"]["frames_done"] == N_FRAMES
+    np.testing.assert_array_equal(other["frame_index"], serial["frame_index"])
+    np.testing.assert_array_equal(other["source"], serial["source"])
+    np.testing.assert_array_equal(other["valid"], serial["valid"])
+    peak = np.nanmax(np.abs(serial["height"]))
+    for name in ("height", "slope_x", "slope_y"):
+        np.testing.assert_array_equal(np.isnan(other[name]), np.isnan(serial[name]))
+        scale = np.nanmax(np.abs(serial[name]))
+        diff = np.nanmax(np.abs(other[name].astype(np.float64) - serial[name]))
+        assert diff <= REL_TOL * scale, f"{name}: differs by {diff / scale:.2e} of its peak"
+    assert peak > 1e-3  # micrometres: a real deformation, not an empty comparison
+
+
+def test_series_needs_temporal_unwrapping(series, serial, tmp_path):
+    """Precondition of the tests below: in space alone, frames 5-7 come out
+    different (the check has something to catch)."""
+    d, frames = series
+    from processing import Geometry
+
+    job = _job(series, tmp_path / "x.h5")
+    reference = imageio.read_reference(job.reference)
+    geometry = Geometry.from_toml(job.geometry)
+    from app.batch.engine import _make_reconstructor
+
+    recon = _make_reconstructor(reference, geometry, unwrap=True, grid="full")
+    spec = parallel.ReconstructorSpec(key="t", reference=reference, geometry=geometry, grid="full",
+                                      unwrap=True, effort="estimate", carriers=recon.carriers)
+    # chunk 2 of 3-frame chunks: overlap frame 5, unwrapped in space; no check here
+    chunk = parallel.plan_chunks(N_FRAMES, first=0, step=1, paths=frames, workers=2,
+                                 frame_bytes=1, chunk_frames=3)[2]
+    assert chunk.overlap == RING_FROM and (chunk.first, chunk.last) == (6, 8)
+    unchecked = parallel.process_chunk(spec, chunk)
+    peak = np.nanmax(np.abs(serial["height"]))
+    wrong = [np.nanmax(np.abs(r.height - serial["height"][item.sequence_index])) / peak
+             for item, r in unchecked.frames]
+    assert max(wrong) > 100 * REL_TOL, wrong
+    # ... and the states at the join tell: frame 5 in space is not frame 5 in time
+    serial_chunk = parallel.process_chunk(spec, parallel.plan_chunks(
+        N_FRAMES, first=0, step=1, paths=frames, workers=2, frame_bytes=1, chunk_frames=6)[0])
+    assert not unchecked.start.agrees_with(serial_chunk.end)
+
+
+def test_workers_give_serial_heights_and_redo_a_disagreeing_chunk(series, serial, tmp_path, caplog):
+    out = tmp_path / "par.h5"
+    with caplog.at_level("INFO", logger="app.batch.parallel"):
+        report = run_process(_job(series, out, workers=2, chunk_frames=3))
+    assert report.frames_written == N_FRAMES
+    par = _read(out)
+    _assert_same(serial, par)
+    assert par["attrs"]["chunks"] == 4
+    # exactly the chunk that starts from frame 5 was redone
+    assert par["attrs"]["chunks_redone"] == 1
+    assert any("chunk 2 (frames 6..8)" in r.getMessage() and "redone" in r.getMessage()
+               for r in caplog.records)
+
+
+def test_workers_from_the_cli_with_a_frame_selection(series, tmp_path, capsys):
+    """--first/--step through the CLI; the selection and order are those of a serial run."""
+    d, frames = series
+    outs = {}
+    for workers in ("1", "2"):
+        out = tmp_path / f"w{workers}.h5"
+        code = main(["process", str(d / "reference.png"), *frames, "--geometry",
+                     str(d / "geometry.toml"), "--out", str(out), "--first", "1", "--step", "2",
+                     "--workers", workers, "--chunk-frames", "2", "--no-progress"])
+        assert code == 0, capsys.readouterr().err
+        outs[workers] = _read(out)
+    np.testing.assert_array_equal(outs["2"]["frame_index"], [1, 3, 5, 7, 9, 11])
+    np.testing.assert_array_equal(outs["1"]["frame_index"], outs["2"]["frame_index"])
+    np.testing.assert_array_equal(outs["1"]["valid"], outs["2"]["valid"])
+    scale = np.nanmax(np.abs(outs["1"]["height"]))
+    assert np.nanmax(np.abs(outs["1"]["height"] - outs["2"]["height"])) <= REL_TOL * scale
+
+
+def test_chunks_fit_the_memory_budget():
+    chunks = parallel.plan_chunks(10_000, first=0, step=1, paths=("rec.h5",), workers=16,
+                                  frame_bytes=1024 * 1024 * 13)
+    size = chunks[0].last - chunks[0].first + 1
+    assert (16 + 2) * size * 1024 * 1024 * 13 <= parallel.MEMORY_BUDGET_BYTES
+    assert chunks[-1].last == 9_999 and all(c.overlap == c.first - 1 for c in chunks[1:])
+    assert parallel.fft_threads(4, cores=16) == 4 and parallel.fft_threads(32, cores=16) == 1
+
+
+# ----------------------------------------------------------------- Dask
+
+distributed = pytest.importorskip("distributed", reason="Dask tests need pip install 'dask[distributed]'")
+
+
+def test_dask_local_gives_serial_heights(series, serial, tmp_path):
+    out = tmp_path / "dask.h5"
+    report = run_process(_job(series, out, dask="local:2", chunk_frames=3))
+    assert report.frames_written == N_FRAMES
+    par = _read(out)
+    _assert_same(serial, par)
+    assert par["attrs"]["chunks_redone"] == 1
+
+
+def test_dask_reruns_the_chunk_of_a_killed_worker(series, serial, tmp_path):
+    """A worker process is SIGKILLed while it computes a chunk: Dask's nanny
+    restarts it, the scheduler gives the chunk to a worker again, and the
+    output is complete and identical to the serial run."""
+    from distributed import Client, LocalCluster
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+                      silence_logs=logging.ERROR) as cluster, Client(cluster) as client:
+        pids = client.run(os.getpid)  # {worker address: pid}
+        killed = {}
+
+        def kill_a_busy_worker(done, total):
+            if killed or done < 1:
+                return
+            deadline = time.monotonic() + 30.0
+            while time.monotonic() < deadline:
+                for address, keys in client.processing().items():
+                    busy = [str(k) for k in keys if str(k).startswith("tirdeflect-")]
+                    if busy:
+                        killed.update(pid=pids[address], keys=busy)
+                        os.kill(pids[address], signal.SIGKILL)
+                        return
+                time.sleep(0.005)
+            raise AssertionError("no worker was computing a chunk within 30 s")
+
+        out = tmp_path / "killed.h5"
+        report = run_process(_job(series, out, dask=cluster.scheduler_address, chunk_frames=2,
+                                  on_progress=kill_a_busy_worker))
+        assert killed, "the run ended before a worker could be killed"
+        assert report.frames_written == N_FRAMES
+        _assert_same(serial, _read(out))
+        # the killed process is gone, the nanny started a new one
+        client.wait_for_workers(2, timeout=60)
+        assert killed["pid"] not in client.run(os.getpid).values()
+        # the scheduler lost the killed chunk with its worker and computed it again
+        for key in killed["keys"]:
+            moves = [(t[2], t[3]) for t in client.story(key) if t[0] == "scheduler" and t[1] == key]
+            lost = moves.index(("processing", "released"))
+            assert ("processing", "memory") in moves[lost:], moves
