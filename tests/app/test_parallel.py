@@ -151,6 +151,51 @@ def test_workers_from_the_cli_with_a_frame_selection(series, tmp_path, capsys):
     assert np.nanmax(np.abs(outs["1"]["height"] - outs["2"]["height"])) <= REL_TOL * scale
 
 
+def test_a_killed_worker_process_is_replaced(series, serial, tmp_path, caplog):
+    """SIGKILL one of the pool's processes after the first frame is written
+    (chunks still to compute): new workers take the chunks in flight and the
+    output is still complete and serial's."""
+    psutil = pytest.importorskip("psutil", reason="finding the worker processes needs psutil")
+    killed = []
+
+    def kill_a_worker(done, total):
+        if killed or done < 1:
+            return
+        workers = [p for p in psutil.Process().children() if "spawn_main" in " ".join(p.cmdline())]
+        assert workers, "no worker process found"
+        killed.append(workers[0].pid)
+        os.kill(workers[0].pid, signal.SIGKILL)
+
+    out = tmp_path / "killed.h5"
+    with caplog.at_level("WARNING", logger="app.batch.parallel"):
+        report = run_process(_job(series, out, workers=2, chunk_frames=2, on_progress=kill_a_worker))
+    assert killed and report.frames_written == N_FRAMES
+    assert any("worker process died" in r.getMessage() for r in caplog.records)
+    _assert_same(serial, _read(out))
+
+
+def test_bad_parallel_options_are_one_line_errors(series, tmp_path):
+    import subprocess
+    import sys
+
+    d, frames = series
+    root = Path(__file__).resolve().parents[2]
+    base = [sys.executable, "-m", "app.cli", "process", str(d / "reference.png"), *frames[:4],
+            "--geometry", str(d / "geometry.toml")]
+    cases = [(["--workers", "2", "--dask", "local:2"], "exclude each other"),
+             (["--dask", "local:zero"], "--dask 'local:zero'"),
+             (["--workers", "0"], "must be >= 1")]
+    if distributed is not None:
+        cases.append((["--dask", "nonsense"], "not a scheduler address"))
+    for k, (extra, expected) in enumerate(cases):
+        out = tmp_path / f"bad{k}.h5"
+        proc = subprocess.run(base + ["--out", str(out), *extra], cwd=root, capture_output=True,
+                              text=True, timeout=120)
+        assert proc.returncode == 2, proc.stderr
+        assert expected in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
+        assert not out.exists()  # nothing half-made left behind
+
+
 def test_chunks_fit_the_memory_budget():
     chunks = parallel.plan_chunks(10_000, first=0, step=1, paths=("rec.h5",), workers=16,
                                   frame_bytes=1024 * 1024 * 13)
@@ -162,9 +207,15 @@ def test_chunks_fit_the_memory_budget():
 
 # ----------------------------------------------------------------- Dask
 
-distributed = pytest.importorskip("distributed", reason="Dask tests need pip install 'dask[distributed]'")
+try:
+    import distributed  # noqa: F401
+except ImportError:
+    distributed = None
+needs_dask = pytest.mark.skipif(distributed is None,
+                                reason="Dask tests need pip install 'tirdeflect[dask]' (dask[distributed])")
 
 
+@needs_dask
 def test_dask_local_gives_serial_heights(series, serial, tmp_path):
     out = tmp_path / "dask.h5"
     report = run_process(_job(series, out, dask="local:2", chunk_frames=3))
@@ -174,6 +225,7 @@ def test_dask_local_gives_serial_heights(series, serial, tmp_path):
     assert par["attrs"]["chunks_redone"] == 1
 
 
+@needs_dask
 def test_dask_reruns_the_chunk_of_a_killed_worker(series, serial, tmp_path):
     """A worker process is SIGKILLed while it computes a chunk: Dask's nanny
     restarts it, the scheduler gives the chunk to a worker again, and the
