@@ -190,6 +190,16 @@ def _tasks_per_process() -> int:
         return 1
 
 
+def _in_dask() -> bool:
+    try:
+        from distributed import get_worker
+
+        get_worker()
+        return True
+    except (ImportError, ValueError):
+        return False
+
+
 def _slim(result):
     """The fields the output stores (plus the small decimated ones): the full-size
     displacement and amplitude would double what travels between processes."""
@@ -287,6 +297,11 @@ def process_chunk(spec: ReconstructorSpec, chunk: Chunk) -> ChunkOutcome:
                 result = exc
             out.append((dataclasses.replace(item, image=None), result))
     except TirdeflectError as exc:  # reading failed: frames before it stand
+        if _in_dask():
+            import socket
+
+            exc = type(exc)(f"{exc} (read on {socket.gethostname()}; workers that do not see the "
+                            f"input files at this path need --dask-send-frames, docs/cluster.md)")
         out.append((None, exc))
     if spec.effort == "measure" and not getattr(recon, "_wisdom_stored", False):
         from app.files import cache

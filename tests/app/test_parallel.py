@@ -216,9 +216,10 @@ needs_dask = pytest.mark.skipif(distributed is None,
 
 
 @needs_dask
-def test_dask_local_gives_serial_heights(series, serial, tmp_path):
+@pytest.mark.parametrize("send_frames", [False, True], ids=["shared-files", "frames-sent"])
+def test_dask_local_gives_serial_heights(series, serial, tmp_path, send_frames):
     out = tmp_path / "dask.h5"
-    report = run_process(_job(series, out, dask="local:2", chunk_frames=3))
+    report = run_process(_job(series, out, dask="local:2", chunk_frames=3, send_frames=send_frames))
     assert report.frames_written == N_FRAMES
     par = _read(out)
     _assert_same(serial, par)
