@@ -300,9 +300,11 @@ def _pool():
     return _POOL
 
 
-def _run_pair(shape, job_a, job_b):
-    """Run two full-size jobs (numpy/cv2 release the GIL), in parallel on large frames."""
-    if shape[0] * shape[1] < 600_000:
+def _run_pair(shape, job_a, job_b, threads=2):
+    """Run two full-size jobs (numpy/cv2 release the GIL), in parallel on large frames
+    when ``threads`` > 1 (one thread: a worker of a parallel batch run, whose
+    cores are taken by the other workers)."""
+    if shape[0] * shape[1] < 600_000 or threads < 2:
         job_a()
         job_b()
         return
@@ -311,7 +313,7 @@ def _run_pair(shape, job_a, job_b):
     other.result()
 
 
-def _resize_all(up, jobs):
+def _resize_all(up, jobs, threads=2):
     """``up(src, out=dst)`` for every (src, dst) pair, two at a time in threads
     (cv2 releases the GIL; measured at 1024^2: four Lanczos resizes 5.4 ms in
     turn, 2.8 ms two at a time; no gain at 512^2, so small frames stay in turn)."""
@@ -322,7 +324,7 @@ def _resize_all(up, jobs):
     if len(jobs) < 2:
         run(jobs)
         return
-    _run_pair(jobs[0][1].shape, lambda: run(jobs[0::2]), lambda: run(jobs[1::2]))
+    _run_pair(jobs[0][1].shape, lambda: run(jobs[0::2]), lambda: run(jobs[1::2]), threads)
 
 
 def _nearest_fill_index(valid):
@@ -873,7 +875,7 @@ class Reconstructor:
             if relative is not None:
                 map_c = np.empty(self.shape, np.float32)
                 map_r = np.empty(self.shape, np.float32)
-                _resize_all(self._up, [(-uf[1], map_c), (-uf[0], map_r)])
+                _resize_all(self._up, [(-uf[1], map_c), (-uf[0], map_r)], self.planner.threads)
                 flags = self.warp_interpolation | relative
             else:
                 rows, cols = self.shape
@@ -1183,7 +1185,7 @@ class Reconstructor:
             slope_x = np.empty(self.shape, np.float32)
             slope_y = np.empty(self.shape, np.float32)
             jobs += [(src(res.slope_x), slope_x), (src(res.slope_y), slope_y)]
-        _resize_all(up, jobs)
+        _resize_all(up, jobs, self.planner.threads)
         if derive:
             srcs = (disp[0], disp[1], height)
             slope_x = np.empty(self.shape, np.float32)
@@ -1202,7 +1204,8 @@ class Reconstructor:
                 if first:
                     out.fill(0.0)
 
-            _run_pair(self.shape, lambda: combine(coef[0], slope_x), lambda: combine(coef[1], slope_y))
+            _run_pair(self.shape, lambda: combine(coef[0], slope_x), lambda: combine(coef[1], slope_y),
+                      self.planner.threads)
         if invalid is not None:
             for a in (disp, height, slope_x, slope_y):
                 np.copyto(a, np.float32(np.nan), where=invalid)
