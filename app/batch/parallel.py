@@ -514,6 +514,14 @@ def _frame_bytes(reconstruct, grid: str) -> int:
     return rows * cols * (3 * 4 + 1)
 
 
+def _ignore_interrupt():
+    """Ctrl-C at the terminal reaches the workers too: the run's own process
+    handles it (stops, keeps what was written, shuts the pool down)."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 class _Pool:
     """``workers`` spawned processes (a fresh interpreter each: safe from a Qt GUI
     or a threaded program, where fork is not); :meth:`restart` replaces a pool
@@ -527,7 +535,8 @@ class _Pool:
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
-        return ProcessPoolExecutor(max_workers=self.workers, mp_context=multiprocessing.get_context("spawn"))
+        return ProcessPoolExecutor(max_workers=self.workers, mp_context=multiprocessing.get_context("spawn"),
+                                   initializer=_ignore_interrupt)
 
     def submit(self, fn, *args):
         from concurrent.futures import Future
@@ -606,6 +615,9 @@ def frame_results(job, reconstruct, reference, geometry, effort: str, selected: 
     """
     workers = getattr(job, "workers", None)
     dask_address = getattr(job, "dask", None)
+    if job.send_frames and not dask_address:
+        raise TirdeflectError("--dask-send-frames is for Dask workers without the input files; "
+                              "add --dask ADDRESS, or leave it out")
     if dask_address:
         if workers is not None:
             raise TirdeflectError("--workers and --dask exclude each other: a Dask cluster has "

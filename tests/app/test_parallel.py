@@ -181,6 +181,67 @@ def test_a_killed_worker_process_is_replaced(series, serial, tmp_path, caplog):
     _assert_same(serial, _read(out))
 
 
+def test_ctrl_c_stops_workers_and_keeps_written_frames(series, tmp_path):
+    """Ctrl-C at the terminal (SIGINT to the whole process group) during a
+    --workers 2 run: exit status 130, the frames written are in the file,
+    no worker process and no shared-memory block is left behind."""
+    import re
+    import subprocess
+    import sys
+    import threading
+
+    psutil = pytest.importorskip("psutil", reason="finding the worker processes needs psutil")
+    d, frames = series
+    root = Path(__file__).resolve().parents[2]
+    out = tmp_path / "out.h5"
+    shm_before = set(os.listdir("/dev/shm")) if os.path.isdir("/dev/shm") else set()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "app.cli", "--debug", "process", str(d / "reference.png"),
+         *(frames * 4), "--geometry", str(d / "geometry.toml"), "--out", str(out),
+         "--workers", "2", "--chunk-frames", "2", "--no-progress"],
+        cwd=root, stderr=subprocess.PIPE, text=True, start_new_session=True,
+        # as at a terminal (a test runner started in the background ignores SIGINT, and
+        # its children would inherit that)
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    watchdog = threading.Timer(120.0, proc.kill)
+    watchdog.start()
+    done = 0
+    workers = []
+    try:
+        for line in proc.stderr:
+            if re.search(r"frame \d+ .* written", line):
+                done += 1
+                if done == 3:
+                    workers = [c.pid for c in psutil.Process(proc.pid).children()
+                               if "spawn_main" in " ".join(c.cmdline())]
+                    os.killpg(proc.pid, signal.SIGINT)
+                    break
+        rest = proc.stderr.read()
+        code = proc.wait(timeout=60)
+    finally:
+        watchdog.cancel()
+        if proc.poll() is None:
+            proc.kill()
+        proc.stderr.close()
+    assert done == 3 and workers, "the run ended before three frames were written"
+    assert code == 130, rest
+    assert "Traceback" not in rest and rest.strip().endswith("tirdeflect: interrupted"), rest
+    with h5py.File(out) as f:
+        n = int(f.attrs["frames_done"])
+        assert 3 <= n < 4 * N_FRAMES
+        assert f.attrs["status"].startswith("interrupted")
+        assert np.isfinite(f["height"][:n]).mean() > 0.8
+    deadline = time.monotonic() + 10
+    while any(psutil.pid_exists(p) and psutil.Process(p).status() != psutil.STATUS_ZOMBIE
+              for p in workers) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not any(psutil.pid_exists(p) and psutil.Process(p).status() != psutil.STATUS_ZOMBIE
+                   for p in workers), "worker processes outlived the run"
+    if os.path.isdir("/dev/shm"):
+        left = {n for n in set(os.listdir("/dev/shm")) - shm_before if n.startswith("psm_")}
+        assert not left, f"shared-memory blocks left behind: {left}"
+
+
 def test_bad_parallel_options_are_one_line_errors(series, tmp_path):
     import subprocess
     import sys
@@ -191,7 +252,8 @@ def test_bad_parallel_options_are_one_line_errors(series, tmp_path):
             "--geometry", str(d / "geometry.toml")]
     cases = [(["--workers", "2", "--dask", "local:2"], "exclude each other"),
              (["--dask", "local:zero"], "--dask 'local:zero'"),
-             (["--workers", "0"], "must be >= 1")]
+             (["--workers", "0"], "must be >= 1"),
+             (["--dask-send-frames"], "add --dask ADDRESS")]
     if distributed is not None:
         cases.append((["--dask", "nonsense"], "not a scheduler address"))
     for k, (extra, expected) in enumerate(cases):
