@@ -41,7 +41,7 @@ import numpy as np
 
 from .carriers import Carriers, check_pattern_match, display_spectrum, find_carriers, match_error, theta_from_carriers
 from .demodulation import Demodulator
-from .errors import AllInvalidError, ShapeMismatchError
+from .errors import AllInvalidError, ShapeMismatchError, TirdeflectError
 from .fft import FFTPlanner
 from .geometry import DEFAULT_REFERENCE_BAND, default_reference_region_mask
 from .height import PIN_FALLBACKS, PIN_MIN_PIECE_SAMPLES, PinStatus
@@ -430,6 +430,11 @@ class Reconstructor:
         2.90 % -> 1.11 %, a bump of 1.25 periods 1.41 % -> 0.40 %, worse on a
         sharp board (0.39 % -> 0.76 %); 11-13x the cost of "fd", so not
         the batch default.
+    device : {"cpu", "cuda"}, optional
+        "cuda": the chain runs on the GPU through CuPy, batched by
+        :meth:`batch` (processing/gpu.py says which frames and steps stay on
+        the CPU); checkerboards only; TirdeflectError when CuPy or a GPU is missing.  UNCHECKED ON GPU
+        HARDWARE so far (benchmarks/gpu_check.py).
 
     Attributes
     ----------
@@ -457,13 +462,20 @@ class Reconstructor:
                  dilate: int = 1, min_island: float = 0.01, check_pattern: bool = True, solver: str = "auto", threads: int = 2,
                  planner_effort: str = "FFTW_ESTIMATE", carriers: Optional[Carriers] = None,
                  pin_fallback: str = "nearest", refine_method: str = "fd", image_iterations: int = 3,
-                 pattern: Optional[str] = None, window_px: int = 16):
+                 pattern: Optional[str] = None, window_px: int = 16, device: str = "cpu"):
         ref = self._validate_image(reference_image, "reference image")
         if pattern is None:
             pattern = getattr(geometry, "pattern", "checkerboard")
         if pattern not in PATTERNS:
             raise ValueError(f"pattern must be one of {PATTERNS}; got {pattern!r}")
         self.pattern = pattern
+        if device not in ("cpu", "cuda"):
+            raise ValueError(f"device must be 'cpu' or 'cuda'; got {device!r}")
+        self.device = device
+        self._gpu = None
+        if device == "cuda" and pattern != "checkerboard":
+            raise TirdeflectError("device='cuda' reads checkerboards only (Fourier demodulation); "
+                                  "use device='cpu' for a dot pattern")
         if pattern == "dots":
             self.min_island = float(min_island)
             self._init_dots(ref, geometry, grid, window_px, solver, pin_fallback)
@@ -541,6 +553,13 @@ class Reconstructor:
         self._ref_idx = np.flatnonzero(self._ref_mask)
         self._height_solver = None
         self.reset_series()
+        if device == "cuda":
+            from .gpu import BatchChain, cupy_or_reason
+
+            cupy, why = cupy_or_reason()
+            if cupy is None:
+                raise TirdeflectError(f"device='cuda' is not available: {why}; use device='cpu'")
+            self._gpu = BatchChain(self, cupy)
 
     # ------------------------------------------------------------ dots (PIV)
     def _init_dots(self, ref, geometry, grid, window_px, solver, pin_fallback):
@@ -944,6 +963,15 @@ class Reconstructor:
         return res
 
     # ---------------------------------------------------------------- call
+    def batch(self, frames, *, grid: Optional[str] = None) -> list:
+        """Results of several consecutive frames of the series, in order; with
+        ``device="cuda"`` they go through the GPU together (processing/gpu.py)."""
+        grid = self.grid if grid is None else grid
+        self._check_grid(grid)
+        if self._gpu is not None:
+            return self._gpu(list(frames), grid)
+        return [self._call_cpu(f, grid=grid) for f in frames]
+
     def __call__(self, frame, *, grid: Optional[str] = None) -> Result:
         """Reconstruct one frame.
 
@@ -965,6 +993,12 @@ class Reconstructor:
             The frame shows no pattern at all (uniform, black, noise): the
             pattern check found no carrier, neither compact nor smeared.
         """
+        if self._gpu is not None:
+            return self.batch([frame], grid=grid)[0]
+        return self._call_cpu(frame, grid=grid)
+
+    def _call_cpu(self, frame, *, grid: Optional[str] = None) -> Result:
+        """:meth:`__call__` on the CPU (also the GPU chain's path for what it leaves to the CPU)."""
         t0 = time.perf_counter()
         frame = self._validate_frame(frame)
         grid = self.grid if grid is None else grid

@@ -1,0 +1,386 @@
+"""The Reconstructor's chain on a GPU (CuPy), batched over frames.
+
+:class:`BatchChain` runs, for a batch of frames at once and with the
+constants of one :class:`~processing.reconstruct.Reconstructor`: apodization,
+the real FFT of each frame, both carrier windows and their small inverse
+FFTs (decimated grid), phase, amplitude ratio and mask, temporal unwrapping
+(a cumulative sum of the wrapped changes over the batch, with the reference
+region kept nearest 0 as the CPU path does), displacement, the fold test,
+the bias-removal iteration (Lanczos upsampling of ``u`` as two matrix
+products with cv2's INTER_LANCZOS4 weights, bilinear warp of the smooth
+reference with cv2.remap's reflecting border, its FFT and windows), the
+spectral height solve (as matrix products) and the full grid (Lanczos again,
+slopes as the linear map of u and h). Written against an array module
+``xp``: CuPy on the GPU; NumPy runs the very same code on the CPU, which is
+how it is tested where there is no GPU (tests/processing/test_gpu.py).
+
+What stays on the CPU, frame by frame, through the Reconstructor itself:
+
+- the first frame of a series (spatial unwrapping; 2 x m^2 samples go to
+  the CPU and back);
+- any frame with invalid samples (low contrast, folds) or whose change since
+  the previous frame has 2 pi jumps, and the rest of its batch: masks,
+  island removal, masked CG height solve and growing into newly valid
+  samples are sequential, irregular work that the CPU path does well;
+- geometries without uniform optics (a finite camera distance: no spectral
+  solver) and ``full_method="ifft"``: every frame;
+- the cheap pattern check (frames of one recording show the reference's
+  pattern; ``tirdeflect process`` checks the first frame on the CPU).
+
+UNCHECKED ON GPU HARDWARE: written without a GPU; the NumPy run of this code
+matches the CPU Reconstructor (tests), but CuPy itself and every speed claim
+wait for ``python3 benchmarks/gpu_check.py`` on a machine with a GPU.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from .unwrap import TWO_PI
+
+__all__ = ["BatchChain", "cupy_or_reason", "lanczos_matrix"]
+
+
+def cupy_or_reason():
+    """(cupy, None) when CuPy and a CUDA device are usable, else (None, why not)."""
+    try:
+        import cupy
+    except ImportError:
+        return None, "CuPy is not installed (pip install 'tirdeflect[gpu]')"
+    try:
+        n = cupy.cuda.runtime.getDeviceCount()
+    except Exception as exc:  # no driver, no device
+        return None, f"no usable CUDA device ({type(exc).__name__}: {exc})"
+    if n < 1:
+        return None, "no CUDA device found"
+    return cupy, None
+
+
+def lanczos_matrix(n_out: int, n_in: int) -> np.ndarray:
+    """(n_out, n_in) float32 matrix of cv2.resize's INTER_LANCZOS4 along one axis
+    (8 taps, pixel-centre mapping, replicated border): ``A @ f @ B.T`` is
+    ``cv2.resize(f, (n_cols_out, n_rows_out), interpolation=INTER_LANCZOS4)``
+    to float32 rounding (measured 2.5e-6 of the values at 171 -> 1024)."""
+    scale = n_in / n_out
+    A = np.zeros((n_out, n_in), np.float64)
+    s45 = 0.70710678118654752440084436210485
+    cs = ((1, 0), (-s45, -s45), (0, 1), (s45, -s45), (-1, 0), (s45, s45), (0, -1), (-s45, s45))
+    for d in range(n_out):
+        fx = np.float32((d + 0.5) * scale - 0.5)
+        sx = int(np.floor(fx))
+        x = np.float32(fx - sx)
+        y0 = -(x + 3) * np.pi * 0.25
+        s0, c0 = np.sin(y0), np.cos(y0)
+        co = np.empty(8, np.float32)
+        for i in range(8):
+            t = np.float32(x + 3 - i)
+            if abs(t) >= 1e-6:
+                y = -t * np.pi * 0.25
+                co[i] = np.float32((cs[i][0] * s0 + cs[i][1] * c0) / (y * y))
+            else:
+                co[i] = np.float32(1e30)
+        co *= np.float32(1.0 / co.sum(dtype=np.float32))
+        for i in range(8):
+            A[d, min(max(sx - 3 + i, 0), n_in - 1)] += co[i]
+    return A.astype(np.float32)
+
+
+def _wrap(xp, a):
+    return a - np.float32(TWO_PI) * xp.rint(a / np.float32(TWO_PI))
+
+
+class BatchChain:
+    """Batches of frames through one Reconstructor's chain on ``xp`` (see module doc).
+
+    Parameters
+    ----------
+    recon : Reconstructor
+        Constants (carriers, filters, masks, solver) and the series state.
+    xp : module
+        ``cupy`` (the GPU) or ``numpy`` (the same code on the CPU).
+    """
+
+    def __init__(self, recon, xp):
+        self.r = recon
+        self.xp = xp
+        d = recon.demod
+        self.reason = None
+        hs = recon._solver()
+        F = hs._fast
+        if F is None or recon.solver not in ("auto", "spectral"):
+            self.reason = "the geometry has no spectral height solver (finite camera distance)"
+        elif recon.full_method != "interpolate":
+            self.reason = "full_method='ifft'"
+        elif not recon._ref_ok_all:
+            self.reason = "the reference has blank parts (every frame is masked)"
+        if self.reason is not None:
+            return
+        to = xp.asarray
+        rows, cols = recon.shape
+        m_r, m_c = d.window_shape
+        self.window2d = None if d._window2d is None else to(d._window2d.astype(np.float32))
+        self.gather = to(d._gather_idx)
+        self.mirror = None if d._gather_mirror is None else to(d._gather_mirror)
+        self.filters = to(d._filter_stack)
+        self.dc_leak = None if d._dc_leak is None else to(d._dc_leak)
+        self.dec_scale = np.float32(m_r * m_c / (rows * cols))  # ifft2 of xp normalises by 1/(m_r m_c)
+        self.conj_g0 = to(recon._conj_g0)
+        self.g0_den = to(recon._g0_den)
+        self.local_inv = None if d._local_inv is None else to(d._local_inv)
+        self.global_inv = -np.linalg.inv(d.wavevectors).astype(np.float32)
+        self.ref_idx = to(recon._ref_idx)
+        self.spacing = (np.float32(recon.rows_px[1] - recon.rows_px[0]),
+                        np.float32(recon.cols_px[1] - recon.cols_px[0]))
+        self.up_r = to(lanczos_matrix(rows, m_r))
+        self.up_cT = to(np.ascontiguousarray(lanczos_matrix(cols, m_c).T))
+        # spectral height solve as matrix products, whatever the grid size
+        from .height import HeightSolver
+
+        def op(n, spacing):
+            m = np.zeros((n, n), np.float32)
+            HeightSolver._divT_cellavg(np.eye(n, dtype=np.float32), 0, spacing, m)
+            return m
+
+        def dct_matrix(n):
+            k = np.arange(n)[:, None]
+            c = np.sqrt(2.0 / n) * np.cos(np.pi * k * (2 * np.arange(n)[None, :] + 1) / (2 * n))
+            c[0] /= np.sqrt(2.0)
+            return c.astype(np.float32)
+
+        self.Mr = to(op(m_r, hs.grid.dr) * F["gr"].T)
+        self.McT = to(np.ascontiguousarray(op(m_c, hs.grid.dc).T))
+        cr, cc = dct_matrix(m_r), dct_matrix(m_c)
+        self.Cr, self.CrT, self.Cc, self.CcT = to(cr), to(np.ascontiguousarray(cr.T)), to(cc), to(
+            np.ascontiguousarray(cc.T))
+        self.F = {k: to(F[k]) for k in ("gc", "null", "w", "inv_denom")}
+        self.nn = float(F["nn"])
+        self.sx, self.sy_u, self.sy_h = float(F["sx"]), float(F["sy_u"]), float(F["sy_h"])
+        self.coef = hs.slope_coefficients()
+        self.smooth = None
+        self.static = None
+        self.rows_f = xp.arange(rows, dtype=xp.float32)[:, None]
+        self.cols_f = xp.arange(cols, dtype=xp.float32)[None, :]
+
+    # ------------------------------------------------------------ pieces
+    def _decimated(self, images):
+        """(B, rows, cols) float32 -> analytic signals (B, 2, m_r, m_c) complex64."""
+        xp = self.xp
+        B = images.shape[0]
+        means = images[:, ::4, ::4].astype(xp.float64).mean(axis=(1, 2))
+        if self.window2d is None:
+            prepared = images - means.astype(xp.float32)[:, None, None]
+            means = xp.zeros_like(means)
+        else:
+            prepared = images * self.window2d
+        spec = xp.fft.rfft2(prepared, axes=(-2, -1)).astype(xp.complex64)
+        wins = xp.take(spec.reshape(B, -1), self.gather.reshape(-1), axis=1).reshape((B,) + self.gather.shape)
+        if self.mirror is not None:
+            wins = xp.where(self.mirror, xp.conj(wins), wins)
+        wins = wins * self.filters
+        if self.dc_leak is not None:
+            wins = wins - means.astype(xp.complex64)[:, None, None, None] * self.dc_leak
+        g = xp.fft.ifft2(wins, axes=(-2, -1)).astype(xp.complex64)
+        return g * self.dec_scale
+
+    def _to_displacement(self, phase):
+        xp = self.xp
+        if self.local_inv is not None:
+            return (self.local_inv[None] * phase[:, None]).sum(axis=2).astype(xp.float32)
+        inv = self.global_inv
+        return xp.stack([inv[0, 0] * phase[:, 0] + inv[0, 1] * phase[:, 1],
+                         inv[1, 0] * phase[:, 0] + inv[1, 1] * phase[:, 1]], axis=1)
+
+    def _up(self, field):
+        """(..., m_r, m_c) -> (..., rows, cols): cv2's Lanczos4 resize as two products."""
+        return self.xp.matmul(self.xp.matmul(self.up_r, field), self.up_cT)
+
+    def _warp_smooth(self, u):
+        """The smooth reference sampled at r - u(r) (cv2.remap, bilinear, reflecting border), (B, rows, cols)."""
+        xp = self.xp
+        rows, cols = self.r.shape
+        if self.smooth is None:
+            self.smooth = xp.asarray(self.r._smooth_reference())
+        X = self.cols_f - self._up(u[:, 1])
+        Y = self.rows_f - self._up(u[:, 0])
+        ix = xp.floor(X)
+        iy = xp.floor(Y)
+        fx = (X - ix).astype(xp.float32)
+        fy = (Y - iy).astype(xp.float32)
+        ix = ix.astype(xp.int32)
+        iy = iy.astype(xp.int32)
+
+        def reflect(i, n):
+            i = xp.where(i < 0, -i - 1, i)
+            return xp.where(i >= n, 2 * n - i - 1, i)
+
+        x0, x1 = reflect(ix, cols), reflect(ix + 1, cols)
+        y0, y1 = reflect(iy, rows), reflect(iy + 1, rows)
+        s = self.smooth
+        top = (1 - fx) * s[y0, x0] + fx * s[y0, x1]
+        bottom = (1 - fx) * s[y1, x0] + fx * s[y1, x1]
+        return ((1 - fy) * top + fy * bottom).astype(xp.float32)
+
+    def _height(self, u):
+        """Spectral least-squares height of all-valid u (B, 2, m_r, m_c): (h, slope_x, slope_y)."""
+        xp = self.xp
+        F = self.F
+        ur, uc = u[:, 0], u[:, 1]
+        rhs = xp.matmul(self.Mr, ur) + xp.matmul(uc, self.McT) * F["gc"]
+        c = xp.matmul(xp.matmul(self.Cr, rhs), self.CcT) * F["inv_denom"]
+        f = xp.matmul(xp.matmul(self.CrT, c), self.Cc)
+        if self.nn > 0:
+            alpha = (F["w"] * f * F["null"]).sum(axis=(1, 2), dtype=xp.float64) / self.nn
+            f = f - alpha.astype(xp.float32)[:, None, None]
+        h = f * F["null"]
+        return h, uc * np.float32(self.sx), ur * np.float32(self.sy_u) - np.float32(self.sy_h) * h
+
+    # --------------------------------------------------------------- call
+    def __call__(self, frames, grid: str):
+        """Results of ``frames`` (a sequence of 2-D images) in order, continuing the series."""
+        r = self.r
+        if self.reason is not None:
+            return [r._call_cpu(f, grid=grid) for f in frames]
+        xp = self.xp
+        t0 = time.perf_counter()
+        images = xp.asarray(np.stack([r._validate_frame(f) for f in frames])).astype(xp.float32)
+        B = images.shape[0]
+        g = self._decimated(images)
+        wrapped = xp.angle(g * self.conj_g0).astype(xp.float32)
+        ratio = xp.abs(g) / self.g0_den
+        amplitude = xp.minimum(ratio[:, 0], ratio[:, 1])
+        all_valid = _host(xp, amplitude.reshape(B, -1).min(axis=1)) >= r.min_amplitude
+        pi = np.float32(np.pi)
+        # previous unwrapped phase: the series state, or frame 0 unwrapped in space on the CPU
+        first = 0
+        prev = None
+        if r.unwrap and r._prev_phase is not None and not r._prev_all_valid:
+            # the previous frame was masked: this one follows it on the CPU, then the rest here
+            return [r._call_cpu(frames[0], grid=grid)] + (self(frames[1:], grid) if B > 1 else [])
+        if not r.unwrap:
+            pass
+        elif r.temporal and r._prev_phase is not None:
+            prev = xp.asarray(r._prev_phase.astype(np.float32))
+        elif bool(all_valid[0]):
+            w0 = _host(xp, wrapped[0])
+            prev = None
+            start = r._unwrap(w0, np.ones(w0.shape[1:], bool), True) if r.unwrap else w0
+            start = xp.asarray(np.asarray(start, np.float32))
+            first = 1
+        else:
+            return [r._call_cpu(f, grid=grid) for f in frames]
+        if not r.unwrap:
+            phase = wrapped
+            ok_upto = B
+        else:
+            # wrapped changes frame to frame; each frame's neighbour-jump test as on the CPU
+            before = prev[None] if prev is not None else start[None]
+            seq = wrapped[first:]
+            prior = xp.concatenate([before, seq[:-1]], axis=0) if seq.shape[0] else before[:0]
+            delta = _wrap(xp, seq - prior)
+            jumps = xp.maximum(xp.abs(xp.diff(delta, axis=2)).reshape(delta.shape[0], -1).max(axis=1),
+                               xp.abs(xp.diff(delta, axis=3)).reshape(delta.shape[0], -1).max(axis=1))
+            jumps = _host(xp, jumps) > np.pi if delta.shape[0] else np.zeros(0, bool)
+            summed = before + xp.cumsum(delta, axis=0)
+            # snapped to the wrapped phase + 2 pi k (no drift from the sum)
+            snapped = seq + np.float32(TWO_PI) * xp.rint((summed - seq) / np.float32(TWO_PI))
+            phase = xp.concatenate([start[None], snapped], axis=0) if first else snapped
+            # reference region nearest 0, sequentially as each frame follows the shifted one
+            if r._ref_idx.size:
+                vals = phase.reshape(B, 2, -1)[:, :, self.ref_idx]
+                lo, hi = _host(xp, vals.min(axis=2)), _host(xp, vals.max(axis=2))
+                med = _host(xp, xp.median(vals, axis=2))
+                J = np.zeros((B, 2))
+                shift = np.zeros(2)
+                for n in range(first, B):
+                    for s in range(2):
+                        if not (lo[n, s] - TWO_PI * shift[s] > -np.pi and hi[n, s] - TWO_PI * shift[s] < np.pi):
+                            shift[s] += np.round((med[n, s] - TWO_PI * shift[s]) / TWO_PI)
+                    J[n] = shift
+                phase = phase - xp.asarray((TWO_PI * J).astype(np.float32))[:, :, None, None]
+            ok = np.ones(B, bool)
+            ok[first:] &= ~jumps
+            ok &= all_valid
+            ok_upto = int(np.argmin(ok)) if not ok.all() else B
+        u = self._to_displacement(phase)
+        # fold test: det(I - grad u) > min_fold everywhere (the CPU's bound first)
+        dr, dc = self.spacing
+        t = xp.maximum(xp.abs(xp.diff(u, axis=2)).reshape(B, -1).max(axis=1) / dr,
+                       xp.abs(xp.diff(u, axis=3)).reshape(B, -1).max(axis=1) / dc)
+        need = _host(xp, 1.0 - 2.0 * t) <= r.min_fold + 1e-6
+        if need.any():
+            dur_dr, dur_dc = xp.gradient(u[:, 0], float(dr), float(dc), axis=(1, 2))
+            duc_dr, duc_dc = xp.gradient(u[:, 1], float(dr), float(dc), axis=(1, 2))
+            det = (1.0 - dur_dr) * (1.0 - duc_dc) - dur_dc * duc_dr
+            folded = _host(xp, det.reshape(B, -1).min(axis=1)) <= r.min_fold
+            bad = np.flatnonzero(need & folded)
+            if bad.size:
+                ok_upto = min(ok_upto, int(bad[0]))
+        if ok_upto == 0:
+            return [r._call_cpu(f, grid=grid) for f in frames]
+        n = ok_upto
+        phase, u, g, amplitude = phase[:n], u[:n], g[:n], amplitude[:n]
+        iterations = r.refine_iterations
+        if iterations is None:
+            iterations = {"decimated": 0, "full": 1}[grid]
+        if iterations > 0 and self.static is None:
+            d = r.demod
+            self.static = xp.asarray(np.angle(d.g0 * np.conj(d.decimated(r._smooth_reference())))
+                                     .astype(np.float32))
+        for _ in range(iterations):
+            gw = self._decimated(self._warp_smooth(u))
+            dphi = _wrap(xp, xp.angle(g * xp.conj(gw)).astype(xp.float32) - self.static)
+            u = u + self._to_displacement(dphi)
+        h, sx, sy = self._height(u)
+        # the series goes on from the last frame done here
+        if r.temporal:
+            r._prev_phase = _host(xp, phase[n - 1]).astype(np.float32)
+            r._prev_valid = np.ones(phase.shape[2:], bool)
+            r._prev_all_valid = True
+        results = self._results(grid, u, h, sx, sy, amplitude, phase, n, 1e3 * (time.perf_counter() - t0))
+        return results + [r._call_cpu(f, grid=grid) for f in frames[n:]]
+
+    def _results(self, grid, u, h, sx, sy, amplitude, phase, n, ms):
+        from .reconstruct import Result
+
+        xp = self.xp
+        r = self.r
+        hs = r._solver()
+        timings = {"total": ms / max(n, 1), "batch": ms}
+        valid_dec = np.ones(phase.shape[2:], bool)
+        if grid == "full":
+            rows, cols = r.shape
+            disp = self._up(u)
+            height = self._up(h)
+            amp = self._up(amplitude)
+            c = self.coef
+            srcs = (disp[:, 0], disp[:, 1], height)
+            slopes = []
+            for row in c:
+                acc = xp.zeros_like(height)
+                for k, src in zip(row, srcs):
+                    if k != 0.0:
+                        acc = acc + np.float32(k) * src
+                slopes.append(acc)
+            x_mm, y_mm = r._coords_full(None)
+            fields = dict(height=height, slope_x=slopes[0], slope_y=slopes[1], displacement=disp,
+                          amplitude=amp)
+            extra = dict(x_mm=x_mm, y_mm=y_mm, grid="full", rows_px=np.arange(rows, dtype=float),
+                         cols_px=np.arange(cols, dtype=float))
+            valid = np.ones(r.shape, bool)
+        else:
+            fields = dict(height=h, slope_x=sx, slope_y=sy, displacement=u, amplitude=amplitude)
+            extra = dict(x_mm=np.asarray(hs.x_mm), y_mm=np.asarray(hs.y_mm), grid="decimated",
+                         rows_px=r.rows_px, cols_px=r.cols_px)
+            valid = valid_dec
+        host = {k: _host(xp, v).astype(np.float32) for k, v in fields.items()}
+        ph = _host(xp, phase).astype(np.float32)
+        return [Result(valid=valid.copy(), carriers=r.carriers, phase=ph[k], valid_fraction=1.0,
+                       timings_ms=dict(timings), **{key: v[k] for key, v in host.items()}, **extra)
+                for k in range(n)]
+
+
+def _host(xp, a):
+    return xp.asnumpy(a) if hasattr(xp, "asnumpy") else np.asarray(a)
+
