@@ -237,9 +237,11 @@ class BatchChain:
         return h, uc * np.float32(self.sx), ur * np.float32(self.sy_u) - np.float32(self.sy_h) * h
 
     # --------------------------------------------------------------- call
-    def __call__(self, frames, grid: str):
+    def __call__(self, frames, grid: str, essentials: bool = False):
         """Results of ``frames`` (a sequence of 2-D images) in order, continuing the series."""
         r = self.r
+        if not len(frames):
+            return []
         if self.reason is not None:
             return [r._call_cpu(f, grid=grid) for f in frames]
         xp = self.xp
@@ -257,7 +259,7 @@ class BatchChain:
         prev = None
         if r.unwrap and r._prev_phase is not None and not r._prev_all_valid:
             # the previous frame was masked: this one follows it on the CPU, then the rest here
-            return [r._call_cpu(frames[0], grid=grid)] + (self(frames[1:], grid) if B > 1 else [])
+            return [r._call_cpu(frames[0], grid=grid)] + (self(frames[1:], grid, essentials) if B > 1 else [])
         if not r.unwrap:
             pass
         elif r.temporal and r._prev_phase is not None:
@@ -277,15 +279,19 @@ class BatchChain:
             # wrapped changes frame to frame; each frame's neighbour-jump test as on the CPU
             before = prev[None] if prev is not None else start[None]
             seq = wrapped[first:]
-            prior = xp.concatenate([before, seq[:-1]], axis=0) if seq.shape[0] else before[:0]
-            delta = _wrap(xp, seq - prior)
-            jumps = xp.maximum(xp.abs(xp.diff(delta, axis=2)).reshape(delta.shape[0], -1).max(axis=1),
-                               xp.abs(xp.diff(delta, axis=3)).reshape(delta.shape[0], -1).max(axis=1))
-            jumps = _host(xp, jumps) > np.pi if delta.shape[0] else np.zeros(0, bool)
-            summed = before + xp.cumsum(delta, axis=0)
-            # snapped to the wrapped phase + 2 pi k (no drift from the sum)
-            snapped = seq + np.float32(TWO_PI) * xp.rint((summed - seq) / np.float32(TWO_PI))
-            phase = xp.concatenate([start[None], snapped], axis=0) if first else snapped
+            if seq.shape[0]:
+                prior = xp.concatenate([before, seq[:-1]], axis=0)
+                delta = _wrap(xp, seq - prior)
+                jumps = xp.maximum(xp.abs(xp.diff(delta, axis=2)).reshape(delta.shape[0], -1).max(axis=1),
+                                   xp.abs(xp.diff(delta, axis=3)).reshape(delta.shape[0], -1).max(axis=1))
+                jumps = _host(xp, jumps) > np.pi
+                summed = before + xp.cumsum(delta, axis=0)
+                # snapped to the wrapped phase + 2 pi k (no drift from the sum)
+                snapped = seq + np.float32(TWO_PI) * xp.rint((summed - seq) / np.float32(TWO_PI))
+                phase = xp.concatenate([start[None], snapped], axis=0) if first else snapped
+            else:  # one frame, unwrapped in space
+                jumps = np.zeros(0, bool)
+                phase = start[None]
             # reference region nearest 0, sequentially as each frame follows the shifted one
             if r._ref_idx.size:
                 vals = phase.reshape(B, 2, -1)[:, :, self.ref_idx]
@@ -338,10 +344,11 @@ class BatchChain:
             r._prev_phase = _host(xp, phase[n - 1]).astype(np.float32)
             r._prev_valid = np.ones(phase.shape[2:], bool)
             r._prev_all_valid = True
-        results = self._results(grid, u, h, sx, sy, amplitude, phase, n, 1e3 * (time.perf_counter() - t0))
+        results = self._results(grid, u, h, sx, sy, amplitude, phase, n, 1e3 * (time.perf_counter() - t0),
+                                essentials)
         return results + [r._call_cpu(f, grid=grid) for f in frames[n:]]
 
-    def _results(self, grid, u, h, sx, sy, amplitude, phase, n, ms):
+    def _results(self, grid, u, h, sx, sy, amplitude, phase, n, ms, essentials=False):
         from .reconstruct import Result
 
         xp = self.xp
@@ -353,7 +360,7 @@ class BatchChain:
             rows, cols = r.shape
             disp = self._up(u)
             height = self._up(h)
-            amp = self._up(amplitude)
+            amp = None if essentials else self._up(amplitude)
             c = self.coef
             srcs = (disp[:, 0], disp[:, 1], height)
             slopes = []
@@ -374,10 +381,13 @@ class BatchChain:
             extra = dict(x_mm=np.asarray(hs.x_mm), y_mm=np.asarray(hs.y_mm), grid="decimated",
                          rows_px=r.rows_px, cols_px=r.cols_px)
             valid = valid_dec
-        host = {k: _host(xp, v).astype(np.float32) for k, v in fields.items()}
+        if essentials:
+            fields["displacement"] = fields["amplitude"] = None
+        host = {k: (None if v is None else _host(xp, v).astype(np.float32)) for k, v in fields.items()}
         ph = _host(xp, phase).astype(np.float32)
         return [Result(valid=valid.copy(), carriers=r.carriers, phase=ph[k], valid_fraction=1.0,
-                       timings_ms=dict(timings), **{key: v[k] for key, v in host.items()}, **extra)
+                       timings_ms=dict(timings), **{key: None if v is None else v[k] for key, v in host.items()},
+                       **extra)
                 for k in range(n)]
 
 

@@ -963,13 +963,18 @@ class Reconstructor:
         return res
 
     # ---------------------------------------------------------------- call
-    def batch(self, frames, *, grid: Optional[str] = None) -> list:
+    def batch(self, frames, *, grid: Optional[str] = None, essentials: bool = False) -> list:
         """Results of several consecutive frames of the series, in order; with
-        ``device="cuda"`` they go through the GPU together (processing/gpu.py)."""
+        ``device="cuda"`` they go through the GPU together (processing/gpu.py).
+
+        ``essentials``: frames done on the GPU come back with height, slopes and
+        valid only (``displacement`` and ``amplitude`` None): half the copying
+        from the device on the full grid, all that a batch output stores.
+        """
         grid = self.grid if grid is None else grid
         self._check_grid(grid)
         if self._gpu is not None:
-            return self._gpu(list(frames), grid)
+            return self._gpu(list(frames), grid, essentials=essentials)
         return [self._call_cpu(f, grid=grid) for f in frames]
 
     def __call__(self, frame, *, grid: Optional[str] = None) -> Result:

@@ -62,6 +62,9 @@ MEMORY_BUDGET_BYTES = 1 << 30
 #: MIN_CHUNK_FRAMES frames (each chunk costs one extra decimated frame).
 CHUNKS_PER_WORKER = 4
 
+#: Frames sent to the GPU at once with --device cuda (the issue's prototype: 32 frames of 1024^2).
+GPU_BATCH = 32
+
 #: Times a run replaces its worker processes after one died.
 MAX_POOL_RESTARTS = 2
 
@@ -385,6 +388,74 @@ class _Serial:
         self._frames.close()
 
 
+class _GpuBatches:
+    """One Reconstructor with ``device="cuda"`` here: frames read and sent to the GPU
+    ``GPU_BATCH`` at a time (processing/gpu.py), results handed on in order."""
+
+    def __init__(self, job, reconstruct, reference):
+        from app.batch.engine import _process_one
+
+        self.attrs = {"device": "cuda", "gpu_batch": GPU_BATCH}
+        self._recon = reconstruct
+        self._shape = tuple(reference.shape)
+        self._grid = job.grid
+        self._one = functools.partial(_process_one, reconstruct, ref_shape=reference.shape, grid=job.grid)
+        self._frames = imageio.iter_frames(job.frames, first=job.first, last=job.last, step=job.step)
+        self._ready = collections.deque()
+        self._read_error = None
+
+    def __iter__(self):
+        return self
+
+    def _batch(self):
+        items = []
+        while len(items) < GPU_BATCH:
+            try:
+                item = next(self._frames)
+            except StopIteration:
+                break
+            except TirdeflectError as exc:  # frames before it are processed first
+                self._read_error = exc
+                break
+            items.append(item)
+            if item.image.shape != self._shape:
+                break  # this one fails on its own below
+        if not items:
+            return
+        state = self._recon.series_state()
+        try:
+            if any(it.image.shape != self._shape for it in items):
+                raise TirdeflectError("shape")
+            results = self._recon.batch([it.image for it in items], grid=self._grid, essentials=True)
+            if any(not np.asarray(r.valid).any() for r in results):
+                raise TirdeflectError("all invalid")
+        except TirdeflectError:
+            # one frame at a time from the batch's start: each frame's own outcome
+            self._recon.restore_series(state)
+            for it in items:
+                try:
+                    self._ready.append((it, functools.partial(_outcome, self._one(item=it))))
+                except TirdeflectError as exc:
+                    self._ready.append((it, functools.partial(_outcome, exc)))
+            return
+        for it, r in zip(items, results):
+            self._ready.append((it, functools.partial(_outcome, r)))
+
+    def __next__(self):
+        if not self._ready and self._read_error is None:
+            self._batch()
+        if self._ready:
+            return self._ready.popleft()
+        if self._read_error is not None:
+            exc, self._read_error = self._read_error, None
+            self._frames = iter(())
+            raise exc
+        raise StopIteration
+
+    def close(self):
+        self._frames.close() if hasattr(self._frames, "close") else None
+
+
 class _Chunked:
     """Chunks in flight on an executor (``submit(fn, *args) -> future``), frames out in order."""
 
@@ -615,6 +686,11 @@ def frame_results(job, reconstruct, reference, geometry, effort: str, selected: 
     """
     workers = getattr(job, "workers", None)
     dask_address = getattr(job, "dask", None)
+    if getattr(job, "device", "cpu") == "cuda":
+        if dask_address or (workers is not None and workers != 1):
+            raise TirdeflectError("--device cuda runs in one process on this machine's GPU; "
+                                  "leave out --workers and --dask")
+        return _GpuBatches(job, reconstruct, reference)
     if job.send_frames and not dask_address:
         raise TirdeflectError("--dask-send-frames is for Dask workers without the input files; "
                               "add --dask ADDRESS, or leave it out")

@@ -256,6 +256,10 @@ def test_bad_parallel_options_are_one_line_errors(series, tmp_path):
              (["--dask-send-frames"], "add --dask ADDRESS")]
     if distributed is not None:
         cases.append((["--dask", "nonsense"], "not a scheduler address"))
+    from processing.gpu import cupy_or_reason
+
+    if cupy_or_reason()[0] is None:
+        cases.append((["--device", "cuda"], "device='cuda' is not available"))
     for k, (extra, expected) in enumerate(cases):
         out = tmp_path / f"bad{k}.h5"
         proc = subprocess.run(base + ["--out", str(out), *extra], cwd=root, capture_output=True,
@@ -289,6 +293,23 @@ def test_gui_export_of_a_long_recording_uses_every_core(series, tmp_path):
         np.testing.assert_array_equal(a["valid"][()], b["valid"][()])
         h, ref = a["height"][()], b["height"][()]
         assert np.nanmax(np.abs(h - ref)) <= REL_TOL * np.nanmax(np.abs(ref))
+
+
+def test_device_cuda_batches_through_the_engine(series, serial, tmp_path, monkeypatch):
+    """`--device cuda`'s path through the engine (batches, masked frames back on
+    the CPU, order, output) with NumPy standing in for CuPy: the GPU chain is
+    written against an array module, and this machine has no GPU (the same
+    run on a GPU: benchmarks/gpu_check.py)."""
+    from processing import gpu
+
+    monkeypatch.setattr(gpu, "cupy_or_reason", lambda: (np, None))
+    monkeypatch.setattr(parallel, "GPU_BATCH", 4)  # several batches of the 12 frames
+    out = tmp_path / "gpu.h5"
+    report = run_process(_job(series, out, device="cuda"))
+    assert report.frames_written == N_FRAMES
+    got = _read(out)
+    assert got["attrs"]["device"] == "cuda"
+    _assert_same(serial, got)
 
 
 def test_chunks_fit_the_memory_budget():

@@ -71,6 +71,9 @@ def test_chain_on_numpy_gives_the_cpu_heights(series, grid):
     on_chain = [k for k, r in enumerate(got) if "batch" in r.timings_ms]
     assert on_chain == [0, 1, 2, 3, 4, 5], on_chain  # every all-valid frame
     assert all("batch" not in got[k].timings_ms for k in range(len(got)) if not expected[k].valid.all())
+    # the live path: one frame per call, the first one unwrapped in space
+    single = BatchChain(Reconstructor(ref, G55), np)
+    _compare(expected, [single([f], grid)[0] for f in frames])
 
 
 def test_device_cuda_without_a_gpu_says_why(series):
