@@ -628,6 +628,23 @@ class _Pool:
         self._pool = self._new()
 
 
+def _shm_room(need_bytes: int) -> bool:
+    """Room for ``need_bytes`` of results in shared memory, twice over? (A
+    container's /dev/shm is often 64 MB; writing past its end kills the worker
+    with SIGBUS, so too small a one means pickling through pipes instead.)"""
+    import shutil
+
+    try:
+        free = shutil.disk_usage("/dev/shm").free
+    except OSError:
+        return os.name != "posix"  # no /dev/shm: another OS's shared memory
+    if free < 2 * need_bytes:
+        log.info("/dev/shm has %.0f MB free, less than twice the %.0f MB of results in flight: "
+                 "results travel through pipes", free / 1e6, need_bytes / 1e6)
+        return False
+    return True
+
+
 def _dask_client(address: str):
     """(client, close) for ``local``, ``local:N`` or a scheduler address."""
     try:
@@ -721,11 +738,12 @@ def frame_results(job, reconstruct, reference, geometry, effort: str, selected: 
     workers = min(int(workers), selected)
     if workers <= 1:
         return _Serial(job, reconstruct, reference)
-    spec = _spec(job, reconstruct, reference, geometry, effort, fft_threads(workers),
-                 shared_memory=SHARED_MEMORY)
     chunks = plan_chunks(selected, first=job.first, step=job.step, paths=tuple(job.frames),
                          workers=workers, frame_bytes=_frame_bytes(reconstruct, job.grid),
                          chunk_frames=job.chunk_frames)
+    in_flight = (workers + 2) * (chunks[0].last - chunks[0].first) // job.step + workers + 2
+    spec = _spec(job, reconstruct, reference, geometry, effort, fft_threads(workers),
+                 shared_memory=SHARED_MEMORY and _shm_room(in_flight * _frame_bytes(reconstruct, job.grid)))
     pool = _Pool(workers)
     try:
         return _Chunked(job, spec, chunks, pool.submit, workers + 1, pool.shutdown,

@@ -119,7 +119,10 @@ def test_series_needs_temporal_unwrapping(series, serial, tmp_path):
     assert not unchecked.start.agrees_with(serial_chunk.end)
 
 
-def test_workers_give_serial_heights_and_redo_a_disagreeing_chunk(series, serial, tmp_path, caplog):
+@pytest.mark.parametrize("shared_memory", [True, False], ids=["shared-memory", "pipes"])
+def test_workers_give_serial_heights_and_redo_a_disagreeing_chunk(series, serial, tmp_path, caplog,
+                                                                 monkeypatch, shared_memory):
+    monkeypatch.setattr(parallel, "SHARED_MEMORY", shared_memory)
     out = tmp_path / "par.h5"
     with caplog.at_level("INFO", logger="app.batch.parallel"):
         report = run_process(_job(series, out, workers=2, chunk_frames=3))
