@@ -154,8 +154,14 @@ class BatchChain:
         cr, cc = dct_matrix(m_r), dct_matrix(m_c)
         self.Cr, self.CrT, self.Cc, self.CcT = to(cr), to(np.ascontiguousarray(cr.T)), to(cc), to(
             np.ascontiguousarray(cc.T))
-        self.F = {k: to(F[k]) for k in ("gc", "null", "w", "inv_denom")}
-        self.nn = float(F["nn"])
+        self.F = {k: to(F[k]) for k in ("gc", "null", "inv_denom")}
+        # the pin of a frame valid everywhere depends on the reference region only
+        samples, self.pin, (w, nn) = hs._pin_choice(
+            np.ones(hs.shape, bool), True, recon._ref_mask, recon.pin_fallback,
+            recon.reference_region_name, recon._region_near)
+        self.pin_samples = samples
+        self.F["w"] = to(w)
+        self.nn = float(nn)
         self.sx, self.sy_u, self.sy_h = float(F["sx"]), float(F["sy_u"]), float(F["sy_h"])
         self.coef = hs.slope_coefficients()
         self.smooth = None
@@ -339,23 +345,31 @@ class BatchChain:
             dphi = _wrap(xp, xp.angle(g * xp.conj(gw)).astype(xp.float32) - self.static)
             u = u + self._to_displacement(dphi)
         h, sx, sy = self._height(u)
+        # the series check against each previous frame (CPU, decimated grid: cheap), in order
+        ph_host = _host(xp, phase).astype(np.float32)
+        h_host = _host(xp, h)
+        valid_dec = np.ones(phase.shape[2:], bool)
+        series = []
+        for k in range(n):
+            surf = _Surface(h_host[k], self.pin_samples)
+            series.append(r._check_series(ph_host[k], valid_dec, surf))
         # the series goes on from the last frame done here
         if r.temporal:
             r._prev_phase = _host(xp, phase[n - 1]).astype(np.float32)
             r._prev_valid = np.ones(phase.shape[2:], bool)
             r._prev_all_valid = True
-        results = self._results(grid, u, h, sx, sy, amplitude, phase, n, 1e3 * (time.perf_counter() - t0),
-                                essentials)
+        results = self._results(grid, u, h, sx, sy, amplitude, ph_host, n, 1e3 * (time.perf_counter() - t0),
+                                essentials, series)
         return results + [r._call_cpu(f, grid=grid) for f in frames[n:]]
 
-    def _results(self, grid, u, h, sx, sy, amplitude, phase, n, ms, essentials=False):
+    def _results(self, grid, u, h, sx, sy, amplitude, ph, n, ms, essentials, series):
         from .reconstruct import Result
 
         xp = self.xp
         r = self.r
         hs = r._solver()
         timings = {"total": ms / max(n, 1), "batch": ms}
-        valid_dec = np.ones(phase.shape[2:], bool)
+        valid_dec = np.ones(ph.shape[2:], bool)
         if grid == "full":
             rows, cols = r.shape
             disp = self._up(u)
@@ -384,11 +398,18 @@ class BatchChain:
         if essentials:
             fields["displacement"] = fields["amplitude"] = None
         host = {k: (None if v is None else _host(xp, v).astype(np.float32)) for k, v in fields.items()}
-        ph = _host(xp, phase).astype(np.float32)
         return [Result(valid=valid.copy(), carriers=r.carriers, phase=ph[k], valid_fraction=1.0,
-                       timings_ms=dict(timings), **{key: None if v is None else v[k] for key, v in host.items()},
+                       timings_ms=dict(timings), pin=self.pin, series=series[k], **{key: None if v is None else v[k] for key, v in host.items()},
                        **extra)
                 for k in range(n)]
+
+
+class _Surface:
+    """What the Reconstructor's series check reads of a height solve."""
+
+    def __init__(self, height_mm, pin_samples):
+        self.height_mm = height_mm
+        self.pin_samples = pin_samples
 
 
 def _host(xp, a):

@@ -70,7 +70,7 @@ def serial(series, tmp_path_factory):
 def _read(path):
     with h5py.File(path) as f:
         data = {name: f[name][()] for name in ("height", "slope_x", "slope_y", "valid",
-                                               "frame_index", "source")}
+                                               "frame_index", "source", "pin_status")}
         data["attrs"] = dict(f.attrs)
     return data
 
@@ -81,6 +81,13 @@ def _assert_same(serial, other):
     np.testing.assert_array_equal(other["frame_index"], serial["frame_index"])
     np.testing.assert_array_equal(other["source"], serial["source"])
     np.testing.assert_array_equal(other["valid"], serial["valid"])
+    # /pin_status: where each frame was pinned and its series check against the frame before
+    a, b = serial["pin_status"], other["pin_status"]
+    for name in a.dtype.names:
+        if a.dtype[name].kind == "f":
+            np.testing.assert_allclose(b[name], a[name], rtol=1e-3, atol=1e-6, equal_nan=True, err_msg=name)
+        else:
+            np.testing.assert_array_equal(b[name], a[name], err_msg=name)
     peak = np.nanmax(np.abs(serial["height"]))
     for name in ("height", "slope_x", "slope_y"):
         np.testing.assert_array_equal(np.isnan(other[name]), np.isnan(serial[name]))

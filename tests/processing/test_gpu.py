@@ -38,6 +38,12 @@ def _compare(cpu_results, other_results):
     worst = 0.0
     for a, b in zip(cpu_results, other_results, strict=True):
         np.testing.assert_array_equal(a.valid, b.valid)
+        # where the height was pinned, and the series check against the frame before
+        assert a.pin == b.pin
+        assert (a.series is None) == (b.series is None)
+        if a.series is not None:
+            assert (a.series.flagged, a.series.compared_samples) == (b.series.flagged, b.series.compared_samples)
+            assert a.series.unwrap_slip_fraction == pytest.approx(b.series.unwrap_slip_fraction, abs=1e-6)
         rms = np.sqrt(np.nanmean(a.height.astype(np.float64) ** 2))
         worst = max(worst, float(np.nanmax(np.abs(a.height - b.height))) / rms)
         for name in ("slope_x", "slope_y"):
