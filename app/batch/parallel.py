@@ -453,7 +453,9 @@ class _GpuBatches:
         raise StopIteration
 
     def close(self):
-        self._frames.close() if hasattr(self._frames, "close") else None
+        close = getattr(self._frames, "close", None)
+        if close is not None:
+            close()
 
 
 class _Chunked:
