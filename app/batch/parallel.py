@@ -356,6 +356,26 @@ def _outcome(result):
     return result
 
 
+def _wait(future, timeout_s: float) -> bool:
+    """Wait up to ``timeout_s`` for a pool or Dask future; True when it is done.
+    (Not ``result(timeout=)``: on a Dask future each timeout cancels the
+    gathering of its result, measured to lose it after a few.)"""
+    import concurrent.futures
+
+    if isinstance(future, concurrent.futures.Future):
+        concurrent.futures.wait([future], timeout=timeout_s)
+    else:
+        from distributed import wait
+
+        import asyncio
+
+        try:
+            wait(future, timeout=timeout_s)
+        except (TimeoutError, asyncio.TimeoutError):
+            pass
+    return future.done()
+
+
 def _discard(frames) -> None:
     """Free the shared memory of results nobody will take."""
     for _, result in frames:
@@ -535,14 +555,12 @@ class _Chunked:
         every chunk in flight (at most MAX_POOL_RESTARTS times a run)."""
         from concurrent.futures.process import BrokenProcessPool
 
-        import concurrent.futures
-
         while True:
             try:
                 self._interrupt.check()
-                return future.result(timeout=0.25)
-            except (TimeoutError, concurrent.futures.TimeoutError):
-                continue  # a Ctrl-C is seen within a quarter second
+                if not _wait(future, 0.25):
+                    continue  # a Ctrl-C is seen within a quarter second
+                return future.result()
             except BrokenProcessPool as exc:
                 if self._restart is None or self.restarts >= MAX_POOL_RESTARTS:
                     raise TirdeflectError(
