@@ -265,10 +265,22 @@ class _Shared:
             pass
 
 
-def process_chunk(spec: ReconstructorSpec, chunk: Chunk) -> ChunkOutcome:
-    """Reconstruct one chunk in this process (a pool worker or a Dask task); see the module doc."""
-    from app.batch.engine import _process_one
+def measure(reconstruct, item, ref_shape, grid: str):
+    """``(Result, OK)`` or ``(None, why the frame is invalid)`` of one input frame,
+    as the engine's serial loop measures it (:mod:`app.batch.frame_status`)."""
+    from app.batch.frame_status import measure_frame, outcome_of_error
 
+    if item.error is not None:
+        return None, outcome_of_error(item.error)
+    return measure_frame(reconstruct, item.image, ref_shape, grid)
+
+
+def process_chunk(spec: ReconstructorSpec, chunk: Chunk) -> ChunkOutcome:
+    """Reconstruct one chunk in this process (a pool worker or a Dask task); see the module doc.
+
+    Each frame is measured as in the engine's serial loop, and a frame that
+    could not be measured ends the series (no temporal unwrapping across a hole).
+    """
     recon = _reconstructor(spec)
     shape = tuple(np.shape(spec.reference))
     if chunk.redo or chunk.overlap is None:
@@ -280,26 +292,26 @@ def process_chunk(spec: ReconstructorSpec, chunk: Chunk) -> ChunkOutcome:
     if chunk.items is not None:
         frames = iter(chunk.items)
     else:
-        frames = imageio.iter_frames(list(chunk.paths), first=first, last=chunk.last, step=chunk.step)
+        frames = imageio.iter_frames(list(chunk.paths), first=first, last=chunk.last, step=chunk.step,
+                                     errors="yield")
     out = []
     start = None
     try:
         if first != chunk.first:  # the overlap frame: only its series state is kept
-            item = next(frames)
-            try:
-                recon(item.image, grid="decimated")
-            except TirdeflectError:
-                recon.reset_series()  # the check against the previous chunk fails: redone
+            result, _ = measure(recon, next(frames), shape, "decimated")
+            if result is None:
+                recon.reset_series()
         start = recon.series_state()
         for item in frames:
-            try:
-                result = _slim(_process_one(recon, item, shape, spec.grid))
+            result, outcome = measure(recon, item, shape, spec.grid)
+            if result is None:
+                recon.reset_series()
+            else:
+                result = _slim(result)
                 if spec.shared_memory:
                     result = _Shared.put(result)
-            except TirdeflectError as exc:
-                result = exc
-            out.append((dataclasses.replace(item, image=None), result))
-    except TirdeflectError as exc:  # reading failed: frames before it stand
+            out.append((dataclasses.replace(item, image=None), (result, outcome)))
+    except TirdeflectError as exc:  # a whole file became unreadable: frames before it stand
         if _in_dask():
             import socket
 
@@ -350,10 +362,8 @@ def _states_agree(start, end) -> bool:
     return start.agrees_with(end)
 
 
-def _outcome(result):
-    if isinstance(result, BaseException):
-        raise result
-    return result
+def _given(value):
+    return value
 
 
 def _wait(future, timeout_s: float) -> bool:
@@ -378,88 +388,100 @@ def _wait(future, timeout_s: float) -> bool:
 
 def _discard(frames) -> None:
     """Free the shared memory of results nobody will take."""
-    for _, result in frames:
-        if isinstance(result, _Shared):
-            result.discard()
+    for item, payload in frames:
+        if item is not None and isinstance(payload[0], _Shared):
+            payload[0].discard()
 
 
 # ----------------------------------------------------------------- runners
 
 
 class _Serial:
-    """One Reconstructor here, frame after frame."""
+    """The engine's Reconstructor, frame after frame, each measured when the engine asks."""
 
     def __init__(self, job, reconstruct, reference):
-        from app.batch.engine import _process_one
-
         self.attrs = {"workers": 1}
-        self._frames = imageio.iter_frames(job.frames, first=job.first, last=job.last, step=job.step)
-        self._one = functools.partial(_process_one, reconstruct, ref_shape=reference.shape,
-                                      grid=job.grid)
+        self._frames = imageio.iter_frames(job.frames, first=job.first, last=job.last, step=job.step,
+                                           errors="yield")
+        self._measure = functools.partial(measure, reconstruct, ref_shape=tuple(reference.shape),
+                                          grid=job.grid)
 
     def __iter__(self):
         return self
 
     def __next__(self):
         item = next(self._frames)
-        return item, functools.partial(self._one, item=item)
+        return item, functools.partial(self._measure, item)
 
     def close(self):
         self._frames.close()
 
 
 class _GpuBatches:
-    """One Reconstructor with ``device="cuda"`` here: frames read and sent to the GPU
-    ``GPU_BATCH`` at a time (processing/gpu.py), results handed on in order."""
+    """A Reconstructor with ``device="cuda"`` of its own (the engine's resets its
+    series after a hole; this one is ahead by a batch): frames read and sent to
+    the GPU ``GPU_BATCH`` at a time (processing/gpu.py), results in order."""
 
-    def __init__(self, job, reconstruct, reference):
-        from app.batch.engine import _process_one
+    def __init__(self, job, reconstruct, reference, geometry, effort):
+        from app.batch.engine import _make_reconstructor
 
         self.attrs = {"device": "cuda", "gpu_batch": GPU_BATCH}
-        self._recon = reconstruct
+        self._recon = _make_reconstructor(reference, geometry, unwrap=not job.no_unwrap, grid=job.grid,
+                                          effort=effort, carriers=reconstruct.carriers, device="cuda")
         self._shape = tuple(reference.shape)
         self._grid = job.grid
-        self._one = functools.partial(_process_one, reconstruct, ref_shape=reference.shape, grid=job.grid)
-        self._frames = imageio.iter_frames(job.frames, first=job.first, last=job.last, step=job.step)
+        self._frames = imageio.iter_frames(job.frames, first=job.first, last=job.last, step=job.step,
+                                           errors="yield")
         self._ready = collections.deque()
         self._read_error = None
 
     def __iter__(self):
         return self
 
+    def _plain(self, item) -> bool:
+        """A frame the GPU can take with the others (read, right shape, not uniform)."""
+        image = item.image
+        return (item.error is None and image is not None and image.shape == self._shape
+                and image.min() != image.max())
+
+    def _one_by_one(self, items):
+        for it in items:
+            result, outcome = measure(self._recon, it, self._shape, self._grid)
+            if result is None:
+                self._recon.reset_series()  # no temporal unwrapping across a hole
+            self._ready.append((it, functools.partial(_given, (result, outcome))))
+
     def _batch(self):
+        from app.batch.frame_status import FrameOutcome
+
         items = []
         while len(items) < GPU_BATCH:
             try:
                 item = next(self._frames)
             except StopIteration:
                 break
-            except TirdeflectError as exc:  # frames before it are processed first
+            except TirdeflectError as exc:  # a whole file unreadable: the frames before it first
                 self._read_error = exc
                 break
             items.append(item)
-            if item.image.shape != self._shape:
-                break  # this one fails on its own below
+            if not self._plain(item):
+                break  # measured on its own after the ones before it
         if not items:
             return
+        plain = items if self._plain(items[-1]) else items[:-1]
         state = self._recon.series_state()
         try:
-            if any(it.image.shape != self._shape for it in items):
-                raise TirdeflectError("shape")
-            results = self._recon.batch([it.image for it in items], grid=self._grid, essentials=True)
+            results = self._recon.batch([it.image for it in plain], grid=self._grid, essentials=True)
             if any(not np.asarray(r.valid).any() for r in results):
-                raise TirdeflectError("all invalid")
+                raise TirdeflectError("a frame without valid samples")
         except TirdeflectError:
             # one frame at a time from the batch's start: each frame's own outcome
             self._recon.restore_series(state)
-            for it in items:
-                try:
-                    self._ready.append((it, functools.partial(_outcome, self._one(item=it))))
-                except TirdeflectError as exc:
-                    self._ready.append((it, functools.partial(_outcome, exc)))
+            self._one_by_one(items)
             return
-        for it, r in zip(items, results):
-            self._ready.append((it, functools.partial(_outcome, r)))
+        for it, r in zip(plain, results):
+            self._ready.append((it, functools.partial(_given, (r, FrameOutcome()))))
+        self._one_by_one(items[len(plain):])
 
     def __next__(self):
         if not self._ready and self._read_error is None:
@@ -548,7 +570,7 @@ class _Chunked:
     def _read(self, chunk):
         first = chunk.first if (chunk.redo or chunk.overlap is None) else chunk.overlap
         return tuple(imageio.iter_frames(list(self.job.frames), first=first, last=chunk.last,
-                                         step=chunk.step))
+                                         step=chunk.step, errors="yield"))
 
     def _result(self, chunk, future):
         """The chunk's outcome; after a worker process died, a fresh pool takes
@@ -618,17 +640,18 @@ class _Chunked:
         while True:
             pair = next(self._frames, None)
             if pair is not None:
-                item, result = pair
-                if item is None:  # reading failed in the worker
-                    raise result
+                item, payload = pair
+                if item is None:  # a whole file became unreadable in the worker
+                    raise payload
                 item = dataclasses.replace(item, source=self._sources.get(item.source, item.source))
+                result, outcome = payload
                 if isinstance(result, _Shared):
                     try:
                         result = result.take()
                     except BaseException:  # Ctrl-C while copying: free the block all the same
                         result.discard()
                         raise
-                return item, functools.partial(_outcome, result)
+                return item, functools.partial(_given, (result, outcome))
             if not self._pending:
                 raise StopIteration
             self._next_chunk()
@@ -789,7 +812,7 @@ def frame_results(job, reconstruct, reference, geometry, effort: str, selected: 
         if dask_address or (workers is not None and workers != 1):
             raise TirdeflectError("--device cuda runs in one process on this machine's GPU; "
                                   "leave out --workers and --dask")
-        return _GpuBatches(job, reconstruct, reference)
+        return _GpuBatches(job, reconstruct, reference, geometry, effort)
     if job.send_frames and not dask_address:
         raise TirdeflectError("--dask-send-frames is for Dask workers without the input files; "
                               "add --dask ADDRESS, or leave it out")

@@ -70,17 +70,22 @@ def serial(series, tmp_path_factory):
 def _read(path):
     with h5py.File(path) as f:
         data = {name: f[name][()] for name in ("height", "slope_x", "slope_y", "valid",
-                                               "frame_index", "source", "pin_status")}
+                                               "frame_index", "source", "pin_status", "frame_status",
+                                               "frame_status_text")}
         data["attrs"] = dict(f.attrs)
     return data
 
 
-def _assert_same(serial, other):
-    assert other["attrs"]["status"] == "complete"
+def _assert_same(serial, other, complete=True):
+    if complete:
+        assert other["attrs"]["status"] == "complete"
+    assert other["attrs"]["status"] == serial["attrs"]["status"]
     assert other["attrs"]["frames_done"] == N_FRAMES
     np.testing.assert_array_equal(other["frame_index"], serial["frame_index"])
     np.testing.assert_array_equal(other["source"], serial["source"])
     np.testing.assert_array_equal(other["valid"], serial["valid"])
+    np.testing.assert_array_equal(other["frame_status"], serial["frame_status"])
+    np.testing.assert_array_equal(other["frame_status_text"], serial["frame_status_text"])
     # /pin_status: where each frame was pinned and its series check against the frame before
     a, b = serial["pin_status"], other["pin_status"]
     for name in a.dtype.names:
@@ -118,7 +123,7 @@ def test_series_needs_temporal_unwrapping(series, serial, tmp_path):
     unchecked = parallel.process_chunk(spec, chunk)
     peak = np.nanmax(np.abs(serial["height"]))
     wrong = [np.nanmax(np.abs(r.height - serial["height"][item.sequence_index])) / peak
-             for item, r in unchecked.frames]
+             for item, (r, _) in unchecked.frames]
     assert max(wrong) > 100 * REL_TOL, wrong
     # ... and the states at the join tell: frame 5 in space is not frame 5 in time
     serial_chunk = parallel.process_chunk(spec, parallel.plan_chunks(
@@ -236,7 +241,9 @@ def test_ctrl_c_stops_workers_and_keeps_written_frames(series, tmp_path):
     assert done == 3 and workers, "the run ended before three frames were written"
     assert code == 130, rest
     assert "Traceback" not in rest and rest.strip().endswith("tirdeflect: interrupted"), rest
-    with h5py.File(out) as f:
+    assert not out.exists()  # an interrupted run is not published under OUT ...
+    kept = out.with_name("out.partial.h5")  # ... its frames are kept beside it
+    with h5py.File(kept) as f:
         n = int(f.attrs["frames_done"])
         assert 3 <= n < 4 * N_FRAMES
         assert f.attrs["status"].startswith("interrupted")
@@ -320,6 +327,36 @@ def test_device_cuda_batches_through_the_engine(series, serial, tmp_path, monkey
     got = _read(out)
     assert got["attrs"]["device"] == "cuda"
     _assert_same(serial, got)
+
+
+@pytest.mark.parametrize("how", ["workers", "device-cuda"])
+def test_invalid_frames_in_the_middle_match_serial(series, tmp_path, monkeypatch, how):
+    """An unreadable file and a blank frame in the series: stored invalid with the
+    serial run's status and reason, and the series starts again after each hole,
+    whether the frames go over processes (chunks of 3) or in GPU batches."""
+    d, frames = series
+    frames = list(frames)
+    broken = tmp_path / "broken.png"
+    broken.write_bytes(b"not a png at all")
+    blank = tmp_path / "blank.png"
+    imageio.write_image(blank, np.full((SIZE, SIZE), 128, np.uint8))
+    frames[3] = str(broken)
+    frames[7] = str(blank)
+    job = dict(reference=str(d / "reference.png"), frames=frames, geometry=str(d / "geometry.toml"),
+               fft_effort="estimate")
+    run_process(ProcessJob(out=str(tmp_path / "serial.h5"), workers=1, **job))
+    if how == "workers":
+        run_process(ProcessJob(out=str(tmp_path / "other.h5"), workers=2, chunk_frames=3, **job))
+    else:
+        from processing import gpu
+
+        monkeypatch.setattr(gpu, "cupy_or_reason", lambda: (np, None))  # NumPy standing in for CuPy
+        monkeypatch.setattr(parallel, "GPU_BATCH", 4)
+        run_process(ProcessJob(out=str(tmp_path / "other.h5"), device="cuda", **job))
+    serial, other = _read(tmp_path / "serial.h5"), _read(tmp_path / "other.h5")
+    assert (serial["frame_status"] != 0).sum() == 2  # the two holes, nothing else
+    assert not serial["valid"][3].any() and not serial["valid"][7].any()
+    _assert_same(serial, other, complete=False)
 
 
 def test_chunks_fit_the_memory_budget():
