@@ -107,12 +107,17 @@ class BatchChain:
         self.xp = xp
         d = recon.demod
         self.reason = None
+        if getattr(recon, "pattern", "checkerboard") != "checkerboard":
+            self.reason = "dot patterns go through PIV on the CPU"
+            return
         hs = recon._solver()
         F = hs._fast
         if F is None or recon.solver not in ("auto", "spectral"):
             self.reason = "the geometry has no spectral height solver (finite camera distance)"
         elif recon.full_method != "interpolate":
             self.reason = "full_method='ifft'"
+        elif getattr(recon, "refine_method", "fd") != "fd":
+            self.reason = "refine_method='image' (image matching on the CPU)"
         elif not recon._ref_ok_all:
             self.reason = "the reference has blank parts (every frame is masked)"
         if self.reason is not None:

@@ -113,6 +113,7 @@ class ReconstructorSpec:
     carriers: object
     threads: Optional[int] = None
     shared_memory: bool = False
+    pattern: Optional[str] = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -178,6 +179,7 @@ def _reconstructor(spec: ReconstructorSpec):
 
     cache.restore_fftw_wisdom()
     recon = _make_reconstructor(spec.reference, spec.geometry, unwrap=spec.unwrap, grid=spec.grid,
+                                pattern=spec.pattern,
                                 effort=spec.effort, threads=threads, carriers=spec.carriers)
     _RECONSTRUCTORS[spec.key] = recon
     return recon
@@ -399,9 +401,9 @@ def _discard(frames) -> None:
 class _Serial:
     """The engine's Reconstructor, frame after frame, each measured when the engine asks."""
 
-    def __init__(self, job, reconstruct, reference):
+    def __init__(self, job, reconstruct, reference, paths):
         self.attrs = {"workers": 1}
-        self._frames = imageio.iter_frames(job.frames, first=job.first, last=job.last, step=job.step,
+        self._frames = imageio.iter_frames(paths, first=job.first, last=job.last, step=job.step,
                                            errors="yield")
         self._measure = functools.partial(measure, reconstruct, ref_shape=tuple(reference.shape),
                                           grid=job.grid)
@@ -422,15 +424,16 @@ class _GpuBatches:
     series after a hole; this one is ahead by a batch): frames read and sent to
     the GPU ``GPU_BATCH`` at a time (processing/gpu.py), results in order."""
 
-    def __init__(self, job, reconstruct, reference, geometry, effort):
+    def __init__(self, job, reconstruct, reference, geometry, effort, paths):
         from app.batch.engine import _make_reconstructor
 
         self.attrs = {"device": "cuda", "gpu_batch": GPU_BATCH}
         self._recon = _make_reconstructor(reference, geometry, unwrap=not job.no_unwrap, grid=job.grid,
-                                          effort=effort, carriers=reconstruct.carriers, device="cuda")
+                                          effort=effort, carriers=reconstruct.carriers, device="cuda",
+                                          pattern=getattr(reconstruct, "pattern", None))
         self._shape = tuple(reference.shape)
         self._grid = job.grid
-        self._frames = imageio.iter_frames(job.frames, first=job.first, last=job.last, step=job.step,
+        self._frames = imageio.iter_frames(paths, first=job.first, last=job.last, step=job.step,
                                            errors="yield")
         self._ready = collections.deque()
         self._read_error = None
@@ -548,6 +551,7 @@ class _Chunked:
         self._redo = None
         self.restarts = 0
         self._chunks = iter(chunks)
+        self.paths = chunks[0].paths if chunks else ()  # what the client reads with --dask-send-frames
         self._pending = collections.deque()
         self._frames = iter(())
         self._prev_end = None
@@ -569,7 +573,7 @@ class _Chunked:
 
     def _read(self, chunk):
         first = chunk.first if (chunk.redo or chunk.overlap is None) else chunk.overlap
-        return tuple(imageio.iter_frames(list(self.job.frames), first=first, last=chunk.last,
+        return tuple(imageio.iter_frames(list(self.paths), first=first, last=chunk.last,
                                          step=chunk.step, errors="yield"))
 
     def _result(self, chunk, future):
@@ -679,7 +683,7 @@ def _spec(job, reconstruct, reference, geometry, effort, threads, shared_memory=
     return ReconstructorSpec(key=uuid.uuid4().hex, reference=np.asarray(reference), geometry=geometry,
                              grid=job.grid, unwrap=not job.no_unwrap, effort=effort,
                              carriers=reconstruct.carriers, threads=threads,
-                             shared_memory=shared_memory)
+                             shared_memory=shared_memory, pattern=getattr(reconstruct, "pattern", None))
 
 
 def _frame_bytes(reconstruct, grid: str) -> int:
@@ -798,21 +802,25 @@ def _dask_submit(client):
     return submit
 
 
-def frame_results(job, reconstruct, reference, geometry, effort: str, selected: int):
-    """``(item, outcome)`` of every selected frame in order; ``outcome()`` returns the
-    Result or raises. Has ``attrs`` (stored in the output) and ``close()``.
+def frame_results(job, reconstruct, reference, geometry, effort: str, selected: int, paths=None):
+    """``(item, measured)`` of every selected frame in order; ``measured()`` returns
+    ``(Result, OK)`` or ``(None, FrameOutcome)`` as :func:`measure` does. Has ``attrs``
+    (stored in the output) and ``close()``.
 
+    ``paths``: the input files as the engine expanded them (default ``job.frames``).
     ``job.workers`` None: all cores for runs of at least
     :data:`AUTO_PARALLEL_MIN_FRAMES` frames, else serial; 1: serial.
     ``job.dask``: on a Dask cluster instead (docs/cluster.md).
+    ``job.device`` "cuda": batches on the GPU in this process.
     """
+    inputs = [str(p) for p in (job.frames if paths is None else paths)]
     workers = getattr(job, "workers", None)
     dask_address = getattr(job, "dask", None)
     if getattr(job, "device", "cpu") == "cuda":
         if dask_address or (workers is not None and workers != 1):
             raise TirdeflectError("--device cuda runs in one process on this machine's GPU; "
                                   "leave out --workers and --dask")
-        return _GpuBatches(job, reconstruct, reference, geometry, effort)
+        return _GpuBatches(job, reconstruct, reference, geometry, effort, inputs)
     if job.send_frames and not dask_address:
         raise TirdeflectError("--dask-send-frames is for Dask workers without the input files; "
                               "add --dask ADDRESS, or leave it out")
@@ -823,12 +831,12 @@ def frame_results(job, reconstruct, reference, geometry, effort: str, selected: 
         client, close = _dask_client(dask_address)
         try:
             if job.send_frames:
-                paths = tuple(str(p) for p in job.frames)
+                task_paths = tuple(inputs)
             else:
-                paths = tuple(str(Path(p).resolve()) for p in job.frames)
+                task_paths = tuple(str(Path(p).resolve()) for p in inputs)
             n = max(1, sum(client.nthreads().values()))
             spec = _spec(job, reconstruct, reference, geometry, effort, None)
-            chunks = plan_chunks(selected, first=job.first, step=job.step, paths=paths, workers=n,
+            chunks = plan_chunks(selected, first=job.first, step=job.step, paths=task_paths, workers=n,
                                  frame_bytes=_frame_bytes(reconstruct, job.grid),
                                  chunk_frames=job.chunk_frames)
             runner = _Chunked(job, spec, chunks, _dask_submit(client), n + 1, close,
@@ -836,14 +844,14 @@ def frame_results(job, reconstruct, reference, geometry, effort: str, selected: 
         except BaseException:
             close()
             raise
-        runner._sources = {a: str(o) for a, o in zip(paths, job.frames)}
+        runner._sources = {a: o for a, o in zip(task_paths, inputs)}
         return runner
     if workers is None:
         workers = available_cores() if selected >= AUTO_PARALLEL_MIN_FRAMES else 1
     workers = min(int(workers), selected)
     if workers <= 1:
-        return _Serial(job, reconstruct, reference)
-    chunks = plan_chunks(selected, first=job.first, step=job.step, paths=tuple(job.frames),
+        return _Serial(job, reconstruct, reference, inputs)
+    chunks = plan_chunks(selected, first=job.first, step=job.step, paths=tuple(inputs),
                          workers=workers, frame_bytes=_frame_bytes(reconstruct, job.grid),
                          chunk_frames=job.chunk_frames)
     in_flight = (workers + 2) * (chunks[0].last - chunks[0].first) // job.step + workers + 2
