@@ -39,7 +39,8 @@ from typing import Optional
 import cv2
 import numpy as np
 
-from .carriers import Carriers, check_pattern_match, display_spectrum, find_carriers, match_error, theta_from_carriers
+from .carriers import (Carriers, check_pattern_match, display_spectrum, find_carriers, find_carriers_live,
+                       match_error, theta_from_carriers)
 from .demodulation import Demodulator
 from .errors import AllInvalidError, ShapeMismatchError, TirdeflectError
 from .fft import FFTPlanner
@@ -1311,7 +1312,8 @@ class Reconstructor:
             ``modulation_rows_px``, ``modulation_cols_px``, ``contrast`` (its
             median), ``amplitude`` (map ``|g|/|g0|``), ``saturation_pct``
             (pixels at the top code of the frame's bit depth), ``error``
-            (only when the frame shows no pattern).  Random dots
+            (only when the frame shows no pattern), ``disturbed`` (True when the carriers
+            came from local tiles because the surface distorts the pattern: not still water).  Random dots
             (``pattern="dots"``): :func:`processing.piv.dot_alignment` of the
             frame (``dot_size_px``, ``dots_per_window``, ``contrast``,
             ``focus``), ``saturation_pct``, and ``reference``: the same of the
@@ -1346,7 +1348,7 @@ class Reconstructor:
                    contrast=float(np.median(mod)),
                    amplitude=(np.abs(g) / np.maximum(d.g0_abs, 1e-30)).min(axis=0).astype(np.float32))
         try:
-            c = find_carriers(frame)
+            c, disturbed = find_carriers_live(frame)
         except ValueError as exc:
             out.update(periods_px=np.full(2, np.nan), rotation_deg=float("nan"),
                        theta_estimate_deg=float("nan"), focus=0.0, error=str(exc))
@@ -1356,6 +1358,7 @@ class Reconstructor:
                    surface_rotation_deg=c.surface_rotation_deg(theta_cfg if theta_cfg is not None else 0.0),
                    theta_estimate_deg=theta_from_carriers(
                        c.freq, getattr(self.geometry, "pattern_stretch_y", None) or 1.0), focus=float(np.min(c.sharpness)),
+                   disturbed=disturbed,
                    pattern_mismatch=dict(zip(("period_rel", "angle_deg"), match_error(self.carriers, c.freq))))
         return out
 

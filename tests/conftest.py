@@ -9,10 +9,11 @@ os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 
 
 @pytest.fixture(autouse=True)
-def _private_cache_dir(tmp_path_factory, monkeypatch):
-    """Keep FFTW wisdom and settings of tests away from the user's cache and settings."""
-    monkeypatch.setenv("TIRDEFLECT_CACHE_DIR", str(tmp_path_factory.getbasetemp() / "cache"))
-    monkeypatch.setenv("TIRDEFLECT_CONFIG_DIR", str(tmp_path_factory.getbasetemp() / "config"))
+def _private_cache_dir(tmp_path, monkeypatch):
+    """Keep FFTW wisdom, remembered settings and configuration away from the user's and from other
+    tests: each test starts from a clean settings directory (the window remembers its session there)."""
+    monkeypatch.setenv("TIRDEFLECT_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.setenv("TIRDEFLECT_CONFIG_DIR", str(tmp_path / "config"))
 
 
 @pytest.fixture

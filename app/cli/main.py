@@ -43,7 +43,8 @@ def _add_gui(sub) -> None:
     # Listed for --help only: main() hands `gui ...` to app.gui.main.main unparsed,
     # so every option of the window (`tirdeflect gui --help`) works here.
     p = sub.add_parser("gui", help="open the live window (default when no command is given); "
-                   "`tirdeflect gui --help` lists its options (--camera ID, --geometry, ...)")
+                   "`tirdeflect gui --help` lists its options (--camera ID, --scene waves, --session FILE, "
+                   "--geometry, ...; they work without `gui` too)")
     p.set_defaults(func=lambda args: _run_gui([]))
 
 
@@ -61,6 +62,11 @@ def _run_gui(gui_argv) -> int:
         return int(exc.code or 0) if not isinstance(exc.code, str) else EXIT_USAGE
 
 
+# options of the live window accepted without the `gui` command
+_GUI_OPTIONS = ("--scene", "--session", "--camera", "--geometry", "--reference", "--size", "--rate", "--frames",
+                "--quit-after")
+
+
 def _split_gui(argv):
     """(global_flags, gui_argv) if argv asks for the live window, else None."""
     flags = []
@@ -71,6 +77,8 @@ def _split_gui(argv):
         return flags, []
     if rest[0] == "gui":
         return flags, rest[1:]
+    if rest[0].split("=", 1)[0] in _GUI_OPTIONS:  # `tirdeflect --scene waves`, `tirdeflect --session exp.toml`
+        return flags, rest
     return None
 
 

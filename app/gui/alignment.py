@@ -85,14 +85,17 @@ def frame_alignment(frame: np.ndarray, theta_configured_deg: Optional[float] = N
 
     The dict has ``periods_px`` (2,), ``rotation_deg``, ``theta_estimate_deg``,
     ``theta_configured_deg``, ``focus`` (carrier peak sharpness, 0..1), ``modulation``
-    (map, see :func:`modulation_map`) and ``contrast`` (its median) -- or ``error``
-    with the message of :class:`processing.errors.NoCarrierError`.
+    (map, see :func:`modulation_map`), ``contrast`` (its median) and ``disturbed``
+    (the pattern is distorted by a moving surface: carriers from local tiles,
+    :func:`processing.carriers.find_carriers_live`) -- or ``error`` with the
+    message of :class:`processing.errors.NoCarrierError`.
     """
-    from processing.carriers import find_carriers
+    from processing.carriers import find_carriers_live
 
     spectrum = display_spectrum(frame)
     try:
-        c = find_carriers(frame)
+        # a disturbed surface smears the whole image's carrier peaks: then local carriers (tiles)
+        c, disturbed = find_carriers_live(frame)
     except ValueError as exc:  # NoCarrierError
         mod, rows, cols = modulation_map(frame)
         return {"error": str(exc), "modulation": mod, "modulation_rows_px": rows,
@@ -112,7 +115,125 @@ def frame_alignment(frame: np.ndarray, theta_configured_deg: Optional[float] = N
         "modulation_rows_px": rows,
         "modulation_cols_px": cols,
         "contrast": float(np.median(mod)),
+        "disturbed": bool(disturbed),
     }
     if theta_configured_deg is not None:
         a["theta_configured_deg"] = float(theta_configured_deg)
     return a, spectrum
+
+
+PERIOD_TOL = 0.015  # relative period change since the reference that means "pattern or camera moved"
+ROTATION_TOL_DEG = 0.5  # rotation change since the reference, same meaning
+THETA_TOL_DEG = 1.0  # theta from the pattern vs the configured theta
+
+
+def _nz(value, digits: int = 2) -> float:
+    """Round for display without showing "-0.00"."""
+    v = round(float(value), digits)
+    return 0.0 if v == 0 else v
+
+
+def assess(a: dict, saturation_pct: float, geometry=None, has_reference: bool = False):
+    """Decide "ready to measure" from alignment metrics.
+
+    Parameters
+    ----------
+    a : dict
+        :func:`frame_alignment` or :meth:`processing.Reconstructor.alignment` output.
+    saturation_pct : float
+        Saturated pixels of the frame (%).
+    geometry : processing.Geometry or None
+        The geometry in use (its theta is the configured one).
+    has_reference : bool
+        A reference exists (a disturbed surface is then what is measured, not a problem).
+
+    Returns
+    -------
+    (ready, reasons, lines, notes)
+        ``reasons``: why not ready; ``lines``: (name, value) rows of the metrics table;
+        ``notes``: warnings that do not stop measuring.
+    """
+    reasons, lines, notes = [], [], []
+    if a.get("error") and a.get("periods_px") is None:
+        return False, [a["error"]], [("problem", a["error"])], notes
+    if a.get("error"):
+        reasons.append(a["error"])
+
+    def num(*keys):
+        for k in keys:
+            v = a.get(k)
+            if v is not None:
+                return v
+        return None
+
+    periods = num("periods_px", "periods")
+    if periods is not None and not np.all(np.isfinite(np.ravel(periods))):
+        periods = None
+    ref_periods = a.get("reference_periods_px")
+    if periods is not None:
+        text = ", ".join(f"{float(v):.2f} px" for v in np.ravel(periods))
+        if ref_periods is not None:
+            text += " (reference " + ", ".join(f"{float(v):.2f}" for v in np.ravel(ref_periods)) + ")"
+        lines.append(("pattern periods", text))
+        if min(np.ravel(periods)) < 4:
+            reasons.append("pattern period below 4 px: use a coarser pattern or zoom in")
+        if ref_periods is not None:
+            rel = np.max(np.abs(np.sort(np.ravel(periods)) / np.sort(np.ravel(ref_periods)) - 1.0))
+            if rel > PERIOD_TOL:
+                reasons.append(f"pattern periods differ by {100 * rel:.1f} % from the reference's: the pattern "
+                               "or the camera moved since: capture a new reference on still water")
+    rot = num("rotation_deg", "rotation")
+    if rot is not None and np.isfinite(rot):
+        ref_rot = a.get("reference_rotation_deg")
+        text = f"{_nz(rot):.2f}°" + (f" (reference {_nz(ref_rot):.2f}°)" if ref_rot is not None else "")
+        lines.append(("pattern rotation", text))
+        if ref_rot is not None and abs(float(rot) - float(ref_rot)) > ROTATION_TOL_DEG:
+            reasons.append(f"pattern rotated by {float(rot) - float(ref_rot):+.2f}° since the reference: the "
+                           "pattern or the camera moved: capture a new reference on still water")
+    th_est = num("theta_estimate_deg", "theta_est_deg", "theta_deg_estimate")
+    if th_est is not None and not np.isfinite(th_est):
+        th_est = None
+    th_cfg = a.get("theta_configured_deg")
+    fsss = getattr(geometry, "setup", "tir") == "fsss"
+    if th_cfg is None and geometry is not None and not fsss:
+        th_cfg = getattr(geometry, "theta_deg", None)
+    if fsss:  # FS-SS looks straight down: theta is not part of its alignment
+        th_est = None
+        lines.append(("setup", "FS-SS (no θ to check)"))
+    if th_est is not None:
+        th_text = f"{float(th_est):.2f}° from the pattern"
+        if th_cfg is not None:
+            diff = float(th_est) - float(th_cfg)
+            th_text += f" vs {float(th_cfg):.2f}° configured (Δ {_nz(diff):+.2f}°)"
+            if abs(diff) > THETA_TOL_DEG:
+                reasons.append(f"θ from the pattern differs by {diff:+.1f}° from the geometry's: check θ "
+                               "(Controls ▸ Reference & geometry) or the camera's tilt")
+        lines.append(("θ", th_text))
+    mod = a.get("modulation")
+    contrast = num("contrast", "modulation_median")
+    if contrast is None and mod is not None:
+        contrast = float(np.nanmedian(mod))
+    if contrast is not None:
+        lines.append(("contrast (median modulation)", f"{float(contrast):.2f}"))
+        if float(contrast) < 0.2:
+            reasons.append("low contrast: light the pattern, focus, check TIR")
+    focus = num("focus", "focus_metric")
+    if focus is not None:
+        lines.append(("focus (carrier peak sharpness)", f"{float(focus):.3f}"))
+    sat = float(saturation_pct)
+    lines.append(("saturation", f"{sat:.2f} %"))
+    if sat > 1.0:
+        reasons.append(f"{sat:.1f} % of pixels saturated: lower exposure or gain")
+    if periods is None and th_est is None and not a.get("error"):
+        reasons.append("no carriers found")
+    if geometry is None:
+        reasons.append("no geometry: enter θ and H (Controls ▸ Reference & geometry)")
+    if a.get("disturbed"):
+        lines.append(("surface", "moving: carriers from local patches"))
+        if has_reference:
+            notes.append("the surface is moving (as it should while measuring)")
+        else:
+            reasons.append("the surface is moving: a reference needs still water; wait until it settles")
+    elif not has_reference:
+        notes.append("capture the reference on still water")
+    return (not reasons), reasons, lines, notes

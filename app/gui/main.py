@@ -20,11 +20,33 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--size", type=int, default=512, help="synthetic camera frame size in pixels (square)")
     p.add_argument("--rate", type=float, default=60.0, help="synthetic camera frame rate (Hz)")
     p.add_argument("--frames", type=int, default=24,
-                   help="frames of the synthetic scene, ray-traced once at start (it loops over them)")
+                   help="frames per synthetic tank scene, ray-traced in the background when the scene is "
+                        "chosen (it loops over them)")
+    p.add_argument("--scene", choices=("still", "waves", "drop", "impact"), default=None,
+                   help="synthetic camera: start this tank scene (it starts on still water, so that a "
+                        "reference can be captured, and switches once the scene is ray-traced)")
+    p.add_argument("--session", default=None, metavar="FILE",
+                   help="experiment file (geometry + reference + settings) saved by the window")
     p.add_argument("--quit-after", type=float, default=None, metavar="S",
                    help="close the window after S seconds (smoke tests)")
     p.add_argument("--debug", action="store_true", help="log debug messages")
     return p
+
+
+def _start_scene_when_open(window, scene: str, QtCore) -> None:
+    """Choose ``scene`` once the synthetic camera streams (it opens in the background)."""
+    timer = QtCore.QTimer(window)
+
+    def check():
+        if window.session.tank is not None:
+            timer.stop()
+            window.set_scene(scene)
+        elif not window.busy("open") and window.session.acquisition is not None:
+            timer.stop()
+            window.show_error(f"--scene {scene}: the open camera is not the synthetic one; scenes are "
+                              "for the synthetic camera (--camera synthetic)")
+    timer.timeout.connect(check)
+    timer.start(100)
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
@@ -50,12 +72,23 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         cache.restore_fftw_wisdom()
     except Exception as exc:  # noqa: BLE001 - never fatal
         logging.getLogger(__name__).warning("FFTW wisdom not restored: %s", exc)
-    window = MainWindow(args.camera, synthetic_options={"shape": (args.size, args.size), "n_frames": args.frames,
+    if args.session and not os.path.exists(args.session):
+        print(f"tirdeflect: error: experiment file {args.session} does not exist: give the TOML the window "
+              "saved (File ▸ Save experiment)", file=sys.stderr)
+        return 2
+    camera = args.camera
+    if camera is None and args.scene:
+        camera = "synthetic"
+    window = MainWindow(camera, synthetic_options={"shape": (args.size, args.size), "n_frames": args.frames,
                                                         "frame_rate_hz": args.rate})
+    if args.session:
+        window.open_experiment(args.session)
     if args.geometry:
         window.load_geometry(args.geometry)
     if args.reference:
         window.load_reference(args.reference)
+    if args.scene and args.scene != "still":
+        _start_scene_when_open(window, args.scene, QtCore)
     window.show()
     if args.quit_after is not None:
         QtCore.QTimer.singleShot(int(1000 * args.quit_after), window.close)

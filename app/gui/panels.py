@@ -100,6 +100,7 @@ class CameraPanel(QtWidgets.QWidget):
     open_requested = QtCore.Signal(str)
     configure_requested = QtCore.Signal(dict)
     refresh_requested = QtCore.Signal()
+    scene_requested = QtCore.Signal(str)  # synthetic tank scene chosen (still, waves, drop, impact)
 
     def __init__(self, parent=None):
         super().__init__(parent)
@@ -120,6 +121,21 @@ class CameraPanel(QtWidgets.QWidget):
         self.found_label = QtWidgets.QLabel("")
         self.found_label.setWordWrap(True)
         form.addRow(self.found_label)
+        # the synthetic camera is a simulated tank: still water until a scene is chosen
+        from app.capture.scene import SCENES
+
+        self.scene_box = QtWidgets.QComboBox()
+        for name, text in zip(SCENES, ("still water", "travelling waves", "drop (ring waves)",
+                                       "impact (approaching disc)")):
+            self.scene_box.addItem(text, name)
+        self.scene_box.setToolTip("What the synthetic camera's simulated tank shows; its true heights are "
+                                  "compared with the measured ones in the status bar")
+        self.scene_label = QtWidgets.QLabel("")
+        self.scene_label.setWordWrap(True)
+        form.addRow("Tank scene", self.scene_box)
+        form.addRow(self.scene_label)
+        self.scene_box.activated.connect(lambda i: self.scene_requested.emit(self.scene_box.itemData(i)))
+        self.set_synthetic(False)
         self.exposure = _spin(1, 10_000_000, 1000, decimals=1, suffix=" µs")
         self.gain = _spin(-20, 48, 0, decimals=2, suffix=" dB")
         self.rate = _spin(0.1, 100_000, 100, decimals=2, suffix=" Hz")
@@ -164,6 +180,21 @@ class CameraPanel(QtWidgets.QWidget):
         self.open_button.clicked.connect(lambda: self.open_requested.emit(self.camera_id()))
         self.refresh_button.clicked.connect(self.refresh_requested.emit)
         self.apply_button.clicked.connect(lambda: self.configure_requested.emit(self.requested()))
+
+    def set_synthetic(self, synthetic: bool) -> None:
+        """Enable the tank scene chooser only for the synthetic camera."""
+        self.scene_box.setEnabled(synthetic)
+        if not synthetic:
+            self.scene_label.setText("(scenes: synthetic camera only)")
+
+    def show_scene(self, name: str, text: str = "") -> None:
+        """Select ``name`` in the chooser (no signal) and show ``text`` (progress, state) below it."""
+        i = self.scene_box.findData(name)
+        if i >= 0 and i != self.scene_box.currentIndex():
+            self.scene_box.blockSignals(True)
+            self.scene_box.setCurrentIndex(i)
+            self.scene_box.blockSignals(False)
+        self.scene_label.setText(text)
 
     def camera_id(self) -> str:
         data = self.camera_box.currentData()
@@ -242,6 +273,7 @@ class GeometryPanel(QtWidgets.QWidget):
     save_reference_requested(), load_reference_requested()
     geometry_changed()       an editor value changed (the window rebuilds the Geometry)
     load_geometry_requested(), save_geometry_requested()
+    confirm_geometry_requested()  the editor's geometry is this camera's (remembered with it)
     """
 
     capture_requested = QtCore.Signal(int)
@@ -250,6 +282,7 @@ class GeometryPanel(QtWidgets.QWidget):
     geometry_changed = QtCore.Signal()
     load_geometry_requested = QtCore.Signal()
     save_geometry_requested = QtCore.Signal()
+    confirm_geometry_requested = QtCore.Signal()
 
     def __init__(self, parent=None):
         super().__init__(parent)
@@ -305,9 +338,13 @@ class GeometryPanel(QtWidgets.QWidget):
         row3 = QtWidgets.QHBoxLayout()
         self.load_geo_button = QtWidgets.QPushButton("Load TOML…")
         self.save_geo_button = QtWidgets.QPushButton("Save TOML…")
+        self.confirm_geo_button = QtWidgets.QPushButton("Confirm for this camera")
+        self.confirm_geo_button.setToolTip("These values are this camera's set-up (remembered with the camera); "
+                                           "until then heights are not to scale")
         row3.addWidget(self.load_geo_button)
         row3.addWidget(self.save_geo_button)
         gf.addRow(row3)
+        gf.addRow(self.confirm_geo_button)
         self.geometry_label = QtWidgets.QLabel("")
         self.geometry_label.setWordWrap(True)
         gf.addRow(self.geometry_label)
@@ -319,6 +356,7 @@ class GeometryPanel(QtWidgets.QWidget):
         self.load_ref_button.clicked.connect(self.load_reference_requested.emit)
         self.load_geo_button.clicked.connect(self.load_geometry_requested.emit)
         self.save_geo_button.clicked.connect(self.save_geometry_requested.emit)
+        self.confirm_geo_button.clicked.connect(self.confirm_geometry_requested.emit)
         for w in (self.theta, self.depth, self.pixel, self.camera_distance, self.fsss_camera_distance):
             w.valueChanged.connect(lambda *_: self.geometry_changed.emit())
         self.setup.currentTextChanged.connect(lambda *_: self._setup_changed())

@@ -37,6 +37,7 @@ class Opened:
     reference: Optional[np.ndarray] = None
     geometry: object = None
     use_scene_reference: bool = False
+    restore: bool = True  # apply what the last session remembered for this camera (settings, reference)
 
 
 class LiveSession:
@@ -45,7 +46,8 @@ class LiveSession:
     Parameters
     ----------
     synthetic_options : dict, optional
-        Keyword arguments for :func:`app.capture.scene.open_synthetic_camera`.
+        Keyword arguments for :class:`app.capture.scene.TankScene` (``shape``, ``n_frames``, ``bits``,
+        ``noise_rms``) and ``frame_rate_hz`` of the synthetic camera.
     ring_bytes : int
         Memory for the camera ring buffer (bytes); the pre-trigger length must fit.
     stall_timeout_s : float
@@ -71,6 +73,8 @@ class LiveSession:
         self._base_of = weakref.WeakKeyDictionary()
         self._frames_before = 0
         self._closed = False
+        self.tank = None  # the synthetic camera's app.capture.scene.TankScene (scenes, true heights)
+        self._frame_ids = {}  # worker seq -> camera frame id (recent frames; truth lookup)
         self.worker = ProcessingWorker(self._newest_frame, grid="decimated", nice=worker_nice)
         self.worker.start()
         self.capture = None  # app.capture.trigger capture (pre/post) while armed
@@ -90,25 +94,64 @@ class LiveSession:
         return infos, note
 
     def open(self, camera_id: Optional[str] = None) -> Opened:
-        """Open ``camera_id`` (None: first real camera, else synthetic) and start streaming."""
-        infos, note = self.list_cameras()
+        """Open ``camera_id`` (None: first real camera, else synthetic) and start streaming.
+
+        Cameras are searched only when ``camera_id`` is None (the search takes about a second);
+        the synthetic camera is the simulated tank (:class:`app.capture.scene.TankScene`), on still
+        water, streaming within a fraction of a second.
+        """
+        from app.capture.scene import TankScene
+
+        opts = dict(self.synthetic_options)
+        rate = float(opts.pop("frame_rate_hz", 60.0))
+        opts.pop("scene", None)
+        infos, note, pending = [], "", None
         if camera_id is None:
+            # the search takes about a second: ray-trace the still tank meanwhile, in case none is found
+            import concurrent.futures
+
+            pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="tank")
+            pending = pool.submit(TankScene, opts.get("shape", (512, 512)), frame_rate_hz=rate,
+                                  **{k: v for k, v in opts.items() if k != "shape"})
+            pool.shutdown(wait=False)
+            infos, note = self.list_cameras()
             real = [i for i in infos if i.backend != "synthetic"]
             camera_id = real[0].camera_id if real else "synthetic"
         reference = geometry = None
         if camera_id == "synthetic":
-            from app.capture.scene import open_synthetic_camera
+            from drivers.synthetic import SyntheticCamera
 
-            camera, reference, geometry, _ = open_synthetic_camera(**self.synthetic_options)
+            tank = (pending.result() if pending is not None else
+                    TankScene(opts.pop("shape", (512, 512)), frame_rate_hz=rate, **opts))
+            camera = SyntheticCamera(tank, frame_rate_hz=rate, bit_depth=tank.bits, camera_id="synthetic")
+            reference, geometry = tank.reference, tank.geometry
         else:
             import drivers
 
-            camera = drivers.open_camera(camera_id)
-        opened = self.use_camera(camera, camera_id=camera_id)
+            tank = None
+            try:
+                camera = drivers.open_camera(camera_id)
+            except Exception as exc:  # noqa: BLE001 - explained for the user, original kept as cause
+                from .camera_messages import explain_open_error
+
+                raise RuntimeError(explain_open_error(camera_id, exc)) from exc
+        try:
+            opened = self.use_camera(camera, camera_id=camera_id)
+        except Exception as exc:  # noqa: BLE001 - e.g. streaming refused: another program controls it
+            from .camera_messages import explain_open_error
+
+            self.close_camera()  # let go of it at once
+
+            raise RuntimeError(explain_open_error(camera_id, exc)) from exc
+        self.tank = tank
         opened.cameras, opened.note = infos, note
         opened.reference, opened.geometry = reference, geometry
         opened.use_scene_reference = False
         return opened
+
+    def frame_id_of(self, seq: int) -> Optional[int]:
+        """Camera frame id of the worker's frame ``seq`` (recent frames only), or None."""
+        return self._frame_ids.get(int(seq))
 
     def use_camera(self, camera, *, camera_id: Optional[str] = None) -> Opened:
         """Stream from an already constructed camera (opened here if needed); the old one is closed."""
@@ -118,6 +161,7 @@ class LiveSession:
             finally:
                 raise RuntimeError("the window is closing: camera not started")
         self.close_camera()
+        self.tank = None
         if hasattr(camera, "open") and not getattr(camera, "_opened", False):
             camera.open()
         with self._lock:
@@ -206,7 +250,13 @@ class LiveSession:
             if acq.ring.closed:
                 time.sleep(min(timeout_s, 0.05))
             return None
-        return self._seq_base + f.sequence, f.image, f.host_timestamp_ns
+        seq = self._seq_base + f.sequence
+        ids = self._frame_ids
+        ids[seq] = int(f.frame_id)
+        if len(ids) > 512:
+            for old in list(ids)[:256]:
+                ids.pop(old, None)
+        return seq, f.image, f.host_timestamp_ns
 
     def latest_frame(self):
         """``(seq, image, host_ns)`` of the newest frame in the ring, copied; None if none. Never blocks.

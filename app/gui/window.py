@@ -24,6 +24,7 @@ import numpy as np
 import pyqtgraph as pg
 from pyqtgraph.Qt import QtCore, QtWidgets
 
+from . import state
 from .panels import CameraPanel, GeometryPanel, RecordingPanel
 from .replay import Recording, ReplayTab
 from .session import LiveSession
@@ -140,6 +141,13 @@ class MainWindow(QtWidgets.QMainWindow):
         self.replay_shown_index: Optional[int] = None  # frame whose height map the Replay tab shows
         self.last_drawn = None  # the Processed whose maps are on screen
         self.frozen = False  # True: views keep what they show (scripts; the Pause box does the same)
+        self._t_created = time.monotonic()
+        self.first_frame_s: Optional[float] = None  # window created -> first camera frame on screen
+        self.height_error: Optional[dict] = None  # synthetic tank: live heights vs the scene's truth
+        # the camera to open (the given one, else the last session's) starts opening while the window is built
+        camera_id = state.camera_to_open(self, camera_id)
+        if open_at_start:
+            self.run_background("open", self.session.open, self._camera_opened, camera_id)
 
         self._build_ui()
         self.session.worker.set_alignment_fn(self._frame_alignment)
@@ -152,8 +160,10 @@ class MainWindow(QtWidgets.QMainWindow):
         self._status_timer.timeout.connect(self._update_status)
         self._status_timer.start()
         self._display_timer.start(DISPLAY_PERIOD_MS)
+        # remembered state (app/gui/state.py): layout, recording, levels now; geometry, reference on open
+        state.restore_early(self)
         if open_at_start:
-            self.open_camera(camera_id)
+            self._show_opening(camera_id)
 
     # ------------------------------------------------------------------ UI
     def _build_ui(self):
@@ -168,6 +178,21 @@ class MainWindow(QtWidgets.QMainWindow):
         self.banner_close.setFixedWidth(28)
         self.banner_close.setVisible(False)
         self.banner_close.clicked.connect(self.clear_error)
+        # persistent: a camera whose geometry was never confirmed measures heights to no known scale
+        self.geometry_banner = QtWidgets.QLabel("geometry not set for this camera: heights not to scale — "
+                                                "enter θ, H and the scale, then Confirm (or load a geometry)")
+        self.geometry_banner.setWordWrap(True)
+        self.geometry_banner.setSizePolicy(QtWidgets.QSizePolicy.Ignored, QtWidgets.QSizePolicy.Preferred)
+        self.geometry_banner.setStyleSheet("background: #fff3c0; color: #7a4a00; padding: 5px; font-weight: bold;"
+                                           "border: 1px solid #d0a000;")
+        self.geometry_confirm_button = QtWidgets.QPushButton("Confirm geometry")
+        self.geometry_banner.setVisible(False)
+        self.geometry_confirm_button.setVisible(False)
+        self.restored_bar = QtWidgets.QLabel("")
+        self.restored_bar.setWordWrap(True)
+        self.restored_bar.setSizePolicy(QtWidgets.QSizePolicy.Ignored, QtWidgets.QSizePolicy.Preferred)
+        self.restored_bar.setStyleSheet("background: #e4eefc; color: #123; padding: 4px; border: 1px solid #8ab;")
+        self.restored_bar.setVisible(False)
 
         self.tabs = QtWidgets.QTabWidget()
         # Live tab: the raw frame, the height map and the profile/histogram column on top, the other
@@ -273,6 +298,11 @@ class MainWindow(QtWidgets.QMainWindow):
         bl.addWidget(self.banner, 1)
         bl.addWidget(self.banner_close)
         cl.addLayout(bl)
+        gl = QtWidgets.QHBoxLayout()
+        gl.addWidget(self.geometry_banner, 1)
+        gl.addWidget(self.geometry_confirm_button)
+        cl.addLayout(gl)
+        cl.addWidget(self.restored_bar)
         cl.addWidget(self.tabs, 1)
         self.setCentralWidget(central)
 
@@ -309,6 +339,9 @@ class MainWindow(QtWidgets.QMainWindow):
         self.recording_panel.browse_requested.connect(self._choose_folder)
         self.recording_panel.lengths_changed.connect(self._update_cost)
         self.recording_panel.folder.setText(os.getcwd())
+        self.camera_panel.scene_requested.connect(self.set_scene)
+        self.geometry_panel.confirm_geometry_requested.connect(self.confirm_geometry)
+        self.geometry_confirm_button.clicked.connect(self.confirm_geometry)
 
         # status bar: every label elides to its room and keeps the full text as tooltip
         sb = self.statusBar()
@@ -324,8 +357,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self._message_timer.setSingleShot(True)
         self._message_timer.timeout.connect(lambda: self.message_label.setText(""))
         self.status_labels = {}
-        stretch = {"camera": 0, "fps": 0, "drops": 1, "ring": 0, "latency": 0, "state": 0}
-        for key in ("camera", "fps", "drops", "ring", "latency", "state"):
+        stretch = {"camera": 0, "fps": 0, "truth": 0, "drops": 1, "ring": 0, "latency": 0, "state": 0}
+        for key in ("camera", "fps", "truth", "drops", "ring", "latency", "state"):
             lab = ElidedLabel("")
             lab.setStyleSheet("padding: 0 4px")
             sb.addPermanentWidget(lab, stretch[key])
@@ -413,36 +446,57 @@ class MainWindow(QtWidgets.QMainWindow):
                 return
             infos, note = result
             self.camera_panel.set_cameras(infos, note)
+            if self.session.camera_id:  # the list may come after the camera opened: keep it selected
+                self.camera_panel.select_camera(self.session.camera_id)
         self.run_background("search", self.session.list_cameras, found)
 
     def open_camera(self, camera_id: Optional[str] = None):
         """Open ``camera_id`` (None: first found, else the synthetic scene) and start streaming."""
-        self.info(f"opening camera {camera_id or '(first found)'}…")
+        self._show_opening(camera_id)
         self.run_background("open", self.session.open, self._camera_opened, camera_id)
+
+    def _show_opening(self, camera_id):
+        text = ("searching cameras…" if camera_id is None else
+                "preparing the synthetic tank (still water)…" if camera_id == "synthetic" else
+                f"opening camera {camera_id}…")
+        self.info(text)
+        if self.session.acquisition is None:
+            self.raw_view.show_message(text)
 
     def use_camera(self, camera, *, geometry=None, reference=None, camera_id: Optional[str] = None):
         """Stream from an already built camera (scripts, tests, benchmarks); blocks while it starts."""
         opened = self.session.use_camera(camera, camera_id=camera_id)
         opened.geometry = geometry
+        opened.restore = False  # a camera handed over by a script keeps its own settings
         self._camera_opened(opened, None)
         if reference is not None:
             self.set_reference(reference, "given")
         return opened
 
     def _camera_opened(self, result, error):
+        if error and state.remembered_camera_failed(self, error):
+            return  # the last session's camera is not there: searching instead
         if error:
             self.show_error(f"Could not open the camera: {error}\nPick another camera in Controls ▸ Camera "
                             "and press Open; the synthetic camera always works.")
             return
         opened = result
-        self.camera_panel.set_cameras(opened.cameras, opened.note)
+        self.raw_view.show_message("")
+        if opened.cameras:
+            self.camera_panel.set_cameras(opened.cameras, opened.note)
+        elif self.camera_panel.camera_box.count() <= 1:  # opened by id: the list fills in after the first frame
+            QtCore.QTimer.singleShot(500, self, lambda: None if self._closing else self.search_cameras())
         self.camera_panel.select_camera(opened.camera_id)
+        tank = self.session.tank
+        self.camera_panel.set_synthetic(tank is not None)
+        if tank is not None:
+            self.camera_panel.show_scene(tank.scene, "still water: capture the reference now" if tank.scene ==
+                                         "still" else "")
         self.camera_panel.show_settings(opened.settings)
         self.clear_error()
         if opened.note:
             self.info(opened.note)
-        if opened.geometry is not None:
-            self.set_geometry(opened.geometry)
+        state.camera_opened(self, opened)
         self.session.worker.set_alignment(self.tabs.currentIndex() == 1)
         self._update_cost()
         if opened.reference is not None and self.reference is None and opened.use_scene_reference:
@@ -456,6 +510,7 @@ class MainWindow(QtWidgets.QMainWindow):
             if settings is not None:
                 self.camera_panel.show_settings(settings)
                 self._update_cost()
+                state.remember_camera_settings(self, settings)
         self.run_background("configure", self.session.configure, done, values)
 
     # ---------------------------------------------------------- reference
@@ -471,9 +526,13 @@ class MainWindow(QtWidgets.QMainWindow):
             self.set_reference(image, f"average of {n_frames} frames")
         self.run_background("reference", self.session.capture_reference, done, int(n_frames))
 
-    def set_reference(self, image: np.ndarray, origin: str = "") -> bool:
-        """Use ``image`` as the flat-surface reference: rebuild the reconstructor (background)."""
+    def set_reference(self, image: np.ndarray, origin: str = "", path: Optional[str] = None) -> bool:
+        """Use ``image`` as the flat-surface reference: rebuild the reconstructor (background).
+
+        ``path``: the file it came from (remembered for the next start; a captured one is kept in the cache).
+        """
         self.reference = np.asarray(image)
+        self.reference_path = path
         self._reference_text = f"reference: {origin}, {image.shape[1]}×{image.shape[0]} px"
         self.geometry_panel.reference_label.setText(self._reference_text + " — building…")
         self._rebuild_reconstructor()
@@ -511,6 +570,7 @@ class MainWindow(QtWidgets.QMainWindow):
                 pass
             self.geometry_panel.reference_label.setText(text + " ✓")
             self.clear_error()
+            state.reference_in_use(self)
         self.run_background("reconstructor", build, done)
 
     def _choose_save_reference(self):
@@ -547,7 +607,7 @@ class MainWindow(QtWidgets.QMainWindow):
         except Exception as exc:  # noqa: BLE001 - shown
             self.show_error(f"Cannot load reference {path!r}: {exc}")
             return
-        self.set_reference(image, os.path.basename(path))
+        self.set_reference(image, os.path.basename(path), path=os.path.abspath(path))
 
     # ----------------------------------------------------------- geometry
     def set_geometry(self, geometry) -> None:
@@ -557,6 +617,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self._show_region(d.get("reference_region"))
         self.geometry_panel.geometry_label.setText("geometry OK")
         self._rebuild_reconstructor()
+        state.geometry_in_use(self)
 
     def apply_geometry_editor(self):
         from processing import Geometry
@@ -577,6 +638,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.geometry = geometry
         self._show_region(geometry.to_dict().get("reference_region"))
         self._rebuild_reconstructor()
+        state.geometry_in_use(self)
 
     def _show_region(self, region):
         if region is None:
@@ -613,7 +675,52 @@ class MainWindow(QtWidgets.QMainWindow):
             self.show_error(f"Cannot load geometry {path!r}: {exc}")
             return
         self.set_geometry(geometry)
+        self.confirm_geometry()  # a loaded geometry is this camera's set-up
         self.info(f"geometry loaded from {path}")
+
+    def confirm_geometry(self) -> None:
+        """The geometry in use is this camera's (remembered with it; the "not to scale" banner goes)."""
+        state.confirm_geometry(self)
+
+    # ----------------------------------------------------- scene, session
+    def set_scene(self, name: str) -> None:
+        """Show scene ``name`` (still, waves, drop, impact) on the synthetic camera's simulated tank.
+
+        A scene not yet ray-traced is prepared in the background (progress in Controls ▸ Camera and the
+        status bar); still water streams meanwhile.
+        """
+        from app.capture.scene import SCENES
+
+        tank = self.session.tank
+        if name not in SCENES:
+            self.show_error(f"Unknown scene {name!r}: choose one of {', '.join(SCENES)}.")
+            return
+        if tank is None:
+            self.show_error("Tank scenes need the synthetic camera: choose 'synthetic' in Controls ▸ Camera "
+                            "and press Open.")
+            return
+        self.scene_wanted = name
+
+        def done(_, error):
+            if error:
+                self.show_error(f"Scene {name} could not be prepared: {error}")
+            elif self.session.tank is tank and self.scene_wanted == name:
+                tank.set_scene(name)
+                self.camera_panel.show_scene(name, "" if name != "still" else "still water")
+                self.info(f"tank scene: {name}")
+                log.info("synthetic tank: scene %s streaming", name)
+        if tank.ready(name):
+            done(None, None)
+        elif not self.busy(f"scene-{name}"):
+            self.run_background(f"scene-{name}", tank.prepare, done, name)
+
+    def save_experiment(self, path: str) -> str:
+        """Write geometry + reference + settings to the experiment TOML ``path``; returns the file written."""
+        return state.save_experiment(self, path)
+
+    def open_experiment(self, path: str) -> bool:
+        """Use the geometry, reference and settings of the experiment TOML ``path``; False (shown) if unusable."""
+        return state.open_experiment(self, path)
 
     def _choose_save_geometry(self):
         path, _ = QtWidgets.QFileDialog.getSaveFileName(self, "Save geometry", "geometry.toml", "TOML (*.toml)")
@@ -860,6 +967,10 @@ class MainWindow(QtWidgets.QMainWindow):
             frame = self.session.latest_frame()
             if frame is not None and frame[0] != self._last_raw_seq:
                 seq, image, host_ns = frame
+                if self.first_frame_s is None:
+                    self.first_frame_s = time.monotonic() - self._t_created
+                    log.info("first camera frame on screen %.2f s after the window was created",
+                             self.first_frame_s)
                 self._last_raw_seq = seq
                 self._draw_raw(image, tab, host_ns, seq)
                 self.latency_ms = (time.monotonic_ns() - host_ns) / 1e6 if host_ns else float("nan")
@@ -974,8 +1085,10 @@ class MainWindow(QtWidgets.QMainWindow):
         if mod is not None:
             self.modulation_view.set_data(np.asarray(mod, np.float32), x=a.get("modulation_cols_px"),
                                           y=a.get("modulation_rows_px"), levels=(0.0, 1.0))
-        ready, reasons, lines = self.assess_alignment(a, p.saturation_pct)
+        ready, reasons, lines, notes = self.assess_alignment(a, p.saturation_pct)
         self.alignment_ready = ready
+        self.alignment_metrics = dict(lines)
+        lines = lines + [("note", n) for n in notes]
         if ready:
             self.ready_label.setText("READY TO MEASURE")
             self.ready_label.setStyleSheet("background:#d8f5d8; color:#060; font-size:22px; font-weight:bold;"
@@ -1007,66 +1120,10 @@ class MainWindow(QtWidgets.QMainWindow):
         self.spectrum_view.set_spectrum(mag, fx, fy, pts)
 
     def assess_alignment(self, a: dict, saturation_pct: float):
-        """Decide "ready to measure" from the alignment metrics; returns (ready, reasons, table lines)."""
-        reasons, lines = [], []
-        if a.get("error"):
-            short = a["error"] if len(a["error"]) < 90 else a["error"][:87] + "…"
-            return False, [a["error"]], [("problem", short)]
+        """Decide "ready to measure": ``(ready, reasons, table lines, notes)`` (app/gui/alignment.py)."""
+        from .alignment import assess
 
-        def num(*keys):
-            for k in keys:
-                v = a.get(k)
-                if v is not None:
-                    return v
-            return None
-
-        periods = num("periods_px", "periods")
-        if periods is not None:
-            lines.append(("pattern periods", ", ".join(f"{float(v):.2f} px" for v in np.ravel(periods))))
-            if min(np.ravel(periods)) < 4:
-                reasons.append("pattern period below 4 px: use a coarser pattern or zoom in")
-        rot = num("rotation_deg", "rotation")
-        if rot is not None:
-            lines.append(("pattern rotation", f"{_nz(rot):.2f}°"))
-        th_est = num("theta_estimate_deg", "theta_est_deg", "theta_deg_estimate")
-        th_cfg = num("theta_configured_deg", "theta_deg")
-        fsss = getattr(self.geometry, "setup", "tir") == "fsss"
-        if th_cfg is None and self.geometry is not None:
-            th_cfg = getattr(self.geometry, "theta_deg", None)
-        if fsss:  # FS-SS looks straight down: theta is not part of its alignment
-            th_est = None
-            lines.append(("setup", "FS-SS (no θ to check)"))
-        if th_est is not None:
-            th_text = f"{float(th_est):.2f}° from the pattern"
-            if th_cfg is not None:
-                diff = float(th_est) - float(th_cfg)
-                th_text += f" vs {float(th_cfg):.2f}° configured (Δ {_nz(diff):+.2f}°)"
-                if abs(diff) > 1.0:
-                    reasons.append(f"θ from the pattern differs by {diff:+.1f}° from the geometry")
-            lines.append(("θ", th_text))
-            if th_cfg is None:
-                reasons.append("no geometry: enter θ and H (Controls ▸ Reference & geometry)")
-        mod = a.get("modulation")
-        contrast = num("contrast", "modulation_median")
-        if contrast is None and mod is not None:
-            contrast = float(np.nanmedian(mod))
-        if contrast is not None:
-            lines.append(("contrast (median modulation)", f"{float(contrast):.2f}"))
-            if float(contrast) < 0.2:
-                reasons.append("low contrast: light the pattern, focus, check TIR")
-        focus = num("focus", "focus_metric")
-        if focus is not None:
-            lines.append(("focus metric", f"{float(focus):.3g}"))
-        # the worker's figure uses the camera's bit depth (a 12-bit camera in uint16 saturates at 4095)
-        sat = float(saturation_pct)
-        lines.append(("saturation", f"{sat:.2f} %"))
-        if sat > 1.0:
-            reasons.append(f"{sat:.1f} % of pixels saturated: lower exposure or gain")
-        if periods is None and th_est is None:
-            reasons.append("no carriers found")
-        if self.geometry is None and not any(r.startswith("no geometry") for r in reasons):
-            reasons.append("no geometry: enter θ and H (Controls ▸ Reference & geometry)")
-        return (not reasons), reasons, lines
+        return assess(a, saturation_pct, self.geometry, self.session.worker.reconstructor is not None)
 
     # ------------------------------------------------------------- status
     def _update_status(self):
@@ -1101,10 +1158,15 @@ class MainWindow(QtWidgets.QMainWindow):
         self._update_staleness()
         if err and err != getattr(self, "_shown_camera_error", None):
             self._shown_camera_error = err
-            self.show_error(f"Camera problem: {err}\nCheck the cable, power and network, then press Open in "
-                            "Controls ▸ Camera. The app keeps running; frames already recorded are kept.")
+            from .camera_messages import explain_open_error, is_controlled_elsewhere
+            if is_controlled_elsewhere(err):  # another program holds the camera: say so, not "check the cable"
+                self.show_error(f"Camera problem: {explain_open_error(self.session.camera_id, err)}")
+            else:
+                self.show_error(f"Camera problem: {err}\nCheck the cable, power and network, then press Open in "
+                                "Controls ▸ Camera. The app keeps running; frames already recorded are kept.")
         lab["state"].setText("camera stopped" if err else "")
         self._update_recording()
+        state.update_truth(self)
 
 
     # ------------------------------------------- staleness, pause, snapshot
@@ -1258,6 +1320,10 @@ class MainWindow(QtWidgets.QMainWindow):
         """Stop timers and threads; idempotent."""
         if self._closing:
             return
+        try:
+            state.save(self)
+        except Exception:  # noqa: BLE001 - remembering must never stop the window from closing
+            log.exception("could not remember the session")
         self._closing = True
         self._display_timer.stop()
         self._status_timer.stop()

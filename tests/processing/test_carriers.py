@@ -138,3 +138,34 @@ def test_display_spectrum_keeps_the_carrier_peak_where_it_is(cols):
     # the peak and its mirror are equally strong: accept either
     assert any(abs(out["freq_y"][i] - sy * f_row) <= step and abs(out["freq_x"][j] - sy * f_col) <= step
                for sy in (1, -1))
+
+
+def test_disturbed_surface_carriers_from_local_tiles():
+    """Waves smear the whole image's carrier peaks (the isolation test calls it a streak); the median of
+    local tiles' carriers still gives the undisturbed periods and theta."""
+    from processing import forward
+    from processing.carriers import NoCarrierError, find_carriers_live, find_carriers_local
+    from processing.geometry import Geometry
+
+    shape = (512, 512)
+    g = Geometry(theta_deg=55.0, depth_mm=300.0, pixel_mm=40.0 / 512, rows_toward_camera=False)
+    board = forward.Checkerboard(period_mm=12 * g.pixel_mm, edge_softness_mm=g.pixel_mm)
+    k = 2 * np.pi / 20.0  # a 20 mm gravity-capillary wave, 0.5 um: |u| up to 3 px on a 6-px pattern
+    waves = forward.WaveField(((0.0005, k * 0.88, k * 0.48, 0.3), (0.00035, -0.5 * k, 1.3 * k, 1.1)))
+    rng = np.random.default_rng(5)
+    flat = forward.quantize(forward.render_tir(forward.FlatSurface(), g, shape, board)[0], bits=8,
+                            noise_rms=0.5, rng=rng)
+    frame = forward.quantize(forward.render_tir(waves, g, shape, board)[0], bits=8, noise_rms=0.5, rng=rng)
+    still = find_carriers(flat)
+    with pytest.raises(NoCarrierError, match="streak or smear"):
+        find_carriers(frame)  # the root cause of "NOT READY ... streak or smear" on moving water
+    c, disturbed = find_carriers_live(frame)
+    assert disturbed
+    # within 1 %: below the 1.5 % at which the GUI says "the pattern or the camera moved since the reference"
+    np.testing.assert_allclose(np.sort(c.periods_px), np.sort(still.periods_px), rtol=0.01)
+    # theta within a third of the 1 deg the GUI flags; rotation within its 0.5 deg flag
+    assert abs(c.theta_deg - 55.0) < 0.33 and abs(c.rotation_deg - still.rotation_deg) < 0.5
+    assert find_carriers_live(flat)[1] is False  # still water: the whole image, not tiles
+    noise = np.random.default_rng(3).normal(100.0, 10.0, (512, 512))
+    with pytest.raises(NoCarrierError):
+        find_carriers_local(noise)

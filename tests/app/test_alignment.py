@@ -1,0 +1,60 @@
+"""Alignment verdicts (app/gui/alignment.py) on ray-traced frames of the simulated tank."""
+
+import numpy as np
+import pytest
+
+from app.capture.scene import TankScene
+from app.gui.alignment import assess, frame_alignment
+from processing.geometry import Geometry
+
+
+@pytest.fixture(scope="module")
+def tank():
+    t = TankScene((512, 512), n_frames=2)
+    t.prepare("waves")
+    return t
+
+
+def test_still_water_is_ready_with_numbers(tank):
+    a, spectrum = frame_alignment(tank(0), tank.geometry.theta_deg)
+    ready, reasons, lines, notes = assess(a, 0.0, tank.geometry, has_reference=False)
+    assert ready, reasons
+    table = dict(lines)
+    assert abs(a["theta_estimate_deg"] - 55.0) < 0.1 and "vs 55.00° configured" in table["θ"]
+    np.testing.assert_allclose(a["periods_px"], 5.97, atol=0.02)
+    assert a["disturbed"] is False and notes == ["capture the reference on still water"]
+    assert len(spectrum["carriers"]) == 4
+
+
+def test_moving_water_gives_numbers_but_no_reference(tank):
+    tank.set_scene("waves")
+    a, _ = frame_alignment(tank(5), tank.geometry.theta_deg)
+    assert "error" not in a and a["disturbed"]
+    ready, reasons, lines, _ = assess(a, 0.0, tank.geometry, has_reference=False)
+    assert not ready and any("a reference needs still water" in r for r in reasons)
+    table = dict(lines)
+    assert {"pattern periods", "pattern rotation", "θ", "contrast (median modulation)",
+            "focus (carrier peak sharpness)", "saturation"} <= set(table)
+    # with a reference, moving water is what is measured: ready
+    ready, reasons, _, notes = assess(a, 0.0, tank.geometry, has_reference=True)
+    assert ready, reasons
+    tank.set_scene("still")
+
+
+def test_theta_and_pattern_changes_are_flagged(tank):
+    a, _ = frame_alignment(tank(0))
+    g57 = Geometry.from_dict({**tank.geometry.to_dict(), "theta_deg": 56.2})  # 1.2 deg off the pattern's 55
+    ready, reasons, _, _ = assess(a, 0.0, g57)
+    assert not ready and any("θ from the pattern differs by -1.2°" in r for r in reasons)
+    g55 = Geometry.from_dict({**tank.geometry.to_dict(), "theta_deg": 55.8})  # 0.8 deg: within tolerance
+    assert assess(a, 0.0, g55)[0]
+    # the stored reference was taken with a 2 % coarser, 1 deg rotated pattern: the camera or pattern moved
+    moved = dict(a, reference_periods_px=np.asarray(a["periods_px"]) * 1.02,
+                 reference_rotation_deg=a["rotation_deg"] + 1.0)
+    ready, reasons, _, _ = assess(moved, 0.0, tank.geometry, has_reference=True)
+    assert not ready
+    assert any("differ by 2.0 % from the reference" in r for r in reasons)
+    assert any("pattern rotated by -1.00° since the reference" in r for r in reasons)
+    same = dict(a, reference_periods_px=np.asarray(a["periods_px"]) * 1.005,
+                reference_rotation_deg=a["rotation_deg"] + 0.2)
+    assert assess(same, 0.0, tank.geometry, has_reference=True)[0]
