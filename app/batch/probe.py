@@ -2,20 +2,20 @@
 
 A probe is a wave gauge you can move after the experiment: the height at a
 surface point ``(x_mm, y_mm)``, bilinearly interpolated between the four
-samples around it (NaN when any of them is invalid, never a value from an
-unmeasured sample), one value per processed frame, with the frame's time.
+samples around it by :mod:`processing.probe` (the live window's probes use the
+same rule; NaN when any of them is invalid), one value per processed frame, with the frame's time.
 """
 
 from __future__ import annotations
 
 import csv
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from processing.errors import TirdeflectError
+from processing.probe import probe_cell, sample_cell
 
 __all__ = ["ProbeSeries", "probe_series", "frame_times", "write_probes", "open_output"]
 
@@ -92,19 +92,6 @@ def frame_times(f, n: int, fps: float | None = None) -> tuple:
     return np.full(n, np.nan), "none"
 
 
-def _fractional_index(coord: np.ndarray, value: float, what: str) -> float:
-    coord = np.asarray(coord, dtype=np.float64)
-    idx = np.arange(coord.size, dtype=np.float64)
-    if coord.size > 1 and coord[-1] < coord[0]:
-        coord, idx = coord[::-1], idx[::-1]
-    lo, hi = float(coord[0]), float(coord[-1])
-    if not lo <= value <= hi:
-        raise TirdeflectError(
-            f"probe {what} = {value:g} mm is outside the measured field ({what} from {lo:.3f} "
-            f"to {hi:.3f} mm); choose a point inside it")
-    return float(np.interp(value, coord, idx))
-
-
 def probe_series(path, points_mm, *, fps: float | None = None) -> ProbeSeries:
     """Heights at ``points_mm`` (sequence of ``(x_mm, y_mm)``) over every frame of OUT.h5.
 
@@ -122,23 +109,14 @@ def probe_series(path, points_mm, *, fps: float | None = None) -> ProbeSeries:
             raise TirdeflectError(f"{str(path)!r} holds no processed frame (frames_done = 0)")
         x_mm, y_mm = f["x_mm"][()], f["y_mm"][()]
         height = f["height"]
-        rows, cols = height.shape[1:]
-        cells = []
-        for x, y in points:
-            c = _fractional_index(x_mm, x, "x")
-            r = _fractional_index(y_mm, y, "y")
-            r0, c0 = min(int(math.floor(r)), rows - 2), min(int(math.floor(c)), cols - 2)
-            cells.append((r0, c0, r - r0, c - c0))
+        cells = [probe_cell(x_mm, y_mm, x, y) for x, y in points]
         out = np.empty((n, len(points)))
         r_lo = min(cell[0] for cell in cells)
         r_hi = max(cell[0] for cell in cells) + 2
         for k in range(n):
             band = height[k, r_lo:r_hi, :]  # one read per frame for all probes
-            for j, (r0, c0, fr, fc) in enumerate(cells):
-                q = band[r0 - r_lo:r0 - r_lo + 2, c0:c0 + 2].astype(np.float64)
-                w = np.array([[(1 - fr) * (1 - fc), (1 - fr) * fc], [fr * (1 - fc), fr * fc]])
-                used = w > 1e-12
-                out[k, j] = float(np.sum(q[used] * w[used])) if np.all(np.isfinite(q[used])) else np.nan
+            for j, cell in enumerate(cells):
+                out[k, j] = sample_cell(band, cell, row_offset=r_lo)
         times, source = frame_times(f, n, fps)
         index = np.asarray(f["frame_index"][:n], dtype=np.int64)
     return ProbeSeries(np.array([p[0] for p in points]), np.array([p[1] for p in points]),
