@@ -26,7 +26,7 @@ from pyqtgraph.Qt import QtCore, QtWidgets
 
 from . import state
 from .panels import CameraPanel, GeometryPanel, RecordingPanel
-from .replay import Recording, ReplayTab
+from .replay import RECORDING_FILTER, Recording, ReplayTab
 from .session import LiveSession
 from .views import HistogramView, ImageView, ProfileLine, ProfileView, SpectrumView, format_age
 from .widgets import ElidedLabel
@@ -221,7 +221,12 @@ class MainWindow(QtWidgets.QMainWindow):
         rb.addWidget(self.histogram, 1)
         grid.addWidget(raw_box, 0, 0)
         grid.addWidget(self.height_view, 0, 1, 1, 2)
-        grid.addWidget(self.profile_view, 0, 3)
+        from .probes import ProbeView
+        self.probe_view = ProbeView(self.height_view.plot)  # click the height map: a wave gauge
+        side = QtWidgets.QSplitter(QtCore.Qt.Vertical)
+        side.addWidget(self.profile_view)
+        side.addWidget(self.probe_view)
+        grid.addWidget(side, 0, 3)
         grid.addWidget(self.disp_view, 1, 0)
         grid.addWidget(self.slope_x_view, 1, 1)
         grid.addWidget(self.slope_y_view, 1, 2)
@@ -805,7 +810,7 @@ class MainWindow(QtWidgets.QMainWindow):
     # ------------------------------------------------------------- replay
     def _choose_recording(self):
         path, _ = QtWidgets.QFileDialog.getOpenFileName(self, "Open recording",
-                                                        self.recording_panel.folder.text(), "HDF5 (*.h5 *.hdf5)")
+                                                        self.recording_panel.folder.text(), RECORDING_FILTER)
         if path:
             self.open_recording(path)
 
@@ -1053,6 +1058,7 @@ class MainWindow(QtWidgets.QMainWindow):
             self.valid_view.set_data(r.valid.astype(np.float32), x=x, y=y, levels=(0.0, 1.0), frame_id=seq)
             self._draw_profile(height_um, x, y)
             self.profile_view.frame_id = seq
+            self.probe_view.update(p)
         if part in (1, -1):
             u = r.displacement
             self.disp_view.set_data(np.hypot(u[0], u[1]).astype(np.float32), x=x, y=y, frame_id=seq)
