@@ -68,3 +68,63 @@ def export_heights(recording_path: str, out_path: str, *, geometry_toml: Optiona
     if progress is not None:
         progress(total, total)
     return out_path
+
+
+def choose_movie(window) -> None:
+    """File ▸ Export movie: pick a processed OUT.h5 (default: the last export) and the movie to write."""
+    from pyqtgraph.Qt import QtWidgets
+
+    done = getattr(window, "export_result", None)
+    default = done[1] if isinstance(done, tuple) and done[0] == "done" else ""
+    out_h5, _ = QtWidgets.QFileDialog.getOpenFileName(window, "Movie of which processed heights (OUT.h5)?",
+                                                      default, "Processed heights (*.h5 *.hdf5)")
+    if not out_h5:
+        return
+    movie, _ = QtWidgets.QFileDialog.getSaveFileName(window, "Export movie", os.path.splitext(out_h5)[0] + ".mp4",
+                                                     "Movie (*.mp4 *.mkv *.mov *.avi)")
+    if movie:
+        export_movie(window, out_h5, movie)
+
+
+def export_movie(window, out_h5: str, movie_path: str, **options) -> None:
+    """Write a movie of ``out_h5`` through :func:`app.batch.movie.make_movie` in the background.
+
+    Progress shows in the status bar ("movie: k/n frames"); the outcome lands in
+    ``window.movie_result`` (``("done", MovieReport)`` or ``("error", text)``).
+    """
+    from pyqtgraph.Qt import QtCore
+
+    if window.busy("movie"):
+        window.show_error("A movie is being written already; wait for it to finish.")
+        return
+    window.movie_result = None
+    state = {"done": 0, "total": 0}
+
+    def progress(done, total):  # worker thread: only numbers; the timer shows them
+        state["done"], state["total"] = done, total
+
+    def show():
+        window.info(f"movie: {state['done']}/{state['total'] or '?'} frames of {os.path.basename(out_h5)} → "
+                    f"{os.path.basename(movie_path)}", 2000)
+
+    timer = QtCore.QTimer(window)
+    timer.setInterval(200)
+    timer.timeout.connect(show)
+    timer.start()
+    show()
+
+    def job():
+        from app.batch.movie import make_movie
+        return make_movie(out_h5, movie_path, on_progress=progress, **options)
+
+    def done(report, error):
+        timer.stop()
+        timer.deleteLater()
+        if error:
+            window.movie_result = ("error", error)
+            window.show_error(f"Movie not written: {error}")
+            return
+        window.movie_result = ("done", report)
+        window.info(f"movie written: {report.path} ({report.frames} frames, {report.width}x{report.height}, "
+                    f"{report.value_range[0]:.3g} … {report.value_range[1]:.3g} {report.unit})", 15000)
+    window.run_background("movie", job, done)

@@ -38,6 +38,7 @@ SHORTCUTS = (
     Shortcut("save_experiment", "File", "Save experiment…", "Ctrl+S"),
     Shortcut("snapshot", "File", "Snapshot (window PNG + maps HDF5)", "F12"),
     Shortcut("export", "File", "Export heights of the open recording…", "Ctrl+E"),
+    Shortcut("export_movie", "File", "Export movie of processed heights (OUT.h5)…", "Ctrl+M"),
     Shortcut("quit", "File", "Quit", "Ctrl+Q"),
     Shortcut("capture_reference", "Measure", "Capture reference", "Ctrl+R"),
     Shortcut("arm", "Measure", "Arm recording", "Ctrl+Shift+A"),
@@ -48,6 +49,7 @@ SHORTCUTS = (
     Shortcut("tab_alignment", "View", "Alignment tab", "Ctrl+2"),
     Shortcut("tab_replay", "View", "Replay tab", "Ctrl+3"),
     Shortcut("controls", "View", "Show/hide the Controls panel", "Ctrl+D"),
+    Shortcut("clear_probes", "View", "Remove all probes (click the height map to place one)", "Ctrl+Shift+P"),
     Shortcut("scene_still", "View", "Synthetic scene: still water", "Alt+1"),
     Shortcut("scene_waves", "View", "Synthetic scene: travelling waves", "Alt+2"),
     Shortcut("scene_drop", "View", "Synthetic scene: drop (ring waves)", "Alt+3"),
@@ -94,6 +96,8 @@ def _handlers(window) -> dict:
     def tab(i: int):
         return lambda: window.tabs.setCurrentIndex(i)
 
+    from . import export
+
     rp, gp = window.recording_panel, window.geometry_panel
     handlers = {
         "open_recording": window._choose_recording,
@@ -101,6 +105,8 @@ def _handlers(window) -> dict:
         "save_experiment": experiment(True),
         "snapshot": window.snapshot,
         "export": window._choose_export,
+        "export_movie": lambda: export.choose_movie(window),
+        "clear_probes": window.probe_view.clear if hasattr(window, "probe_view") else None,
         "quit": window.close,
         # the panels' own buttons: the same checks (enabled state) as a click
         "capture_reference": gp.capture_button.click,

@@ -1,0 +1,127 @@
+"""Replay's File ▸ Open on camera files and videos, and File ▸ Export movie, through the menu and
+its file dialogs (pytest-qt, offscreen). The files are written by their own libraries (pyMRAW,
+PyAV), as in tests/app/test_formats.py."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pyqtgraph.Qt import QtCore, QtWidgets
+
+from tests.app.test_formats import write_mraw, write_video
+
+pytestmark = pytest.mark.gui
+av = pytest.importorskip("av")
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture
+def window(qtbot):
+    from app.gui.window import MainWindow
+
+    w = MainWindow(open_at_start=False, planner_effort="FFTW_ESTIMATE")
+    qtbot.addWidget(w)
+    w.show()
+    yield w
+    w.shutdown()
+
+
+def _answer_file_dialogs(qtbot, answers, seen_filters):
+    """Fill each file dialog the window opens with the next path and accept it, as a user would
+    (again on the next poll if the dialog is still open: a busy machine may not have taken it)."""
+    answers = [Path(a) for a in answers]
+    state = {"dlg": None}
+
+    def poll():
+        dlg = next((d for d in QtWidgets.QApplication.topLevelWidgets()
+                    if isinstance(d, QtWidgets.QFileDialog) and d.isVisible()), None)
+        if state["dlg"] is not None and dlg is not state["dlg"]:
+            answers.pop(0)  # the dialog answered last time has closed
+            state["dlg"] = None
+        if dlg is not None and answers:
+            if state["dlg"] is None:
+                seen_filters.append(dlg.nameFilters())
+            name_edit = dlg.findChild(QtWidgets.QLineEdit, "fileNameEdit")
+            name_edit.setText(str(answers[0]))  # typed into the dialog's file name box, then Enter
+            qtbot.keyClick(name_edit, QtCore.Qt.Key_Return)
+            state["dlg"] = dlg
+        if answers:
+            QtCore.QTimer.singleShot(50, poll)
+
+    QtCore.QTimer.singleShot(50, poll)
+
+
+def _frames(n=4, shape=(48, 64), hi=4096):
+    rng = np.random.default_rng(3)
+    return [rng.integers(0, hi, shape).astype(np.uint16) for _ in range(n)]
+
+
+@pytest.mark.parametrize("kind", ["mraw", "ffv1"])
+def test_file_open_lists_and_opens_camera_files_and_video(qtbot, window, tmp_path, kind):
+    """File ▸ Open recording: the dialog offers Photron/video, accepting a file shows its frames."""
+    frames = _frames()
+    if kind == "mraw":
+        path = write_mraw(tmp_path / "rec.cih", frames, bits=16, fps=5000)
+    else:
+        path = write_video(tmp_path / "rec.avi", frames, codec="ffv1", pix_fmt="gray16le")
+    filters = []
+    _answer_file_dialogs(qtbot, [path], filters)
+    window.actions_by_name["open_recording"].trigger()
+    assert filters and any("*.mraw" in f and "*.avi" in f and "*.cine" in f for f in filters[0])
+    assert window.replay_recording is not None and window.replay_recording.path == str(path)
+    assert window.tabs.currentWidget() is window.replay
+    assert window.replay.slider.maximum() == len(frames) - 1
+    for k in (0, 3, 1):  # forward and back: lossless files read exactly
+        window.replay.slider.setValue(k)
+        shown = window.replay.raw.image.image
+        np.testing.assert_array_equal(np.asarray(shown), frames[k])
+        assert window.replay.index_label.text().startswith(f"frame {k + 1}/{len(frames)}")
+
+
+def _cli(*args):
+    return subprocess.run([sys.executable, "-m", "app.cli", *map(str, args)], cwd=ROOT,
+                          capture_output=True, text=True, timeout=600)
+
+
+def test_export_movie_from_the_file_menu(qtbot, window, tmp_path):
+    """File ▸ Export movie on a processed OUT.h5: app.batch.movie writes it in the background,
+    progress in the status bar; PyAV reads back every frame at the reported size."""
+    sim = tmp_path / "sim"
+    n = 5
+    r = _cli("simulate", "--out", sim, "--surface", "dimple", "--size", "128", "--frames", n, "--bits", "12")
+    assert r.returncode == 0, r.stderr
+    out_h5 = tmp_path / "out.h5"
+    r = _cli("process", sim / "reference.tif", *[sim / f"frame_{k:04d}.tif" for k in range(n)],
+             "--geometry", sim / "geometry.toml", "--out", out_h5, "--no-progress")
+    assert r.returncode == 0, r.stderr
+    movie = tmp_path / "heights.mp4"
+    messages = []
+    window.statusBar().messageChanged.connect(messages.append)
+    _answer_file_dialogs(qtbot, [out_h5, movie], [])
+    window.actions_by_name["export_movie"].trigger()
+    qtbot.waitUntil(lambda: getattr(window, "movie_result", None) is not None, timeout=60000)
+    state, report = window.movie_result
+    assert state == "done", report
+    assert any(m.startswith("movie: ") and "out.h5 → heights.mp4" in m for m in messages)  # progress
+    assert any(m.startswith("movie written") for m in messages)
+    with av.open(str(movie)) as container:
+        decoded = [f.to_ndarray(format="rgb24") for f in container.decode(video=0)]
+    assert len(decoded) == n == report.frames
+    assert decoded[0].shape == (report.height, report.width, 3) and report.width >= 480
+
+    # a recording instead of an OUT.h5: one line saying what to give, nothing written
+    import h5py
+
+    rec = tmp_path / "recording.h5"
+    with h5py.File(rec, "w") as f:
+        f["frames"] = np.stack(_frames())
+    _answer_file_dialogs(qtbot, [rec, tmp_path / "bad.mp4"], [])
+    window.actions_by_name["export_movie"].trigger()
+    qtbot.waitUntil(lambda: window.movie_result is not None, timeout=20000)
+    assert window.movie_result[0] == "error" and "\n" not in window.movie_result[1]
+    assert "Movie not written" in window.banner.text() and not (tmp_path / "bad.mp4").exists()
