@@ -51,17 +51,6 @@ class Switchable:
         return self.image
 
 
-@pytest.fixture
-def window(qtbot):
-    from app.gui.window import MainWindow
-
-    w = MainWindow(open_at_start=False, planner_effort="FFTW_ESTIMATE")
-    qtbot.addWidget(w)
-    w.show()
-    yield w
-    w.shutdown()
-
-
 def _wait_reconstructor(qtbot, w, timeout=20000):
     qtbot.waitUntil(lambda: w.session.worker.reconstructor is not None and not w.busy("reconstructor"),
                     timeout=timeout)

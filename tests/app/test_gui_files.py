@@ -20,17 +20,6 @@ av = pytest.importorskip("av")
 ROOT = Path(__file__).resolve().parents[2]
 
 
-@pytest.fixture
-def window(qtbot):
-    from app.gui.window import MainWindow
-
-    w = MainWindow(open_at_start=False, planner_effort="FFTW_ESTIMATE")
-    qtbot.addWidget(w)
-    w.show()
-    yield w
-    w.shutdown()
-
-
 def _answer_file_dialogs(qtbot, answers, seen_filters):
     """Fill each file dialog the window opens with the next path and accept it, as a user would
     (again on the next poll if the dialog is still open: a busy machine may not have taken it)."""
