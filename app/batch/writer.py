@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from app.files import imageio
+from app.files import h5safe
 from app.files.h5safe import DiskFullError, SpaceReserve, repair_eof, room_bytes
 from processing.errors import (
     ShapeMismatchError,
@@ -469,12 +470,7 @@ class ResultWriter:
         write it still attempts (dirty metadata at the close) fails instead of
         reaching the file half-way. Returns True if it could."""
         try:
-            fd = self.f.id.get_vfd_handle()
-            null = os.open(os.devnull, os.O_RDONLY)
-            try:
-                os.dup2(null, fd)
-            finally:
-                os.close(null)
+            h5safe.detach_descriptor(self.f.id.get_vfd_handle(), writable=False)
         except Exception as exc:  # noqa: BLE001 - another file driver: repaired at the close
             log.error("%s: could not stop writing after the failed write (%s)", self.path, _one_line(exc))
             return False

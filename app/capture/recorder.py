@@ -572,11 +572,7 @@ class RecordingFile:
         if self._fd is None:
             return
         try:
-            sink = os.open(os.devnull, os.O_RDWR)
-            try:
-                os.dup2(sink, self._fd)
-            finally:
-                os.close(sink)
+            h5safe.detach_descriptor(self._fd, writable=True)
         except OSError as exc:  # pragma: no cover - the file vanished
             log.error("recording %s: could not stop HDF5 writing: %s", self.path, exc)
 

@@ -56,6 +56,7 @@ __all__ = [
     "file_size_limit",
     "room_bytes",
     "fallocate",
+    "detach_descriptor",
     "Preallocation",
     "SpaceReserve",
     "reserve_path",
@@ -181,6 +182,22 @@ def fallocate(fd: int, offset: int, length: int) -> int:
     if _libc.fallocate(int(fd), 0, int(offset), int(length)) == 0:
         return 0
     return ctypes.get_errno()
+
+
+def detach_descriptor(fd: int, *, writable: bool) -> None:
+    """Point ``fd`` (an open file's descriptor, e.g. HDF5's) at /dev/null, so that
+    nothing written through it afterwards reaches the file.
+
+    ``writable=True`` opens /dev/null read-write: later writes succeed into
+    nothing (HDF5 then closes cleanly; the recorder's choice).
+    ``writable=False`` opens it read-only: later writes fail (the batch
+    writer's choice). Raises OSError if the descriptor cannot be replaced.
+    """
+    sink = os.open(os.devnull, os.O_RDWR if writable else os.O_RDONLY)
+    try:
+        os.dup2(sink, fd)
+    finally:
+        os.close(sink)
 
 
 #: fallocate answers meaning "no room" (as opposed to "cannot reserve here")
