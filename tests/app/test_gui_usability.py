@@ -18,7 +18,7 @@ import pytest
 from pyqtgraph.Qt import QtCore, QtGui, QtTest, QtWidgets
 
 from drivers.synthetic import SyntheticCamera
-from tests.app.test_gui import SHAPE, Switchable, _wait_reconstructor, scene, window  # noqa: F401
+from tests.app.test_gui import SHAPE, Switchable, _wait_reconstructor, scene  # noqa: F401  (window: tests/app/conftest.py)
 from tests.drivers.fixtures import gv_fake_camera  # noqa: F401
 
 pytestmark = pytest.mark.gui
