@@ -26,33 +26,49 @@ def rng():
 
 
 # -- nothing left running ----------------------------------------------------
-# A process or non-daemon thread that a test leaves behind keeps the test run
-# from ending (the interpreter joins such threads and multiprocessing children
-# at exit; a process holding the output pipe keeps CI waiting for its end).
-# At the end of the session each one is named, with where it stands, and
-# ended, so a leak shows up as a message instead of a run that never ends.
+# A process or non-daemon thread that a test leaves behind can keep the test
+# run from ending: the interpreter joins non-daemon threads and
+# multiprocessing children at exit, and CI waits for every process that
+# holds its output. (A CI run once printed "454 passed" and then never
+# ended.) At the end of the session each one left is named, with where it
+# stands, and ended: the tests' own processes (below this one, or orphans
+# whose working directory or command line is in this checkout or in the
+# session's temporary directory) and the threads that are not idle pool
+# workers. If the interpreter still has not exited a minute after pytest has
+# finished, every thread's stack is printed and the process exits with the
+# session's status, so a hang shows up as a message, not as a run that never
+# ends.
 
-def _descendants(pid: int) -> list[int]:
-    """Process ids below ``pid`` (Linux /proc; empty elsewhere)."""
-    children: dict[int, list[int]] = {}
+_EXIT_GRACE_S = 60.0
+
+
+def _processes() -> dict[int, tuple[int, int]]:
+    """pid -> (parent pid, start time in clock ticks since boot) of every
+    process (Linux /proc; empty elsewhere)."""
+    table = {}
     try:
         names = os.listdir("/proc")
     except OSError:
-        return []
+        return table
     for name in names:
-        if not name.isdigit():
-            continue
-        try:
-            with open(f"/proc/{name}/stat", "rb") as f:
-                stat = f.read().decode(errors="replace")
-        except OSError:
-            continue
-        ppid = int(stat.rpartition(")")[2].split()[1])
-        children.setdefault(ppid, []).append(int(name))
-    found, todo = [], [pid]
+        if name.isdigit():
+            try:
+                with open(f"/proc/{name}/stat", "rb") as f:
+                    fields = f.read().rpartition(b")")[2].split()
+                table[int(name)] = (int(fields[1]), int(fields[19]))
+            except (OSError, ValueError, IndexError):
+                continue
+    return table
+
+
+def _descendants(pid: int, table: dict[int, tuple[int, int]]) -> set[int]:
+    children: dict[int, list[int]] = {}
+    for child, (parent, _) in table.items():
+        children.setdefault(parent, []).append(child)
+    found, todo = set(), [pid]
     while todo:
         for child in children.get(todo.pop(), []):
-            found.append(child)
+            found.add(child)
             todo.append(child)
     return found
 
@@ -74,21 +90,55 @@ def _alive(pid: int) -> bool:
         return False
 
 
+def _ours(pid: int, places: tuple[str, ...]) -> bool:
+    """Was ``pid`` started in this checkout or the session's temporary files
+    (its working directory there, or a path there on its command line)?"""
+    try:
+        cwd = os.readlink(f"/proc/{pid}/cwd")
+    except OSError:
+        cwd = ""
+    words = _cmdline(pid).split()
+    return any(path == p or path.startswith(p + os.sep) for p in places for path in [cwd, *words])
+
+
+def _left_running(session) -> list[int]:
+    """The tests' processes still running: those below this one, and orphans
+    started after it from this checkout or the session's temporary files."""
+    table = _processes()
+    me = os.getpid()
+    if me not in table:
+        return []
+    started = table[me][1]
+    places = (str(session.config.rootpath),)
+    try:
+        places += (str(session.config._tmp_path_factory.getbasetemp()),)
+    except Exception:  # noqa: BLE001 - no temporary directory was made
+        pass
+    below = _descendants(me, table)
+    pids = [pid for pid, (parent, start) in table.items()
+            if pid != me and _alive(pid)
+            and (pid in below or (parent == 1 and start >= started and _ours(pid, places)))]
+    # multiprocessing's resource tracker ends with this process, by design
+    return [pid for pid in pids if "multiprocessing.resource_tracker" not in _cmdline(pid)]
+
+
 def pytest_sessionfinish(session, exitstatus):
     import signal
     import time
     import traceback
 
+    session.config._tirdeflect_exitstatus = int(exitstatus)
     problems = []
     frames = sys._current_frames()
     for t in threading.enumerate():
         if t is threading.main_thread() or t.daemon or not t.is_alive():
             continue
-        where = "".join(traceback.format_stack(frames[t.ident])[-3:]) if t.ident in frames else ""
-        problems.append(f"thread {t.name!r} still running (the interpreter would wait for it):\n{where}")
-    # (multiprocessing's resource tracker ends with this process, by design)
-    pids = [pid for pid in _descendants(os.getpid())
-            if _alive(pid) and "multiprocessing.resource_tracker" not in _cmdline(pid)]
+        stack = traceback.format_stack(frames[t.ident]) if t.ident in frames else []
+        if stack and "work_queue.get(block=True)" in stack[-1]:
+            continue  # an idle worker of a thread pool: woken and joined at exit
+        problems.append(f"thread {t.name!r} still running (the interpreter would wait for it):\n"
+                        + "".join(stack[-4:]))
+    pids = _left_running(session)
     for pid in pids:
         problems.append(f"process {pid} still running: {_cmdline(pid)}")
     if not problems:
@@ -103,3 +153,22 @@ def pytest_sessionfinish(session, exitstatus):
         deadline = time.monotonic() + 5.0
         while time.monotonic() < deadline and any(_alive(pid) for pid in pids):
             time.sleep(0.1)  # polling the processes' state, bounded by the deadline
+
+
+def pytest_unconfigure(config):
+    status = getattr(config, "_tirdeflect_exitstatus", None)
+    if status is None:
+        return
+
+    def exit_hung():
+        import faulthandler
+
+        sys.__stderr__.write(f"\ntests: the interpreter had not exited {_EXIT_GRACE_S:.0f} s after the "
+                             f"session ended; its threads:\n")
+        faulthandler.dump_traceback(file=sys.__stderr__, all_threads=True)
+        sys.__stderr__.flush()
+        os._exit(status)
+
+    watchdog = threading.Timer(_EXIT_GRACE_S, exit_hung)
+    watchdog.daemon = True  # never itself a reason to wait
+    watchdog.start()
