@@ -8,4 +8,35 @@ venv="${TIRDEFLECT_VENV:-$here/.venv}"  # where install.sh put it
 case "$venv" in /*) ;; *) venv="$PWD/$venv" ;; esac
 cd "$here"
 export QT_QPA_PLATFORM=offscreen
-exec "$venv/bin/python" -m pytest -q -p no:cacheprovider "$@"
+status=0
+"$venv/bin/python" -m pytest -q -p no:cacheprovider "$@" || status=$?
+
+# Whoever reads this script's output (CI) waits until no process holds it any
+# more. A process started during the run that still holds it (our standard
+# output or error) is named and ended, so the run ends with the tests.
+# (tests/conftest.py ends what the tests left; this also covers the install.)
+start_time() {  # a process's start, in clock ticks since boot (field 22 of /proc/PID/stat)
+    local stat
+    stat=$(cat "/proc/$1/stat" 2>/dev/null) || return 1
+    stat=${stat##*) }  # past the command name, which may hold spaces
+    set -- $stat
+    echo "${20}"
+}
+started=$(start_time $$ || true)
+for fd in 1 2; do
+    target=$(readlink "/proc/$$/fd/$fd" 2>/dev/null || true)
+    case "$target" in pipe:*|socket:*) ;; *) continue ;; esac
+    for dir in /proc/[0-9]*; do
+        pid=${dir#/proc/}
+        [ "$pid" = "$$" ] && continue
+        [ "$(readlink "$dir/fd/1" 2>/dev/null)" = "$target" ] ||
+            [ "$(readlink "$dir/fd/2" 2>/dev/null)" = "$target" ] || continue
+        begun=$(start_time "$pid" || echo 0)
+        [ -n "$started" ] && [ "$begun" -ge "$started" ] || continue  # ours began before: the reader's side
+        echo "tests/run.sh: process $pid ($(tr '\0' ' ' < "$dir/cmdline" 2>/dev/null | cut -c1-160)) still holds the output after the tests; ending it" >&2
+        kill -TERM "$pid" 2>/dev/null || true
+        sleep 2
+        kill -KILL "$pid" 2>/dev/null || true
+    done
+done
+exit "$status"
