@@ -40,7 +40,7 @@ import numpy as np
 
 from .unwrap import TWO_PI
 
-__all__ = ["BatchChain", "cupy_or_reason", "lanczos_matrix"]
+__all__ = ["BatchChain", "cupy_or_reason", "lanczos_matrix", "live_device"]
 
 
 def cupy_or_reason():
@@ -56,6 +56,21 @@ def cupy_or_reason():
     if n < 1:
         return None, "no CUDA device found"
     return cupy, None
+
+
+def live_device() -> tuple:
+    """("cuda", "GPU <name>") when CuPy and a CUDA device are usable, else
+    ("cpu", "CPU (<why no GPU>)"): the device a live view reconstructs on,
+    with the words that say so."""
+    cupy, why = cupy_or_reason()
+    if cupy is None:
+        return "cpu", f"CPU ({why})"
+    try:
+        name = cupy.cuda.runtime.getDeviceProperties(cupy.cuda.Device().id)["name"]
+        name = name.decode() if isinstance(name, bytes) else str(name)
+    except Exception:  # noqa: BLE001 - the name is only for the user
+        name = "CUDA device"
+    return "cuda", f"GPU {name}"
 
 
 def lanczos_matrix(n_out: int, n_in: int) -> np.ndarray:

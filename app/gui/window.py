@@ -362,8 +362,9 @@ class MainWindow(QtWidgets.QMainWindow):
         self._message_timer.setSingleShot(True)
         self._message_timer.timeout.connect(lambda: self.message_label.setText(""))
         self.status_labels = {}
-        stretch = {"camera": 0, "fps": 0, "truth": 0, "drops": 1, "ring": 0, "latency": 0, "state": 0}
-        for key in ("camera", "fps", "truth", "drops", "ring", "latency", "state"):
+        stretch = {"camera": 0, "fps": 0, "device": 0, "truth": 0, "drops": 1, "ring": 0, "latency": 0,
+                   "state": 0}
+        for key in ("camera", "fps", "device", "truth", "drops", "ring", "latency", "state"):
             lab = ElidedLabel("")
             lab.setStyleSheet("padding: 0 4px")
             sb.addPermanentWidget(lab, stretch[key])
@@ -550,8 +551,20 @@ class MainWindow(QtWidgets.QMainWindow):
         reference, geometry = self.reference, self.geometry
 
         def build():
-            from processing import Reconstructor
-            return Reconstructor(reference, geometry, planner_effort=self.planner_effort)
+            from processing import Reconstructor, TirdeflectError
+            from processing.gpu import live_device
+
+            device, text = live_device()  # the GPU when there is one
+            if device == "cuda":
+                try:
+                    rec = Reconstructor(reference, geometry, planner_effort=self.planner_effort, device="cuda")
+                    rec.device_text = text
+                    return rec
+                except TirdeflectError as exc:  # e.g. a dot pattern: the GPU reads checkerboards only
+                    text = f"CPU ({exc})"
+            rec = Reconstructor(reference, geometry, planner_effort=self.planner_effort)
+            rec.device_text = text
+            return rec
 
         def done(rec, error):
             if error:
@@ -1161,6 +1174,10 @@ class MainWindow(QtWidgets.QMainWindow):
         lab["ring"].setToolTip(f"ring buffer {100 * fill:.0f} % full, {st.get('ring_frames', 0)} frames"
                                if fill is not None else "")
         lab["latency"].setText(f"latency {self.latency_ms:.0f} ms" if np.isfinite(self.latency_ms) else "")
+        rec = w.reconstructor  # where the live maps are computed: the GPU when there is one
+        device_text = getattr(rec, "device_text", "") if rec is not None else ""
+        lab["device"].setText(device_text.split(" (")[0])
+        lab["device"].setToolTip(f"live reconstruction on the {device_text}" if device_text else "")
         self._update_staleness()
         if err and err != getattr(self, "_shown_camera_error", None):
             self._shown_camera_error = err

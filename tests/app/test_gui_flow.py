@@ -122,6 +122,15 @@ def test_first_run_by_hand_alignment_reference_waves_heights(qtbot):
     qtbot.waitUntil(lambda: "% rel. RMS (waves)" in w.status_labels["truth"].text(), timeout=5000)
     shown = float(w.status_labels["truth"].text().split("vs truth ")[1].split(" %")[0])
     assert shown <= 2.0
+    # ... and where the maps were computed: the GPU when CuPy sees one, else the CPU and why
+    from processing.gpu import cupy_or_reason
+
+    device = w.status_labels["device"]
+    cupy, why = cupy_or_reason()
+    if cupy is None:
+        assert device.text() == "CPU" and why in device.toolTip()
+    else:
+        assert device.text().startswith("GPU") and w.session.worker.reconstructor.device == "cuda"
 
 
 def test_alignment_gives_numbers_on_moving_water_and_warns(qtbot):
