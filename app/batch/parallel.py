@@ -214,6 +214,14 @@ def _slim(result):
 _SHARED_FIELDS = ("height", "slope_x", "slope_y", "valid")
 
 
+def shm_name(run_pid: int) -> str:
+    """A new shared-memory block's name for the run whose process is
+    ``run_pid``: ``tdf<pid>_<random>`` (in /dev/shm on Linux), so that what a
+    run holds can be told apart from any other program's; short enough for
+    macOS (31 characters)."""
+    return f"tdf{run_pid}_{uuid.uuid4().hex[:10]}"
+
+
 @dataclasses.dataclass
 class _Shared:
     """A result whose full-size arrays wait in a shared-memory block (worker
@@ -230,7 +238,8 @@ class _Shared:
         from multiprocessing import shared_memory
 
         arrays = [np.ascontiguousarray(getattr(result, f)) for f in _SHARED_FIELDS]
-        block = shared_memory.SharedMemory(create=True, size=max(1, sum(a.nbytes for a in arrays)))
+        block = shared_memory.SharedMemory(name=shm_name(os.getppid()), create=True,
+                                           size=max(1, sum(a.nbytes for a in arrays)))
         layout, offset = [], 0
         for f, a in zip(_SHARED_FIELDS, arrays):
             np.ndarray(a.shape, a.dtype, buffer=block.buf, offset=offset)[...] = a
@@ -694,12 +703,28 @@ def _frame_bytes(reconstruct, grid: str) -> int:
     return rows * cols * (3 * 4 + 1)
 
 
-def _ignore_interrupt():
-    """Ctrl-C at the terminal reaches the workers too: the run's own process
-    handles it (stops, keeps what was written, shuts the pool down)."""
+def _init_worker(run_pid: int):
+    """Set up a worker process of the run whose process is ``run_pid``.
+
+    Ctrl-C at the terminal reaches the workers too: the run's own process
+    handles it (stops, keeps what was written, shuts the pool down), so the
+    workers ignore it. If the run's process dies without shutting the pool
+    down (SIGKILL, a crash, the OOM killer), the worker ends too, within
+    half a second, instead of waiting for work forever; with the workers
+    gone, the resource tracker frees the shared-memory blocks still held."""
     import signal
+    import threading
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+    def exit_with_the_run():
+        import time
+
+        while os.getppid() == run_pid:
+            time.sleep(0.5)  # polling the parent: there is no portable "parent died" event
+        os._exit(1)
+
+    threading.Thread(target=exit_with_the_run, name="tirdeflect-run-watch", daemon=True).start()
 
 
 class _Pool:
@@ -716,7 +741,7 @@ class _Pool:
         from concurrent.futures import ProcessPoolExecutor
 
         return ProcessPoolExecutor(max_workers=self.workers, mp_context=multiprocessing.get_context("spawn"),
-                                   initializer=_ignore_interrupt)
+                                   initializer=_init_worker, initargs=(os.getpid(),))
 
     def submit(self, fn, *args):
         from concurrent.futures import Future

@@ -209,7 +209,6 @@ def test_ctrl_c_stops_workers_and_keeps_written_frames(series, tmp_path):
     d, frames = series
     root = Path(__file__).resolve().parents[2]
     out = tmp_path / "out.h5"
-    shm_before = set(os.listdir("/dev/shm")) if os.path.isdir("/dev/shm") else set()
     proc = subprocess.Popen(
         [sys.executable, "-m", "app.cli", "--debug", "process", str(d / "reference.png"),
          *(frames * 4), "--geometry", str(d / "geometry.toml"), "--out", str(out),
@@ -254,9 +253,58 @@ def test_ctrl_c_stops_workers_and_keeps_written_frames(series, tmp_path):
         time.sleep(0.05)
     assert not any(psutil.pid_exists(p) and psutil.Process(p).status() != psutil.STATUS_ZOMBIE
                    for p in workers), "worker processes outlived the run"
-    if os.path.isdir("/dev/shm"):
-        left = {n for n in set(os.listdir("/dev/shm")) - shm_before if n.startswith("psm_")}
-        assert not left, f"shared-memory blocks left behind: {left}"
+    left = _shm_blocks_of(proc.pid)
+    assert not left, f"shared-memory blocks left behind: {left}"
+
+
+def _shm_blocks_of(run_pid: int) -> list:
+    """The shared-memory blocks the run with process ``run_pid`` holds (named by
+    app.batch.parallel.shm_name; other programs' blocks do not count)."""
+    from app.batch.parallel import shm_name
+
+    prefix = shm_name(run_pid).rpartition("_")[0] + "_"
+    return sorted(n for n in os.listdir("/dev/shm") if n.startswith(prefix)) if os.path.isdir("/dev/shm") else []
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc"), reason="watches processes through /proc (Linux)")
+def test_workers_end_when_the_run_is_killed(series, tmp_path):
+    """SIGKILL (the OOM killer, kill -9) on a --workers 2 run: nothing can clean
+    up in the run's process, so its workers must notice and end by themselves,
+    and the shared-memory blocks they held are freed with them."""
+    import re
+    import subprocess
+    import sys
+    import threading
+
+    psutil = pytest.importorskip("psutil", reason="finding the worker processes needs psutil")
+    d, frames = series
+    root = Path(__file__).resolve().parents[2]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "app.cli", "--debug", "process", str(d / "reference.png"),
+         *(frames * 4), "--geometry", str(d / "geometry.toml"), "--out", str(tmp_path / "out.h5"),
+         "--workers", "2", "--chunk-frames", "2", "--no-progress"],
+        cwd=root, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    watchdog = threading.Timer(120.0, proc.kill)
+    watchdog.start()
+    helpers = []
+    try:
+        for line in proc.stderr:
+            if re.search(r"frame \d+ .* written", line):  # under way: chunks in flight
+                helpers = psutil.Process(proc.pid).children()
+                proc.kill()
+                break
+        proc.wait(timeout=30)
+    finally:
+        watchdog.cancel()
+        if proc.poll() is None:
+            proc.kill()
+        proc.stderr.close()
+    workers = [c for c in helpers if "spawn_main" in " ".join(c.cmdline())]
+    assert len(workers) == 2, [c.cmdline() for c in helpers]
+    # each worker checks twice a second whether the run is still there
+    gone, alive = psutil.wait_procs(helpers, timeout=10)
+    assert not alive, f"processes outlived the killed run by 10 s: {[p.cmdline() for p in alive]}"
+    assert not _shm_blocks_of(proc.pid), "shared-memory blocks of the killed run left behind"
 
 
 def test_bad_parallel_options_are_one_line_errors(series, tmp_path):
