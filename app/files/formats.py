@@ -27,6 +27,7 @@ says that compression artefacts bias Fourier demodulation.
 
 from __future__ import annotations
 
+import bisect
 import logging
 import math
 import re
@@ -174,6 +175,99 @@ def _video_plane0(frame, bits: int) -> np.ndarray:
     return np.ascontiguousarray(arr).astype(np.uint16 if bits > 8 else np.uint8, copy=False)
 
 
+class _Unindexed(Exception):
+    """A packet or frame whose time stamp the packet index does not know."""
+
+
+@dataclass(frozen=True)
+class _PacketIndex:
+    """Where each frame of a video stream is: ``pts[k]`` is frame k's presentation time
+    stamp (frames in presentation order), ``keyframes`` the frames a decoder can start
+    at (always including 0), ``in_decode_order`` whether the packets come in that same
+    order (no reordered B-frames)."""
+
+    pts: tuple
+    keyframes: tuple
+    in_decode_order: bool
+
+    frame_of: dict = field(init=False, repr=False, compare=False)  # stamp -> frame index
+
+    def __post_init__(self):
+        object.__setattr__(self, "frame_of", {t: k for k, t in enumerate(self.pts)})
+
+    def keyframe_before(self, k: int) -> int:
+        """The last keyframe at or before frame ``k``."""
+        return self.keyframes[max(0, bisect.bisect_right(self.keyframes, k) - 1)]
+
+    def needed(self, k: int, wanted: range) -> bool:
+        """Whether frame ``k`` must be decoded to get the frames of ``wanted`` (packets in
+        decode order): it is wanted, or no keyframe lies between it and the next wanted frame."""
+        if k >= wanted.stop:
+            return False
+        j = wanted.start if k <= wanted.start else (
+            wanted.start + -(-(k - wanted.start) // wanted.step) * wanted.step)
+        return j < wanted.stop and self.keyframe_before(j) <= k
+
+
+#: Packet indexes of the videos opened in this process, by (path, size, mtime): the
+#: batch engine's worker processes open the same file once per chunk.
+_INDEX_CACHE: dict = {}
+_INDEX_CACHE_SIZE = 16
+
+
+def _video_index(container, stream, path: Path, n: int | None):
+    """The :class:`_PacketIndex` of ``stream`` (None when its packets lack distinct time
+    stamps). From the container's own index when it lists every frame (AVI idx1,
+    MP4/MOV sample tables: no reading), else from one pass over the packets
+    (no decoding). Cached per file for this process."""
+    try:
+        st = path.stat()
+        key = (str(path.resolve()), st.st_size, st.st_mtime_ns, stream.index)
+    except OSError:
+        key = None
+    if key is not None and key in _INDEX_CACHE:
+        return _INDEX_CACHE[key]
+    index = _index_from_entries(container, stream, n) if n else None
+    if index is None:
+        container.seek(0)
+        packets = [(p.pts, bool(p.is_keyframe)) for p in container.demux(stream) if p.size]
+        container.seek(0)
+        stamps = [t for t, _ in packets]
+        if not stamps or any(t is None for t in stamps) or len(set(stamps)) != len(stamps):
+            index = None
+        else:
+            order = sorted(stamps)
+            frame_of = {t: k for k, t in enumerate(order)}
+            keys = sorted({0} | {frame_of[t] for t, key in packets if key})
+            index = _PacketIndex(tuple(order), tuple(keys), stamps == order)
+    if key is not None:
+        while len(_INDEX_CACHE) >= _INDEX_CACHE_SIZE:
+            _INDEX_CACHE.pop(next(iter(_INDEX_CACHE)))
+        _INDEX_CACHE[key] = index
+    return index
+
+
+def _index_from_entries(container, stream, n: int):
+    """The index from the demuxer's own table, when it has one entry per frame with
+    increasing stamps and the first packet carries the first stamp; else None."""
+    try:
+        entries = list(stream.index_entries)
+    except AttributeError:  # PyAV before 14 has no index_entries
+        return None
+    if len(entries) != n or any(e.size <= 0 for e in entries):
+        return None
+    stamps = [int(e.timestamp) for e in entries]
+    if any(b <= a for a, b in zip(stamps, stamps[1:])):
+        return None
+    container.seek(0)
+    first = next((p for p in container.demux(stream) if p.size), None)
+    container.seek(0)
+    if first is None or first.pts != stamps[0]:
+        return None
+    keys = sorted({0} | {k for k, e in enumerate(entries) if e.is_keyframe})
+    return _PacketIndex(tuple(stamps), tuple(keys), True)
+
+
 def _open_video(path: Path) -> Source:
     try:
         import av
@@ -199,7 +293,12 @@ def _open_video(path: Path) -> Source:
     fps = float(rate) if rate else math.nan
     n = int(stream.frames or 0)
     if n <= 0:  # MKV and some MP4 do not store a frame count: count the packets
-        n = sum(1 for packet in container.demux(stream) if packet.size)
+        counted = _video_index(container, stream, path, None)
+        if counted is not None:
+            n = len(counted.pts)
+        else:
+            container.seek(0)
+            n = sum(1 for packet in container.demux(stream) if packet.size)
         container.seek(0)
     lossless = codec in LOSSLESS_CODECS
     notes = []
@@ -230,23 +329,20 @@ def _open_video(path: Path) -> Source:
             halt()
         container.close()
 
-    pts_index: dict = {}  # presentation time stamp -> frame index, from one demux pass
+    index_box: list = []  # the stream's packet index, built on first need
 
-    def index_packets() -> bool:
-        if not pts_index:
-            container.seek(0)
-            stamps = [p.pts for p in container.demux(stream) if p.size]
-            if not stamps or any(t is None for t in stamps) or len(set(stamps)) != len(stamps):
-                return False
-            pts_index.update((t, k) for k, t in enumerate(sorted(stamps)))
-        return len(pts_index) > 0
+    def packet_index():
+        if not index_box:
+            index_box.append(_video_index(container, stream, path, n))
+        return index_box[0]
 
     def decode_from(first: int):
-        """(decoder, index of its first frame or None): seek to the keyframe at or before
-        frame ``first`` (found by time stamp) when that saves decoding; None means
-        that frames are counted from the start of the stream."""
-        if first > 0 and index_packets():
-            target = sorted(pts_index)[min(first, len(pts_index) - 1)]
+        """(decoder, True when frames are identified by their time stamp): seek to the
+        keyframe at or before frame ``first`` (found by time stamp) when that saves
+        decoding; False means that frames are counted from the start of the stream."""
+        index = packet_index() if first > 0 else None
+        if index is not None:
+            target = index.pts[min(first, len(index.pts) - 1)]
             container.seek(int(target), stream=stream, backward=True, any_frame=False)
             ctx.flush_buffers()
             return container.decode(stream), True
@@ -254,13 +350,92 @@ def _open_video(path: Path) -> Source:
         ctx.flush_buffers()
         return container.decode(stream), False
 
+    time_base = stream.time_base
+
     def time_of(frame, i: int) -> float:
-        t = frame.time
-        return float(t) if t is not None else (i / fps if fps == fps else math.nan)
+        # frames drained from the decoder's threads at the end carry no time base
+        if frame.pts is not None and (frame.time_base or time_base):
+            return float(frame.pts * (frame.time_base or time_base))
+        return i / fps if fps == fps else math.nan
+
+    def decode_error(exc, i: int) -> FormatError:
+        return FormatError(
+            f"frame {i + 1} of {str(path)!r} cannot be decoded ({exc}); the file may be "
+            f"truncated: process the frames before it with --frames :{i + 1}"
+        )
+
+    def frames_by_packet(indices: range, index) -> Iterator[tuple]:
+        """Lossless streams (frames in decode order): demux, and send the decoder only
+        the packets a wanted frame needs (from the keyframe at or before it), so that
+        ``--frames 0::4`` of an intra-only stream decodes a quarter of the frames. One
+        seek (to the keyframe before the first frame), then packets in file order."""
+        frame_of = index.frame_of
+        i = indices.start - 1
+        first_packet = True
+        start_key = index.keyframe_before(indices.start)
+        container.seek(int(index.pts[start_key]), stream=stream, backward=True, any_frame=False)
+        ctx.flush_buffers()
+
+        def emit(frame):
+            k = frame_of.get(frame.pts)
+            if k is None:
+                raise _Unindexed
+            if k in indices:
+                return k, convert(frame), time_of(frame, k)
+            return None
+
+        try:
+            packets = container.demux(stream)
+            while True:
+                packet = next(packets, None)
+                if packet is None:
+                    break
+                if not packet.size:  # the demuxer's end marker: drained below
+                    continue
+                k = frame_of.get(packet.pts)
+                if k is None:
+                    raise _Unindexed
+                if first_packet:
+                    first_packet = False
+                    if k > start_key:  # the seek overshot the keyframe: go on from the start
+                        container.seek(0)
+                        ctx.flush_buffers()
+                        packets = container.demux(stream)
+                        continue
+                if k >= indices.stop:
+                    break
+                if not index.needed(k, indices):
+                    continue
+                for frame in ctx.decode(packet):
+                    item = emit(frame)
+                    if item is not None:
+                        i = item[0]
+                        yield item
+            for frame in ctx.decode(None):  # frames still in the decoder's threads
+                item = emit(frame)
+                if item is not None:
+                    i = item[0]
+                    yield item
+        except av.error.FFmpegError as exc:
+            raise decode_error(exc, i) from exc
 
     def frames(indices: range) -> Iterator[tuple]:
         if not len(indices):
             return
+        index = packet_index() if (indices.start > 0 or indices.step > 1) else None
+        if lossless and index is not None and index.in_decode_order:
+            done = -1
+            try:
+                for item in frames_by_packet(indices, index):
+                    done = item[0]
+                    yield item
+                return
+            except _Unindexed:  # a packet or frame without a known stamp: decode in order
+                log.debug("%s: a time stamp is not in the packet index; decoding in order", path)
+                indices = range(done + indices.step if done >= 0 else indices.start,
+                                indices.stop, indices.step)
+                if not len(indices):
+                    return
         decoded, by_pts = decode_from(indices.start)
         i = -1
         try:
@@ -269,7 +444,7 @@ def _open_video(path: Path) -> Source:
                 if frame is None:
                     return
                 if by_pts:
-                    k = pts_index.get(frame.pts)
+                    k = packet_index().frame_of.get(frame.pts)
                     if k is None or (i < 0 and k > indices.start):
                         # a stamp not in the index, or the seek overshot: count from the start
                         decoded.close()
@@ -284,10 +459,7 @@ def _open_video(path: Path) -> Source:
                 if i in indices:
                     yield i, convert(frame), time_of(frame, i)
         except av.error.FFmpegError as exc:
-            raise FormatError(
-                f"frame {i + 1} of {str(path)!r} cannot be decoded ({exc}); the file may be "
-                f"truncated: process the frames before it with --frames :{i + 1}"
-            ) from exc
+            raise decode_error(exc, i) from exc
 
     return Source(path, "video", n, (rows, cols), dtype, bits, frame_rate_hz=fps,
                   time_origin="stream start", codec=codec, lossless=lossless, notes=notes,

@@ -102,6 +102,67 @@ def test_lossy_video_is_read_with_a_warning(tmp_path):
     assert all(np.array_equal(a.image, items[a.sequence_index].image) for a in late)
 
 
+def _read(source, indices):
+    return [(i, image) for i, image, _ in source.frames(indices)]
+
+
+@pytest.mark.parametrize("suffix,gop", [(".avi", 3), (".mkv", 3), (".avi", 1)])
+def test_video_random_access_is_exact(tmp_path, suffix, gop):
+    """FFV1 with a keyframe every ``gop`` frames (AVI: the index from the file's idx1;
+    MKV: from one pass over the packets): frames read in order, with a step, and out
+    of order from one open file are the frames written, with their own time stamps."""
+    from app.files import formats
+
+    frames = _frames(n=20, shape=(32, 40))
+    path = tmp_path / f"rec{suffix}"
+    rows, cols = frames[0].shape
+    with av.open(str(path), "w") as container:
+        stream = container.add_stream("ffv1", rate=100)
+        stream.width, stream.height, stream.pix_fmt = cols, rows, "gray16le"
+        stream.codec_context.gop_size = gop
+        for image in frames:
+            for packet in stream.encode(av.VideoFrame.from_ndarray(image, format="gray16le")):
+                container.mux(packet)
+        for packet in stream.encode():
+            container.mux(packet)
+    with av.open(str(path)) as container:  # what the encoder made keyframes
+        keys = [k for k, p in enumerate(p for p in container.demux() if p.size) if p.is_keyframe]
+    assert keys == list(range(0, 20, gop))
+    with formats.open_source(path) as source:
+        assert source.n_frames == 20
+        for indices in (range(20), range(0, 20, 4), range(13, 17), range(2, 20, 7), range(0, 1),
+                        range(19, 20), range(5, 6), range(1, 20, 3)):
+            got = _read(source, indices)
+            assert [i for i, _ in got] == list(indices), indices
+            for i, image in got:
+                assert np.array_equal(image, frames[i]), (indices, i)
+        times = [t for _, _, t in source.frames(range(3, 20, 5))]
+        assert times == pytest.approx([0.03, 0.08, 0.13, 0.18], abs=1e-12)
+        # reading stopped half-way (a consumer leaving the loop), then elsewhere
+        partial = source.frames(range(20))
+        assert next(partial)[0] == 0
+        partial.close()
+        assert np.array_equal(_read(source, range(18, 19))[0][1], frames[18])
+    # the same through the one reader, as `--frames 2:17:5` asks
+    items = list(imageio.iter_frames([path], first=2, last=16, step=5))
+    assert [item.sequence_index for item in items] == [2, 7, 12]
+    assert all(np.array_equal(item.image, frames[item.sequence_index]) for item in items)
+
+
+def test_video_packet_index_skips_what_a_step_does_not_need():
+    """Which frames a strided read decodes: from the keyframe at or before each wanted
+    frame up to it, nothing else (keyframes every 4 frames)."""
+    from app.files.formats import _PacketIndex
+
+    index = _PacketIndex(tuple(range(0, 200, 10)), (0, 4, 8, 12, 16), True)
+    assert index.frame_of[30] == 3 and index.keyframe_before(7) == 4
+    decoded = [k for k in range(20) if index.needed(k, range(2, 20, 6))]  # wants 2, 8, 14
+    assert decoded == [0, 1, 2, 8, 12, 13, 14]
+    assert [k for k in range(20) if index.needed(k, range(5, 20))] == list(range(4, 20))
+    intra = _PacketIndex(tuple(range(20)), tuple(range(20)), True)
+    assert [k for k in range(20) if intra.needed(k, range(1, 20, 4))] == [1, 5, 9, 13, 17]
+
+
 # --------------------------------------------------------------------------- Photron MRAW
 
 
@@ -121,6 +182,23 @@ def test_mraw_frames_rate_and_trigger(tmp_path, bits, hi):
     assert info.frame_rate_hz == 5000.0 and info.trigger_index == 2
     assert info.bits == (8 if bits == 8 else 12)  # pyMRAW writes EffectiveBit Depth 12 for 16 bit
     assert np.array_equal(imageio.read_image(cih, index=5), frames[5])
+
+
+@pytest.mark.parametrize("bits,hi", [(8, 256), (16, 4096)])
+def test_mraw_random_access_is_exact(tmp_path, bits, hi):
+    """A pyMRAW-written MRAW read in order, with a step and out of order from one open
+    file: the frames written, each with its own time."""
+    from app.files import formats
+
+    frames = _frames(n=12, shape=(24, 40), hi=hi, seed=3)
+    cih = write_mraw(tmp_path / "shot.cih", frames, bits=bits, fps=2000, start_frame=-4)
+    with formats.open_source(cih) as source:
+        for indices in (range(12), range(0, 12, 5), range(9, 12), range(1, 12, 4), range(6, 7), range(0, 1)):
+            got = list(source.frames(indices))
+            assert [i for i, _, _ in got] == list(indices)
+            for i, image, time_s in got:
+                assert np.array_equal(image, frames[i]), (indices, i)
+                assert time_s == pytest.approx((i - 4) / 2000.0, abs=1e-12)
 
 
 PHOTRON = Path(__file__).parent / "data" / "photron"
