@@ -1,23 +1,45 @@
 """Reading frames from Photron MRAW and lossless AVI against the app's own HDF5
 recording, read-only and through the whole `tirdeflect process`, same run.
 
-    python3 benchmarks/bench_readers.py                       # 512^2 x 60 frames (about a minute)
-    python3 benchmarks/bench_readers.py --size 1024 --frames 1000 --no-process
-    python3 benchmarks/bench_readers.py --size 1024 --frames 1000   # the issue's case; OUT.h5
-                                                                    # needs ~13 GB in --tmp
+    python3 benchmarks/bench_readers.py                 # 1024^2 x 160 frames, 2 rounds (minutes)
+    python3 benchmarks/bench_readers.py --no-process    # read-only figures only (~20 s)
+    python3 benchmarks/bench_readers.py --frames 1000   # the issue's length; OUT.h5 is ~13 GB
+                                                        # per run (deleted after each), in --tmp
 
 Baseline: the app's HDF5 recording (``/frames`` chunked one frame per chunk, as
 ``app.capture.recorder`` writes it). Measured: the same 12-bit frames as a 16-bit
-MRAW + CIH written by pyMRAW and an FFV1 ``gray16le`` AVI written by PyAV.
-"read" is ``imageio.iter_frames`` alone (frames/s); "process" is
-``tirdeflect process`` with FFTW_ESTIMATE on the same frames, file writing
-included. Reading must not be the bottleneck: process frames/s should be the
-same for all three (ratio ~1.00).
+MRAW + CIH written by pyMRAW, and two lossless ``gray16le`` AVIs written by
+PyAV with FFmpeg's defaults: FFV1 (range coder, a keyframe every 12 frames;
+the smallest file) and FFVHuff (Huffman coded, every frame a keyframe).
+
+- "read" is ``imageio.iter_frames`` alone (the one reader `tirdeflect process`
+  uses), every frame in order;
+- "process" is ``tirdeflect process`` (``app.cli`` -> ``app.batch.run_process``)
+  with FFTW_ESTIMATE on the same frames, OUT.h5 writing included. With 64
+  frames or more it runs its worker processes (one per core), each reading
+  its own chunk of the file (video: seek to the keyframe before the chunk),
+  as it does for a 1000-frame recording.
+
+Each figure is frames/s, and the CPU time it cost per frame (all threads and
+worker processes): read-only, that is what decoding costs. `tirdeflect process`
+keeps every core busy (one worker per core), so decoding's CPU time comes off
+processing: "CPU ratio" (HDF5's process CPU per frame over the input's) is
+the frames/s ratio to expect when the cores are the limit, and it
+does not move with other programs' load as the wall-clock ratio does.
+Inputs are measured in rounds, the order reversed every round (A B C C B A)
+so that a load that changes during the run weighs on all of them alike;
+ratios are against the HDF5 recording measured in the same run. The machine
+load (``/proc/loadavg``) is printed before and after: other programs' load
+moves single figures by tens of per cent.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
+import os
+import resource
 import sys
 import tempfile
 import time
@@ -51,21 +73,47 @@ def _write_inputs(tmp: Path, reference, frames_of, n: int):
         text = Path(cih).read_text()
         Path(cih).write_text(text.replace(f"Total Frame : {block}", f"Total Frame : {n}")
                              .replace(f"Original Total Frame : {block}", f"Original Total Frame : {n}"))
-    with av.open(str(tmp / "rec.avi"), "w") as c:
-        s = c.add_stream("ffv1", rate=1000)
-        s.width, s.height, s.pix_fmt = cols, rows, "gray16le"
-        for k in range(n):
-            for p in s.encode(av.VideoFrame.from_ndarray(frames_of(k), format="gray16le")):
+    for codec in ("ffv1", "ffvhuff"):
+        with av.open(str(tmp / f"rec_{codec}.avi"), "w") as c:
+            s = c.add_stream(codec, rate=1000)
+            s.width, s.height, s.pix_fmt = cols, rows, "gray16le"
+            for k in range(n):
+                for p in s.encode(av.VideoFrame.from_ndarray(frames_of(k), format="gray16le")):
+                    c.mux(p)
+            for p in s.encode():
                 c.mux(p)
-        for p in s.encode():
-            c.mux(p)
-    return {"hdf5": tmp / "rec.h5", "mraw": Path(cih), "avi": tmp / "rec.avi"}
+    return {"hdf5": tmp / "rec.h5", "mraw": Path(cih), "ffv1": tmp / "rec_ffv1.avi",
+            "ffvhuff": tmp / "rec_ffvhuff.avi"}
+
+
+def _cpu_s() -> float:
+    """CPU seconds of this process (all its threads) and of its ended children."""
+    total = 0.0
+    for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN):
+        r = resource.getrusage(who)
+        total += r.ru_utime + r.ru_stime
+    return total
+
+
+def _loadavg() -> str:
+    try:
+        return " ".join(Path("/proc/loadavg").read_text().split()[:3])
+    except OSError:
+        return "n/a"
+
+
+def _measure(work, frames: int) -> tuple:
+    """(seconds, CPU seconds) of ``work()``, which handles ``frames`` frames."""
+    c0, t0 = _cpu_s(), time.perf_counter()
+    work()
+    return time.perf_counter() - t0, _cpu_s() - c0
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--size", type=int, default=512)
-    ap.add_argument("--frames", type=int, default=60)
+    ap.add_argument("--size", type=int, default=1024)
+    ap.add_argument("--frames", type=int, default=160)
+    ap.add_argument("--rounds", type=int, default=2, help="measurements of each input (order reversed each round)")
     ap.add_argument("--no-process", action="store_true", help="read-only figures only")
     ap.add_argument("--tmp", default=None, help="folder for the files (default: system temp)")
     args = ap.parse_args(argv)
@@ -87,6 +135,7 @@ def main(argv=None) -> int:
     def frames_of(k):
         return pair[k % 2]
 
+    print(f"load before: {_loadavg()} (1, 5, 15 min) on {os.cpu_count()} cores")
     with tempfile.TemporaryDirectory(dir=args.tmp) as tmp:
         tmp = Path(tmp)
         t0 = time.perf_counter()
@@ -95,40 +144,64 @@ def main(argv=None) -> int:
               f"inputs written in {time.perf_counter() - t0:.1f} s")
         for name, path in inputs.items():
             data = path.with_suffix(".mraw") if name == "mraw" else path
-            print(f"  {name:5s} {data.stat().st_size / 2**20:8.1f} MiB")
+            print(f"  {name:8s} {data.stat().st_size / 2**20:8.1f} MiB")
         (tmp / "g.toml").write_text(geometry.to_toml_text())
         imageio.write_image(tmp / "ref.tif", reference)
-        imageio.read_reference(tmp / "rec.h5")  # warm the imports
-        read = {}
-        for name, path in inputs.items():
-            t0 = time.perf_counter()
+
+        def read_all(path):
             n = 0
             for item in imageio.iter_frames([path]):
                 n += 1
                 assert item.image.shape == reference.shape
-            read[name] = n / (time.perf_counter() - t0)
+            assert n == args.frames
+
+        def process(path, out):
+            with contextlib.redirect_stderr(io.StringIO()) as err:
+                code = cli_main(["process", str(tmp / "ref.tif"), str(path), "--geometry", str(tmp / "g.toml"),
+                                 "--out", str(out), "--no-progress", "--fft-effort", "estimate"])
+            if code != 0:
+                raise SystemExit(f"process {path.name} failed:\n{err.getvalue()}")
+            out.unlink()
+
+        names = list(inputs)
+        rounds = [names if r % 2 == 0 else names[::-1] for r in range(args.rounds)]
+        for path in inputs.values():  # warm: imports, page cache
+            imageio.read_image(path, index=0)
+        read = {name: [0.0, 0.0] for name in names}
+        for order in rounds:
+            for name in order:
+                wall, cpu = _measure(lambda: read_all(inputs[name]), args.frames)
+                read[name][0] += wall
+                read[name][1] += cpu
         proc = {}
         if not args.no_process:
             # warm-up (imports, FFTW plans) so that the first input measured is not penalised
-            cli_main(["process", str(tmp / "ref.tif"), str(inputs["hdf5"]), "--frames", ":3",
-                      "--geometry", str(tmp / "g.toml"), "--out", str(tmp / "warm.h5"),
-                      "--no-progress", "--fft-effort", "estimate"])
-            for name, path in inputs.items():
-                out = tmp / f"out_{name}.h5"
-                t0 = time.perf_counter()
-                code = cli_main(["process", str(tmp / "ref.tif"), str(path), "--geometry", str(tmp / "g.toml"), "--out", str(out),
-                                 "--no-progress", "--fft-effort", "estimate"])
-                proc[name] = args.frames / (time.perf_counter() - t0)
-                assert code == 0
-                out.unlink()
-    print(f"{'input':6s} {'read frames/s':>14s} {'ratio':>6s}" +
-          ("" if args.no_process else f" {'process frames/s':>17s} {'ratio':>6s}"))
-    for name in read:
-        line = f"{name:6s} {read[name]:14.1f} {read[name] / read['hdf5']:6.2f}"
+            with contextlib.redirect_stderr(io.StringIO()):
+                cli_main(["process", str(tmp / "ref.tif"), str(inputs["hdf5"]), "--frames", ":3",
+                          "--geometry", str(tmp / "g.toml"), "--out", str(tmp / "warm.h5"),
+                          "--no-progress", "--fft-effort", "estimate"])
+            proc = {name: [0.0, 0.0] for name in names}
+            for order in rounds:
+                for name in order:
+                    wall, cpu = _measure(lambda: process(inputs[name], tmp / f"out_{name}.h5"), args.frames)
+                    proc[name][0] += wall
+                    proc[name][1] += cpu
+
+    n = args.frames * args.rounds
+    head = f"{'input':8s} {'read frames/s':>13s} {'ratio':>6s} {'CPU ms/frame':>12s}"
+    if proc:
+        head += f" {'process frames/s':>16s} {'ratio':>6s} {'CPU ms/frame':>12s} {'CPU ratio':>9s}"
+    print(head)
+    for name in names:
+        fps = n / read[name][0]
+        line = f"{name:8s} {fps:13.1f} {fps / (n / read['hdf5'][0]):6.2f} {1e3 * read[name][1] / n:12.1f}"
         if proc:
-            line += f" {proc[name]:17.2f} {proc[name] / proc['hdf5']:6.2f}"
+            fps = n / proc[name][0]
+            line += (f" {fps:16.2f} {fps / (n / proc['hdf5'][0]):6.2f} {1e3 * proc[name][1] / n:12.1f}"
+                     f" {proc['hdf5'][1] / proc[name][1]:9.2f}")
         print(line)
-    print("ratios against the app's HDF5 recording, measured in this run")
+    print(f"ratios against the app's HDF5 recording, measured in this run ({args.rounds} rounds of "
+          f"{args.frames} frames per input); load after: {_loadavg()}")
     return 0
 
 
