@@ -215,11 +215,12 @@ _INDEX_CACHE: dict = {}
 _INDEX_CACHE_SIZE = 16
 
 
-def _video_index(container, stream, path: Path, n: int | None):
+def _video_index(container, stream, path: Path, n: int | None, lossless: bool):
     """The :class:`_PacketIndex` of ``stream`` (None when its packets lack distinct time
-    stamps). From the container's own index when it lists every frame (AVI idx1,
-    MP4/MOV sample tables: no reading), else from one pass over the packets
-    (no decoding). Cached per file for this process."""
+    stamps). For a lossless codec (no reordered frames: decode time stamps are the
+    presentation ones) from the container's own index when it lists every frame
+    (AVI idx1, MP4/MOV sample tables: nothing read), else from one pass over the
+    packets (no decoding). Cached per file for this process."""
     try:
         st = path.stat()
         key = (str(path.resolve()), st.st_size, st.st_mtime_ns, stream.index)
@@ -227,7 +228,7 @@ def _video_index(container, stream, path: Path, n: int | None):
         key = None
     if key is not None and key in _INDEX_CACHE:
         return _INDEX_CACHE[key]
-    index = _index_from_entries(container, stream, n) if n else None
+    index = _index_from_entries(container, stream, n) if n and lossless else None
     if index is None:
         container.seek(0)
         packets = [(p.pts, bool(p.is_keyframe)) for p in container.demux(stream) if p.size]
@@ -293,7 +294,7 @@ def _open_video(path: Path) -> Source:
     fps = float(rate) if rate else math.nan
     n = int(stream.frames or 0)
     if n <= 0:  # MKV and some MP4 do not store a frame count: count the packets
-        counted = _video_index(container, stream, path, None)
+        counted = _video_index(container, stream, path, None, False)
         if counted is not None:
             n = len(counted.pts)
         else:
@@ -333,7 +334,7 @@ def _open_video(path: Path) -> Source:
 
     def packet_index():
         if not index_box:
-            index_box.append(_video_index(container, stream, path, n))
+            index_box.append(_video_index(container, stream, path, n, lossless))
         return index_box[0]
 
     def decode_from(first: int):
