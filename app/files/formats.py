@@ -14,7 +14,8 @@ kind          files                                  library
 Each opens as a :class:`Source`: frame count, shape, dtype, significant bits,
 frame rate, the index of the trigger frame when the file says it, and
 :meth:`Source.frames` yielding ``(index, image, time_s)`` lazily (one frame
-decoded at a time; MRAW and CINE seek, video decodes forward). ``time_s`` is
+decoded at a time; MRAW and CINE seek; video seeks to the keyframe before the
+first frame wanted, then decodes forward, ahead in a thread). ``time_s`` is
 the frame's time in seconds: relative to the trigger for MRAW and CINE (the
 Phantom's per-frame time stamps; Photron: ``(start frame + i) / rate``), the
 presentation time stamp for video.
@@ -108,8 +109,8 @@ class Source:
 
     def frames(self, indices: range | None = None) -> Iterator[tuple]:
         """Yield ``(index, image, time_s)`` for the frames of ``indices`` (an increasing
-        ``range``; default all), decoding only those (video decodes the ones
-        before them too, without converting them)."""
+        ``range``; default all), decoding only those (video also decodes the frames
+        from the keyframe before each wanted one, without converting them)."""
         return self._frames(range(self.n_frames) if indices is None else indices)
 
     def close(self) -> None:
