@@ -241,3 +241,226 @@ def refine_global(fine, reference_gradient, frame, u_px, valid_px, grid: NodeGri
             rz = rz_new
         u += x
     return u.astype(np.float32), free
+
+
+# ------------------------------------------------------------------ height on the node grid
+def _interp_matrix(n_px: int, m: int, s: int):
+    """Sparse ``(n_px, m)`` matrix of cv2.resize(INTER_LINEAR) from ``m`` nodes to ``n_px = m s`` pixels."""
+    import scipy.sparse as sp
+
+    x = (np.arange(n_px) + 0.5) / s - 0.5
+    i0 = np.floor(x).astype(int)
+    fr = x - i0
+    low = i0 < 0
+    high = i0 >= m - 1
+    i0[low] = 0
+    fr[low] = 0.0
+    i0[high] = m - 1
+    fr[high] = 0.0
+    i1 = np.minimum(i0 + 1, m - 1)
+    rows = np.concatenate([np.arange(n_px), np.arange(n_px)])
+    return sp.csr_matrix((np.concatenate([1.0 - fr, fr]), (rows, np.concatenate([i0, i1]))), shape=(n_px, m))
+
+
+def _derivative_matrix(m: int, spacing: float):
+    """Sparse ``(m, m)`` first derivative: fourth-order central inside, second-order at the ends."""
+    import scipy.sparse as sp
+
+    D = sp.lil_matrix((m, m))
+    for i in range(m):
+        if 2 <= i <= m - 3:
+            D[i, i - 2], D[i, i - 1], D[i, i + 1], D[i, i + 2] = 1 / 12, -8 / 12, 8 / 12, -1 / 12
+        elif 1 <= i <= m - 2:
+            D[i, i - 1], D[i, i + 1] = -0.5, 0.5
+        elif i == 0:
+            D[0, 0], D[0, 1], D[0, 2] = -1.5, 2.0, -0.5
+        else:
+            D[i, i], D[i, i - 1], D[i, i - 2] = 1.5, -2.0, 0.5
+    return (D / spacing).tocsr()
+
+
+def _third_difference_matrix(m: int):
+    import scipy.sparse as sp
+
+    if m < 4:
+        return sp.csr_matrix((0, m))
+    return sp.diags([-1.0, 3.0, -3.0, 1.0], [0, 1, 2, 3], shape=(m - 3, m)).tocsr()
+
+
+class HeightNodes:
+    """The height on a :class:`NodeGrid` and the exact linear optics of the
+    geometry (:meth:`Geometry.linear_response` at the nodes):
+    ``u = a h + B grad_px h`` (pixels), ``grad_px`` fourth-order central
+    differences of the nodes.  ``L`` maps the node heights (mm) to the
+    displacement at the nodes, ``(u_row ..., u_col ...)``."""
+
+    def __init__(self, geometry, grid: NodeGrid):
+        import scipy.sparse as sp
+
+        self.grid = grid
+        m_r, m_c = grid.shape
+        s = grid.s
+        lr = geometry.linear_response(grid.rows_px[:, None], grid.cols_px[None, :], grid.frame_shape)
+        a = lr.a.reshape(-1, 2)
+        B = lr.B.reshape(-1, 2, 2)
+        Dr = sp.kron(_derivative_matrix(m_r, s), sp.identity(m_c)).tocsr()
+        Dc = sp.kron(sp.identity(m_r), _derivative_matrix(m_c, s)).tocsr()
+        blocks = []
+        for i in range(2):
+            blocks.append(sp.diags(a[:, i]) + sp.diags(B[:, i, 0]) @ Dr + sp.diags(B[:, i, 1]) @ Dc)
+        self.L = sp.vstack(blocks).tocsr()
+        self.LT = self.L.T.tocsr()
+        R3 = sp.kron(_third_difference_matrix(m_r), sp.identity(m_c))
+        C3 = sp.kron(sp.identity(m_r), _third_difference_matrix(m_c))
+        self.reg = (R3.T @ R3 + C3.T @ C3).tocsr()
+        # pixels <-> nodes (bilinear, exactly cv2's) and the products the
+        # node normal matrix is assembled from
+        rows, cols = grid.frame_shape
+        Pr = _interp_matrix(rows, m_r, s)
+        Pc = _interp_matrix(cols, m_c, s)
+        self.PrT = Pr.T.tocsr()
+        self.PcT = Pc.T.tocsr()
+        self._pair = {}
+        for name, P, m in (("r", Pr, m_r), ("c", Pc, m_c)):
+            Pd = P.T.multiply(P.T).tocsr()  # (m, n): P[p, i]^2
+            Po = (P.T[:-1].multiply(P.T[1:])).tocsr()  # (m-1, n): P[p, i] P[p, i+1]
+            self._pair[name] = (Pd, Po)
+        # constant-coefficient symbols for the DCT preconditioner
+        kr = np.pi * np.arange(m_r) / m_r
+        kc = np.pi * np.arange(m_c) / m_c
+        d1r = ((8 * np.sin(kr) - np.sin(2 * kr)) / 6 / s) ** 2
+        d1c = ((8 * np.sin(kc) - np.sin(2 * kc)) / 6 / s) ** 2
+        self._sym_grad = (d1r[:, None], d1c[None, :])
+        self._sym_reg = (2 - 2 * np.cos(kr))[:, None] ** 3 + (2 - 2 * np.cos(kc))[None, :] ** 3
+        Bc = lr.B.reshape(-1, 2, 2).mean(axis=0)
+        self.B_mean = Bc
+
+    def displacement(self, h):
+        """``(2, m_r, m_c)`` displacement at the nodes of heights ``h`` (m_r, m_c)."""
+        return (self.L @ h.ravel()).reshape(2, *self.grid.shape)
+
+    def node_normal(self, n_px):
+        """``P^T N P`` for a pixel weight ``n_px`` (rows, cols) as a sparse
+        ``(m, m)`` matrix (9-point stencil)."""
+        import scipy.sparse as sp
+
+        Rd, Ro = self._pair["r"]
+        Cd, Co = self._pair["c"]
+        m_r, m_c = self.grid.shape
+        X = {"d": np.asarray(Rd @ n_px), "o": np.asarray(Ro @ n_px)}
+        A = {}
+        for k in "do":
+            for l, C in (("d", Cd), ("o", Co)):
+                A[k + l] = np.asarray(C @ X[k].T).T
+        m = m_r * m_c
+        # stencil coefficients per offset, padded to the flat diagonals
+        def pad(x, shape_r, shape_c):
+            out = np.zeros((m_r, m_c))
+            out[:shape_r, :shape_c] = x
+            return out.ravel()
+
+        d0 = A["dd"].ravel()
+        d1 = pad(A["do"], m_r, m_c - 1)  # (i,j)-(i,j+1)
+        dm = pad(A["od"], m_r - 1, m_c)  # (i,j)-(i+1,j)
+        dm1 = pad(A["oo"], m_r - 1, m_c - 1)  # (i,j)-(i+1,j+1)
+        dmm = np.zeros((m_r, m_c))  # (i,j)-(i+1,j-1): A_oo[i, j-1]
+        dmm[:m_r - 1, 1:] = A["oo"]
+        dmm = dmm.ravel()
+        M = sp.diags([d0, d1[:-1], dm[:-m_c], dm1[:-m_c - 1], dmm[:-m_c + 1]],
+                     [0, 1, m_c, m_c + 1, m_c - 1], shape=(m, m))
+        M = M + sp.triu(M, 1).T
+        return M.tocsr()
+
+    def node_rhs(self, y_px):
+        """``P^T y`` (m_r, m_c)."""
+        return np.asarray(self.PcT @ np.asarray(self.PrT @ y_px).T).T
+
+
+def refine_height(fine, reference_gradient, frame, h0, valid_px, nodes: HeightNodes, *, outer: int = 2,
+                  cg_iterations: int = 40, regularisation: float = 0.03, verbose=False, prefilter=None,
+                  reference=None, edge_weight=None):
+    """Gauss-Newton image matching for the height on the node grid of ``nodes``:
+    ``min_h sum_r w [I - I0(r - P L h)]^2 + lam (|D3r h|^2 + |D3c h|^2)``."""
+    import scipy.sparse as sp
+    import scipy.fft as sfft
+
+    grid = nodes.grid
+    img = np.asarray(frame, np.float32)
+    if prefilter:
+        img = cv2.GaussianBlur(img, (0, 0), prefilter)
+        ref = cv2.GaussianBlur(np.asarray(reference, np.float32), (0, 0), prefilter)
+        fine = fine_reference(ref)
+        reference_gradient = reference_gradients(ref)
+    rows, cols = grid.frame_shape
+    g0r, g0c = reference_gradient
+    w = np.asarray(valid_px, np.float32)
+    if edge_weight is not None:
+        w = w * edge_weight(reference)
+    free = grid.down(w) > 0.999
+    h = np.nan_to_num(np.asarray(h0, np.float64)).copy()
+    r_px = np.arange(rows, dtype=np.float32)[:, None]
+    c_px = np.arange(cols, dtype=np.float32)[None, :]
+    rel = cv2.INTER_LINEAR | cv2.WARP_RELATIVE_MAP
+    m_r, m_c = grid.shape
+    L, LT = nodes.L, nodes.LT
+    for step in range(outer):
+        u = nodes.displacement(h)
+        mr = grid.up(u[0], cv2.INTER_LANCZOS4)
+        mc = grid.up(u[1], cv2.INTER_LANCZOS4)
+        warped = cv2.remap(fine, (c_px - mc) * np.float32(FINE), (r_px - mr) * np.float32(FINE),
+                           cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        np.negative(mr, out=mr)
+        np.negative(mc, out=mc)
+        gr = cv2.remap(g0r, mc, mr, rel, borderMode=cv2.BORDER_REFLECT) * w
+        gc = cv2.remap(g0c, mc, mr, rel, borderMode=cv2.BORDER_REFLECT) * w
+        e = img - warped
+        Nrr = nodes.node_normal(gr * gr)
+        Nrc = nodes.node_normal(gr * gc)
+        Ncc = nodes.node_normal(gc * gc)
+        Nblk = sp.bmat([[Nrr, Nrc], [Nrc, Ncc]]).tocsr()
+        b = np.concatenate([nodes.node_rhs(gr * e).ravel(), nodes.node_rhs(gc * e).ravel()])
+        nr = float(np.mean(Nrr.sum(axis=1)))
+        nc = float(np.mean(Ncc.sum(axis=1)))
+        Bm = nodes.B_mean
+        dsym = nr * Bm[0, 0] ** 2 * nodes._sym_grad[0] + nc * Bm[1, 1] ** 2 * nodes._sym_grad[1]
+        dsym = dsym + nr * Bm[0, 1] ** 2 * nodes._sym_grad[1] + nc * Bm[1, 0] ** 2 * nodes._sym_grad[0]
+        scale = nr * Bm[0, 0] ** 2 / grid.s ** 2 + nc * Bm[1, 1] ** 2 / grid.s ** 2
+        lam = regularisation * scale
+        sym = dsym + lam * nodes._sym_reg
+        sym[0, 0] = np.inf
+        K = (LT @ Nblk @ L + lam * nodes.reg).tocsr()
+        rhs = -(LT @ b) - lam * (nodes.reg @ h.ravel())
+
+        def prec(r):
+            c = sfft.dctn(r.reshape(m_r, m_c), type=2, norm="ortho")
+            c /= sym
+            return sfft.idctn(c, type=2, norm="ortho").ravel()
+
+        x = np.zeros(m_r * m_c)
+        r = rhs.copy()
+        z = prec(r)
+        p = z.copy()
+        rz = float(r @ z)
+        r0 = float(np.sqrt(r @ r))
+        k = 0
+        for k in range(cg_iterations):
+            if r0 == 0.0:
+                break
+            q = K @ p
+            pq = float(p @ q)
+            if pq <= 0.0:
+                break
+            al = rz / pq
+            x += al * p
+            r -= al * q
+            if float(np.sqrt(r @ r)) < 1e-4 * r0:
+                break
+            z = prec(r)
+            rz_new = float(r @ z)
+            p = z + (rz_new / rz) * p
+            rz = rz_new
+        if verbose:
+            print(f"  step {step}: cg {k + 1}, res {float(np.sqrt(r @ r)) / max(r0, 1e-30):.1e}, "
+                  f"|e| {float(np.sqrt(np.mean(e * e))):.3f}")
+        h += x.reshape(m_r, m_c)
+    return h, nodes.displacement(h).astype(np.float32), free

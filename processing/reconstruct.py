@@ -937,13 +937,26 @@ class Reconstructor:
         uf = u if fill is None else u[:, fill[0], fill[1]]
         u_px = np.stack([self._up(np.nan_to_num(uf[i])) for i in range(2)])
         valid_px = np.ones(self.shape, bool) if all_valid else self._up.mask(valid)
-        u_nodes, valid_nodes = dic.refine_global(self._ref_fine, self._ref_gradient, frame, u_px, valid_px, ng,
-                                                 outer=self.image_iterations)
-        t4 = time.perf_counter()
-        timings["refine"] += 1e3 * (t4 - t3)
         from .height import _solver_for
 
         hs = _solver_for(self.geometry, ng.rows_px, ng.cols_px, self.shape)
+        opts = getattr(self, "_image_opts", None)
+        if opts is None:
+            u_nodes, valid_nodes = dic.refine_global(self._ref_fine, self._ref_gradient, frame, u_px, valid_px, ng,
+                                                     outer=self.image_iterations)
+        else:
+            if getattr(self, "_height_nodes", None) is None:
+                self._height_nodes = dic.HeightNodes(self.geometry, ng)
+            free = ng.down(valid_px.astype(np.float32)) > 0.999
+            u0 = np.stack([ng.down(u_px[i]) for i in range(2)])
+            surf0 = hs._solve(np.where(free, u0, np.nan), free, self.solver, _CG_TOL, self._node_ref_mask,
+                              pin_fallback=self.pin_fallback, region_name=self.reference_region_name,
+                              near=self._node_near)
+            h0 = np.nan_to_num(np.asarray(surf0.height_mm, np.float64))
+            _, u_nodes, valid_nodes = dic.refine_height(self._ref_fine, self._ref_gradient, frame, h0, valid_px,
+                                                        self._height_nodes, reference=self._ref_f32, **opts)
+        t4 = time.perf_counter()
+        timings["refine"] += 1e3 * (t4 - t3)
         surf = hs._solve(np.where(valid_nodes, u_nodes, np.nan), valid_nodes, self.solver, _CG_TOL,
                          self._node_ref_mask, pin_fallback=self.pin_fallback,
                          region_name=self.reference_region_name, near=self._node_near)
