@@ -353,23 +353,24 @@ class HeightNodes:
             for l, C in (("d", Cd), ("o", Co)):
                 A[k + l] = np.asarray(C @ X[k].T).T
         m = m_r * m_c
-        # stencil coefficients per offset, padded to the flat diagonals
-        def pad(x, shape_r, shape_c):
-            out = np.zeros((m_r, m_c))
-            out[:shape_r, :shape_c] = x
-            return out.ravel()
-
-        d0 = A["dd"].ravel()
-        d1 = pad(A["do"], m_r, m_c - 1)  # (i,j)-(i,j+1)
-        dm = pad(A["od"], m_r - 1, m_c)  # (i,j)-(i+1,j)
-        dm1 = pad(A["oo"], m_r - 1, m_c - 1)  # (i,j)-(i+1,j+1)
-        dmm = np.zeros((m_r, m_c))  # (i,j)-(i+1,j-1): A_oo[i, j-1]
-        dmm[:m_r - 1, 1:] = A["oo"]
-        dmm = dmm.ravel()
-        M = sp.diags([d0, d1[:-1], dm[:-m_c], dm1[:-m_c - 1], dmm[:-m_c + 1]],
-                     [0, 1, m_c, m_c + 1, m_c - 1], shape=(m, m))
-        M = M + sp.triu(M, 1).T
-        return M.tocsr()
+        # the 9-point stencil as diagonals of the flat (row-major) node index
+        d1 = np.zeros((m_r, m_c))
+        d1[:, :-1] = A["do"]  # (i,j)-(i,j+1)
+        dmm = np.zeros((m_r, m_c))
+        dmm[:-1, 1:] = A["oo"]  # (i,j)-(i+1,j-1): rows i, i+1 and columns j-1, j
+        dm = np.zeros((m_r, m_c))
+        dm[:-1] = A["od"]  # (i,j)-(i+1,j)
+        dm1 = np.zeros((m_r, m_c))
+        dm1[:-1, :-1] = A["oo"]  # (i,j)-(i+1,j+1)
+        data = np.zeros((9, m))
+        data[0] = A["dd"].ravel()
+        offs = [0]
+        for k, (off, d) in enumerate(zip((1, m_c - 1, m_c, m_c + 1), (d1, dmm, dm, dm1))):
+            d = d.ravel()
+            data[1 + 2 * k, off:] = d[:m - off]  # dia stores a[i, i + off] in column i + off
+            data[2 + 2 * k, :m - off] = d[:m - off]
+            offs += [off, -off]
+        return sp.dia_matrix((data, offs), shape=(m, m))
 
     def node_rhs(self, y_px):
         """``P^T y`` (m_r, m_c)."""
@@ -377,7 +378,7 @@ class HeightNodes:
 
 
 def refine_height(fine, reference_gradient, frame, h0, valid_px, nodes: HeightNodes, *, outer: int = 2,
-                  cg_iterations: int = 40, regularisation: float = 0.03, verbose=False, prefilter=None,
+                  cg_iterations: int = 40, regularisation: float = 0.03, verbose=False, prefilter=None, cg_tol=1e-4, blur=None,
                   reference=None, edge_weight=None):
     """Gauss-Newton image matching for the height on the node grid of ``nodes``:
     ``min_h sum_r w [I - I0(r - P L h)]^2 + lam (|D3r h|^2 + |D3c h|^2)``."""
@@ -391,6 +392,8 @@ def refine_height(fine, reference_gradient, frame, h0, valid_px, nodes: HeightNo
         ref = cv2.GaussianBlur(np.asarray(reference, np.float32), (0, 0), prefilter)
         fine = fine_reference(ref)
         reference_gradient = reference_gradients(ref)
+    if blur:
+        img = cv2.GaussianBlur(img, (0, 0), blur)
     rows, cols = grid.frame_shape
     g0r, g0c = reference_gradient
     w = np.asarray(valid_px, np.float32)
@@ -411,16 +414,21 @@ def refine_height(fine, reference_gradient, frame, h0, valid_px, nodes: HeightNo
                            cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
         np.negative(mr, out=mr)
         np.negative(mc, out=mc)
-        gr = cv2.remap(g0r, mc, mr, rel, borderMode=cv2.BORDER_REFLECT) * w
-        gc = cv2.remap(g0c, mc, mr, rel, borderMode=cv2.BORDER_REFLECT) * w
+        gr = cv2.remap(g0r, mc, mr, rel, borderMode=cv2.BORDER_REFLECT)
+        gc = cv2.remap(g0c, mc, mr, rel, borderMode=cv2.BORDER_REFLECT)
+        if blur:
+            warped = cv2.GaussianBlur(warped, (0, 0), blur)
+            gr = cv2.GaussianBlur(gr, (0, 0), blur)
+            gc = cv2.GaussianBlur(gc, (0, 0), blur)
+        gr *= w
+        gc *= w
         e = img - warped
         Nrr = nodes.node_normal(gr * gr)
         Nrc = nodes.node_normal(gr * gc)
         Ncc = nodes.node_normal(gc * gc)
-        Nblk = sp.bmat([[Nrr, Nrc], [Nrc, Ncc]]).tocsr()
         b = np.concatenate([nodes.node_rhs(gr * e).ravel(), nodes.node_rhs(gc * e).ravel()])
-        nr = float(np.mean(Nrr.sum(axis=1)))
-        nc = float(np.mean(Ncc.sum(axis=1)))
+        nr = float(np.mean(gr * gr)) * grid.s ** 2
+        nc = float(np.mean(gc * gc)) * grid.s ** 2
         Bm = nodes.B_mean
         dsym = nr * Bm[0, 0] ** 2 * nodes._sym_grad[0] + nc * Bm[1, 1] ** 2 * nodes._sym_grad[1]
         dsym = dsym + nr * Bm[0, 1] ** 2 * nodes._sym_grad[1] + nc * Bm[1, 0] ** 2 * nodes._sym_grad[0]
@@ -428,8 +436,15 @@ def refine_height(fine, reference_gradient, frame, h0, valid_px, nodes: HeightNo
         lam = regularisation * scale
         sym = dsym + lam * nodes._sym_reg
         sym[0, 0] = np.inf
-        K = (LT @ Nblk @ L + lam * nodes.reg).tocsr()
-        rhs = -(LT @ b) - lam * (nodes.reg @ h.ravel())
+        n = m_r * m_c
+        R = nodes.reg
+
+        def apply_K(x):
+            v = L @ x
+            vr, vc = v[:n], v[n:]
+            return LT @ np.concatenate([Nrr @ vr + Nrc @ vc, Nrc @ vr + Ncc @ vc]) + lam * (R @ x)
+
+        rhs = -(LT @ b) - lam * (R @ h.ravel())
 
         def prec(r):
             c = sfft.dctn(r.reshape(m_r, m_c), type=2, norm="ortho")
@@ -446,14 +461,14 @@ def refine_height(fine, reference_gradient, frame, h0, valid_px, nodes: HeightNo
         for k in range(cg_iterations):
             if r0 == 0.0:
                 break
-            q = K @ p
+            q = apply_K(p)
             pq = float(p @ q)
             if pq <= 0.0:
                 break
             al = rz / pq
             x += al * p
             r -= al * q
-            if float(np.sqrt(r @ r)) < 1e-4 * r0:
+            if float(np.sqrt(r @ r)) < cg_tol * r0:
                 break
             z = prec(r)
             rz_new = float(r @ z)
