@@ -79,7 +79,7 @@ def fine_reference(reference):
 NODE_PX = 4
 
 #: Gaussian blur (sigma, pixels) applied to the frame and to the warped reference.
-BLUR_PX = 1.0
+BLUR_PX = 1.25
 
 
 class NodeGrid:
@@ -304,7 +304,7 @@ def _dot(a, b) -> float:
 
 
 def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int = 3, cg_iterations: int = 3,
-                  regularisation: float = 0.05, blur_px: float = BLUR_PX):
+                  regularisation: float = 0.03, blur_px: float = BLUR_PX):
     """Global Gauss-Newton image matching for the height on the node grid of ``nodes``.
 
     Minimises ``sum_r w [G*I - G*I0(r - P L h)]^2 + lam (|D3r h|^2 + |D3c h|^2)``
