@@ -349,6 +349,7 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
         img = cv2.GaussianBlur(img, (0, 0), blur_px)
     rows, cols = grid.frame_shape
     w = np.asarray(valid_px, np.float32)
+    all_valid = bool(w.all())
     free = grid.down(w) > 0.999
     h = np.nan_to_num(np.asarray(h0, np.float64)).copy()
     r_px = np.arange(rows, dtype=np.float32)[:, None] * np.float32(FINE)
@@ -366,8 +367,9 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
             warped = cv2.GaussianBlur(warped, (0, 0), blur_px)
         gr = cv2.Sobel(warped, cv2.CV_32F, 0, 1, ksize=1, scale=0.5, borderType=cv2.BORDER_REFLECT)
         gc = cv2.Sobel(warped, cv2.CV_32F, 1, 0, ksize=1, scale=0.5, borderType=cv2.BORDER_REFLECT)
-        gr *= w
-        gc *= w
+        if not all_valid:
+            gr *= w
+            gc *= w
         e = img - warped
         Nrr = nodes.node_normal(gr * gr)
         Nrc = nodes.node_normal(gr * gc)
