@@ -154,36 +154,43 @@ def _d3_T_d3(x):
     return z
 
 
-def _pair_sums(x, s, quadratic):
-    """Pixels -> nodes along axis 0 through cv2's bilinear weights ``P[p, i]``
-    (nodes every ``s`` px at ``j s + (s - 1) / 2``, clamped outside).
+def _tent_weights(s: int, quadratic: bool) -> np.ndarray:
+    """``(s, k)`` weights of the ``s`` pixels between two nodes: the lower and
+    upper node's bilinear weight (k = 2), or their squares and product (k = 3)."""
+    f = (np.arange(s) + 0.5) / s
+    cols = [(1 - f) ** 2, f ** 2, (1 - f) * f] if quadratic else [1 - f, f]
+    return np.stack(cols, axis=1).astype(np.float32)
+
+
+def _pair_sums(x, s, quadratic, axis):
+    """Pixels -> nodes along ``axis`` (0 or 1) through cv2's bilinear weights
+    ``P[p, i]`` (nodes every ``s`` px at ``j s + (s - 1) / 2``, clamped outside).
 
     quadratic: ``(sum_p P[p,i]^2 x[p], sum_p P[p,i] P[p,i+1] x[p])``;
     else ``sum_p P[p,i] x[p]`` (the exact transpose of the resize)."""
-    n = x.shape[0]
+    n = x.shape[axis]
     m = n // s
     hs = s // 2
-    core = x[hs:n - hs].reshape(m - 1, s, *x.shape[1:])
-    f = (np.arange(s) + 0.5) / s
-    shape = (m,) + x.shape[1:]
-    if not quadratic:
-        out = np.zeros(shape, x.dtype)
-        for q in range(s):
-            out[:-1] += np.float32(1.0 - f[q]) * core[:, q]
-            out[1:] += np.float32(f[q]) * core[:, q]
-        out[0] += x[:hs].sum(axis=0)
-        out[-1] += x[n - hs:].sum(axis=0)
-        return out
-    dd = np.zeros(shape, x.dtype)
-    do = np.zeros((m - 1,) + x.shape[1:], x.dtype)
-    for q in range(s):
-        c = core[:, q]
-        dd[:-1] += np.float32((1.0 - f[q]) ** 2) * c
-        dd[1:] += np.float32(f[q] ** 2) * c
-        do += np.float32((1.0 - f[q]) * f[q]) * c
-    dd[0] += x[:hs].sum(axis=0)
-    dd[-1] += x[n - hs:].sum(axis=0)
-    return dd, do
+    W = _tent_weights(s, quadratic)
+    if axis == 0:
+        parts = W.T @ x[hs:n - hs].reshape(m - 1, s, -1)  # (m - 1, k, cols)
+        parts = [parts[:, k] for k in range(W.shape[1])]
+        first, last = x[:hs].sum(axis=0), x[n - hs:].sum(axis=0)
+        out = np.zeros((m, x.shape[1]), np.float32)
+        out[:-1] += parts[0]
+        out[1:] += parts[1]
+        out[0] += first
+        out[-1] += last
+    else:
+        parts = x[:, hs:n - hs].reshape(x.shape[0], m - 1, s) @ W  # (rows, m - 1, k)
+        parts = [parts[:, :, k] for k in range(W.shape[1])]
+        first, last = x[:, :hs].sum(axis=1), x[:, n - hs:].sum(axis=1)
+        out = np.zeros((x.shape[0], m), np.float32)
+        out[:, :-1] += parts[0]
+        out[:, 1:] += parts[1]
+        out[:, 0] += first
+        out[:, -1] += last
+    return (out, parts[2]) if quadratic else out
 
 
 class Stencil9(NamedTuple):
@@ -231,7 +238,7 @@ class HeightNodes:
                 return None
             if np.allclose(x, x.flat[0], rtol=1e-12, atol=0):
                 return float(x.flat[0])
-            return x
+            return x.astype(np.float32)
 
         self.a = [coef(lr.a[..., i]) for i in range(2)]
         self.B = [[coef(lr.B[..., i, j]) for j in range(2)] for i in range(2)]
@@ -284,23 +291,22 @@ class HeightNodes:
         return _d3_T_d3(h) + _d3_T_d3(h.T).T
 
     def node_normal(self, n_px):
-        """``P^T N P`` for the pixel weight ``n_px`` (:class:`Stencil9`, float64)."""
+        """``P^T N P`` for the pixel weight ``n_px`` (:class:`Stencil9`)."""
         s = self.grid.s
-        xd, xo = _pair_sums(n_px, s, True)
-        dd, do = _pair_sums(xd.T, s, True)
-        od, oo = _pair_sums(xo.T, s, True)
-        f = np.float64
-        return Stencil9(dd.T.astype(f), do.T.astype(f), od.T.astype(f), oo.T.astype(f))
+        xd, xo = _pair_sums(n_px, s, True, 0)
+        dd, do = _pair_sums(xd, s, True, 1)
+        od, oo = _pair_sums(xo, s, True, 1)
+        return Stencil9(dd, do, od, oo)
 
     def node_rhs(self, y_px):
-        """``P^T y`` (m_r, m_c), float64."""
+        """``P^T y`` (m_r, m_c)."""
         s = self.grid.s
-        return _pair_sums(_pair_sums(y_px, s, False).T, s, False).T.astype(np.float64)
+        return _pair_sums(_pair_sums(y_px, s, False, 0), s, False, 1)
 
 
 def _dot(a, b) -> float:
     """Dot product without BLAS threads (they spin on a loaded 2-core machine)."""
-    return float(np.einsum("ij,ij->", a, b))
+    return float(np.einsum("ij,ij->", a, b, dtype=np.float64))
 
 
 def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int = 3, cg_iterations: int = 3,
@@ -382,6 +388,8 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
         sym = (nr * Bm[0, 0] ** 2 + nc * Bm[1, 0] ** 2) * nodes.symbol_d1[0]
         sym = sym + (nr * Bm[0, 1] ** 2 + nc * Bm[1, 1] ** 2) * nodes.symbol_d1[1] + lam * nodes.symbol_reg
         sym[0, 0] = np.inf  # the null space (a near-constant height) is the pin's business
+        sym = sym.astype(np.float32)
+        lam = np.float32(lam)
 
         def apply_K(x):
             vr, vc = nodes.displacement(x)
@@ -394,8 +402,8 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
             c /= sym
             return sfft.idctn(c, type=2, norm="ortho", overwrite_x=True)
 
-        r = -nodes.displacement_T(br, bc) - lam * nodes.regulariser(h)
-        x = np.zeros_like(h)
+        r = (-nodes.displacement_T(br, bc) - lam * nodes.regulariser(h)).astype(np.float32)
+        x = np.zeros(h.shape, np.float32)
         z = prec(r)
         p = z.copy()
         rz = _dot(r, z)
@@ -407,12 +415,12 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
             pq = _dot(p, q)
             if pq <= 0.0:
                 break
-            al = rz / pq
+            al = np.float32(rz / pq)
             x += al * p
             r -= al * q
             z = prec(r)
             rz_new = _dot(r, z)
-            p *= rz_new / rz
+            p *= np.float32(rz_new / rz)
             p += z
             rz = rz_new
         h += x
