@@ -35,7 +35,6 @@ accuracy table at or below FD's.
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -193,31 +192,43 @@ def _pair_sums(x, s, quadratic, axis):
     return (out, parts[2]) if quadratic else out
 
 
-class Stencil9(NamedTuple):
-    """Symmetric 9-point node stencil ``P^T N P`` (N diagonal on the pixels):
-    ``dd`` self, ``do`` (i,j)-(i,j+1), ``od`` (i,j)-(i+1,j), ``oo`` (i,j)-(i+1,j+1)
-    and (i,j+1)-(i+1,j)."""
+class Stencil9:
+    """Symmetric 9-point node stencil ``P^T N P`` (N diagonal on the pixels)
+    from its coefficients ``dd`` self, ``do`` (i,j)-(i,j+1), ``od`` (i,j)-(i+1,j),
+    ``oo`` (i,j)-(i+1,j+1) and (i,j+1)-(i+1,j); applied on the flat
+    (row-major) node index, each neighbour a contiguous shifted slice."""
 
-    dd: np.ndarray
-    do: np.ndarray
-    od: np.ndarray
-    oo: np.ndarray
+    def __init__(self, dd, do, od, oo):
+        m_r, m_c = dd.shape
+        self.shape = (m_r, m_c)
+        m = m_r * m_c
+        self.dd = dd.ravel()
+        self._mean_row_sum = float(np.mean(dd) + 2 * np.mean(do) + 2 * np.mean(od) + 4 * np.mean(oo))
+
+        def flat(x, r0, c0):  # coefficient between node k and k + offset, at k
+            out = np.zeros((m_r, m_c), np.float32)
+            out[:x.shape[0], c0:c0 + x.shape[1]] = x
+            return out.ravel()
+
+        self._links = []
+        for off, coef in ((1, flat(do, 0, 0)), (m_c, flat(od, 0, 0)), (m_c + 1, flat(oo, 0, 0)),
+                          (m_c - 1, flat(oo, 0, 1))):
+            self._links.append((off, coef[:m - off]))
 
     def mean_row_sum(self) -> float:
-        return float(np.mean(self.dd) + 2 * np.mean(self.do) + 2 * np.mean(self.od) + 4 * np.mean(self.oo))
+        return self._mean_row_sum
 
     def __matmul__(self, x):
-        y = self.dd * x
-        t = self.do * x[:, 1:]
-        y[:, :-1] += t
-        y[:, 1:] += self.do * x[:, :-1]
-        y[:-1] += self.od * x[1:]
-        y[1:] += self.od * x[:-1]
-        y[:-1, :-1] += self.oo * x[1:, 1:]
-        y[1:, 1:] += self.oo * x[:-1, :-1]
-        y[:-1, 1:] += self.oo * x[1:, :-1]
-        y[1:, :-1] += self.oo * x[:-1, 1:]
-        return y
+        xf = x.ravel()
+        y = self.dd * xf
+        t = np.empty_like(y)
+        for off, c in self._links:
+            n = c.size
+            np.multiply(c, xf[off:], out=t[:n])
+            y[:n] += t[:n]
+            np.multiply(c, xf[:n], out=t[:n])
+            y[off:] += t[:n]
+        return y.reshape(self.shape)
 
 
 class HeightNodes:
