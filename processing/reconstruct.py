@@ -427,8 +427,8 @@ class Reconstructor:
         height: the reference warped by the displacement that the height
         gives through the geometry's exact linear response, matched to the
         frame pixel by pixel, which is not band-limited; the displacement at
-        the nodes then goes through the same masked height solver and pin;
-        ``Result.series`` is None.  Frame sides must be multiples of 4 px.
+        the nodes then goes through the same masked height solver and pin
+        (``Result.series`` from FD's heights).  Frame sides must be multiples of 4 px.
         Measured on ray-traced frames (docs/processing.md section 6): waves
         3-6 carrier periods long 2.90 % -> 0.86 %, a bump of 1.25 periods
         1.41 % -> 0.30 %, every case of the accuracy table at or below "fd";
@@ -916,12 +916,13 @@ class Reconstructor:
             u = u + np.where(valid, du, 0.0)
         return u
 
-    def _image_full(self, frame, u, valid, amplitude, phase, timings, t0, t3):
+    def _image_full(self, frame, u, valid, amplitude, phase, series, timings, t0, t3):
         """Full grid by the global image-domain refinement (:func:`processing.dic.refine_height`):
         FD's heights on a node grid every ``dic.NODE_PX`` pixels are refined
         by image matching; the displacement they give at the nodes goes
         through the masked height solver and pin; the heights are
-        interpolated to every pixel.  ``Result.series`` is None."""
+        interpolated to every pixel.  ``series``: FD's check of this frame
+        against the previous one (:meth:`_check_series`)."""
         from . import dic
         from .height import _solver_for
 
@@ -955,14 +956,14 @@ class Reconstructor:
         valid_nodes = np.asarray(surf.valid, bool)
         u_nodes = np.where(valid_nodes, u_nodes, np.float32(np.nan)).astype(np.float32)
         t5 = time.perf_counter()
-        timings["height"] = 1e3 * (t5 - t4)
+        timings["height"] += 1e3 * (t5 - t4)
         amp_nodes = ng.down(self._up(amplitude))
         res = Result(height=np.asarray(surf.height_mm, np.float32), valid=valid_nodes,
                      slope_x=np.asarray(surf.slope_x, np.float32), slope_y=np.asarray(surf.slope_y, np.float32),
                      displacement=u_nodes, amplitude=amp_nodes, x_mm=np.asarray(surf.x_mm),
                      y_mm=np.asarray(surf.y_mm), grid="decimated", rows_px=ng.rows_px, cols_px=ng.cols_px,
                      carriers=self.carriers, phase=np.asarray(phase, np.float32),
-                     valid_fraction=float(valid_nodes.mean()), timings_ms=timings, pin=surf.pin, series=None)
+                     valid_fraction=float(valid_nodes.mean()), timings_ms=timings, pin=surf.pin, series=series)
         res = self._interpolate_full(res, solver=hs)
         timings["interpolate"] = 1e3 * (time.perf_counter() - t5)
         timings["total"] = 1e3 * (time.perf_counter() - t0)
@@ -1072,9 +1073,7 @@ class Reconstructor:
         if not all_valid or u.dtype != np.float32:
             u = np.where(valid, u, np.nan).astype(np.float32)
 
-        if grid == "full" and self.refine_method == "image":
-            return self._image_full(frame, u, valid, amplitude, phase, timings, t0, t3)
-        if grid == "full" and self.full_method == "ifft":
+        if grid == "full" and self.full_method == "ifft" and self.refine_method == "fd":
             res = self._full_ifft(wins, u, u_first, valid, amplitude, phase, timings, t3)
             timings["total"] = 1e3 * (time.perf_counter() - t0)
             return res
@@ -1094,6 +1093,9 @@ class Reconstructor:
         series = self._check_series(phase, valid, surf)
         t4 = time.perf_counter()
         timings["height"] = 1e3 * (t4 - t3)
+        if grid == "full" and self.refine_method == "image":
+            # FD's heights above gave the series check (temporal unwrapping, pin offset)
+            return self._image_full(frame, u, valid, amplitude, phase, series, timings, t0, t4)
         res = Result(height=np.asarray(surf.height_mm, np.float32), valid=valid,
                      slope_x=np.asarray(surf.slope_x, np.float32),
                      slope_y=np.asarray(surf.slope_y, np.float32), displacement=u,

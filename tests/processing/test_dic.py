@@ -146,3 +146,14 @@ def test_node_operators_are_exact_transposes_of_what_the_warp_uses():
     # the regulariser costs a quadratic height nothing
     R, C = np.meshgrid(grid.rows_px, grid.cols_px, indexing="ij")
     assert np.abs(nodes.regulariser(0.3 * R**2 - 0.2 * R * C + C)).max() < 1e-9
+
+
+def test_image_refinement_keeps_the_series_check(wave_frames):
+    # the batch flags temporal-unwrapping slips and pin jumps from Result.series:
+    # the image refinement takes it from FD's heights of the same frame
+    ref, img, _ = wave_frames
+    rec = Reconstructor(ref, G55, refine_method="image")
+    first, second = rec(img), rec(img)
+    assert first.series is None
+    assert second.series is not None and not second.series.flagged
+    assert second.series.unwrap_slip_fraction == 0.0 and second.series.compared_samples > 0
