@@ -39,7 +39,7 @@ import math
 import cv2
 import numpy as np
 
-__all__ = ["NODE_PX", "BLUR_PX", "NodeGrid", "HeightNodes", "fine_reference", "refine_height"]
+__all__ = ["NODE_PX", "BLUR_PX", "NodeGrid", "HeightNodes", "fine_reference", "fits", "refine_height"]
 
 
 #: Refinement of the grid the reference is interpolated from (see :func:`fine_reference`).
@@ -79,6 +79,13 @@ NODE_PX = 4
 
 #: Gaussian blur (sigma, pixels) applied to the frame and to the warped reference.
 BLUR_PX = 1.25
+
+
+def fits(frame_shape) -> bool:
+    """Whether frames of ``frame_shape`` suit the node grid (sides multiples of
+    :data:`NODE_PX`, at least 5 nodes each way)."""
+    rows, cols = frame_shape
+    return rows % NODE_PX == 0 and cols % NODE_PX == 0 and min(rows, cols) >= 5 * NODE_PX
 
 
 class NodeGrid:
