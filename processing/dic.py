@@ -375,7 +375,19 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
     w = np.asarray(valid_px, np.float32)
     all_valid = bool(w.all())
     free = grid.down(w) > 0.999
-    h = np.nan_to_num(np.asarray(h0, np.float64)).copy()
+    if not all_valid and blur_px:
+        # the blur mixes what lies within about 2.5 sigma into a pixel: only
+        # pixels whose blurred frame and warped reference see valid pixels alone count
+        reach = int(math.ceil(2.5 * blur_px))
+        w = cv2.erode(w, np.ones((2 * reach + 1, 2 * reach + 1), np.uint8), borderType=cv2.BORDER_REPLICATE)
+    h = np.asarray(h0, np.float64).copy()
+    if not np.isfinite(h).all():
+        # nodes without a start: the nearest valid node's height (no jump at the mask's edge)
+        from scipy import ndimage
+
+        bad = ~np.isfinite(h)
+        _, idx = ndimage.distance_transform_edt(bad, return_indices=True)
+        h = h[idx[0], idx[1]]
     r_px = np.arange(rows, dtype=np.float32)[:, None] * np.float32(FINE)
     c_px = np.arange(cols, dtype=np.float32)[None, :] * np.float32(FINE)
     s2 = grid.s ** 2

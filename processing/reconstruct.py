@@ -947,7 +947,7 @@ class Reconstructor:
         pin_kw = dict(pin_fallback=self.pin_fallback, region_name=self.reference_region_name, near=self._node_near)
         start = hs._solve(np.where(valid_nodes, u_start, np.nan), valid_nodes, self.solver, _CG_TOL,
                           self._node_ref_mask, **pin_kw)
-        _, u_nodes, valid_nodes = dic.refine_height(self._ref_fine, frame, np.nan_to_num(start.height_mm),
+        _, u_nodes, valid_nodes = dic.refine_height(self._ref_fine, frame, np.asarray(start.height_mm, np.float64),
                                                     valid_px, self._height_nodes, outer=self.image_iterations)
         t4 = time.perf_counter()
         timings["refine"] += 1e3 * (t4 - t3)
