@@ -28,7 +28,7 @@ OpenCV's cubic remap biases image matching towards whole pixels by up to
 0.035 px.
 
 Measured (docs/processing.md, section 6): ray-traced waves 3-6 carrier
-periods long 2.90 % (FD) -> 0.86 % rms height error; every case of the
+periods long 2.90 % (FD) -> 0.82 % rms height error; every case of the
 accuracy table at or below FD's.
 """
 
