@@ -369,3 +369,17 @@ def test_refine_image_on_frames_it_cannot_refine_is_refused(tmp_path, capsys):
     assert code == 2
     assert "--refine image cannot be used here: the frame sides (130 x 130 px) must be multiples of 4 px" in err
     assert "Traceback" not in err and not (tmp_path / "out.h5").exists()
+
+
+def test_refine_auto_takes_fd_where_image_matching_does_not_apply():
+    from app.batch.engine import batch_refine_method
+    from processing.errors import TirdeflectError
+
+    assert batch_refine_method("auto", (256, 256), "checkerboard", "full") == "image"
+    assert batch_refine_method("auto", (256, 256), "dots", "full") == "fd"
+    assert batch_refine_method("auto", (256, 256), "checkerboard", "decimated") == "fd"
+    assert batch_refine_method("auto", (256, 256), "checkerboard", "full", "cuda") == "fd"
+    assert batch_refine_method("auto", (256, 258), "checkerboard", "full") == "fd"
+    assert batch_refine_method("fd", (256, 256), "checkerboard", "full") == "fd"
+    with pytest.raises(TirdeflectError, match="random-dot patterns are measured by PIV; use --refine fd"):
+        batch_refine_method("image", (256, 256), "dots", "full")
