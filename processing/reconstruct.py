@@ -422,15 +422,17 @@ class Reconstructor:
     refine_method : {"fd", "image"}, optional
         "fd" (default): the warp-and-redemodulate refinement only.  "image":
         after it, on the full grid, ``image_iterations`` (default 3) global
-        Gauss-Newton steps of image matching on a node grid every 4 px
-        (:func:`processing.dic.refine_global`): the reference warped by ``u``
-        matched to the frame pixel by pixel, which is not band-limited;
-        heights are solved on the node grid; ``Result.series`` is None.
-        Frame sides must be multiples of 4 px.  Measured on ray-traced
-        frames (docs/processing.md section 6): waves 3-6 carrier periods long
-        2.90 % -> 1.11 %, a bump of 1.25 periods 1.41 % -> 0.40 %, worse on a
-        sharp board (0.39 % -> 0.76 %); 11-13x the cost of "fd", so not
-        the batch default.
+        Gauss-Newton steps of image matching for the height on a node grid
+        every 4 px (:func:`processing.dic.refine_height`), starting from FD's
+        height: the reference warped by the displacement that the height
+        gives through the geometry's exact linear response, matched to the
+        frame pixel by pixel, which is not band-limited; the displacement at
+        the nodes then goes through the same masked height solver and pin
+        (``Result.series`` from FD's heights).  Frame sides must be multiples of 4 px.
+        Measured on ray-traced frames (docs/processing.md section 6): waves
+        3-6 carrier periods long 2.90 % -> 0.86 %, a bump of 1.25 periods
+        1.41 % -> 0.30 %, every case of the accuracy table at or below "fd";
+        about 6-8x the CPU time of "fd", so not yet the batch default.
     device : {"cpu", "cuda"}, optional
         "cuda": the chain runs on the GPU through CuPy, batched by
         :meth:`batch` (processing/gpu.py says which frames and steps stay on
@@ -487,7 +489,6 @@ class Reconstructor:
             raise ValueError(f"image_iterations must be >= 1; got {image_iterations!r}")
         self.refine_method = refine_method
         self.image_iterations = int(image_iterations)
-        self._ref_gradient = None
         self._ref_fine = None
         if refine_method == "image":
             from .dic import NodeGrid
@@ -915,18 +916,21 @@ class Reconstructor:
             u = u + np.where(valid, du, 0.0)
         return u
 
-    def _image_full(self, frame, u, valid, amplitude, phase, timings, t0, t3):
-        """Full grid by the global image-domain refinement (:func:`processing.dic.refine_global`):
-        FD's u on every pixel is refined on a node grid every ``dic.NODE_PX``
-        pixels, heights are solved there (same masked solver and pin) and
-        interpolated to every pixel.  ``Result.series`` is None."""
+    def _image_full(self, frame, u, valid, amplitude, phase, series, timings, t0, t3):
+        """Full grid by the global image-domain refinement (:func:`processing.dic.refine_height`):
+        FD's heights on a node grid every ``dic.NODE_PX`` pixels are refined
+        by image matching; the displacement they give at the nodes goes
+        through the masked height solver and pin; the heights are
+        interpolated to every pixel.  ``series``: FD's check of this frame
+        against the previous one (:meth:`_check_series`)."""
         from . import dic
+        from .height import _solver_for
 
-        if self._ref_gradient is None:
-            self._node_grid = dic.NodeGrid(self.shape)
-            self._ref_gradient = dic.reference_gradients(self._ref_f32)
+        if self._ref_fine is None:
+            ng = dic.NodeGrid(self.shape)
+            self._node_grid = ng
+            self._height_nodes = dic.HeightNodes(self.geometry, ng)
             self._ref_fine = dic.fine_reference(self._ref_f32)
-            ng = self._node_grid
             pick_r = np.abs(ng.rows_px[:, None] - self.rows_px[None, :]).argmin(axis=1)
             pick_c = np.abs(ng.cols_px[:, None] - self.cols_px[None, :]).argmin(axis=1)
             self._node_ref_mask = self._ref_mask[np.ix_(pick_r, pick_c)]
@@ -935,29 +939,31 @@ class Reconstructor:
         all_valid = bool(valid.all())
         fill = None if all_valid else _nearest_fill_index(valid)
         uf = u if fill is None else u[:, fill[0], fill[1]]
-        u_px = np.stack([self._up(np.nan_to_num(uf[i])) for i in range(2)])
         valid_px = np.ones(self.shape, bool) if all_valid else self._up.mask(valid)
-        u_nodes, valid_nodes = dic.refine_global(self._ref_fine, self._ref_gradient, frame, u_px, valid_px, ng,
-                                                 outer=self.image_iterations)
+        valid_nodes = ng.down(valid_px.astype(np.float32)) > 0.999
+        # FD's heights at the nodes: the start
+        u_start = np.stack([ng.down(self._up(np.nan_to_num(uf[i]))) for i in range(2)])
+        hs = _solver_for(self.geometry, ng.rows_px, ng.cols_px, self.shape)
+        pin_kw = dict(pin_fallback=self.pin_fallback, region_name=self.reference_region_name, near=self._node_near)
+        start = hs._solve(np.where(valid_nodes, u_start, np.nan), valid_nodes, self.solver, _CG_TOL,
+                          self._node_ref_mask, **pin_kw)
+        _, u_nodes, valid_nodes = dic.refine_height(self._ref_fine, frame, np.asarray(start.height_mm, np.float64),
+                                                    valid_px, self._height_nodes, outer=self.image_iterations)
         t4 = time.perf_counter()
         timings["refine"] += 1e3 * (t4 - t3)
-        from .height import _solver_for
-
-        hs = _solver_for(self.geometry, ng.rows_px, ng.cols_px, self.shape)
         surf = hs._solve(np.where(valid_nodes, u_nodes, np.nan), valid_nodes, self.solver, _CG_TOL,
-                         self._node_ref_mask, pin_fallback=self.pin_fallback,
-                         region_name=self.reference_region_name, near=self._node_near)
+                         self._node_ref_mask, **pin_kw)
         valid_nodes = np.asarray(surf.valid, bool)
         u_nodes = np.where(valid_nodes, u_nodes, np.float32(np.nan)).astype(np.float32)
         t5 = time.perf_counter()
-        timings["height"] = 1e3 * (t5 - t4)
+        timings["height"] += 1e3 * (t5 - t4)
         amp_nodes = ng.down(self._up(amplitude))
         res = Result(height=np.asarray(surf.height_mm, np.float32), valid=valid_nodes,
                      slope_x=np.asarray(surf.slope_x, np.float32), slope_y=np.asarray(surf.slope_y, np.float32),
                      displacement=u_nodes, amplitude=amp_nodes, x_mm=np.asarray(surf.x_mm),
                      y_mm=np.asarray(surf.y_mm), grid="decimated", rows_px=ng.rows_px, cols_px=ng.cols_px,
                      carriers=self.carriers, phase=np.asarray(phase, np.float32),
-                     valid_fraction=float(valid_nodes.mean()), timings_ms=timings, pin=surf.pin, series=None)
+                     valid_fraction=float(valid_nodes.mean()), timings_ms=timings, pin=surf.pin, series=series)
         res = self._interpolate_full(res, solver=hs)
         timings["interpolate"] = 1e3 * (time.perf_counter() - t5)
         timings["total"] = 1e3 * (time.perf_counter() - t0)
@@ -1067,9 +1073,7 @@ class Reconstructor:
         if not all_valid or u.dtype != np.float32:
             u = np.where(valid, u, np.nan).astype(np.float32)
 
-        if grid == "full" and self.refine_method == "image":
-            return self._image_full(frame, u, valid, amplitude, phase, timings, t0, t3)
-        if grid == "full" and self.full_method == "ifft":
+        if grid == "full" and self.full_method == "ifft" and self.refine_method == "fd":
             res = self._full_ifft(wins, u, u_first, valid, amplitude, phase, timings, t3)
             timings["total"] = 1e3 * (time.perf_counter() - t0)
             return res
@@ -1089,6 +1093,9 @@ class Reconstructor:
         series = self._check_series(phase, valid, surf)
         t4 = time.perf_counter()
         timings["height"] = 1e3 * (t4 - t3)
+        if grid == "full" and self.refine_method == "image":
+            # FD's heights above gave the series check (temporal unwrapping, pin offset)
+            return self._image_full(frame, u, valid, amplitude, phase, series, timings, t0, t4)
         res = Result(height=np.asarray(surf.height_mm, np.float32), valid=valid,
                      slope_x=np.asarray(surf.slope_x, np.float32),
                      slope_y=np.asarray(surf.slope_y, np.float32), displacement=u,

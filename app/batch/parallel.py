@@ -114,6 +114,7 @@ class ReconstructorSpec:
     threads: Optional[int] = None
     shared_memory: bool = False
     pattern: Optional[str] = None
+    refine_method: str = "fd"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -179,7 +180,7 @@ def _reconstructor(spec: ReconstructorSpec):
 
     cache.restore_fftw_wisdom()
     recon = _make_reconstructor(spec.reference, spec.geometry, unwrap=spec.unwrap, grid=spec.grid,
-                                pattern=spec.pattern,
+                                pattern=spec.pattern, refine_method=spec.refine_method,
                                 effort=spec.effort, threads=threads, carriers=spec.carriers)
     _RECONSTRUCTORS[spec.key] = recon
     return recon
@@ -692,7 +693,8 @@ def _spec(job, reconstruct, reference, geometry, effort, threads, shared_memory=
     return ReconstructorSpec(key=uuid.uuid4().hex, reference=np.asarray(reference), geometry=geometry,
                              grid=job.grid, unwrap=not job.no_unwrap, effort=effort,
                              carriers=reconstruct.carriers, threads=threads,
-                             shared_memory=shared_memory, pattern=getattr(reconstruct, "pattern", None))
+                             shared_memory=shared_memory, pattern=getattr(reconstruct, "pattern", None),
+                             refine_method=getattr(reconstruct, "refine_method", "fd"))
 
 
 def _frame_bytes(reconstruct, grid: str) -> int:

@@ -111,6 +111,11 @@ def add_process_parser(sub) -> None:
                    help="what the reference shows: checkerboard (Fourier demodulation) or dots (a random-dot "
                         "pattern, PIV with window deformation); default: the geometry's pattern key, "
                         "else checkerboard")
+    p.add_argument("--refine", dest="refine_method", choices=("auto", "image", "fd"), default="auto",
+                   help="auto (default): image matching for the height on a 4 px node grid where it applies "
+                        "(checkerboard, full grid, CPU, frame sides multiples of 4 px), else fd; fd: Fourier "
+                        "demodulation's refinement only, about 5x faster, smooths features a few carrier "
+                        "periods wide (docs/processing.md section 6)")
     p.add_argument("--no-unwrap", action="store_true",
                    help="do not unwrap carrier phases (only for small displacements)")
     p.add_argument("--first", type=_nonnegative_int, default=0, metavar="K",

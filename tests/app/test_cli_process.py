@@ -121,7 +121,9 @@ def test_round_trip_height_error_within_2_percent(tmp_path, capsys, surface, bit
     printed = capsys.readouterr().out
     assert code == 0
     figures = [float(x) for x in re.findall(r"^\s*\d+\s+([\d.]+) %", printed, re.M)]
-    np.testing.assert_allclose(figures, np.array(rels) * 100, atol=0.006)
+    # to the printed rounding, and 5 % of the figure: compare removes the mean over the stored
+    # pin region, this test over the geometry's reference region (at 0.16 % error they differ by 0.007)
+    np.testing.assert_allclose(figures, np.array(rels) * 100, rtol=0.05, atol=0.006)
     assert main(["compare", str(out), str(d / "heights.h5"), "--max-error", str(min(rels) / 2)]) == 1
 
 
@@ -304,3 +306,80 @@ def test_gui_arguments_go_to_the_window(capsys):
     assert main(["gui", "--help"]) == 0
     out = capsys.readouterr().out
     assert "tirdeflect gui" in out and "--camera" in out
+
+
+@pytest.fixture(scope="module")
+def short_waves(tmp_path_factory):
+    """Ray-traced 12-bit frames of waves 3-6 carrier periods long (issue 11), as 16-bit TIFFs."""
+    from processing import Geometry, forward as F
+
+    d = tmp_path_factory.mktemp("waves")
+    g = Geometry(theta_deg=55, depth_mm=300, pixel_mm=0.1, rows_toward_camera=False)
+    waves = F.WaveField.random(8, amplitude_rms_mm=0.0003, wavelength_range_mm=(6, 12), seed=1)
+    board = F.Checkerboard(period_mm=2.0, edge_softness_mm=0.1)
+    for name, surface in (("reference", F.FlatSurface()), ("frame", waves)):
+        img, _ = F.render_tir(surface, g, (SIZE, SIZE), board, supersample=2)
+        tifffile.imwrite(d / f"{name}.tif", F.quantize(img, bits=12))
+    (d / "geometry.toml").write_text(g.to_toml_text())
+    return d, g, waves
+
+
+def _rel_error_interior(height, truth, geometry):
+    """Relative RMS error in the interior (8 % margin), null space a exp(-T y / H) removed."""
+    m = int(0.08 * SIZE)
+    rows = np.arange(SIZE)
+    y = geometry.surface_point(rows[:, None], np.full((SIZE, 1), SIZE / 2), (SIZE, SIZE))[1]
+    null = np.broadcast_to(np.exp(-geometry.T * y / geometry.depth_mm), truth.shape)[m:-m, m:-m].ravel()
+    d = (height - truth)[m:-m, m:-m].ravel()
+    t = truth[m:-m, m:-m].ravel()
+    d = d - null * (null @ d) / (null @ null)
+    t = t - null * (null @ t) / (null @ null)
+    return float(np.sqrt(np.mean(d**2) / np.mean(t**2)))
+
+
+def test_process_refines_by_image_matching_by_default(short_waves, tmp_path, capsys):
+    from processing import forward as F
+
+    d, g, waves = short_waves
+    truth = F.true_height(waves, g, (SIZE, SIZE))
+    errors = {}
+    for option in ([], ["--refine", "fd"]):
+        out = tmp_path / f"out{len(option)}.h5"
+        code, err = _run(capsys, "process", d / "reference.tif", d / "frame.tif", "--geometry", d / "geometry.toml",
+                         "--out", out, *option)
+        assert code == 0, err
+        with h5py.File(out) as f:
+            method = f.attrs["refine_method"]
+            errors[method] = _rel_error_interior(f["height"][0].astype(np.float64), truth, g)
+    # measured 0.8 % (image, the default) and 2.9 % (fd); issue 11's goal 1 %
+    assert set(errors) == {"image", "fd"}
+    assert errors["image"] <= 0.010
+    assert errors["fd"] > 0.02
+
+
+def test_refine_image_on_frames_it_cannot_refine_is_refused(tmp_path, capsys):
+    ref = np.zeros((130, 130), np.uint8)
+    ref[::2] = 200
+    tifffile.imwrite(tmp_path / "ref.tif", ref)
+    from processing import Geometry
+
+    (tmp_path / "g.toml").write_text(Geometry(theta_deg=55, depth_mm=300, pixel_mm=0.1, rows_toward_camera=False).to_toml_text())
+    code, err = _run(capsys, "process", tmp_path / "ref.tif", tmp_path / "ref.tif", "--geometry", tmp_path / "g.toml",
+                     "--out", tmp_path / "out.h5", "--refine", "image")
+    assert code == 2
+    assert "--refine image cannot be used here: the frame sides (130 x 130 px) must be multiples of 4 px" in err
+    assert "Traceback" not in err and not (tmp_path / "out.h5").exists()
+
+
+def test_refine_auto_takes_fd_where_image_matching_does_not_apply():
+    from app.batch.engine import batch_refine_method
+    from processing.errors import TirdeflectError
+
+    assert batch_refine_method("auto", (256, 256), "checkerboard", "full") == "image"
+    assert batch_refine_method("auto", (256, 256), "dots", "full") == "fd"
+    assert batch_refine_method("auto", (256, 256), "checkerboard", "decimated") == "fd"
+    assert batch_refine_method("auto", (256, 256), "checkerboard", "full", "cuda") == "fd"
+    assert batch_refine_method("auto", (256, 258), "checkerboard", "full") == "fd"
+    assert batch_refine_method("fd", (256, 256), "checkerboard", "full") == "fd"
+    with pytest.raises(TirdeflectError, match="random-dot patterns are measured by PIV; use --refine fd"):
+        batch_refine_method("image", (256, 256), "dots", "full")

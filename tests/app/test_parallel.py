@@ -28,9 +28,12 @@ N_FRAMES = 12
 RING_FROM = 5  # first frame with the blank ring
 
 # Heights of the same frame through different FFT plans/threads differ by float32
-# rounding (measured 3.5e-7 of the peak); a 2 pi unwrapping slip on the island
-# moves them by ~2 % of the peak. 1e-5 of the peak separates the two.
-REL_TOL = 1e-5
+# rounding (measured 3.5e-7 of the peak with FD's refinement; the batch default's
+# image matching, processing/dic.py, moves that to 7e-5 of the slopes' peak: cv2.remap
+# places pixels in 1/32 px steps, so the matched optimum moves in steps); a 2 pi
+# unwrapping slip on the island moves them by ~2 % of the peak. 3e-4 of the peak
+# separates the two.
+REL_TOL = 3e-4
 
 
 @pytest.fixture(scope="module")
@@ -124,7 +127,7 @@ def test_series_needs_temporal_unwrapping(series, serial, tmp_path):
     peak = np.nanmax(np.abs(serial["height"]))
     wrong = [np.nanmax(np.abs(r.height - serial["height"][item.sequence_index])) / peak
              for item, (r, _) in unchecked.frames]
-    assert max(wrong) > 100 * REL_TOL, wrong
+    assert max(wrong) > 0.01, wrong  # a slip: ~2 % of the peak
     # ... and the states at the join tell: frame 5 in space is not frame 5 in time
     serial_chunk = parallel.process_chunk(spec, parallel.plan_chunks(
         N_FRAMES, first=0, step=1, paths=frames, workers=2, frame_bytes=1, chunk_frames=6)[0])
@@ -374,7 +377,10 @@ def test_device_cuda_batches_through_the_engine(series, serial, tmp_path, monkey
     assert report.frames_written == N_FRAMES
     got = _read(out)
     assert got["attrs"]["device"] == "cuda"
-    _assert_same(serial, got)
+    assert got["attrs"]["refine_method"] == "fd"  # image matching stays on the CPU: auto picks fd
+    serial_fd = tmp_path / "serial_fd.h5"
+    run_process(_job(series, serial_fd, workers=1, refine_method="fd"))
+    _assert_same(_read(serial_fd), got)
 
 
 @pytest.mark.parametrize("how", ["workers", "device-cuda"])
@@ -392,7 +398,9 @@ def test_invalid_frames_in_the_middle_match_serial(series, tmp_path, monkeypatch
     frames[7] = str(blank)
     job = dict(reference=str(d / "reference.png"), frames=frames, geometry=str(d / "geometry.toml"),
                fft_effort="estimate")
-    run_process(ProcessJob(out=str(tmp_path / "serial.h5"), workers=1, **job))
+    # the GPU chain refines by FD (auto picks fd with --device cuda): its serial twin too
+    run_process(ProcessJob(out=str(tmp_path / "serial.h5"), workers=1,
+                           refine_method="auto" if how == "workers" else "fd", **job))
     if how == "workers":
         run_process(ProcessJob(out=str(tmp_path / "other.h5"), workers=2, chunk_frames=3, **job))
     else:

@@ -2,13 +2,16 @@
 
 Frames from processing.forward (exact ray tracing, no linear model); error
 measure as in test_reconstruct (relative RMS height error, interior, null
-space removed).
+space removed).  Figures quoted are from docs/processing.md section 6.
 """
 
+import cv2
 import numpy as np
 import pytest
 
+from processing import dic
 from processing import forward as F
+from processing.geometry import Geometry
 from processing.reconstruct import Reconstructor
 
 from .test_reconstruct import G55, render, rel_error
@@ -22,21 +25,52 @@ def wave_frames():
     return render(WAVES, bits=12)
 
 
-def test_image_refinement_removes_most_of_the_band_limit_error_on_short_waves(wave_frames):
+def test_image_refinement_meets_the_one_percent_goal_on_waves_three_to_six_periods_long(wave_frames):
     ref, img, _ = wave_frames
     fd = rel_error(Reconstructor(ref, G55)(img), WAVES)
     image = rel_error(Reconstructor(ref, G55, refine_method="image")(img), WAVES)
-    # measured 2.90 % (FD + one refinement) -> 1.11 %
+    # measured 2.90 % (FD + one refinement) -> 0.82 %; issue 11's goal 1.0 %
     assert fd > 0.02
-    assert image <= 0.013
-    assert image <= 0.5 * fd
+    assert image <= 0.010
+
+
+def test_image_refinement_with_rows_towards_the_camera():
+    # the row direction flips the sign of B's y terms and of the h-term: the
+    # linear response at the nodes must follow the geometry (measured 2.93 -> 0.83 %)
+    g = Geometry(theta_deg=55, depth_mm=300, pixel_mm=0.1, rows_toward_camera=True)
+    ref, img, _ = render(WAVES, geometry=g, bits=12)
+    assert rel_error(Reconstructor(ref, g, refine_method="image")(img), WAVES, geometry=g) <= 0.010
+
+
+def test_image_refinement_not_worse_than_fd_on_a_sharp_edged_board():
+    # 2.1 mm board with 0.1 mm edges: its 12.04 px row period puts every edge at
+    # nearly the same sub-pixel phase, so the interpolation error of the
+    # sampled reference does not average out; the blur after the warp
+    # damps it (measured: FD 0.39 %, image without blur 0.79 %, with 0.34 %)
+    board = F.Checkerboard(period_mm=2.1, edge_softness_mm=0.1)
+    bump = F.GaussianBump(0.004, 5.0)
+    ref, _ = F.render_tir(F.FlatSurface(), G55, (256, 256), board, supersample=2)
+    img, _ = F.render_tir(bump, G55, (256, 256), board, supersample=2)
+    ref, img = F.quantize(ref, bits=8), F.quantize(img, bits=8)
+    fd = rel_error(Reconstructor(ref, G55)(img), bump)
+    image = rel_error(Reconstructor(ref, G55, refine_method="image")(img), bump)
+    assert image <= fd
 
 
 def test_image_refinement_keeps_a_wide_bump_accurate():
     bump = F.GaussianBump(amplitude_mm=0.004, sigma_mm=5.0)
     ref, img, _ = render(bump)
     res = Reconstructor(ref, G55, refine_method="image")(img)
-    assert rel_error(res, bump) <= 0.004  # FD default 0.22 % (docs/processing.md)
+    assert rel_error(res, bump) <= 0.0022  # FD default 0.22 %, image 0.16 %
+
+
+def test_image_refinement_with_a_camera_at_finite_distance():
+    # per-node optics (theta varies across the field); measured FD 5.3 % -> 3.6 %
+    g = Geometry(theta_deg=60, depth_mm=300, pixel_mm=0.1, rows_toward_camera=False, camera_distance_mm=1500.0)
+    ref, img, _ = render(WAVES, geometry=g, bits=12)
+    fd = rel_error(Reconstructor(ref, g)(img), WAVES, geometry=g)
+    image = rel_error(Reconstructor(ref, g, refine_method="image")(img), WAVES, geometry=g)
+    assert image <= 0.8 * fd
 
 
 def test_image_refinement_only_on_the_full_grid(wave_frames):
@@ -59,12 +93,67 @@ def test_bad_refine_method_named(wave_frames):
 
 
 def test_bumps_of_one_and_a_half_and_one_and_a_quarter_carrier_periods():
-    # sigma 1.5 periods (2 mm board): issue 11 asks <= 1.5 %; measured 0.37 % (fd), 0.36 % (image)
+    # sigma 1.5 periods (2 mm board): issue 11 asks <= 1.5 %; measured 0.37 % (fd), 0.26 % (image)
     bump = F.GaussianBump(0.001, 3.0)
     ref, img, _ = render(bump, bits=12)
     assert rel_error(Reconstructor(ref, G55)(img), bump) <= 0.015
     assert rel_error(Reconstructor(ref, G55, refine_method="image")(img), bump) <= 0.015
-    # sigma 1.25 periods: measured 1.41 % (fd) -> 0.40 % (image)
+    # sigma 1.25 periods: measured 1.41 % (fd) -> 0.32 % (image)
     narrow = F.GaussianBump(0.002, 2.5)
     ref, img, _ = render(narrow)
-    assert rel_error(Reconstructor(ref, G55, refine_method="image")(img), narrow) <= 0.7 * 0.0141
+    assert rel_error(Reconstructor(ref, G55, refine_method="image")(img), narrow) <= 0.005
+
+
+# ---------------------------------------------------------------- the node operators
+def test_node_displacement_is_the_linear_response_of_a_smooth_height():
+    # u at the nodes of h(x, y) against a h + B grad h of the exact gradient
+    g = Geometry(theta_deg=60, depth_mm=300, pixel_mm=0.1, rows_toward_camera=False, camera_distance_mm=1500.0)
+    grid = dic.NodeGrid((128, 96))
+    nodes = dic.HeightNodes(g, grid)
+    R, C = np.meshgrid(grid.rows_px, grid.cols_px, indexing="ij")
+    k_r, k_c = 2 * np.pi / 60.0, 2 * np.pi / 45.0  # per pixel: 15 and 11 nodes per wavelength
+    h = 0.001 * np.sin(k_r * R) * np.cos(k_c * C)
+    dh_r = 0.001 * k_r * np.cos(k_r * R) * np.cos(k_c * C)
+    dh_c = -0.001 * k_c * np.sin(k_r * R) * np.sin(k_c * C)
+    lr = g.linear_response(R, C, grid.frame_shape)
+    expect = [lr.a[..., i] * h + lr.B[..., i, 0] * dh_r + lr.B[..., i, 1] * dh_c for i in range(2)]
+    u = nodes.displacement(h)
+    inner = (slice(2, -2), slice(2, -2))  # fourth-order inside; second-order at the border rows
+    # fourth-order differences: relative error (k s)^4 / 30, 3.2e-3 for the shorter wave (11 nodes)
+    bound = 1.1 * (4 * max(k_r, k_c)) ** 4 / 30
+    for i in range(2):
+        err = np.abs(u[i] - expect[i])[inner].max() / np.abs(expect[i]).max()
+        assert err < bound
+
+
+def test_node_operators_are_exact_transposes_of_what_the_warp_uses():
+    rng = np.random.default_rng(0)
+    grid = dic.NodeGrid((40, 28))
+    nodes = dic.HeightNodes(G55, grid)
+    m = grid.shape[0] * grid.shape[1]
+    # P: cv2's bilinear resize nodes -> pixels, column by column
+    P = np.stack([grid.up(np.eye(m, dtype=np.float32)[j].reshape(grid.shape)).ravel() for j in range(m)], axis=1)
+    n_px = rng.random(grid.frame_shape).astype(np.float32)
+    x = rng.standard_normal(grid.shape)
+    stencil = nodes.node_normal(n_px) @ x
+    np.testing.assert_allclose(stencil.ravel(), P.T @ (n_px.ravel() * (P @ x.ravel())), rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(nodes.node_rhs(n_px).ravel(), P.T @ n_px.ravel(), rtol=1e-5, atol=1e-5)
+    vr, vc = rng.standard_normal((2, *grid.shape))
+    u = nodes.displacement(x)
+    assert np.isclose(np.sum(u[0] * vr + u[1] * vc), np.sum(x * nodes.displacement_T(vr, vc)), rtol=1e-12)
+    y = rng.standard_normal(grid.shape)
+    assert np.isclose(np.sum(nodes.regulariser(x) * y), np.sum(x * nodes.regulariser(y)), rtol=1e-12)
+    # the regulariser costs a quadratic height nothing
+    R, C = np.meshgrid(grid.rows_px, grid.cols_px, indexing="ij")
+    assert np.abs(nodes.regulariser(0.3 * R**2 - 0.2 * R * C + C)).max() < 1e-9
+
+
+def test_image_refinement_keeps_the_series_check(wave_frames):
+    # the batch flags temporal-unwrapping slips and pin jumps from Result.series:
+    # the image refinement takes it from FD's heights of the same frame
+    ref, img, _ = wave_frames
+    rec = Reconstructor(ref, G55, refine_method="image")
+    first, second = rec(img), rec(img)
+    assert first.series is None
+    assert second.series is not None and not second.series.flagged
+    assert second.series.unwrap_slip_fraction == 0.0 and second.series.compared_samples > 0
