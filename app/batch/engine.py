@@ -4,9 +4,9 @@ One engine for every caller: ``tirdeflect process`` (:mod:`app.cli.process`),
 the GUI's export and any script. :func:`run_process` reads the inputs (see
 :mod:`app.files.imageio`), reconstructs each frame with
 :class:`processing.Reconstructor` and writes them with
-:class:`app.batch.writer.ResultWriter`, frame by frame and flushed after each,
-so that a crash leaves every completed frame readable, with ``frames_done``
-saying how many. A frame that cannot be measured is stored invalid with its
+:class:`app.batch.writer.ResultWriter`, frame by frame and flushed at least every
+``writer.FLUSH_INTERVAL_S`` (0.5 s) and at the end, so that a crash leaves
+every flushed frame readable, with ``frames_done`` saying how many. A frame that cannot be measured is stored invalid with its
 reason and the run goes on (:mod:`app.batch.frame_status`). The file is
 written as ``NAME.partial.h5`` and renamed to the output only on success
 (docs/reliability.md, "Processing").
@@ -185,7 +185,8 @@ class ProcessJob:
     reference_index : int or None
         Page/frame of a stack or recording to use as the reference.
     on_progress : callable or None
-        ``on_progress(done, total)`` after each frame is written and flushed (the GUI's export).
+        ``on_progress(done, total)`` after each frame is written (the GUI's export); the file's
+        ``frames_done`` follows at the next flush, at most ``writer.FLUSH_INTERVAL_S`` later.
     command : str or None
         The command line, stored in the output's attributes.
     pattern : {"checkerboard", "dots"} or None
@@ -402,8 +403,7 @@ def run_process(args: ProcessJob) -> BatchReport:
                 raise _frame_failed(exc, item, writer, tally, out) from exc
             if result is None and hasattr(reconstruct, "reset_series"):
                 reconstruct.reset_series()  # no temporal unwrapping across a hole
-            tally.add(item, outcome)
-            log.debug("frame %d (%s) written to %s", item.sequence_index, item.label, partial)
+            tally.add(item, outcome)  # (the writer logs "frame K ... written" once it is flushed)
             pins.add(item, result)
             progress.update(1)
             if on_progress is not None:
@@ -583,6 +583,9 @@ def _frame_failed(exc: Exception, item, writer: ResultWriter, tally: FrameTally,
     if tally.valid:
         saved = (f"the {writer.n} frame(s) before it are kept in {str(writer.path)!r} "
                  f"(valid up to frames_done; rename it to use it)")
+        if writer.lost:
+            saved += (f"; the {writer.lost} frame(s) written after the last flush are lost with the "
+                      f"failed write")
     else:
         saved = (f"nothing was written ({str(out)!r} left as it was)" if os.path.lexists(out)
                  else f"nothing was written ({str(out)!r} not created)")

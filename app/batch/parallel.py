@@ -2,7 +2,9 @@
 
 :func:`frame_results` is what :func:`app.batch.engine.run_process` loops
 over: ``(item, outcome)`` pairs in input order, where ``outcome()`` returns
-the frame's :class:`processing.reconstruct.Result` or raises what
+the frame's :class:`processing.reconstruct.Result` (here, on the GPU) or
+:class:`app.batch.writer.OutputFrame` (made in a worker: NaN mask and
+compression already done, so the parent only writes), or raises what
 reconstructing it raised. Three ways to get them, same heights:
 
 - **serial** (``workers=1``, or few frames): one Reconstructor in this
@@ -42,6 +44,7 @@ from typing import Optional
 
 import numpy as np
 
+from app.batch.writer import output_frame
 from app.files import imageio
 from processing.errors import TirdeflectError
 
@@ -115,6 +118,7 @@ class ReconstructorSpec:
     shared_memory: bool = False
     pattern: Optional[str] = None
     refine_method: str = "fd"
+    compression: Optional[str] = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -147,8 +151,9 @@ class Chunk:
 
 @dataclasses.dataclass
 class ChunkOutcome:
-    """A chunk's results: ``frames`` is a list of ``(item, Result | TirdeflectError)``
-    (items without their image; a ``None`` item: reading failed there, nothing after it);
+    """A chunk's results: ``frames`` is a list of ``(item, (OutputFrame | None, FrameOutcome))``
+    (:class:`app.batch.writer.OutputFrame`: the frame as OUT.h5 stores it, made in the
+    worker; items without their image), or ``(None, TirdeflectError)``: reading failed there, nothing after it;
     ``start``/``end`` the series states after the overlap frame (or the given start) and
     after the last frame; ``pid`` and ``host`` of the worker that computed it."""
 
@@ -206,15 +211,6 @@ def _in_dask() -> bool:
         return False
 
 
-def _slim(result):
-    """The fields the output stores (plus the small decimated ones): the full-size
-    displacement and amplitude would double what travels between processes."""
-    return dataclasses.replace(result, displacement=None, amplitude=None)
-
-
-_SHARED_FIELDS = ("height", "slope_x", "slope_y", "valid")
-
-
 def shm_name(run_pid: int) -> str:
     """A new shared-memory block's name for the run whose process is
     ``run_pid``: ``tdf<pid>_<random>`` (in /dev/shm on Linux), so that what a
@@ -225,29 +221,30 @@ def shm_name(run_pid: int) -> str:
 
 @dataclasses.dataclass
 class _Shared:
-    """A result whose full-size arrays wait in a shared-memory block (worker
-    processes on this machine): one copy in, one copy out, instead of
-    pickling 13 MB per 1024^2 frame through a pipe (measured 7.7 ms a frame
-    for pickling alone, on the parent's core)."""
+    """An :class:`~app.batch.writer.OutputFrame` whose maps wait in a shared-memory
+    block (worker processes on this machine): copied in once by the worker, and
+    written to OUT.h5 by the parent straight from the block (no copy out),
+    instead of pickling 13 MB per 1024^2 frame through a pipe (measured 7.7 ms
+    a frame for pickling alone, on the parent's core)."""
 
     name: str
     layout: tuple
     rest: object
 
     @classmethod
-    def put(cls, result):
+    def put(cls, frame):
         from multiprocessing import shared_memory
 
-        arrays = [np.ascontiguousarray(getattr(result, f)) for f in _SHARED_FIELDS]
+        arrays = [(name, np.ascontiguousarray(a)) for name, a in frame.maps.items()]
         block = shared_memory.SharedMemory(name=shm_name(os.getppid()), create=True,
-                                           size=max(1, sum(a.nbytes for a in arrays)))
+                                           size=max(1, sum(a.nbytes for _, a in arrays)))
         layout, offset = [], 0
-        for f, a in zip(_SHARED_FIELDS, arrays):
+        for name, a in arrays:
             np.ndarray(a.shape, a.dtype, buffer=block.buf, offset=offset)[...] = a
-            layout.append((f, a.shape, a.dtype.str, offset))
+            layout.append((name, a.shape, a.dtype.str, offset))
             offset += a.nbytes
         block.close()
-        return cls(block.name, tuple(layout), dataclasses.replace(result, **dict.fromkeys(_SHARED_FIELDS)))
+        return cls(block.name, tuple(layout), dataclasses.replace(frame, maps={}))
 
     def _attach(self):
         from multiprocessing import shared_memory
@@ -258,15 +255,15 @@ class _Shared:
         return shared_memory.SharedMemory(name=self.name)
 
     def take(self):
-        """The Result, copied out of the block, which is then freed."""
+        """The OutputFrame, its maps views of the block. The block's name is
+        removed at once (nothing is left in /dev/shm whatever happens next); its
+        memory is unmapped when the writer is done with the maps
+        (``OutputFrame.done``)."""
         block = self._attach()
-        try:
-            fields = {f: np.array(np.ndarray(shape, np.dtype(dt), buffer=block.buf, offset=off))
-                      for f, shape, dt, off in self.layout}
-        finally:
-            block.close()
-            block.unlink()
-        return dataclasses.replace(self.rest, **fields)
+        block.unlink()
+        maps = {name: np.ndarray(shape, np.dtype(dt), buffer=block.buf, offset=off)
+                for name, shape, dt, off in self.layout}
+        return dataclasses.replace(self.rest, maps=maps, release=functools.partial(_unmap, block))
 
     def discard(self):
         try:
@@ -275,6 +272,17 @@ class _Shared:
             block.unlink()
         except OSError:
             pass
+
+
+#: Blocks still viewed by someone after the writer was done with them: unmapped at exit.
+_STILL_MAPPED = []
+
+
+def _unmap(block) -> None:
+    try:
+        block.close()
+    except BufferError:  # a view of the maps outlived the write (kept by a caller)
+        _STILL_MAPPED.append(block)
 
 
 def measure(reconstruct, item, ref_shape, grid: str):
@@ -318,8 +326,8 @@ def process_chunk(spec: ReconstructorSpec, chunk: Chunk) -> ChunkOutcome:
             result, outcome = measure(recon, item, shape, spec.grid)
             if result is None:
                 recon.reset_series()
-            else:
-                result = _slim(result)
+            else:  # the per-pixel part of writing it (NaN mask, compression) is done here
+                result = output_frame(result, spec.compression)
                 if spec.shared_memory:
                     result = _Shared.put(result)
             out.append((dataclasses.replace(item, image=None), (result, outcome)))
@@ -662,7 +670,7 @@ class _Chunked:
                 if isinstance(result, _Shared):
                     try:
                         result = result.take()
-                    except BaseException:  # Ctrl-C while copying: free the block all the same
+                    except BaseException:  # Ctrl-C while attaching: free the block all the same
                         result.discard()
                         raise
                 return item, functools.partial(_given, (result, outcome))
@@ -694,7 +702,8 @@ def _spec(job, reconstruct, reference, geometry, effort, threads, shared_memory=
                              grid=job.grid, unwrap=not job.no_unwrap, effort=effort,
                              carriers=reconstruct.carriers, threads=threads,
                              shared_memory=shared_memory, pattern=getattr(reconstruct, "pattern", None),
-                             refine_method=getattr(reconstruct, "refine_method", "fd"))
+                             refine_method=getattr(reconstruct, "refine_method", "fd"),
+                             compression=getattr(job, "compression", None))
 
 
 def _frame_bytes(reconstruct, grid: str) -> int:

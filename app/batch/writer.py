@@ -1,5 +1,6 @@
-"""OUT.h5 of ``tirdeflect process``: one frame at a time, flushed, valid after any failure
-(layout: docs/output-format.md; room, space reserve and superblock repair: app.files.h5safe)."""
+"""OUT.h5 of ``tirdeflect process``: one frame at a time, flushed at least every
+:data:`FLUSH_INTERVAL_S`, valid up to ``frames_done`` after any failure (layout:
+docs/output-format.md; room, space reserve and superblock repair: app.files.h5safe)."""
 
 from __future__ import annotations
 
@@ -7,7 +8,10 @@ import dataclasses
 import datetime as _dt
 import logging
 import os
+import time
+import zlib
 from pathlib import Path
+from typing import Callable, Optional
 
 import numpy as np
 
@@ -19,7 +23,8 @@ from processing.errors import (
     TirdeflectError,
 )
 
-__all__ = ["ResultWriter", "OutputExistsError", "DiskFullError", "OUTPUT_FORMAT_VERSION",
+__all__ = ["ResultWriter", "OutputFrame", "output_frame", "OutputExistsError", "DiskFullError",
+           "OUTPUT_FORMAT_VERSION", "FLUSH_INTERVAL_S", "GZIP_LEVEL",
            "check_output", "check_not_an_input", "is_same_file", "partial_path", "publish", "set_attrs", "carrier_attrs", "geometry_attrs", "utc_now"]
 
 log = logging.getLogger(__name__)
@@ -238,6 +243,98 @@ def set_attrs(node, attrs: dict) -> None:
 #: Space kept free so that the output can still be closed validly after the last frame.
 RESERVE_BYTES = 2 * 1024 * 1024
 
+#: Longest time between two flushes of OUT.h5, seconds. ``frames_done`` moves only at a
+#: flush, so a crash (SIGKILL, power cut) or a failed write loses at most the frames
+#: written in this time; the end of a run, any error and Ctrl-C/SIGTERM/SIGHUP flush
+#: every frame written. 0: flush after every frame (what the writer did before).
+FLUSH_INTERVAL_S = 0.5
+
+#: gzip level of ``--compression gzip`` (h5py's default), the one the workers compress with.
+GZIP_LEVEL = 4
+
+#: The maps of a frame, in the order the writer writes them.
+MAPS = ("height", "slope_x", "slope_y", "valid")
+
+
+@dataclasses.dataclass
+class OutputFrame:
+    """One measured frame as OUT.h5 stores it, made by :func:`output_frame` where the
+    frame was reconstructed (a worker process), so that the writer only writes.
+
+    ``maps``: ``{name: array}`` for :data:`MAPS`: ``height`` (float32, NaN where not
+    valid), ``slope_x``, ``slope_y`` (float32), ``valid`` (uint8, 1 where measured),
+    each C-contiguous of shape ``shape``; or, with ``compression`` set, each a uint8
+    array holding the map's chunk already compressed as OUT.h5's filters would
+    (shuffle, then gzip at :data:`GZIP_LEVEL`), written as it is. ``pin`` and
+    ``series``: as the Result's (``/pin_status``). ``release``: called once the
+    writer is done with the maps (frees the shared memory they are views of).
+    """
+
+    shape: tuple
+    maps: dict
+    pin: object = None
+    series: object = None
+    compression: Optional[str] = None
+    release: Optional[Callable] = None
+
+    @property
+    def height(self) -> np.ndarray:
+        return self._map("height")
+
+    @property
+    def slope_x(self) -> np.ndarray:
+        return self._map("slope_x")
+
+    @property
+    def slope_y(self) -> np.ndarray:
+        return self._map("slope_y")
+
+    @property
+    def valid(self) -> np.ndarray:
+        return self._map("valid").view(bool)
+
+    def _map(self, name: str) -> np.ndarray:
+        if self.compression is not None:
+            raise TirdeflectError(f"the {name} map of this frame is compressed ({self.compression}) "
+                                  f"for OUT.h5; read it from the file")
+        return self.maps[name]
+
+    def done(self) -> None:
+        """Drop the maps (and free what they are views of); the pin and series stay."""
+        self.maps = {}
+        release, self.release = self.release, None
+        if release is not None:
+            release()
+
+
+def _shuffled_gzip(a: np.ndarray) -> np.ndarray:
+    """``a``'s bytes as HDF5's shuffle then deflate filters store them (one chunk)."""
+    b = np.ascontiguousarray(a).view(np.uint8)
+    if a.itemsize > 1:  # the shuffle filter: byte k of every element together
+        b = np.ascontiguousarray(b.reshape(-1, a.itemsize).T)
+    return np.frombuffer(zlib.compress(b, GZIP_LEVEL), np.uint8)
+
+
+def output_frame(result, compression: Optional[str] = None) -> OutputFrame:
+    """``result`` (a processing Result) as OUT.h5 stores it: the height NaN where
+    not valid, the mask as uint8; with ``compression="gzip"`` the maps compressed
+    here (in the worker that measured the frame) instead of in the writer."""
+    valid = np.ascontiguousarray(result.valid, dtype=bool)
+    height = np.where(valid, np.asarray(result.height, np.float32), np.float32(np.nan))
+    maps = {"height": height,
+            "slope_x": np.ascontiguousarray(result.slope_x, dtype=np.float32),
+            "slope_y": np.ascontiguousarray(result.slope_y, dtype=np.float32),
+            "valid": valid.view(np.uint8)}
+    shape = height.shape
+    for name, a in maps.items():
+        if a.shape != shape:
+            raise ShapeMismatchError(f"result {name} has shape {a.shape}, its height {shape}")
+    compression = "gzip" if compression == "gzip" else None  # lzf: compressed by HDF5 in the writer
+    if compression:
+        maps = {name: _shuffled_gzip(a) for name, a in maps.items()}
+    return OutputFrame(shape=shape, maps=maps, pin=getattr(result, "pin", None),
+                       series=getattr(result, "series", None), compression=compression)
+
 
 # DiskFullError: the one error for "no room for the next write" (app.files.h5safe), under the
 # name this module always exported; _repair_eof: the name tests and docs know for repair_eof
@@ -250,26 +347,37 @@ class ResultWriter:
     The file is created (never replaced: mode "x") at ``path``, which the
     engine chooses beside the final output (:func:`partial_path`) and renames
     into place with :func:`publish` only when the run succeeded. Per-frame
-    datasets are created with the file (``grid_coords`` fixes their shape),
-    grow by one frame per :meth:`append` and are flushed each time.
+    datasets are created with the file (``grid_coords`` fixes their shape).
+    Each :meth:`append` writes a frame's maps at once; its row of the 1-D
+    datasets waits for the next :meth:`flush`, which writes the rows, flushes
+    and only then moves ``frames_done`` (the count that vouches for the file).
+    A flush happens when ``flush_interval_s`` (default :data:`FLUSH_INTERVAL_S`)
+    has passed since the last one, and in :meth:`close`.
+
+    ``n``: frames written; ``frames_done``: frames flushed (what the file holds
+    after a crash). After a failed write the frames since the last flush are
+    dropped: ``n`` becomes ``frames_done`` and ``lost`` says how many.
     """
 
     PER_FRAME = ("height", "slope_x", "slope_y")
     PER_FRAME_1D = ("frame_index", "source_index", "source", "camera_frame_id",
                     "device_timestamp_ns", "host_timestamp_ns", "frame_flags", "trigger_index",
-                    "frame_status", "frame_status_text", "time_s")
+                    "frame_status", "frame_status_text", "time_s", "pin_status")
 
     def __init__(self, path: Path, *, compression: str, attrs: dict,
                  geometry_toml: str, geometry_attrs: dict, carrier_attrs: dict,
-                 reference: np.ndarray, expected: int, grid_coords: tuple, grid: str):
+                 reference: np.ndarray, expected: int, grid_coords: tuple, grid: str,
+                 flush_interval_s: Optional[float] = None):
         import h5py
 
         self.path = path
         self.compression = None if compression == "none" else compression
+        self.flush_interval_s = FLUSH_INTERVAL_S if flush_interval_s is None else float(flush_interval_s)
         # no chunk cache: every frame is one chunk, written through at once, so a
         # failed write (disk full) raises here instead of being lost when h5py
         # closes a dataset handle and HDF5 flushes its cache (errors ignored there)
         self.f = h5py.File(path, "x", rdcc_nbytes=0)
+        _hold_metadata_until_flush(self.f)
         self._reserve = SpaceReserve(path, RESERVE_BYTES)
         f = self.f
         set_attrs(f, attrs)
@@ -281,13 +389,23 @@ class ResultWriter:
         set_attrs(f.create_group("carriers"), carrier_attrs)
         # shuffle before compressing: float32 maps shrink ~1.6x with gzip instead of ~1.2x
         self._filters = dict(compression=self.compression, shuffle=self.compression is not None)
+        if self.compression == "gzip":
+            self._filters["compression_opts"] = GZIP_LEVEL
         ref = f.create_dataset("reference", data=reference, **self._filters)
         ref.attrs["description"] = "reference image as read (unscaled samples)"
         self.n = 0
+        self.frames_done = 0
+        self.lost = 0
         self.failed = False
+        self.abandoned = False
+        self._rows = {name: [] for name in self.PER_FRAME_1D}
+        self._labels = []  # (sequence index, label) of the frames written since the last flush
         x_mm, y_mm = grid_coords
         self._create(np.asarray(x_mm, np.float64), np.asarray(y_mm, np.float64), grid)
+        self._maps = [f[name] for name in MAPS]
+        self._row_datasets = [f[name] for name in self.PER_FRAME_1D]
         f.flush()
+        self._flushed_at = time.monotonic()
 
     def _create(self, x_mm: np.ndarray, y_mm: np.ndarray, grid: str) -> None:
         import h5py
@@ -389,62 +507,106 @@ class ResultWriter:
             )
 
     def append(self, item: imageio.FrameItem, result, outcome=None) -> None:
-        """Append one frame: ``result`` (a processing Result), or None for a frame
-        that could not be measured (all-NaN heights, ``valid`` 0, ``outcome``'s
-        status and reason stored)."""
+        """Append one frame: ``result`` (an :class:`OutputFrame`, made in the worker,
+        or a processing Result, made into one here), or None for a frame that could
+        not be measured (all-NaN heights, ``valid`` 0, ``outcome``'s status and
+        reason stored). An OutputFrame's maps are released once written. Flushes
+        when :attr:`flush_interval_s` has passed since the last flush."""
         from app.batch.frame_status import FrameOutcome
 
         outcome = FrameOutcome() if outcome is None else outcome
-        self._check_room(self._shape)
-        f = self.f
-        if result is None:
-            nan = np.full(self._shape, np.nan, np.float32)
-            height = slope_x = slope_y = nan
-            valid = np.zeros(self._shape, bool)
-        else:
-            height = np.asarray(result.height, dtype=np.float32)
-            if height.shape != self._shape:
-                raise ShapeMismatchError(
-                    f"result grid {height.shape} differs from the output's {self._shape}"
-                )
-            valid = np.asarray(result.valid, dtype=bool)
-            slope_x = np.asarray(result.slope_x, dtype=np.float32)
-            slope_y = np.asarray(result.slope_y, dtype=np.float32)
+        frame = result if isinstance(result, OutputFrame) or result is None else output_frame(result)
         k = self.n
-        names = (*self.PER_FRAME, "valid", *self.PER_FRAME_1D, "pin_status")
         try:
-            for name in names:
-                f[name].resize(k + 1, axis=0)
-            f["height"][k] = np.where(valid, height, np.float32(np.nan))
-            f["slope_x"][k] = slope_x
-            f["slope_y"][k] = slope_y
-            f["valid"][k] = valid.astype(np.uint8)
-            f["frame_index"][k] = item.sequence_index
-            f["source_index"][k] = item.index_in_source
-            f["source"][k] = item.source
-            f["camera_frame_id"][k] = item.camera_frame_id
-            f["device_timestamp_ns"][k] = item.device_timestamp_ns
-            f["host_timestamp_ns"][k] = item.host_timestamp_ns
-            f["frame_flags"][k] = item.flags
-            f["trigger_index"][k] = TRIGGER_INDEX_UNKNOWN if item.trigger_index is None else item.trigger_index
-            f["pin_status"][k] = _pin_status_row(result)
-            f["frame_status"][k] = int(outcome.status)
-            f["frame_status_text"][k] = outcome.reason
-            f["time_s"][k] = item.time_s
+            self._check_room(self._shape)
+            if frame is not None and tuple(frame.shape) != self._shape:
+                raise ShapeMismatchError(
+                    f"result grid {tuple(frame.shape)} differs from the output's {self._shape}")
+            self._write_maps(k, frame)
         except BaseException as exc:
-            # e.g. disk full: drop the half-written frame so the file holds exactly frames_done
-            self.failed = not self._recover(k, names)
-            if isinstance(exc, (RuntimeError, OSError)):  # HDF5 reports failed writes as RuntimeError
-                raise self._write_error(k, exc) from exc
+            self._drop_frame(k, exc)
+            if isinstance(exc, (RuntimeError, OSError)) and not isinstance(exc, TirdeflectError):
+                raise self._write_error(k, exc) from exc  # HDF5 reports failed writes as RuntimeError
             raise
+        finally:
+            if frame is not None:
+                frame.done()
+        rows = self._rows
+        rows["frame_index"].append(item.sequence_index)
+        rows["source_index"].append(item.index_in_source)
+        rows["source"].append(item.source)
+        rows["camera_frame_id"].append(item.camera_frame_id)
+        rows["device_timestamp_ns"].append(item.device_timestamp_ns)
+        rows["host_timestamp_ns"].append(item.host_timestamp_ns)
+        rows["frame_flags"].append(item.flags)
+        rows["trigger_index"].append(TRIGGER_INDEX_UNKNOWN if item.trigger_index is None else item.trigger_index)
+        rows["frame_status"].append(int(outcome.status))
+        rows["frame_status_text"].append(outcome.reason)
+        rows["time_s"].append(item.time_s)
+        rows["pin_status"].append(_pin_status_row(frame))
+        if log.isEnabledFor(logging.DEBUG):
+            self._labels.append((item.sequence_index, item.label))
+        self.n = k + 1
+        if time.monotonic() - self._flushed_at >= self.flush_interval_s:
+            self.flush()
+
+    def _write_maps(self, k: int, frame: Optional[OutputFrame]) -> None:
+        for ds in self._maps:
+            ds.resize(k + 1, axis=0)
+        if frame is None:
+            return  # never written: the chunks read as the fill values, NaN and valid 0
+        for ds, name in zip(self._maps, MAPS):
+            if frame.compression is not None:
+                if frame.compression != self.compression:
+                    raise TirdeflectError(f"a frame compressed with {frame.compression} for an output "
+                                          f"written with {self.compression or 'none'}")
+                ds.id.write_direct_chunk((k, 0, 0), frame.maps[name])
+            else:
+                ds[k] = frame.maps[name]
+
+    def _drop_frame(self, k: int, exc: BaseException) -> None:
+        """Frame ``k`` failed half-way. After a failed write (HDF5's error: disk full)
+        write nothing more through this handle (:meth:`_abandon`): the file stays as
+        the last flush left it. Otherwise (Ctrl-C between two calls, a bad frame)
+        the handle is sound: shrink the maps back to ``k`` frames and go on."""
+        if isinstance(exc, (RuntimeError, OSError)) and not isinstance(exc, TirdeflectError):
+            self.failed = not self._abandon()
+            return
         try:
-            f.flush()  # the frame's data first ...
-            f.attrs["frames_done"] = k + 1  # ... then the counter that vouches for it
+            for ds in self._maps:
+                if ds.shape[0] > k:
+                    ds.resize(k, axis=0)
+        except BaseException:  # noqa: BLE001 - then the last flush is what stays
+            self.failed = not self._abandon()
+
+    def flush(self) -> None:
+        """Write the rows of the frames since the last flush, flush, then set
+        ``frames_done`` and flush again: a file cut off anywhere holds
+        ``frames_done`` complete frames. A failed write abandons the handle."""
+        if self.f is None or self.abandoned:
+            return
+        done, n = self.frames_done, self.n
+        f = self.f
+        try:
+            if n > done:
+                for ds, name in zip(self._row_datasets, self.PER_FRAME_1D):
+                    ds.resize(n, axis=0)
+                    values = self._rows[name]
+                    ds[done:n] = np.stack(values) if name == "pin_status" else values
+            f.flush()  # the frames' data first ...
+            f.attrs["frames_done"] = n  # ... then the counter that vouches for them
             f.flush()
         except (RuntimeError, OSError) as exc:
-            self.failed = not self._recover(k, names)
-            raise self._write_error(k, exc) from exc
-        self.n = k + 1
+            self.failed = not self._abandon()
+            raise self._write_error(done, exc) from exc
+        # (KeyboardInterrupt between two calls: the handle is sound and the next flush writes it all)
+        self.frames_done = n
+        for values in self._rows.values():
+            values.clear()
+        for index, label in self._labels:
+            log.debug("frame %d (%s) written to %s", index, label, self.path)
+        self._labels.clear()
+        self._flushed_at = time.monotonic()
 
     def _write_error(self, k: int, exc: BaseException) -> OSError:
         text = _one_line(exc)
@@ -459,16 +621,14 @@ class ResultWriter:
                 f"raise the limit or write --out elsewhere, then resume with --first")
         return OSError(f"writing frame {k} to {str(self.path)!r} failed: {text}")
 
-    def _recover(self, k: int, names) -> bool:
-        """After a failed write of frame ``k``: write nothing more through this
-        handle (:meth:`_abandon`), so the file stays as the flush after frame
-        ``k - 1`` left it: consistent, ``frames_done = k``. True if that worked."""
-        return self._abandon()
-
     def _abandon(self) -> bool:
         """Point HDF5's file descriptor at /dev/null opened read-only: every
         write it still attempts (dirty metadata at the close) fails instead of
-        reaching the file half-way. Returns True if it could."""
+        reaching the file half-way, which stays as the last flush left it
+        (``frames_done`` frames; the ones written since are dropped from ``n``).
+        Returns True if it could."""
+        self.lost = self.n - self.frames_done
+        self.n = self.frames_done
         try:
             h5safe.detach_descriptor(self.f.id.get_vfd_handle(), writable=False)
         except Exception as exc:  # noqa: BLE001 - another file driver: repaired at the close
@@ -487,10 +647,16 @@ class ResultWriter:
         ``frames_done``; a file HDF5 still left inconsistent is repaired."""
         if self.f is None:
             return
-        f, self.f = self.f, None
         reserved = self._reserve.held
-        self._reserve.release()  # the room the status and the close need
-        if getattr(self, "abandoned", False):
+        self._reserve.release()  # the room the last flush, the status and the close need
+        if not self.failed and not self.abandoned:
+            try:
+                self.flush()  # every frame written
+            except BaseException as exc:  # noqa: BLE001 - the file stays as the last flush left it
+                log.error("%s: the last %d frame(s) could not be flushed (%s); valid up to frame %d",
+                          self.path, self.lost, _one_line(exc), self.frames_done)
+        f, self.f = self.f, None
+        if self.abandoned:
             try:
                 f.close()
             except Exception:  # noqa: BLE001 - expected: its writes go nowhere now
@@ -514,7 +680,7 @@ class ResultWriter:
                 f.close()
             except Exception as exc:
                 self.failed = True
-                log.error("closing %s failed: %s (valid up to frame %d)", self.path, exc, self.n)
+                log.error("closing %s failed: %s (valid up to frame %d)", self.path, exc, self.frames_done)
             if self.failed:
                 repair_eof(self.path)
 
@@ -524,12 +690,27 @@ class ResultWriter:
         try:
             with h5py.File(self.path, "r+") as f:
                 set_attrs(f, attrs or {})
-                f.attrs["frames_done"] = self.n
+                f.attrs["frames_done"] = self.frames_done
                 f.attrs["status"] = status
                 f.attrs["finished_utc"] = utc_now()
         except Exception as exc:  # noqa: BLE001
             log.error("could not record the final status in %s: %s (valid up to frame %d)",
-                      self.path, _one_line(exc), self.n)
+                      self.path, _one_line(exc), self.frames_done)
+
+
+def _hold_metadata_until_flush(f) -> None:
+    """No eviction from HDF5's metadata cache: between two flushes nothing but the
+    new frames' chunks (past the end of allocation the last flush recorded)
+    reaches the file, so a crash leaves the metadata of the last flush, whole."""
+    try:
+        config = f.id.get_mdc_config()
+        config.evictions_enabled = False
+        config.incr_mode = 0  # H5C_incr__off, H5C_flash_incr__off, H5C_decr__off: what
+        config.flash_incr_mode = 0  # HDF5 requires with evictions off (the cache grows instead)
+        config.decr_mode = 0
+        f.id.set_mdc_config(config)
+    except Exception as exc:  # noqa: BLE001 - an older HDF5: evictions stay possible, rare
+        log.debug("metadata cache evictions left on (%s)", exc)
 
 
 def _one_line(exc: BaseException) -> str:
