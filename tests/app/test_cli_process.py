@@ -211,8 +211,12 @@ def test_killed_run_leaves_completed_frames_readable(sim, tmp_path):
     tifffile.imwrite(tmp_path / "long.tif", stack, photometric="minisblack")
     out = tmp_path / "out.h5"
     env = dict(os.environ, PYTHONPATH=str(ROOT))
+    # OUT.h5 flushed every 20 ms instead of every 0.5 s: the run lasts about a second and the
+    # kill must land between two flushes, mid-run, after frames the log reported written (flushed)
+    child = ("import sys, app.batch.writer; app.batch.writer.FLUSH_INTERVAL_S = 0.02; "
+             "from app.cli import main; sys.exit(main(sys.argv[1:]))")
     proc = subprocess.Popen(
-        [sys.executable, "-m", "app.cli", "--debug", "process", str(sim / "reference.png"),
+        [sys.executable, "-c", child, "--debug", "process", str(sim / "reference.png"),
          str(tmp_path / "long.tif"), "--geometry", str(sim / "geometry.toml"), "--out", str(out),
          "--no-progress"],
         cwd=ROOT, env=env, stderr=subprocess.PIPE, text=True,

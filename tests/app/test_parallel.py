@@ -212,8 +212,12 @@ def test_ctrl_c_stops_workers_and_keeps_written_frames(series, tmp_path):
     d, frames = series
     root = Path(__file__).resolve().parents[2]
     out = tmp_path / "out.h5"
+    # OUT.h5 flushed every 20 ms instead of every 0.5 s: Ctrl-C must land mid-run, after
+    # frames the log reported written (flushed)
+    child = ("import sys, app.batch.writer; app.batch.writer.FLUSH_INTERVAL_S = 0.02; "
+             "from app.cli import main; sys.exit(main(sys.argv[1:]))")
     proc = subprocess.Popen(
-        [sys.executable, "-m", "app.cli", "--debug", "process", str(d / "reference.png"),
+        [sys.executable, "-c", child, "--debug", "process", str(d / "reference.png"),
          *(frames * 4), "--geometry", str(d / "geometry.toml"), "--out", str(out),
          "--workers", "2", "--chunk-frames", "2", "--no-progress"],
         cwd=root, stderr=subprocess.PIPE, text=True, start_new_session=True,

@@ -117,6 +117,24 @@ def rel_rms_error(height, truth, geometry_path):
     return float(np.sqrt(np.mean((e[ok] - t[ok]) ** 2)) / np.sqrt(np.mean(t[ok] ** 2)))
 
 
+#: `tirdeflect` flushing OUT.h5 every 20 ms instead of every FLUSH_INTERVAL_S (0.5 s):
+#: these runs of small frames last about a second, and the fault must land between
+#: two flushes, mid-run, after the frames the log reported written (flushed)
+_CHILD = """
+import sys
+import app.batch.writer
+app.batch.writer.FLUSH_INTERVAL_S = 0.02
+{extra}
+from app.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+_SHORT_FLUSH_CHILD = _CHILD.format(extra="")
+
+#: the same with the writer's free-space reserve switched off: the disk fills
+#: between the check and the write, so the HDF5 write itself fails
+_NO_RESERVE_CHILD = _CHILD.format(extra="app.batch.writer.RESERVE_BYTES = -(1 << 40)")
+
+
 # =========================================================================== 2. pattern check
 
 
@@ -341,8 +359,9 @@ def test_interrupted_overwrite_keeps_the_old_file_and_names_the_partial_one(sim,
     stack = np.stack([imageio.read_image(p) for p in frames_of(sim)] * 10)
     tifffile.imwrite(tmp_path / "long.tif", stack, photometric="minisblack")
     proc = subprocess.Popen(
-        [sys.executable, "-m", "app.cli", "--debug", *map(str, process(sim, out, tmp_path / "long.tif")),
-         "--overwrite"], cwd=ROOT, stderr=subprocess.PIPE, text=True)
+        [sys.executable, "-c", _SHORT_FLUSH_CHILD, "--debug",
+         *map(str, process(sim, out, tmp_path / "long.tif")), "--overwrite"],
+        cwd=ROOT, stderr=subprocess.PIPE, text=True)
     watchdog = threading.Timer(120.0, proc.kill)  # a hung child must not hang the suite
     watchdog.start()
     lines, done = [], 0
@@ -487,15 +506,6 @@ def _mount_tmpfs(mount_dir, size_bytes):
     return "" if r.returncode == 0 else f"cannot mount a tmpfs here: {r.stderr.strip()}"
 
 
-#: `tirdeflect` with the writer's free-space reserve switched off: the disk fills
-#: between the check and the write, so the HDF5 write itself fails
-_NO_RESERVE_CHILD = """
-import sys
-import app.batch.writer
-app.batch.writer.RESERVE_BYTES = -(1 << 40)
-from app.cli import main
-sys.exit(main(sys.argv[1:]))
-"""
 
 
 @pytest.mark.parametrize("reserve", [True, False], ids=["stops-before-full", "write-fails"])
@@ -514,7 +524,7 @@ def test_disk_filled_by_another_process_leaves_a_valid_file(sim, tmp_path, reser
         stack = np.stack([imageio.read_image(p) for p in frames_of(sim)] * 7)[:n]
         tifffile.imwrite(tmp_path / "long.tif", stack, photometric="minisblack")
         out = mnt / "out.h5"
-        head = ["-m", "app.cli"] if reserve else ["-c", _NO_RESERVE_CHILD]
+        head = ["-c", _SHORT_FLUSH_CHILD if reserve else _NO_RESERVE_CHILD]
         proc = subprocess.Popen(
             [sys.executable, *head, "--debug", *map(str, process(sim, out, tmp_path / "long.tif"))],
             cwd=ROOT, stderr=subprocess.PIPE, text=True)
