@@ -1,16 +1,27 @@
 """Frames/s of `tirdeflect process` on a 1024^2 recording against worker processes and Dask.
 
     python3 benchmarks/bench_scale.py [--size 1024] [--frames 96] [--max-workers N] [--no-dask]
+    python3 benchmarks/bench_scale.py --writer [--baseline-rev REV] [--compression gzip] [--rounds 2]
 
 One HDF5 recording (ray-traced travelling waves, full grid, FFTW_ESTIMATE so
 that planning does not blur the comparison) is processed by the batch engine
 (what `tirdeflect process` runs) with --workers 1 (the baseline, in this
 process), 2, ... up to the core count, then through --dask local:N. Each
 line prints frames/s over the whole run (start-up included) and in steady
-state (from the first frame written to the last), and the speed-up against
-the baseline measured in this run. The goal of issue 9: >= 0.8 N at N workers.
-The load of the machine (1-minute load average before each run) is printed:
-on a shared machine the figures are only as good as the cores that were free.
+state (from the first frame written to the last), the speed-up against
+the baseline measured in this run, and the CPU time of the run's own
+process per frame in steady state ("parent": reading, writing OUT.h5, and
+with --workers 1 the reconstruction too; the workers' CPU is not in it). The goal of issue 9:
+>= 0.8 N at N workers. The load of the machine (1-minute load average
+before each run) is printed: on a shared machine the figures are only as
+good as the cores that were free.
+
+--writer compares the writer of OUT.h5, rounds of runs in turn, each in a
+fresh process: this tree as it is (flush every 0.5 s, NaN mask and
+compression in the workers, maps written from shared memory), this tree
+flushing after every frame (writer.FLUSH_INTERVAL_S = 0), and with
+--baseline-rev the code of that git revision (e.g. the commit before the
+change), for --workers 1 and 2.
 """
 
 from __future__ import annotations
@@ -52,18 +63,79 @@ def _recording(tmp: Path, size: int, n_frames: int):
 
 
 def _run(path: Path, out: Path, **kw):
+    """(frames/s whole run, frames/s steady, CPU ms per frame of this process in steady state,
+    from the first frame written to the last: start-up, FFT plans and the final close left out)."""
     from app.batch import ProcessJob, run_process
 
     stamps = []
     job = ProcessJob(reference=str(path), frames=[str(path)], out=str(out), overwrite=True,
-                     fft_effort="estimate", on_progress=lambda done, total: stamps.append(time.perf_counter()),
+                     fft_effort="estimate",
+                     on_progress=lambda done, total: stamps.append((time.perf_counter(), time.process_time())),
                      **kw)
     t0 = time.perf_counter()
     report = run_process(job)
     whole = time.perf_counter() - t0
     n = report.frames_written
-    steady = (n - 1) / (stamps[-1] - stamps[0]) if n > 1 and stamps[-1] > stamps[0] else float("nan")
-    return n / whole, steady
+    (t_first, c_first), (t_last, c_last) = stamps[0], stamps[-1]
+    steady = (n - 1) / (t_last - t_first) if n > 1 and t_last > t_first else float("nan")
+    cpu = 1e3 * (c_last - c_first) / (n - 1) if n > 1 else float("nan")
+    return n / whole, steady, cpu
+
+
+def _child(spec: str) -> int:
+    """One run in this process, with the code of spec["tree"]: prints its figures as JSON."""
+    import json
+
+    spec = json.loads(spec)
+    sys.path.remove(str(ROOT))
+    sys.path.insert(0, spec["tree"])
+    if spec.get("flush_every_frame"):
+        import app.batch.writer
+
+        app.batch.writer.FLUSH_INTERVAL_S = 0.0
+    print(json.dumps(_run(Path(spec["path"]), Path(spec["out"]), **spec["job"])))
+    return 0
+
+
+def _writer_rounds(args, path: Path, tmp: Path) -> None:
+    """The writer of OUT.h5: this tree, this tree flushing every frame, --baseline-rev."""
+    import json
+    import subprocess
+
+    trees = [("this tree", str(ROOT), False), ("flush every frame", str(ROOT), True)]
+    if args.baseline_rev:
+        base = tmp / "baseline"
+        base.mkdir()
+        archive = subprocess.run(["git", "-C", str(ROOT), "archive", args.baseline_rev],
+                                 capture_output=True, check=True).stdout
+        subprocess.run(["tar", "-x", "-C", str(base)], input=archive, check=True)
+        trees.append((f"rev {args.baseline_rev}", str(base), False))
+    print(f"writer of OUT.h5, compression {args.compression}; 'parent CPU': CPU time of the "
+          f"process that writes, per frame")
+    figures = {}
+    for r in range(args.rounds):
+        for n in (1, 2):
+            for name, tree, every in trees:
+                job = dict(workers=n, compression=args.compression)
+                spec = dict(tree=tree, flush_every_frame=every, path=str(path), out=str(tmp / "out.h5"),
+                            job=job)
+                load = os.getloadavg()[0]
+                proc = subprocess.run([sys.executable, __file__, "--child", json.dumps(spec)], cwd=tree,
+                                      capture_output=True, text=True)
+                if proc.returncode != 0:
+                    print(f"{name}: failed\n{proc.stderr[-2000:]}")
+                    continue
+                whole, steady, cpu = json.loads(proc.stdout.strip().splitlines()[-1])
+                figures.setdefault((n, name), []).append(cpu)
+                print(f"round {r}  workers {n}  {name:20s} load {load:5.2f}  {whole:6.1f} frames/s whole run  "
+                      f"{steady:6.1f} frames/s steady  parent CPU {cpu:6.1f} ms/frame", flush=True)
+    for n in (1, 2):
+        ref = figures.get((n, trees[-1][0]))
+        for name, _, _ in trees:
+            cpu = figures.get((n, name))
+            if cpu and ref:
+                print(f"workers {n}  {name:20s} parent CPU {min(cpu):6.1f} ms/frame (best of {len(cpu)}), "
+                      f"x{min(cpu) / min(ref):.2f} of {trees[-1][0]}")
 
 
 def main(argv=None) -> int:
@@ -74,7 +146,14 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=96)
     ap.add_argument("--max-workers", type=int, default=available_cores())
     ap.add_argument("--no-dask", action="store_true")
+    ap.add_argument("--writer", action="store_true", help="compare the writer of OUT.h5 (see above)")
+    ap.add_argument("--baseline-rev", help="with --writer: also the code of this git revision")
+    ap.add_argument("--compression", default="none", choices=("none", "gzip", "lzf"))
+    ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument("--child", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    if args.child:
+        return _child(args.child)
 
     cores = available_cores()
     print(f"{args.size} x {args.size}, {args.frames} frames, full grid, {cores} core(s) available "
@@ -83,6 +162,9 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         path = _recording(tmp, args.size, args.frames)
+        if args.writer:
+            _writer_rounds(args, path, tmp)
+            return 0
         rows = []
         base = None
         runs = [("workers", n, dict(workers=n)) for n in counts]
@@ -95,13 +177,13 @@ def main(argv=None) -> int:
                 print("(dask not installed: pip install 'tirdeflect[dask]' for the --dask rows)")
         for what, n, kw in runs:
             load = os.getloadavg()[0]
-            whole, steady = _run(path, tmp / "out.h5", **kw)
+            whole, steady, cpu = _run(path, tmp / "out.h5", compression=args.compression, **kw)
             if base is None:
                 base = (whole, steady)
             rows.append((what, n, load, whole, steady))
             print(f"{what:10s} N={n:2d}  load {load:5.2f}  {whole:6.1f} frames/s whole run "
                   f"(x{whole / base[0]:.2f})  {steady:6.1f} frames/s steady (x{steady / base[1]:.2f}, "
-                  f"goal >= {0.8 * n:.1f})", flush=True)
+                  f"goal >= {0.8 * n:.1f})  parent CPU {cpu:5.1f} ms/frame", flush=True)
     return 0
 
 
