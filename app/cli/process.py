@@ -4,8 +4,9 @@
 recordings, see :mod:`app.imageio`), reconstructs each frame with
 :class:`processing.Reconstructor` and writes one HDF5 file laid out as
 documented in ``docs/output-format.md``. The file is written frame by frame
-and flushed after each, so that a crash or a bad frame leaves every completed
-frame readable, with ``frames_done`` saying how many.
+and flushed at least every 0.5 s and at the end, so that a bad frame, an
+error or a signal leaves every completed frame readable, and a crash every
+frame but at most the last 0.5 s of them, with ``frames_done`` saying how many.
 
 ``simulate`` writes a synthetic data set (reference, frames, true heights,
 geometry) made by exact ray tracing (:func:`processing.forward.simulate`),
