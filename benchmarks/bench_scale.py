@@ -36,7 +36,10 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
+#: --writer's children run the code of another tree; their spawned workers, which run this
+#: file again as their main module, must import that tree too
+TREE = os.environ.get("TIRDEFLECT_BENCH_TREE", str(ROOT))
+sys.path.insert(0, TREE)
 
 
 def _recording(tmp: Path, size: int, n_frames: int):
@@ -87,8 +90,9 @@ def _child(spec: str) -> int:
     import json
 
     spec = json.loads(spec)
-    sys.path.remove(str(ROOT))
-    sys.path.insert(0, spec["tree"])
+    import app
+
+    assert Path(app.__file__).resolve().parent.parent == Path(spec["tree"]).resolve(), app.__file__
     if spec.get("flush_every_frame"):
         import app.batch.writer
 
@@ -121,7 +125,8 @@ def _writer_rounds(args, path: Path, tmp: Path) -> None:
                             job=job)
                 load = os.getloadavg()[0]
                 proc = subprocess.run([sys.executable, __file__, "--child", json.dumps(spec)], cwd=tree,
-                                      capture_output=True, text=True)
+                                      capture_output=True, text=True,
+                                      env=dict(os.environ, TIRDEFLECT_BENCH_TREE=tree))
                 if proc.returncode != 0:
                     print(f"{name}: failed\n{proc.stderr[-2000:]}")
                     continue
@@ -139,6 +144,9 @@ def _writer_rounds(args, path: Path, tmp: Path) -> None:
 
 
 def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["--child"]:  # before anything imports app: the child picks its tree
+        return _child(argv[1])
     from app.batch.parallel import available_cores
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -150,10 +158,7 @@ def main(argv=None) -> int:
     ap.add_argument("--baseline-rev", help="with --writer: also the code of this git revision")
     ap.add_argument("--compression", default="none", choices=("none", "gzip", "lzf"))
     ap.add_argument("--rounds", type=int, default=2)
-    ap.add_argument("--child", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
-    if args.child:
-        return _child(args.child)
 
     cores = available_cores()
     print(f"{args.size} x {args.size}, {args.frames} frames, full grid, {cores} core(s) available "
