@@ -4,10 +4,11 @@ One engine for every caller: ``tirdeflect process`` (:mod:`app.cli.process`),
 the GUI's export and any script. :func:`run_process` reads the inputs (see
 :mod:`app.files.imageio`), reconstructs each frame with
 :class:`processing.Reconstructor` and writes them with
-:class:`app.batch.writer.ResultWriter`, frame by frame and flushed at least every
-``writer.FLUSH_INTERVAL_S`` (0.5 s) and at the end, so that a crash leaves
-every flushed frame readable, with ``frames_done`` saying how many. A frame that cannot be measured is stored invalid with its
-reason and the run goes on (:mod:`app.batch.frame_status`). The file is
+:class:`app.batch.writer.ResultWriter`, frame by frame and flushed at least
+every ``writer.FLUSH_INTERVAL_S`` (0.5 s) and at the end, so that a crash
+leaves every flushed frame readable, with ``frames_done`` saying how many. A
+frame that cannot be measured is stored invalid with its reason and the run
+goes on (:mod:`app.batch.frame_status`). The file is
 written as ``NAME.partial.h5`` and renamed to the output only on success
 (docs/reliability.md, "Processing").
 """

@@ -153,7 +153,8 @@ class Chunk:
 class ChunkOutcome:
     """A chunk's results: ``frames`` is a list of ``(item, (OutputFrame | None, FrameOutcome))``
     (:class:`app.batch.writer.OutputFrame`: the frame as OUT.h5 stores it, made in the
-    worker; items without their image), or ``(None, TirdeflectError)``: reading failed there, nothing after it;
+    worker; items without their image), or ``(None, TirdeflectError)``: reading failed
+    there, nothing after it;
     ``start``/``end`` the series states after the overlap frame (or the given start) and
     after the last frame; ``pid`` and ``host`` of the worker that computed it."""
 
@@ -274,7 +275,8 @@ class _Shared:
             pass
 
 
-#: Blocks still viewed by someone after the writer was done with them: unmapped at exit.
+#: Blocks still viewed by someone after the writer was done with them (their names are
+#: gone already): kept mapped until this process ends.
 _STILL_MAPPED = []
 
 
