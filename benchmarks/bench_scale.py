@@ -1,7 +1,7 @@
 """Frames/s of `tirdeflect process` on a 1024^2 recording against worker processes and Dask.
 
     python3 benchmarks/bench_scale.py [--size 1024] [--frames 96] [--max-workers N] [--no-dask]
-    python3 benchmarks/bench_scale.py --writer [--baseline-rev REV] [--compression gzip] [--rounds 2]
+    python3 benchmarks/bench_scale.py --writer [--baseline-rev REV] [--compression gzip] [--rounds 2] [--out-dir DIR]
 
 One HDF5 recording (ray-traced travelling waves, full grid, FFTW_ESTIMATE so
 that planning does not blur the comparison) is processed by the batch engine
@@ -114,14 +114,16 @@ def _writer_rounds(args, path: Path, tmp: Path) -> None:
                                  capture_output=True, check=True).stdout
         subprocess.run(["tar", "-x", "-C", str(base)], input=archive, check=True)
         trees.append((f"rev {args.baseline_rev}", str(base), False))
-    print(f"writer of OUT.h5, compression {args.compression}; 'parent CPU': CPU time of the "
-          f"process that writes, per frame")
+    where = args.out_dir or "a temporary directory"
+    print(f"writer of OUT.h5, compression {args.compression}, written to {where}; 'parent CPU': CPU "
+          f"time of the process that writes, per frame")
     figures = {}
+    out_dir = Path(args.out_dir) if args.out_dir else tmp
     for r in range(args.rounds):
         for n in (1, 2):
-            for name, tree, every in trees:
+            for name, tree, every in trees[r % len(trees):] + trees[:r % len(trees)]:  # order rotates
                 job = dict(workers=n, compression=args.compression)
-                spec = dict(tree=tree, flush_every_frame=every, path=str(path), out=str(tmp / "out.h5"),
+                spec = dict(tree=tree, flush_every_frame=every, path=str(path), out=str(out_dir / "out.h5"),
                             job=job)
                 load = os.getloadavg()[0]
                 proc = subprocess.run([sys.executable, __file__, "--child", json.dumps(spec)], cwd=tree,
@@ -158,6 +160,8 @@ def main(argv=None) -> int:
     ap.add_argument("--baseline-rev", help="with --writer: also the code of this git revision")
     ap.add_argument("--compression", default="none", choices=("none", "gzip", "lzf"))
     ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument("--out-dir", help="with --writer: write OUT.h5 there (e.g. /dev/shm: no disk "
+                                      "write-back in the figures); default: a temporary directory")
     args = ap.parse_args(argv)
 
     cores = available_cores()
