@@ -21,7 +21,9 @@ fresh process: this tree as it is (flush every 0.5 s, NaN mask and
 compression in the workers, maps written from shared memory), this tree
 flushing after every frame (writer.FLUSH_INTERVAL_S = 0), and with
 --baseline-rev the code of that git revision (e.g. the commit before the
-change), for --workers 1 and 2.
+change), for --workers 1 and 2, all with FD's refinement (--refine fd: the
+trees before the image refinement know no other), so that only the writer
+differs.
 """
 
 from __future__ import annotations
@@ -91,6 +93,10 @@ def _child(spec: str) -> int:
 
     spec = json.loads(spec)
     import app
+    from app.batch import ProcessJob
+
+    if "refine_method" in ProcessJob.__dataclass_fields__:  # the same reconstruction in every tree:
+        spec["job"].setdefault("refine_method", "fd")  # FD's (trees before the image refinement)
 
     assert Path(app.__file__).resolve().parent.parent == Path(spec["tree"]).resolve(), app.__file__
     if spec.get("flush_every_frame"):
