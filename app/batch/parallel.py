@@ -771,8 +771,29 @@ class _Pool:
         self._pool.shutdown(wait=True, cancel_futures=True)
 
     def restart(self):
-        self._pool.shutdown(wait=False, cancel_futures=True)
-        self._pool = self._new()
+        broken, self._pool = self._pool, self._new()
+        _release_feeder(broken)
+        broken.shutdown(wait=False, cancel_futures=True)
+
+
+def _release_feeder(broken_pool) -> None:
+    """Let a broken pool's clean-up end.
+
+    The pool's thread that feeds work to the processes can be stuck writing a
+    chunk into the pipe that only the (now killed) workers read; the pool's
+    manager thread waits for it, and the interpreter waits for the manager
+    thread at exit: a run whose worker died never ended (CPython before
+    3.11.3, e.g. Debian 12's 3.11.2: python/cpython#94777). Closing this
+    process's end of that pipe -- which only the workers read -- makes the
+    stuck write fail, as later CPythons do themselves."""
+    queue = getattr(broken_pool, "_call_queue", None)
+    reader = getattr(queue, "_reader", None)
+    if reader is None:
+        return
+    try:
+        reader.close()
+    except OSError:
+        pass
 
 
 def _shm_room(need_bytes: int) -> bool:
