@@ -356,12 +356,19 @@ def process_chunk(spec: ReconstructorSpec, chunk: Chunk) -> ChunkOutcome:
 
 def plan_chunks(selected: int, *, first: int, step: int, paths, workers: int, frame_bytes: int,
                 chunk_frames: Optional[int] = None,
-                memory_budget_bytes: int = MEMORY_BUDGET_BYTES) -> list:
+                memory_budget_bytes: int = MEMORY_BUDGET_BYTES, keyframes=None) -> list:
     """Contiguous chunks of the ``selected`` frames ``first, first + step, ...``.
 
     Chunk length: ``chunk_frames`` if given, else about ``selected / (4 workers)``,
     at least 8, and small enough that ``workers + 2`` chunks of results
     (``frame_bytes`` each frame) fit ``memory_budget_bytes``.
+
+    ``keyframes``: the frames a video decoder can start at (sequence indices;
+    None: any). Without ``chunk_frames``, each chunk then ends on a keyframe
+    (its last frame is the next chunk's overlap frame, where that chunk's
+    worker starts decoding) when one lies in its second half, so that a
+    worker decodes no frame it does not use (a 12-frame group of pictures otherwise costs up to 11
+    decoded frames per chunk, 47 ms each for FFV1 at 1024^2).
     """
     if chunk_frames is None:
         size = max(MIN_CHUNK_FRAMES, math.ceil(selected / (CHUNKS_PER_WORKER * workers)))
@@ -369,13 +376,45 @@ def plan_chunks(selected: int, *, first: int, step: int, paths, workers: int, fr
     else:
         size = int(chunk_frames)
     size = max(1, min(size, selected))
+    starts = list(range(0, selected, size))
+    if keyframes is not None and chunk_frames is None and len(starts) > 1:
+        starts = _starts_after_keyframes(starts, selected, size, first, step, keyframes)
     chunks = []
-    for index, k0 in enumerate(range(0, selected, size)):
-        k1 = min(k0 + size, selected)
+    for index, k0 in enumerate(starts):
+        k1 = starts[index + 1] if index + 1 < len(starts) else selected
         chunks.append(Chunk(index=index, paths=tuple(paths), first=first + k0 * step,
                             last=first + (k1 - 1) * step, step=step,
                             overlap=None if k0 == 0 else first + (k0 - 1) * step))
     return chunks
+
+
+def _starts_after_keyframes(starts: list, selected: int, size: int, first: int, step: int,
+                            keyframes) -> list:
+    """Chunk starts (selected-frame counts) whose overlap frame is a keyframe:
+    each chunk as long as it can be, at most ``size`` (the memory budget) and
+    at least half of it, else exactly ``size``."""
+    keys = set(int(k) for k in keyframes)
+    out = [0]
+    while out[-1] + size < selected:
+        prev = out[-1]
+        found = [j for j in range(prev + size, prev + max(1, size // 2) - 1, -1)
+                 if first + (j - 1) * step in keys]
+        out.append(found[0] if found else prev + size)
+    return out
+
+
+def _keyframes(inputs) -> Optional[tuple]:
+    """The keyframes of a single video input (its frame indices are the
+    sequence indices), else None."""
+    from app.files import formats
+
+    if len(inputs) != 1 or formats.kind_of(Path(inputs[0])) != "video":
+        return None
+    try:
+        with formats.open_source(Path(inputs[0])) as source:
+            return source.keyframes()
+    except Exception:  # noqa: BLE001 - planning only: the workers report a bad file themselves
+        return None
 
 
 def _states_agree(start, end) -> bool:
@@ -897,7 +936,7 @@ def frame_results(job, reconstruct, reference, geometry, effort: str, selected: 
             spec = _spec(job, reconstruct, reference, geometry, effort, None)
             chunks = plan_chunks(selected, first=job.first, step=job.step, paths=task_paths, workers=n,
                                  frame_bytes=_frame_bytes(reconstruct, job.grid),
-                                 chunk_frames=job.chunk_frames)
+                                 chunk_frames=job.chunk_frames, keyframes=_keyframes(inputs))
             runner = _Chunked(job, spec, chunks, _dask_submit(client), n + 1, close,
                               f"dask {dask_address} ({n} worker threads)")
         except BaseException:
@@ -912,7 +951,7 @@ def frame_results(job, reconstruct, reference, geometry, effort: str, selected: 
         return _Serial(job, reconstruct, reference, inputs)
     chunks = plan_chunks(selected, first=job.first, step=job.step, paths=tuple(inputs),
                          workers=workers, frame_bytes=_frame_bytes(reconstruct, job.grid),
-                         chunk_frames=job.chunk_frames)
+                         chunk_frames=job.chunk_frames, keyframes=_keyframes(inputs))
     in_flight = (workers + 2) * (chunks[0].last - chunks[0].first) // job.step + workers + 2
     spec = _spec(job, reconstruct, reference, geometry, effort, fft_threads(workers),
                  shared_memory=SHARED_MEMORY and _shm_room(in_flight * _frame_bytes(reconstruct, job.grid)))

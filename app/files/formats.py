@@ -106,12 +106,19 @@ class Source:
     notes: list = field(default_factory=list)
     _frames: object = None
     _close: object = None
+    _keyframes: object = None
 
     def frames(self, indices: range | None = None) -> Iterator[tuple]:
         """Yield ``(index, image, time_s)`` for the frames of ``indices`` (an increasing
         ``range``; default all), decoding only those (video also decodes the frames
         from the keyframe before each wanted one, without converting them)."""
         return self._frames(range(self.n_frames) if indices is None else indices)
+
+    def keyframes(self) -> tuple | None:
+        """The frames a decoder can start at, increasing (video: its keyframes;
+        reading from any other frame decodes from the keyframe before it), or
+        None where every frame can be read on its own (MRAW, CINE)."""
+        return None if self._keyframes is None else tuple(self._keyframes())
 
     def close(self) -> None:
         if self._close is not None:
@@ -466,7 +473,7 @@ def _open_video(path: Path) -> Source:
     return Source(path, "video", n, (rows, cols), dtype, bits, frame_rate_hz=fps,
                   time_origin="stream start", codec=codec, lossless=lossless, notes=notes,
                   _frames=lambda indices: _prefetch(frames(indices), stoppers),
-                  _close=close)
+                  _close=close, _keyframes=lambda: packet_index().keyframes)
 
 
 def _prefetch(frames: Iterator[tuple], stoppers: list, depth: int = 4) -> Iterator[tuple]:

@@ -314,6 +314,41 @@ def test_same_heights_from_tiff_folder_avi_and_mraw(sim12, tmp_path):
     assert np.all(np.isnan(outputs["tiff"][2]))  # image files carry no time
 
 
+def test_workers_on_a_video_with_keyframes_give_serial_heights(sim12, tmp_path):
+    """`process --workers 2` on an FFV1 AVI with a keyframe every 4 frames: chunks
+    end on keyframes, each worker decodes from its own, and the heights are those
+    of one process reading the file from start to end."""
+    reference = imageio.read_image(sim12 / "reference.tif")
+    frames = [imageio.read_image(sim12 / f"frame_{k:04d}.tif") for k in range(4)]
+    path = tmp_path / "rec.avi"
+    sequence = [reference] + frames * 6  # 25 frames: three chunks of 8 at 2 workers
+    rows, cols = reference.shape
+    with av.open(str(path), "w") as container:
+        stream = container.add_stream("ffv1", rate=1000)
+        stream.width, stream.height, stream.pix_fmt = cols, rows, "gray16le"
+        stream.codec_context.gop_size = 4
+        for image in sequence:
+            for packet in stream.encode(av.VideoFrame.from_ndarray(image, format="gray16le")):
+                container.mux(packet)
+        for packet in stream.encode():
+            container.mux(packet)
+    heights = {}
+    for workers in ("1", "2"):
+        out = tmp_path / f"w{workers}.h5"
+        r = _cli("process", path, "--reference-frames", "0:1", "--frames", "1:", "--workers", workers,
+                 "--geometry", sim12 / "geometry.toml", "--out", out, "--no-progress")
+        assert r.returncode == 0, r.stderr
+        with h5py.File(out, "r") as f:
+            heights[workers] = (f["height"][()], f["frame_index"][()])
+    (h1, i1), (h2, i2) = heights["1"], heights["2"]
+    assert list(i1) == list(i2) == list(range(1, 25))
+    peak = np.nanmax(np.abs(h1))
+    np.testing.assert_array_equal(np.isnan(h1), np.isnan(h2))
+    # as tests/app/test_parallel.py: the image refinement's optimum moves in cv2.remap's
+    # 1/32 px steps between FFT plans; a wrong frame or a 2 pi slip would be ~2 % of the peak
+    assert np.nanmax(np.abs(h1 - h2)) <= 3e-4 * peak
+
+
 # --------------------------------------------------------------------------- Phantom CINE (a real sample file)
 
 CINE_SAMPLE = Path(__file__).parent / "data" / "cine" / "chart1.cine"

@@ -437,6 +437,37 @@ def test_chunks_fit_the_memory_budget():
     assert parallel.fft_threads(4, cores=16) == 4 and parallel.fft_threads(32, cores=16) == 1
 
 
+
+def test_chunks_of_a_video_end_on_keyframes():
+    """A worker starts decoding at the keyframe before its chunk's overlap frame:
+    frames in between are decoded for nothing (47 ms each for FFV1 at 1024^2).
+    With the keyframes known, chunks end on them where one lies in a chunk's
+    second half: far fewer frames decoded for nothing; chunks stay within the
+    memory budget's length and cover every selected frame once, in order."""
+    keyframes = list(range(0, 1000, 12))
+
+    def wasted(chunks):  # frames decoded only to reach the overlap frames
+        return sum(c.overlap - max(k for k in keyframes if k <= c.overlap) for c in chunks[1:])
+
+    for first, step in ((0, 1), (5, 1), (3, 2)):
+        selected = (1000 - first + step - 1) // step
+        kw = dict(first=first, step=step, paths=("a.avi",), workers=2, frame_bytes=13 << 20)
+        plain = parallel.plan_chunks(selected, **kw)
+        size = plain[0].last - plain[0].first + step
+        chunks = parallel.plan_chunks(selected, keyframes=keyframes, **kw)
+        frames = [f for c in chunks for f in range(c.first, c.last + 1, step)]
+        assert frames == list(range(first, 1000, step))
+        assert all(c.overlap == c.first - step for c in chunks[1:])
+        lengths = [c.last - c.first + step for c in chunks]
+        assert max(lengths) <= size and min(lengths[:-1]) >= size // 2
+        if step == 1:
+            assert wasted(chunks) <= 0.25 * wasted(plain), (wasted(chunks), wasted(plain))
+    # an explicit --chunk-frames is taken as given
+    chunks = parallel.plan_chunks(100, first=0, step=1, paths=("a.avi",), workers=2, frame_bytes=1,
+                                  chunk_frames=10, keyframes=keyframes)
+    assert [c.first for c in chunks] == list(range(0, 100, 10))
+
+
 # ----------------------------------------------------------------- Dask
 
 try:
