@@ -104,9 +104,26 @@ def test_random_dots_alignment_by_hand_ready_and_measured(qtbot, window, tmp_pat
     path = tmp_path / "geometry.toml"
     window.save_geometry(str(path))
     assert tomllib.loads(path.read_text())["pattern"] == "dots"
-    from app.gui import state
+    experiment = window.save_experiment(str(tmp_path / "dots-tank.toml"))
+    assert tomllib.loads(open(experiment).read())["geometry"]["pattern"] == "dots"
+    frames = _dot_frames(diameter_mm, density, n=2)
+    window.close()
 
-    assert state._camera(window)["geometry"]["pattern"] == "dots"
+    from app.gui.window import MainWindow
+
+    # the next start with this camera: the editor shows random dots again
+    w2 = MainWindow(open_at_start=False, planner_effort="FFTW_ESTIMATE")
+    qtbot.addWidget(w2)
+    w2.use_camera(SyntheticCamera(frames, frame_rate_hz=20.0), camera_id="dot-tank")
+    assert w2.geometry.pattern == "dots" and w2.geometry_panel.pattern.currentText() == "random dots"
+    w2.shutdown()
+    # a fresh window (another settings directory's worth of nothing): the experiment file brings the dots
+    w3 = MainWindow(open_at_start=False, planner_effort="FFTW_ESTIMATE")
+    qtbot.addWidget(w3)
+    assert w3.geometry_panel.pattern.currentText() == "checkerboard"
+    assert w3.open_experiment(str(experiment))
+    assert w3.geometry.pattern == "dots" and w3.geometry_panel.pattern.currentText() == "random dots"
+    w3.shutdown()
 
 
 @pytest.mark.parametrize("case, diameter_mm, density, blur_px, reason", [
