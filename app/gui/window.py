@@ -1105,6 +1105,12 @@ class MainWindow(QtWidgets.QMainWindow):
         if p.spectrum is not None:
             self._draw_spectrum(p.spectrum)
         mod = a.get("modulation") if isinstance(a, dict) else None
+        if mod is None and isinstance(a, dict) and "dot_size_px" in a and p.image is not None:
+            # Reconstructor.alignment of dots has no contrast map: the live frame's, as before the reference
+            from .alignment import DOT_WINDOW_PX, modulation_map
+
+            mod, rows, cols = modulation_map(p.image, window_px=DOT_WINDOW_PX, step_px=DOT_WINDOW_PX // 2)
+            a = dict(a, modulation=mod, modulation_rows_px=rows, modulation_cols_px=cols)
         if mod is not None:
             self.modulation_view.set_data(np.asarray(mod, np.float32), x=a.get("modulation_cols_px"),
                                           y=a.get("modulation_rows_px"), levels=(0.0, 1.0))
