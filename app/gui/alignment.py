@@ -6,6 +6,10 @@ on :func:`processing.carriers.find_carriers` applied to the live frame itself
 (carrier periods, rotation, theta from the pattern's aspect, peak sharpness as
 focus metric) plus a display spectrum. Once a reference exists the worker
 uses the Reconstructor's own ``alignment``/``spectrum``.
+
+Random dots (``Geometry.pattern == "dots"``) have no carriers: the metrics are
+:func:`processing.piv.dot_alignment`'s (dot size, dots per interrogation
+window, contrast, focus), judged against PIV practice (docs/gui.md).
 """
 
 from __future__ import annotations
@@ -14,7 +18,11 @@ from typing import Optional
 
 import numpy as np
 
-__all__ = ["frame_alignment", "display_spectrum", "modulation_map"]
+__all__ = ["frame_alignment", "display_spectrum", "modulation_map", "assess", "DOT_WINDOW_PX"]
+
+#: Final interrogation window (px) of the live random-dot Reconstructor; its
+#: dots per window are counted in windows of this size.
+DOT_WINDOW_PX = 16
 
 
 def display_spectrum(frame: np.ndarray, *, size: int = 256, max_freq: float = 0.25) -> dict:
@@ -36,13 +44,9 @@ def display_spectrum(frame: np.ndarray, *, size: int = 256, max_freq: float = 0.
         ``freq_x`` (n_cols,), ``freq_y`` (n_rows,): cycles per pixel, increasing
         (see :func:`processing.carriers.display_spectrum`).
     """
-    from processing.carriers import display_spectrum as _display
+    from processing.carriers import frame_spectrum
 
-    img = np.asarray(frame, np.float32)
-    rows, cols = img.shape
-    win = np.outer(np.hanning(rows).astype(np.float32), np.hanning(cols).astype(np.float32))
-    half = np.abs(np.fft.rfft2((img - img.mean()) * win))
-    return _display(half, cols, size=size, max_freq=max_freq)
+    return frame_spectrum(frame, size=size, max_freq=max_freq)
 
 
 def modulation_map(frame: np.ndarray, *, window_px: int = 32, step_px: int = 16):
@@ -80,8 +84,14 @@ def modulation_map(frame: np.ndarray, *, window_px: int = 32, step_px: int = 16)
     return mod.astype(np.float32), rows, cols
 
 
-def frame_alignment(frame: np.ndarray, theta_configured_deg: Optional[float] = None):
+def frame_alignment(frame: np.ndarray, theta_configured_deg: Optional[float] = None,
+                    pattern: str = "checkerboard"):
     """``(alignment_dict, spectrum_dict)`` of a live frame without reference.
+
+    ``pattern="dots"``: :func:`processing.piv.dot_alignment` of the frame
+    (``dot_size_px``, ``dots_per_window``, ``contrast``, ``focus``) with
+    ``window_px`` and the ``modulation`` map over windows of that size.
+    Otherwise (checkerboard):
 
     The dict has ``periods_px`` (2,), ``rotation_deg``, ``theta_estimate_deg``,
     ``theta_configured_deg``, ``focus`` (carrier peak sharpness, 0..1), ``modulation``
@@ -93,6 +103,13 @@ def frame_alignment(frame: np.ndarray, theta_configured_deg: Optional[float] = N
     from processing.carriers import find_carriers_live
 
     spectrum = display_spectrum(frame)
+    if pattern == "dots":
+        from processing.piv import dot_alignment
+
+        a = dot_alignment(frame, window_px=DOT_WINDOW_PX)
+        mod, rows, cols = modulation_map(frame, window_px=DOT_WINDOW_PX, step_px=DOT_WINDOW_PX // 2)
+        a.update(window_px=DOT_WINDOW_PX, modulation=mod, modulation_rows_px=rows, modulation_cols_px=cols)
+        return a, spectrum
     try:
         # a disturbed surface smears the whole image's carrier peaks: then local carriers (tiles)
         c, disturbed = find_carriers_live(frame)
@@ -133,13 +150,87 @@ def _nz(value, digits: int = 2) -> float:
     return 0.0 if v == 0 else v
 
 
+#: Random dots (PIV practice, docs/gui.md): below this dot size (FWHM, px, either axis) peak locking
+#: pulls the displacements towards whole pixels.
+DOT_MIN_PX = 2.0
+#: Above this (either axis) fewer dots fit a window: a note, not a stop.
+DOT_LARGE_PX = 6.0
+#: Fewer dots than this per final interrogation window: correlation peaks become ambiguous.
+DOTS_PER_WINDOW_MIN = 4.0
+#: (p99 - p1) / (p99 + p1) of the grey levels below this: dots barely above the ground.
+DOT_CONTRAST_MIN = 0.2
+#: 1 - autocorrelation at 1 px below this: the image hardly changes from one pixel to the next
+#: (a Gaussian blob of 4 px FWHM gives 0.08): blurred.
+DOT_FOCUS_MIN = 0.08
+
+
+def _assess_dots(a: dict, saturation_pct: float, geometry, has_reference: bool):
+    """:func:`assess` for a random-dot pattern (``a`` from :func:`processing.piv.dot_alignment`)."""
+    reasons, lines, notes = [], [], []
+    ref = a.get("reference") if isinstance(a.get("reference"), dict) else None
+    window = int(a.get("window_px") or DOT_WINDOW_PX)
+    lines.append(("pattern", "random dots (PIV)"))
+    if a.get("error"):
+        reasons.append(a["error"])
+    size = np.asarray(a.get("dot_size_px", (np.nan, np.nan)), float).ravel()
+    per_window = float(a.get("dots_per_window") or 0.0)
+    if not np.all(np.isfinite(size)) or per_window <= 0:
+        reasons.append("no dots found: light the pattern, check TIR and that the dots are in view")
+    else:
+        text = f"{size[0]:.2f} × {size[1]:.2f} px (vertical × horizontal)"
+        if ref is not None and ref.get("dot_size_px") is not None:
+            r = np.ravel(ref["dot_size_px"])
+            text += f" (reference {float(r[0]):.2f} × {float(r[1]):.2f})"
+        lines.append(("dot size (FWHM)", text))
+        small = [axis for value, axis in zip(size, ("vertically", "horizontally")) if value < DOT_MIN_PX]
+        if small:
+            reasons.append(f"dots {size.min():.1f} px across ({' and '.join(small)}), below {DOT_MIN_PX:g} px: "
+                           "peak locking pulls displacements to whole pixels: defocus slightly or zoom in "
+                           "(or print larger dots)")
+        if size.max() > DOT_LARGE_PX:
+            notes.append(f"dots up to {size.max():.1f} px: fewer fit a window; smaller dots or zooming out "
+                         "give finer displacements")
+        text = f"{per_window:.1f} per {window}×{window} px window"
+        if ref is not None and ref.get("dots_per_window") is not None:
+            text += f" (reference {float(ref['dots_per_window']):.1f})"
+        lines.append(("dots per window", text))
+        if per_window < DOTS_PER_WINDOW_MIN:
+            reasons.append(f"{per_window:.1f} dots per {window}×{window} px window, PIV needs about "
+                           f"{DOTS_PER_WINDOW_MIN:g} or more: use a denser dot pattern or larger windows")
+    contrast = a.get("contrast")
+    if contrast is not None:
+        lines.append(("contrast", f"{float(contrast):.2f}"))
+        if float(contrast) < DOT_CONTRAST_MIN:
+            reasons.append(f"low contrast ({float(contrast):.2f}): light the pattern, check TIR, focus")
+    focus = a.get("focus")
+    if focus is not None:
+        text = f"{float(focus):.3f}"
+        if ref is not None and ref.get("focus") is not None:
+            text += f" (reference {float(ref['focus']):.3f})"
+        lines.append(("focus (1 − autocorrelation at 1 px)", text))
+        if float(focus) < DOT_FOCUS_MIN:
+            reasons.append(f"out of focus (focus {float(focus):.3f}, below {DOT_FOCUS_MIN:g}: the image hardly "
+                           "changes from pixel to pixel): focus the camera on the dots; if they are sharp, "
+                           "use smaller dots or zoom out")
+    sat = float(saturation_pct)
+    lines.append(("saturation", f"{sat:.2f} %"))
+    if sat > 1.0:
+        reasons.append(f"{sat:.1f} % of pixels saturated: lower exposure or gain")
+    if geometry is None:
+        reasons.append("no geometry: enter θ and H (Controls ▸ Reference & geometry)")
+    if not has_reference:
+        notes.append("capture the reference on still water")
+    return (not reasons), reasons, lines, notes
+
+
 def assess(a: dict, saturation_pct: float, geometry=None, has_reference: bool = False):
     """Decide "ready to measure" from alignment metrics.
 
     Parameters
     ----------
     a : dict
-        :func:`frame_alignment` or :meth:`processing.Reconstructor.alignment` output.
+        :func:`frame_alignment` or :meth:`processing.Reconstructor.alignment` output
+        (random dots: ``dot_size_px`` etc., judged by the ``DOT_*`` thresholds).
     saturation_pct : float
         Saturated pixels of the frame (%).
     geometry : processing.Geometry or None
@@ -153,6 +244,8 @@ def assess(a: dict, saturation_pct: float, geometry=None, has_reference: bool = 
         ``reasons``: why not ready; ``lines``: (name, value) rows of the metrics table;
         ``notes``: warnings that do not stop measuring.
     """
+    if "dot_size_px" in a or getattr(geometry, "pattern", "checkerboard") == "dots":
+        return _assess_dots(a, saturation_pct, geometry, has_reference)
     reasons, lines, notes = [], [], []
     if a.get("error") and a.get("periods_px") is None:
         return False, [a["error"]], [("problem", a["error"])], notes

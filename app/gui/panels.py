@@ -313,6 +313,11 @@ class GeometryPanel(QtWidgets.QWidget):
         gf.setRowWrapPolicy(QtWidgets.QFormLayout.WrapLongRows)
         self.setup = QtWidgets.QComboBox()
         self.setup.addItems(["tir", "fsss"])
+        self.pattern = QtWidgets.QComboBox()  # Geometry.pattern: what the reference shows
+        self.pattern.addItem("checkerboard", "checkerboard")
+        self.pattern.addItem("random dots", "dots")
+        self.pattern.setToolTip("checkerboard: Fourier demodulation; random dots: PIV (dot size, density "
+                                "and focus on the Alignment tab)")
         # exact spin boxes: a geometry loaded from TOML is saved back with every digit it had
         self.theta = _spin(0, 89.9, 55, decimals=2, step=0.1, suffix=" °", exact=True)
         self.depth = _spin(0.001, 100_000, 300, decimals=3, suffix=" mm", exact=True)
@@ -327,6 +332,7 @@ class GeometryPanel(QtWidgets.QWidget):
         self.fsss_camera_distance = _spin(0, 1e6, 0, decimals=1, suffix=" mm", special="telecentric",
                                           exact=True)
         gf.addRow("Setup", self.setup)
+        gf.addRow("Pattern", self.pattern)
         gf.addRow("θ (incidence)", self.theta)
         gf.addRow("H (pattern depth)", self.depth)
         gf.addRow("Scale", self.pixel)
@@ -360,6 +366,7 @@ class GeometryPanel(QtWidgets.QWidget):
         for w in (self.theta, self.depth, self.pixel, self.camera_distance, self.fsss_camera_distance):
             w.valueChanged.connect(lambda *_: self.geometry_changed.emit())
         self.setup.currentTextChanged.connect(lambda *_: self._setup_changed())
+        self.pattern.currentIndexChanged.connect(lambda *_: self.geometry_changed.emit())
         self.rows_toward_camera.toggled.connect(lambda *_: self.geometry_changed.emit())
         self.region.editingFinished.connect(self.geometry_changed.emit)
         self.fsss_layers.editingFinished.connect(self.geometry_changed.emit)
@@ -392,6 +399,7 @@ class GeometryPanel(QtWidgets.QWidget):
         """The editor's content as a dict for :meth:`processing.Geometry.from_dict`."""
         d = {
             "setup": self.setup.currentText(),
+            "pattern": self.pattern.currentData(),
             "theta_deg": float(self.theta.value()),
             "depth_mm": float(self.depth.value()),
             "pixel_mm": float(self.pixel.value()),
@@ -417,12 +425,13 @@ class GeometryPanel(QtWidgets.QWidget):
         return d
 
     def set_values(self, d: dict) -> None:
-        widgets = [self.setup, self.theta, self.depth, self.pixel, self.rows_toward_camera,
+        widgets = [self.setup, self.pattern, self.theta, self.depth, self.pixel, self.rows_toward_camera,
                    self.camera_distance, self.fsss_camera_distance, self.fsss_layers]
         for w in widgets:
             w.blockSignals(True)
         try:
             self.setup.setCurrentText(str(d.get("setup", "tir")))
+            self.pattern.setCurrentIndex(max(0, self.pattern.findData(str(d.get("pattern", "checkerboard")))))
             if d.get("theta_deg") is not None:
                 self.theta.setValue(float(d["theta_deg"]))
             self.depth.setValue(float(d.get("depth_mm", self.depth.value())))

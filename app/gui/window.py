@@ -554,15 +554,18 @@ class MainWindow(QtWidgets.QMainWindow):
             from processing import Reconstructor, TirdeflectError
             from processing.gpu import live_device
 
+            from .alignment import DOT_WINDOW_PX  # random dots: the windows the Alignment tab counts dots in
+
             device, text = live_device()  # the GPU when there is one
             if device == "cuda":
                 try:
-                    rec = Reconstructor(reference, geometry, planner_effort=self.planner_effort, device="cuda")
+                    rec = Reconstructor(reference, geometry, planner_effort=self.planner_effort, device="cuda",
+                                        window_px=DOT_WINDOW_PX)
                     rec.device_text = text
                     return rec
                 except TirdeflectError as exc:  # e.g. a dot pattern: the GPU reads checkerboards only
                     text = f"CPU ({exc})"
-            rec = Reconstructor(reference, geometry, planner_effort=self.planner_effort)
+            rec = Reconstructor(reference, geometry, planner_effort=self.planner_effort, window_px=DOT_WINDOW_PX)
             rec.device_text = text
             return rec
 
@@ -815,10 +818,11 @@ class MainWindow(QtWidgets.QMainWindow):
                                 f"in {rec.get('path')}.")
 
     def _frame_alignment(self, frame):
-        """Alignment without reference (worker thread): carriers of the live frame."""
+        """Alignment without reference (worker thread): carriers of the live frame, or its dots."""
         from .alignment import frame_alignment
         geometry = self.geometry
-        return frame_alignment(frame, getattr(geometry, "theta_deg", None))
+        return frame_alignment(frame, getattr(geometry, "theta_deg", None),
+                               pattern=getattr(geometry, "pattern", "checkerboard"))
 
     # ------------------------------------------------------------- replay
     def _choose_recording(self):
@@ -1101,6 +1105,12 @@ class MainWindow(QtWidgets.QMainWindow):
         if p.spectrum is not None:
             self._draw_spectrum(p.spectrum)
         mod = a.get("modulation") if isinstance(a, dict) else None
+        if mod is None and isinstance(a, dict) and "dot_size_px" in a and p.image is not None:
+            # Reconstructor.alignment of dots has no contrast map: the live frame's, as before the reference
+            from .alignment import DOT_WINDOW_PX, modulation_map
+
+            mod, rows, cols = modulation_map(p.image, window_px=DOT_WINDOW_PX, step_px=DOT_WINDOW_PX // 2)
+            a = dict(a, modulation=mod, modulation_rows_px=rows, modulation_cols_px=cols)
         if mod is not None:
             self.modulation_view.set_data(np.asarray(mod, np.float32), x=a.get("modulation_cols_px"),
                                           y=a.get("modulation_rows_px"), levels=(0.0, 1.0))

@@ -119,3 +119,25 @@ def test_dot_alignment_reports_dot_size_and_density():
     assert abs(a["dots_per_window"] - expected) < 0.25 * expected
     assert 0.6 < a["contrast"] < 0.9 and 0.1 < a["focus"] < 0.6
     assert set(a["reference"]) >= {"dot_size_px", "dots_per_window", "contrast", "focus"}
+
+
+@pytest.mark.parametrize("diameter_mm, density", [(0.3, 0.3), (0.65, 0.6), (1.0, 0.5)])
+def test_dot_alignment_size_of_dense_and_small_dots(diameter_mm, density):
+    """Dot FWHM within 0.3 px of the rendered one (measured +0.1..+0.2 px: the pixel's width), also for
+    dense dots where the autocorrelation's width read 0.5-0.8 px small, and for dots of 1-2 px."""
+    from processing.piv import dot_alignment
+
+    dots = F.RandomDots(dot_diameter_mm=diameter_mm, density=density, seed=4)
+    img, _ = F.render_tir(F.FlatSurface(), G55, (N, N), dots, supersample=2)
+    a = dot_alignment(F.quantize(img, bits=8, noise_rms=1.0, rng=np.random.default_rng(2)))
+    fwhm = diameter_mm / 4 * 2.3548 / 0.1
+    truth = np.array([fwhm * np.cos(np.radians(55)), fwhm])
+    assert np.all(np.abs(a["dot_size_px"] - truth) < 0.3), (a["dot_size_px"], truth)
+
+
+def test_dot_reconstructor_spectrum_is_the_frames_own():
+    """The live Alignment tab asks every Reconstructor for a spectrum: dots have no carriers."""
+    ref, img = render(F.FlatSurface())
+    s = Reconstructor(ref, G55, pattern="dots").spectrum(img)
+    assert s["carriers"] == [] and s["log_magnitude"].shape == (s["freq_y"].size, s["freq_x"].size)
+    assert np.all(np.isfinite(s["log_magnitude"]))
