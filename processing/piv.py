@@ -24,9 +24,9 @@ samples for the masked height solver.
 
 from __future__ import annotations
 
-import contextlib
-import io
+import logging
 import math
+import sys
 
 import numpy as np
 
@@ -72,6 +72,7 @@ class DotDisplacement:
                              f"(needs at least {4 * window_px} px a side): use smaller windows")
         self.shape = ref.shape
         self._windef = windef
+        _quiet_openpiv()
         sizes = [w for w in (4 * window_px, 2 * window_px, window_px) if min(ref.shape) >= 4 * w]
         sizes += [window_px] * FINAL_REPEATS
         s = windef.PIVSettings()
@@ -110,14 +111,12 @@ class DotDisplacement:
         w = self._windef
         s = self.settings
         img = np.asarray(frame, np.float64)
-        # OpenPIV prints notes (fallback peak fits) on stdout: keep the CLI's output ours
-        with contextlib.redirect_stdout(io.StringIO()):
-            x, y, u, v, s2n = w.first_pass(self._ref, img, s)
-            flags = np.zeros(u.shape, bool)
-            for it in range(1, s.num_iterations):
-                u = np.ma.masked_array(np.nan_to_num(u), mask=np.zeros(u.shape, bool))
-                v = np.ma.masked_array(np.nan_to_num(v), mask=np.zeros(v.shape, bool))
-                x, y, u, v, _grid_mask, flags = w.multipass_img_deform(self._ref, img, it, x, y, u, v, s)
+        x, y, u, v, s2n = w.first_pass(self._ref, img, s)
+        flags = np.zeros(u.shape, bool)
+        for it in range(1, s.num_iterations):
+            u = np.ma.masked_array(np.nan_to_num(u), mask=np.zeros(u.shape, bool))
+            v = np.ma.masked_array(np.nan_to_num(v), mask=np.zeros(v.shape, bool))
+            x, y, u, v, _grid_mask, flags = w.multipass_img_deform(self._ref, img, it, x, y, u, v, s)
         if s.num_iterations == 1:
             flags = ~np.isfinite(u) | ~np.isfinite(v)
         u = np.ma.filled(u, np.nan).astype(np.float32)
@@ -151,6 +150,23 @@ class DotDisplacement:
             u = np.stack([ndimage.map_coordinates(coef[i], at, order=3, prefilter=False, mode="nearest")
                           for i in range(2)])
         return u.astype(np.float32)
+
+
+log = logging.getLogger(__name__)
+
+
+def _openpiv_note(*args, **_kwargs):
+    log.debug("OpenPIV: %s", " ".join(str(a) for a in args))
+
+
+def _quiet_openpiv() -> None:
+    """OpenPIV prints notes (fallback peak fits, bad peaks) on stdout: send
+    them to this module's debug log instead, for OpenPIV's own modules only
+    (swapping sys.stdout would silence every other thread's output too)."""
+    for name, module in list(sys.modules.items()):
+        if name == "openpiv" or name.startswith("openpiv."):
+            if getattr(module, "print", None) is not _openpiv_note:
+                module.print = _openpiv_note
 
 
 def dot_alignment(frame, *, window_px: int = 16) -> dict:

@@ -141,3 +141,27 @@ def test_dot_reconstructor_spectrum_is_the_frames_own():
     s = Reconstructor(ref, G55, pattern="dots").spectrum(img)
     assert s["carriers"] == [] and s["log_magnitude"].shape == (s["freq_y"].size, s["freq_x"].size)
     assert np.all(np.isfinite(s["log_magnitude"]))
+
+
+def test_openpiv_notes_go_to_the_log_and_other_output_stays(capsys, caplog, rng):
+    """OpenPIV prints notes ("Found N bad peak(s)") on stdout; they go to the
+    debug log, while everything else printed meanwhile (another thread's
+    progress, the CLI's own lines) still reaches stdout."""
+    import threading
+
+    from openpiv import pyprocess
+
+    from processing.piv import DotDisplacement
+
+    DotDisplacement(rng.random((64, 64)))  # the first use quiets OpenPIV
+    corr = rng.random((4, 16, 16)).astype(np.float32)
+    with caplog.at_level("DEBUG", logger="processing.piv"):
+        other = threading.Thread(target=print, args=("progress of another thread",))
+        other.start()
+        pyprocess.vectorized_correlation_to_displacements(corr, 2, 2)
+        other.join()
+        print("the program's own line")
+    out = capsys.readouterr().out
+    assert "bad peak" not in out
+    assert "progress of another thread" in out and "the program's own line" in out
+    assert any("bad peak" in r.getMessage() for r in caplog.records)
