@@ -36,7 +36,9 @@ def test_round_trip_layout_and_metadata(tmp_path):
     frames = _frames()
     ref = frames[0] // 2
     geom = 'setup = "tir"\ntheta_deg = 55.0\n'
-    with SyntheticCamera(frames, frame_rate_hz=400, bit_depth=12) as cam:
+    # 64 buffers (0.16 s at 400 fps): this checks the file's layout, not the camera
+    # thread's timing, which on a loaded 2-core machine once lost a frame with 16
+    with SyntheticCamera(frames, frame_rate_hz=400, bit_depth=12, n_buffers=64) as cam:
         acq = Acquisition(cam, ring_frames=128)
         rec = Recorder(acq.ring, tmp_path / "r.h5", n_frames=120, acquisition=acq, geometry_toml=geom,
                        reference_image=ref, attrs=dict(note="tank 2"))
