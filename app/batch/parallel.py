@@ -933,10 +933,16 @@ def frame_results(job, reconstruct, reference, geometry, effort: str, selected: 
             else:
                 task_paths = tuple(str(Path(p).resolve()) for p in inputs)
             n = max(1, sum(client.nthreads().values()))
-            spec = _spec(job, reconstruct, reference, geometry, effort, None)
             chunks = plan_chunks(selected, first=job.first, step=job.step, paths=task_paths, workers=n,
                                  frame_bytes=_frame_bytes(reconstruct, job.grid),
                                  chunk_frames=job.chunk_frames, keyframes=_keyframes(inputs))
+            # a LocalCluster's workers share this machine's memory: results come back through
+            # shared memory as from worker processes, not pickled through TCP (13 MB a 1024^2 frame)
+            local = dask_address == "local" or dask_address.startswith("local:")
+            in_flight = (n + 2) * (chunks[0].last - chunks[0].first) // job.step + n + 2
+            spec = _spec(job, reconstruct, reference, geometry, effort, None,
+                         shared_memory=local and SHARED_MEMORY
+                         and _shm_room(in_flight * _frame_bytes(reconstruct, job.grid)))
             runner = _Chunked(job, spec, chunks, _dask_submit(client), n + 1, close,
                               f"dask {dask_address} ({n} worker threads)")
         except BaseException:
