@@ -134,7 +134,12 @@ def test_gige_packet_loss_is_counted_not_hidden(gv_fake_camera_lossy):
     n_incomplete = sum(f.incomplete for f in frames)
     span = int(ids.max() - ids.min() + 1)
     # every id in the span was delivered (complete or flagged) or is a counted gap
-    assert span == n + stats["n_id_gap_frames"]
+    # (once in CI the span came out 65713 for 200 frames: an id off by one 16-bit
+    # wrap; not reproduced since, so the message shows where, for next time)
+    jumps = np.flatnonzero(np.abs(np.diff(ids)) > 1000)
+    where = [(int(k), [(int(f.frame_id), bool(f.incomplete), int(f.missing_bytes)) for f in frames[max(0, k - 2):k + 3]])
+             for k in jumps[:3]]
+    assert span == n + stats["n_id_gap_frames"], f"ids jump at {where}; stats {stats}"
     assert len(set(ids.tolist())) == n
     # every failed buffer reached the consumer, flagged -- unless only its leader/trailer was lost (all pixels there)
     assert n_incomplete == stats["n_incomplete_delivered"] == stats["n_failures"] - stats["n_failed_but_all_pixels"]
