@@ -430,9 +430,11 @@ class Reconstructor:
         the nodes then goes through the same masked height solver and pin
         (``Result.series`` from FD's heights).  Frame sides must be multiples of 4 px.
         Measured on ray-traced frames (docs/processing.md section 6): waves
-        3-6 carrier periods long 2.90 % -> 0.86 %, a bump of 1.25 periods
-        1.41 % -> 0.30 %, every case of the accuracy table at or below "fd";
-        about 6-8x the CPU time of "fd", so not yet the batch default.
+        3-6 carrier periods long 2.90 % -> 0.82 %, a bump of 1.25 periods
+        1.41 % -> 0.32 %, every case of the accuracy table at or below "fd";
+        2-3.5x the time of "fd" per frame (about 5x its single-thread CPU).
+        ``tirdeflect process`` uses it by default where it applies
+        (``app.batch.engine.batch_refine_method``); the live view keeps "fd".
     device : {"cpu", "cuda"}, optional
         "cuda": the chain runs on the GPU through CuPy, batched by
         :meth:`batch` (processing/gpu.py says which frames and steps stay on
