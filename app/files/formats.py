@@ -117,8 +117,10 @@ class Source:
     def keyframes(self) -> tuple | None:
         """The frames a decoder can start at, increasing (video: its keyframes;
         reading from any other frame decodes from the keyframe before it), or
-        None where every frame can be read on its own (MRAW, CINE)."""
-        return None if self._keyframes is None else tuple(self._keyframes())
+        None where every frame can be read on its own (MRAW, CINE) or the
+        video's packets do not say (no distinct time stamps)."""
+        keys = None if self._keyframes is None else self._keyframes()
+        return None if keys is None else tuple(keys)
 
     def close(self) -> None:
         if self._close is not None:
@@ -476,7 +478,7 @@ def _open_video(path: Path) -> Source:
     return Source(path, "video", n, (rows, cols), dtype, bits, frame_rate_hz=fps,
                   time_origin="stream start", codec=codec, lossless=lossless, notes=notes,
                   _frames=lambda indices: _prefetch(frames(indices), stoppers),
-                  _close=close, _keyframes=lambda: packet_index().keyframes)
+                  _close=close, _keyframes=lambda: getattr(packet_index(), "keyframes", None))
 
 
 def _prefetch(frames: Iterator[tuple], stoppers: list, depth: int = 4) -> Iterator[tuple]:
