@@ -376,9 +376,10 @@ def plan_chunks(selected: int, *, first: int, step: int, paths, workers: int, fr
     else:
         size = int(chunk_frames)
     size = max(1, min(size, selected))
-    starts = list(range(0, selected, size))
-    if keyframes is not None and chunk_frames is None and len(starts) > 1:
-        starts = _starts_after_keyframes(starts, selected, size, first, step, keyframes)
+    if keyframes is not None and chunk_frames is None:
+        starts = _starts_after_keyframes(selected, size, first, step, keyframes)
+    else:
+        starts = list(range(0, selected, size))
     chunks = []
     for index, k0 in enumerate(starts):
         k1 = starts[index + 1] if index + 1 < len(starts) else selected
@@ -388,8 +389,7 @@ def plan_chunks(selected: int, *, first: int, step: int, paths, workers: int, fr
     return chunks
 
 
-def _starts_after_keyframes(starts: list, selected: int, size: int, first: int, step: int,
-                            keyframes) -> list:
+def _starts_after_keyframes(selected: int, size: int, first: int, step: int, keyframes) -> list:
     """Chunk starts (selected-frame counts) whose overlap frame is a keyframe:
     each chunk as long as it can be, at most ``size`` (the memory budget) and
     at least half of it, else exactly ``size``."""
@@ -835,6 +835,13 @@ def _release_feeder(broken_pool) -> None:
         pass
 
 
+def _results_fit_shm(chunks, workers: int, job, reconstruct) -> bool:
+    """Results through shared memory (:data:`SHARED_MEMORY`) for ``workers`` on this
+    machine, when /dev/shm holds the frames of the ``workers + 2`` chunks in flight."""
+    in_flight = (workers + 2) * (chunks[0].last - chunks[0].first) // job.step + workers + 2
+    return SHARED_MEMORY and _shm_room(in_flight * _frame_bytes(reconstruct, job.grid))
+
+
 def _shm_room(need_bytes: int) -> bool:
     """Room for ``need_bytes`` of results in shared memory, twice over? (A
     container's /dev/shm is often 64 MB; writing past its end kills the worker
@@ -939,10 +946,8 @@ def frame_results(job, reconstruct, reference, geometry, effort: str, selected: 
             # a LocalCluster's workers share this machine's memory: results come back through
             # shared memory as from worker processes, not pickled through TCP (13 MB a 1024^2 frame)
             local = dask_address == "local" or dask_address.startswith("local:")
-            in_flight = (n + 2) * (chunks[0].last - chunks[0].first) // job.step + n + 2
             spec = _spec(job, reconstruct, reference, geometry, effort, None,
-                         shared_memory=local and SHARED_MEMORY
-                         and _shm_room(in_flight * _frame_bytes(reconstruct, job.grid)))
+                         shared_memory=local and _results_fit_shm(chunks, n, job, reconstruct))
             runner = _Chunked(job, spec, chunks, _dask_submit(client), n + 1, close,
                               f"dask {dask_address} ({n} worker threads)")
         except BaseException:
@@ -958,9 +963,8 @@ def frame_results(job, reconstruct, reference, geometry, effort: str, selected: 
     chunks = plan_chunks(selected, first=job.first, step=job.step, paths=tuple(inputs),
                          workers=workers, frame_bytes=_frame_bytes(reconstruct, job.grid),
                          chunk_frames=job.chunk_frames, keyframes=_keyframes(inputs))
-    in_flight = (workers + 2) * (chunks[0].last - chunks[0].first) // job.step + workers + 2
     spec = _spec(job, reconstruct, reference, geometry, effort, fft_threads(workers),
-                 shared_memory=SHARED_MEMORY and _shm_room(in_flight * _frame_bytes(reconstruct, job.grid)))
+                 shared_memory=_results_fit_shm(chunks, workers, job, reconstruct))
     pool = _Pool(workers)
     try:
         return _Chunked(job, spec, chunks, pool.submit, workers + 1, pool.shutdown,
