@@ -135,12 +135,27 @@ def _aravis_or_skip():
         pytest.skip(f"{FAKE_GV_EXE} not installed")
 
 
+def _finalize_aravis_objects() -> None:
+    """Free what the test left of Aravis' objects now, in this (main) thread.
+
+    Left to the garbage collector, an Aravis device or stream is finalized in
+    whatever thread happens to allocate next, holding the GIL while Aravis
+    takes its own locks. A CI run froze that way (every thread waiting, no
+    CPU): a later GUI test's background thread was importing scipy (for PIV)
+    while the window's Aravis discovery ran; the finalization in that thread
+    is the likeliest reading of the stacks, not a proven one."""
+    import gc
+
+    gc.collect()
+
+
 @pytest.fixture
 def gv_fake_camera():
     """A clean GigE Vision fake camera on 127.0.0.1 (killed afterwards)."""
     _aravis_or_skip()
     with FakeGvCamera() as cam:
         yield cam
+    _finalize_aravis_objects()
 
 
 @pytest.fixture
@@ -149,6 +164,7 @@ def gv_fake_camera_lossy():
     _aravis_or_skip()
     with FakeGvCamera(loss_per_thousand=20) as cam:
         yield cam
+    _finalize_aravis_objects()
 
 
 @pytest.fixture
