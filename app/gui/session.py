@@ -23,7 +23,15 @@ import numpy as np
 
 from app.capture.worker import ProcessingWorker
 
-__all__ = ["LiveSession", "Opened"]
+__all__ = ["LiveSession", "Opened", "NO_OVERLAP_WITH_DISCOVERY"]
+
+#: Held while cameras are searched (Aravis discovery) and while a Reconstructor is
+#: built in the background: a fresh-clone test run froze, every thread waiting, with
+#: a build importing OpenPIV/scipy for the first time in one thread while
+#: ``Aravis.update_device_list()`` ran in another (reproduced twice; why they
+#: deadlock is not understood). The two never overlap now; each waits for the
+#: other (discovery is bounded to a few seconds).
+NO_OVERLAP_WITH_DISCOVERY = threading.Lock()
 
 
 @dataclasses.dataclass
@@ -87,7 +95,8 @@ class LiveSession:
         """``(infos, note)`` from :func:`drivers.list_cameras` (synthetic always offered)."""
         import drivers
 
-        infos = list(drivers.list_cameras())
+        with NO_OVERLAP_WITH_DISCOVERY:
+            infos = list(drivers.list_cameras())
         real = [i for i in infos if i.backend != "synthetic"]
         note = (f"{len(real)} camera(s) found" if real else
                 "no camera found: the synthetic camera (ray-traced water surface) stands in")

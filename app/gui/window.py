@@ -551,6 +551,12 @@ class MainWindow(QtWidgets.QMainWindow):
         reference, geometry = self.reference, self.geometry
 
         def build():
+            from .session import NO_OVERLAP_WITH_DISCOVERY
+
+            with NO_OVERLAP_WITH_DISCOVERY:
+                return build_now()
+
+        def build_now():
             from processing import Reconstructor, TirdeflectError
             from processing.gpu import live_device
 
@@ -853,7 +859,11 @@ class MainWindow(QtWidgets.QMainWindow):
         if reference is not None and geometry is not None:
             def build():
                 from processing import Reconstructor
-                return Reconstructor(reference, geometry, planner_effort=self.planner_effort)
+
+                from .session import NO_OVERLAP_WITH_DISCOVERY
+
+                with NO_OVERLAP_WITH_DISCOVERY:  # see there
+                    return Reconstructor(reference, geometry, planner_effort=self.planner_effort)
 
             def done(r, error):
                 if error:
