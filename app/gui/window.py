@@ -550,6 +550,12 @@ class MainWindow(QtWidgets.QMainWindow):
             return
         reference, geometry = self.reference, self.geometry
 
+        if getattr(geometry, "pattern", "checkerboard") == "dots":
+            # OpenPIV's first import (scipy.stats, ~1 s) here, in the GUI thread: in a background
+            # thread beside the running event loop it crawled for minutes in a test run (every
+            # thread waiting for the GIL, no CPU used); not understood
+            import openpiv.windef  # noqa: F401
+
         def build():
             from .session import NO_OVERLAP_WITH_DISCOVERY
 
