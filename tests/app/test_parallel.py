@@ -533,3 +533,66 @@ def test_dask_reruns_the_chunk_of_a_killed_worker(series, serial, tmp_path):
                     if start in ("processing", "memory") and finish in ("released", "waiting")]
             assert lost, f"chunk {key} was never lost with its worker: {moves}"
             assert ("processing", "memory") in moves[lost[0] + 1:], f"chunk {key} was not computed again: {moves}"
+
+
+def _page_faults_of_big_arrays(count: int = 20) -> int:
+    """Minor page faults of allocating and freeing an 8 MB array ``count`` times (this process)."""
+    import resource
+
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    for _ in range(count):
+        a = np.ones(1 << 20)
+        del a
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
+
+
+def _faults_before_and_after_reuse() -> tuple:
+    # numpy asks for transparent huge pages on large arrays: whether the kernel has
+    # some free decides between 4 and 2048 faults per fresh 8 MB mapping; small pages
+    # here, so that the count is what it measures
+    try:
+        from numpy._core.multiarray import _set_madvise_hugepage
+    except ImportError:  # numpy 1
+        from numpy.core.multiarray import _set_madvise_hugepage
+    _set_madvise_hugepage(False)
+    _page_faults_of_big_arrays(2)
+    before = _page_faults_of_big_arrays()
+    switched = parallel.reuse_freed_memory()
+    _page_faults_of_big_arrays(2)
+    return before, switched, _page_faults_of_big_arrays()
+
+
+@needs_dask
+@pytest.mark.skipif(not os.path.exists("/proc/self/maps"), reason="glibc's allocator (Linux)")
+def test_dask_workers_share_the_cores_and_reuse_freed_memory():
+    """In a real LocalCluster of 2 one-thread worker processes:
+
+    - each worker counts the 2 tasks that run at once on its machine (from the
+      scheduler's list of workers), so its FFT threads are cores // 2, not
+      every core in every worker (`dask worker --nworkers 16 --nthreads 1`
+      would otherwise run 16 x 16 threads on 16 cores);
+    - the nanny starts workers with MALLOC_TRIM_THRESHOLD_ set, which makes every
+      freed map go back to the system and every new one come fresh from the
+      kernel, page by page (a 1024^2 frame 3.4x slower): freshly faulted pages
+      for each 8 MB array before reuse_freed_memory() (which _reconstructor
+      calls), nearly none after."""
+    from distributed import Client, LocalCluster
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+                      silence_logs=logging.ERROR) as cluster, Client(cluster) as client:
+        per_host = parallel._dask_tasks_per_host(client)
+        on_machine = [client.submit(parallel._tasks_on_this_machine, per_host, workers=[a], pure=False).result()
+                      for a in client.scheduler_info()["workers"]]
+        envs = client.run(os.environ.get, "MALLOC_TRIM_THRESHOLD_")
+        faults = client.run(_faults_before_and_after_reuse)
+    assert len(per_host) == 1 and per_host[0][1] == 2, per_host
+    assert on_machine == [2, 2]
+    assert parallel.fft_threads(on_machine[0], cores=16) == 8
+    assert all(v is not None for v in envs.values()), \
+        "this Dask's nanny no longer sets MALLOC_TRIM_THRESHOLD_: reuse_freed_memory may go"
+    for before, switched, after in faults.values():
+        assert switched
+        # 20 arrays of 2048 pages: thousands of faults when each is a fresh mapping;
+        # reused heap memory faults no page at all
+        assert before > 2000, f"{before} page faults before the switch: the nanny's setting had no effect"
+        assert after < before / 20, f"{after} page faults after the switch (before: {before})"
