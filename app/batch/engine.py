@@ -76,12 +76,15 @@ def load_geometry(path: str):
 
 def _resolve_geometry(args):
     """(Geometry, where it came from): --geometry, else a recording's /geometry_toml."""
-    if args.geometry is not None:
-        return load_geometry(args.geometry), str(args.geometry)
     from processing import Geometry
     from processing.errors import GeometryError
 
-    for path in (args.reference, *imageio.expand_inputs(args.frames[:1])[:1]):
+    if isinstance(args.geometry, Geometry):
+        return args.geometry, "(given by the caller)"
+    if args.geometry is not None:
+        return load_geometry(args.geometry), str(args.geometry)
+    files = [] if _given_image(args.reference) else [args.reference]
+    for path in (*files, *imageio.expand_inputs(args.frames[:1])[:1]):
         text = imageio.recording_geometry_toml(path)
         if text:
             try:
@@ -157,14 +160,16 @@ class ProcessJob:
 
     Attributes
     ----------
-    reference : str
-        Reference image file, or a recording holding a ``/reference``.
+    reference : str or ndarray
+        Reference image file, or a recording holding a ``/reference``; or the
+        reference image itself (e.g. the one the GUI captured; counts).
     frames : list of str
         Frame files, stacks or recordings, in order.
     out : str
         Output HDF5 file (docs/output-format.md).
-    geometry : str or None
-        Geometry TOML file; None takes a recording's stored geometry.
+    geometry : str, Geometry or None
+        Geometry TOML file, or a :class:`processing.Geometry`; None takes a
+        recording's stored geometry.
     grid : {"full", "decimated"}
     no_unwrap : bool
     first, last, step : int
@@ -211,10 +216,10 @@ class ProcessJob:
         (about 5x faster, less accurate on features a few carrier periods wide).
     """
 
-    reference: str
+    reference: object  # str (a file) or ndarray (the image)
     frames: list
     out: str
-    geometry: str | None = None
+    geometry: object = None  # str (a TOML file), Geometry, or None
     grid: str = "full"
     no_unwrap: bool = False
     first: int = 0
@@ -288,11 +293,17 @@ def run_process(args: ProcessJob) -> BatchReport:
     """
     out = Path(args.out)
     check_output(out, args.overwrite)
-    check_not_an_input(out, [args.reference, *args.frames, args.geometry])
+    reference_given = _given_image(args.reference)
+    check_not_an_input(out, [p for p in (args.reference, *args.frames, args.geometry)
+                             if isinstance(p, (str, os.PathLike))])
 
     # Cheap checks of every input before any work: existence, directories,
     # stack/recording headers; decoding errors of plain images show up per frame.
-    if args.reference_frames is None:
+    if reference_given:
+        if args.reference_frames is not None or args.reference_index is not None:
+            raise TirdeflectError("reference_frames and reference_index choose frames of a reference "
+                                  "file; the reference given is an image")
+    elif args.reference_frames is None:
         check_input_file(args.reference, "reference")
     if not args.frames:
         if args.reference_frames is None:
@@ -315,8 +326,11 @@ def run_process(args: ProcessJob) -> BatchReport:
 
     geometry, geometry_source = _resolve_geometry(args)
     reference_index = args.reference_index
-    reference = imageio.read_reference(args.reference, index=reference_index,
-                                       frames=args.reference_frames)
+    if reference_given:
+        reference = np.asarray(args.reference, dtype=np.float64)
+    else:
+        reference = imageio.read_reference(args.reference, index=reference_index,
+                                           frames=args.reference_frames)
     input_notes = imageio.input_notes(paths)
     for line in input_notes:
         log.warning("%s", line)
@@ -344,7 +358,7 @@ def run_process(args: ProcessJob) -> BatchReport:
         "format_version": OUTPUT_FORMAT_VERSION,
         "created_utc": utc_now(),
         "command": args.command or "(called from Python, not the command line)",
-        "reference_file": str(args.reference),
+        "reference_file": "(an image given by the caller)" if reference_given else str(args.reference),
         "reference_index": -1 if reference_index is None else reference_index,
         "reference_frames": _slice_text(args.reference_frames),
         "geometry_file": geometry_source,
@@ -358,7 +372,8 @@ def run_process(args: ProcessJob) -> BatchReport:
         "fft_effort": effort,
         "strict": bool(args.strict),
         "height_units": "mm",
-        "reference_bits": _bits_hint(args.reference, reference),
+        "reference_bits": (_bits_of_counts(args.reference) if reference_given
+                           else _bits_hint(args.reference, reference)),
         **timing,
     }
     for attempt in range(5):  # another run beside this one may take the name first
@@ -596,6 +611,21 @@ def _frame_failed(exc: Exception, item, writer: ResultWriter, tally: FrameTally,
     if isinstance(exc, TirdeflectError):
         return type(exc)(message)
     return TirdeflectError(message)
+
+
+def _given_image(reference) -> bool:
+    """Whether ``ProcessJob.reference`` is the image itself rather than a file."""
+    return isinstance(reference, np.ndarray)
+
+
+def _bits_of_counts(image: np.ndarray) -> int:
+    """Sample bits of a reference given as an image: its integer type's, else the
+    fewest of 8, 10, 12, 14, 16 that hold its largest count (a float average of frames)."""
+    image = np.asarray(image)
+    if image.dtype.kind in "ui":
+        return int(image.dtype.itemsize * 8)
+    top = float(np.nanmax(image)) if image.size else 0.0
+    return next((b for b in (8, 10, 12, 14) if top < 2 ** b), 16)
 
 
 def _bits_hint(path: str, image: np.ndarray) -> int:

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import os
-import tempfile
 from typing import Callable, Optional
 
 import numpy as np
@@ -50,21 +48,15 @@ def export_heights(recording_path: str, out_path: str, *, geometry_toml: Optiona
     total = imageio.frame_count(recording_path)
     if progress is not None:
         progress(0, total)
-    with tempfile.TemporaryDirectory(prefix="tirdeflect-export-") as tmp:
-        ref_arg = recording_path
-        if reference is not None:
-            import tifffile
+    geometry = None
+    if geometry_toml is not None:
+        from processing import Geometry
 
-            ref_arg = os.path.join(tmp, "reference.tif")
-            tifffile.imwrite(ref_arg, np.asarray(reference, np.float32))
-        geo_arg = None
-        if geometry_toml is not None:
-            geo_arg = os.path.join(tmp, "geometry.toml")
-            with open(geo_arg, "w", encoding="utf-8") as fh:
-                fh.write(geometry_toml)
-        run_process(ProcessJob(reference=ref_arg, frames=[recording_path], geometry=geo_arg, out=out_path,
-                               grid=grid, on_progress=progress, compression=compression,
-                               command=f"(tirdeflect gui: Replay ▸ Export heights of {recording_path})"))
+        geometry = Geometry.from_toml_text(geometry_toml)
+    run_process(ProcessJob(reference=recording_path if reference is None else np.asarray(reference),
+                           frames=[recording_path], geometry=geometry, out=out_path,
+                           grid=grid, on_progress=progress, compression=compression,
+                           command=f"(tirdeflect gui: Replay ▸ Export heights of {recording_path})"))
     if progress is not None:
         progress(total, total)
     return out_path
