@@ -29,6 +29,7 @@ says that compression artefacts bias Fourier demodulation.
 from __future__ import annotations
 
 import bisect
+import dataclasses
 import logging
 import math
 import re
@@ -65,31 +66,36 @@ class ImageReadError(TirdeflectError):
 FormatError = ImageReadError
 
 
-@dataclass
-class Source:
-    """One opened multi-frame file (see the module docstring).
+@dataclass(frozen=True)
+class ImageInfo:
+    """What an input file holds, without reading its pixels.
 
     Attributes
     ----------
     path : pathlib.Path
+        The file.
     kind : str
-        ``"video"``, ``"mraw"`` or ``"cine"``.
+        ``"image"`` (PNG/BMP/JPEG), ``"tiff"`` or ``"recording"`` (HDF5).
     n_frames : int
+        Number of frames: 1 for a plain image, the page count of a TIFF
+        stack, the length of ``/frames`` of a recording.
     shape : tuple of int
-        ``(rows, cols)``.
+        ``(rows, cols)`` of one frame, in pixels.
     dtype : numpy.dtype
+        Sample type as returned by :func:`read_image` / :func:`iter_frames`.
     bits : int
-        Significant bits per sample (12 for a 12-bit MRAW).
+        Significant bits per sample (10 for a packed 10-bit TIFF); for float
+        images the bit width of the float.
     frame_rate_hz : float
-        NaN when the file does not say.
+        Frame rate the file states (video, MRAW, CINE); NaN otherwise.
     trigger_index : int or None
-        Index in the file of the trigger frame (time 0), when the file says it.
-    time_origin : str
-        What ``time_s`` is counted from: ``"trigger"`` or ``"stream start"``.
+        Index of the trigger frame in the file (MRAW, CINE), when stated.
     codec : str
+        Video codec or camera file layout ("" for images and recordings).
     lossless : bool
-    notes : list of str
-        Warnings for the user (lossy codec, colour converted to luma...).
+        False for lossy video codecs.
+    notes : tuple of str
+        Warnings about the file (lossy codec...).
     """
 
     path: Path
@@ -100,13 +106,34 @@ class Source:
     bits: int
     frame_rate_hz: float = math.nan
     trigger_index: int | None = None
-    time_origin: str = "stream start"
     codec: str = ""
     lossless: bool = True
-    notes: list = field(default_factory=list)
+    notes: tuple = ()
+
+
+
+@dataclass(frozen=True)
+class Source(ImageInfo):
+    """One opened multi-frame file (see the module docstring): what
+    :class:`ImageInfo` says of it (``kind`` ``"video"``, ``"mraw"`` or
+    ``"cine"``; ``notes`` such as a lossy codec or colour converted to luma),
+    and its frames.
+
+    Attributes
+    ----------
+    time_origin : str
+        What ``time_s`` is counted from: ``"trigger"`` or ``"stream start"``.
+    """
+
+    time_origin: str = "stream start"
     _frames: object = None
     _close: object = None
     _keyframes: object = None
+    _closed: list = field(default_factory=list, repr=False, compare=False)
+
+    def info(self) -> ImageInfo:
+        """The file's description alone (no open file behind it)."""
+        return ImageInfo(**{f.name: getattr(self, f.name) for f in dataclasses.fields(ImageInfo)})
 
     def frames(self, indices: range | None = None) -> Iterator[tuple]:
         """Yield ``(index, image, time_s)`` for the frames of ``indices`` (an increasing
@@ -123,9 +150,9 @@ class Source:
         return None if keys is None else tuple(keys)
 
     def close(self) -> None:
-        if self._close is not None:
+        if self._close is not None and not self._closed:
+            self._closed.append(True)
             self._close()
-            self._close = None
 
     def __enter__(self):
         return self
@@ -476,7 +503,7 @@ def _open_video(path: Path) -> Source:
             raise decode_error(exc, i) from exc
 
     return Source(path, "video", n, (rows, cols), dtype, bits, frame_rate_hz=fps,
-                  time_origin="stream start", codec=codec, lossless=lossless, notes=notes,
+                  time_origin="stream start", codec=codec, lossless=lossless, notes=tuple(notes),
                   _frames=lambda indices: _prefetch(frames(indices), stoppers),
                   _close=close, _keyframes=lambda: getattr(packet_index(), "keyframes", None))
 
@@ -640,12 +667,10 @@ def _open_mraw(path: Path) -> Source:
             yield i, frame(i), time_s
 
     trigger = -start if start is not None and 0 <= -start < n else None
-    source = Source(path, "mraw", n, (rows, cols), dtype, bits, frame_rate_hz=fps,
-                    trigger_index=trigger, time_origin="trigger" if start is not None else "first frame",
-                    codec=f"MRAW {color_bit} bit", lossless=True, _frames=frames,
-                    _close=lambda: raw._mmap.close() if getattr(raw, "_mmap", None) else None)
-    source.frame = frame
-    return source
+    return Source(path, "mraw", n, (rows, cols), dtype, bits, frame_rate_hz=fps,
+                  trigger_index=trigger, time_origin="trigger" if start is not None else "first frame",
+                  codec=f"MRAW {color_bit} bit", lossless=True, _frames=frames,
+                  _close=lambda: raw._mmap.close() if getattr(raw, "_mmap", None) else None)
 
 
 # =========================================================================== Phantom CINE (PIMS)
@@ -695,4 +720,4 @@ def _open_cine(path: Path) -> Source:
     codec = f"CINE {stored} bit" + (f", colour CFA {int(cine.cfa)}" if colour else "")
     return Source(path, "cine", n, (rows, cols), dtype, min(bits, 16), frame_rate_hz=fps,
                   trigger_index=trigger, time_origin="trigger", codec=codec,
-                  lossless=True, notes=notes, _frames=frames, _close=cine.close)
+                  lossless=True, notes=tuple(notes), _frames=frames, _close=cine.close)

@@ -44,7 +44,7 @@ from typing import Iterator, Sequence
 import numpy as np
 
 from app.files import formats
-from app.files.formats import ImageReadError
+from app.files.formats import ImageInfo, ImageReadError
 
 __all__ = [
     "ImageReadError",
@@ -81,51 +81,6 @@ INPUT_SUFFIXES = (IMAGE_SUFFIXES | formats.VIDEO_SUFFIXES | formats.MRAW_SUFFIXE
 _SOURCE_KINDS = ("video", "mraw", "cine")
 
 _HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
-
-
-@dataclass(frozen=True)
-class ImageInfo:
-    """What an input file holds, without reading its pixels.
-
-    Attributes
-    ----------
-    path : pathlib.Path
-        The file.
-    kind : str
-        ``"image"`` (PNG/BMP/JPEG), ``"tiff"`` or ``"recording"`` (HDF5).
-    n_frames : int
-        Number of frames: 1 for a plain image, the page count of a TIFF
-        stack, the length of ``/frames`` of a recording.
-    shape : tuple of int
-        ``(rows, cols)`` of one frame, in pixels.
-    dtype : numpy.dtype
-        Sample type as returned by :func:`read_image` / :func:`iter_frames`.
-    bits : int
-        Significant bits per sample (10 for a packed 10-bit TIFF); for float
-        images the bit width of the float.
-    frame_rate_hz : float
-        Frame rate the file states (video, MRAW, CINE); NaN otherwise.
-    trigger_index : int or None
-        Index of the trigger frame in the file (MRAW, CINE), when stated.
-    codec : str
-        Video codec or camera file layout ("" for images and recordings).
-    lossless : bool
-        False for lossy video codecs.
-    notes : tuple of str
-        Warnings about the file (lossy codec...).
-    """
-
-    path: Path
-    kind: str
-    n_frames: int
-    shape: tuple
-    dtype: np.dtype
-    bits: int
-    frame_rate_hz: float = math.nan
-    trigger_index: int | None = None
-    codec: str = ""
-    lossless: bool = True
-    notes: tuple = ()
 
 
 @dataclass(frozen=True)
@@ -529,9 +484,7 @@ def image_info(path) -> ImageInfo:
     kind = _kind(p)
     if kind in _SOURCE_KINDS:
         with _open_source(p) as src:
-            return ImageInfo(p, kind, src.n_frames, src.shape, src.dtype, src.bits,
-                             frame_rate_hz=src.frame_rate_hz, trigger_index=src.trigger_index,
-                             codec=src.codec, lossless=src.lossless, notes=tuple(src.notes))
+            return src.info()
     if kind == "tiff":
         with _tiff_open(p) as tif:
             n, shape, dtype, bits, _ = _tiff_layout(tif, p)
