@@ -622,15 +622,15 @@ class ResultWriter:
         return OSError(f"writing frame {k} to {str(self.path)!r} failed: {text}")
 
     def _abandon(self) -> bool:
-        """Point HDF5's file descriptor at /dev/null opened read-only: every
-        write it still attempts (dirty metadata at the close) fails instead of
-        reaching the file half-way, which stays as the last flush left it
-        (``frames_done`` frames; the ones written since are dropped from ``n``).
-        Returns True if it could."""
+        """Point HDF5's file descriptor at /dev/null (:func:`h5safe.detach_descriptor`):
+        every write it still attempts (dirty metadata at the close) goes nowhere
+        instead of reaching the file half-way, which stays as the last flush
+        left it (``frames_done`` frames; the ones written since are dropped
+        from ``n``). Returns True if it could."""
         self.lost = self.n - self.frames_done
         self.n = self.frames_done
         try:
-            h5safe.detach_descriptor(self.f.id.get_vfd_handle(), writable=False)
+            h5safe.detach_descriptor(self.f.id.get_vfd_handle())
         except Exception as exc:  # noqa: BLE001 - another file driver: repaired at the close
             log.error("%s: could not stop writing after the failed write (%s)", self.path, _one_line(exc))
             return False
@@ -659,7 +659,7 @@ class ResultWriter:
         if self.abandoned:
             try:
                 f.close()
-            except Exception:  # noqa: BLE001 - expected: its writes go nowhere now
+            except Exception:  # noqa: BLE001 - its writes go nowhere now; the reopen below records the status
                 pass
             if reserved:
                 self._record_status(status, attrs)

@@ -564,15 +564,11 @@ class RecordingFile:
             log.error("recording %s: %s", self.path, msg)
 
     def _detach(self) -> None:
-        """Point HDF5's descriptor at /dev/null: what HDF5 still writes while closing never reaches the file.
-
-        (A read-only descriptor would make HDF5's close fail and leave a
-        half-closed library state behind; /dev/null lets it close cleanly.)
-        """
+        """Point HDF5's descriptor at /dev/null: what HDF5 still writes while closing never reaches the file."""
         if self._fd is None:
             return
         try:
-            h5safe.detach_descriptor(self._fd, writable=True)
+            h5safe.detach_descriptor(self._fd)
         except OSError as exc:  # pragma: no cover - the file vanished
             log.error("recording %s: could not stop HDF5 writing: %s", self.path, exc)
 

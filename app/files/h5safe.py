@@ -184,16 +184,16 @@ def fallocate(fd: int, offset: int, length: int) -> int:
     return ctypes.get_errno()
 
 
-def detach_descriptor(fd: int, *, writable: bool) -> None:
+def detach_descriptor(fd: int) -> None:
     """Point ``fd`` (an open file's descriptor, e.g. HDF5's) at /dev/null, so that
     nothing written through it afterwards reaches the file.
 
-    ``writable=True`` opens /dev/null read-write: later writes succeed into
-    nothing (HDF5 then closes cleanly; the recorder's choice).
-    ``writable=False`` opens it read-only: later writes fail (the batch
-    writer's choice). Raises OSError if the descriptor cannot be replaced.
+    /dev/null is opened read-write: what HDF5 still writes (dirty metadata
+    at the close) succeeds into nothing, so HDF5 closes cleanly; a read-only
+    descriptor would make its close fail and leave a half-closed library
+    state behind. Raises OSError if the descriptor cannot be replaced.
     """
-    sink = os.open(os.devnull, os.O_RDWR if writable else os.O_RDONLY)
+    sink = os.open(os.devnull, os.O_RDWR)
     try:
         os.dup2(sink, fd)
     finally:
