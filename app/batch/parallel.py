@@ -26,7 +26,8 @@ there, e.g. an island cut off by a masked ring whose phase is beyond pi) is
 redone from the previous chunk's end state, i.e. exactly as a serial run
 continues. Frames come out in order; at most ``workers + 1`` chunks are in
 flight, and chunks are sized so that they hold no more than
-``memory_budget_bytes`` of results (never the whole recording).
+an eighth of the memory available of results (:func:`default_memory_budget_bytes`;
+never the whole recording).
 """
 
 from __future__ import annotations
@@ -50,7 +51,7 @@ from processing.errors import TirdeflectError
 
 __all__ = ["available_cores", "fft_threads", "frame_results", "process_chunk", "plan_chunks",
            "ReconstructorSpec", "Chunk", "ChunkOutcome", "AUTO_PARALLEL_MIN_FRAMES",
-           "MEMORY_BUDGET_BYTES"]
+           "MEMORY_BUDGET_BYTES", "default_memory_budget_bytes"]
 
 log = logging.getLogger(__name__)
 
@@ -58,8 +59,12 @@ log = logging.getLogger(__name__)
 #: process (imports, FFT plans) costs about a second, 50 frames of 1024^2.
 AUTO_PARALLEL_MIN_FRAMES = 64
 
-#: Results (height, slopes, valid) of all chunks in flight stay below this.
+#: Results (height, slopes, valid) of all chunks in flight stay below this share of
+#: the memory available when a run starts (:func:`default_memory_budget_bytes`), and within
+#: MEMORY_BUDGET_BYTES .. MEMORY_BUDGET_MAX_BYTES.
+MEMORY_SHARE = 1 / 8
 MEMORY_BUDGET_BYTES = 1 << 30
+MEMORY_BUDGET_MAX_BYTES = 16 << 30
 
 #: Chunks per worker aimed at (load balance), as long as chunks keep at least
 #: MIN_CHUNK_FRAMES frames (each chunk costs one extra decimated frame).
@@ -74,6 +79,28 @@ MAX_POOL_RESTARTS = 2
 #: Worker processes hand results over in shared memory (False: pickled through pipes).
 SHARED_MEMORY = True
 MIN_CHUNK_FRAMES = 8
+
+
+def default_memory_budget_bytes() -> int:
+    """Bytes the results of the chunks in flight may take: an eighth of the memory
+    available now (Linux ``MemAvailable``), at least 1 GiB, at most 16 GiB.
+
+    Longer chunks cost less (each starts with one extra frame, and a video's
+    worker decodes from the keyframe before it): at 1024^2 (13 MB of results a
+    frame) and 2 workers, 1 GiB allows 19-frame chunks, a 24 GB machine's
+    eighth 52; with 16 workers 4 and (on 128 GB) 68."""
+    available = None
+    try:
+        with open("/proc/meminfo", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    available = int(line.split()[1]) * 1024
+                    break
+    except (OSError, ValueError, IndexError):
+        pass
+    if available is None:
+        return MEMORY_BUDGET_BYTES
+    return int(min(MEMORY_BUDGET_MAX_BYTES, max(MEMORY_BUDGET_BYTES, available * MEMORY_SHARE)))
 
 
 def available_cores() -> int:
@@ -416,12 +443,13 @@ def process_chunk(spec: ReconstructorSpec, chunk: Chunk) -> ChunkOutcome:
 
 def plan_chunks(selected: int, *, first: int, step: int, paths, workers: int, frame_bytes: int,
                 chunk_frames: Optional[int] = None,
-                memory_budget_bytes: int = MEMORY_BUDGET_BYTES, keyframes=None) -> list:
+                memory_budget_bytes: Optional[int] = None, keyframes=None) -> list:
     """Contiguous chunks of the ``selected`` frames ``first, first + step, ...``.
 
     Chunk length: ``chunk_frames`` if given, else about ``selected / (4 workers)``,
     at least 8, and small enough that ``workers + 2`` chunks of results
-    (``frame_bytes`` each frame) fit ``memory_budget_bytes``.
+    (``frame_bytes`` each frame) fit ``memory_budget_bytes`` (default
+    :func:`default_memory_budget_bytes`).
 
     ``keyframes``: the frames a video decoder can start at (sequence indices;
     None: any). Without ``chunk_frames``, each chunk then ends on a keyframe
@@ -430,6 +458,8 @@ def plan_chunks(selected: int, *, first: int, step: int, paths, workers: int, fr
     worker decodes no frame it does not use (a 12-frame group of pictures otherwise costs up to 11
     decoded frames per chunk, 47 ms each for FFV1 at 1024^2).
     """
+    if memory_budget_bytes is None:
+        memory_budget_bytes = default_memory_budget_bytes()
     if chunk_frames is None:
         size = max(MIN_CHUNK_FRAMES, math.ceil(selected / (CHUNKS_PER_WORKER * workers)))
         size = min(size, max(1, memory_budget_bytes // ((workers + 2) * max(1, frame_bytes))))

@@ -429,11 +429,22 @@ def test_invalid_frames_in_the_middle_match_serial(series, tmp_path, monkeypatch
 
 
 def test_chunks_fit_the_memory_budget():
-    chunks = parallel.plan_chunks(10_000, first=0, step=1, paths=("rec.h5",), workers=16,
-                                  frame_bytes=1024 * 1024 * 13)
-    size = chunks[0].last - chunks[0].first + 1
-    assert (16 + 2) * size * 1024 * 1024 * 13 <= parallel.MEMORY_BUDGET_BYTES
-    assert chunks[-1].last == 9_999 and all(c.overlap == c.first - 1 for c in chunks[1:])
+    """Results of the chunks in flight fit the budget, by default an eighth of the
+    memory available (at least 1 GiB): a 10,000-frame 1024^2 run on 16 workers."""
+    frame_bytes = 1024 * 1024 * 13
+    for budget in (parallel.MEMORY_BUDGET_BYTES, None):
+        chunks = parallel.plan_chunks(10_000, first=0, step=1, paths=("rec.h5",), workers=16,
+                                      frame_bytes=frame_bytes, memory_budget_bytes=budget)
+        size = chunks[0].last - chunks[0].first + 1
+        limit = budget or parallel.default_memory_budget_bytes()
+        assert (16 + 2) * size * frame_bytes <= limit
+        assert size >= limit // ((16 + 2) * frame_bytes) - 1, "chunks shorter than the budget allows"
+        assert chunks[-1].last == 9_999 and all(c.overlap == c.first - 1 for c in chunks[1:])
+    with open("/proc/meminfo") as fh:
+        available = next(int(line.split()[1]) * 1024 for line in fh if line.startswith("MemAvailable:"))
+    assert parallel.default_memory_budget_bytes() == max(parallel.MEMORY_BUDGET_BYTES,
+                                                         min(parallel.MEMORY_BUDGET_MAX_BYTES, available // 8)) \
+        or abs(parallel.default_memory_budget_bytes() - available / 8) < 64 << 20  # memory moved meanwhile
     assert parallel.fft_threads(4, cores=16) == 4 and parallel.fft_threads(32, cores=16) == 1
 
 
