@@ -316,7 +316,7 @@ def _open_video(path: Path) -> Source:
     except (av.error.FFmpegError, OSError) as exc:
         raise FormatError(
             f"{str(path)!r} is not a readable video ({exc}); check the file is complete, "
-            f"or convert it losslessly, e.g. ffmpeg -i IN -c:v ffv1 OUT.mkv"
+            f"or convert it losslessly, e.g. ffmpeg -i IN -c:v ffvhuff OUT.avi (fast to read)"
         ) from exc
     if not container.streams.video:
         container.close()

@@ -500,8 +500,8 @@ class MainWindow(QtWidgets.QMainWindow):
                                          "still" else "")
         self.camera_panel.show_settings(opened.settings)
         self.clear_error()
-        if opened.note:
-            self.info(opened.note)
+        # replaces "preparing…"/"opening…", which would otherwise stay up to 8 s over the new camera
+        self.info(opened.note or f"camera {opened.camera_id} streaming", 8000 if opened.note else 3000)
         state.camera_opened(self, opened)
         self.session.worker.set_alignment(self.tabs.currentIndex() == 1)
         self._update_cost()
