@@ -25,6 +25,7 @@ import pyqtgraph as pg
 from pyqtgraph.Qt import QtCore, QtWidgets
 
 from . import state
+from .collector import GuiThreadCollector
 from .panels import CameraPanel, GeometryPanel, RecordingPanel
 from .replay import RECORDING_FILTER, Recording, ReplayTab
 from .session import LiveSession
@@ -116,6 +117,9 @@ class MainWindow(QtWidgets.QMainWindow):
                  open_at_start: bool = True, session_options: Optional[dict] = None,
                  planner_effort: str = "FFTW_MEASURE", parent=None):
         super().__init__(parent)
+        # before any background thread starts: cyclic garbage (Qt wrappers, camera handles) is
+        # finalized in this thread only (app/gui/collector.py)
+        self._collector = GuiThreadCollector(self)
         self.setWindowTitle("tirdeflect — live TIR deflectometry")
         self._fit_to_screen(1500, 950)
         self._executor = concurrent.futures.ThreadPoolExecutor(max_workers=2, thread_name_prefix="gui-bg")
@@ -552,8 +556,11 @@ class MainWindow(QtWidgets.QMainWindow):
 
         if getattr(geometry, "pattern", "checkerboard") == "dots":
             # OpenPIV's first import (scipy.stats, ~1 s) here, in the GUI thread: in a background
-            # thread beside the running event loop it crawled for minutes in a test run (every
-            # thread waiting for the GIL, no CPU used); not understood
+            # thread beside the running event loop it crawled for minutes in test runs (every
+            # thread waiting for the GIL, no CPU used). Likeliest cause: its allocations set the
+            # garbage collector off in that thread, finalizing Qt objects there (a running QTimer
+            # finalized so segfaults); app/gui/collector.py now keeps collection in this thread,
+            # this import stays as a second guard until that is shown to be the whole story
             import openpiv.windef  # noqa: F401
 
         def build():
@@ -1383,3 +1390,4 @@ class MainWindow(QtWidgets.QMainWindow):
             if self.replay_recording is not None:
                 self.replay_recording.close()
                 self.replay_recording = None
+            self._collector.stop()
