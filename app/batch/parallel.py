@@ -741,7 +741,8 @@ class _Chunked:
                     raise TirdeflectError(
                         f"a worker process died while reconstructing {chunk.label} ({exc}; killed, or "
                         f"out of memory?) {self.restarts + 1} time(s); run again with fewer --workers "
-                        f"or --workers 1, and --first {chunk.first} to go on from there") from None
+                        f"or --workers 1, and --first {chunk.first} to go on from there"
+                        f"{_script_hint()}") from None
                 self.restarts += 1
                 log.warning("a worker process died during %s; starting new workers for the %d "
                             "chunk(s) in flight", chunk.label, len(self._pending) + 1)
@@ -897,12 +898,29 @@ class _Pool:
             return future
 
     def shutdown(self):
+        if getattr(self._pool, "_broken", False):  # the run gives up after its last restart
+            _release_feeder(self._pool)
         self._pool.shutdown(wait=True, cancel_futures=True)
 
     def restart(self):
         broken, self._pool = self._pool, self._new()
         _release_feeder(broken)
         broken.shutdown(wait=False, cancel_futures=True)
+
+
+def _script_hint() -> str:
+    """When this process runs a Python script (``python myscript.py``): the
+    reminder that worker processes import that script, so that a call to
+    ``run_process`` outside ``if __name__ == "__main__":`` kills every worker
+    as it starts (multiprocessing's "bootstrapping phase" error)."""
+    import sys
+
+    main = sys.modules.get("__main__")
+    path = getattr(main, "__file__", None)
+    if not path or getattr(main, "__spec__", None) is not None:
+        return ""  # python -m, the tirdeflect command, an interactive session
+    return (f". If {os.path.basename(path)} calls run_process at its top level, move that call "
+            f"under `if __name__ == \"__main__\":` (worker processes import the script)")
 
 
 def _release_feeder(broken_pool) -> None:
@@ -914,7 +932,17 @@ def _release_feeder(broken_pool) -> None:
     thread at exit: a run whose worker died never ended (CPython before
     3.11.3, e.g. Debian 12's 3.11.2: python/cpython#94777). Closing this
     process's end of that pipe -- which only the workers read -- makes the
-    stuck write fail, as later CPythons do themselves."""
+    stuck write fail, as later CPythons do themselves.
+
+    Only on those older Pythons: from 3.11.3 on the pool's manager thread
+    closes that end itself, and closing it here too raced with it -- two
+    closes of one descriptor, the second hitting whatever pipe the new pool
+    had just been given under the same number (EBADF in the new pool's
+    process start)."""
+    import sys
+
+    if sys.version_info >= (3, 11, 3):
+        return
     queue = getattr(broken_pool, "_call_queue", None)
     reader = getattr(queue, "_reader", None)
     if reader is None:

@@ -323,6 +323,42 @@ def test_workers_end_when_the_run_is_killed(series, tmp_path):
     assert not _shm_blocks_of(proc.pid), "shared-memory blocks of the killed run left behind"
 
 
+def test_a_script_without_the_main_guard_is_told_what_to_do(series, tmp_path):
+    """A physicist's script calls run_process(..., workers=2) at its top level: each
+    worker process imports the script, which starts processes while it is being
+    imported, and dies. The run ends with an error naming the script and the
+    `if __name__ == "__main__":` idiom, nothing written; with the guard it works."""
+    import subprocess
+    import sys
+    import textwrap
+
+    d, frames = series
+    root = Path(__file__).resolve().parents[2]
+    call = (f"run_process(ProcessJob(reference={str(d / 'reference.png')!r}, frames={frames!r}, "
+            f"geometry={str(d / 'geometry.toml')!r}, out=OUT, workers=2, fft_effort='estimate'))")
+    head = textwrap.dedent(f"""
+        import sys
+        sys.path.insert(0, {str(root)!r})
+        from app.batch import ProcessJob, run_process
+        """)
+    bare = tmp_path / "my_analysis.py"
+    bare.write_text(head + f"OUT = {str(tmp_path / 'bare.h5')!r}\n" + call + "\n")
+    guarded = tmp_path / "my_guarded_analysis.py"
+    guarded.write_text(head + f"OUT = {str(tmp_path / 'guarded.h5')!r}\n"
+                       + "if __name__ == '__main__':\n    " + call + "\n")
+    run = subprocess.run([sys.executable, str(bare)], capture_output=True, text=True, timeout=300,
+                         cwd=tmp_path)
+    assert run.returncode != 0
+    assert "my_analysis.py calls run_process at its top level" in run.stderr
+    assert 'if __name__ == "__main__":' in run.stderr
+    assert not (tmp_path / "bare.h5").exists()
+    run = subprocess.run([sys.executable, str(guarded)], capture_output=True, text=True, timeout=300,
+                         cwd=tmp_path)
+    assert run.returncode == 0, run.stderr[-2000:]
+    with h5py.File(tmp_path / "guarded.h5") as f:
+        assert int(f.attrs["frames_done"]) == N_FRAMES
+
+
 def test_bad_parallel_options_are_one_line_errors(series, tmp_path):
     import subprocess
     import sys
