@@ -164,6 +164,19 @@ DOT_CONTRAST_MIN = 0.2
 DOT_FOCUS_MIN = 0.08
 
 
+#: Saturated pixels (%) above which a frame is not ready: clipped grey levels flatten the pattern.
+SATURATION_MAX_PCT = 1.0
+NO_GEOMETRY = "no geometry: enter θ and H (Controls ▸ Reference & geometry)"
+
+
+def _check_saturation(saturation_pct: float, reasons: list, lines: list) -> None:
+    """The saturation row of the metrics table, and a reason when above :data:`SATURATION_MAX_PCT`."""
+    sat = float(saturation_pct)
+    lines.append(("saturation", f"{sat:.2f} %"))
+    if sat > SATURATION_MAX_PCT:
+        reasons.append(f"{sat:.1f} % of pixels saturated: lower exposure or gain")
+
+
 def _assess_dots(a: dict, saturation_pct: float, geometry, has_reference: bool):
     """:func:`assess` for a random-dot pattern (``a`` from :func:`processing.piv.dot_alignment`)."""
     reasons, lines, notes = [], [], []
@@ -212,12 +225,9 @@ def _assess_dots(a: dict, saturation_pct: float, geometry, has_reference: bool):
             reasons.append(f"out of focus (focus {float(focus):.3f}, below {DOT_FOCUS_MIN:g}: the image hardly "
                            "changes from pixel to pixel): focus the camera on the dots; if they are sharp, "
                            "use smaller dots or zoom out")
-    sat = float(saturation_pct)
-    lines.append(("saturation", f"{sat:.2f} %"))
-    if sat > 1.0:
-        reasons.append(f"{sat:.1f} % of pixels saturated: lower exposure or gain")
+    _check_saturation(saturation_pct, reasons, lines)
     if geometry is None:
-        reasons.append("no geometry: enter θ and H (Controls ▸ Reference & geometry)")
+        reasons.append(NO_GEOMETRY)
     if not has_reference:
         notes.append("capture the reference on still water")
     return (not reasons), reasons, lines, notes
@@ -313,14 +323,11 @@ def assess(a: dict, saturation_pct: float, geometry=None, has_reference: bool = 
     focus = num("focus", "focus_metric")
     if focus is not None:
         lines.append(("focus (carrier peak sharpness)", f"{float(focus):.3f}"))
-    sat = float(saturation_pct)
-    lines.append(("saturation", f"{sat:.2f} %"))
-    if sat > 1.0:
-        reasons.append(f"{sat:.1f} % of pixels saturated: lower exposure or gain")
+    _check_saturation(saturation_pct, reasons, lines)
     if periods is None and th_est is None and not a.get("error"):
         reasons.append("no carriers found")
     if geometry is None:
-        reasons.append("no geometry: enter θ and H (Controls ▸ Reference & geometry)")
+        reasons.append(NO_GEOMETRY)
     if a.get("disturbed"):
         lines.append(("surface", "moving: carriers from local patches"))
         if has_reference:
