@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import time
 
+import cv2
 import numpy as np
 
 from .unwrap import TWO_PI
@@ -55,6 +56,14 @@ def cupy_or_reason():
         return None, f"no usable CUDA device ({type(exc).__name__}: {exc})"
     if n < 1:
         return None, "no CUDA device found"
+    try:  # what the chain needs, once: a kernel compiled (NVRTC), cuFFT and cuBLAS loaded
+        a = cupy.arange(64, dtype=cupy.float32).reshape(8, 8)
+        cupy.fft.rfft2(a)
+        cupy.matmul(a, a)
+        cupy.cuda.Device().synchronize()
+    except Exception as exc:  # noqa: BLE001 - e.g. cupy-cuda12x without a CUDA toolkit: no NVRTC
+        return None, (f"CuPy cannot run on this GPU ({type(exc).__name__}: {exc}); install "
+                      f"'cupy-cuda12x[ctk]' or a CUDA toolkit")
     return cupy, None
 
 
@@ -135,6 +144,8 @@ class BatchChain:
             self.reason = "refine_method='image' (image matching on the CPU)"
         elif not recon._ref_ok_all:
             self.reason = "the reference has blank parts (every frame is masked)"
+        elif recon._up.interpolation != cv2.INTER_LANCZOS4:
+            self.reason = "full_interpolation other than 'lanczos' (the GPU resizes with Lanczos only)"
         if self.reason is not None:
             return
         to = xp.asarray
@@ -279,7 +290,6 @@ class BatchChain:
         ratio = xp.abs(g) / self.g0_den
         amplitude = xp.minimum(ratio[:, 0], ratio[:, 1])
         all_valid = _host(xp, amplitude.reshape(B, -1).min(axis=1)) >= r.min_amplitude
-        pi = np.float32(np.pi)
         # previous unwrapped phase: the series state, or frame 0 unwrapped in space on the CPU
         first = 0
         prev = None
@@ -300,7 +310,8 @@ class BatchChain:
             return [r._call_cpu(f, grid=grid) for f in frames]
         if not r.unwrap:
             phase = wrapped
-            ok_upto = B
+            ok = np.array(all_valid, bool)  # a masked frame goes to the CPU, as with unwrapping
+            ok_upto = int(np.argmin(ok)) if not ok.all() else B
         else:
             # wrapped changes frame to frame; each frame's neighbour-jump test as on the CPU
             before = prev[None] if prev is not None else start[None]

@@ -713,6 +713,13 @@ class Reconstructor:
         self._prev_all_valid = False
         self._series_prev = None
 
+    @property
+    def gpu_fallback(self) -> Optional[str]:
+        """With ``device="cuda"``: why frames still go through the CPU chain (e.g.
+        a finite camera distance has no spectral height solver), or None when
+        the GPU reconstructs them. None as well with ``device="cpu"``."""
+        return None if self._gpu is None else self._gpu.reason
+
     def series_state(self) -> Optional["SeriesState"]:
         """What temporal unwrapping remembers of the last frame (a copy), or
         None when the next frame would be unwrapped in space only.

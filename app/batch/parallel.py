@@ -568,6 +568,12 @@ class _Serial:
         self._frames.close()
 
 
+def _out_of_gpu_memory(exc: BaseException) -> bool:
+    """CuPy's ``cupy.cuda.memory.OutOfMemoryError`` (or cuFFT's allocation failure),
+    told by name: this module does not import CuPy."""
+    return type(exc).__name__ == "OutOfMemoryError" or "CUFFT_ALLOC_FAILED" in str(exc)
+
+
 class _GpuBatches:
     """A Reconstructor with ``device="cuda"`` of its own (the engine's resets its
     series after a hole; this one is ahead by a batch): frames read and sent to
@@ -576,16 +582,21 @@ class _GpuBatches:
     def __init__(self, job, reconstruct, reference, geometry, effort, paths):
         from app.batch.engine import _make_reconstructor
 
-        self.attrs = {"device": "cuda", "gpu_batch": GPU_BATCH}
         self._recon = _make_reconstructor(reference, geometry, unwrap=not job.no_unwrap, grid=job.grid,
                                           effort=effort, carriers=reconstruct.carriers, device="cuda",
                                           pattern=getattr(reconstruct, "pattern", None))
+        why = self._recon.gpu_fallback
+        self.attrs = {"device": "cuda" if why is None else f"cpu ({why})", "gpu_batch": GPU_BATCH}
+        if why is not None:
+            log.warning("--device cuda: frames go through the CPU: %s", why)
         self._shape = tuple(reference.shape)
         self._grid = job.grid
         self._frames = imageio.iter_frames(paths, first=job.first, last=job.last, step=job.step,
                                            errors="yield")
         self._ready = collections.deque()
         self._read_error = None
+        self._batch_size = GPU_BATCH  # halved each time the GPU runs out of memory
+        self._again = collections.deque()  # frames read for a batch the GPU could not hold
 
     def __iter__(self):
         return self
@@ -603,13 +614,14 @@ class _GpuBatches:
                 self._recon.reset_series()  # no temporal unwrapping across a hole
             self._ready.append((it, functools.partial(_given, (result, outcome))))
 
-    def _batch(self):
+    def _batch(self) -> bool:
+        """Read up to a batch of frames and reconstruct them; False at the end of the frames."""
         from app.batch.frame_status import FrameOutcome
 
         items = []
-        while len(items) < GPU_BATCH:
+        while len(items) < self._batch_size:
             try:
-                item = next(self._frames)
+                item = self._again.popleft() if self._again else next(self._frames)
             except StopIteration:
                 break
             except TirdeflectError as exc:  # a whole file unreadable: the frames before it first
@@ -619,25 +631,36 @@ class _GpuBatches:
             if not self._plain(item):
                 break  # measured on its own after the ones before it
         if not items:
-            return
+            return False
         plain = items if self._plain(items[-1]) else items[:-1]
         state = self._recon.series_state()
         try:
             results = self._recon.batch([it.image for it in plain], grid=self._grid, essentials=True)
             if any(not np.asarray(r.valid).any() for r in results):
                 raise TirdeflectError("a frame without valid samples")
-        except TirdeflectError:
-            # one frame at a time from the batch's start: each frame's own outcome
+        except Exception as exc:
             self._recon.restore_series(state)
-            self._one_by_one(items)
-            return
+            if _out_of_gpu_memory(exc) and self._batch_size > 1:
+                # the same frames again, in batches half as large, the series from the same state
+                self._batch_size //= 2
+                self.attrs["gpu_batch"] = self._batch_size
+                log.warning("the GPU ran out of memory with %d frames at once; going on with %d",
+                            len(plain), self._batch_size)
+                self._again.extendleft(reversed(items))
+                return True
+            if not isinstance(exc, TirdeflectError):
+                raise
+            self._one_by_one(items)  # one frame at a time from the batch's start: each frame's own outcome
+            return True
         for it, r in zip(plain, results):
             self._ready.append((it, functools.partial(_given, (r, FrameOutcome()))))
         self._one_by_one(items[len(plain):])
+        return True
 
     def __next__(self):
-        if not self._ready and self._read_error is None:
-            self._batch()
+        while not self._ready and self._read_error is None:
+            if not self._batch():  # the end of the frames
+                break
         if self._ready:
             return self._ready.popleft()
         if self._read_error is not None:

@@ -580,7 +580,7 @@ class MainWindow(QtWidgets.QMainWindow):
                 try:
                     rec = Reconstructor(reference, geometry, planner_effort=self.planner_effort, device="cuda",
                                         window_px=DOT_WINDOW_PX)
-                    rec.device_text = text
+                    rec.device_text = text if rec.gpu_fallback is None else f"CPU ({rec.gpu_fallback})"
                     return rec
                 except TirdeflectError as exc:  # e.g. a dot pattern: the GPU reads checkerboards only
                     text = f"CPU ({exc})"

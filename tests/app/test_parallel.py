@@ -431,6 +431,32 @@ def test_device_cuda_batches_through_the_engine(series, serial, tmp_path, monkey
     run_process(_job(series, serial_fd, workers=1, refine_method="fd"))
     _assert_same(_read(serial_fd), got)
 
+    # a GPU with too little memory for 4 frames at once: CuPy raises OutOfMemoryError
+    # (stood in for here by an exception of that name); the run halves its batches
+    # and goes on from the same frames, with the same heights
+    from processing.reconstruct import Reconstructor
+
+    class OutOfMemoryError(Exception):
+        pass
+
+    tried = []
+    batch = Reconstructor.batch
+
+    def small_gpu(self, frames, *args, **kwargs):
+        tried.append(len(frames))
+        if len(frames) > 1:
+            raise OutOfMemoryError("Out of memory allocating 1,073,741,824 bytes")
+        return batch(self, frames, *args, **kwargs)
+
+    monkeypatch.setattr(Reconstructor, "batch", small_gpu)
+    out = tmp_path / "small_gpu.h5"
+    report = run_process(_job(series, out, device="cuda"))
+    assert report.frames_written == N_FRAMES
+    assert tried[:3] == [4, 2, 1] and set(tried[3:]) == {1}, tried
+    small = _read(out)
+    assert small["attrs"]["gpu_batch"] == 1
+    _assert_same(_read(serial_fd), small)
+
 
 @pytest.mark.parametrize("how", ["workers", "device-cuda"])
 def test_invalid_frames_in_the_middle_match_serial(series, tmp_path, monkeypatch, how):

@@ -82,6 +82,36 @@ def test_chain_on_numpy_gives_the_cpu_heights(series, grid):
     _compare(expected, [single([f], grid)[0] for f in frames])
 
 
+def test_chain_without_unwrapping_leaves_masked_frames_to_the_cpu(series):
+    """unwrap=False (`--no-unwrap`): a frame where part of the pattern is faint (a
+    fifth of its contrast: below min_amplitude, masked by the CPU's chain) while its
+    phase stays smooth must go to the CPU from the batch too, not come back valid
+    everywhere."""
+    ref, frames = series
+    blanked = [f.copy() for f in frames[:4]]
+    yy, xx = np.mgrid[:N, :N]
+    faint = np.hypot(yy - 150, xx - 100) < 30
+    mean = float(frames[2].mean())
+    blanked[2][faint] = np.round(mean + 0.2 * (frames[2][faint] - mean)).astype(frames[2].dtype)
+    expected = [Reconstructor(ref, G55, unwrap=False)(f, grid="decimated") for f in blanked]
+    assert [r.valid.all() for r in expected] == [True, True, False, True]
+    got = BatchChain(Reconstructor(ref, G55, unwrap=False), np)(blanked, "decimated")
+    for k in range(4):
+        np.testing.assert_array_equal(got[k].valid, expected[k].valid, err_msg=f"frame {k}")
+    assert "batch" not in got[2].timings_ms, "the masked frame stayed on the batch"
+
+
+def test_chain_takes_only_what_it_reproduces(series):
+    """The chain resizes with Lanczos only: another full-grid interpolation (4 % of the
+    RMS height apart) goes through the CPU, and the Reconstructor says why."""
+    ref, _ = series
+    for interpolation in ("cubic", "linear"):
+        chain = BatchChain(Reconstructor(ref, G55, full_interpolation=interpolation), np)
+        assert chain.reason is not None and "lanczos" in chain.reason
+    assert BatchChain(Reconstructor(ref, G55), np).reason is None
+    assert Reconstructor(ref, G55).gpu_fallback is None  # device="cpu": nothing falls back
+
+
 def test_device_cuda_without_a_gpu_says_why(series):
     cupy, why = cupy_or_reason()
     if cupy is not None:
