@@ -244,6 +244,7 @@ class ImageView(QtWidgets.QWidget):
         self._levels: Tuple[float, float] = (0.0, 1.0)
         self._levels_set = False
         self._rect = None
+        self._drawn_shape = None  # (rows, cols) of the image last given a rect (after striding)
         self._shape = None
         self.updates = 0
         self.frame_id = None  # frame (worker sequence) of the data shown, when the caller says
@@ -414,8 +415,14 @@ class ImageView(QtWidgets.QWidget):
         if rect != self._rect:
             self.image.setRect(QtCore.QRectF(*rect))
             self._rect = rect
+            self._drawn_shape = data.shape
             self._user_zoomed = False
             self._refit()
+        elif data.shape != self._drawn_shape:
+            # the same area drawn with another stride (the view was resized): pyqtgraph scales
+            # an image to its rect when the rect is set, so set it again for the new pixel count
+            self.image.setRect(QtCore.QRectF(*rect))
+            self._drawn_shape = data.shape
         self._shape = full_shape
         self.frame_id = frame_id
         self.updates += 1

@@ -543,3 +543,26 @@ def test_window_opens_inside_a_1280x800_x_screen(tmp_path):
     assert result["problems"] == []
     image = QtGui.QImage(str(shot))
     assert (image.width(), image.height()) == (1280, 800)
+
+
+def test_a_resized_view_still_draws_the_whole_frame(qtbot):
+    """The live views draw a strided frame when the screen shows fewer pixels than
+    the camera has; after the user makes a view smaller (window resized, a panel
+    opened), the stride grows and the frame must still cover its 1024 x 1024 px,
+    not a corner of them at the old stride's scale (seen under Xvfb: the raw frame
+    drawn over two thirds of its axes)."""
+    from app.gui.views import ImageView
+
+    view = ImageView("Raw frame", "counts", axis_units="px", pan=False)
+    qtbot.addWidget(view)
+    frame = (np.arange(1024 * 1024, dtype=np.uint16).reshape(1024, 1024) % 4096)
+    drawn = []
+    for size in (700, 300, 150, 700):
+        view.resize(size, size)
+        view.show()
+        qtbot.waitUntil(lambda: view.plot.getViewBox().width() < size, timeout=5000)
+        view.set_data(frame)
+        shown = view.image.mapRectToParent(view.image.boundingRect())
+        drawn.append((view.stride, view.image.image.shape))
+        assert (shown.width(), shown.height()) == pytest.approx((1024, 1024)), (size, view.stride, shown)
+    assert len({stride for stride, _ in drawn}) >= 2, f"the stride never changed: {drawn}"
