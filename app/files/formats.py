@@ -75,7 +75,8 @@ class ImageInfo:
     path : pathlib.Path
         The file.
     kind : str
-        ``"image"`` (PNG/BMP/JPEG), ``"tiff"`` or ``"recording"`` (HDF5).
+        ``"image"`` (PNG/BMP/JPEG), ``"tiff"``, ``"recording"`` (HDF5), ``"video"``,
+        ``"mraw"`` or ``"cine"``.
     n_frames : int
         Number of frames: 1 for a plain image, the page count of a TIFF
         stack, the length of ``/frames`` of a recording.
@@ -109,7 +110,6 @@ class ImageInfo:
     codec: str = ""
     lossless: bool = True
     notes: tuple = ()
-
 
 
 @dataclass(frozen=True)
