@@ -130,17 +130,24 @@ def test_gige_packet_loss_is_counted_not_hidden(gv_fake_camera_lossy):
         frames = _stream(cam, n)
         cam.stop()
         stats = cam.statistics()
-    ids = np.array([f.frame_id for f in frames])
+    all_ids = np.array([f.frame_id for f in frames])
     n_incomplete = sum(f.incomplete for f in frames)
+    # a stream whose very first frames lost their leader packet cannot know their ids
+    # (nothing told it yet where the camera's count stands): they come as -1, each
+    # counted as a lost leader, and only before the first known id (twice in CI runs:
+    # frame 0 with id -1, then 65402, which made the span 65677 when -1 was counted in)
+    unknown = np.flatnonzero(all_ids < 0)
+    known_from = int(np.argmax(all_ids >= 0))
+    assert np.array_equal(unknown, np.arange(known_from)), f"ids unknown after a known one: {all_ids[:20]}"
+    assert len(unknown) <= stats["n_leader_lost"]
+    ids = all_ids[known_from:]
     span = int(ids.max() - ids.min() + 1)
     # every id in the span was delivered (complete or flagged) or is a counted gap
-    # (once in CI the span came out 65713 for 200 frames: an id off by one 16-bit
-    # wrap; not reproduced since, so the message shows where, for next time)
     jumps = np.flatnonzero(np.abs(np.diff(ids)) > 1000)
-    where = [(int(k), [(int(f.frame_id), bool(f.incomplete), int(f.missing_bytes)) for f in frames[max(0, k - 2):k + 3]])
-             for k in jumps[:3]]
-    assert span == n + stats["n_id_gap_frames"], f"ids jump at {where}; stats {stats}"
-    assert len(set(ids.tolist())) == n
+    where = [(int(k), [(int(f.frame_id), bool(f.incomplete), int(f.missing_bytes))
+                       for f in frames[known_from + max(0, k - 2):known_from + k + 3]]) for k in jumps[:3]]
+    assert span == len(ids) + stats["n_id_gap_frames"], f"ids jump at {where}; stats {stats}"
+    assert len(set(ids.tolist())) == len(ids)
     # every failed buffer reached the consumer, flagged -- unless only its leader/trailer was lost (all pixels there)
     assert n_incomplete == stats["n_incomplete_delivered"] == stats["n_failures"] - stats["n_failed_but_all_pixels"]
     assert sum(f.missing_bytes for f in frames) == stats["n_missing_bytes"]
