@@ -648,6 +648,10 @@ class _GpuBatches:
                             len(plain), self._batch_size)
                 self._again.extendleft(reversed(items))
                 return True
+            if _out_of_gpu_memory(exc):
+                raise TirdeflectError(
+                    f"the GPU has too little free memory for even one frame ({exc}); close other "
+                    f"programs using it, or run without --device cuda (the CPU)") from exc
             if not isinstance(exc, TirdeflectError):
                 raise
             self._one_by_one(items)  # one frame at a time from the batch's start: each frame's own outcome

@@ -22,6 +22,7 @@ from app.batch import ProcessJob, run_process
 from app.batch import parallel
 from app.cli import main
 from app.files import imageio
+from processing.errors import TirdeflectError
 
 SIZE = 256
 N_FRAMES = 12
@@ -456,6 +457,14 @@ def test_device_cuda_batches_through_the_engine(series, serial, tmp_path, monkey
     small = _read(out)
     assert small["attrs"]["gpu_batch"] == 1
     _assert_same(_read(serial_fd), small)
+
+    # not even one frame fits: a one-line error that says what to do, not CuPy's traceback
+    def no_gpu_memory(self, frames, *args, **kwargs):
+        raise OutOfMemoryError("Out of memory allocating 8,388,608 bytes")
+
+    monkeypatch.setattr(Reconstructor, "batch", no_gpu_memory)
+    with pytest.raises(TirdeflectError, match="too little free memory for even one frame.*without --device cuda"):
+        run_process(_job(series, tmp_path / "no_gpu.h5", device="cuda"))
 
 
 @pytest.mark.parametrize("how", ["workers", "device-cuda"])
