@@ -887,7 +887,11 @@ class MainWindow(QtWidgets.QMainWindow):
                     self._show_replay_frame(self.replay.slider.value())
             self.run_background("replay-reconstructor", build, done)
         else:
-            self.replay.message.setText("no reference in the file and none loaded: raw frames only")
+            missing = [what for what, have in (("reference (still water)", reference is not None),
+                                                ("geometry", geometry is not None)) if not have]
+            self.replay.message.setText(
+                f"raw frames only: no {' and no '.join(missing)} in this file or the window; for heights, "
+                f"load or capture them in Controls ▸ Reference & geometry, then open the file again")
         self._show_replay_frame(0)
         self.tabs.setCurrentWidget(self.replay)
         return True

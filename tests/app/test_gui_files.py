@@ -70,6 +70,10 @@ def test_file_open_lists_and_opens_camera_files_and_video(qtbot, window, tmp_pat
         shown = window.replay.raw.image.image
         np.testing.assert_array_equal(np.asarray(shown), frames[k])
         assert window.replay.index_label.text().startswith(f"frame {k + 1}/{len(frames)}")
+    # a camera file holds neither reference nor geometry, and this window has none yet:
+    # raw frames only, and the user is told where to get heights
+    text = window.replay.message.text()
+    assert "no reference (still water) and no geometry" in text and "Controls ▸ Reference & geometry" in text
 
 
 def _cli(*args):
