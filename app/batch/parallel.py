@@ -283,9 +283,9 @@ def _host_of(address: str) -> str:
 def _dask_tasks_per_host(client) -> tuple:
     """``((host, worker threads on it), ...)`` of the cluster behind ``client``."""
     counts: dict = {}
-    for address, info in client.scheduler_info().get("workers", {}).items():
+    for address, threads in client.nthreads().items():
         host = _host_of(address)
-        counts[host] = counts.get(host, 0) + int(info.get("nthreads", 1) or 1)
+        counts[host] = counts.get(host, 0) + int(threads or 1)
     return tuple(sorted(counts.items()))
 
 
@@ -640,7 +640,11 @@ class _GpuBatches:
                 raise TirdeflectError("a frame without valid samples")
         except Exception as exc:
             self._recon.restore_series(state)
-            if _out_of_gpu_memory(exc) and self._batch_size > 1:
+            if _out_of_gpu_memory(exc):
+                if self._batch_size == 1:
+                    raise TirdeflectError(
+                        f"the GPU has too little free memory for even one frame ({exc}); close other "
+                        f"programs using it, or run without --device cuda (the CPU)") from exc
                 # the same frames again, in batches half as large, the series from the same state
                 self._batch_size //= 2
                 self.attrs["gpu_batch"] = self._batch_size
@@ -648,10 +652,6 @@ class _GpuBatches:
                             len(plain), self._batch_size)
                 self._again.extendleft(reversed(items))
                 return True
-            if _out_of_gpu_memory(exc):
-                raise TirdeflectError(
-                    f"the GPU has too little free memory for even one frame ({exc}); close other "
-                    f"programs using it, or run without --device cuda (the CPU)") from exc
             if not isinstance(exc, TirdeflectError):
                 raise
             self._one_by_one(items)  # one frame at a time from the batch's start: each frame's own outcome
@@ -856,13 +856,13 @@ class _Chunked:
         self._pending.clear()
 
 
-def _spec(job, reconstruct, reference, geometry, effort, threads, shared_memory=False):
+def _spec(job, reconstruct, reference, geometry, effort, threads, shared_memory=False, tasks_per_host=()):
     return ReconstructorSpec(key=uuid.uuid4().hex, reference=np.asarray(reference), geometry=geometry,
                              grid=job.grid, unwrap=not job.no_unwrap, effort=effort,
                              carriers=reconstruct.carriers, threads=threads,
                              shared_memory=shared_memory, pattern=getattr(reconstruct, "pattern", None),
                              refine_method=getattr(reconstruct, "refine_method", "fd"),
-                             compression=getattr(job, "compression", None))
+                             compression=getattr(job, "compression", None), tasks_per_host=tasks_per_host)
 
 
 def _frame_bytes(reconstruct, grid: str) -> int:
@@ -1084,7 +1084,8 @@ def frame_results(job, reconstruct, reference, geometry, effort: str, selected: 
                 task_paths = tuple(inputs)
             else:
                 task_paths = tuple(str(Path(p).resolve()) for p in inputs)
-            n = max(1, sum(client.nthreads().values()))
+            per_host = _dask_tasks_per_host(client)
+            n = max(1, sum(threads for _, threads in per_host))
             chunks = plan_chunks(selected, first=job.first, step=job.step, paths=task_paths, workers=n,
                                  frame_bytes=_frame_bytes(reconstruct, job.grid),
                                  chunk_frames=job.chunk_frames, keyframes=_keyframes(inputs))
@@ -1092,8 +1093,8 @@ def frame_results(job, reconstruct, reference, geometry, effort: str, selected: 
             # shared memory as from worker processes, not pickled through TCP (13 MB a 1024^2 frame)
             local = dask_address == "local" or dask_address.startswith("local:")
             spec = _spec(job, reconstruct, reference, geometry, effort, None,
-                         shared_memory=local and _results_fit_shm(chunks, n, job, reconstruct))
-            spec = dataclasses.replace(spec, tasks_per_host=_dask_tasks_per_host(client))
+                         shared_memory=local and _results_fit_shm(chunks, n, job, reconstruct),
+                         tasks_per_host=per_host)
             runner = _Chunked(job, spec, chunks, _dask_submit(client), n + 1, close,
                               f"dask {dask_address} ({n} worker threads)")
         except BaseException:

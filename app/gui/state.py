@@ -372,7 +372,7 @@ def update_truth(w) -> None:
         w.camera_panel.show_scene(getattr(w, "scene_wanted", tank.scene), text)
         lab.setText(text)  # visible whichever Controls section is open
         return
-    p = getattr(w, "last_drawn", None) or w.session.worker.latest()  # the maps on screen (also paused)
+    p = w.last_drawn or w.session.worker.latest()  # the maps on screen (also paused)
     if p is None or p.result is None:
         lab.setText("")
         return

@@ -412,17 +412,15 @@ class ImageView(QtWidgets.QWidget):
                 self._levels_t = now
         self.image.setImage(data, autoLevels=False, levels=self._levels)
         rect = self._rect_for(full_shape, x, y)
-        if rect != self._rect:
+        # pyqtgraph scales an image to its rect when the rect is set: set it again when the
+        # same area comes with another pixel count too (another stride: the view was resized)
+        if rect != self._rect or data.shape != self._drawn_shape:
             self.image.setRect(QtCore.QRectF(*rect))
-            self._rect = rect
             self._drawn_shape = data.shape
+        if rect != self._rect:
+            self._rect = rect
             self._user_zoomed = False
             self._refit()
-        elif data.shape != self._drawn_shape:
-            # the same area drawn with another stride (the view was resized): pyqtgraph scales
-            # an image to its rect when the rect is set, so set it again for the new pixel count
-            self.image.setRect(QtCore.QRectF(*rect))
-            self._drawn_shape = data.shape
         self._shape = full_shape
         self.frame_id = frame_id
         self.updates += 1
