@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 from typing import Optional
 
@@ -34,6 +35,7 @@ class Recording:
         self.path = os.fspath(path)
         self._source = None
         self.time_origin = None
+        self.frame_time_s = math.nan  # time of the frame frame() returned last, where the file says
         if not self._is_hdf5():
             self._open_other()
             return
@@ -113,9 +115,10 @@ class Recording:
                 self._iter.close()
             self._iter = self._source.frames(range(index, self.n_frames))
             self._next = index
-        for i, image, _ in self._iter:
+        for i, image, time_s in self._iter:
             self._next = i + 1
             if i == index:
+                self.frame_time_s = float(time_s)
                 return image
         self._iter = None
         raise IndexError(f"frame {index} of {self.path!r} could not be decoded (the file ends early)")

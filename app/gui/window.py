@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import logging
+import math
 import os
 import time
 import traceback
@@ -903,8 +904,11 @@ class MainWindow(QtWidgets.QMainWindow):
         frame = rec.frame(int(index))
         self.replay.raw.set_data(frame, levels=(0, float(frame.max()) or 1.0) if self.replay.raw.auto_levels else None)
         rel = rec.trigger_index(int(index))
+        when = rec.frame_time_s if rec.time_origin is not None else math.nan
         self.replay.index_label.setText(f"frame {index + 1}/{rec.n_frames}"
-                                        + (f"  (trigger {rel:+d})" if rel is not None else ""))
+                                        + (f"  (trigger {rel:+d})" if rel is not None else "")
+                                        + (f"  t = {when * 1e3:+.4f} ms from the {rec.time_origin}"
+                                           if math.isfinite(when) else ""))
         self._replay_wanted = (frame, int(index))
         self._process_replay_frame()
 

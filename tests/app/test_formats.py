@@ -363,6 +363,72 @@ def test_cine_header_of_a_real_phantom_file():
     assert "colour" in info.codec and info.notes
 
 
+CINE_DATA = Path(__file__).parent / "data" / "cine"
+
+
+@pytest.mark.parametrize("name,n,shape,bits,frame_interval_s,header_hz,ffmpeg_upside_down", [
+    # PCC 3.3.781: recorded at 90,000 frames/s, saved 1 in 10 (PIMS' notes on the file);
+    # its setup has bFlipV set, which FFmpeg alone applies to the stored rows
+    ("cine_781", 15, (256, 256), 12, 10 / 90000, 90000.0, True),
+    ("cine_legacy", 97, (128, 128), 14, 1 / 35087, 35087.0, False),  # PCC of 2008
+])
+def test_real_monochrome_phantom_cine(name, n, shape, bits, frame_interval_s, header_hz,
+                                      ffmpeg_upside_down):
+    """Real monochrome Phantom files: every frame, read in any order, equals FFmpeg's own
+    CINE demuxer's (an independent reader, which fills samples out to 16 bits by bit
+    replication); the depth is the header's; the per-frame times are the camera's
+    stamps, at the rate the frames were saved at, and agree with the header's first
+    image number."""
+    pytest.importorskip("pims")
+    import av
+
+    from app.files import formats
+
+    path = CINE_DATA / f"{name}.cine"
+    info = imageio.image_info(path)
+    assert (info.kind, info.n_frames, info.shape, info.dtype, info.bits) == ("cine", n, shape, np.uint16, bits)
+    with av.open(str(path)) as container:
+        ffmpeg = [f.to_ndarray() for f in container.decode(video=0)]
+    assert len(ffmpeg) == n
+    with formats.open_source(path) as source:
+        for indices in (range(n), range(n - 1, n), range(1, n, 3), range(0, 1)):
+            for i, image, _ in source.frames(indices):
+                assert image.dtype == np.uint16 and int(image.max()) <= 2 ** bits - 1
+                wide = image.astype(np.uint32)
+                as_ffmpeg = (wide << (16 - bits)) | (wide >> (2 * bits - 16))
+                expected = ffmpeg[i][::-1] if ffmpeg_upside_down else ffmpeg[i]
+                assert np.array_equal(as_ffmpeg, expected), (indices, i)
+    items = list(imageio.iter_frames([path]))
+    times = np.array([item.time_s for item in items])
+    intervals = np.diff(times)
+    # the camera stamps each frame to 1 us or better: every interval within 1.1 us of the
+    # saved frames' spacing, and the mean within 0.1 % of it (not the header's 90,000/s)
+    assert np.all(np.abs(intervals - frame_interval_s) < 1.1e-6), intervals
+    assert np.mean(intervals) == pytest.approx(frame_interval_s, rel=1e-3)
+    assert info.frame_rate_hz == pytest.approx(1 / frame_interval_s, rel=1e-3)
+    assert bool(info.notes) == (info.frame_rate_hz < 0.5 * header_hz)  # the saving step is said
+    # both were triggered after their last frame: every time is negative, no trigger index,
+    # and the first frame's time is its image number (counted in saved frames) over the
+    # rate, to within a frame and a half (0.2 and 1.2 frames here: a stamp may mark the
+    # end of an exposure, the image number its start)
+    first_image_no = {"cine_781": -5417, "cine_legacy": -7722}[name]
+    assert info.trigger_index is None and times[-1] < 0
+    assert abs(times[0] - first_image_no / info.frame_rate_hz) < 1.5 * frame_interval_s
+
+
+def test_cine_frames_are_upright():
+    """Rows come out top first, as PCC shows them (PIMS and pycine read the stored rows
+    bottom-up, whatever bFlipV says; FFmpeg turns a file with bFlipV over). Gravity
+    decides: in cine_781 gas bubbles rise from a needle below them, so the dark needle
+    crosses the picture's bottom edge and nothing dark touches its top edge."""
+    pytest.importorskip("pims")
+    items = list(imageio.iter_frames([CINE_DATA / "cine_781.cine"], step=7))
+    for item in items:
+        background = float(np.median(item.image))
+        assert item.image[-4:].min() < 0.1 * background  # the needle, at 3 % of the background
+        assert item.image[:4].min() > 0.8 * background
+
+
 def test_colour_cine_is_refused_in_one_line(tmp_path):
     pytest.importorskip("pims")
     r = _cli("process", CINE_SAMPLE, CINE_SAMPLE, "--geometry", ROOT / "tests" / "app" / "data"

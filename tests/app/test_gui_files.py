@@ -50,26 +50,35 @@ def _frames(n=4, shape=(48, 64), hi=4096):
     return [rng.integers(0, hi, shape).astype(np.uint16) for _ in range(n)]
 
 
-@pytest.mark.parametrize("kind", ["mraw", "ffv1"])
+@pytest.mark.parametrize("kind", ["mraw", "ffv1", "cine"])
 def test_file_open_lists_and_opens_camera_files_and_video(qtbot, window, tmp_path, kind):
-    """File ▸ Open recording: the dialog offers Photron/video, accepting a file shows its frames."""
+    """File ▸ Open recording: the dialog offers Photron/Phantom/video, accepting a file shows its
+    frames, each with its time from the file."""
+    from app.files import imageio
+
     frames = _frames()
     if kind == "mraw":
         path = write_mraw(tmp_path / "rec.cih", frames, bits=16, fps=5000)
-    else:
+    elif kind == "ffv1":
         path = write_video(tmp_path / "rec.avi", frames, codec="ffv1", pix_fmt="gray16le")
+    else:  # a real monochrome Phantom file (tests/app/data/cine/README.md)
+        pytest.importorskip("pims")
+        path = ROOT / "tests" / "app" / "data" / "cine" / "cine_781.cine"
+        frames = [item.image for item in imageio.iter_frames([path], last=3)]
+    times_s = [item.time_s for item in imageio.iter_frames([path], last=3)]
     filters = []
     _answer_file_dialogs(qtbot, [path], filters)
     window.actions_by_name["open_recording"].trigger()
     assert filters and any("*.mraw" in f and "*.avi" in f and "*.cine" in f for f in filters[0])
     assert window.replay_recording is not None and window.replay_recording.path == str(path)
     assert window.tabs.currentWidget() is window.replay
-    assert window.replay.slider.maximum() == len(frames) - 1
+    assert window.replay.slider.maximum() == imageio.frame_count(path) - 1
     for k in (0, 3, 1):  # forward and back: lossless files read exactly
         window.replay.slider.setValue(k)
         shown = window.replay.raw.image.image
         np.testing.assert_array_equal(np.asarray(shown), frames[k])
-        assert window.replay.index_label.text().startswith(f"frame {k + 1}/{len(frames)}")
+        label = window.replay.index_label.text()
+        assert label.startswith(f"frame {k + 1}/") and f"t = {times_s[k] * 1e3:+.4f} ms" in label, label
     # a camera file holds neither reference nor geometry, and this window has none yet:
     # raw frames only, and the user is told where to get heights
     text = window.replay.message.text()
