@@ -131,3 +131,30 @@ def test_device_cuda_gives_the_cpu_heights(series, grid):
     expected = [cpu(f, grid=grid) for f in frames]
     gpu = Reconstructor(ref, G55, device="cuda")
     _compare(expected, gpu.batch(frames[:3], grid=grid) + gpu.batch(frames[3:], grid=grid))
+
+
+def test_the_prepared_gpu_check_runs_through(tmp_path):
+    """benchmarks/gpu_check.py is the one script a session lent a GPU runs, with 15
+    minutes for it all: its whole flow (correctness at 256^2 against the CPU, then the
+    speed part) runs here on NumPy named cupy, so that a slip in the script cannot waste
+    that session. The heights must agree as the chain's own tests require (NumPy:
+    ~4e-6 of the RMS); the speeds printed are NumPy's and only have to be printed."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).parent / "numpy_cupy"))
+    r = subprocess.run([sys.executable, str(root / "benchmarks" / "gpu_check.py"), "--size", "256",
+                        "--batch", "4", "--rounds", "2"], cwd=tmp_path, env=env,
+                       capture_output=True, text=True, timeout=600)
+    assert "NumPy stand-in" in r.stdout, r.stdout + r.stderr
+    lines = [line for line in r.stdout.splitlines() if "max|dh|/rms" in line]
+    assert len(lines) == 6 and all(line.endswith("PASS") for line in lines), r.stdout
+    for grid in ("full", "decimated"):
+        assert f"batch {grid}" in r.stdout and "frames/s" in r.stdout
+    assert "live single frame (decimated): median" in r.stdout
+    # the correctness lines all passed, so exit 1 can only be NumPy missing the GPU's goals
+    assert r.returncode in (0, 1) and "Traceback" not in r.stderr, r.stdout + r.stderr
+    assert "gpu_check: all PASS" in r.stdout or "gpu_check: some FAIL" in r.stdout
