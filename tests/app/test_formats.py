@@ -374,9 +374,9 @@ CINE_DATA = Path(__file__).parent / "data" / "cine"
 ])
 def test_real_monochrome_phantom_cine(name, n, shape, bits, frame_interval_s, header_hz,
                                       ffmpeg_upside_down):
-    """Real monochrome Phantom files: every frame, read in any order, equals FFmpeg's own
-    CINE demuxer's (an independent reader, which fills samples out to 16 bits by bit
-    replication); the depth is the header's; the per-frame times are the camera's
+    """Real monochrome Phantom files: every frame, read in order, alone or with a step,
+    equals FFmpeg's own CINE demuxer's (an independent reader, which fills samples out
+    to 16 bits by bit replication); the depth is the header's; the per-frame times are the camera's
     stamps, at the rate the frames were saved at, and agree with the header's first
     image number."""
     pytest.importorskip("pims")
