@@ -904,7 +904,7 @@ class MainWindow(QtWidgets.QMainWindow):
         frame = rec.frame(int(index))
         self.replay.raw.set_data(frame, levels=(0, float(frame.max()) or 1.0) if self.replay.raw.auto_levels else None)
         rel = rec.trigger_index(int(index))
-        when = rec.frame_time_s if rec.time_origin is not None else math.nan
+        when = rec.frame_time_s  # NaN where the file has no times (recordings, TIFF stacks)
         self.replay.index_label.setText(f"frame {index + 1}/{rec.n_frames}"
                                         + (f"  (trigger {rel:+d})" if rel is not None else "")
                                         + (f"  t = {when * 1e3:+.4f} ms from the {rec.time_origin}"
