@@ -4,7 +4,8 @@ Rerun from the repository root::
 
     python3 docs/make_figures.py            # writes docs/needle.png, prints figures
 
-Input: /work/shared/data/fsss-needle-waves (or $TIRDEFLECT_DATA/fsss-needle-waves):
+Input: tests/data/fsss-needle-waves, the copy the repository carries (or
+$TIRDEFLECT_DATA/fsss-needle-waves):
 ``reference_2.png`` (flat water) and ``202406_1457001661.bmp`` (ring waves from
 a needle, upper right). Geometry from that folder's README (classic FS-SS, the
 pattern seen through the water from above): checkerboard square 2.2 mm; layers
@@ -29,7 +30,7 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-DATA = Path(os.environ.get("TIRDEFLECT_DATA", "/work/shared/data"))
+DATA = Path(os.environ.get("TIRDEFLECT_DATA", ROOT / "tests" / "data"))
 NEEDLE = DATA / "fsss-needle-waves"
 
 #: FS-SS geometry of the needle data set, from its README.

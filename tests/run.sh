@@ -8,8 +8,17 @@ venv="${TIRDEFLECT_VENV:-$here/.venv}"  # where install.sh put it
 case "$venv" in /*) ;; *) venv="$PWD/$venv" ;; esac
 cd "$here"
 export QT_QPA_PLATFORM=offscreen
+# A test stuck past its limit, even one holding the GIL, ends pytest with every
+# thread's stack (tests/conftest.py, "a stuck test ends the run"); its name is in this file.
+note=$(mktemp "${TMPDIR:-/tmp}/tirdeflect-watchdog.XXXXXX")
+export TIRDEFLECT_WATCHDOG_NOTE="$note"
 status=0
 "$venv/bin/python" -m pytest -q -p no:cacheprovider "$@" || status=$?
+if [ -s "$note" ]; then
+    echo "tests/run.sh: $(cat "$note")" >&2
+    [ "$status" -ne 0 ] || status=1
+fi
+rm -f "$note"
 
 # Whoever reads this script's output (CI) waits until no process holds it any
 # more. A process started during the run that still holds it (our standard

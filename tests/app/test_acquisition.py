@@ -73,9 +73,11 @@ def test_stall_is_an_error_within_its_timeout_and_reaches_consumers():
         cur = acq.ring.cursor(0)
         t0 = time.monotonic()
         acq.start()
-        assert acq.wait(5.0), "camera thread did not end"
+        assert acq.wait(30.0), "camera thread did not end"
         took = time.monotonic() - t0
-    assert 0.5 <= took < 2.0
+    # never before its timeout; the upper bound is a hang detector, >= 10x above need (the 10 frames
+    # and the 0.5 s timeout take 0.52-0.6 s quiet; benchmarks/bench_latencies.py)
+    assert 0.5 <= took < 6.0
     assert acq.state == "error" and "no frame from camera" in acq.error and "0.5 s" in acq.error
     assert len(_read(cur, 10)) == 10  # everything received is still readable
     with pytest.raises(RingClosed, match="stall"):
@@ -89,8 +91,9 @@ def test_waiting_for_a_trigger_is_not_a_stall_and_stop_is_prompt():
         acq.start()
         assert not acq.wait(0.6)  # still running after 3 stall timeouts
         t0 = time.monotonic()
-        acq.stop(timeout_s=2.0)
-        assert time.monotonic() - t0 < 1.0
+        acq.stop(timeout_s=10.0)
+        # within a few fetch slices (0.1 s): hang detector, >= 10x above need
+        assert time.monotonic() - t0 < 2.0
     assert acq.state == "stopped" and acq.error is None and acq.fetch_timeouts >= 3
 
 

@@ -13,11 +13,8 @@ import pytest
 
 from app.files import imageio
 from app.cli import main
+from tests.datapaths import TRAPPED
 
-DATA = Path("/work/shared/data")
-if not DATA.is_dir():
-    DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
-TRAPPED = DATA / "fsss-trapped-modes"
 SIZE = 192
 
 

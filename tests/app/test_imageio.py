@@ -1,7 +1,5 @@
 """app.files.imageio: every supported input format reads back the exact samples written."""
 
-from pathlib import Path
-
 import cv2
 import h5py
 import numpy as np
@@ -10,12 +8,7 @@ import tifffile
 
 from app.files import imageio
 from app.files.imageio import ImageReadError
-
-DATA = Path("/work/shared/data")
-if not DATA.is_dir():  # a checkout elsewhere: the data sit beside the repository
-    DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
-TRAPPED = DATA / "fsss-trapped-modes"
-NEEDLE = DATA / "fsss-needle-waves"
+from tests.datapaths import NEEDLE, TRAPPED
 
 
 @pytest.fixture

@@ -14,13 +14,9 @@ import numpy as np
 import pytest
 
 from app.cli import main
+from tests.datapaths import NEEDLE, TRAPPED
 
 ROOT = Path(__file__).resolve().parents[2]
-DATA = Path("/work/shared/data")
-if not DATA.is_dir():
-    DATA = ROOT.parent / "shared" / "data"
-NEEDLE = DATA / "fsss-needle-waves"
-TRAPPED = DATA / "fsss-trapped-modes"
 
 # where the needle's shadow ends in 202406_1457001661.bmp (row, col), read off the image
 NEEDLE_TIP_PX = (320, 830)

@@ -86,7 +86,8 @@ def test_unknown_device_fails_with_a_message():
     t0 = time.monotonic()
     with pytest.raises(CameraError, match="cannot open Aravis device 'Fake_99'"):
         aravis.AravisCamera("Fake_99").open()
-    assert time.monotonic() - t0 < 5.0
+    # hang detector, >= 10x above need: Aravis' discovery answers in about 1.0 s here
+    assert time.monotonic() - t0 < 10.0
 
 
 def test_gige_software_trigger_and_clean_link(gv_fake_camera):
@@ -187,21 +188,40 @@ def test_gige_camera_killed_mid_stream_raises_camera_lost_in_bounded_time(gv_fak
 
         t = threading.Thread(target=consume, daemon=True)
         t.start()
-        t.join(10.0)
+        t.join(30.0)
         assert not t.is_alive(), "fetch hung after the camera died"
         t_close = time.monotonic()
     close_s = time.monotonic() - t_close
     assert isinstance(result["exc"], CameraLost), result["exc"]
     assert "127.0.0.1" in str(result["exc"])
-    # watchdog bound: lost_timeout_s + one probe period + one fetch slice (0.1 s), plus scheduling slack
-    assert result["t"] < lost_timeout_s + 0.1 + 0.1 + 0.8
-    assert close_s < 2.0
-    # the exception and its traceback must not keep the dead stream for the garbage
-    # collector to finalize in this thread (that waits seconds on GVCP timeouts)
+    # hang detectors, >= 10x above need: the watchdog's bound is lost_timeout_s + one probe period + one
+    # fetch slice (1.2 s; it came after 1.0 s, benchmarks/bench_latencies.py), closing takes 0.05 s;
+    # without the watchdog fetch times out forever (the join above)
+    assert result["t"] < 10 * (lost_timeout_s + 0.1 + 0.1)
+    assert close_s < 5.0
+    # the exception and its traceback must not keep the dead stream (or a buffer) for the garbage
+    # collector to finalize later in whatever thread it runs: that blocked it ~11 s on GVCP timeouts
+    held = _gobjects_held_by(result["exc"].__traceback__)
+    assert not held, f"the CameraLost traceback holds GObjects: {held}"
     t0 = time.monotonic()
     del result
     gc.collect()
-    assert time.monotonic() - t0 < 0.5
+    # hang detector only, >= 10x above need: this collection takes 0.05 s in a fresh process (bench_latencies),
+    # longer in a test run (0.74 s seen on a loaded 2-core machine); the dead stream finalized here took ~11 s
+    assert time.monotonic() - t0 < 5.0
+
+
+def _gobjects_held_by(tb) -> list[str]:
+    """'function: name' of each GObject (stream, buffer, device) a traceback's frames hold in a local."""
+    from gi.repository import GObject
+
+    held = []
+    while tb is not None:
+        frame = tb.tb_frame
+        held += [f"{frame.f_code.co_name}: {name}" for name, value in frame.f_locals.items()
+                 if isinstance(value, GObject.Object)]
+        tb = tb.tb_next
+    return held
 
 
 def test_stop_from_another_thread_ends_a_waiting_fetch(gv_fake_camera):

@@ -21,8 +21,9 @@ def test_list_cameras_is_bounded_and_offers_synthetic_last():
     ids = [i.camera_id for i in infos]
     assert ids[-1] == "synthetic"
     assert "aravis:Fake_1" in ids
-    # one bound per backend (Aravis, GenTL producers on the path) plus slack
-    assert elapsed < 2.0 * 2 + 1.0
+    # one bound per backend (Aravis, GenTL producers on the path): a backend that ignores it hangs here.
+    # Hang detector, >= 10x above need: the whole call takes about 1.0 s quiet (Aravis' discovery)
+    assert elapsed < 2.0 * 2 + 6.0
 
 
 def test_list_cameras_finds_the_gige_fake_camera(gv_fake_camera):

@@ -92,12 +92,14 @@ def test_software_trigger_one_frame_per_trigger():
         t = threading.Timer(0.05, cam.trigger_software)
         t.start()
         t_call = time.monotonic_ns()
-        frame = cam.fetch(2.0)
+        frame = cam.fetch(10.0)
         t.join()
         latency_s = (frame.host_timestamp_ns - frame.timestamp_ns) * 1e-9
         assert frame.frame_id == 3
         assert frame.timestamp_ns > t_call
-        assert latency_s < 0.05
+        # the trigger wakes the wait: a fetch that is not woken returns only at its 10 s deadline. Hang
+        # detector, >= 10x above need: the wake takes < 1 ms quiet (benchmarks/bench_latencies.py)
+        assert latency_s < 1.0
         assert cam.statistics()["n_triggers"] == 4
 
 
@@ -114,13 +116,14 @@ def test_dropped_triggered_frame_uses_up_its_trigger():
 
 
 def test_switching_trigger_off_while_acquiring_resumes_the_clock_without_fake_losses():
-    with SyntheticCamera(_stack(), frame_rate_hz=1000.0, n_buffers=4) as cam:
+    # 100 Hz and 4 buffers: this thread may fall 40 ms behind (a loaded machine) before a real underrun
+    with SyntheticCamera(_stack(), frame_rate_hz=100.0, n_buffers=4) as cam:
         cam.configure(trigger_mode="On", trigger_source="Software")
         cam.start()
         with pytest.raises(FetchTimeout):
-            cam.fetch(0.05)  # 50 frame periods pass without a trigger
+            cam.fetch(0.5)  # 50 frame periods pass without a trigger
         cam.configure(trigger_mode="Off")
-        ids = [cam.fetch(0.5).frame_id for _ in range(5)]
+        ids = [cam.fetch(2.0).frame_id for _ in range(5)]
         assert ids == [0, 1, 2, 3, 4]
         assert cam.statistics()["n_underruns"] == 0
 

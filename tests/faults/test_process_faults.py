@@ -25,13 +25,9 @@ import tifffile
 
 from app.cli import main
 from app.files import imageio
+from tests.datapaths import NEEDLE, TRAPPED
 
 ROOT = Path(__file__).resolve().parents[2]
-DATA = Path("/work/shared/data")
-if not DATA.is_dir():
-    DATA = ROOT.parent / "shared" / "data"
-NEEDLE = DATA / "fsss-needle-waves"
-TRAPPED = DATA / "fsss-trapped-modes"
 P1 = TRAPPED / "prueba1_20250317_122608_C1S0001000001.tif"
 P211 = TRAPPED / "prueba1_20250317_122608_C1S0001000211.tif"
 CIRC = TRAPPED / "0_5mm_circular_100ms_20250529_141304_C1S0001000001.tif"
@@ -41,7 +37,7 @@ N_FRAMES = 6
 #: the 2 % of tests/app/test_cli_process.py is for a single bump)
 WAVES_REL_RMS = 0.08
 
-# FS-SS set-up of the shared/data images (their READMEs)
+# FS-SS set-up of the real images in tests/data (their READMEs)
 FSSS_TOML = """setup = "fsss"
 pixel_mm = 0.207
 rows_toward_camera = false
@@ -50,9 +46,6 @@ n_water = 1.34
 n_air = 1.0003
 fsss_camera_distance_mm = 800.0
 """
-
-needs_data = pytest.mark.skipif(not P211.is_file(), reason="shared/data real images not present")
-
 
 @pytest.fixture(scope="module")
 def sim(tmp_path_factory):
@@ -138,7 +131,6 @@ _NO_RESERVE_CHILD = _CHILD.format(extra="app.batch.writer.RESERVE_BYTES = -(1 <<
 # =========================================================================== 2. pattern check
 
 
-@needs_data
 def test_needle_reference_against_trapped_modes_frame_is_refused(tmp_path, fsss_toml):
     """The issue's case: periods 9.8 vs ~15.7 px gave exit 0 and millimetre heights.
     Frame 211's own carrier search fails (its peaks are smeared), which used to skip the check."""
@@ -154,7 +146,6 @@ def test_needle_reference_against_trapped_modes_frame_is_refused(tmp_path, fsss_
     assert not out.exists() and not list(tmp_path.glob("*.partial*"))
 
 
-@needs_data
 @pytest.mark.parametrize("reference, frame, accepted", [
     (NEEDLE / "reference_2.png", CIRC, False),    # 9.8 vs 13.7 px, peaks smeared by the floater
     (TRAPPED / "reference_df.tif", P211, False),  # 13.6 vs 15.7 px: 15 % apart
@@ -439,7 +430,6 @@ def test_non_utf8_geometry_file(sim, tmp_path, capsys):
     assert code == 2 and str(g) in line and "UTF-8" in line and "0xe9" in line
 
 
-@needs_data
 def test_truncated_tiff_is_reported_truncated(sim, tmp_path, capsys, fsss_toml):
     # a camera TIFF whose image directory (at its end) was cut off: as the reference
     cut = tmp_path / "cut.tif"

@@ -14,8 +14,7 @@ from processing.carriers import (
     theta_from_carriers,
 )
 from processing.errors import NoCarrierError, PatternMismatchError
-
-DATA = "/work/shared/data/"
+from tests.datapaths import NEEDLE, TRAPPED
 
 
 def board(shape, period_px, rotation_deg=0.0, aspect=1.0, soft=3.0):
@@ -92,24 +91,24 @@ def test_bad_input_messages():
 
 
 def test_real_references_periods():
-    needle = cv2.imread(DATA + "fsss-needle-waves/reference_2.png", cv2.IMREAD_UNCHANGED)
+    needle = cv2.imread(str(NEEDLE / "reference_2.png"), cv2.IMREAD_UNCHANGED)
     c = find_carriers(needle)
     np.testing.assert_allclose(c.periods_px, 9.8, atol=0.1)  # README: about 9.8 px, +-45 deg
     assert np.all(np.abs(np.abs(c.angles_deg) - 45) < 5)
-    df = tifffile.imread(DATA + "fsss-trapped-modes/reference_df.tif")
+    df = tifffile.imread(TRAPPED / "reference_df.tif")
     np.testing.assert_allclose(find_carriers(df).periods_px, 13.7, atol=0.2)
 
 
 def test_pattern_mismatch_real_ellipse():
-    ref = tifffile.imread(DATA + "fsss-trapped-modes/reference_df.tif")
-    frame = tifffile.imread(DATA + "fsss-trapped-modes/ellipse_10.tif")
+    ref = tifffile.imread(TRAPPED / "reference_df.tif")
+    frame = tifffile.imread(TRAPPED / "ellipse_10.tif")
     with pytest.raises(PatternMismatchError, match=r"measured periods 12\.\d+ .* expected periods 13\.\d+"):
         check_pattern_match(find_carriers(ref), frame)
 
 
 def test_pattern_match_accepts_deformed_real_frame():
-    ref = cv2.imread(DATA + "fsss-needle-waves/reference_2.png", cv2.IMREAD_UNCHANGED)
-    frame = cv2.imread(DATA + "fsss-needle-waves/202406_1457001661.bmp", cv2.IMREAD_UNCHANGED)
+    ref = cv2.imread(str(NEEDLE / "reference_2.png"), cv2.IMREAD_UNCHANGED)
+    frame = cv2.imread(str(NEEDLE / "202406_1457001661.bmp"), cv2.IMREAD_UNCHANGED)
     found = check_pattern_match(find_carriers(ref), frame)
     assert found is not None
 

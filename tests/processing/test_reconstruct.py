@@ -18,8 +18,8 @@ from processing import forward as F
 from processing.errors import NoCarrierError, PatternMismatchError, ShapeMismatchError
 from processing.geometry import Geometry
 from processing.reconstruct import Reconstructor, Result
+from tests.datapaths import NEEDLE, TRAPPED
 
-DATA = "/work/shared/data/"
 G55 = Geometry(theta_deg=55, depth_mm=300, pixel_mm=0.1, rows_toward_camera=False)
 BOARD = F.Checkerboard(period_mm=2.0, edge_softness_mm=0.1)  # 20 x 11.5 px periods
 PUBLISHED = dict(filter_shape="disc", filter_radius=0.5, subbin=False, unwrap=False, border="none", refine_iterations=0)
@@ -239,8 +239,8 @@ def ring_centre(res):
 
 
 def test_real_needle_ring_waves_centred_at_needle():
-    ref = cv2.imread(DATA + "fsss-needle-waves/reference_2.png", cv2.IMREAD_UNCHANGED)
-    frame = cv2.imread(DATA + "fsss-needle-waves/202406_1457001661.bmp", cv2.IMREAD_UNCHANGED)
+    ref = cv2.imread(str(NEEDLE / "reference_2.png"), cv2.IMREAD_UNCHANGED)
+    frame = cv2.imread(str(NEEDLE / "202406_1457001661.bmp"), cv2.IMREAD_UNCHANGED)
     res = Reconstructor(ref, fsss_geometry(800.0), grid="decimated")(frame)
     assert res.valid_fraction > 0.6
     row, col = ring_centre(res)
@@ -250,8 +250,8 @@ def test_real_needle_ring_waves_centred_at_needle():
 
 
 def test_real_trapped_modes_frame_211_needs_unwrapping():
-    ref = tifffile.imread(DATA + "fsss-trapped-modes/prueba1_20250317_122608_C1S0001000001.tif")
-    frame = tifffile.imread(DATA + "fsss-trapped-modes/prueba1_20250317_122608_C1S0001000211.tif")
+    ref = tifffile.imread(TRAPPED / "prueba1_20250317_122608_C1S0001000001.tif")
+    frame = tifffile.imread(TRAPPED / "prueba1_20250317_122608_C1S0001000211.tif")
     res = Reconstructor(ref, fsss_geometry(), grid="decimated")(frame)
     assert res.valid_fraction > 0.9
     span = np.nanmax(res.phase, axis=(1, 2)) - np.nanmin(res.phase, axis=(1, 2))
@@ -260,8 +260,8 @@ def test_real_trapped_modes_frame_211_needs_unwrapping():
 
 
 def test_real_mismatched_pattern_refused():
-    ref = tifffile.imread(DATA + "fsss-trapped-modes/reference_df.tif")
-    frame = tifffile.imread(DATA + "fsss-trapped-modes/ellipse_10.tif")
+    ref = tifffile.imread(TRAPPED / "reference_df.tif")
+    frame = tifffile.imread(TRAPPED / "ellipse_10.tif")
     rec = Reconstructor(ref, fsss_geometry(), grid="decimated")
     with pytest.raises(PatternMismatchError, match="Record a new reference"):
         rec(frame)
