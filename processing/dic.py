@@ -39,7 +39,8 @@ import math
 import cv2
 import numpy as np
 
-__all__ = ["NODE_PX", "BLUR_PX", "NodeGrid", "HeightNodes", "fine_reference", "fits", "refine_height"]
+__all__ = ["NODE_PX", "BLUR_PX", "INTENSITY_CELL_PX", "NodeGrid", "HeightNodes", "RefinementDiverged",
+           "fine_reference", "fits", "intensity_fit", "refine_height"]
 
 
 #: Refinement of the grid the reference is interpolated from (see :func:`fine_reference`).
@@ -322,28 +323,136 @@ class HeightNodes:
         return _pair_sums(_pair_sums(y_px, s, False, 0), s, False, 1)
 
 
+# ------------------------------------------------------------------ intensity model
+#: Cell of the frame's gain and offset fields (pixels, :func:`intensity_fit`).
+INTENSITY_CELL_PX = 16
+
+#: Smallest gain the frame is divided by, as a fraction of its median gain.
+MIN_GAIN = 0.1
+
+
+def intensity_fit(frame, warped, weight=None, *, cell_px: float = INTENSITY_CELL_PX):
+    """Smooth gain and offset fields with ``frame ~ gain * warped + offset``.
+
+    A locally linear intensity model (the gain-and-offset normalisation of
+    ZNSSD in DIC, solved as a weighted least-squares fit): the moments
+    ``sum w``, ``sum w I``, ``sum w W``, ``sum w I W``, ``sum w W^2`` are
+    averaged over cells of about ``cell_px`` pixels, then over 3 x 3 cells
+    (a window of about ``3 cell_px``, several pattern periods, so the
+    pattern's own mean and variance are steady there), and the fit of each
+    cell is interpolated bilinearly to every pixel.  Where a cell has no
+    weight or no contrast in ``warped`` its gain and offset are the frame's
+    (the fit over all cells).
+
+    Parameters
+    ----------
+    frame, warped : ndarray float32 (rows, cols)
+        The (blurred) frame and the (blurred) warped reference.
+    weight : ndarray float32 (rows, cols) or None
+        Pixel weights (None: all 1).
+    cell_px : float
+
+    Returns
+    -------
+    gain, offset : ndarray float32 (rows, cols)
+    """
+    rows, cols = frame.shape
+    m_r = max(1, int(round(rows / cell_px)))
+    m_c = max(1, int(round(cols / cell_px)))
+
+    def down(x):
+        return cv2.resize(x, (m_c, m_r), interpolation=cv2.INTER_AREA).astype(np.float64)
+
+    if weight is None:
+        w0 = np.ones((m_r, m_c))
+        fw, ww = frame, warped
+    else:
+        w0 = down(weight)
+        fw, ww = frame * weight, warped * weight
+    moments = [w0, down(fw), down(ww), down(fw * warped), down(ww * warped)]
+    total = [float(m.sum()) for m in moments]
+    if m_r >= 3 and m_c >= 3:
+        moments = [cv2.blur(m, (3, 3), borderType=cv2.BORDER_REFLECT) for m in moments]
+    n, si, sw, siw, sww = moments
+    cov = n * siw - si * sw
+    var = n * sww - sw * sw
+    tn, ti, tw, tiw, tww = total
+    t_var = tn * tww - tw * tw
+    g_all = (tn * tiw - ti * tw) / t_var if t_var > 0 else 1.0
+    o_all = (ti - g_all * tw) / tn if tn > 0 else 0.0
+    # a cell needs weight and contrast: at least a tenth of the frame's mean weight
+    # per cell and a tenth of the frame's variance of the warped reference
+    ok = (n > 0.1 * tn / n.size) & (var > 0.1 * (t_var / tn ** 2) * n ** 2) if tn > 0 else np.zeros_like(n, bool)
+    gain = np.where(ok, cov / np.where(ok, var, 1.0), g_all)
+    offset = np.where(ok, (si - gain * sw) / np.where(ok, n, 1.0), o_all)
+    up = [cv2.resize(x.astype(np.float32), (cols, rows), interpolation=cv2.INTER_LINEAR) for x in (gain, offset)]
+    return up[0], up[1]
+
+
+#: Divergence: the residual (sum of squares) grew by this factor over its smallest so far.
+#: Sound steps were seen to raise it by up to 3.3x (camera at 1.5 m, where the heights still
+#: improved); a diverging solve raises it by orders of magnitude.
+RESIDUAL_RISE = 10.0
+
+
+class RefinementDiverged(ArithmeticError):
+    """:func:`refine_height` stopped: its iterations left the range where they
+    can be right (the message says which test and the figures); the caller
+    keeps FD's answer for the frame."""
+
+
 def _dot(a, b) -> float:
     """Dot product without BLAS threads (they spin on a loaded 2-core machine)."""
     return float(np.einsum("ij,ij->", a, b, dtype=np.float64))
 
 
+def _rms(u) -> float:
+    """RMS over the nodes of the displacement (or step) ``u`` (2, m_r, m_c), pixels: the
+    divergence tests' measure (a few border nodes move by pixels in a sound step)."""
+    if not u.size:
+        return 0.0
+    f = np.ravel(u)
+    return math.sqrt(float(np.einsum("i,i->", f, f, dtype=np.float64)) / max(1, u[0].size))
+
+
+def _diverged(test: str, figures: str):
+    return RefinementDiverged(f"{test} ({figures})")
+
+
 def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int = 3, cg_iterations: int = 3,
-                  regularisation: float = 0.03, blur_px: float = BLUR_PX):
+                  regularisation: float = 0.03, blur_px: float = BLUR_PX,
+                  intensity_cell_px: float | None = INTENSITY_CELL_PX, period_px: float | None = None):
     """Global Gauss-Newton image matching for the height on the node grid of ``nodes``.
 
-    Minimises ``sum_r w [G*I - G*I0(r - P L h)]^2 + lam (|D3r h|^2 + |D3c h|^2)``
+    Minimises ``sum_r w [G*I - a G*I0(r - P L h) - b]^2 + lam (|D3r h|^2 + |D3c h|^2)``
     (module docstring): ``L`` the node heights -> node displacement
     (:meth:`HeightNodes.displacement`), ``P`` bilinear nodes -> pixels in the
     normal equations, Lanczos for the warp itself; ``G*`` a Gaussian of
     ``blur_px`` applied to the frame and to the warped reference (so the
-    gradient is that of the blurred warped reference).  Each step solves
-    ``(L^T P^T N P L + lam R) dh = -L^T P^T g e - lam R h`` by conjugate
-    gradients preconditioned with the constant-coefficient operator's DCT
-    (``cg_iterations`` per step: from FD's start 3 give the same heights as
-    15).  ``lam`` is ``regularisation`` times the data term's weight per
-    node at unit spatial frequency (measured on the ray-traced waves 3-6
-    carrier periods long: 0.001 too weak, 4.2 %; 0.03-0.05 best, 0.85-0.9 %;
-    0.1: 1.05 %; 1: 6.8 %, the waves flattened).
+    gradient is that of the blurred warped reference); ``a``, ``b`` the
+    frame's smooth gain and offset fields (:func:`intensity_fit`, fitted
+    anew before each step, alternating with the height: the frame may be
+    brighter or darker than the reference, by a shadow or an exposure, and
+    still match).  Each step solves
+    ``(L^T P^T N P L + lam R) dh = -L^T P^T g e - lam R h`` (``g = a grad``)
+    by conjugate gradients preconditioned with the constant-coefficient
+    operator's DCT (``cg_iterations`` per step: from FD's start 3 give the
+    same heights as 15).  ``lam`` is ``regularisation`` times the data
+    term's weight per node at unit spatial frequency (measured on the
+    ray-traced waves 3-6 carrier periods long: 0.001 too weak, 4.2 %;
+    0.03-0.05 best, 0.85-0.9 %; 0.1: 1.05 %; 1: 6.8 %, the waves flattened).
+
+    Every loop is bounded (``outer`` steps of ``cg_iterations``), and the
+    iterations stop with :class:`RefinementDiverged` (the caller keeps FD's
+    answer) when they leave the range where they can be right: a
+    non-finite residual, step or displacement; a displacement that moved
+    from the start by more than half the pattern's period (``period_px``;
+    rms over the nodes) or reaches beyond the frame's size (anywhere); a
+    step more than twice as large as the one before (rms); a residual (sum
+    of squares) :data:`RESIDUAL_RISE` times its smallest so far.  These
+    are tested on the node grid before each warp, so no warp ever sees
+    coordinates far outside the frame (OpenCV's reflection of such
+    coordinates takes time in proportion to their size).
 
     Parameters
     ----------
@@ -355,6 +464,11 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
     valid_px : ndarray bool (rows, cols)
         Pixels whose residual counts.
     nodes : HeightNodes
+    intensity_cell_px : float or None
+        Cell of the gain and offset fields (:func:`intensity_fit`); None:
+        the frame is matched as it is (gain 1, offset 0).
+    period_px : float or None
+        The pattern's shorter carrier period, pixels (None: no bound from it).
 
     Returns
     -------
@@ -364,11 +478,16 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
         Displacement at the nodes (pixels).
     valid : ndarray bool (n_rows, n_cols)
         Nodes whose cell is all valid.
+
+    Raises
+    ------
+    RefinementDiverged
+        The message names the test that stopped the iterations and its figures.
     """
     import scipy.fft as sfft
 
     grid = nodes.grid
-    img = np.asarray(frame, np.float32)
+    raw = img = np.asarray(frame, np.float32)
     if blur_px:
         img = cv2.GaussianBlur(img, (0, 0), blur_px)
     rows, cols = grid.frame_shape
@@ -386,14 +505,34 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
         from scipy import ndimage
 
         bad = ~np.isfinite(h)
+        if bad.all():
+            raise _diverged("no finite starting height", "every node is NaN or infinite")
         _, idx = ndimage.distance_transform_edt(bad, return_indices=True)
         h = h[idx[0], idx[1]]
     r_px = np.arange(rows, dtype=np.float32)[:, None] * np.float32(FINE)
     c_px = np.arange(cols, dtype=np.float32)[None, :] * np.float32(FINE)
     s2 = grid.s ** 2
     Bm = nodes.B_mean
-    for _ in range(outer):
+    w_fit = None if all_valid else w
+    u_start = nodes.displacement(h)
+    max_u = float(max(rows, cols))
+    max_move = math.inf if period_px is None else 0.5 * float(period_px)
+    prev_step = prev_cost = None
+    for k in range(outer + 1):
         u = nodes.displacement(h)
+        # the divergence tests on the node grid, before any warp
+        size = float(np.abs(u).max()) if u.size else 0.0
+        move = _rms(u - u_start)
+        if not (math.isfinite(size) and math.isfinite(move)):
+            raise _diverged("non-finite displacement", f"after {k} step(s)")
+        if size > max_u:
+            raise _diverged("displacement beyond the frame's size",
+                            f"{size:.3g} px after {k} step(s), frame {rows} x {cols} px")
+        if move > max_move:
+            raise _diverged("displacement moved by more than half the pattern's period",
+                            f"{move:.3g} px rms from FD's, period {period_px:.3g} px, after {k} step(s)")
+        if k == outer:
+            break
         mr = grid.up(u[0], cv2.INTER_LANCZOS4)
         mc = grid.up(u[1], cv2.INTER_LANCZOS4)
         mr *= np.float32(FINE)
@@ -403,10 +542,35 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
             warped = cv2.GaussianBlur(warped, (0, 0), blur_px)
         gr = cv2.Sobel(warped, cv2.CV_32F, 0, 1, ksize=1, scale=0.5, borderType=cv2.BORDER_REFLECT)
         gc = cv2.Sobel(warped, cv2.CV_32F, 1, 0, ksize=1, scale=0.5, borderType=cv2.BORDER_REFLECT)
+        if intensity_cell_px:
+            # the frame brought to the reference's intensities, (I - b) / a: every
+            # pixel weighs the same whatever its gain, as in a frame exposed as the reference
+            gain, offset = intensity_fit(img, warped, w_fit, cell_px=intensity_cell_px)
+            floor = MIN_GAIN * float(np.median(gain[::8, ::8]))
+            np.maximum(gain, np.float32(floor if floor > 0 else 1e-30), out=gain)
+            # normalised before the blur: G*((I - b) / a) is the blurred reference's
+            # match where the gain varies (a blurs as G*(a I0) = a G*I0 + sigma^2 grad a . grad I0 + ...,
+            # a displacement of sigma^2 grad a / a)
+            e = raw - offset
+            e /= gain
+            if blur_px:
+                e = cv2.GaussianBlur(e, (0, 0), blur_px)
+            e -= warped
+        else:
+            e = img - warped
         if not all_valid:
             gr *= w
             gc *= w
-        e = img - warped
+            cost = _dot(e * w, e)
+        else:
+            cost = _dot(e, e)
+        if not math.isfinite(cost):
+            raise _diverged("non-finite image residual", f"after {k} step(s)")
+        if prev_cost is not None and cost > RESIDUAL_RISE * prev_cost:
+            raise _diverged("image residual rose after a step",
+                            f"rms {math.sqrt(prev_cost / w.size):.3g} -> {math.sqrt(cost / w.size):.3g} "
+                            f"after step {k}")
+        prev_cost = cost if prev_cost is None else min(cost, prev_cost)
         Nrr = nodes.node_normal(gr * gr)
         Nrc = nodes.node_normal(gr * gc)
         Ncc = nodes.node_normal(gc * gc)
@@ -415,6 +579,8 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
         nr = Nrr.mean_row_sum()
         nc = Ncc.mean_row_sum()
         lam = regularisation * (nr * Bm[0, 0] ** 2 + nc * Bm[1, 1] ** 2) / s2
+        if not (math.isfinite(lam) and lam > 0):
+            raise _diverged("no image gradient to match", f"data weight {lam:.3g} at step {k + 1}")
         sym = (nr * Bm[0, 0] ** 2 + nc * Bm[1, 0] ** 2) * nodes.symbol_d1[0]
         sym = sym + (nr * Bm[0, 1] ** 2 + nc * Bm[1, 1] ** 2) * nodes.symbol_d1[1] + lam * nodes.symbol_reg
         sym[0, 0] = np.inf  # the null space (a near-constant height) is the pin's business
@@ -438,12 +604,12 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
         p = z.copy()
         rz = _dot(r, z)
         r0 = math.sqrt(_dot(r, r))
-        for _k in range(cg_iterations):
-            if r0 == 0.0:
+        for _k in range(cg_iterations):  # bounded: cg_iterations, no tolerance loop
+            if r0 == 0.0 or not math.isfinite(rz):
                 break
             q = apply_K(p)
             pq = _dot(p, q)
-            if pq <= 0.0:
+            if not (pq > 0.0 and math.isfinite(pq)):
                 break
             al = np.float32(rz / pq)
             x += al * p
@@ -453,5 +619,12 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
             p *= np.float32(rz_new / rz)
             p += z
             rz = rz_new
+        step = _rms(nodes.displacement(x))
+        if not math.isfinite(step):
+            raise _diverged("non-finite Gauss-Newton step", f"step {k + 1}")
+        if prev_step is not None and step > 2.0 * prev_step and step > 0.05:
+            raise _diverged("Gauss-Newton steps grow",
+                            f"{prev_step:.3g} -> {step:.3g} px rms at step {k + 1}")
+        prev_step = step
         h += x
-    return h, nodes.displacement(h).astype(np.float32), free
+    return h, u.astype(np.float32), free

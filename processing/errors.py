@@ -11,6 +11,7 @@ __all__ = [
     "ShapeMismatchError",
     "GeometryError",
     "AllInvalidError",
+    "SampleRangeError",
 ]
 
 
@@ -36,3 +37,7 @@ class GeometryError(TirdeflectError):
 
 class AllInvalidError(TirdeflectError):
     """No pixel of the frame could be measured (TIR lost, no contrast...)."""
+
+
+class SampleRangeError(TirdeflectError):
+    """An image holds samples no camera gives (NaN, infinite, or beyond 32 bits)."""

@@ -42,7 +42,7 @@ import numpy as np
 from .carriers import (Carriers, check_pattern_match, display_spectrum, find_carriers, find_carriers_live,
                        match_error, theta_from_carriers)
 from .demodulation import Demodulator
-from .errors import AllInvalidError, ShapeMismatchError, TirdeflectError
+from .errors import AllInvalidError, SampleRangeError, ShapeMismatchError, TirdeflectError
 from .fft import FFTPlanner
 from .geometry import DEFAULT_REFERENCE_BAND, default_reference_region_mask
 from .height import PIN_FALLBACKS, PIN_MIN_PIECE_SAMPLES, PinStatus
@@ -202,6 +202,10 @@ class Result:
     series : SeriesCheck or None
         Continuity with the previous frame of the series (None for the first
         frame, and with ``full_method="ifft"``).
+    note : str
+        How this frame was measured where it differs from what was asked, one
+        line ("" when nothing to say): e.g. the image refinement stopped as
+        diverging and FD's heights were kept (docs/processing.md, section 6).
     """
 
     height: np.ndarray
@@ -221,6 +225,7 @@ class Result:
     timings_ms: dict
     pin: Optional[PinStatus] = None
     series: Optional[SeriesCheck] = None
+    note: str = ""
 
 
 @dataclasses.dataclass
@@ -338,6 +343,61 @@ def _nearest_fill_index(valid):
 
     _, idx = ndimage.distance_transform_edt(~valid, return_indices=True)
     return (idx[0], idx[1])
+
+
+#: Darkest exposure (frame / reference brightness) the quality mask makes up for.
+MIN_EXPOSURE_GAIN = 0.25
+
+
+def exposure_gain(frame, reference_mean: float, amplitude) -> float:
+    """How much darker than the reference the frame was exposed: the larger of
+    its mean brightness ratio and the 90th percentile of its contrast ratio
+    ``|g| / |g0|``, within [:data:`MIN_EXPOSURE_GAIN`, 1].
+
+    The quality mask's ``min_amplitude`` is scaled by it, so a frame taken at
+    half the exposure (or with a lamp dimmed) keeps the samples a well exposed
+    frame keeps; a blurred frame (contrast lost, brightness kept) or one with an
+    offset (brightness up or negative, contrast kept) gets 1, and one more than
+    4x darker is masked as before (a 12-bit reference against 8-bit frames
+    stays "no contrast").
+    """
+    if not reference_mean > 0:
+        return 1.0
+    by_mean = float(np.mean(frame, dtype=np.float64)) / reference_mean
+    by_contrast = float(np.percentile(amplitude, 90)) if np.size(amplitude) else 1.0
+    gain = max(by_mean, by_contrast)
+    return float(min(1.0, max(MIN_EXPOSURE_GAIN, gain))) if math.isfinite(gain) else 1.0
+
+
+#: Largest sample magnitude accepted: no camera gives samples wider than 32 bits.
+MAX_SAMPLE_MAGNITUDE = 2.0 ** 32
+
+
+def check_sample_range(image, name: str = "frame") -> None:
+    """Refuse an image whose samples no camera gives: NaN or infinite, or
+    beyond +-:data:`MAX_SAMPLE_MAGNITUDE` (a float image rescaled by 1e10...),
+    with :class:`SampleRangeError` naming the value and where it is.  Cheap
+    (min and max); run before any solver."""
+    a = np.asarray(image)
+    if a.dtype.kind not in "uif" or not a.size:
+        return
+    if a.dtype.kind in "ui" and a.dtype.itemsize <= 4:
+        return  # within 32 bits by its type
+    lo, hi = float(a.min()), float(a.max())
+    if math.isfinite(lo) and math.isfinite(hi) and max(-lo, hi) <= MAX_SAMPLE_MAGNITUDE:
+        return
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        bad = ~np.isfinite(a)
+        r, c = (int(v) for v in np.argwhere(bad)[0])
+        raise SampleRangeError(
+            f"{name} holds {int(np.count_nonzero(bad))} NaN or infinite sample(s) (the first at row {r}, "
+            f"column {c}); pass the raw camera image, not a processed one")
+    worst = hi if hi >= -lo else lo
+    r, c = (int(v) for v in np.unravel_index(int(np.argmax(np.abs(a))), a.shape))
+    raise SampleRangeError(
+        f"{name} holds a sample of {worst:.3g} (row {r}, column {c}), beyond what any camera gives "
+        f"(|value| <= {MAX_SAMPLE_MAGNITUDE:.3g}, 32 bits): the image was rescaled; pass the camera's "
+        f"own values (or divide the scale back out)")
 
 
 def _dilate(invalid, n):
@@ -510,6 +570,7 @@ class Reconstructor:
         self.refine_iterations = refine_iterations
         self.full_method = full_method
         self.min_amplitude = float(min_amplitude)
+        self._ref_mean = float(np.mean(ref, dtype=np.float64))
         self.min_fold = float(min_fold)
         self.dilate = int(dilate)
         self.min_island = float(min_island)
@@ -694,8 +755,7 @@ class Reconstructor:
                              "Convert colour images to grey first")
         if a.dtype.kind not in "uif" or a.dtype.itemsize > 8:
             raise ValueError(f"{name} must be uint8, uint16 or float; got dtype {a.dtype}")
-        if a.dtype.kind == "f" and not np.all(np.isfinite(a)):
-            raise ValueError(f"{name} contains NaN or infinite pixels; pass the raw camera image")
+        check_sample_range(a, name)
         return a
 
     def _validate_frame(self, frame):
@@ -956,8 +1016,11 @@ class Reconstructor:
         pin_kw = dict(pin_fallback=self.pin_fallback, region_name=self.reference_region_name, near=self._node_near)
         start = hs._solve(np.where(valid_nodes, u_start, np.nan), valid_nodes, self.solver, _CG_TOL,
                           self._node_ref_mask, **pin_kw)
-        _, u_nodes, valid_nodes = dic.refine_height(self._ref_fine, frame, np.asarray(start.height_mm, np.float64),
-                                                    valid_px, self._height_nodes, outer=self.image_iterations)
+        periods = np.asarray(self.carriers.periods_px, np.float64)
+        _, u_nodes, valid_nodes = dic.refine_height(
+            self._ref_fine, frame, np.asarray(start.height_mm, np.float64), valid_px, self._height_nodes,
+            outer=self.image_iterations, period_px=float(periods.min()),
+            intensity_cell_px=max(dic.INTENSITY_CELL_PX, 1.6 * float(periods.max())))
         t4 = time.perf_counter()
         timings["refine"] += 1e3 * (t4 - t3)
         surf = hs._solve(np.where(valid_nodes, u_nodes, np.nan), valid_nodes, self.solver, _CG_TOL,
@@ -1038,7 +1101,7 @@ class Reconstructor:
         ratio = np.abs(g)
         ratio /= self._g0_den
         amplitude = np.minimum(ratio[0], ratio[1])
-        valid = amplitude >= self.min_amplitude
+        valid = amplitude >= self.min_amplitude * exposure_gain(frame, self._ref_mean, amplitude)
         if not self._ref_ok_all:
             valid &= self._ref_ok
         all_valid = bool(valid.all())
@@ -1102,9 +1165,15 @@ class Reconstructor:
         series = self._check_series(phase, valid, surf)
         t4 = time.perf_counter()
         timings["height"] = 1e3 * (t4 - t3)
+        note = ""
         if grid == "full" and self.refine_method == "image":
             # FD's heights above gave the series check (temporal unwrapping, pin offset)
-            return self._image_full(frame, u, valid, amplitude, phase, series, timings, t0, t4)
+            from .dic import RefinementDiverged
+
+            try:
+                return self._image_full(frame, u, valid, amplitude, phase, series, timings, t0, t4)
+            except RefinementDiverged as exc:  # FD's heights below, and the reason with them
+                note = f"image refinement stopped: {exc}; FD's heights kept"
         res = Result(height=np.asarray(surf.height_mm, np.float32), valid=valid,
                      slope_x=np.asarray(surf.slope_x, np.float32),
                      slope_y=np.asarray(surf.slope_y, np.float32), displacement=u,
@@ -1112,7 +1181,7 @@ class Reconstructor:
                      grid="decimated", rows_px=self.rows_px, cols_px=self.cols_px,
                      carriers=self.carriers, phase=np.asarray(phase, np.float32),
                      valid_fraction=1.0 if all_valid else float(valid.mean()), timings_ms=timings,
-                     pin=surf.pin, series=series)
+                     pin=surf.pin, series=series, note=note)
         if grid == "full":
             res = self._interpolate_full(res)
             timings["interpolate"] = 1e3 * (time.perf_counter() - t4)

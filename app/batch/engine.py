@@ -502,6 +502,7 @@ class _PinCounter:
         self.frames = 0
         self.nearest = []
         self.jumps = []  # (sequence index, reason)
+        self.noted = []  # (sequence index, Result.note): e.g. the image refinement fell back to FD
         self.min_valid = None
 
     def write_region(self, writer) -> None:
@@ -529,6 +530,11 @@ class _PinCounter:
                 "frame %d (%s): %s", item.sequence_index, item.label, pin.describe())
         if self.min_valid is None or pin.valid_samples < self.min_valid[0]:
             self.min_valid = (pin.valid_samples, pin.region_samples)
+        note = getattr(result, "note", "")
+        if note:
+            self.noted.append((item.sequence_index, note))
+            (log.warning if len(self.noted) == 1 else log.debug)(
+                "frame %d (%s): %s", item.sequence_index, item.label, note)
         series = getattr(result, "series", None)
         if series is not None and series.flagged:
             self.jumps.append((item.sequence_index, series.reason))
@@ -538,7 +544,7 @@ class _PinCounter:
 
     def attrs(self) -> dict:
         return {"pin_region": self.name, "frames_pin_fallback": len(self.nearest),
-                "frames_flagged_jump": len(self.jumps)}
+                "frames_flagged_jump": len(self.jumps), "frames_noted": len(self.noted)}
 
     def summary(self) -> str:
         if not self.frames:
@@ -563,6 +569,10 @@ class _PinCounter:
             idx, reason = self.jumps[0]
             out.append(f"{len(self.jumps)} frame(s) jump against the previous frame while the images do not "
                        f"explain it, e.g. frame {idx}: {reason}; see /pin_status")
+        if self.noted:
+            idx, note = self.noted[0]
+            out.append(f"{len(self.noted)} frame(s) were measured otherwise than asked, e.g. frame {idx}: "
+                       f"{note}; see /frame_status_text")
         return out
 
 

@@ -21,6 +21,7 @@ from processing.errors import (
     AllInvalidError,
     NoCarrierError,
     PatternMismatchError,
+    SampleRangeError,
     ShapeMismatchError,
     TirdeflectError,
 )
@@ -42,7 +43,7 @@ class FrameStatus(enum.IntEnum):
     NO_CONTRAST = 3
     #: the frame shows another pattern (period / rotation) than the reference
     PATTERN_MISMATCH = 4
-    #: the frame could not be read (truncated, undecodable, NaN/Inf samples)
+    #: the frame could not be read (truncated, undecodable, NaN/Inf samples or beyond 32 bits)
     UNREADABLE = 5
     #: the frame's size differs from the reference's
     SHAPE_MISMATCH = 6
@@ -73,6 +74,7 @@ _STATUS_OF_ERROR = (
     (NoCarrierError, FrameStatus.NO_PATTERN),
     (AllInvalidError, FrameStatus.NO_CONTRAST),
     (ShapeMismatchError, FrameStatus.SHAPE_MISMATCH),
+    (SampleRangeError, FrameStatus.UNREADABLE),
 )
 
 

@@ -266,7 +266,8 @@ class OutputFrame:
     each C-contiguous of shape ``shape``; or, with ``compression`` set, each a uint8
     array holding the map's chunk already compressed as OUT.h5's filters would
     (shuffle, then gzip at :data:`GZIP_LEVEL`), written as it is. ``pin`` and
-    ``series``: as the Result's (``/pin_status``). ``release``: called once the
+    ``series``: as the Result's (``/pin_status``). ``note``: the Result's (stored in
+    ``/frame_status_text`` of a measured frame). ``release``: called once the
     writer is done with the maps (frees the shared memory they are views of).
     """
 
@@ -274,6 +275,7 @@ class OutputFrame:
     maps: dict
     pin: object = None
     series: object = None
+    note: str = ""
     compression: Optional[str] = None
     release: Optional[Callable] = None
 
@@ -333,7 +335,8 @@ def output_frame(result, compression: Optional[str] = None) -> OutputFrame:
     if compression:
         maps = {name: _shuffled_gzip(a) for name, a in maps.items()}
     return OutputFrame(shape=shape, maps=maps, pin=getattr(result, "pin", None),
-                       series=getattr(result, "series", None), compression=compression)
+                       series=getattr(result, "series", None), note=getattr(result, "note", ""),
+                       compression=compression)
 
 
 # DiskFullError: the one error for "no room for the next write" (app.files.h5safe), under the
@@ -463,7 +466,9 @@ class ResultWriter:
             + " (app.batch.frame_status.FrameStatus); 0 = measured")
         f.create_dataset("frame_status_text", shape=(0,), maxshape=(None,), dtype=h5py.string_dtype(),
                          chunks=(1024,))
-        f["frame_status_text"].attrs["description"] = "the reason of a non-zero frame_status; empty if 0"
+        f["frame_status_text"].attrs["description"] = (
+            "the reason of a non-zero frame_status; if 0, a note on how the frame was measured "
+            "(e.g. the image refinement's fallback to FD), else empty")
         f.create_dataset("time_s", shape=(0,), maxshape=(None,), dtype=np.float64, chunks=(1024,),
                          fillvalue=np.nan)
         f["time_s"].attrs["units"] = "s"
@@ -541,7 +546,7 @@ class ResultWriter:
         rows["frame_flags"].append(item.flags)
         rows["trigger_index"].append(TRIGGER_INDEX_UNKNOWN if item.trigger_index is None else item.trigger_index)
         rows["frame_status"].append(int(outcome.status))
-        rows["frame_status_text"].append(outcome.reason)
+        rows["frame_status_text"].append(outcome.reason or ("" if frame is None else frame.note))
         rows["time_s"].append(item.time_s)
         rows["pin_status"].append(_pin_status_row(frame))
         if log.isEnabledFor(logging.DEBUG):
