@@ -398,7 +398,7 @@ class BatchChain:
         return results + [r._call_cpu(f, grid=grid) for f in frames[n:]]
 
     def _results(self, grid, u, h, sx, sy, amplitude, ph, n, ms, essentials, series):
-        from .reconstruct import Result
+        from .result import Result
 
         xp = self.xp
         r = self.r

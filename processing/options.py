@@ -14,6 +14,8 @@ from __future__ import annotations
 import dataclasses
 from typing import Optional
 
+from .height import PIN_FALLBACKS
+
 __all__ = ["ReconstructOptions", "full_grid_refinement", "PATTERNS", "GRIDS", "REFINE_METHODS"]
 
 #: Patterns the Reconstructor reads: checkerboards by Fourier demodulation,
@@ -27,7 +29,6 @@ _FILTER_SHAPES = ("flattop", "disc")
 _BORDERS = ("apodize", "none")
 _FULL_METHODS = ("interpolate", "ifft")
 _FULL_INTERPOLATIONS = ("lanczos", "cubic", "linear")
-_PIN_FALLBACKS = ("nearest", "refuse")  # processing.height.PIN_FALLBACKS (checked equal in the tests)
 _EFFORTS = ("FFTW_ESTIMATE", "FFTW_MEASURE", "FFTW_PATIENT", "FFTW_EXHAUSTIVE")
 
 
@@ -114,9 +115,9 @@ class ReconstructOptions:
         _one_of("border", self.border, _BORDERS)
         _one_of("full_method", self.full_method, _FULL_METHODS)
         _one_of("full_interpolation", self.full_interpolation, _FULL_INTERPOLATIONS)
-        _one_of("pin_fallback", self.pin_fallback, _PIN_FALLBACKS)
+        _one_of("pin_fallback", self.pin_fallback, PIN_FALLBACKS)
         _one_of("planner_effort", self.planner_effort, _EFFORTS)
-        _one_of("solver", self.solver, ("auto", "spectral", "cg", "direct", "sparse"))
+        _one_of("solver", self.solver, ("auto", "spectral", "masked"))
         if self.refine_iterations is not None:
             _number("refine_iterations", self.refine_iterations, 0, integer=True)
         _number("image_iterations", self.image_iterations, 1, integer=True)
@@ -157,10 +158,11 @@ def full_grid_refinement(options: ReconstructOptions, frame_shape, pattern: str,
     of docs/processing.md's accuracy table (waves 3-6 carrier periods long
     2.9 % -> 0.8 %) at about 5x FD's CPU time, where it applies: a
     checkerboard, the full grid, the CPU, frame sides multiples of
-    ``dic.NODE_PX``; elsewhere FD's refinement.  The decimated (live) grid
+    ``dic.NODE_PX``, not ``refine_iterations=0`` (no refinement) nor
+    ``full_method="ifft"``; elsewhere FD's refinement.  The decimated (live) grid
     never runs it.  ``why``: None, or the reason image matching does not
-    apply.  An explicit ``"image"`` where it cannot apply raises ValueError
-    saying why.
+    apply (``"image"`` given explicitly where it does not apply: the caller
+    says it cannot be used).  ``"fd"``: ``("fd", None)``.
 
     Parameters
     ----------
@@ -181,13 +183,11 @@ def full_grid_refinement(options: ReconstructOptions, frame_shape, pattern: str,
         why = "it refines the full grid only"
     elif options.device == "cuda":
         why = "it runs on the CPU, not with device 'cuda'"
-    elif options.full_method != "interpolate":
-        why = "full_method='ifft' makes its own full grid"
     elif not dic.fits(frame_shape):
         why = (f"the frame sides ({rows} x {cols} px) must be multiples of {dic.NODE_PX} px "
                f"and at least {5 * dic.NODE_PX} px")
-    if why is None:
-        return "image", None
-    if options.refine_method == "image":
-        raise ValueError(f"refine_method 'image' cannot be used here: {why}; use 'fd' (or 'auto')")
-    return "fd", why
+    elif options.refine_method == "auto" and options.full_method != "interpolate":
+        why = "full_method='ifft' asks for full-size inverse FFTs instead"
+    elif options.refine_method == "auto" and options.refine_iterations == 0:
+        why = "refine_iterations=0 asks for no refinement"
+    return ("image", None) if why is None else ("fd", why)
