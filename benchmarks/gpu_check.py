@@ -69,9 +69,10 @@ def correctness(n, geometry) -> bool:
     ok = True
     for name, (ref, frames) in _cases(n, geometry).items():
         for grid in ("full", "decimated"):
-            cpu = Reconstructor(ref, geometry)
-            expected = [cpu(f, grid=grid) for f in frames]
             gpu = Reconstructor(ref, geometry, device="cuda")
+            # the same options on the CPU (the GPU's refinement, FD's, resolved)
+            cpu = Reconstructor(ref, geometry, gpu.options.replace(device="cpu"))
+            expected = [cpu(f, grid=grid) for f in frames]
             got = gpu.batch(frames[:4], grid=grid) + gpu.batch(frames[4:], grid=grid)
             worst = 0.0
             masks = len(got) == len(expected)  # a frame lost on the way is a failure too
@@ -99,7 +100,7 @@ def speed(n, geometry, batch, rounds):
     print(f"\n{n} x {n}, batches of {batch}, {rounds} batches; device {cupy.cuda.runtime.getDeviceProperties(0)['name'].decode()}")
     verdicts = []
     for grid, goal in (("full", 1000.0), ("decimated", 5000.0)):
-        cpu = Reconstructor(ref, geometry, planner_effort="FFTW_MEASURE")
+        cpu = Reconstructor(ref, geometry, planner_effort="FFTW_MEASURE", refine_method="fd")  # the GPU's chain
         cpu(stream[0], grid=grid)
         t0 = time.perf_counter()
         for f in stream[:batch]:

@@ -20,6 +20,7 @@ from .errors import (  # noqa: F401
 __all__ = [
     "Geometry",
     "Reconstructor",
+    "ReconstructOptions",
     "Result",
     "TirdeflectError",
     "NoCarrierError",
@@ -36,6 +37,10 @@ def __getattr__(name):
         from .geometry import Geometry
 
         return Geometry
+    if name == "ReconstructOptions":
+        from .options import ReconstructOptions
+
+        return ReconstructOptions
     if name in ("Reconstructor", "Result"):
         from . import reconstruct
 

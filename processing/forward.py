@@ -41,9 +41,11 @@ __all__ = [
     "Dimple",
     "WaveField",
     "SumSurface",
+    "RingWaves",
     "ApproachingDiscDimple",
     "TravellingWaves",
     "Checkerboard",
+    "CrossedCosines",
     "RandomDots",
     "RenderInfo",
     "trace_tir",
@@ -222,6 +224,53 @@ class WaveField(Surface):
 
 
 @dataclass(frozen=True)
+class RingWaves(Surface):
+    """Axisymmetric ring waves ``h = A J0(2 pi rho / wavelength)``, ``rho`` the
+    distance from ``(x0_mm, y0_mm)`` (a standing capillary-gravity wave about
+    a point source: crests every ``wavelength_mm``, amplitude decaying like
+    ``rho^-1/2``).
+
+    Parameters
+    ----------
+    amplitude_mm : float
+        Height at the centre, mm.
+    wavelength_mm : float
+        Distance between crests, mm.
+    x0_mm, y0_mm : float
+        Centre in the image frame, mm.
+    """
+
+    amplitude_mm: float
+    wavelength_mm: float
+    x0_mm: float = 0.0
+    y0_mm: float = 0.0
+
+    def __post_init__(self):
+        if not self.wavelength_mm > 0:
+            raise GeometryError(f"wavelength_mm must be positive, got {self.wavelength_mm!r}")
+
+    def height(self, x_mm, y_mm):
+        from scipy.special import j0
+
+        k = 2 * np.pi / self.wavelength_mm
+        rho = np.hypot(np.asarray(x_mm, dtype=np.float64) - self.x0_mm, np.asarray(y_mm, dtype=np.float64) - self.y0_mm)
+        return self.amplitude_mm * j0(k * rho)
+
+    def gradient(self, x_mm, y_mm):
+        from scipy.special import j1
+
+        k = 2 * np.pi / self.wavelength_mm
+        dx = np.asarray(x_mm, dtype=np.float64) - self.x0_mm
+        dy = np.asarray(y_mm, dtype=np.float64) - self.y0_mm
+        rho = np.hypot(dx, dy)
+        # d/drho J0(k rho) = -k J1(k rho); J1(k rho) / rho -> k / 2 at the centre
+        kr = k * rho
+        ratio = np.where(rho > 0, j1(kr) / np.where(rho > 0, rho, 1.0), 0.5 * k)
+        g = -self.amplitude_mm * k * ratio
+        return g * dx, g * dy
+
+
+@dataclass(frozen=True)
 class SumSurface(Surface):
     """Sum of surfaces."""
 
@@ -393,6 +442,52 @@ class Checkerboard:
         if self.sharp_radius_mm is not None:
             val = val * self.contrast_window(x, y)
         return self.mean + 0.5 * self.contrast * val
+
+
+@dataclass(frozen=True)
+class CrossedCosines:
+    """Two crossed pure cosines on the pattern plane: no square-wave harmonics
+    and no mixing terms (``k1 +- k2``), only the two carriers.
+
+    ``mean + contrast / 4 (cos(k u) + cos(k v))`` with ``(u, v)`` the
+    pattern-plane coordinates rotated by ``rotation_deg``, ``y`` first divided
+    by ``stretch_y``; values lie in ``mean +- contrast / 2``.  With
+    ``stretch_y = 1 / cos(theta)`` a TIR camera sees both carriers with the
+    same period (``period_mm / pixel_mm`` px) at ``rotation_deg`` in the image
+    (cf. :class:`Checkerboard` with ``sinusoidal=True``, whose two carriers
+    are the board's diagonals).
+
+    Parameters
+    ----------
+    period_mm : float
+        Period of each cosine, mm (along x; ``stretch_y`` times it along y).
+    rotation_deg : float
+        Direction of the first carrier from the x axis, deg.
+    stretch_y : float
+        Scale of the pattern along y.
+    mean, contrast : float
+        Mean level and peak-to-peak contrast, in [0, 1].
+    """
+
+    period_mm: float
+    rotation_deg: float = 0.0
+    stretch_y: float = 1.0
+    mean: float = 0.5
+    contrast: float = 0.8
+
+    def __post_init__(self):
+        if not self.period_mm > 0:
+            raise GeometryError(f"period_mm must be positive, got {self.period_mm!r}")
+        if not self.stretch_y > 0:
+            raise GeometryError(f"stretch_y must be positive, got {self.stretch_y!r}")
+
+    def __call__(self, x_mm, y_mm) -> np.ndarray:
+        """Intensity at pattern-plane coordinates (mm), float64 in [0, 1]."""
+        c, s = math.cos(math.radians(self.rotation_deg)), math.sin(math.radians(self.rotation_deg))
+        x = np.asarray(x_mm, dtype=np.float64)
+        y = np.asarray(y_mm, dtype=np.float64) / self.stretch_y
+        k = 2 * np.pi / self.period_mm
+        return self.mean + 0.25 * self.contrast * (np.cos(k * (c * x + s * y)) + np.cos(k * (-s * x + c * y)))
 
 
 def _hash_uniform(i, j, seed, salt):

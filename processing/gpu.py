@@ -234,13 +234,16 @@ class BatchChain:
         return self.xp.matmul(self.xp.matmul(self.up_r, field), self.up_cT)
 
     def _warp_smooth(self, u):
-        """The smooth reference sampled at r - u(r) (cv2.remap, bilinear, reflecting border), (B, rows, cols)."""
+        """The smooth reference sampled at r - u(r) (cv2.remap, bilinear, reflecting border), (B, rows, cols),
+        from its grid ``factor`` times finer than the pixels, as the CPU chain warps it."""
         xp = self.xp
-        rows, cols = self.r.shape
         if self.smooth is None:
-            self.smooth = xp.asarray(self.r._smooth_reference())
-        X = self.cols_f - self._up(u[:, 1])
-        Y = self.rows_f - self._up(u[:, 0])
+            fine, self.smooth_factor = self.r._smooth_reference()
+            self.smooth = xp.asarray(fine)
+        f = np.float32(self.smooth_factor)
+        rows, cols = self.smooth.shape
+        X = f * (self.cols_f - self._up(u[:, 1]))
+        Y = f * (self.rows_f - self._up(u[:, 0]))
         ix = xp.floor(X)
         iy = xp.floor(Y)
         fx = (X - ix).astype(xp.float32)
@@ -369,8 +372,9 @@ class BatchChain:
             iterations = {"decimated": 0, "full": 1}[grid]
         if iterations > 0 and self.static is None:
             d = r.demod
-            self.static = xp.asarray(np.angle(d.g0 * np.conj(d.decimated(r._smooth_reference())))
-                                     .astype(np.float32))
+            fine, factor = r._smooth_reference()
+            coarse = np.ascontiguousarray(fine[::factor, ::factor])
+            self.static = xp.asarray(np.angle(d.g0 * np.conj(d.decimated(coarse))).astype(np.float32))
         for _ in range(iterations):
             gw = self._decimated(self._warp_smooth(u))
             dphi = _wrap(xp, xp.angle(g * xp.conj(gw)).astype(xp.float32) - self.static)
@@ -394,7 +398,7 @@ class BatchChain:
         return results + [r._call_cpu(f, grid=grid) for f in frames[n:]]
 
     def _results(self, grid, u, h, sx, sy, amplitude, ph, n, ms, essentials, series):
-        from .reconstruct import Result
+        from .result import Result
 
         xp = self.xp
         r = self.r

@@ -877,7 +877,7 @@ _CACHE_SIZE = 8
 _CACHE_LOCK = threading.Lock()  # the GUI and the processing worker may solve at once
 
 
-def _solver_for(geometry, rows_px, cols_px, frame_shape) -> HeightSolver:
+def solver_for(geometry, rows_px, cols_px, frame_shape) -> HeightSolver:
     r = np.asarray(rows_px, dtype=np.float64).ravel()
     c = np.asarray(cols_px, dtype=np.float64).ravel()
     key = (
@@ -953,6 +953,6 @@ def surface_from_displacement(displacement_px, valid, geometry, *, rows_px, cols
     >>> float(np.abs(r.height_mm).max())
     0.0
     """
-    s = _solver_for(geometry, rows_px, cols_px, frame_shape)
+    s = solver_for(geometry, rows_px, cols_px, frame_shape)
     return s.solve(displacement_px, valid, solver=solver, reference_mask=reference_mask,
                    pin_fallback=pin_fallback, region_name=region_name)

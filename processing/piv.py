@@ -135,9 +135,9 @@ class DotDisplacement:
         (two fixed-point steps, cubic spline on the grid)."""
         from scipy import ndimage
 
-        from .reconstruct import _nearest_fill_index
+        from .fill import nearest_fill_index
 
-        fill = _nearest_fill_index(valid)
+        fill = nearest_fill_index(valid)
         src = disp if fill is None else disp[:, fill[0], fill[1]]
         src = np.nan_to_num(src).astype(np.float64)
         dr = self.rows_px[1] - self.rows_px[0]

@@ -111,47 +111,35 @@ REFINE_METHODS = ("auto", "image", "fd")
 
 def batch_refine_method(requested: str, shape, pattern: str, grid: str, device: str = "cpu") -> str:
     """The refinement a batch run uses: ``"image"`` (image matching for the
-    height, :mod:`processing.dic`) or ``"fd"``.
-
-    ``"auto"`` (the batch default): image matching where it applies (a
-    checkerboard, the full grid, the CPU, frame sides multiples of
-    ``dic.NODE_PX`` px), else FD's refinement.  An explicit ``"image"``
-    where it cannot apply raises :class:`TirdeflectError` saying why.
+    height, :mod:`processing.dic`) or ``"fd"``, as
+    :func:`processing.options.full_grid_refinement` chooses for every caller
+    (``"auto"``, the default: image matching where it applies).  An explicit
+    ``"image"`` where it cannot apply raises :class:`TirdeflectError` saying why.
     """
-    from processing import dic
+    from processing.options import ReconstructOptions, full_grid_refinement
 
     if requested not in REFINE_METHODS:
         raise TirdeflectError(f"refine method must be one of {', '.join(REFINE_METHODS)}; got {requested!r}")
-    if requested == "fd":
-        return "fd"
-    why = None
-    if pattern == "dots":
-        why = "random-dot patterns are measured by PIV"
-    elif grid != "full":
-        why = "it refines the full grid only"
-    elif device == "cuda":
-        why = "it runs on the CPU, not with --device cuda"
-    elif not dic.fits(shape):
-        why = (f"the frame sides ({shape[0]} x {shape[1]} px) must be multiples of {dic.NODE_PX} px "
-               f"and at least {5 * dic.NODE_PX} px")
-    if why is None:
-        return "image"
-    if requested == "image":
+    options = ReconstructOptions(grid=grid, device=device, refine_method=requested)
+    method, why = full_grid_refinement(options, shape, pattern)
+    if requested == "image" and why is not None:
         raise TirdeflectError(f"--refine image cannot be used here: {why}; use --refine fd (or auto)")
-    return "fd"
+    return method
 
 
-def _make_reconstructor(reference: np.ndarray, geometry, *, unwrap: bool, grid: str,
-                        effort: str = "estimate", pattern: str | None = None, refine_method: str = "fd",
-                        **options):
-    """The batch Reconstructor; ``options``: threads, device, and the carriers app.batch.parallel's
-    workers take from the engine's own; ``refine_method`` as :func:`batch_refine_method` chose."""
-    from processing import Reconstructor
+def job_options(args, shape, geometry, effort: str):
+    """The :class:`processing.ReconstructOptions` of a batch job (``args``: a
+    :class:`ProcessJob`), refinement resolved (:func:`batch_refine_method`),
+    one FFT thread per core of this process: the one value the engine, its
+    worker processes, Dask tasks and GPU batches build their Reconstructors from."""
+    from processing import ReconstructOptions
 
-    return Reconstructor(reference, geometry, grid=grid, unwrap=unwrap, pattern=pattern,
-                         planner_effort="FFTW_MEASURE" if effort == "measure" else "FFTW_ESTIMATE",
-                         refine_method=refine_method, **options)
-
+    pattern = args.pattern or geometry.pattern or "checkerboard"
+    refine_method = batch_refine_method(args.refine_method, shape, pattern, args.grid, args.device)
+    return ReconstructOptions(grid=args.grid, unwrap=not args.no_unwrap, pattern=args.pattern,
+                              refine_method=refine_method,
+                              planner_effort="FFTW_MEASURE" if effort == "measure" else "FFTW_ESTIMATE",
+                              threads=parallel.fft_threads(1))
 
 
 @dataclasses.dataclass
@@ -342,14 +330,12 @@ def run_process(args: ProcessJob) -> BatchReport:
     effort = args.fft_effort
     if effort == "auto":
         effort = "measure" if selected >= MEASURE_MIN_FRAMES else "estimate"
-    pattern = args.pattern or getattr(geometry, "pattern", None) or "checkerboard"
-    refine_method = batch_refine_method(args.refine_method, np.shape(reference), pattern, args.grid,
-                                        getattr(args, "device", "cpu"))
-    reconstruct = _make_reconstructor(reference, geometry, unwrap=not args.no_unwrap, grid=args.grid,
-                                      effort=effort, pattern=args.pattern, refine_method=refine_method,
-                                      threads=parallel.fft_threads(1))
-    if hasattr(reconstruct, "reset_series"):
-        reconstruct.reset_series()
+    from processing import Reconstructor
+
+    options = job_options(args, np.shape(reference), geometry, effort)
+    refine_method = options.refine_method
+    reconstruct = Reconstructor(reference, geometry, options)
+    reconstruct.reset_series()
 
     geometry_toml, geometry_info = geometry_attrs(geometry)
     attrs = {

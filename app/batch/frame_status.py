@@ -82,8 +82,11 @@ def outcome_of_error(exc: BaseException) -> FrameOutcome | None:
     """The outcome of a frame whose reading or measuring raised ``exc``;
     None when ``exc`` is not the frame's fault (a full disk, a bug): the run
     must stop then."""
+    from app.files.h5safe import DiskFullError
     from app.files.imageio import ImageReadError
 
+    if isinstance(exc, DiskFullError):
+        return None  # no room for the output: the run's fault, every later frame would fail too
     message = " ".join(str(exc).split())
     if isinstance(exc, ImageReadError):
         return FrameOutcome(FrameStatus.UNREADABLE, message)
@@ -115,7 +118,10 @@ def measure_frame(reconstruct, image: np.ndarray, ref_shape, grid: str):
     try:
         result = reconstruct(image, grid=grid)
     except TirdeflectError as exc:
-        return None, outcome_of_error(exc)
+        outcome = outcome_of_error(exc)
+        if outcome is None:
+            raise
+        return None, outcome
     if not np.asarray(result.valid, dtype=bool).any():
         return None, FrameOutcome(
             FrameStatus.NO_CONTRAST,

@@ -129,6 +129,9 @@ def fft_threads(workers: int, cores: Optional[int] = None) -> int:
 class ReconstructorSpec:
     """What a worker needs to build its own Reconstructor (picklable, sent with each task).
 
+    ``options``: the engine's Reconstructor's :attr:`processing.Reconstructor.options`
+    (the one :class:`processing.ReconstructOptions` value, refinement resolved);
+    the worker changes only its ``threads``.
     ``carriers`` are the ones the engine found on the reference, so every
     worker demodulates exactly as a serial run. ``threads`` None: the worker
     picks its cores / the tasks that run at once on its machine, which
@@ -141,14 +144,10 @@ class ReconstructorSpec:
     key: str
     reference: np.ndarray
     geometry: object
-    grid: str
-    unwrap: bool
-    effort: str
+    options: object  # processing.ReconstructOptions
     carriers: object
     threads: Optional[int] = None
     shared_memory: bool = False
-    pattern: Optional[str] = None
-    refine_method: str = "fd"
     compression: Optional[str] = None
     tasks_per_host: tuple = ()
 
@@ -199,6 +198,8 @@ class ChunkOutcome:
 
 
 _RECONSTRUCTORS: dict = {}
+#: Runs (``ReconstructorSpec.key``) whose FFTW wisdom this process has stored.
+_WISDOM_STORED: set = set()
 
 
 def _reconstructor(spec: ReconstructorSpec):
@@ -214,13 +215,12 @@ def _reconstructor(spec: ReconstructorSpec):
     import cv2
 
     cv2.setNumThreads(threads)
-    from app.batch.engine import _make_reconstructor
     from app.files import cache
+    from processing import Reconstructor
 
     cache.restore_fftw_wisdom()
-    recon = _make_reconstructor(spec.reference, spec.geometry, unwrap=spec.unwrap, grid=spec.grid,
-                                pattern=spec.pattern, refine_method=spec.refine_method,
-                                effort=spec.effort, threads=threads, carriers=spec.carriers)
+    recon = Reconstructor(spec.reference, spec.geometry, spec.options.replace(threads=threads),
+                          carriers=spec.carriers)
     _RECONSTRUCTORS[spec.key] = recon
     return recon
 
@@ -380,7 +380,10 @@ def measure(reconstruct, item, ref_shape, grid: str):
     from app.batch.frame_status import measure_frame, outcome_of_error
 
     if item.error is not None:
-        return None, outcome_of_error(item.error)
+        outcome = outcome_of_error(item.error)
+        if outcome is None:  # not the frame's fault (a full disk): the run stops
+            raise item.error
+        return None, outcome
     return measure_frame(reconstruct, item.image, ref_shape, grid)
 
 
@@ -412,7 +415,7 @@ def process_chunk(spec: ReconstructorSpec, chunk: Chunk) -> ChunkOutcome:
                 recon.reset_series()
         start = recon.series_state()
         for item in frames:
-            result, outcome = measure(recon, item, shape, spec.grid)
+            result, outcome = measure(recon, item, shape, spec.options.grid)
             if result is None:
                 recon.reset_series()
             else:  # the per-pixel part of writing it (NaN mask, compression) is done here
@@ -427,11 +430,11 @@ def process_chunk(spec: ReconstructorSpec, chunk: Chunk) -> ChunkOutcome:
             exc = type(exc)(f"{exc} (read on {socket.gethostname()}; workers that do not see the "
                             f"input files at this path need --dask-send-frames, docs/cluster.md)")
         out.append((None, exc))
-    if spec.effort == "measure" and not getattr(recon, "_wisdom_stored", False):
+    if spec.options.planner_effort == "FFTW_MEASURE" and spec.key not in _WISDOM_STORED:
         from app.files import cache
 
         cache.store_fftw_wisdom()
-        recon._wisdom_stored = True
+        _WISDOM_STORED.add(spec.key)
     import socket
 
     return ChunkOutcome(index=chunk.index, start=start, frames=out, end=recon.series_state(),
@@ -580,11 +583,11 @@ class _GpuBatches:
     the GPU ``GPU_BATCH`` at a time (processing/gpu.py), results in order."""
 
     def __init__(self, job, reconstruct, reference, geometry, effort, paths):
-        from app.batch.engine import _make_reconstructor
+        from processing import Reconstructor
 
-        self._recon = _make_reconstructor(reference, geometry, unwrap=not job.no_unwrap, grid=job.grid,
-                                          effort=effort, carriers=reconstruct.carriers, device="cuda",
-                                          pattern=getattr(reconstruct, "pattern", None))
+        # the engine's options, on the GPU (its refinement was chosen for device "cuda")
+        self._recon = Reconstructor(reference, geometry, reconstruct.options.replace(device="cuda"),
+                                    carriers=reconstruct.carriers)
         why = self._recon.gpu_fallback
         self.attrs = {"device": "cuda" if why is None else f"cpu ({why})", "gpu_batch": GPU_BATCH}
         if why is not None:
@@ -858,11 +861,9 @@ class _Chunked:
 
 def _spec(job, reconstruct, reference, geometry, effort, threads, shared_memory=False, tasks_per_host=()):
     return ReconstructorSpec(key=uuid.uuid4().hex, reference=np.asarray(reference), geometry=geometry,
-                             grid=job.grid, unwrap=not job.no_unwrap, effort=effort,
-                             carriers=reconstruct.carriers, threads=threads,
-                             shared_memory=shared_memory, pattern=getattr(reconstruct, "pattern", None),
-                             refine_method=getattr(reconstruct, "refine_method", "fd"),
-                             compression=getattr(job, "compression", None), tasks_per_host=tasks_per_host)
+                             options=reconstruct.options, carriers=reconstruct.carriers, threads=threads,
+                             shared_memory=shared_memory, compression=getattr(job, "compression", None),
+                             tasks_per_host=tasks_per_host)
 
 
 def _frame_bytes(reconstruct, grid: str) -> int:

@@ -25,7 +25,8 @@ from processing.errors import (
 
 __all__ = ["ResultWriter", "OutputFrame", "output_frame", "OutputExistsError", "DiskFullError",
            "OUTPUT_FORMAT_VERSION", "FLUSH_INTERVAL_S", "GZIP_LEVEL",
-           "check_output", "check_not_an_input", "is_same_file", "partial_path", "publish", "set_attrs", "carrier_attrs", "geometry_attrs", "utc_now"]
+           "check_output", "check_not_an_input", "is_same_file", "partial_path", "publish", "set_attrs", "carrier_attrs", "geometry_attrs", "utc_now",
+           "flatten_attrs"]
 
 log = logging.getLogger(__name__)
 
@@ -158,7 +159,7 @@ def _attr_value(value):
     return arr
 
 
-def _flatten(obj, prefix: str = "") -> dict:
+def flatten_attrs(obj, prefix: str = "") -> dict:
     """Flatten a dataclass / dict / object of scalars and arrays to ``{dotted.key: value}``."""
     out: dict = {}
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
@@ -177,7 +178,7 @@ def _flatten(obj, prefix: str = "") -> dict:
     for key, value in items:
         name = f"{prefix}.{key}" if prefix else str(key)
         if isinstance(value, dict) or (dataclasses.is_dataclass(value) and not isinstance(value, type)):
-            out.update(_flatten(value, name))
+            out.update(flatten_attrs(value, name))
             continue
         if isinstance(value, (list, tuple)) and value and all(isinstance(v, (list, tuple)) for v in value):
             # e.g. fsss_layers ((thickness_mm, n), ...): a 2-D array if rectangular
@@ -197,7 +198,7 @@ def carrier_attrs(carriers) -> dict:
     """Carrier information (periods, rotation, wavevectors...) as attributes."""
     if carriers is None:
         return {}
-    attrs = _flatten(carriers)
+    attrs = flatten_attrs(carriers)
     # Properties are not dataclass fields: pick up the documented ones explicitly.
     for name in ("periods_px", "angles_deg", "rotation_deg", "wavevectors",
                  "theta_deg", "describe"):
@@ -219,9 +220,9 @@ def geometry_attrs(geometry) -> tuple[str, dict]:
     except Exception as exc:  # keep processing; the flattened attrs still describe it
         log.warning("could not render the geometry as TOML (%s)", exc)
     try:
-        flat = _flatten(geometry.to_dict())
+        flat = flatten_attrs(geometry.to_dict())
     except Exception:
-        flat = _flatten(geometry)
+        flat = flatten_attrs(geometry)
     return toml_text, flat
 
 

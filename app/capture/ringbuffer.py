@@ -32,6 +32,7 @@ from typing import Optional, Tuple
 
 import numpy as np
 
+from app.sizes import format_bytes  # noqa: F401  (importable from here, as before)
 from drivers.base import FrameFlags
 
 __all__ = [
@@ -69,16 +70,6 @@ class RingClosed(RuntimeError):
 
 class MemoryBudgetError(MemoryError):
     """A buffer would not fit into the memory the system has available."""
-
-
-def format_bytes(n: float) -> str:
-    """Human-readable size with binary-free decimal units, e.g. ``'1.05 GB'``."""
-    n = float(n)
-    for unit in ("B", "kB", "MB", "GB", "TB"):
-        if abs(n) < 1000.0 or unit == "TB":
-            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.2f} {unit}"
-        n /= 1000.0
-    return f"{n:.2f} TB"  # pragma: no cover
 
 
 def available_memory_bytes() -> int:

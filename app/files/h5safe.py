@@ -147,7 +147,7 @@ def room_bytes(path, current_size: Optional[int] = None,
         current_size = path.stat().st_size if path.exists() else 0
     room, what = shutil.disk_usage(path.parent).free, "disk"
     if fs_max_bytes is not None and fs_max_bytes - current_size < room:
-        from app.capture.ringbuffer import format_bytes  # the app's one size formatter
+        from app.sizes import format_bytes  # the app's one size formatter
 
         room, what = fs_max_bytes - current_size, f"file system's largest file ({format_bytes(fs_max_bytes)})"
     soft = _ulimit_fsize_bytes()

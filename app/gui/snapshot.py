@@ -60,7 +60,7 @@ def write_snapshot(folder, window_image, processed, meta: dict):
 
     from app import version
     from app.batch.writer import set_attrs, utc_now
-    from app.batch.writer import _flatten  # one flattening of nested metadata for every HDF5 file
+    from app.batch.writer import flatten_attrs  # one flattening of nested metadata for every HDF5 file
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
@@ -70,7 +70,7 @@ def write_snapshot(folder, window_image, processed, meta: dict):
         raise OSError(f"could not write {png} (disk full or no permission?)")
     attrs = {"software": "tirdeflect", "software_version": version(), "created_utc": utc_now(),
              "description": "maps of one frame as shown in the live window (tirdeflect snapshot)"}
-    attrs.update(_flatten(meta))
+    attrs.update(flatten_attrs(meta))
     gz = dict(compression="gzip", shuffle=True)
     with h5py.File(h5, "x") as f:
         if processed is not None and processed.result is not None:

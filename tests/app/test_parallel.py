@@ -115,11 +115,11 @@ def test_series_needs_temporal_unwrapping(series, serial, tmp_path):
     job = _job(series, tmp_path / "x.h5")
     reference = imageio.read_reference(job.reference)
     geometry = Geometry.from_toml(job.geometry)
-    from app.batch.engine import _make_reconstructor
+    from processing import Reconstructor
 
-    recon = _make_reconstructor(reference, geometry, unwrap=True, grid="full")
-    spec = parallel.ReconstructorSpec(key="t", reference=reference, geometry=geometry, grid="full",
-                                      unwrap=True, effort="estimate", carriers=recon.carriers)
+    recon = Reconstructor(reference, geometry, grid="full", refine_method="fd")
+    spec = parallel.ReconstructorSpec(key="t", reference=reference, geometry=geometry, options=recon.options,
+                                      carriers=recon.carriers)
     # chunk 2 of 3-frame chunks: overlap frame 5, unwrapped in space; no check here
     chunk = parallel.plan_chunks(N_FRAMES, first=0, step=1, paths=frames, workers=2,
                                  frame_bytes=1, chunk_frames=3)[2]

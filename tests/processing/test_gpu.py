@@ -65,11 +65,11 @@ def test_lanczos_matrices_are_cv2_resize():
 @pytest.mark.parametrize("grid", ["decimated", "full"])
 def test_chain_on_numpy_gives_the_cpu_heights(series, grid):
     ref, frames = series
-    cpu = Reconstructor(ref, G55)
+    cpu = Reconstructor(ref, G55, refine_method="fd")  # the GPU chain is FD's
     expected = [cpu(f, grid=grid) for f in frames]
     assert expected[5].valid.all() and float(np.abs(expected[5].phase).max()) > np.pi
     assert not expected[-1].valid.all()  # the last frames are masked: the CPU's part
-    chained = Reconstructor(ref, G55)
+    chained = Reconstructor(ref, G55, refine_method="fd")
     chain = BatchChain(chained, np)
     assert chain.reason is None
     got = chain(frames[:3], grid) + chain(frames[3:], grid)  # two batches: the series goes on
@@ -78,7 +78,7 @@ def test_chain_on_numpy_gives_the_cpu_heights(series, grid):
     assert on_chain == [0, 1, 2, 3, 4, 5], on_chain  # every all-valid frame
     assert all("batch" not in got[k].timings_ms for k in range(len(got)) if not expected[k].valid.all())
     # the live path: one frame per call, the first one unwrapped in space
-    single = BatchChain(Reconstructor(ref, G55), np)
+    single = BatchChain(Reconstructor(ref, G55, refine_method="fd"), np)
     _compare(expected, [single([f], grid)[0] for f in frames])
 
 
@@ -93,9 +93,9 @@ def test_chain_without_unwrapping_leaves_masked_frames_to_the_cpu(series):
     faint = np.hypot(yy - 150, xx - 100) < 30
     mean = float(frames[2].mean())
     blanked[2][faint] = np.round(mean + 0.2 * (frames[2][faint] - mean)).astype(frames[2].dtype)
-    expected = [Reconstructor(ref, G55, unwrap=False)(f, grid="decimated") for f in blanked]
+    expected = [Reconstructor(ref, G55, unwrap=False, refine_method="fd")(f, grid="decimated") for f in blanked]
     assert [r.valid.all() for r in expected] == [True, True, False, True]
-    got = BatchChain(Reconstructor(ref, G55, unwrap=False), np)(blanked, "decimated")
+    got = BatchChain(Reconstructor(ref, G55, unwrap=False, refine_method="fd"), np)(blanked, "decimated")
     for k in range(4):
         np.testing.assert_array_equal(got[k].valid, expected[k].valid, err_msg=f"frame {k}")
     assert "batch" not in got[2].timings_ms, "the masked frame stayed on the batch"
@@ -106,9 +106,9 @@ def test_chain_takes_only_what_it_reproduces(series):
     RMS height apart) goes through the CPU, and the Reconstructor says why."""
     ref, _ = series
     for interpolation in ("cubic", "linear"):
-        chain = BatchChain(Reconstructor(ref, G55, full_interpolation=interpolation), np)
+        chain = BatchChain(Reconstructor(ref, G55, full_interpolation=interpolation, refine_method="fd"), np)
         assert chain.reason is not None and "lanczos" in chain.reason
-    assert BatchChain(Reconstructor(ref, G55), np).reason is None
+    assert BatchChain(Reconstructor(ref, G55, refine_method="fd"), np).reason is None
     assert Reconstructor(ref, G55).gpu_fallback is None  # device="cpu": nothing falls back
 
 
@@ -127,7 +127,7 @@ def test_device_cuda_gives_the_cpu_heights(series, grid):
     if cupy is None:
         pytest.skip(f"no GPU for device='cuda': {why}")
     ref, frames = series
-    cpu = Reconstructor(ref, G55)
+    cpu = Reconstructor(ref, G55, refine_method="fd")  # the GPU chain is FD's
     expected = [cpu(f, grid=grid) for f in frames]
     gpu = Reconstructor(ref, G55, device="cuda")
     _compare(expected, gpu.batch(frames[:3], grid=grid) + gpu.batch(frames[3:], grid=grid))

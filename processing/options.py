@@ -1,0 +1,193 @@
+"""One value for every option of the reconstruction: :class:`ReconstructOptions`.
+
+Frozen and picklable: the CLI, the batch engine, its worker processes and
+Dask tasks, the GPU batches and the GUI pass this one value around instead
+of retyping the option list, and it is validated here, once, with messages
+that echo the bad value.  :func:`full_grid_refinement` is the one place that
+chooses the full grid's refinement for ``refine_method="auto"`` (the
+default): every caller, ``Reconstructor(reference, geometry)(frame)`` as
+much as ``tirdeflect process``, gets the same heights.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Optional
+
+from .height import PIN_FALLBACKS
+
+__all__ = ["ReconstructOptions", "full_grid_refinement", "PATTERNS", "GRIDS", "REFINE_METHODS"]
+
+#: Patterns the Reconstructor reads: checkerboards by Fourier demodulation,
+#: random dots by PIV (processing.piv).
+PATTERNS = ("checkerboard", "dots")
+GRIDS = ("full", "decimated")
+#: ``"auto"``: the most accurate refinement that applies (:func:`full_grid_refinement`).
+REFINE_METHODS = ("auto", "fd", "image")
+DEVICES = ("cpu", "cuda")
+_FILTER_SHAPES = ("flattop", "disc")
+_BORDERS = ("apodize", "none")
+_FULL_METHODS = ("interpolate", "ifft")
+_FULL_INTERPOLATIONS = ("lanczos", "cubic", "linear")
+_EFFORTS = ("FFTW_ESTIMATE", "FFTW_MEASURE", "FFTW_PATIENT", "FFTW_EXHAUSTIVE")
+
+
+def _one_of(name, value, allowed):
+    if value not in allowed:
+        listed = ", ".join(repr(a) for a in allowed)
+        raise ValueError(f"{name} must be one of {listed}; got {value!r}")
+
+
+def _number(name, value, lo=None, hi=None, *, integer=False, lo_open=False):
+    kind = "an integer" if integer else "a number"
+    ok = not isinstance(value, bool) and isinstance(value, (int, float) if not integer else int)
+    if integer and not ok:
+        try:  # numpy integers
+            ok = int(value) == value and not isinstance(value, bool)
+        except (TypeError, ValueError):
+            ok = False
+    if not ok or value != value:  # NaN
+        raise ValueError(f"{name} must be {kind}; got {value!r}")
+    if lo is not None and (value <= lo if lo_open else value < lo):
+        raise ValueError(f"{name} must be {'>' if lo_open else '>='} {lo}; got {value!r}")
+    if hi is not None and value > hi:
+        raise ValueError(f"{name} must be <= {hi}; got {value!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class ReconstructOptions:
+    """Every option of :class:`processing.Reconstructor` (docs/processing.md says
+    what each does and what it measured).
+
+    Grid and pattern: ``grid`` ("full": every pixel, batch; "decimated": the
+    demodulation's grid, live), ``pattern`` ("checkerboard", "dots", None:
+    the geometry's ``pattern``), ``window_px`` (PIV's last window, dots).
+    Demodulation: ``filter_radius``, ``filter_flat``, ``filter_shape``,
+    ``oversample``, ``border``, ``subbin`` (:class:`processing.demodulation.Demodulator`).
+    Mask: ``min_amplitude``, ``min_fold``, ``dilate``, ``min_island``,
+    ``check_pattern``.  Unwrapping: ``unwrap``, ``temporal``.  Refinement:
+    ``refine_iterations`` (None: 1 on the full grid, 0 on the decimated one),
+    ``refine_method`` ("auto": :func:`full_grid_refinement`; "fd"; "image"),
+    ``image_iterations``.  Full grid: ``full_method``, ``full_interpolation``.
+    Height: ``solver``, ``pin_fallback``.  Device and FFT: ``device``
+    ("cpu", "cuda"), ``threads``, ``planner_effort``.
+
+    Raises
+    ------
+    ValueError
+        An option out of range, naming it and the value given.
+    """
+
+    grid: str = "full"
+    pattern: Optional[str] = None
+    unwrap: bool = True
+    temporal: bool = True
+    refine_iterations: Optional[int] = None
+    refine_method: str = "auto"
+    image_iterations: int = 3
+    filter_radius: float = 0.7
+    filter_flat: float = 0.8
+    filter_shape: str = "flattop"
+    oversample: float = 1.5
+    border: str = "apodize"
+    subbin: bool = True
+    full_method: str = "interpolate"
+    full_interpolation: str = "lanczos"
+    min_amplitude: float = 0.3
+    min_fold: float = 0.2
+    dilate: int = 1
+    min_island: float = 0.01
+    check_pattern: bool = True
+    solver: str = "auto"
+    threads: int = 2
+    planner_effort: str = "FFTW_ESTIMATE"
+    pin_fallback: str = "nearest"
+    window_px: int = 16
+    device: str = "cpu"
+
+    def __post_init__(self):
+        _one_of("grid", self.grid, GRIDS)
+        if self.pattern is not None:
+            _one_of("pattern", self.pattern, PATTERNS)
+        _one_of("refine_method", self.refine_method, REFINE_METHODS)
+        _one_of("device", self.device, DEVICES)
+        _one_of("filter_shape", self.filter_shape, _FILTER_SHAPES)
+        _one_of("border", self.border, _BORDERS)
+        _one_of("full_method", self.full_method, _FULL_METHODS)
+        _one_of("full_interpolation", self.full_interpolation, _FULL_INTERPOLATIONS)
+        _one_of("pin_fallback", self.pin_fallback, PIN_FALLBACKS)
+        _one_of("planner_effort", self.planner_effort, _EFFORTS)
+        _one_of("solver", self.solver, ("auto", "spectral", "masked"))
+        if self.refine_iterations is not None:
+            _number("refine_iterations", self.refine_iterations, 0, integer=True)
+        _number("image_iterations", self.image_iterations, 1, integer=True)
+        _number("filter_radius", self.filter_radius, 0.05, 0.75)
+        _number("filter_flat", self.filter_flat, 0.0, None)
+        if not self.filter_flat < 1.0:
+            raise ValueError(f"filter_flat must be < 1; got {self.filter_flat!r}")
+        _number("oversample", self.oversample, 1.0)
+        _number("min_amplitude", self.min_amplitude, 0.0)
+        _number("min_fold", self.min_fold)
+        _number("dilate", self.dilate, 0, integer=True)
+        _number("min_island", self.min_island, 0.0, 1.0)
+        _number("threads", self.threads, 1, integer=True)
+        _number("window_px", self.window_px, 8, integer=True)
+        for name in ("unwrap", "temporal", "subbin", "check_pattern"):
+            value = getattr(self, name)
+            if not isinstance(value, bool) and value not in (0, 1):
+                raise ValueError(f"{name} must be True or False; got {value!r}")
+            object.__setattr__(self, name, bool(value))
+        if self.device == "cuda" and self.pattern == "dots":
+            raise ValueError("device='cuda' reads checkerboards only (Fourier demodulation); "
+                             "use device='cpu' for a dot pattern")
+
+    def replace(self, **changes) -> "ReconstructOptions":
+        """A copy with ``changes`` (validated again); unknown names raise TypeError naming them."""
+        unknown = sorted(set(changes) - {f.name for f in dataclasses.fields(self)})
+        if unknown:
+            raise TypeError(f"unknown reconstruction option(s) {', '.join(unknown)}; the options are "
+                            f"{', '.join(f.name for f in dataclasses.fields(self))}")
+        return dataclasses.replace(self, **changes)
+
+
+def full_grid_refinement(options: ReconstructOptions, frame_shape, pattern: str, *, grid: Optional[str] = None):
+    """``(method, why)``: the refinement the full grid gets, ``"image"`` or ``"fd"``.
+
+    ``refine_method="auto"`` (the default): image matching for the height
+    (:mod:`processing.dic`), the most accurate method on every ray-traced case
+    of docs/processing.md's accuracy table (waves 3-6 carrier periods long
+    2.9 % -> 0.8 %) at about 5x FD's CPU time, where it applies: a
+    checkerboard, the full grid, the CPU, frame sides multiples of
+    ``dic.NODE_PX``, not ``refine_iterations=0`` (no refinement) nor
+    ``full_method="ifft"``; elsewhere FD's refinement.  The decimated (live) grid
+    never runs it.  ``why``: None, or the reason image matching does not
+    apply (``"image"`` given explicitly where it does not apply: the caller
+    says it cannot be used).  ``"fd"``: ``("fd", None)``.
+
+    Parameters
+    ----------
+    grid : {"full", "decimated"} or None
+        The grid of the run (None: ``options.grid``; a Reconstructor asks
+        for ``"full"``, its full-grid calls are what the method is for).
+    """
+    from . import dic
+
+    grid = options.grid if grid is None else grid
+    if options.refine_method == "fd":
+        return "fd", None
+    rows, cols = frame_shape
+    why = None
+    if pattern == "dots":
+        why = "random-dot patterns are measured by PIV"
+    elif grid != "full":
+        why = "it refines the full grid only"
+    elif options.device == "cuda":
+        why = "it runs on the CPU, not with device 'cuda'"
+    elif not dic.fits(frame_shape):
+        why = (f"the frame sides ({rows} x {cols} px) must be multiples of {dic.NODE_PX} px "
+               f"and at least {5 * dic.NODE_PX} px")
+    elif options.refine_method == "auto" and options.full_method != "interpolate":
+        why = "full_method='ifft' asks for full-size inverse FFTs instead"
+    elif options.refine_method == "auto" and options.refine_iterations == 0:
+        why = "refine_iterations=0 asks for no refinement"
+    return ("image", None) if why is None else ("fd", why)
