@@ -215,7 +215,11 @@ def _release_in_background(box: list, wait_s: float = 0.0) -> bool:
 def _run_bounded(call, wait_s: float) -> bool:
     """Run ``call()`` in a daemon thread; wait ``wait_s`` for it; whether it ended (it goes on if not)."""
     t = threading.Thread(target=call, name="aravis-release", daemon=True)
-    t.start()
+    try:
+        t.start()
+    except RuntimeError:  # no new threads (interpreter shutting down): release here
+        call()
+        return True
     t.join(wait_s)
     return not t.is_alive()
 
