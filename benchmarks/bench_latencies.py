@@ -1,6 +1,6 @@
 """Latencies the tests only bound loosely (their bounds are hang detectors, >= 10x above need).
 
-Run from the repository root (about 20 s; the GigE part needs arv-fake-gv-camera-0.8)::
+Run from the repository root (about 40 s; the GigE parts need arv-fake-gv-camera-0.8)::
 
     python3 benchmarks/bench_latencies.py
 
@@ -17,7 +17,12 @@ timeout it is bounded by:
 4. the GigE fake camera killed mid-stream -> ``CameraLost`` from ``fetch``, against
    the driver's bound (``lost_timeout_s`` + one probe + one fetch slice), the
    close that follows, and the garbage collection after the exception is dropped
-   (tests/drivers/test_aravis.py).
+   (tests/drivers/test_aravis.py);
+5. the GUI thread's longest pause (a 10 ms QTimer, the window's collector running,
+   app/gui/collector.py) while a background thread's first import of OpenPIV runs,
+   in a fresh interpreter: with no dead camera (baseline) and with two cameras
+   dropped right after they died, left in cyclic garbage (docs/architecture.md,
+   "Threads, imports and the garbage collector"; before RELEASE_WAIT_S: 20.1 s).
 """
 
 from __future__ import annotations
@@ -143,6 +148,59 @@ def gige_camera_lost() -> dict | None:
     return dict(lost_s=lost_s, bound_s=lost_timeout_s + 0.1 + 0.1, close_s=close_s, gc_s=gc_s)
 
 
+#: run in a fresh interpreter (OpenPIV's first import): argv = repository root, number of dead cameras
+GUI_PAUSE_CHILD = r"""
+import sys, threading, time
+sys.path.insert(0, sys.argv[1])
+n_dead = int(sys.argv[2])
+from pyqtgraph.Qt import QtCore, QtWidgets
+from app.gui.collector import GuiThreadCollector
+app = QtWidgets.QApplication([])
+root = QtCore.QObject()
+collector = GuiThreadCollector(root)
+if n_dead:
+    from drivers import aravis
+    from tests.drivers.fixtures import FakeGvCamera
+    for _ in range(n_dead):
+        fake = FakeGvCamera().start()
+        cam = aravis.AravisCamera("127.0.0.1", lost_timeout_s=1.0, probe_period_s=0.1)
+        cam.open(); cam.configure(width=64, height=64, frame_rate_hz=100.0); cam.start()
+        for _ in range(5):
+            cam.fetch(2.0)
+        fake.kill()
+        holder = [cam]; holder.append(holder)  # dropped at once, in a cycle: its __del__ closes it
+        del cam, holder
+        fake.stop()
+ticks = [time.monotonic()]
+tick = QtCore.QTimer(); tick.setInterval(10); tick.timeout.connect(lambda: ticks.append(time.monotonic())); tick.start()
+done = {}
+def build():
+    t0 = time.monotonic()
+    import openpiv.windef  # noqa: F401
+    done["s"] = time.monotonic() - t0
+threading.Thread(target=build, daemon=True).start()
+poll = QtCore.QTimer(); poll.setInterval(100)
+poll.timeout.connect(lambda: app.quit() if "s" in done and time.monotonic() - ticks[0] > 3.0 else None); poll.start()
+app.exec()
+print(max(b - a for a, b in zip(ticks, ticks[1:])), done["s"])
+"""
+
+
+def gui_pause(n_dead: int) -> tuple[float, float] | None:
+    """(the GUI thread's longest pause, the import's duration) in s, or None when it cannot run here."""
+    import os
+    import subprocess
+
+    env = dict(os.environ, QT_QPA_PLATFORM=os.environ.get("QT_QPA_PLATFORM", "offscreen"))
+    r = subprocess.run([sys.executable, "-c", GUI_PAUSE_CHILD, str(ROOT), str(n_dead)], env=env,
+                       capture_output=True, text=True, timeout=300)
+    if r.returncode != 0:
+        print(f"GUI pause with {n_dead} dead camera(s): not measured ({r.stderr.strip().splitlines()[-1:]})")
+        return None
+    pause_s, import_s = map(float, r.stdout.split()[-2:])
+    return pause_s, import_s
+
+
 def main() -> int:
     base = baseline_wake()
     base_med = statistics.median(base)
@@ -157,6 +215,14 @@ def main() -> int:
               f"{gige['lost_s'] / gige['bound_s']:.2f} x the driver's bound ({gige['bound_s']:.1f} s)")
         print(f"{'  close after CameraLost':<48} {gige['close_s']:.3f} s")
         print(f"{'  gc.collect() after the exception is dropped':<48} {gige['gc_s']:.3f} s")
+    base = gui_pause(0)
+    dead = gui_pause(2) if gige else None
+    if base:
+        print(f"{'GUI thread, first import of OpenPIV beside it':<48} longest pause {base[0]:.3f} s "
+              f"(import {base[1]:.1f} s) = 1.00 x")
+    if base and dead:
+        print(f"{'  and 2 dead cameras collected meanwhile':<48} longest pause {dead[0]:.3f} s "
+              f"(import {dead[1]:.1f} s) = {dead[0] / base[0]:.2f} x")
     return 0
 
 

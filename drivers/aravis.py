@@ -194,13 +194,34 @@ def _canary_bytes(data: np.ndarray, canary: np.ndarray, min_run: int = 8) -> np.
     return lost
 
 
-def _release_in_background(box: list) -> None:
-    """Empty ``box`` (the only holder of some GObjects) in a daemon thread.
+#: How long stop() and close() wait for Aravis to stop a camera or let go of its objects (s). A live
+#: camera's take milliseconds; a dead GigE camera's wait for GVCP timeouts (measured: 2.5 s to stop
+#: acquisition, 7.5 s to free the stream), which then go on in a daemon thread. Without this bound a
+#: camera that died unnoticed froze whichever thread closed it or collected it as garbage: the window's
+#: GUI thread (its collector, app/gui/collector.py) or a build thread in a first import of SciPy.
+RELEASE_WAIT_S = 1.0
+
+
+def _release_in_background(box: list, wait_s: float = 0.0) -> bool:
+    """Empty ``box`` (the only holder of some GObjects) in a daemon thread, waiting ``wait_s`` for it.
 
     Finalizers of a dead GigE device or stream write registers and wait for
     GVCP timeouts (seconds); the caller must keep no other reference.
+    Returns whether the release ended within ``wait_s``.
     """
-    threading.Thread(target=box.clear, name="aravis-release", daemon=True).start()
+    return _run_bounded(box.clear, wait_s)
+
+
+def _run_bounded(call, wait_s: float) -> bool:
+    """Run ``call()`` in a daemon thread; wait ``wait_s`` for it; whether it ended (it goes on if not)."""
+    t = threading.Thread(target=call, name="aravis-release", daemon=True)
+    try:
+        t.start()
+    except RuntimeError:  # no new threads (interpreter shutting down): release here
+        call()
+        return True
+    t.join(wait_s)
+    return not t.is_alive()
 
 
 class _AravisFeatures(Features):
@@ -439,12 +460,9 @@ class AravisCamera(Camera):
                 self._probe_thread = None
             box = [self._stream, self._features, self._dev, self._cam]
             self._stream = self._features = self._dev = self._cam = None
-            if self._lost.is_set():
-                # finalizing a dead GigE device/stream writes registers and waits for
-                # GVCP timeouts (seconds): let a daemon thread drop the last references
-                _release_in_background(box)
-            else:
-                box.clear()
+            # finalizing a dead GigE device/stream writes registers and waits for GVCP timeouts
+            # (seconds): a daemon thread drops the last references, waited for unless known dead
+            _release_in_background(box, 0.0 if self._lost.is_set() else RELEASE_WAIT_S)
 
     def __del__(self):
         # backup for a camera dropped without close(): release the device (bounded; a dead
@@ -571,18 +589,19 @@ class AravisCamera(Camera):
             return
         self._acquiring = False
         if not self._lost.is_set() and self._cam is not None:
-            try:
-                self._cam.stop_acquisition()
-            except Exception:
-                pass  # the device may be gone; the stream is freed below anyway
+            def stop_acquisition(cam=self._cam):
+                try:
+                    cam.stop_acquisition()
+                except Exception:
+                    pass  # the device may be gone; the stream is freed below anyway
+            if not _run_bounded(stop_acquisition, RELEASE_WAIT_S):
+                self._lost_reason = self._lost_reason or "the camera did not answer AcquisitionStop"
+                self._lost.set()  # it does not answer: what follows must not wait for it either
         self._final_stats = self._stream_stats()
         # the buffers' memory must outlive the stream (its thread may still write): list.clear() drops the
         # last item first, so the stream goes before the memory
         box, self._stream, self._memory = [self._memory, self._stream], None, []
-        if self._lost.is_set():
-            _release_in_background(box)
-        else:
-            box.clear()
+        _release_in_background(box, 0.0 if self._lost.is_set() else RELEASE_WAIT_S)
 
     def trigger_software(self) -> None:
         """Execute TriggerSoftware (ignored by Aravis' in-process fake camera in 0.8.26)."""

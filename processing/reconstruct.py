@@ -70,7 +70,7 @@ POOR_FRAME_VALID_FRACTION = 0.5
 #: part of the pattern.  The 90th percentile, not the median: where most of the
 #: field is blurred (a pattern sharp only in a central disk) the median is the
 #: camera noise, and noise samples would pass as pattern (measured on the four
-#: real references in /work/shared/data the two agree to 0.1 % of the samples).
+#: real references in tests/data the two agree to 0.1 % of the samples).
 _REF_CONTRAST_FRACTION = 0.25
 _REF_CONTRAST_PERCENTILE = 90.0
 

@@ -72,7 +72,7 @@ def pytest_configure(config):
     config._tirdeflect_watchdog_note = path
     if not os.environ.get("TIRDEFLECT_WATCHDOG_NOTE"):
         config._tirdeflect_watchdog_out.write(f"watchdog: a test stuck past its limit ends the run; "
-                                              f"its name will be in {path}\n")
+                                              f"the running test's name is kept in {path}\n")
         config._tirdeflect_watchdog_out.flush()
 
 
@@ -84,8 +84,9 @@ def _note(config, text: str) -> None:
 @pytest.hookimpl(hookwrapper=True, tryfirst=True)
 def pytest_runtest_protocol(item, nextitem):
     limit_s = _timeout_s(item) + WATCHDOG_MARGIN_S
-    _note(item.config, f"watchdog: {item.nodeid} did not end within {limit_s:g} s (setup, call and teardown); "
-                       "pytest was ended with every thread's stack (above)\n")
+    # read after pytest ended in the middle of a test (the watchdog, a kill, a crash): which one was running
+    _note(item.config, f"{item.nodeid} (its limit: {limit_s:g} s for setup, call and teardown; past it the "
+                       "watchdog prints 'Timeout' and every thread's stack, and ends pytest with status 1)\n")
     faulthandler.dump_traceback_later(limit_s, exit=True, file=item.config._tirdeflect_watchdog_out)
     yield
     faulthandler.cancel_dump_traceback_later()

@@ -14,8 +14,8 @@ note=$(mktemp "${TMPDIR:-/tmp}/tirdeflect-watchdog.XXXXXX")
 export TIRDEFLECT_WATCHDOG_NOTE="$note"
 status=0
 "$venv/bin/python" -m pytest -q -p no:cacheprovider "$@" || status=$?
-if [ -s "$note" ]; then
-    echo "tests/run.sh: $(cat "$note")" >&2
+if [ -s "$note" ]; then  # pytest ended in the middle of a test
+    echo "tests/run.sh: pytest ended (exit status $status) while this test ran: $(cat "$note")" >&2
     [ "$status" -ne 0 ] || status=1
 fi
 rm -f "$note"
@@ -31,13 +31,26 @@ start_time() {  # a process's start, in clock ticks since boot (field 22 of /pro
     set -- $stat
     echo "${20}"
 }
+parent_of() {  # a process's parent (field 4 of /proc/PID/stat)
+    local stat
+    stat=$(cat "/proc/$1/stat" 2>/dev/null) || return 1
+    stat=${stat##*) }
+    set -- $stat
+    echo "$2"
+}
 started=$(start_time $$ || true)
+# who started this script (a CI wrapper, `timeout`) holds the output too, and may have begun
+# in the same clock tick: never ours to end
+ancestors=" "
+pid=$$
+while pid=$(parent_of "$pid") && [ "$pid" -gt 1 ]; do ancestors="$ancestors$pid "; done
 for fd in 1 2; do
     target=$(readlink "/proc/$$/fd/$fd" 2>/dev/null || true)
     case "$target" in pipe:*|socket:*) ;; *) continue ;; esac
     for dir in /proc/[0-9]*; do
         pid=${dir#/proc/}
         [ "$pid" = "$$" ] && continue
+        case "$ancestors" in *" $pid "*) continue ;; esac
         [ "$(readlink "$dir/fd/1" 2>/dev/null)" = "$target" ] ||
             [ "$(readlink "$dir/fd/2" 2>/dev/null)" = "$target" ] || continue
         begun=$(start_time "$pid" || echo 0)

@@ -164,6 +164,7 @@ def test_install_script_from_a_fresh_clone_on_the_distribution_python(tmp_path, 
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(600)  # its pip steps may each take up to 300 s (build isolation fetches setuptools)
 @pytest.mark.skipif(shutil.which("git") is None, reason="needs git to check out the commit under test")
 def test_wheel_holds_every_package_and_runs_without_aravis(tmp_path):
     source = _fresh_checkout(tmp_path / "src")

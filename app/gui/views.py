@@ -1,6 +1,6 @@
 """Live image views: a pyqtgraph ImageItem with axes in mm and a colour bar in physical units.
 
-Live video follows /work/shared/style.md: ``ImageItem`` in a plot (not ``ImageView``),
+Live video follows the style guide (pyqtgraph's examples for live plots): ``ImageItem`` in a plot (not ``ImageView``),
 explicit levels, ``autoLevels=False``, C-contiguous float32/uint8 arrays. Levels
 follow the data (robust percentiles of a subsample, at most a few times per
 second) until the user drags the colour bar; "Auto levels" in the view's context

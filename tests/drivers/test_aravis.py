@@ -211,6 +211,31 @@ def test_gige_camera_killed_mid_stream_raises_camera_lost_in_bounded_time(gv_fak
     assert time.monotonic() - t0 < 5.0
 
 
+def test_a_camera_dropped_right_after_it_died_does_not_hold_up_the_collecting_thread(gv_fake_camera):
+    """A camera that died unnoticed (no fetch since), left in cyclic garbage: the thread whose allocations
+    set the collector off (the window's GUI thread, or a build thread importing SciPy) must not wait
+    for Aravis' GVCP timeouts (2.5 s to stop acquisition, 7.5 s to free the stream; it froze the window
+    20 s for two such cameras): that goes on in the driver's release threads."""
+    cam = aravis.AravisCamera("127.0.0.1", lost_timeout_s=1.0, probe_period_s=0.1)
+    cam.open()
+    cam.configure(width=64, height=64, frame_rate_hz=100.0)
+    cam.start()
+    _stream(cam, 5)
+    gv_fake_camera.kill()
+    holder = [cam]
+    holder.append(holder)  # only the cyclic collector frees it; its __del__ closes it
+    del cam, holder
+    t0 = time.monotonic()
+    gc.collect()
+    collect_s = time.monotonic() - t0
+    releasing = [t for t in threading.enumerate() if t.name == "aravis-release" and t.is_alive()]
+    assert releasing, f"the collecting thread did the whole release itself ({collect_s:.1f} s)"
+    # hang detector, >= 10x above need: the driver waits RELEASE_WAIT_S (1 s) once, then hands over
+    assert collect_s < 10 * aravis.RELEASE_WAIT_S
+    for t in releasing:
+        t.join(30.0)  # the dead stream is freed within Aravis' GVCP timeouts
+
+
 def _gobjects_held_by(tb) -> list[str]:
     """'function: name' of each GObject (stream, buffer, device) a traceback's frames hold in a local."""
     from gi.repository import GObject
