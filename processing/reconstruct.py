@@ -469,6 +469,7 @@ class Reconstructor:
                  pin_fallback: str = "nearest", refine_method: str = "fd", image_iterations: int = 3,
                  pattern: Optional[str] = None, window_px: int = 16, device: str = "cpu"):
         ref = self._validate_image(reference_image, "reference image")
+        geometry.check_frame(ref.shape)  # the field size is known here first: camera and rays vs the frame
         if pattern is None:
             pattern = getattr(geometry, "pattern", "checkerboard")
         if pattern not in PATTERNS:
