@@ -45,6 +45,7 @@ from typing import Optional
 
 import numpy as np
 
+from app.batch.interruptible import call_interruptibly
 from app.batch.writer import output_frame
 from app.files import imageio
 from processing.errors import TirdeflectError
@@ -562,7 +563,11 @@ class _Serial:
 
     def __next__(self):
         item = next(self._frames)
-        return item, functools.partial(self._measure, item)
+        return item, functools.partial(call_interruptibly, self._measure_logged, item)
+
+    def _measure_logged(self, item):
+        log.debug("frame %d (%s): measuring", item.sequence_index, item.label)
+        return self._measure(item)
 
     def close(self):
         self._frames.close()

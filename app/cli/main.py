@@ -226,12 +226,29 @@ def _join_negative_pairs(argv: list) -> list:
     return out
 
 
+def _exit_now_if_a_call_is_left_running() -> None:
+    """After Ctrl-C or SIGTERM stopped a frame inside a native call (app/batch/interruptible.py),
+    the output is closed already: end the process now instead of tearing the interpreter
+    down beside a computation that may run for minutes."""
+    from app.batch.interruptible import abandoned_calls
+
+    if abandoned_calls():
+        import logging
+        import os
+
+        logging.shutdown()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(EXIT_INTERRUPTED)
+
+
 def _guarded(run, debug: bool) -> int:
     """Run a command; known errors become one line on stderr and exit status 2."""
     try:
         return int(run() or 0)
     except KeyboardInterrupt:
         print(f"{PROG}: interrupted", file=sys.stderr)
+        _exit_now_if_a_call_is_left_running()
         return EXIT_INTERRUPTED
     except _known_errors() as exc:
         if debug:
