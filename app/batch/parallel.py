@@ -1115,6 +1115,12 @@ def frame_results(job, reconstruct, reference, geometry, effort: str, selected: 
     chunks = plan_chunks(selected, first=job.first, step=job.step, paths=tuple(inputs),
                          workers=workers, frame_bytes=_frame_bytes(reconstruct, job.grid),
                          chunk_frames=job.chunk_frames, keyframes=_keyframes(inputs))
+    if len(chunks) < workers:  # a process per chunk at most: store and say what runs
+        if getattr(job, "workers", None) is not None:
+            log.warning("--workers %d: %d process(es) run, one per chunk of frames (%d frames, chunks of "
+                        "at least %d; this machine has %d cores)", job.workers, len(chunks), selected,
+                        MIN_CHUNK_FRAMES if job.chunk_frames is None else job.chunk_frames, available_cores())
+        workers = max(1, len(chunks))
     spec = _spec(job, reconstruct, reference, geometry, effort, fft_threads(workers),
                  shared_memory=_results_fit_shm(chunks, workers, job, reconstruct))
     pool = _Pool(workers)

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import re
 import sys
 import traceback
 
@@ -108,11 +109,23 @@ class _AppUnavailable(RuntimeError):
     """A part of the app (GUI, recorder) cannot be imported here."""
 
 
+class Parser(argparse.ArgumentParser):
+    """argparse with the option first in a refused value: ``--first must be >= 0 (frames
+    count from 0); got -1``, as ``record``'s own checks write it, not ``argument --first:
+    must be ...``. Subcommand parsers are of this class too."""
+
+    def error(self, message):
+        match = re.match(r"argument (-[^:/ ]+)(?:/[^:]+)?: (must be .*)$", message, re.S)
+        if match:
+            message = f"{match.group(1)} {match.group(2)}"
+        super().error(message)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The full argument parser (subcommands included)."""
     from app.cli import process as process_cli
 
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog=PROG,
         description="Live total-internal-reflection deflectometry: checkerboard images "
         "to water-surface heights (mm). With no command, opens the live window.",
