@@ -487,7 +487,7 @@ def _check_range_within(sl: slice, total: int, option: str, what: str) -> None:
     """Refuse a START:STOP whose explicit ends lie beyond ``total`` frames (Python's slice
     would clamp them in silence: 0:1000 of 15 frames would average 15 and store '0:1000:')."""
     beyond = [v for v in (sl.start, sl.stop) if v is not None and (v > total or v < -total)]
-    if beyond:
+    if beyond and len(range(total)[sl]):  # (a range that selects nothing has its own message)
         raise TirdeflectError(
             f"{option} {_slice_text(sl).rstrip(':')} reaches frame {beyond[0]}, but {what} "
             f"hold{'s' if what.startswith('the reference') else ''} {total} frame(s) (0 to {total - 1}); "
