@@ -243,9 +243,8 @@ def _exit_now_if_a_call_is_left_running() -> None:
     """After Ctrl-C or SIGTERM stopped a frame inside a native call (app/batch/interruptible.py),
     the output is closed already: end the process now instead of tearing the interpreter
     down beside a computation that may run for minutes."""
-    from app.batch.interruptible import abandoned_calls
-
-    if abandoned_calls():
+    interruptible = sys.modules.get("app.batch.interruptible")  # not imported: nothing left running
+    if interruptible is not None and interruptible.abandoned_calls():
         import logging
         import os
 
