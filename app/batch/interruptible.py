@@ -22,7 +22,7 @@ __all__ = ["call_interruptibly", "abandoned_calls", "POLL_S"]
 #: Longest wait of the main thread between two chances to run a signal handler, s.
 POLL_S = 0.1
 
-_abandoned: list = []  # threads left running by an interrupt
+_abandoned: list = []  # the `done` events of calls an interrupt left behind
 
 
 def abandoned_calls() -> int:
@@ -33,7 +33,7 @@ def abandoned_calls() -> int:
     them for the CPU, and one that returns into a half torn-down interpreter
     can crash it.
     """
-    return sum(1 for t in _abandoned if t.is_alive())
+    return sum(1 for done in _abandoned if not done.is_set())
 
 
 def call_interruptibly(fn, *args, **kwargs):
@@ -59,13 +59,13 @@ def call_interruptibly(fn, *args, **kwargs):
             done.set()
 
     worker = threading.Thread(target=run, name="tirdeflect-frame", daemon=True)
+    # counted as left behind from before it starts: a signal may land anywhere from here on,
+    # in start() too, and a call still in native code must never meet the interpreter's teardown
+    _abandoned.append(done)
     worker.start()
-    try:
-        while not done.wait(POLL_S):
-            pass
-    except BaseException:  # a signal handler raised (Ctrl-C, SIGTERM): leave the call behind
-        _abandoned.append(worker)
-        raise
+    while not done.wait(POLL_S):  # a signal handler that raises (Ctrl-C, SIGTERM) leaves from here
+        pass
+    _abandoned.remove(done)
     if "error" in box:
         error = box.pop("error")
         try:
