@@ -52,8 +52,13 @@ __all__ = [
     "Geometry",
     "LinearResponse",
     "DEFAULT_REFERENCE_BAND",
+    "MAX_FIELD_HALF_ANGLE_DEG",
     "default_reference_region_mask",
 ]
+
+#: Widest angle off the camera axis (deg) that the pinhole (rectilinear lens) model is
+#: trusted for; see :meth:`Geometry.check_frame`.
+MAX_FIELD_HALF_ANGLE_DEG = 60.0
 
 #: Width of the default reference band, as a fraction of the smaller frame side.
 DEFAULT_REFERENCE_BAND = 0.04
@@ -351,6 +356,88 @@ class Geometry:
                 f"n_water={self.n_water}, got {out[-1][1]}; list the layers from the pattern up, water last"
             )
         object.__setattr__(self, "fsss_layers", tuple(out))
+
+    # ------------------------------------------------------------------ against the frame
+    def check_frame(self, frame_shape) -> None:
+        """Refuse a camera that cannot see the pattern over a frame of this shape.
+
+        The keys alone do not say how wide the field is; with the frame they do
+        (``pixel_mm`` per column, ``pixel_mm / cos(theta)`` per row for TIR).
+        Two physical conditions, checked on the flat surface for every pixel
+        of the frame's border, centre row and centre column (where the
+        extremes of the incidence angle lie):
+
+        * pinhole camera (finite distance): no pixel more than
+          :data:`MAX_FIELD_HALF_ANGLE_DEG` off the optical axis. The camera
+          model is a rectilinear lens (a pixel offset ``s`` is the direction
+          ``atan(s / D)``); a wider field needs a fisheye, which the model
+          does not describe, and a distance that short is almost always a
+          typo (``camera_distance_mm = 1`` for 1 m). This is
+          ``D >= half diagonal / tan(60 deg)``, about 0.3 field diagonals:
+          measured with :mod:`processing.forward`, the ray-traced heights of
+          the finite-distance model stay within 1.2 % of the truth down to
+          half a field diagonal wherever the rays are totally reflected, so
+          the bound the physics needs is the next one, not a multiple of the
+          field.
+        * TIR: every ray must meet the surface going up (incidence below
+          90 deg) and be totally reflected (incidence above the critical
+          angle ``arcsin(n_air / n_water)``), so that it reaches the pattern;
+          elsewhere the camera sees through the surface, not the board.
+
+        Raises
+        ------
+        GeometryError
+            Naming the values, where in the frame it fails and what to change.
+        """
+        n_rows, n_cols = (int(v) for v in frame_shape)
+        distance = self.camera_distance_mm if self.setup == "tir" else self.fsss_camera_distance_mm
+        key = "camera_distance_mm" if self.setup == "tir" else "fsss_camera_distance_mm"
+        row_mm = self.pixel_mm / math.cos(self.theta) if self.setup == "tir" else self.pixel_mm
+        width_mm, height_mm = n_cols * self.pixel_mm, n_rows * row_mm
+        field = (f"the {n_rows} x {n_cols} px frame spans {width_mm:.4g} x {height_mm:.4g} mm of surface "
+                 f"(pixel_mm = {self.pixel_mm:g})")
+        if distance is not None:
+            half_diag_mm = 0.5 * math.hypot((n_cols - 1) * self.pixel_mm, (n_rows - 1) * self.pixel_mm)
+            angle = math.degrees(math.atan2(half_diag_mm, distance))
+            if angle > MAX_FIELD_HALF_ANGLE_DEG:
+                need = half_diag_mm / math.tan(math.radians(MAX_FIELD_HALF_ANGLE_DEG))
+                raise GeometryError(
+                    f"{key} = {distance:g} mm is too short for the field: {field}, so its corners would be "
+                    f"{angle:.1f} deg off the camera's axis, beyond the {MAX_FIELD_HALF_ANGLE_DEG:g} deg of a "
+                    f"rectilinear lens; the camera must be at least {need:.4g} mm away. Measure the distance "
+                    f"from the lens to the centre of the surface in mm (1 m is 1000), check pixel_mm, or omit "
+                    f"{key} for a telecentric lens")
+        if self.setup != "tir":
+            return
+        mid_r, mid_c = (n_rows - 1) / 2.0, (n_cols - 1) / 2.0
+        all_r = np.arange(n_rows, dtype=np.float64)
+        all_c = np.arange(n_cols, dtype=np.float64)
+        rows = np.concatenate([all_r, all_r, all_r, np.full(3 * n_cols, 0.0)])
+        rows[3 * n_rows + n_cols:3 * n_rows + 2 * n_cols] = mid_r
+        rows[3 * n_rows + 2 * n_cols:] = n_rows - 1
+        cols = np.concatenate([np.zeros(n_rows), np.full(n_rows, mid_c), np.full(n_rows, n_cols - 1.0),
+                               all_c, all_c, all_c])
+        _, d = self.camera_rays(rows, cols, (n_rows, n_cols))
+        cos_inc = d[..., 2]
+        crit = self.critical_angle_deg
+        i_min = int(np.argmax(cos_inc))
+        i_max = int(np.argmin(cos_inc))
+        inc_min = math.degrees(math.acos(min(1.0, float(cos_inc[i_min]))))
+        inc_max = 90.0 if cos_inc[i_max] <= 0 else math.degrees(math.acos(float(cos_inc[i_max])))
+        where = lambda i: f"pixel (row {rows[i]:g}, col {cols[i]:g})"  # noqa: E731
+        fix = (f"check theta_deg = {self.theta_deg:g}, pixel_mm = {self.pixel_mm:g} and "
+               + (f"camera_distance_mm = {distance:g}" if distance is not None else "the frame size"))
+        if cos_inc[i_max] <= 1e-9:
+            raise GeometryError(
+                f"the camera ray of {where(i_max)} does not reach the water surface (incidence "
+                f"{inc_max:.1f} deg, 90 or more): {field}; {fix}")
+        if not inc_min > crit:
+            raise GeometryError(
+                f"the camera ray of {where(i_min)} meets the surface at {inc_min:.1f} deg, below the critical "
+                f"angle {crit:.1f} deg: it is not totally reflected and sees through the surface, not the "
+                f"pattern ({field}; incidence ranges {inc_min:.1f}-{inc_max:.1f} deg over the frame); raise "
+                f"theta_deg or move the camera farther away so that the whole field stays above {crit:.1f} deg; "
+                f"{fix}")
 
     # ------------------------------------------------------------------ I/O
     @classmethod

@@ -503,6 +503,7 @@ class Reconstructor:
                  carriers: Optional[Carriers] = None, **overrides):
         ref = self._validate_image(reference_image, "reference image")
         opts = ReconstructOptions() if options is None else options
+        geometry.check_frame(ref.shape)  # the field size is known here first: camera and rays vs the frame
         if not isinstance(opts, ReconstructOptions):
             raise TypeError(f"options must be a processing.ReconstructOptions; got {type(opts).__name__}")
         if overrides:

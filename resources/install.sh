@@ -3,13 +3,16 @@
 #   bash resources/install.sh             # the app
 #   bash resources/install.sh --test      # the app and the test tools
 #   bash resources/install.sh --desktop   # the app and a menu entry with its icon
+#   bash resources/install.sh --force     # re-point a `tirdeflect` link of another checkout
 #
 # Where things go:
 #   virtual environment   <this checkout>/.venv (TIRDEFLECT_VENV=DIR overrides); pip
 #                         installs the checkout editable, so `git pull` updates the app
 #   `tirdeflect` command  a symbolic link to .venv/bin/tirdeflect in ~/.local/bin when
 #                         that directory is on PATH, else in /usr/local/bin (as root or
-#                         with sudo); TIRDEFLECT_BIN_DIR=DIR overrides
+#                         with sudo); TIRDEFLECT_BIN_DIR=DIR overrides. A link there that
+#                         points to another checkout is kept (a warning says so): --force
+#                         re-points it to this one
 #   menu entry, icon      (--desktop) ~/.local/share/applications, ~/.local/share/icons;
 #                         as root /usr/local/share/applications, /usr/local/share/icons
 #                         (for every user); XDG_DATA_HOME=DIR overrides
@@ -24,12 +27,14 @@ set -euo pipefail
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 want_test=0
 want_desktop=0
+force=""
 for arg in "$@"; do
     case "$arg" in
         --test) want_test=1 ;;
         --desktop) want_desktop=1 ;;
+        --force) force=--force ;;
         -h|--help) awk 'NR > 1 && /^#/ { sub(/^# ?/, ""); print; next } NR > 1 { exit }' "${BASH_SOURCE[0]}"; exit 0 ;;
-        *) echo "install.sh: unknown option '$arg'; use --test, --desktop or --help" >&2; exit 2 ;;
+        *) echo "install.sh: unknown option '$arg'; use --test, --desktop, --force or --help" >&2; exit 2 ;;
     esac
 done
 say() { echo "install.sh: $*"; }
@@ -174,17 +179,16 @@ else
 fi
 link="$bin/tirdeflect"
 target="$venv/bin/tirdeflect"
-if [ "$(readlink "$link" 2>/dev/null)" != "$target" ]; then
-    if [ -e "$link" ] && [ ! -L "$link" ]; then
-        die "$link exists and is not a link this script made; remove it or set TIRDEFLECT_BIN_DIR"
-    fi
-    [ -n "$as" ] && say "linking $link with sudo (~/.local/bin is not on PATH)"
-    $as mkdir -p "$bin"
-    $as ln -sfn "$target" "$link"
+command_is="$(TIRDEFLECT_LINK_AS="$as" bash "$here/resources/link-command.sh" "$target" "$link" $force)" || exit 1
+if [ "$command_is" = "$link" ]; then
+    say "$version: $link -> $target"
+else
+    say "$version: $target (the command on PATH stays the other checkout's)"
 fi
-say "$version: $link -> $target"
 found="$(command -v tirdeflect || true)"
-if ! on_path "$bin"; then
+if [ "$command_is" != "$link" ]; then
+    :
+elif ! on_path "$bin"; then
     say "$bin is not on PATH yet: open a new login shell, or run: export PATH=\"$bin:\$PATH\""
 elif [ -n "$found" ] && [ "$found" != "$link" ]; then
     echo "install.sh: warning: 'tirdeflect' on PATH is $found, which comes before $link;" \

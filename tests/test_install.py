@@ -206,3 +206,51 @@ def test_wheel_holds_every_package_and_runs_without_aravis(tmp_path):
     assert not any(line.startswith("aravis:") for line in cameras), cameras
     assert sum(VIKY_VENDOR in line for line in cameras) == 3, cameras
     assert cameras[-1].startswith("synthetic ")
+
+
+def _link(target: Path, link: Path, *extra) -> subprocess.CompletedProcess:
+    return subprocess.run(["bash", str(ROOT / "resources" / "link-command.sh"), str(target), str(link), *extra],
+                          capture_output=True, text=True, timeout=60)
+
+
+def _fake_checkout(root: Path) -> Path:
+    command = root / ".venv" / "bin" / "tirdeflect"
+    command.parent.mkdir(parents=True)
+    command.write_text("#!/bin/sh\necho tirdeflect\n")
+    command.chmod(0o755)
+    return command
+
+
+def test_install_keeps_the_command_link_of_another_checkout(tmp_path):
+    """Two checkouts on one PC: the second install does not take the machine-wide link from the
+    first (it warns, names both and how to choose, and succeeds: CI installs from a second clone);
+    --force re-points it; a link to a deleted checkout is re-pointed; a file is never replaced."""
+    first, second = _fake_checkout(tmp_path / "first"), _fake_checkout(tmp_path / "second")
+    link = tmp_path / "bin" / "tirdeflect"
+    r = _link(first, link)
+    assert r.returncode == 0 and os.readlink(link) == str(first) and r.stdout.strip() == str(link)
+    r = _link(second, link)
+    assert r.returncode == 0, r.stderr
+    assert os.readlink(link) == str(first)  # the first checkout keeps its command
+    assert r.stdout.strip() == str(second)  # the command to run for this checkout
+    assert f"{link} points to {first}" in r.stderr and "--force" in r.stderr and "TIRDEFLECT_BIN_DIR" in r.stderr
+    r = _link(second, link, "--force")
+    assert r.returncode == 0 and os.readlink(link) == str(second) and r.stdout.strip() == str(link)
+    assert _link(second, link).stderr == ""  # already ours: nothing to say
+    shutil.rmtree(tmp_path / "second")  # that checkout is deleted: its link leads nowhere
+    r = _link(first, link)
+    assert r.returncode == 0 and os.readlink(link) == str(first) and "no longer exists" in r.stderr
+    link.unlink()
+    link.write_text("someone's own script\n")
+    r = _link(first, link)
+    assert r.returncode == 1 and "is not a link this script made" in r.stderr
+    assert link.read_text() == "someone's own script\n"
+
+
+def test_install_script_passes_force_to_the_link_and_documents_it():
+    text = (ROOT / "resources" / "install.sh").read_text()
+    assert "--force) force=--force ;;" in text
+    assert 'bash "$here/resources/link-command.sh" "$target" "$link" $force' in text
+    r = subprocess.run(["bash", str(ROOT / "resources" / "install.sh"), "--help"], capture_output=True, text=True,
+                       timeout=60)
+    assert r.returncode == 0 and "--force" in r.stdout

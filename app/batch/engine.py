@@ -294,11 +294,15 @@ def run_process(args: ProcessJob) -> BatchReport:
     elif args.reference_frames is None:
         check_input_file(args.reference, "reference")
     if not args.frames:
-        if args.reference_frames is None:
+        # a recording that stores its reference is a complete input (docs/cluster.md)
+        if args.reference_frames is None and (reference_given or not imageio.recording_has_reference(args.reference)):
             raise TirdeflectError("no frames given: add the FRAME files after the reference (or "
                                   "--reference-frames A:B to take the reference from the frames' file)")
         args.frames = [args.reference]
-    paths = imageio.expand_inputs(args.frames)
+    paths, reference_notes = _frames_without_the_reference(args, imageio.expand_inputs(args.frames))
+    if args.reference_frames is not None:
+        _check_range_within(args.reference_frames, imageio.count_frames(imageio.expand_inputs([args.reference])),
+                            "--reference-frames", f"the reference file {str(args.reference)!r}")
     counts = [imageio.frame_count(path) for path in paths]
     total = sum(counts)
     _apply_frame_range(args, total)
@@ -319,7 +323,10 @@ def run_process(args: ProcessJob) -> BatchReport:
     else:
         reference = imageio.read_reference(args.reference, index=reference_index,
                                            frames=args.reference_frames)
-    input_notes = imageio.input_notes(paths)
+    input_notes = reference_notes + imageio.input_notes(paths)
+    depth_note = _bit_depth_note(reference, paths[0])
+    if depth_note:
+        input_notes.append(depth_note)
     for line in input_notes:
         log.warning("%s", line)
     timing = _timing_attrs(paths[0])
@@ -453,12 +460,77 @@ def _apply_frame_range(args, total: int) -> None:
         return
     if args.first != 0 or args.last is not None or args.step != 1:
         raise TirdeflectError("give either --frames START:STOP:STEP or --first/--last/--step, not both")
+    _check_range_within(sl, total, "--frames", "the inputs")
     picked = range(total)[sl]
     if len(picked) == 0:
         raise TirdeflectError(
             f"--frames {_slice_text(sl)} selects no frame of the {total} input frame(s); "
             f"frames count from 0, STOP is exclusive")
     args.first, args.last, args.step = picked.start, picked[-1], picked.step
+
+
+def _check_range_within(sl: slice, total: int, option: str, what: str) -> None:
+    """Refuse a START:STOP whose explicit ends lie beyond ``total`` frames (Python's slice
+    would clamp them in silence: 0:1000 of 15 frames would average 15 and store '0:1000:')."""
+    beyond = [v for v in (sl.start, sl.stop) if v is not None and (v > total or v < -total)]
+    if beyond and len(range(total)[sl]):  # (a range that selects nothing has its own message)
+        raise TirdeflectError(
+            f"{option} {_slice_text(sl).rstrip(':')} reaches frame {beyond[0]}, but {what} "
+            f"hold{'s' if what.startswith('the reference') else ''} {total} frame(s) (0 to {total - 1}); "
+            f"give a range within them, e.g. 0:{total} (or leave STOP out: 0: is every frame)")
+
+
+def _frames_without_the_reference(args, paths: list) -> tuple:
+    """The expanded inputs without the reference file where a folder or glob brought it in
+    (a folder holding reference.png and the frames: the reference is not a frame of the series;
+    listed by name, it stays). Returns (paths, notes)."""
+    if _given_image(args.reference) or args.reference_frames is not None or args.reference_index is not None:
+        return paths, []
+    try:
+        ref = Path(args.reference).resolve()
+        named = {Path(p).resolve() for p in args.frames if isinstance(p, (str, os.PathLike))}
+    except (OSError, TypeError):
+        return paths, []
+    if ref in named:
+        return paths, []
+    kept = [p for p in paths if Path(p).resolve() != ref]
+    if len(kept) == len(paths) or not kept:
+        return paths, []
+    return kept, [f"the reference {str(args.reference)!r} is among the inputs (a folder or pattern brought it "
+                  f"in): it is not processed as a frame ({len(kept)} frame file(s) left); name it after the "
+                  f"reference to process it too"]
+
+
+def _bit_depth_note(reference: np.ndarray, first_input) -> str:
+    """A note when the frames' sample depth cannot match the reference's levels (8-bit video
+    frames against a 12-bit reference read as 'no contrast' frame after frame), else ''."""
+    try:
+        info = imageio.image_info(first_input)
+    except TirdeflectError:
+        return ""  # the reader says what is wrong with the file, frame by frame
+    if np.dtype(info.dtype).kind == "f" or not info.bits:
+        return ""
+    frame_bits = int(info.bits)
+    frame_top = 2 ** frame_bits - 1
+    ref_top = float(np.nanmax(reference)) if np.size(reference) else 0.0
+    ref_bits = _bits_of_counts(np.asarray(reference, dtype=np.float64))
+    if ref_top > 2 * frame_top:  # frames cannot even hold the reference's level
+        ratio = ref_top / frame_top
+    else:
+        try:
+            sample = imageio.read_image(first_input, index=0 if info.n_frames > 1 else None)
+        except Exception:  # noqa: BLE001 -- a first frame that cannot be read is reported as such later
+            return ""
+        top = float(np.nanmax(sample)) if sample.size else 0.0
+        if not (ref_top > 0 and top > 2 * 2 ** ref_bits):
+            return ""
+        ratio = ref_top / top
+        frame_bits = _bits_of_counts(sample.astype(np.float64))
+    return (f"bit depths differ: the frames of {str(first_input)!r} are {frame_bits}-bit (levels up to "
+            f"{2 ** frame_bits - 1}) while the reference's levels reach {ref_top:.0f} ({ref_bits}-bit): on one "
+            f"scale the frames are {ratio:.3g}x {'darker' if ratio > 1 else 'brighter'} than the reference, so "
+            f"frames read as low contrast or saturated; take the reference from the frames' own file or camera "
+            f"settings (e.g. --reference-frames 0:20), or convert both to one depth")
 
 
 def _timing_attrs(path) -> dict:

@@ -45,6 +45,7 @@ from typing import Optional
 
 import numpy as np
 
+from app.batch.interruptible import call_interruptibly
 from app.batch.writer import output_frame
 from app.files import imageio
 from processing.errors import TirdeflectError
@@ -565,7 +566,11 @@ class _Serial:
 
     def __next__(self):
         item = next(self._frames)
-        return item, functools.partial(self._measure, item)
+        return item, functools.partial(call_interruptibly, self._measure_logged, item)
+
+    def _measure_logged(self, item):
+        log.debug("frame %d (%s): measuring", item.sequence_index, item.label)
+        return self._measure(item)
 
     def close(self):
         self._frames.close()
@@ -1111,6 +1116,12 @@ def frame_results(job, reconstruct, reference, geometry, effort: str, selected: 
     chunks = plan_chunks(selected, first=job.first, step=job.step, paths=tuple(inputs),
                          workers=workers, frame_bytes=_frame_bytes(reconstruct, job.grid),
                          chunk_frames=job.chunk_frames, keyframes=_keyframes(inputs))
+    if len(chunks) < workers:  # a process per chunk at most: store and say what runs
+        if getattr(job, "workers", None) is not None:
+            log.warning("--workers %d: %d process(es) run, one per chunk of frames (%d frames, chunks of "
+                        "at least %d; this machine has %d cores)", job.workers, len(chunks), selected,
+                        MIN_CHUNK_FRAMES if job.chunk_frames is None else job.chunk_frames, available_cores())
+        workers = max(1, len(chunks))
     spec = _spec(job, reconstruct, reference, geometry, effort, fft_threads(workers),
                  shared_memory=_results_fit_shm(chunks, workers, job, reconstruct))
     pool = _Pool(workers)

@@ -13,6 +13,23 @@ and the board's parameters, so a print can be checked with a ruler: print at
 at any resolution); PNG at ``dpi`` pixels per inch, anti-aliased by exact
 area coverage of each pixel, with the DPI stored in the file.
 
+Size
+----
+The vector files describe the board, they do not draw each square: a
+checkerboard is the exclusive-or of its dark columns and its light rows, so
+one path of ``n_columns/2 + n_rows/2`` full-length stripes filled with the
+even-odd rule (PDF ``f*``, SVG ``fill-rule="evenodd"``) is the whole board:
+a 200 x 200 mm board at a 2 mm period is 200 rectangles, not 10000. The board
+is still bounded by what can be printed and used: squares no smaller than
+:data:`MIN_SQUARE_MM` (about one dot of a 1200 dpi printer), at most
+:data:`MAX_SQUARES` of them (a 25 Mpx camera resolving 10 px per period sees
+about half a million squares: more is a typo of the period or of the size),
+PDF pages no larger than :data:`PDF_MAX_PAGE_MM` (200 in, the 14400 pt
+implementation limit of the PDF reference that Acrobat and print drivers
+enforce). A PNG is a raster held in memory: it is refused, with the memory it
+would need, when that exceeds :data:`PNG_MAX_BYTES`, before anything is
+allocated.
+
 The period
 ----------
 ``period_mm`` is the full period (one dark plus one bright square), as in
@@ -47,7 +64,8 @@ import numpy as np
 from processing.errors import TirdeflectError
 
 __all__ = ["PatternSpec", "Suggestion", "suggest_period", "write_pattern", "MM_TO_PT",
-           "RULER_MM", "TARGET_PERIOD_PX", "MIN_PERIOD_PX", "MAX_PERIOD_PX"]
+           "RULER_MM", "TARGET_PERIOD_PX", "MIN_PERIOD_PX", "MAX_PERIOD_PX", "MIN_SQUARE_MM",
+           "MAX_SQUARES", "PDF_MAX_PAGE_MM", "PNG_MAX_BYTES", "png_bytes_needed"]
 
 #: PDF points per millimetre (1 pt = 1/72 inch, 1 inch = 25.4 mm).
 MM_TO_PT = 72.0 / 25.4
@@ -56,6 +74,16 @@ TARGET_PERIOD_PX = 14.0
 MIN_PERIOD_PX = 10.0
 MAX_PERIOD_PX = 20.0
 N_CRITICAL_DEG = math.degrees(math.asin(1 / 1.333))
+#: Smallest square side that a printer can render, mm (one dot at 1200 dpi is 0.021 mm).
+MIN_SQUARE_MM = 0.02
+#: Most squares on one board (see the module docstring).
+MAX_SQUARES = 10_000_000
+#: Largest PDF page side, mm: 14400 pt = 200 in (PDF reference, implementation limits).
+PDF_MAX_PAGE_MM = 14400 / (72.0 / 25.4)
+#: Largest memory a PNG board may take while it is drawn, bytes.
+PNG_MAX_BYTES = 1_500_000_000
+#: Rows of the PNG computed at a time (float64 temporaries of this many pixels).
+_PNG_BLOCK_PIXELS = 1 << 22
 
 
 @dataclass(frozen=True)
@@ -98,6 +126,28 @@ class PatternSpec:
             raise TirdeflectError(
                 f"a {self.period_mm:g} mm period gives fewer than 4 periods on a {self.width_mm:g} x "
                 f"{board_h:g} mm board; carriers need many periods: use a smaller period or a larger page")
+        side = min(self.cell_w_mm, self.cell_h_mm)
+        if side < MIN_SQUARE_MM:
+            raise TirdeflectError(
+                f"--period-mm {self.period_mm:g} gives squares of {side:.3g} mm, smaller than a printer can "
+                f"draw (about {MIN_SQUARE_MM:g} mm, one dot at 1200 dpi); use a period of at least "
+                f"{2 * MIN_SQUARE_MM / min(1.0, self.stretch_y):g} mm (tirdeflect pattern --suggest "
+                f"proposes one for the camera)")
+        n_cols, n_rows = self.grid
+        if n_cols * n_rows > MAX_SQUARES:
+            raise TirdeflectError(
+                f"a {self.width_mm:g} x {board_h:g} mm board at a {self.period_mm:g} mm period holds "
+                f"{n_cols} x {n_rows} = {n_cols * n_rows:.3g} squares, more than the {MAX_SQUARES:.0e} a "
+                f"print needs (a 25 Mpx camera resolving 10 px per period sees about 5e5 squares); use a "
+                f"larger --period-mm (at least {self.period_mm * math.sqrt(n_cols * n_rows / MAX_SQUARES):.3g}"
+                f" mm for this page) or a smaller --size-mm")
+
+    @property
+    def grid(self) -> tuple:
+        """(columns, rows) of squares on the board, the last ones possibly clipped."""
+        board_h = self.height_mm - self.margin_mm
+        return (int(math.ceil(self.width_mm / self.cell_w_mm - 1e-9)),
+                int(math.ceil(board_h / self.cell_h_mm - 1e-9)))
 
     @property
     def cell_w_mm(self) -> float:
@@ -115,19 +165,27 @@ class PatternSpec:
         return text + f"; page {self.width_mm:g} x {self.height_mm:g} mm"
 
 
-def cells(spec: PatternSpec):
-    """Dark cells as (x_mm, y_mm, w_mm, h_mm) rectangles, y measured down from the top
-    of the page, clipped to the board (the page above the margin)."""
+def stripes(spec: PatternSpec):
+    """The board as (x_mm, y_mm, w_mm, h_mm) rectangles whose even-odd fill is the checkerboard.
+
+    Cell ``(i, j)`` (column, row) is dark where ``i + j`` is even, i.e. where
+    "column i is even" and "row j is odd" are not both true nor both false:
+    the even columns (full board height) and the odd rows (full page width),
+    filled with the even-odd rule, cover exactly the dark cells (a light
+    cell is covered by both or by neither). ``y`` runs down from the top of
+    the page; the last column and row are clipped to the board (the page
+    above the margin).
+    """
     board_h = spec.height_mm - spec.margin_mm
     cw, ch = spec.cell_w_mm, spec.cell_h_mm
+    n_cols, n_rows = spec.grid
     out = []
-    for j in range(int(math.ceil(board_h / ch - 1e-9))):
+    for i in range(0, n_cols, 2):
+        x0, x1 = i * cw, min((i + 1) * cw, spec.width_mm)
+        out.append((x0, 0.0, x1 - x0, board_h))
+    for j in range(1, n_rows, 2):
         y0, y1 = j * ch, min((j + 1) * ch, board_h)
-        for i in range(int(math.ceil(spec.width_mm / cw - 1e-9))):
-            if (i + j) % 2:
-                continue
-            x0, x1 = i * cw, min((i + 1) * cw, spec.width_mm)
-            out.append((x0, y0, x1 - x0, y1 - y0))
+        out.append((0.0, y0, spec.width_mm, y1 - y0))
     return out
 
 
@@ -167,15 +225,43 @@ def write_pattern(spec: PatternSpec, path, *, dpi: float = 600.0, overwrite: boo
         raise TirdeflectError(f"{str(p)!r} already exists; choose another --out or add --overwrite")
     if not (p.parent if str(p.parent) else Path(".")).is_dir():
         raise TirdeflectError(f"the folder of --out {str(p)!r} does not exist; create it first")
+    if suffix == ".pdf" and max(spec.width_mm, spec.height_mm) > PDF_MAX_PAGE_MM:
+        raise TirdeflectError(
+            f"a {spec.width_mm:g} x {spec.height_mm:g} mm page is larger than a PDF page can be "
+            f"({PDF_MAX_PAGE_MM:.0f} mm = 200 in per side, the limit viewers and print drivers enforce); "
+            f"write an .svg (mm units, no page limit) or print the board in tiles of at most "
+            f"{PDF_MAX_PAGE_MM:.0f} mm")
+    if suffix == ".png":
+        if not (50 <= dpi <= 4800):
+            raise TirdeflectError(f"--dpi must be between 50 and 4800; got {dpi:g}")
+        need = png_bytes_needed(spec, dpi)
+        if need > PNG_MAX_BYTES:
+            scale = math.sqrt(need / PNG_MAX_BYTES)
+            raise TirdeflectError(
+                f"a {spec.width_mm:g} x {spec.height_mm:g} mm PNG at {dpi:g} dpi needs about "
+                f"{need / 1e9:.3g} GB of memory, more than the {PNG_MAX_BYTES / 1e9:g} GB allowed; write "
+                f"a .pdf or .svg (vector, any resolution, a few kB), lower --dpi (at most "
+                f"{dpi / scale:.0f} for this page) or use a smaller --size-mm")
     if suffix == ".pdf":
         _write_pdf(spec, p)
     elif suffix == ".svg":
         _write_svg(spec, p)
     else:
-        if not (50 <= dpi <= 4800):
-            raise TirdeflectError(f"--dpi must be between 50 and 4800; got {dpi:g}")
         _write_png(spec, p, dpi)
     return p
+
+
+def _png_shape(spec: PatternSpec, dpi: float) -> tuple:
+    px_per_mm = dpi / 25.4
+    return int(round(spec.height_mm * px_per_mm)), int(round(spec.width_mm * px_per_mm))
+
+
+def png_bytes_needed(spec: PatternSpec, dpi: float) -> int:
+    """Peak memory of :func:`_write_png`, bytes: the 8-bit image, Pillow's copy of it
+    for the ruler and text, and the float64 temporaries of one block of rows."""
+    rows, cols = _png_shape(spec, dpi)
+    block = max(1, min(rows, _PNG_BLOCK_PIXELS // max(cols, 1))) * cols
+    return 2 * rows * cols + 4 * 8 * block
 
 
 def _num(value: float) -> str:
@@ -196,8 +282,9 @@ def _write_pdf(spec: PatternSpec, p: Path) -> None:
     W, H = spec.width_mm, spec.height_mm
     pt = MM_TO_PT
     ops = ["0 g 0 G"]
-    for x, y, w, h in cells(spec):  # PDF y runs up from the bottom of the page
-        ops.append(f"{_num(x * pt)} {_num((H - y - h) * pt)} {_num(w * pt)} {_num(h * pt)} re f")
+    for x, y, w, h in stripes(spec):  # PDF y runs up from the bottom of the page
+        ops.append(f"{_num(x * pt)} {_num((H - y - h) * pt)} {_num(w * pt)} {_num(h * pt)} re")
+    ops.append("f*")  # even-odd: the stripes' exclusive-or is the checkerboard
     x0, y0 = 5.0, 8.0  # ruler baseline: 100 mm long, 8 mm above the bottom edge
     ops.append(f"{_num(0.15 * pt)} w 0 J")
     ops.append(f"{_num(x0 * pt)} {_num(y0 * pt)} m {_num((x0 + RULER_MM) * pt)} {_num(y0 * pt)} l S")
@@ -252,11 +339,10 @@ def _write_svg(spec: PatternSpec, p: Path) -> None:
         f'viewBox="0 0 {W:.10g} {H:.10g}">',
         f"<title>{escape(spec.describe())}</title>",
         f'<rect x="0" y="0" width="{W:.10g}" height="{H:.10g}" fill="white"/>',
-        '<g fill="black" shape-rendering="crispEdges">',
     ]
-    parts += [f'<rect x="{x:.10g}" y="{y:.10g}" width="{w:.10g}" height="{h:.10g}"/>'
-              for x, y, w, h in cells(spec)]
-    parts.append("</g>")
+    # one even-odd path of stripes: their exclusive-or is the checkerboard (see stripes())
+    path = " ".join(f"M{x:.10g} {y:.10g}h{w:.10g}v{h:.10g}h{-w:.10g}z" for x, y, w, h in stripes(spec))
+    parts.append(f'<path fill="black" fill-rule="evenodd" shape-rendering="crispEdges" d="{path}"/>')
     x0, y0 = 5.0, H - 8.0
     parts.append('<g stroke="black" stroke-width="0.15" fill="none">')
     parts.append(f'<line x1="{x0}" y1="{y0:.10g}" x2="{x0 + RULER_MM}" y2="{y0:.10g}"/>')
@@ -292,16 +378,19 @@ def _write_png(spec: PatternSpec, p: Path, dpi: float) -> None:
     from PIL import Image
 
     px_per_mm = dpi / 25.4
-    cols = int(round(spec.width_mm * px_per_mm))
-    rows = int(round(spec.height_mm * px_per_mm))
+    rows, cols = _png_shape(spec, dpi)
     board_rows = (spec.height_mm - spec.margin_mm) * px_per_mm
     # exact area coverage: a cell is dark where (i + j) is even, i.e. where the
     # x and y square waves agree: cov = cx*cy + (1-cx)*(1-cy) inside the board
     cx = _square_wave_coverage(cols, spec.cell_w_mm * px_per_mm, cols)
     inside_y = np.clip(board_rows - np.arange(rows), 0.0, 1.0)
     cy = _square_wave_coverage(rows, spec.cell_h_mm * px_per_mm, board_rows)
-    dark = np.outer(cy, cx) + np.outer(inside_y - cy, 1.0 - cx)
-    image = np.round(255.0 * (1.0 - dark)).astype(np.uint8)
+    image = np.empty((rows, cols), dtype=np.uint8)
+    step = max(1, _PNG_BLOCK_PIXELS // max(cols, 1))  # bounded temporaries (png_bytes_needed)
+    for r0 in range(0, rows, step):
+        r1 = min(rows, r0 + step)
+        dark = np.outer(cy[r0:r1], cx) + np.outer(inside_y[r0:r1] - cy[r0:r1], 1.0 - cx)
+        image[r0:r1] = np.round(255.0 * (1.0 - dark))
     # ruler and text in the margin, drawn with Pillow at the same scale
     from PIL import ImageDraw, ImageFont
 

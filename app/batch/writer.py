@@ -500,7 +500,16 @@ class ResultWriter:
         set_attrs(ds, attrs)
         self.f.flush()
 
-    def _check_room(self, shape) -> None:
+    def _resume_hint(self, next_index=None) -> str:
+        """``--first K``: the first selected frame not yet safely in the file (the oldest
+        frame waiting for a flush, else ``next_index``, the frame being written)."""
+        pending = self._rows["frame_index"]
+        k = pending[0] if pending else next_index
+        if k is None:
+            return "then resume with --first set to the first frame missing from the file (its /frame_index)"
+        return f"then resume with --first {int(k)} (and the same --last and --step) into another --out"
+
+    def _check_room(self, shape, next_index=None) -> None:
         """Refuse the next frame (DiskFullError) while the file can still be closed validly."""
         # the reserve is held in its own file while it can be: not counted twice
         need = int(np.prod(shape)) * (3 * 4 + 1) + 4096 + (0 if self._reserve.held else RESERVE_BYTES)
@@ -509,7 +518,7 @@ class ResultWriter:
             raise DiskFullError(
                 f"{what} full: {room / 2**20:.1f} MiB left for {str(self.path)!r}, less than one "
                 f"more frame plus a reserve that keeps the file valid; free space or write --out "
-                f"to another disk, then resume with --first"
+                f"to another disk, {self._resume_hint(next_index)}"
             )
 
     def append(self, item: imageio.FrameItem, result, outcome=None) -> None:
@@ -524,7 +533,7 @@ class ResultWriter:
         frame = result if isinstance(result, OutputFrame) or result is None else output_frame(result)
         k = self.n
         try:
-            self._check_room(self._shape)
+            self._check_room(self._shape, item.sequence_index)
             if frame is not None and tuple(frame.shape) != self._shape:
                 raise ShapeMismatchError(
                     f"result grid {tuple(frame.shape)} differs from the output's {self._shape}")
@@ -532,7 +541,7 @@ class ResultWriter:
         except BaseException as exc:
             self._drop_frame(k, exc)
             if isinstance(exc, (RuntimeError, OSError)) and not isinstance(exc, TirdeflectError):
-                raise self._write_error(k, exc) from exc  # HDF5 reports failed writes as RuntimeError
+                raise self._write_error(k, exc, item.sequence_index) from exc  # HDF5: RuntimeError
             raise
         finally:
             if frame is not None:
@@ -614,17 +623,17 @@ class ResultWriter:
         self._labels.clear()
         self._flushed_at = time.monotonic()
 
-    def _write_error(self, k: int, exc: BaseException) -> OSError:
+    def _write_error(self, k: int, exc: BaseException, next_index=None) -> OSError:
         text = _one_line(exc)
         if "errno = 28" in text or "No space left" in text or getattr(exc, "errno", None) == 28:
             return DiskFullError(
                 f"disk full while writing frame {k} to {str(self.path)!r} (No space left on device: "
                 f"another program took the space); free space or write --out to another disk, "
-                f"then resume with --first")
+                f"{self._resume_hint(next_index)}")
         if "errno = 27" in text or getattr(exc, "errno", None) == 27:
             return DiskFullError(
                 f"file size limit (ulimit -f) reached while writing frame {k} to {str(self.path)!r}; "
-                f"raise the limit or write --out elsewhere, then resume with --first")
+                f"raise the limit or write --out elsewhere, {self._resume_hint(next_index)}")
         return OSError(f"writing frame {k} to {str(self.path)!r} failed: {text}")
 
     def _abandon(self) -> bool:

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import re
 import sys
 import traceback
 
@@ -108,11 +109,23 @@ class _AppUnavailable(RuntimeError):
     """A part of the app (GUI, recorder) cannot be imported here."""
 
 
+class Parser(argparse.ArgumentParser):
+    """argparse with the option first in a refused value: ``--first must be >= 0 (frames
+    count from 0); got -1``, as ``record``'s own checks write it, not ``argument --first:
+    must be ...``. Subcommand parsers are of this class too."""
+
+    def error(self, message):
+        match = re.match(r"argument (-[^:/ ]+)(?:/[^:]+)?: (must be .*)$", message, re.S)
+        if match:
+            message = f"{match.group(1)} {match.group(2)}"
+        super().error(message)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The full argument parser (subcommands included)."""
     from app.cli import process as process_cli
 
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog=PROG,
         description="Live total-internal-reflection deflectometry: checkerboard images "
         "to water-surface heights (mm). With no command, opens the live window.",
@@ -226,12 +239,28 @@ def _join_negative_pairs(argv: list) -> list:
     return out
 
 
+def _exit_now_if_a_call_is_left_running() -> None:
+    """After Ctrl-C or SIGTERM stopped a frame inside a native call (app/batch/interruptible.py),
+    the output is closed already: end the process now instead of tearing the interpreter
+    down beside a computation that may run for minutes."""
+    interruptible = sys.modules.get("app.batch.interruptible")  # not imported: nothing left running
+    if interruptible is not None and interruptible.abandoned_calls():
+        import logging
+        import os
+
+        logging.shutdown()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(EXIT_INTERRUPTED)
+
+
 def _guarded(run, debug: bool) -> int:
     """Run a command; known errors become one line on stderr and exit status 2."""
     try:
         return int(run() or 0)
     except KeyboardInterrupt:
         print(f"{PROG}: interrupted", file=sys.stderr)
+        _exit_now_if_a_call_is_left_running()
         return EXIT_INTERRUPTED
     except _known_errors() as exc:
         if debug:

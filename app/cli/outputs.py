@@ -29,14 +29,22 @@ def _range(text: str) -> tuple:
     return _pair(text, "LOW,HIGH (e.g. -2,2)")
 
 
-def _positive(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"must be > 0, got {value:g}")
-    return value
+def positive_number(unit: str):
+    """An argparse type: a finite number > 0, refused as ``--fps must be > 0 frames/s; got -3``
+    (the range messages of every command read alike; :class:`app.cli.main.Parser`)."""
+    import math
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be a number > 0 {unit}; got {text!r}") from None
+        if not (value > 0 and math.isfinite(value)):
+            raise argparse.ArgumentTypeError(f"must be > 0 {unit}; got {value:g}")
+        return value
+
+    parse.__name__ = "number"
+    return parse
 
 
 # =========================================================================== movie
@@ -55,7 +63,7 @@ def add_movie_parser(sub) -> None:
                    help="colour range in um (height) or mrad (slopes); default: percentiles")
     p.add_argument("--percentile", type=float, default=1.0, metavar="P",
                    help="default colour range from the P and 100-P percentiles over the movie (1)")
-    p.add_argument("--fps", type=_positive, default=None,
+    p.add_argument("--fps", type=positive_number("frames/s"), default=None,
                    help="movie frame rate (default: real time from the frames' time stamps, else 25)")
     p.add_argument("--scale", type=int, default=None, metavar="K",
                    help="magnify the map K times (default: at least 480 px wide)")
@@ -92,7 +100,7 @@ def add_probe_parser(sub) -> None:
                    help="CSV file (default: OUT_probes.csv beside OUT.h5)")
     p.add_argument("--h5", default=None, metavar="PROBES.h5",
                    help="HDF5 file with the same series (default: the CSV name with .h5)")
-    p.add_argument("--fps", type=_positive, default=None,
+    p.add_argument("--fps", type=positive_number("frames/s"), default=None,
                    help="frame rate for inputs without time stamps (image files): time = frame / fps")
     p.add_argument("--overwrite", action="store_true", help="replace the outputs if they exist")
     p.set_defaults(func=cmd_probe)
@@ -144,24 +152,24 @@ def add_pattern_parser(sub) -> None:
         description="Write the checkerboard pattern as a vector PDF at exact printed scale (a 100 mm "
         "ruler and the parameters in the bottom margin), SVG (mm units) or PNG (--dpi); or, with "
         "--suggest, propose the period for a camera and geometry (the rule is printed).")
-    p.add_argument("--period-mm", type=_positive, default=None, metavar="P",
+    p.add_argument("--period-mm", type=positive_number("mm"), default=None, metavar="P",
                    help="full period along x (one dark plus one bright square), mm")
     p.add_argument("--size-mm", type=_size, default=None, metavar="W,H",
                    help="page size in mm, e.g. 297,210 (A4 landscape); the board fills it above the margin")
-    p.add_argument("--stretch-y", type=_positive, default=1.0, metavar="F",
+    p.add_argument("--stretch-y", type=positive_number("(cell height / width)"), default=1.0, metavar="F",
                    help="cell height / width (1: square; 1/cos(theta) makes the camera see square cells; "
                    "--suggest prints it)")
     p.add_argument("--margin-mm", type=float, default=25.0, metavar="M",
                    help="bottom strip for the ruler and the parameters, mm (default 25)")
     p.add_argument("--out", default=None, metavar="BOARD", help="output file: .pdf, .svg or .png")
-    p.add_argument("--dpi", type=_positive, default=600.0, help="PNG resolution (default 600)")
+    p.add_argument("--dpi", type=positive_number("dots per inch"), default=600.0, help="PNG resolution (default 600)")
     p.add_argument("--overwrite", action="store_true", help="replace BOARD if it exists")
     p.add_argument("--suggest", action="store_true",
                    help="propose a period from --theta-deg, --depth-mm, --pixel-mm and --camera "
                    "(and write it to --out if given, with --size-mm)")
     p.add_argument("--theta-deg", type=float, default=None, help="incidence angle theta, deg")
-    p.add_argument("--depth-mm", type=_positive, default=None, help="pattern depth below the surface H, mm")
-    p.add_argument("--pixel-mm", type=_positive, default=None, help="surface mm per image column")
+    p.add_argument("--depth-mm", type=positive_number("mm"), default=None, help="pattern depth below the surface H, mm")
+    p.add_argument("--pixel-mm", type=positive_number("mm"), default=None, help="surface mm per image column")
     p.add_argument("--camera", type=_camera, default=None, metavar="WxH", help="image size in pixels")
     p.set_defaults(func=cmd_pattern)
 

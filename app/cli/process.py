@@ -36,25 +36,26 @@ __all__ = ["add_process_parser", "add_simulate_parser", "add_compare_parser",
 # =========================================================================== parsers
 
 
-def _nonnegative_int(text: str) -> int:
+def whole_number(minimum: int, unit: str):
+    """An argparse type: a whole number >= ``minimum``. Its refusal reads like the other
+    range messages, ``--first must be >= 0 (frames count from 0); got -1``
+    (:class:`app.cli.main.Parser` puts the option first)."""
     import argparse
 
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
-    return value
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be a whole number >= {minimum} {unit}; got {text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be >= {minimum} {unit}; got {value}")
+        return value
+
+    parse.__name__ = "whole number"
+    return parse
 
 
-def _positive_int(text: str) -> int:
-    import argparse
-
-    value = _nonnegative_int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
-    return value
+_FRAME_INDEX = whole_number(0, "(frames count from 0)")
 
 
 def _frame_range(text: str) -> slice:
@@ -97,7 +98,7 @@ def add_process_parser(sub) -> None:
     p.add_argument("--reference-frames", type=_frame_range, default=None, metavar="START:STOP",
                    help="average these frames of the reference file (e.g. 0:20 of a recording "
                    "whose first frames show the flat surface) to make the reference")
-    p.add_argument("--reference-index", type=_nonnegative_int, default=None, metavar="K",
+    p.add_argument("--reference-index", type=_FRAME_INDEX, default=None, metavar="K",
                    help="use page/frame K (0-based) of a TIFF stack or recording as the "
                    "reference (default: a recording's stored /reference, else its frame 0)")
     p.add_argument("--geometry", default=None, metavar="G.toml",
@@ -119,12 +120,12 @@ def add_process_parser(sub) -> None:
                         "periods wide (docs/processing.md section 6)")
     p.add_argument("--no-unwrap", action="store_true",
                    help="do not unwrap carrier phases (only for small displacements)")
-    p.add_argument("--first", type=_nonnegative_int, default=0, metavar="K",
+    p.add_argument("--first", type=_FRAME_INDEX, default=0, metavar="K",
                    help="first frame to process (0-based, counting every frame of every "
                    "input in order)")
-    p.add_argument("--last", type=_nonnegative_int, default=None, metavar="K",
+    p.add_argument("--last", type=_FRAME_INDEX, default=None, metavar="K",
                    help="last frame to process (inclusive)")
-    p.add_argument("--step", type=_positive_int, default=1, metavar="S",
+    p.add_argument("--step", type=whole_number(1, "(every S-th frame)"), default=1, metavar="S",
                    help="process every S-th frame")
     p.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
     p.add_argument("--compression", choices=("none", "gzip", "lzf"), default="none",
@@ -137,7 +138,7 @@ def add_process_parser(sub) -> None:
     p.add_argument("--strict", action="store_true",
                    help="stop at the first frame that cannot be measured (default: store it "
                    "invalid, with its reason in /frame_status, and go on)")
-    p.add_argument("--workers", type=_positive_int, default=None, metavar="N",
+    p.add_argument("--workers", type=whole_number(1, "processes"), default=None, metavar="N",
                    help="processes reconstructing frames in parallel (default: every core for "
                    "runs of 64 frames or more; 1: all in this process); same heights as serial")
     p.add_argument("--dask", default=None, metavar="ADDRESS",
@@ -150,7 +151,7 @@ def add_process_parser(sub) -> None:
     p.add_argument("--device", choices=("cpu", "cuda"), default="cpu",
                    help="cuda: reconstruct batches of frames on the GPU (needs pip install "
                    "'tirdeflect[gpu]' and an NVIDIA GPU; not yet checked on hardware)")
-    p.add_argument("--chunk-frames", type=_positive_int, default=None, metavar="K",
+    p.add_argument("--chunk-frames", type=whole_number(1, "frames"), default=None, metavar="K",
                    help="frames per parallel chunk (default: from frames, workers and memory)")
     p.set_defaults(func=cmd_process)
 
@@ -167,9 +168,9 @@ def add_simulate_parser(sub) -> None:
     p.add_argument("--surface", default="bump",
                    choices=("bump", "dimple", "waves", "deep-dimple"),
                    help="surface deformation to simulate")
-    p.add_argument("--size", type=_positive_int, default=512, metavar="PX",
+    p.add_argument("--size", type=whole_number(1, "pixels"), default=512, metavar="PX",
                    help="image size in pixels (square)")
-    p.add_argument("--frames", type=_positive_int, default=1, metavar="N",
+    p.add_argument("--frames", type=whole_number(1, "frames"), default=1, metavar="N",
                    help="number of frames (time steps)")
     p.add_argument("--bits", type=int, choices=(8, 12), default=8,
                    help="bit depth of the images (12 bit: 16-bit TIFF)")

@@ -55,6 +55,7 @@ __all__ = [
     "HDF5_SUFFIXES",
     "read_image",
     "read_reference",
+    "recording_has_reference",
     "image_info",
     "count_frames",
     "frame_count",
@@ -645,6 +646,17 @@ def frame_count(path) -> int:
             return _tiff_layout(tif, p)[0]
     with _h5_open(p) as f:
         return _h5_frames(f, p)[1]
+
+
+def recording_has_reference(path) -> bool:
+    """Whether ``path`` is an HDF5 recording that stores its reference image (``/reference``)."""
+    p = _check_path(path)
+    if _kind(p) != "recording":
+        return False
+    import h5py
+
+    with _h5_open(p) as f:
+        return isinstance(f.get("reference"), h5py.Dataset)
 
 
 def recording_geometry_toml(path) -> str | None:

@@ -24,7 +24,7 @@ def _cli(*args):
 
 
 def _pdf_numbers(path: Path):
-    """MediaBox, stroked line segments and filled rectangles of the PDF's page, in pt,
+    """MediaBox, stroked line segments, rectangles and fill operators of the PDF's page, in pt,
     read back with pypdf (an independent PDF reader)."""
     pypdf = pytest.importorskip("pypdf")
     from pypdf.generic import ContentStream
@@ -33,7 +33,7 @@ def _pdf_numbers(path: Path):
     assert len(reader.pages) == 1
     page = reader.pages[0]
     box = [float(v) for v in page.mediabox]
-    lines, rects, path_ops, text = [], [], [], []
+    lines, rects, path_ops, text, fill_ops = [], [], [], [], []
     for operands, op in ContentStream(page.get_contents(), reader).operations:
         values = [float(v) for v in operands] if op in (b"m", b"l", b"re") else operands
         if op in (b"m", b"l"):
@@ -45,7 +45,9 @@ def _pdf_numbers(path: Path):
             rects.append(tuple(values))
         elif op == b"Tj":
             text.append(str(operands[0]))
-    return box, lines, rects, text
+        elif op in (b"f", b"F", b"f*", b"B", b"B*", b"b", b"b*"):
+            fill_ops.append(op)
+    return box, lines, rects, text, fill_ops
 
 
 @pytest.mark.parametrize("size,period,stretch", [((297.0, 210.0), 2.0, 1.0),
@@ -55,7 +57,7 @@ def test_pdf_is_at_exact_printed_scale(tmp_path, size, period, stretch):
     r = _cli("pattern", "--period-mm", period, "--size-mm", f"{size[0]},{size[1]}",
              "--stretch-y", f"{stretch!r}", "--out", out)
     assert r.returncode == 0, r.stderr
-    box, lines, rects, text = _pdf_numbers(out)
+    box, lines, rects, text, fill_ops = _pdf_numbers(out)
     assert any(f"period {period:g} mm" in t for t in text) and "100" in text
     # page size: exactly the requested millimetres (1 mm = 72/25.4 pt)
     assert box[:2] == [0.0, 0.0]
@@ -68,12 +70,26 @@ def test_pdf_is_at_exact_printed_scale(tmp_path, size, period, stretch):
     ticks = sorted(a for a, y0, b, y1 in lines if a == b)
     assert len(ticks) == 101
     assert np.max(np.abs(np.diff(ticks) / MM_TO_PT - 1.0)) <= 2 * PDF_PRECISION_MM
-    # the cells: period/2 wide, period*stretch/2 high (interior cells; edge cells are clipped)
-    widths = np.array([w for _, _, w, _ in rects]) / MM_TO_PT
-    heights = np.array([h for _, _, _, h in rects]) / MM_TO_PT
-    assert np.median(widths) == pytest.approx(period / 2, abs=PDF_PRECISION_MM)
-    assert np.median(heights) == pytest.approx(period * stretch / 2, abs=PDF_PRECISION_MM)
-    assert widths.max() <= period / 2 + PDF_PRECISION_MM
+    # the board is one even-odd path of stripes (f*), a few hundred rectangles, not one per square
+    assert fill_ops == [b"f*"] and len(rects) < 400
+    # what it fills, by the even-odd rule at each cell's centre: dark where column + row is even,
+    # cells period/2 wide and period*stretch/2 high, from the top-left corner of the page
+    cw, ch = period / 2, period * stretch / 2
+    board_h = size[1] - 25.0
+    xc = (np.arange(int(size[0] / cw)) + 0.5) * cw
+    yc = (np.arange(int(board_h / ch)) + 0.5) * ch
+    X, Y = np.meshgrid(xc * MM_TO_PT, (size[1] - yc) * MM_TO_PT)  # PDF y runs up
+    covered = sum(((X > x) & (X < x + w) & (Y > y) & (Y < y + h)).astype(int) for x, y, w, h in rects)
+    i, j = np.meshgrid(np.arange(xc.size), np.arange(yc.size))
+    np.testing.assert_array_equal(covered % 2 == 1, (i + j) % 2 == 0)
+    # every edge at its exact printed place: the stripes' sides are multiples of the cell size
+    # (to the 10th digit of a coordinate up to ~1200 pt: 1e-6 pt, 0.35 nm)
+    edge_tol_mm = 1e-6
+    edges_x = np.array([x for x, _, w, _ in rects if w < size[0] * MM_TO_PT]) / MM_TO_PT
+    assert np.max(np.abs(edges_x / cw - np.round(edges_x / cw))) * cw <= edge_tol_mm
+    edges_y = np.array([size[1] * MM_TO_PT - y - h for _, y, w, h in rects if w >= size[0] * MM_TO_PT - 1e-6])
+    edges_y = edges_y / MM_TO_PT
+    assert edges_y.size and np.max(np.abs(edges_y / ch - np.round(edges_y / ch))) * ch <= edge_tol_mm
 
 
 def test_svg_in_millimetres(tmp_path):
@@ -81,8 +97,14 @@ def test_svg_in_millimetres(tmp_path):
     write_pattern(PatternSpec(2.0, 297.0, 210.0), out)
     text = out.read_text()
     assert 'width="297mm" height="210mm" viewBox="0 0 297 210"' in text
-    widths = [float(w) for w in re.findall(r'<rect x="[\d.e-]+" y="[\d.e-]+" width="([\d.e-]+)"', text)]
-    assert np.median(widths) == 1.0
+    # one even-odd path of stripes: even columns 1 mm wide, full board height (210 - 25 mm margin)
+    (path,) = re.findall(r'<path fill="black" fill-rule="evenodd"[^>]* d="([^"]+)"', text)
+    stripes = [tuple(map(float, m)) for m in re.findall(r"M([\d.e-]+) ([\d.e-]+)h([\d.e-]+)v([\d.e-]+)", path)]
+    columns = [s for s in stripes if s[3] == 185.0]
+    rows = [s for s in stripes if s[2] == 297.0]
+    assert len(columns) == 149 and len(rows) == 92 and len(stripes) == 241
+    assert {w for _, _, w, _ in columns} == {1.0} and [x for x, *_ in columns[:3]] == [0.0, 2.0, 4.0]
+    assert {h for *_, h in rows} == {1.0} and [y for _, y, *_ in rows[:3]] == [1.0, 3.0, 5.0]
 
 
 def test_png_period_in_pixels_at_the_chosen_dpi(tmp_path):
@@ -171,3 +193,73 @@ def test_stretched_board_looks_square_and_theta_accounts_for_it():
     assert theta_from_carriers(carriers.freq, s.stretch_y) == pytest.approx(theta, abs=0.5)
     alignment = Reconstructor(image, geometry).alignment(image)
     assert alignment["theta_estimate_deg"] == pytest.approx(theta, abs=0.5)
+
+
+def _cli_peak(*args, limit_bytes=3 * 1024**3):
+    """Run the CLI in a subprocess whose address space is capped (a regression fails with a
+    MemoryError instead of taking the machine), and return (exit code, stderr, peak RSS bytes,
+    seconds) of that one child (os.wait4: its own rusage, not the other children's)."""
+    import os
+    import resource
+    import threading
+    import time
+
+    def cap():
+        resource.setrlimit(resource.RLIMIT_AS, (limit_bytes, limit_bytes))
+
+    t0 = time.monotonic()
+    proc = subprocess.Popen([sys.executable, "-m", "app.cli", *map(str, args)], cwd=ROOT,
+                            stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True, preexec_fn=cap)
+    watchdog = threading.Timer(300.0, proc.kill)  # hang detector, far above the ~2 s it takes
+    watchdog.start()
+    try:
+        err = proc.stderr.read()
+        _, status, usage = os.wait4(proc.pid, 0)
+    finally:
+        watchdog.cancel()
+        proc.stderr.close()
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    return proc.returncode, err, usage.ru_maxrss * 1024, time.monotonic() - t0
+
+
+@pytest.mark.parametrize("period, size, suffix, says", [
+    ("0.001", "200,200", ".pdf", "squares of 0.0005 mm, smaller than a printer can draw"),
+    ("2", "10000,10000", ".pdf", "10000 x 9975 = 9.98e+07 squares"),
+    ("2", "10000,10000", ".svg", "10000 x 9975 = 9.98e+07 squares"),
+    ("2", "10000,10000", ".png", "10000 x 9975 = 9.98e+07 squares"),
+    ("2", "2000,2000", ".png", "PNG at 600 dpi needs about 4.6 GB of memory"),
+    ("2", "6000,300", ".pdf", "larger than a PDF page can be (5080 mm"),
+])
+def test_boards_beyond_what_the_output_can_hold_are_refused_in_bounded_memory(tmp_path, period, size,
+                                                                             suffix, says):
+    """issue 18: 0.001 mm on 200 x 200 mm was OOM-killed at 24 GB, 10 x 10 m reached 14 GB (PDF)
+    or a 416 GiB traceback (PNG). Now: one line that says why and what to do, nothing written."""
+    out = tmp_path / f"board{suffix}"
+    code, err, peak, seconds = _cli_peak("pattern", "--period-mm", period, "--size-mm", size, "--out", out)
+    assert code == 2, err
+    assert says in err and err.count("\n") == 1 and "Traceback" not in err
+    assert not out.exists()
+    assert peak < 500e6, f"peak memory {peak / 1e6:.0f} MB"
+
+
+def test_large_vector_board_is_described_not_drawn(tmp_path):
+    """A 1.2 x 5 m board (PDF) at 2 mm: 3 million squares in a file of a few kB, in bounded memory."""
+    out = tmp_path / "big.pdf"
+    code, err, peak, _ = _cli_peak("pattern", "--period-mm", "2", "--size-mm", "1200,5000", "--out", out)
+    assert code == 0, err
+    assert out.stat().st_size < 200_000 and peak < 500e6
+    box, _, rects, _, fill_ops = _pdf_numbers(out)
+    assert fill_ops == [b"f*"] and len(rects) == 600 + 2487  # 600 columns of 1200, 2487 odd rows of 4975
+
+
+def test_png_memory_is_what_png_bytes_needed_says(tmp_path):
+    """An A3 board at 600 dpi (70 Mpx): the child's peak stays within the estimate above the
+    interpreter's own footprint, the estimate the refusal is based on."""
+    from app.batch.pattern import png_bytes_needed
+
+    out = tmp_path / "a3.png"
+    code, err, peak, _ = _cli_peak("pattern", "--period-mm", "2", "--size-mm", "420,297", "--out", out)
+    assert code == 0, err
+    need = png_bytes_needed(PatternSpec(2.0, 420.0, 297.0), 600.0)
+    _, _, base, _ = _cli_peak("pattern", "--period-mm", "2", "--size-mm", "420,297", "--out", tmp_path / "a.pdf")
+    assert peak - base < 1.2 * need, (peak, base, need)

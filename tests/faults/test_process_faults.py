@@ -557,6 +557,9 @@ def test_disk_filled_by_another_process_leaves_a_valid_file(sim, tmp_path, reser
             # with the reserve the status is recorded; without it the file stays as the
             # last flush left it ("running"), the message having said what happened
             assert status.startswith(f"failed after {k} frame(s)") or (not reserve and status == "running")
+            # where to go on from, by number: the first frame not in the file (or one before it)
+            resume = re.search(r"resume with --first (\d+) \(and the same --last and --step\)", line)
+            assert resume and 2 <= int(resume.group(1)) <= k, line
             h = f["height"][()]
             assert np.isfinite(h).mean() > 0.9
             # frame j is input frame j mod N_FRAMES: what was kept is what was measured

@@ -214,3 +214,67 @@ def test_camera_distance_of_the_other_setup_is_refused():
     assert "camera_distance_mm=800 is the TIR camera distance" in msg and "fsss_camera_distance_mm" in msg
     msg = _err(TIR_TEXT.replace("camera_distance_mm", "fsss_camera_distance_mm"))
     assert "is the FS-SS camera height" in msg and "camera_distance_mm" in msg
+
+
+# ---------------------------------------------------------------------- against the frame
+@pytest.mark.parametrize("distance", [1.0, 0.001])
+def test_camera_closer_than_the_field_is_refused_with_the_numbers(distance):
+    """camera_distance_mm = 1 (or 0.001) on a 19 mm field: the keys pass, the frame refuses it."""
+    g = _tir(theta_deg=60.0, camera_distance_mm=distance)  # each key is plausible on its own
+    with pytest.raises(GeometryError) as exc:
+        g.check_frame((190, 190))
+    msg = str(exc.value)
+    assert f"camera_distance_mm = {distance:g} mm is too short" in msg
+    assert "190 x 190 px" in msg and "19 x 38 mm" in msg  # the field it was measured against
+    need = 0.5 * math.hypot(189 * 0.1, 189 * 0.1) / math.tan(math.radians(60.0))
+    assert f"at least {need:.4g} mm" in msg and "telecentric" in msg
+
+
+def test_rays_that_are_not_totally_reflected_are_refused():
+    """A camera 20 mm from a 19 mm field at theta 60: the near rows see through the surface."""
+    g = _tir(theta_deg=60.0, camera_distance_mm=20.0)
+    with pytest.raises(GeometryError) as exc:
+        g.check_frame((190, 190))
+    msg = str(exc.value)
+    assert "below the critical angle 48.6 deg" in msg and "pixel (row 0," in msg
+    # the angle it names is the ray's own: the ray tracer's direction at that pixel
+    _, d = g.camera_rays(0.0, 94.5, (190, 190))
+    assert f"at {math.degrees(math.acos(d[2])):.1f} deg" in msg
+    # the same camera with rows towards the camera: the far row is the near one now
+    with pytest.raises(GeometryError, match=r"pixel \(row 189,"):
+        _tir(theta_deg=60.0, camera_distance_mm=20.0, rows_toward_camera=True).check_frame((190, 190))
+
+
+@pytest.mark.parametrize("kw, shape", [
+    (dict(), (1024, 1024)),                                          # telecentric
+    (dict(theta_deg=60.0, camera_distance_mm=1500.0), (1024, 1280)),  # resources/geometry-example.toml
+    (dict(camera_distance_mm=900.0), (40, 50)),                       # tests/processing/test_forward.py
+    (dict(theta_deg=60.0, camera_distance_mm=1500.0), (192, 208)),    # tests/processing/test_height.py
+])
+def test_ordinary_geometries_pass_the_frame_check(kw, shape):
+    _tir(**kw).check_frame(shape)
+
+
+@pytest.mark.parametrize("name", ["geometry-example.toml", "geometry-fsss-example.toml"])
+def test_shipped_examples_pass_the_frame_check(name):
+    Geometry.from_toml(ROOT / "resources" / name).check_frame((1024, 1024))
+
+
+def test_fsss_camera_too_close_is_refused():
+    g = Geometry.from_toml_text(FSSS_TEXT.replace("800.0", "1.0"))
+    with pytest.raises(GeometryError, match="fsss_camera_distance_mm = 1 mm is too short"):
+        g.check_frame((160, 176))
+    Geometry.from_toml_text(FSSS_TEXT).check_frame((160, 176))
+
+
+def test_reconstructor_refuses_the_absurd_camera_before_any_frame():
+    """The one place that knows both the geometry and the frame: the Reconstructor."""
+    from processing.forward import Checkerboard, FlatSurface, render_tir
+    from processing.reconstruct import Reconstructor
+
+    shape = (128, 128)
+    good = _tir(theta_deg=60.0)
+    ref, _ = render_tir(FlatSurface(), good, shape, Checkerboard(1.2, sinusoidal=True))
+    Reconstructor(ref, good)  # the telecentric geometry it was rendered with is fine
+    with pytest.raises(GeometryError, match="camera_distance_mm = 1 mm is too short"):
+        Reconstructor(ref, _tir(theta_deg=60.0, camera_distance_mm=1.0))
