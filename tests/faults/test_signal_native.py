@@ -1,10 +1,16 @@
 """Ctrl-C and SIGTERM end ``tirdeflect process`` while a frame is inside one long native call.
 
-issue 18: a float frame scaled by 1e10 sends the image refinement's
-``cv2.remap`` (processing/dic.py) into a call that runs for minutes (518 s
-seen) and, in the main thread, holds back every signal handler: only SIGKILL
+issue 18: a float frame scaled by 1e10 sent the image refinement's
+``cv2.remap`` (processing/dic.py) into a call that ran for minutes (518 s
+seen) and, in the main thread, held back every signal handler: only SIGKILL
 ended it. The serial batch now measures each frame in a daemon thread while
 the main thread waits in short interruptible steps (app/batch/interruptible.py).
+That frame is now refused before any solver (processing.reconstruct.check_sample_range)
+and the refinement bounds its steps, so the child is handed the same native call
+for real: a ``sitecustomize`` on its path makes the fourth frame's refinement
+first call ``cv2.remap`` with coordinates of 1e9 px under BORDER_REFLECT (OpenCV
+folds such a coordinate back one image width at a time, with the GIL released:
+minutes of one native call, as the 1e10 frame did).
 
 A real signal goes to a real CLI subprocess after it has logged that it is
 measuring that frame (three ordinary frames before it are written); it must
@@ -35,14 +41,37 @@ ROOT = Path(__file__).resolve().parents[2]
 EXIT_WITHIN_S = 30.0
 
 
+#: run by the child at start-up: the fourth refinement first sits in one long cv2.remap
+STUCK_REMAP = """
+import cv2, numpy as np
+import processing.dic as dic
+
+_refine, _calls = dic.refine_height, [0]
+
+
+def refine_height(*args, **kwargs):
+    _calls[0] += 1
+    if _calls[0] == 4:
+        coords = np.full((32, 32), 1e9, np.float32)
+        cv2.remap(np.zeros((64, 64), np.float32), coords, coords, cv2.INTER_LINEAR,
+                  borderMode=cv2.BORDER_REFLECT)
+    return _refine(*args, **kwargs)
+
+
+dic.refine_height = refine_height
+"""
+
+
 @pytest.fixture(scope="module")
 def stack(tmp_path_factory):
-    """Three ray-traced float frames, then the same frame scaled by 1e10 (the native hang)."""
+    """Four ray-traced float frames, and a ``sitecustomize`` that makes the fourth one's
+    refinement sit in one long native call."""
     d = tmp_path_factory.mktemp("native")
     assert main(["simulate", "--out", str(d), "--size", "192", "--frames", "1", "--bits", "12"]) == 0
     frame = imageio.read_image(d / "frame_0000.tif").astype(np.float32)
-    tifffile.imwrite(d / "stack.tif", np.stack([frame, frame, frame, frame * np.float32(1e10)]),
-                     photometric="minisblack")
+    tifffile.imwrite(d / "stack.tif", np.stack([frame] * 4), photometric="minisblack")
+    (d / "site").mkdir()
+    (d / "site" / "sitecustomize.py").write_text(STUCK_REMAP)
     return d
 
 
@@ -53,7 +82,7 @@ def test_signal_ends_a_frame_stuck_in_native_code(stack, tmp_path, sig):
         [sys.executable, "-m", "app.cli", "--debug", "process", str(stack / "reference.tif"),
          str(stack / "stack.tif"), "--geometry", str(stack / "geometry.toml"), "--out", str(out),
          "--no-progress", "--workers", "1"],
-        cwd=ROOT, env=dict(os.environ, PYTHONPATH=str(ROOT)), stderr=subprocess.PIPE, text=True,
+        cwd=ROOT, env=dict(os.environ, PYTHONPATH=os.pathsep.join([str(stack / "site"), str(ROOT)])), stderr=subprocess.PIPE, text=True,
         # as at a terminal: a test runner started in the background may ignore SIGINT
         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     watchdog = threading.Timer(300.0, proc.kill)  # a hung child must not hang the suite
@@ -68,8 +97,7 @@ def test_signal_ends_a_frame_stuck_in_native_code(stack, tmp_path, sig):
         assert started, "".join(lines)
         # inside the frame now; give the refinement time to be in cv2.remap (it stays there for minutes)
         time.sleep(1.0)
-        assert proc.poll() is None, ("the frame that hung in cv2.remap ended by itself: if the refinement "
-                                     "now bounds it, give this test another long native call\n" + "".join(lines))
+        assert proc.poll() is None, "the frame with the long cv2.remap ended by itself\n" + "".join(lines)
         t0 = time.monotonic()
         proc.send_signal(sig)
         try:
