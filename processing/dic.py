@@ -334,15 +334,19 @@ MIN_GAIN = 0.1
 def intensity_fit(frame, warped, weight=None, *, cell_px: float = INTENSITY_CELL_PX):
     """Smooth gain and offset fields with ``frame ~ gain * warped + offset``.
 
-    A locally linear intensity model (the gain-and-offset normalisation of
-    ZNSSD in DIC, solved as a weighted least-squares fit): the moments
-    ``sum w``, ``sum w I``, ``sum w W``, ``sum w I W``, ``sum w W^2`` are
-    averaged over cells of about ``cell_px`` pixels, then over 3 x 3 cells
-    (a window of about ``3 cell_px``, several pattern periods, so the
-    pattern's own mean and variance are steady there), and the fit of each
-    cell is interpolated bilinearly to every pixel.  Where a cell has no
-    weight or no contrast in ``warped`` its gain and offset are the frame's
-    (the fit over all cells).
+    The normalisation of ZNSSD in DIC, locally: ``gain = std(I) / std(W)``,
+    ``offset = mean(I) - gain mean(W)`` over windows of about ``3 cell_px``
+    (several pattern periods, so the pattern's own mean and variance are
+    steady there).  The ratio of standard deviations, not the regression
+    slope ``cov(I, W) / var(W)``: where the warp is still off (the first
+    steps, a fast-moving region) the slope shrinks towards 0 with the
+    correlation, and dividing the frame by it blew the residual up (3x on a
+    dimple of 8 px) and the steps with it.  The moments ``sum w``,
+    ``sum w I``, ``sum w W``, ``sum w I^2``, ``sum w W^2`` are averaged over
+    cells of about ``cell_px`` pixels, then over 3 x 3 cells, and each cell's
+    fit is interpolated bilinearly to every pixel.  Where a cell has no
+    weight or no contrast in ``warped`` its gain and offset are the whole
+    frame's.
 
     Parameters
     ----------
@@ -369,21 +373,25 @@ def intensity_fit(frame, warped, weight=None, *, cell_px: float = INTENSITY_CELL
     else:
         w0 = down(weight)
         fw, ww = frame * weight, warped * weight
-    moments = [w0, down(fw), down(ww), down(fw * warped), down(ww * warped)]
+    moments = [w0, down(fw), down(ww), down(fw * frame), down(ww * warped)]
     total = [float(m.sum()) for m in moments]
     if m_r >= 3 and m_c >= 3:
         moments = [cv2.blur(m, (3, 3), borderType=cv2.BORDER_REFLECT) for m in moments]
-    n, si, sw, siw, sww = moments
-    cov = n * siw - si * sw
-    var = n * sww - sw * sw
-    tn, ti, tw, tiw, tww = total
-    t_var = tn * tww - tw * tw
-    g_all = (tn * tiw - ti * tw) / t_var if t_var > 0 else 1.0
+    n, si, sw, sii, sww = moments
+    var_i = n * sii - si * si  # n^2 times the variances
+    var_w = n * sww - sw * sw
+    tn, ti, tw, tii, tww = total
+    t_var_i = tn * tii - ti * ti
+    t_var_w = tn * tww - tw * tw
+    g_all = math.sqrt(t_var_i / t_var_w) if t_var_w > 0 and t_var_i > 0 else 1.0
     o_all = (ti - g_all * tw) / tn if tn > 0 else 0.0
     # a cell needs weight and contrast: at least a tenth of the frame's mean weight
     # per cell and a tenth of the frame's variance of the warped reference
-    ok = (n > 0.1 * tn / n.size) & (var > 0.1 * (t_var / tn ** 2) * n ** 2) if tn > 0 else np.zeros_like(n, bool)
-    gain = np.where(ok, cov / np.where(ok, var, 1.0), g_all)
+    if tn > 0:
+        ok = (n > 0.1 * tn / n.size) & (var_w > 0.1 * (t_var_w / tn ** 2) * n ** 2) & (var_i > 0)
+    else:
+        ok = np.zeros_like(n, bool)
+    gain = np.where(ok, np.sqrt(np.where(ok, var_i, 1.0) / np.where(ok, var_w, 1.0)), g_all)
     offset = np.where(ok, (si - gain * sw) / np.where(ok, n, 1.0), o_all)
     up = [cv2.resize(x.astype(np.float32), (cols, rows), interpolation=cv2.INTER_LINEAR) for x in (gain, offset)]
     return up[0], up[1]
@@ -424,17 +432,17 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
                   intensity_cell_px: float | None = INTENSITY_CELL_PX, period_px: float | None = None):
     """Global Gauss-Newton image matching for the height on the node grid of ``nodes``.
 
-    Minimises ``sum_r w [G*I - a G*I0(r - P L h) - b]^2 + lam (|D3r h|^2 + |D3c h|^2)``
+    Minimises ``sum_r w [G*((I - b) / a) - G*I0(r - P L h)]^2 + lam (|D3r h|^2 + |D3c h|^2)``
     (module docstring): ``L`` the node heights -> node displacement
     (:meth:`HeightNodes.displacement`), ``P`` bilinear nodes -> pixels in the
     normal equations, Lanczos for the warp itself; ``G*`` a Gaussian of
     ``blur_px`` applied to the frame and to the warped reference (so the
     gradient is that of the blurred warped reference); ``a``, ``b`` the
     frame's smooth gain and offset fields (:func:`intensity_fit`, fitted
-    anew before each step, alternating with the height: the frame may be
+    once against the reference warped by the start: the frame may be
     brighter or darker than the reference, by a shadow or an exposure, and
-    still match).  Each step solves
-    ``(L^T P^T N P L + lam R) dh = -L^T P^T g e - lam R h`` (``g = a grad``)
+    still match; the frame is divided by them before the blur).  Each step solves
+    ``(L^T P^T N P L + lam R) dh = -L^T P^T g e - lam R h``
     by conjugate gradients preconditioned with the constant-coefficient
     operator's DCT (``cg_iterations`` per step: from FD's start 3 give the
     same heights as 15).  ``lam`` is ``regularisation`` times the data
@@ -542,22 +550,22 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
             warped = cv2.GaussianBlur(warped, (0, 0), blur_px)
         gr = cv2.Sobel(warped, cv2.CV_32F, 0, 1, ksize=1, scale=0.5, borderType=cv2.BORDER_REFLECT)
         gc = cv2.Sobel(warped, cv2.CV_32F, 1, 0, ksize=1, scale=0.5, borderType=cv2.BORDER_REFLECT)
-        if intensity_cell_px:
-            # the frame brought to the reference's intensities, (I - b) / a: every
-            # pixel weighs the same whatever its gain, as in a frame exposed as the reference
+        if intensity_cell_px and k == 0:
+            # the frame brought to the reference's intensities, (I - b) / a, once, against
+            # the reference warped by FD's start (the ratio of standard deviations hardly
+            # moves with the warp: fitting before every step gave the same heights, 10-20 %
+            # slower): every pixel then weighs the same whatever its gain
             gain, offset = intensity_fit(img, warped, w_fit, cell_px=intensity_cell_px)
             floor = MIN_GAIN * float(np.median(gain[::8, ::8]))
             np.maximum(gain, np.float32(floor if floor > 0 else 1e-30), out=gain)
             # normalised before the blur: G*((I - b) / a) is the blurred reference's
             # match where the gain varies (a blurs as G*(a I0) = a G*I0 + sigma^2 grad a . grad I0 + ...,
             # a displacement of sigma^2 grad a / a)
-            e = raw - offset
-            e /= gain
+            img = raw - offset
+            img /= gain
             if blur_px:
-                e = cv2.GaussianBlur(e, (0, 0), blur_px)
-            e -= warped
-        else:
-            e = img - warped
+                img = cv2.GaussianBlur(img, (0, 0), blur_px)
+        e = img - warped
         if not all_valid:
             gr *= w
             gc *= w
