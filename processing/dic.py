@@ -22,6 +22,14 @@ the centred differences do not see).  The Reconstructor
 (``refine_method="image"``) then passes ``u`` at the nodes to its masked
 height solver and pin, and interpolates the heights to every pixel.
 
+The frame need not be exposed as the reference: its smooth gain and offset
+fields (:func:`intensity_fit`, DIC's ZNSSD normalisation on 16 px cells) are
+fitted against the reference warped by FD's start, and the frame is divided
+by them before the blur (issue 18: 0.5x brightness 12.7 % -> 0.81 %).  Every
+loop is bounded and each step is tested before the warp; a solve leaving the
+range where it can be right raises :class:`RefinementDiverged`, and the
+Reconstructor keeps FD's heights with a note (:attr:`Result.note`).
+
 The reference is warped by linear interpolation of its cubic-spline
 interpolation on a grid :data:`FINE` times finer (:func:`fine_reference`):
 OpenCV's cubic remap biases image matching towards whole pixels by up to
