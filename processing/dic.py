@@ -22,6 +22,14 @@ the centred differences do not see).  The Reconstructor
 (``refine_method="image"``) then passes ``u`` at the nodes to its masked
 height solver and pin, and interpolates the heights to every pixel.
 
+The frame need not be exposed as the reference: its smooth gain and offset
+fields (:func:`intensity_fit`, DIC's ZNSSD normalisation on 16 px cells) are
+fitted against the reference warped by FD's start, and the frame is divided
+by them before the blur (issue 18: 0.5x brightness 12.7 % -> 0.81 %).  Every
+loop is bounded and each step is tested before the warp; a solve leaving the
+range where it can be right raises :class:`RefinementDiverged`, and the
+Reconstructor keeps FD's heights with a note (:attr:`Result.note`).
+
 The reference is warped by linear interpolation of its cubic-spline
 interpolation on a grid :data:`FINE` times finer (:func:`fine_reference`):
 OpenCV's cubic remap biases image matching towards whole pixels by up to
@@ -334,15 +342,19 @@ MIN_GAIN = 0.1
 def intensity_fit(frame, warped, weight=None, *, cell_px: float = INTENSITY_CELL_PX):
     """Smooth gain and offset fields with ``frame ~ gain * warped + offset``.
 
-    A locally linear intensity model (the gain-and-offset normalisation of
-    ZNSSD in DIC, solved as a weighted least-squares fit): the moments
-    ``sum w``, ``sum w I``, ``sum w W``, ``sum w I W``, ``sum w W^2`` are
-    averaged over cells of about ``cell_px`` pixels, then over 3 x 3 cells
-    (a window of about ``3 cell_px``, several pattern periods, so the
-    pattern's own mean and variance are steady there), and the fit of each
-    cell is interpolated bilinearly to every pixel.  Where a cell has no
-    weight or no contrast in ``warped`` its gain and offset are the frame's
-    (the fit over all cells).
+    The normalisation of ZNSSD in DIC, locally: ``gain = std(I) / std(W)``,
+    ``offset = mean(I) - gain mean(W)`` over windows of about ``3 cell_px``
+    (several pattern periods, so the pattern's own mean and variance are
+    steady there).  The ratio of standard deviations, not the regression
+    slope ``cov(I, W) / var(W)``: where the warp is still off (the first
+    steps, a fast-moving region) the slope shrinks towards 0 with the
+    correlation, and dividing the frame by it blew the residual up (3x on a
+    dimple of 8 px) and the steps with it.  The moments ``sum w``,
+    ``sum w I``, ``sum w W``, ``sum w I^2``, ``sum w W^2`` are averaged over
+    cells of about ``cell_px`` pixels, then over 3 x 3 cells, and each cell's
+    fit is interpolated bilinearly to every pixel.  Where a cell has no
+    weight or no contrast in ``warped`` its gain and offset are the whole
+    frame's.
 
     Parameters
     ----------
@@ -369,21 +381,25 @@ def intensity_fit(frame, warped, weight=None, *, cell_px: float = INTENSITY_CELL
     else:
         w0 = down(weight)
         fw, ww = frame * weight, warped * weight
-    moments = [w0, down(fw), down(ww), down(fw * warped), down(ww * warped)]
+    moments = [w0, down(fw), down(ww), down(fw * frame), down(ww * warped)]
     total = [float(m.sum()) for m in moments]
     if m_r >= 3 and m_c >= 3:
         moments = [cv2.blur(m, (3, 3), borderType=cv2.BORDER_REFLECT) for m in moments]
-    n, si, sw, siw, sww = moments
-    cov = n * siw - si * sw
-    var = n * sww - sw * sw
-    tn, ti, tw, tiw, tww = total
-    t_var = tn * tww - tw * tw
-    g_all = (tn * tiw - ti * tw) / t_var if t_var > 0 else 1.0
+    n, si, sw, sii, sww = moments
+    var_i = n * sii - si * si  # n^2 times the variances
+    var_w = n * sww - sw * sw
+    tn, ti, tw, tii, tww = total
+    t_var_i = tn * tii - ti * ti
+    t_var_w = tn * tww - tw * tw
+    g_all = math.sqrt(t_var_i / t_var_w) if t_var_w > 0 and t_var_i > 0 else 1.0
     o_all = (ti - g_all * tw) / tn if tn > 0 else 0.0
     # a cell needs weight and contrast: at least a tenth of the frame's mean weight
     # per cell and a tenth of the frame's variance of the warped reference
-    ok = (n > 0.1 * tn / n.size) & (var > 0.1 * (t_var / tn ** 2) * n ** 2) if tn > 0 else np.zeros_like(n, bool)
-    gain = np.where(ok, cov / np.where(ok, var, 1.0), g_all)
+    if tn > 0:
+        ok = (n > 0.1 * tn / n.size) & (var_w > 0.1 * (t_var_w / tn ** 2) * n ** 2) & (var_i > 0)
+    else:
+        ok = np.zeros_like(n, bool)
+    gain = np.where(ok, np.sqrt(np.where(ok, var_i, 1.0) / np.where(ok, var_w, 1.0)), g_all)
     offset = np.where(ok, (si - gain * sw) / np.where(ok, n, 1.0), o_all)
     up = [cv2.resize(x.astype(np.float32), (cols, rows), interpolation=cv2.INTER_LINEAR) for x in (gain, offset)]
     return up[0], up[1]
@@ -424,17 +440,17 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
                   intensity_cell_px: float | None = INTENSITY_CELL_PX, period_px: float | None = None):
     """Global Gauss-Newton image matching for the height on the node grid of ``nodes``.
 
-    Minimises ``sum_r w [G*I - a G*I0(r - P L h) - b]^2 + lam (|D3r h|^2 + |D3c h|^2)``
+    Minimises ``sum_r w [G*((I - b) / a) - G*I0(r - P L h)]^2 + lam (|D3r h|^2 + |D3c h|^2)``
     (module docstring): ``L`` the node heights -> node displacement
     (:meth:`HeightNodes.displacement`), ``P`` bilinear nodes -> pixels in the
     normal equations, Lanczos for the warp itself; ``G*`` a Gaussian of
     ``blur_px`` applied to the frame and to the warped reference (so the
     gradient is that of the blurred warped reference); ``a``, ``b`` the
     frame's smooth gain and offset fields (:func:`intensity_fit`, fitted
-    anew before each step, alternating with the height: the frame may be
+    once against the reference warped by the start: the frame may be
     brighter or darker than the reference, by a shadow or an exposure, and
-    still match).  Each step solves
-    ``(L^T P^T N P L + lam R) dh = -L^T P^T g e - lam R h`` (``g = a grad``)
+    still match; the frame is divided by them before the blur).  Each step solves
+    ``(L^T P^T N P L + lam R) dh = -L^T P^T g e - lam R h``
     by conjugate gradients preconditioned with the constant-coefficient
     operator's DCT (``cg_iterations`` per step: from FD's start 3 give the
     same heights as 15).  ``lam`` is ``regularisation`` times the data
@@ -484,8 +500,6 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
     RefinementDiverged
         The message names the test that stopped the iterations and its figures.
     """
-    import scipy.fft as sfft
-
     grid = nodes.grid
     raw = img = np.asarray(frame, np.float32)
     if blur_px:
@@ -499,38 +513,14 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
         # pixels whose blurred frame and warped reference see valid pixels alone count
         reach = int(math.ceil(2.5 * blur_px))
         w = cv2.erode(w, np.ones((2 * reach + 1, 2 * reach + 1), np.uint8), borderType=cv2.BORDER_REPLICATE)
-    h = np.asarray(h0, np.float64).copy()
-    if not np.isfinite(h).all():
-        # nodes without a start: the nearest valid node's height (no jump at the mask's edge)
-        from scipy import ndimage
-
-        bad = ~np.isfinite(h)
-        if bad.all():
-            raise _diverged("no finite starting height", "every node is NaN or infinite")
-        _, idx = ndimage.distance_transform_edt(bad, return_indices=True)
-        h = h[idx[0], idx[1]]
+    h = _start_heights(h0)
     r_px = np.arange(rows, dtype=np.float32)[:, None] * np.float32(FINE)
     c_px = np.arange(cols, dtype=np.float32)[None, :] * np.float32(FINE)
-    s2 = grid.s ** 2
-    Bm = nodes.B_mean
-    w_fit = None if all_valid else w
     u_start = nodes.displacement(h)
-    max_u = float(max(rows, cols))
-    max_move = math.inf if period_px is None else 0.5 * float(period_px)
     prev_step = prev_cost = None
     for k in range(outer + 1):
         u = nodes.displacement(h)
-        # the divergence tests on the node grid, before any warp
-        size = float(np.abs(u).max()) if u.size else 0.0
-        move = _rms(u - u_start)
-        if not (math.isfinite(size) and math.isfinite(move)):
-            raise _diverged("non-finite displacement", f"after {k} step(s)")
-        if size > max_u:
-            raise _diverged("displacement beyond the frame's size",
-                            f"{size:.3g} px after {k} step(s), frame {rows} x {cols} px")
-        if move > max_move:
-            raise _diverged("displacement moved by more than half the pattern's period",
-                            f"{move:.3g} px rms from FD's, period {period_px:.3g} px, after {k} step(s)")
+        _check_displacement(u, u_start, k, (rows, cols), period_px)  # before any warp
         if k == outer:
             break
         mr = grid.up(u[0], cv2.INTER_LANCZOS4)
@@ -542,22 +532,12 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
             warped = cv2.GaussianBlur(warped, (0, 0), blur_px)
         gr = cv2.Sobel(warped, cv2.CV_32F, 0, 1, ksize=1, scale=0.5, borderType=cv2.BORDER_REFLECT)
         gc = cv2.Sobel(warped, cv2.CV_32F, 1, 0, ksize=1, scale=0.5, borderType=cv2.BORDER_REFLECT)
-        if intensity_cell_px:
-            # the frame brought to the reference's intensities, (I - b) / a: every
-            # pixel weighs the same whatever its gain, as in a frame exposed as the reference
-            gain, offset = intensity_fit(img, warped, w_fit, cell_px=intensity_cell_px)
-            floor = MIN_GAIN * float(np.median(gain[::8, ::8]))
-            np.maximum(gain, np.float32(floor if floor > 0 else 1e-30), out=gain)
-            # normalised before the blur: G*((I - b) / a) is the blurred reference's
-            # match where the gain varies (a blurs as G*(a I0) = a G*I0 + sigma^2 grad a . grad I0 + ...,
-            # a displacement of sigma^2 grad a / a)
-            e = raw - offset
-            e /= gain
-            if blur_px:
-                e = cv2.GaussianBlur(e, (0, 0), blur_px)
-            e -= warped
-        else:
-            e = img - warped
+        if intensity_cell_px and k == 0:
+            # once, against the reference warped by FD's start (the ratio of standard
+            # deviations hardly moves with the warp: fitting before every step gave the
+            # same heights, 10-20 % slower)
+            img = _normalised_frame(raw, img, warped, None if all_valid else w, intensity_cell_px, blur_px)
+        e = img - warped
         if not all_valid:
             gr *= w
             gc *= w
@@ -571,54 +551,7 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
                             f"rms {math.sqrt(prev_cost / w.size):.3g} -> {math.sqrt(cost / w.size):.3g} "
                             f"after step {k}")
         prev_cost = cost if prev_cost is None else min(cost, prev_cost)
-        Nrr = nodes.node_normal(gr * gr)
-        Nrc = nodes.node_normal(gr * gc)
-        Ncc = nodes.node_normal(gc * gc)
-        br = nodes.node_rhs(gr * e)
-        bc = nodes.node_rhs(gc * e)
-        nr = Nrr.mean_row_sum()
-        nc = Ncc.mean_row_sum()
-        lam = regularisation * (nr * Bm[0, 0] ** 2 + nc * Bm[1, 1] ** 2) / s2
-        if not (math.isfinite(lam) and lam > 0):
-            raise _diverged("no image gradient to match", f"data weight {lam:.3g} at step {k + 1}")
-        sym = (nr * Bm[0, 0] ** 2 + nc * Bm[1, 0] ** 2) * nodes.symbol_d1[0]
-        sym = sym + (nr * Bm[0, 1] ** 2 + nc * Bm[1, 1] ** 2) * nodes.symbol_d1[1] + lam * nodes.symbol_reg
-        sym[0, 0] = np.inf  # the null space (a near-constant height) is the pin's business
-        sym = sym.astype(np.float32)
-        lam = np.float32(lam)
-
-        def apply_K(x):
-            vr, vc = nodes.displacement(x)
-            out = nodes.displacement_T(Nrr @ vr + Nrc @ vc, Nrc @ vr + Ncc @ vc)
-            out += lam * nodes.regulariser(x)
-            return out
-
-        def prec(r):
-            c = sfft.dctn(r, type=2, norm="ortho")
-            c /= sym
-            return sfft.idctn(c, type=2, norm="ortho", overwrite_x=True)
-
-        r = (-nodes.displacement_T(br, bc) - lam * nodes.regulariser(h)).astype(np.float32)
-        x = np.zeros(h.shape, np.float32)
-        z = prec(r)
-        p = z.copy()
-        rz = _dot(r, z)
-        r0 = math.sqrt(_dot(r, r))
-        for _k in range(cg_iterations):  # bounded: cg_iterations, no tolerance loop
-            if r0 == 0.0 or not math.isfinite(rz):
-                break
-            q = apply_K(p)
-            pq = _dot(p, q)
-            if not (pq > 0.0 and math.isfinite(pq)):
-                break
-            al = np.float32(rz / pq)
-            x += al * p
-            r -= al * q
-            z = prec(r)
-            rz_new = _dot(r, z)
-            p *= np.float32(rz_new / rz)
-            p += z
-            rz = rz_new
+        x = _gauss_newton_step(nodes, gr, gc, e, h, regularisation, cg_iterations, k)
         step = _rms(nodes.displacement(x))
         if not math.isfinite(step):
             raise _diverged("non-finite Gauss-Newton step", f"step {k + 1}")
@@ -628,3 +561,111 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
         prev_step = step
         h += x
     return h, u.astype(np.float32), free
+
+
+def _start_heights(h0):
+    """``h0`` as float64, nodes without a start given the nearest valid node's
+    height (no jump at the mask's edge)."""
+    h = np.asarray(h0, np.float64).copy()
+    if not np.isfinite(h).all():
+        from scipy import ndimage
+
+        bad = ~np.isfinite(h)
+        if bad.all():
+            raise _diverged("no finite starting height", "every node is NaN or infinite")
+        _, idx = ndimage.distance_transform_edt(bad, return_indices=True)
+        h = h[idx[0], idx[1]]
+    return h
+
+
+def _check_displacement(u, u_start, k, frame_shape, period_px):
+    """The divergence tests on the node displacement ``u`` after ``k`` steps
+    (:func:`refine_height`): finite, within the frame's size anywhere, within
+    half the pattern's period of the start (rms)."""
+    size = float(np.abs(u).max()) if u.size else 0.0
+    move = _rms(u - u_start)
+    if not (math.isfinite(size) and math.isfinite(move)):
+        raise _diverged("non-finite displacement", f"after {k} step(s)")
+    if size > max(frame_shape):
+        raise _diverged("displacement beyond the frame's size",
+                        f"{size:.3g} px after {k} step(s), frame {frame_shape[0]} x {frame_shape[1]} px")
+    if period_px is not None and move > 0.5 * float(period_px):
+        raise _diverged("displacement moved by more than half the pattern's period",
+                        f"{move:.3g} px rms from FD's, period {period_px:.3g} px, after {k} step(s)")
+
+
+def _normalised_frame(raw, blurred, warped, weight, cell_px, blur_px):
+    """The frame brought to the reference's intensities, ``G*((I - b) / a)``
+    (:func:`intensity_fit` of the blurred frame against the blurred warped
+    reference; the gain floored at :data:`MIN_GAIN` of its median): every
+    pixel then weighs the same whatever its gain.  Divided before the blur:
+    ``G*(a I0) = a G*I0 + sigma^2 grad a . grad I0 + ...``, so dividing the
+    blurred frame would leave a displacement of ``sigma^2 grad a / a``."""
+    gain, offset = intensity_fit(blurred, warped, weight, cell_px=cell_px)
+    floor = MIN_GAIN * float(np.median(gain[::8, ::8]))
+    np.maximum(gain, np.float32(floor if floor > 0 else 1e-30), out=gain)
+    img = raw - offset
+    img /= gain
+    if blur_px:
+        img = cv2.GaussianBlur(img, (0, 0), blur_px)
+    return img
+
+
+def _gauss_newton_step(nodes, gr, gc, e, h, regularisation, cg_iterations, k):
+    """The step ``dh`` of :func:`refine_height` from the (weighted) gradients
+    ``gr``, ``gc`` of the warped reference and the residual ``e``: the normal
+    equations ``(L^T P^T N P L + lam R) dh = -L^T P^T g e - lam R h`` by
+    ``cg_iterations`` conjugate-gradient iterations (bounded, no tolerance
+    loop), preconditioned by the constant-coefficient operator's DCT."""
+    import scipy.fft as sfft
+
+    Bm = nodes.B_mean
+    Nrr = nodes.node_normal(gr * gr)
+    Nrc = nodes.node_normal(gr * gc)
+    Ncc = nodes.node_normal(gc * gc)
+    br = nodes.node_rhs(gr * e)
+    bc = nodes.node_rhs(gc * e)
+    nr = Nrr.mean_row_sum()
+    nc = Ncc.mean_row_sum()
+    lam = regularisation * (nr * Bm[0, 0] ** 2 + nc * Bm[1, 1] ** 2) / nodes.grid.s ** 2
+    if not (math.isfinite(lam) and lam > 0):
+        raise _diverged("no image gradient to match", f"data weight {lam:.3g} at step {k + 1}")
+    sym = (nr * Bm[0, 0] ** 2 + nc * Bm[1, 0] ** 2) * nodes.symbol_d1[0]
+    sym = sym + (nr * Bm[0, 1] ** 2 + nc * Bm[1, 1] ** 2) * nodes.symbol_d1[1] + lam * nodes.symbol_reg
+    sym[0, 0] = np.inf  # the null space (a near-constant height) is the pin's business
+    sym = sym.astype(np.float32)
+    lam = np.float32(lam)
+
+    def apply_K(x):
+        vr, vc = nodes.displacement(x)
+        out = nodes.displacement_T(Nrr @ vr + Nrc @ vc, Nrc @ vr + Ncc @ vc)
+        out += lam * nodes.regulariser(x)
+        return out
+
+    def prec(r):
+        c = sfft.dctn(r, type=2, norm="ortho")
+        c /= sym
+        return sfft.idctn(c, type=2, norm="ortho", overwrite_x=True)
+
+    r = (-nodes.displacement_T(br, bc) - lam * nodes.regulariser(h)).astype(np.float32)
+    x = np.zeros(h.shape, np.float32)
+    z = prec(r)
+    p = z.copy()
+    rz = _dot(r, z)
+    r0 = math.sqrt(_dot(r, r))
+    for _k in range(cg_iterations):
+        if r0 == 0.0 or not math.isfinite(rz):
+            break
+        q = apply_K(p)
+        pq = _dot(p, q)
+        if not (pq > 0.0 and math.isfinite(pq)):
+            break
+        al = np.float32(rz / pq)
+        x += al * p
+        r -= al * q
+        z = prec(r)
+        rz_new = _dot(r, z)
+        p *= np.float32(rz_new / rz)
+        p += z
+        rz = rz_new
+    return x

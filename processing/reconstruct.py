@@ -254,10 +254,18 @@ def exposure_gain(frame, reference_mean: float, amplitude) -> float:
     """
     if not reference_mean > 0:
         return 1.0
-    by_mean = float(np.mean(frame, dtype=np.float64)) / reference_mean
+    by_mean = float(np.mean(_brightness_sample(frame), dtype=np.float64)) / reference_mean
+    if not by_mean < 1.0:  # as bright or brighter (or NaN): nothing to make up for
+        return 1.0
     by_contrast = float(np.percentile(amplitude, 90)) if np.size(amplitude) else 1.0
     gain = max(by_mean, by_contrast)
     return float(min(1.0, max(MIN_EXPOSURE_GAIN, gain))) if math.isfinite(gain) else 1.0
+
+
+def _brightness_sample(image):
+    """Every 4th pixel of every 4th row, for the mean brightness at 1/16 of the cost (frame and
+    reference sampled alike; the mask's threshold needs the ratio to a few per cent)."""
+    return np.asarray(image)[::4, ::4]
 
 
 #: Largest sample magnitude accepted: no camera gives samples wider than 32 bits.
@@ -549,7 +557,7 @@ class Reconstructor:
         self.refine_iterations = refine_iterations
         self.full_method = full_method
         self.min_amplitude = float(min_amplitude)
-        self._ref_mean = float(np.mean(ref, dtype=np.float64))
+        self._ref_mean = float(np.mean(_brightness_sample(ref), dtype=np.float64))
         self.min_fold = float(min_fold)
         self.dilate = int(dilate)
         self.min_island = float(min_island)
