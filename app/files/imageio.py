@@ -756,18 +756,16 @@ def iter_frames(
             elif kind in _SOURCE_KINDS:
                 with _open_source(p) as src:
                     picked = _local_range(seq, src.n_frames, first, last, step)
+                    # every frame the header promises comes: read, or as its error (the file
+                    # ends before it, its decoder failed): formats.Source.frames
                     i = picked.start
                     try:
-                        for i, image, time_s in src.frames(picked):
-                            yield frame(lambda: _check_dtype(_to_gray(image, p), p), path, i, seq + i,
+                        for i, image, time_s in src.frames(picked, errors=errors):
+                            yield frame(lambda: _source_image(image, p), path, i, seq + i,
                                         frames_in_source=src.n_frames, time_s=time_s)
-                    except ImageReadError as exc:  # a frame the decoder cannot read
-                        exc.sequence_index = seq + i
-                        if errors == "raise":
-                            raise
-                        # a decoder cannot go on past it: the rest of this file is not read
-                        yield FrameItem(None, str(path), i, seq + i, frames_in_source=src.n_frames,
-                                        error=exc)
+                    except ImageReadError as exc:
+                        exc.sequence_index = seq + getattr(exc, "index_in_source", i)
+                        raise
                     seq += src.n_frames
             elif kind == "tiff":
                 with _tiff_open(p) as tif:
@@ -794,6 +792,13 @@ def iter_frames(
         if getattr(exc, "sequence_index", None) is None:
             exc.sequence_index = seq
         raise
+
+
+def _source_image(image, p: Path) -> np.ndarray:
+    """A frame from :meth:`formats.Source.frames`, or its read error raised."""
+    if isinstance(image, Exception):
+        raise image
+    return _check_dtype(_to_gray(image, p), p)
 
 
 def _h5_read(ds, i: int, p: Path) -> np.ndarray:
