@@ -763,6 +763,9 @@ def recording_geometry_toml(path) -> str | None:
         try:
             node = f.get("geometry_toml")
             if isinstance(node, h5py.Dataset):
+                damage = _vlen_heap_damage(p, node)
+                if damage:  # HDF5 would loop for ever on it: never hand it to h5py
+                    raise _geometry_damaged(p, ValueError(damage))
                 value = node[()]
             elif "geometry_toml" in f.attrs:
                 value = f.attrs["geometry_toml"]
@@ -773,12 +776,32 @@ def recording_geometry_toml(path) -> str | None:
         except (OSError, RuntimeError, KeyError, UnicodeDecodeError) as exc:
             raise _geometry_damaged(p, exc) from exc
     value = str(value)
-    if not value:
-        return None
-    if not value.strip("\x00 \t\r\n") or "\x00" in value:
+    if not value.strip("\x00 \t\r\n") or "\x00" in value:  # the recorder never stores an empty one
         raise _geometry_damaged(p, ValueError(f"its text is {len(value)} characters of which "
                                               f"{value.count(chr(0))} are zero bytes"))
     return value
+
+
+def _vlen_heap_damage(p: Path, ds) -> str:
+    """Why the global heap behind the scalar variable-length string dataset ``ds`` of
+    the file ``p`` must not be read (:func:`app.files.h5safe.global_heap_damage`), or
+    "" (sound, or not a layout this checks)."""
+    from app.files import h5safe
+
+    try:
+        if ds.shape != () or not ds.dtype.kind == "O":
+            return ""
+        offset = ds.id.get_offset()
+        if offset is None:
+            return ""
+        with open(p, "rb") as fh:
+            fh.seek(offset)
+            descriptor = fh.read(16)  # length (4), collection address (8), object index (4)
+    except (OSError, RuntimeError, ValueError):
+        return ""
+    if len(descriptor) < 16:
+        return "its data lies past the end of the file"
+    return h5safe.global_heap_damage(p, int.from_bytes(descriptor[4:12], "little"))
 
 
 def _geometry_damaged(p: Path, exc: BaseException) -> ImageReadError:
@@ -1031,7 +1054,9 @@ def recording_notes(path) -> list:
         if "complete" in attrs and int(attrs["complete"]) == 0:
             planned = int(ds.attrs.get("frames_planned", -1))
             of = f" of the {planned} planned" if planned > n else ""
-            error = str(attrs.get("error", "") or "")
+            node = f.get("geometry_toml")
+            heap_damage = _vlen_heap_damage(p, node) if node is not None else ""
+            error = "" if heap_damage else str(attrs.get("error", "") or "")
             if "summary" not in f:
                 notes.append(
                     f"{p.name} is a recording that did not end normally (complete = 0, no /summary: "

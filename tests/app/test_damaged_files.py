@@ -131,6 +131,20 @@ def test_damaged_geometry_text_is_said_damaged(sim, recording, tmp_path):
     assert r.returncode == 0, r.stderr
 
 
+def test_zeroed_geometry_heap_object_is_refused_not_a_hang(sim, recording, tmp_path):
+    """The heap object that holds the TOML text zeroed, header included: HDF5 1.14
+    loops for ever loading such a heap (SIGTERM cannot end it); the heap is now
+    checked before h5py reads it. The 120 s limit only detects a hang (needed: ~2 s)."""
+    text = (sim / "geometry.toml").read_bytes()
+    at = recording.read_bytes().index(text[:40]) - 16  # the object's 16-byte header
+    bad = _damaged_copy(recording, tmp_path, at, bytes(64))
+    r = _cli("process", bad, bad, "--out", tmp_path / "out.h5", "--no-progress", timeout=120)
+    _one_error_line(r, str(bad), "/geometry_toml", "damaged", "global heap")
+    r = _cli("process", bad, bad, "--geometry", sim / "geometry.toml", "--out", tmp_path / "ok.h5",
+             "--no-progress", timeout=120)
+    assert r.returncode == 0, r.stderr
+
+
 def test_zeroed_frame_table_is_detected(recording, tmp_path):
     """A zeroed /frame_table chunk: was exit 0 with every time_s and camera_frame_id 0.
     Now the rows are found damaged (sequence numbers not increasing), their times and
@@ -155,6 +169,16 @@ def test_zeroed_stretch_of_the_reference_is_an_error_naming_it(recording, tmp_pa
         offset, nbytes = f["reference"].id.get_offset(), f["reference"].nbytes
     bad = _damaged_copy(recording, tmp_path, offset + nbytes // 3, bytes(nbytes // 10))
     _one_error_line(_process(bad, tmp_path / "out.h5"), str(bad), "/reference", "checksum", "corrupt")
+
+
+def test_zeroed_geometry_text_is_not_no_geometry(sim, recording, tmp_path):
+    """The TOML text's first bytes zeroed: h5py reads an empty string, which said
+    'no geometry given'."""
+    text = (sim / "geometry.toml").read_bytes()
+    at = recording.read_bytes().index(text[:40])
+    bad = _damaged_copy(recording, tmp_path, at, bytes(32))
+    line = _one_error_line(_process(bad, tmp_path / "out.h5"), str(bad), "/geometry_toml", "damaged")
+    assert "no geometry given" not in line
 
 
 def test_partly_zeroed_frame_is_unreadable_with_its_reason(recording, tmp_path):
