@@ -1076,7 +1076,10 @@ def recording_notes(path) -> list:
                 f"{p.name}: {len(k)} row(s) of /frame_table are damaged (frames {k[0]}..{k[-1]}: "
                 f"sequence numbers or host times not increasing as the recorder writes them, e.g. "
                 f"overwritten with zeros): those frames' times, camera ids and flags are unknown "
-                f"(NaN / -1 in the output), their pixels unchecked; copy the recording again")
+                f"(NaN / -1 in the output)"
+                + (", their pixels unchecked (their checksums are in those rows)"
+                   if "crc32" in (table.dtype.names or ()) else "")
+                + "; copy the recording again")
     return notes
 
 
