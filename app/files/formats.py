@@ -198,22 +198,27 @@ def _accounted(frames: Iterator[tuple], indices: range, source: Source, errors: 
             f"or process the frames before it (--frames :{first_missing[0]})")
 
     try:
-        for item in frames:
-            i = item[0]
-            while pending is not None and pending < i:  # skipped by the decoder
-                yield from _missing_item(missing(pending), pending, errors)
-                pending = next(wanted, None)
-            if pending is not None and pending == i:
-                if isinstance(item[1], Exception):
-                    yield from _missing_item(item[1], i, errors)
-                else:
-                    yield item
-                pending = next(wanted, None)
-    except FormatError as exc:  # a decoder cannot go on past a frame it fails at
-        failure = (pending, exc)
-    while pending is not None:
-        yield from _missing_item(missing(pending), pending, errors)
-        pending = next(wanted, None)
+        try:
+            for item in frames:
+                i = item[0]
+                while pending is not None and pending < i:  # skipped by the decoder
+                    yield from _missing_item(missing(pending), pending, errors)
+                    pending = next(wanted, None)
+                if pending is not None and pending == i:
+                    if isinstance(item[1], Exception):
+                        yield from _missing_item(item[1], i, errors)
+                    else:
+                        yield item
+                    pending = next(wanted, None)
+        except FormatError as exc:  # a decoder cannot go on past a frame it fails at
+            failure = (pending, exc)
+        while pending is not None:
+            yield from _missing_item(missing(pending), pending, errors)
+            pending = next(wanted, None)
+    finally:  # leaving early stops the reader (a video's decoding thread) now, not at collection
+        close = getattr(frames, "close", None)
+        if close is not None:
+            close()
 
 
 def _span(first: int, n: int) -> str:
