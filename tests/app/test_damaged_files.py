@@ -268,3 +268,34 @@ def test_movie_and_probe_on_a_running_then_killed_process_output(sim, recording,
     r = _cli("probe", partial, "--at", f"{x_mm},{y_mm}", "--out", tmp_path / "p.csv")
     assert r.returncode == 0 and needle in r.stderr, r.stderr
     assert f"--first {done}" in r.stderr  # where to resume
+
+
+def test_recording_of_format_1_1_without_checksums_still_reads(sim, recording, tmp_path):
+    """A recording written before checksums (format 1.1: no frame_table.crc32, no
+    crc32 on /reference) processes as before, to the same heights as the 1.2 one."""
+    from app.capture.recorder import FRAME_TABLE_DTYPE
+
+    old_dtype = np.dtype([(name, FRAME_TABLE_DTYPE[name]) for name in FRAME_TABLE_DTYPE.names
+                          if name != "crc32"])
+    old = tmp_path / "old.h5"
+    with h5py.File(recording) as src, h5py.File(old, "w") as dst:
+        for key, value in src.attrs.items():
+            dst.attrs[key] = value
+        dst.attrs["format_version"] = "1.1"
+        frames = dst.create_dataset("frames", data=src["frames"][()], chunks=(1,) + src["frames"].shape[1:])
+        for key, value in src["frames"].attrs.items():
+            frames.attrs[key] = value
+        table = src["frame_table"][()]
+        dst.create_dataset("frame_table", data=np.array([tuple(row[n] for n in old_dtype.names)
+                                                          for row in table], dtype=old_dtype))
+        dst.create_dataset("reference", data=src["reference"][()])
+        dst.create_dataset("geometry_toml", data=src["geometry_toml"][()], dtype=h5py.string_dtype())
+    outputs = {}
+    for name, path in (("1.2", recording), ("1.1", old)):
+        r = _process(path, tmp_path / f"{name}.h5")
+        assert r.returncode == 0, r.stderr
+        assert "corrupt" not in r.stderr and "damaged" not in r.stderr
+        with h5py.File(tmp_path / f"{name}.h5") as f:
+            outputs[name] = (f["height"][()], f["time_s"][()])
+    np.testing.assert_array_equal(outputs["1.1"][0], outputs["1.2"][0])
+    np.testing.assert_allclose(outputs["1.1"][1], 0.002 * np.arange(N_FRAMES), atol=1e-12)
