@@ -1033,19 +1033,28 @@ def read_summary(path) -> Dict:
             return json.loads(f["summary"].attrs["summary_json"])
         n = int(f["frames"].attrs.get("frames_written", 0))
         t = f["frame_table"][:n]
-    ids = t["frame_id"]
-    seqs = t["sequence"]
+    from app.files.imageio import frame_table_damage
+
+    damaged = frame_table_damage(t)
+    # rows overwritten on disk (e.g. zeros) would count as huge gaps: only steps between
+    # two intact neighbours count, and the damaged rows' flags are not known
+    intact_step = ~(damaged[1:] | damaged[:-1])
+    d_id = (np.diff(t["frame_id"]) - 1)[intact_step]
+    d_seq = (np.diff(t["sequence"]) - 1)[intact_step]
+    t = t[~damaged]
     flags = t["flags"]
-    d_id = np.diff(ids) - 1
-    d_seq = np.diff(seqs) - 1
+    error = ("no /summary: the recording did not end normally (crash or power loss); counts rebuilt from "
+             "/frame_table")
+    if damaged.any():
+        error += f"; {int(damaged.sum())} of its rows are damaged and left out of the counts"
     return dict(
         path=str(path),
         frames_written=n,
-        lost_upstream_id_gaps=int(np.clip(d_id - d_seq, 0, None).sum()) if n > 1 else 0,
-        lost_ring_overrun=int(d_seq.clip(0).sum()) if n > 1 else 0,
+        frame_table_damaged_rows=int(damaged.sum()),
+        lost_upstream_id_gaps=int(np.clip(d_id - d_seq, 0, None).sum()),
+        lost_ring_overrun=int(d_seq.clip(0).sum()),
         time_gaps=int(((flags & FrameFlags.TIME_GAP_BEFORE) != 0).sum()),
         incomplete=int(((flags & FrameFlags.INCOMPLETE) != 0).sum()),
         incomplete_missing_bytes=int(t["missing_bytes"].sum()) if "missing_bytes" in (t.dtype.names or ()) else 0,
-        error="no /summary: the recording did not end normally (crash or power loss); counts rebuilt from "
-              "/frame_table",
+        error=error,
     )

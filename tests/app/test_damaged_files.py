@@ -299,3 +299,28 @@ def test_recording_of_format_1_1_without_checksums_still_reads(sim, recording, t
             outputs[name] = (f["height"][()], f["time_s"][()])
     np.testing.assert_array_equal(outputs["1.1"][0], outputs["1.2"][0])
     np.testing.assert_allclose(outputs["1.1"][1], 0.002 * np.arange(N_FRAMES), atol=1e-12)
+
+
+def test_rebuilt_drop_summary_leaves_damaged_rows_out(sim, tmp_path):
+    """A recording that never ended (no /summary) with rows 2..3 of its frame table
+    zeroed on disk: the drop summary rebuilt from the table counted the zeros as
+    hundreds of frames lost upstream; now those rows are left out and counted."""
+    from app.capture.recorder import FRAME_TABLE_DTYPE, read_summary
+
+    path = tmp_path / "live.h5"
+    rec = _record(sim, path, close=False)
+    try:
+        copy = tmp_path / "copy.h5"
+        shutil.copy(path, copy)
+    finally:
+        rec.close(summary={"frames_written": N_FRAMES})
+    with h5py.File(copy) as f:
+        chunk = f["frame_table"].id.get_chunk_info(0)
+    row = FRAME_TABLE_DTYPE.itemsize
+    with open(copy, "r+b") as fh:
+        fh.seek(chunk.byte_offset + 2 * row)
+        fh.write(bytes(2 * row))
+    s = read_summary(copy)
+    assert s["frames_written"] == N_FRAMES
+    assert s["frame_table_damaged_rows"] == 2 and "2 of its rows are damaged" in s["error"]
+    assert s["lost_upstream_id_gaps"] == 0 and s["lost_ring_overrun"] == 0
