@@ -659,7 +659,8 @@ def read_image(path, *, index: int | None = None) -> np.ndarray:
     with _h5_file(p) as f:
         ds, n = _h5_frames(f, p)
         i = _resolve_index(index, n, p, what="frames")
-        return _check_dtype(_to_gray(np.asarray(ds[i]), p), p)
+        table, bad = _h5_frame_table(f, n, p)
+        return _h5_read(ds, i, p, _row_checksum(table, i, bad))
 
 
 def _resolve_index(index, n: int, p: Path, *, what: str) -> int:

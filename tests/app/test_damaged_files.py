@@ -324,3 +324,14 @@ def test_rebuilt_drop_summary_leaves_damaged_rows_out(sim, tmp_path):
     assert s["frames_written"] == N_FRAMES
     assert s["frame_table_damaged_rows"] == 2 and "2 of its rows are damaged" in s["error"]
     assert s["lost_upstream_id_gaps"] == 0 and s["lost_ring_overrun"] == 0
+
+
+def test_corrupt_frame_chosen_as_reference_is_refused(recording, tmp_path):
+    """`--reference-index 3` on the recording whose frame 3 is partly zeroed: the
+    reference is checked against its checksum too (an error naming the frame), not
+    used to measure every other frame against."""
+    with h5py.File(recording) as f:
+        chunk = f["frames"].id.get_chunk_info(3)
+    bad = _damaged_copy(recording, tmp_path, chunk.byte_offset + chunk.size // 2, bytes(chunk.size // 8))
+    r = _cli("process", bad, bad, "--reference-index", 3, "--out", tmp_path / "out.h5", "--no-progress")
+    _one_error_line(r, str(bad), "frame 3", "checksum")
