@@ -9,15 +9,19 @@ same rule; NaN when any of them is invalid), one value per processed frame, with
 from __future__ import annotations
 
 import csv
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from app.files import imageio
 from processing.errors import TirdeflectError
 from processing.probe import probe_cell, sample_cell
 
-__all__ = ["ProbeSeries", "probe_series", "frame_times", "write_probes", "open_output"]
+__all__ = ["ProbeSeries", "probe_series", "frame_times", "write_probes", "open_output", "partial_note"]
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -57,13 +61,40 @@ def open_output(path):
     try:
         f = h5py.File(p, "r")
     except OSError as exc:
-        raise TirdeflectError(f"{str(p)!r} is not a readable HDF5 file ({exc})") from exc
-    if "height" not in f or "x_mm" not in f:
-        names = ", ".join(sorted(f.keys())) or "nothing"
+        raise imageio.h5_open_error(p, exc, what="output of `tirdeflect process`") from exc
+    try:
+        if "height" not in f or "x_mm" not in f:
+            names = ", ".join(sorted(f.keys())) or "nothing"
+            raise TirdeflectError(f"{str(p)!r} holds no /height (it holds {names}); give the output "
+                                  f"of `tirdeflect process`, not a recording")
+        note = partial_note(f, p)
+    except (OSError, RuntimeError, KeyError) as exc:
         f.close()
-        raise TirdeflectError(f"{str(p)!r} holds no /height (it holds {names}); give the output "
-                              f"of `tirdeflect process`, not a recording")
+        raise imageio.h5_damaged(p, "its HDF5 structure", exc) from exc
+    except BaseException:
+        f.close()
+        raise
+    if note:
+        log.warning("%s", note)
     return f
+
+
+def partial_note(f, path) -> str:
+    """What to know of an opened OUT.h5 that is not a finished run's output (its
+    ``status`` is not ``complete...``: a run killed, interrupted or failed, whose
+    ``NAME.partial.h5`` holds the frames done so far); "" for a finished one."""
+    status = str(f.attrs.get("status", ""))
+    if status.startswith("complete"):
+        return ""
+    done, expected = frames_done(f), int(f.attrs.get("frames_expected", -1))
+    of = f" of the {expected} expected" if expected >= 0 else ""
+    why = ("the run was killed before it ended" if status in ("", "running")
+           else f"the run ended as {status!r}")
+    step = int(f.attrs.get("step", 1) or 1)
+    resume = (int(f["frame_index"][done - 1]) + step) if done else int(f.attrs.get("first", 0))
+    return (f"{Path(path).name} is a partial output ({why}): it holds {done}{of} frames "
+            f"(frames_done); what follows covers only those: process the rest with "
+            f"`tirdeflect process ... --first {resume}`")
 
 
 def frames_done(f) -> int:

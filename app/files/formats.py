@@ -126,9 +126,14 @@ class Source(ImageInfo):
     ----------
     time_origin : str
         What ``time_s`` is counted from: ``"trigger"`` or ``"stream start"``.
+    readable_frames : int or None
+        How many of the ``n_frames`` the header promises the file holds, where that
+        is known at open and fewer (a truncated file: the frames past them are
+        reported missing, see :meth:`frames`); None otherwise.
     """
 
     time_origin: str = "stream start"
+    readable_frames: int | None = None
     _frames: object = None
     _close: object = None
     _keyframes: object = None
@@ -138,11 +143,18 @@ class Source(ImageInfo):
         """The file's description alone (no open file behind it)."""
         return ImageInfo(**{f.name: getattr(self, f.name) for f in dataclasses.fields(ImageInfo)})
 
-    def frames(self, indices: range | None = None) -> Iterator[tuple]:
+    def frames(self, indices: range | None = None, errors: str = "raise") -> Iterator[tuple]:
         """Yield ``(index, image, time_s)`` for the frames of ``indices`` (an increasing
         ``range``; default all), decoding only those (video also decodes the frames
-        from the keyframe before each wanted one, without converting them)."""
-        return self._frames(range(self.n_frames) if indices is None else indices)
+        from the keyframe before each wanted one, without converting them).
+
+        Every index of ``indices`` is accounted for: a frame the file's header
+        promises but that cannot be read (the file ends before it, its decoder
+        fails or skips it) raises its :class:`ImageReadError` (``errors="raise"``),
+        or is yielded as ``(index, error, nan)`` (``errors="yield"``; the frames
+        after it follow, each readable one or its own error)."""
+        indices = range(self.n_frames) if indices is None else indices
+        return _accounted(self._frames(indices), indices, self, errors)
 
     def keyframes(self) -> tuple | None:
         """The frames a decoder can start at, increasing (video: its keyframes;
@@ -162,6 +174,71 @@ class Source(ImageInfo):
 
     def __exit__(self, *exc):
         self.close()
+
+
+def _accounted(frames: Iterator[tuple], indices: range, source: Source, errors: str) -> Iterator[tuple]:
+    """The items of a reader's ``frames`` for ``indices``, with each wanted index that
+    it skipped, or did not reach before it ended or failed, as an ImageReadError
+    (raised, or yielded as ``(index, error, nan)``; see :meth:`Source.frames`)."""
+    if errors not in ("raise", "yield"):
+        raise ValueError(f"errors must be 'raise' or 'yield'; got {errors!r}")
+    wanted = iter(indices)
+    pending = next(wanted, None)
+    failure = None  # (index, the decoder's own error): said for the frame it failed at
+    first_missing: list = []
+
+    def missing(i: int):
+        first_missing[:] = first_missing or [i]
+        if failure is not None and i == failure[0]:
+            return failure[1]
+        return FormatError(
+            f"frame {i} of {str(source.path)!r} is missing: the file's header promises "
+            f"{source.n_frames} frames but {_readable_text(source, failure)}; the file is "
+            f"truncated (an interrupted copy or recording): copy it again from its source, "
+            f"or process the frames before it (--frames :{first_missing[0]})")
+
+    try:
+        try:
+            for item in frames:
+                i = item[0]
+                while pending is not None and pending < i:  # skipped by the decoder
+                    yield from _missing_item(missing(pending), pending, errors)
+                    pending = next(wanted, None)
+                if pending is not None and pending == i:
+                    if isinstance(item[1], Exception):
+                        yield from _missing_item(item[1], i, errors)
+                    else:
+                        yield item
+                    pending = next(wanted, None)
+        except FormatError as exc:  # a decoder cannot go on past a frame it fails at
+            failure = (pending, exc)
+        while pending is not None:
+            yield from _missing_item(missing(pending), pending, errors)
+            pending = next(wanted, None)
+    finally:  # leaving early stops the reader (a video's decoding thread) now, not at collection
+        close = getattr(frames, "close", None)
+        if close is not None:
+            close()
+
+
+def _span(first: int, n: int) -> str:
+    """``frame 9 is`` or ``frames 9..14 are``."""
+    return f"frame {first} is" if n - first == 1 else f"frames {first}..{n - 1} are"
+
+
+def _missing_item(error: FormatError, i: int, errors: str):
+    if errors == "raise":
+        error.index_in_source = i  # the frame it is about (the reader had yielded up to before it)
+        raise error
+    yield i, error, math.nan
+
+
+def _readable_text(source: Source, failure) -> str:
+    if source.readable_frames is not None:
+        return f"it holds only the first {source.readable_frames} in full"
+    if failure is not None:
+        return f"decoding failed at frame {failure[0]}"
+    return "decoding ended before this one"
 
 
 def kind_of(path: Path) -> str | None:
@@ -309,6 +386,27 @@ def _index_from_entries(container, stream, n: int):
     return _PacketIndex(tuple(stamps), tuple(keys), True)
 
 
+def _frames_of_duration(container, stream, fps: float, counted: int) -> int:
+    """The frame count a stream's duration promises (duration x rate) where its
+    header stores no count (MKV, some MP4), or ``counted`` where that promise is
+    within the duration's own resolution (one time-base tick of frames, and half a
+    frame of rounding) of the frames counted, or unknown."""
+    if not fps > 0:
+        return counted
+    tick_s = float(stream.time_base) if stream.time_base else 1e-3
+    if stream.duration:
+        duration_s = float(stream.duration * stream.time_base)
+    elif container.duration:
+        duration_s = container.duration / 1e6  # AV_TIME_BASE: microseconds
+        tick_s = max(tick_s, 1e-6)
+    else:
+        return counted
+    expected = duration_s * fps
+    if counted + 0.5 + fps * tick_s >= expected:
+        return counted
+    return int(round(expected))
+
+
 def _open_video(path: Path) -> Source:
     try:
         import av
@@ -336,6 +434,7 @@ def _open_video(path: Path) -> Source:
     rate = stream.average_rate or stream.guessed_rate
     fps = float(rate) if rate else math.nan
     n = int(stream.frames or 0)
+    readable = None
     if n <= 0:  # MKV and some MP4 do not store a frame count: count the packets
         counted = _video_index(container, stream, path, None, False)
         if counted is not None:
@@ -344,8 +443,16 @@ def _open_video(path: Path) -> Source:
             container.seek(0)
             n = sum(1 for packet in container.demux(stream) if packet.size)
         container.seek(0)
+        promised = _frames_of_duration(container, stream, fps, n)
+        if promised > n:  # the container's duration promises more: the file is cut short
+            n, readable = promised, n
     lossless = codec in LOSSLESS_CODECS
     notes = []
+    if readable is not None:
+        notes.append(
+            f"{path.name} is truncated: its container says {n / fps:.6g} s at {fps:g} frames/s "
+            f"({n} frames) but holds {readable}; {_span(readable, n)} reported "
+            f"UNREADABLE: copy the file again from its source")
     if not lossless:
         notes.append(
             f"{path.name} is compressed with the lossy codec {codec!r}: block artefacts and "
@@ -507,6 +614,7 @@ def _open_video(path: Path) -> Source:
 
     return Source(path, "video", n, (rows, cols), dtype, bits, frame_rate_hz=fps,
                   time_origin="stream start", codec=codec, lossless=lossless, notes=tuple(notes),
+                  readable_frames=readable,
                   _frames=lambda indices: _prefetch(frames(indices), stoppers),
                   _close=close, _keyframes=lambda: getattr(packet_index(), "keyframes", None))
 
@@ -695,6 +803,11 @@ def _open_cine(path: Path) -> Source:
         ) from exc
     colour = int(cine.cfa) != 0
     n = len(cine)
+    try:
+        whole = _cine_whole_frames(path, cine, n)
+    except Exception:
+        cine.close()
+        raise
     rows = int(cine.bitmapinfo_dict["bi_height"])
     cols = int(cine.bitmapinfo_dict["bi_width"])
     stored = int(cine.bitmapinfo_dict.get("bi_bit_count", 16))
@@ -712,6 +825,9 @@ def _open_cine(path: Path) -> Source:
                 f"disturbs the pattern's carriers; record with a monochrome Phantom, or export "
                 f"grey frames (TIFF) from PCC")
         for i in indices:
+            if i >= whole:
+                yield i, _cine_missing(path, i, n, whole), math.nan
+                continue
             image = np.asarray(cine._get_frame(i))
             time_s = float(times_s[i]) if times_s is not None else (
                 (first_no + i) / fps if fps > 0 else math.nan)
@@ -720,10 +836,51 @@ def _open_cine(path: Path) -> Source:
     dtype = np.dtype(np.uint8 if stored == 8 else np.uint16)
     notes = [f"{path.name} is a colour (CFA) recording; tirdeflect reads monochrome CINE"] if colour else []
     notes += [rate_note] if rate_note else []
+    if whole < n:
+        notes.append(f"{path.name} is truncated: its header promises {n} frames but the file holds "
+                     f"{whole} in full; {_span(whole, n)} reported UNREADABLE: copy it "
+                     f"again from the camera or PCC")
     codec = f"CINE {stored} bit" + (f", colour CFA {int(cine.cfa)}" if colour else "")
     return Source(path, "cine", n, (rows, cols), dtype, min(bits, 16), frame_rate_hz=fps,
                   trigger_index=trigger, time_origin="trigger", codec=codec,
-                  lossless=True, notes=tuple(notes), _frames=frames, _close=cine.close)
+                  lossless=True, notes=tuple(notes), _frames=frames, _close=cine.close,
+                  readable_frames=whole if whole < n else None)
+
+
+def _cine_whole_frames(path: Path, cine, n: int) -> int:
+    """How many of the ``n`` frames the CINE header promises lie whole in the file:
+    the frames before the first whose image (its offset from the image offset table,
+    then its annotation block, whose first word is the block's size and last word the
+    image's size in bytes) ends past the end of the file."""
+    size = path.stat().st_size
+    locations = np.asarray(getattr(cine, "image_locations", ()), dtype=np.int64)[:n]
+    if len(locations) < n:  # the image offset table itself is cut off: no frame is known
+        return 0
+    raw = np.memmap(path, dtype=np.uint8, mode="r")
+    try:
+        def words(at: np.ndarray) -> np.ndarray:  # little-endian uint32 at byte offsets ``at``
+            b = raw[at[:, None] + np.arange(4)].astype(np.int64)
+            return b[:, 0] | (b[:, 1] << 8) | (b[:, 2] << 16) | (b[:, 3] << 24)
+
+        ends = np.full(n, np.iinfo(np.int64).max, dtype=np.int64)
+        fits = (locations >= 0) & (locations + 8 <= size)
+        annotation = np.zeros(n, dtype=np.int64)
+        annotation[fits] = words(locations[fits])
+        fits &= (annotation >= 8) & (locations + annotation <= size)
+        image_bytes = np.zeros(n, dtype=np.int64)
+        image_bytes[fits] = words(locations[fits] + annotation[fits] - 4)
+        ends[fits] = locations[fits] + annotation[fits] + image_bytes[fits]
+    finally:
+        del raw
+    short = np.flatnonzero(ends > size)
+    return int(short[0]) if len(short) else n
+
+
+def _cine_missing(path: Path, i: int, n: int, whole: int) -> FormatError:
+    return FormatError(
+        f"frame {i} of {str(path)!r} is missing: the file is truncated (its header promises {n} "
+        f"frames, it holds {whole} in full; an interrupted copy?): copy it again from the camera "
+        f"or PCC, or process the frames before it with --frames :{whole}")
 
 
 def _cine_times_s(cine, n: int) -> np.ndarray | None:

@@ -65,6 +65,7 @@ __all__ = [
     "raise_eoa",
     "fit_to_eoa",
     "repair_eof",
+    "global_heap_damage",
 ]
 
 log = logging.getLogger("tirdeflect.h5safe")
@@ -349,6 +350,46 @@ def set_stored_eoa(path, eoa: int) -> bool:
         return True
     except OSError:
         return False
+
+
+def global_heap_damage(path, address: int) -> str:
+    """Why the HDF5 global heap collection at byte ``address`` of ``path`` cannot be
+    read safely ("" when its layout is sound), read with plain file I/O.
+
+    A collection holds variable-length data (strings such as ``/geometry_toml``):
+    ``GCOL``, version 1, 3 reserved bytes, its size (8 bytes), then objects (index
+    2, reference count 2, reserved 4, size 8 bytes, data padded to 8). HDF5 walks
+    them when it loads the collection; an object of index 0 and size 0 (e.g. bytes
+    zeroed on disk) does not advance that walk, and HDF5 1.14 loops there for ever
+    (it cannot be interrupted), so such damage must be found before h5py reads it.
+    Only 8-byte lengths (h5py's default) are handled; other layouts return "".
+    """
+    try:
+        with open(path, "rb") as fh:
+            fh.seek(int(address))
+            head = fh.read(16)
+            if len(head) < 16 or head[:4] != b"GCOL" or head[4] != 1:
+                return f"the global heap at byte {address} has no valid 'GCOL' header"
+            size = int.from_bytes(head[8:16], "little")
+            if size < 16 or size > (1 << 40):
+                return f"the global heap at byte {address} states an impossible size ({size} bytes)"
+            body = fh.read(size - 16)
+    except OSError as exc:
+        return f"the global heap at byte {address} cannot be read ({exc})"
+    if len(body) < size - 16:
+        return f"the global heap at byte {address} runs past the end of the file"
+    at = 0
+    while at < len(body):
+        if at + 16 > len(body):  # too small for an object header: free space, as HDF5 reads it
+            break
+        index = int.from_bytes(body[at:at + 2], "little")
+        length = int.from_bytes(body[at + 8:at + 16], "little")
+        need = 16 + ((length + 7) // 8) * 8 if index > 0 else length
+        if need <= 0:
+            return (f"the global heap at byte {address} holds an empty free-space entry at byte "
+                    f"{address + 16 + at} (zeroed bytes?)")
+        at += need
+    return ""
 
 
 def raise_eoa(path, end: int) -> bool:

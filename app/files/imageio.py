@@ -45,6 +45,7 @@ import numpy as np
 
 from app.files import formats
 from app.files.formats import ImageInfo, ImageReadError
+from processing.errors import TirdeflectError
 
 __all__ = [
     "ImageReadError",
@@ -364,28 +365,63 @@ def _tiff_layout(tif, p: Path):
 # --------------------------------------------------------------------------- HDF5
 
 
+def h5_open_error(p: Path, exc: OSError, *, what: str = "recording") -> ImageReadError:
+    """The one-line error for an HDF5 file ``p`` that h5py cannot open (``exc``): cut
+    short, held by the process writing it (HDF5's file lock), or damaged; ``what``
+    names it in the message (a recording, or an output of ``tirdeflect process``)."""
+    text = str(exc)
+    m = re.search(r"truncated file: eof = (\d+).*stored_eof = (\d+)", text)
+    if m:
+        return ImageReadError(
+            f"{str(p)!r} is truncated: it is {m.group(1)} bytes long but its header says "
+            f"{m.group(2)} (an interrupted copy?); copy the file again from its source")
+    if "lock" in text.lower() or "errno = 11" in text or "Errno 11" in text:
+        return ImageReadError(
+            f"{str(p)!r} is being written by another process (HDF5's file lock: a `tirdeflect "
+            f"process` or `record` run, or the GUI, still has it open); wait until that run has "
+            f"finished, or read a copy of the file")
+    return ImageReadError(
+        f"{str(p)!r} is not a readable HDF5 {what} ({exc}); its first block (the HDF5 "
+        f"superblock) is damaged or it is no HDF5 file: copy it again from its source, or "
+        f"check it with `h5dump -H`")
+
+
+def h5_damaged(p: Path, what: str, exc: BaseException) -> ImageReadError:
+    """The one-line error for a part ``what`` (e.g. ``"/reference"``) of the HDF5 file
+    ``p`` that opens but cannot be read (``exc``: HDF5 finds damaged structures)."""
+    detail = " ".join(str(exc).split()) or type(exc).__name__
+    return ImageReadError(
+        f"{str(p)!r} is damaged: {what} cannot be read (HDF5: {detail}); the file changed after "
+        f"it was written (a failing disk or an interrupted copy): copy it again from its source "
+        f"(`h5dump -H` shows which parts still read)")
+
+
 def _h5_open(p: Path):
     import h5py
 
     try:
         return h5py.File(p, "r")
     except OSError as exc:
-        text = str(exc)
-        m = re.search(r"truncated file: eof = (\d+).*stored_eof = (\d+)", text)
-        if m:
-            raise ImageReadError(
-                f"{str(p)!r} is truncated: it is {m.group(1)} bytes long but its header says "
-                f"{m.group(2)} (an interrupted copy?); copy the file again from its source"
-            ) from exc
-        if "unable to lock file" in text.lower():
-            raise ImageReadError(
-                f"{str(p)!r} is locked by another program (is it still being recorded?); "
-                f"stop the recording first, or read a copy of the file"
-            ) from exc
-        raise ImageReadError(
-            f"{str(p)!r} is not a readable HDF5 recording ({exc}); if the recording "
-            f"crashed, check it with h5dump, or record again"
-        ) from exc
+        raise h5_open_error(p, exc) from exc
+
+
+class _h5_file:
+    """``with _h5_file(p) as f``: the recording ``p`` open for reading; an HDF5 read error
+    inside the block that nothing more precise caught becomes :func:`h5_damaged`."""
+
+    def __init__(self, p: Path):
+        self.p = p
+
+    def __enter__(self):
+        self.f = _h5_open(self.p)
+        return self.f
+
+    def __exit__(self, kind, exc, tb):
+        self.f.close()
+        if exc is not None and isinstance(exc, (OSError, RuntimeError, KeyError, ValueError)) \
+                and not isinstance(exc, TirdeflectError):
+            raise h5_damaged(self.p, "its HDF5 structure", exc) from exc
+        return False
 
 
 def _h5_frames(f, p: Path):
@@ -427,19 +463,56 @@ def _h5_bits(f, ds) -> int:
     return _bits_of(ds.dtype)
 
 
-def _h5_frame_table(f, n: int):
-    """The recording's ``/frame_table`` rows 0..n-1 as a structured array, or None."""
+def _h5_frame_table(f, n: int, p: Path):
+    """The recording's ``/frame_table`` rows 0..n-1 as a structured array and the mask of
+    its damaged rows (:func:`frame_table_damage`); (None, None) when it has none, or
+    when it cannot be read at all (:func:`input_notes` says so)."""
     import h5py
 
-    table = f.get("frame_table")
-    if not isinstance(table, h5py.Dataset) or table.dtype.names is None:
-        return None
-    return table[: min(n, table.shape[0])]
+    try:
+        table = f.get("frame_table")
+        if not isinstance(table, h5py.Dataset) or table.dtype.names is None:
+            return None, None
+        rows = table[: min(n, table.shape[0])]
+    except (OSError, RuntimeError, KeyError) as exc:
+        log.debug("%s: /frame_table cannot be read (%s)", p, exc)
+        return None, None
+    return rows, frame_table_damage(rows)
 
 
-def _table_fields(table, i: int) -> dict:
-    if table is None or i >= len(table):
-        return {}
+def frame_table_damage(table) -> np.ndarray:
+    """Rows of a recording's frame table that cannot be what the recorder wrote, as a
+    boolean mask (e.g. a chunk of the file overwritten with zeros).
+
+    The recorder writes rows in the order the camera thread received the frames:
+    ``sequence`` strictly increasing and ``host_timestamp_ns`` (the host's monotonic
+    clock) never decreasing. A row that breaks this against the row before it is
+    damaged; so is row 0 when it is all zeros and row 1 is damaged too (a zeroed
+    stretch that starts at the first row).
+    """
+    names = table.dtype.names or ()
+    n = len(table)
+    bad = np.zeros(n, dtype=bool)
+    if n < 2 or "sequence" not in names:
+        return bad
+    seq = table["sequence"].astype(np.int64)
+    bad[1:] = seq[1:] <= seq[:-1]
+    if "host_timestamp_ns" in names:
+        host = table["host_timestamp_ns"].astype(np.int64)
+        bad[1:] |= host[1:] < host[:-1]
+    zero_row = np.ones(n, dtype=bool)
+    for name in ("sequence", "frame_id", "device_timestamp_ns", "host_timestamp_ns"):
+        if name in names:
+            zero_row &= table[name] == 0
+    bad[0] = bool(zero_row[0] and bad[1])
+    # a zeroed stretch: its first row already breaks the order; the rows after it that
+    # are zeros too are part of it (0 <= 0), and the first intact row after it ends it
+    return bad
+
+
+def _table_fields(table, i: int, bad=None) -> dict:
+    if table is None or i >= len(table) or (bad is not None and bad[i]):
+        return {}  # no row, or a damaged one: the frame's times, ids and flags are unknown
     row = table[i]
     names = table.dtype.names
     out = {}
@@ -448,13 +521,38 @@ def _table_fields(table, i: int) -> dict:
                       ("trigger_index", "trigger_index")):
         if name in names:
             out[key] = int(row[name])
-    # time since the recording's first frame: camera clock, else host clock
-    first = table[0]
+    # time since the recording's first frame (its first intact row): camera clock, else host clock
+    first = table[int(np.argmin(bad))] if bad is not None and not bad.all() else table[0]
     for name in ("device_timestamp_ns", "host_timestamp_ns"):
         if name in names and int(row[name]) >= 0 and int(first[name]) >= 0:
             out["time_s"] = (int(row[name]) - int(first[name])) * 1e-9
             break
     return out
+
+
+def _row_checksum(table, i: int, bad=None):
+    """The CRC32 the recorder stored for frame ``i`` (format 1.2), or None: no checksum
+    in this file (older recordings), no row, or a damaged row."""
+    if table is None or "crc32" not in (table.dtype.names or ()) or i >= len(table):
+        return None
+    if bad is not None and bad[i]:
+        return None
+    return int(table[i]["crc32"])
+
+
+def _verify_checksum(image: np.ndarray, stored, p: Path, what: str) -> None:
+    """Raise ImageReadError when ``image``'s bytes (as stored) do not give the CRC32
+    ``stored`` (None: nothing to check)."""
+    if stored is None:
+        return
+    import zlib
+
+    actual = zlib.crc32(np.ascontiguousarray(image)) & 0xFFFFFFFF
+    if actual != int(stored):
+        raise ImageReadError(
+            f"{what} of {str(p)!r} is corrupt: its pixels do not match the checksum the recorder "
+            f"stored (CRC32 {int(stored):08x}, read {actual:08x}); the file changed after it was "
+            f"recorded (a failing disk or an interrupted copy): copy it again from its source")
 
 
 def _open_source(p: Path):
@@ -491,7 +589,7 @@ def image_info(path) -> ImageInfo:
             n, shape, dtype, bits, _ = _tiff_layout(tif, p)
         return ImageInfo(p, kind, n, shape, dtype, bits)
     if kind == "recording":
-        with _h5_open(p) as f:
+        with _h5_file(p) as f:
             ds, n = _h5_frames(f, p)
             bits = _h5_bits(f, ds)
             dtype = np.dtype(np.float32) if ds.dtype.kind == "f" else np.dtype(ds.dtype)
@@ -559,10 +657,11 @@ def read_image(path, *, index: int | None = None) -> np.ndarray:
             n, _, _, _, reader = _tiff_layout(tif, p)
             i = _resolve_index(index, n, p, what="pages")
             return reader(i)
-    with _h5_open(p) as f:
+    with _h5_file(p) as f:
         ds, n = _h5_frames(f, p)
         i = _resolve_index(index, n, p, what="frames")
-        return _check_dtype(_to_gray(np.asarray(ds[i]), p), p)
+        table, bad = _h5_frame_table(f, n, p)
+        return _h5_read(ds, i, p, _row_checksum(table, i, bad))
 
 
 def _resolve_index(index, n: int, p: Path, *, what: str) -> int:
@@ -610,10 +709,14 @@ def read_reference(path, *, index: int | None = None, frames: slice | None = Non
     if _kind(p) == "recording":
         import h5py
 
-        with _h5_open(p) as f:
+        with _h5_file(p) as f:
             ref = f.get("reference")
             if isinstance(ref, h5py.Dataset):
-                arr = np.asarray(ref[()])
+                try:
+                    arr = np.asarray(ref[()])
+                except (OSError, RuntimeError) as exc:
+                    raise h5_damaged(p, "the reference image (/reference)", exc) from exc
+                _verify_checksum(arr, ref.attrs.get("crc32"), p, "the reference image (/reference)")
                 if arr.ndim == 3 and arr.shape[0] == 1:
                     arr = arr[0]
                 return _check_dtype(_to_gray(arr, p), p)
@@ -644,7 +747,7 @@ def frame_count(path) -> int:
     if kind == "tiff":
         with _tiff_open(p) as tif:
             return _tiff_layout(tif, p)[0]
-    with _h5_open(p) as f:
+    with _h5_file(p) as f:
         return _h5_frames(f, p)[1]
 
 
@@ -669,17 +772,57 @@ def recording_geometry_toml(path) -> str | None:
         return None
     import h5py
 
-    with _h5_open(p) as f:
-        node = f.get("geometry_toml")
-        if isinstance(node, h5py.Dataset):
-            value = node[()]
-        elif "geometry_toml" in f.attrs:
-            value = f.attrs["geometry_toml"]
-        else:
-            return None
-    if isinstance(value, bytes):
-        value = value.decode("utf-8")
-    return str(value) if value else None
+    with _h5_file(p) as f:
+        try:
+            node = f.get("geometry_toml")
+            if isinstance(node, h5py.Dataset):
+                damage = _vlen_heap_damage(p, node)
+                if damage:  # HDF5 would loop for ever on it: never hand it to h5py
+                    raise _geometry_damaged(p, ValueError(damage))
+                value = node[()]
+            elif "geometry_toml" in f.attrs:
+                value = f.attrs["geometry_toml"]
+            else:
+                return None
+            if isinstance(value, bytes):
+                value = value.decode("utf-8")
+        except (OSError, RuntimeError, KeyError, UnicodeDecodeError) as exc:
+            raise _geometry_damaged(p, exc) from exc
+    value = str(value)
+    if not value.strip("\x00 \t\r\n") or "\x00" in value:  # the recorder never stores an empty one
+        raise _geometry_damaged(p, ValueError(f"its text is {len(value)} characters of which "
+                                              f"{value.count(chr(0))} are zero bytes"))
+    return value
+
+
+def _vlen_heap_damage(p: Path, ds) -> str:
+    """Why the global heap behind the scalar variable-length string dataset ``ds`` of
+    the file ``p`` must not be read (:func:`app.files.h5safe.global_heap_damage`), or
+    "" (sound, or not a layout this checks)."""
+    from app.files import h5safe
+
+    try:
+        if ds.shape != () or not ds.dtype.kind == "O":
+            return ""
+        offset = ds.id.get_offset()
+        if offset is None:
+            return ""
+        with open(p, "rb") as fh:
+            fh.seek(offset)
+            descriptor = fh.read(16)  # length (4), collection address (8), object index (4)
+    except (OSError, RuntimeError, ValueError):
+        return ""
+    if len(descriptor) < 16:
+        return "its data lies past the end of the file"
+    return h5safe.global_heap_damage(p, int.from_bytes(descriptor[4:12], "little"))
+
+
+def _geometry_damaged(p: Path, exc: BaseException) -> ImageReadError:
+    detail = " ".join(str(exc).split()) or type(exc).__name__
+    return ImageReadError(
+        f"the geometry stored in {str(p)!r} (/geometry_toml) is damaged ({detail}): give the "
+        f"geometry with --geometry G.toml (the one the recording was made with), and copy the "
+        f"recording again from its source")
 
 
 def count_frames(paths: Sequence) -> int:
@@ -768,18 +911,16 @@ def iter_frames(
             elif kind in _SOURCE_KINDS:
                 with _open_source(p) as src:
                     picked = _local_range(seq, src.n_frames, first, last, step)
+                    # every frame the header promises comes: read, or as its error (the file
+                    # ends before it, its decoder failed): formats.Source.frames
                     i = picked.start
                     try:
-                        for i, image, time_s in src.frames(picked):
-                            yield frame(lambda: _check_dtype(_to_gray(image, p), p), path, i, seq + i,
+                        for i, image, time_s in src.frames(picked, errors=errors):
+                            yield frame(lambda: _source_image(image, p), path, i, seq + i,
                                         frames_in_source=src.n_frames, time_s=time_s)
-                    except ImageReadError as exc:  # a frame the decoder cannot read
-                        exc.sequence_index = seq + i
-                        if errors == "raise":
-                            raise
-                        # a decoder cannot go on past it: the rest of this file is not read
-                        yield FrameItem(None, str(path), i, seq + i, frames_in_source=src.n_frames,
-                                        error=exc)
+                    except ImageReadError as exc:
+                        exc.sequence_index = seq + getattr(exc, "index_in_source", i)
+                        raise
                     seq += src.n_frames
             elif kind == "tiff":
                 with _tiff_open(p) as tif:
@@ -791,15 +932,16 @@ def iter_frames(
                             yield frame(lambda: reader(i), path, i, seq, frames_in_source=n)
                         seq += 1
             else:
-                with _h5_open(p) as f:
+                with _h5_file(p) as f:
                     ds, n = _h5_frames(f, p)
-                    table = _h5_frame_table(f, n)
+                    table, bad = _h5_frame_table(f, n, p)
                     for i in range(n):
                         if last is not None and seq > last:
                             return
                         if wanted(seq):
-                            yield frame(lambda: _h5_read(ds, i, p), path, i, seq, frames_in_source=n,
-                                        **_table_fields(table, i))
+                            crc = _row_checksum(table, i, bad)
+                            yield frame(lambda: _h5_read(ds, i, p, crc), path, i, seq, frames_in_source=n,
+                                        **_table_fields(table, i, bad))
                         seq += 1
     except ImageReadError as exc:
         # say which frame of the sequence could not be read (the file is in the message)
@@ -808,13 +950,22 @@ def iter_frames(
         raise
 
 
-def _h5_read(ds, i: int, p: Path) -> np.ndarray:
-    """Frame ``i`` of a recording's ``/frames``; an HDF5 read error is an ImageReadError."""
+def _source_image(image, p: Path) -> np.ndarray:
+    """A frame from :meth:`formats.Source.frames`, or its read error raised."""
+    if isinstance(image, Exception):
+        raise image
+    return _check_dtype(_to_gray(image, p), p)
+
+
+def _h5_read(ds, i: int, p: Path, crc=None) -> np.ndarray:
+    """Frame ``i`` of a recording's ``/frames``, checked against its CRC32 ``crc`` from
+    the frame table (None: none stored); an HDF5 read error or a mismatch is an
+    ImageReadError."""
     try:
         arr = np.asarray(ds[i])
     except (OSError, RuntimeError) as exc:
-        raise ImageReadError(f"frame {i} of {str(p)!r} cannot be read ({exc}); the recording "
-                             f"may be damaged there") from exc
+        raise h5_damaged(p, f"frame {i} (/frames)", exc) from exc
+    _verify_checksum(arr, crc, p, f"frame {i}")
     return _check_dtype(_to_gray(arr, p), p)
 # --------------------------------------------------------------------------- sequences
 
@@ -885,9 +1036,12 @@ def expand_inputs(paths: Sequence) -> list:
 
 
 def input_notes(paths: Sequence) -> list:
-    """Warnings about the inputs that the user must see (lossy video, colour to grey).
+    """Warnings about the inputs that the user must see (lossy video, colour to grey, a
+    truncated file; a recording that did not end normally, or whose frame table is
+    damaged: :func:`recording_notes`).
 
-    Reads headers only (video, MRAW, CINE); plain images and recordings add nothing.
+    Reads headers only (video, MRAW, CINE) and a recording's attributes and frame
+    table; plain images add nothing.
     """
     notes = []
     for path in expand_inputs(paths):
@@ -895,6 +1049,50 @@ def input_notes(paths: Sequence) -> list:
         if p.is_file() and formats.kind_of(p) is not None:
             with _open_source(_check_path(p)) as src:
                 notes.extend(src.notes)
+        elif p.is_file() and _kind(_check_path(p)) == "recording":
+            notes.extend(recording_notes(p))
+    return notes
+
+
+def recording_notes(path) -> list:
+    """What the user must know before trusting the frames of the recording ``path``:
+    that it did not end normally (``complete`` = 0: no ``/summary``, e.g. a copy taken
+    while it was recorded, or the recorder was killed; or it stopped on an error), and
+    which rows of its ``/frame_table`` are damaged (:func:`frame_table_damage`)."""
+    p = _check_path(path)
+    notes = []
+    with _h5_file(p) as f:
+        ds, n = _h5_frames(f, p)
+        attrs = f.attrs
+        if "complete" in attrs and int(attrs["complete"]) == 0:
+            planned = int(ds.attrs.get("frames_planned", -1))
+            of = f" of the {planned} planned" if planned > n else ""
+            node = f.get("geometry_toml")
+            heap_damage = _vlen_heap_damage(p, node) if node is not None else ""
+            error = "" if heap_damage else str(attrs.get("error", "") or "")
+            if "summary" not in f:
+                notes.append(
+                    f"{p.name} is a recording that did not end normally (complete = 0, no /summary: "
+                    f"the recorder was stopped hard, or this is a copy taken while it recorded): "
+                    f"it holds {n}{of} frames, and frames the camera sent may be missing; check "
+                    f"the original recording")
+            else:
+                notes.append(f"{p.name} is a recording that ended early ({error or 'complete = 0'}): "
+                             f"it holds {n}{of} frames")
+        table, bad = _h5_frame_table(f, n, p)
+        if n and table is None and "frame_table" in f:
+            notes.append(f"{p.name}: /frame_table cannot be read (the file is damaged there): "
+                         f"the frames' times, camera ids and flags are unknown")
+        elif bad is not None and bad.any():
+            k = np.flatnonzero(bad)
+            notes.append(
+                f"{p.name}: {len(k)} row(s) of /frame_table are damaged (frames {k[0]}..{k[-1]}: "
+                f"sequence numbers or host times not increasing as the recorder writes them, e.g. "
+                f"overwritten with zeros): those frames' times, camera ids and flags are unknown "
+                f"(NaN / -1 in the output)"
+                + (", their pixels unchecked (their checksums are in those rows)"
+                   if "crc32" in (table.dtype.names or ()) else "")
+                + "; copy the recording again")
     return notes
 
 
