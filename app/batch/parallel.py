@@ -718,9 +718,12 @@ class _DeferredInterrupt:
 
 
 class _Chunked:
-    """Chunks in flight on an executor (``submit(fn, *args) -> future``), frames out in order."""
+    """Chunks in flight on an executor (``submit(fn, *args) -> future``), frames out in order.
 
-    def __init__(self, job, spec, chunks, submit, window, shutdown, description, restart=None):
+    ``sources``: the input paths the tasks were given -> the paths as the user
+    named them (Dask workers may see the files under other names)."""
+
+    def __init__(self, job, spec, chunks, submit, window, shutdown, description, restart=None, sources=None):
         self.job = job
         self.spec = spec
         self.submit = submit
@@ -734,7 +737,7 @@ class _Chunked:
         self._pending = collections.deque()
         self._frames = iter(())
         self._prev_end = None
-        self._sources = {}
+        self._sources = dict(sources or {})
         self.redone = []
         self.attrs = {"parallel": description, "chunks": len(chunks), "chunks_redone": 0}
         self._closed = False
@@ -1098,11 +1101,11 @@ def frame_results(job, reconstruct, reference, geometry, selected: int, paths=No
                          shared_memory=local and _results_fit_shm(chunks, n, job, reconstruct),
                          tasks_per_host=per_host)
             runner = _Chunked(job, spec, chunks, _dask_submit(client), n + 1, close,
-                              f"dask {dask_address} ({n} worker threads)")
+                              f"dask {dask_address} ({n} worker threads)",
+                              sources={a: o for a, o in zip(task_paths, inputs)})
         except BaseException:
             close()
             raise
-        runner._sources = {a: o for a, o in zip(task_paths, inputs)}
         return runner
     if workers is None:
         workers = available_cores() if selected >= AUTO_PARALLEL_MIN_FRAMES else 1
