@@ -254,7 +254,7 @@ class Demodulator:
         return DemodulationPlan(window2d=read_only(self._window2d), gather_index=read_only(self._gather_idx),
                                 gather_mirror=read_only(self._gather_mirror),
                                 filters=read_only(self._filter_stack), dc_leak=read_only(self._dc_leak),
-                                local_inverse=read_only(self._local_inv))
+                                local_inverse=read_only(self._local_inv), window_centres=read_only(self._centres))
 
     # ------------------------------------------------------------------ core
     def prepare(self, image, out=None) -> np.ndarray:

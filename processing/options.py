@@ -137,9 +137,6 @@ class ReconstructOptions:
             if not isinstance(value, bool) and value not in (0, 1):
                 raise ValueError(f"{name} must be True or False; got {value!r}")
             object.__setattr__(self, name, bool(value))
-        if self.device == "cuda" and self.pattern == "dots":
-            raise ValueError("device='cuda' reads checkerboards only (Fourier demodulation); "
-                             "use device='cpu' for a dot pattern")
 
     def replace(self, **changes) -> "ReconstructOptions":
         """A copy with ``changes`` (validated again); unknown names raise TypeError naming them."""

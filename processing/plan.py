@@ -46,6 +46,8 @@ class DemodulationPlan:
         image mean: what is subtracted); None without a window.
     local_inverse : ndarray float32 (2, 2, m_rows, m_cols) or None
         ``-K(r)^-1`` per decimated sample (local carriers), None with global ones.
+    window_centres : ndarray int64 (2, 2)
+        ``(row, col)`` bin of each carrier window's centre (the carrier rounded to a bin).
     """
 
     window2d: Optional[np.ndarray]
@@ -54,6 +56,7 @@ class DemodulationPlan:
     filters: np.ndarray
     dc_leak: Optional[np.ndarray]
     local_inverse: Optional[np.ndarray]
+    window_centres: np.ndarray
 
 
 @dataclasses.dataclass(frozen=True)

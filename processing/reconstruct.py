@@ -526,7 +526,7 @@ class Reconstructor:
         # pattern-check tolerance in bins: 2 % of the carrier frequency (a
         # pattern 4 % off moves the centroid about 3 %; the full check decides)
         self._check_tol_bins = np.maximum(0.02 * np.hypot(*(d.freq * np.array(self.shape)).T), 0.75)
-        self._win_centre = (d.freq * np.array(self.shape)) - d._centres
+        self._win_centre = (d.freq * np.array(self.shape)) - d.plan.window_centres
         self._q_r = np.fft.fftfreq(d.window_shape[0], 1.0 / d.window_shape[0])
         self._q_c = np.fft.fftfreq(d.window_shape[1], 1.0 / d.window_shape[1])
         self._check_threshold = 1.0
@@ -654,7 +654,7 @@ class Reconstructor:
 
     def _taper_decimated(self):
         """Border window at the decimated samples (1 without apodization)."""
-        w = self.demod._window2d
+        w = self.demod.plan.window2d
         if w is None:
             return np.ones(self.demod.window_shape, np.float32)
         rows, cols = self.shape
@@ -1361,9 +1361,7 @@ class Reconstructor:
         g = d.decimated_from_windows(wins)
         mean = self._local_mean(spec, frame)
         std = np.sqrt(2.0 * (np.abs(g[0]) ** 2 + np.abs(g[1]) ** 2))
-        if d._window2d is not None:
-            # both g and the local mean carry the border window: divide it out of neither
-            pass
+        # both g and the local mean carry the border window (if any): divided out of neither
         mod = (std / np.maximum(mean, 1e-6 * max(float(np.abs(mean).max()), 1e-30))).astype(np.float32)
         out.update(modulation=mod, modulation_rows_px=self.rows_px, modulation_cols_px=self.cols_px,
                    contrast=float(np.median(mod)),
@@ -1399,7 +1397,7 @@ class Reconstructor:
         f = np.hypot(q_r[:, None] / rows, q_c[None, :] / cols) / d.radius
         lp = np.clip(1.0 - f, 0.0, 1.0) ** 2
         small = np.fft.ifft2(vals * lp).real * (m_r * m_c / (rows * cols))
-        if d._window2d is None:
+        if d.plan.window2d is None:
             # prepare() removed the mean (no border window to leak): add it back
             return small + float(np.mean(frame, dtype=np.float64))
         # the spectrum holds frame x border window; so does the modulation
@@ -1424,10 +1422,11 @@ class Reconstructor:
             return dict(frame_spectrum(frame, size=size, max_freq=max_freq), carriers=[])
         d = self.demod
         spec = d.spectrum(frame)
-        if d._window2d is not None:
+        window2d = d.plan.window2d
+        if window2d is not None:
             # remove the mean x border-window peak at DC, as for the carriers
             if self._window_spectrum is None:
-                self._window_spectrum = np.fft.rfft2(d._window2d).astype(np.complex64)
+                self._window_spectrum = np.fft.rfft2(window2d).astype(np.complex64)
             spec = spec - np.complex64(d.last_mean) * self._window_spectrum
         out = display_spectrum(np.abs(spec), self.shape[1], size=size, max_freq=max_freq)
         carriers = [(float(f[1]), float(f[0])) for f in self.demod.freq]
