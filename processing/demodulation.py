@@ -41,6 +41,7 @@ import numpy as np
 
 from .carriers import Carriers
 from .fft import FFTPlanner
+from .plan import DemodulationPlan, read_only
 
 __all__ = ["Demodulator", "nice_fft_size", "tukey"]
 
@@ -246,6 +247,14 @@ class Demodulator:
         self.g0_abs = np.abs(self.g0)
         self.local_carriers = bool(local_carriers) and subbin
         self._local_inv = self._local_inverse() if self.local_carriers else None
+
+    @property
+    def plan(self) -> DemodulationPlan:
+        """The read-only :class:`DemodulationPlan` of this reference."""
+        return DemodulationPlan(window2d=read_only(self._window2d), gather_index=read_only(self._gather_idx),
+                                gather_mirror=read_only(self._gather_mirror),
+                                filters=read_only(self._filter_stack), dc_leak=read_only(self._dc_leak),
+                                local_inverse=read_only(self._local_inv), window_centres=read_only(self._centres))
 
     # ------------------------------------------------------------------ core
     def prepare(self, image, out=None) -> np.ndarray:

@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import time
 
-import cv2
 import numpy as np
 
 from .unwrap import TWO_PI
@@ -134,45 +133,42 @@ class BatchChain:
         if getattr(recon, "pattern", "checkerboard") != "checkerboard":
             self.reason = "dot patterns go through PIV on the CPU"
             return
-        hs = recon._solver()
-        F = hs._fast
+        plan = recon.plan
+        dp = plan.demodulation
+        hs = recon.height_solver()
+        F = hs.spectral_coefficients
         if F is None or recon.solver not in ("auto", "spectral"):
             self.reason = "the geometry has no spectral height solver (finite camera distance)"
         elif recon.full_method != "interpolate":
             self.reason = "full_method='ifft'"
         elif getattr(recon, "refine_method", "fd") != "fd":
             self.reason = "refine_method='image' (image matching on the CPU)"
-        elif not recon._ref_ok_all:
+        elif not plan.reference_valid_everywhere:
             self.reason = "the reference has blank parts (every frame is masked)"
-        elif recon._up.interpolation != cv2.INTER_LANCZOS4:
+        elif recon.options.full_interpolation != "lanczos":
             self.reason = "full_interpolation other than 'lanczos' (the GPU resizes with Lanczos only)"
         if self.reason is not None:
             return
         to = xp.asarray
         rows, cols = recon.shape
         m_r, m_c = d.window_shape
-        self.window2d = None if d._window2d is None else to(d._window2d.astype(np.float32))
-        self.gather = to(d._gather_idx)
-        self.mirror = None if d._gather_mirror is None else to(d._gather_mirror)
-        self.filters = to(d._filter_stack)
-        self.dc_leak = None if d._dc_leak is None else to(d._dc_leak)
+        self.window2d = None if dp.window2d is None else to(dp.window2d.astype(np.float32))
+        self.gather = to(dp.gather_index)
+        self.mirror = None if dp.gather_mirror is None else to(dp.gather_mirror)
+        self.filters = to(dp.filters)
+        self.dc_leak = None if dp.dc_leak is None else to(dp.dc_leak)
         self.dec_scale = np.float32(m_r * m_c / (rows * cols))  # ifft2 of xp normalises by 1/(m_r m_c)
-        self.conj_g0 = to(recon._conj_g0)
-        self.g0_den = to(recon._g0_den)
-        self.local_inv = None if d._local_inv is None else to(d._local_inv)
+        self.conj_g0 = to(plan.conj_g0)
+        self.g0_den = to(plan.g0_amplitude)
+        self.local_inv = None if dp.local_inverse is None else to(dp.local_inverse)
         self.global_inv = -np.linalg.inv(d.wavevectors).astype(np.float32)
-        self.ref_idx = to(recon._ref_idx)
+        self.ref_idx = to(plan.reference_region_index)
         self.spacing = (np.float32(recon.rows_px[1] - recon.rows_px[0]),
                         np.float32(recon.cols_px[1] - recon.cols_px[0]))
         self.up_r = to(lanczos_matrix(rows, m_r))
         self.up_cT = to(np.ascontiguousarray(lanczos_matrix(cols, m_c).T))
         # spectral height solve as matrix products, whatever the grid size
-        from .height import HeightSolver
-
-        def op(n, spacing):
-            m = np.zeros((n, n), np.float32)
-            HeightSolver._divT_cellavg(np.eye(n, dtype=np.float32), 0, spacing, m)
-            return m
+        from .height import divergence_matrix as op
 
         def dct_matrix(n):
             k = np.arange(n)[:, None]
@@ -187,9 +183,9 @@ class BatchChain:
             np.ascontiguousarray(cc.T))
         self.F = {k: to(F[k]) for k in ("gc", "null", "inv_denom")}
         # the pin of a frame valid everywhere depends on the reference region only
-        samples, self.pin, (w, nn) = hs._pin_choice(
-            np.ones(hs.shape, bool), True, recon._ref_mask, recon.pin_fallback,
-            recon.reference_region_name, recon._region_near)
+        samples, self.pin, (w, nn) = hs.pin_choice(
+            np.ones(hs.shape, bool), True, plan.reference_region, recon.pin_fallback,
+            recon.reference_region_name, plan.region_near)
         self.pin_samples = samples
         self.F["w"] = to(w)
         self.nn = float(nn)
@@ -238,7 +234,7 @@ class BatchChain:
         from its grid ``factor`` times finer than the pixels, as the CPU chain warps it."""
         xp = self.xp
         if self.smooth is None:
-            fine, self.smooth_factor = self.r._smooth_reference()
+            fine, self.smooth_factor = self.r.warp_reference()
             self.smooth = xp.asarray(fine)
         f = np.float32(self.smooth_factor)
         rows, cols = self.smooth.shape
@@ -283,10 +279,10 @@ class BatchChain:
         if not len(frames):
             return []
         if self.reason is not None:
-            return [r._call_cpu(f, grid=grid) for f in frames]
+            return [r.call_cpu(f, grid=grid) for f in frames]
         xp = self.xp
         t0 = time.perf_counter()
-        images = xp.asarray(np.stack([r._validate_frame(f) for f in frames])).astype(xp.float32)
+        images = xp.asarray(np.stack([r.validate_frame(f) for f in frames])).astype(xp.float32)
         B = images.shape[0]
         g = self._decimated(images)
         wrapped = xp.angle(g * self.conj_g0).astype(xp.float32)
@@ -296,21 +292,22 @@ class BatchChain:
         # previous unwrapped phase: the series state, or frame 0 unwrapped in space on the CPU
         first = 0
         prev = None
-        if r.unwrap and r._prev_phase is not None and not r._prev_all_valid:
+        state = r.series_state()  # a copy of the decimated grid's memory (small)
+        if r.unwrap and state is not None and not state.all_valid:
             # the previous frame was masked: this one follows it on the CPU, then the rest here
-            return [r._call_cpu(frames[0], grid=grid)] + (self(frames[1:], grid, essentials) if B > 1 else [])
+            return [r.call_cpu(frames[0], grid=grid)] + (self(frames[1:], grid, essentials) if B > 1 else [])
         if not r.unwrap:
             pass
-        elif r.temporal and r._prev_phase is not None:
-            prev = xp.asarray(r._prev_phase.astype(np.float32))
+        elif r.temporal and state is not None:
+            prev = xp.asarray(state.phase.astype(np.float32))
         elif bool(all_valid[0]):
             w0 = _host(xp, wrapped[0])
             prev = None
-            start = r._unwrap(w0, np.ones(w0.shape[1:], bool), True) if r.unwrap else w0
+            start = r.unwrap_phase(w0, np.ones(w0.shape[1:], bool), True) if r.unwrap else w0
             start = xp.asarray(np.asarray(start, np.float32))
             first = 1
         else:
-            return [r._call_cpu(f, grid=grid) for f in frames]
+            return [r.call_cpu(f, grid=grid) for f in frames]
         if not r.unwrap:
             phase = wrapped
             ok = np.array(all_valid, bool)  # a masked frame goes to the CPU, as with unwrapping
@@ -333,7 +330,7 @@ class BatchChain:
                 jumps = np.zeros(0, bool)
                 phase = start[None]
             # reference region nearest 0, sequentially as each frame follows the shifted one
-            if r._ref_idx.size:
+            if self.ref_idx.size:
                 vals = phase.reshape(B, 2, -1)[:, :, self.ref_idx]
                 lo, hi = _host(xp, vals.min(axis=2)), _host(xp, vals.max(axis=2))
                 med = _host(xp, xp.median(vals, axis=2))
@@ -364,7 +361,7 @@ class BatchChain:
             if bad.size:
                 ok_upto = min(ok_upto, int(bad[0]))
         if ok_upto == 0:
-            return [r._call_cpu(f, grid=grid) for f in frames]
+            return [r.call_cpu(f, grid=grid) for f in frames]
         n = ok_upto
         phase, u, g, amplitude = phase[:n], u[:n], g[:n], amplitude[:n]
         iterations = r.refine_iterations
@@ -372,7 +369,7 @@ class BatchChain:
             iterations = {"decimated": 0, "full": 1}[grid]
         if iterations > 0 and self.static is None:
             d = r.demod
-            fine, factor = r._smooth_reference()
+            fine, factor = r.warp_reference()
             coarse = np.ascontiguousarray(fine[::factor, ::factor])
             self.static = xp.asarray(np.angle(d.g0 * np.conj(d.decimated(coarse))).astype(np.float32))
         for _ in range(iterations):
@@ -387,22 +384,19 @@ class BatchChain:
         series = []
         for k in range(n):
             surf = _Surface(h_host[k], self.pin_samples)
-            series.append(r._check_series(ph_host[k], valid_dec, surf))
+            series.append(r.check_series(ph_host[k], valid_dec, surf))
         # the series goes on from the last frame done here
-        if r.temporal:
-            r._prev_phase = _host(xp, phase[n - 1]).astype(np.float32)
-            r._prev_valid = np.ones(phase.shape[2:], bool)
-            r._prev_all_valid = True
+        r.remember_phase(_host(xp, phase[n - 1]), np.ones(phase.shape[2:], bool), True)
         results = self._results(grid, u, h, sx, sy, amplitude, ph_host, n, 1e3 * (time.perf_counter() - t0),
                                 essentials, series)
-        return results + [r._call_cpu(f, grid=grid) for f in frames[n:]]
+        return results + [r.call_cpu(f, grid=grid) for f in frames[n:]]
 
     def _results(self, grid, u, h, sx, sy, amplitude, ph, n, ms, essentials, series):
         from .result import Result
 
         xp = self.xp
         r = self.r
-        hs = r._solver()
+        hs = r.height_solver()
         timings = {"total": ms / max(n, 1), "batch": ms}
         valid_dec = np.ones(ph.shape[2:], bool)
         if grid == "full":
@@ -419,7 +413,7 @@ class BatchChain:
                     if k != 0.0:
                         acc = acc + np.float32(k) * src
                 slopes.append(acc)
-            x_mm, y_mm = r._coords_full(None)
+            x_mm, y_mm = r.grid_coordinates("full")
             fields = dict(height=height, slope_x=slopes[0], slope_y=slopes[1], displacement=disp,
                           amplitude=amp)
             extra = dict(x_mm=x_mm, y_mm=y_mm, grid="full", rows_px=np.arange(rows, dtype=float),

@@ -62,6 +62,7 @@ import math
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass
+from types import MappingProxyType
 from typing import NamedTuple
 
 import numpy as np
@@ -82,6 +83,8 @@ __all__ = [
     "HeightSolver",
     "surface_from_displacement",
     "poisson_neumann",
+    "divergence_matrix",
+    "solver_for",
 ]
 
 _WORKERS = 2  # FFT threads for large grids (the target machine has 2 cores)
@@ -377,6 +380,16 @@ def _variable_optics(g: Geometry, grid: _Grid):
     return tuple(out)
 
 
+def divergence_matrix(n: int, spacing: float) -> np.ndarray:
+    """(n, n) float32 matrix of the operator ``D^T cellavg / spacing`` along one
+    axis (fourth order inside, :class:`HeightSolver`'s discretisation): applied
+    to a grid's rows (``M @ G``) it gives what the solver's right-hand side
+    adds along that axis."""
+    m = np.zeros((n, n), np.float32)
+    HeightSolver._divT_cellavg(np.eye(n, dtype=np.float32), 0, spacing, m)
+    return m
+
+
 class HeightSolver:
     """Displacement -> heights for one geometry and one sample grid.
 
@@ -488,13 +501,9 @@ class HeightSolver:
             # small: above ~100^2 OpenBLAS goes multithreaded and its spinning
             # threads then slow the FFTW and OpenCV calls that follow (measured
             # 3.3 -> 10 ms per decimated 1024^2 frame)
-            def op(n, spacing):
-                m = np.zeros((n, n), np.float32)
-                self._divT_cellavg(np.eye(n, dtype=np.float32), 0, spacing, m)
-                return m
             gr = (Bi[0, 0] / null_r).astype(np.float32)
-            out["Mr"] = np.ascontiguousarray(op(self.shape[0], self.grid.dr) * gr.T)
-            out["McT"] = np.ascontiguousarray(op(self.shape[1], self.grid.dc).T)
+            out["Mr"] = np.ascontiguousarray(divergence_matrix(self.shape[0], self.grid.dr) * gr.T)
+            out["McT"] = np.ascontiguousarray(divergence_matrix(self.shape[1], self.grid.dc).T)
 
             def dct_matrix(n):  # orthonormal DCT-II: X = C x
                 k = np.arange(n)[:, None]
@@ -545,9 +554,22 @@ class HeightSolver:
         r = self.geometry.reference_region
         return "default border band of the frame" if r is None else f"reference_region {list(r)}"
 
-    def _pin_choice(self, v, all_valid, reference_mask, fallback, region_name, near):
+    @property
+    def spectral_coefficients(self):
+        """The float32 spectral path's coefficients (read-only mapping of arrays:
+        ``gr``, ``gc``, ``null``, ``denom``, ``inv_denom``, ``sx``, ``sy_u``,
+        ``sy_h``, and on small grids the matrices ``Mr``, ``McT``, ``Cr``...),
+        or None where the optics are not uniform and diagonal (no spectral path)."""
+        return None if self._fast is None else MappingProxyType(self._fast)
+
+    def pin_choice(self, v, all_valid, reference_mask, fallback, region_name, near):
         """(pin samples, PinStatus, fast-path weights or None) of one frame; cached
-        for frames valid everywhere (the answer depends on the region only)."""
+        for frames valid everywhere (the answer depends on the region only).
+
+        ``v``: valid samples; ``reference_mask``: the region (None: the
+        geometry's); ``fallback``, ``region_name``, ``near``: as
+        :func:`choose_pin_samples`.  Weights: ``(pin samples x null space,
+        their squared norm)`` for frames valid everywhere."""
         region = self.ref if reference_mask is None else np.asarray(reference_mask, bool)
         if region.shape != self.shape:
             raise ShapeMismatchError(f"reference_mask must have shape {self.shape} like the grid, got {region.shape}")
@@ -591,7 +613,7 @@ class HeightSolver:
             c *= F["inv_denom"]  # 0 for the constant mode
             f = sfft.idctn(c, type=2, norm="ortho", workers=w, overwrite_x=True)
         # pin: h = (f - alpha) n with alpha the n^2-weighted mean of f on the pin samples
-        samples, status, (w, nn) = self._pin_choice(v, True, reference_mask, pin_fallback, region_name, near)
+        samples, status, (w, nn) = self.pin_choice(v, True, reference_mask, pin_fallback, region_name, near)
         alpha = float(np.vdot(w, f * F["null"])) / nn if nn > 0 else 0.0
         f -= np.float32(alpha)
         h = f
@@ -730,7 +752,7 @@ class HeightSolver:
         if use_spectral and self._fast is not None:
             return self._solve_fast(u, v, reference_mask, pin_fallback=pin_fallback, region_name=region_name,
                                     near=near)
-        samples, status, _ = self._pin_choice(v, all_valid, reference_mask, pin_fallback, region_name, near)
+        samples, status, _ = self.pin_choice(v, all_valid, reference_mask, pin_fallback, region_name, near)
         uz = np.where(v, u, 0.0) if not all_valid else u
         gr, gc = self.gradients(uz)
         iterations = 0

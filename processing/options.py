@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Optional
 
+from .fft import PLANNER_EFFORTS
 from .height import PIN_FALLBACKS
 
 __all__ = ["ReconstructOptions", "full_grid_refinement", "PATTERNS", "GRIDS", "REFINE_METHODS"]
@@ -29,7 +30,6 @@ _FILTER_SHAPES = ("flattop", "disc")
 _BORDERS = ("apodize", "none")
 _FULL_METHODS = ("interpolate", "ifft")
 _FULL_INTERPOLATIONS = ("lanczos", "cubic", "linear")
-_EFFORTS = ("FFTW_ESTIMATE", "FFTW_MEASURE", "FFTW_PATIENT", "FFTW_EXHAUSTIVE")
 
 
 def _one_of(name, value, allowed):
@@ -116,7 +116,7 @@ class ReconstructOptions:
         _one_of("full_method", self.full_method, _FULL_METHODS)
         _one_of("full_interpolation", self.full_interpolation, _FULL_INTERPOLATIONS)
         _one_of("pin_fallback", self.pin_fallback, PIN_FALLBACKS)
-        _one_of("planner_effort", self.planner_effort, _EFFORTS)
+        _one_of("planner_effort", self.planner_effort, PLANNER_EFFORTS)
         _one_of("solver", self.solver, ("auto", "spectral", "masked"))
         if self.refine_iterations is not None:
             _number("refine_iterations", self.refine_iterations, 0, integer=True)
@@ -137,9 +137,6 @@ class ReconstructOptions:
             if not isinstance(value, bool) and value not in (0, 1):
                 raise ValueError(f"{name} must be True or False; got {value!r}")
             object.__setattr__(self, name, bool(value))
-        if self.device == "cuda" and self.pattern == "dots":
-            raise ValueError("device='cuda' reads checkerboards only (Fourier demodulation); "
-                             "use device='cpu' for a dot pattern")
 
     def replace(self, **changes) -> "ReconstructOptions":
         """A copy with ``changes`` (validated again); unknown names raise TypeError naming them."""

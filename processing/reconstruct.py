@@ -48,6 +48,7 @@ from .geometry import DEFAULT_REFERENCE_BAND, default_reference_region_mask
 from .height import PIN_MIN_PIECE_SAMPLES, PinStatus
 from .fill import nearest_fill_index
 from .options import PATTERNS, ReconstructOptions, full_grid_refinement
+from .plan import ReferencePlan, read_only
 from .result import Result, SeriesCheck
 from .unwrap import TWO_PI, unwrap_spatial, unwrap_temporal, wrap
 
@@ -338,7 +339,7 @@ def warp_fine_factor(freq, shape) -> int:
     (docs/processing.md section 6): on the pixels themselves the error of
     linear interpolation became the refinement's own bias, pure cosines of
     8 px with ring waves of 1.8 px: displacement error 1.15 % without
-    refinement, 2.26 % with it, 1.08 % 2x finer, 0.99 % 3x (an exact
+    refinement, 2.26 % with it, 1.08 % 2x finer, 1.00 % 3x (an exact
     quintic spline on the pixels: 1.00 %); 2 mm board, bump 2 um sigma 4 mm:
     0.26 % without, 0.34 % on the pixels, 0.25 % 2x finer.
     """
@@ -590,7 +591,7 @@ class Reconstructor:
         # pattern-check tolerance in bins: 2 % of the carrier frequency (a
         # pattern 4 % off moves the centroid about 3 %; the full check decides)
         self._check_tol_bins = np.maximum(0.02 * np.hypot(*(d.freq * np.array(self.shape)).T), 0.75)
-        self._win_centre = (d.freq * np.array(self.shape)) - d._centres
+        self._win_centre = (d.freq * np.array(self.shape)) - d.plan.window_centres
         self._q_r = np.fft.fftfreq(d.window_shape[0], 1.0 / d.window_shape[0])
         self._q_c = np.fft.fftfreq(d.window_shape[1], 1.0 / d.window_shape[1])
         self._check_threshold = 1.0
@@ -600,6 +601,7 @@ class Reconstructor:
         self._ref_ok_all = bool(self._ref_ok.all())
         self._ref_idx = np.flatnonzero(self._ref_mask)
         self._height_solver = None
+        self._plan = None
         self.reset_series()
         if device == "cuda":
             from .gpu import BatchChain, cupy_or_reason
@@ -642,7 +644,7 @@ class Reconstructor:
             raise AllInvalidError("no interrogation window of the frame correlates with the reference: check that "
                                   "the dots are in focus and lit, and that the frame shows the reference's pattern")
         valid = self._drop_islands(valid)
-        hs = self._solver()
+        hs = self.height_solver()
         surf = hs._solve(np.where(valid, u, np.nan), valid, self.solver, _CG_TOL, self._ref_mask,
                          pin_fallback=self.pin_fallback, region_name=self.reference_region_name,
                          near=self._region_near)
@@ -717,7 +719,7 @@ class Reconstructor:
 
     def _taper_decimated(self):
         """Border window at the decimated samples (1 without apodization)."""
-        w = self.demod._window2d
+        w = self.demod.plan.window2d
         if w is None:
             return np.ones(self.demod.window_shape, np.float32)
         rows, cols = self.shape
@@ -738,7 +740,8 @@ class Reconstructor:
         check_sample_range(a, name)
         return a
 
-    def _validate_frame(self, frame):
+    def validate_frame(self, frame):
+        """``frame`` as an array, checked: the reference's shape (ShapeMismatchError), 2-D, a grey dtype."""
         a = np.asarray(frame)
         if a.shape != self.shape:
             raise ShapeMismatchError(
@@ -752,6 +755,32 @@ class Reconstructor:
         self._prev_valid = None
         self._prev_all_valid = False
         self._series_prev = None
+
+    def remember_phase(self, phase, valid, all_valid: bool) -> None:
+        """Set what temporal unwrapping continues from: the unwrapped phase (2,
+        m_rows, m_cols) and valid samples of the last frame of the series, when
+        that frame was reconstructed elsewhere (the GPU chain); the series
+        check's memory (:meth:`check_series`) is kept.  A Reconstructor with
+        ``temporal=False`` remembers nothing."""
+        if not self.temporal:
+            return
+        self._prev_phase = np.array(phase, np.float32, copy=True)
+        self._prev_valid = np.array(valid, bool, copy=True)
+        self._prev_all_valid = bool(all_valid)
+
+    @property
+    def plan(self):
+        """The reference's constants every chain reads (:class:`processing.plan.ReferencePlan`,
+        read-only); checkerboards only (None for random dots)."""
+        if self.pattern != "checkerboard":
+            return None
+        if self._plan is None:
+            self._plan = ReferencePlan(
+                conj_g0=read_only(self._conj_g0), g0_amplitude=read_only(self._g0_den),
+                reference_region=read_only(self._ref_mask), reference_region_index=read_only(self._ref_idx),
+                region_near=read_only(self._region_near), reference_valid_everywhere=self._ref_ok_all,
+                demodulation=self.demod.plan)
+        return self._plan
 
     @property
     def gpu_fallback(self) -> Optional[str]:
@@ -826,7 +855,11 @@ class Reconstructor:
         return False
 
     # ------------------------------------------------------------- stages
-    def _unwrap(self, wrapped, valid, all_valid=False):
+    def unwrap_phase(self, wrapped, valid, all_valid=False):
+        """Unwrapped carrier phases (2, m_rows, m_cols) of ``wrapped`` with mask
+        ``valid``: against the series' last frame (temporal) when there is one,
+        else in space, the reference region's median nearest 0; NaN-free
+        where ``all_valid``.  Reads the series memory, does not change it."""
         if not self.unwrap:
             return np.where(valid, wrapped, np.nan)
         if all_valid and self.temporal and self._prev_phase is not None and self._prev_all_valid:
@@ -903,7 +936,7 @@ class Reconstructor:
         det = (1.0 - dur_dr) * (1.0 - duc_dc) - dur_dc * duc_dr
         return det > self.min_fold
 
-    def _smooth_reference(self):
+    def warp_reference(self):
         """Reference band-limited around the two carriers (no apodization) on the
         grid the refinement warps it from: ``(fine, factor)``, ``fine[i, j]`` at
         pixel ``(i / factor, j / factor)`` (:func:`warp_fine_factor`)."""
@@ -917,7 +950,7 @@ class Reconstructor:
         """Remove the band-pass bias: warp the smooth reference by u, demodulate
         the frame against it and add the residual displacement."""
         d = self.demod
-        smooth, factor = self._smooth_reference()
+        smooth, factor = self.warp_reference()
         if self._smooth_static is None:
             self._smooth_static = np.angle(d.g0 * np.conj(d.decimated(np.ascontiguousarray(smooth[::factor, ::factor]))))
         static = self._smooth_static
@@ -961,7 +994,7 @@ class Reconstructor:
         by image matching; the displacement they give at the nodes goes
         through the masked height solver and pin; the heights are
         interpolated to every pixel.  ``series``: FD's check of this frame
-        against the previous one (:meth:`_check_series`); ``fd_pin``: FD's pin
+        against the previous one (:meth:`check_series`); ``fd_pin``: FD's pin
         status, whose dropped pieces (no pin sample in them) the nodes never see."""
         from . import dic
         from .height import solver_for
@@ -1030,7 +1063,7 @@ class Reconstructor:
         self._check_grid(grid)
         if self._gpu is not None:
             return self._gpu(list(frames), grid, essentials=essentials)
-        return [self._call_cpu(f, grid=grid) for f in frames]
+        return [self.call_cpu(f, grid=grid) for f in frames]
 
     def __call__(self, frame, *, grid: Optional[str] = None) -> Result:
         """Reconstruct one frame.
@@ -1055,12 +1088,12 @@ class Reconstructor:
         """
         if self._gpu is not None:
             return self.batch([frame], grid=grid)[0]
-        return self._call_cpu(frame, grid=grid)
+        return self.call_cpu(frame, grid=grid)
 
-    def _call_cpu(self, frame, *, grid: Optional[str] = None) -> Result:
-        """:meth:`__call__` on the CPU (also the GPU chain's path for what it leaves to the CPU)."""
+    def call_cpu(self, frame, *, grid: Optional[str] = None) -> Result:
+        """:meth:`__call__` on the CPU, whatever the device (the GPU chain's path for what it leaves to the CPU)."""
         t0 = time.perf_counter()
-        frame = self._validate_frame(frame)
+        frame = self.validate_frame(frame)
         grid = self.grid if grid is None else grid
         self._check_grid(grid)
         if self.pattern == "dots":
@@ -1083,7 +1116,7 @@ class Reconstructor:
         all_valid = bool(valid.all())
         if not all_valid:
             valid &= ~_dilate(~valid, self.dilate)
-        phase = self._unwrap(wrapped, valid, all_valid)
+        phase = self.unwrap_phase(wrapped, valid, all_valid)
         u = d.phase_to_displacement(phase if all_valid else np.nan_to_num(phase))
         fold = self._fold_ok(u, finite=True) if all_valid else self._fold_ok(np.where(valid, u, 0.0))
         if fold is not None:
@@ -1125,7 +1158,7 @@ class Reconstructor:
             res = self._full_ifft(wins, u, u_first, valid, amplitude, phase, timings, t3)
             timings["total"] = 1e3 * (time.perf_counter() - t0)
             return res
-        hs = self._solver()
+        hs = self.height_solver()
         pin_kw = dict(pin_fallback=self.pin_fallback, region_name=self.reference_region_name,
                       near=self._region_near)
         if all_valid and hs._fast is not None and self.solver in ("auto", "spectral"):
@@ -1138,7 +1171,7 @@ class Reconstructor:
             valid = np.asarray(surf.valid, bool)
             all_valid = False
             u = np.where(valid, u, np.float32(np.nan)).astype(np.float32)
-        series = self._check_series(phase, valid, surf)
+        series = self.check_series(phase, valid, surf)
         t4 = time.perf_counter()
         timings["height"] = 1e3 * (t4 - t3)
         note = ""
@@ -1164,7 +1197,7 @@ class Reconstructor:
         timings["total"] = 1e3 * (time.perf_counter() - t0)
         return res
 
-    def _check_series(self, phase, valid, surf) -> Optional[SeriesCheck]:
+    def check_series(self, phase, valid, surf) -> Optional[SeriesCheck]:
         """Compare this frame with the previous one (see :class:`SeriesCheck`);
         None for the first frame of a series."""
         prev = self._series_prev
@@ -1223,11 +1256,11 @@ class Reconstructor:
         if grid == "full":
             x_mm, y_mm = self._coords_full(None)
         else:
-            hs = self._solver()
+            hs = self.height_solver()
             x_mm, y_mm = hs.x_mm, hs.y_mm
         return np.asarray(x_mm, np.float64).copy(), np.asarray(y_mm, np.float64).copy()
 
-    def _solver(self):
+    def height_solver(self):
         """Height solver of the decimated grid (built once)."""
         if self._height_solver is None:
             from .height import solver_for
@@ -1274,7 +1307,7 @@ class Reconstructor:
             return field if all_valid else np.nan_to_num(field if fill is None else field[fill])
 
         if solver is None and self._height_solver is not None:
-            solver = self._solver()
+            solver = self.height_solver()
         coef = solver.slope_coefficients() if solver is not None else None
         derive = coef is not None
         disp = np.empty((2, rows, cols), np.float32)
@@ -1380,7 +1413,7 @@ class Reconstructor:
             ``focus``), ``saturation_pct``, and ``reference``: the same of the
             reference.
         """
-        frame = self._validate_frame(frame)
+        frame = self.validate_frame(frame)
         if self.pattern == "dots":
             from .piv import dot_alignment
 
@@ -1401,9 +1434,7 @@ class Reconstructor:
         g = d.decimated_from_windows(wins)
         mean = self._local_mean(spec, frame)
         std = np.sqrt(2.0 * (np.abs(g[0]) ** 2 + np.abs(g[1]) ** 2))
-        if d._window2d is not None:
-            # both g and the local mean carry the border window: divide it out of neither
-            pass
+        # both g and the local mean carry the border window (if any): divided out of neither
         mod = (std / np.maximum(mean, 1e-6 * max(float(np.abs(mean).max()), 1e-30))).astype(np.float32)
         out.update(modulation=mod, modulation_rows_px=self.rows_px, modulation_cols_px=self.cols_px,
                    contrast=float(np.median(mod)),
@@ -1439,7 +1470,7 @@ class Reconstructor:
         f = np.hypot(q_r[:, None] / rows, q_c[None, :] / cols) / d.radius
         lp = np.clip(1.0 - f, 0.0, 1.0) ** 2
         small = np.fft.ifft2(vals * lp).real * (m_r * m_c / (rows * cols))
-        if d._window2d is None:
+        if d.plan.window2d is None:
             # prepare() removed the mean (no border window to leak): add it back
             return small + float(np.mean(frame, dtype=np.float64))
         # the spectrum holds frame x border window; so does the modulation
@@ -1457,17 +1488,18 @@ class Reconstructor:
             ``(f_col, f_row)`` of both carriers and their mirrors (empty
             for random dots: the frame's own spectrum, Hann window).
         """
-        frame = self._validate_frame(frame)
+        frame = self.validate_frame(frame)
         if self.pattern == "dots":
             from .carriers import frame_spectrum
 
             return dict(frame_spectrum(frame, size=size, max_freq=max_freq), carriers=[])
         d = self.demod
         spec = d.spectrum(frame)
-        if d._window2d is not None:
+        window2d = d.plan.window2d
+        if window2d is not None:
             # remove the mean x border-window peak at DC, as for the carriers
             if self._window_spectrum is None:
-                self._window_spectrum = np.fft.rfft2(d._window2d).astype(np.complex64)
+                self._window_spectrum = np.fft.rfft2(window2d).astype(np.complex64)
             spec = spec - np.complex64(d.last_mean) * self._window_spectrum
         out = display_spectrum(np.abs(spec), self.shape[1], size=size, max_freq=max_freq)
         carriers = [(float(f[1]), float(f[0])) for f in self.demod.freq]

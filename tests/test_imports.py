@@ -160,3 +160,20 @@ def test_no_private_name_imported_or_read_across_modules():
                 found.append(f"{os.path.relpath(MODULES[name], ROOT)}:{node.lineno} reads "
                              f"{aliases[node.value.id]}.{node.attr}")
     assert found == []
+
+
+def _private_reads_off_other_objects(path):
+    """``obj._name`` where ``obj`` is not ``self``/``cls``: another object's private
+    attribute (in processing/gpu.py: the CPU chain's Reconstructor, Demodulator,
+    HeightSolver)."""
+    tree = ast.parse(path.read_text(), str(path))
+    return [f"{path.name}:{node.lineno} {ast.unparse(node)}" for node in ast.walk(tree)
+            if isinstance(node, ast.Attribute) and node.attr.startswith("_") and not node.attr.startswith("__")
+            and not (isinstance(node.value, ast.Name) and node.value.id in ("self", "cls"))]
+
+
+def test_gpu_chain_reads_only_public_names_of_the_cpu_chain():
+    # issue 19 point 3: it read ~41 private attributes and wrote the series memory
+    assert _private_reads_off_other_objects(ROOT / "processing" / "gpu.py") == []
+    # the check sees such reads where they are (the CPU chain reads its solver's own)
+    assert _private_reads_off_other_objects(ROOT / "processing" / "reconstruct.py")

@@ -392,7 +392,7 @@ def run_process(args: ProcessJob) -> BatchReport:
     frames = None
     try:
         # (item, measured) in order: here, over processes or on Dask (app/batch/parallel.py)
-        frames = parallel.frame_results(args, reconstruct, reference, geometry, effort, selected, paths)
+        frames = parallel.frame_results(args, reconstruct, reference, geometry, selected, paths)
         while True:
             try:
                 item, measured = next(frames)

@@ -587,7 +587,7 @@ class _GpuBatches:
     series after a hole; this one is ahead by a batch): frames read and sent to
     the GPU ``GPU_BATCH`` at a time (processing/gpu.py), results in order."""
 
-    def __init__(self, job, reconstruct, reference, geometry, effort, paths):
+    def __init__(self, job, reconstruct, reference, geometry, paths):
         from processing import Reconstructor
 
         # the engine's options, on the GPU (its refinement was chosen for device "cuda")
@@ -723,9 +723,12 @@ class _DeferredInterrupt:
 
 
 class _Chunked:
-    """Chunks in flight on an executor (``submit(fn, *args) -> future``), frames out in order."""
+    """Chunks in flight on an executor (``submit(fn, *args) -> future``), frames out in order.
 
-    def __init__(self, job, spec, chunks, submit, window, shutdown, description, restart=None):
+    ``sources``: the input paths the tasks were given -> the paths as the user
+    named them (Dask workers may see the files under other names)."""
+
+    def __init__(self, job, spec, chunks, submit, window, shutdown, description, restart=None, sources=None):
         self.job = job
         self.spec = spec
         self.submit = submit
@@ -739,7 +742,7 @@ class _Chunked:
         self._pending = collections.deque()
         self._frames = iter(())
         self._prev_end = None
-        self._sources = {}
+        self._sources = dict(sources or {})
         self.redone = []
         self.attrs = {"parallel": description, "chunks": len(chunks), "chunks_redone": 0}
         self._closed = False
@@ -864,7 +867,7 @@ class _Chunked:
         self._pending.clear()
 
 
-def _spec(job, reconstruct, reference, geometry, effort, threads, shared_memory=False, tasks_per_host=()):
+def _spec(job, reconstruct, reference, geometry, threads, shared_memory=False, tasks_per_host=()):
     return ReconstructorSpec(key=uuid.uuid4().hex, reference=np.asarray(reference), geometry=geometry,
                              options=reconstruct.options, carriers=reconstruct.carriers, threads=threads,
                              shared_memory=shared_memory, compression=getattr(job, "compression", None),
@@ -1058,8 +1061,9 @@ def _dask_submit(client):
     return submit
 
 
-def frame_results(job, reconstruct, reference, geometry, effort: str, selected: int, paths=None):
-    """``(item, measured)`` of every selected frame in order; ``measured()`` returns
+def frame_results(job, reconstruct, reference, geometry, selected: int, paths=None):
+    """``(item, measured)`` of every selected frame in order (``reconstruct.options``: how every
+    worker builds its own Reconstructor); ``measured()`` returns
     ``(Result, OK)`` or ``(None, FrameOutcome)`` as :func:`measure` does. Has ``attrs``
     (stored in the output) and ``close()``.
 
@@ -1076,7 +1080,7 @@ def frame_results(job, reconstruct, reference, geometry, effort: str, selected: 
         if dask_address or (workers is not None and workers != 1):
             raise TirdeflectError("--device cuda runs in one process on this machine's GPU; "
                                   "leave out --workers and --dask")
-        return _GpuBatches(job, reconstruct, reference, geometry, effort, inputs)
+        return _GpuBatches(job, reconstruct, reference, geometry, inputs)
     if job.send_frames and not dask_address:
         raise TirdeflectError("--dask-send-frames is for Dask workers without the input files; "
                               "add --dask ADDRESS, or leave it out")
@@ -1098,15 +1102,15 @@ def frame_results(job, reconstruct, reference, geometry, effort: str, selected: 
             # a LocalCluster's workers share this machine's memory: results come back through
             # shared memory as from worker processes, not pickled through TCP (13 MB a 1024^2 frame)
             local = dask_address == "local" or dask_address.startswith("local:")
-            spec = _spec(job, reconstruct, reference, geometry, effort, None,
+            spec = _spec(job, reconstruct, reference, geometry, None,
                          shared_memory=local and _results_fit_shm(chunks, n, job, reconstruct),
                          tasks_per_host=per_host)
             runner = _Chunked(job, spec, chunks, _dask_submit(client), n + 1, close,
-                              f"dask {dask_address} ({n} worker threads)")
+                              f"dask {dask_address} ({n} worker threads)",
+                              sources={a: o for a, o in zip(task_paths, inputs)})
         except BaseException:
             close()
             raise
-        runner._sources = {a: o for a, o in zip(task_paths, inputs)}
         return runner
     if workers is None:
         workers = available_cores() if selected >= AUTO_PARALLEL_MIN_FRAMES else 1
@@ -1122,7 +1126,7 @@ def frame_results(job, reconstruct, reference, geometry, effort: str, selected: 
                         "at least %d; this machine has %d cores)", job.workers, len(chunks), selected,
                         MIN_CHUNK_FRAMES if job.chunk_frames is None else job.chunk_frames, available_cores())
         workers = max(1, len(chunks))
-    spec = _spec(job, reconstruct, reference, geometry, effort, fft_threads(workers),
+    spec = _spec(job, reconstruct, reference, geometry, fft_threads(workers),
                  shared_memory=_results_fit_shm(chunks, workers, job, reconstruct))
     pool = _Pool(workers)
     try:
