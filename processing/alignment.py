@@ -40,7 +40,9 @@ Frequencies are cycles per pixel ``(f_row, f_col)``, bins are
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
+import zlib
 from typing import Optional
 
 import numpy as np
@@ -51,7 +53,7 @@ from .carriers import (ISOLATION_RING_BINS, ISOLATION_RING_DC, ISOLATION_RING_DR
                        theta_from_carriers, tile_origins)
 from .errors import NoCarrierError
 
-__all__ = ["CarrierSearch", "carrier_search", "checkerboard_alignment", "frame_carriers", "hann_stencil",
+__all__ = ["CarrierSearch", "carrier_search", "checkerboard_alignment", "frame_carriers", "frame_key", "hann_stencil",
            "half_spectrum_index", "patch_peaks", "tile_carriers_near", "display_spectrum_of",
            "modulation_map", "whole_image_carriers"]
 
@@ -119,7 +121,11 @@ def _apply_stencil(half_flat, stencil) -> np.ndarray:
     idx, conj, w = stencil
     vals = half_flat[idx]
     np.conjugate(vals, out=vals, where=conj)
-    return np.tensordot(w, vals, axes=1)
+    # a plain weighted sum: tensordot would call BLAS, whose threads spin on a loaded machine
+    out = vals[0] * w[0]
+    for j in range(1, len(w)):
+        out += vals[j] * w[j]
+    return out
 
 
 # ------------------------------------------------------------ peak tests
@@ -424,6 +430,19 @@ def frame_carriers(search: CarrierSearch, frame, half_spectrum, mean: float = 0.
 
 
 # ------------------------------------------------------------ modulation, spectrum
+@functools.lru_cache(maxsize=8)
+def _local_mean_layout(shape, window_shape, radius: float) -> tuple:
+    """Bins of the DC window (ifftshift order) and its radial low-pass, for :func:`modulation_map`."""
+    rows, cols = shape
+    m_r, m_c = window_shape
+    q_r = np.fft.fftfreq(m_r, 1.0 / m_r).astype(np.int64)
+    q_c = np.fft.fftfreq(m_c, 1.0 / m_c).astype(np.int64)
+    idx, conj = half_spectrum_index(shape, q_r[:, None], q_c[None, :])
+    f = np.hypot(q_r[:, None] / rows, q_c[None, :] / cols) / radius
+    lp = (np.clip(1.0 - f, 0.0, 1.0) ** 2).astype(np.float32)
+    return idx, conj, lp
+
+
 def modulation_map(demod, half_spectrum, frame) -> tuple:
     """``(modulation, amplitude)`` on the decimated grid from the demodulator's spectrum of ``frame``.
 
@@ -437,14 +456,11 @@ def modulation_map(demod, half_spectrum, frame) -> tuple:
     g = d.decimated_from_windows(wins)
     m_r, m_c = d.window_shape
     rows, cols = d.shape
-    q_r = np.fft.fftfreq(m_r, 1.0 / m_r).astype(np.int64)
-    q_c = np.fft.fftfreq(m_c, 1.0 / m_c).astype(np.int64)
-    idx, conj = half_spectrum_index((rows, cols), q_r[:, None], q_c[None, :])
+    idx, conj, lp = _local_mean_layout(tuple(d.shape), tuple(d.window_shape), float(d.radius))
     vals = np.asarray(half_spectrum).reshape(-1)[idx]
     np.conjugate(vals, out=vals, where=conj)
-    f = np.hypot(q_r[:, None] / rows, q_c[None, :] / cols) / d.radius
-    lp = np.clip(1.0 - f, 0.0, 1.0) ** 2
-    mean = np.fft.ifft2(vals * lp).real * (m_r * m_c / (rows * cols))
+    vals *= lp
+    mean = scipy.fft.ifft2(vals, workers=2).real * (m_r * m_c / (rows * cols))
     if d.border_window is None:
         # prepare() removed the mean (no border window to leak): add it back
         mean = mean + float(np.mean(frame, dtype=np.float64))
@@ -453,6 +469,35 @@ def modulation_map(demod, half_spectrum, frame) -> tuple:
     mod = (std / np.maximum(mean, 1e-6 * max(float(np.abs(mean).max()), 1e-30))).astype(np.float32)
     amplitude = (np.abs(g) / np.maximum(d.g0_abs, 1e-30)).min(axis=0).astype(np.float32)
     return mod, amplitude
+
+
+@functools.lru_cache(maxsize=8)
+def _display_layout(shape, size: int, max_freq: float) -> tuple:
+    """Where :func:`display_spectrum_of` reads: the half-spectrum rows and
+    columns shown, and for every shown bin, block by block, its place among them."""
+    rows, cols = shape
+    fy = np.fft.fftshift(np.fft.fftfreq(rows))
+    fx = np.fft.fftshift(np.fft.fftfreq(cols))
+    keep_r = np.flatnonzero(np.abs(fy) <= max_freq)
+    keep_c = np.flatnonzero(np.abs(fx) <= max_freq)
+    step_r = max(1, len(keep_r) // size)
+    step_c = max(1, len(keep_c) // size)
+    nr, nc = len(keep_r) // step_r, len(keep_c) // step_c
+    keep_r, keep_c = keep_r[: nr * step_r], keep_c[: nc * step_c]
+    # shifted index i holds the unshifted bin (i - n // 2) mod n
+    kr, kc = (keep_r - rows // 2)[:, None], (keep_c - cols // 2)[None, :]
+    idx, _ = half_spectrum_index(shape, kr, kc)
+    h = cols // 2 + 1
+    r_half, c_half = np.divmod(idx, h)
+    # read only the rows and leading columns of the half spectrum that hold shown bins
+    r_sel = np.unique(r_half)
+    n_c = int(c_half.max()) + 1
+    local = np.searchsorted(r_sel, r_half) * n_c + c_half
+    # (step_r * step_c, nr * nc): the blocks' members along the first axis
+    local = local.reshape(nr, step_r, nc, step_c).transpose(1, 3, 0, 2).reshape(step_r * step_c, nr * nc)
+    freq_x = fx[keep_c].reshape(nc, step_c).mean(axis=1)
+    freq_y = fy[keep_r].reshape(nr, step_r).mean(axis=1)
+    return r_sel, n_c, local, (nr, nc), freq_x, freq_y
 
 
 def display_spectrum_of(half_spectrum, shape, *, leak=None, size: int = 256, max_freq: float = 0.25) -> dict:
@@ -471,31 +516,27 @@ def display_spectrum_of(half_spectrum, shape, *, leak=None, size: int = 256, max
     dict
         The same ``log_magnitude``, ``freq_x``, ``freq_y`` as ``display_spectrum``.
     """
-    rows, cols = shape
-    fy = np.fft.fftshift(np.fft.fftfreq(rows))
-    fx = np.fft.fftshift(np.fft.fftfreq(cols))
-    keep_r = np.flatnonzero(np.abs(fy) <= max_freq)
-    keep_c = np.flatnonzero(np.abs(fx) <= max_freq)
-    step_r = max(1, len(keep_r) // size)
-    step_c = max(1, len(keep_c) // size)
-    nr, nc = len(keep_r) // step_r, len(keep_c) // step_c
-    keep_r, keep_c = keep_r[: nr * step_r], keep_c[: nc * step_c]
-    # shifted index i holds the unshifted bin (i - n // 2) mod n
-    idx, _ = half_spectrum_index(shape, (keep_r - rows // 2)[:, None], (keep_c - cols // 2)[None, :])
-    vals = np.asarray(half_spectrum).reshape(-1)[idx]
+    r_sel, n_c, local, (nr, nc), freq_x, freq_y = _display_layout(tuple(shape), int(size), float(max_freq))
+    vals = np.asarray(half_spectrum)[r_sel, :n_c]
     if leak is not None and leak[0]:
-        vals = vals - np.complex64(leak[0]) * np.asarray(leak[1]).reshape(-1)[idx]
-    sub = np.abs(vals).astype(np.float32, copy=False)
-    sub = sub.reshape(nr, step_r, nc, step_c).max(axis=(1, 3))
-    mag = np.log10(sub + 1e-6 * float(sub.max() or 1.0)).astype(np.float32)
-    return {"log_magnitude": mag, "freq_x": fx[keep_c].reshape(nc, step_c).mean(axis=1),
-            "freq_y": fy[keep_r].reshape(nr, step_r).mean(axis=1)}
+        vals = vals - np.complex64(leak[0]) * np.asarray(leak[1])[r_sel, :n_c]
+    mag = np.abs(vals).astype(np.float32, copy=False).reshape(-1)
+    sub = mag[local].max(axis=0).reshape(nr, nc)
+    out = np.log10(sub + 1e-6 * float(sub.max() or 1.0)).astype(np.float32)
+    return {"log_magnitude": out, "freq_x": freq_x.copy(), "freq_y": freq_y.copy()}
 
 
 # ------------------------------------------------------------ all of it
+def frame_key(frame) -> tuple:
+    """``(shape, dtype, crc32 of the pixels)``: tells whether two calls got the same frame."""
+    a = np.ascontiguousarray(frame)
+    return a.shape, a.dtype.str, zlib.crc32(a.reshape(-1).view(np.uint8))
+
+
 def checkerboard_alignment(demod, search: CarrierSearch, reference: Carriers, frame, *,
-                           theta_configured_deg: Optional[float], pattern_stretch_y: float = 1.0) -> dict:
-    """The Alignment tab's numbers of a checkerboard frame (one FFT; see the module doc).
+                           theta_configured_deg: Optional[float], pattern_stretch_y: float = 1.0,
+                           spectrum_size: int = 256, spectrum_max_freq: float = 0.25) -> tuple:
+    """The Alignment tab's numbers and spectrum of a checkerboard frame (one FFT; see the module doc).
 
     Parameters
     ----------
@@ -511,11 +552,15 @@ def checkerboard_alignment(demod, search: CarrierSearch, reference: Carriers, fr
     pattern_stretch_y : float
         The geometry's board aspect (theta from the aspect divides it out).
 
+    spectrum_size, spectrum_max_freq : int, float
+        Of the display spectrum (:func:`display_spectrum_of`).
+
     Returns
     -------
-    dict
-        The keys of :meth:`processing.reconstruct.Reconstructor.alignment`
-        but ``saturation_pct``.
+    (metrics, spectrum)
+        ``metrics``: the keys of :meth:`processing.reconstruct.Reconstructor.alignment`
+        but ``saturation_pct``; ``spectrum``: :func:`display_spectrum_of` of
+        the same FFT (the mean's peak at DC removed).
     """
     out = {
         "reference_periods_px": np.asarray(reference.periods_px, float),
@@ -524,6 +569,8 @@ def checkerboard_alignment(demod, search: CarrierSearch, reference: Carriers, fr
     }
     # the plan's output is transient: read it (modulation, carriers) before any other FFT of that plan
     spec = demod.spectrum(frame)
+    leak = None if search.window_spectrum is None else (demod.last_mean, search.window_spectrum)
+    shown = display_spectrum_of(spec, demod.shape, leak=leak, size=spectrum_size, max_freq=spectrum_max_freq)
     mod, amplitude = modulation_map(demod, spec, frame)
     out.update(modulation=mod, modulation_rows_px=demod.rows_px, modulation_cols_px=demod.cols_px,
                contrast=float(np.median(mod)), amplitude=amplitude)
@@ -532,11 +579,11 @@ def checkerboard_alignment(demod, search: CarrierSearch, reference: Carriers, fr
     except NoCarrierError as exc:
         out.update(periods_px=np.full(2, np.nan), rotation_deg=float("nan"),
                    theta_estimate_deg=float("nan"), focus=0.0, error=str(exc))
-        return out
+        return out, shown
     theta = theta_configured_deg if theta_configured_deg is not None else 0.0
     out.update(periods_px=np.asarray(c.periods_px, float), rotation_deg=float(c.rotation_deg),
                surface_rotation_deg=c.surface_rotation_deg(theta),
                theta_estimate_deg=theta_from_carriers(c.freq, pattern_stretch_y or 1.0),
                focus=float(np.min(c.sharpness)), disturbed=disturbed,
                pattern_mismatch=dict(zip(("period_rel", "angle_deg"), match_error(reference, c.freq))))
-    return out
+    return out, shown
