@@ -169,7 +169,7 @@ class ProcessingWorker:
         self._bit_depth = bit_depth
         self._alignment_fn = alignment_fn
         self._alignment = False
-        self._alignment_interval_s = 0.25
+        self._alignment_interval_s = 0.1
         self._last_alignment_t = 0.0
         self._poll_timeout_s = float(poll_timeout_s)
         self._nice = int(nice)
@@ -211,7 +211,7 @@ class ProcessingWorker:
         with self._lock:
             self._bit_depth = bit_depth
 
-    def set_alignment(self, enabled: bool, interval_s: float = 0.25) -> None:
+    def set_alignment(self, enabled: bool, interval_s: float = 0.1) -> None:
         """Compute alignment metrics and the spectrum every ``interval_s`` seconds while enabled."""
         with self._lock:
             self._alignment = bool(enabled)
