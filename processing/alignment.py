@@ -460,7 +460,9 @@ def modulation_map(demod, half_spectrum, frame) -> tuple:
     vals = np.asarray(half_spectrum).reshape(-1)[idx]
     np.conjugate(vals, out=vals, where=conj)
     vals *= lp
-    mean = scipy.fft.ifft2(vals, workers=2).real * (m_r * m_c / (rows * cols))
+    # the demodulator's planner: FFTW, one thread for this small transform (pocketfft's two threads
+    # took 5x longer on a loaded machine)
+    mean = d.planner.ifft2(vals.astype(np.complex64, copy=False)).real * np.float32(m_r * m_c / (rows * cols))
     if d.border_window is None:
         # prepare() removed the mean (no border window to leak): add it back
         mean = mean + float(np.mean(frame, dtype=np.float64))
