@@ -34,6 +34,8 @@ __all__ = [
     "find_carriers",
     "find_carriers_local",
     "find_carriers_live",
+    "tile_origins",
+    "hann",
     "check_pattern_match",
     "theta_from_carriers",
     "rotation_from_carriers",
@@ -191,7 +193,8 @@ def rotation_from_carriers(freq) -> float:
     return float(best)
 
 
-def _hann(n):
+def hann(n):
+    """Hann window ``0.5 - 0.5 cos(2 pi (j + 1/2) / n)``, float32 (n,): what the carrier search applies."""
     return (0.5 - 0.5 * np.cos(2.0 * np.pi * (np.arange(n) + 0.5) / n)).astype(np.float32)
 
 
@@ -213,7 +216,7 @@ def _as_float_image(image, name):
 def _spectrum(image):
     """rfft2 of the mean-free, Hann-windowed image and the frequency grids."""
     rows, cols = image.shape
-    w = _hann(rows)[:, None] * _hann(cols)[None, :]
+    w = hann(rows)[:, None] * hann(cols)[None, :]
     x = (image - image.mean()) * w
     spec = scipy.fft.rfft2(x, workers=2)
     fr = scipy.fft.fftfreq(rows)[:, None]
@@ -294,9 +297,13 @@ def _gather(spec, rr, cc, rows):
     return out
 
 
+#: A peak's isolation is judged against the bins this far (inclusive, in bins) from it.
+ISOLATION_RING_BINS = (4, 7)
 _D_R, _D_C = np.mgrid[-7:8, -7:8]
-_RING = (np.hypot(_D_R, _D_C) >= 4) & (np.hypot(_D_R, _D_C) <= 7)
-_RING_DR, _RING_DC = _D_R[_RING], _D_C[_RING]
+_RING = (np.hypot(_D_R, _D_C) >= ISOLATION_RING_BINS[0]) & (np.hypot(_D_R, _D_C) <= ISOLATION_RING_BINS[1])
+#: (row, col) bin offsets of that ring.
+ISOLATION_RING_DR, ISOLATION_RING_DC = _D_R[_RING], _D_C[_RING]
+_RING_DR, _RING_DC = ISOLATION_RING_DR, ISOLATION_RING_DC
 
 
 def _isolation(spec, r, c, rows):
@@ -486,6 +493,20 @@ def find_carriers(reference, *, min_period_px: float = 2.5, max_period_px: float
     return Carriers(freq=freq, shape=(rows, cols), contrast=contrast, sharpness=sharp)
 
 
+def tile_origins(shape, tile_px: int, max_tiles: int = 64) -> tuple:
+    """Top-left corners of :func:`find_carriers_local`'s tiles: ``(row_origins, col_origins)``.
+
+    At most about ``max_tiles`` tiles of side ``tile_px``, spread evenly over
+    an image of ``shape`` (overlapping by half where the image holds few).
+    """
+    rows, cols = shape
+    n_r, n_c = rows // tile_px, cols // tile_px
+    per_axis = max(1, int(math.sqrt(max_tiles)))
+    r0s = np.linspace(0, rows - tile_px, min(per_axis, max(n_r, 1) * 2 - 1 if n_r > 1 else 1)).astype(int)
+    c0s = np.linspace(0, cols - tile_px, min(per_axis, max(n_c, 1) * 2 - 1 if n_c > 1 else 1)).astype(int)
+    return np.unique(r0s), np.unique(c0s)
+
+
 def find_carriers_local(image, *, tile_px: int | None = None, max_tiles: int = 64,
                         min_fraction: float = 1.0 / 3.0, **options) -> Carriers:
     """Carriers of an image whose pattern is distorted: median of local carriers in tiles.
@@ -532,13 +553,10 @@ def find_carriers_local(image, *, tile_px: int | None = None, max_tiles: int = 6
         raise NoCarrierError(f"image {rows} x {cols} is too small for local carriers (tiles of 64 px)")
     found = (0, 0)
     for size in sizes:
-        n_r, n_c = rows // size, cols // size
-        per_axis = max(1, int(math.sqrt(max_tiles)))
-        r0s = np.linspace(0, rows - size, min(per_axis, max(n_r, 1) * 2 - 1 if n_r > 1 else 1)).astype(int)
-        c0s = np.linspace(0, cols - size, min(per_axis, max(n_c, 1) * 2 - 1 if n_c > 1 else 1)).astype(int)
+        r0s, c0s = tile_origins((rows, cols), size, max_tiles)
         freqs, contrasts, sharps = [], [], []
-        for r0 in np.unique(r0s):
-            for c0 in np.unique(c0s):
+        for r0 in r0s:
+            for c0 in c0s:
                 try:
                     c = find_carriers(img[r0:r0 + size, c0:c0 + size], **options)
                 except NoCarrierError:
@@ -546,7 +564,7 @@ def find_carriers_local(image, *, tile_px: int | None = None, max_tiles: int = 6
                 freqs.append(c.freq)
                 contrasts.append(c.contrast)
                 sharps.append(c.sharpness)
-        n_tiles = len(np.unique(r0s)) * len(np.unique(c0s))
+        n_tiles = len(r0s) * len(c0s)
         if freqs and len(freqs) >= min_fraction * n_tiles:
             return Carriers(freq=np.median(np.array(freqs), axis=0), shape=(rows, cols),
                             contrast=np.median(np.array(contrasts), axis=0),

@@ -442,3 +442,10 @@ class Demodulator:
     def filter_transfer(self) -> np.ndarray:
         """Filter gains on the decimated spectrum grid, (2, m_rows, m_cols), ifftshift order."""
         return np.stack(self._gains)
+
+    @property
+    def border_window(self):
+        """The (rows, cols) float32 border window that :meth:`prepare` applies
+        (1 inside, cosine taper at the borders); None for ``border="none"``
+        (then :meth:`prepare` removes the mean instead)."""
+        return self._window2d

@@ -1421,60 +1421,25 @@ class Reconstructor:
             out["saturation_pct"] = saturation_pct(frame)
             out["reference"] = dot_alignment(self._ref_dots, window_px=self.piv.window_px)
             return out
-        d = self.demod
-        out = {
-            "reference_periods_px": np.asarray(self.carriers.periods_px, float),
-            "reference_rotation_deg": float(self.carriers.rotation_deg),
-            "theta_configured_deg": (float(self.geometry.theta_deg)
-                                     if getattr(self.geometry, "setup", "tir") == "tir" else None),
-            "saturation_pct": saturation_pct(frame),
-        }
-        spec = d.spectrum(frame)
-        wins = d.windows(spec)
-        g = d.decimated_from_windows(wins)
-        mean = self._local_mean(spec, frame)
-        std = np.sqrt(2.0 * (np.abs(g[0]) ** 2 + np.abs(g[1]) ** 2))
-        # both g and the local mean carry the border window (if any): divided out of neither
-        mod = (std / np.maximum(mean, 1e-6 * max(float(np.abs(mean).max()), 1e-30))).astype(np.float32)
-        out.update(modulation=mod, modulation_rows_px=self.rows_px, modulation_cols_px=self.cols_px,
-                   contrast=float(np.median(mod)),
-                   amplitude=(np.abs(g) / np.maximum(d.g0_abs, 1e-30)).min(axis=0).astype(np.float32))
-        try:
-            c, disturbed = find_carriers_live(frame)
-        except ValueError as exc:
-            out.update(periods_px=np.full(2, np.nan), rotation_deg=float("nan"),
-                       theta_estimate_deg=float("nan"), focus=0.0, error=str(exc))
-            return out
-        theta_cfg = out["theta_configured_deg"]
-        out.update(periods_px=np.asarray(c.periods_px, float), rotation_deg=float(c.rotation_deg),
-                   surface_rotation_deg=c.surface_rotation_deg(theta_cfg if theta_cfg is not None else 0.0),
-                   theta_estimate_deg=theta_from_carriers(
-                       c.freq, getattr(self.geometry, "pattern_stretch_y", None) or 1.0), focus=float(np.min(c.sharpness)),
-                   disturbed=disturbed,
-                   pattern_mismatch=dict(zip(("period_rel", "angle_deg"), match_error(self.carriers, c.freq))))
+        from .alignment import checkerboard_alignment, frame_key
+
+        out, shown = checkerboard_alignment(
+            self.demod, self._carrier_search(), self.carriers, frame,
+            theta_configured_deg=(float(self.geometry.theta_deg)
+                                  if getattr(self.geometry, "setup", "tir") == "tir" else None),
+            pattern_stretch_y=getattr(self.geometry, "pattern_stretch_y", None) or 1.0)
+        out["saturation_pct"] = saturation_pct(frame)
+        # the display spectrum of the same FFT, for spectrum(frame) right after (the live worker's order)
+        self._shown_spectrum = (frame_key(frame), shown)
         return out
 
-    def _local_mean(self, spec, frame):
-        """Local mean intensity on the decimated grid (low-pass window at DC)."""
-        d = self.demod
-        m_r, m_c = d.window_shape
-        rows, cols = self.shape
-        q_r = np.fft.fftfreq(m_r, 1.0 / m_r).astype(np.int64)
-        q_c = np.fft.fftfreq(m_c, 1.0 / m_c).astype(np.int64)
-        kr = q_r[:, None] % rows
-        kc = np.broadcast_to(q_c[None, :], (m_r, m_c))
-        mirror = kc < 0
-        ridx = np.where(mirror, (-q_r[:, None]) % rows, kr)
-        vals = spec[ridx, np.abs(kc)]
-        vals = np.where(mirror, np.conj(vals), vals)
-        f = np.hypot(q_r[:, None] / rows, q_c[None, :] / cols) / d.radius
-        lp = np.clip(1.0 - f, 0.0, 1.0) ** 2
-        small = np.fft.ifft2(vals * lp).real * (m_r * m_c / (rows * cols))
-        if d.plan.window2d is None:
-            # prepare() removed the mean (no border window to leak): add it back
-            return small + float(np.mean(frame, dtype=np.float64))
-        # the spectrum holds frame x border window; so does the modulation
-        return small
+    def _carrier_search(self):
+        """:func:`processing.alignment.carrier_search` of the reference (built on first use)."""
+        if getattr(self, "_alignment_search", None) is None:
+            from .alignment import carrier_search
+
+            self._alignment_search = carrier_search(self.shape, self.demod.freq, self.demod.border_window)
+        return self._alignment_search
 
     def spectrum(self, frame, *, size: int = 256, max_freq: float = 0.25) -> dict:
         """Centred log-magnitude spectrum for display, with the carriers.
@@ -1493,15 +1458,17 @@ class Reconstructor:
             from .carriers import frame_spectrum
 
             return dict(frame_spectrum(frame, size=size, max_freq=max_freq), carriers=[])
-        d = self.demod
-        spec = d.spectrum(frame)
-        window2d = d.plan.window2d
-        if window2d is not None:
-            # remove the mean x border-window peak at DC, as for the carriers
-            if self._window_spectrum is None:
-                self._window_spectrum = np.fft.rfft2(window2d).astype(np.complex64)
-            spec = spec - np.complex64(d.last_mean) * self._window_spectrum
-        out = display_spectrum(np.abs(spec), self.shape[1], size=size, max_freq=max_freq)
+        from .alignment import display_spectrum_of, frame_key
+
+        cached = getattr(self, "_shown_spectrum", None)
+        if cached is not None and (size, max_freq) == (256, 0.25) and cached[0] == frame_key(frame):
+            out = dict(cached[1])  # alignment(frame) just transformed this very frame
+        else:
+            search = self._carrier_search()
+            spec = self.demod.spectrum(frame)
+            # the mean x border-window peak at DC removed, as for the carriers
+            leak = None if search.window_spectrum is None else (self.demod.last_mean, search.window_spectrum)
+            out = display_spectrum_of(spec, self.shape, leak=leak, size=size, max_freq=max_freq)
         carriers = [(float(f[1]), float(f[0])) for f in self.demod.freq]
         out["carriers"] = carriers + [(-a, -b) for a, b in carriers]
         return out

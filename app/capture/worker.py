@@ -169,7 +169,7 @@ class ProcessingWorker:
         self._bit_depth = bit_depth
         self._alignment_fn = alignment_fn
         self._alignment = False
-        self._alignment_interval_s = 0.25
+        self._alignment_interval_s = 0.1
         self._last_alignment_t = 0.0
         self._poll_timeout_s = float(poll_timeout_s)
         self._nice = int(nice)
@@ -211,8 +211,10 @@ class ProcessingWorker:
         with self._lock:
             self._bit_depth = bit_depth
 
-    def set_alignment(self, enabled: bool, interval_s: float = 0.25) -> None:
-        """Compute alignment metrics and the spectrum every ``interval_s`` seconds while enabled."""
+    def set_alignment(self, enabled: bool, interval_s: float = 0.1) -> None:
+        """Compute alignment metrics and the spectrum every ``interval_s`` seconds while enabled
+        (default 10 a second: one costs about the live heights' time at 1024^2), on the next frame
+        due; a slow one (before a reference) waits as long as it took, so takes at most half the worker."""
         with self._lock:
             self._alignment = bool(enabled)
             self._alignment_interval_s = float(interval_s)
@@ -344,6 +346,7 @@ class ProcessingWorker:
         dt = time.perf_counter() - t0
         self.processing_ms = 1e3 * dt
         if do_alignment:
+            t_start = time.monotonic()
             try:
                 if rec is not None and hasattr(rec, "alignment"):
                     alignment = rec.alignment(image)
@@ -352,8 +355,11 @@ class ProcessingWorker:
                     alignment, spectrum = alignment_fn(image)
             except Exception as exc:
                 alignment = {"error": _message(exc)}
+            t_end = time.monotonic()
             with self._lock:
-                self._last_alignment_t = time.monotonic()
+                # due interval_s after this one began, and never sooner than its own duration after it
+                # ended: a slow one (before a reference: the full search) takes at most half the worker
+                self._last_alignment_t = max(t_start, 2 * t_end - t_start - self._alignment_interval_s)
         elif self._latest is not None and self._alignment:
             alignment, spectrum = self._latest.alignment, self._latest.spectrum
         if result is not None:

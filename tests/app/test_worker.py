@@ -133,3 +133,36 @@ def test_saturation_percent_counts_top_code():
     assert saturation_percent(img, 12, step=1) == pytest.approx(25.0)
     assert saturation_percent(img, 16, step=1) == 0.0
     assert saturation_percent(img.astype(np.uint8) * 0 + 255, step=2) == pytest.approx(100.0)
+
+
+@pytest.mark.parametrize("cost_s,least,most", [(0.02, 27, 30), (0.3, 4, 5)])
+def test_alignment_ten_a_second_and_a_slow_one_takes_half_the_worker(monkeypatch, cost_s, least, most):
+    """Frames every 10 ms for 3 s (on a clock the test drives): an alignment costing 20 ms runs every
+    0.1 s (30 times, less what the 10-ms frame steps round off); one costing 0.3 s (the full search
+    before a reference) waits as long as it took (every 0.6 s: 5 times, 1.5 s of 3), so heights keep
+    at least half of the worker."""
+    import types
+
+    import app.capture.worker as worker_module
+
+    clock = [1000.0]
+    fake_time = types.SimpleNamespace(monotonic=lambda: clock[0], perf_counter=time.perf_counter,
+                                      monotonic_ns=time.monotonic_ns)
+    monkeypatch.setattr(worker_module, "time", fake_time)
+    calls = []
+
+    def alignment_fn(frame):
+        calls.append(clock[0])
+        clock[0] += cost_s
+        return {"periods_px": np.array([6.0, 6.0])}, None
+
+    worker = ProcessingWorker(lambda after, timeout: None, None, alignment_fn=alignment_fn)
+    worker.set_alignment(True)
+    frame = np.zeros((32, 32), np.uint8)
+    seq = 0
+    while clock[0] < 1003.0 - 1e-9:
+        worker._process(seq, frame, 0)
+        seq += 1
+        clock[0] += 0.01
+    assert least <= len(calls) <= most
+    assert len(calls) * cost_s <= 1.5 + 1e-9
