@@ -34,8 +34,10 @@ class SeriesCheck:
     reason : str
         "" when not flagged, else one line saying why.
     unwrap_slip_fraction : float
-        Fraction of the samples valid in both frames where the unwrapped
-        phase change differs from the wrapped one (the images') by 2 pi.
+        Fraction of the samples valid in both frames where, the phase having
+        changed by more than pi since the previous frame, the temporally
+        unwrapped phase differs by 2 pi from this frame's own spatial
+        unwrapping (on the islands that reach the reference region).
     pin_shift_mm : float
         Change of the height offset, measured as the mean height change on the
         previous frame's pin samples (0 when the pin samples did not change;
