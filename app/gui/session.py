@@ -287,8 +287,16 @@ class LiveSession:
             return None
         return self._base_of.get(acq, 0) + f.sequence, f.image, f.host_timestamp_ns
 
-    def capture_reference(self, n_frames: int, timeout_s: Optional[float] = None) -> np.ndarray:
-        """Average the next ``n_frames`` frames (float32, counts); blocks up to ``timeout_s``."""
+    def capture_reference(self, n_frames: int, timeout_s: Optional[float] = None, *,
+                          pattern: str = "checkerboard"):
+        """Average the next ``n_frames`` frames that agree with the first; blocks up to ``timeout_s``.
+
+        Returns ``(reference float32 counts, ReferenceReport)``. Raises
+        :class:`app.gui.model.reference.WaterMovingError` when the frames disagree (the water moves):
+        :class:`~app.gui.model.reference.ReferenceAverager` says by how much.
+        """
+        from .model.reference import ReferenceAverager
+
         acq = self.acquisition
         if acq is None:
             raise RuntimeError("no camera is streaming: open a camera first")
@@ -298,10 +306,10 @@ class LiveSession:
         if timeout_s is None:
             timeout_s = 5.0 + 3.0 * n_frames / rate
         cursor = acq.ring.cursor()
-        total = np.zeros(acq.ring.shape, np.float64)
-        got = 0
+        averager = None
         deadline = time.monotonic() + timeout_s
-        while got < n_frames:
+        while averager is None or len(averager.changes) < n_frames:
+            got = 0 if averager is None else len(averager.changes)
             left = deadline - time.monotonic()
             if left <= 0:
                 raise TimeoutError(f"only {got} of {n_frames} frames arrived within {timeout_s:.1f} s: "
@@ -312,9 +320,23 @@ class LiveSession:
                 raise RuntimeError(f"camera stopped while capturing the reference: {exc}") from None
             if f is None:
                 continue
-            total += f.image
-            got += 1
-        return (total / n_frames).astype(np.float32)
+            if averager is None:
+                averager = ReferenceAverager(self._carriers_of(f.image, pattern))
+            averager.add(f.image)
+        return averager.result()
+
+    @staticmethod
+    def _carriers_of(image, pattern: str):
+        """The first reference frame's carriers (None: random dots, or no checkerboard to find)."""
+        if pattern == "dots":
+            return None
+        from processing.carriers import find_carriers_live
+        from processing.errors import NoCarrierError
+
+        try:
+            return find_carriers_live(image)[0].freq
+        except NoCarrierError:
+            return None  # the reconstructor then refuses the reference with the reason
 
     # ------------------------------------------------------------- status
     def status(self) -> dict:

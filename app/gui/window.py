@@ -526,16 +526,23 @@ class MainWindow(QtWidgets.QMainWindow):
 
     # ---------------------------------------------------------- reference
     def capture_reference(self, n_frames: int):
-        """Average ``n_frames`` new camera frames into the reference (in the background)."""
+        """Average ``n_frames`` new camera frames into the reference (in the background); moving water is refused."""
         self.geometry_panel.reference_label.setText(f"capturing {n_frames} frames…")
 
-        def done(image, error):
+        def done(result, error):
             if error:
-                self.geometry_panel.reference_label.setText("capture failed")
+                kept = " (previous reference kept)" if self.reference is not None else ""
+                self.geometry_panel.reference_label.setText(
+                    ("REFUSED: the water is moving" if "water is moving" in error else "capture failed") + kept)
+                self.geometry_panel.reference_label.setStyleSheet("color: #c00000; font-weight: bold")
                 self.show_error(f"Reference capture failed: {error}")
                 return
-            self.set_reference(image, f"average of {n_frames} frames")
-        self.run_background("reference", self.session.capture_reference, done, int(n_frames))
+            image, report = result
+            self.geometry_panel.reference_label.setStyleSheet("")
+            self.set_reference(image, report.text())
+        pattern = getattr(self.geometry, "pattern", "checkerboard")
+        self.run_background("reference", lambda n: self.session.capture_reference(n, pattern=pattern), done,
+                            int(n_frames))
 
     def set_reference(self, image: np.ndarray, origin: str = "", path: Optional[str] = None) -> bool:
         """Use ``image`` as the flat-surface reference: rebuild the reconstructor (background).
