@@ -114,6 +114,8 @@ class ProbeView(QtWidgets.QWidget):
         self.plot.setTitle("<b>Probes</b> (click the height map)", color="#111", size="10pt")
         self.plot.setLabel("bottom", "time (s)")
         self.plot.setLabel("left", "height (µm)")
+        self.plot.getAxis("left").enableAutoSIPrefix(False)  # already in µm: no "(x1e-06)"
+        self.stale_text = None
         self.plot.showGrid(x=True, y=True, alpha=0.3)
         self.plot.addLegend(offset=(5, 5))
         self.plot.setToolTip("Click the height map to place a probe; drag it to move it, right-click it to "
@@ -122,6 +124,17 @@ class ProbeView(QtWidgets.QWidget):
         lay.setContentsMargins(0, 0, 0, 0)
         lay.addWidget(self.plot)
         map_plot.scene().sigMouseClicked.connect(self._clicked)
+
+    def set_stale(self, text) -> None:
+        """Grey the series and say so in the title while the maps they come from are stale; None: live."""
+        if text == self.stale_text:
+            return
+        self.stale_text = text
+        title = "<b>Probes</b> (click the height map)" if text is None else \
+            f"<b>Probes</b> <span style='color:#a00'>STALE: {text}</span>"
+        self.plot.setTitle(title, color="#111", size="10pt")
+        for probe in self.probes:
+            probe.curve.setOpacity(0.3 if text else 1.0)
 
     def _clicked(self, ev):
         if ev.button() != QtCore.Qt.LeftButton or ev.isAccepted() or ev.double():

@@ -365,10 +365,12 @@ class LiveSession:
 
         The camera keeps running (live view stays on); the recorder writes while
         capturing from its own ring cursor, so the display never slows it down.
-        With ``auto_threshold`` (RMS slope), the processing worker's slope maps
+        With ``auto_threshold`` (RMS slope, dimensionless; the file stores it in mrad with its unit), the processing worker's slope maps
         trigger it (:class:`app.capture.trigger.AutoTrigger`).
         """
         from app.capture.trigger import AutoTrigger, TriggeredCapture
+
+        from .model.recording import mrad, threshold_attrs
 
         acq = self.acquisition
         if acq is None or not acq.running:
@@ -392,7 +394,8 @@ class LiveSession:
                                    source="auto" if auto_threshold else "software", burst=False,
                                    stop_camera=False, progress=progress, geometry_toml=geometry_toml,
                                    reference_image=None if reference is None else np.asarray(reference),
-                                   on_exists="rename")
+                                   on_exists="rename",
+                                   attrs=threshold_attrs(mrad(auto_threshold) if auto_threshold else None))
         status["path"] = str(capture.path)
         self._capture_acq = acq
         self.capture = capture
@@ -413,23 +416,31 @@ class LiveSession:
         return status["path"]
 
     def trigger_now(self) -> int:
-        """Trigger the armed capture on the newest frame; returns its ring sequence."""
+        """Trigger the armed capture on the newest frame (stored as "software": the user fired it)."""
         capture = self.capture
         if capture is None or capture.state != "armed":
             raise RuntimeError("nothing armed: press Arm first")
-        return capture.trigger_now()
+        return capture.trigger_now(source="software")
 
-    def disarm(self):
-        """Cancel an armed capture (a running one keeps what it wrote)."""
+    def disarm(self) -> str:
+        """Cancel an armed capture: before its trigger no file is left; a running one keeps what it wrote.
+
+        Returns what happened, for the panel.
+        """
         capture, self.capture = self.capture, None
         self._drop_auto()
+        text = "disarmed"
         if capture is not None:
             try:
-                capture.cancel(timeout_s=10.0)
+                kept = capture.cancel(timeout_s=10.0)
             finally:
                 if self.recording is not None:
-                    self.recording.update(state="idle", summary_text=f"disarmed; {capture.path} kept "
-                                          f"with {capture.recorder.frames_written} frames")
+                    self.recording.update(state="idle")
+            text = (f"disarmed; {capture.path} kept with {capture.recorder.frames_written} frames" if kept else
+                    "disarmed before the trigger: nothing recorded, no file written")
+            if self.recording is not None:
+                self.recording["summary_text"] = text
+        return text
 
     def _drop_auto(self):
         auto, self._auto_trigger = self._auto_trigger, None

@@ -507,6 +507,8 @@ class ProfileView(QtWidgets.QWidget):
         self.plot.setBackground("w")
         self.plot.setLabel("bottom", "distance along the line (mm)")
         self.plot.setLabel("left", units)
+        for name in ("left", "bottom"):  # already scaled (µm, mm): no SI prefix like "(x1e-06)"
+            self.plot.getAxis(name).enableAutoSIPrefix(False)
         self.plot.showGrid(x=True, y=True, alpha=0.3)
         self.curve = self.plot.plot(pen=pg.mkPen("#1f77b4", width=2))
         self.plot.enableAutoRange(False)  # ranges set explicitly: axes are not redrawn every frame

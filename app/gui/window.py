@@ -19,7 +19,7 @@ import os
 import time
 import traceback
 import weakref
-from typing import Callable, NamedTuple, Optional
+from typing import Callable, Optional
 
 import numpy as np
 import pyqtgraph as pg
@@ -27,10 +27,14 @@ from pyqtgraph.Qt import QtCore, QtWidgets
 
 from . import state
 from .collector import GuiThreadCollector
+from .model.memory import SessionMemory
+from .model.recording import RmsHistory, slope_of_mrad
+from .model.schedule import DISPLAY_MAX_HZ, DrawClock, ExportProgress, LiveRates, ReplayQueue
+from .model.staleness import STALE_AFTER_S, Shown, Staleness, derived_text, view_staleness
 from .panels import CameraPanel, GeometryPanel, RecordingPanel
 from .replay import RECORDING_FILTER, Recording, ReplayTab
 from .session import LiveSession
-from .views import HistogramView, ImageView, ProfileLine, ProfileView, SpectrumView, format_age
+from .views import HistogramView, ImageView, ProfileLine, ProfileView, SpectrumView
 from .widgets import ElidedLabel
 
 __all__ = ["MainWindow"]
@@ -38,10 +42,7 @@ __all__ = ["MainWindow"]
 log = logging.getLogger(__name__)
 
 DISPLAY_PERIOD_MS = 16  # first tick
-DISPLAY_MAX_HZ = 60.0  # the raw camera view refreshes at most this often
-MAPS_MAX_HZ = 30.0  # processed maps (height, slopes, ...) at most this often: leaves time for the raw view
 CONTROLS_WIDTH_PX = 330  # the Controls dock, the same for every section (fits 1280x800 beside the maps)
-STALE_AFTER_S = 1.0  # a view whose data is this much older than expected is marked stale
 
 
 def line_profile(data: np.ndarray, x: np.ndarray, y: np.ndarray, p0, p1):
@@ -79,14 +80,6 @@ def _nz(value, digits: int = 2) -> float:
     """Round for display without showing "-0.00"."""
     v = round(float(value), digits)
     return 0.0 if v == 0 else v
-
-
-class _Shown(NamedTuple):
-    """What a view shows: worker frame number, driver host timestamp (ns), the acquisition it came from."""
-
-    seq: Optional[int]
-    host_ns: int
-    acq: Optional[weakref.ref]
 
 
 class _Bridge(QtCore.QObject):
@@ -149,6 +142,36 @@ class MainWindow(QtWidgets.QMainWindow):
         self._t_created = time.monotonic()
         self.first_frame_s: Optional[float] = None  # window created -> first camera frame on screen
         self.height_error: Optional[dict] = None  # synthetic tank: live heights vs the scene's truth
+        # the window's state, all of it here (app/gui/model/: Qt-free, unit-tested)
+        self.memory = SessionMemory.load()  # what the session remembers (app/gui/state.py fills the widgets)
+        self.reference_path: Optional[str] = None  # the file of the reference in use (None: captured)
+        self._reference_text = ""
+        self._reference_epoch = 0  # counts reconstructors installed: maps of an older one are stale
+        self._reference_since_seq = -1  # frames after this one are measured against the newest reference
+        self.scene_wanted: Optional[str] = None
+        self.clock = DrawClock()
+        self.rates = LiveRates(STALE_AFTER_S)
+        self.replay_queue = ReplayQueue()
+        self.export = ExportProgress()
+        self.rms_history = RmsHistory()  # the auto-trigger's quantity on the live maps
+        self.stale = Staleness()
+        self._raw_shown: Optional[Shown] = None
+        self._maps_shown: Optional[Shown] = None
+        self._align_shown: Optional[Shown] = None
+        self._unmeasured = None  # a newer frame the worker could not measure
+        self._overlay_rect = None
+        self._hist_count = 0
+        self._shown_camera_error: Optional[str] = None
+        self.alignment_ready = False
+        self.alignment_metrics: dict = {}
+        self.profile_line_mm = None
+        self.camera_fps_shown = 0.0
+        self.last_snapshot = None
+        self.replay_last_result = None
+        self.close_question = None
+        self.actions_by_name: dict = {}  # app/gui/menus.py
+        self.help_box = None
+        self.movie_result = None  # app/gui/export.py
         # the camera to open (the given one, else the last session's) starts opening while the window is built
         camera_id = state.camera_to_open(self, camera_id)
         if open_at_start:
@@ -169,6 +192,11 @@ class MainWindow(QtWidgets.QMainWindow):
         state.restore_early(self)
         if open_at_start:
             self._show_opening(camera_id)
+
+    @property
+    def export_result(self):
+        """None while a replay export runs, then ``("done", path)`` or ``("error", message)``."""
+        return None if self.export.state == "running" else self.export.result
 
     # ------------------------------------------------------------------ UI
     def _build_ui(self):
@@ -608,7 +636,7 @@ class MainWindow(QtWidgets.QMainWindow):
             self.session.worker.set_reconstructor(rec)
             self.pin_overlay.set_reconstructor(rec)
             self.session.reference = reference
-            text = getattr(self, "_reference_text", "reference")
+            text = self._reference_text or "reference"
             try:
                 c = rec.carriers
                 periods = getattr(c, "periods_px", None)
@@ -803,7 +831,7 @@ class MainWindow(QtWidgets.QMainWindow):
         """Arm a pre/post-trigger recording into the chosen folder."""
         rp = self.recording_panel
         folder = rp.folder.text().strip() or os.getcwd()
-        threshold = rp.threshold.value() if rp.auto.isChecked() else None
+        threshold = slope_of_mrad(rp.threshold.value()) if rp.auto.isChecked() else None
         geometry_toml = self.geometry.to_toml_text() if self.geometry is not None else None
         try:
             path = self.session.arm(folder, rp.pre.value(), rp.post.value(), reference=self.reference,
@@ -823,10 +851,12 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def disarm(self):
         try:
-            self.session.disarm()
+            text = self.session.disarm()
         except Exception as exc:  # noqa: BLE001
+            text = "disarm failed"
             self.show_error(f"Disarm failed: {exc}")
         self.recording_panel.set_state("idle")
+        self.recording_panel.result_label.setText(text)
 
     def _update_recording(self):
         rec = self.session.recording_status()
@@ -916,16 +946,15 @@ class MainWindow(QtWidgets.QMainWindow):
                                         + (f"  (trigger {rel:+d})" if rel is not None else "")
                                         + (f"  t = {when * 1e3:+.4f} ms from the {rec.time_origin}"
                                            if math.isfinite(when) else ""))
-        self._replay_wanted = (frame, int(index))
+        self.replay_queue.want(frame, int(index))
         self._process_replay_frame()
 
     def _process_replay_frame(self):
         """Reconstruct the wanted replay frame in the background (newest request only; never in the GUI thread)."""
         r = self._replay_reconstructor
-        wanted = getattr(self, "_replay_wanted", None)
-        if r is None or wanted is None or self.busy("replay-frame"):
+        wanted = self.replay_queue.take(ready=r is not None and not self.busy("replay-frame"))
+        if wanted is None:
             return  # a running job picks up the newest wanted frame when it ends
-        self._replay_wanted = None
         frame, index = wanted
         rec = self.replay_recording
 
@@ -965,11 +994,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self.replay.progress.setRange(0, 100)  # the batch reports every frame written; _refresh shows it
         self.replay.progress.setValue(0)
         self.replay.message.setText(f"exporting {rec.n_frames} frames to {out_path}…")
-        self._export_progress = 0.0
-        self.export_result = None
-
-        def progress(done, total):
-            self._export_progress = done / max(total, 1)
+        self.export.start()
+        progress = self.export.progress
 
         geometry_toml = rec.geometry_toml or (self.geometry.to_toml_text() if self.geometry else None)
 
@@ -980,15 +1006,18 @@ class MainWindow(QtWidgets.QMainWindow):
                                          progress=progress)
 
         def done(result, error):
-            self._export_progress = 1.0 if not error else self._export_progress
+            self.export.finish(("error", error) if error else ("done", out_path))
             self.replay.progress.setRange(0, 100)
-            self.replay.progress.setValue(int(100 * self._export_progress))
+            self.replay.progress.setValue(int(100 * self.export.fraction))
             if error:
                 self.show_error(f"Export failed: {error}\nFrames exported before the error are kept in {out_path}.")
-                self.export_result = ("error", error)
                 return
-            self.export_result = ("done", out_path)
-            self.replay.message.setText(f"heights exported to {out_path}")
+            from .export import describe_export
+
+            text, clean = describe_export(out_path)
+            self.replay.message.setText(text)
+            self.replay.message.setStyleSheet("" if clean else "color: #b00000; font-weight: bold")
+            self.info(text, 20000)
         self.run_background("export", job, done)
 
     # ------------------------------------------------------------ refresh
@@ -998,15 +1027,9 @@ class MainWindow(QtWidgets.QMainWindow):
     def _refresh(self):
         """Draw the newest frame/result; re-arm the single-shot timer afterwards."""
         now = time.perf_counter()
-        if getattr(self, "export_result", "idle") is None:  # an export is running in the background
-            self.replay.progress.setValue(int(100 * self._export_progress))
-        # fixed cadence of at most 60 Hz: the next tick is due one period after this one was due,
-        # so drawing and painting time does not stretch the period; a late tick never piles up
-        period = 1.0 / DISPLAY_MAX_HZ
-        due = getattr(self, "_next_due", now) + period
-        if due < now - period:  # more than a period late (a long paint): restart the cadence from now
-            due = now
-        self._next_due = due  # ticks stay >= one period apart on average: never above 60 Hz
+        if self.export.state == "running":  # an export is running in the background
+            self.replay.progress.setValue(int(100 * self.export.fraction))
+        self.clock.tick(now)  # <= 60 Hz at a fixed cadence; a late tick never piles up (model/schedule.py)
         try:
             if not (self.pause_box.isChecked() or self.frozen):
                 self._draw()
@@ -1014,7 +1037,7 @@ class MainWindow(QtWidgets.QMainWindow):
             log.exception("display refresh failed")
         finally:
             if not self._closing:
-                wait_ms = 1e3 * (due - time.perf_counter())
+                wait_ms = 1e3 * self.clock.wait_s(time.perf_counter())
                 self._display_timer.start(max(1, int(round(wait_ms))))
 
     def _draw(self):
@@ -1036,19 +1059,19 @@ class MainWindow(QtWidgets.QMainWindow):
                 self.latency_ms = (time.monotonic_ns() - host_ns) / 1e6 if host_ns else float("nan")
                 self._shown += 1
         p = self.session.worker.latest()
-        maps_due = time.monotonic() - getattr(self, "_maps_t", 0.0) >= 1.0 / MAPS_MAX_HZ
-        second_half, self._second_half = getattr(self, "_second_half", None), None
+        maps_due = self.clock.maps_due(time.monotonic())
+        second_half = self.clock.take_second_half()
         if second_half is not None and tab == 0:
             # the other half of the maps of the result drawn on the previous tick: spreading the
             # work over two ticks keeps every tick short, so the raw view keeps its cadence
             self._draw_result(second_half, part=1)
         elif p is not None and p.seq != self._last_result_seq and tab in (0, 1) and maps_due:
-            self._maps_t = time.monotonic()
             self._last_result_seq = p.seq
             if tab == 0:
                 self._draw_result(p, part=0)
-                self._second_half = p
+                self.clock.maps_drawn(time.monotonic(), p)
             else:
+                self.clock.maps_drawn(time.monotonic(), None)
                 self._draw_alignment(p)
             self.result_latency_ms = (time.monotonic_ns() - p.host_timestamp_ns) / 1e6 if p.host_timestamp_ns \
                 else float("nan")
@@ -1067,20 +1090,19 @@ class MainWindow(QtWidgets.QMainWindow):
         view = self.raw_view if tab == 0 else self.align_raw_view
         # auto: the sensor's full range (saturation visible at a glance); a typed range is kept
         view.set_data(image, levels=(0.0, top) if view.auto_levels else None, stamp_ns=host_ns, frame_id=seq)
-        self._raw_shown = _Shown(seq, host_ns, self._acquisition_ref())
+        self._raw_shown = self._shown_now(seq, host_ns)
         view.set_stale(None)
         if tab == 0:
             k = view.stride
             sub = image[::k, ::k] if k > 1 else image
             mask = (sub >= top).view(np.uint8)
             self.saturation_overlay.setImage(mask, autoLevels=False, levels=(0, 1))
-            if self.saturation_overlay.width() != sub.shape[1] or not getattr(self, "_overlay_rect", None) == \
-                    (image.shape, k):
+            if self.saturation_overlay.width() != sub.shape[1] or not self._overlay_rect == (image.shape, k):
                 self.saturation_overlay.setRect(QtCore.QRectF(0, 0, image.shape[1], image.shape[0]))
                 self._overlay_rect = (image.shape, k)
             p = self.session.worker.latest()
             sat = p.saturation_pct if p is not None else 0.0
-            self._hist_count = getattr(self, "_hist_count", 0) + 1
+            self._hist_count += 1
             if self._hist_count % 6 == 0:  # ~10 Hz is plenty for a histogram
                 self.histogram.set_image(image, bits, sat)
 
@@ -1107,7 +1129,7 @@ class MainWindow(QtWidgets.QMainWindow):
             self.last_drawn = p
             self.pin_overlay.update(r)
             self._unmeasured = None
-            self._maps_shown = _Shown(seq, p.host_timestamp_ns, self._acquisition_ref())
+            self._maps_shown = self._shown_now(seq, p.host_timestamp_ns)
             height_um = np.multiply(r.height, 1e3, dtype=np.float32)
             self.height_view.set_data(height_um, x=x, y=y, stamp_ns=p.host_timestamp_ns, frame_id=seq)
             self.valid_view.set_data(r.valid.astype(np.float32), x=x, y=y, levels=(0.0, 1.0), frame_id=seq)
@@ -1137,7 +1159,7 @@ class MainWindow(QtWidgets.QMainWindow):
         a = p.alignment
         if a is None:
             return
-        self._align_shown = _Shown(p.seq, p.host_timestamp_ns, self._acquisition_ref())
+        self._align_shown = self._shown_now(p.seq, p.host_timestamp_ns)
         for v in (self.spectrum_view, self.modulation_view):
             v.set_stale(None)
         if p.spectrum is not None:
@@ -1200,8 +1222,8 @@ class MainWindow(QtWidgets.QMainWindow):
         err = st.get("error")
         now = time.monotonic()
         # rates fall to 0 when nothing new arrives (a lost camera keeps its last measured rate otherwise)
-        camera_fps = self._live_rate("camera", self._frames_acquired(), st.get("camera_fps", 0.0), now)
-        processed_fps = self._live_rate("processed", w.processed, w.fps, now)
+        camera_fps = self.rates.rate("camera", self._frames_acquired(), st.get("camera_fps", 0.0), now)
+        processed_fps = self.rates.rate("processed", w.processed, w.fps, now)
         if err or self.session.acquisition is None:
             camera_fps = 0.0
         if err:
@@ -1227,7 +1249,7 @@ class MainWindow(QtWidgets.QMainWindow):
         lab["device"].setText(device_text.split(" (")[0])
         lab["device"].setToolTip(f"live reconstruction on the {device_text}" if device_text else "")
         self._update_staleness()
-        if err and err != getattr(self, "_shown_camera_error", None):
+        if err and err != self._shown_camera_error:
             self._shown_camera_error = err
             from .camera_messages import explain_open_error, is_controlled_elsewhere
             if is_controlled_elsewhere(err):  # another program holds the camera: say so, not "check the cable"
@@ -1241,77 +1263,47 @@ class MainWindow(QtWidgets.QMainWindow):
 
 
     # ------------------------------------------- staleness, pause, snapshot
-    def _acquisition_ref(self):
+    def _shown_now(self, seq, host_ns) -> Shown:
+        """What a view showing frame ``seq`` now shows (model/staleness.py decides when it is stale)."""
         acq = self.session.acquisition
-        return weakref.ref(acq) if acq is not None else None
+        measured_with = self._reference_epoch if seq is None or seq > self._reference_since_seq \
+            else self._reference_epoch - 1
+        return Shown(seq, host_ns, weakref.ref(acq) if acq is not None else None, self._camera_key(),
+                     measured_with)
+
+    def _camera_key(self):
+        """The open camera and its region of interest: maps of another ROI are stale for another reason."""
+        s = self.session.camera_settings()
+        roi = tuple(getattr(s, k, None) for k in ("offset_x", "offset_y", "width", "height")) if s else None
+        return self.session.camera_id, roi
 
     def _frames_acquired(self):
         """A counter that changes with every frame the camera delivers (which acquisition, how many)."""
         acq = self.session.acquisition
         return None if acq is None else (id(acq), acq.acquired)
 
-    def _live_rate(self, key: str, counter, measured: float, now: float) -> float:
-        """``measured`` while ``counter`` keeps changing; 0 once it has not changed for a second."""
-        rates = self.__dict__.setdefault("_rates", {})
-        last = rates.get(key)
-        if last is None or last[0] != counter:
-            rates[key] = (counter, now)
-            return float(measured) if last is not None else 0.0
-        return float(measured) if now - last[1] < STALE_AFTER_S else 0.0
-
-    def _why_stale(self, shown: Optional[_Shown], acq) -> Optional[str]:
-        """Why data from ``shown`` is not the camera's present (None: it is)."""
-        if shown is None:
-            return None
-        source = shown.acq() if shown.acq is not None else None
-        if source is None or source is not acq:
-            return "camera closed" if acq is None else "from the previous camera"
-        if acq.error:
-            return "camera lost"
-        return None
-
     def _update_staleness(self) -> None:
         """Grey out and label every view whose data is not the newest the camera gave (ages refreshed 4x/s)."""
         if self.pause_box.isChecked() or self.frozen:
             return  # the user froze the views on purpose
-        now_ns = time.monotonic_ns()
-        acq = self.session.acquisition
-        raw = getattr(self, "_raw_shown", None)
-        raw_text = None
-        if raw is not None:
-            age = (now_ns - raw.host_ns) / 1e9 if raw.host_ns else 0.0
-            why = self._why_stale(raw, acq)
-            rate = getattr(self.session.camera_settings(), "frame_rate_hz", None) or 10.0
-            if why is None and age > max(STALE_AFTER_S, 3.0 / rate):
-                why = "no newer frame"
-            raw_text = f"{why} — {format_age(raw.seq, age)}" if why else None
+        unmeasured = self._unmeasured
+        self.stale = view_staleness(
+            time.monotonic_ns(), self.session.acquisition, raw=self._raw_shown, maps=self._maps_shown,
+            alignment=self._align_shown, unmeasured_seq=None if unmeasured is None else unmeasured.seq,
+            frame_rate_hz=getattr(self.session.camera_settings(), "frame_rate_hz", None),
+            camera_key=self._camera_key(),
+            reference_key=self._reference_epoch if self.session.worker.reconstructor is not None else None)
         for v in (self.raw_view, self.align_raw_view):
-            v.set_stale(raw_text)
-        maps = getattr(self, "_maps_shown", None)
-        maps_text = None
-        if maps is not None:
-            age = (now_ns - maps.host_ns) / 1e9 if maps.host_ns else 0.0
-            why = self._why_stale(maps, acq)
-            unmeasured = getattr(self, "_unmeasured", None)
-            if why is None and unmeasured is not None and unmeasured.seq > maps.seq:
-                why = f"newer frame {unmeasured.seq} not measured"
-            elif why is None and raw is not None and raw.seq is not None and raw.seq > maps.seq \
-                    and raw.host_ns - maps.host_ns > STALE_AFTER_S * 1e9:
-                why = "processing behind the camera"
-            maps_text = f"{why} — {format_age(maps.seq, age)}" if why else None
-        for v in self.map_views:
-            v.set_stale(maps_text)
-        self.profile_view.set_stale(maps_text)
-        align = getattr(self, "_align_shown", None)  # spectrum and contrast map (refreshed 4x a second)
-        align_text = None
-        if align is not None:
-            age = (now_ns - align.host_ns) / 1e9 if align.host_ns else 0.0
-            why = self._why_stale(align, acq)
-            if why is None and raw is not None and raw.host_ns - align.host_ns > 2 * STALE_AFTER_S * 1e9:
-                why = "not refreshed"
-            align_text = f"{why} — {format_age(align.seq, age)}" if why else None
+            v.set_stale(self.stale.raw)
+        for v in (*self.map_views, self.profile_view, self.probe_view):
+            v.set_stale(self.stale.maps)
         for v in (self.spectrum_view, self.modulation_view):
-            v.set_stale(align_text)
+            v.set_stale(self.stale.alignment)
+        rp = self.recording_panel  # the auto-trigger's quantity, from the maps on screen: their age too
+        text, old = derived_text(self.rms_history.readout(), self.stale.maps, measured_seq=self.rms_history.seq,
+                                 maps_seq=self._maps_shown.seq if self._maps_shown is not None else None)
+        rp.rms_label.setText(text)
+        rp.rms_label.setStyleSheet("color: #888" if old else "")
 
     def _pause_toggled(self, paused: bool) -> None:
         """Pause: finish drawing the maps of the frame on screen and show its raw frame, so all views show one frame."""
@@ -1320,7 +1312,7 @@ class MainWindow(QtWidgets.QMainWindow):
             for v in views:
                 v.show_paused(None)
             return
-        pending, self._second_half = getattr(self, "_second_half", None), None
+        pending = self.clock.take_second_half()
         if pending is not None:
             self._draw_result(pending, part=1)
         p = self.last_drawn
@@ -1345,7 +1337,7 @@ class MainWindow(QtWidgets.QMainWindow):
             folder = os.path.join(self.recording_panel.folder.text().strip() or os.getcwd(), "snapshots")
         meta = {"camera_id": self.session.camera_id or "", "paused": bool(self.pause_box.isChecked()),
                 "stale": self.height_view.stale_text or "",
-                "reference": getattr(self, "_reference_text", "") or "",
+                "reference": self._reference_text,
                 "geometry_toml": self.geometry.to_toml_text() if self.geometry is not None else "",
                 "colour_levels": {v.units: v.levels for v in self.map_views}}
         try:
