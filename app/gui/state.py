@@ -37,14 +37,16 @@ from .model.memory import threshold_mrad
 
 log = logging.getLogger(__name__)
 
-__all__ = ["camera_to_open", "restore_early", "camera_opened", "save", "confirm_geometry", "geometry_in_use",
+__all__ = ["map_views", "camera_to_open", "restore_early", "camera_opened", "save", "confirm_geometry",
+           "geometry_in_use",
            "reference_in_use", "remember_camera_settings", "save_experiment", "open_experiment", "update_truth"]
 
 _SETTING_NAMES = ("exposure_us", "gain_db", "frame_rate_hz", "offset_x", "offset_y", "width", "height",
                   "pixel_format", "trigger_mode", "trigger_source", "trigger_activation")
 
 
-def _views(w) -> dict:
+def map_views(w) -> dict:
+    """The maps by name (height, displacement, slope_x, slope_y): remembered colour ranges, snapshots."""
     return {"height": w.height_view, "displacement": w.disp_view, "slope_x": w.slope_x_view,
             "slope_y": w.slope_y_view}
 
@@ -90,7 +92,7 @@ def restore_early(w) -> None:
             w.geometry_panel.n_average.setValue(int(mem["n_average"]))
         levels = mem.get("levels") or {}
         fixed = []
-        for name, view in _views(w).items():
+        for name, view in map_views(w).items():
             lv = levels.get(name)
             if lv is not None and len(lv) == 2 and lv[0] < lv[1]:
                 view.set_levels((float(lv[0]), float(lv[1])))
@@ -271,7 +273,7 @@ def save(w) -> None:
                         "folder": rp.folder.text().strip(), "auto_trigger": rp.auto.isChecked(),
                         "threshold_mrad": rp.threshold.value()}
     mem["n_average"] = w.geometry_panel.n_average.value()
-    mem["levels"] = {name: (None if v.auto_levels else list(v.levels)) for name, v in _views(w).items()}
+    mem["levels"] = {name: (None if v.auto_levels else list(v.levels)) for name, v in map_views(w).items()}
     mem["window"] = {"geometry": base64.b64encode(bytes(w.saveGeometry())).decode("ascii"),
                      "state": base64.b64encode(bytes(w.saveState())).decode("ascii"),
                      "side": w.side.currentIndex()}

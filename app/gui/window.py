@@ -26,6 +26,8 @@ import pyqtgraph as pg
 from pyqtgraph.Qt import QtCore, QtWidgets
 
 from . import state
+from app.capture.trigger import rms_slope
+
 from .collector import GuiThreadCollector
 from .model.memory import SessionMemory
 from .model.recording import RmsHistory, slope_of_mrad
@@ -376,6 +378,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.recording_panel.trigger_requested.connect(self.trigger_now)
         self.recording_panel.browse_requested.connect(self._choose_folder)
         self.recording_panel.lengths_changed.connect(self._update_cost)
+        self.recording_panel.set_from_now_requested.connect(self.threshold_from_now)
         self.recording_panel.folder.setText(os.getcwd())
         self.camera_panel.scene_requested.connect(self.set_scene)
         self.geometry_panel.confirm_geometry_requested.connect(self.confirm_geometry)
@@ -843,6 +846,18 @@ class MainWindow(QtWidgets.QMainWindow):
         rp.result_label.setText(f"armed: will write {path}")
         rp.set_state("armed")
 
+    def threshold_from_now(self) -> Optional[float]:
+        """"Set from now": the auto-trigger threshold = 5 x the recent RMS slope of the live maps (mrad)."""
+        proposal = self.rms_history.propose_mrad()
+        if proposal is None or self.stale.maps is not None:
+            self.show_error("No live slope maps to set the threshold from: capture a reference on still water "
+                            "(Controls ▸ Reference & geometry) and let the maps run, then press Set from now.")
+            return None
+        self.recording_panel.threshold.setValue(proposal)
+        self.info(f"auto-trigger threshold {self.recording_panel.threshold.value():.3g} mrad: 5 × the recent "
+                  f"RMS slope ({self.rms_history.readout()})")
+        return proposal
+
     def trigger_now(self):
         try:
             self.session.trigger_now()
@@ -1141,6 +1156,7 @@ class MainWindow(QtWidgets.QMainWindow):
             self.disp_view.set_data(np.hypot(u[0], u[1]).astype(np.float32), x=x, y=y, frame_id=seq)
             self.slope_x_view.set_data(np.multiply(r.slope_x, 1e3, dtype=np.float32), x=x, y=y, frame_id=seq)
             self.slope_y_view.set_data(np.multiply(r.slope_y, 1e3, dtype=np.float32), x=x, y=y, frame_id=seq)
+            self.rms_history.add(rms_slope(r.slope_x, r.slope_y), seq)  # what the auto-trigger compares
             if not self.height_view.is_stale:
                 for v in views:
                     v.set_stale(None)
@@ -1339,7 +1355,8 @@ class MainWindow(QtWidgets.QMainWindow):
                 "stale": self.height_view.stale_text or "",
                 "reference": self._reference_text,
                 "geometry_toml": self.geometry.to_toml_text() if self.geometry is not None else "",
-                "colour_levels": {v.units: v.levels for v in self.map_views}}
+                "colour_levels": {name: [float(v) for v in view.levels] for name, view in state.map_views(self).items()},
+                "colour_units": {name: view.units for name, view in state.map_views(self).items()}}
         try:
             png, h5 = write_snapshot(folder, self.grab().toImage(), self.last_drawn, meta)
         except Exception as exc:  # noqa: BLE001 - disk full, no permission: shown

@@ -62,3 +62,90 @@ def test_reference_on_moving_water_is_refused_and_still_water_accepted(qtbot):
     qtbot.waitUntil(lambda: "✓" in w.geometry_panel.reference_label.text(), timeout=30000)
     assert w.last_error is None
     assert "5 of 5 frames averaged" in w.geometry_panel.reference_label.text()
+
+
+# --------------------------------------------------------------- recording tells the truth
+from tests.app.test_gui import SHAPE as BUMP_SHAPE, Switchable, _wait_reconstructor, scene  # noqa: E402,F401
+
+
+def _live(qtbot, window, scene, tmp_path):
+    from drivers.synthetic import SyntheticCamera
+
+    frames = Switchable(scene["flat"])
+    window.use_camera(SyntheticCamera(frames, frame_rate_hz=50.0), geometry=scene["geometry"],
+                      reference=scene["flat"])
+    _wait_reconstructor(qtbot, window)
+    qtbot.waitUntil(lambda: window.last_drawn is not None and bool(window.rms_history.values), timeout=10000)
+    window.recording_panel.folder.setText(str(tmp_path))
+    window.activateWindow()
+    qtbot.waitUntil(window.isActiveWindow, timeout=3000)
+    return frames
+
+
+def test_disarm_leaves_no_file_no_error_and_the_panel_stops_saying_armed(qtbot, window, scene, tmp_path, caplog):
+    """Finding 5: Arm then Disarm before any trigger: no file, no ERROR in the log, the panel says what happened."""
+    import logging
+
+    _live(qtbot, window, scene, tmp_path)
+    rp = window.recording_panel
+    rp.pre.setValue(5)
+    rp.post.setValue(60)
+    caplog.set_level(logging.INFO)
+    rp.arm_button.click()
+    assert rp.state_label.text() == "armed" and rp.result_label.text().startswith("armed: will write")
+    assert list(tmp_path.glob("*.h5"))  # the file is reserved while armed
+    rp.disarm_button.click()
+    qtbot.waitUntil(lambda: rp.state_label.text() == "idle", timeout=5000)
+    window._update_status()  # one status tick: nothing comes back as "armed" or as an error
+    assert list(tmp_path.glob("*.h5")) == []
+    assert not [r for r in caplog.records if r.levelno >= logging.ERROR], [r.getMessage() for r in caplog.records]
+    assert "will write" not in rp.result_label.text() and "no file written" in rp.result_label.text()
+    assert window.last_error is None and rp.arm_button.isEnabled()
+
+
+def test_ctrl_t_with_auto_trigger_ticked_is_stored_as_software_with_the_threshold_unit(qtbot, window, scene,
+                                                                                        tmp_path):
+    """Findings 6 and 7: the file says what fired it and the threshold's unit; the readout shows the quantity."""
+    _live(qtbot, window, scene, tmp_path)
+    rp = window.recording_panel
+    rp.pre.setValue(3)
+    rp.post.setValue(5)
+    rp.auto.setChecked(True)
+    rp.threshold.setValue(500.0)  # mrad: far above still water, never fires by itself
+    assert rp.rms_label.text().startswith("now ") and "mrad" in rp.rms_label.text()
+    rp.arm_button.click()
+    assert rp.state_label.text() == "armed", window.last_error
+    ring = window.session.acquisition.ring
+    head = ring.head
+    qtbot.waitUntil(lambda: ring.head >= head + 5, timeout=5000)
+    QtTest.QTest.keyClick(window, QtCore.Qt.Key_T, QtCore.Qt.ControlModifier)
+    qtbot.waitUntil(lambda: rp.state_label.text() in ("done", "error"), timeout=15000)
+    assert rp.state_label.text() == "done", window.last_error
+    import h5py
+
+    with h5py.File(window.session.recording["path"], "r") as f:
+        assert f.attrs["trigger_source"] == "software"
+        assert float(f.attrs["auto_trigger_threshold"]) == pytest.approx(500.0)
+        assert f.attrs["auto_trigger_threshold_unit"] == "mrad RMS slope"
+
+
+def test_set_from_now_proposes_five_times_the_live_rms_slope(qtbot, window, scene, tmp_path):
+    """Finding 7: "Set from now" on the bump proposes 5 x its RMS slope (mrad), and the readout shows that RMS."""
+    from app.capture.trigger import rms_slope
+
+    frames = _live(qtbot, window, scene, tmp_path)
+    frames.image = scene["bump"]
+    qtbot.waitUntil(lambda: window.last_drawn is not None and np.array_equal(window.last_drawn.image, scene["bump"])
+                    and len(window.rms_history.values) >= 3
+                    and window.rms_history.seq >= window.last_drawn.seq, timeout=10000)
+    # only bumped maps in the history: the median is the bump's RMS slope
+    window.rms_history.values.clear()
+    qtbot.waitUntil(lambda: len(window.rms_history.values) >= 3, timeout=10000)
+    r = window.last_drawn.result
+    rms_mrad = 1e3 * rms_slope(r.slope_x, r.slope_y)
+    assert 0.01 < rms_mrad < 1.0  # the 2 um bump: about 0.07 mrad over the map
+    window._update_staleness()
+    shown = float(window.recording_panel.rms_label.text().split()[1])
+    assert shown == pytest.approx(rms_mrad, rel=0.05)
+    window.recording_panel.set_from_now_button.click()
+    assert window.recording_panel.threshold.value() == pytest.approx(5 * rms_mrad, rel=0.05)
