@@ -267,6 +267,13 @@ class LiveSession:
                 ids.pop(old, None)
         return seq, f.image, f.host_timestamp_ns
 
+    def newest_seq(self) -> Optional[int]:
+        """The number (as ``Processed.seq``) of the newest frame in the ring, None if none; copies nothing."""
+        acq = self.acquisition
+        if acq is None or acq.ring.head == 0:
+            return None
+        return self._base_of.get(acq, 0) + acq.ring.head - 1
+
     def latest_frame(self):
         """``(seq, image, host_ns)`` of the newest frame in the ring, copied; None if none. Never blocks.
 

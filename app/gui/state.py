@@ -34,6 +34,7 @@ from typing import Optional
 import numpy as np
 
 from .model.memory import threshold_mrad
+from .model.staleness import derived_text
 
 log = logging.getLogger(__name__)
 
@@ -378,8 +379,14 @@ def update_truth(w) -> None:
     e["seq"] = p.seq
     w.height_error = e
     if np.isfinite(e["rel_rms"]):
-        lab.setText(f"vs truth {100 * e['rel_rms']:.1f} % rel. RMS ({e['scene']})")
+        text = f"vs truth {100 * e['rel_rms']:.1f} % rel. RMS ({e['scene']})"
     else:
-        lab.setText(f"vs truth {1e3 * e['rms_error_mm']:.3f} µm RMS ({e['scene']})")
+        text = f"vs truth {1e3 * e['rms_error_mm']:.3f} µm RMS ({e['scene']})"
+    # derived from the maps on screen: as old as they are, and greyed with them (app/gui/model/staleness.py)
+    shown = w.maps_shown_seq()
+    text, old = derived_text(text, w.stale.maps, measured_seq=p.seq, maps_seq=p.seq if shown is None else shown)
+    e["stale"] = old
+    lab.setText(text)
+    lab.setStyleSheet("padding: 0 4px; color: #888" if old else "padding: 0 4px")
     lab.setToolTip("Synthetic tank: RMS of (measured − true height) on the live grid, offset removed, "
                    "over the RMS of the true height")

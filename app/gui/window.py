@@ -636,6 +636,9 @@ class MainWindow(QtWidgets.QMainWindow):
                 return
             if reference is not self.reference or geometry is not self.geometry:
                 return  # superseded by a newer reference/geometry
+            newest = self.session.newest_seq()  # later frames are measured against this reference
+            self._reference_since_seq = newest if newest is not None else self._last_raw_seq
+            self._reference_epoch += 1
             self.session.worker.set_reconstructor(rec)
             self.pin_overlay.set_reconstructor(rec)
             self.session.reference = reference
@@ -1286,6 +1289,10 @@ class MainWindow(QtWidgets.QMainWindow):
             else self._reference_epoch - 1
         return Shown(seq, host_ns, weakref.ref(acq) if acq is not None else None, self._camera_key(),
                      measured_with)
+
+    def maps_shown_seq(self) -> Optional[int]:
+        """The frame the processed maps on screen show (None: none yet)."""
+        return None if self._maps_shown is None else self._maps_shown.seq
 
     def _camera_key(self):
         """The open camera and its region of interest: maps of another ROI are stale for another reason."""

@@ -149,3 +149,24 @@ def test_set_from_now_proposes_five_times_the_live_rms_slope(qtbot, window, scen
     assert shown == pytest.approx(rms_mrad, rel=0.05)
     window.recording_panel.set_from_now_button.click()
     assert window.recording_panel.threshold.value() == pytest.approx(5 * rms_mrad, rel=0.05)
+
+
+def test_vs_truth_in_the_status_bar_carries_the_age_of_the_maps(qtbot, tmp_path):
+    """Finding 3: once the maps stop being measured, "vs truth" says stale (greyed) like them, not live."""
+    import tifffile
+
+    w = _window(qtbot)
+    w.geometry_panel.n_average.setValue(3)
+    _ctrl(w, QtCore.Qt.Key_R)
+    qtbot.waitUntil(lambda: "✓" in w.geometry_panel.reference_label.text(), timeout=30000)
+    truth = w.status_labels["truth"]
+    qtbot.waitUntil(lambda: truth.text().startswith("vs truth") and "stale" not in truth.text()
+                    and w.height_error is not None and not w.height_error["stale"], timeout=20000)
+    # a reference without a pattern: refused, nothing is measured any more; the maps on screen get old
+    noise = np.random.default_rng(3).integers(0, 256, SHAPE, dtype=np.uint8)
+    tifffile.imwrite(tmp_path / "noise.tif", noise)
+    w.load_reference(str(tmp_path / "noise.tif"))
+    qtbot.waitUntil(lambda: w.height_view.is_stale, timeout=20000)
+    qtbot.waitUntil(lambda: "(stale: " in truth.text(), timeout=5000)
+    assert w.height_error["stale"] and "#888" in truth.styleSheet()
+    assert w.height_view.stale_text in truth.text()  # the same words, the same age as the maps
