@@ -157,6 +157,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.export = ExportProgress()
         self.rms_history = RmsHistory()  # the auto-trigger's quantity on the live maps
         self.stale = Staleness()
+        self.pattern_problem: Optional[str] = None  # the reference does not show the chosen pattern
         self._raw_shown: Optional[Shown] = None
         self._maps_shown: Optional[Shown] = None
         self._align_shown: Optional[Shown] = None
@@ -627,7 +628,14 @@ class MainWindow(QtWidgets.QMainWindow):
             rec.device_text = text
             return rec
 
-        def done(rec, error):
+        def build_checked():
+            from .alignment import periodic_pattern
+
+            rec = build()
+            return rec, (periodic_pattern(reference) if getattr(geometry, "pattern", "") == "dots" else None)
+
+        def done(built, error):
+            rec, problem = built if built is not None else (None, None)
             if error:
                 self.session.worker.set_reconstructor(None)
                 self.pin_overlay.set_reconstructor(None)
@@ -650,10 +658,17 @@ class MainWindow(QtWidgets.QMainWindow):
                     text += " — periods " + ", ".join(f"{p:.2f}" for p in np.ravel(periods)) + " px"
             except Exception:  # noqa: BLE001 - information only
                 pass
+            self.pattern_problem = problem
+            if problem:  # every height would be wrong: red where the user looks, not a tick
+                self.geometry_panel.reference_label.setText(text + " — NOT the chosen pattern")
+                self.geometry_panel.reference_label.setStyleSheet("color: #c00000; font-weight: bold")
+                self.show_error(f"The reference does not show random dots: {problem}")
+                state.reference_in_use(self)
+                return
             self.geometry_panel.reference_label.setText(text + " ✓")
             self.clear_error()
             state.reference_in_use(self)
-        self.run_background("reconstructor", build, done)
+        self.run_background("reconstructor", build_checked, done)
 
     def _choose_save_reference(self):
         if self.reference is None:
@@ -1231,7 +1246,8 @@ class MainWindow(QtWidgets.QMainWindow):
         """Decide "ready to measure": ``(ready, reasons, table lines, notes)`` (app/gui/alignment.py)."""
         from .alignment import assess
 
-        return assess(a, saturation_pct, self.geometry, self.session.worker.reconstructor is not None)
+        return assess(a, saturation_pct, self.geometry, self.session.worker.reconstructor is not None,
+                      self.pattern_problem)
 
     # ------------------------------------------------------------- status
     def _update_status(self):

@@ -26,6 +26,7 @@ def _window(qtbot, **kw):
     w.resize(1600, 1000)
     w.show()
     qtbot.waitUntil(lambda: w.first_frame_s is not None, timeout=20000)
+    qtbot.waitUntil(lambda: not w.busy("open") and w.geometry is not None, timeout=20000)  # the tank's own geometry
     w.activateWindow()
     qtbot.waitUntil(w.isActiveWindow, timeout=3000)  # keys go to the active window
     return w
@@ -112,7 +113,7 @@ def test_ctrl_t_with_auto_trigger_ticked_is_stored_as_software_with_the_threshol
     rp.post.setValue(5)
     rp.auto.setChecked(True)
     rp.threshold.setValue(500.0)  # mrad: far above still water, never fires by itself
-    assert rp.rms_label.text().startswith("now ") and "mrad" in rp.rms_label.text()
+    qtbot.waitUntil(lambda: rp.rms_label.text().startswith("now ") and "mrad" in rp.rms_label.text(), timeout=5000)
     rp.arm_button.click()
     assert rp.state_label.text() == "armed", window.last_error
     ring = window.session.acquisition.ring
@@ -170,3 +171,44 @@ def test_vs_truth_in_the_status_bar_carries_the_age_of_the_maps(qtbot, tmp_path)
     qtbot.waitUntil(lambda: "(stale: " in truth.text(), timeout=5000)
     assert w.height_error["stale"] and "#888" in truth.styleSheet()
     assert w.height_view.stale_text in truth.text()  # the same words, the same age as the maps
+
+
+# --------------------------------------------------------------- the pattern chosen must be the one in view
+def test_random_dots_chosen_on_the_checkerboard_is_not_ready_with_the_reason(qtbot):
+    """Finding 2: "random dots" picked while the tank shows its checkerboard: NOT READY (periodic), and the
+    reference captured then is marked as not the chosen pattern, no tick."""
+    from tests.app.test_gui_flow import _click_tab
+    from tests.app.test_gui_dots import _pick_random_dots
+
+    w = _window(qtbot)
+    _pick_random_dots(qtbot, w)
+    _click_tab(qtbot, w, "Alignment")
+    qtbot.waitUntil(lambda: "pattern" in w.alignment_metrics and w.ready_label.text().startswith("NOT READY"),
+                    timeout=20000)
+    text = w.ready_label.text()
+    assert "periodic pattern, not random dots" in text and "checkerboard" in text
+    assert not w.alignment_ready
+    periods = [float(v) for v in text.split("periods ")[1].split(" px")[0].split(", ")]
+    np.testing.assert_allclose(periods, 5.97, atol=0.05)  # the tank's 12 px board under 55 deg
+    w.geometry_panel.n_average.setValue(3)
+    w.activateWindow()
+    qtbot.waitUntil(w.isActiveWindow, timeout=3000)
+    _ctrl(w, QtCore.Qt.Key_R)
+    qtbot.waitUntil(lambda: "NOT the chosen pattern" in w.geometry_panel.reference_label.text(), timeout=60000)
+    assert "✓" not in w.geometry_panel.reference_label.text()
+    assert "periodic pattern" in w.last_error
+    qtbot.waitUntil(lambda: w.ready_label.text().startswith("NOT READY") and "periodic" in w.ready_label.text()
+                    and "reference" in "".join(w.alignment_metrics.values()), timeout=20000)
+
+
+def test_checkerboard_chosen_on_random_dots_is_not_ready_and_says_dots(qtbot, window):
+    """Finding 2, the other way round: a dot pattern in view with "checkerboard" chosen names the dots."""
+    from drivers.synthetic import SyntheticCamera
+    from tests.app.test_gui_dots import _dot_frames
+    from tests.app.test_gui_flow import _click_tab
+
+    window.use_camera(SyntheticCamera(_dot_frames(0.65, 0.6), frame_rate_hz=20.0), camera_id="dot-tank")
+    _click_tab(qtbot, window, "Alignment")
+    qtbot.waitUntil(lambda: window.ready_label.text().startswith("NOT READY"), timeout=20000)
+    assert "the camera sees random dots, not a checkerboard" in window.ready_label.text()
+    assert "random dots" in window.ready_label.text() and not window.alignment_ready
