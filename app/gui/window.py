@@ -31,6 +31,7 @@ from app.capture.trigger import rms_slope
 from .collector import GuiThreadCollector
 from .model.memory import SessionMemory
 from .model.recording import RmsHistory, slope_of_mrad
+from .model.region import clamp_region, region_problem
 from .model.schedule import DISPLAY_MAX_HZ, DrawClock, ExportProgress, LiveRates, ReplayQueue
 from .model.staleness import STALE_AFTER_S, Shown, Staleness, derived_text, view_staleness
 from .panels import CameraPanel, GeometryPanel, RecordingPanel
@@ -728,8 +729,13 @@ class MainWindow(QtWidgets.QMainWindow):
             else:
                 base.pop("theta_deg", None)
             geometry = Geometry.from_dict(base)
+            problem = region_problem(geometry.to_dict().get("reference_region"), self._frame_shape())
+            if problem:
+                raise ValueError(problem)
         except Exception as exc:  # noqa: BLE001 - GeometryError, ValueError
             self.geometry_panel.geometry_label.setText(f"<span style='color:#c00'>{exc}</span>")
+            if self.geometry is not None:  # the box goes back where the geometry in use has it
+                self._show_region(self.geometry.to_dict().get("reference_region"))
             return
         self.geometry_panel.geometry_label.setText("geometry OK")
         self.geometry = geometry
@@ -751,11 +757,22 @@ class MainWindow(QtWidgets.QMainWindow):
         self.region_roi.setVisible(True)
         self._region_label.setVisible(True)
 
+    def _frame_shape(self):
+        """(rows, cols) of the camera's frames (None: no camera)."""
+        s = self.session.camera_settings()
+        return (s.height, s.width) if s is not None and s.height and s.width else None
+
     def _region_dragged(self):
+        """The box was dragged: kept on the frame (clamped at the edit, said so), then used."""
         pos, size = self.region_roi.pos(), self.region_roi.size()
-        c0, r0 = int(round(pos.x())), int(round(pos.y()))
-        c1, r1 = int(round(pos.x() + size.x())), int(round(pos.y() + size.y()))
-        self._region_label.setPos(c0, r0)
+        region = (pos.y(), pos.y() + size.y(), pos.x(), pos.x() + size.x())
+        shape = self._frame_shape()
+        if shape is not None:
+            region, moved = clamp_region(region, shape)
+            if moved:
+                self.info("reference region kept inside the frame: the box cannot leave the camera image")
+        r0, r1, c0, c1 = (int(round(v)) for v in region)
+        self._show_region((r0, r1, c0, c1))
         self.geometry_panel.set_region((r0, r1, c0, c1))
         self.apply_geometry_editor()
 

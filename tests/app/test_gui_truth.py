@@ -212,3 +212,46 @@ def test_checkerboard_chosen_on_random_dots_is_not_ready_and_says_dots(qtbot, wi
     qtbot.waitUntil(lambda: window.ready_label.text().startswith("NOT READY"), timeout=20000)
     assert "the camera sees random dots, not a checkerboard" in window.ready_label.text()
     assert "random dots" in window.ready_label.text() and not window.alignment_ready
+
+
+# --------------------------------------------------------------- reference region
+def _type_region(qtbot, w, text):
+    edit = w.geometry_panel.region
+    edit.setFocus()
+    edit.selectAll()
+    qtbot.keyClicks(edit, text)
+    qtbot.keyClick(edit, QtCore.Qt.Key_Return)  # editingFinished: the editor applies it
+
+
+def test_reference_region_cannot_leave_the_frame_and_never_discards_the_reference(qtbot):
+    """Finding 4: a box dragged off the frame is clamped on it, a typed one outside is refused; the reference
+    stays in use and the maps keep coming; the pin label is drawn inside the raw view."""
+    from tests.app.test_gui_flow import _open_section
+
+    w = _window(qtbot)
+    w.geometry_panel.n_average.setValue(3)
+    _ctrl(w, QtCore.Qt.Key_R)
+    qtbot.waitUntil(lambda: "✓" in w.geometry_panel.reference_label.text(), timeout=30000)
+    _open_section(qtbot, w, "Reference & geometry")
+    _type_region(qtbot, w, "20, 80, 20, 80")
+    qtbot.waitUntil(lambda: w.geometry.to_dict().get("reference_region") is not None
+                    and not w.busy("reconstructor"), timeout=20000)
+    rec = w.session.worker.reconstructor
+    assert rec is not None and w.region_roi.isVisible()
+    # the user drags the box far off the bottom right corner (the drag ends: sigRegionChangeFinished)
+    w.region_roi.setPos([SHAPE[1] - 10, SHAPE[0] + 50], finish=True)
+    qtbot.waitUntil(lambda: not w.busy("reconstructor"), timeout=20000)
+    r0, r1, c0, c1 = w.geometry.to_dict()["reference_region"]
+    assert 0 <= r0 < r1 <= SHAPE[0] and 0 <= c0 < c1 <= SHAPE[1] and (r1 - r0, c1 - c0) == (60, 60)
+    assert "inside the frame" in w.message_label.text()
+    assert w.session.worker.reconstructor is not None and w.geometry_panel.geometry_label.text() == "geometry OK"
+    # typed outside the frame: refused at the edit, the region and reference in use stay
+    _type_region(qtbot, w, "200, 400, 0, 50")
+    assert "outside the 256×256 px frame" in w.geometry_panel.geometry_label.text()
+    assert w.geometry.to_dict()["reference_region"] == [r0, r1, c0, c1] or \
+        tuple(w.geometry.to_dict()["reference_region"]) == (r0, r1, c0, c1)
+    qtbot.waitUntil(lambda: w.last_drawn is not None and w.last_drawn.result is not None, timeout=20000)
+    assert "no reference yet" not in (w.height_view.message.text() or "")
+    # the label saying why the pin region is green or red lies inside the frame (readable)
+    label = w.pin_overlay.label
+    assert label.isVisible() and 0 <= label.pos().y() <= SHAPE[0] and 0 <= label.pos().x() < SHAPE[1]

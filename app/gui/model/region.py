@@ -1,0 +1,50 @@
+"""The reference region (where the height offset is pinned) is edited inside the frame, or refused.
+
+A box dragged partly off the frame is clamped back onto it at the edit (:func:`clamp_region`); one
+typed outside it is refused with the reason (:func:`region_problem`), so that the reference in use
+is never thrown away by an edit.
+"""
+
+from __future__ import annotations
+
+from typing import Optional, Tuple
+
+__all__ = ["MIN_REGION_PX", "clamp_region", "region_problem"]
+
+#: Smallest side of a reference region (px): a few carrier periods.
+MIN_REGION_PX = 16
+
+Region = Tuple[int, int, int, int]
+
+
+def clamp_region(region, shape) -> Tuple[Region, bool]:
+    """``(row0, row1, col0, col1)`` moved and cut to lie in a frame of ``shape`` (rows, cols), at least
+    :data:`MIN_REGION_PX` (or the frame) on a side; and whether anything changed."""
+    r0, r1, c0, c1 = (int(round(v)) for v in region)
+    rows, cols = int(shape[0]), int(shape[1])
+
+    def fit(lo, hi, n):
+        size = min(max(hi - lo, MIN_REGION_PX), n)
+        lo = min(max(lo, 0), n - size)
+        hi = min(max(hi, lo + size), n)
+        return lo, hi
+
+    r0n, r1n = fit(r0, r1, rows)
+    c0n, c1n = fit(c0, c1, cols)
+    out = (r0n, r1n, c0n, c1n)
+    return out, out != (r0, r1, c0, c1)
+
+
+def region_problem(region, shape) -> Optional[str]:
+    """Why ``region`` cannot be the reference region in a frame of ``shape``; None when it can."""
+    if region is None or shape is None:
+        return None
+    r0, r1, c0, c1 = (int(v) for v in region)
+    rows, cols = int(shape[0]), int(shape[1])
+    if r0 < 0 or c0 < 0 or r1 > rows or c1 > cols:
+        return (f"reference region rows {r0}-{r1}, columns {c0}-{c1} lies outside the {cols}×{rows} px frame: "
+                f"give rows within 0-{rows} and columns within 0-{cols}; the region in use is kept")
+    if r1 - r0 < MIN_REGION_PX or c1 - c0 < MIN_REGION_PX:
+        return (f"reference region {r1 - r0}×{c1 - c0} px is smaller than {MIN_REGION_PX} px on a side: "
+                "make it larger; the region in use is kept")
+    return None
