@@ -593,7 +593,7 @@ class MainWindow(QtWidgets.QMainWindow):
         if self.reference is None or self.geometry is None:
             self.session.worker.set_reconstructor(None)
             return
-        reference, geometry = self.reference, self.geometry
+        reference, geometry, use_gpu = self.reference, self.geometry, self.memory.use_gpu
 
         if getattr(geometry, "pattern", "checkerboard") == "dots":
             # OpenPIV's first import (scipy.stats, ~1 s) here, in the GUI thread: in a background
@@ -616,7 +616,9 @@ class MainWindow(QtWidgets.QMainWindow):
 
             from .alignment import DOT_WINDOW_PX  # random dots: the windows the Alignment tab counts dots in
 
-            device, text = live_device()  # the GPU when there is one
+            # the GPU only when the user asked for it (View ▸ Live reconstruction on the GPU, remembered)
+            device, text = live_device() if use_gpu else ("cpu", "CPU (GPU not asked for: View ▸ Live "
+                                                                 "reconstruction on the GPU)")
             if device == "cuda":
                 try:
                     rec = Reconstructor(reference, geometry, planner_effort=self.planner_effort, device="cuda",
@@ -880,6 +882,12 @@ class MainWindow(QtWidgets.QMainWindow):
             return
         rp.result_label.setText(f"armed: will write {path}")
         rp.set_state("armed")
+
+    def use_gpu(self, on: bool) -> None:
+        """Live reconstruction on the GPU (``on``) or the CPU; remembered, and the reconstructor rebuilt."""
+        self.memory.use_gpu = bool(on)
+        self._rebuild_reconstructor()
+        self.info(f"live reconstruction on the {'GPU, when CuPy sees one' if on else 'CPU'}")
 
     def threshold_from_now(self) -> Optional[float]:
         """"Set from now": the auto-trigger threshold = 5 x the recent RMS slope of the live maps (mrad)."""
@@ -1296,9 +1304,9 @@ class MainWindow(QtWidgets.QMainWindow):
         lab["ring"].setToolTip(f"ring buffer {100 * fill:.0f} % full, {st.get('ring_frames', 0)} frames"
                                if fill is not None else "")
         lab["latency"].setText(f"latency {self.latency_ms:.0f} ms" if np.isfinite(self.latency_ms) else "")
-        rec = w.reconstructor  # where the live maps are computed: the GPU when there is one
+        rec = w.reconstructor  # where the live maps are computed: the GPU only when asked for
         device_text = getattr(rec, "device_text", "") if rec is not None else ""
-        lab["device"].setText(device_text.split(" (")[0])
+        lab["device"].setText(f"live on {device_text.split(' (')[0]}" if device_text else "")
         lab["device"].setToolTip(f"live reconstruction on the {device_text}" if device_text else "")
         self._update_staleness()
         if err and err != self._shown_camera_error:

@@ -255,3 +255,32 @@ def test_reference_region_cannot_leave_the_frame_and_never_discards_the_referenc
     # the label saying why the pin region is green or red lies inside the frame (readable)
     label = w.pin_overlay.label
     assert label.isVisible() and 0 <= label.pos().y() <= SHAPE[0] and 0 <= label.pos().x() < SHAPE[1]
+
+
+# --------------------------------------------------------------- menus, device
+def test_view_menu_holds_every_scene_and_the_gpu_is_used_only_when_asked(qtbot):
+    """Finding 11 (scene menu) and issue 19 point 3: the GPU setting is off at first, remembered when set."""
+    from processing.gpu import cupy_or_reason
+
+    w = _window(qtbot)
+    view = next(a.menu() for a in w.menuBar().actions() if a.text().replace("&", "") == "View")
+    sub = next(a.menu() for a in view.actions() if a.menu() is not None and a.text() == "Synthetic scene")
+    assert [a.objectName() for a in sub.actions()] == ["scene_still", "scene_waves", "scene_drop", "scene_impact"]
+    assert not [a for a in view.actions() if a.objectName().startswith("scene_")]
+    w.geometry_panel.n_average.setValue(2)
+    _ctrl(w, QtCore.Qt.Key_R)
+    qtbot.waitUntil(lambda: "✓" in w.geometry_panel.reference_label.text(), timeout=30000)
+    qtbot.waitUntil(lambda: w.status_labels["device"].text() == "live on CPU", timeout=5000)
+    assert w.session.worker.reconstructor.device == "cpu"
+    w.actions_by_name["gpu"].trigger()  # the user asks for the GPU
+    qtbot.waitUntil(lambda: not w.busy("reconstructor"), timeout=30000)
+    cupy, why = cupy_or_reason()
+    expected = "live on CPU" if cupy is None else "live on GPU"
+    label = w.status_labels["device"]
+    qtbot.waitUntil(lambda: label.text().startswith(expected) and "not asked" not in label.toolTip(), timeout=5000)
+    if cupy is None:
+        assert why in label.toolTip()  # the reason there is no GPU
+    w.shutdown()  # remembered for the next start
+    from app.gui.model.memory import SessionMemory
+
+    assert SessionMemory.load().use_gpu
