@@ -205,3 +205,15 @@ def test_old_dimensionless_thresholds_come_back_in_mrad_and_gpu_is_off_unless_as
     assert not m.use_gpu
     m.use_gpu = True
     assert m.data["gpu"] is True
+
+
+# ------------------------------------------------------------------ region (finding 4)
+def test_a_region_dragged_off_the_frame_is_put_back_whole_and_one_typed_outside_is_refused():
+    from app.gui.model.region import clamp_region, region_problem
+
+    assert clamp_region((300, 360, 250, 310), (256, 256)) == ((196, 256, 196, 256), True)
+    assert clamp_region((-40, 20, -5, 55), (256, 256)) == ((0, 60, 0, 60), True)
+    assert clamp_region((10, 70, 10, 70), (256, 256)) == ((10, 70, 10, 70), False)
+    assert "outside the 256×256 px frame" in region_problem((200, 400, 0, 50), (256, 256))
+    assert region_problem((0, 12, 0, 12), (256, 256)) is None
+    assert "smaller than" in region_problem((5, 6, 0, 50), (256, 256))

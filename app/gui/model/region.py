@@ -11,8 +11,9 @@ from typing import Optional, Tuple
 
 __all__ = ["MIN_REGION_PX", "clamp_region", "region_problem"]
 
-#: Smallest side of a reference region (px): a few carrier periods.
-MIN_REGION_PX = 16
+#: Smallest side of a reference region (px): a region that small is the user's choice (the pin then
+#: says how many of its samples were valid), but an empty one is none.
+MIN_REGION_PX = 4
 
 Region = Tuple[int, int, int, int]
 
