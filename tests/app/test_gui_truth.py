@@ -284,3 +284,28 @@ def test_view_menu_holds_every_scene_and_the_gpu_is_used_only_when_asked(qtbot):
     from app.gui.model.memory import SessionMemory
 
     assert SessionMemory.load().use_gpu
+
+
+# --------------------------------------------------------------- exports say what they contain
+def test_replay_export_names_the_frames_it_could_not_measure(qtbot, window, scene, tmp_path, caplog):
+    """Finding 8: a recording with a blank frame (lost packets, no light): the export message and the log name it."""
+    import logging
+
+    import tifffile
+    from drivers.synthetic import SyntheticCamera
+
+    window.use_camera(SyntheticCamera(Switchable(scene["flat"]), frame_rate_hz=20.0), geometry=scene["geometry"],
+                      reference=scene["flat"])
+    _wait_reconstructor(qtbot, window)
+    stack = np.stack([scene["flat"], scene["bump"], np.zeros_like(scene["flat"]), scene["bump"], scene["flat"]])
+    tifffile.imwrite(tmp_path / "run.tif", stack)
+    assert window.open_recording(str(tmp_path / "run.tif"))
+    caplog.set_level(logging.INFO)
+    out = tmp_path / "run-heights.h5"
+    window.export_heights(str(out))
+    qtbot.waitUntil(lambda: window.export_result is not None, timeout=120000)
+    assert window.export_result == ("done", str(out)), window.export_result
+    text = window.replay.message.text()
+    assert f"heights of 5 frames exported to {out}" in text and "1 invalid (frames 2)" in text, text
+    assert "color: #b00000" in window.replay.message.styleSheet()
+    assert any("1 invalid (frames 2)" in r.getMessage() and r.levelno == logging.WARNING for r in caplog.records)
