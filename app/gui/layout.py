@@ -21,6 +21,10 @@ from .widgets import ElidedLabel
 CONTROLS_WIDTH_PX = 330  # the Controls dock, the same for every section (fits 1280x800 beside the maps)
 
 
+#: Smallest height (px) of the Alignment tab's camera image and spectrum, whatever the table below says.
+MIN_ALIGNMENT_VIEW_PX = 220
+
+
 def build_ui(w):
     w.banner = QtWidgets.QLabel("")
     w.banner.setWordWrap(True)
@@ -140,7 +144,13 @@ def build_ui(w):
     ag.addWidget(w.align_raw_view, 0, 0)
     ag.addWidget(w.spectrum_view, 0, 1)
     ag.addWidget(w.modulation_view, 1, 0)
-    ag.addWidget(metrics, 1, 1)
+    # a long table (moving water, many reasons) scrolls in its own tile instead of squeezing the camera
+    # image and the spectrum above it (issue 20: they shrank to ~65 px at 1280x800)
+    ag.addWidget(scroll(metrics), 1, 1)
+    ag.setRowStretch(0, 3)
+    ag.setRowStretch(1, 2)
+    for view in (w.align_raw_view, w.spectrum_view):
+        view.setMinimumHeight(MIN_ALIGNMENT_VIEW_PX)
     w.tabs.addTab(align, "Alignment")
 
     # Replay tab

@@ -309,3 +309,31 @@ def test_replay_export_names_the_frames_it_could_not_measure(qtbot, window, scen
     assert f"heights of 5 frames exported to {out}" in text and "1 invalid (frames 2)" in text, text
     assert "color: #b00000" in window.replay.message.styleSheet()
     assert any("1 invalid (frames 2)" in r.getMessage() and r.levelno == logging.WARNING for r in caplog.records)
+
+
+# --------------------------------------------------------------- 1280x800
+def test_at_1280x800_nothing_is_cut_and_the_alignment_views_keep_their_size(qtbot):
+    """Finding 10: the probes' title fits, colour-range numbers are not clipped, and on moving water (a long
+    alignment table) the camera image and spectrum keep a usable size."""
+    from tests.app.test_gui_flow import _click_tab
+
+    w = _window(qtbot)
+    w.resize(1280, 800)
+    w.geometry_panel.n_average.setValue(2)
+    _ctrl(w, QtCore.Qt.Key_R)
+    qtbot.waitUntil(lambda: "✓" in w.geometry_panel.reference_label.text(), timeout=30000)
+    qtbot.waitUntil(lambda: w.last_drawn is not None and w.last_drawn.result is not None, timeout=20000)
+    qtbot.wait(600)  # a few display ticks at the new size
+    title = w.probe_view.plot.getPlotItem().titleLabel
+    assert title.item.boundingRect().width() <= w.probe_view.plot.width(), "Probes title cut"
+    for view in w.map_views[:4]:
+        for edit in (view.levels_row.min_edit, view.levels_row.max_edit):
+            width = edit.fontMetrics().horizontalAdvance(edit.text())
+            assert width <= edit.contentsRect().width(), (view.units, edit.text(), width, edit.width())
+    _choose_scene_by_hand(qtbot, w, "travelling waves")
+    qtbot.waitUntil(lambda: w.session.tank.scene == "waves", timeout=60000)
+    _click_tab(qtbot, w, "Alignment")
+    qtbot.waitUntil(lambda: len(w.alignment_metrics) >= 6, timeout=20000)
+    qtbot.wait(600)
+    for view in (w.align_raw_view, w.spectrum_view):
+        assert view.height() >= 200, (view, view.height())
