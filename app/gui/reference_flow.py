@@ -14,7 +14,7 @@ import numpy as np
 from pyqtgraph.Qt import QtWidgets
 
 from . import state
-from .model.region import clamp_region, region_problem
+from .model.region import clamp_region, reference_crop, region_problem, roi_of
 
 log = logging.getLogger(__name__)
 
@@ -46,6 +46,8 @@ def set_reference(w, image: np.ndarray, origin: str = "", path: Optional[str] = 
     """
     w.reference = np.asarray(image)
     w.reference_path = path
+    roi = roi_of(w.session.camera_settings())  # where on the sensor it was taken (None: not this camera's)
+    w.reference_roi = roi if roi is not None and (roi[3], roi[2]) == w.reference.shape[:2] else None
     w._reference_text = f"reference: {origin}, {image.shape[1]}×{image.shape[0]} px"
     w.geometry_panel.reference_label.setText(w._reference_text + " — building…")
     w._rebuild_reconstructor()
@@ -281,3 +283,23 @@ def save_geometry(w, path: str) -> None:
     with open(path, "w", encoding="utf-8") as fh:
         fh.write(w.geometry.to_toml_text())
     w.info(f"geometry saved to {path}")
+
+
+def follow_roi(w, settings) -> None:
+    """The camera now delivers ``settings``' ROI: crop the reference to it (and rebuild, the pin band
+    with it), or, when it is not inside the reference's, say that a new reference is needed."""
+    new_roi = roi_of(settings)
+    if w.reference is None or w.reference_roi is None or new_roi is None or new_roi == w.reference_roi:
+        return
+    crop = reference_crop(w.reference_roi, new_roi)
+    if crop is not None:
+        old = w.reference_roi
+        set_reference(w, w.reference[crop], f"cropped to the new ROI {new_roi[2]}×{new_roi[3]} at "
+                                            f"({new_roi[0]}, {new_roi[1]}) from the one taken at ({old[0]}, {old[1]})")
+        return
+    w.session.worker.set_reconstructor(None)
+    w.pin_overlay.set_reconstructor(None)
+    w.geometry_panel.reference_label.setText(
+        f"the reference ({w.reference_roi[2]}×{w.reference_roi[3]} at ({w.reference_roi[0]}, {w.reference_roi[1]})) "
+        f"does not cover the new ROI: capture a new reference")
+    w.geometry_panel.reference_label.setStyleSheet("color: #c00000; font-weight: bold")

@@ -105,6 +105,7 @@ class MainWindow(QtWidgets.QMainWindow):
         # the window's state, all of it here (app/gui/model/: Qt-free, unit-tested)
         self.memory = SessionMemory.load()  # what the session remembers (app/gui/state.py fills the widgets)
         self.reference_path: Optional[str] = None  # the file of the reference in use (None: captured)
+        self.reference_roi = None  # (offset_x, offset_y, width, height) the reference was taken with
         self._reference_text = ""
         self._reference_epoch = 0  # counts reconstructors installed: maps of an older one are stale
         self._reference_since_seq = -1  # frames after this one are measured against the newest reference
@@ -291,6 +292,7 @@ class MainWindow(QtWidgets.QMainWindow):
                 self.camera_panel.show_settings(settings)
                 self._update_cost()
                 state.remember_camera_settings(self, settings)
+                reference_flow.follow_roi(self, settings)
         self.run_background("configure", self.session.configure, done, values)
 
     # ---------------------------------------------------------- reference

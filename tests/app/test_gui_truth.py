@@ -337,3 +337,33 @@ def test_at_1280x800_nothing_is_cut_and_the_alignment_views_keep_their_size(qtbo
     qtbot.wait(600)
     for view in (w.align_raw_view, w.spectrum_view):
         assert view.height() >= 200, (view, view.height())
+
+
+def test_after_an_roi_change_the_reference_follows_and_the_maps_name_the_roi(qtbot):
+    """Finding 11: a narrower ROI of the same camera: the reference is cropped to it, the pin band takes the new
+    width, and until new maps come the old ones say "ROI changed", not "from the previous camera"."""
+    from tests.app.test_gui_flow import _open_section
+
+    w = _window(qtbot)
+    w.geometry_panel.n_average.setValue(2)
+    _ctrl(w, QtCore.Qt.Key_R)
+    qtbot.waitUntil(lambda: "✓" in w.geometry_panel.reference_label.text(), timeout=30000)
+    qtbot.waitUntil(lambda: w.last_drawn is not None and w.last_drawn.result is not None, timeout=20000)
+    band = w.pin_overlay.image.mapRectToParent(w.pin_overlay.image.boundingRect()).width()
+    assert band == pytest.approx(SHAPE[1], abs=8)
+    _open_section(qtbot, w, "Camera")
+    cp = w.camera_panel
+    cp.offset_x.setValue(64)
+    cp.width.setValue(128)
+    marks = []
+    w.session.worker.set_reconstructor(None)  # hold the maps on screen until the ROI is in: they get old
+    cp.apply_button.click()
+    qtbot.waitUntil(lambda: (marks.append(w.height_view.stale_text) or True) and w.reference is not None
+                    and w.reference.shape == (SHAPE[0], 128), timeout=20000)
+    assert not any(m and "previous camera" in m for m in marks), marks
+    qtbot.waitUntil(lambda: "✓" in w.geometry_panel.reference_label.text(), timeout=30000)
+    assert "cropped to the new ROI 128×256 at (64, 0)" in w.geometry_panel.reference_label.text()
+    band = w.pin_overlay.image.mapRectToParent(w.pin_overlay.image.boundingRect()).width()
+    assert band == pytest.approx(128, abs=8)
+    qtbot.waitUntil(lambda: w.last_drawn is not None and w.last_drawn.result is not None
+                    and w.last_drawn.result.height.shape[1] < w.last_drawn.result.height.shape[0], timeout=20000)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import Optional, Tuple
 
-__all__ = ["MIN_REGION_PX", "clamp_region", "region_problem"]
+__all__ = ["MIN_REGION_PX", "clamp_region", "region_problem", "roi_of", "reference_crop"]
 
 #: Smallest side of a reference region (px): a region that small is the user's choice (the pin then
 #: says how many of its samples were valid), but an empty one is none.
@@ -49,3 +49,24 @@ def region_problem(region, shape) -> Optional[str]:
         return (f"reference region {r1 - r0}×{c1 - c0} px is smaller than {MIN_REGION_PX} px on a side: "
                 "make it larger; the region in use is kept")
     return None
+
+
+def roi_of(settings) -> Optional[Tuple[int, int, int, int]]:
+    """``(offset_x, offset_y, width, height)`` of camera settings (None: unknown)."""
+    if settings is None:
+        return None
+    roi = tuple(getattr(settings, k, None) for k in ("offset_x", "offset_y", "width", "height"))
+    return None if any(v is None for v in roi) else tuple(int(v) for v in roi)
+
+
+def reference_crop(reference_roi, new_roi):
+    """Where frames of ``new_roi`` lie in a reference taken with ``reference_roi`` (both
+    ``(offset_x, offset_y, width, height)`` on the sensor): ``(row slice, col slice)``, or None when the
+    new ROI is not inside the reference's (a new reference is needed)."""
+    if reference_roi is None or new_roi is None:
+        return None
+    rx, ry, rw, rh = reference_roi
+    nx, ny, nw, nh = new_roi
+    if nx < rx or ny < ry or nx + nw > rx + rw or ny + nh > ry + rh:
+        return None
+    return slice(ny - ry, ny - ry + nh), slice(nx - rx, nx - rx + nw)
