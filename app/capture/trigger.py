@@ -309,11 +309,11 @@ class TriggeredCapture:
             self.trigger_at(self._armed_head)
 
     # ------------------------------------------------------------ trigger
-    def trigger_now(self, source: str = "software") -> int:
+    def trigger_now(self, source: Optional[str] = None) -> int:
         """Trigger on the newest frame in the ring (the next one if none came yet); returns its sequence.
 
-        ``source``: what fired it, stored in the file (a button or key press is "software", even when an
-        auto-trigger was armed beside it).
+        ``source``: what fired it, stored in the file (default: the capture's own source; the GUI's button
+        or key press passes "software", even when an auto-trigger was armed beside it).
         """
         ring = self.acquisition.ring
         return self.trigger_at(max(ring.head - 1, 0), host_timestamp_ns=time.monotonic_ns(), source=source)
