@@ -22,7 +22,7 @@ CONTROLS_WIDTH_PX = 330  # the Controls dock, the same for every section (fits 1
 
 
 #: Smallest height (px) of the Alignment tab's camera image and spectrum, whatever the table below says.
-MIN_ALIGNMENT_VIEW_PX = 220
+MIN_ALIGNMENT_VIEW_PX = 200
 
 
 def build_ui(w):
@@ -147,8 +147,6 @@ def build_ui(w):
     # a long table (moving water, many reasons) scrolls in its own tile instead of squeezing the camera
     # image and the spectrum above it (issue 20: they shrank to ~65 px at 1280x800)
     ag.addWidget(scroll(metrics), 1, 1)
-    ag.setRowStretch(0, 3)
-    ag.setRowStretch(1, 2)
     for view in (w.align_raw_view, w.spectrum_view):
         view.setMinimumHeight(MIN_ALIGNMENT_VIEW_PX)
     w.tabs.addTab(align, "Alignment")

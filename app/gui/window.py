@@ -492,7 +492,7 @@ class MainWindow(QtWidgets.QMainWindow):
         """The open camera and its region of interest: maps of another ROI are stale for another reason."""
         s = self.session.camera_settings()
         roi = tuple(getattr(s, k, None) for k in ("offset_x", "offset_y", "width", "height")) if s else None
-        return self.session.camera_id, roi
+        return (self.session.camera_id, id(self.session.camera)), roi  # the camera object: two of one model differ
 
     def _frames_acquired(self):
         """A counter that changes with every frame the camera delivers (which acquisition, how many)."""

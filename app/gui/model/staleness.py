@@ -47,8 +47,9 @@ class Shown:
 def why_stale(shown: Optional[Shown], acquisition, camera_key: Any = None) -> Optional[str]:
     """Why data from ``shown`` is not the camera's present (None: it is).
 
-    ``camera_key``: the open camera's id and region of interest. The same camera restarted with another
-    ROI (a new acquisition) says "ROI changed", not "from the previous camera".
+    ``camera_key``: ``(camera identity, region of interest)`` of the open camera. The same camera
+    restarted with another ROI (a new acquisition) says "ROI changed", with other settings "camera settings
+    changed", not "from the previous camera".
     """
     if shown is None:
         return None
