@@ -367,3 +367,15 @@ def test_after_an_roi_change_the_reference_follows_and_the_maps_name_the_roi(qtb
     assert band == pytest.approx(128, abs=8)
     qtbot.waitUntil(lambda: w.last_drawn is not None and w.last_drawn.result is not None
                     and w.last_drawn.result.height.shape[1] < w.last_drawn.result.height.shape[0], timeout=20000)
+
+
+def test_scaled_axes_have_no_si_prefix(qtbot, window):
+    """Finding 11: still water's profile (heights ~1e-6 um) reads "height (µm)", never "height (µm) (x1e-06)"."""
+    d = np.linspace(0.0, 40.0, 50)
+    window.profile_view.set_profile(d, 1e-6 * np.sin(d), y_range=(-2e-6, 2e-6))
+    window.profile_view.plot.getPlotItem().setYRange(-2e-6, 2e-6, padding=0)
+    window.probe_view.plot.getPlotItem().setYRange(-2e-6, 2e-6, padding=0)
+    qtbot.wait(50)
+    for plot in (window.profile_view.plot, window.probe_view.plot):
+        axis = plot.getAxis("left")
+        assert "x1e" not in axis.labelString() and "µm" in axis.labelString(), axis.labelString()
