@@ -739,6 +739,15 @@ class Recorder:
         self._stop.set()
         return self._done.wait(timeout_s)
 
+    def discard(self) -> None:
+        """Give up before :meth:`begin`: delete the file, which holds no frame (a disarmed capture)."""
+        if self._thread is not None:
+            raise RecorderError("this recorder already began writing: stop() it, the frames it wrote are kept")
+        self.file._abandon()
+        self.state = "cancelled"
+        self._summary = self.summary()
+        self._done.set()
+
     def wait(self, timeout_s: float) -> bool:
         """Wait until the recording ended (complete, stopped or failed); True if it did."""
         return self._done.wait(timeout_s)

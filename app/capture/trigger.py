@@ -49,6 +49,7 @@ __all__ = [
     "frames_for_seconds",
     "AutoTrigger",
     "TriggeredCapture",
+    "rms_slope",
 ]
 
 TRIGGER_SOURCES = ("software", "genicam", "line0", "line1", "line2", "line3", "auto")
@@ -99,6 +100,27 @@ def configure_trigger(camera, source: str, *, activation: str = "RisingEdge") ->
                 f"source {source!r}; check the camera's trigger features"
             )
     return got
+
+
+def rms_slope(slope_x: np.ndarray, slope_y: np.ndarray, region: Optional[Tuple[int, int, int, int]] = None) -> float:
+    """RMS slope magnitude ``sqrt(mean(slope_x**2 + slope_y**2))`` (dimensionless) over ``region``; NaN if none valid.
+
+    What :class:`AutoTrigger` compares with its threshold (the GUI shows it live, in mrad).
+    """
+    if slope_x.shape != slope_y.shape:
+        raise ValueError(f"slope_x and slope_y must have equal shapes; got {slope_x.shape} and {slope_y.shape}")
+    if region is not None:
+        r0, r1, c0, c1 = region
+        if r1 > slope_x.shape[0] or c1 > slope_x.shape[1]:
+            raise ValueError(
+                f"auto-trigger region {region} lies outside the {slope_x.shape} slope map; "
+                "give a region inside it (the decimated grid is smaller than the frame)"
+            )
+        slope_x = slope_x[r0:r1, c0:c1]
+        slope_y = slope_y[r0:r1, c0:c1]
+    m = np.asarray(slope_x, np.float64) ** 2 + np.asarray(slope_y, np.float64) ** 2
+    m = m[np.isfinite(m)]
+    return float(np.sqrt(m.mean())) if m.size else float("nan")
 
 
 class AutoTrigger:
@@ -155,21 +177,8 @@ class AutoTrigger:
         self._lock = threading.Lock()
 
     def rms(self, slope_x: np.ndarray, slope_y: np.ndarray) -> float:
-        """RMS slope magnitude in the region (NaN when no valid pixel)."""
-        if slope_x.shape != slope_y.shape:
-            raise ValueError(f"slope_x and slope_y must have equal shapes; got {slope_x.shape} and {slope_y.shape}")
-        if self.region is not None:
-            r0, r1, c0, c1 = self.region
-            if r1 > slope_x.shape[0] or c1 > slope_x.shape[1]:
-                raise ValueError(
-                    f"auto-trigger region {self.region} lies outside the {slope_x.shape} slope map; "
-                    "give a region inside it (the decimated grid is smaller than the frame)"
-                )
-            slope_x = slope_x[r0:r1, c0:c1]
-            slope_y = slope_y[r0:r1, c0:c1]
-        m = np.asarray(slope_x, np.float64) ** 2 + np.asarray(slope_y, np.float64) ** 2
-        m = m[np.isfinite(m)]
-        return float(np.sqrt(m.mean())) if m.size else float("nan")
+        """RMS slope magnitude in the region (NaN when no valid pixel): :func:`rms_slope`."""
+        return rms_slope(slope_x, slope_y, self.region)
 
     def feed(self, slope_x: np.ndarray, slope_y: np.ndarray, *, sequence: int, time_s: Optional[float] = None) -> bool:
         """Feed one slope map pair computed from ring frame ``sequence``; True when this fired."""
@@ -232,7 +241,7 @@ class TriggeredCapture:
         Passed to :class:`~app.capture.recorder.RecordingFile` (geometry_toml,
         reference_image, check_space, on_exists, attrs).
 
-    Publishes ``state`` ("armed", "triggered", "done", "error"), ``trigger_sequence``,
+    Publishes ``state`` ("armed", "triggered", "done", "error", "cancelled"), ``trigger_sequence``, ``fired_by``,
     ``pre_frames``, ``post_frames``, ``recorder``, :meth:`summary`.
     Takes :meth:`trigger_now`, :meth:`trigger_at`, :meth:`wait`, :meth:`cancel`.
     """
@@ -291,6 +300,7 @@ class TriggeredCapture:
         self.path = self.recorder.path
         self.state = "armed"
         self.trigger_sequence: Optional[int] = None
+        self.fired_by: Optional[str] = None  # the source that fired it (trigger_now, the auto-trigger)
         self.pre_available: Optional[int] = None
         self._armed_head = ring.head
         self._lock = threading.Lock()
@@ -299,13 +309,25 @@ class TriggeredCapture:
             self.trigger_at(self._armed_head)
 
     # ------------------------------------------------------------ trigger
-    def trigger_now(self) -> int:
-        """Trigger on the newest frame in the ring (the next one if none came yet); returns its sequence."""
-        ring = self.acquisition.ring
-        return self.trigger_at(max(ring.head - 1, 0), host_timestamp_ns=time.monotonic_ns())
+    def trigger_now(self, source: Optional[str] = None) -> int:
+        """Trigger on the newest frame in the ring (the next one if none came yet); returns its sequence.
 
-    def trigger_at(self, sequence: int, *, host_timestamp_ns: Optional[int] = None, **info) -> int:
-        """Make ring frame ``sequence`` the trigger frame (auto-trigger: the frame the slopes came from)."""
+        ``source``: what fired it, stored in the file (default: the capture's own source; the GUI's button
+        or key press passes "software", even when an auto-trigger was armed beside it).
+        """
+        ring = self.acquisition.ring
+        return self.trigger_at(max(ring.head - 1, 0), host_timestamp_ns=time.monotonic_ns(), source=source)
+
+    def trigger_at(self, sequence: int, *, host_timestamp_ns: Optional[int] = None, source: Optional[str] = None,
+                   **info) -> int:
+        """Make ring frame ``sequence`` the trigger frame (auto-trigger: the frame the slopes came from).
+
+        ``source``: what fired it (one of ``TRIGGER_SOURCES``; default the capture's own), stored as the
+        file's ``trigger_source``.
+        """
+        source = self.source if source is None else source.lower()
+        if source not in TRIGGER_SOURCES:
+            raise TriggerError(f"unknown trigger source {source!r}; use one of {', '.join(TRIGGER_SOURCES)}")
         with self._lock:
             if self.state != "armed":
                 return self.trigger_sequence if self.trigger_sequence is not None else -1
@@ -315,13 +337,14 @@ class TriggeredCapture:
             self.pre_available = seq - start
             n = self.pre_available + self.post_frames
             self.trigger_sequence = seq
+            self.fired_by = source
             self.state = "triggered"
             ring.add_flags(seq, FrameFlags.TRIGGER)
             rec = self.recorder
             rec.n_frames = n
             rec.set_trigger(seq, host_trigger_ns=int(host_timestamp_ns or time.monotonic_ns()),
-                            source=self.source, pre_available=self.pre_available, **info)
-            rec.file.set_attrs(trigger_sequence=seq, pre_available=self.pre_available)
+                            source=source, pre_available=self.pre_available, **info)
+            rec.file.set_attrs(trigger_sequence=seq, pre_available=self.pre_available, trigger_source=source)
             if self.pre_available < self.pre_frames:
                 rec.file.add_event("note", f"only {self.pre_available} of {self.pre_frames} pre-trigger frames "
                                            "existed when the trigger came", sequence=seq)
@@ -348,7 +371,7 @@ class TriggeredCapture:
         """A callback for :class:`AutoTrigger` that triggers this capture on the frame that crossed."""
 
         def fire(sequence: int, rms: float) -> None:
-            self.trigger_at(sequence, rms=rms)
+            self.trigger_at(sequence, rms=rms, source="auto")
 
         return fire
 
@@ -366,16 +389,22 @@ class TriggeredCapture:
     def error(self) -> Optional[str]:
         return self.recorder.error
 
-    def cancel(self, timeout_s: float = 10.0) -> None:
-        """Give up before or after the trigger: close the file with what it has."""
+    def cancel(self, timeout_s: float = 10.0) -> bool:
+        """Give up: before the trigger the file (no frame in it) is deleted; after it, closed with what it has.
+
+        Returns True when a file was kept.
+        """
         with self._lock:
             if self.state == "armed":
                 self.state = "cancelled"
+                self.recorder.discard()
+                return False
         self.recorder.stop(timeout_s, drain=False)
+        return True
 
     def summary(self) -> dict:
         s = self.recorder.summary()
         s.update(pre_frames=self.pre_frames, post_frames=self.post_frames,
                  pre_available=-1 if self.pre_available is None else self.pre_available,
-                 trigger_source=self.source, burst=self.burst)
+                 trigger_source=self.fired_by or self.source, burst=self.burst)
         return s

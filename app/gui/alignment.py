@@ -18,7 +18,7 @@ from typing import Optional
 
 import numpy as np
 
-__all__ = ["frame_alignment", "display_spectrum", "modulation_map", "assess", "DOT_WINDOW_PX"]
+__all__ = ["frame_alignment", "display_spectrum", "modulation_map", "assess", "DOT_WINDOW_PX", "periodic_pattern"]
 
 #: Final interrogation window (px) of the live random-dot Reconstructor; its
 #: dots per window are counted in windows of this size.
@@ -84,6 +84,39 @@ def modulation_map(frame: np.ndarray, *, window_px: int = 32, step_px: int = 16)
     return mod.astype(np.float32), rows, cols
 
 
+def periodic_pattern(image: np.ndarray) -> Optional[str]:
+    """Why ``image`` is not random dots, if it shows a periodic pattern; None when it does not.
+
+    :func:`processing.carriers.find_carriers` finds two compact, isolated carrier peaks standing at
+    least 40x above the spectrum's level at their radius only in a periodic pattern: on the synthetic
+    checkerboard they stand about 7400x above it, on random dots the strongest peak 6-16x.
+    """
+    from processing.carriers import find_carriers
+    from processing.errors import NoCarrierError
+
+    try:
+        c = find_carriers(image)
+    except (NoCarrierError, ValueError):
+        return None
+    return (f"the camera sees a periodic pattern, not random dots (carrier peaks at periods "
+            f"{', '.join(f'{p:.2f}' for p in np.ravel(c.periods_px))} px stand {float(np.min(c.contrast)):.0f}x "
+            "above the spectrum; random dots give no such peak): choose \"checkerboard\" in Controls ▸ "
+            "Reference & geometry ▸ Pattern, or put the dot pattern in view")
+
+
+def _looks_like_dots(frame: np.ndarray) -> bool:
+    """Enough dots of a usable size in the windows of the live dots chain (a checkerboard was chosen on dots?)."""
+    from processing.piv import dot_alignment
+
+    try:
+        a = dot_alignment(frame, window_px=DOT_WINDOW_PX)
+    except Exception:  # noqa: BLE001 - a hint only
+        return False
+    size = np.asarray(a.get("dot_size_px", (np.nan, np.nan)), float).ravel()
+    return bool(np.all(np.isfinite(size)) and size.max() < 4 * DOT_LARGE_PX
+                and float(a.get("dots_per_window") or 0.0) >= DOTS_PER_WINDOW_MIN)
+
+
 def frame_alignment(frame: np.ndarray, theta_configured_deg: Optional[float] = None,
                     pattern: str = "checkerboard"):
     """``(alignment_dict, spectrum_dict)`` of a live frame without reference.
@@ -108,14 +141,19 @@ def frame_alignment(frame: np.ndarray, theta_configured_deg: Optional[float] = N
 
         a = dot_alignment(frame, window_px=DOT_WINDOW_PX)
         mod, rows, cols = modulation_map(frame, window_px=DOT_WINDOW_PX, step_px=DOT_WINDOW_PX // 2)
-        a.update(window_px=DOT_WINDOW_PX, modulation=mod, modulation_rows_px=rows, modulation_cols_px=cols)
+        a.update(window_px=DOT_WINDOW_PX, modulation=mod, modulation_rows_px=rows, modulation_cols_px=cols,
+                 periodic=periodic_pattern(frame))
         return a, spectrum
     try:
         # a disturbed surface smears the whole image's carrier peaks: then local carriers (tiles)
         c, disturbed = find_carriers_live(frame)
     except ValueError as exc:  # NoCarrierError
         mod, rows, cols = modulation_map(frame)
-        return {"error": str(exc), "modulation": mod, "modulation_rows_px": rows,
+        error = str(exc)
+        if _looks_like_dots(frame):
+            error = ("the camera sees random dots, not a checkerboard: choose \"random dots\" in Controls ▸ "
+                     "Reference & geometry ▸ Pattern (" + error + ")")
+        return {"error": error, "modulation": mod, "modulation_rows_px": rows,
                 "modulation_cols_px": cols}, spectrum
     # a window of two periods along both image axes averages the squares out
     axis_period = float(np.max(c.periods_px)) * np.sqrt(2.0)
@@ -177,9 +215,11 @@ def _check_saturation(saturation_pct: float, reasons: list, lines: list) -> None
         reasons.append(f"{sat:.1f} % of pixels saturated: lower exposure or gain")
 
 
-def _assess_dots(a: dict, saturation_pct: float, geometry, has_reference: bool):
+def _assess_dots(a: dict, saturation_pct: float, geometry, has_reference: bool, pattern_problem=None):
     """:func:`assess` for a random-dot pattern (``a`` from :func:`processing.piv.dot_alignment`)."""
     reasons, lines, notes = [], [], []
+    for problem in dict.fromkeys(p for p in (a.get("periodic"), pattern_problem) if p):
+        reasons.append(problem)  # dots chosen on a periodic pattern: every height would be wrong
     ref = a.get("reference") if isinstance(a.get("reference"), dict) else None
     window = int(a.get("window_px") or DOT_WINDOW_PX)
     lines.append(("pattern", "random dots (PIV)"))
@@ -233,7 +273,8 @@ def _assess_dots(a: dict, saturation_pct: float, geometry, has_reference: bool):
     return (not reasons), reasons, lines, notes
 
 
-def assess(a: dict, saturation_pct: float, geometry=None, has_reference: bool = False):
+def assess(a: dict, saturation_pct: float, geometry=None, has_reference: bool = False,
+           pattern_problem: Optional[str] = None):
     """Decide "ready to measure" from alignment metrics.
 
     Parameters
@@ -247,6 +288,9 @@ def assess(a: dict, saturation_pct: float, geometry=None, has_reference: bool = 
         The geometry in use (its theta is the configured one).
     has_reference : bool
         A reference exists (a disturbed surface is then what is measured, not a problem).
+    pattern_problem : str, optional
+        Why the reference does not show the chosen pattern (:func:`periodic_pattern` of the reference):
+        a reason not to measure.
 
     Returns
     -------
@@ -255,8 +299,10 @@ def assess(a: dict, saturation_pct: float, geometry=None, has_reference: bool = 
         ``notes``: warnings that do not stop measuring.
     """
     if "dot_size_px" in a or getattr(geometry, "pattern", "checkerboard") == "dots":
-        return _assess_dots(a, saturation_pct, geometry, has_reference)
+        return _assess_dots(a, saturation_pct, geometry, has_reference, pattern_problem)
     reasons, lines, notes = [], [], []
+    if pattern_problem:
+        reasons.append(pattern_problem)
     if a.get("error") and a.get("periods_px") is None:
         return False, [a["error"]], [("problem", a["error"])], notes
     if a.get("error"):

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import logging
 import os
 from typing import Callable, Optional
 
 import numpy as np
 
-__all__ = ["export_heights"]
+__all__ = ["export_heights", "describe_export", "frame_list"]
+
+log = logging.getLogger(__name__)
 
 
 #: HDF5 compression of the GUI's export: gzip (with shuffle, one frame per chunk: app.batch.writer) shrinks
@@ -61,6 +64,47 @@ def export_heights(recording_path: str, out_path: str, *, geometry_toml: Optiona
     if progress is not None:
         progress(total, total)
     return out_path
+
+
+def frame_list(indices, limit: int = 12) -> str:
+    """``"11, 35, 59"`` (frame indices from 0, as /height stores them), the first ``limit`` then "…"."""
+    idx = [int(i) for i in indices]
+    return ", ".join(str(i) for i in idx[:limit]) + (f", … ({len(idx)} in all)" if len(idx) > limit else "")
+
+
+def describe_export(out_path: str) -> tuple:
+    """What an exported OUT.h5 holds, for the message and the log: ``(text, clean)``.
+
+    Names the frames stored invalid (``/frame_status`` non-zero), flagged as jumps (``/pin_status["jump"]``)
+    and recorded INCOMPLETE (``/frame_flags``), by index; ``clean`` is False when there is any.
+    """
+    import h5py
+
+    from drivers.base import FrameFlags
+
+    with h5py.File(out_path, "r") as f:
+        n = int(f["height"].shape[0]) if "height" in f else 0
+        parts = []
+        if "frame_status" in f:
+            bad = np.flatnonzero(np.asarray(f["frame_status"][:n]) != 0)
+            if bad.size:
+                parts.append(f"{bad.size} invalid (frames {frame_list(bad)})")
+        if "pin_status" in f and "jump" in (f["pin_status"].dtype.names or ()):
+            jumps = np.flatnonzero(np.asarray(f["pin_status"]["jump"][:n]) != 0)
+            if jumps.size:
+                parts.append(f"{jumps.size} flagged as jumps against the previous frame (frames {frame_list(jumps)})")
+        if "frame_flags" in f:
+            inc = np.flatnonzero((np.asarray(f["frame_flags"][:n]).astype(np.int64) & int(FrameFlags.INCOMPLETE)) != 0)
+            if inc.size:
+                parts.append(f"{inc.size} recorded INCOMPLETE (frames {frame_list(inc)})")
+    text = f"heights of {n} frames exported to {out_path}"
+    if parts:
+        text += ": " + "; ".join(parts) + " — see /frame_status and /pin_status (docs/output-format.md)"
+        log.warning("%s", text)
+    else:
+        text += ": every frame measured, none flagged"
+        log.info("%s", text)
+    return text, not parts
 
 
 def choose_movie(window) -> None:

@@ -50,6 +50,7 @@ SHORTCUTS = (
     Shortcut("tab_replay", "View", "Replay tab", "Ctrl+3"),
     Shortcut("controls", "View", "Show/hide the Controls panel", "Ctrl+D"),
     Shortcut("clear_probes", "View", "Remove all probes (click the height map to place one)", "Ctrl+Shift+P"),
+    Shortcut("gpu", "View", "Live reconstruction on the GPU (remembered)", ""),
     Shortcut("scene_still", "View", "Synthetic scene: still water", "Alt+1"),
     Shortcut("scene_waves", "View", "Synthetic scene: travelling waves", "Alt+2"),
     Shortcut("scene_drop", "View", "Synthetic scene: drop (ring waves)", "Alt+3"),
@@ -139,15 +140,23 @@ def build_menus(window) -> dict:
             menu = menus[s.menu] = bar.addMenu("&" + s.menu)
         if s.name == "pause":
             menu.addSeparator()
-        if s.name == "scene_still":
-            menu = menus["View ▸ scene"] = menu.addMenu("Synthetic scene")
+        if s.name.startswith("scene_"):  # every scene in View ▸ Synthetic scene
+            if "View ▸ scene" not in menus:
+                menus["View ▸ scene"] = menu.addMenu("Synthetic scene")
+            menu = menus["View ▸ scene"]
         act = QtGui.QAction(s.action, window)
         act.setObjectName(s.name)
         if s.keys:
             act.setShortcut(QtGui.QKeySequence(s.keys))
             act.setShortcutContext(QtCore.Qt.WindowShortcut)
         fn = handlers.get(s.name)
-        if s.name == "pause":  # mirrors the status bar's check box
+        if s.name == "gpu":  # a remembered setting: checked as the session left it
+            act.setCheckable(True)
+            act.setChecked(window.memory.use_gpu)
+            act.setToolTip("off: the live maps are computed on the CPU; on: on the GPU when CuPy sees one "
+                           "(the status bar says which)")
+            act.toggled.connect(window.use_gpu)
+        elif s.name == "pause":  # mirrors the status bar's check box
             act.setCheckable(True)
             window.pause_box.toggled.connect(act.setChecked)
             act.triggered.connect(lambda _checked=False, act=act: window.pause_box.setChecked(act.isChecked()))

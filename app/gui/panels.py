@@ -453,7 +453,7 @@ class RecordingPanel(QtWidgets.QWidget):
 
     Signals
     -------
-    arm_requested(), disarm_requested(), trigger_requested(), browse_requested()
+    arm_requested(), disarm_requested(), trigger_requested(), browse_requested(), set_from_now_requested()
     """
 
     arm_requested = QtCore.Signal()
@@ -461,6 +461,7 @@ class RecordingPanel(QtWidgets.QWidget):
     trigger_requested = QtCore.Signal()
     browse_requested = QtCore.Signal()
     lengths_changed = QtCore.Signal()
+    set_from_now_requested = QtCore.Signal()
 
     def __init__(self, parent=None):
         super().__init__(parent)
@@ -478,12 +479,23 @@ class RecordingPanel(QtWidgets.QWidget):
         row.addWidget(self.folder, 1)
         row.addWidget(self.browse_button)
         form.addRow("Folder", row)
-        self.auto = QtWidgets.QCheckBox("auto-trigger when RMS slope >")
-        self.threshold = _spin(0, 1, 0.002, decimals=5, step=0.0005)
+        # the threshold in mrad of RMS slope, what it is compared with now, and a proposal from it
+        self.auto = QtWidgets.QCheckBox("auto-trigger at RMS slope >")
+        self.threshold = _spin(0.001, 1000, 1.0, decimals=3, step=0.05, suffix=" mrad")
+        self.threshold.setToolTip("fires when sqrt(mean(slope_x² + slope_y²)) of the live slope maps exceeds "
+                                  "this (mrad); the file stores the value and its unit")
+        self.set_from_now_button = QtWidgets.QPushButton("Set from now")
+        self.set_from_now_button.setToolTip("threshold = 5 × the median RMS slope of the last live maps")
+        form.addRow(self.auto)
         row2 = QtWidgets.QHBoxLayout()
-        row2.addWidget(self.auto)
-        row2.addWidget(self.threshold)
+        row2.addWidget(self.threshold, 1)
+        row2.addWidget(self.set_from_now_button)
         form.addRow(row2)
+        self.rms_label = QtWidgets.QLabel("now: no slope maps yet")
+        self.rms_label.setWordWrap(True)  # a stale mark makes it long: it wraps, the dock never scrolls sideways
+        self.rms_label.setSizePolicy(QtWidgets.QSizePolicy.Ignored, QtWidgets.QSizePolicy.Preferred)
+        self.rms_label.setToolTip("the RMS slope of the maps on screen: the quantity the threshold is compared with")
+        form.addRow(self.rms_label)
         row3 = QtWidgets.QHBoxLayout()
         self.arm_button = QtWidgets.QPushButton("Arm")
         self.trigger_button = QtWidgets.QPushButton("Trigger now")
@@ -509,6 +521,7 @@ class RecordingPanel(QtWidgets.QWidget):
         self.disarm_button.clicked.connect(self.disarm_requested.emit)
         self.trigger_button.clicked.connect(self.trigger_requested.emit)
         self.browse_button.clicked.connect(self.browse_requested.emit)
+        self.set_from_now_button.clicked.connect(self.set_from_now_requested.emit)
         self.pre.valueChanged.connect(lambda *_: self.lengths_changed.emit())
         self.post.valueChanged.connect(lambda *_: self.lengths_changed.emit())
         self.set_state("idle")

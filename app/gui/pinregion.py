@@ -32,7 +32,9 @@ class PinRegionOverlay:
         self.image = pg.ImageItem(axisOrder="row-major")
         self.image.setLookupTable(_LUT_OK)
         self.image.setZValue(15)
-        self.label = pg.TextItem("", color="#00a000", anchor=(0, 0))
+        # anchored by its lower left corner on the region's last row: drawn above it, inside the frame
+        # (below the border band it would fall outside the view and could not be read)
+        self.label = pg.TextItem("", color="#00a000", anchor=(0, 1))
         self.label.setZValue(21)
         plot.addItem(self.image)
         plot.addItem(self.label)
@@ -59,7 +61,7 @@ class PinRegionOverlay:
         self.samples = int(np.count_nonzero(region))
         r, c = np.nonzero(region)
         if r.size:
-            self.label.setPos(float(cols[c.min()]), float(rows[r.max()] + dr))
+            self.label.setPos(float(cols[c.min()]), float(rows[r.max()] - dr))
         self._show(f"{self.name} (h = 0): {100 * rec.reference_region_valid_fraction:.0f} % valid in the "
                    f"reference, {self.samples} samples", bad=self.samples == 0)
 

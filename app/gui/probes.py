@@ -111,17 +111,31 @@ class ProbeView(QtWidgets.QWidget):
         self._t0_ns: Optional[int] = None
         self.plot = pg.PlotWidget()
         self.plot.setBackground("w")
-        self.plot.setTitle("<b>Probes</b> (click the height map)", color="#111", size="10pt")
+        self.plot.setTitle("<b>Probes</b> (click the map)", color="#111", size="10pt")  # fits 1280x800's column
         self.plot.setLabel("bottom", "time (s)")
         self.plot.setLabel("left", "height (µm)")
+        self.plot.getAxis("left").enableAutoSIPrefix(False)  # already in µm: no "(x1e-06)"
+        self.stale_text = None
         self.plot.showGrid(x=True, y=True, alpha=0.3)
         self.plot.addLegend(offset=(5, 5))
-        self.plot.setToolTip("Click the height map to place a probe; drag it to move it, right-click it to "
-                             "remove it. Last %d s." % HISTORY_S)
+        self._hint = ("Click the height map to place a probe; drag it to move it, right-click it to "
+                      "remove it. Last %d s." % HISTORY_S)
+        self.plot.setToolTip(self._hint)
         lay = QtWidgets.QVBoxLayout(self)
         lay.setContentsMargins(0, 0, 0, 0)
         lay.addWidget(self.plot)
         map_plot.scene().sigMouseClicked.connect(self._clicked)
+
+    def set_stale(self, text) -> None:
+        """Grey the series and say so in the title while the maps they come from are stale; None: live."""
+        if text == self.stale_text:
+            return
+        self.stale_text = text
+        title = "<b>Probes</b> (click the map)" if text is None else "<b>Probes</b> <span style='color:#a00'>STALE</span>"
+        self.plot.setTitle(title, color="#111", size="10pt")
+        self.plot.setToolTip(f"STALE: {text}" if text else self._hint)
+        for probe in self.probes:
+            probe.curve.setOpacity(0.3 if text else 1.0)
 
     def _clicked(self, ev):
         if ev.button() != QtCore.Qt.LeftButton or ev.isAccepted() or ev.double():

@@ -267,6 +267,13 @@ class LiveSession:
                 ids.pop(old, None)
         return seq, f.image, f.host_timestamp_ns
 
+    def newest_seq(self) -> Optional[int]:
+        """The number (as ``Processed.seq``) of the newest frame in the ring, None if none; copies nothing."""
+        acq = self.acquisition
+        if acq is None or acq.ring.head == 0:
+            return None
+        return self._base_of.get(acq, 0) + acq.ring.head - 1
+
     def latest_frame(self):
         """``(seq, image, host_ns)`` of the newest frame in the ring, copied; None if none. Never blocks.
 
@@ -287,8 +294,16 @@ class LiveSession:
             return None
         return self._base_of.get(acq, 0) + f.sequence, f.image, f.host_timestamp_ns
 
-    def capture_reference(self, n_frames: int, timeout_s: Optional[float] = None) -> np.ndarray:
-        """Average the next ``n_frames`` frames (float32, counts); blocks up to ``timeout_s``."""
+    def capture_reference(self, n_frames: int, timeout_s: Optional[float] = None, *,
+                          pattern: str = "checkerboard"):
+        """Average the next ``n_frames`` frames that agree with the first; blocks up to ``timeout_s``.
+
+        Returns ``(reference float32 counts, ReferenceReport)``. Raises
+        :class:`app.gui.model.reference.WaterMovingError` when the frames disagree (the water moves):
+        :class:`~app.gui.model.reference.ReferenceAverager` says by how much.
+        """
+        from .model.reference import ReferenceAverager
+
         acq = self.acquisition
         if acq is None:
             raise RuntimeError("no camera is streaming: open a camera first")
@@ -298,10 +313,10 @@ class LiveSession:
         if timeout_s is None:
             timeout_s = 5.0 + 3.0 * n_frames / rate
         cursor = acq.ring.cursor()
-        total = np.zeros(acq.ring.shape, np.float64)
-        got = 0
+        averager = None
         deadline = time.monotonic() + timeout_s
-        while got < n_frames:
+        while averager is None or len(averager.changes) < n_frames:
+            got = 0 if averager is None else len(averager.changes)
             left = deadline - time.monotonic()
             if left <= 0:
                 raise TimeoutError(f"only {got} of {n_frames} frames arrived within {timeout_s:.1f} s: "
@@ -312,9 +327,23 @@ class LiveSession:
                 raise RuntimeError(f"camera stopped while capturing the reference: {exc}") from None
             if f is None:
                 continue
-            total += f.image
-            got += 1
-        return (total / n_frames).astype(np.float32)
+            if averager is None:
+                averager = ReferenceAverager(self._carriers_of(f.image, pattern))
+            averager.add(f.image)
+        return averager.result()
+
+    @staticmethod
+    def _carriers_of(image, pattern: str):
+        """The first reference frame's carriers (None: random dots, or no checkerboard to find)."""
+        if pattern == "dots":
+            return None
+        from processing.carriers import find_carriers_live
+        from processing.errors import NoCarrierError
+
+        try:
+            return find_carriers_live(image)[0].freq
+        except NoCarrierError:
+            return None  # the reconstructor then refuses the reference with the reason
 
     # ------------------------------------------------------------- status
     def status(self) -> dict:
@@ -343,10 +372,12 @@ class LiveSession:
 
         The camera keeps running (live view stays on); the recorder writes while
         capturing from its own ring cursor, so the display never slows it down.
-        With ``auto_threshold`` (RMS slope), the processing worker's slope maps
+        With ``auto_threshold`` (RMS slope, dimensionless; the file stores it in mrad with its unit), the processing worker's slope maps
         trigger it (:class:`app.capture.trigger.AutoTrigger`).
         """
         from app.capture.trigger import AutoTrigger, TriggeredCapture
+
+        from .model.recording import mrad, threshold_attrs
 
         acq = self.acquisition
         if acq is None or not acq.running:
@@ -370,7 +401,8 @@ class LiveSession:
                                    source="auto" if auto_threshold else "software", burst=False,
                                    stop_camera=False, progress=progress, geometry_toml=geometry_toml,
                                    reference_image=None if reference is None else np.asarray(reference),
-                                   on_exists="rename")
+                                   on_exists="rename",
+                                   attrs=threshold_attrs(mrad(auto_threshold) if auto_threshold else None))
         status["path"] = str(capture.path)
         self._capture_acq = acq
         self.capture = capture
@@ -391,23 +423,31 @@ class LiveSession:
         return status["path"]
 
     def trigger_now(self) -> int:
-        """Trigger the armed capture on the newest frame; returns its ring sequence."""
+        """Trigger the armed capture on the newest frame (stored as "software": the user fired it)."""
         capture = self.capture
         if capture is None or capture.state != "armed":
             raise RuntimeError("nothing armed: press Arm first")
-        return capture.trigger_now()
+        return capture.trigger_now(source="software")
 
-    def disarm(self):
-        """Cancel an armed capture (a running one keeps what it wrote)."""
+    def disarm(self) -> str:
+        """Cancel an armed capture: before its trigger no file is left; a running one keeps what it wrote.
+
+        Returns what happened, for the panel.
+        """
         capture, self.capture = self.capture, None
         self._drop_auto()
+        text = "disarmed"
         if capture is not None:
             try:
-                capture.cancel(timeout_s=10.0)
+                kept = capture.cancel(timeout_s=10.0)
             finally:
                 if self.recording is not None:
-                    self.recording.update(state="idle", summary_text=f"disarmed; {capture.path} kept "
-                                          f"with {capture.recorder.frames_written} frames")
+                    self.recording.update(state="idle")
+            text = (f"disarmed; {capture.path} kept with {capture.recorder.frames_written} frames" if kept else
+                    "disarmed before the trigger: nothing recorded, no file written")
+            if self.recording is not None:
+                self.recording["summary_text"] = text
+        return text
 
     def _drop_auto(self):
         auto, self._auto_trigger = self._auto_trigger, None

@@ -14,7 +14,9 @@ frame (the one whose height map is on screen) on the worker's grid, in physical 
 
 Root attributes: ``frame_id`` (the window's frame number), ``host_timestamp_ns``,
 ``created_utc``, ``software_version``, ``camera_id``, ``geometry_toml``, ``reference``,
-``paused``, ``stale`` (why the maps were marked stale, "" if live) and ``colour_levels.<units>``.
+``paused``, ``stale`` (why the maps were marked stale, "" if live) and, per map,
+``colour_levels.height``, ``colour_levels.displacement``, ``colour_levels.slope_x``,
+``colour_levels.slope_y``: ``[low, high]`` of the colour range on screen, in ``colour_units.<map>``.
 """
 
 from __future__ import annotations

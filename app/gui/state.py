@@ -16,8 +16,10 @@ confirmed (by the Confirm button, loading a geometry TOML or an experiment)
 shows the persistent banner "geometry not set for this camera: heights not
 to scale". The synthetic camera's geometry is its scene's own, hence known.
 
-Functions take the :class:`app.gui.window.MainWindow`; they only read and set
-its widgets and call its public methods.
+Functions take the :class:`app.gui.window.MainWindow`; they read and set its
+widgets, call its public methods and keep the data in its
+:class:`app.gui.model.memory.SessionMemory` (``w.memory``); they create no
+attribute on the window.
 """
 
 from __future__ import annotations
@@ -31,47 +33,42 @@ from typing import Optional
 
 import numpy as np
 
+from .model.memory import threshold_mrad
+from .model.staleness import derived_text
+
 log = logging.getLogger(__name__)
 
-__all__ = ["camera_to_open", "restore_early", "camera_opened", "save", "confirm_geometry", "geometry_in_use",
+__all__ = ["map_views", "camera_to_open", "restore_early", "camera_opened", "save", "confirm_geometry",
+           "geometry_in_use",
            "reference_in_use", "remember_camera_settings", "save_experiment", "open_experiment", "update_truth"]
 
-KEY = "session"
 _SETTING_NAMES = ("exposure_us", "gain_db", "frame_rate_hz", "offset_x", "offset_y", "width", "height",
                   "pixel_format", "trigger_mode", "trigger_source", "trigger_activation")
 
 
-def _views(w) -> dict:
+def map_views(w) -> dict:
+    """The maps by name (height, displacement, slope_x, slope_y): remembered colour ranges, snapshots."""
     return {"height": w.height_view, "displacement": w.disp_view, "slope_x": w.slope_x_view,
             "slope_y": w.slope_y_view}
 
 
 def _memory(w) -> dict:
-    mem = getattr(w, "_memory", None)
-    if mem is None:
-        from app.files import cache
-
-        mem = cache.load_settings().get(KEY)
-        mem = dict(mem) if isinstance(mem, dict) else {}
-        mem.setdefault("cameras", {})
-        w._memory = mem
-    return mem
+    return w.memory.data
 
 
 def _camera(w, camera_id: Optional[str] = None) -> dict:
-    cid = camera_id or w.session.camera_id
-    return _memory(w)["cameras"].setdefault(str(cid), {}) if cid else {}
+    return w.memory.camera(camera_id or w.session.camera_id)
 
 
 # ------------------------------------------------------------------ start
 def camera_to_open(w, camera_id: Optional[str]) -> Optional[str]:
     """The camera to open: ``camera_id`` if given, else the last session's (no widget needed)."""
-    mem = _memory(w)
-    w.restored_items = []
-    w.remembered_camera = None
-    if camera_id is None and mem.get("camera_id"):
-        camera_id = w.remembered_camera = str(mem["camera_id"])
-        w.restored_items.append(f"camera {camera_id}")
+    mem = w.memory
+    mem.restored.clear()
+    mem.remembered_camera = None
+    if camera_id is None and mem.data.get("camera_id"):
+        camera_id = mem.remembered_camera = str(mem.data["camera_id"])
+        mem.restored.append(f"camera {camera_id}")
     return camera_id
 
 
@@ -84,31 +81,31 @@ def restore_early(w) -> None:
         if "pre_frames" in rec:
             rp.pre.setValue(int(rec["pre_frames"]))
             rp.post.setValue(int(rec["post_frames"]))
-            w.restored_items.append(f"pre/post {rp.pre.value()}/{rp.post.value()} frames")
+            w.memory.restored.append(f"pre/post {rp.pre.value()}/{rp.post.value()} frames")
         if rec.get("folder") and os.path.isdir(rec["folder"]):
             rp.folder.setText(rec["folder"])
         if "auto_trigger" in rec:
             rp.auto.setChecked(bool(rec["auto_trigger"]))
-            rp.threshold.setValue(float(rec.get("threshold", rp.threshold.value())))
+            rp.threshold.setValue(threshold_mrad(rec, rp.threshold.value()))
             if rp.auto.isChecked():
-                w.restored_items.append(f"auto-trigger at {rp.threshold.value():g}")
+                w.memory.restored.append(f"auto-trigger at {rp.threshold.value():g} mrad")
         if "n_average" in mem:
             w.geometry_panel.n_average.setValue(int(mem["n_average"]))
         levels = mem.get("levels") or {}
         fixed = []
-        for name, view in _views(w).items():
+        for name, view in map_views(w).items():
             lv = levels.get(name)
             if lv is not None and len(lv) == 2 and lv[0] < lv[1]:
                 view.set_levels((float(lv[0]), float(lv[1])))
                 fixed.append(name)
         if fixed:
-            w.restored_items.append("colour ranges of " + ", ".join(fixed))
+            w.memory.restored.append("colour ranges of " + ", ".join(fixed))
         win = mem.get("window") or {}
         if win.get("geometry"):
             w.restoreGeometry(base64.b64decode(win["geometry"]))
             if win.get("state"):
                 w.restoreState(base64.b64decode(win["state"]))
-            w.restored_items.append("window layout")
+            w.memory.restored.append("window layout")
         if isinstance(win.get("side"), int):
             w.side.setCurrentIndex(win["side"])
     except Exception as exc:  # noqa: BLE001 - a stale or hand-edited file must not stop the window
@@ -117,7 +114,7 @@ def restore_early(w) -> None:
 
 
 def _show_restored(w) -> None:
-    items = getattr(w, "restored_items", [])
+    items = w.memory.restored
     w.restored_bar.setVisible(bool(items))
     w.restored_bar.setText("Restored from last session: " + " · ".join(items) if items else "")
     w.restored_bar.setToolTip(w.restored_bar.text())
@@ -125,12 +122,12 @@ def _show_restored(w) -> None:
 
 def remembered_camera_failed(w, error: str) -> bool:
     """The last session's camera did not open: search cameras instead (True), saying so; once."""
-    cid = getattr(w, "remembered_camera", None)
+    cid = w.memory.remembered_camera
     if not cid:
         return False
-    w.remembered_camera = None
-    w.restored_items = [f"camera {cid} not available ({error.splitlines()[0]}); searching cameras instead"
-                        ] + [i for i in w.restored_items if not i.startswith(f"camera {cid}")]
+    w.memory.remembered_camera = None
+    w.memory.restored[:] = [f"camera {cid} not available ({error.splitlines()[0]}); searching cameras instead"
+                            ] + [i for i in w.memory.restored if not i.startswith(f"camera {cid}")]
     _show_restored(w)
     w.open_camera(None)
     return True
@@ -139,7 +136,7 @@ def remembered_camera_failed(w, error: str) -> bool:
 def camera_opened(w, opened) -> None:
     """Per-camera memory after a camera opened: geometry (and its banner), accepted settings, reference."""
     cid = opened.camera_id
-    w.remembered_camera = None
+    w.memory.remembered_camera = None
     cam = _camera(w, cid)
     _memory(w)["camera_id"] = cid
     tank = w.session.tank
@@ -155,7 +152,7 @@ def camera_opened(w, opened) -> None:
 
             w.set_geometry(Geometry.from_dict(geo))
             g = w.geometry
-            w.restored_items.append(
+            w.memory.restored.append(
                 f"geometry of {cid}" + (f" (θ {g.theta_deg:g}°, H {g.depth_mm:g} mm, {g.pixel_mm:g} mm/px)"
                                         if g.setup == "tir" else "")
                 + ("" if cam.get("geometry_confirmed") else ", unconfirmed"))
@@ -186,9 +183,9 @@ def camera_opened(w, opened) -> None:
         path = ref["path"]
         if os.path.exists(path):
             w.load_reference(path)
-            w.restored_items.append(f"reference {path}")
+            w.memory.restored.append(f"reference {path}")
         else:
-            w.restored_items.append(f"reference {path} is gone: capture a new one")
+            w.memory.restored.append(f"reference {path} is gone: capture a new one")
     _show_restored(w)
 
 
@@ -196,10 +193,10 @@ def _restore_settings(w, cid: str, values: dict) -> None:
     """Write remembered settings; what the camera refuses is noted in the restored bar, not an error."""
     def done(settings, error):
         if error:
-            w.restored_items.append(f"settings of {cid} not restored (camera refused: {error})")
+            w.memory.restored.append(f"settings of {cid} not restored (camera refused: {error})")
             settings = w.session.camera_settings()
         else:
-            w.restored_items.append(f"settings of {cid} ({', '.join(sorted(values))})")
+            w.memory.restored.append(f"settings of {cid} ({', '.join(sorted(values))})")
         if settings is not None:
             w.camera_panel.show_settings(settings)
             remember_camera_settings(w, settings)
@@ -243,7 +240,7 @@ def reference_in_use(w) -> None:
     cid = w.session.camera_id
     if w.reference is None or not cid:
         return
-    path = getattr(w, "reference_path", None)
+    path = w.reference_path
     if not path:
         from app.files import cache
 
@@ -271,15 +268,13 @@ def remember_camera_settings(w, settings) -> None:
 
 def save(w) -> None:
     """Store everything remembered (called on close, and when the user confirms a geometry)."""
-    from app.files import cache
-
     mem = _memory(w)
     rp = w.recording_panel
     mem["recording"] = {"pre_frames": rp.pre.value(), "post_frames": rp.post.value(),
                         "folder": rp.folder.text().strip(), "auto_trigger": rp.auto.isChecked(),
-                        "threshold": rp.threshold.value()}
+                        "threshold_mrad": rp.threshold.value()}
     mem["n_average"] = w.geometry_panel.n_average.value()
-    mem["levels"] = {name: (None if v.auto_levels else list(v.levels)) for name, v in _views(w).items()}
+    mem["levels"] = {name: (None if v.auto_levels else list(v.levels)) for name, v in map_views(w).items()}
     mem["window"] = {"geometry": base64.b64encode(bytes(w.saveGeometry())).decode("ascii"),
                      "state": base64.b64encode(bytes(w.saveState())).decode("ascii"),
                      "side": w.side.currentIndex()}
@@ -287,9 +282,7 @@ def save(w) -> None:
     if s is not None:
         remember_camera_settings(w, s)
     geometry_in_use(w)
-    settings = cache.load_settings()
-    settings[KEY] = mem
-    cache.save_settings(settings)
+    w.memory.save()
 
 
 # ------------------------------------------------------------------ experiment files
@@ -303,7 +296,7 @@ def save_experiment(w, path) -> str:
         path, geometry=w.geometry, reference=w.reference, camera_id=w.session.camera_id,
         camera_settings={k: d[k] for k in _SETTING_NAMES if d.get(k) is not None},
         recording={"pre_frames": rp.pre.value(), "post_frames": rp.post.value(), "folder": rp.folder.text().strip(),
-                   "auto_trigger": rp.auto.isChecked(), "threshold": rp.threshold.value(),
+                   "auto_trigger": rp.auto.isChecked(), "threshold_mrad": rp.threshold.value(),
                    "n_average": w.geometry_panel.n_average.value()})
     if w.geometry is not None and w.session.camera_id:
         confirm_geometry(w)
@@ -328,8 +321,8 @@ def open_experiment(w, path) -> bool:
         rp.folder.setText(rec["folder"])
     if "auto_trigger" in rec:
         rp.auto.setChecked(bool(rec["auto_trigger"]))
-    if "threshold" in rec:
-        rp.threshold.setValue(float(rec["threshold"]))
+    if "threshold_mrad" in rec or "threshold" in rec:
+        rp.threshold.setValue(threshold_mrad(rec, rp.threshold.value()))
     if "n_average" in rec:
         w.geometry_panel.n_average.setValue(int(rec["n_average"]))
     if exp.geometry is not None:
@@ -347,7 +340,7 @@ def open_experiment(w, path) -> bool:
         values = {k: v for k, v in exp.camera_settings.items() if k in _SETTING_NAMES and v != now.get(k)}
         if values:
             w.configure_camera(values)
-    w.restored_items = [f"experiment {exp.path}"]
+    w.memory.restored[:] = [f"experiment {exp.path}"]
     _show_restored(w)
     w.restored_bar.setText(f"Experiment {exp.path}: geometry, reference and settings loaded")
     w.info(f"experiment {exp.path} opened")
@@ -369,7 +362,7 @@ def update_truth(w) -> None:
     if busy:
         name, (done, total) = next(iter(busy.items()))
         text = f"preparing {name}: {done}/{total} frames ray-traced…"
-        w.camera_panel.show_scene(getattr(w, "scene_wanted", tank.scene), text)
+        w.camera_panel.show_scene(w.scene_wanted or tank.scene, text)
         lab.setText(text)  # visible whichever Controls section is open
         return
     p = w.last_drawn or w.session.worker.latest()  # the maps on screen (also paused)
@@ -386,8 +379,14 @@ def update_truth(w) -> None:
     e["seq"] = p.seq
     w.height_error = e
     if np.isfinite(e["rel_rms"]):
-        lab.setText(f"vs truth {100 * e['rel_rms']:.1f} % rel. RMS ({e['scene']})")
+        text = f"vs truth {100 * e['rel_rms']:.1f} % rel. RMS ({e['scene']})"
     else:
-        lab.setText(f"vs truth {1e3 * e['rms_error_mm']:.3f} µm RMS ({e['scene']})")
+        text = f"vs truth {1e3 * e['rms_error_mm']:.3f} µm RMS ({e['scene']})"
+    # derived from the maps on screen: as old as they are, and greyed with them (app/gui/model/staleness.py)
+    shown = w.maps_shown_seq()
+    text, old = derived_text(text, w.stale.maps, measured_seq=p.seq, maps_seq=p.seq if shown is None else shown)
+    e["stale"] = old
+    lab.setText(text)
+    lab.setStyleSheet("padding: 0 4px; color: #888" if old else "padding: 0 4px")
     lab.setToolTip("Synthetic tank: RMS of (measured − true height) on the live grid, offset removed, "
                    "over the RMS of the true height")

@@ -101,6 +101,18 @@ class _Overlay(QtWidgets.QLabel):
         self.raise_()
 
 
+def _fitting_number(edit: QtWidgets.QLineEdit, value: float) -> str:
+    """``value`` with as many significant digits (4 down to 1) as fit in ``edit`` without clipping."""
+    room = edit.contentsRect().width() - 6 if edit.width() > 0 else 10**6
+    metrics = edit.fontMetrics()
+    text = f"{value:.4g}"
+    for digits in (4, 3, 2, 1):
+        text = f"{value:.{digits}g}"
+        if metrics.horizontalAdvance(text) <= room:
+            return text
+    return text
+
+
 class _LevelsRow(QtWidgets.QWidget):
     """Typed colour range of one map: min, max, auto, symmetric about zero."""
 
@@ -137,8 +149,13 @@ class _LevelsRow(QtWidgets.QWidget):
     def show_levels(self, levels) -> None:
         for edit, v in ((self.min_edit, levels[0]), (self.max_edit, levels[1])):
             if not edit.hasFocus():
-                edit.setText(f"{v:.4g}")
+                edit.setText(_fitting_number(edit, v))
                 edit.setStyleSheet("")
+
+    def resizeEvent(self, ev):  # noqa: N802 - Qt's name
+        super().resizeEvent(ev)
+        if self.view._levels_set:  # narrower now: fewer digits, never a clipped number
+            self.show_levels(self.view.levels)
 
     def sync(self) -> None:
         for box, value in ((self.auto_box, self.view.auto_levels), (self.symmetric_box, self.view.symmetric)):
@@ -507,6 +524,8 @@ class ProfileView(QtWidgets.QWidget):
         self.plot.setBackground("w")
         self.plot.setLabel("bottom", "distance along the line (mm)")
         self.plot.setLabel("left", units)
+        for name in ("left", "bottom"):  # already scaled (µm, mm): no SI prefix like "(x1e-06)"
+            self.plot.getAxis(name).enableAutoSIPrefix(False)
         self.plot.showGrid(x=True, y=True, alpha=0.3)
         self.curve = self.plot.plot(pen=pg.mkPen("#1f77b4", width=2))
         self.plot.enableAutoRange(False)  # ranges set explicitly: axes are not redrawn every frame

@@ -266,7 +266,7 @@ def test_auto_trigger_fires_on_the_bump(qtbot, window, scene, tmp_path):
     rp.pre.setValue(5)
     rp.post.setValue(5)
     rp.auto.setChecked(True)
-    rp.threshold.setValue(2e-5)  # RMS slope over the map: still water ~0 (noise), the bump ~7e-5
+    rp.threshold.setValue(0.02)  # mrad of RMS slope over the map: still water ~0 (noise), the bump ~0.07
     rp.arm_button.click()
     assert rp.state_label.text() == "armed"
     qtbot.waitUntil(lambda: window.session.acquisition.ring.head > 20, timeout=5000)

@@ -122,15 +122,12 @@ def test_first_run_by_hand_alignment_reference_waves_heights(qtbot):
     qtbot.waitUntil(lambda: "% rel. RMS (waves)" in w.status_labels["truth"].text(), timeout=5000)
     shown = float(w.status_labels["truth"].text().split("vs truth ")[1].split(" %")[0])
     assert shown <= 2.0
-    # ... and where the maps were computed: the GPU when CuPy sees one, else the CPU and why
-    from processing.gpu import cupy_or_reason
-
+    # ... and where the maps were computed: the CPU unless the user asked for the GPU (a remembered setting)
     device = w.status_labels["device"]
-    cupy, why = cupy_or_reason()
-    if cupy is None:
-        assert device.text() == "CPU" and why in device.toolTip()
-    else:
-        assert device.text().startswith("GPU") and w.session.worker.reconstructor.device == "cuda"
+    assert device.text() == "live on CPU" and "GPU not asked for" in device.toolTip()
+    assert w.session.worker.reconstructor.device == "cpu"
+    gpu = w.actions_by_name["gpu"]
+    assert gpu.isCheckable() and not gpu.isChecked()
 
 
 def test_alignment_gives_numbers_on_moving_water_and_warns(qtbot):

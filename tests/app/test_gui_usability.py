@@ -396,7 +396,14 @@ def test_arm_trigger_by_keys_snapshot_and_close_while_recording_asks(qtbot, wind
         assert np.nanmax(h) == pytest.approx(np.nanmax(window.last_drawn.result.height), rel=0.2)
         assert "theta_deg" in f.attrs["geometry_toml"] and f.attrs["camera_id"]
         assert float(np.nanmax(np.abs(h))) < 0.01  # mm: the 2 um bump, in mm as documented
+        # one colour range per map (slope x's is not lost under slope y's: issue 20, finding 9)
+        stored = {k: tuple(f.attrs[f"colour_levels.{k}"]) for k in ("height", "displacement", "slope_x", "slope_y")}
+        assert f.attrs["colour_units.slope_x"] == f.attrs["colour_units.slope_y"] == "mrad"
     assert seq >= 0
+    for name, view in (("height", window.height_view), ("displacement", window.disp_view),
+                       ("slope_x", window.slope_x_view), ("slope_y", window.slope_y_view)):
+        assert stored[name] == pytest.approx(view.levels, rel=1e-6), name
+    assert stored["slope_x"] != stored["slope_y"]  # the bump's two slope maps have their own ranges
 
     # closing while recording asks first; Cancel keeps the window and the recording
     answered = []

@@ -1,0 +1,14 @@
+"""The live window's logic without Qt: typed state and pure functions of frames, results and a clock.
+
+The window (app/gui/window.py) builds widgets, forwards events here and draws what comes back:
+
+* :mod:`.staleness` -- what each view shows, how old it is, and the age of every number
+  derived from the processed maps (status bar "vs truth", probes, readouts);
+* :mod:`.schedule` -- the display cadence (raw <= 60 Hz, maps <= 30 Hz in two halves),
+  the replay queue (newest wanted frame only) and live rates that fall to 0;
+* :mod:`.reference` -- a reference averaged only from frames that agree (still water);
+* :mod:`.recording` -- the auto-trigger threshold in physical units and what the panel says;
+* :mod:`.memory` -- what a session remembers (``settings.json``) and what came back.
+
+None of these modules imports Qt or pyqtgraph (tests/app/test_gui_model.py checks it).
+"""

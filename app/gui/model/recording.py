@@ -1,0 +1,71 @@
+"""The auto-trigger threshold in physical units, the live readout beside it, and "set from now".
+
+The auto-trigger (:class:`app.capture.trigger.AutoTrigger`) compares the RMS slope magnitude of each
+live slope map (dimensionless, mm/mm) with its threshold. The panel shows and takes it in mrad
+(1 mrad = 0.001), with the quantity it is compared with, measured on the maps on screen, next to it;
+"set from now" proposes :data:`PROPOSE_FACTOR` times the recent RMS (the surface's present noise or
+motion), so that the trigger fires on an event and not on the noise.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import math
+from typing import Deque, Optional
+
+__all__ = ["THRESHOLD_UNIT", "PROPOSE_FACTOR", "HISTORY_N", "mrad", "slope_of_mrad", "RmsHistory",
+           "threshold_attrs"]
+
+#: The unit of the threshold the panel shows, the settings remember and the recording file states.
+THRESHOLD_UNIT = "mrad RMS slope"
+#: "Set from now" proposes this many times the recent RMS slope.
+PROPOSE_FACTOR = 5.0
+#: Values of the recent RMS kept (the live maps' last few seconds).
+HISTORY_N = 60
+
+
+def mrad(slope: float) -> float:
+    """A dimensionless slope (mm/mm) in mrad."""
+    return 1e3 * float(slope)
+
+
+def slope_of_mrad(value_mrad: float) -> float:
+    """A slope in mrad as the dimensionless value :class:`~app.capture.trigger.AutoTrigger` takes."""
+    return 1e-3 * float(value_mrad)
+
+
+@dataclasses.dataclass
+class RmsHistory:
+    """The RMS slope (dimensionless) of the recent live maps, newest last, with the frame each came from."""
+
+    values: Deque[float] = dataclasses.field(default_factory=lambda: collections.deque(maxlen=HISTORY_N))
+    seq: Optional[int] = None
+
+    def add(self, rms: float, seq: Optional[int]) -> None:
+        if math.isfinite(rms):
+            self.values.append(float(rms))
+            self.seq = seq
+
+    @property
+    def latest(self) -> float:
+        return self.values[-1] if self.values else float("nan")
+
+    def propose_mrad(self, factor: float = PROPOSE_FACTOR) -> Optional[float]:
+        """``factor`` x the median recent RMS, in mrad (None: no measurement yet)."""
+        if not self.values:
+            return None
+        ordered = sorted(self.values)
+        return mrad(factor * ordered[len(ordered) // 2])
+
+    def readout(self) -> str:
+        """``"now 0.153 mrad"`` (the compared quantity) or ``"now: no slopes yet"``."""
+        return f"now {mrad(self.latest):.3g} mrad" if self.values else "now: no slope maps yet"
+
+
+def threshold_attrs(threshold_mrad: Optional[float]) -> dict:
+    """What the recording file stores about its auto-trigger (the unit with the value)."""
+    if threshold_mrad is None:
+        return {}
+    return {"auto_trigger_threshold": float(threshold_mrad), "auto_trigger_threshold_unit": THRESHOLD_UNIT,
+            "auto_trigger_quantity": "sqrt(mean(slope_x^2 + slope_y^2)) over the live slope maps"}

@@ -1,0 +1,72 @@
+"""The reference region (where the height offset is pinned) is edited inside the frame, or refused.
+
+A box dragged partly off the frame is clamped back onto it at the edit (:func:`clamp_region`); one
+typed outside it is refused with the reason (:func:`region_problem`), so that the reference in use
+is never thrown away by an edit.
+"""
+
+from __future__ import annotations
+
+from typing import Optional, Tuple
+
+__all__ = ["MIN_REGION_PX", "clamp_region", "region_problem", "roi_of", "reference_crop"]
+
+#: Smallest side of a reference region (px): a region that small is the user's choice (the pin then
+#: says how many of its samples were valid), but an empty one is none.
+MIN_REGION_PX = 4
+
+Region = Tuple[int, int, int, int]
+
+
+def clamp_region(region, shape) -> Tuple[Region, bool]:
+    """``(row0, row1, col0, col1)`` moved and cut to lie in a frame of ``shape`` (rows, cols), at least
+    :data:`MIN_REGION_PX` (or the frame) on a side; and whether anything changed."""
+    r0, r1, c0, c1 = (int(round(v)) for v in region)
+    rows, cols = int(shape[0]), int(shape[1])
+
+    def fit(lo, hi, n):
+        size = min(max(hi - lo, MIN_REGION_PX), n)
+        lo = min(max(lo, 0), n - size)
+        hi = min(max(hi, lo + size), n)
+        return lo, hi
+
+    r0n, r1n = fit(r0, r1, rows)
+    c0n, c1n = fit(c0, c1, cols)
+    out = (r0n, r1n, c0n, c1n)
+    return out, out != (r0, r1, c0, c1)
+
+
+def region_problem(region, shape) -> Optional[str]:
+    """Why ``region`` cannot be the reference region in a frame of ``shape``; None when it can."""
+    if region is None or shape is None:
+        return None
+    r0, r1, c0, c1 = (int(v) for v in region)
+    rows, cols = int(shape[0]), int(shape[1])
+    if r0 < 0 or c0 < 0 or r1 > rows or c1 > cols:
+        return (f"reference region rows {r0}-{r1}, columns {c0}-{c1} lies outside the {cols}×{rows} px frame: "
+                f"give rows within 0-{rows} and columns within 0-{cols}; the region in use is kept")
+    if r1 - r0 < MIN_REGION_PX or c1 - c0 < MIN_REGION_PX:
+        return (f"reference region {r1 - r0}×{c1 - c0} px is smaller than {MIN_REGION_PX} px on a side: "
+                "make it larger; the region in use is kept")
+    return None
+
+
+def roi_of(settings) -> Optional[Tuple[int, int, int, int]]:
+    """``(offset_x, offset_y, width, height)`` of camera settings (None: unknown)."""
+    if settings is None:
+        return None
+    roi = tuple(getattr(settings, k, None) for k in ("offset_x", "offset_y", "width", "height"))
+    return None if any(v is None for v in roi) else tuple(int(v) for v in roi)
+
+
+def reference_crop(reference_roi, new_roi):
+    """Where frames of ``new_roi`` lie in a reference taken with ``reference_roi`` (both
+    ``(offset_x, offset_y, width, height)`` on the sensor): ``(row slice, col slice)``, or None when the
+    new ROI is not inside the reference's (a new reference is needed)."""
+    if reference_roi is None or new_roi is None:
+        return None
+    rx, ry, rw, rh = reference_roi
+    nx, ny, nw, nh = new_roi
+    if nx < rx or ny < ry or nx + nw > rx + rw or ny + nh > ry + rh:
+        return None
+    return slice(ny - ry, ny - ry + nh), slice(nx - rx, nx - rx + nw)

@@ -1,0 +1,110 @@
+"""When the window draws, what the replay tab processes next, and rates that fall to 0.
+
+Pure state machines over a clock passed in (seconds, ``time.perf_counter``/``time.monotonic``), so
+their rules are tested without a window or a timer.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Dict, Hashable, Optional, Tuple
+
+__all__ = ["DISPLAY_MAX_HZ", "MAPS_MAX_HZ", "DrawClock", "LiveRates", "ReplayQueue", "ExportProgress"]
+
+DISPLAY_MAX_HZ = 60.0  # the raw camera view refreshes at most this often
+MAPS_MAX_HZ = 30.0  # processed maps at most this often: leaves time for the raw view
+
+
+@dataclasses.dataclass
+class DrawClock:
+    """The display cadence: raw frames at <= ``display_hz``, maps at <= ``maps_hz`` over two ticks.
+
+    :meth:`tick` is called at each display tick and returns the wait until the next one (s): the next
+    tick is due one period after this one was due (drawing time does not stretch the period), and a
+    tick more than a period late restarts the cadence from now (late ticks never pile up).
+    A result's maps are drawn in two halves on consecutive ticks (:meth:`take_second_half`), so each
+    tick stays short and the raw view keeps its cadence.
+    """
+
+    display_hz: float = DISPLAY_MAX_HZ
+    maps_hz: float = MAPS_MAX_HZ
+    next_due: Optional[float] = None
+    maps_t: float = float("-inf")
+    second_half: Any = None
+
+    def tick(self, now: float) -> float:
+        period = 1.0 / self.display_hz
+        due = (now if self.next_due is None else self.next_due) + period
+        if due < now - period:
+            due = now
+        self.next_due = due
+        return due - now
+
+    def wait_s(self, now: float) -> float:
+        """Seconds from ``now`` to the tick due (after the drawing of this tick)."""
+        return (self.next_due if self.next_due is not None else now) - now
+
+    def maps_due(self, now: float) -> bool:
+        return now - self.maps_t >= 1.0 / self.maps_hz
+
+    def maps_drawn(self, now: float, result) -> None:
+        """The first half of ``result``'s maps was drawn at ``now``; the second half goes on the next tick."""
+        self.maps_t = now
+        self.second_half = result
+
+    def take_second_half(self):
+        pending, self.second_half = self.second_half, None
+        return pending
+
+
+@dataclasses.dataclass
+class LiveRates:
+    """A measured rate while its counter keeps changing, 0 once it has not changed for ``stale_after_s``."""
+
+    stale_after_s: float = 1.0
+    last: Dict[Hashable, Tuple[Any, float]] = dataclasses.field(default_factory=dict)
+
+    def rate(self, key: Hashable, counter, measured: float, now: float) -> float:
+        last = self.last.get(key)
+        if last is None or last[0] != counter:
+            self.last[key] = (counter, now)
+            return float(measured) if last is not None else 0.0
+        return float(measured) if now - last[1] < self.stale_after_s else 0.0
+
+
+@dataclasses.dataclass
+class ReplayQueue:
+    """The replay frame to reconstruct next: only the newest request is kept (sliders move fast)."""
+
+    wanted: Optional[Tuple[Any, int]] = None
+
+    def want(self, frame, index: int) -> None:
+        self.wanted = (frame, int(index))
+
+    def take(self, ready: bool) -> Optional[Tuple[Any, int]]:
+        """The request to run now (None: none, or ``ready`` False: a running job takes it when it ends)."""
+        if not ready or self.wanted is None:
+            return None
+        wanted, self.wanted = self.wanted, None
+        return wanted
+
+
+@dataclasses.dataclass
+class ExportProgress:
+    """A replay export: ``state`` idle, running, done or error; ``fraction`` done; ``result`` once ended."""
+
+    state: str = "idle"
+    fraction: float = 0.0
+    result: Optional[tuple] = None
+
+    def start(self) -> None:
+        self.state, self.fraction, self.result = "running", 0.0, None
+
+    def progress(self, done: int, total: int) -> None:
+        self.fraction = done / max(total, 1)
+
+    def finish(self, result: tuple) -> None:
+        self.state = result[0]
+        if result[0] == "done":
+            self.fraction = 1.0
+        self.result = result

@@ -1,0 +1,141 @@
+"""How old is what the window shows, and why it is not the camera's present.
+
+Every view records what it shows as a :class:`Shown` (frame number, driver host
+timestamp, the acquisition it came from). :func:`view_staleness` turns those and
+the clock into the text each view is marked with (None: live). Numbers derived
+from the processed maps (the status bar's "vs truth", probes) carry the maps'
+mark through :func:`derived_text`, so they are greyed exactly when the maps are.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Callable, Optional
+
+__all__ = ["STALE_AFTER_S", "Shown", "Staleness", "format_age", "why_stale", "view_staleness", "derived_text"]
+
+#: A view whose data is this much older than expected is marked stale (s).
+STALE_AFTER_S = 1.0
+
+
+def format_age(frame_id, age_s: float) -> str:
+    """``"frame 1234, 2.3 s ago"`` (the words the stale marks use)."""
+    age = f"{age_s:.1f} s" if age_s < 100 else f"{age_s / 60:.0f} min"
+    return f"frame {frame_id}, {age} ago" if frame_id is not None else f"{age} ago"
+
+
+@dataclasses.dataclass(frozen=True)
+class Shown:
+    """What a view shows.
+
+    seq : worker frame number (None: unknown); host_ns : driver host timestamp (ns, monotonic clock;
+    0: unknown); source : a callable returning the acquisition the frame came from, or None once it
+    is gone (a weak reference), or None; camera_key : the camera id and ROI it was measured with;
+    reference_key : the reference (and geometry) the maps were computed against.
+    """
+
+    seq: Optional[int]
+    host_ns: int
+    source: Optional[Callable[[], Any]] = None
+    camera_key: Any = None
+    reference_key: Any = None
+
+    def age_s(self, now_ns: int) -> float:
+        return (now_ns - self.host_ns) / 1e9 if self.host_ns else 0.0
+
+
+def why_stale(shown: Optional[Shown], acquisition, camera_key: Any = None) -> Optional[str]:
+    """Why data from ``shown`` is not the camera's present (None: it is).
+
+    ``camera_key``: ``(camera identity, region of interest)`` of the open camera. The same camera
+    restarted with another ROI (a new acquisition) says "ROI changed", with other settings "camera settings
+    changed", not "from the previous camera".
+    """
+    if shown is None:
+        return None
+    source = shown.source() if shown.source is not None else None
+    if source is None or source is not acquisition:
+        if acquisition is None:
+            return "camera closed"
+        if camera_key is not None and shown.camera_key is not None and shown.camera_key[0] == camera_key[0]:
+            return "camera settings changed" if shown.camera_key == camera_key else "ROI changed"
+        return "from the previous camera"
+    if getattr(acquisition, "error", None):
+        return "camera lost"
+    return None
+
+
+@dataclasses.dataclass(frozen=True)
+class Staleness:
+    """The marks of one moment: None where the view is live, else ``"why — frame n, t s ago"``."""
+
+    raw: Optional[str] = None
+    maps: Optional[str] = None
+    alignment: Optional[str] = None
+
+
+def _mark(why: Optional[str], shown: Shown, now_ns: int) -> Optional[str]:
+    return f"{why} — {format_age(shown.seq, shown.age_s(now_ns))}" if why else None
+
+
+def view_staleness(now_ns: int, acquisition, *, raw: Optional[Shown], maps: Optional[Shown],
+                   alignment: Optional[Shown], unmeasured_seq: Optional[int] = None,
+                   frame_rate_hz: Optional[float] = None, camera_key: Any = None,
+                   reference_key: Any = None) -> Staleness:
+    """The stale marks of the raw views, the processed maps and the alignment views.
+
+    Parameters
+    ----------
+    now_ns : int
+        ``time.monotonic_ns()`` now (the clock of the drivers' host timestamps).
+    acquisition
+        The running acquisition (or None).
+    raw, maps, alignment : Shown or None
+        What those views show.
+    unmeasured_seq : int, optional
+        A newer frame the worker could not measure (no reference, an error): the maps are older.
+    frame_rate_hz : float, optional
+        The camera's rate: the raw view is stale after 3 frame periods without a new frame (>= 1 s).
+    camera_key
+        The open camera's (id, ROI), see :func:`why_stale`.
+    reference_key
+        The reference in use: maps computed against another one are stale ("older reference").
+    """
+    raw_text = maps_text = align_text = None
+    if raw is not None:
+        why = why_stale(raw, acquisition, camera_key)
+        if why is None and raw.age_s(now_ns) > max(STALE_AFTER_S, 3.0 / (frame_rate_hz or 10.0)):
+            why = "no newer frame"
+        raw_text = _mark(why, raw, now_ns)
+    if maps is not None:
+        why = why_stale(maps, acquisition, camera_key)
+        if why is None and reference_key is not None and maps.reference_key != reference_key:
+            why = "older reference"
+        elif why is None and unmeasured_seq is not None and maps.seq is not None and unmeasured_seq > maps.seq:
+            why = f"newer frame {unmeasured_seq} not measured"
+        elif why is None and raw is not None and raw.seq is not None and maps.seq is not None \
+                and raw.seq > maps.seq and raw.host_ns - maps.host_ns > STALE_AFTER_S * 1e9:
+            why = "processing behind the camera"
+        maps_text = _mark(why, maps, now_ns)
+    if alignment is not None:
+        why = why_stale(alignment, acquisition, camera_key)
+        if why is None and raw is not None and raw.host_ns - alignment.host_ns > 2 * STALE_AFTER_S * 1e9:
+            why = "not refreshed"
+        align_text = _mark(why, alignment, now_ns)
+    return Staleness(raw_text, maps_text, align_text)
+
+
+def derived_text(text: str, maps_mark: Optional[str], *, measured_seq: Optional[int] = None,
+                 maps_seq: Optional[int] = None) -> tuple:
+    """A number derived from the processed maps, with their age: ``(text, stale)``.
+
+    ``maps_mark``: the maps' stale mark (:func:`view_staleness`). ``measured_seq``/``maps_seq``: the frame
+    the number was computed from and the frame the maps on screen show; a number from another frame than
+    the maps on screen (e.g. computed before a new reference) is stale too. A stale number keeps its
+    value, says ``"(stale: why — frame n, t s ago)"`` and is drawn grey.
+    """
+    if maps_mark is None and measured_seq is not None and maps_seq is not None and measured_seq != maps_seq:
+        maps_mark = f"from frame {measured_seq}, the maps show {maps_seq}"
+    if maps_mark is None:
+        return text, False
+    return f"{text} (stale: {maps_mark})", True

@@ -1,0 +1,305 @@
+"""Reference and geometry: capture (only frames that agree), load, save, the reconstructor built
+from them in the background, the geometry editor and the reference-region box.
+
+Functions take the :class:`app.gui.window.MainWindow` (``w``); it forwards its methods here.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from typing import Optional
+
+import numpy as np
+from pyqtgraph.Qt import QtWidgets
+
+from . import state
+from .model.region import clamp_region, reference_crop, region_problem, roi_of
+
+log = logging.getLogger(__name__)
+
+
+def capture_reference(w, n_frames: int):
+    """Average ``n_frames`` new camera frames into the reference (in the background); moving water is refused."""
+    w.geometry_panel.reference_label.setText(f"capturing {n_frames} frames…")
+
+    def done(result, error):
+        if error:
+            kept = " (previous reference kept)" if w.reference is not None else ""
+            w.geometry_panel.reference_label.setText(
+                ("REFUSED: the water is moving" if "water is moving" in error else "capture failed") + kept)
+            w.geometry_panel.reference_label.setStyleSheet("color: #c00000; font-weight: bold")
+            w.show_error(f"Reference capture failed: {error}")
+            return
+        image, report = result
+        w.geometry_panel.reference_label.setStyleSheet("")
+        w.set_reference(image, report.text())
+    pattern = getattr(w.geometry, "pattern", "checkerboard")
+    w.run_background("reference", lambda n: w.session.capture_reference(n, pattern=pattern), done,
+                        int(n_frames))
+
+
+def set_reference(w, image: np.ndarray, origin: str = "", path: Optional[str] = None) -> bool:
+    """Use ``image`` as the flat-surface reference: rebuild the reconstructor (background).
+
+    ``path``: the file it came from (remembered for the next start; a captured one is kept in the cache).
+    """
+    w.reference = np.asarray(image)
+    w.reference_path = path
+    roi = roi_of(w.session.camera_settings())  # where on the sensor it was taken (None: not this camera's)
+    w.reference_roi = roi if roi is not None and (roi[3], roi[2]) == w.reference.shape[:2] else None
+    w._reference_text = f"reference: {origin}, {image.shape[1]}×{image.shape[0]} px"
+    w.geometry_panel.reference_label.setText(w._reference_text + " — building…")
+    w._rebuild_reconstructor()
+    return True
+
+
+def rebuild_reconstructor(w):
+    if w.reference is None or w.geometry is None:
+        w.session.worker.set_reconstructor(None)
+        return
+    reference, geometry, use_gpu = w.reference, w.geometry, w.memory.use_gpu
+
+    if getattr(geometry, "pattern", "checkerboard") == "dots":
+        # OpenPIV's first import (scipy.stats, ~1 s) here, in the GUI thread: in a background
+        # thread beside the running event loop it crawled for minutes in test runs (every
+        # thread waiting for the GIL, no CPU used). Likeliest cause: its allocations set the
+        # garbage collector off in that thread, finalizing Qt objects there (a running QTimer
+        # finalized so segfaults); app/gui/collector.py now keeps collection in this thread,
+        # this import stays as a second guard until that is shown to be the whole story
+        import openpiv.windef  # noqa: F401
+
+    def build():
+        from .session import NO_OVERLAP_WITH_DISCOVERY
+
+        with NO_OVERLAP_WITH_DISCOVERY:
+            return build_now()
+
+    def build_now():
+        from processing import Reconstructor, TirdeflectError
+        from processing.gpu import live_device
+
+        from .alignment import DOT_WINDOW_PX  # random dots: the windows the Alignment tab counts dots in
+
+        # the GPU only when the user asked for it (View ▸ Live reconstruction on the GPU, remembered)
+        device, text = live_device() if use_gpu else ("cpu", "CPU (GPU not asked for: View ▸ Live "
+                                                             "reconstruction on the GPU)")
+        if device == "cuda":
+            try:
+                rec = Reconstructor(reference, geometry, planner_effort=w.planner_effort, device="cuda",
+                                    window_px=DOT_WINDOW_PX)
+                rec.device_text = text if rec.gpu_fallback is None else f"CPU ({rec.gpu_fallback})"
+                return rec
+            except TirdeflectError as exc:  # e.g. a dot pattern: the GPU reads checkerboards only
+                text = f"CPU ({exc})"
+        rec = Reconstructor(reference, geometry, planner_effort=w.planner_effort, window_px=DOT_WINDOW_PX)
+        rec.device_text = text
+        return rec
+
+    def build_checked():
+        from .alignment import periodic_pattern
+
+        rec = build()
+        return rec, (periodic_pattern(reference) if getattr(geometry, "pattern", "") == "dots" else None)
+
+    def done(built, error):
+        rec, problem = built if built is not None else (None, None)
+        if error:
+            w.session.worker.set_reconstructor(None)
+            w.pin_overlay.set_reconstructor(None)
+            w.geometry_panel.reference_label.setText("reference NOT usable")
+            w.show_error(f"Bad reference: {error}")
+            return
+        if reference is not w.reference or geometry is not w.geometry:
+            return  # superseded by a newer reference/geometry
+        newest = w.session.newest_seq()  # later frames are measured against this reference
+        w._reference_since_seq = newest if newest is not None else w._last_raw_seq
+        w._reference_epoch += 1
+        w.session.worker.set_reconstructor(rec)
+        w.pin_overlay.set_reconstructor(rec)
+        w.session.reference = reference
+        text = w._reference_text or "reference"
+        try:
+            c = rec.carriers
+            periods = getattr(c, "periods_px", None)
+            if periods is not None:
+                text += " — periods " + ", ".join(f"{p:.2f}" for p in np.ravel(periods)) + " px"
+        except Exception:  # noqa: BLE001 - information only
+            pass
+        w.pattern_problem = problem
+        if problem:  # every height would be wrong: red where the user looks, not a tick
+            w.geometry_panel.reference_label.setText(text + " — NOT the chosen pattern")
+            w.geometry_panel.reference_label.setStyleSheet("color: #c00000; font-weight: bold")
+            w.show_error(f"The reference does not show random dots: {problem}")
+            state.reference_in_use(w)
+            return
+        w.geometry_panel.reference_label.setText(text + " ✓")
+        w.clear_error()
+        state.reference_in_use(w)
+    w.run_background("reconstructor", build_checked, done)
+
+
+def choose_save_reference(w):
+    if w.reference is None:
+        w.show_error("No reference to save: capture one first (Reference ▸ Capture reference).")
+        return
+    path, _ = QtWidgets.QFileDialog.getSaveFileName(w, "Save reference", "reference.tif",
+                                                    "Images (*.tif *.tiff *.png)")
+    if path:
+        w.save_reference(path)
+
+
+def save_reference(w, path: str) -> None:
+    from app.files.imageio import write_image
+    image = w.reference
+    if image.dtype.kind == "f":  # averaged: keep precision in a float TIFF
+        import tifffile
+        if not path.lower().endswith((".tif", ".tiff")):
+            path += ".tif"
+        tifffile.imwrite(path, image.astype(np.float32))
+    else:
+        write_image(path, image)
+    w.info(f"reference saved to {path}")
+
+
+def choose_load_reference(w):
+    path, _ = QtWidgets.QFileDialog.getOpenFileName(w, "Load reference", "",
+                                                    "Images (*.tif *.tiff *.png *.bmp *.h5)")
+    if path:
+        w.load_reference(path)
+
+
+def load_reference(w, path: str) -> None:
+    try:
+        from app.files.imageio import read_reference
+        image = read_reference(path)
+    except Exception as exc:  # noqa: BLE001 - shown
+        w.show_error(f"Cannot load reference {path!r}: {exc}")
+        return
+    w.set_reference(image, os.path.basename(path), path=os.path.abspath(path))
+
+
+def set_geometry(w, geometry) -> None:
+    w.geometry = geometry
+    d = geometry.to_dict()
+    w.geometry_panel.set_values(d)
+    w._show_region(d.get("reference_region"))
+    w.geometry_panel.geometry_label.setText("geometry OK")
+    w._rebuild_reconstructor()
+    state.geometry_in_use(w)
+
+
+def apply_geometry_editor(w):
+    from processing import Geometry
+    try:
+        values = w.geometry_panel.values()
+        base = w.geometry.to_dict() if w.geometry is not None else {}
+        base.update({k: v for k, v in values.items()})
+        if values["setup"] != "fsss":
+            for k in ("fsss_layers", "fsss_camera_distance_mm"):
+                base.pop(k, None)
+        else:
+            base.pop("theta_deg", None)
+        geometry = Geometry.from_dict(base)
+        problem = region_problem(geometry.to_dict().get("reference_region"), w._frame_shape())
+        if problem:
+            raise ValueError(problem)
+    except Exception as exc:  # noqa: BLE001 - GeometryError, ValueError
+        w.geometry_panel.geometry_label.setText(f"<span style='color:#c00'>{exc}</span>")
+        if w.geometry is not None:  # the box goes back where the geometry in use has it
+            w._show_region(w.geometry.to_dict().get("reference_region"))
+        return
+    w.geometry_panel.geometry_label.setText("geometry OK")
+    w.geometry = geometry
+    w._show_region(geometry.to_dict().get("reference_region"))
+    w._rebuild_reconstructor()
+    state.geometry_in_use(w)
+
+
+def show_region(w, region):
+    if region is None:
+        w.region_roi.setVisible(False)
+        w._region_label.setVisible(False)
+        return
+    r0, r1, c0, c1 = (float(v) for v in region)
+    w.region_roi.blockSignals(True)
+    w.region_roi.setPos([c0, r0])
+    w.region_roi.setSize([c1 - c0, r1 - r0])
+    w.region_roi.blockSignals(False)
+    w._region_label.setPos(c0, r0)
+    w.region_roi.setVisible(True)
+    w._region_label.setVisible(True)
+
+
+def frame_shape(w):
+    """(rows, cols) of the camera's frames (None: no camera)."""
+    s = w.session.camera_settings()
+    return (s.height, s.width) if s is not None and s.height and s.width else None
+
+
+def region_dragged(w):
+    """The box was dragged: kept on the frame (clamped at the edit, said so), then used."""
+    pos, size = w.region_roi.pos(), w.region_roi.size()
+    region = (pos.y(), pos.y() + size.y(), pos.x(), pos.x() + size.x())
+    shape = w._frame_shape()
+    if shape is not None:
+        region, moved = clamp_region(region, shape)
+        if moved:
+            w.info("reference region kept inside the frame: the box cannot leave the camera image")
+    r0, r1, c0, c1 = (int(round(v)) for v in region)
+    w._show_region((r0, r1, c0, c1))
+    w.geometry_panel.set_region((r0, r1, c0, c1))
+    w.apply_geometry_editor()
+
+
+def choose_load_geometry(w):
+    path, _ = QtWidgets.QFileDialog.getOpenFileName(w, "Load geometry", "", "TOML (*.toml)")
+    if path:
+        w.load_geometry(path)
+
+
+def load_geometry(w, path: str) -> None:
+    from processing import Geometry
+    try:
+        geometry = Geometry.from_toml(path)
+    except Exception as exc:  # noqa: BLE001 - GeometryError, OSError
+        w.show_error(f"Cannot load geometry {path!r}: {exc}")
+        return
+    w.set_geometry(geometry)
+    w.confirm_geometry()  # a loaded geometry is this camera's set-up
+    w.info(f"geometry loaded from {path}")
+
+
+def choose_save_geometry(w):
+    path, _ = QtWidgets.QFileDialog.getSaveFileName(w, "Save geometry", "geometry.toml", "TOML (*.toml)")
+    if path:
+        w.save_geometry(path)
+
+
+def save_geometry(w, path: str) -> None:
+    if w.geometry is None:
+        w.show_error("No valid geometry to save: fix the fields marked in red first.")
+        return
+    with open(path, "w", encoding="utf-8") as fh:
+        fh.write(w.geometry.to_toml_text())
+    w.info(f"geometry saved to {path}")
+
+
+def follow_roi(w, settings) -> None:
+    """The camera now delivers ``settings``' ROI: crop the reference to it (and rebuild, the pin band
+    with it), or, when it is not inside the reference's, say that a new reference is needed."""
+    new_roi = roi_of(settings)
+    if w.reference is None or w.reference_roi is None or new_roi is None or new_roi == w.reference_roi:
+        return
+    crop = reference_crop(w.reference_roi, new_roi)
+    if crop is not None:
+        old = w.reference_roi
+        set_reference(w, w.reference[crop], f"cropped to the new ROI {new_roi[2]}×{new_roi[3]} at "
+                                            f"({new_roi[0]}, {new_roi[1]}) from the one taken at ({old[0]}, {old[1]})")
+        return
+    w.session.worker.set_reconstructor(None)
+    w.pin_overlay.set_reconstructor(None)
+    w.geometry_panel.reference_label.setText(
+        f"the reference ({w.reference_roi[2]}×{w.reference_roi[3]} at ({w.reference_roi[0]}, {w.reference_roi[1]})) "
+        f"does not cover the new ROI: capture a new reference")
+    w.geometry_panel.reference_label.setStyleSheet("color: #c00000; font-weight: bold")

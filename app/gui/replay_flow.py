@@ -1,0 +1,162 @@
+"""The Replay tab: open a recording, reconstruct the frame on the slider (newest request only),
+export heights through the batch engine.
+
+Functions take the :class:`app.gui.window.MainWindow` (``w``); it forwards its methods here.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+
+import numpy as np
+from pyqtgraph.Qt import QtWidgets
+
+from .replay import RECORDING_FILTER, Recording
+
+log = logging.getLogger(__name__)
+
+
+def choose_recording(w):
+    path, _ = QtWidgets.QFileDialog.getOpenFileName(w, "Open recording",
+                                                    w.recording_panel.folder.text(), RECORDING_FILTER)
+    if path:
+        w.open_recording(path)
+
+
+def open_recording(w, path: str) -> bool:
+    try:
+        rec = Recording(path)
+    except Exception as exc:  # noqa: BLE001
+        w.show_error(str(exc))
+        return False
+    if w.replay_recording is not None:
+        w.replay_recording.close()
+    w.replay_recording = rec
+    w._replay_reconstructor = None
+    w.replay.set_recording(rec)
+    reference = rec.reference if rec.reference is not None else w.reference
+    geometry = w.geometry
+    if rec.geometry_toml:
+        try:
+            from processing import Geometry
+            geometry = Geometry.from_toml_text(rec.geometry_toml)
+        except Exception as exc:  # noqa: BLE001
+            w.replay.message.setText(f"geometry stored in the file is unusable ({exc}); using the editor's")
+    if reference is not None and geometry is not None:
+        def build():
+            from processing import Reconstructor
+
+            from .session import NO_OVERLAP_WITH_DISCOVERY
+
+            with NO_OVERLAP_WITH_DISCOVERY:  # see there
+                return Reconstructor(reference, geometry, planner_effort=w.planner_effort)
+
+        def done(r, error):
+            if error:
+                w.replay.message.setText(f"cannot process this recording: {error}")
+                return
+            if w.replay_recording is rec:
+                w._replay_reconstructor = r
+                w._show_replay_frame(w.replay.slider.value())
+        w.run_background("replay-reconstructor", build, done)
+    else:
+        missing = [what for what, have in (("reference (still water)", reference is not None),
+                                            ("geometry", geometry is not None)) if not have]
+        w.replay.message.setText(
+            f"raw frames only: no {' and no '.join(missing)} in this file or the window; for heights, "
+            f"load or capture them in Controls ▸ Reference & geometry, then open the file again")
+    w._show_replay_frame(0)
+    w.tabs.setCurrentWidget(w.replay)
+    return True
+
+
+def show_replay_frame(w, index: int):
+    rec = w.replay_recording
+    if rec is None or rec.n_frames == 0:
+        return
+    frame = rec.frame(int(index))
+    w.replay.raw.set_data(frame, levels=(0, float(frame.max()) or 1.0) if w.replay.raw.auto_levels else None)
+    rel = rec.trigger_index(int(index))
+    when = rec.frame_time_s  # NaN where the file has no times (recordings, TIFF stacks)
+    w.replay.index_label.setText(f"frame {index + 1}/{rec.n_frames}"
+                                    + (f"  (trigger {rel:+d})" if rel is not None else "")
+                                    + (f"  t = {when * 1e3:+.4f} ms from the {rec.time_origin}"
+                                       if math.isfinite(when) else ""))
+    w.replay_queue.want(frame, int(index))
+    w._process_replay_frame()
+
+
+def process_replay_frame(w):
+    """Reconstruct the wanted replay frame in the background (newest request only; never in the GUI thread)."""
+    r = w._replay_reconstructor
+    wanted = w.replay_queue.take(ready=r is not None and not w.busy("replay-frame"))
+    if wanted is None:
+        return  # a running job picks up the newest wanted frame when it ends
+    frame, index = wanted
+    rec = w.replay_recording
+
+    def job():
+        r.reset_series()  # frames may be visited in any order: no temporal unwrapping across them
+        return r(frame, grid="decimated")
+
+    def done(result, error):
+        if w.replay_recording is not rec:
+            return
+        if error:
+            w.replay.height.show_message(error)
+        else:
+            w.replay.height.show_message("")
+            w.replay.height.set_data(np.multiply(result.height, 1e3, dtype=np.float32),
+                                        x=result.x_mm, y=result.y_mm)
+            w.replay_last_result = result
+            w.replay_shown_index = index
+        w._process_replay_frame()
+    w.run_background("replay-frame", job, done)
+
+
+def choose_export(w):
+    rec = w.replay_recording
+    if rec is None:
+        return
+    default = os.path.splitext(rec.path)[0] + "-heights.h5"
+    path, _ = QtWidgets.QFileDialog.getSaveFileName(w, "Export heights", default, "HDF5 (*.h5)")
+    if path:
+        w.export_heights(path)
+
+
+def export_heights(w, out_path: str) -> None:
+    """Process every frame of the open recording into ``out_path`` (background, with progress)."""
+    rec = w.replay_recording
+    if rec is None:
+        w.show_error("Open a recording first (Replay ▸ Open recording).")
+        return
+    w.replay.progress.setRange(0, 100)  # the batch reports every frame written; _refresh shows it
+    w.replay.progress.setValue(0)
+    w.replay.message.setText(f"exporting {rec.n_frames} frames to {out_path}…")
+    w.export.start()
+    progress = w.export.progress
+
+    geometry_toml = rec.geometry_toml or (w.geometry.to_toml_text() if w.geometry else None)
+
+    def job():
+        from . import export
+        return export.export_heights(rec.path, out_path, geometry_toml=geometry_toml,
+                                     reference=None if rec.reference is not None else w.reference,
+                                     progress=progress)
+
+    def done(result, error):
+        w.export.finish(("error", error) if error else ("done", out_path))
+        w.replay.progress.setRange(0, 100)
+        w.replay.progress.setValue(int(100 * w.export.fraction))
+        if error:
+            w.show_error(f"Export failed: {error}\nFrames exported before the error are kept in {out_path}.")
+            return
+        from .export import describe_export
+
+        text, clean = describe_export(out_path)
+        w.replay.message.setText(text)
+        w.replay.message.setStyleSheet("" if clean else "color: #b00000; font-weight: bold")
+        w.info(text, 20000)
+    w.run_background("export", job, done)

@@ -1,0 +1,219 @@
+"""The live window's Qt-free model (app/gui/model/): rules tested without a window, a timer or Qt."""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+MODEL_MODULES = ("staleness", "schedule", "reference", "recording", "memory")
+
+
+def test_the_model_imports_no_qt():
+    code = ("import sys\n" + "".join(f"import app.gui.model.{m}\n" for m in MODEL_MODULES)
+            + "bad = [m for m in ('PySide6', 'PyQt5', 'PyQt6', 'pyqtgraph') if m in sys.modules]\n"
+              "assert not bad, bad\n")
+    r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120,
+                       env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"})
+    assert r.returncode == 0, r.stderr
+
+
+def _attributes_set(tree, owner: str) -> set:
+    """Attributes assigned on the name ``owner`` (``self.x = ...``, ``w.x += ...``) anywhere in ``tree``."""
+    out = set()
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.Assign, ast.AugAssign, ast.AnnAssign)):
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+            for t in targets:
+                for sub in ast.walk(t):
+                    if isinstance(sub, ast.Attribute) and isinstance(sub.value, ast.Name) and sub.value.id == owner:
+                        out.add(sub.attr)
+    return out
+
+
+def _functions(path: Path) -> dict:
+    return {n.name: n for n in ast.parse(path.read_text(encoding="utf-8")).body if isinstance(n, ast.FunctionDef)}
+
+
+def test_main_window_creates_every_attribute_while_it_is_built():
+    """No attribute appears later: no getattr(self, "_x", default), no __dict__.setdefault, and every attribute
+    that the window's methods or the modules it forwards to assign is created by __init__ (or layout.build_ui,
+    which __init__ calls)."""
+    gui = ROOT / "app/gui"
+    src = (gui / "window.py").read_text(encoding="utf-8")
+    assert 'getattr(self, "_' not in src and "__dict__" not in src
+    cls = next(n for n in ast.parse(src).body if isinstance(n, ast.ClassDef) and n.name == "MainWindow")
+    methods = {n.name: n for n in cls.body if isinstance(n, ast.FunctionDef)}
+    built = _attributes_set(methods["__init__"], "self") | _attributes_set(_functions(gui / "layout.py")["build_ui"], "w")
+    later = {name: _attributes_set(fn, "self") - built for name, fn in methods.items() if name != "__init__"}
+    assert not {k: v for k, v in later.items() if v}, later
+    for helper in ("state.py", "menus.py", "export.py", "reference_flow.py", "recording_flow.py", "replay_flow.py",
+                   "display.py", "layout.py"):
+        text = (gui / helper).read_text(encoding="utf-8")
+        assert 'getattr(w, "_' not in text and 'getattr(window, "_' not in text, helper
+        for owner in ("w", "window"):
+            stray = _attributes_set(ast.parse(text), owner) - built
+            assert not stray, f"{helper} creates window attributes {sorted(stray)} that __init__ does not declare"
+
+
+def test_main_window_is_at_most_600_lines():
+    src = (ROOT / "app/gui/window.py").read_text(encoding="utf-8")
+    cls = next(n for n in ast.parse(src).body if isinstance(n, ast.ClassDef) and n.name == "MainWindow")
+    assert cls.end_lineno - cls.lineno + 1 <= 600 and len(src.splitlines()) <= 600
+
+
+# ------------------------------------------------------------------ staleness (finding 3, 11)
+class _Acq:
+    error = None
+
+
+def test_maps_from_another_roi_of_the_same_camera_say_roi_changed_not_previous_camera():
+    import weakref
+
+    from app.gui.model.staleness import Shown, view_staleness
+
+    a, b = _Acq(), _Acq()
+    maps = Shown(10, 1_000_000_000, weakref.ref(a), ("synthetic", (0, 0, 512, 512)), 1)
+    s = view_staleness(2_000_000_000, b, raw=None, maps=maps, alignment=None,
+                       camera_key=("synthetic", (0, 0, 256, 512)), reference_key=1)
+    assert s.maps.startswith("ROI changed — frame 10, 1.0 s ago")
+    other = view_staleness(2_000_000_000, b, raw=None, maps=maps, alignment=None,
+                           camera_key=("aravis:cam2", (0, 0, 512, 512)), reference_key=1)
+    assert other.maps.startswith("from the previous camera")
+
+
+def test_maps_of_an_older_reference_are_stale_and_numbers_from_them_say_so():
+    import weakref
+
+    from app.gui.model.staleness import Shown, derived_text, view_staleness
+
+    a = _Acq()
+    maps = Shown(10, 1_000_000_000, weakref.ref(a), ("synthetic", None), 1)
+    live = view_staleness(1_200_000_000, a, raw=None, maps=maps, alignment=None, camera_key=("synthetic", None),
+                          reference_key=1)
+    assert live.maps is None
+    assert derived_text("vs truth 1.4 %", live.maps) == ("vs truth 1.4 %", False)
+    new_ref = view_staleness(27_000_000_000, a, raw=None, maps=maps, alignment=None,
+                             camera_key=("synthetic", None), reference_key=2)
+    text, old = derived_text("vs truth 31.1 %", new_ref.maps)
+    assert old and text == "vs truth 31.1 % (stale: older reference — frame 10, 26.0 s ago)"
+    # a number computed from another frame than the maps on screen is stale too
+    assert derived_text("now 0.1 mrad", None, measured_seq=9, maps_seq=10)[1]
+
+
+# ------------------------------------------------------------------ schedule
+def test_draw_clock_keeps_its_cadence_and_never_piles_up_late_ticks():
+    from app.gui.model.schedule import DrawClock
+
+    c = DrawClock(display_hz=50.0, maps_hz=25.0)
+    waits = [c.tick(t) for t in (0.0, 0.021, 0.040)]  # ticks a little late or early: the cadence holds
+    assert waits[0] == pytest.approx(0.02) and c.next_due == pytest.approx(0.06)
+    assert c.tick(1.0) == pytest.approx(0.0)  # far behind: restart from now, no burst of ticks
+    assert c.maps_due(1.0)
+    c.maps_drawn(1.0, "result")
+    assert not c.maps_due(1.02) and c.maps_due(1.04)
+    assert c.take_second_half() == "result" and c.take_second_half() is None
+
+
+def test_replay_queue_keeps_only_the_newest_request():
+    from app.gui.model.schedule import ReplayQueue
+
+    q = ReplayQueue()
+    for k in range(5):
+        q.want(f"frame{k}", k)
+    assert q.take(ready=False) is None and q.wanted == ("frame4", 4)
+    assert q.take(ready=True) == ("frame4", 4) and q.take(ready=True) is None
+
+
+def test_live_rate_falls_to_zero_when_the_counter_stops():
+    from app.gui.model.schedule import LiveRates
+
+    r = LiveRates(stale_after_s=1.0)
+    assert r.rate("camera", 1, 30.0, 0.0) == 0.0  # first sight: no rate yet
+    assert r.rate("camera", 2, 30.0, 0.1) == 30.0
+    assert r.rate("camera", 2, 30.0, 0.5) == 30.0
+    assert r.rate("camera", 2, 30.0, 1.2) == 0.0
+
+
+# ------------------------------------------------------------------ reference (finding 1)
+@pytest.fixture(scope="module")
+def tank():
+    from app.capture.scene import TankScene
+
+    t = TankScene((128, 128), n_frames=6, frame_rate_hz=60.0)
+    t.prepare("waves")
+    return t
+
+
+def test_reference_of_still_water_agrees_and_of_waves_is_refused_with_the_figure(tank):
+    from app.gui.model.reference import PHASE_BOUND_RAD, ReferenceAverager, WaterMovingError
+    from processing.carriers import find_carriers_live
+
+    still = [tank._quantize(tank.flat) for _ in range(6)]
+    avg = ReferenceAverager(find_carriers_live(still[0])[0].freq)
+    for f in still:
+        avg.add(f)
+    ref, report = avg.result()
+    assert report.n_averaged == 6 and report.max_change_rad < PHASE_BOUND_RAD / 10
+    np.testing.assert_allclose(ref, np.mean(np.asarray(still, np.float64), axis=0), atol=1e-3)
+    waves = tank._clips["waves"][0]
+    avg = ReferenceAverager(find_carriers_live(waves[0])[0].freq)
+    for f in waves:
+        avg.add(f)
+    assert min(avg.changes[1:]) > 4 * PHASE_BOUND_RAD  # the waves move the phase by far more than the bound
+    with pytest.raises(WaterMovingError, match=r"the water is moving: wait and capture again\. 5 of 6 frames"):
+        avg.result()
+
+
+def test_one_passing_glitch_is_left_out_not_averaged(tank):
+    from app.gui.model.reference import ReferenceAverager
+    from processing.carriers import find_carriers_live
+
+    still = [tank._quantize(tank.flat) for _ in range(10)]
+    frames = still[:5] + [tank._clips["waves"][0][2]] + still[5:9]
+    avg = ReferenceAverager(find_carriers_live(frames[0])[0].freq)
+    for f in frames:
+        avg.add(f)
+    ref, report = avg.result()
+    assert (report.n_frames, report.n_averaged) == (10, 9) and "1 disagreeing frames left out" in report.text()
+    np.testing.assert_allclose(ref, np.mean(np.asarray(still[:9], np.float64), axis=0), atol=1e-3)
+
+
+# ------------------------------------------------------------------ recording (finding 7), memory
+def test_threshold_proposal_is_five_times_the_median_recent_rms_in_mrad():
+    from app.gui.model.recording import RmsHistory, threshold_attrs
+
+    h = RmsHistory()
+    assert h.propose_mrad() is None and "no slope maps" in h.readout()
+    for v, seq in ((1e-4, 1), (2e-4, 2), (float("nan"), 3), (1.5e-4, 4)):
+        h.add(v, seq)
+    assert h.propose_mrad() == pytest.approx(5 * 0.15) and h.readout() == "now 0.15 mrad" and h.seq == 4
+    assert threshold_attrs(0.75)["auto_trigger_threshold_unit"] == "mrad RMS slope"
+
+
+def test_old_dimensionless_thresholds_come_back_in_mrad_and_gpu_is_off_unless_asked():
+    from app.gui.model.memory import SessionMemory, threshold_mrad
+
+    assert threshold_mrad({"threshold": 0.002}, 1.0) == pytest.approx(2.0)
+    assert threshold_mrad({"threshold_mrad": 0.5, "threshold": 0.002}, 1.0) == 0.5
+    m = SessionMemory()
+    assert not m.use_gpu
+    m.use_gpu = True
+    assert m.data["gpu"] is True
+
+
+# ------------------------------------------------------------------ region (finding 4)
+def test_a_region_dragged_off_the_frame_is_put_back_whole_and_one_typed_outside_is_refused():
+    from app.gui.model.region import clamp_region, region_problem
+
+    assert clamp_region((300, 360, 250, 310), (256, 256)) == ((196, 256, 196, 256), True)
+    assert clamp_region((-40, 20, -5, 55), (256, 256)) == ((0, 60, 0, 60), True)
+    assert clamp_region((10, 70, 10, 70), (256, 256)) == ((10, 70, 10, 70), False)
+    assert "outside the 256×256 px frame" in region_problem((200, 400, 0, 50), (256, 256))
+    assert region_problem((0, 12, 0, 12), (256, 256)) is None
+    assert "smaller than" in region_problem((5, 6, 0, 50), (256, 256))

@@ -1,0 +1,381 @@
+"""Issue 20 through the widgets: the live window refuses states that make heights wrong, and says why.
+
+pytest-qt, offscreen, the synthetic tank (ray-traced frames, app/capture/scene.py) at 256^2 so that
+the moving scenes are ray-traced in seconds. Each test starts from a clean settings directory.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from pyqtgraph.Qt import QtCore, QtTest
+
+from tests.app.test_gui_flow import _choose_scene_by_hand
+
+pytestmark = pytest.mark.gui
+
+SHAPE = (256, 256)
+
+
+def _window(qtbot, **kw):
+    from app.gui.window import MainWindow
+
+    w = MainWindow("synthetic", synthetic_options={"shape": SHAPE, "n_frames": 12, "frame_rate_hz": 30.0},
+                   planner_effort="FFTW_ESTIMATE", **kw)
+    qtbot.addWidget(w)
+    w.resize(1600, 1000)
+    w.show()
+    qtbot.waitUntil(lambda: w.first_frame_s is not None, timeout=20000)
+    qtbot.waitUntil(lambda: not w.busy("open") and w.geometry is not None, timeout=20000)  # the tank's own geometry
+    w.activateWindow()
+    qtbot.waitUntil(w.isActiveWindow, timeout=3000)  # keys go to the active window
+    return w
+
+
+def _ctrl(w, key):
+    QtTest.QTest.keyClick(w, key, QtCore.Qt.ControlModifier)
+
+
+def test_reference_on_moving_water_is_refused_and_still_water_accepted(qtbot):
+    """Finding 1: Ctrl+R on the waves says "the water is moving" with the figure, keeps no reference, no tick."""
+    w = _window(qtbot)
+    w.geometry_panel.n_average.setValue(5)
+    _choose_scene_by_hand(qtbot, w, "travelling waves")
+    qtbot.waitUntil(lambda: w.session.tank.scene == "waves", timeout=60000)
+    w.activateWindow()
+    qtbot.waitUntil(w.isActiveWindow, timeout=3000)
+    before = w.reference
+    _ctrl(w, QtCore.Qt.Key_R)
+    qtbot.waitUntil(lambda: w.last_error is not None and not w.busy("reference"), timeout=30000)
+    assert "the water is moving: wait and capture again" in w.last_error, w.last_error
+    figure = float(w.last_error.split("(frame ")[1].split(": ")[1].split(" rad")[0])
+    assert figure > 0.2  # waves move the carrier phase by about a radian from frame to frame
+    label = w.geometry_panel.reference_label.text()
+    assert "REFUSED" in label and "✓" not in label
+    assert w.reference is before  # nothing replaced, nothing half-built
+    # still water: accepted, with how well its frames agreed
+    _choose_scene_by_hand(qtbot, w, "still water")
+    qtbot.waitUntil(lambda: w.session.tank.scene == "still", timeout=10000)
+    w.activateWindow()
+    qtbot.waitUntil(w.isActiveWindow, timeout=3000)
+    w.clear_error()
+    _ctrl(w, QtCore.Qt.Key_R)
+    qtbot.waitUntil(lambda: "✓" in w.geometry_panel.reference_label.text(), timeout=30000)
+    assert w.last_error is None
+    assert "5 of 5 frames averaged" in w.geometry_panel.reference_label.text()
+
+
+# --------------------------------------------------------------- recording tells the truth
+from tests.app.test_gui import SHAPE as BUMP_SHAPE, Switchable, _wait_reconstructor, scene  # noqa: E402,F401
+
+
+def _live(qtbot, window, scene, tmp_path):
+    from drivers.synthetic import SyntheticCamera
+
+    frames = Switchable(scene["flat"])
+    window.use_camera(SyntheticCamera(frames, frame_rate_hz=50.0), geometry=scene["geometry"],
+                      reference=scene["flat"])
+    _wait_reconstructor(qtbot, window)
+    qtbot.waitUntil(lambda: window.last_drawn is not None and bool(window.rms_history.values), timeout=10000)
+    window.recording_panel.folder.setText(str(tmp_path))
+    window.activateWindow()
+    qtbot.waitUntil(window.isActiveWindow, timeout=3000)
+    return frames
+
+
+def test_disarm_leaves_no_file_no_error_and_the_panel_stops_saying_armed(qtbot, window, scene, tmp_path, caplog):
+    """Finding 5: Arm then Disarm before any trigger: no file, no ERROR in the log, the panel says what happened."""
+    import logging
+
+    _live(qtbot, window, scene, tmp_path)
+    rp = window.recording_panel
+    rp.pre.setValue(5)
+    rp.post.setValue(60)
+    caplog.set_level(logging.INFO)
+    rp.arm_button.click()
+    assert rp.state_label.text() == "armed" and rp.result_label.text().startswith("armed: will write")
+    assert list(tmp_path.glob("*.h5"))  # the file is reserved while armed
+    rp.disarm_button.click()
+    qtbot.waitUntil(lambda: rp.state_label.text() == "idle", timeout=5000)
+    window._update_status()  # one status tick: nothing comes back as "armed" or as an error
+    assert list(tmp_path.glob("*.h5")) == []
+    assert not [r for r in caplog.records if r.levelno >= logging.ERROR], [r.getMessage() for r in caplog.records]
+    assert "will write" not in rp.result_label.text() and "no file written" in rp.result_label.text()
+    assert window.last_error is None and rp.arm_button.isEnabled()
+
+
+def test_ctrl_t_with_auto_trigger_ticked_is_stored_as_software_with_the_threshold_unit(qtbot, window, scene,
+                                                                                        tmp_path):
+    """Findings 6 and 7: the file says what fired it and the threshold's unit; the readout shows the quantity."""
+    _live(qtbot, window, scene, tmp_path)
+    rp = window.recording_panel
+    rp.pre.setValue(3)
+    rp.post.setValue(5)
+    rp.auto.setChecked(True)
+    rp.threshold.setValue(500.0)  # mrad: far above still water, never fires by itself
+    qtbot.waitUntil(lambda: rp.rms_label.text().startswith("now ") and "mrad" in rp.rms_label.text(), timeout=5000)
+    rp.arm_button.click()
+    assert rp.state_label.text() == "armed", window.last_error
+    ring = window.session.acquisition.ring
+    head = ring.head
+    qtbot.waitUntil(lambda: ring.head >= head + 5, timeout=5000)
+    QtTest.QTest.keyClick(window, QtCore.Qt.Key_T, QtCore.Qt.ControlModifier)
+    qtbot.waitUntil(lambda: rp.state_label.text() in ("done", "error"), timeout=15000)
+    assert rp.state_label.text() == "done", window.last_error
+    import h5py
+
+    with h5py.File(window.session.recording["path"], "r") as f:
+        assert f.attrs["trigger_source"] == "software"
+        assert float(f.attrs["auto_trigger_threshold"]) == pytest.approx(500.0)
+        assert f.attrs["auto_trigger_threshold_unit"] == "mrad RMS slope"
+
+
+def test_set_from_now_proposes_five_times_the_live_rms_slope(qtbot, window, scene, tmp_path):
+    """Finding 7: "Set from now" on the bump proposes 5 x its RMS slope (mrad), and the readout shows that RMS."""
+    from app.capture.trigger import rms_slope
+
+    frames = _live(qtbot, window, scene, tmp_path)
+    frames.image = scene["bump"]
+    qtbot.waitUntil(lambda: window.last_drawn is not None and np.array_equal(window.last_drawn.image, scene["bump"])
+                    and len(window.rms_history.values) >= 3
+                    and window.rms_history.seq >= window.last_drawn.seq, timeout=10000)
+    # only bumped maps in the history: the median is the bump's RMS slope
+    window.rms_history.values.clear()
+    qtbot.waitUntil(lambda: len(window.rms_history.values) >= 3, timeout=10000)
+    r = window.last_drawn.result
+    rms_mrad = 1e3 * rms_slope(r.slope_x, r.slope_y)
+    assert 0.01 < rms_mrad < 1.0  # the 2 um bump: about 0.07 mrad over the map
+    window._update_staleness()
+    shown = float(window.recording_panel.rms_label.text().split()[1])
+    assert shown == pytest.approx(rms_mrad, rel=0.05)
+    window.recording_panel.set_from_now_button.click()
+    assert window.recording_panel.threshold.value() == pytest.approx(5 * rms_mrad, rel=0.05)
+
+
+def test_vs_truth_in_the_status_bar_carries_the_age_of_the_maps(qtbot, tmp_path):
+    """Finding 3: once the maps stop being measured, "vs truth" says stale (greyed) like them, not live."""
+    import tifffile
+
+    w = _window(qtbot)
+    w.geometry_panel.n_average.setValue(3)
+    _ctrl(w, QtCore.Qt.Key_R)
+    qtbot.waitUntil(lambda: "✓" in w.geometry_panel.reference_label.text(), timeout=30000)
+    truth = w.status_labels["truth"]
+    qtbot.waitUntil(lambda: truth.text().startswith("vs truth") and "stale" not in truth.text()
+                    and w.height_error is not None and not w.height_error["stale"], timeout=20000)
+    # a reference without a pattern: refused, nothing is measured any more; the maps on screen get old
+    noise = np.random.default_rng(3).integers(0, 256, SHAPE, dtype=np.uint8)
+    tifffile.imwrite(tmp_path / "noise.tif", noise)
+    w.load_reference(str(tmp_path / "noise.tif"))
+    qtbot.waitUntil(lambda: w.height_view.is_stale, timeout=20000)
+    qtbot.waitUntil(lambda: "(stale: " in truth.text(), timeout=5000)
+    assert w.height_error["stale"] and "#888" in truth.styleSheet()
+    assert w.height_view.stale_text in truth.text()  # the same words, the same age as the maps
+
+
+# --------------------------------------------------------------- the pattern chosen must be the one in view
+def test_random_dots_chosen_on_the_checkerboard_is_not_ready_with_the_reason(qtbot):
+    """Finding 2: "random dots" picked while the tank shows its checkerboard: NOT READY (periodic), and the
+    reference captured then is marked as not the chosen pattern, no tick."""
+    from tests.app.test_gui_flow import _click_tab
+    from tests.app.test_gui_dots import _pick_random_dots
+
+    w = _window(qtbot)
+    _pick_random_dots(qtbot, w)
+    _click_tab(qtbot, w, "Alignment")
+    qtbot.waitUntil(lambda: "pattern" in w.alignment_metrics and w.ready_label.text().startswith("NOT READY"),
+                    timeout=20000)
+    text = w.ready_label.text()
+    assert "periodic pattern, not random dots" in text and "checkerboard" in text
+    assert not w.alignment_ready
+    periods = [float(v) for v in text.split("periods ")[1].split(" px")[0].split(", ")]
+    np.testing.assert_allclose(periods, 5.97, atol=0.05)  # the tank's 12 px board under 55 deg
+    w.geometry_panel.n_average.setValue(3)
+    w.activateWindow()
+    qtbot.waitUntil(w.isActiveWindow, timeout=3000)
+    _ctrl(w, QtCore.Qt.Key_R)
+    qtbot.waitUntil(lambda: "NOT the chosen pattern" in w.geometry_panel.reference_label.text(), timeout=60000)
+    assert "✓" not in w.geometry_panel.reference_label.text()
+    assert "periodic pattern" in w.last_error
+    qtbot.waitUntil(lambda: w.ready_label.text().startswith("NOT READY") and "periodic" in w.ready_label.text()
+                    and "reference" in "".join(w.alignment_metrics.values()), timeout=20000)
+
+
+def test_checkerboard_chosen_on_random_dots_is_not_ready_and_says_dots(qtbot, window):
+    """Finding 2, the other way round: a dot pattern in view with "checkerboard" chosen names the dots."""
+    from drivers.synthetic import SyntheticCamera
+    from tests.app.test_gui_dots import _dot_frames
+    from tests.app.test_gui_flow import _click_tab
+
+    window.use_camera(SyntheticCamera(_dot_frames(0.65, 0.6), frame_rate_hz=20.0), camera_id="dot-tank")
+    _click_tab(qtbot, window, "Alignment")
+    qtbot.waitUntil(lambda: window.ready_label.text().startswith("NOT READY"), timeout=20000)
+    assert "the camera sees random dots, not a checkerboard" in window.ready_label.text()
+    assert "random dots" in window.ready_label.text() and not window.alignment_ready
+
+
+# --------------------------------------------------------------- reference region
+def _type_region(qtbot, w, text):
+    edit = w.geometry_panel.region
+    edit.setFocus()
+    edit.selectAll()
+    qtbot.keyClicks(edit, text)
+    qtbot.keyClick(edit, QtCore.Qt.Key_Return)  # editingFinished: the editor applies it
+
+
+def test_reference_region_cannot_leave_the_frame_and_never_discards_the_reference(qtbot):
+    """Finding 4: a box dragged off the frame is clamped on it, a typed one outside is refused; the reference
+    stays in use and the maps keep coming; the pin label is drawn inside the raw view."""
+    from tests.app.test_gui_flow import _open_section
+
+    w = _window(qtbot)
+    w.geometry_panel.n_average.setValue(3)
+    _ctrl(w, QtCore.Qt.Key_R)
+    qtbot.waitUntil(lambda: "✓" in w.geometry_panel.reference_label.text(), timeout=30000)
+    _open_section(qtbot, w, "Reference & geometry")
+    _type_region(qtbot, w, "20, 80, 20, 80")
+    qtbot.waitUntil(lambda: w.geometry.to_dict().get("reference_region") is not None
+                    and not w.busy("reconstructor"), timeout=20000)
+    rec = w.session.worker.reconstructor
+    assert rec is not None and w.region_roi.isVisible()
+    # the user drags the box far off the bottom right corner (the drag ends: sigRegionChangeFinished)
+    w.region_roi.setPos([SHAPE[1] - 10, SHAPE[0] + 50], finish=True)
+    qtbot.waitUntil(lambda: not w.busy("reconstructor"), timeout=20000)
+    r0, r1, c0, c1 = w.geometry.to_dict()["reference_region"]
+    assert 0 <= r0 < r1 <= SHAPE[0] and 0 <= c0 < c1 <= SHAPE[1] and (r1 - r0, c1 - c0) == (60, 60)
+    assert "inside the frame" in w.message_label.text()
+    assert w.session.worker.reconstructor is not None and w.geometry_panel.geometry_label.text() == "geometry OK"
+    # typed outside the frame: refused at the edit, the region and reference in use stay
+    _type_region(qtbot, w, "200, 400, 0, 50")
+    assert "outside the 256×256 px frame" in w.geometry_panel.geometry_label.text()
+    assert w.geometry.to_dict()["reference_region"] == [r0, r1, c0, c1] or \
+        tuple(w.geometry.to_dict()["reference_region"]) == (r0, r1, c0, c1)
+    qtbot.waitUntil(lambda: w.last_drawn is not None and w.last_drawn.result is not None, timeout=20000)
+    assert "no reference yet" not in (w.height_view.message.text() or "")
+    # the label saying why the pin region is green or red lies inside the frame (readable)
+    label = w.pin_overlay.label
+    assert label.isVisible() and 0 <= label.pos().y() <= SHAPE[0] and 0 <= label.pos().x() < SHAPE[1]
+
+
+# --------------------------------------------------------------- menus, device
+def test_view_menu_holds_every_scene_and_the_gpu_is_used_only_when_asked(qtbot):
+    """Finding 11 (scene menu) and issue 19 point 3: the GPU setting is off at first, remembered when set."""
+    from processing.gpu import cupy_or_reason
+
+    w = _window(qtbot)
+    view = next(a.menu() for a in w.menuBar().actions() if a.text().replace("&", "") == "View")
+    sub = next(a.menu() for a in view.actions() if a.menu() is not None and a.text() == "Synthetic scene")
+    assert [a.objectName() for a in sub.actions()] == ["scene_still", "scene_waves", "scene_drop", "scene_impact"]
+    assert not [a for a in view.actions() if a.objectName().startswith("scene_")]
+    w.geometry_panel.n_average.setValue(2)
+    _ctrl(w, QtCore.Qt.Key_R)
+    qtbot.waitUntil(lambda: "✓" in w.geometry_panel.reference_label.text(), timeout=30000)
+    qtbot.waitUntil(lambda: w.status_labels["device"].text() == "live on CPU", timeout=5000)
+    assert w.session.worker.reconstructor.device == "cpu"
+    w.actions_by_name["gpu"].trigger()  # the user asks for the GPU
+    qtbot.waitUntil(lambda: not w.busy("reconstructor"), timeout=30000)
+    cupy, why = cupy_or_reason()
+    expected = "live on CPU" if cupy is None else "live on GPU"
+    label = w.status_labels["device"]
+    qtbot.waitUntil(lambda: label.text().startswith(expected) and "not asked" not in label.toolTip(), timeout=5000)
+    if cupy is None:
+        assert why in label.toolTip()  # the reason there is no GPU
+    w.shutdown()  # remembered for the next start
+    from app.gui.model.memory import SessionMemory
+
+    assert SessionMemory.load().use_gpu
+
+
+# --------------------------------------------------------------- exports say what they contain
+def test_replay_export_names_the_frames_it_could_not_measure(qtbot, window, scene, tmp_path, caplog):
+    """Finding 8: a recording with a blank frame (lost packets, no light): the export message and the log name it."""
+    import logging
+
+    import tifffile
+    from drivers.synthetic import SyntheticCamera
+
+    window.use_camera(SyntheticCamera(Switchable(scene["flat"]), frame_rate_hz=20.0), geometry=scene["geometry"],
+                      reference=scene["flat"])
+    _wait_reconstructor(qtbot, window)
+    stack = np.stack([scene["flat"], scene["bump"], np.zeros_like(scene["flat"]), scene["bump"], scene["flat"]])
+    tifffile.imwrite(tmp_path / "run.tif", stack)
+    assert window.open_recording(str(tmp_path / "run.tif"))
+    caplog.set_level(logging.INFO)
+    out = tmp_path / "run-heights.h5"
+    window.export_heights(str(out))
+    qtbot.waitUntil(lambda: window.export_result is not None, timeout=120000)
+    assert window.export_result == ("done", str(out)), window.export_result
+    text = window.replay.message.text()
+    assert f"heights of 5 frames exported to {out}" in text and "1 invalid (frames 2)" in text, text
+    assert "color: #b00000" in window.replay.message.styleSheet()
+    assert any("1 invalid (frames 2)" in r.getMessage() and r.levelno == logging.WARNING for r in caplog.records)
+
+
+# --------------------------------------------------------------- 1280x800
+def test_at_1280x800_nothing_is_cut_and_the_alignment_views_keep_their_size(qtbot):
+    """Finding 10: the probes' title fits, colour-range numbers are not clipped, and on moving water (a long
+    alignment table) the camera image and spectrum keep a usable size."""
+    from tests.app.test_gui_flow import _click_tab
+
+    w = _window(qtbot)
+    w.resize(1280, 800)
+    w.geometry_panel.n_average.setValue(2)
+    _ctrl(w, QtCore.Qt.Key_R)
+    qtbot.waitUntil(lambda: "✓" in w.geometry_panel.reference_label.text(), timeout=30000)
+    qtbot.waitUntil(lambda: w.last_drawn is not None and w.last_drawn.result is not None, timeout=20000)
+    qtbot.wait(600)  # a few display ticks at the new size
+    title = w.probe_view.plot.getPlotItem().titleLabel
+    assert title.item.boundingRect().width() <= w.probe_view.plot.width(), "Probes title cut"
+    for view in w.map_views[:4]:
+        for edit in (view.levels_row.min_edit, view.levels_row.max_edit):
+            width = edit.fontMetrics().horizontalAdvance(edit.text())
+            assert width <= edit.contentsRect().width(), (view.units, edit.text(), width, edit.width())
+    _choose_scene_by_hand(qtbot, w, "travelling waves")
+    qtbot.waitUntil(lambda: w.session.tank.scene == "waves", timeout=60000)
+    _click_tab(qtbot, w, "Alignment")
+    qtbot.waitUntil(lambda: len(w.alignment_metrics) >= 6, timeout=20000)
+    qtbot.wait(600)
+    for view in (w.align_raw_view, w.spectrum_view):
+        assert view.height() >= 200, (view, view.height())
+
+
+def test_after_an_roi_change_the_reference_follows_and_the_maps_name_the_roi(qtbot):
+    """Finding 11: a narrower ROI of the same camera: the reference is cropped to it, the pin band takes the new
+    width, and until new maps come the old ones say "ROI changed", not "from the previous camera"."""
+    from tests.app.test_gui_flow import _open_section
+
+    w = _window(qtbot)
+    w.geometry_panel.n_average.setValue(2)
+    _ctrl(w, QtCore.Qt.Key_R)
+    qtbot.waitUntil(lambda: "✓" in w.geometry_panel.reference_label.text(), timeout=30000)
+    qtbot.waitUntil(lambda: w.last_drawn is not None and w.last_drawn.result is not None, timeout=20000)
+    band = w.pin_overlay.image.mapRectToParent(w.pin_overlay.image.boundingRect()).width()
+    assert band == pytest.approx(SHAPE[1], abs=8)
+    _open_section(qtbot, w, "Camera")
+    cp = w.camera_panel
+    cp.offset_x.setValue(64)
+    cp.width.setValue(128)
+    marks = []
+    w.session.worker.set_reconstructor(None)  # hold the maps on screen until the ROI is in: they get old
+    cp.apply_button.click()
+    qtbot.waitUntil(lambda: (marks.append(w.height_view.stale_text) or True) and w.reference is not None
+                    and w.reference.shape == (SHAPE[0], 128), timeout=20000)
+    assert not any(m and "previous camera" in m for m in marks), marks
+    qtbot.waitUntil(lambda: "✓" in w.geometry_panel.reference_label.text(), timeout=30000)
+    assert "cropped to the new ROI 128×256 at (64, 0)" in w.geometry_panel.reference_label.text()
+    band = w.pin_overlay.image.mapRectToParent(w.pin_overlay.image.boundingRect()).width()
+    assert band == pytest.approx(128, abs=8)
+    qtbot.waitUntil(lambda: w.last_drawn is not None and w.last_drawn.result is not None
+                    and w.last_drawn.result.height.shape[1] < w.last_drawn.result.height.shape[0], timeout=20000)
+
+
+def test_scaled_axes_have_no_si_prefix(qtbot, window):
+    """Finding 11: still water's profile (heights ~1e-6 um) reads "height (µm)", never "height (µm) (x1e-06)"."""
+    d = np.linspace(0.0, 40.0, 50)
+    window.profile_view.set_profile(d, 1e-6 * np.sin(d), y_range=(-2e-6, 2e-6))
+    window.profile_view.plot.getPlotItem().setYRange(-2e-6, 2e-6, padding=0)
+    window.probe_view.plot.getPlotItem().setYRange(-2e-6, 2e-6, padding=0)
+    qtbot.wait(50)
+    for plot in (window.profile_view.plot, window.probe_view.plot):
+        axis = plot.getAxis("left")
+        assert "x1e" not in axis.labelString() and "µm" in axis.labelString(), axis.labelString()
