@@ -195,31 +195,48 @@ def test_stretched_board_looks_square_and_theta_accounts_for_it():
     assert alignment["theta_estimate_deg"] == pytest.approx(theta, abs=0.5)
 
 
+#: Run by a small launcher process: caps its address space, forks the CLI and reports the
+#: CLI's own peak RSS. Forked straight from pytest, the CLI's ru_maxrss would start at
+#: pytest's RSS (Linux keeps the high-water mark of the memory a process had before exec:
+#: 1.8 GB late in a full run, whatever the CLI did).
+LAUNCHER = """
+import os, resource, sys
+limit, report = int(sys.argv[1]), sys.argv[2]
+resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+pid = os.fork()
+if pid == 0:
+    os.execv(sys.executable, [sys.executable, "-m", "app.cli", *sys.argv[3:]])
+_, status, usage = os.wait4(pid, 0)
+with open(report, "w") as f:
+    f.write(f"{os.waitstatus_to_exitcode(status)} {usage.ru_maxrss}")
+"""
+
+
 def _cli_peak(*args, limit_bytes=3 * 1024**3):
     """Run the CLI in a subprocess whose address space is capped (a regression fails with a
     MemoryError instead of taking the machine), and return (exit code, stderr, peak RSS bytes,
-    seconds) of that one child (os.wait4: its own rusage, not the other children's)."""
-    import os
-    import resource
+    seconds) of that one process (os.wait4 in a small launcher: its own rusage only)."""
+    import tempfile
     import threading
     import time
 
-    def cap():
-        resource.setrlimit(resource.RLIMIT_AS, (limit_bytes, limit_bytes))
-
-    t0 = time.monotonic()
-    proc = subprocess.Popen([sys.executable, "-m", "app.cli", *map(str, args)], cwd=ROOT,
-                            stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True, preexec_fn=cap)
-    watchdog = threading.Timer(300.0, proc.kill)  # hang detector, far above the ~2 s it takes
-    watchdog.start()
-    try:
-        err = proc.stderr.read()
-        _, status, usage = os.wait4(proc.pid, 0)
-    finally:
-        watchdog.cancel()
-        proc.stderr.close()
-    proc.returncode = os.waitstatus_to_exitcode(status)
-    return proc.returncode, err, usage.ru_maxrss * 1024, time.monotonic() - t0
+    with tempfile.TemporaryDirectory() as tmp:
+        report = Path(tmp) / "peak.txt"
+        t0 = time.monotonic()
+        proc = subprocess.Popen([sys.executable, "-c", LAUNCHER, str(limit_bytes), str(report), *map(str, args)],
+                                cwd=ROOT, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
+        watchdog = threading.Timer(300.0, proc.kill)  # hang detector, far above the ~2 s it takes
+        watchdog.start()
+        try:
+            err = proc.stderr.read()
+            proc.wait()
+        finally:
+            watchdog.cancel()
+            proc.stderr.close()
+        seconds = time.monotonic() - t0
+        assert proc.returncode == 0 and report.exists(), f"the launcher failed ({proc.returncode}): {err}"
+        code, maxrss_kib = (int(v) for v in report.read_text().split())
+    return code, err, maxrss_kib * 1024, seconds
 
 
 @pytest.mark.parametrize("period, size, suffix, says", [
