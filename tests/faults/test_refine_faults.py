@@ -14,21 +14,10 @@ import h5py
 import numpy as np
 import tifffile
 
+from tests.app.test_cli_process import rel_error_interior
+
 ROOT = Path(__file__).resolve().parents[2]
 SIZE = 192
-
-
-def _rel_error(height, truth, geometry):
-    """Relative RMS height error, interior (8 % margin), null space a exp(-T y / H) removed."""
-    m = int(0.08 * SIZE)
-    rows = np.arange(SIZE)
-    y = geometry.surface_point(rows[:, None], np.full((SIZE, 1), SIZE / 2), (SIZE, SIZE))[1]
-    null = np.broadcast_to(np.exp(-geometry.T * y / geometry.depth_mm), truth.shape)[m:-m, m:-m].ravel()
-    d = (height - truth)[m:-m, m:-m].ravel()
-    t = truth[m:-m, m:-m].ravel()
-    d = d - null * (null @ d) / (null @ null)
-    t = t - null * (null @ t) / (null @ null)
-    return float(np.sqrt(np.mean(d**2) / np.mean(t**2)))
 
 
 def test_process_by_default_ignores_the_brightness_and_refuses_a_rescaled_frame_in_seconds(tmp_path):
@@ -62,8 +51,8 @@ def test_process_by_default_ignores_the_brightness_and_refuses_a_rescaled_frame_
         text = f["frame_status_text"].asstr()[()]
         assert "3.69e+13" in text[2] and "pass the camera's own values" in text[2]
         assert text[0] == text[1] == ""  # no fallback was needed
-        clean = _rel_error(f["height"][0], truth, g)
-        half = _rel_error(f["height"][1], truth, g)
+        clean = rel_error_interior(f["height"][0], truth, g)
+        half = rel_error_interior(f["height"][1], truth, g)
     # issue 18's goal: within 1.5x the clean error or 1.5 %; before: 8.8-11.9 % at 0.5x
     assert half <= max(1.5 * clean, 0.015), (clean, half)
 
