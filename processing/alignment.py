@@ -48,7 +48,7 @@ from typing import Optional
 import numpy as np
 import scipy.fft
 
-from .carriers import (ISOLATION_RING_BINS, ISOLATION_RING_DC, ISOLATION_RING_DR, MIN_ISOLATION,
+from .carriers import (display_bins, ISOLATION_RING_BINS, ISOLATION_RING_DC, ISOLATION_RING_DR, MIN_ISOLATION,
                        MIN_PEAK_CONTRAST, Carriers, find_carriers_live, hann, match_error,
                        theta_from_carriers, tile_origins)
 from .errors import NoCarrierError
@@ -478,14 +478,8 @@ def _display_layout(shape, size: int, max_freq: float) -> tuple:
     """Where :func:`display_spectrum_of` reads: the half-spectrum rows and
     columns shown, and for every shown bin, block by block, its place among them."""
     rows, cols = shape
-    fy = np.fft.fftshift(np.fft.fftfreq(rows))
-    fx = np.fft.fftshift(np.fft.fftfreq(cols))
-    keep_r = np.flatnonzero(np.abs(fy) <= max_freq)
-    keep_c = np.flatnonzero(np.abs(fx) <= max_freq)
-    step_r = max(1, len(keep_r) // size)
-    step_c = max(1, len(keep_c) // size)
+    fy, fx, keep_r, keep_c, step_r, step_c = display_bins(shape, size, max_freq)
     nr, nc = len(keep_r) // step_r, len(keep_c) // step_c
-    keep_r, keep_c = keep_r[: nr * step_r], keep_c[: nc * step_c]
     # shifted index i holds the unshifted bin (i - n // 2) mod n
     kr, kc = (keep_r - rows // 2)[:, None], (keep_c - cols // 2)[None, :]
     idx, _ = half_spectrum_index(shape, kr, kc)

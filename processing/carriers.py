@@ -39,7 +39,7 @@ __all__ = [
     "check_pattern_match",
     "theta_from_carriers",
     "rotation_from_carriers",
-    "display_spectrum",
+    "display_bins", "display_spectrum",
     "frame_spectrum",
 ]
 
@@ -224,6 +224,23 @@ def _spectrum(image):
     return spec, fr, fc
 
 
+def display_bins(shape, size: int, max_freq: float) -> tuple:
+    """The centred (fftshift) spectrum's bins a display of ``size`` shows:
+    ``(freq_y, freq_x, keep_rows, keep_cols, step_rows, step_cols)``, the
+    frequencies (cycles/px) of every row and column, the rows and columns
+    within ``max_freq`` cut to whole blocks of ``step`` bins (block maxima)."""
+    rows, cols = shape
+    fy = np.fft.fftshift(np.fft.fftfreq(rows))
+    fx = np.fft.fftshift(np.fft.fftfreq(cols))
+    keep_r = np.flatnonzero(np.abs(fy) <= max_freq)
+    keep_c = np.flatnonzero(np.abs(fx) <= max_freq)
+    step_r = max(1, len(keep_r) // size)
+    step_c = max(1, len(keep_c) // size)
+    keep_r = keep_r[: len(keep_r) // step_r * step_r]
+    keep_c = keep_c[: len(keep_c) // step_c * step_c]
+    return fy, fx, keep_r, keep_c, step_r, step_c
+
+
 def display_spectrum(half_magnitude, cols: int, *, size: int = 256, max_freq: float = 0.25) -> dict:
     """Centred log-magnitude spectrum for display, from an rfft2 magnitude.
 
@@ -257,18 +274,13 @@ def display_spectrum(half_magnitude, cols: int, *, size: int = 256, max_freq: fl
     neg_c = np.arange(h, cols)
     full[:, h:] = spec[(-np.arange(rows)) % rows][:, cols - neg_c]
     full = np.fft.fftshift(full)
-    fy = np.fft.fftshift(np.fft.fftfreq(rows))
-    fx = np.fft.fftshift(np.fft.fftfreq(cols))
-    keep_r = np.flatnonzero(np.abs(fy) <= max_freq)
-    keep_c = np.flatnonzero(np.abs(fx) <= max_freq)
-    step_r = max(1, len(keep_r) // size)
-    step_c = max(1, len(keep_c) // size)
+    fy, fx, keep_r, keep_c, step_r, step_c = display_bins((rows, cols), size, max_freq)
     nr, nc = len(keep_r) // step_r, len(keep_c) // step_c
-    sub = full[np.ix_(keep_r[: nr * step_r], keep_c[: nc * step_c])]
+    sub = full[np.ix_(keep_r, keep_c)]
     sub = sub.reshape(nr, step_r, nc, step_c).max(axis=(1, 3))
     mag = np.log10(sub + 1e-6 * float(sub.max() or 1.0)).astype(np.float32)
-    fr_k = fy[keep_r][: nr * step_r].reshape(nr, step_r).mean(axis=1)
-    fc_k = fx[keep_c][: nc * step_c].reshape(nc, step_c).mean(axis=1)
+    fr_k = fy[keep_r].reshape(nr, step_r).mean(axis=1)
+    fc_k = fx[keep_c].reshape(nc, step_c).mean(axis=1)
     return {"log_magnitude": mag, "freq_x": fc_k, "freq_y": fr_k}
 
 
