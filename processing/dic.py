@@ -43,6 +43,7 @@ accuracy table at or below FD's.
 from __future__ import annotations
 
 import math
+import time
 
 import cv2
 import numpy as np
@@ -437,7 +438,8 @@ def _diverged(test: str, figures: str):
 
 def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int = 3, cg_iterations: int = 3,
                   regularisation: float = 0.03, blur_px: float = BLUR_PX,
-                  intensity_cell_px: float | None = INTENSITY_CELL_PX, period_px: float | None = None):
+                  intensity_cell_px: float | None = INTENSITY_CELL_PX, period_px: float | None = None,
+                  stage_ms: dict | None = None):
     """Global Gauss-Newton image matching for the height on the node grid of ``nodes``.
 
     Minimises ``sum_r w [G*((I - b) / a) - G*I0(r - P L h)]^2 + lam (|D3r h|^2 + |D3c h|^2)``
@@ -485,6 +487,10 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
         the frame is matched as it is (gain 1, offset 0).
     period_px : float or None
         The pattern's shorter carrier period, pixels (None: no bound from it).
+    stage_ms : dict or None
+        If given, milliseconds spent per stage are added to it (keys ``warp``,
+        ``upsample``, ``blur``, ``gradients``, ``intensity``, ``stencils``,
+        ``cg``, ``checks``; benchmarks/bench_refine.py prints them).
 
     Returns
     -------
@@ -516,27 +522,34 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
     h = _start_heights(h0)
     r_px = np.arange(rows, dtype=np.float32)[:, None] * np.float32(FINE)
     c_px = np.arange(cols, dtype=np.float32)[None, :] * np.float32(FINE)
+    tick = _StageClock(stage_ms)
     u_start = nodes.displacement(h)
     prev_step = prev_cost = None
     for k in range(outer + 1):
         u = nodes.displacement(h)
         _check_displacement(u, u_start, k, (rows, cols), period_px)  # before any warp
+        tick("checks")
         if k == outer:
             break
         mr = grid.up(u[0], cv2.INTER_LANCZOS4)
         mc = grid.up(u[1], cv2.INTER_LANCZOS4)
         mr *= np.float32(FINE)
         mc *= np.float32(FINE)
+        tick("upsample")
         warped = cv2.remap(fine, c_px - mc, r_px - mr, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        tick("warp")
         if blur_px:
             warped = cv2.GaussianBlur(warped, (0, 0), blur_px)
+        tick("blur")
         gr = cv2.Sobel(warped, cv2.CV_32F, 0, 1, ksize=1, scale=0.5, borderType=cv2.BORDER_REFLECT)
         gc = cv2.Sobel(warped, cv2.CV_32F, 1, 0, ksize=1, scale=0.5, borderType=cv2.BORDER_REFLECT)
+        tick("gradients")
         if intensity_cell_px and k == 0:
             # once, against the reference warped by FD's start (the ratio of standard
             # deviations hardly moves with the warp: fitting before every step gave the
             # same heights, 10-20 % slower)
             img = _normalised_frame(raw, img, warped, None if all_valid else w, intensity_cell_px, blur_px)
+            tick("intensity")
         e = img - warped
         if not all_valid:
             gr *= w
@@ -551,7 +564,8 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
                             f"rms {math.sqrt(prev_cost / w.size):.3g} -> {math.sqrt(cost / w.size):.3g} "
                             f"after step {k}")
         prev_cost = cost if prev_cost is None else min(cost, prev_cost)
-        x = _gauss_newton_step(nodes, gr, gc, e, h, regularisation, cg_iterations, k)
+        tick("checks")
+        x = _gauss_newton_step(nodes, gr, gc, e, h, regularisation, cg_iterations, k, tick)
         step = _rms(nodes.displacement(x))
         if not math.isfinite(step):
             raise _diverged("non-finite Gauss-Newton step", f"step {k + 1}")
@@ -560,7 +574,24 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
                             f"{prev_step:.3g} -> {step:.3g} px rms at step {k + 1}")
         prev_step = step
         h += x
+        tick("checks")
     return h, u.astype(np.float32), free
+
+
+class _StageClock:
+    """``tick(name)``: the time since the last tick is added to ``stage_ms[name]``
+    (milliseconds); a no-op when ``stage_ms`` is None."""
+
+    def __init__(self, stage_ms):
+        self.stage_ms = stage_ms
+        self.t = time.perf_counter() if stage_ms is not None else 0.0
+
+    def __call__(self, name):
+        if self.stage_ms is None:
+            return
+        t = time.perf_counter()
+        self.stage_ms[name] = self.stage_ms.get(name, 0.0) + 1e3 * (t - self.t)
+        self.t = t
 
 
 def _start_heights(h0):
@@ -611,7 +642,7 @@ def _normalised_frame(raw, blurred, warped, weight, cell_px, blur_px):
     return img
 
 
-def _gauss_newton_step(nodes, gr, gc, e, h, regularisation, cg_iterations, k):
+def _gauss_newton_step(nodes, gr, gc, e, h, regularisation, cg_iterations, k, tick=None):
     """The step ``dh`` of :func:`refine_height` from the (weighted) gradients
     ``gr``, ``gc`` of the warped reference and the residual ``e``: the normal
     equations ``(L^T P^T N P L + lam R) dh = -L^T P^T g e - lam R h`` by
@@ -625,6 +656,8 @@ def _gauss_newton_step(nodes, gr, gc, e, h, regularisation, cg_iterations, k):
     Ncc = nodes.node_normal(gc * gc)
     br = nodes.node_rhs(gr * e)
     bc = nodes.node_rhs(gc * e)
+    if tick is not None:
+        tick("stencils")
     nr = Nrr.mean_row_sum()
     nc = Ncc.mean_row_sum()
     lam = regularisation * (nr * Bm[0, 0] ** 2 + nc * Bm[1, 1] ** 2) / nodes.grid.s ** 2
@@ -668,4 +701,6 @@ def _gauss_newton_step(nodes, gr, gc, e, h, regularisation, cg_iterations, k):
         p *= np.float32(rz_new / rz)
         p += z
         rz = rz_new
+    if tick is not None:
+        tick("cg")
     return x

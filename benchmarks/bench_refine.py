@@ -1,0 +1,104 @@
+"""Where the image refinement's time goes, and its cost against FD's refinement in the same run.
+
+Run from the repository root::
+
+    python3 benchmarks/bench_refine.py                    # 512^2 and 1024^2
+    python3 benchmarks/bench_refine.py --sizes 1024 --repeats 6
+
+Frames: analytic warps of benchmarks/bench_processing.py's board (speed_frames).
+Printed per size, all in one run, variants interleaved (rounds of 4 calls each) so
+they share the machine's load:
+
+* ms/frame (median) of the peer-style yardstick (bench_processing.Baseline: numpy
+  FCD, displacement only), the full grid with FD's refinement
+  (``refine_method="fd"``) and with the image refinement (``"image"``, every
+  caller's full-grid default), and the ratios image / FD and yardstick / image;
+* the image refinement's stages (``stage_ms`` of processing.dic.refine_height: ms
+  per frame and per Gauss-Newton step); ``--profile`` adds cProfile's top functions.
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import os
+import pstats
+import sys
+import time
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+
+from benchmarks.bench_processing import GEOMETRY, Baseline, interleaved_medians, speed_frames  # noqa: E402
+from processing import dic  # noqa: E402
+from processing.reconstruct import Reconstructor  # noqa: E402
+
+def stage_times(rec, frame, calls=3):
+    """ms per call of each stage of the image refinement in ``rec(frame)`` (the
+    ``stage_ms`` of :func:`processing.dic.refine_height`, which the benchmark
+    hands it by wrapping the module's function), and the total per call."""
+    stages = {}
+    inner = dic.refine_height
+
+    def timed(*a, **kw):
+        return inner(*a, stage_ms=stages, **kw)
+
+    dic.refine_height = timed
+    try:
+        total = 0.0
+        for _ in range(calls):
+            rec.reset_series()
+            t = time.perf_counter()
+            rec(frame, grid="full")
+            total += time.perf_counter() - t
+    finally:
+        dic.refine_height = inner
+    return {k: v / calls for k, v in stages.items()}, 1e3 * total / calls
+
+
+def profile(rec, frame, top=18):
+    """cProfile of one call: the functions with the most own time."""
+    prof = cProfile.Profile()
+    rec.reset_series()
+    prof.enable()
+    rec(frame, grid="full")
+    prof.disable()
+    pstats.Stats(prof).sort_stats("tottime").print_stats(top)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--sizes", type=int, nargs="+", default=[512, 1024])
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--threads", type=int, default=2, help="the Reconstructor's threads option")
+    ap.add_argument("--profile", action="store_true", help="also print cProfile's top functions")
+    args = ap.parse_args(argv)
+    for n in args.sizes:
+        ref, frames = speed_frames(n)
+        nf = len(frames)
+        opts = dict(planner_effort="FFTW_MEASURE", threads=args.threads)
+        rec_fd = Reconstructor(ref, GEOMETRY, grid="full", refine_method="fd", **opts)
+        rec_img = Reconstructor(ref, GEOMETRY, grid="full", refine_method="image", carriers=rec_fd.carriers, **opts)
+        base = Baseline(ref, rec_fd.carriers)
+
+        def single(rec):
+            def call(i):
+                rec.reset_series()
+                return rec(frames[i % nf], grid="full")
+            return call
+
+        t = interleaved_medians([lambda i: base(frames[i % nf]), single(rec_fd), single(rec_img)], args.repeats)
+        print(f"{n}^2 (threads={args.threads}): yardstick {t[0]:.1f} ms, full FD refinement {t[1]:.1f} ms, "
+              f"full image refinement {t[2]:.1f} ms; image/FD {t[2] / t[1]:.2f}x (goal <= 2.5x), "
+              f"yardstick/image {t[0] / t[2]:.2f}x (goal >= 3x)")
+        stages, total = stage_times(rec_img, frames[1])
+        steps = rec_img.image_iterations
+        print(f"  image refinement stages (ms per frame; whole call {total:.1f} ms, refine_height "
+              f"{sum(stages.values()):.1f} ms, at most {steps} Gauss-Newton steps):")
+        for k, v in sorted(stages.items(), key=lambda kv: -kv[1]):
+            print(f"    {k:<12} {v:8.1f}   ({v / steps:6.1f} per step)")
+        if args.profile:
+            profile(rec_img, frames[1])
+
+
+if __name__ == "__main__":
+    main()
