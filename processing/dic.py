@@ -439,7 +439,7 @@ def _diverged(test: str, figures: str):
 def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int = 3, cg_iterations: int = 3,
                   regularisation: float = 0.03, blur_px: float = BLUR_PX,
                   intensity_cell_px: float | None = INTENSITY_CELL_PX, period_px: float | None = None,
-                  stage_ms: dict | None = None):
+                  stage_ms: dict | None = None, threads: int = 1):
     """Global Gauss-Newton image matching for the height on the node grid of ``nodes``.
 
     Minimises ``sum_r w [G*((I - b) / a) - G*I0(r - P L h)]^2 + lam (|D3r h|^2 + |D3c h|^2)``
@@ -487,6 +487,12 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
         the frame is matched as it is (gain 1, offset 0).
     period_px : float or None
         The pattern's shorter carrier period, pixels (None: no bound from it).
+    threads : int
+        Threads for the node stencils of each step (the five products of the
+        gradients and residual and their sums to the nodes, independent of
+        each other; numpy releases the GIL in them): the Reconstructor's
+        ``threads`` option, 1 when a parallel run gives each frame one core.
+        The result does not depend on it.
     stage_ms : dict or None
         If given, milliseconds spent per stage are added to it (keys ``warp``,
         ``upsample``, ``blur``, ``gradients``, ``intensity``, ``stencils``,
@@ -565,7 +571,7 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
                             f"after step {k}")
         prev_cost = cost if prev_cost is None else min(cost, prev_cost)
         tick("checks")
-        x = _gauss_newton_step(nodes, gr, gc, e, h, regularisation, cg_iterations, k, tick)
+        x = _gauss_newton_step(nodes, gr, gc, e, h, regularisation, cg_iterations, k, tick, threads)
         step = _rms(nodes.displacement(x))
         if not math.isfinite(step):
             raise _diverged("non-finite Gauss-Newton step", f"step {k + 1}")
@@ -642,7 +648,23 @@ def _normalised_frame(raw, blurred, warped, weight, cell_px, blur_px):
     return img
 
 
-def _gauss_newton_step(nodes, gr, gc, e, h, regularisation, cg_iterations, k, tick=None):
+_POOLS: dict = {}
+
+
+def _map(fn, jobs, threads):
+    """``[fn(*job) for job in jobs]``, on ``threads`` threads when more than 1 (one
+    pool per thread count, kept for the process's life)."""
+    if threads <= 1 or len(jobs) < 2:
+        return [fn(*job) for job in jobs]
+    from concurrent.futures import ThreadPoolExecutor
+
+    pool = _POOLS.get(threads)
+    if pool is None:
+        pool = _POOLS[threads] = ThreadPoolExecutor(threads, thread_name_prefix="dic")
+    return list(pool.map(lambda job: fn(*job), jobs))
+
+
+def _gauss_newton_step(nodes, gr, gc, e, h, regularisation, cg_iterations, k, tick=None, threads=1):
     """The step ``dh`` of :func:`refine_height` from the (weighted) gradients
     ``gr``, ``gc`` of the warped reference and the residual ``e``: the normal
     equations ``(L^T P^T N P L + lam R) dh = -L^T P^T g e - lam R h`` by
@@ -651,11 +673,12 @@ def _gauss_newton_step(nodes, gr, gc, e, h, regularisation, cg_iterations, k, ti
     import scipy.fft as sfft
 
     Bm = nodes.B_mean
-    Nrr = nodes.node_normal(gr * gr)
-    Nrc = nodes.node_normal(gr * gc)
-    Ncc = nodes.node_normal(gc * gc)
-    br = nodes.node_rhs(gr * e)
-    bc = nodes.node_rhs(gc * e)
+
+    def node_sums(a, b, normal):
+        return nodes.node_normal(a * b) if normal else nodes.node_rhs(a * b)
+
+    Nrr, Nrc, Ncc, br, bc = _map(node_sums, [(gr, gr, True), (gr, gc, True), (gc, gc, True),
+                                             (gr, e, False), (gc, e, False)], threads)
     if tick is not None:
         tick("stencils")
     nr = Nrr.mean_row_sum()
