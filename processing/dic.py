@@ -531,24 +531,29 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
     tick = _StageClock(stage_ms)
     u_start = nodes.displacement(h)
     prev_step = prev_cost = None
+    warped = blurred = gr = gc = e = None  # full-size buffers, reused by every step
     for k in range(outer + 1):
         u = nodes.displacement(h)
         _check_displacement(u, u_start, k, (rows, cols), period_px)  # before any warp
         tick("checks")
         if k == outer:
             break
+        # the maps, in place: the fine grid's sample of r - u(r) (no full-size temporaries)
         mr = grid.up(u[0], cv2.INTER_LANCZOS4)
         mc = grid.up(u[1], cv2.INTER_LANCZOS4)
-        mr *= np.float32(FINE)
-        mc *= np.float32(FINE)
+        mr *= np.float32(-FINE)
+        mc *= np.float32(-FINE)
+        mr += r_px
+        mc += c_px
         tick("upsample")
-        warped = cv2.remap(fine, c_px - mc, r_px - mr, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        warped = cv2.remap(fine, mc, mr, cv2.INTER_LINEAR, dst=warped, borderMode=cv2.BORDER_REFLECT)
         tick("warp")
         if blur_px:
-            warped = cv2.GaussianBlur(warped, (0, 0), blur_px)
+            blurred = cv2.GaussianBlur(warped, (0, 0), blur_px, dst=blurred)
+            warped, blurred = blurred, warped
         tick("blur")
-        gr = cv2.Sobel(warped, cv2.CV_32F, 0, 1, ksize=1, scale=0.5, borderType=cv2.BORDER_REFLECT)
-        gc = cv2.Sobel(warped, cv2.CV_32F, 1, 0, ksize=1, scale=0.5, borderType=cv2.BORDER_REFLECT)
+        gr = cv2.Sobel(warped, cv2.CV_32F, 0, 1, dst=gr, ksize=1, scale=0.5, borderType=cv2.BORDER_REFLECT)
+        gc = cv2.Sobel(warped, cv2.CV_32F, 1, 0, dst=gc, ksize=1, scale=0.5, borderType=cv2.BORDER_REFLECT)
         tick("gradients")
         if intensity_cell_px and k == 0:
             # once, against the reference warped by FD's start (the ratio of standard
@@ -556,13 +561,13 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
             # same heights, 10-20 % slower)
             img = _normalised_frame(raw, img, warped, None if all_valid else w, intensity_cell_px, blur_px)
             tick("intensity")
-        e = img - warped
+        e = np.subtract(img, warped, out=e)
         if not all_valid:
             gr *= w
             gc *= w
             cost = _dot(e * w, e)
         else:
-            cost = _dot(e, e)
+            cost = cv2.norm(e, cv2.NORM_L2SQR)  # float64 sums, 4x faster than _dot's einsum
         if not math.isfinite(cost):
             raise _diverged("non-finite image residual", f"after {k} step(s)")
         if prev_cost is not None and cost > RESIDUAL_RISE * prev_cost:
