@@ -242,6 +242,23 @@ def test_refine_height_is_invariant_to_a_gain_of_1e10_and_stops_on_what_diverges
     assert time.perf_counter() - t0 < 30.0  # a hang detector: it needs about 0.01 s
 
 
+def test_refine_height_threads_give_the_same_displacement_and_stage_times_add_up(wave_frames):
+    # threads: the five node stencils of each step run side by side; no shared buffer
+    # between them may change a bit of the answer (issue 22)
+    ref, img, _ = wave_frames
+    grid = dic.NodeGrid(ref.shape)
+    nodes = dic.HeightNodes(G55, grid)
+    fine = dic.fine_reference(ref.astype(np.float32))
+    h0 = _fd_start(ref, img, nodes)
+    every = np.ones(ref.shape, bool)
+    stages = {}
+    _, u_one, _ = dic.refine_height(fine, img, h0, every, nodes, period_px=10.0, threads=1, stage_ms=stages)
+    _, u_three, _ = dic.refine_height(fine, img, h0, every, nodes, period_px=10.0, threads=3)
+    np.testing.assert_array_equal(u_three, u_one)
+    assert {"warp", "upsample", "blur", "gradients", "intensity", "stencils", "cg"} <= set(stages)
+    assert all(v >= 0.0 for v in stages.values())
+
+
 def test_a_camera_one_micrometre_from_the_water_is_refused_before_any_solver():
     # issue 18: camera_distance_mm = 0.001 ran for more than 10 minutes inside cv2.remap.
     # Geometry.check_frame now refuses it where the field size is first known (the
