@@ -529,11 +529,10 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
     r_px = np.arange(rows, dtype=np.float32)[:, None] * np.float32(FINE)
     c_px = np.arange(cols, dtype=np.float32)[None, :] * np.float32(FINE)
     tick = _StageClock(stage_ms)
-    u_start = nodes.displacement(h)
+    u = u_start = nodes.displacement(h)  # u is linear in h: each step adds its own (below)
     prev_step = prev_cost = None
     warped = blurred = gr = gc = e = None  # full-size buffers, reused by every step
     for k in range(outer + 1):
-        u = nodes.displacement(h)
         _check_displacement(u, u_start, k, (rows, cols), period_px)  # before any warp
         tick("checks")
         if k == outer:
@@ -577,7 +576,8 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
         prev_cost = cost if prev_cost is None else min(cost, prev_cost)
         tick("checks")
         x = _gauss_newton_step(nodes, gr, gc, e, h, regularisation, cg_iterations, k, tick, threads)
-        step = _rms(nodes.displacement(x))
+        du = nodes.displacement(x)
+        step = _rms(du)
         if not math.isfinite(step):
             raise _diverged("non-finite Gauss-Newton step", f"step {k + 1}")
         if prev_step is not None and step > 2.0 * prev_step and step > 0.05:
@@ -585,6 +585,7 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
                             f"{prev_step:.3g} -> {step:.3g} px rms at step {k + 1}")
         prev_step = step
         h += x
+        u = u + du
         tick("checks")
     return h, u.astype(np.float32), free
 
