@@ -5,6 +5,8 @@ Run from the repository root::
     python3 benchmarks/bench_refine.py                    # 512^2 and 1024^2
     python3 benchmarks/bench_refine.py --sizes 1024 --repeats 6
     python3 benchmarks/bench_refine.py --threads 1 --clock cpu   # one core's CPU time (loaded machine)
+    git show 9385a2f:processing/dic.py > /tmp/dic_old.py
+    python3 benchmarks/bench_refine.py --threads 1 --clock cpu --against /tmp/dic_old.py
 
 Frames: analytic warps of benchmarks/bench_processing.py's board (speed_frames).
 Printed per size, all in one run, variants interleaved so they share the machine's load:
@@ -14,7 +16,9 @@ Printed per size, all in one run, variants interleaved so they share the machine
   (``refine_method="fd"``) and with the image refinement (``"image"``, every
   caller's full-grid default), and the ratios image / FD and yardstick / image;
 * the image refinement's stages (``stage_ms`` of processing.dic.refine_height: ms
-  per frame and per Gauss-Newton step); ``--profile`` adds cProfile's top functions.
+  per frame and per Gauss-Newton step); ``--profile`` adds cProfile's top functions;
+* with ``--against FILE``: ``refine_height`` of another version of processing/dic.py
+  and of this one on the same inputs, interleaved, and how far their answers differ.
 """
 
 from __future__ import annotations
@@ -92,6 +96,46 @@ def profile(rec, frame, top=18):
     pstats.Stats(prof).sort_stats("tottime").print_stats(top)
 
 
+def against(path, rec, ref, frame, rounds):
+    """``refine_height`` of the processing/dic.py at ``path`` (another version,
+    e.g. ``git show 9385a2f:processing/dic.py > /tmp/dic_old.py``) and of this
+    one on the same inputs (what ``rec(frame)`` hands it), interleaved: least ms
+    each (CLOCK) and the largest difference of their displacements."""
+    import importlib.util
+
+    import numpy as np
+
+    spec = importlib.util.spec_from_file_location("dic_other", path)
+    other = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(other)
+    cap = {}
+    inner = dic.refine_height
+
+    def grab(*a, **kw):
+        cap["a"], cap["kw"] = a, kw
+        return inner(*a, **kw)
+
+    dic.refine_height = grab
+    try:
+        rec.reset_series()
+        rec(frame, grid="full")
+    finally:
+        dic.refine_height = inner
+    a, kw = cap["a"], cap["kw"]
+    kw_other = {k: v for k, v in kw.items() if k in ("outer", "period_px", "intensity_cell_px")}
+    a_other = a[:4] + (other.HeightNodes(GEOMETRY, other.NodeGrid(ref.shape)),)
+    best = [math.inf, math.inf]
+    for _ in range(rounds):
+        for j in range(2):
+            t = CLOCK()
+            if j == 0:
+                _, u_other, _ = other.refine_height(*a_other, **kw_other)
+            else:
+                _, u_this, _ = dic.refine_height(*a, **kw)
+            best[j] = min(best[j], CLOCK() - t)
+    return 1e3 * best[0], 1e3 * best[1], float(np.abs(u_this - u_other).max())
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sizes", type=int, nargs="+", default=[512, 1024])
@@ -101,6 +145,8 @@ def main(argv=None):
     ap.add_argument("--clock", choices=("wall", "cpu"), default="wall",
                     help="cpu: the process's CPU time (all its threads), for a machine others load; "
                          "with --threads 1 it is what one core of a --workers run spends")
+    ap.add_argument("--against", metavar="DIC_PY",
+                    help="also time refine_height of this other version of processing/dic.py on the same inputs")
     args = ap.parse_args(argv)
     global CLOCK
     if args.clock == "cpu":
@@ -132,6 +178,10 @@ def main(argv=None):
               f"{sum(stages.values()):.1f} ms, at most {steps} Gauss-Newton steps):")
         for k, v in sorted(stages.items(), key=lambda kv: -kv[1]):
             print(f"    {k:<12} {v:8.1f}   ({v / steps:6.1f} per step)")
+        if args.against:
+            t_other, t_this, du = against(args.against, rec_img, ref, frames[1], max(args.repeats, 4))
+            print(f"  refine_height: {args.against} {t_other:.1f} ms, this {t_this:.1f} ms "
+                  f"({t_this / t_other:.3f}x); displacements differ by at most {du:.2g} px")
         if args.profile:
             profile(rec_img, frames[1])
 
