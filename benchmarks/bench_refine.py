@@ -11,7 +11,8 @@ Run from the repository root::
 Frames: analytic warps of benchmarks/bench_processing.py's board (speed_frames).
 Printed per size, all in one run, variants interleaved so they share the machine's load:
 
-* ms/frame (least of ``--repeats`` rounds of 2 calls: the machine's load only adds) of the peer-style yardstick (bench_processing.Baseline: numpy
+* ms/frame (least of ``--repeats`` rounds of 2 calls: the machine's load only adds)
+  of the peer-style yardstick (bench_processing.Baseline: numpy
   FCD, displacement only), the full grid with FD's refinement
   (``refine_method="fd"``) and with the image refinement (``"image"``, every
   caller's full-grid default), and the ratios image / FD and yardstick / image;
@@ -169,7 +170,8 @@ def main(argv=None):
             return call
 
         t = interleaved_least([lambda i: base(frames[i % nf]), single(rec_fd), single(rec_img)], args.repeats)
-        print(f"{n}^2 (threads={args.threads}, {args.clock} clock): yardstick {t[0]:.1f} ms, full FD refinement {t[1]:.1f} ms, "
+        print(f"{n}^2 (threads={args.threads}, {args.clock} clock): yardstick {t[0]:.1f} ms, "
+              f"full FD refinement {t[1]:.1f} ms, "
               f"full image refinement {t[2]:.1f} ms; image/FD {t[2] / t[1]:.2f}x (goal <= 2.5x), "
               f"yardstick/image {t[0] / t[2]:.2f}x (goal >= 3x)")
         stages, total = stage_times(rec_img, frames[1])
