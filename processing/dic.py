@@ -43,6 +43,7 @@ accuracy table at or below FD's.
 from __future__ import annotations
 
 import math
+import os
 import time
 
 import cv2
@@ -669,6 +670,8 @@ def _normalised_frame(raw, blurred, warped, weight, cell_px, blur_px):
 
 
 _POOLS: dict = {}
+# a forked child inherits the pools but not their threads: it would wait on them forever
+os.register_at_fork(after_in_child=_POOLS.clear)
 
 
 def _map(fn, jobs, threads):
