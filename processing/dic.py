@@ -43,8 +43,6 @@ accuracy table at or below FD's.
 from __future__ import annotations
 
 import math
-import os
-import time
 
 import cv2
 import numpy as np
@@ -129,34 +127,34 @@ def _d1(x, s):
     """First derivative along axis 0 (fourth-order central inside, second-order
     at the ends), per ``s`` pixels of node spacing."""
     y = np.empty_like(x)
-    t = np.subtract(x[3:-1], x[1:-3], out=y[2:-2])
-    t *= 8.0
-    t += x[:-4]
-    t -= x[4:]
-    t *= 1.0 / (12.0 * s)
-    y[1] = (0.5 / s) * (x[2] - x[0])
-    y[-2] = (0.5 / s) * (x[-1] - x[-3])
-    y[0] = (-1.5 * x[0] + 2.0 * x[1] - 0.5 * x[2]) / s
-    y[-1] = (1.5 * x[-1] - 2.0 * x[-2] + 0.5 * x[-3]) / s
+    y[2:-2] = (x[:-4] - x[4:] + 8.0 * (x[3:-1] - x[1:-3])) / 12.0
+    y[1] = 0.5 * (x[2] - x[0])
+    y[-2] = 0.5 * (x[-1] - x[-3])
+    y[0] = -1.5 * x[0] + 2.0 * x[1] - 0.5 * x[2]
+    y[-1] = 1.5 * x[-1] - 2.0 * x[-2] + 0.5 * x[-3]
+    y /= s
     return y
 
 
 def _d1_T(y, s):
     """Transpose of :func:`_d1`."""
     z = np.zeros_like(y)
-    yi = y[2:-2] * (1.0 / (12.0 * s))
+    yi = y[2:-2] / 12.0
     z[:-4] += yi
     z[4:] -= yi
-    yi *= 8.0
-    z[3:-1] += yi
-    z[1:-3] -= yi
-    a, b = y[:2] / s, y[-2:] / s  # the two end rows of each side
-    z[0] -= 0.5 * a[1] + 1.5 * a[0]
-    z[2] += 0.5 * a[1] - 0.5 * a[0]
-    z[1] += 2.0 * a[0]
-    z[-3] -= 0.5 * b[0] - 0.5 * b[1]
-    z[-1] += 0.5 * b[0] + 1.5 * b[1]
-    z[-2] -= 2.0 * b[1]
+    z[3:-1] += 8.0 * yi
+    z[1:-3] -= 8.0 * yi
+    z[0] -= 0.5 * y[1]
+    z[2] += 0.5 * y[1]
+    z[-3] -= 0.5 * y[-2]
+    z[-1] += 0.5 * y[-2]
+    z[0] -= 1.5 * y[0]
+    z[1] += 2.0 * y[0]
+    z[2] -= 0.5 * y[0]
+    z[-1] += 1.5 * y[-1]
+    z[-2] -= 2.0 * y[-1]
+    z[-3] += 0.5 * y[-1]
+    z /= s
     return z
 
 
@@ -439,8 +437,7 @@ def _diverged(test: str, figures: str):
 
 def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int = 3, cg_iterations: int = 3,
                   regularisation: float = 0.03, blur_px: float = BLUR_PX,
-                  intensity_cell_px: float | None = INTENSITY_CELL_PX, period_px: float | None = None,
-                  stage_ms: dict | None = None, threads: int = 1):
+                  intensity_cell_px: float | None = INTENSITY_CELL_PX, period_px: float | None = None):
     """Global Gauss-Newton image matching for the height on the node grid of ``nodes``.
 
     Minimises ``sum_r w [G*((I - b) / a) - G*I0(r - P L h)]^2 + lam (|D3r h|^2 + |D3c h|^2)``
@@ -488,16 +485,6 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
         the frame is matched as it is (gain 1, offset 0).
     period_px : float or None
         The pattern's shorter carrier period, pixels (None: no bound from it).
-    threads : int
-        Threads for the node stencils of each step (the five products of the
-        gradients and residual and their sums to the nodes, independent of
-        each other; numpy releases the GIL in them): the Reconstructor's
-        ``threads`` option, 1 when a parallel run gives each frame one core.
-        The result does not depend on it.
-    stage_ms : dict or None
-        If given, milliseconds spent per stage are added to it (keys ``warp``,
-        ``upsample``, ``blur``, ``gradients``, ``intensity``, ``stencils``,
-        ``cg``, ``checks``; benchmarks/bench_refine.py prints them).
 
     Returns
     -------
@@ -529,45 +516,34 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
     h = _start_heights(h0)
     r_px = np.arange(rows, dtype=np.float32)[:, None] * np.float32(FINE)
     c_px = np.arange(cols, dtype=np.float32)[None, :] * np.float32(FINE)
-    tick = _StageClock(stage_ms)
-    u = u_start = nodes.displacement(h)  # u is linear in h: each step adds its own (below)
+    u_start = nodes.displacement(h)
     prev_step = prev_cost = None
-    warped = blurred = gr = gc = e = None  # full-size buffers, reused by every step
     for k in range(outer + 1):
+        u = nodes.displacement(h)
         _check_displacement(u, u_start, k, (rows, cols), period_px)  # before any warp
-        tick("checks")
         if k == outer:
             break
-        # the maps, in place: the fine grid's sample of r - u(r) (no full-size temporaries)
         mr = grid.up(u[0], cv2.INTER_LANCZOS4)
         mc = grid.up(u[1], cv2.INTER_LANCZOS4)
-        mr *= np.float32(-FINE)
-        mc *= np.float32(-FINE)
-        mr += r_px
-        mc += c_px
-        tick("upsample")
-        warped = cv2.remap(fine, mc, mr, cv2.INTER_LINEAR, dst=warped, borderMode=cv2.BORDER_REFLECT)
-        tick("warp")
+        mr *= np.float32(FINE)
+        mc *= np.float32(FINE)
+        warped = cv2.remap(fine, c_px - mc, r_px - mr, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
         if blur_px:
-            blurred = cv2.GaussianBlur(warped, (0, 0), blur_px, dst=blurred)
-            warped, blurred = blurred, warped
-        tick("blur")
-        gr = _central_difference_rows(warped, gr)
-        gc = cv2.Sobel(warped, cv2.CV_32F, 1, 0, dst=gc, ksize=1, scale=0.5, borderType=cv2.BORDER_REFLECT)
-        tick("gradients")
+            warped = cv2.GaussianBlur(warped, (0, 0), blur_px)
+        gr = cv2.Sobel(warped, cv2.CV_32F, 0, 1, ksize=1, scale=0.5, borderType=cv2.BORDER_REFLECT)
+        gc = cv2.Sobel(warped, cv2.CV_32F, 1, 0, ksize=1, scale=0.5, borderType=cv2.BORDER_REFLECT)
         if intensity_cell_px and k == 0:
             # once, against the reference warped by FD's start (the ratio of standard
             # deviations hardly moves with the warp: fitting before every step gave the
             # same heights, 10-20 % slower)
             img = _normalised_frame(raw, img, warped, None if all_valid else w, intensity_cell_px, blur_px)
-            tick("intensity")
-        e = np.subtract(img, warped, out=e)
+        e = img - warped
         if not all_valid:
             gr *= w
             gc *= w
             cost = _dot(e * w, e)
         else:
-            cost = cv2.norm(e, cv2.NORM_L2SQR)  # float64 sums, 4x faster than _dot's einsum
+            cost = _dot(e, e)
         if not math.isfinite(cost):
             raise _diverged("non-finite image residual", f"after {k} step(s)")
         if prev_cost is not None and cost > RESIDUAL_RISE * prev_cost:
@@ -575,10 +551,8 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
                             f"rms {math.sqrt(prev_cost / w.size):.3g} -> {math.sqrt(cost / w.size):.3g} "
                             f"after step {k}")
         prev_cost = cost if prev_cost is None else min(cost, prev_cost)
-        tick("checks")
-        x = _gauss_newton_step(nodes, gr, gc, e, h, regularisation, cg_iterations, k, tick, threads)
-        du = nodes.displacement(x)
-        step = _rms(du)
+        x = _gauss_newton_step(nodes, gr, gc, e, h, regularisation, cg_iterations, k)
+        step = _rms(nodes.displacement(x))
         if not math.isfinite(step):
             raise _diverged("non-finite Gauss-Newton step", f"step {k + 1}")
         if prev_step is not None and step > 2.0 * prev_step and step > 0.05:
@@ -586,39 +560,7 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
                             f"{prev_step:.3g} -> {step:.3g} px rms at step {k + 1}")
         prev_step = step
         h += x
-        u = u + du
-        tick("checks")
     return h, u.astype(np.float32), free
-
-
-def _central_difference_rows(x, out=None):
-    """``(x[i + 1] - x[i - 1]) / 2`` along the rows, reflected at the ends: the values of
-    ``cv2.Sobel(x, CV_32F, 0, 1, ksize=1, scale=0.5, borderType=BORDER_REFLECT)`` to
-    the bit, in 0.9 instead of 2.0 ms at 1024^2 (one thread; along the columns
-    cv2's is the faster, 1.4 against 2.2 ms)."""
-    if out is None:
-        out = np.empty_like(x)
-    np.subtract(x[2:], x[:-2], out=out[1:-1])
-    out[1:-1] *= np.float32(0.5)
-    out[0] = np.float32(0.5) * (x[1] - x[0])
-    out[-1] = np.float32(0.5) * (x[-1] - x[-2])
-    return out
-
-
-class _StageClock:
-    """``tick(name)``: the time since the last tick is added to ``stage_ms[name]``
-    (milliseconds); a no-op when ``stage_ms`` is None."""
-
-    def __init__(self, stage_ms):
-        self.stage_ms = stage_ms
-        self.t = time.perf_counter() if stage_ms is not None else 0.0
-
-    def __call__(self, name):
-        if self.stage_ms is None:
-            return
-        t = time.perf_counter()
-        self.stage_ms[name] = self.stage_ms.get(name, 0.0) + 1e3 * (t - self.t)
-        self.t = t
 
 
 def _start_heights(h0):
@@ -669,25 +611,7 @@ def _normalised_frame(raw, blurred, warped, weight, cell_px, blur_px):
     return img
 
 
-_POOLS: dict = {}
-# a forked child inherits the pools but not their threads: it would wait on them forever
-os.register_at_fork(after_in_child=_POOLS.clear)
-
-
-def _map(fn, jobs, threads):
-    """``[fn(*job) for job in jobs]``, on ``threads`` threads when more than 1 (one
-    pool per thread count, kept for the process's life)."""
-    if threads <= 1 or len(jobs) < 2:
-        return [fn(*job) for job in jobs]
-    from concurrent.futures import ThreadPoolExecutor
-
-    pool = _POOLS.get(threads)
-    if pool is None:
-        pool = _POOLS[threads] = ThreadPoolExecutor(threads, thread_name_prefix="dic")
-    return list(pool.map(lambda job: fn(*job), jobs))
-
-
-def _gauss_newton_step(nodes, gr, gc, e, h, regularisation, cg_iterations, k, tick=None, threads=1):
+def _gauss_newton_step(nodes, gr, gc, e, h, regularisation, cg_iterations, k):
     """The step ``dh`` of :func:`refine_height` from the (weighted) gradients
     ``gr``, ``gc`` of the warped reference and the residual ``e``: the normal
     equations ``(L^T P^T N P L + lam R) dh = -L^T P^T g e - lam R h`` by
@@ -696,14 +620,11 @@ def _gauss_newton_step(nodes, gr, gc, e, h, regularisation, cg_iterations, k, ti
     import scipy.fft as sfft
 
     Bm = nodes.B_mean
-
-    def node_sums(a, b, normal):
-        return nodes.node_normal(a * b) if normal else nodes.node_rhs(a * b)
-
-    Nrr, Nrc, Ncc, br, bc = _map(node_sums, [(gr, gr, True), (gr, gc, True), (gc, gc, True),
-                                             (gr, e, False), (gc, e, False)], threads)
-    if tick is not None:
-        tick("stencils")
+    Nrr = nodes.node_normal(gr * gr)
+    Nrc = nodes.node_normal(gr * gc)
+    Ncc = nodes.node_normal(gc * gc)
+    br = nodes.node_rhs(gr * e)
+    bc = nodes.node_rhs(gc * e)
     nr = Nrr.mean_row_sum()
     nc = Ncc.mean_row_sum()
     lam = regularisation * (nr * Bm[0, 0] ** 2 + nc * Bm[1, 1] ** 2) / nodes.grid.s ** 2
@@ -747,6 +668,4 @@ def _gauss_newton_step(nodes, gr, gc, e, h, regularisation, cg_iterations, k, ti
         p *= np.float32(rz_new / rz)
         p += z
         rz = rz_new
-    if tick is not None:
-        tick("cg")
     return x

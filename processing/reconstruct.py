@@ -1026,7 +1026,7 @@ class Reconstructor:
         _, u_nodes, valid_nodes = dic.refine_height(
             self._ref_fine, frame, np.asarray(start.height_mm, np.float64), valid_px, self._height_nodes,
             outer=self.image_iterations, period_px=float(periods.min()),
-            intensity_cell_px=max(dic.INTENSITY_CELL_PX, 1.6 * float(periods.max())), threads=self.planner.threads)
+            intensity_cell_px=max(dic.INTENSITY_CELL_PX, 1.6 * float(periods.max())))
         t4 = time.perf_counter()
         timings["refine"] += 1e3 * (t4 - t3)
         surf = hs._solve(np.where(valid_nodes, u_nodes, np.nan), valid_nodes, self.solver, _CG_TOL,
