@@ -716,6 +716,20 @@ class HeightSolver:
         return self._solve(displacement_px, valid, solver, self.tol, reference_mask,
                            pin_fallback=pin_fallback, region_name=region_name)
 
+    def solve_at_tolerance(self, displacement_px, valid, solver, tol, reference_mask=None, *,
+                           pin_fallback="nearest", region_name=None, near=None) -> SurfaceResult:
+        """:meth:`solve` with the conjugate-gradient tolerance ``tol`` and the
+        "nearest" fallback's box ``near`` given (what the Reconstructor's chains call)."""
+        return self._solve(displacement_px, valid, solver, tol, reference_mask, pin_fallback=pin_fallback,
+                           region_name=region_name, near=near)
+
+    def solve_spectral(self, displacement_px, valid, reference_mask=None, *, pin_fallback="nearest",
+                       region_name=None, near=None) -> SurfaceResult:
+        """The spectral path of :meth:`solve` for a finite displacement valid
+        everywhere (needs :attr:`spectral_coefficients`, uniform optics)."""
+        return self._solve_fast(displacement_px, valid, reference_mask, pin_fallback=pin_fallback,
+                                region_name=region_name, near=near)
+
     def _solve(self, displacement_px, valid, solver, tol, reference_mask=None, *, pin_fallback="nearest",
                region_name=None, near=None):
         """:meth:`solve` with the conjugate-gradient tolerance given (the
