@@ -20,14 +20,13 @@ FUNCTION_MAX_LINES = 80
 #: Modules still over MODULE_MAX_LINES (lines today): to be split by topic
 #: as reconstruct.py was (issue 19).
 MODULES_OVER = {
-    "carriers.py": 783,
     "forward.py": 977,
     "geometry.py": 957,
     "height.py": 994,
 }
 #: Functions still over FUNCTION_MAX_LINES (lines today).
 FUNCTIONS_OVER = {
-    "carriers.py:find_carriers": 138,
+    "carrier_peaks.py:find_carriers": 138,
     "carriers.py:_check_smeared": 83,
     "demodulation.py:Demodulator.__init__": 123,
     "dic.py:refine_height": 126,
