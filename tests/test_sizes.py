@@ -20,7 +20,6 @@ FUNCTION_MAX_LINES = 80
 #: Modules still over MODULE_MAX_LINES (lines today): to be split by topic
 #: as reconstruct.py was (issue 19).
 MODULES_OVER = {
-    "forward.py": 977,
     "geometry.py": 957,
     "height.py": 994,
 }
