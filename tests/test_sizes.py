@@ -21,7 +21,7 @@ FUNCTION_MAX_LINES = 80
 #: as reconstruct.py was (issue 19).
 MODULES_OVER = {
     "geometry.py": 957,
-    "height.py": 994,
+    "height.py": 746,
 }
 #: Functions still over FUNCTION_MAX_LINES (lines today).
 FUNCTIONS_OVER = {
