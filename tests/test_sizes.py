@@ -27,7 +27,6 @@ MODULES_OVER = {
 FUNCTIONS_OVER = {
     "carrier_peaks.py:find_carriers": 138,
     "carriers.py:_check_smeared": 83,
-    "demodulation.py:Demodulator.__init__": 123,
     "dic.py:refine_height": 126,
     "geometry.py:Geometry.__post_init__": 81,
     "gpu.py:BatchChain.__call__": 117,
