@@ -20,7 +20,7 @@ FUNCTION_MAX_LINES = 80
 #: Modules still over MODULE_MAX_LINES (lines today): to be split by topic
 #: as reconstruct.py was (issue 19).
 MODULES_OVER = {
-    "geometry.py": 957,
+    "geometry.py": 918,
     "height.py": 746,
 }
 #: Functions still over FUNCTION_MAX_LINES (lines today).
@@ -28,7 +28,6 @@ FUNCTIONS_OVER = {
     "carrier_peaks.py:find_carriers": 138,
     "carriers.py:_check_smeared": 83,
     "dic.py:refine_height": 126,
-    "geometry.py:Geometry.__post_init__": 81,
     "gpu.py:BatchChain.__call__": 117,
 }
 
