@@ -258,6 +258,29 @@ def _tukey(n, taper):
     return (0.5 - 0.5 * np.cos(np.pi * ramp)).astype(np.float32)
 
 
+def _near_carrier_centroids(carriers: Carriers, power, band, fr, fc):
+    """``(centroids (2, 2), power)``: the power-weighted mean frequency of the
+    band's power within :data:`SMEARED_RADIUS` carrier spacings of each of the
+    reference's carriers (NaN where none), and that power in all."""
+    rho = SMEARED_RADIUS * carriers.min_spacing
+    centroids = np.empty((2, 2))
+    near_power = 0.0
+    for s, k in enumerate(np.asarray(carriers.freq, dtype=float)):
+        # the half-spectrum holds k or -k (f_col >= 0); fold -k onto k
+        d_plus = np.hypot(fr - k[0], fc - k[1])
+        d_minus = np.hypot(fr + k[0], fc + k[1])
+        sign = np.where(d_plus <= d_minus, 1.0, -1.0)
+        near = band & (np.minimum(d_plus, d_minus) <= rho)
+        w = np.where(near, power, 0.0)
+        ws = float(w.sum())
+        near_power += ws
+        if ws > 0:
+            centroids[s] = [float((w * sign * fr).sum()) / ws, float((w * sign * fc).sum()) / ws]
+        else:
+            centroids[s] = np.nan
+    return centroids, near_power
+
+
 def _check_smeared(carriers: Carriers, frame, no_carrier: NoCarrierError) -> Carriers:
     """The pattern check of a frame without compact carrier peaks.
 
@@ -288,22 +311,7 @@ def _check_smeared(carriers: Carriers, frame, no_carrier: NoCarrierError) -> Car
     total = float(power[band].sum())
     if not total > 0.0:
         raise no_carrier
-    rho = SMEARED_RADIUS * carriers.min_spacing
-    centroids = np.empty((2, 2))
-    near_power = 0.0
-    for s, k in enumerate(np.asarray(carriers.freq, dtype=float)):
-        # the half-spectrum holds k or -k (f_col >= 0); fold -k onto k
-        d_plus = np.hypot(fr - k[0], fc - k[1])
-        d_minus = np.hypot(fr + k[0], fc + k[1])
-        sign = np.where(d_plus <= d_minus, 1.0, -1.0)
-        near = band & (np.minimum(d_plus, d_minus) <= rho)
-        w = np.where(near, power, 0.0)
-        ws = float(w.sum())
-        near_power += ws
-        if ws > 0:
-            centroids[s] = [float((w * sign * fr).sum()) / ws, float((w * sign * fc).sum()) / ws]
-        else:
-            centroids[s] = np.nan
+    centroids, near_power = _near_carrier_centroids(carriers, power, band, fr, fc)
     fraction = near_power / total
     rel, ang = (match_error(carriers, centroids) if np.all(np.isfinite(centroids))
                 else (float("inf"), float("inf")))
