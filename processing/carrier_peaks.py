@@ -341,6 +341,89 @@ def _sharpness(spec, r, c, rows):
     return float(e[1:4, 1:4].sum() / max(e.sum(), 1e-300))
 
 
+def _check_not_uniform(img):
+    """NoCarrierError for an image without any pattern (uniform)."""
+    level = float(np.mean(np.abs(img)))
+    spread = float(np.std(img))
+    if spread <= 1e-3 * max(level, 1e-30) or spread == 0.0:
+        raise NoCarrierError(
+            f"the image is uniform (standard deviation {spread:.3g} around a mean of {level:.3g}): "
+            "no pattern, hence no carrier peak, is visible; check that the checkerboard is lit, in view and that the "
+            "exposure is not zero or saturated")
+
+
+def _ring_excess(spec, radius, allowed, rows, cols):
+    """log of ``spec`` above its typical level at the same radius, -inf outside ``allowed``."""
+    # Typical level at each radius: geometric mean over rings one bin wide.
+    ring = np.minimum((radius * max(rows, cols)).astype(np.int64), max(rows, cols))
+    logspec = np.log(spec + 1e-30)
+    counts = np.bincount(ring.ravel(), minlength=max(rows, cols) + 1)
+    sums = np.bincount(ring.ravel(), weights=logspec.ravel(), minlength=max(rows, cols) + 1)
+    ring_mean = sums / np.maximum(counts, 1)
+    # smooth the ring profile over +-3 rings so that one strong peak does not lift its own ring
+    kernel = np.ones(7) / 7.0
+    ring_mean = np.convolve(np.pad(ring_mean, 3, mode="edge"), kernel, mode="valid")
+    return np.where(allowed, logspec - ring_mean[ring], -np.inf)
+
+
+def _best_peak(score, spec, rows, min_contrast):
+    """Among isolated peaks standing ``min_contrast`` above their ring, the
+    strongest in amplitude (a fundamental, not a harmonic that merely
+    stands higher above a weaker ring).  Negative contrast: the best
+    candidate was not isolated (a streak or a smear)."""
+    flat = score.ravel()
+    n_cand = min(64, flat.size)
+    cand = np.argpartition(-flat, n_cand - 1)[:n_cand]
+    cand = cand[np.argsort(-flat[cand])]
+    best = None
+    fallback = (0, 0, float("-inf"))
+    for idx in cand:
+        if not np.isfinite(flat[idx]):
+            break
+        r, c = divmod(int(idx), score.shape[1])
+        if best is not None and spec[r, c] <= spec[best[0], best[1]]:
+            continue  # cannot beat the best isolated peak (the fallback only matters without one)
+        contrast = float(np.exp(flat[idx]))
+        if _isolation(spec, r, c, rows) < MIN_ISOLATION:
+            if fallback[2] == float("-inf"):
+                fallback = (r, c, -contrast)
+            continue
+        if contrast < min_contrast:
+            if fallback[2] == float("-inf") or fallback[2] < 0:
+                fallback = (r, c, contrast)
+            continue
+        if best is None or spec[r, c] > spec[best[0], best[1]]:
+            best = (r, c, contrast)
+    return best if best is not None else fallback
+
+
+def _ordered(f1, f2, peak1, peak2, spec, rows, cols) -> Carriers:
+    """The two carriers, the first with f_row <= the second's (stable display)."""
+    (r1, c1, contrast1), (r2, c2, contrast2) = peak1, peak2
+    freq = np.array([f1, f2])
+    # order: first carrier has f_row <= the second's (stable display)
+    if freq[0, 0] > freq[1, 0]:
+        freq = freq[::-1].copy()
+        contrast = np.array([contrast2, contrast1])
+        sharp = np.array([_sharpness(spec, r2, c2, rows), _sharpness(spec, r1, c1, rows)])
+    else:
+        contrast = np.array([contrast1, contrast2])
+        sharp = np.array([_sharpness(spec, r1, c1, rows), _sharpness(spec, r2, c2, rows)])
+    return Carriers(freq=freq, shape=(rows, cols), contrast=contrast, sharpness=sharp)
+
+
+def _no_clear_peak(contrast, min_contrast) -> NoCarrierError:
+    """The error for a best first peak of ``contrast`` (negative: not isolated)."""
+    if contrast >= 0 or -contrast < min_contrast:
+        what = f"the strongest stands {abs(contrast):.1f}x above the background, need {min_contrast:.0f}x"
+    else:
+        what = (f"a candidate {-contrast:.1f}x above the background is a streak or smear, "
+                "not an isolated peak")
+    return NoCarrierError(
+        f"the image shows no clear carrier peak ({what}): check that the "
+        "checkerboard is in focus, lit, fills the view and that this is the pattern image")
+
+
 def find_carriers(reference, *, min_period_px: float = 2.5, max_period_px: float | None = None,
                   min_contrast: float = MIN_PEAK_CONTRAST, min_angle_deg: float = 15.0) -> Carriers:
     """Find the two carrier peaks of a checkerboard image.
@@ -381,13 +464,7 @@ def find_carriers(reference, *, min_period_px: float = 2.5, max_period_px: float
     """
     img = as_float_image(reference, "reference image")
     rows, cols = img.shape
-    level = float(np.mean(np.abs(img)))
-    spread = float(np.std(img))
-    if spread <= 1e-3 * max(level, 1e-30) or spread == 0.0:
-        raise NoCarrierError(
-            f"the image is uniform (standard deviation {spread:.3g} around a mean of {level:.3g}): "
-            "no pattern, hence no carrier peak, is visible; check that the checkerboard is lit, in view and that the "
-            "exposure is not zero or saturated")
+    _check_not_uniform(img)
     if max_period_px is None:
         max_period_px = min(rows, cols) / 4.0
     spec_c, fr, fc = _spectrum(img)
@@ -401,57 +478,11 @@ def find_carriers(reference, *, min_period_px: float = 2.5, max_period_px: float
         raise NoCarrierError(
             f"no frequencies between periods {min_period_px} and {max_period_px} px "
             f"in a {rows} x {cols} image; check min_period_px/max_period_px")
-    # Typical level at each radius: geometric mean over rings one bin wide.
-    ring = np.minimum((radius * max(rows, cols)).astype(np.int64), max(rows, cols))
-    logspec = np.log(spec + 1e-30)
-    counts = np.bincount(ring.ravel(), minlength=max(rows, cols) + 1)
-    sums = np.bincount(ring.ravel(), weights=logspec.ravel(), minlength=max(rows, cols) + 1)
-    ring_mean = sums / np.maximum(counts, 1)
-    # smooth the ring profile over +-3 rings so that one strong peak does not lift its own ring
-    kernel = np.ones(7) / 7.0
-    ring_mean = np.convolve(np.pad(ring_mean, 3, mode="edge"), kernel, mode="valid")
-    excess = np.where(allowed, logspec - ring_mean[ring], -np.inf)
+    excess = _ring_excess(spec, radius, allowed, rows, cols)
 
-    def best_peak(score):
-        """Among isolated peaks standing ``min_contrast`` above their ring, the
-        strongest in amplitude (a fundamental, not a harmonic that merely
-        stands higher above a weaker ring).  Negative contrast: the best
-        candidate was not isolated (a streak or a smear)."""
-        flat = score.ravel()
-        n_cand = min(64, flat.size)
-        cand = np.argpartition(-flat, n_cand - 1)[:n_cand]
-        cand = cand[np.argsort(-flat[cand])]
-        best = None
-        fallback = (0, 0, float("-inf"))
-        for idx in cand:
-            if not np.isfinite(flat[idx]):
-                break
-            r, c = divmod(int(idx), score.shape[1])
-            if best is not None and spec[r, c] <= spec[best[0], best[1]]:
-                continue  # cannot beat the best isolated peak (the fallback only matters without one)
-            contrast = float(np.exp(flat[idx]))
-            if _isolation(spec, r, c, rows) < MIN_ISOLATION:
-                if fallback[2] == float("-inf"):
-                    fallback = (r, c, -contrast)
-                continue
-            if contrast < min_contrast:
-                if fallback[2] == float("-inf") or fallback[2] < 0:
-                    fallback = (r, c, contrast)
-                continue
-            if best is None or spec[r, c] > spec[best[0], best[1]]:
-                best = (r, c, contrast)
-        return best if best is not None else fallback
-
-    r1, c1, contrast1 = best_peak(excess)
+    r1, c1, contrast1 = _best_peak(excess, spec, rows, min_contrast)
     if not np.isfinite(contrast1) or contrast1 < min_contrast:
-        if contrast1 >= 0 or -contrast1 < min_contrast:
-            what = f"the strongest stands {abs(contrast1):.1f}x above the background, need {min_contrast:.0f}x"
-        else:
-            what = (f"a candidate {-contrast1:.1f}x above the background is a streak or smear, "
-                    "not an isolated peak")
-        raise NoCarrierError(
-            f"the image shows no clear carrier peak ({what}): check that the "
-            "checkerboard is in focus, lit, fills the view and that this is the pattern image")
+        raise _no_clear_peak(contrast1, min_contrast)
     f1 = _refine(spec_c, r1, c1, rows, cols)
     # second carrier: not collinear with k1 (harmonics), not too different in length
     fr_b = np.broadcast_to(fr, spec.shape)
@@ -460,7 +491,7 @@ def find_carriers(reference, *, min_period_px: float = 2.5, max_period_px: float
     ok2 = cosang < math.cos(math.radians(min_angle_deg))
     ratio = radius / np.hypot(*f1)
     ok2 &= (ratio > 1.0 / 6.0) & (ratio < 6.0)
-    r2, c2, contrast2 = best_peak(np.where(ok2, excess, -np.inf))
+    r2, c2, contrast2 = _best_peak(np.where(ok2, excess, -np.inf), spec, rows, min_contrast)
     if not np.isfinite(contrast2) or contrast2 < min_contrast:
         p1 = 1.0 / np.hypot(*f1)
         raise NoCarrierError(
@@ -469,13 +500,4 @@ def find_carriers(reference, *, min_period_px: float = 2.5, max_period_px: float
             f"{min_contrast:.0f}x{'' if contrast2 >= 0 else ', and is not isolated'}): tirdeflect needs a checkerboard (two crossing periodic "
             "directions); check the pattern, focus and lighting")
     f2 = _refine(spec_c, r2, c2, rows, cols)
-    freq = np.array([f1, f2])
-    # order: first carrier has f_row <= the second's (stable display)
-    if freq[0, 0] > freq[1, 0]:
-        freq = freq[::-1].copy()
-        contrast = np.array([contrast2, contrast1])
-        sharp = np.array([_sharpness(spec, r2, c2, rows), _sharpness(spec, r1, c1, rows)])
-    else:
-        contrast = np.array([contrast1, contrast2])
-        sharp = np.array([_sharpness(spec, r1, c1, rows), _sharpness(spec, r2, c2, rows)])
-    return Carriers(freq=freq, shape=(rows, cols), contrast=contrast, sharpness=sharp)
+    return _ordered(f1, f2, (r1, c1, contrast1), (r2, c2, contrast2), spec, rows, cols)
