@@ -223,21 +223,9 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
         The message names the test that stopped the iterations and its figures.
     """
     grid = nodes.grid
-    raw = img = np.asarray(frame, np.float32)
-    if blur_px:
-        img = cv2.GaussianBlur(img, (0, 0), blur_px)
     rows, cols = grid.frame_shape
-    w = np.asarray(valid_px, np.float32)
-    all_valid = bool(w.all())
-    free = grid.down(w) > 0.999
-    if not all_valid and blur_px:
-        # the blur mixes what lies within about 2.5 sigma into a pixel: only
-        # pixels whose blurred frame and warped reference see valid pixels alone count
-        reach = int(math.ceil(2.5 * blur_px))
-        w = cv2.erode(w, np.ones((2 * reach + 1, 2 * reach + 1), np.uint8), borderType=cv2.BORDER_REPLICATE)
+    raw, img, w, all_valid, free = _frame_and_weights(frame, valid_px, grid, blur_px)
     h = _start_heights(h0)
-    r_px = np.arange(rows, dtype=np.float32)[:, None] * np.float32(FINE)
-    c_px = np.arange(cols, dtype=np.float32)[None, :] * np.float32(FINE)
     u_start = nodes.displacement(h)
     prev_step = prev_cost = None
     for k in range(outer + 1):
@@ -245,15 +233,7 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
         _check_displacement(u, u_start, k, (rows, cols), period_px)  # before any warp
         if k == outer:
             break
-        mr = grid.up(u[0], cv2.INTER_LANCZOS4)
-        mc = grid.up(u[1], cv2.INTER_LANCZOS4)
-        mr *= np.float32(FINE)
-        mc *= np.float32(FINE)
-        warped = cv2.remap(fine, c_px - mc, r_px - mr, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
-        if blur_px:
-            warped = cv2.GaussianBlur(warped, (0, 0), blur_px)
-        gr = cv2.Sobel(warped, cv2.CV_32F, 0, 1, ksize=1, scale=0.5, borderType=cv2.BORDER_REFLECT)
-        gc = cv2.Sobel(warped, cv2.CV_32F, 1, 0, ksize=1, scale=0.5, borderType=cv2.BORDER_REFLECT)
+        warped, gr, gc = _warp_and_gradients(fine, grid, u, blur_px)
         if intensity_cell_px and k == 0:
             # once, against the reference warped by FD's start (the ratio of standard
             # deviations hardly moves with the warp: fitting before every step gave the
@@ -263,26 +243,66 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
         if not all_valid:
             gr *= w
             gc *= w
-            cost = _dot(e * w, e)
-        else:
-            cost = _dot(e, e)
-        if not math.isfinite(cost):
-            raise _diverged("non-finite image residual", f"after {k} step(s)")
-        if prev_cost is not None and cost > RESIDUAL_RISE * prev_cost:
-            raise _diverged("image residual rose after a step",
-                            f"rms {math.sqrt(prev_cost / w.size):.3g} -> {math.sqrt(cost / w.size):.3g} "
-                            f"after step {k}")
-        prev_cost = cost if prev_cost is None else min(cost, prev_cost)
+        prev_cost = _check_cost(_dot(e * w, e) if not all_valid else _dot(e, e), prev_cost, k, w.size)
         x = _gauss_newton_step(nodes, gr, gc, e, h, regularisation, cg_iterations, k)
-        step = _rms(nodes.displacement(x))
-        if not math.isfinite(step):
-            raise _diverged("non-finite Gauss-Newton step", f"step {k + 1}")
-        if prev_step is not None and step > 2.0 * prev_step and step > 0.05:
-            raise _diverged("Gauss-Newton steps grow",
-                            f"{prev_step:.3g} -> {step:.3g} px rms at step {k + 1}")
-        prev_step = step
+        prev_step = _check_step(_rms(nodes.displacement(x)), prev_step, k)
         h += x
     return h, u.astype(np.float32), free
+
+
+def _frame_and_weights(frame, valid_px, grid, blur_px):
+    """``(raw, blurred frame, pixel weights, all valid, free nodes)`` of :func:`refine_height`."""
+    raw = img = np.asarray(frame, np.float32)
+    if blur_px:
+        img = cv2.GaussianBlur(img, (0, 0), blur_px)
+    w = np.asarray(valid_px, np.float32)
+    all_valid = bool(w.all())
+    free = grid.down(w) > 0.999
+    if not all_valid and blur_px:
+        # the blur mixes what lies within about 2.5 sigma into a pixel: only
+        # pixels whose blurred frame and warped reference see valid pixels alone count
+        reach = int(math.ceil(2.5 * blur_px))
+        w = cv2.erode(w, np.ones((2 * reach + 1, 2 * reach + 1), np.uint8), borderType=cv2.BORDER_REPLICATE)
+    return raw, img, w, all_valid, free
+
+
+def _warp_and_gradients(fine, grid, u, blur_px):
+    """The fine reference warped by the node displacement ``u`` (Lanczos to the
+    pixels), blurred as the frame, and its gradients along rows and columns."""
+    rows, cols = grid.frame_shape
+    r_px = np.arange(rows, dtype=np.float32)[:, None] * np.float32(FINE)
+    c_px = np.arange(cols, dtype=np.float32)[None, :] * np.float32(FINE)
+    mr = grid.up(u[0], cv2.INTER_LANCZOS4)
+    mc = grid.up(u[1], cv2.INTER_LANCZOS4)
+    mr *= np.float32(FINE)
+    mc *= np.float32(FINE)
+    warped = cv2.remap(fine, c_px - mc, r_px - mr, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    if blur_px:
+        warped = cv2.GaussianBlur(warped, (0, 0), blur_px)
+    gr = cv2.Sobel(warped, cv2.CV_32F, 0, 1, ksize=1, scale=0.5, borderType=cv2.BORDER_REFLECT)
+    gc = cv2.Sobel(warped, cv2.CV_32F, 1, 0, ksize=1, scale=0.5, borderType=cv2.BORDER_REFLECT)
+    return warped, gr, gc
+
+
+def _check_cost(cost, prev_cost, k, n_px):
+    """The lowest image residual so far; RefinementDiverged when it is not finite or rose."""
+    if not math.isfinite(cost):
+        raise _diverged("non-finite image residual", f"after {k} step(s)")
+    if prev_cost is not None and cost > RESIDUAL_RISE * prev_cost:
+        raise _diverged("image residual rose after a step",
+                        f"rms {math.sqrt(prev_cost / n_px):.3g} -> {math.sqrt(cost / n_px):.3g} "
+                        f"after step {k}")
+    return cost if prev_cost is None else min(cost, prev_cost)
+
+
+def _check_step(step, prev_step, k):
+    """``step`` (rms px of a Gauss-Newton step); RefinementDiverged when it is not finite or grows."""
+    if not math.isfinite(step):
+        raise _diverged("non-finite Gauss-Newton step", f"step {k + 1}")
+    if prev_step is not None and step > 2.0 * prev_step and step > 0.05:
+        raise _diverged("Gauss-Newton steps grow",
+                        f"{prev_step:.3g} -> {step:.3g} px rms at step {k + 1}")
+    return step
 
 
 def _start_heights(h0):
