@@ -298,9 +298,8 @@ class Reconstructor:
         frame = self.validate_frame(frame)
         grid = self.grid if grid is None else grid
         self._check_grid(grid)
-        if self.pattern == "dots":
-            return self.chain(frame, grid, time.perf_counter())
-        # each stage hands the series memory on: a frame that fails keeps what its stages already moved
+        # the chains (checkerboard, dots) have the same three stages; each hands the series
+        # memory on, so a frame that fails keeps what its stages already moved
         measured, self._series = self.chain.measure(frame, grid, self._series, t0)
         res, self._series = self.chain.solve(measured, grid, self._series)
         return self.chain.to_grid(measured, res, grid)

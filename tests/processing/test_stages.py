@@ -40,6 +40,15 @@ def test_every_reconstructor_has_the_same_attributes_whatever_the_pattern(board)
     assert dots.demod is None and dots.carriers is None and dots.plan is None and checker.piv is None
     assert (dots.unwrap, dots.temporal, dots.refine_iterations) == (False, False, 0)
     assert dots.series_state() is None
+    # interchangeable chains: the facade runs either through the same three stages
+    for rec in (checker, dots):
+        assert all(callable(getattr(rec.chain, stage)) for stage in ("measure", "solve", "to_grid"))
+    _, img = _pair(F.RandomDots(dot_diameter_mm=0.5, density=0.3, seed=1), F.GaussianBump(0.003, 2.5))
+    m, state = dots.chain.measure(img, "full", S.EMPTY, 0.0)
+    res, state = dots.chain.solve(m, "full", state)
+    res = dots.chain.to_grid(m, res, "full")
+    assert state is S.EMPTY  # dots keep no series memory
+    np.testing.assert_array_equal(res.height, dots(img).height)
 
 
 def test_the_chain_stage_by_stage_gives_the_facades_result(board):
