@@ -73,6 +73,22 @@ def tukey(n: int, taper: float) -> np.ndarray:
     return w.astype(np.float32)
 
 
+def _check_options(ref, filter_shape, border, filter_radius, filter_flat, oversample):
+    """ValueError naming the first of the Demodulator's arguments out of range."""
+    if ref.ndim != 2:
+        raise ValueError(f"reference must be 2-D (rows, cols); got shape {ref.shape}")
+    if filter_shape not in ("flattop", "disc"):
+        raise ValueError(f"filter_shape must be 'flattop' or 'disc'; got {filter_shape!r}")
+    if border not in ("apodize", "none"):
+        raise ValueError(f"border must be 'apodize' or 'none'; got {border!r}")
+    if not 0.05 <= filter_radius <= 0.75:
+        raise ValueError(f"filter_radius must be within [0.05, 0.75] of the carrier spacing; got {filter_radius}")
+    if not 0.0 <= filter_flat < 1.0:
+        raise ValueError(f"filter_flat must be within [0, 1); got {filter_flat}")
+    if oversample < 1.0:
+        raise ValueError(f"oversample must be >= 1; got {oversample}")
+
+
 class Demodulator:
     """Band-limited analytic signals of the two carriers, decimated or full grid.
 
@@ -130,18 +146,7 @@ class Demodulator:
                  border: str = "apodize", taper_px: float | None = None, subbin: bool = True,
                  local_carriers: bool = True):
         ref = np.asarray(reference)
-        if ref.ndim != 2:
-            raise ValueError(f"reference must be 2-D (rows, cols); got shape {ref.shape}")
-        if filter_shape not in ("flattop", "disc"):
-            raise ValueError(f"filter_shape must be 'flattop' or 'disc'; got {filter_shape!r}")
-        if border not in ("apodize", "none"):
-            raise ValueError(f"border must be 'apodize' or 'none'; got {border!r}")
-        if not 0.05 <= filter_radius <= 0.75:
-            raise ValueError(f"filter_radius must be within [0.05, 0.75] of the carrier spacing; got {filter_radius}")
-        if not 0.0 <= filter_flat < 1.0:
-            raise ValueError(f"filter_flat must be within [0, 1); got {filter_flat}")
-        if oversample < 1.0:
-            raise ValueError(f"oversample must be >= 1; got {oversample}")
+        _check_options(ref, filter_shape, border, filter_radius, filter_flat, oversample)
         self.shape = rows, cols = ref.shape
         if tuple(carriers.shape) != self.shape:
             raise ValueError(f"carriers were measured on shape {carriers.shape}, reference is {self.shape}")
@@ -190,6 +195,35 @@ class Demodulator:
         self._centres = np.round(freq * np.array([rows, cols])).astype(np.int64)
         q_r = np.fft.fftfreq(m_r, 1.0 / m_r).astype(np.int64)  # ifftshift order offsets
         q_c = np.fft.fftfreq(m_c, 1.0 / m_c).astype(np.int64)
+        self._build_windows(freq, q_r, q_c, shift_r, shift_c)
+        self._full_index = [((self._centres[s][0] + q_r)[:, None] % rows,
+                             (self._centres[s][1] + q_c)[None, :] % cols) for s in range(2)]
+        shape2 = (2,) + self.window_shape
+        self._gather_idx = np.stack([g[0] for g in self._gather]).reshape(shape2)
+        mirror = np.stack([g[1] for g in self._gather]).reshape(shape2)
+        self._gather_mirror = mirror if mirror.any() else None
+        self._filter_stack = np.stack(self._filters)
+        # inverse FFT normalisation 1 / (m_r m_c) times the window-size scale m_r m_c / (rows cols)
+        self._dec_scale = np.float32(1.0 / (rows * cols))
+        self.last_mean = 0.0
+        self._dc_leak = None
+        if self._window2d is not None:
+            self._dc_leak = self.windows(np.fft.rfft2(self._window2d).astype(np.complex64), mean=0.0)
+        for shape in ((rows, cols),):
+            self.planner.prepare("rfft2", shape)
+        self.planner.prepare("ifft2", (2,) + self.window_shape)
+        self.g0 = self.decimated(ref)
+        self.g0_abs = np.abs(self.g0)
+        self.local_carriers = bool(local_carriers) and subbin
+        self._local_inv = self._local_inverse() if self.local_carriers else None
+
+    def _build_windows(self, freq, q_r, q_c, shift_r, shift_c):
+        """Each carrier's window of bins: where it gathers them from the real
+        FFT (mirrored half conjugated), its band-pass gain and the phase ramp
+        that puts the samples at ``rows_px``, ``cols_px``."""
+        rows, cols = self.shape
+        m_r, m_c = self.window_shape
+        filter_shape = self.filter_shape
         self._gather = []
         self._filters = []
         self._gains = []
@@ -227,26 +261,6 @@ class Demodulator:
             self._gains.append(filt)
             self._ramps.append(np.conj(ramp).astype(np.complex64))
             # absolute bins for the full-grid variant (full complex spectrum)
-        self._full_index = [((self._centres[s][0] + q_r)[:, None] % rows,
-                             (self._centres[s][1] + q_c)[None, :] % cols) for s in range(2)]
-        shape2 = (2,) + self.window_shape
-        self._gather_idx = np.stack([g[0] for g in self._gather]).reshape(shape2)
-        mirror = np.stack([g[1] for g in self._gather]).reshape(shape2)
-        self._gather_mirror = mirror if mirror.any() else None
-        self._filter_stack = np.stack(self._filters)
-        # inverse FFT normalisation 1 / (m_r m_c) times the window-size scale m_r m_c / (rows cols)
-        self._dec_scale = np.float32(1.0 / (rows * cols))
-        self.last_mean = 0.0
-        self._dc_leak = None
-        if self._window2d is not None:
-            self._dc_leak = self.windows(np.fft.rfft2(self._window2d).astype(np.complex64), mean=0.0)
-        for shape in ((rows, cols),):
-            self.planner.prepare("rfft2", shape)
-        self.planner.prepare("ifft2", (2,) + self.window_shape)
-        self.g0 = self.decimated(ref)
-        self.g0_abs = np.abs(self.g0)
-        self.local_carriers = bool(local_carriers) and subbin
-        self._local_inv = self._local_inverse() if self.local_carriers else None
 
     @property
     def plan(self) -> DemodulationPlan:

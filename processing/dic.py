@@ -47,288 +47,10 @@ import math
 import cv2
 import numpy as np
 
+from .dic_nodes import BLUR_PX, FINE, NODE_PX, HeightNodes, NodeGrid, fine_reference, fits
+
 __all__ = ["NODE_PX", "BLUR_PX", "INTENSITY_CELL_PX", "NodeGrid", "HeightNodes", "RefinementDiverged",
            "fine_reference", "fits", "intensity_fit", "refine_height"]
-
-
-#: Refinement of the grid the reference is interpolated from (see :func:`fine_reference`).
-FINE = 2
-
-
-def fine_reference(reference):
-    """The reference, cubic-spline interpolated to a grid ``FINE`` times finer
-    (sample ``i`` at pixel ``i / FINE``), float32.
-
-    Warping it with linear interpolation is as accurate as warping the
-    reference with the cubic spline itself, at OpenCV's speed: measured on a
-    ray-traced 2 mm board shifted by 0.25-0.75 px, the shift found by image
-    matching is off by 0.005 px (cv2 cubic on the reference: 0.035 px, cv2
-    linear 0.009 px; the cubic kernel's error and the 1/32 px position
-    quantisation of cv2.remap are what bias image matching towards whole
-    pixels).
-    """
-    from scipy import ndimage
-
-    ref = np.asarray(reference, np.float64)
-    r = np.arange(FINE * ref.shape[0]) / FINE
-    c = np.arange(FINE * ref.shape[1]) / FINE
-    coef = ndimage.spline_filter(ref, order=3, mode="mirror")
-    out = np.empty((r.size, c.size), np.float32)
-    # rows in blocks: the coordinate arrays stay small
-    step = max(1, 2_000_000 // max(c.size, 1))
-    for i in range(0, r.size, step):
-        rr, cc = np.meshgrid(r[i:i + step], c, indexing="ij")
-        out[i:i + step] = ndimage.map_coordinates(coef, [rr, cc], order=3, prefilter=False, mode="mirror")
-    return out
-
-
-# ------------------------------------------------------------------ node grid
-#: Node spacing of the global solve, pixels (frame sides must be multiples of it).
-NODE_PX = 4
-
-#: Gaussian blur (sigma, pixels) applied to the frame and to the warped reference.
-BLUR_PX = 1.25
-
-
-def fits(frame_shape) -> bool:
-    """Whether frames of ``frame_shape`` suit the node grid (sides multiples of
-    :data:`NODE_PX`, at least 5 nodes each way)."""
-    rows, cols = frame_shape
-    return rows % NODE_PX == 0 and cols % NODE_PX == 0 and min(rows, cols) >= 5 * NODE_PX
-
-
-class NodeGrid:
-    """Nodes every ``s`` pixels at ``j * s + (s - 1) / 2`` (cv2.resize's
-    pixel-centre convention) and the bilinear node -> pixel map ``P``."""
-
-    def __init__(self, frame_shape, s: int = NODE_PX):
-        rows, cols = frame_shape
-        if rows % s or cols % s:
-            raise ValueError(f"the image refinement needs frame sides that are multiples of {s} px; "
-                             f"got {rows} x {cols}: crop the frames (region of interest) or use refine_method='fd'")
-        self.s = s
-        self.frame_shape = (rows, cols)
-        self.shape = (rows // s, cols // s)
-        self.rows_px = np.arange(self.shape[0]) * s + (s - 1) / 2.0
-        self.cols_px = np.arange(self.shape[1]) * s + (s - 1) / 2.0
-
-    def up(self, x, interpolation=cv2.INTER_LINEAR):
-        rows, cols = self.frame_shape
-        return cv2.resize(np.ascontiguousarray(x, np.float32), (cols, rows), interpolation=interpolation)
-
-    def down(self, x):
-        """Cell means (pixels -> nodes)."""
-        return cv2.resize(np.ascontiguousarray(x, np.float32), (self.shape[1], self.shape[0]),
-                          interpolation=cv2.INTER_AREA)
-
-
-# ------------------------------------------------------------------ height on the node grid
-def _d1(x, s):
-    """First derivative along axis 0 (fourth-order central inside, second-order
-    at the ends), per ``s`` pixels of node spacing."""
-    y = np.empty_like(x)
-    y[2:-2] = (x[:-4] - x[4:] + 8.0 * (x[3:-1] - x[1:-3])) / 12.0
-    y[1] = 0.5 * (x[2] - x[0])
-    y[-2] = 0.5 * (x[-1] - x[-3])
-    y[0] = -1.5 * x[0] + 2.0 * x[1] - 0.5 * x[2]
-    y[-1] = 1.5 * x[-1] - 2.0 * x[-2] + 0.5 * x[-3]
-    y /= s
-    return y
-
-
-def _d1_T(y, s):
-    """Transpose of :func:`_d1`."""
-    z = np.zeros_like(y)
-    yi = y[2:-2] / 12.0
-    z[:-4] += yi
-    z[4:] -= yi
-    z[3:-1] += 8.0 * yi
-    z[1:-3] -= 8.0 * yi
-    z[0] -= 0.5 * y[1]
-    z[2] += 0.5 * y[1]
-    z[-3] -= 0.5 * y[-2]
-    z[-1] += 0.5 * y[-2]
-    z[0] -= 1.5 * y[0]
-    z[1] += 2.0 * y[0]
-    z[2] -= 0.5 * y[0]
-    z[-1] += 1.5 * y[-1]
-    z[-2] -= 2.0 * y[-1]
-    z[-3] += 0.5 * y[-1]
-    z /= s
-    return z
-
-
-def _d3_T_d3(x):
-    """``D3^T D3 x`` along axis 0 (third differences)."""
-    d = x[3:] - x[:-3] + 3.0 * (x[1:-2] - x[2:-1])
-    z = np.zeros_like(x)
-    z[:-3] -= d
-    z[3:] += d
-    z[1:-2] += 3.0 * d
-    z[2:-1] -= 3.0 * d
-    return z
-
-
-def _tent_weights(s: int, quadratic: bool) -> np.ndarray:
-    """``(s, k)`` weights of the ``s`` pixels between two nodes: the lower and
-    upper node's bilinear weight (k = 2), or their squares and product (k = 3)."""
-    f = (np.arange(s) + 0.5) / s
-    cols = [(1 - f) ** 2, f ** 2, (1 - f) * f] if quadratic else [1 - f, f]
-    return np.stack(cols, axis=1).astype(np.float32)
-
-
-def _pair_sums(x, s, quadratic, axis):
-    """Pixels -> nodes along ``axis`` (0 or 1) through cv2's bilinear weights
-    ``P[p, i]`` (nodes every ``s`` px at ``j s + (s - 1) / 2``, clamped outside).
-
-    quadratic: ``(sum_p P[p,i]^2 x[p], sum_p P[p,i] P[p,i+1] x[p])``;
-    else ``sum_p P[p,i] x[p]`` (the exact transpose of the resize)."""
-    n = x.shape[axis]
-    m = n // s
-    hs = s // 2
-    W = _tent_weights(s, quadratic)
-    if axis == 0:
-        parts = W.T @ x[hs:n - hs].reshape(m - 1, s, -1)  # (m - 1, k, cols)
-        parts = [parts[:, k] for k in range(W.shape[1])]
-        first, last = x[:hs].sum(axis=0), x[n - hs:].sum(axis=0)
-        out = np.zeros((m, x.shape[1]), np.float32)
-        out[:-1] += parts[0]
-        out[1:] += parts[1]
-        out[0] += first
-        out[-1] += last
-    else:
-        parts = x[:, hs:n - hs].reshape(x.shape[0], m - 1, s) @ W  # (rows, m - 1, k)
-        parts = [parts[:, :, k] for k in range(W.shape[1])]
-        first, last = x[:, :hs].sum(axis=1), x[:, n - hs:].sum(axis=1)
-        out = np.zeros((x.shape[0], m), np.float32)
-        out[:, :-1] += parts[0]
-        out[:, 1:] += parts[1]
-        out[:, 0] += first
-        out[:, -1] += last
-    return (out, parts[2]) if quadratic else out
-
-
-class Stencil9:
-    """Symmetric 9-point node stencil ``P^T N P`` (N diagonal on the pixels)
-    from its coefficients ``dd`` self, ``do`` (i,j)-(i,j+1), ``od`` (i,j)-(i+1,j),
-    ``oo`` (i,j)-(i+1,j+1) and (i,j+1)-(i+1,j); applied on the flat
-    (row-major) node index, each neighbour a contiguous shifted slice."""
-
-    def __init__(self, dd, do, od, oo):
-        m_r, m_c = dd.shape
-        self.shape = (m_r, m_c)
-        m = m_r * m_c
-        self.dd = dd.ravel()
-        self._mean_row_sum = float(np.mean(dd) + 2 * np.mean(do) + 2 * np.mean(od) + 4 * np.mean(oo))
-
-        def flat(x, r0, c0):  # coefficient between node k and k + offset, at k
-            out = np.zeros((m_r, m_c), np.float32)
-            out[:x.shape[0], c0:c0 + x.shape[1]] = x
-            return out.ravel()
-
-        self._links = []
-        for off, coef in ((1, flat(do, 0, 0)), (m_c, flat(od, 0, 0)), (m_c + 1, flat(oo, 0, 0)),
-                          (m_c - 1, flat(oo, 0, 1))):
-            self._links.append((off, coef[:m - off]))
-
-    def mean_row_sum(self) -> float:
-        return self._mean_row_sum
-
-    def __matmul__(self, x):
-        xf = x.ravel()
-        y = self.dd * xf
-        t = np.empty_like(y)
-        for off, c in self._links:
-            n = c.size
-            np.multiply(c, xf[off:], out=t[:n])
-            y[:n] += t[:n]
-            np.multiply(c, xf[:n], out=t[:n])
-            y[off:] += t[:n]
-        return y.reshape(self.shape)
-
-
-class HeightNodes:
-    """The height on a :class:`NodeGrid` and the exact linear optics of the
-    geometry (:meth:`Geometry.linear_response` at the nodes):
-    ``u = a h + B grad_px h`` (pixels), ``grad_px`` fourth-order central
-    differences of the node heights (second-order at the borders)."""
-
-    def __init__(self, geometry, grid: NodeGrid):
-        if grid.s % 2 or min(grid.shape) < 5:
-            raise ValueError("the height refinement needs an even node spacing and at least 5 x 5 nodes")
-        self.grid = grid
-        lr = geometry.linear_response(grid.rows_px[:, None], grid.cols_px[None, :], grid.frame_shape)
-
-        def coef(x):  # a constant (telecentric camera) as a scalar, 0 as None
-            x = np.asarray(x, np.float64)
-            if np.all(x == 0):
-                return None
-            if np.allclose(x, x.flat[0], rtol=1e-12, atol=0):
-                return float(x.flat[0])
-            return x.astype(np.float32)
-
-        self.a = [coef(lr.a[..., i]) for i in range(2)]
-        self.B = [[coef(lr.B[..., i, j]) for j in range(2)] for i in range(2)]
-        self.B_mean = lr.B.reshape(-1, 2, 2).mean(axis=0)
-        m_r, m_c = grid.shape
-        s = grid.s
-        kr = np.pi * np.arange(m_r) / m_r
-        kc = np.pi * np.arange(m_c) / m_c
-        d1r = ((8 * np.sin(kr) - np.sin(2 * kr)) / 6 / s) ** 2
-        d1c = ((8 * np.sin(kc) - np.sin(2 * kc)) / 6 / s) ** 2
-        self.symbol_d1 = (d1r[:, None], d1c[None, :])  # DCT symbols of D1^T D1 (rows, cols)
-        self.symbol_reg = (2 - 2 * np.cos(kr))[:, None] ** 3 + (2 - 2 * np.cos(kc))[None, :] ** 3
-
-    def _grad(self, h):
-        s = self.grid.s
-        return _d1(h, s), _d1(h.T, s).T
-
-    def displacement(self, h):
-        """``(2, m_r, m_c)`` displacement (pixels) at the nodes of node heights ``h`` (mm)."""
-        dr, dc = self._grad(h)
-        out = []
-        for i in range(2):
-            u = np.zeros_like(h)
-            for c, x in ((self.a[i], h), (self.B[i][0], dr), (self.B[i][1], dc)):
-                if c is not None:
-                    u += c * x
-            out.append(u)
-        return np.stack(out)
-
-    def displacement_T(self, vr, vc):
-        """Transpose of :meth:`displacement`."""
-        s = self.grid.s
-        out = np.zeros_like(vr)
-        yr = np.zeros_like(vr)
-        yc = np.zeros_like(vr)
-        for i, v in enumerate((vr, vc)):
-            if self.a[i] is not None:
-                out += self.a[i] * v
-            if self.B[i][0] is not None:
-                yr += self.B[i][0] * v
-            if self.B[i][1] is not None:
-                yc += self.B[i][1] * v
-        out += _d1_T(yr, s)
-        out += _d1_T(yc.T, s).T
-        return out
-
-    @staticmethod
-    def regulariser(h):
-        """``(D3r^T D3r + D3c^T D3c) h``."""
-        return _d3_T_d3(h) + _d3_T_d3(h.T).T
-
-    def node_normal(self, n_px):
-        """``P^T N P`` for the pixel weight ``n_px`` (:class:`Stencil9`)."""
-        s = self.grid.s
-        xd, xo = _pair_sums(n_px, s, True, 0)
-        dd, do = _pair_sums(xd, s, True, 1)
-        od, oo = _pair_sums(xo, s, True, 1)
-        return Stencil9(dd, do, od, oo)
-
-    def node_rhs(self, y_px):
-        """``P^T y`` (m_r, m_c)."""
-        s = self.grid.s
-        return _pair_sums(_pair_sums(y_px, s, False, 0), s, False, 1)
 
 
 # ------------------------------------------------------------------ intensity model
@@ -501,21 +223,9 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
         The message names the test that stopped the iterations and its figures.
     """
     grid = nodes.grid
-    raw = img = np.asarray(frame, np.float32)
-    if blur_px:
-        img = cv2.GaussianBlur(img, (0, 0), blur_px)
     rows, cols = grid.frame_shape
-    w = np.asarray(valid_px, np.float32)
-    all_valid = bool(w.all())
-    free = grid.down(w) > 0.999
-    if not all_valid and blur_px:
-        # the blur mixes what lies within about 2.5 sigma into a pixel: only
-        # pixels whose blurred frame and warped reference see valid pixels alone count
-        reach = int(math.ceil(2.5 * blur_px))
-        w = cv2.erode(w, np.ones((2 * reach + 1, 2 * reach + 1), np.uint8), borderType=cv2.BORDER_REPLICATE)
+    raw, img, w, all_valid, free = _frame_and_weights(frame, valid_px, grid, blur_px)
     h = _start_heights(h0)
-    r_px = np.arange(rows, dtype=np.float32)[:, None] * np.float32(FINE)
-    c_px = np.arange(cols, dtype=np.float32)[None, :] * np.float32(FINE)
     u_start = nodes.displacement(h)
     prev_step = prev_cost = None
     for k in range(outer + 1):
@@ -523,15 +233,7 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
         _check_displacement(u, u_start, k, (rows, cols), period_px)  # before any warp
         if k == outer:
             break
-        mr = grid.up(u[0], cv2.INTER_LANCZOS4)
-        mc = grid.up(u[1], cv2.INTER_LANCZOS4)
-        mr *= np.float32(FINE)
-        mc *= np.float32(FINE)
-        warped = cv2.remap(fine, c_px - mc, r_px - mr, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
-        if blur_px:
-            warped = cv2.GaussianBlur(warped, (0, 0), blur_px)
-        gr = cv2.Sobel(warped, cv2.CV_32F, 0, 1, ksize=1, scale=0.5, borderType=cv2.BORDER_REFLECT)
-        gc = cv2.Sobel(warped, cv2.CV_32F, 1, 0, ksize=1, scale=0.5, borderType=cv2.BORDER_REFLECT)
+        warped, gr, gc = _warp_and_gradients(fine, grid, u, blur_px)
         if intensity_cell_px and k == 0:
             # once, against the reference warped by FD's start (the ratio of standard
             # deviations hardly moves with the warp: fitting before every step gave the
@@ -541,26 +243,66 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
         if not all_valid:
             gr *= w
             gc *= w
-            cost = _dot(e * w, e)
-        else:
-            cost = _dot(e, e)
-        if not math.isfinite(cost):
-            raise _diverged("non-finite image residual", f"after {k} step(s)")
-        if prev_cost is not None and cost > RESIDUAL_RISE * prev_cost:
-            raise _diverged("image residual rose after a step",
-                            f"rms {math.sqrt(prev_cost / w.size):.3g} -> {math.sqrt(cost / w.size):.3g} "
-                            f"after step {k}")
-        prev_cost = cost if prev_cost is None else min(cost, prev_cost)
+        prev_cost = _check_cost(_dot(e * w, e) if not all_valid else _dot(e, e), prev_cost, k, w.size)
         x = _gauss_newton_step(nodes, gr, gc, e, h, regularisation, cg_iterations, k)
-        step = _rms(nodes.displacement(x))
-        if not math.isfinite(step):
-            raise _diverged("non-finite Gauss-Newton step", f"step {k + 1}")
-        if prev_step is not None and step > 2.0 * prev_step and step > 0.05:
-            raise _diverged("Gauss-Newton steps grow",
-                            f"{prev_step:.3g} -> {step:.3g} px rms at step {k + 1}")
-        prev_step = step
+        prev_step = _check_step(_rms(nodes.displacement(x)), prev_step, k)
         h += x
     return h, u.astype(np.float32), free
+
+
+def _frame_and_weights(frame, valid_px, grid, blur_px):
+    """``(raw, blurred frame, pixel weights, all valid, free nodes)`` of :func:`refine_height`."""
+    raw = img = np.asarray(frame, np.float32)
+    if blur_px:
+        img = cv2.GaussianBlur(img, (0, 0), blur_px)
+    w = np.asarray(valid_px, np.float32)
+    all_valid = bool(w.all())
+    free = grid.down(w) > 0.999
+    if not all_valid and blur_px:
+        # the blur mixes what lies within about 2.5 sigma into a pixel: only
+        # pixels whose blurred frame and warped reference see valid pixels alone count
+        reach = int(math.ceil(2.5 * blur_px))
+        w = cv2.erode(w, np.ones((2 * reach + 1, 2 * reach + 1), np.uint8), borderType=cv2.BORDER_REPLICATE)
+    return raw, img, w, all_valid, free
+
+
+def _warp_and_gradients(fine, grid, u, blur_px):
+    """The fine reference warped by the node displacement ``u`` (Lanczos to the
+    pixels), blurred as the frame, and its gradients along rows and columns."""
+    rows, cols = grid.frame_shape
+    r_px = np.arange(rows, dtype=np.float32)[:, None] * np.float32(FINE)
+    c_px = np.arange(cols, dtype=np.float32)[None, :] * np.float32(FINE)
+    mr = grid.up(u[0], cv2.INTER_LANCZOS4)
+    mc = grid.up(u[1], cv2.INTER_LANCZOS4)
+    mr *= np.float32(FINE)
+    mc *= np.float32(FINE)
+    warped = cv2.remap(fine, c_px - mc, r_px - mr, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    if blur_px:
+        warped = cv2.GaussianBlur(warped, (0, 0), blur_px)
+    gr = cv2.Sobel(warped, cv2.CV_32F, 0, 1, ksize=1, scale=0.5, borderType=cv2.BORDER_REFLECT)
+    gc = cv2.Sobel(warped, cv2.CV_32F, 1, 0, ksize=1, scale=0.5, borderType=cv2.BORDER_REFLECT)
+    return warped, gr, gc
+
+
+def _check_cost(cost, prev_cost, k, n_px):
+    """The lowest image residual so far; RefinementDiverged when it is not finite or rose."""
+    if not math.isfinite(cost):
+        raise _diverged("non-finite image residual", f"after {k} step(s)")
+    if prev_cost is not None and cost > RESIDUAL_RISE * prev_cost:
+        raise _diverged("image residual rose after a step",
+                        f"rms {math.sqrt(prev_cost / n_px):.3g} -> {math.sqrt(cost / n_px):.3g} "
+                        f"after step {k}")
+    return cost if prev_cost is None else min(cost, prev_cost)
+
+
+def _check_step(step, prev_step, k):
+    """``step`` (rms px of a Gauss-Newton step); RefinementDiverged when it is not finite or grows."""
+    if not math.isfinite(step):
+        raise _diverged("non-finite Gauss-Newton step", f"step {k + 1}")
+    if prev_step is not None and step > 2.0 * prev_step and step > 0.05:
+        raise _diverged("Gauss-Newton steps grow",
+                        f"{prev_step:.3g} -> {step:.3g} px rms at step {k + 1}")
+    return step
 
 
 def _start_heights(h0):

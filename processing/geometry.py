@@ -42,6 +42,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from .errors import GeometryError
+from .fsss_flat import fsss_flat_trace, fsss_invert_radial, fsss_layers_from_surface
 
 try:
     import tomllib
@@ -273,6 +274,14 @@ class Geometry:
             )
         object.__setattr__(self, "pattern", self.pattern.lower())
         self._validate_reference_region()
+        self._validate_camera()
+        if len(self.fsss_layers) or self.setup == "fsss":
+            self._validate_layers()
+        else:
+            object.__setattr__(self, "fsss_layers", ())
+
+    def _validate_camera(self) -> None:
+        """TIR: theta between the critical angle and 90 deg; each setup's own camera distance key."""
         if self.setup == "tir":
             theta = self.theta_deg
             crit = self.critical_angle_deg
@@ -299,10 +308,6 @@ class Geometry:
                     f"\"fsss\": give the height of the camera above the water as fsss_camera_distance_mm "
                     f"(or remove the line for a telecentric lens)"
                 )
-        if len(self.fsss_layers) or self.setup == "fsss":
-            self._validate_layers()
-        else:
-            object.__setattr__(self, "fsss_layers", ())
 
     def _validate_reference_region(self) -> None:
         region = self.reference_region
@@ -655,7 +660,7 @@ class Geometry:
             S = origin + s[..., None] * d
             t = self.depth_mm / d[..., 2]
             return S[..., 0] + t * d[..., 0], S[..., 1] + t * d[..., 1]
-        return _fsss_flat_trace(self, origin, d)
+        return fsss_flat_trace(self, origin, d)
 
     def pixel_of_pattern_point(self, px, py, frame_shape):
         """Inverse of :meth:`flat_pattern_point`: pixel ``(row, col)`` (float).
@@ -690,7 +695,7 @@ class Geometry:
             return rc + py / p, cc + px / p
         L = self.fsss_camera_distance_mm
         rho_p = np.hypot(px, py)
-        tan_b = _fsss_invert_radial(self, rho_p)
+        tan_b = fsss_invert_radial(self, rho_p)
         rho_s = L * tan_b
         with np.errstate(invalid="ignore", divide="ignore"):
             scale = np.where(rho_p > 0, rho_s / np.where(rho_p > 0, rho_p, 1.0), L / (L + self.fsss_apparent_depth_mm))
@@ -782,7 +787,7 @@ class Geometry:
         txy = t[..., :2]
         s2 = np.sum(txy * txy, axis=-1)
         P = S.copy()
-        layers = _fsss_layers_from_surface(self)
+        layers = fsss_layers_from_surface(self)
         for i, (thick, n) in enumerate(layers):
             r = self.n_water / n
             T = thick + (h if i == 0 else 0.0)
@@ -911,47 +916,3 @@ def _toml_value(v) -> str:
     if isinstance(v, (list, tuple)):
         return "[" + ", ".join(_toml_value(x) for x in v) + "]"
     raise TypeError(f"cannot write {v!r} to TOML")  # pragma: no cover
-
-
-# ---------------------------------------------------------------------- FS-SS flat maps
-def _fsss_layers_from_surface(geom: Geometry):
-    """Layers from the surface down: list of (thickness, n)."""
-    return list(reversed(geom.fsss_layers))
-
-
-def _fsss_flat_trace(geom: Geometry, origin, d):
-    """Trace FS-SS rays through a flat surface and the layer stack."""
-    s = -origin[..., 2] / d[..., 2]
-    x = origin[..., 0] + s * d[..., 0]
-    y = origin[..., 1] + s * d[..., 1]
-    sin_b = np.hypot(d[..., 0], d[..., 1])  # |d| = 1 and d_z < 0
-    with np.errstate(invalid="ignore", divide="ignore"):
-        ux = np.where(sin_b > 0, d[..., 0] / np.where(sin_b > 0, sin_b, 1.0), 0.0)
-        uy = np.where(sin_b > 0, d[..., 1] / np.where(sin_b > 0, sin_b, 1.0), 0.0)
-    rho = np.zeros_like(x)
-    for t, n in _fsss_layers_from_surface(geom):
-        sk = geom.n_air * sin_b / n
-        rho = rho + t * sk / np.sqrt(1.0 - sk**2)
-    return x + rho * ux, y + rho * uy
-
-
-def _fsss_invert_radial(geom: Geometry, rho_p):
-    """tan(beta) of the air ray that lands at radius rho_p on the pattern (finite L)."""
-    L = geom.fsss_camera_distance_mm
-    layers = _fsss_layers_from_surface(geom)
-    tb = rho_p / (L + geom.fsss_apparent_depth_mm)
-    for _ in range(30):
-        sb = tb / np.sqrt(1 + tb**2)
-        f = L * tb - rho_p
-        df = L * np.ones_like(tb)
-        dsb = (1 + tb**2) ** -1.5
-        for t, n in layers:
-            sk = geom.n_air * sb / n
-            ck = np.sqrt(1.0 - sk**2)
-            f = f + t * sk / ck
-            df = df + t * (geom.n_air / n) * dsb / ck**3
-        step = f / df
-        tb = tb - step
-        if np.all(np.abs(step) * L < 1e-12):
-            break
-    return tb

@@ -61,7 +61,6 @@ import dataclasses
 import math
 import threading
 from collections import OrderedDict
-from dataclasses import dataclass
 from types import MappingProxyType
 from typing import NamedTuple
 
@@ -71,8 +70,13 @@ from scipy import ndimage
 
 from .errors import GeometryError, ShapeMismatchError, TirdeflectError
 from .geometry import Geometry
+from .height_kernels import (cell_average, check_grid, div_T, fft_workers, neumann_eigenvalues, poisson_neumann,
+                             variable_optics)
+from .pin import (PIN_FALLBACKS, PIN_MIN_FRACTION, PIN_MIN_PIECE_SAMPLES, PIN_MIN_SAMPLES, PinStatus,
+                  choose_pin_samples, pin_samples_needed)
 
 __all__ = [
+    "PIN_FALLBACKS",
     "PIN_MIN_SAMPLES",
     "PIN_MIN_FRACTION",
     "PIN_MIN_PIECE_SAMPLES",
@@ -86,138 +90,6 @@ __all__ = [
     "divergence_matrix",
     "solver_for",
 ]
-
-_WORKERS = 2  # FFT threads for large grids (the target machine has 2 cores)
-
-
-def _workers(shape) -> int:
-    """Threads only pay off above about 256 x 256 samples."""
-    return _WORKERS if shape[0] * shape[1] > 300_000 else 1
-
-
-#: Fewest valid samples the pin of the null space needs (see the module docstring).
-PIN_MIN_SAMPLES = 16
-#: Smallest fraction of the reference region that must be valid for the pin.
-PIN_MIN_FRACTION = 0.25
-#: A connected piece of valid samples needs this many pin samples to be pinned
-#: (one independent filter footprint); smaller pieces are reported invalid.
-PIN_MIN_PIECE_SAMPLES = 4
-PIN_FALLBACKS = ("nearest", "refuse")
-
-
-def pin_samples_needed(region_samples: int) -> int:
-    """How many valid samples the pin needs in a region of ``region_samples`` samples."""
-    return max(PIN_MIN_SAMPLES, math.ceil(PIN_MIN_FRACTION * int(region_samples)))
-
-
-@dataclass(frozen=True)
-class PinStatus:
-    """Where the null space of one frame was pinned (one per reconstructed frame).
-
-    Attributes
-    ----------
-    rule : {"region", "nearest"}
-        "region": on the valid samples of the reference region;
-        "nearest": too few of them were valid, so the fallback took the valid
-        samples nearest the region.
-    region : str
-        Which region: ``"reference_region [r0, r1, c0, c1]"`` or the default.
-    region_samples : int
-        Samples of the grid in the region.
-    valid_samples : int
-        Of those, valid in this frame.
-    needed : int
-        Valid samples the pin needs (:func:`pin_samples_needed`).
-    used_samples : int
-        Samples the offset was measured on.
-    unpinned_fraction : float
-        Fraction of the frame's valid samples dropped (NaN) because their
-        connected piece held fewer than :data:`PIN_MIN_PIECE_SAMPLES` pin samples.
-    """
-
-    rule: str
-    region: str
-    region_samples: int
-    valid_samples: int
-    needed: int
-    used_samples: int
-    unpinned_fraction: float = 0.0
-
-    @property
-    def ok(self) -> bool:
-        """Pinned on the region itself, with as many samples as it needs."""
-        return self.rule == "region"
-
-    def describe(self) -> str:
-        """One line for logs and summaries."""
-        if self.region_samples == 0:
-            where = f"{self.region}: no sample where the reference shows the pattern"
-        else:
-            where = (f"{self.region}: {self.valid_samples} of {self.region_samples} samples valid"
-                     f" (needs {self.needed})")
-        if self.rule == "region":
-            text = f"pinned on {where}"
-        else:
-            text = f"FALLBACK: {where}, pinned on the {self.used_samples} valid samples nearest it"
-        if self.unpinned_fraction > 0:
-            text += f"; {100 * self.unpinned_fraction:.1f} % of valid samples dropped (no pin sample in their piece)"
-        return text
-
-
-def choose_pin_samples(region: np.ndarray, valid: np.ndarray, *, fallback: str = "nearest",
-                       region_name: str = "reference region", near: np.ndarray | None = None):
-    """Pin samples of one frame and their :class:`PinStatus`.
-
-    Parameters
-    ----------
-    region : ndarray bool (n_rows, n_cols)
-        The reference region on the sample grid (the same for every frame).
-    valid : ndarray bool (n_rows, n_cols)
-        Valid samples of this frame.
-    fallback : {"nearest", "refuse"}
-        What to do when the region holds fewer valid samples than
-        :func:`pin_samples_needed`: pin on the valid samples nearest the
-        region, or raise GeometryError.
-    region_name : str
-        How the status names the region.
-    near : ndarray bool or None
-        Where "nearest" measures from (default: ``region``; e.g. the user's box
-        when none of it is valid in the reference).
-
-    Returns
-    -------
-    samples : ndarray bool (n_rows, n_cols)
-    status : PinStatus (``unpinned_fraction`` still 0)
-    """
-    if fallback not in PIN_FALLBACKS:
-        raise TirdeflectError(f"pin fallback must be one of {PIN_FALLBACKS}, got {fallback!r}")
-    n_region = int(np.count_nonzero(region))
-    inside = region & valid
-    n_valid = int(np.count_nonzero(inside))
-    needed = pin_samples_needed(n_region)
-    if n_valid >= needed:
-        return inside, PinStatus("region", region_name, n_region, n_valid, needed, n_valid)
-    if fallback == "refuse":
-        raise GeometryError(
-            f"{region_name} has {n_valid} valid samples in this frame (of {n_region}); the height offset "
-            f"needs {needed} to be measured; choose a reference_region where the surface is at rest and the "
-            f"pattern is visible, or allow the 'nearest' fallback"
-        )
-    n_all = int(np.count_nonzero(valid))
-    if n_all == 0:
-        from .errors import AllInvalidError
-
-        raise AllInvalidError("no valid sample to pin the height offset on; check the mask and the frame")
-    anchor = region if near is None else near
-    if anchor.any():
-        dist = ndimage.distance_transform_edt(~anchor)
-    else:  # nothing to measure from: every valid sample is as near
-        dist = np.zeros(region.shape)
-    d = dist[valid]
-    k = min(needed, n_all)
-    cut = np.partition(d, k - 1)[k - 1]
-    samples = valid & (dist <= cut)
-    return samples, PinStatus("nearest", region_name, n_region, n_valid, needed, int(np.count_nonzero(samples)))
 
 
 class SurfaceResult(NamedTuple):
@@ -260,126 +132,6 @@ class SurfaceResult(NamedTuple):
     pin_samples: np.ndarray | None = None
 
 
-# ============================================================================ kernels
-def _eigen(n: int, spacing: float) -> np.ndarray:
-    k = np.arange(n)
-    return (2.0 * np.sin(np.pi * k / (2.0 * n)) / spacing) ** 2
-
-
-def poisson_neumann(div_rhs: np.ndarray, denom: np.ndarray) -> np.ndarray:
-    """Solve the Neumann Poisson normal equations by DCT-II.
-
-    Parameters
-    ----------
-    div_rhs : ndarray (n_rows, n_cols) float64
-        ``D^T G`` (minus the divergence of the edge data, zero flux outside).
-    denom : ndarray (n_rows, n_cols) float64
-        Eigenvalues of ``D^T D`` in the DCT-II basis; ``denom[0, 0]`` is
-        ignored (the constant mode, returned as zero).
-    """
-    w = _workers(div_rhs.shape)
-    c = sfft.dctn(div_rhs, type=2, norm="ortho", workers=w)
-    c[0, 0] = 0.0
-    c /= denom
-    return sfft.idctn(c, type=2, norm="ortho", workers=w)
-
-
-def _cell_average(G: np.ndarray, axis: int, ok: np.ndarray | None) -> np.ndarray:
-    """Average of G over each edge along ``axis`` (fourth order where possible).
-
-    ``ok`` (bool, same shape as G or None) marks samples usable in the wide
-    stencil; edges whose outer neighbours are missing use the trapezoid.
-    """
-    G = np.moveaxis(G, axis, 0)
-    n = G.shape[0]
-    out = 0.5 * (G[:-1] + G[1:])
-    if n >= 4:
-        # (-G[i-1] + 13 G[i] + 13 G[j] - G[j+1]) / 24 = trapezoid + this correction
-        corr = (-G[:-3] + G[1:-2] + G[2:-1] - G[3:]) / 24.0
-        if ok is not None:
-            okm = np.moveaxis(ok, axis, 0)
-            good = okm[:-3] & okm[1:-2] & okm[2:-1] & okm[3:]
-            corr = np.where(good, corr, 0.0)
-        out[1:-1] += corr
-    return np.moveaxis(out, 0, axis)
-
-
-def _div_T(ec: np.ndarray | None, er: np.ndarray | None, shape, dc: float, dr: float) -> np.ndarray:
-    """``D^T e`` for edge data ec (rows, cols-1) and er (rows-1, cols)."""
-    dtype = np.result_type(*(e.dtype for e in (ec, er) if e is not None))
-    out = np.zeros(shape, dtype=dtype)
-    if ec is not None:
-        out[:, :-1] -= ec / dc
-        out[:, 1:] += ec / dc
-    if er is not None:
-        out[:-1, :] -= er / dr
-        out[1:, :] += er / dr
-    return out
-
-
-# ============================================================================ solver
-@dataclass
-class _Grid:
-    rows_px: np.ndarray
-    cols_px: np.ndarray
-    frame_shape: tuple
-    dr: float
-    dc: float
-
-
-def _check_grid(rows_px, cols_px, frame_shape) -> _Grid:
-    rows_px = np.asarray(rows_px, dtype=np.float64).ravel()
-    cols_px = np.asarray(cols_px, dtype=np.float64).ravel()
-    if len(frame_shape) != 2:
-        raise ShapeMismatchError(f"frame_shape must be (n_rows, n_cols), got {frame_shape!r}")
-    frame_shape = (int(frame_shape[0]), int(frame_shape[1]))
-    steps = []
-    for name, v in (("rows_px", rows_px), ("cols_px", cols_px)):
-        if v.size < 2:
-            raise ShapeMismatchError(f"{name} needs at least 2 samples, got {v.size}")
-        d = np.diff(v)
-        if not (d[0] > 0 and np.allclose(d, d[0], rtol=1e-6, atol=1e-9)):
-            raise ShapeMismatchError(
-                f"{name} must be evenly spaced and increasing (a full or strided grid), "
-                f"got steps from {d.min():g} to {d.max():g}"
-            )
-        steps.append(float(d[0]))
-    return _Grid(rows_px, cols_px, frame_shape, steps[0], steps[1])
-
-
-def _variable_optics(g: Geometry, grid: _Grid):
-    """Per-sample ``B^-1``, ``kappa``, ``K^-T`` and surface (x, y) for a finite camera distance.
-
-    The coefficients vary on the scale of the camera distance, so on large
-    grids they are computed exactly on a 65 x 65 lattice spanning the grid
-    and interpolated by bicubic splines (relative error far below 1e-6).
-    """
-    from scipy.interpolate import RectBivariateSpline
-
-    def exact(rows, cols):
-        lr = g.linear_response(rows[:, None], cols[None, :], grid.frame_shape)
-        Binv = np.linalg.inv(lr.B)
-        kappa = np.einsum("...ij,...j->...i", Binv, lr.a)
-        Kinv_T = np.swapaxes(np.linalg.inv(lr.jac_surface), -1, -2)
-        return Binv, kappa, Kinv_T, lr.surface_xy
-
-    rows, cols = grid.rows_px, grid.cols_px
-    if rows.size * cols.size <= 128 * 128:
-        return exact(rows, cols)
-    rc = np.linspace(rows[0], rows[-1], min(rows.size, 65))
-    cc = np.linspace(cols[0], cols[-1], min(cols.size, 65))
-    coarse = exact(rc, cc)
-    out = []
-    for arr in coarse:
-        flat = arr.reshape(rc.size, cc.size, -1)
-        comp = [
-            RectBivariateSpline(rc, cc, flat[..., k], kx=min(3, rc.size - 1), ky=min(3, cc.size - 1))(rows, cols)
-            for k in range(flat.shape[-1])
-        ]
-        out.append(np.stack(comp, axis=-1).reshape(rows.size, cols.size, *arr.shape[2:]))
-    return tuple(out)
-
-
 def divergence_matrix(n: int, spacing: float) -> np.ndarray:
     """(n, n) float32 matrix of the operator ``D^T cellavg / spacing`` along one
     axis (fourth order inside, :class:`HeightSolver`'s discretisation): applied
@@ -416,7 +168,7 @@ class HeightSolver:
         if not isinstance(geometry, Geometry):
             raise GeometryError(f"geometry must be a processing.Geometry, got {type(geometry).__name__}")
         self.geometry = geometry
-        self.grid = grid = _check_grid(rows_px, cols_px, frame_shape)
+        self.grid = grid = check_grid(rows_px, cols_px, frame_shape)
         self.tol = float(tol)
         self.max_iter = int(max_iter)
         n_rows, n_cols = grid.rows_px.size, grid.cols_px.size
@@ -437,7 +189,7 @@ class HeightSolver:
                 self.Kinv_T = np.swapaxes(np.linalg.inv(lr.jac_surface[0, 0]), -1, -2)
                 self.constant = True
             else:
-                self.Binv, self.kappa, self.Kinv_T, sxy = _variable_optics(g, grid)
+                self.Binv, self.kappa, self.Kinv_T, sxy = variable_optics(g, grid)
                 self.constant = False
                 self.surface_xy = np.moveaxis(sxy, -1, 0)
         elif g.telecentric:
@@ -448,7 +200,7 @@ class HeightSolver:
             self.constant = True
         else:
             # off-axis rays are oblique: per-sample response from the exact refraction
-            self.Binv, self.kappa, self.Kinv_T, sxy = _variable_optics(g, grid)
+            self.Binv, self.kappa, self.Kinv_T, sxy = variable_optics(g, grid)
             self.constant = False
             self.surface_xy = np.moveaxis(sxy, -1, 0)
         rcen = np.array([(grid.frame_shape[0] - 1) / 2.0])
@@ -457,7 +209,7 @@ class HeightSolver:
         self.y_mm = np.asarray(g.surface_point(grid.rows_px[:, None], ccen[None, :], grid.frame_shape)[1]).ravel()
         self.x_mm = np.broadcast_to(self.x_mm, (n_cols,)).astype(np.float64)
         self.y_mm = np.broadcast_to(self.y_mm, (n_rows,)).astype(np.float64)
-        self.denom = _eigen(n_rows, grid.dr)[:, None] + _eigen(n_cols, grid.dc)[None, :]
+        self.denom = neumann_eigenvalues(n_rows, grid.dr)[:, None] + neumann_eigenvalues(n_cols, grid.dc)[None, :]
         self.denom[0, 0] = 1.0
         # integrating factor Phi (grad Phi ~ kappa), centred on the grid
         if self.constant:
@@ -468,9 +220,9 @@ class HeightSolver:
             self.dk_r = None
         else:
             kr, kc = self.kappa[..., 0], self.kappa[..., 1]
-            ec = _cell_average(kc, 1, None)
-            er = _cell_average(kr, 0, None)
-            phi = poisson_neumann(_div_T(ec, er, self.shape, grid.dc, grid.dr), self.denom)
+            ec = cell_average(kc, 1, None)
+            er = cell_average(kr, 0, None)
+            phi = poisson_neumann(div_T(ec, er, self.shape, grid.dc, grid.dr), self.denom)
             self.phi = phi - phi[n_rows // 2, n_cols // 2]
             self.dk_c = 0.5 * (kc[:, 1:] + kc[:, :-1]) - np.diff(self.phi, axis=1) / grid.dc
             self.dk_r = 0.5 * (kr[1:, :] + kr[:-1, :]) - np.diff(self.phi, axis=0) / grid.dr
@@ -608,7 +360,7 @@ class HeightSolver:
             c *= F["inv_denom"]  # 0 for the constant mode
             f = F["CrT"] @ c @ F["Cc"]
         else:
-            w = _workers(self.shape)
+            w = fft_workers(self.shape)
             c = sfft.dctn(rhs, type=2, norm="ortho", workers=w, overwrite_x=True)
             c *= F["inv_denom"]  # 0 for the constant mode
             f = sfft.idctn(c, type=2, norm="ortho", workers=w, overwrite_x=True)
@@ -660,8 +412,8 @@ class HeightSolver:
         G_r = gr / self.null
         G_c = gc / self.null
         ok = None if valid is None else valid
-        er = _cell_average(G_r, 0, ok)
-        ec = _cell_average(G_c, 1, ok)
+        er = cell_average(G_r, 0, ok)
+        ec = cell_average(G_c, 1, ok)
         return ec, er
 
     def _apply_A(self, f):
@@ -675,7 +427,7 @@ class HeightSolver:
 
     def _apply_AT(self, ec, er):
         dr, dc = self.grid.dr, self.grid.dc
-        out = _div_T(ec, er, self.shape, dc, dr)
+        out = div_T(ec, er, self.shape, dc, dr)
         if self.dk_c is not None:
             t = (0.5 * self.dk_c * ec).astype(out.dtype, copy=False)
             out[:, :-1] += t
@@ -715,6 +467,20 @@ class HeightSolver:
         """
         return self._solve(displacement_px, valid, solver, self.tol, reference_mask,
                            pin_fallback=pin_fallback, region_name=region_name)
+
+    def solve_at_tolerance(self, displacement_px, valid, solver, tol, reference_mask=None, *,
+                           pin_fallback="nearest", region_name=None, near=None) -> SurfaceResult:
+        """:meth:`solve` with the conjugate-gradient tolerance ``tol`` and the
+        "nearest" fallback's box ``near`` given (what the Reconstructor's chains call)."""
+        return self._solve(displacement_px, valid, solver, tol, reference_mask, pin_fallback=pin_fallback,
+                           region_name=region_name, near=near)
+
+    def solve_spectral(self, displacement_px, valid, reference_mask=None, *, pin_fallback="nearest",
+                       region_name=None, near=None) -> SurfaceResult:
+        """The spectral path of :meth:`solve` for a finite displacement valid
+        everywhere (needs :attr:`spectral_coefficients`, uniform optics)."""
+        return self._solve_fast(displacement_px, valid, reference_mask, pin_fallback=pin_fallback,
+                                region_name=region_name, near=near)
 
     def _solve(self, displacement_px, valid, solver, tol, reference_mask=None, *, pin_fallback="nearest",
                region_name=None, near=None):
@@ -844,7 +610,7 @@ class HeightSolver:
             out *= vf
             return out
 
-        w = _workers(self.shape)
+        w = fft_workers(self.shape)
 
         def prec(r):
             c = sfft.dctn(r, type=2, norm="ortho", workers=w)

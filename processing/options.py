@@ -72,6 +72,95 @@ class ReconstructOptions:
     Height: ``solver``, ``pin_fallback``.  Device and FFT: ``device``
     ("cpu", "cuda"), ``threads``, ``planner_effort``.
 
+    Parameters
+    ----------
+    grid : {"full", "decimated"}, optional
+        Default output grid: every pixel (batch) or the decimated grid of the
+        demodulation (live, about one sample per half carrier period).
+    unwrap : bool, optional
+        Unwrap carrier phases (default True).  Off reproduces FD without
+        unwrapping (wrong where ``|k . u| > pi``).
+    temporal : bool, optional
+        Unwrap against the previous frame of the series (default True);
+        :meth:`reset_series` forgets it.
+    refine_iterations : int or None, optional
+        Warp-and-redemodulate iterations that remove the band-pass bias
+        (notes.md).  None (default): 0 on the decimated grid (live speed),
+        1 on the full grid (batch accuracy).  Measured (docs/processing.md):
+        one iteration halves the error on features narrower than two carrier
+        periods (2.7 % -> 1.4 %) and never hurt on the test frames; it costs
+        one full-size warp and FFT (about 10 ms at 1024^2).
+    filter_radius, filter_flat, filter_shape, oversample, border, subbin :
+        Demodulation options, see :class:`processing.demodulation.Demodulator`
+        (``oversample`` defaults to 1.5 here: measured on ray-traced frames,
+        1.25 to 2 change the height error by < 0.05 %, while the decimated
+        grid, where unwrapping, masking and the height solve run, shrinks).
+    full_method : {"interpolate", "ifft"}, optional
+        How the full grid is made (see module docstring).
+    full_interpolation : {"lanczos", "cubic", "linear"}, optional
+        Kernel of ``full_method="interpolate"`` (cv2.resize).  Measured on
+        ray-traced waves (wavelengths >= 25 samples of the decimated grid):
+        interpolation alone adds 0.2 % (lanczos, default), 0.8 % (cubic),
+        0.5 % (linear) rms height error.
+    min_island : float, optional
+        Valid regions cut off from the reference region and smaller than this
+        fraction of the grid are dropped (their 2 pi offset is unknowable in
+        space); default 0.01.
+    min_amplitude : float, optional
+        Smallest accepted ``|g| / |g0|`` (both carriers), default 0.3.
+    min_fold : float, optional
+        Smallest accepted ``det(I - grad u)`` (1: no distortion, 0: rays
+        cross), default 0.2.
+    dilate : int, optional
+        Invalid regions grow by this many decimated samples (default 1).
+    check_pattern : bool, optional
+        Refuse frames whose pattern (period, rotation) differs from the
+        reference's (default True).
+    solver : str, optional
+        Passed to :func:`processing.height.surface_from_displacement`.
+    threads : int, optional
+        FFTW threads (default 2).
+    planner_effort : str, optional
+        FFTW planner effort (default "FFTW_ESTIMATE"; the app uses
+        "FFTW_MEASURE" with wisdom from :func:`processing.fft.import_wisdom`).
+    pin_fallback : {"nearest", "refuse"}, optional
+        When a frame's reference region holds fewer valid samples than the pin
+        needs (:func:`processing.height.choose_pin_samples`): pin on the valid
+        samples nearest the region (default; ``Result.pin.rule == "nearest"``)
+        or refuse the frame (GeometryError).  The same rule for every frame.
+    pattern : {"checkerboard", "dots"} or None, optional
+        What the reference shows (None, default: ``geometry.pattern``).  "dots": a random-dot pattern, displacement
+        by PIV with window deformation (:class:`processing.piv.DotDisplacement`,
+        OpenPIV), last window ``window_px`` (default 16) px, one sample every
+        ``window_px / 2`` px; then the same mask, height solve and pin (the
+        carrier options, unwrapping, refinement, ``alignment`` and
+        ``spectrum`` do not apply; ``Result.carriers`` is None).
+    refine_method : {"auto", "fd", "image"}, optional
+        "auto" (default): :func:`processing.options.full_grid_refinement`
+        chooses, the same for every caller (this snippet, ``tirdeflect
+        process``, the GUI's export): "image" for checkerboards on the CPU
+        with frame sides multiples of 4 px, else "fd".  "fd": the
+        warp-and-redemodulate refinement only.  "image":
+        after it, on the full grid, ``image_iterations`` (default 3) global
+        Gauss-Newton steps of image matching for the height on a node grid
+        every 4 px (:func:`processing.dic.refine_height`), starting from FD's
+        height: the reference warped by the displacement that the height
+        gives through the geometry's exact linear response, matched to the
+        frame pixel by pixel, which is not band-limited; the displacement at
+        the nodes then goes through the same masked height solver and pin
+        (``Result.series`` from FD's heights).  Frame sides must be multiples of 4 px.
+        Measured on ray-traced frames (docs/processing.md section 6): waves
+        3-6 carrier periods long 2.87 % -> 0.82 %, a bump of 1.25 periods
+        1.42 % -> 0.32 %, every case of the accuracy table at or below "fd";
+        2-3.5x the time of "fd" per frame (about 5x its single-thread CPU).
+        The decimated (live) grid never runs it.
+    device : {"cpu", "cuda"}, optional
+        "cuda": the chain runs on the GPU through CuPy, batched by
+        :meth:`batch` (processing/gpu.py says which frames and steps stay on
+        the CPU); checkerboards only; TirdeflectError when CuPy or a GPU is missing.  UNCHECKED ON GPU
+        HARDWARE so far (benchmarks/gpu_check.py).
+
+
     Raises
     ------
     ValueError

@@ -321,9 +321,9 @@ def test_series_temporal_unwrapping_and_reset():
         _, img, _ = render(dimple)
         errors.append(rel_error(rec(img), dimple))
     assert max(errors) <= 0.015
-    assert rec._prev_phase is not None
+    assert rec.series_state() is not None
     rec.reset_series()
-    assert rec._prev_phase is None
+    assert rec.series_state() is None
 
 
 def test_validation_messages(bump_frames):

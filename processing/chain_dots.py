@@ -1,0 +1,101 @@
+"""The random-dot chain: displacement by PIV (:class:`processing.piv.DotDisplacement`),
+then the same island removal, masked height solve and pin as the checkerboard
+chain, then every pixel (:func:`processing.fullgrid.dots_full`)."""
+
+from __future__ import annotations
+
+import time
+from typing import NamedTuple
+
+import numpy as np
+
+from .errors import AllInvalidError
+from .fullgrid import dots_full, full_coordinates
+from .mask import choose_reference_region, drop_islands
+from .piv import DotDisplacement
+from .result import Result
+
+__all__ = ["DotsChain", "DotsMeasured"]
+
+
+class DotsMeasured(NamedTuple):
+    """A frame after :meth:`DotsChain.measure`: the PIV grid."""
+
+    u: np.ndarray  # displacement (2, n_rows, n_cols), pixels
+    valid: np.ndarray
+    timings: dict
+    t0: float
+
+
+class DotsChain:
+    """What a random-dot reference fixes (the PIV grid, the reference region)
+    and the stages a frame goes through, the same three as
+    :class:`processing.chain_checkerboard.CheckerboardChain`'s (``measure``,
+    ``solve``, ``to_grid``).  No series memory: every frame is measured
+    against the reference alone (the state given passes through)."""
+
+    def __init__(self, ref, geometry, options):
+        self.options = options
+        self.geometry = geometry
+        self.shape = ref.shape
+        self.reference_image = ref
+        self.piv = DotDisplacement(ref, window_px=options.window_px)
+        self.rows_px, self.cols_px = self.piv.rows_px, self.piv.cols_px
+        self.reference_valid = np.ones((self.rows_px.size, self.cols_px.size), bool)
+        # no mask dilation here: the band starts at the grid's border
+        self.region = choose_reference_region(geometry, self.reference_valid, self.rows_px, self.cols_px,
+                                              self.shape, skip=0)
+        self.cg_tol = 1e-4  # as the checkerboard chain's masked solve
+        self._solver = self._coords = None
+
+    def height_solver(self):
+        """Height solver of the PIV grid (built once)."""
+        if self._solver is None:
+            from .height import solver_for
+
+            self._solver = solver_for(self.geometry, self.rows_px, self.cols_px, self.shape)
+        return self._solver
+
+    def full_coordinates(self):
+        """``(x_mm, y_mm)`` of every pixel column and row."""
+        if self._coords is None:
+            self._coords = full_coordinates(self.geometry, self.shape)
+        return self._coords
+
+    def measure(self, frame, grid, state, t0):
+        """``(DotsMeasured, state)``: PIV of one validated frame, small islands
+        dropped (``state``, the series memory, passes through: dots keep none)."""
+        timings = {}
+        u, valid = self.piv(frame)
+        timings["piv"] = 1e3 * (time.perf_counter() - t0)
+        if not valid.any():
+            raise AllInvalidError("no interrogation window of the frame correlates with the reference: check that "
+                                  "the dots are in focus and lit, and that the frame shows the reference's pattern")
+        valid = drop_islands(valid, self.region.region, self.options.min_island)
+        return DotsMeasured(u, valid, timings, t0), state
+
+    def solve(self, m, grid, state):
+        """``(Result, state)``: heights and pin on the PIV grid."""
+        o, t1 = self.options, time.perf_counter()
+        surf = self.height_solver().solve_at_tolerance(
+            np.where(m.valid, m.u, np.nan), m.valid, o.solver, self.cg_tol, self.region.region,
+            pin_fallback=o.pin_fallback, region_name=self.region.name, near=self.region.near)
+        valid = np.asarray(surf.valid, bool)
+        u = np.where(valid, m.u, np.float32(np.nan)).astype(np.float32)
+        m.timings["height"] = 1e3 * (time.perf_counter() - t1)
+        res = Result(height=np.asarray(surf.height_mm, np.float32), valid=valid,
+                     slope_x=np.asarray(surf.slope_x, np.float32), slope_y=np.asarray(surf.slope_y, np.float32),
+                     displacement=u, amplitude=valid.astype(np.float32), x_mm=np.asarray(surf.x_mm),
+                     y_mm=np.asarray(surf.y_mm), grid="decimated", rows_px=self.rows_px, cols_px=self.cols_px,
+                     carriers=None, phase=np.zeros((2, 0, 0), np.float32),
+                     valid_fraction=float(valid.mean()), timings_ms=m.timings, pin=surf.pin)
+        return res, state
+
+    def to_grid(self, m, res, grid) -> Result:
+        """``res`` on ``grid``: every pixel by cubic spline (:func:`processing.fullgrid.dots_full`)."""
+        if grid == "full":
+            t2 = time.perf_counter()
+            res = dots_full(res, self.shape, self.full_coordinates())
+            m.timings["interpolate"] = 1e3 * (time.perf_counter() - t2)
+        m.timings["total"] = 1e3 * (time.perf_counter() - m.t0)
+        return res

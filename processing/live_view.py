@@ -1,0 +1,95 @@
+"""What the live Alignment tab shows of a frame against a Reconstructor's
+reference: :class:`LiveView` (alignment metrics and the display spectrum of
+one FFT, :mod:`processing.alignment`), and :func:`saturation_pct`."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+__all__ = ["LiveView", "saturation_pct"]
+
+
+def saturation_pct(frame) -> float:
+    """Percentage of pixels at the top code of the frame's bit depth.
+
+    For integer frames the bit depth is the smallest that holds the frame's
+    maximum (a 10-bit camera in uint16 saturates at 1023); float frames
+    saturate at 1.0 or at their maximum if above 1.
+    """
+    a = np.asarray(frame)
+    top = float(a.max()) if a.size else 0.0
+    if a.dtype.kind in "ui":
+        bits = max(1, int(math.ceil(math.log2(top + 1)))) if top > 0 else 1
+        level = 2 ** bits - 1
+    else:
+        level = 1.0 if top <= 1.0 else top
+    return float(100.0 * np.count_nonzero(a >= level) / max(a.size, 1))
+
+
+class LiveView:
+    """Alignment and spectrum of validated frames over a chain
+    (:class:`processing.chain_checkerboard.CheckerboardChain` or
+    :class:`processing.chain_dots.DotsChain`); the carrier search is built on
+    first use, and the spectrum of the last aligned frame is kept for
+    :meth:`spectrum` of the same frame (the live worker's order)."""
+
+    def __init__(self, chain, pattern):
+        self.chain = chain
+        self.pattern = pattern
+        self._search = None
+        self._shown = None
+
+    def carrier_search(self):
+        """:func:`processing.alignment.carrier_search` of the reference (built on first use)."""
+        if self._search is None:
+            from .alignment import carrier_search
+
+            d = self.chain.demod
+            self._search = carrier_search(self.chain.shape, d.freq, d.border_window)
+        return self._search
+
+    def alignment(self, frame) -> dict:
+        """:meth:`processing.reconstruct.Reconstructor.alignment` of a validated frame."""
+        chain = self.chain
+        if self.pattern == "dots":
+            from .piv import dot_alignment
+
+            out = dot_alignment(frame, window_px=chain.piv.window_px)
+            out["saturation_pct"] = saturation_pct(frame)
+            out["reference"] = dot_alignment(chain.reference_image, window_px=chain.piv.window_px)
+            return out
+        from .alignment import checkerboard_alignment, frame_key
+
+        g = chain.geometry
+        out, shown = checkerboard_alignment(
+            chain.demod, self.carrier_search(), chain.carriers, frame,
+            theta_configured_deg=(float(g.theta_deg) if getattr(g, "setup", "tir") == "tir" else None),
+            pattern_stretch_y=getattr(g, "pattern_stretch_y", None) or 1.0)
+        out["saturation_pct"] = saturation_pct(frame)
+        # the display spectrum of the same FFT, for spectrum(frame) right after (the live worker's order)
+        self._shown = (frame_key(frame), shown)
+        return out
+
+    def spectrum(self, frame, *, size: int = 256, max_freq: float = 0.25) -> dict:
+        """:meth:`processing.reconstruct.Reconstructor.spectrum` of a validated frame."""
+        if self.pattern == "dots":
+            from .carriers import frame_spectrum
+
+            return dict(frame_spectrum(frame, size=size, max_freq=max_freq), carriers=[])
+        from .alignment import display_spectrum_of, frame_key
+
+        d = self.chain.demod
+        cached = self._shown
+        if cached is not None and (size, max_freq) == (256, 0.25) and cached[0] == frame_key(frame):
+            out = dict(cached[1])  # alignment(frame) just transformed this very frame
+        else:
+            search = self.carrier_search()
+            spec = d.spectrum(frame)
+            # the mean x border-window peak at DC removed, as for the carriers
+            leak = None if search.window_spectrum is None else (d.last_mean, search.window_spectrum)
+            out = display_spectrum_of(spec, self.chain.shape, leak=leak, size=size, max_freq=max_freq)
+        carriers = [(float(f[1]), float(f[0])) for f in d.freq]
+        out["carriers"] = carriers + [(-a, -b) for a, b in carriers]
+        return out

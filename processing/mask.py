@@ -1,0 +1,254 @@
+"""The quality mask of the Reconstructor's chains, and the reference region.
+
+What the reference fixes once (:func:`reference_contrast_ok`,
+:func:`choose_reference_region`, :func:`reference_pin_region`) and what each
+frame goes through (:func:`exposure_gain`, :func:`dilate_invalid`,
+:func:`fold_ok`, :func:`drop_islands`), plus the input checks of any image
+(:func:`check_sample_range`, :func:`validate_image`).  Pure functions of arrays.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple, Optional
+
+import cv2
+import numpy as np
+
+from .errors import SampleRangeError
+from .geometry import DEFAULT_REFERENCE_BAND, default_reference_region_mask
+
+__all__ = ["MIN_EXPOSURE_GAIN", "MAX_SAMPLE_MAGNITUDE", "POOR_FRAME_VALID_FRACTION", "exposure_gain",
+           "brightness_sample", "check_sample_range", "validate_image", "dilate_invalid", "fold_ok",
+           "drop_islands", "reference_contrast_ok", "reference_pin_region", "ReferenceRegion",
+           "choose_reference_region"]
+
+#: A frame with less than this fraction of valid samples always gets the full
+#: pattern check (:func:`processing.carriers.check_pattern_match`), even when the cheap one passed:
+#: noise or another pattern can leave the windows' spectral centroid in place.
+POOR_FRAME_VALID_FRACTION = 0.5
+
+#: Reference contrast below this fraction of the contrast where the pattern is
+#: seen best (90th percentile of the field) marks a blank, dirty or blurred
+#: part of the pattern.  The 90th percentile, not the median: where most of the
+#: field is blurred (a pattern sharp only in a central disk) the median is the
+#: camera noise, and noise samples would pass as pattern (measured on the four
+#: real references in tests/data the two agree to 0.1 % of the samples).
+REF_CONTRAST_FRACTION = 0.25
+REF_CONTRAST_PERCENTILE = 90.0
+
+#: Darkest exposure (frame / reference brightness) the quality mask makes up for.
+MIN_EXPOSURE_GAIN = 0.25
+
+#: Largest sample magnitude accepted: no camera gives samples wider than 32 bits.
+MAX_SAMPLE_MAGNITUDE = 2.0 ** 32
+
+
+def exposure_gain(frame, reference_mean: float, amplitude) -> float:
+    """How much darker than the reference the frame was exposed: the larger of
+    its mean brightness ratio and the 90th percentile of its contrast ratio
+    ``|g| / |g0|``, within [:data:`MIN_EXPOSURE_GAIN`, 1].
+
+    The quality mask's ``min_amplitude`` is scaled by it, so a frame taken at
+    half the exposure (or with a lamp dimmed) keeps the samples a well exposed
+    frame keeps; a blurred frame (contrast lost, brightness kept) or one with an
+    offset (brightness up or negative, contrast kept) gets 1, and one more than
+    4x darker is masked as before (a 12-bit reference against 8-bit frames
+    stays "no contrast").
+    """
+    if not reference_mean > 0:
+        return 1.0
+    by_mean = float(np.mean(brightness_sample(frame), dtype=np.float64)) / reference_mean
+    if not by_mean < 1.0:  # as bright or brighter (or NaN): nothing to make up for
+        return 1.0
+    by_contrast = float(np.percentile(amplitude, 90)) if np.size(amplitude) else 1.0
+    gain = max(by_mean, by_contrast)
+    return float(min(1.0, max(MIN_EXPOSURE_GAIN, gain))) if math.isfinite(gain) else 1.0
+
+
+def brightness_sample(image):
+    """Every 4th pixel of every 4th row, for the mean brightness at 1/16 of the cost (frame and
+    reference sampled alike; the mask's threshold needs the ratio to a few per cent)."""
+    return np.asarray(image)[::4, ::4]
+
+
+def check_sample_range(image, name: str = "frame") -> None:
+    """Refuse an image whose samples no camera gives: NaN or infinite, or
+    beyond +-:data:`MAX_SAMPLE_MAGNITUDE` (a float image rescaled by 1e10...),
+    with :class:`SampleRangeError` naming the value and where it is.  Cheap
+    (min and max); run before any solver."""
+    a = np.asarray(image)
+    if a.dtype.kind not in "uif" or not a.size:
+        return
+    if a.dtype.kind in "ui" and a.dtype.itemsize <= 4:
+        return  # within 32 bits by its type
+    lo, hi = float(a.min()), float(a.max())
+    if math.isfinite(lo) and math.isfinite(hi) and max(-lo, hi) <= MAX_SAMPLE_MAGNITUDE:
+        return
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        bad = ~np.isfinite(a)
+        r, c = (int(v) for v in np.argwhere(bad)[0])
+        raise SampleRangeError(
+            f"{name} holds {int(np.count_nonzero(bad))} NaN or infinite sample(s) (the first at row {r}, "
+            f"column {c}); pass the raw camera image, not a processed one")
+    worst = hi if hi >= -lo else lo
+    r, c = (int(v) for v in np.unravel_index(int(np.argmax(np.abs(a))), a.shape))
+    raise SampleRangeError(
+        f"{name} holds a sample of {worst:.3g} (row {r}, column {c}), beyond what any camera gives "
+        f"(|value| <= {MAX_SAMPLE_MAGNITUDE:.3g}, 32 bits): the image was rescaled; pass the camera's "
+        f"own values (or divide the scale back out)")
+
+
+def validate_image(image, name):
+    """``image`` as an array, checked: 2-D, a grey dtype, samples a camera gives (ValueError, SampleRangeError)."""
+    a = np.asarray(image)
+    if a.ndim != 2:
+        raise ValueError(f"{name} must be a 2-D grey image (rows, cols); got shape {a.shape}. "
+                         "Convert colour images to grey first")
+    if a.dtype.kind not in "uif" or a.dtype.itemsize > 8:
+        raise ValueError(f"{name} must be uint8, uint16 or float; got dtype {a.dtype}")
+    check_sample_range(a, name)
+    return a
+
+
+def dilate_invalid(invalid, n):
+    """``invalid`` grown by ``n`` samples (a (2n+1)^2 square; n <= 0: unchanged)."""
+    if n <= 0:
+        return invalid
+    k = np.ones((2 * n + 1, 2 * n + 1), np.uint8)
+    return cv2.dilate(invalid.astype(np.uint8), k).astype(bool)
+
+
+def fold_ok(u, rows_px, cols_px, min_fold, finite=False):
+    """det(I - grad u) > min_fold on the decimated grid (u in pixels);
+    None when it holds everywhere."""
+    dr = rows_px[1] - rows_px[0]
+    dc = cols_px[1] - cols_px[0]
+    uf = u if finite else np.nan_to_num(u)
+    # |every partial derivative| <= t (central and one-sided differences
+    # are bounded by the largest neighbour difference) gives
+    # det >= (1 - t)^2 - t^2 = 1 - 2 t: no fold test needed below this
+    t = max(float(np.abs(np.diff(uf, axis=1)).max(initial=0.0)) / dr,
+            float(np.abs(np.diff(uf, axis=2)).max(initial=0.0)) / dc)
+    if 1.0 - 2.0 * t > min_fold + 1e-6:
+        return None
+    dur_dr, dur_dc = np.gradient(uf[0], dr, dc)
+    duc_dr, duc_dc = np.gradient(uf[1], dr, dc)
+    det = (1.0 - dur_dr) * (1.0 - duc_dc) - dur_dc * duc_dr
+    return det > min_fold
+
+
+def drop_islands(valid, ref_mask, min_island):
+    """Remove valid regions smaller than ``min_island`` (fraction of the grid)
+    that do not reach the reference region ``ref_mask``."""
+    if min_island <= 0:
+        return valid
+    from scipy import ndimage
+
+    if valid.all():
+        return valid  # one region
+    labels, n = ndimage.label(valid)
+    if n <= 1:
+        return valid
+    sizes = np.bincount(labels.ravel(), minlength=n + 1)
+    touches = np.zeros(n + 1, bool)
+    touches[np.unique(labels[ref_mask & valid])] = True
+    keep = (sizes >= min_island * valid.size) | touches
+    keep[0] = False
+    return keep[labels]
+
+
+def reference_contrast_ok(demod, shape):
+    """Where the reference shows the pattern on the decimated grid: its
+    contrast, border taper divided out, at least :data:`REF_CONTRAST_FRACTION`
+    of the 90th percentile (blank, dirty or blurred parts of the pattern are not)."""
+    w = demod.plan.window2d
+    if w is None:
+        taper = np.ones(demod.window_shape, np.float32)
+    else:
+        rows, cols = shape
+        taper = w[np.ix_(np.round(demod.rows_px).astype(int) % rows, np.round(demod.cols_px).astype(int) % cols)]
+    g0_min = demod.g0_abs.min(axis=0) / np.maximum(taper, 1e-6)
+    inside = taper >= 0.02
+    best = np.percentile(g0_min[inside], REF_CONTRAST_PERCENTILE) if inside.any() else 0.0
+    return (g0_min >= REF_CONTRAST_FRACTION * best) & inside
+
+
+def reference_pin_region(reference_valid, rows_px, cols_px, frame_shape, *, skip: int = 0) -> np.ndarray:
+    """The default reference region: the border band of where the reference is valid.
+
+    Parameters
+    ----------
+    reference_valid : ndarray bool (n_rows, n_cols)
+        Samples of the grid where the reference shows the pattern.
+    rows_px, cols_px : ndarray
+        Pixel rows and columns of the grid (evenly spaced).
+    frame_shape : (int, int)
+    skip : int
+        Samples next to an invalid part of the reference that every frame
+        loses anyway (the Reconstructor's mask dilation): the band starts
+        inside them.
+
+    Returns
+    -------
+    ndarray bool (n_rows, n_cols)
+        The frame's border band (:func:`processing.geometry.default_reference_region_mask`,
+        ``ceil(0.04 min(n_rows, n_cols))`` px wide) where the reference is
+        valid, plus a band as wide along the inner edge of the valid area
+        (after ``skip`` samples): the outermost valid ground, where a
+        deformation in the middle of the view has died out.  Holes in the
+        valid area (invalid parts enclosed by valid ones) get no band.  Where
+        the reference is valid everywhere (but for holes) this is the frame's
+        border band.
+    """
+    valid = np.asarray(reference_valid, bool)
+    band = default_reference_region_mask(rows_px, cols_px, frame_shape)
+    if valid.all() or not valid.any():
+        return band & valid
+    from scipy import ndimage
+
+    # only the outer edge: a hole in the valid area (a dirty spot of the
+    # pattern) lies in the middle of the view, where the surface may move
+    outer = ndimage.binary_fill_holes(valid)
+    if outer.all():
+        return band & valid
+    spacing = 0.5 * (float(rows_px[1] - rows_px[0]) + float(cols_px[1] - cols_px[0]))
+    width_px = max(1, math.ceil(DEFAULT_REFERENCE_BAND * min(frame_shape)))
+    width = max(2, math.ceil(width_px / spacing))
+    # chessboard distance (samples) to the nearest invalid sample, as the dilation counts
+    dist = ndimage.distance_transform_cdt(outer, metric="chessboard")
+    return valid & (band | ((dist > skip) & (dist <= skip + width)))
+
+
+class ReferenceRegion(NamedTuple):
+    """Where the height offset is pinned, chosen once for a series (:func:`choose_reference_region`)."""
+
+    #: bool (n_rows, n_cols): the region on the grid.
+    region: np.ndarray
+    #: How ``Result.pin`` names it.
+    name: str
+    #: Fraction of the candidate (the user's box or the border band) where the reference is valid.
+    valid_fraction: float
+    #: The user's box when none of it shows the pattern ("nearest" measures from it), else None.
+    near: Optional[np.ndarray]
+
+
+def choose_reference_region(geometry, reference_valid, rows_px, cols_px, shape, *, skip: int) -> ReferenceRegion:
+    """The reference region on a grid: ``geometry.reference_region`` where the
+    reference is valid, or by default :func:`reference_pin_region`."""
+    near = None
+    if geometry.reference_region is None:
+        candidate = default_reference_region_mask(rows_px, cols_px, shape)
+        region = reference_pin_region(reference_valid, rows_px, cols_px, shape, skip=skip)
+        if reference_valid.all():
+            name = "default border band of the frame"
+        else:
+            name = "default border band of the reference's valid area"
+    else:
+        candidate = geometry.reference_mask(rows_px, cols_px, shape)
+        region = candidate & reference_valid
+        name = f"reference_region {list(geometry.reference_region)}"
+        if not region.any():
+            near = candidate  # the fallback measures "nearest" from the box
+    fraction = (float(np.count_nonzero(candidate & reference_valid)) / max(1, int(np.count_nonzero(candidate))))
+    return ReferenceRegion(region, name, fraction, near)

@@ -1,0 +1,226 @@
+"""The series memory of a Reconstructor, one value: :class:`SeriesState`.
+
+A frame of a series is unwrapped in time against the last one
+(:func:`unwrap_phase`) and checked for continuity with it
+(:func:`check_series`); what one frame passes to the next is a
+:class:`SeriesState`, which these functions take and return (they never
+change the one given).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Optional
+
+import numpy as np
+
+from .height import PIN_MIN_PIECE_SAMPLES
+from .result import SeriesCheck
+from .unwrap import TWO_PI, unwrap_spatial, unwrap_temporal, wrap
+
+__all__ = ["SeriesState", "SERIES_MAX_SLIP_FRACTION", "SERIES_MAX_PIN_SHIFT", "EMPTY", "unwrap_phase",
+           "after_unwrap", "check_series", "copy_check"]
+
+#: Series check: a frame is flagged when its phase changed by more than pi
+#: since the previous frame and temporal unwrapping's count of 2 pi disagrees
+#: with the frame's own spatial unwrapping on more than this fraction of the
+#: samples valid in both (a fast surface whose two answers agree is no slip:
+#: on clean ray-traced series the old test, change > pi alone, flagged 38 of 40).
+SERIES_MAX_SLIP_FRACTION = 0.01
+#: ... or when its height offset, measured on the previous frame's pin
+#: samples, moved by more than this fraction of the frame's rms height (the
+#: method's accuracy is 2-4 % of the height, notes.md) and more than 4 times
+#: its own noise.
+SERIES_MAX_PIN_SHIFT = 0.02
+
+
+@dataclasses.dataclass
+class SeriesState:
+    """Temporal-unwrapping memory of a :class:`Reconstructor` after a frame.
+
+    Attributes
+    ----------
+    phase : ndarray, shape (2, m_rows, m_cols), or None
+        Unwrapped carrier phases of the last frame on the decimated grid,
+        radians, NaN where invalid (None: the next frame is unwrapped in
+        space; what :data:`EMPTY` holds).
+    valid : ndarray, bool, shape (m_rows, m_cols), or None
+        Its valid samples.
+    all_valid : bool
+        Every sample was valid.
+    check : tuple or None
+        What the series check (:class:`SeriesCheck`) compares the next frame
+        with: the last frame's phase, valid samples, decimated height and
+        pin samples.
+    """
+
+    phase: Optional[np.ndarray]
+    valid: Optional[np.ndarray]
+    all_valid: bool
+    check: Optional[tuple] = None
+
+    def agrees_with(self, other: Optional["SeriesState"], *, tol_rad: float = 0.5) -> bool:
+        """Same valid samples and the same unwrapped phase there.
+
+        Two unwrappings of one wrapped phase differ by whole multiples of
+        2 pi; anything below ``tol_rad`` (default 0.5 rad) is rounding (the
+        same frame through different FFT plans differs by about 1e-6 rad).
+        """
+        if other is None:
+            return False
+        if self.phase.shape != other.phase.shape or self.all_valid != other.all_valid:
+            return False
+        if not np.array_equal(self.valid, other.valid):
+            return False
+        if not self.valid.any():
+            return True
+        diff = np.abs(self.phase[:, self.valid].astype(np.float64) - other.phase[:, other.valid])
+        return bool(diff.max() < tol_rad)
+
+
+#: No memory: the first frame of a series.
+EMPTY = SeriesState(None, None, False, None)
+
+
+def copy_check(check):
+    """A copy of a :attr:`SeriesState.check` tuple (None stays None)."""
+    return None if check is None else tuple(None if a is None else np.array(a, copy=True) for a in check)
+
+
+def unwrap_phase(wrapped, valid, all_valid, state: SeriesState, *, unwrap: bool, temporal: bool,
+                 ref_mask, ref_idx):
+    """Unwrapped carrier phases (2, m_rows, m_cols) of ``wrapped`` with mask
+    ``valid``: against ``state`` (temporal) when it holds a frame, else in
+    space, the reference region's (``ref_mask``, flat ``ref_idx``) median
+    nearest 0; NaN-free where ``all_valid``."""
+    if not unwrap:
+        return np.where(valid, wrapped, np.nan)
+    prev = state.phase
+    if all_valid and temporal and prev is not None and state.all_valid:
+        out = _unwrap_temporal_all_valid(wrapped, prev, ref_idx)
+        if out is not None:
+            return out
+    out = np.empty_like(wrapped)
+    for s in range(2):
+        if temporal and prev is not None:
+            out[s] = unwrap_temporal(wrapped[s], prev[s], valid, state.valid, ref_mask=ref_mask)
+        else:
+            out[s] = unwrap_spatial(wrapped[s], valid, ref_mask=ref_mask)
+    return out
+
+
+def _unwrap_temporal_all_valid(wrapped, prev, ref_idx):
+    """unwrap_temporal for both carriers when this and the previous frame
+    are valid everywhere (most live frames): the same arithmetic without
+    masks; None when the change since the previous frame has a 2 pi jump
+    (the general path unwraps it in space)."""
+    pi = np.pi
+    delta = wrap(wrapped - prev)
+    # a change spanning <= pi cannot hold a neighbour jump > pi (the usual
+    # case: two reductions instead of the difference test)
+    if float(delta.max()) - float(delta.min()) > pi:
+        if (np.abs(np.diff(delta, axis=1)).max(initial=0.0) > pi
+                or np.abs(np.diff(delta, axis=2)).max(initial=0.0) > pi):
+            return None
+    out = prev + delta
+    if ref_idx.size:
+        vals = out.reshape(2, -1)[:, ref_idx]
+        lo = vals.min(axis=1)
+        hi = vals.max(axis=1)
+        for s in range(2):
+            # median within (-pi, pi): the 2 pi multiple nearest it is 0
+            if not (lo[s] > -pi and hi[s] < pi):
+                out[s] -= TWO_PI * np.round(np.median(vals[s]) / TWO_PI)
+    return out
+
+
+def after_unwrap(state: SeriesState, phase, valid, all_valid: bool) -> SeriesState:
+    """``state`` continued by a frame's unwrapped ``phase`` and ``valid``
+    samples (the series check's memory kept)."""
+    kept = phase.copy() if all_valid else np.where(valid, phase, np.nan)
+    return dataclasses.replace(state, phase=kept, valid=valid.copy(), all_valid=all_valid)
+
+
+def check_series(phase, valid, surf, state: SeriesState, ref_mask):
+    """``(SeriesCheck or None, state)``: this frame compared with the previous
+    one (see :class:`SeriesCheck`; None for the first frame of a series), and
+    ``state`` with this frame as what the next is compared with."""
+    prev = state.check
+    height = np.asarray(surf.height_mm)
+    pin_samples = surf.pin_samples
+    state = dataclasses.replace(state, check=(phase, valid, height, pin_samples))
+    if prev is None:
+        return None, state
+    p_phase, p_valid, p_height, p_pin = prev
+    both = valid & p_valid
+    n = int(np.count_nonzero(both))
+    if n == 0:
+        return SeriesCheck(True, "no sample is valid in both this and the previous frame: "
+                           "its heights cannot be compared with the previous frame's", float("nan"),
+                           float("nan"), 0), state
+    # Where the change since the previous frame stays within pi, temporal
+    # unwrapping added nothing the images do not say.  Where it exceeds pi
+    # (a fast surface), it is a slip only where the series' 2 pi count
+    # disagrees with this frame's own spatial unwrapping; NaN compares False.
+    change = np.abs(phase - p_phase)
+    slip_fraction = 0.0
+    if float(np.nanmax(change, initial=0.0)) > np.pi:
+        slip = _disagrees_with_spatial(phase, valid, ref_mask)
+        slip_fraction = float(np.count_nonzero(slip & both)) / n
+    reasons = []
+    if slip_fraction > SERIES_MAX_SLIP_FRACTION:
+        reasons.append(
+            f"the unwrapped phase changed by more than half a carrier period since the previous frame, and on "
+            f"{100 * slip_fraction:.1f} % of the samples the series counts other periods than this frame's "
+            f"own spatial unwrapping (temporal unwrapping slipped, or the surface moved too fast for the "
+            f"frame rate)")
+    shift = _pin_shift(height, valid, pin_samples, p_height, p_pin, both, reasons)
+    return SeriesCheck(bool(reasons), "; ".join(reasons), slip_fraction, shift, n), state
+
+
+def _pin_shift(height, valid, pin_samples, p_height, p_pin, both, reasons):
+    """Change of the height offset on the previous frame's pin samples (mm; a
+    reason appended to ``reasons`` when it is more than noise)."""
+    shift = 0.0
+    same = p_pin is not None and pin_samples is not None and np.array_equal(p_pin, pin_samples)
+    if not same and p_pin is not None:
+        common = p_pin & both
+        m = int(np.count_nonzero(common))
+        if m < PIN_MIN_PIECE_SAMPLES:
+            shift = float("nan")
+            reasons.append(f"the height offset was pinned on other samples than in the previous frame "
+                           f"({m} in common): the offsets of the two frames are not comparable")
+        else:
+            dh = (height[common] - p_height[common]).astype(np.float64)
+            shift = float(dh.mean())
+            noise = float(dh.std()) / math.sqrt(max(1.0, m / 4.0))  # ~4 samples per filter footprint
+            scale = float(np.sqrt(np.mean(np.square(height[valid], dtype=np.float64))))
+            if abs(shift) > max(SERIES_MAX_PIN_SHIFT * scale, 4.0 * noise):
+                reasons.append(
+                    f"the height offset moved by {1e3 * shift:+.3g} um ({100 * abs(shift) / scale:.1f} % of the "
+                    f"rms height) on the previous frame's pin samples: the pin changed under this frame")
+    return shift
+
+
+def _disagrees_with_spatial(phase, valid, ref_mask):
+    """Samples where the unwrapped ``phase`` (2, m_rows, m_cols) differs by a
+    multiple of 2 pi from this frame's own spatial unwrapping, on the valid
+    islands that reach the reference region (elsewhere the frame alone
+    cannot fix an island's 2 pi offset: the series is the only witness)."""
+    from scipy import ndimage
+
+    labels, count = ndimage.label(valid)
+    anchored = np.unique(labels[valid & ref_mask]) if ref_mask is not None else np.array([], int)
+    anchored = anchored[anchored > 0]
+    if not anchored.size and count:
+        anchored = np.array([1 + int(np.argmax(np.bincount(labels[valid])[1:]))])
+    judged = np.isin(labels, anchored)
+    out = np.zeros(valid.shape, bool)
+    for s in range(2):
+        own = unwrap_spatial(wrap(np.where(valid, phase[s], 0.0)), valid, ref_mask=ref_mask)
+        turns = np.round((np.where(judged, phase[s], 0.0) - np.where(judged, own, 0.0)) / TWO_PI)
+        if judged.any():
+            turns -= np.median(turns[judged])  # one common offset is no slip
+        out |= judged & (turns != 0)
+    return out

@@ -1,0 +1,106 @@
+"""Make tests/data/golden/reconstruct_golden.npz: every Result field of the
+Reconstructor on ray-traced 128^2 cases, written by the code as it was before
+the issue-19 split of processing/reconstruct.py into a plan and stages.
+
+tests/processing/test_golden_refactor.py runs the same cases through the code
+as it is now and compares field by field (bit-identical, or within 1e-6 of the
+RMS height where an FFT plan differs).  Regenerate ONLY when a change of the
+numbers is intended (and say why in the commit):
+
+    PYTHONPATH=$PWD python tests/data/golden/make_golden.py
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from processing import forward as F
+from processing.geometry import Geometry
+from processing.reconstruct import Reconstructor
+
+N = 128
+OUT = Path(__file__).with_name("reconstruct_golden.npz")
+G55 = Geometry(theta_deg=55, depth_mm=300, pixel_mm=0.1, rows_toward_camera=False)
+BOARD = F.Checkerboard(period_mm=2.0, edge_softness_mm=0.1)  # 20 x 11.5 px periods
+DOTS = F.RandomDots(dot_diameter_mm=0.5, density=0.3, seed=1)
+FSSS = Geometry(setup="fsss", pixel_mm=0.2, fsss_layers=((57.0, 1.0003), (12.0, 1.48899), (43.0, 1.34)),
+                n_water=1.34)
+BUMP = F.GaussianBump(amplitude_mm=0.003, sigma_mm=2.5)
+WAVES = F.WaveField.random(4, amplitude_rms_mm=0.0004, wavelength_range_mm=(8.0, 16.0), seed=3)
+
+
+def _frames(surfaces, geometry, pattern, *, fsss=False, seed=0):
+    rng = np.random.default_rng(seed)
+    render = F.render_fsss if fsss else F.render_tir
+    ref, _ = render(F.FlatSurface(), geometry, (N, N), pattern, supersample=2)
+    imgs = [render(s, geometry, (N, N), pattern, supersample=2)[0] for s in surfaces]
+    q = [F.quantize(a, bits=8, noise_rms=0.5, rng=rng) for a in [ref] + imgs]
+    return q[0], q[1:]
+
+
+def cases():
+    """``{name: (reference, frames, geometry, options)}``, each run as one series."""
+    ref, (bump, waves) = _frames([BUMP, WAVES], G55, BOARD)
+    spike = F.SumSurface([BUMP, F.GaussianBump(amplitude_mm=0.01, sigma_mm=0.8, x0_mm=2.0, y0_mm=-1.5)])
+    _, (masked,) = _frames([spike], G55, BOARD)
+    masked = masked.copy()
+    masked[90:110, 10:40] = masked.mean()  # a blank part (the pattern not seen)
+    dref, (dimg,) = _frames([BUMP], G55, DOTS)
+    fref, (fimg,) = _frames([F.GaussianBump(amplitude_mm=0.01, sigma_mm=5.0)], FSSS, BOARD, fsss=True)
+    deeper = F.GaussianBump(amplitude_mm=0.009, sigma_mm=2.5)
+    _, (b2, w2) = _frames([deeper, F.SumSurface([WAVES, F.GaussianBump(amplitude_mm=0.001, sigma_mm=3.0)])],
+                          G55, BOARD)
+    return {
+        "series_two_frames": (ref, [bump, b2], G55, dict(grid="decimated")),
+        "series_all_valid": (ref, [waves, w2], G55, dict(grid="decimated")),
+        "series_full_image": (ref, [waves, w2], G55, {}),
+        "series_full_fd": (ref, [bump, b2], G55, dict(refine_method="fd")),
+        "ifft_full": (ref, [masked], G55, dict(refine_method="fd", full_method="ifft")),
+        "dots_full": (dref, [dimg], G55, dict(pattern="dots", window_px=8)),
+        "fsss_decimated": (fref, [fimg], FSSS, dict(grid="decimated")),
+        "masked_full": (ref, [masked], G55, {}),
+        "masked_decimated": (ref, [masked], G55, dict(grid="decimated")),
+    }
+
+
+#: Frames run (their series memory feeds the next) but not stored: keeps the file < 2 MB.
+NOT_STORED = {"series_full_fd/0"}
+
+
+def result_fields(res) -> dict:
+    """Every Result field as arrays (scalars and text as 0-d arrays)."""
+    out = {}
+    for name in ("height", "valid", "slope_x", "slope_y", "displacement", "amplitude", "x_mm", "y_mm",
+                 "rows_px", "cols_px", "phase"):
+        out[name] = np.asarray(getattr(res, name))
+    out["grid"] = np.array(res.grid)
+    out["valid_fraction"] = np.array(res.valid_fraction)
+    out["note"] = np.array(res.note)
+    pin = res.pin
+    out["pin"] = np.array(repr(None) if pin is None else repr(
+        {k: (v if not isinstance(v, np.ndarray) else v.tolist()) for k, v in vars(pin).items()}))
+    out["series"] = np.array(repr(res.series))
+    out["carriers"] = np.array(repr(None) if res.carriers is None else repr(np.asarray(res.carriers.freq).tolist()))
+    return out
+
+
+def run_all() -> dict:
+    """``{"case/frame/field": array}`` of the code as it is."""
+    out = {}
+    for name, (ref, frames, geometry, opts) in cases().items():
+        rec = Reconstructor(ref, geometry, **opts)
+        for i, frame in enumerate(frames):
+            res = rec(frame)
+            if f"{name}/{i}" in NOT_STORED:
+                continue
+            for field, value in result_fields(res).items():
+                out[f"{name}/{i}/{field}"] = value
+    return out
+
+
+if __name__ == "__main__":
+    data = run_all()
+    np.savez_compressed(OUT, **data)
+    print(f"{OUT}: {len(data)} arrays, {OUT.stat().st_size / 1e6:.2f} MB")
