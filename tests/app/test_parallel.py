@@ -284,6 +284,16 @@ def _shm_blocks_of(run_pid: int) -> list:
 
 
 @pytest.mark.skipif(not os.path.isdir("/proc"), reason="watches processes through /proc (Linux)")
+def _cmdline_or_gone(process) -> str:
+    """A psutil process's command line, "" when it already ended."""
+    import psutil
+
+    try:
+        return " ".join(process.cmdline())
+    except (psutil.NoSuchProcess, psutil.ZombieProcess):
+        return ""
+
+
 def test_workers_end_when_the_run_is_killed(series, tmp_path):
     """SIGKILL (the OOM killer, kill -9) on a --workers 2 run: nothing can clean
     up in the run's process, so its workers must notice and end by themselves,
@@ -303,11 +313,14 @@ def test_workers_end_when_the_run_is_killed(series, tmp_path):
         cwd=root, stderr=subprocess.PIPE, text=True, start_new_session=True)
     watchdog = threading.Timer(120.0, proc.kill)
     watchdog.start()
-    helpers = []
+    helpers, cmdlines = [], {}
     try:
         for line in proc.stderr:
             if re.search(r"frame \d+ .* written", line):  # under way: chunks in flight
                 helpers = psutil.Process(proc.pid).children()
+                # read while the run is alive: once it is killed, a helper that ends
+                # is a zombie until init reaps it, and a zombie has no command line
+                cmdlines = {c.pid: _cmdline_or_gone(c) for c in helpers}
                 proc.kill()
                 break
         proc.wait(timeout=30)
@@ -316,11 +329,11 @@ def test_workers_end_when_the_run_is_killed(series, tmp_path):
         if proc.poll() is None:
             proc.kill()
         proc.stderr.close()
-    workers = [c for c in helpers if "spawn_main" in " ".join(c.cmdline())]
-    assert len(workers) == 2, [c.cmdline() for c in helpers]
+    workers = [c for c in helpers if "spawn_main" in cmdlines[c.pid]]
+    assert len(workers) == 2, list(cmdlines.values())
     # each worker checks twice a second whether the run is still there
     gone, alive = psutil.wait_procs(helpers, timeout=10)
-    assert not alive, f"processes outlived the killed run by 10 s: {[p.cmdline() for p in alive]}"
+    assert not alive, f"processes outlived the killed run by 10 s: {[cmdlines[p.pid] for p in alive]}"
     assert not _shm_blocks_of(proc.pid), "shared-memory blocks of the killed run left behind"
 
 
