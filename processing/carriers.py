@@ -6,23 +6,11 @@ adds the carriers of distorted frames (:func:`find_carriers_local`,
 :func:`find_carriers_live`) and the pattern checks (:func:`check_pattern_match`,
 :func:`match_error`).
 
-A checkerboard's Fourier fundamentals are its two diagonals: two
-non-collinear peaks ``k1``, ``k2`` in the half-plane of the real FFT.  This
-module finds them in the reference image to sub-bin precision, derives what
-live alignment shows (periods in pixels, rotation of the board, viewing
-angle theta from the aspect of a square pattern) and refuses images without a
-clear pattern (:class:`~processing.errors.NoCarrierError`) or frames whose
-pattern differs from the reference's
-(:class:`~processing.errors.PatternMismatchError`).
-
-Frequencies are in cycles per pixel, ``(f_row, f_col)``, with ``f_col >= 0``.
-
-Theta from the aspect (notes.md): a telecentric camera looking at the
-surface under incidence theta sees a square board compressed along the image
-rows by cos(theta).  Scaling the row frequency by cos(theta) maps the image
-carriers into the surface frame, where a square board's two diagonal
-carriers are orthogonal and of equal length.  Both conditions are linear in
-``C = cos(theta)**2`` and are solved together by least squares.
+The method (the two diagonal peaks, sub-bin precision, theta from the aspect
+of a square pattern) is described in :mod:`processing.carrier_peaks`.  The
+checks here refuse frames whose pattern differs from the reference's
+(:class:`~processing.errors.PatternMismatchError`) or that show none
+(:class:`~processing.errors.NoCarrierError`).
 """
 
 from __future__ import annotations

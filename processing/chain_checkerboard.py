@@ -21,9 +21,10 @@ import numpy as np
 
 from .carriers import check_pattern_match, find_carriers
 from .demodulation import Demodulator
+from .chain_base import GridChain
 from .errors import AllInvalidError
 from .fft import FFTPlanner
-from .fullgrid import Upsampler, full_coordinates, full_ifft, interpolate_full
+from .fullgrid import Upsampler, full_ifft, interpolate_full
 from .mask import (POOR_FRAME_VALID_FRACTION, brightness_sample, choose_reference_region, dilate_invalid,
                    drop_islands, exposure_gain, fold_ok, reference_contrast_ok)
 from .plan import ReferencePlan, read_only
@@ -57,12 +58,13 @@ class Measured(NamedTuple):
     t0: float
 
 
-class CheckerboardChain:
+class CheckerboardChain(GridChain):
     """What the reference fixes for a checkerboard (carriers, demodulator,
     reference contrast and region, :attr:`plan`) and the stages a frame goes
     through.  ``options``: the resolved :class:`processing.options.ReconstructOptions`."""
 
     def __init__(self, ref, geometry, options, carriers=None):
+        GridChain.__init__(self)
         o = self.options = options
         self.geometry = geometry
         self.shape = ref.shape
@@ -94,24 +96,10 @@ class CheckerboardChain:
             reference_region=read_only(region), reference_region_index=read_only(np.flatnonzero(region)),
             region_near=read_only(self.region.near), reference_valid_everywhere=bool(self.reference_valid.all()),
             demodulation=d.plan)
-        self._solver = self._smooth_ref = self._smooth_static = self._coords = None
+        self._smooth_ref = self._smooth_static = None
         self._g0_full = self._region_full = self._image = None
 
     # ------------------------------------------------------- built on first use
-    def height_solver(self):
-        """Height solver of the decimated grid (built once)."""
-        if self._solver is None:
-            from .height import solver_for
-
-            self._solver = solver_for(self.geometry, self.rows_px, self.cols_px, self.shape)
-        return self._solver
-
-    def full_coordinates(self):
-        """``(x_mm, y_mm)`` of every pixel column and row (:func:`processing.fullgrid.full_coordinates`)."""
-        if self._coords is None:
-            self._coords = full_coordinates(self.geometry, self.shape)
-        return self._coords
-
     def warp_reference(self):
         """Reference band-limited around the two carriers (no apodization) on the
         grid the refinement warps it from: ``(fine, factor)``, ``fine[i, j]`` at

@@ -9,8 +9,9 @@ from typing import NamedTuple
 
 import numpy as np
 
+from .chain_base import GridChain
 from .errors import AllInvalidError
-from .fullgrid import dots_full, full_coordinates
+from .fullgrid import dots_full
 from .mask import choose_reference_region, drop_islands
 from .piv import DotDisplacement
 from .result import Result
@@ -27,7 +28,7 @@ class DotsMeasured(NamedTuple):
     t0: float
 
 
-class DotsChain:
+class DotsChain(GridChain):
     """What a random-dot reference fixes (the PIV grid, the reference region)
     and the stages a frame goes through, the same three as
     :class:`processing.chain_checkerboard.CheckerboardChain`'s (``measure``,
@@ -35,6 +36,7 @@ class DotsChain:
     against the reference alone (the state given passes through)."""
 
     def __init__(self, ref, geometry, options):
+        GridChain.__init__(self)
         self.options = options
         self.geometry = geometry
         self.shape = ref.shape
@@ -46,21 +48,6 @@ class DotsChain:
         self.region = choose_reference_region(geometry, self.reference_valid, self.rows_px, self.cols_px,
                                               self.shape, skip=0)
         self.cg_tol = 1e-4  # as the checkerboard chain's masked solve
-        self._solver = self._coords = None
-
-    def height_solver(self):
-        """Height solver of the PIV grid (built once)."""
-        if self._solver is None:
-            from .height import solver_for
-
-            self._solver = solver_for(self.geometry, self.rows_px, self.cols_px, self.shape)
-        return self._solver
-
-    def full_coordinates(self):
-        """``(x_mm, y_mm)`` of every pixel column and row."""
-        if self._coords is None:
-            self._coords = full_coordinates(self.geometry, self.shape)
-        return self._coords
 
     def measure(self, frame, grid, state, t0):
         """``(DotsMeasured, state)``: PIV of one validated frame, small islands
