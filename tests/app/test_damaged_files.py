@@ -199,9 +199,8 @@ def test_partly_zeroed_frame_is_unreadable_with_its_reason(recording, tmp_path):
     assert "checksum" in text and "frame 3" in text and str(bad) in text
 
 
-def test_copy_of_a_recording_that_never_ended_gets_a_note(sim, tmp_path):
-    """A copy taken while the recorder was still writing (complete = 0, no /summary):
-    processed, with a note that frames may be missing (was exit 0 and no word)."""
+def _copy_while_recording(sim, tmp_path):
+    """A copy of a recording taken while the recorder still writes it (complete = 0, no /summary)."""
     path = tmp_path / "live.h5"
     rec = _record(sim, path, close=False)
     try:
@@ -209,13 +208,20 @@ def test_copy_of_a_recording_that_never_ended_gets_a_note(sim, tmp_path):
         shutil.copy(path, copy)
     finally:
         rec.close(summary={"frames_written": N_FRAMES})
+    return copy
+
+
+def test_copy_of_a_recording_that_never_ended_gets_a_note(sim, tmp_path):
+    """A copy taken while the recorder was still writing (complete = 0, no /summary):
+    processed, with a note that frames may be missing (was exit 0 and no word)."""
+    copy = _copy_while_recording(sim, tmp_path)
     with h5py.File(copy) as f:
         assert int(f.attrs["complete"]) == 0 and "summary" not in f
     r = _process(copy, tmp_path / "out.h5")
     assert r.returncode == 0, r.stderr
     assert re.search(r"note: copy\.h5 is a recording that did not end normally .*may be missing", r.stderr), \
         r.stderr
-    r = _process(path, tmp_path / "out2.h5")  # the original, closed: no such note
+    r = _process(tmp_path / "live.h5", tmp_path / "out2.h5")  # the original, closed: no such note
     assert r.returncode == 0 and "did not end normally" not in r.stderr, r.stderr
 
 
@@ -307,13 +313,7 @@ def test_rebuilt_drop_summary_leaves_damaged_rows_out(sim, tmp_path):
     hundreds of frames lost upstream; now those rows are left out and counted."""
     from app.capture.recorder import FRAME_TABLE_DTYPE, read_summary
 
-    path = tmp_path / "live.h5"
-    rec = _record(sim, path, close=False)
-    try:
-        copy = tmp_path / "copy.h5"
-        shutil.copy(path, copy)
-    finally:
-        rec.close(summary={"frames_written": N_FRAMES})
+    copy = _copy_while_recording(sim, tmp_path)
     with h5py.File(copy) as f:
         chunk = f["frame_table"].id.get_chunk_info(0)
     row = FRAME_TABLE_DTYPE.itemsize
