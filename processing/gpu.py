@@ -168,13 +168,7 @@ class BatchChain:
         self.up_r = to(lanczos_matrix(rows, m_r))
         self.up_cT = to(np.ascontiguousarray(lanczos_matrix(cols, m_c).T))
         # spectral height solve as matrix products, whatever the grid size
-        from .height import divergence_matrix as op
-
-        def dct_matrix(n):
-            k = np.arange(n)[:, None]
-            c = np.sqrt(2.0 / n) * np.cos(np.pi * k * (2 * np.arange(n)[None, :] + 1) / (2 * n))
-            c[0] /= np.sqrt(2.0)
-            return c.astype(np.float32)
+        from .height_spectral import dct_matrix, divergence_matrix as op
 
         self.Mr = to(op(m_r, hs.grid.dr) * F["gr"].T)
         self.McT = to(np.ascontiguousarray(op(m_c, hs.grid.dc).T))
