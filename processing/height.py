@@ -339,12 +339,10 @@ class HeightSolver:
                        region_name=None, near=None) -> SurfaceResult:
         """The spectral path of :meth:`solve` for a finite displacement valid
         everywhere (needs :attr:`spectral_coefficients`, uniform optics)."""
-        return self._solve_fast(displacement_px, valid, reference_mask, pin_fallback, region_name, near)
-
-    def _solve_fast(self, u, v, reference_mask, pin_fallback, region_name, near):
-        h, sx, sy, status, samples = spectral_solve(self, self._fast, u, v, reference_mask, pin_fallback=pin_fallback,
-                                                    region_name=region_name, near=near)
-        return SurfaceResult(h, sx, sy, self.x_mm.copy(), self.y_mm.copy(), v, 0, self.surface_xy, status, samples)
+        h, sx, sy, status, samples = spectral_solve(self, self._fast, displacement_px, valid, reference_mask,
+                                                    pin_fallback=pin_fallback, region_name=region_name, near=near)
+        return SurfaceResult(h, sx, sy, self.x_mm.copy(), self.y_mm.copy(), valid, 0, self.surface_xy, status,
+                             samples)
 
     def _solve(self, displacement_px, valid, solver, tol, reference_mask=None, *, pin_fallback="nearest",
                region_name=None, near=None):
@@ -380,7 +378,8 @@ class HeightSolver:
             raise AllInvalidError("no valid displacement sample: nothing to integrate; check the mask and the frame")
         use_spectral = solver == "spectral" or (solver == "auto" and all_valid and self.constant)
         if use_spectral and self._fast is not None:
-            return self._solve_fast(u, v, reference_mask, pin_fallback, region_name, near)
+            return self.solve_spectral(u, v, reference_mask, pin_fallback=pin_fallback, region_name=region_name,
+                                       near=near)
         samples, status, _ = self.pin_choice(v, all_valid, reference_mask, pin_fallback, region_name, near)
         uz = np.where(v, u, 0.0) if not all_valid else u
         gr, gc = self.gradients(uz)
