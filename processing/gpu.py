@@ -168,13 +168,7 @@ class BatchChain:
         self.up_r = to(lanczos_matrix(rows, m_r))
         self.up_cT = to(np.ascontiguousarray(lanczos_matrix(cols, m_c).T))
         # spectral height solve as matrix products, whatever the grid size
-        from .height import divergence_matrix as op
-
-        def dct_matrix(n):
-            k = np.arange(n)[:, None]
-            c = np.sqrt(2.0 / n) * np.cos(np.pi * k * (2 * np.arange(n)[None, :] + 1) / (2 * n))
-            c[0] /= np.sqrt(2.0)
-            return c.astype(np.float32)
+        from .height_spectral import dct_matrix, divergence_matrix as op
 
         self.Mr = to(op(m_r, hs.grid.dr) * F["gr"].T)
         self.McT = to(np.ascontiguousarray(op(m_c, hs.grid.dc).T))
@@ -272,98 +266,113 @@ class BatchChain:
         h = f * F["null"]
         return h, uc * np.float32(self.sx), ur * np.float32(self.sy_u) - np.float32(self.sy_h) * h
 
-    # --------------------------------------------------------------- call
-    def __call__(self, frames, grid: str, essentials: bool = False):
-        """Results of ``frames`` (a sequence of 2-D images) in order, continuing the series."""
-        r = self.r
-        if not len(frames):
-            return []
-        if self.reason is not None:
-            return [r.call_cpu(f, grid=grid) for f in frames]
+    # --------------------------------------------------------------- stages
+    def _demodulate(self, frames):
+        """Frames -> (analytic signals g, wrapped phase, amplitude ratio, all_valid per frame)."""
         xp = self.xp
-        t0 = time.perf_counter()
-        images = xp.asarray(np.stack([r.validate_frame(f) for f in frames])).astype(xp.float32)
+        images = xp.asarray(np.stack([self.r.validate_frame(f) for f in frames])).astype(xp.float32)
         B = images.shape[0]
         g = self._decimated(images)
         wrapped = xp.angle(g * self.conj_g0).astype(xp.float32)
         ratio = xp.abs(g) / self.g0_den
         amplitude = xp.minimum(ratio[:, 0], ratio[:, 1])
-        all_valid = _host(xp, amplitude.reshape(B, -1).min(axis=1)) >= r.min_amplitude
-        # previous unwrapped phase: the series state, or frame 0 unwrapped in space on the CPU
-        first = 0
-        prev = None
-        state = r.series_state()  # a copy of the decimated grid's memory (small)
-        if r.unwrap and state is not None and not state.all_valid:
-            # the previous frame was masked: this one follows it on the CPU, then the rest here
-            return [r.call_cpu(frames[0], grid=grid)] + (self(frames[1:], grid, essentials) if B > 1 else [])
+        all_valid = _host(xp, amplitude.reshape(B, -1).min(axis=1)) >= self.r.min_amplitude
+        return g, wrapped, amplitude, all_valid
+
+    def _series_start(self, state, wrapped, all_valid):
+        """Where the batch's unwrapping starts: ``(first, prev, start)``, or None
+        when the CPU must take every frame (the first frame of a series masked).
+
+        ``prev``: the previous frame's unwrapped phase from the series state;
+        else frame 0 unwrapped in space on the CPU (``start``), and the batch
+        follows it from frame ``first = 1``."""
+        r, xp = self.r, self.xp
         if not r.unwrap:
-            pass
-        elif r.temporal and state is not None:
-            prev = xp.asarray(state.phase.astype(np.float32))
-        elif bool(all_valid[0]):
-            w0 = _host(xp, wrapped[0])
-            prev = None
-            start = r.unwrap_phase(w0, np.ones(w0.shape[1:], bool), True) if r.unwrap else w0
-            start = xp.asarray(np.asarray(start, np.float32))
-            first = 1
-        else:
-            return [r.call_cpu(f, grid=grid) for f in frames]
-        if not r.unwrap:
-            phase = wrapped
+            return 0, None, None
+        if r.temporal and state is not None:
+            return 0, xp.asarray(state.phase.astype(np.float32)), None
+        if not bool(all_valid[0]):
+            return None
+        w0 = _host(xp, wrapped[0])
+        start = r.unwrap_phase(w0, np.ones(w0.shape[1:], bool), True)
+        return 1, None, xp.asarray(np.asarray(start, np.float32))
+
+    def _follow(self, before, seq):
+        """Temporal unwrapping of ``seq`` after the phase ``before`` (1, 2, m_r, m_c):
+        (unwrapped phase, per frame whether its change has a neighbour jump > pi)."""
+        xp = self.xp
+        # wrapped changes frame to frame; each frame's neighbour-jump test as on the CPU
+        prior = xp.concatenate([before, seq[:-1]], axis=0)
+        delta = _wrap(xp, seq - prior)
+        jumps = xp.maximum(xp.abs(xp.diff(delta, axis=2)).reshape(delta.shape[0], -1).max(axis=1),
+                           xp.abs(xp.diff(delta, axis=3)).reshape(delta.shape[0], -1).max(axis=1))
+        jumps = _host(xp, jumps) > np.pi
+        summed = before + xp.cumsum(delta, axis=0)
+        # snapped to the wrapped phase + 2 pi k (no drift from the sum)
+        return seq + np.float32(TWO_PI) * xp.rint((summed - seq) / np.float32(TWO_PI)), jumps
+
+    def _reference_near_zero(self, phase, first):
+        """Each frame's phase shifted by 2 pi k so that the reference region stays
+        nearest 0, sequentially as each frame follows the shifted one."""
+        xp = self.xp
+        B = phase.shape[0]
+        vals = phase.reshape(B, 2, -1)[:, :, self.ref_idx]
+        lo, hi = _host(xp, vals.min(axis=2)), _host(xp, vals.max(axis=2))
+        med = _host(xp, xp.median(vals, axis=2))
+        J = np.zeros((B, 2))
+        shift = np.zeros(2)
+        for n in range(first, B):
+            for s in range(2):
+                if not (lo[n, s] - TWO_PI * shift[s] > -np.pi and hi[n, s] - TWO_PI * shift[s] < np.pi):
+                    shift[s] += np.round((med[n, s] - TWO_PI * shift[s]) / TWO_PI)
+            J[n] = shift
+        return phase - xp.asarray((TWO_PI * J).astype(np.float32))[:, :, None, None]
+
+    def _unwrap(self, wrapped, all_valid, first, prev, start):
+        """(phase of every frame, how many frames from the first go on here)."""
+        B = wrapped.shape[0]
+        if not self.r.unwrap:
             ok = np.array(all_valid, bool)  # a masked frame goes to the CPU, as with unwrapping
-            ok_upto = int(np.argmin(ok)) if not ok.all() else B
-        else:
-            # wrapped changes frame to frame; each frame's neighbour-jump test as on the CPU
-            before = prev[None] if prev is not None else start[None]
-            seq = wrapped[first:]
-            if seq.shape[0]:
-                prior = xp.concatenate([before, seq[:-1]], axis=0)
-                delta = _wrap(xp, seq - prior)
-                jumps = xp.maximum(xp.abs(xp.diff(delta, axis=2)).reshape(delta.shape[0], -1).max(axis=1),
-                                   xp.abs(xp.diff(delta, axis=3)).reshape(delta.shape[0], -1).max(axis=1))
-                jumps = _host(xp, jumps) > np.pi
-                summed = before + xp.cumsum(delta, axis=0)
-                # snapped to the wrapped phase + 2 pi k (no drift from the sum)
-                snapped = seq + np.float32(TWO_PI) * xp.rint((summed - seq) / np.float32(TWO_PI))
-                phase = xp.concatenate([start[None], snapped], axis=0) if first else snapped
-            else:  # one frame, unwrapped in space
-                jumps = np.zeros(0, bool)
-                phase = start[None]
-            # reference region nearest 0, sequentially as each frame follows the shifted one
-            if self.ref_idx.size:
-                vals = phase.reshape(B, 2, -1)[:, :, self.ref_idx]
-                lo, hi = _host(xp, vals.min(axis=2)), _host(xp, vals.max(axis=2))
-                med = _host(xp, xp.median(vals, axis=2))
-                J = np.zeros((B, 2))
-                shift = np.zeros(2)
-                for n in range(first, B):
-                    for s in range(2):
-                        if not (lo[n, s] - TWO_PI * shift[s] > -np.pi and hi[n, s] - TWO_PI * shift[s] < np.pi):
-                            shift[s] += np.round((med[n, s] - TWO_PI * shift[s]) / TWO_PI)
-                    J[n] = shift
-                phase = phase - xp.asarray((TWO_PI * J).astype(np.float32))[:, :, None, None]
-            ok = np.ones(B, bool)
-            ok[first:] &= ~jumps
-            ok &= all_valid
-            ok_upto = int(np.argmin(ok)) if not ok.all() else B
-        u = self._to_displacement(phase)
-        # fold test: det(I - grad u) > min_fold everywhere (the CPU's bound first)
+            return wrapped, (int(np.argmin(ok)) if not ok.all() else B)
+        before = prev[None] if prev is not None else start[None]
+        seq = wrapped[first:]
+        if seq.shape[0]:
+            snapped, jumps = self._follow(before, seq)
+            phase = self.xp.concatenate([start[None], snapped], axis=0) if first else snapped
+        else:  # one frame, unwrapped in space
+            jumps = np.zeros(0, bool)
+            phase = start[None]
+        if self.ref_idx.size:
+            phase = self._reference_near_zero(phase, first)
+        ok = np.ones(B, bool)
+        ok[first:] &= ~jumps
+        ok &= all_valid
+        return phase, (int(np.argmin(ok)) if not ok.all() else B)
+
+    def _fold_limit(self, u, ok_upto):
+        """``ok_upto`` lowered to the first frame whose ``det(I - grad u)`` reaches
+        ``min_fold`` anywhere (the CPU's cheap bound first)."""
+        xp = self.xp
+        B = u.shape[0]
         dr, dc = self.spacing
         t = xp.maximum(xp.abs(xp.diff(u, axis=2)).reshape(B, -1).max(axis=1) / dr,
                        xp.abs(xp.diff(u, axis=3)).reshape(B, -1).max(axis=1) / dc)
-        need = _host(xp, 1.0 - 2.0 * t) <= r.min_fold + 1e-6
+        need = _host(xp, 1.0 - 2.0 * t) <= self.r.min_fold + 1e-6
         if need.any():
             dur_dr, dur_dc = xp.gradient(u[:, 0], float(dr), float(dc), axis=(1, 2))
             duc_dr, duc_dc = xp.gradient(u[:, 1], float(dr), float(dc), axis=(1, 2))
             det = (1.0 - dur_dr) * (1.0 - duc_dc) - dur_dc * duc_dr
-            folded = _host(xp, det.reshape(B, -1).min(axis=1)) <= r.min_fold
+            folded = _host(xp, det.reshape(B, -1).min(axis=1)) <= self.r.min_fold
             bad = np.flatnonzero(need & folded)
             if bad.size:
                 ok_upto = min(ok_upto, int(bad[0]))
-        if ok_upto == 0:
-            return [r.call_cpu(f, grid=grid) for f in frames]
-        n = ok_upto
-        phase, u, g, amplitude = phase[:n], u[:n], g[:n], amplitude[:n]
+        return ok_upto
+
+    def _refine(self, u, g, grid):
+        """FD's bias removal: the smooth reference warped by ``u``, re-demodulated,
+        the phase left over added to ``u`` (the Reconstructor's iterations)."""
+        xp = self.xp
+        r = self.r
         iterations = r.refine_iterations
         if iterations is None:
             iterations = {"decimated": 0, "full": 1}[grid]
@@ -376,17 +385,48 @@ class BatchChain:
             gw = self._decimated(self._warp_smooth(u))
             dphi = _wrap(xp, xp.angle(g * xp.conj(gw)).astype(xp.float32) - self.static)
             u = u + self._to_displacement(dphi)
-        h, sx, sy = self._height(u)
-        # the series check against each previous frame (CPU, decimated grid: cheap), in order
+        return u
+
+    def _check_series(self, phase, h):
+        """The series check of each frame against the previous one (CPU, decimated
+        grid: cheap), in order; the series then goes on from the last frame.
+        Returns (phase on the host, [SeriesCheck])."""
+        xp = self.xp
+        r = self.r
         ph_host = _host(xp, phase).astype(np.float32)
         h_host = _host(xp, h)
         valid_dec = np.ones(phase.shape[2:], bool)
-        series = []
-        for k in range(n):
-            surf = _Surface(h_host[k], self.pin_samples)
-            series.append(r.check_series(ph_host[k], valid_dec, surf))
-        # the series goes on from the last frame done here
-        r.remember_phase(_host(xp, phase[n - 1]), np.ones(phase.shape[2:], bool), True)
+        series = [r.check_series(ph_host[k], valid_dec, _Surface(h_host[k], self.pin_samples))
+                  for k in range(phase.shape[0])]
+        r.remember_phase(_host(xp, phase[-1]), np.ones(phase.shape[2:], bool), True)
+        return ph_host, series
+
+    # --------------------------------------------------------------- call
+    def __call__(self, frames, grid: str, essentials: bool = False):
+        """Results of ``frames`` (a sequence of 2-D images) in order, continuing the series."""
+        r = self.r
+        if not len(frames):
+            return []
+        if self.reason is not None:
+            return [r.call_cpu(f, grid=grid) for f in frames]
+        t0 = time.perf_counter()
+        g, wrapped, amplitude, all_valid = self._demodulate(frames)
+        state = r.series_state()  # a copy of the decimated grid's memory (small)
+        if r.unwrap and state is not None and not state.all_valid:
+            # the previous frame was masked: this one follows it on the CPU, then the rest here
+            return [r.call_cpu(frames[0], grid=grid)] + (self(frames[1:], grid, essentials) if len(frames) > 1 else [])
+        start = self._series_start(state, wrapped, all_valid)
+        if start is None:
+            return [r.call_cpu(f, grid=grid) for f in frames]
+        phase, ok_upto = self._unwrap(wrapped, all_valid, *start)
+        u = self._to_displacement(phase)
+        n = self._fold_limit(u, ok_upto)
+        if n == 0:
+            return [r.call_cpu(f, grid=grid) for f in frames]
+        phase, u, g, amplitude = phase[:n], u[:n], g[:n], amplitude[:n]
+        u = self._refine(u, g, grid)
+        h, sx, sy = self._height(u)
+        ph_host, series = self._check_series(phase, h)
         results = self._results(grid, u, h, sx, sy, amplitude, ph_host, n, 1e3 * (time.perf_counter() - t0),
                                 essentials, series)
         return results + [r.call_cpu(f, grid=grid) for f in frames[n:]]

@@ -27,10 +27,18 @@ edges with weight 1 (valid edges) or 0 (an edge touching an invalid sample).
   in O(N log N). This is the least-squares solution of the exact operator
   with the paper's integrating-factor weights ``exp(2 Phi)`` (they vary by
   ``exp(2 T L_y / H)`` across a field of length ``L_y``, a few per cent).
+  Its float32 form for a telecentric camera is :mod:`processing.height_spectral`.
 * ``masked``: any validity mask and variable ``kappa`` (finite camera
   distance): preconditioned conjugate gradients on the normal equations,
   preconditioned by the spectral solver; invalid samples carry no equation,
-  so they cannot pollute the heights elsewhere.
+  so they cannot pollute the heights elsewhere (:mod:`processing.height_masked`,
+  with the operator on the edges).
+
+This module holds :class:`HeightSolver` (the per-sample optics, the null
+space, the choice of path and the pin of each frame), :class:`SurfaceResult`,
+:func:`surface_from_displacement` and the solvers' cache :func:`solver_for`;
+the discretisation's kernels are :mod:`processing.height_kernels`, the pin's
+rule :mod:`processing.pin`.
 
 Null space: ``f`` is defined up to one constant per connected piece of the
 valid samples, i.e. ``h`` up to ``alpha exp(-Phi)`` (``exp(-T y/H)`` for TIR, a
@@ -58,36 +66,25 @@ raises :class:`GeometryError`. Either way :class:`PinStatus` says which.
 from __future__ import annotations
 
 import dataclasses
-import math
 import threading
 from collections import OrderedDict
 from types import MappingProxyType
 from typing import NamedTuple
 
 import numpy as np
-import scipy.fft as sfft
 from scipy import ndimage
 
 from .errors import GeometryError, ShapeMismatchError, TirdeflectError
 from .geometry import Geometry
-from .height_kernels import (cell_average, check_grid, div_T, fft_workers, neumann_eigenvalues, poisson_neumann,
-                             variable_optics)
-from .pin import (PIN_FALLBACKS, PIN_MIN_FRACTION, PIN_MIN_PIECE_SAMPLES, PIN_MIN_SAMPLES, PinStatus,
-                  choose_pin_samples, pin_samples_needed)
+from .height_kernels import cell_average, check_grid, div_T, neumann_eigenvalues, poisson_neumann, variable_optics
+from .height_masked import apply_AT, edge_data, solve_masked
+from .height_spectral import prepare_spectral, spectral_solve
+from .pin import PIN_MIN_PIECE_SAMPLES, PinStatus, choose_pin_samples
 
 __all__ = [
-    "PIN_FALLBACKS",
-    "PIN_MIN_SAMPLES",
-    "PIN_MIN_FRACTION",
-    "PIN_MIN_PIECE_SAMPLES",
-    "PinStatus",
-    "choose_pin_samples",
-    "pin_samples_needed",
     "SurfaceResult",
     "HeightSolver",
     "surface_from_displacement",
-    "poisson_neumann",
-    "divergence_matrix",
     "solver_for",
 ]
 
@@ -130,16 +127,6 @@ class SurfaceResult(NamedTuple):
     surface_xy_mm: np.ndarray | None = None
     pin: PinStatus | None = None
     pin_samples: np.ndarray | None = None
-
-
-def divergence_matrix(n: int, spacing: float) -> np.ndarray:
-    """(n, n) float32 matrix of the operator ``D^T cellavg / spacing`` along one
-    axis (fourth order inside, :class:`HeightSolver`'s discretisation): applied
-    to a grid's rows (``M @ G``) it gives what the solver's right-hand side
-    adds along that axis."""
-    m = np.zeros((n, n), np.float32)
-    HeightSolver._divT_cellavg(np.eye(n, dtype=np.float32), 0, spacing, m)
-    return m
 
 
 class HeightSolver:
@@ -236,71 +223,9 @@ class HeightSolver:
                 f"(rows {grid.rows_px[0]:g}..{grid.rows_px[-1]:g}, cols {grid.cols_px[0]:g}..{grid.cols_px[-1]:g}); "
                 f"choose a larger region inside the frame"
             )
-        self._fast = self._prepare_fast()
+        self._fast = prepare_spectral(self)
 
     # ------------------------------------------------------------------ fast path
-    def _prepare_fast(self):
-        """Coefficients of the float32 spectral path (telecentric, diagonal optics)."""
-        Bi, Kt, k = self.Binv, self.Kinv_T, self.kappa
-        if not (self.constant and Bi[0, 1] == 0 and Bi[1, 0] == 0 and Kt[0, 1] == 0 and Kt[1, 0] == 0
-                and k[1] == 0 and min(self.shape) >= 6):
-            return None
-        null_r = self.null[:, :1].astype(np.float64)  # varies along rows only
-        out = {}
-        if max(self.shape) <= 96:
-            # small grids: D^T cellavg along each axis as a dense matrix (one
-            # matrix product instead of ~25 small array operations).  Only
-            # small: above ~100^2 OpenBLAS goes multithreaded and its spinning
-            # threads then slow the FFTW and OpenCV calls that follow (measured
-            # 3.3 -> 10 ms per decimated 1024^2 frame)
-            gr = (Bi[0, 0] / null_r).astype(np.float32)
-            out["Mr"] = np.ascontiguousarray(divergence_matrix(self.shape[0], self.grid.dr) * gr.T)
-            out["McT"] = np.ascontiguousarray(divergence_matrix(self.shape[1], self.grid.dc).T)
-
-            def dct_matrix(n):  # orthonormal DCT-II: X = C x
-                k = np.arange(n)[:, None]
-                c = np.sqrt(2.0 / n) * np.cos(np.pi * k * (2 * np.arange(n)[None, :] + 1) / (2 * n))
-                c[0] /= np.sqrt(2.0)
-                return c.astype(np.float32)
-            cr, cc = dct_matrix(self.shape[0]), dct_matrix(self.shape[1])
-            out["Cr"], out["CrT"] = cr, np.ascontiguousarray(cr.T)
-            out["Cc"], out["CcT"] = cc, np.ascontiguousarray(cc.T)
-        return dict(
-            **out,
-            gr=(Bi[0, 0] / null_r).astype(np.float32),  # (n_rows, 1)
-            gc=(Bi[1, 1] / null_r).astype(np.float32),
-            null=null_r.astype(np.float32),
-            denom=self.denom.astype(np.float32),
-            inv_denom=np.where(np.arange(self.denom.size).reshape(self.shape) == 0, 0.0,
-                               1.0 / self.denom).astype(np.float32),
-            sx=np.float32(Bi[1, 1] * Kt[1, 1]),
-            sy_u=np.float32(Bi[0, 0] * Kt[0, 0]),
-            sy_h=np.float32(k[0] * Kt[0, 0]),
-        )
-
-    @staticmethod
-    def _divT_cellavg(G, axis, spacing, out):
-        """Add ``D^T cellavg(G) / spacing`` along ``axis`` to ``out`` (float32, in place)."""
-        G = np.moveaxis(G, axis, 0)
-        o = np.moveaxis(out, axis, 0)
-        s = np.float32(1.0 / (24.0 * spacing))
-        # interior nodes 2..n-3: (-G[i-2] + 14 G[i-1] - 14 G[i+1] + G[i+2]) / 24
-        t = G[1:-3] - G[3:-1]
-        t *= np.float32(14.0)
-        t -= G[:-4]
-        t += G[4:]
-        t *= s
-        o[2:-2] += t
-        # edges 0 and n-2 (trapezoid), 1 and n-3 (four-point), for nodes 0, 1, n-2, n-1
-        e0 = (G[0] + G[1]) * np.float32(0.5 / spacing)
-        e1 = (-G[0] + 13 * G[1] + 13 * G[2] - G[3]) * s
-        el = (G[-2] + G[-1]) * np.float32(0.5 / spacing)
-        el1 = (-G[-4] + 13 * G[-3] + 13 * G[-2] - G[-1]) * s
-        o[0] -= e0
-        o[1] += e0 - e1
-        o[-2] += el1 - el
-        o[-1] += el
-
     def region_name(self) -> str:
         """How :class:`PinStatus` names ``geometry.reference_region``."""
         r = self.geometry.reference_region
@@ -340,42 +265,6 @@ class HeightSolver:
             self._pin_cache = (key, region, samples, status, weights)
         return samples, status, weights
 
-    def _solve_fast(self, u, v, reference_mask=None, *, pin_fallback="nearest", region_name=None, near=None):
-        F = self._fast
-        ur = np.asarray(u[0], dtype=np.float32)
-        uc = np.asarray(u[1], dtype=np.float32)
-        if "Mr" in F:
-            # the same linear operator as below as two small matrix products
-            rhs = F["Mr"] @ ur
-            t = uc @ F["McT"]
-            t *= F["gc"]
-            rhs += t
-        else:
-            rhs = np.zeros(self.shape, dtype=np.float32)
-            # D^T of the cell averages of g / n, in the order (row edges, column edges)
-            self._divT_cellavg(ur * F["gr"], 0, self.grid.dr, rhs)
-            self._divT_cellavg(uc * F["gc"], 1, self.grid.dc, rhs)
-        if "Cr" in F:  # small grid: the DCT pair as four small matrix products
-            c = F["Cr"] @ rhs @ F["CcT"]
-            c *= F["inv_denom"]  # 0 for the constant mode
-            f = F["CrT"] @ c @ F["Cc"]
-        else:
-            w = fft_workers(self.shape)
-            c = sfft.dctn(rhs, type=2, norm="ortho", workers=w, overwrite_x=True)
-            c *= F["inv_denom"]  # 0 for the constant mode
-            f = sfft.idctn(c, type=2, norm="ortho", workers=w, overwrite_x=True)
-        # pin: h = (f - alpha) n with alpha the n^2-weighted mean of f on the pin samples
-        samples, status, (w, nn) = self.pin_choice(v, True, reference_mask, pin_fallback, region_name, near)
-        alpha = float(np.vdot(w, f * F["null"])) / nn if nn > 0 else 0.0
-        f -= np.float32(alpha)
-        h = f
-        h *= F["null"]
-        sx = uc * F["sx"]
-        sy = ur * F["sy_u"]
-        sy -= F["sy_h"] * h
-        return SurfaceResult(h, sx, sy, self.x_mm.copy(), self.y_mm.copy(), v, 0, self.surface_xy,
-                             status, samples)
-
     def slope_coefficients(self):
         """(2, 3) matrix M with ``(slope_x, slope_y) = M @ (u_row, u_col, h)`` per
         sample when the optics are uniform (telecentric), else None.
@@ -386,7 +275,7 @@ class HeightSolver:
         if not self.constant:
             return None
         F = self._fast
-        if F is not None:  # exactly what _solve_fast computes
+        if F is not None:  # exactly what spectral_solve computes
             return np.array([[0.0, float(F["sx"]), 0.0],
                              [float(F["sy_u"]), 0.0, -float(F["sy_h"])]])
         Kt = np.asarray(self.Kinv_T, float)
@@ -407,35 +296,6 @@ class HeightSolver:
             gr = Bi[..., 0, 0] * ur + Bi[..., 0, 1] * uc
             gc = Bi[..., 1, 0] * ur + Bi[..., 1, 1] * uc
         return gr, gc
-
-    def _edge_data(self, gr, gc, valid):
-        G_r = gr / self.null
-        G_c = gc / self.null
-        ok = None if valid is None else valid
-        er = cell_average(G_r, 0, ok)
-        ec = cell_average(G_c, 1, ok)
-        return ec, er
-
-    def _apply_A(self, f):
-        dr, dc = self.grid.dr, self.grid.dc
-        ac = np.diff(f, axis=1) / dc
-        ar = np.diff(f, axis=0) / dr
-        if self.dk_c is not None:
-            ac += (self.dk_c * 0.5 * (f[:, 1:] + f[:, :-1])).astype(ac.dtype, copy=False)
-            ar += (self.dk_r * 0.5 * (f[1:, :] + f[:-1, :])).astype(ar.dtype, copy=False)
-        return ac, ar
-
-    def _apply_AT(self, ec, er):
-        dr, dc = self.grid.dr, self.grid.dc
-        out = div_T(ec, er, self.shape, dc, dr)
-        if self.dk_c is not None:
-            t = (0.5 * self.dk_c * ec).astype(out.dtype, copy=False)
-            out[:, :-1] += t
-            out[:, 1:] += t
-            t = (0.5 * self.dk_r * er).astype(out.dtype, copy=False)
-            out[:-1, :] += t
-            out[1:, :] += t
-        return out
 
     # ------------------------------------------------------------------ solve
     def solve(self, displacement_px, valid=None, *, solver: str = "auto", reference_mask=None,
@@ -479,8 +339,10 @@ class HeightSolver:
                        region_name=None, near=None) -> SurfaceResult:
         """The spectral path of :meth:`solve` for a finite displacement valid
         everywhere (needs :attr:`spectral_coefficients`, uniform optics)."""
-        return self._solve_fast(displacement_px, valid, reference_mask, pin_fallback=pin_fallback,
-                                region_name=region_name, near=near)
+        h, sx, sy, status, samples = spectral_solve(self, self._fast, displacement_px, valid, reference_mask,
+                                                    pin_fallback=pin_fallback, region_name=region_name, near=near)
+        return SurfaceResult(h, sx, sy, self.x_mm.copy(), self.y_mm.copy(), valid, 0, self.surface_xy, status,
+                             samples)
 
     def _solve(self, displacement_px, valid, solver, tol, reference_mask=None, *, pin_fallback="nearest",
                region_name=None, near=None):
@@ -516,18 +378,18 @@ class HeightSolver:
             raise AllInvalidError("no valid displacement sample: nothing to integrate; check the mask and the frame")
         use_spectral = solver == "spectral" or (solver == "auto" and all_valid and self.constant)
         if use_spectral and self._fast is not None:
-            return self._solve_fast(u, v, reference_mask, pin_fallback=pin_fallback, region_name=region_name,
-                                    near=near)
+            return self.solve_spectral(u, v, reference_mask, pin_fallback=pin_fallback, region_name=region_name,
+                                       near=near)
         samples, status, _ = self.pin_choice(v, all_valid, reference_mask, pin_fallback, region_name, near)
         uz = np.where(v, u, 0.0) if not all_valid else u
         gr, gc = self.gradients(uz)
         iterations = 0
         if use_spectral:
-            ec, er = self._edge_data(gr, gc, None)
-            f = poisson_neumann(self._apply_AT(ec, er), self.denom)
+            ec, er = edge_data(self, gr, gc, None)
+            f = poisson_neumann(apply_AT(self, ec, er), self.denom)
             pieces, n_pieces = None, 1
         else:
-            f, iterations = self._solve_masked(gr, gc, v, tol)
+            f, iterations = solve_masked(self, gr, gc, v, tol)
             pieces, n_pieces = ndimage.label(v)
         h = f * self.null
         n_valid = int(np.count_nonzero(v))
@@ -586,79 +448,6 @@ class HeightSolver:
         pinned[1:] = has_ref
         v &= pinned[pieces]
         return v
-
-    def _solve_masked(self, gr, gc, v, tol=None):
-        """PCG on the weighted normal equations, preconditioned by the DCT Poisson solver.
-
-        float32 arrays (float64 scalars); the warm start is the spectral
-        solution of the unmasked problem.
-        """
-        tol = self.tol if tol is None else float(tol)
-        f32 = np.float32
-        wc = (v[:, 1:] & v[:, :-1]).astype(f32)
-        wr = (v[1:, :] & v[:-1, :]).astype(f32)
-        ec, er = self._edge_data(gr, gc, v)
-        b = self._apply_AT((wc * ec).astype(f32), (wr * er).astype(f32))
-        vf = v.astype(f32)
-        denom = self.denom.astype(f32)
-
-        def op(x):
-            ac, ar = self._apply_A(x)
-            ac *= wc
-            ar *= wr
-            out = self._apply_AT(ac, ar)
-            out *= vf
-            return out
-
-        w = fft_workers(self.shape)
-
-        def prec(r):
-            c = sfft.dctn(r, type=2, norm="ortho", workers=w)
-            c[0, 0] = 0.0
-            c /= denom
-            z = sfft.idctn(c, type=2, norm="ortho", workers=w, overwrite_x=True)
-            z *= vf
-            return z
-
-        def dot(a, b):
-            return float(np.dot(a.ravel(), b.ravel()))
-
-        bnorm = math.sqrt(dot(b, b))
-        if bnorm == 0:
-            return np.zeros(self.shape, f32), 0
-        x = prec(b)
-        r = b - op(x)
-        z = prec(r)
-        p = z.copy()
-        rz = dot(r, z)
-        it = 0
-        converged = False
-        for it in range(1, self.max_iter + 1):
-            if math.sqrt(dot(r, r)) <= tol * bnorm:
-                it -= 1
-                converged = True
-                break
-            q = op(p)
-            pq = dot(p, q)
-            if pq <= 0:
-                converged = True
-                break
-            a = rz / pq
-            x += f32(a) * p
-            r -= f32(a) * q
-            z = prec(r)
-            rz_new = dot(r, z)
-            p *= f32(rz_new / rz)
-            p += z
-            rz = rz_new
-        if not converged and math.sqrt(dot(r, r)) > 1e2 * tol * bnorm:
-            raise TirdeflectError(
-                f"masked height solver did not converge in {self.max_iter} iterations "
-                f"(relative residual {math.sqrt(dot(r, r)) / bnorm:.1e}); "
-                "the valid region is probably fragmented: enlarge the mask or use a decimated grid"
-            )
-        return x.astype(np.float64), it
-
 
 _CACHE: "OrderedDict[tuple, HeightSolver]" = OrderedDict()
 _CACHE_SIZE = 8

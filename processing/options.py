@@ -15,7 +15,7 @@ import dataclasses
 from typing import Optional
 
 from .fft import PLANNER_EFFORTS
-from .height import PIN_FALLBACKS
+from .pin import PIN_FALLBACKS
 
 __all__ = ["ReconstructOptions", "full_grid_refinement", "PATTERNS", "GRIDS", "REFINE_METHODS"]
 
@@ -125,7 +125,7 @@ class ReconstructOptions:
         "FFTW_MEASURE" with wisdom from :func:`processing.fft.import_wisdom`).
     pin_fallback : {"nearest", "refuse"}, optional
         When a frame's reference region holds fewer valid samples than the pin
-        needs (:func:`processing.height.choose_pin_samples`): pin on the valid
+        needs (:func:`processing.pin.choose_pin_samples`): pin on the valid
         samples nearest the region (default; ``Result.pin.rule == "nearest"``)
         or refuse the frame (GeometryError).  The same rule for every frame.
     pattern : {"checkerboard", "dots"} or None, optional

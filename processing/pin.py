@@ -1,6 +1,5 @@
 """What pins the height's null space in one frame (:mod:`processing.height`'s
-module docstring says why): :func:`choose_pin_samples` and its :class:`PinStatus`,
-re-exported by :mod:`processing.height`."""
+module docstring says why): :func:`choose_pin_samples` and its :class:`PinStatus`."""
 
 from __future__ import annotations
 

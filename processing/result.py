@@ -13,7 +13,7 @@ from typing import Optional
 import numpy as np
 
 from .carriers import Carriers
-from .height import PinStatus
+from .pin import PinStatus
 
 __all__ = ["Result", "SeriesCheck"]
 
@@ -84,7 +84,7 @@ class Result:
         Fraction of valid samples.
     timings_ms : dict
         Time spent per stage.
-    pin : processing.height.PinStatus or None
+    pin : processing.pin.PinStatus or None
         Where the height offset (the operator's null space) was pinned, how
         many valid samples it had, which rule.
     series : SeriesCheck or None

@@ -15,7 +15,7 @@ from typing import Optional
 
 import numpy as np
 
-from .height import PIN_MIN_PIECE_SAMPLES
+from .pin import PIN_MIN_PIECE_SAMPLES
 from .result import SeriesCheck
 from .unwrap import TWO_PI, unwrap_spatial, unwrap_temporal, wrap
 

@@ -185,6 +185,7 @@ def test_gpu_chain_reads_only_public_names_of_the_cpu_chain(tmp_path):
 def test_chains_read_no_private_attribute_of_another_object():
     # the stage modules of issue 19 point 2 talk through public names only
     # (the facade's chain, the height solver's solve_at_tolerance / solve_spectral)
+    # and so do the height solver's paths and the camera model split off their classes
     for name in ("reconstruct", "chain_checkerboard", "chain_image", "chain_dots", "series", "mask", "refine",
-                 "fullgrid", "live_view"):
+                 "fullgrid", "live_view", "height_spectral", "height_masked", "camera_model"):
         assert _private_reads_off_other_objects(ROOT / "processing" / f"{name}.py") == [], name

@@ -22,7 +22,7 @@ import pytest
 from processing import forward as F
 from processing.errors import GeometryError
 from processing.geometry import Geometry
-from processing.height import PIN_MIN_SAMPLES
+from processing.pin import PIN_MIN_SAMPLES
 from processing.reconstruct import Reconstructor
 
 FSSS = Geometry(setup="fsss", pixel_mm=0.207, fsss_layers=((57.0, 1.0003), (12.0, 1.48899), (43.0, 1.34)),

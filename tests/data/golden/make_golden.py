@@ -4,17 +4,29 @@ the issue-19 split of processing/reconstruct.py into a plan and stages.
 
 tests/processing/test_golden_refactor.py runs the same cases through the code
 as it is now and compares field by field (bit-identical, or within 1e-6 of the
-RMS height where an FFT plan differs).  Regenerate ONLY when a change of the
-numbers is intended (and say why in the commit):
+field's RMS).  Both sides run under :func:`fixed_fft_plans` with
+:data:`FIXED_FFT`, so that the FFT plans, the one thing that otherwise varies
+between runs of the same code on one machine, are the same.
 
-    PYTHONPATH=$PWD python tests/data/golden/make_golden.py
+The file was written by the code before the split (commit 3173c53) with this
+file copied into a throwaway worktree of it:
+
+    git worktree add /tmp/golden_old 3173c53
+    cp tests/data/golden/make_golden.py /tmp/golden_old/tests/data/golden/
+    cd /tmp/golden_old && PYTHONPATH=$PWD python tests/data/golden/make_golden.py OUT.npz
+
+Regenerate ONLY when a change of the numbers is intended (and say why in the
+commit): ``PYTHONPATH=$PWD python tests/data/golden/make_golden.py``.
 """
 
 from __future__ import annotations
 
+import contextlib
+import sys
 from pathlib import Path
 
 import numpy as np
+import pyfftw
 
 from processing import forward as F
 from processing.geometry import Geometry
@@ -65,6 +77,33 @@ def cases():
     }
 
 
+#: The FFT setting of both sides, through the public options: FFTW's estimate
+#: planner (no timing: the plan is a function of the problem alone) on one
+#: thread.  FFTW_MEASURE (the app's) picks among algorithms by timing them, so
+#: it can choose another one in another run, and threads split the work.
+FIXED_FFT = dict(planner_effort="FFTW_ESTIMATE", threads=1)
+
+
+@contextlib.contextmanager
+def fixed_fft_plans():
+    """Run with FFTW's wisdom set aside (restored afterwards).
+
+    FFTW uses the wisdom a process has accumulated for a problem (from any
+    plan at least as rigorous, e.g. an earlier FFTW_MEASURE plan of the same
+    shape, or wisdom imported from the app's cache) even for an FFTW_ESTIMATE
+    plan: in a run of the whole suite the same code then takes other plans
+    whose float32 rounding differs (up to 2.6e-5 of a field's RMS was seen).
+    Without wisdom, FFTW_ESTIMATE plans the same transforms every time.
+    """
+    saved = pyfftw.export_wisdom()
+    pyfftw.forget_wisdom()
+    try:
+        yield
+    finally:
+        pyfftw.forget_wisdom()
+        pyfftw.import_wisdom(saved)
+
+
 #: Frames run (their series memory feeds the next) but not stored: keeps the file < 2 MB.
 NOT_STORED = {"series_full_fd/0"}
 
@@ -87,20 +126,30 @@ def result_fields(res) -> dict:
 
 
 def run_all() -> dict:
-    """``{"case/frame/field": array}`` of the code as it is."""
+    """``{"case/frame/field": array}`` of the code as it is, under :func:`fixed_fft_plans`."""
     out = {}
-    for name, (ref, frames, geometry, opts) in cases().items():
-        rec = Reconstructor(ref, geometry, **opts)
-        for i, frame in enumerate(frames):
-            res = rec(frame)
-            if f"{name}/{i}" in NOT_STORED:
-                continue
-            for field, value in result_fields(res).items():
-                out[f"{name}/{i}/{field}"] = value
+    all_cases = cases()
+    with fixed_fft_plans():
+        for name, (ref, frames, geometry, opts) in all_cases.items():
+            out.update(_run_case(name, ref, frames, geometry, opts))
+    return out
+
+
+def _run_case(name, ref, frames, geometry, opts) -> dict:
+    """One case's frames as one series, its fields keyed ``"case/frame/field"``."""
+    out = {}
+    rec = Reconstructor(ref, geometry, **opts, **FIXED_FFT)
+    for i, frame in enumerate(frames):
+        res = rec(frame)
+        if f"{name}/{i}" in NOT_STORED:
+            continue
+        for field, value in result_fields(res).items():
+            out[f"{name}/{i}/{field}"] = value
     return out
 
 
 if __name__ == "__main__":
+    path = Path(sys.argv[1]) if len(sys.argv) > 1 else OUT
     data = run_all()
-    np.savez_compressed(OUT, **data)
-    print(f"{OUT}: {len(data)} arrays, {OUT.stat().st_size / 1e6:.2f} MB")
+    np.savez_compressed(path, **data)
+    print(f"{path}: {len(data)} arrays, {path.stat().st_size / 1e6:.2f} MB")
