@@ -29,7 +29,7 @@ DEVICES = ("cpu", "cuda")
 _FILTER_SHAPES = ("flattop", "disc")
 _BORDERS = ("apodize", "none")
 _FULL_METHODS = ("interpolate", "ifft")
-_FULL_INTERPOLATIONS = ("lanczos", "cubic", "linear")
+_FULL_INTERPOLATIONS = ("spline", "lanczos", "cubic", "linear")
 
 
 def _one_of(name, value, allowed):
@@ -181,7 +181,7 @@ class ReconstructOptions:
     border: str = "apodize"
     subbin: bool = True
     full_method: str = "interpolate"
-    full_interpolation: str = "lanczos"
+    full_interpolation: str = "spline"
     min_amplitude: float = 0.3
     min_fold: float = 0.2
     dilate: int = 1
