@@ -6,11 +6,12 @@ the real FFT of each frame, both carrier windows and their small inverse
 FFTs (decimated grid), phase, amplitude ratio and mask, temporal unwrapping
 (a cumulative sum of the wrapped changes over the batch, with the reference
 region kept nearest 0 as the CPU path does), displacement, the fold test,
-the bias-removal iteration (Lanczos upsampling of ``u`` as two matrix
-products with cv2's INTER_LANCZOS4 weights, bilinear warp of the smooth
+the bias-removal iteration (upsampling of ``u`` as two matrix products with
+the CPU's weights: the cubic B-spline of :func:`processing.fullgrid.spline_matrix`,
+or cv2's INTER_LANCZOS4 with ``full_interpolation="lanczos"``; bilinear warp of the smooth
 reference with cv2.remap's reflecting border, its FFT and windows), the
-spectral height solve (as matrix products) and the full grid (Lanczos again,
-slopes as the linear map of u and h). Written against an array module
+spectral height solve (as matrix products) and the full grid (the same
+matrices again, slopes as the linear map of u and h). Written against an array module
 ``xp``: CuPy on the GPU; NumPy runs the very same code on the CPU, which is
 how it is tested where there is no GPU (tests/processing/test_gpu.py).
 
@@ -38,6 +39,7 @@ import time
 
 import numpy as np
 
+from .fullgrid import spline_matrix
 from .unwrap import TWO_PI
 
 __all__ = ["BatchChain", "cupy_or_reason", "lanczos_matrix", "live_device"]
@@ -145,8 +147,8 @@ class BatchChain:
             self.reason = "refine_method='image' (image matching on the CPU)"
         elif not plan.reference_valid_everywhere:
             self.reason = "the reference has blank parts (every frame is masked)"
-        elif recon.options.full_interpolation != "lanczos":
-            self.reason = "full_interpolation other than 'lanczos' (the GPU resizes with Lanczos only)"
+        elif recon.options.full_interpolation not in ("spline", "lanczos"):
+            self.reason = "full_interpolation other than 'spline' or 'lanczos' (the GPU resizes with those only)"
         if self.reason is not None:
             return
         to = xp.asarray
@@ -165,8 +167,9 @@ class BatchChain:
         self.ref_idx = to(plan.reference_region_index)
         self.spacing = (np.float32(recon.rows_px[1] - recon.rows_px[0]),
                         np.float32(recon.cols_px[1] - recon.cols_px[0]))
-        self.up_r = to(lanczos_matrix(rows, m_r))
-        self.up_cT = to(np.ascontiguousarray(lanczos_matrix(cols, m_c).T))
+        along = spline_matrix if recon.options.full_interpolation == "spline" else lanczos_matrix
+        self.up_r = to(along(rows, m_r))
+        self.up_cT = to(np.ascontiguousarray(along(cols, m_c).T))
         # spectral height solve as matrix products, whatever the grid size
         from .height import divergence_matrix as op
 
