@@ -97,11 +97,14 @@ class ReconstructOptions:
         grid, where unwrapping, masking and the height solve run, shrinks).
     full_method : {"interpolate", "ifft"}, optional
         How the full grid is made (see module docstring).
-    full_interpolation : {"lanczos", "cubic", "linear"}, optional
-        Kernel of ``full_method="interpolate"`` (cv2.resize).  Measured on
-        ray-traced waves (wavelengths >= 25 samples of the decimated grid):
-        interpolation alone adds 0.2 % (lanczos, default), 0.8 % (cubic),
-        0.5 % (linear) rms height error.
+    full_interpolation : {"spline", "lanczos", "cubic", "linear"}, optional
+        Kernel of ``full_method="interpolate"`` (and of the u upsampling of
+        FD's refinement): ``"spline"`` (default) cubic B-spline
+        (:class:`processing.fullgrid.Upsampler`), the others cv2.resize's.
+        Measured (issue 19): the true displacement of the ray-traced pure
+        cosines taken from the decimated grid to every pixel comes back
+        within 0.01 % by the spline, 0.28 % by Lanczos4 (its windowed sinc
+        moves values by up to 0.05 px), 1.8 % cubic, 2.4 % linear.
     min_island : float, optional
         Valid regions cut off from the reference region and smaller than this
         fraction of the grid are dropped (their 2 pi offset is unknowable in
