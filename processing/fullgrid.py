@@ -75,6 +75,14 @@ class _SplineResize:
 
     def __call__(self, field, out):
         along_rows, along_cols = self.mats
+        bad = ~np.isfinite(field)
+        if bad.any():
+            # the prefilter would spread a NaN over the whole grid: NaN only
+            # where a linear resize of the bad samples reaches, as cv2 does
+            self(np.where(bad, np.float32(0.0), field), out)
+            reach = cv2.resize(bad.astype(np.float32), (out.shape[1], out.shape[0]), interpolation=cv2.INTER_LINEAR)
+            np.copyto(out, np.float32(np.nan), where=reach > 0)
+            return out
         coef = spline_coefficients(field)
         half = np.ascontiguousarray((along_cols @ coef.T).T)  # (m_rows, cols)
         np.copyto(out, along_rows @ half)
