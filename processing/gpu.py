@@ -6,11 +6,13 @@ the real FFT of each frame, both carrier windows and their small inverse
 FFTs (decimated grid), phase, amplitude ratio and mask, temporal unwrapping
 (a cumulative sum of the wrapped changes over the batch, with the reference
 region kept nearest 0 as the CPU path does), displacement, the fold test,
-the bias-removal iteration (Lanczos upsampling of ``u`` as two matrix
-products with cv2's INTER_LANCZOS4 weights, bilinear warp of the smooth
+the bias-removal iteration (upsampling of ``u`` as two matrix products with
+cv2's INTER_LANCZOS4 weights, as the CPU's warp maps; bilinear warp of the smooth
 reference with cv2.remap's reflecting border, its FFT and windows), the
-spectral height solve (as matrix products) and the full grid (Lanczos again,
-slopes as the linear map of u and h). Written against an array module
+spectral height solve (as matrix products) and the full grid (the CPU's
+kernel as two matrix products: the cubic B-spline of
+:func:`processing.fullgrid.spline_matrix`, or Lanczos4 with
+``full_interpolation="lanczos"``; slopes as the linear map of u and h). Written against an array module
 ``xp``: CuPy on the GPU; NumPy runs the very same code on the CPU, which is
 how it is tested where there is no GPU (tests/processing/test_gpu.py).
 
@@ -38,6 +40,7 @@ import time
 
 import numpy as np
 
+from .fullgrid import spline_matrix
 from .unwrap import TWO_PI
 
 __all__ = ["BatchChain", "cupy_or_reason", "lanczos_matrix", "live_device"]
@@ -145,8 +148,8 @@ class BatchChain:
             self.reason = "refine_method='image' (image matching on the CPU)"
         elif not plan.reference_valid_everywhere:
             self.reason = "the reference has blank parts (every frame is masked)"
-        elif recon.options.full_interpolation != "lanczos":
-            self.reason = "full_interpolation other than 'lanczos' (the GPU resizes with Lanczos only)"
+        elif recon.options.full_interpolation not in ("spline", "lanczos"):
+            self.reason = "full_interpolation other than 'spline' or 'lanczos' (the GPU resizes with those only)"
         if self.reason is not None:
             return
         to = xp.asarray
@@ -165,8 +168,12 @@ class BatchChain:
         self.ref_idx = to(plan.reference_region_index)
         self.spacing = (np.float32(recon.rows_px[1] - recon.rows_px[0]),
                         np.float32(recon.cols_px[1] - recon.cols_px[0]))
-        self.up_r = to(lanczos_matrix(rows, m_r))
-        self.up_cT = to(np.ascontiguousarray(lanczos_matrix(cols, m_c).T))
+        along = spline_matrix if recon.options.full_interpolation == "spline" else lanczos_matrix
+        self.up_r = to(along(rows, m_r))
+        self.up_cT = to(np.ascontiguousarray(along(cols, m_c).T))
+        # the refinement's warp maps: Lanczos4 whatever the full grid's kernel, as on the CPU (refine.WARP_MAP_INTERPOLATION)
+        self.warp_r = to(lanczos_matrix(rows, m_r))
+        self.warp_cT = to(np.ascontiguousarray(lanczos_matrix(cols, m_c).T))
         # spectral height solve as matrix products, whatever the grid size
         from .height_spectral import dct_matrix, divergence_matrix as op
 
@@ -219,8 +226,11 @@ class BatchChain:
         return xp.stack([inv[0, 0] * phase[:, 0] + inv[0, 1] * phase[:, 1],
                          inv[1, 0] * phase[:, 0] + inv[1, 1] * phase[:, 1]], axis=1)
 
-    def _up(self, field):
-        """(..., m_r, m_c) -> (..., rows, cols): cv2's Lanczos4 resize as two products."""
+    def _up(self, field, warp=False):
+        """(..., m_r, m_c) -> (..., rows, cols): the CPU's resize as two products (the
+        full grid's kernel, or Lanczos4 for the refinement's warp maps with ``warp``)."""
+        if warp:
+            return self.xp.matmul(self.xp.matmul(self.warp_r, field), self.warp_cT)
         return self.xp.matmul(self.xp.matmul(self.up_r, field), self.up_cT)
 
     def _warp_smooth(self, u):
@@ -232,8 +242,8 @@ class BatchChain:
             self.smooth = xp.asarray(fine)
         f = np.float32(self.smooth_factor)
         rows, cols = self.smooth.shape
-        X = f * (self.cols_f - self._up(u[:, 1]))
-        Y = f * (self.rows_f - self._up(u[:, 0]))
+        X = f * (self.cols_f - self._up(u[:, 1], warp=True))
+        Y = f * (self.rows_f - self._up(u[:, 0], warp=True))
         ix = xp.floor(X)
         iy = xp.floor(Y)
         fx = (X - ix).astype(xp.float32)

@@ -102,13 +102,14 @@ def test_chain_without_unwrapping_leaves_masked_frames_to_the_cpu(series):
 
 
 def test_chain_takes_only_what_it_reproduces(series):
-    """The chain resizes with Lanczos only: another full-grid interpolation (4 % of the
-    RMS height apart) goes through the CPU, and the Reconstructor says why."""
+    """The chain resizes with the spline (default) or Lanczos only: another full-grid
+    interpolation (4 % of the RMS height apart) goes through the CPU, and the Reconstructor says why."""
     ref, _ = series
     for interpolation in ("cubic", "linear"):
         chain = BatchChain(Reconstructor(ref, G55, full_interpolation=interpolation, refine_method="fd"), np)
         assert chain.reason is not None and "lanczos" in chain.reason
     assert BatchChain(Reconstructor(ref, G55, refine_method="fd"), np).reason is None
+    assert BatchChain(Reconstructor(ref, G55, refine_method="fd", full_interpolation="lanczos"), np).reason is None
     assert Reconstructor(ref, G55).gpu_fallback is None  # device="cpu": nothing falls back
 
 

@@ -1,0 +1,116 @@
+"""The pure-cosine case of issue 19 (point 5), ray-traced by the project's own
+forward model, and the full grid's interpolation.
+
+Two crossed pure cosines (``forward.CrossedCosines``: no square-wave
+harmonics, no mixing terms), 8 px period in the image both ways, rotated
+9 deg; Bessel-J0 ring waves (``forward.RingWaves``) 7 mm on the surface
+(40 px = 5 carrier periods along the rows), up to 1.8 px displacement
+(carrier phase 1.4 rad).  Measure: full-grid RMS displacement error over the
+valid interior (8 % margin, the accuracy table's rule) relative to the RMS
+displacement there; ``benchmarks/bench_pure_cosine.py`` prints the same and
+where the error is.
+
+12-bit frames: with 12 bits the error equals the float frames' to 0.02
+points (quantisation adds nothing measurable); 8 bits add about 0.5 % in
+quadrature (quantisation noise through the band-pass), which
+tests/processing/test_reconstruct.py's 8-bit test covers.
+"""
+
+import math
+
+import numpy as np
+import pytest
+
+from processing import forward as F
+from processing.geometry import Geometry
+from processing.reconstruct import Reconstructor
+
+G55 = Geometry(theta_deg=55, depth_mm=300, pixel_mm=0.1, rows_toward_camera=False)
+N = 256
+COSINES = F.CrossedCosines(period_mm=0.8, rotation_deg=9.0, stretch_y=1.0 / math.cos(math.radians(55.0)))
+RINGS = F.RingWaves(amplitude_mm=0.00033, wavelength_mm=7.0)
+#: A refinement may be worse than none by at most this (points of %): the
+#: figures are deterministic, this only absorbs other FFT plans (1e-5 relative).
+REFINEMENT_TOLERANCE_POINTS = 0.02
+
+
+def interior(rows_px, cols_px, margin=0.08):
+    R, C = np.meshgrid(rows_px, cols_px, indexing="ij")
+    return (R > margin * N) & (R < (1 - margin) * N) & (C > margin * N) & (C < (1 - margin) * N)
+
+
+def displacement_error_pct(displacement, valid, u_true, rows_px, cols_px):
+    inner = valid & interior(rows_px, cols_px)
+    d = (displacement - u_true)[:, inner]
+    return 100.0 * float(np.sqrt(np.mean(d**2)) / np.sqrt(np.mean(u_true[:, inner] ** 2)))
+
+
+@pytest.fixture(scope="module")
+def pair():
+    ref, _ = F.render_tir(F.FlatSurface(), G55, (N, N), COSINES, supersample=2)
+    img, _ = F.render_tir(RINGS, G55, (N, N), COSINES, supersample=2)
+    u_true, _ = F.true_displacement(RINGS, G55, (N, N))
+    return F.quantize(ref, bits=12), F.quantize(img, bits=12), u_true
+
+
+def test_full_grid_interpolation_keeps_a_smooth_displacement(pair):
+    # The true displacement sampled on the decimated grid, taken to every
+    # pixel by the chain's upsampler, must come back as the true displacement
+    # at every pixel: the field is smooth (features >= 40 px, 11 samples a
+    # wavelength).  Measured: cubic B-spline 0.01 %; cv2's Lanczos4 (before)
+    # 0.28 %, since its windowed-sinc weights move each value by up to
+    # 0.053 px (their first moment), periodically in the sub-sample position.
+    ref, _, u_full = pair
+    rec = Reconstructor(ref, G55)
+    up = rec.chain.upsampler
+    u_dec = F.true_displacement(RINGS, G55, (N, N), rows_px=rec.rows_px, cols_px=rec.cols_px)[0]
+    got = np.stack([up(u_dec[0]), up(u_dec[1])])
+    px = np.arange(N, dtype=float)
+    assert displacement_error_pct(got, np.ones((N, N), bool), u_full, px, px) <= 0.03
+
+
+def test_spline_upsampler_is_exact_and_keeps_a_bad_sample_local():
+    from scipy import ndimage
+
+    from processing.fullgrid import Upsampler, spline_matrix
+
+    rng = np.random.default_rng(1)
+    f = rng.standard_normal((43, 37)).astype(np.float32)
+    up = Upsampler((200, 256), f.shape)
+    got = up(f)
+    # the cubic B-spline interpolant itself (scipy, mirror ends), at cv2.resize's pixel centres
+    pr = (np.arange(200) + 0.5) * 43 / 200 - 0.5
+    pc = (np.arange(256) + 0.5) * 37 / 256 - 0.5
+    expected = ndimage.map_coordinates(f.astype(np.float64), np.meshgrid(pr, pc, indexing="ij"), order=3,
+                                       mode="reflect")
+    assert np.abs(got - expected).max() <= 1e-5 * np.abs(expected).max()
+    assert np.abs(spline_matrix(200, 43) @ f @ spline_matrix(256, 37).T - expected).max() <= 1e-5 * np.abs(expected).max()
+    # a NaN sample (the prefilter is global) spoils only the pixels a linear resize of it reaches
+    f[20, 18] = np.nan
+    bad = np.isnan(up(f))
+    assert 0 < bad.sum() <= 12 * 12 and bad[90:100, 120:130].any()
+
+
+def test_pure_cosine_full_grid_methods_and_refinement_never_hurts(pair):
+    # 12 bit, 8 % margin.  Measured now / before the spline full grid
+    # (issue 19): no refinement 0.92 / 1.01 %, FD 1 iteration 0.76 / 0.83 %,
+    # image matching (the default) 0.64 / 0.75 %.  Issue 19's goal is
+    # <= 0.6 % for each: not met.  What is left is where FD has data on one
+    # side only (within 2.5-6 carrier periods of the frame's edge:
+    # bench_pure_cosine.py prints 1.4-2.3 % there for no refinement, 0.4 % in
+    # the middle) and, for image matching, its own solve (0.67 % in the
+    # middle); docs/processing.md section 6.
+    ref, img, u_true = pair
+    errors = {}
+    for name, kw in (("none", dict(refine_iterations=0)), ("fd", dict(refine_method="fd")),
+                     ("fd2", dict(refine_method="fd", refine_iterations=2)), ("image", dict(refine_method="image")),
+                     ("default", {})):
+        res = Reconstructor(ref, G55, **kw)(img)
+        assert res.grid == "full"
+        errors[name] = displacement_error_pct(res.displacement, res.valid, u_true, res.rows_px, res.cols_px)
+    assert errors["none"] <= 0.95, errors
+    assert errors["fd"] <= 0.80, errors
+    assert errors["image"] <= 0.68, errors
+    assert errors["default"] == errors["image"]
+    for name in ("fd", "fd2", "image"):
+        assert errors[name] <= errors["none"] + REFINEMENT_TOLERANCE_POINTS, (name, errors)
