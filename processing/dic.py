@@ -43,6 +43,7 @@ accuracy table at or below FD's.
 from __future__ import annotations
 
 import math
+import os
 
 import cv2
 import numpy as np
@@ -159,38 +160,19 @@ def _diverged(test: str, figures: str):
 
 def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int = 3, cg_iterations: int = 3,
                   regularisation: float = 0.03, blur_px: float = BLUR_PX,
-                  intensity_cell_px: float | None = INTENSITY_CELL_PX, period_px: float | None = None):
+                  intensity_cell_px: float | None = INTENSITY_CELL_PX, period_px: float | None = None,
+                  threads: int = 1):
     """Global Gauss-Newton image matching for the height on the node grid of ``nodes``.
 
     Minimises ``sum_r w [G*((I - b) / a) - G*I0(r - P L h)]^2 + lam (|D3r h|^2 + |D3c h|^2)``
-    (module docstring): ``L`` the node heights -> node displacement
-    (:meth:`HeightNodes.displacement`), ``P`` bilinear nodes -> pixels in the
-    normal equations, Lanczos for the warp itself; ``G*`` a Gaussian of
-    ``blur_px`` applied to the frame and to the warped reference (so the
-    gradient is that of the blurred warped reference); ``a``, ``b`` the
-    frame's smooth gain and offset fields (:func:`intensity_fit`, fitted
-    once against the reference warped by the start: the frame may be
-    brighter or darker than the reference, by a shadow or an exposure, and
-    still match; the frame is divided by them before the blur).  Each step solves
-    ``(L^T P^T N P L + lam R) dh = -L^T P^T g e - lam R h``
-    by conjugate gradients preconditioned with the constant-coefficient
-    operator's DCT (``cg_iterations`` per step: from FD's start 3 give the
-    same heights as 15).  ``lam`` is ``regularisation`` times the data
-    term's weight per node at unit spatial frequency (measured on the
-    ray-traced waves 3-6 carrier periods long: 0.001 too weak, 4.2 %;
-    0.03-0.05 best, 0.85-0.9 %; 0.1: 1.05 %; 1: 6.8 %, the waves flattened).
-
-    Every loop is bounded (``outer`` steps of ``cg_iterations``), and the
-    iterations stop with :class:`RefinementDiverged` (the caller keeps FD's
-    answer) when they leave the range where they can be right: a
-    non-finite residual, step or displacement; a displacement that moved
-    from the start by more than half the pattern's period (``period_px``;
-    rms over the nodes) or reaches beyond the frame's size (anywhere); a
-    step more than twice as large as the one before (rms); a residual (sum
-    of squares) :data:`RESIDUAL_RISE` times its smallest so far.  These
-    are tested on the node grid before each warp, so no warp ever sees
-    coordinates far outside the frame (OpenCV's reflection of such
-    coordinates takes time in proportion to their size).
+    (module docstring; docs/processing.md section 6 for the settings measured):
+    ``outer`` steps, each solving the normal equations by ``cg_iterations``
+    preconditioned conjugate-gradient iterations (:func:`_gauss_newton_step`);
+    ``lam`` is ``regularisation`` times the data term's weight per node at unit
+    spatial frequency.  Every loop is bounded, and the iterations stop with
+    :class:`RefinementDiverged` (the caller keeps FD's answer) when they leave
+    the range where they can be right (:func:`_check_displacement` before each
+    warp, :func:`_check_cost`, :func:`_check_step`).
 
     Parameters
     ----------
@@ -198,15 +180,17 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
         :func:`fine_reference` of the reference.
     frame : ndarray (rows, cols)
     h0 : ndarray (n_rows, n_cols)
-        Starting heights at the nodes (mm; FD's, NaN-free).
+        Starting heights at the nodes (mm; FD's; NaN: the nearest finite node's).
     valid_px : ndarray bool (rows, cols)
         Pixels whose residual counts.
     nodes : HeightNodes
     intensity_cell_px : float or None
-        Cell of the gain and offset fields (:func:`intensity_fit`); None:
-        the frame is matched as it is (gain 1, offset 0).
+        Cell of the gain and offset fields (:func:`intensity_fit`); None: gain 1, offset 0.
     period_px : float or None
         The pattern's shorter carrier period, pixels (None: no bound from it).
+    threads : int
+        Threads for the node stencils of each step (1 when a parallel run gives
+        each frame one core); the result does not depend on it.
 
     Returns
     -------
@@ -244,7 +228,7 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
             gr *= w
             gc *= w
         prev_cost = _check_cost(_dot(e * w, e) if not all_valid else _dot(e, e), prev_cost, k, w.size)
-        x = _gauss_newton_step(nodes, gr, gc, e, h, regularisation, cg_iterations, k)
+        x = _gauss_newton_step(nodes, gr, gc, e, h, regularisation, cg_iterations, k, threads)
         prev_step = _check_step(_rms(nodes.displacement(x)), prev_step, k)
         h += x
     return h, u.astype(np.float32), free
@@ -353,7 +337,25 @@ def _normalised_frame(raw, blurred, warped, weight, cell_px, blur_px):
     return img
 
 
-def _gauss_newton_step(nodes, gr, gc, e, h, regularisation, cg_iterations, k):
+_POOLS: dict = {}
+# a forked child inherits the pools but not their threads: it would wait on them forever
+os.register_at_fork(after_in_child=_POOLS.clear)
+
+
+def _map(fn, jobs, threads):
+    """``[fn(*job) for job in jobs]``, on ``threads`` threads when more than 1 (one
+    pool per thread count, kept for the process's life; numpy releases the GIL)."""
+    if threads <= 1 or len(jobs) < 2:
+        return [fn(*job) for job in jobs]
+    from concurrent.futures import ThreadPoolExecutor
+
+    pool = _POOLS.get(threads)
+    if pool is None:
+        pool = _POOLS[threads] = ThreadPoolExecutor(threads, thread_name_prefix="dic")
+    return list(pool.map(lambda job: fn(*job), jobs))
+
+
+def _gauss_newton_step(nodes, gr, gc, e, h, regularisation, cg_iterations, k, threads=1):
     """The step ``dh`` of :func:`refine_height` from the (weighted) gradients
     ``gr``, ``gc`` of the warped reference and the residual ``e``: the normal
     equations ``(L^T P^T N P L + lam R) dh = -L^T P^T g e - lam R h`` by
@@ -362,11 +364,13 @@ def _gauss_newton_step(nodes, gr, gc, e, h, regularisation, cg_iterations, k):
     import scipy.fft as sfft
 
     Bm = nodes.B_mean
-    Nrr = nodes.node_normal(gr * gr)
-    Nrc = nodes.node_normal(gr * gc)
-    Ncc = nodes.node_normal(gc * gc)
-    br = nodes.node_rhs(gr * e)
-    bc = nodes.node_rhs(gc * e)
+
+    def node_sums(a, b, normal):
+        return nodes.node_normal(a * b) if normal else nodes.node_rhs(a * b)
+
+    # five independent products and sums to the nodes: the step's largest cost
+    Nrr, Nrc, Ncc, br, bc = _map(node_sums, [(gr, gr, True), (gr, gc, True), (gc, gc, True),
+                                             (gr, e, False), (gc, e, False)], threads)
     nr = Nrr.mean_row_sum()
     nc = Ncc.mean_row_sum()
     lam = regularisation * (nr * Bm[0, 0] ** 2 + nc * Bm[1, 1] ** 2) / nodes.grid.s ** 2
