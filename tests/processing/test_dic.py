@@ -5,6 +5,8 @@ measure as in test_reconstruct (relative RMS height error, interior, null
 space removed).  Figures quoted are from docs/processing.md section 6.
 """
 
+import os
+
 import cv2
 import numpy as np
 import pytest
@@ -240,6 +242,44 @@ def test_refine_height_is_invariant_to_a_gain_of_1e10_and_stops_on_what_diverges
         dic.refine_height(fine, img.astype(np.float32) * np.float32(1e10), h0, every, nodes,
                           intensity_cell_px=None, period_px=10.0)
     assert time.perf_counter() - t0 < 30.0  # a hang detector: it needs about 0.01 s
+
+
+def _refine_inputs(wave_frames):
+    ref, img, _ = wave_frames
+    nodes = dic.HeightNodes(G55, dic.NodeGrid(ref.shape))
+    return dic.fine_reference(ref.astype(np.float32)), img, _fd_start(ref, img, nodes), np.ones(ref.shape, bool), nodes
+
+
+def test_refine_height_threads_give_the_same_displacement(wave_frames):
+    # threads: the five node stencils of each step run side by side; no shared
+    # buffer between them may change a bit of the answer (issue 22)
+    fine, img, h0, every, nodes = _refine_inputs(wave_frames)
+    _, u_one, _ = dic.refine_height(fine, img, h0, every, nodes, period_px=10.0, threads=1)
+    _, u_three, _ = dic.refine_height(fine, img, h0, every, nodes, period_px=10.0, threads=3)
+    np.testing.assert_array_equal(u_three, u_one)
+
+
+def _refine_in_child(args):
+    fine, img, h0, every, nodes = args
+    dic.refine_height(fine, img, h0, every, nodes, period_px=10.0, threads=2)
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="needs fork")
+def test_threaded_refinement_runs_in_a_forked_child_of_a_process_that_used_it(wave_frames):
+    # a forked child inherits the thread pool but not its threads: without the
+    # at-fork reset it waited on them forever (a script forking its own workers)
+    import multiprocessing
+
+    args = _refine_inputs(wave_frames)
+    _refine_in_child(args)  # the parent's pool exists now
+    child = multiprocessing.get_context("fork").Process(target=_refine_in_child, args=(args,))
+    child.start()
+    child.join(120)  # a hang detector: it needs about 0.2 s
+    if child.is_alive():
+        child.kill()
+        child.join()
+        pytest.fail("the forked child's refinement hung on the inherited thread pool")
+    assert child.exitcode == 0
 
 
 def test_a_camera_one_micrometre_from_the_water_is_refused_before_any_solver():
