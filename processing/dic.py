@@ -253,14 +253,12 @@ def _frame_and_weights(frame, valid_px, grid, blur_px):
 def _warp_and_gradients(fine, grid, u, blur_px):
     """The fine reference warped by the node displacement ``u`` (Lanczos to the
     pixels), blurred as the frame, and its gradients along rows and columns."""
-    rows, cols = grid.frame_shape
-    r_px = np.arange(rows, dtype=np.float32)[:, None] * np.float32(FINE)
-    c_px = np.arange(cols, dtype=np.float32)[None, :] * np.float32(FINE)
-    mr = grid.up(u[0], cv2.INTER_LANCZOS4)
-    mc = grid.up(u[1], cv2.INTER_LANCZOS4)
-    mr *= np.float32(FINE)
-    mc *= np.float32(FINE)
-    warped = cv2.remap(fine, c_px - mc, r_px - mr, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    # both components in one two-channel resize (the same Lanczos weights, computed
+    # once), interleaved (column, row) as the CV_32FC2 map that remap takes
+    up = grid.up(np.stack([u[1], u[0]], axis=-1), cv2.INTER_LANCZOS4)
+    up *= np.float32(FINE)
+    warped = cv2.remap(fine, np.subtract(grid.fine_map(FINE), up, out=up), None, cv2.INTER_LINEAR,
+                       borderMode=cv2.BORDER_REFLECT)
     if blur_px:
         warped = cv2.GaussianBlur(warped, (0, 0), blur_px)
     gr = cv2.Sobel(warped, cv2.CV_32F, 0, 1, ksize=1, scale=0.5, borderType=cv2.BORDER_REFLECT)

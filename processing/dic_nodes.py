@@ -73,6 +73,19 @@ class NodeGrid:
         self.shape = (rows // s, cols // s)
         self.rows_px = np.arange(self.shape[0]) * s + (s - 1) / 2.0
         self.cols_px = np.arange(self.shape[1]) * s + (s - 1) / 2.0
+        self._fine_map = None
+
+    def fine_map(self, fine: int) -> np.ndarray:
+        """``(rows, cols, 2)`` float32 (column, row) of every pixel on a grid ``fine``
+        times finer: the identity map of ``cv2.remap`` into :func:`fine_reference`
+        (built once; do not write to it)."""
+        if self._fine_map is None or self._fine_map[0] != fine:
+            rows, cols = self.frame_shape
+            m = np.empty((rows, cols, 2), np.float32)
+            m[..., 0] = np.arange(cols, dtype=np.float32)[None, :] * np.float32(fine)
+            m[..., 1] = np.arange(rows, dtype=np.float32)[:, None] * np.float32(fine)
+            self._fine_map = (fine, m)
+        return self._fine_map[1]
 
     def up(self, x, interpolation=cv2.INTER_LINEAR):
         rows, cols = self.frame_shape
