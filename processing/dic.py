@@ -217,18 +217,15 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
         _check_displacement(u, u_start, k, (rows, cols), period_px)  # before any warp
         if k == outer:
             break
-        warped, gr, gc = _warp_and_gradients(fine, grid, u, blur_px)
+        warped = _warp(fine, grid, u, blur_px)
         if intensity_cell_px and k == 0:
             # once, against the reference warped by FD's start (the ratio of standard
             # deviations hardly moves with the warp: fitting before every step gave the
             # same heights, 10-20 % slower)
             img = _normalised_frame(raw, img, warped, None if all_valid else w, intensity_cell_px, blur_px)
-        e = img - warped
-        if not all_valid:
-            gr *= w
-            gc *= w
-        prev_cost = _check_cost(_dot(e * w, e) if not all_valid else _dot(e, e), prev_cost, k, w.size)
-        x = _gauss_newton_step(nodes, gr, gc, e, h, regularisation, cg_iterations, k, threads)
+        cost, sums = _node_sums(nodes, warped, img, w, threads)
+        prev_cost = _check_cost(cost, prev_cost, k, w.size)
+        x = _gauss_newton_step(nodes, sums, h, regularisation, cg_iterations, k)
         prev_step = _check_step(_rms(nodes.displacement(x)), prev_step, k)
         h += x
     return h, u.astype(np.float32), free
@@ -250,9 +247,9 @@ def _frame_and_weights(frame, valid_px, grid, blur_px):
     return raw, img, w, all_valid, free
 
 
-def _warp_and_gradients(fine, grid, u, blur_px):
+def _warp(fine, grid, u, blur_px):
     """The fine reference warped by the node displacement ``u`` (Lanczos to the
-    pixels), blurred as the frame, and its gradients along rows and columns."""
+    pixels), blurred as the frame."""
     # both components in one two-channel resize (the same Lanczos weights, computed
     # once), interleaved (column, row) as the CV_32FC2 map that remap takes
     up = grid.up(np.stack([u[1], u[0]], axis=-1), cv2.INTER_LANCZOS4)
@@ -261,9 +258,7 @@ def _warp_and_gradients(fine, grid, u, blur_px):
                        borderMode=cv2.BORDER_REFLECT)
     if blur_px:
         warped = cv2.GaussianBlur(warped, (0, 0), blur_px)
-    gr = cv2.Sobel(warped, cv2.CV_32F, 0, 1, ksize=1, scale=0.5, borderType=cv2.BORDER_REFLECT)
-    gc = cv2.Sobel(warped, cv2.CV_32F, 1, 0, ksize=1, scale=0.5, borderType=cv2.BORDER_REFLECT)
-    return warped, gr, gc
+    return warped
 
 
 def _check_cost(cost, prev_cost, k, n_px):
@@ -353,22 +348,44 @@ def _map(fn, jobs, threads):
     return list(pool.map(lambda job: fn(*job), jobs))
 
 
-def _gauss_newton_step(nodes, gr, gc, e, h, regularisation, cg_iterations, k, threads=1):
-    """The step ``dh`` of :func:`refine_height` from the (weighted) gradients
-    ``gr``, ``gc`` of the warped reference and the residual ``e``: the normal
-    equations ``(L^T P^T N P L + lam R) dh = -L^T P^T g e - lam R h`` by
+def _node_sums(nodes, warped, img, w, threads):
+    """``(weighted residual sum of squares, (Nrr, Nrc, Ncc, br, bc))`` of one step:
+    the gradients ``g`` of ``warped``, the residual ``e = img - warped``, the node
+    stencils ``P^T (w g_a g_b) P`` and right-hand sides ``P^T (w g_a e)``.  The
+    pixel rows in one compiled pass (:func:`processing.dic_kernels.row_moments`,
+    bands of node rows on ``threads``), the columns by :meth:`HeightNodes.column_sums`."""
+    from .dic_kernels import row_moments
+
+    rows, cols = warped.shape
+    s, m = nodes.grid.s, nodes.grid.shape[0]
+    # bands of about 32 node rows whatever the thread count: the sums do not depend on it
+    n_bands = max(1, (m + 1) // 32)
+    edges = [-1 + (m + 1) * b // n_bands for b in range(n_bands + 1)]
+    xd, xo, xl = (np.zeros((k, m + 2, cols), np.float32) for k in (3, 3, 2))
+    firsts = np.zeros((n_bands, 8, cols), np.float32)
+
+    def band(b, t0, t1):
+        return row_moments(warped, img, w, s, t0, t1, xd, xo, xl, firsts[b], np.empty((5, cols), np.float32))
+
+    cost = sum(_map(band, [(b, edges[b], edges[b + 1]) for b in range(n_bands)], threads))
+    for b in range(n_bands):  # each band's first node row, after the previous band's share of it
+        r = edges[b] + 1
+        xd[:, r] += firsts[b, 0:3]
+        xo[:, r] += firsts[b, 3:6]
+        xl[:, r] += firsts[b, 6:8]
+    return float(cost), nodes.column_sums(xd[:, 1:m + 1], xo[:, 1:m], xl[:, 1:m + 1])
+
+
+def _gauss_newton_step(nodes, sums, h, regularisation, cg_iterations, k):
+    """The step ``dh`` of :func:`refine_height` from one step's node sums ``sums``
+    (:func:`_node_sums`): the normal equations
+    ``(L^T P^T N P L + lam R) dh = -L^T P^T g e - lam R h`` by
     ``cg_iterations`` conjugate-gradient iterations (bounded, no tolerance
     loop), preconditioned by the constant-coefficient operator's DCT."""
     import scipy.fft as sfft
 
     Bm = nodes.B_mean
-
-    def node_sums(a, b, normal):
-        return nodes.node_normal(a * b) if normal else nodes.node_rhs(a * b)
-
-    # five independent products and sums to the nodes: the step's largest cost
-    Nrr, Nrc, Ncc, br, bc = _map(node_sums, [(gr, gr, True), (gr, gc, True), (gc, gc, True),
-                                             (gr, e, False), (gc, e, False)], threads)
+    Nrr, Nrc, Ncc, br, bc = sums
     nr = Nrr.mean_row_sum()
     nc = Ncc.mean_row_sum()
     lam = regularisation * (nr * Bm[0, 0] ** 2 + nc * Bm[1, 1] ** 2) / nodes.grid.s ** 2

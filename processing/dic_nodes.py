@@ -300,6 +300,19 @@ class HeightNodes:
         od, oo = _pair_sums(xo, s, True, 1)
         return Stencil9(dd, do, od, oo)
 
+    def column_sums(self, xd, xo, xl):
+        """``(Nrr, Nrc, Ncc, br, bc)`` from the row sums of
+        :func:`processing.dic_kernels.row_moments` (node rows x pixel columns):
+        the sums along the columns that :meth:`node_normal` and :meth:`node_rhs`
+        do after their row sums."""
+        s = self.grid.s
+        out = []
+        for q in range(3):
+            dd, do = _pair_sums(np.ascontiguousarray(xd[q]), s, True, 1)
+            od, oo = _pair_sums(np.ascontiguousarray(xo[q]), s, True, 1)
+            out.append(Stencil9(dd, do, od, oo))
+        return (*out, *(_pair_sums(np.ascontiguousarray(xl[q]), s, False, 1) for q in range(2)))
+
     def node_rhs(self, y_px):
         """``P^T y`` (m_r, m_c)."""
         s = self.grid.s

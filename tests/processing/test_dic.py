@@ -150,6 +150,32 @@ def test_node_operators_are_exact_transposes_of_what_the_warp_uses():
     assert np.abs(nodes.regulariser(0.3 * R**2 - 0.2 * R * C + C)).max() < 1e-9
 
 
+@pytest.mark.parametrize("shape", [(40, 28), (264, 200)])  # one band; nine bands sharing edge rows
+def test_compiled_pixel_pass_gives_the_node_operators_sums(shape):
+    # dic_kernels.row_moments + column sums (each step's pixel pass) against the NumPy
+    # operators tested above on the explicit P: gradients as OpenCV's Sobel, a masked frame
+    from processing.dic import _node_sums
+
+    rng = np.random.default_rng(1)
+    grid = dic.NodeGrid(shape)
+    nodes = dic.HeightNodes(G55, grid)
+    warped = cv2.GaussianBlur(rng.random(shape).astype(np.float32), (0, 0), 1.5)
+    img = warped + np.float32(0.05) * rng.standard_normal(shape).astype(np.float32)
+    w = (rng.random(shape) > 0.1).astype(np.float32)
+    gr, gc = (cv2.Sobel(warped, cv2.CV_32F, dx, dy, ksize=1, scale=0.5, borderType=cv2.BORDER_REFLECT) * w
+              for dx, dy in ((0, 1), (1, 0)))
+    e = img - warped
+    cost, sums = _node_sums(nodes, warped, img, w, threads=2)
+    assert cost == pytest.approx(float(np.sum(w * e * e, dtype=np.float64)), rel=1e-5)
+    x = rng.standard_normal(grid.shape).astype(np.float32)
+    for got, n_px in zip(sums[:3], (gr * gr, gr * gc, gc * gc)):
+        want = nodes.node_normal(n_px) @ x
+        np.testing.assert_allclose(got @ x, want, rtol=0, atol=2e-5 * np.abs(want).max())
+    for got, y_px in zip(sums[3:], (gr * e, gc * e)):
+        want = nodes.node_rhs(y_px)
+        np.testing.assert_allclose(got, want, rtol=0, atol=2e-5 * np.abs(want).max())
+
+
 def test_image_refinement_keeps_the_series_check(wave_frames):
     # the batch flags temporal-unwrapping slips and pin jumps from Result.series:
     # the image refinement takes it from FD's heights of the same frame
