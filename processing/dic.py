@@ -397,10 +397,17 @@ def _gauss_newton_step(nodes, sums, h, regularisation, cg_iterations, k):
     sym = sym.astype(np.float32)
     lam = np.float32(lam)
 
-    def apply_K(x):
-        vr, vc = nodes.displacement(x)
-        out = nodes.displacement_T(Nrr @ vr + Nrc @ vc, Nrc @ vr + Ncc @ vc)
-        out += lam * nodes.regulariser(x)
+    from .dic_kernels import normal_apply, pad_stencil
+
+    A = nodes.dense_response()
+    SD, SDO, SOD, SOO = (np.stack(p) for p in zip(*(pad_stencil(S.parts) for S in (Nrr, Nrc, Ncc))))
+    work = np.empty((4,) + h.shape, np.float32)
+    vpad = np.zeros((2, h.shape[0] + 2, h.shape[1] + 2), np.float32)
+    inv_s = np.float32(1.0 / nodes.grid.s)
+
+    def apply_K(x):  # (L^T M L + lam R) x, compiled (processing.dic_kernels)
+        out = np.empty_like(x)
+        normal_apply(x, A, SD, SDO, SOD, SOO, inv_s, lam, work, vpad, out)
         return out
 
     def prec(r):

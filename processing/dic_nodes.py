@@ -193,6 +193,7 @@ class Stencil9:
         m_r, m_c = dd.shape
         self.shape = (m_r, m_c)
         m = m_r * m_c
+        self.parts = (dd, do, od, oo)
         self.dd = dd.ravel()
         self._mean_row_sum = float(np.mean(dd) + 2 * np.mean(do) + 2 * np.mean(od) + 4 * np.mean(oo))
 
@@ -232,6 +233,7 @@ class HeightNodes:
         if grid.s % 2 or min(grid.shape) < 5:
             raise ValueError("the height refinement needs an even node spacing and at least 5 x 5 nodes")
         self.grid = grid
+        self._dense = None
         lr = geometry.linear_response(grid.rows_px[:, None], grid.cols_px[None, :], grid.frame_shape)
 
         def coef(x):  # a constant (telecentric camera) as a scalar, 0 as None
@@ -253,6 +255,16 @@ class HeightNodes:
         d1c = ((8 * np.sin(kc) - np.sin(2 * kc)) / 6 / s) ** 2
         self.symbol_d1 = (d1r[:, None], d1c[None, :])  # DCT symbols of D1^T D1 (rows, cols)
         self.symbol_reg = (2 - 2 * np.cos(kr))[:, None] ** 3 + (2 - 2 * np.cos(kc))[None, :] ** 3
+
+    def dense_response(self):
+        """``(6, m_r, m_c)`` float32 ``a_r, a_c, B_rr, B_rc, B_cr, B_cc``, zeros where
+        the geometry has no such term (the compiled operator's input,
+        :func:`processing.dic_kernels.normal_apply`); built once."""
+        if self._dense is None:
+            terms = [self.a[0], self.a[1], self.B[0][0], self.B[0][1], self.B[1][0], self.B[1][1]]
+            self._dense = np.stack([np.broadcast_to(np.asarray(0.0 if t is None else t, np.float32), self.grid.shape)
+                                    for t in terms])
+        return self._dense
 
     def _grad(self, h):
         s = self.grid.s

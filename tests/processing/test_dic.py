@@ -176,6 +176,32 @@ def test_compiled_pixel_pass_gives_the_node_operators_sums(shape):
         np.testing.assert_allclose(got, want, rtol=0, atol=2e-5 * np.abs(want).max())
 
 
+@pytest.mark.parametrize("camera_distance_mm", [None, 1500.0])  # uniform optics, per-node optics
+def test_compiled_normal_operator_is_the_numpy_one(camera_distance_mm):
+    # dic_kernels.normal_apply (the CG's (L^T M L + lam R) x) against the NumPy
+    # operators whose transposes and stencils are tested above
+    from processing.dic_kernels import normal_apply, pad_stencil
+    from processing.dic_nodes import Stencil9
+
+    rng = np.random.default_rng(2)
+    geometry = Geometry(theta_deg=60, depth_mm=300, pixel_mm=0.1, rows_toward_camera=False,
+                        camera_distance_mm=camera_distance_mm)
+    nodes = dic.HeightNodes(geometry, dic.NodeGrid((48, 64)))
+    g = nodes.grid.shape
+    stencils = [Stencil9(*(rng.random(shape).astype(np.float32) for shape in
+                               (g, (g[0], g[1] - 1), (g[0] - 1, g[1]), (g[0] - 1, g[1] - 1)))) for _ in range(3)]
+    lam = np.float32(0.37)
+    x = rng.standard_normal(g).astype(np.float32)
+    vr, vc = nodes.displacement(x)
+    S = stencils
+    want = nodes.displacement_T(S[0] @ vr + S[1] @ vc, S[1] @ vr + S[2] @ vc) + lam * nodes.regulariser(x)
+    padded = [np.stack(p) for p in zip(*(pad_stencil(st.parts) for st in stencils))]
+    got = np.empty_like(x)
+    normal_apply(x, nodes.dense_response(), *padded, np.float32(1.0 / nodes.grid.s), lam,
+                 np.empty((4, *g), np.float32), np.zeros((2, g[0] + 2, g[1] + 2), np.float32), got)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-5 * np.abs(want).max())
+
+
 def test_image_refinement_keeps_the_series_check(wave_frames):
     # the batch flags temporal-unwrapping slips and pin jumps from Result.series:
     # the image refinement takes it from FD's heights of the same frame
