@@ -1,17 +1,27 @@
-"""The pixel pass of each Gauss-Newton step of :func:`processing.dic.refine_height`, compiled (Numba).
+"""Compiled kernels (Numba) of each Gauss-Newton step of :func:`processing.dic.refine_height`.
 
-From the blurred warped reference ``W``, the (normalised, blurred) frame
-``I`` and the pixel weights ``w`` (0 or 1) a step needs the gradients of
-``W`` (centred differences, ``W`` reflected at the edges: OpenCV's Sobel of
-ksize 1 with BORDER_REFLECT), the residual ``e = I - W``, its weighted sum
-of squares, and the sums of the five products ``g_r g_r, g_r g_c, g_c g_c``
-(weights ``P^2`` and ``P P'``) and ``g_r e, g_c e`` (weight ``P``) to the node
-rows, ``P`` the bilinear node -> pixel weights of
-:class:`processing.dic_nodes.NodeGrid` along the rows.  As NumPy that is
-two Sobel calls, a subtraction, five full-size products and their row
-sums; here one pass over the pixels, each row's products kept in a small
-buffer.  The column sums stay NumPy (:func:`processing.dic_nodes._pair_sums`
-on arrays a quarter of the frame).
+:func:`row_moments`, the pixel pass: from the blurred warped reference
+``W``, the (normalised, blurred) frame ``I`` and the pixel weights ``w``
+(0 or 1) a step needs the gradients of ``W`` (centred differences, ``W``
+reflected at the edges: OpenCV's Sobel of ksize 1 with BORDER_REFLECT), the
+residual ``e = I - W``, its weighted sum of squares, and the sums of the
+five products ``g_r g_r, g_r g_c, g_c g_c`` (weights ``P^2`` and ``P P'``)
+and ``g_r e, g_c e`` (weight ``P``) to the node rows, ``P`` the bilinear
+node -> pixel weights of :class:`processing.dic_nodes.NodeGrid` along the
+rows.  As NumPy that was two Sobel calls, a subtraction, five full-size
+products and their row sums; here one pass over the pixels, each row's
+products kept in a small buffer.  The column sums stay NumPy
+(:func:`processing.dic_nodes._pair_sums` on arrays a quarter of the frame:
+a compiled version was slower).
+
+:func:`normal_apply`, the conjugate gradients' operator
+``(L^T M L + lam R) x`` on the node grid in one call (was about 130 NumPy
+passes), with the stencils zero-padded (:func:`pad_stencil`) so that no
+inner loop branches.
+
+Both compute what the NumPy operators of :mod:`processing.dic_nodes` do
+(tests compare them, to float32 rounding); compiled once per checkout and
+cached in ``__pycache__``.
 """
 
 from __future__ import annotations
