@@ -5,6 +5,7 @@ Run from the repository root::
     python3 benchmarks/bench_processing.py              # speed at 512^2, 1024^2, 2048^2 + accuracy
     python3 benchmarks/bench_processing.py --sizes 1024 --repeats 30
     python3 benchmarks/bench_processing.py --no-accuracy
+    python3 benchmarks/bench_processing.py --no-accuracy --sizes   # issue 22's table alone
 
 Speed: median milliseconds per frame, FFTW plans (FFTW_MEASURE) built outside
 the timed loop, one warm-up call; all variants, baseline included, are timed
@@ -96,6 +97,91 @@ class Baseline:
         return u_r, u_c
 
 
+def rel_height_error(res, surface, geometry=GEOMETRY, margin=0.08):
+    """Relative RMS height error (%) of ``res`` against the ray-traced ``surface``:
+    interior (``margin`` of each side left out), valid samples, null space
+    ``a exp(-T y / H)`` removed from both."""
+    from processing import forward as F
+
+    n_rows, n_cols = res.carriers.shape
+    truth = F.true_height(surface, geometry, (n_rows, n_cols), rows_px=res.rows_px, cols_px=res.cols_px)
+    R, C = np.meshgrid(res.rows_px, res.cols_px, indexing="ij")
+    inner = res.valid & (R > margin * n_rows) & (R < (1 - margin) * n_rows)
+    inner &= (C > margin * n_cols) & (C < (1 - margin) * n_cols)
+    _, y = geometry.to_canonical_xy(res.x_mm, res.y_mm)
+    null = np.broadcast_to(np.exp(-geometry.T * np.asarray(y)[:, None] / geometry.depth_mm), truth.shape)[inner]
+    d = (res.height - truth)[inner]
+    t = truth[inner]
+    d = d - null * (null @ d) / (null @ null)
+    t = t - null * (null @ t) / (null @ null)
+    return 100 * float(np.sqrt(np.mean(d**2)) / np.sqrt(np.mean(t**2)))
+
+
+def heldout_frames(n, count=3):
+    """Ray-traced reference and ``count`` frames of a random wave field (1 um rms,
+    12-30 mm) at ``n``^2, 12 bit, and the surfaces (a held-out case: no setting
+    of the refinement was tuned on it)."""
+    from processing import forward as F
+
+    board_ = F.Checkerboard(period_mm=2.0, edge_softness_mm=0.1)
+    rng = np.random.default_rng(0)
+    ref, _ = F.render_tir(F.FlatSurface(), GEOMETRY, (n, n), board_, supersample=2)
+    surfaces = [F.WaveField.random(6, amplitude_rms_mm=0.001, wavelength_range_mm=(12, 30), seed=10 + k)
+                for k in range(count)]
+    frames = [F.quantize(F.render_tir(sf, GEOMETRY, (n, n), board_, supersample=2)[0], bits=12, rng=rng)
+              for sf in surfaces]
+    return F.quantize(ref, bits=12, rng=rng), frames, surfaces
+
+
+def bench_issue22(n, repeats, thread_counts):
+    """Issue 22's table: each path's ms/frame on a ray-traced ``n``^2 frame, its
+    speed against the peer-style yardstick (Baseline: numpy FCD, displacement
+    only, no height) measured in the same rounds, and its height error, at
+    each of ``thread_counts`` (the Reconstructor's ``threads`` and OpenCV's)."""
+    ref, frames, surfaces = heldout_frames(n)
+    nf = len(frames)
+    print(f"Issue 22 table: {n}^2 ray-traced frames (random waves 1 um rms, 12-30 mm, 12 bit), "
+          f"median ms/frame of interleaved rounds; height error: rel. RMS %, mean of {nf} frames")
+    for threads in thread_counts:
+        cv2.setNumThreads(threads)
+        opts = dict(planner_effort="FFTW_MEASURE", threads=threads)
+        rec_live = Reconstructor(ref, GEOMETRY, grid="decimated", **opts)
+        carriers = rec_live.carriers
+        paths = [("live decimated (FD)", rec_live, "decimated"),
+                 ("full grid, no refinement", Reconstructor(ref, GEOMETRY, grid="full", refine_iterations=0,
+                                                            carriers=carriers, **opts), "full"),
+                 ("full grid, FD refinement", Reconstructor(ref, GEOMETRY, grid="full", refine_method="fd",
+                                                            carriers=carriers, **opts), "full"),
+                 ("full grid, image refinement (default)", Reconstructor(ref, GEOMETRY, carriers=carriers, **opts),
+                  "full")]
+        base = Baseline(ref, carriers)
+
+        def call(rec, grid):
+            def run(i):
+                rec.reset_series()
+                return rec(frames[i % nf], grid=grid)
+            return run
+
+        fns = [lambda i: base(frames[i % nf])] + [call(rec, grid) for _, rec, grid in paths]
+        t = interleaved_medians(fns, repeats, block=2)
+        load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+        print(f"  threads {threads} (load average {load:.1f})")
+        print(f"  {'path':40s} {'ms/frame':>9s} {'x yardstick':>12s} {'x FD ref.':>10s} {'height error':>13s}")
+        print(f"  {'yardstick (displacement only)':40s} {t[0]:9.1f} {1.0:11.1f}x {'':>10s} {'-':>13s}")
+        for (label, rec, grid), ms in zip(paths, t[1:]):
+            err = "-"
+            if grid == "full":
+                errs = []
+                for frame, sf in zip(frames, surfaces):
+                    rec.reset_series()
+                    errs.append(rel_height_error(rec(frame, grid=grid), sf))
+                err = f"{np.mean(errs):.3f} %"
+            print(f"  {label:40s} {ms:9.1f} {t[0] / ms:11.1f}x {ms / t[3]:9.2f}x {err:>13s}")
+    print("  goals (issue 22): default >= 3x the yardstick and <= 2.5x FD refinement's time; issue 19: "
+          "live decimated >= 25x, default within 5x of FD's batch time")
+    print()
+
+
 def interleaved_medians(fns, repeats, every=None, block=4):
     """Median ms of each fn(i).  Rounds visit every fn in turn, ``block``
     calls at a time, so that all see the same machine load (the machine may
@@ -184,19 +270,7 @@ def bench_accuracy():
         return (F.quantize(ref, bits=bits, noise_rms=noise, rng=rng),
                 F.quantize(img, bits=bits, noise_rms=noise, rng=rng))
 
-    def rel(res, surface, geometry=GEOMETRY, margin=0.08):
-        n_rows, n_cols = res.carriers.shape
-        truth = F.true_height(surface, geometry, (n_rows, n_cols), rows_px=res.rows_px, cols_px=res.cols_px)
-        R, C = np.meshgrid(res.rows_px, res.cols_px, indexing="ij")
-        inner = res.valid & (R > margin * n_rows) & (R < (1 - margin) * n_rows)
-        inner &= (C > margin * n_cols) & (C < (1 - margin) * n_cols)
-        _, y = geometry.to_canonical_xy(res.x_mm, res.y_mm)
-        null = np.broadcast_to(np.exp(-geometry.T * np.asarray(y)[:, None] / geometry.depth_mm), truth.shape)[inner]
-        d = (res.height - truth)[inner]
-        t = truth[inner]
-        d = d - null * (null @ d) / (null @ null)
-        t = t - null * (null @ t) / (null @ null)
-        return 100 * float(np.sqrt(np.mean(d**2)) / np.sqrt(np.mean(t**2)))
+    rel = rel_height_error
 
     cases = [
         ("bump 4 um, sigma 5 mm", F.GaussianBump(0.004, 5.0), {}),
@@ -300,14 +374,19 @@ def bench_dots_speed(sizes, repeats):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--sizes", type=int, nargs="+", default=[512, 1024, 2048])
+    ap.add_argument("--sizes", type=int, nargs="*", default=[512, 1024, 2048])
     ap.add_argument("--repeats", type=int, default=20)
     ap.add_argument("--no-accuracy", action="store_true")
     ap.add_argument("--no-speed", action="store_true")
+    ap.add_argument("--no-issue22", action="store_true", help="leave out issue 22's table (ray-traced 1024^2)")
+    ap.add_argument("--issue22-size", type=int, default=1024)
     args = ap.parse_args(argv)
     cv2.setNumThreads(2)
     print(f"tirdeflect processing benchmark, {os.cpu_count()} CPUs visible, numpy {np.__version__}\n")
-    if not args.no_speed:
+    if not args.no_speed and not args.no_issue22:
+        bench_issue22(args.issue22_size, max(4, args.repeats // 2), sorted({1, os.cpu_count() or 1}))
+        cv2.setNumThreads(2)
+    if not args.no_speed and args.sizes:
         bench_speed(args.sizes, args.repeats)
         bench_dots_speed([n for n in args.sizes if n <= 1024], args.repeats)
     if not args.no_accuracy:

@@ -60,7 +60,7 @@ class ImageRefinement:
         _, u_nodes, valid_nodes = dic.refine_height(
             self.ref_fine, m.frame, np.asarray(start.height_mm, np.float64), valid_px, self.height_nodes,
             outer=chain.options.image_iterations, period_px=float(periods.min()),
-            intensity_cell_px=max(dic.INTENSITY_CELL_PX, 1.6 * float(periods.max())))
+            intensity_cell_px=max(dic.INTENSITY_CELL_PX, 1.6 * float(periods.max())), threads=chain.planner.threads)
         t4 = time.perf_counter()
         timings["refine"] += 1e3 * (t4 - t3)
         surf = self._solve(hs, u_nodes, valid_nodes)

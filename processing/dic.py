@@ -35,6 +35,10 @@ interpolation on a grid :data:`FINE` times finer (:func:`fine_reference`):
 OpenCV's cubic remap biases image matching towards whole pixels by up to
 0.035 px.
 
+Each step's pixel pass and the conjugate gradients' operator are compiled
+(:mod:`processing.dic_kernels`); the five node sums run in bands on the
+Reconstructor's ``threads``.
+
 Measured (docs/processing.md, section 6): ray-traced waves 3-6 carrier
 periods long 2.90 % (FD) -> 0.82 % rms height error; every case of the
 accuracy table at or below FD's.
@@ -43,6 +47,7 @@ accuracy table at or below FD's.
 from __future__ import annotations
 
 import math
+import os
 
 import cv2
 import numpy as np
@@ -159,38 +164,19 @@ def _diverged(test: str, figures: str):
 
 def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int = 3, cg_iterations: int = 3,
                   regularisation: float = 0.03, blur_px: float = BLUR_PX,
-                  intensity_cell_px: float | None = INTENSITY_CELL_PX, period_px: float | None = None):
+                  intensity_cell_px: float | None = INTENSITY_CELL_PX, period_px: float | None = None,
+                  threads: int = 1):
     """Global Gauss-Newton image matching for the height on the node grid of ``nodes``.
 
     Minimises ``sum_r w [G*((I - b) / a) - G*I0(r - P L h)]^2 + lam (|D3r h|^2 + |D3c h|^2)``
-    (module docstring): ``L`` the node heights -> node displacement
-    (:meth:`HeightNodes.displacement`), ``P`` bilinear nodes -> pixels in the
-    normal equations, Lanczos for the warp itself; ``G*`` a Gaussian of
-    ``blur_px`` applied to the frame and to the warped reference (so the
-    gradient is that of the blurred warped reference); ``a``, ``b`` the
-    frame's smooth gain and offset fields (:func:`intensity_fit`, fitted
-    once against the reference warped by the start: the frame may be
-    brighter or darker than the reference, by a shadow or an exposure, and
-    still match; the frame is divided by them before the blur).  Each step solves
-    ``(L^T P^T N P L + lam R) dh = -L^T P^T g e - lam R h``
-    by conjugate gradients preconditioned with the constant-coefficient
-    operator's DCT (``cg_iterations`` per step: from FD's start 3 give the
-    same heights as 15).  ``lam`` is ``regularisation`` times the data
-    term's weight per node at unit spatial frequency (measured on the
-    ray-traced waves 3-6 carrier periods long: 0.001 too weak, 4.2 %;
-    0.03-0.05 best, 0.85-0.9 %; 0.1: 1.05 %; 1: 6.8 %, the waves flattened).
-
-    Every loop is bounded (``outer`` steps of ``cg_iterations``), and the
-    iterations stop with :class:`RefinementDiverged` (the caller keeps FD's
-    answer) when they leave the range where they can be right: a
-    non-finite residual, step or displacement; a displacement that moved
-    from the start by more than half the pattern's period (``period_px``;
-    rms over the nodes) or reaches beyond the frame's size (anywhere); a
-    step more than twice as large as the one before (rms); a residual (sum
-    of squares) :data:`RESIDUAL_RISE` times its smallest so far.  These
-    are tested on the node grid before each warp, so no warp ever sees
-    coordinates far outside the frame (OpenCV's reflection of such
-    coordinates takes time in proportion to their size).
+    (module docstring; docs/processing.md section 6 for the settings measured):
+    ``outer`` steps, each solving the normal equations by ``cg_iterations``
+    preconditioned conjugate-gradient iterations (:func:`_gauss_newton_step`);
+    ``lam`` is ``regularisation`` times the data term's weight per node at unit
+    spatial frequency.  Every loop is bounded, and the iterations stop with
+    :class:`RefinementDiverged` (the caller keeps FD's answer) when they leave
+    the range where they can be right (:func:`_check_displacement` before each
+    warp, :func:`_check_cost`, :func:`_check_step`).
 
     Parameters
     ----------
@@ -198,15 +184,17 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
         :func:`fine_reference` of the reference.
     frame : ndarray (rows, cols)
     h0 : ndarray (n_rows, n_cols)
-        Starting heights at the nodes (mm; FD's, NaN-free).
+        Starting heights at the nodes (mm; FD's; NaN: the nearest finite node's).
     valid_px : ndarray bool (rows, cols)
         Pixels whose residual counts.
     nodes : HeightNodes
     intensity_cell_px : float or None
-        Cell of the gain and offset fields (:func:`intensity_fit`); None:
-        the frame is matched as it is (gain 1, offset 0).
+        Cell of the gain and offset fields (:func:`intensity_fit`); None: gain 1, offset 0.
     period_px : float or None
         The pattern's shorter carrier period, pixels (None: no bound from it).
+    threads : int
+        Threads for the node stencils of each step (1 when a parallel run gives
+        each frame one core); the result does not depend on it.
 
     Returns
     -------
@@ -233,18 +221,15 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
         _check_displacement(u, u_start, k, (rows, cols), period_px)  # before any warp
         if k == outer:
             break
-        warped, gr, gc = _warp_and_gradients(fine, grid, u, blur_px)
+        warped = _warp(fine, grid, u, blur_px)
         if intensity_cell_px and k == 0:
             # once, against the reference warped by FD's start (the ratio of standard
             # deviations hardly moves with the warp: fitting before every step gave the
             # same heights, 10-20 % slower)
             img = _normalised_frame(raw, img, warped, None if all_valid else w, intensity_cell_px, blur_px)
-        e = img - warped
-        if not all_valid:
-            gr *= w
-            gc *= w
-        prev_cost = _check_cost(_dot(e * w, e) if not all_valid else _dot(e, e), prev_cost, k, w.size)
-        x = _gauss_newton_step(nodes, gr, gc, e, h, regularisation, cg_iterations, k)
+        cost, sums = _node_sums(nodes, warped, img, w, threads)
+        prev_cost = _check_cost(cost, prev_cost, k, w.size)
+        x = _gauss_newton_step(nodes, sums, h, regularisation, cg_iterations, k)
         prev_step = _check_step(_rms(nodes.displacement(x)), prev_step, k)
         h += x
     return h, u.astype(np.float32), free
@@ -266,22 +251,18 @@ def _frame_and_weights(frame, valid_px, grid, blur_px):
     return raw, img, w, all_valid, free
 
 
-def _warp_and_gradients(fine, grid, u, blur_px):
+def _warp(fine, grid, u, blur_px):
     """The fine reference warped by the node displacement ``u`` (Lanczos to the
-    pixels), blurred as the frame, and its gradients along rows and columns."""
-    rows, cols = grid.frame_shape
-    r_px = np.arange(rows, dtype=np.float32)[:, None] * np.float32(FINE)
-    c_px = np.arange(cols, dtype=np.float32)[None, :] * np.float32(FINE)
-    mr = grid.up(u[0], cv2.INTER_LANCZOS4)
-    mc = grid.up(u[1], cv2.INTER_LANCZOS4)
-    mr *= np.float32(FINE)
-    mc *= np.float32(FINE)
-    warped = cv2.remap(fine, c_px - mc, r_px - mr, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    pixels), blurred as the frame."""
+    # both components in one two-channel resize (the same Lanczos weights, computed
+    # once), interleaved (column, row) as the CV_32FC2 map that remap takes
+    up = grid.up(np.stack([u[1], u[0]], axis=-1), cv2.INTER_LANCZOS4)
+    up *= np.float32(FINE)
+    warped = cv2.remap(fine, np.subtract(grid.fine_map(FINE), up, out=up), None, cv2.INTER_LINEAR,
+                       borderMode=cv2.BORDER_REFLECT)
     if blur_px:
         warped = cv2.GaussianBlur(warped, (0, 0), blur_px)
-    gr = cv2.Sobel(warped, cv2.CV_32F, 0, 1, ksize=1, scale=0.5, borderType=cv2.BORDER_REFLECT)
-    gc = cv2.Sobel(warped, cv2.CV_32F, 1, 0, ksize=1, scale=0.5, borderType=cv2.BORDER_REFLECT)
-    return warped, gr, gc
+    return warped
 
 
 def _check_cost(cost, prev_cost, k, n_px):
@@ -353,20 +334,62 @@ def _normalised_frame(raw, blurred, warped, weight, cell_px, blur_px):
     return img
 
 
-def _gauss_newton_step(nodes, gr, gc, e, h, regularisation, cg_iterations, k):
-    """The step ``dh`` of :func:`refine_height` from the (weighted) gradients
-    ``gr``, ``gc`` of the warped reference and the residual ``e``: the normal
-    equations ``(L^T P^T N P L + lam R) dh = -L^T P^T g e - lam R h`` by
+_POOLS: dict = {}
+# a forked child inherits the pools but not their threads: it would wait on them forever
+os.register_at_fork(after_in_child=_POOLS.clear)
+
+
+def _map(fn, jobs, threads):
+    """``[fn(*job) for job in jobs]``, on ``threads`` threads when more than 1 (one
+    pool per thread count, kept for the process's life; numpy releases the GIL)."""
+    if threads <= 1 or len(jobs) < 2:
+        return [fn(*job) for job in jobs]
+    from concurrent.futures import ThreadPoolExecutor
+
+    pool = _POOLS.get(threads)
+    if pool is None:
+        pool = _POOLS[threads] = ThreadPoolExecutor(threads, thread_name_prefix="dic")
+    return list(pool.map(lambda job: fn(*job), jobs))
+
+
+def _node_sums(nodes, warped, img, w, threads):
+    """``(weighted residual sum of squares, (Nrr, Nrc, Ncc, br, bc))`` of one step:
+    the gradients ``g`` of ``warped``, the residual ``e = img - warped``, the node
+    stencils ``P^T (w g_a g_b) P`` and right-hand sides ``P^T (w g_a e)``.  The
+    pixel rows in one compiled pass (:func:`processing.dic_kernels.row_moments`,
+    bands of node rows on ``threads``), the columns by :meth:`HeightNodes.column_sums`."""
+    from .dic_kernels import row_moments
+
+    rows, cols = warped.shape
+    s, m = nodes.grid.s, nodes.grid.shape[0]
+    # bands of about 32 node rows whatever the thread count: the sums do not depend on it
+    n_bands = max(1, (m + 1) // 32)
+    edges = [-1 + (m + 1) * b // n_bands for b in range(n_bands + 1)]
+    xd, xo, xl = (np.zeros((k, m + 2, cols), np.float32) for k in (3, 3, 2))
+    firsts = np.zeros((n_bands, 8, cols), np.float32)
+
+    def band(b, t0, t1):
+        return row_moments(warped, img, w, s, t0, t1, xd, xo, xl, firsts[b], np.empty((5, cols), np.float32))
+
+    cost = sum(_map(band, [(b, edges[b], edges[b + 1]) for b in range(n_bands)], threads))
+    for b in range(n_bands):  # each band's first node row, after the previous band's share of it
+        r = edges[b] + 1
+        xd[:, r] += firsts[b, 0:3]
+        xo[:, r] += firsts[b, 3:6]
+        xl[:, r] += firsts[b, 6:8]
+    return float(cost), nodes.column_sums(xd[:, 1:m + 1], xo[:, 1:m], xl[:, 1:m + 1])
+
+
+def _gauss_newton_step(nodes, sums, h, regularisation, cg_iterations, k):
+    """The step ``dh`` of :func:`refine_height` from one step's node sums ``sums``
+    (:func:`_node_sums`): the normal equations
+    ``(L^T P^T N P L + lam R) dh = -L^T P^T g e - lam R h`` by
     ``cg_iterations`` conjugate-gradient iterations (bounded, no tolerance
     loop), preconditioned by the constant-coefficient operator's DCT."""
     import scipy.fft as sfft
 
     Bm = nodes.B_mean
-    Nrr = nodes.node_normal(gr * gr)
-    Nrc = nodes.node_normal(gr * gc)
-    Ncc = nodes.node_normal(gc * gc)
-    br = nodes.node_rhs(gr * e)
-    bc = nodes.node_rhs(gc * e)
+    Nrr, Nrc, Ncc, br, bc = sums
     nr = Nrr.mean_row_sum()
     nc = Ncc.mean_row_sum()
     lam = regularisation * (nr * Bm[0, 0] ** 2 + nc * Bm[1, 1] ** 2) / nodes.grid.s ** 2
@@ -378,10 +401,17 @@ def _gauss_newton_step(nodes, gr, gc, e, h, regularisation, cg_iterations, k):
     sym = sym.astype(np.float32)
     lam = np.float32(lam)
 
-    def apply_K(x):
-        vr, vc = nodes.displacement(x)
-        out = nodes.displacement_T(Nrr @ vr + Nrc @ vc, Nrc @ vr + Ncc @ vc)
-        out += lam * nodes.regulariser(x)
+    from .dic_kernels import normal_apply, pad_stencil
+
+    A = nodes.dense_response()
+    SD, SDO, SOD, SOO = (np.stack(p) for p in zip(*(pad_stencil(S.parts) for S in (Nrr, Nrc, Ncc))))
+    work = np.empty((4,) + h.shape, np.float32)
+    vpad = np.zeros((2, h.shape[0] + 2, h.shape[1] + 2), np.float32)
+    inv_s = np.float32(1.0 / nodes.grid.s)
+
+    def apply_K(x):  # (L^T M L + lam R) x, compiled (processing.dic_kernels)
+        out = np.empty_like(x)
+        normal_apply(x, A, SD, SDO, SOD, SOO, inv_s, lam, work, vpad, out)
         return out
 
     def prec(r):

@@ -73,6 +73,19 @@ class NodeGrid:
         self.shape = (rows // s, cols // s)
         self.rows_px = np.arange(self.shape[0]) * s + (s - 1) / 2.0
         self.cols_px = np.arange(self.shape[1]) * s + (s - 1) / 2.0
+        self._fine_map = None
+
+    def fine_map(self, fine: int) -> np.ndarray:
+        """``(rows, cols, 2)`` float32 (column, row) of every pixel on a grid ``fine``
+        times finer: the identity map of ``cv2.remap`` into :func:`fine_reference`
+        (built once; do not write to it)."""
+        if self._fine_map is None or self._fine_map[0] != fine:
+            rows, cols = self.frame_shape
+            m = np.empty((rows, cols, 2), np.float32)
+            m[..., 0] = np.arange(cols, dtype=np.float32)[None, :] * np.float32(fine)
+            m[..., 1] = np.arange(rows, dtype=np.float32)[:, None] * np.float32(fine)
+            self._fine_map = (fine, m)
+        return self._fine_map[1]
 
     def up(self, x, interpolation=cv2.INTER_LINEAR):
         rows, cols = self.frame_shape
@@ -180,6 +193,7 @@ class Stencil9:
         m_r, m_c = dd.shape
         self.shape = (m_r, m_c)
         m = m_r * m_c
+        self.parts = (dd, do, od, oo)
         self.dd = dd.ravel()
         self._mean_row_sum = float(np.mean(dd) + 2 * np.mean(do) + 2 * np.mean(od) + 4 * np.mean(oo))
 
@@ -219,6 +233,7 @@ class HeightNodes:
         if grid.s % 2 or min(grid.shape) < 5:
             raise ValueError("the height refinement needs an even node spacing and at least 5 x 5 nodes")
         self.grid = grid
+        self._dense = None
         lr = geometry.linear_response(grid.rows_px[:, None], grid.cols_px[None, :], grid.frame_shape)
 
         def coef(x):  # a constant (telecentric camera) as a scalar, 0 as None
@@ -240,6 +255,16 @@ class HeightNodes:
         d1c = ((8 * np.sin(kc) - np.sin(2 * kc)) / 6 / s) ** 2
         self.symbol_d1 = (d1r[:, None], d1c[None, :])  # DCT symbols of D1^T D1 (rows, cols)
         self.symbol_reg = (2 - 2 * np.cos(kr))[:, None] ** 3 + (2 - 2 * np.cos(kc))[None, :] ** 3
+
+    def dense_response(self):
+        """``(6, m_r, m_c)`` float32 ``a_r, a_c, B_rr, B_rc, B_cr, B_cc``, zeros where
+        the geometry has no such term (the compiled operator's input,
+        :func:`processing.dic_kernels.normal_apply`); built once."""
+        if self._dense is None:
+            terms = [self.a[0], self.a[1], self.B[0][0], self.B[0][1], self.B[1][0], self.B[1][1]]
+            self._dense = np.stack([np.broadcast_to(np.asarray(0.0 if t is None else t, np.float32), self.grid.shape)
+                                    for t in terms])
+        return self._dense
 
     def _grad(self, h):
         s = self.grid.s
@@ -286,6 +311,19 @@ class HeightNodes:
         dd, do = _pair_sums(xd, s, True, 1)
         od, oo = _pair_sums(xo, s, True, 1)
         return Stencil9(dd, do, od, oo)
+
+    def column_sums(self, xd, xo, xl):
+        """``(Nrr, Nrc, Ncc, br, bc)`` from the row sums of
+        :func:`processing.dic_kernels.row_moments` (node rows x pixel columns):
+        the sums along the columns that :meth:`node_normal` and :meth:`node_rhs`
+        do after their row sums."""
+        s = self.grid.s
+        out = []
+        for q in range(3):
+            dd, do = _pair_sums(np.ascontiguousarray(xd[q]), s, True, 1)
+            od, oo = _pair_sums(np.ascontiguousarray(xo[q]), s, True, 1)
+            out.append(Stencil9(dd, do, od, oo))
+        return (*out, *(_pair_sums(np.ascontiguousarray(xl[q]), s, False, 1) for q in range(2)))
 
     def node_rhs(self, y_px):
         """``P^T y`` (m_r, m_c)."""

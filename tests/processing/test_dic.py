@@ -5,6 +5,8 @@ measure as in test_reconstruct (relative RMS height error, interior, null
 space removed).  Figures quoted are from docs/processing.md section 6.
 """
 
+import os
+
 import cv2
 import numpy as np
 import pytest
@@ -150,6 +152,58 @@ def test_node_operators_are_exact_transposes_of_what_the_warp_uses():
     assert np.abs(nodes.regulariser(0.3 * R**2 - 0.2 * R * C + C)).max() < 1e-9
 
 
+@pytest.mark.parametrize("shape", [(40, 28), (264, 200)])  # one band; nine bands sharing edge rows
+def test_compiled_pixel_pass_gives_the_node_operators_sums(shape):
+    # dic_kernels.row_moments + column sums (each step's pixel pass) against the NumPy
+    # operators tested above on the explicit P: gradients as OpenCV's Sobel, a masked frame
+    from processing.dic import _node_sums
+
+    rng = np.random.default_rng(1)
+    grid = dic.NodeGrid(shape)
+    nodes = dic.HeightNodes(G55, grid)
+    warped = cv2.GaussianBlur(rng.random(shape).astype(np.float32), (0, 0), 1.5)
+    img = warped + np.float32(0.05) * rng.standard_normal(shape).astype(np.float32)
+    w = (rng.random(shape) > 0.1).astype(np.float32)
+    gr, gc = (cv2.Sobel(warped, cv2.CV_32F, dx, dy, ksize=1, scale=0.5, borderType=cv2.BORDER_REFLECT) * w
+              for dx, dy in ((0, 1), (1, 0)))
+    e = img - warped
+    cost, sums = _node_sums(nodes, warped, img, w, threads=2)
+    assert cost == pytest.approx(float(np.sum(w * e * e, dtype=np.float64)), rel=1e-5)
+    x = rng.standard_normal(grid.shape).astype(np.float32)
+    for got, n_px in zip(sums[:3], (gr * gr, gr * gc, gc * gc)):
+        want = nodes.node_normal(n_px) @ x
+        np.testing.assert_allclose(got @ x, want, rtol=0, atol=2e-5 * np.abs(want).max())
+    for got, y_px in zip(sums[3:], (gr * e, gc * e)):
+        want = nodes.node_rhs(y_px)
+        np.testing.assert_allclose(got, want, rtol=0, atol=2e-5 * np.abs(want).max())
+
+
+@pytest.mark.parametrize("camera_distance_mm", [None, 1500.0])  # uniform optics, per-node optics
+def test_compiled_normal_operator_is_the_numpy_one(camera_distance_mm):
+    # dic_kernels.normal_apply (the CG's (L^T M L + lam R) x) against the NumPy
+    # operators whose transposes and stencils are tested above
+    from processing.dic_kernels import normal_apply, pad_stencil
+    from processing.dic_nodes import Stencil9
+
+    rng = np.random.default_rng(2)
+    geometry = Geometry(theta_deg=60, depth_mm=300, pixel_mm=0.1, rows_toward_camera=False,
+                        camera_distance_mm=camera_distance_mm)
+    nodes = dic.HeightNodes(geometry, dic.NodeGrid((48, 64)))
+    g = nodes.grid.shape
+    stencils = [Stencil9(*(rng.random(shape).astype(np.float32) for shape in
+                               (g, (g[0], g[1] - 1), (g[0] - 1, g[1]), (g[0] - 1, g[1] - 1)))) for _ in range(3)]
+    lam = np.float32(0.37)
+    x = rng.standard_normal(g).astype(np.float32)
+    vr, vc = nodes.displacement(x)
+    S = stencils
+    want = nodes.displacement_T(S[0] @ vr + S[1] @ vc, S[1] @ vr + S[2] @ vc) + lam * nodes.regulariser(x)
+    padded = [np.stack(p) for p in zip(*(pad_stencil(st.parts) for st in stencils))]
+    got = np.empty_like(x)
+    normal_apply(x, nodes.dense_response(), *padded, np.float32(1.0 / nodes.grid.s), lam,
+                 np.empty((4, *g), np.float32), np.zeros((2, g[0] + 2, g[1] + 2), np.float32), got)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-5 * np.abs(want).max())
+
+
 def test_image_refinement_keeps_the_series_check(wave_frames):
     # the batch flags temporal-unwrapping slips and pin jumps from Result.series:
     # the image refinement takes it from FD's heights of the same frame
@@ -242,6 +296,44 @@ def test_refine_height_is_invariant_to_a_gain_of_1e10_and_stops_on_what_diverges
         dic.refine_height(fine, img.astype(np.float32) * np.float32(1e10), h0, every, nodes,
                           intensity_cell_px=None, period_px=10.0)
     assert time.perf_counter() - t0 < 30.0  # a hang detector: it needs about 0.01 s
+
+
+def _refine_inputs(wave_frames):
+    ref, img, _ = wave_frames
+    nodes = dic.HeightNodes(G55, dic.NodeGrid(ref.shape))
+    return dic.fine_reference(ref.astype(np.float32)), img, _fd_start(ref, img, nodes), np.ones(ref.shape, bool), nodes
+
+
+def test_refine_height_threads_give_the_same_displacement(wave_frames):
+    # threads: the five node stencils of each step run side by side; no shared
+    # buffer between them may change a bit of the answer (issue 22)
+    fine, img, h0, every, nodes = _refine_inputs(wave_frames)
+    _, u_one, _ = dic.refine_height(fine, img, h0, every, nodes, period_px=10.0, threads=1)
+    _, u_three, _ = dic.refine_height(fine, img, h0, every, nodes, period_px=10.0, threads=3)
+    np.testing.assert_array_equal(u_three, u_one)
+
+
+def _refine_in_child(args):
+    fine, img, h0, every, nodes = args
+    dic.refine_height(fine, img, h0, every, nodes, period_px=10.0, threads=2)
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="needs fork")
+def test_threaded_refinement_runs_in_a_forked_child_of_a_process_that_used_it(wave_frames):
+    # a forked child inherits the thread pool but not its threads: without the
+    # at-fork reset it waited on them forever (a script forking its own workers)
+    import multiprocessing
+
+    args = _refine_inputs(wave_frames)
+    _refine_in_child(args)  # the parent's pool exists now
+    child = multiprocessing.get_context("fork").Process(target=_refine_in_child, args=(args,))
+    child.start()
+    child.join(120)  # a hang detector: it needs about 0.2 s
+    if child.is_alive():
+        child.kill()
+        child.join()
+        pytest.fail("the forked child's refinement hung on the inherited thread pool")
+    assert child.exitcode == 0
 
 
 def test_a_camera_one_micrometre_from_the_water_is_refused_before_any_solver():

@@ -1,0 +1,273 @@
+"""Compiled kernels (Numba) of each Gauss-Newton step of :func:`processing.dic.refine_height`.
+
+:func:`row_moments`, the pixel pass: from the blurred warped reference
+``W``, the (normalised, blurred) frame ``I`` and the pixel weights ``w``
+(0 or 1) a step needs the gradients of ``W`` (centred differences, ``W``
+reflected at the edges: OpenCV's Sobel of ksize 1 with BORDER_REFLECT), the
+residual ``e = I - W``, its weighted sum of squares, and the sums of the
+five products ``g_r g_r, g_r g_c, g_c g_c`` (weights ``P^2`` and ``P P'``)
+and ``g_r e, g_c e`` (weight ``P``) to the node rows, ``P`` the bilinear
+node -> pixel weights of :class:`processing.dic_nodes.NodeGrid` along the
+rows.  As NumPy that was two Sobel calls, a subtraction, five full-size
+products and their row sums; here one pass over the pixels, each row's
+products kept in a small buffer.  The column sums stay NumPy
+(:func:`processing.dic_nodes._pair_sums` on arrays a quarter of the frame:
+a compiled version was slower).
+
+:func:`normal_apply`, the conjugate gradients' operator
+``(L^T M L + lam R) x`` on the node grid in one call (was about 130 NumPy
+passes), with the stencils zero-padded (:func:`pad_stencil`) so that no
+inner loop branches.
+
+Both compute what the NumPy operators of :mod:`processing.dic_nodes` do
+(tests compare them, to float32 rounding); compiled once per checkout and
+cached in ``__pycache__``.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+__all__ = ["row_moments"]
+
+
+@numba.njit(nogil=True, cache=True, inline="always")
+def _pixel(Wp, Wu, Wd, Ip, wp, c, cl, cr, tmp):  # pragma: no cover - compiled
+    """Gradients, residual and products of pixel ``c`` of a row into ``tmp[:, c]``
+    (neighbours ``cl``, ``cr``: the edge reflected); its weighted squared residual."""
+    half = np.float32(0.5)
+    wt = wp[c]
+    gr = half * (Wd[c] - Wu[c]) * wt
+    gc = half * (Wp[cr] - Wp[cl]) * wt
+    e = Ip[c] - Wp[c]
+    tmp[0, c] = gr * gr
+    tmp[1, c] = gr * gc
+    tmp[2, c] = gc * gc
+    tmp[3, c] = gr * e
+    tmp[4, c] = gc * e
+    return np.float64(wt * e * e)
+
+
+@numba.njit(nogil=True, cache=True, fastmath={"reassoc", "contract"})
+def row_moments(W, img, w, s, t0, t1, xd, xo, xl, first, tmp):  # pragma: no cover - compiled
+    """Sums of the pixel rows of node intervals ``t0 <= t < t1`` to the node rows.
+
+    Interval ``t`` holds the pixel rows between node rows ``t`` and ``t + 1``
+    (``t = -1``: the rows above node 0, all weight on it; ``t = m - 1``: the rows
+    below the last).  Outputs float32, row ``t + 1`` = node row ``t`` (so
+    ``m + 2`` rows, the outer two receiving zero weights only): ``xd``
+    (3, m + 2, cols) the ``P^2``-weighted sums of ``g_r g_r, g_r g_c, g_c g_c``,
+    ``xo`` (3, m + 2, cols) the ``P_t P_{t+1}`` sums at row ``t + 1``, ``xl``
+    (2, m + 2, cols) the ``P``-weighted sums of ``g_r e, g_c e``.  The band's
+    first node row ``t0`` goes to ``first`` (8, cols) instead, ``xd``'s three
+    rows, ``xo``'s, ``xl``'s two (it is the previous band's last: bands then
+    write no row in common and may run side by side; the caller adds it).
+    ``tmp`` (5, cols) float32 scratch.  Returns the weighted residual sum of
+    squares of those pixel rows (float64)."""
+    rows, cols = W.shape
+    m = rows // s
+    hs = s // 2
+    cost = 0.0
+    half = np.float32(0.5)
+    for t in range(t0, t1):
+        for p in range(max(0, t * s + hs), min(rows, t * s + hs + s)):
+            if t < 0:
+                al, be = 0.0, 1.0
+            elif t >= m - 1:
+                al, be = 1.0, 0.0
+            else:
+                f = (p - t * s - hs + 0.5) / s
+                al, be = 1.0 - f, f
+            Wp, Wu, Wd = W[p], W[max(p - 1, 0)], W[min(p + 1, rows - 1)]
+            Ip, wp = img[p], w[p]
+            row_cost = _pixel(Wp, Wu, Wd, Ip, wp, 0, 0, min(1, cols - 1), tmp)
+            if cols > 1:
+                row_cost += _pixel(Wp, Wu, Wd, Ip, wp, cols - 1, cols - 2, cols - 1, tmp)
+            for c in range(1, cols - 1):  # the interior without the edge's branches
+                wt = wp[c]
+                gr = half * (Wd[c] - Wu[c]) * wt
+                gc = half * (Wp[c + 1] - Wp[c - 1]) * wt
+                e = Ip[c] - Wp[c]
+                tmp[0, c] = gr * gr
+                tmp[1, c] = gr * gc
+                tmp[2, c] = gc * gc
+                tmp[3, c] = gr * e
+                tmp[4, c] = gc * e
+                row_cost += np.float64(wt * e * e)
+            cost += row_cost
+            a2 = np.float32(al * al)
+            b2 = np.float32(be * be)
+            ab = np.float32(al * be)
+            a1 = np.float32(al)
+            b1 = np.float32(be)
+            for q in range(3):
+                d_lo = first[q] if t == t0 else xd[q, t + 1]
+                o_lo = first[3 + q] if t == t0 else xo[q, t + 1]
+                d_hi, tq = xd[q, t + 2], tmp[q]
+                for c in range(cols):
+                    v = tq[c]
+                    d_lo[c] += a2 * v
+                    d_hi[c] += b2 * v
+                    o_lo[c] += ab * v
+            for q in range(2):
+                l_lo = first[6 + q] if t == t0 else xl[q, t + 1]
+                l_hi, tq = xl[q, t + 2], tmp[3 + q]
+                for c in range(cols):
+                    v = tq[c]
+                    l_lo[c] += a1 * v
+                    l_hi[c] += b1 * v
+    return cost
+
+
+
+# ------------------------------------------------------------------ the CG's operator on the node grid
+_FAST = dict(nogil=True, cache=True, fastmath={"reassoc", "contract"})
+
+
+@numba.njit(**_FAST)
+def _d1_rows(x, inv_s, out):  # pragma: no cover - compiled
+    """:func:`processing.dic_nodes._d1` along axis 0."""
+    n, m = x.shape
+    c12, c8 = np.float32(1.0 / 12.0), np.float32(8.0 / 12.0)
+    for i in range(2, n - 2):
+        for j in range(m):
+            out[i, j] = (c12 * (x[i - 2, j] - x[i + 2, j]) + c8 * (x[i + 1, j] - x[i - 1, j])) * inv_s
+    for j in range(m):
+        out[1, j] = np.float32(0.5) * (x[2, j] - x[0, j]) * inv_s
+        out[n - 2, j] = np.float32(0.5) * (x[n - 1, j] - x[n - 3, j]) * inv_s
+        out[0, j] = (np.float32(-1.5) * x[0, j] + np.float32(2.0) * x[1, j] - np.float32(0.5) * x[2, j]) * inv_s
+        out[n - 1, j] = (np.float32(1.5) * x[n - 1, j] - np.float32(2.0) * x[n - 2, j]
+                         + np.float32(0.5) * x[n - 3, j]) * inv_s
+
+
+@numba.njit(**_FAST)
+def _d1_cols(x, inv_s, out):  # pragma: no cover - compiled
+    """:func:`processing.dic_nodes._d1` along axis 1."""
+    n, m = x.shape
+    c12, c8 = np.float32(1.0 / 12.0), np.float32(8.0 / 12.0)
+    for i in range(n):
+        r, o = x[i], out[i]
+        for j in range(2, m - 2):
+            o[j] = (c12 * (r[j - 2] - r[j + 2]) + c8 * (r[j + 1] - r[j - 1])) * inv_s
+        o[1] = np.float32(0.5) * (r[2] - r[0]) * inv_s
+        o[m - 2] = np.float32(0.5) * (r[m - 1] - r[m - 3]) * inv_s
+        o[0] = (np.float32(-1.5) * r[0] + np.float32(2.0) * r[1] - np.float32(0.5) * r[2]) * inv_s
+        o[m - 1] = (np.float32(1.5) * r[m - 1] - np.float32(2.0) * r[m - 2] + np.float32(0.5) * r[m - 3]) * inv_s
+
+
+@numba.njit(**_FAST)
+def _add_d1_T(y, inv_s, axis, z):  # pragma: no cover - compiled
+    """``z += D1^T y`` along ``axis`` (the transpose of :func:`_d1_rows` / :func:`_d1_cols`)."""
+    n = y.shape[0] if axis == 0 else y.shape[1]
+    other = y.shape[1] if axis == 0 else y.shape[0]
+    c12, c8 = np.float32(1.0 / 12.0), np.float32(8.0 / 12.0)
+    for t in range(other):
+        for i in range(n):
+            v = (y[i, t] if axis == 0 else y[t, i]) * inv_s
+            if 2 <= i < n - 2:
+                k0, k1, k2, k3 = i - 2, i + 2, i + 1, i - 1
+                w0, w1, w2, w3 = c12 * v, -c12 * v, c8 * v, -c8 * v
+            elif i == 1 or i == n - 2:
+                k0, k1, k2, k3 = i + 1, i - 1, i, i
+                w0, w1, w2, w3 = np.float32(0.5) * v, np.float32(-0.5) * v, np.float32(0.0), np.float32(0.0)
+            elif i == 0:
+                k0, k1, k2, k3 = 0, 1, 2, 0
+                w0, w1, w2, w3 = np.float32(-1.5) * v, np.float32(2.0) * v, np.float32(-0.5) * v, np.float32(0.0)
+            else:
+                k0, k1, k2, k3 = n - 1, n - 2, n - 3, n - 1
+                w0, w1, w2, w3 = np.float32(1.5) * v, np.float32(-2.0) * v, np.float32(0.5) * v, np.float32(0.0)
+            if axis == 0:
+                z[k0, t] += w0
+                z[k1, t] += w1
+                z[k2, t] += w2
+                z[k3, t] += w3
+            else:
+                z[t, k0] += w0
+                z[t, k1] += w1
+                z[t, k2] += w2
+                z[t, k3] += w3
+
+
+@numba.njit(**_FAST)
+def _add_d3_T_d3(x, lam, z):  # pragma: no cover - compiled
+    """``z += lam (D3r^T D3r + D3c^T D3c) x``."""
+    n, m = x.shape
+    three = np.float32(3.0)
+    for i in range(n - 3):
+        for j in range(m):
+            d = lam * (x[i + 3, j] - x[i, j] + three * (x[i + 1, j] - x[i + 2, j]))
+            z[i, j] -= d
+            z[i + 3, j] += d
+            z[i + 1, j] += three * d
+            z[i + 2, j] -= three * d
+    for i in range(n):
+        for j in range(m - 3):
+            d = lam * (x[i, j + 3] - x[i, j] + three * (x[i, j + 1] - x[i, j + 2]))
+            z[i, j] -= d
+            z[i, j + 3] += d
+            z[i, j + 1] += three * d
+            z[i, j + 2] -= three * d
+
+
+@numba.njit(**_FAST)
+def _stencil_row(dd, do, od, oo, vp, i, out, add):  # pragma: no cover - compiled
+    """Row ``i`` of the 9-point stencil (padded coefficients, :func:`pad_stencil`)
+    applied to the zero-bordered ``vp``; into ``out`` (row), added if ``add``."""
+    m = out.shape[0]
+    for j in range(m):
+        y = (dd[i, j] * vp[i + 1, j + 1] + do[i, j + 1] * vp[i + 1, j + 2] + do[i, j] * vp[i + 1, j]
+             + od[i + 1, j] * vp[i + 2, j + 1] + od[i, j] * vp[i, j + 1]
+             + oo[i + 1, j + 1] * vp[i + 2, j + 2] + oo[i, j] * vp[i, j]
+             + oo[i + 1, j] * vp[i + 2, j] + oo[i, j + 1] * vp[i, j + 2])
+        out[j] = out[j] + y if add else y
+
+
+@numba.njit(**_FAST)
+def normal_apply(x, A, SD, SDO, SOD, SOO, inv_s, lam, work, vpad, out):  # pragma: no cover - compiled
+    """``out = (L^T M L + lam R) x``: the normal operator of a Gauss-Newton step
+    on the node grid, float32 (m_r, m_c).
+
+    ``A`` (6, m_r, m_c): the linear response ``a_r, a_c, B_rr, B_rc, B_cr, B_cc``
+    (:meth:`processing.dic_nodes.HeightNodes.dense_response`); ``SD .. SOO`` the
+    three stencils rr, rc, cc padded (:func:`pad_stencil`); ``work`` (4, m_r, m_c)
+    scratch; ``vpad`` (2, m_r + 2, m_c + 2) scratch whose border stays 0."""
+    n, m = x.shape
+    dr, dc, mr, mc = work[0], work[1], work[2], work[3]
+    _d1_rows(x, inv_s, dr)
+    _d1_cols(x, inv_s, dc)
+    for i in range(n):
+        for j in range(m):
+            vpad[0, i + 1, j + 1] = A[0, i, j] * x[i, j] + A[2, i, j] * dr[i, j] + A[3, i, j] * dc[i, j]
+            vpad[1, i + 1, j + 1] = A[1, i, j] * x[i, j] + A[4, i, j] * dr[i, j] + A[5, i, j] * dc[i, j]
+    for i in range(n):
+        _stencil_row(SD[0], SDO[0], SOD[0], SOO[0], vpad[0], i, mr[i], False)
+        _stencil_row(SD[1], SDO[1], SOD[1], SOO[1], vpad[1], i, mr[i], True)
+        _stencil_row(SD[1], SDO[1], SOD[1], SOO[1], vpad[0], i, mc[i], False)
+        _stencil_row(SD[2], SDO[2], SOD[2], SOO[2], vpad[1], i, mc[i], True)
+    for i in range(n):
+        for j in range(m):
+            a, b = mr[i, j], mc[i, j]
+            out[i, j] = A[0, i, j] * a + A[1, i, j] * b
+            dr[i, j] = A[2, i, j] * a + A[4, i, j] * b  # D1r^T of this
+            dc[i, j] = A[3, i, j] * a + A[5, i, j] * b  # D1c^T of this
+    _add_d1_T(dr, inv_s, 0, out)
+    _add_d1_T(dc, inv_s, 1, out)
+    _add_d3_T_d3(x, lam, out)
+
+
+def pad_stencil(parts):
+    """``(dd, do, od, oo)`` of a :class:`processing.dic_nodes.Stencil9` with zero
+    couplings beyond the grid: ``dd`` (m_r, m_c), ``do`` (m_r, m_c + 1) with
+    ``do[i, j + 1]`` the (i, j)-(i, j + 1) coupling, ``od`` (m_r + 1, m_c) with
+    ``od[i + 1, j]`` the (i, j)-(i + 1, j) one, ``oo`` (m_r + 1, m_c + 1) with
+    ``oo[i + 1, j + 1]`` the (i, j)-(i + 1, j + 1) and (i, j + 1)-(i + 1, j) one."""
+    dd, do, od, oo = parts
+    m_r, m_c = dd.shape
+    dop = np.zeros((m_r, m_c + 1), np.float32)
+    dop[:, 1:m_c] = do
+    odp = np.zeros((m_r + 1, m_c), np.float32)
+    odp[1:m_r] = od
+    oop = np.zeros((m_r + 1, m_c + 1), np.float32)
+    oop[1:m_r, 1:m_c] = oo
+    return np.asarray(dd, np.float32), dop, odp, oop
