@@ -223,20 +223,20 @@ def update_status(w):
                             "Controls ▸ Camera. The app keeps running; frames already recorded are kept.")
     lab["state"].setText("camera stopped" if err else "")
     w._update_recording()
-    state.update_truth(w)
 
 
 def update_staleness(w) -> None:
     """Grey out and label every view whose data is not the newest the camera gave (ages refreshed 4x/s)."""
     if w.pause_box.isChecked() or w.frozen:
-        return  # the user froze the views on purpose
+        state.update_truth(w)  # the user froze the views on purpose (the tank's progress still shows)
+        return
     unmeasured = w._unmeasured
     w.stale = view_staleness(
         time.monotonic_ns(), w.session.acquisition, raw=w._raw_shown, maps=w._maps_shown,
         alignment=w._align_shown, unmeasured_seq=None if unmeasured is None else unmeasured.seq,
         frame_rate_hz=getattr(w.session.camera_settings(), "frame_rate_hz", None),
         camera_key=w._camera_key(),
-        reference_key=w._reference_epoch if w.session.worker.reconstructor is not None else None)
+        reference_key=w.references.key(w.session.worker.reconstructor is not None))
     for v in (w.raw_view, w.align_raw_view):
         v.set_stale(w.stale.raw)
     for v in (*w.map_views, w.profile_view, w.probe_view):
@@ -248,6 +248,7 @@ def update_staleness(w) -> None:
                              maps_seq=w._maps_shown.seq if w._maps_shown is not None else None)
     rp.rms_label.setText(text)
     rp.rms_label.setStyleSheet("color: #888" if old else "")
+    state.update_truth(w)  # "vs truth" with the same mark as the maps, whoever refreshed it
 
 
 def pause_toggled(w, paused: bool) -> None:

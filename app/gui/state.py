@@ -373,11 +373,13 @@ def update_truth(w) -> None:
     truth = tank.truth(fid) if fid is not None else None
     if truth is None:
         return
-    r = p.result
-    e = height_error(r.height, r.valid, r.rows_px, r.cols_px, truth)
-    e["scene"] = tank.scene_of(fid)
-    e["seq"] = p.seq
-    w.height_error = e
+    e = w.height_error
+    if e is None or e.get("seq") != p.seq:  # once per map: the stale mark's age is refreshed more often
+        r = p.result
+        e = height_error(r.height, r.valid, r.rows_px, r.cols_px, truth)
+        e["scene"] = tank.scene_of(fid)
+        e["seq"] = p.seq
+        w.height_error = e
     if np.isfinite(e["rel_rms"]):
         text = f"vs truth {100 * e['rel_rms']:.1f} % rel. RMS ({e['scene']})"
     else:

@@ -27,7 +27,7 @@ from .collector import GuiThreadCollector
 from .model.memory import SessionMemory
 from .model.recording import RmsHistory
 from .model.schedule import DrawClock, ExportProgress, LiveRates, ReplayQueue
-from .model.staleness import STALE_AFTER_S, Shown, Staleness
+from .model.staleness import STALE_AFTER_S, ReferenceEpochs, Shown, Staleness
 from .replay import Recording
 from .session import LiveSession
 
@@ -107,8 +107,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.reference_path: Optional[str] = None  # the file of the reference in use (None: captured)
         self.reference_roi = None  # (offset_x, offset_y, width, height) the reference was taken with
         self._reference_text = ""
-        self._reference_epoch = 0  # counts reconstructors installed: maps of an older one are stale
-        self._reference_since_seq = -1  # frames after this one are measured against the newest reference
+        self.references = ReferenceEpochs()  # rebuild policy; which reference measured which frame
         self.scene_wanted: Optional[str] = None
         self.clock = DrawClock()
         self.rates = LiveRates(STALE_AFTER_S)
@@ -479,10 +478,8 @@ class MainWindow(QtWidgets.QMainWindow):
     def _shown_now(self, seq, host_ns) -> Shown:
         """What a view showing frame ``seq`` now shows (model/staleness.py decides when it is stale)."""
         acq = self.session.acquisition
-        measured_with = self._reference_epoch if seq is None or seq > self._reference_since_seq \
-            else self._reference_epoch - 1
         return Shown(seq, host_ns, weakref.ref(acq) if acq is not None else None, self._camera_key(),
-                     measured_with)
+                     self.references.measured_with(seq))
 
     def maps_shown_seq(self) -> Optional[int]:
         """The frame the processed maps on screen show (None: none yet)."""

@@ -106,6 +106,50 @@ def test_maps_of_an_older_reference_are_stale_and_numbers_from_them_say_so():
     assert derived_text("now 0.1 mrad", None, measured_seq=9, maps_seq=10)[1]
 
 
+def test_maps_whose_reference_was_taken_away_are_stale_at_once():
+    """The flake of test_vs_truth_in_the_status_bar_carries_the_age_of_the_maps: a refused reference leaves
+    the worker without a reconstructor; the maps on screen were measured against the reference it had. They
+    must be stale at the first tick, not only once the worker publishes an unmeasured frame that the display
+    draws, or the raw view runs 1 s ahead (both late on a loaded PC: 5 s in one run of 15, never in one)."""
+    import weakref
+
+    from app.gui.model.staleness import Shown, view_staleness
+
+    a = _Acq()
+    maps = Shown(10, 1_000_000_000, weakref.ref(a), ("synthetic", None), 1)
+    raw = Shown(11, 1_030_000_000, weakref.ref(a), ("synthetic", None), 1)  # the raw view is not ahead yet
+    s = view_staleness(1_100_000_000, a, raw=raw, maps=maps, alignment=None, camera_key=("synthetic", None),
+                       reference_key=None)  # none in use: nothing measures any more
+    assert s.maps == "their reference is no longer in use — frame 10, 0.1 s ago"
+
+
+def test_rebuild_policy_only_the_newest_request_changes_the_worker_and_marks_older_maps():
+    from app.gui.model.staleness import ReferenceEpochs
+
+    e = ReferenceEpochs()
+    assert e.key() is None and e.measured_with(5) is None
+    first = e.request()
+    assert e.outcome(first, True) == "install"
+    e.install(first, since_seq=100)
+    assert e.key() == first and e.measured_with(101) == first and e.measured_with(100) is None
+    # a new reference is asked for: until it is built, maps of the first are "older reference"
+    second = e.request()
+    assert e.key() == second != e.measured_with(120)
+    # a third request comes before the second ends; the second then fails: superseded, not "remove"
+    third = e.request()
+    assert e.outcome(second, False) == "superseded" and e.installed == first
+    assert e.outcome(third, True) == "install"
+    e.install(third, since_seq=130)
+    assert (e.measured_with(130), e.measured_with(131)) == (first, third)
+    # the newest fails (a reference without a pattern): nothing measures; maps from before say so
+    fourth = e.request()
+    assert e.outcome(fourth, False) == "remove"
+    e.remove(since_seq=150)
+    assert e.key() is None and e.measured_with(151) is None and e.measured_with(140) == third
+    e.install(e.request(), since_seq=160)
+    assert e.key(worker_has_reconstructor=False) is None  # taken away by someone else: none in use either
+
+
 # ------------------------------------------------------------------ schedule
 def test_draw_clock_keeps_its_cadence_and_never_piles_up_late_ticks():
     from app.gui.model.schedule import DrawClock
