@@ -32,6 +32,13 @@ def _window(qtbot, **kw):
     return w
 
 
+def _until(qtbot, condition, seen, timeout):
+    """``qtbot.waitUntil(condition)`` whose timeout names what was seen last (``seen()``)."""
+    def check():
+        assert condition(), seen()
+    qtbot.waitUntil(check, timeout=timeout)
+
+
 def _ctrl(w, key):
     QtTest.QTest.keyClick(w, key, QtCore.Qt.ControlModifier)
 
@@ -170,7 +177,7 @@ def test_vs_truth_in_the_status_bar_carries_the_age_of_the_maps(qtbot, tmp_path)
     # hang detector: stale at the first status tick after the refused build (model/staleness.py NO_REFERENCE;
     # before, it waited for an unmeasured frame to be drawn: 5 s late in 1 run of 15 on a loaded PC)
     qtbot.waitUntil(lambda: w.height_view.is_stale, timeout=60000)
-    qtbot.waitUntil(lambda: "(stale: " in truth.text(), timeout=5000)
+    _until(qtbot, lambda: "(stale: " in truth.text(), lambda: f"status bar {truth.text()!r}", 5000)
     assert w.height_error["stale"] and "#888" in truth.styleSheet()
     assert w.height_view.stale_text in truth.text()  # the same words, the same age as the maps
 
@@ -185,8 +192,8 @@ def test_random_dots_chosen_on_the_checkerboard_is_not_ready_with_the_reason(qtb
     w = _window(qtbot)
     _pick_random_dots(qtbot, w)
     _click_tab(qtbot, w, "Alignment")
-    qtbot.waitUntil(lambda: "pattern" in w.alignment_metrics and w.ready_label.text().startswith("NOT READY"),
-                    timeout=20000)
+    _until(qtbot, lambda: "pattern" in w.alignment_metrics and w.ready_label.text().startswith("NOT READY"),
+           lambda: f"banner {w.ready_label.text()!r}, table {w.alignment_metrics}", 20000)
     text = w.ready_label.text()
     assert "periodic pattern, not random dots" in text and "checkerboard" in text
     assert not w.alignment_ready
@@ -357,12 +364,22 @@ def test_after_an_roi_change_the_reference_follows_and_the_maps_name_the_roi(qtb
     cp = w.camera_panel
     cp.offset_x.setValue(64)
     cp.width.setValue(128)
-    marks = []
-    w.session.worker.set_reconstructor(None)  # hold the maps on screen until the ROI is in: they get old
+    old_acquisition = w.session.acquisition
+    w.frozen = True  # the maps of the old ROI stay on screen (no draw) while the camera restarts
+
+    def mark():
+        """The maps' stale mark now (one staleness tick in between draws: nothing else runs meanwhile)."""
+        w.frozen = False
+        w._update_staleness()
+        w.frozen = True
+        return w.height_view.stale_text
+
     cp.apply_button.click()
-    qtbot.waitUntil(lambda: (marks.append(w.height_view.stale_text) or True) and w.reference is not None
-                    and w.reference.shape == (SHAPE[0], 128), timeout=20000)
-    assert not any(m and "previous camera" in m for m in marks), marks
+    qtbot.waitUntil(lambda: w.session.acquisition is not old_acquisition and w.session.camera_settings() is not None
+                    and w.session.camera_settings().width == 128, timeout=20000)
+    assert mark().startswith("ROI changed — frame "), mark()  # the same camera: not "from the previous camera"
+    w.frozen = False
+    qtbot.waitUntil(lambda: w.reference is not None and w.reference.shape == (SHAPE[0], 128), timeout=20000)
     qtbot.waitUntil(lambda: "✓" in w.geometry_panel.reference_label.text(), timeout=30000)
     assert "cropped to the new ROI 128×256 at (64, 0)" in w.geometry_panel.reference_label.text()
     band = w.pin_overlay.image.mapRectToParent(w.pin_overlay.image.boundingRect()).width()
