@@ -121,7 +121,7 @@ def rebuild_reconstructor(w):
             w.show_error(f"Bad reference: {error}")
             return
         newest = w.session.newest_seq()  # later frames are measured against this reference
-        w.references.install(request, newest if newest is not None else w._last_raw_seq)
+        w.references.install(request, newest if newest is not None else w.clock.last_raw_seq)
         w.session.worker.set_reconstructor(rec)
         w.pin_overlay.set_reconstructor(rec)
         w.session.reference = reference

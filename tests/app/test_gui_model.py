@@ -157,11 +157,39 @@ def test_draw_clock_keeps_its_cadence_and_never_piles_up_late_ticks():
     c = DrawClock(display_hz=50.0, maps_hz=25.0)
     waits = [c.tick(t) for t in (0.0, 0.021, 0.040)]  # ticks a little late or early: the cadence holds
     assert waits[0] == pytest.approx(0.02) and c.next_due == pytest.approx(0.06)
+    assert c.ticks_lost == 0
     assert c.tick(1.0) == pytest.approx(0.0)  # far behind: restart from now, no burst of ticks
+    assert c.ticks_lost == 46  # the ticks due at 0.08 ... 0.98 s were never drawn (and are counted)
     assert c.maps_due(1.0)
     c.maps_drawn(1.0, "result")
     assert not c.maps_due(1.02) and c.maps_due(1.04)
     assert c.take_second_half() == "result" and c.take_second_half() is None
+
+
+def test_tick_plan_draws_each_new_frame_and_a_result_in_two_halves_at_most_at_the_maps_rate():
+    from types import SimpleNamespace as R
+
+    from app.gui.model.schedule import ALIGNMENT_TAB, LIVE_TAB, DrawClock, RateCounter
+
+    c = DrawClock(display_hz=60.0, maps_hz=30.0)
+    r5, r7 = R(seq=5), R(seq=7)
+    p = c.plan(0.000, LIVE_TAB, 5, r5)
+    assert (p.raw, p.maps, p.result) == (True, "first half", r5)
+    p = c.plan(0.017, LIVE_TAB, 5, r5)  # no new camera frame; the other half of r5's maps
+    assert (p.raw, p.maps, p.result) == (False, "second half", r5)
+    p = c.plan(0.025, LIVE_TAB, 6, r7)  # a new result, but maps were begun 25 ms ago (< 1/30 s)
+    assert (p.raw, p.maps) == (True, None)
+    p = c.plan(0.034, LIVE_TAB, 7, r7)
+    assert (p.raw, p.maps, p.result) == (True, "first half", r7)
+    p = c.plan(0.050, ALIGNMENT_TAB, 8, R(seq=8))  # r7's second half is dropped on the Alignment tab
+    assert (p.raw, p.maps) == (True, None)
+    p = c.plan(0.070, ALIGNMENT_TAB, 9, R(seq=9))
+    assert (p.raw, p.maps) == (True, "alignment") and c.take_second_half() is None
+    p = c.plan(0.200, 2, 10, R(seq=10))  # the Replay tab shows no camera
+    assert (p.raw, p.maps) == (False, None) and c.last_raw_seq == 9
+    shown = RateCounter()
+    rates = [shown.add(0.02 * k, 1 if k % 2 else 0) for k in range(51)]  # a new frame every other 20 ms tick
+    assert rates[49] == 0.0 and rates[50] == pytest.approx(25.0)
 
 
 def test_replay_queue_keeps_only_the_newest_request():
