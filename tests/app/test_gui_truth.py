@@ -22,7 +22,7 @@ def _window(qtbot, **kw):
 
     w = MainWindow("synthetic", synthetic_options={"shape": SHAPE, "n_frames": 12, "frame_rate_hz": 30.0},
                    planner_effort="FFTW_ESTIMATE", **kw)
-    qtbot.addWidget(w)
+    qtbot.addWidget(w, before_close_func=lambda widget: widget.shutdown())  # see tests/app/conftest.py
     w.resize(1600, 1000)
     w.show()
     qtbot.waitUntil(lambda: w.first_frame_s is not None, timeout=20000)
@@ -318,6 +318,28 @@ def test_replay_export_names_the_frames_it_could_not_measure(qtbot, window, scen
     assert f"heights of 5 frames exported to {out}" in text and "1 invalid (frames 2)" in text, text
     assert "color: #b00000" in window.replay.message.styleSheet()
     assert any("1 invalid (frames 2)" in r.getMessage() and r.levelno == logging.WARNING for r in caplog.records)
+
+
+def test_snapshot_keeps_one_colour_range_per_map(qtbot, window, scene, tmp_path):
+    """Finding 9: slope x and slope y share a unit (mrad); the snapshot keeps each map's own colour range."""
+    import h5py
+
+    frames = _live(qtbot, window, scene, tmp_path)
+    frames.image = scene["bump"]
+    qtbot.waitUntil(lambda: window.last_drawn is not None and np.array_equal(window.last_drawn.image, scene["bump"])
+                    and all(v.frame_id == window.last_drawn.seq for v in window.map_views), timeout=10000)
+    window.pause_box.click()  # the ranges on screen stay as they are while the file is written
+    shown = {name: tuple(v.levels) for name, v in (("height", window.height_view), ("displacement", window.disp_view),
+                                                    ("slope_x", window.slope_x_view), ("slope_y", window.slope_y_view))}
+    assert shown["slope_x"] != shown["slope_y"]  # the bump's two slope maps have ranges of their own
+    _, h5 = window.snapshot(str(tmp_path / "snaps"))
+    with h5py.File(h5, "r") as f:
+        names = sorted(k for k in f.attrs if k.startswith("colour_levels."))
+        assert names == ["colour_levels.displacement", "colour_levels.height", "colour_levels.slope_x",
+                         "colour_levels.slope_y"], names
+        for name, levels in shown.items():
+            assert tuple(f.attrs[f"colour_levels.{name}"]) == pytest.approx(levels, rel=1e-6), name
+        assert f.attrs["colour_units.slope_x"] == f.attrs["colour_units.slope_y"] == "mrad"
 
 
 # --------------------------------------------------------------- 1280x800
