@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-MODEL_MODULES = ("staleness", "schedule", "reference", "recording", "memory")
+MODEL_MODULES = ("staleness", "schedule", "reference", "recording", "memory", "region", "replay")
 
 
 def test_the_model_imports_no_qt():
@@ -277,6 +277,44 @@ def test_old_dimensionless_thresholds_come_back_in_mrad_and_gpu_is_off_unless_as
     assert not m.use_gpu
     m.use_gpu = True
     assert m.data["gpu"] is True
+
+
+def test_what_a_session_remembers_comes_back_for_its_own_camera_only():
+    from app.gui.model.memory import SessionMemory
+
+    m = SessionMemory({"cameras": {"aravis:A": {"settings": {"exposure_us": 500.0, "gain_db": 3.0, "width": 640,
+                                                            "height": None},
+                                                "geometry_confirmed": True},
+                                   "synthetic": {"settings": {"exposure_us": 800.0, "width": 256}}},
+                       "camera_id": "aravis:A", "reference": {"camera": "aravis:A", "path": "/data/ref.tif"}})
+    assert m.camera_to_open(None) == "aravis:A" and m.restored == ["camera aravis:A"]
+    assert m.camera_to_open("synthetic") == "synthetic" and m.restored == [] and m.remembered_camera is None
+    m.camera_to_open(None)
+    assert m.remembered_camera_failed("no such camera\n(details)") and not m.remembered_camera_failed("again")
+    assert m.restored == ["camera aravis:A not available (no such camera); searching cameras instead"]
+    # settings: only those that differ from what the camera has now; the tank keeps its own size
+    assert m.settings_to_restore("aravis:A", {"exposure_us": 500.0, "gain_db": 0.0, "width": 512}, False) == \
+        {"gain_db": 3.0, "width": 640}
+    assert m.settings_to_restore("synthetic", {"exposure_us": 100.0, "width": 512}, True) == {"exposure_us": 800.0}
+    assert m.reference_of("aravis:A") == "/data/ref.tif" and m.reference_of("synthetic") is None
+    assert not m.geometry_unconfirmed("aravis:A", False) and m.geometry_unconfirmed("aravis:B", False)
+    assert not m.geometry_unconfirmed("synthetic", True) and not m.geometry_unconfirmed(None, False)
+
+
+def test_replay_uses_the_recordings_reference_and_geometry_and_says_what_is_missing():
+    from app.capture.scene import default_geometry
+    from app.gui.model.replay import frame_label, replay_inputs
+
+    g = default_geometry((64, 64))
+    ref_file, ref_window = np.zeros((4, 4)), np.ones((4, 4))
+    reference, geometry, message = replay_inputs(ref_file, ref_window, g.to_toml_text(), None)
+    assert reference is ref_file and geometry.to_dict() == g.to_dict() and message is None
+    reference, geometry, message = replay_inputs(None, ref_window, "theta_deg = [", g)
+    assert reference is ref_window and geometry is g and message.startswith("geometry stored in the file is unusable")
+    _, _, message = replay_inputs(None, None, None, None)
+    assert message.startswith("raw frames only: no reference (still water) and no geometry in this file or the window")
+    assert frame_label(2, 60, -3, 1.2345e-3, "trigger") == "frame 3/60  (trigger -3)  t = +1.2345 ms from the trigger"
+    assert frame_label(0, 5, None, float("nan"), "trigger") == "frame 1/5"
 
 
 # ------------------------------------------------------------------ region (finding 4)
