@@ -265,6 +265,7 @@ def test_threshold_proposal_is_five_times_the_median_recent_rms_in_mrad():
     for v, seq in ((1e-4, 1), (2e-4, 2), (float("nan"), 3), (1.5e-4, 4)):
         h.add(v, seq)
     assert h.propose_mrad() == pytest.approx(5 * 0.15) and h.readout() == "now 0.15 mrad" and h.seq == 4
+    assert h.propose_mrad(live=False) is None  # not from maps that are stale
     assert threshold_attrs(0.75)["auto_trigger_threshold_unit"] == "mrad RMS slope"
 
 
