@@ -353,12 +353,12 @@ def update_truth(w) -> None:
     if p is None or p.result is None:
         lab.setText("")
         return
-    fid = w.session.frame_id_of(p.seq)
-    truth = tank.truth(fid) if fid is not None else None
-    if truth is None:
-        return
     e = w.height_error
     if e is None or e.get("seq") != p.seq:  # once per map: the stale mark's age is refreshed more often
+        fid = w.session.frame_id_of(p.seq)
+        truth = tank.truth(fid) if fid is not None else None
+        if truth is None:
+            return
         r = p.result
         e = height_error(r.height, r.valid, r.rows_px, r.cols_px, truth)
         e["scene"] = tank.scene_of(fid)

@@ -422,8 +422,11 @@ class MainWindow(QtWidgets.QMainWindow):
             self.latency_ms = (time.monotonic_ns() - host_ns) / 1e6 if host_ns else float("nan")
         if plan.maps == "second half":
             self._draw_result(plan.result, part=1)
-        elif plan.maps is not None:
-            self._draw_result(p, part=0) if plan.maps == "first half" else self._draw_alignment(p)
+        elif plan.maps == "first half":
+            self._draw_result(p, part=0)
+        elif plan.maps == "alignment":
+            self._draw_alignment(p)
+        if plan.maps in ("first half", "alignment"):
             self.result_latency_ms = (time.monotonic_ns() - p.host_timestamp_ns) / 1e6 if p.host_timestamp_ns \
                 else float("nan")
         self.shown_rate.add(time.monotonic(), int(plan.raw))
