@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-MODEL_MODULES = ("staleness", "schedule", "reference", "recording", "memory", "region", "replay")
+MODEL_MODULES = ("staleness", "schedule", "reference", "recording", "memory", "region", "replay", "status")
 
 
 def test_the_model_imports_no_qt():
@@ -210,6 +210,29 @@ def test_live_rate_falls_to_zero_when_the_counter_stops():
     assert r.rate("camera", 2, 30.0, 0.1) == 30.0
     assert r.rate("camera", 2, 30.0, 0.5) == 30.0
     assert r.rate("camera", 2, 30.0, 1.2) == 0.0
+
+
+def test_status_bar_says_lost_with_zero_rates_and_names_the_live_device():
+    from app.gui.model.status import camera_problem, status_texts
+
+    st = {"camera_text": "synthetic 256×256", "camera_fps": 30.0, "ring_fill": 0.25, "ring_frames": 40,
+          "dropped_camera": 2, "dropped_ring": 0, "recorder_backlog": 1}
+    t = status_texts(st, camera_fps=30.0, processed_fps=9.5, shown_fps=29.9, frozen=False, camera_open=True,
+                     display_skipped=7, latency_ms=12.4, device_text="CPU (GPU not asked for: View ▸ ...)")
+    assert (t.camera, t.camera_lost, t.state) == ("synthetic 256×256", False, "")
+    assert t.fps == "camera 30.0 · processed 9.5 · shown 29.9 fps" and t.latency == "latency 12 ms"
+    assert t.drops == "dropped: camera 2 · ring→recorder 0 · recorder backlog 1 · display skipped 7 (by design)"
+    assert (t.ring, t.ring_tip) == ("ring 25 %", "ring buffer 25 % full, 40 frames")
+    assert t.device == "live on CPU" and t.device_tip.startswith("live reconstruction on the CPU (GPU not asked")
+    lost = status_texts(dict(st, error="no frame for 3.0 s"), camera_fps=30.0, processed_fps=0.0, shown_fps=29.9,
+                        frozen=True, camera_open=True, display_skipped=7, latency_ms=float("nan"))
+    assert (lost.camera, lost.camera_lost, lost.camera_fps, lost.state) == \
+        ("synthetic 256×256 LOST", True, 0.0, "camera stopped")
+    assert "shown 0.0 fps" in lost.fps and lost.latency == "" and lost.device == ""
+    text = camera_problem("no frame for 3.0 s", "synthetic", None)
+    assert text.startswith("Camera problem: no frame for 3.0 s\nCheck the cable")
+    assert camera_problem("no frame for 3.0 s", "synthetic", "no frame for 3.0 s") is None  # shown once
+    assert camera_problem(None, "synthetic", None) is None
 
 
 # ------------------------------------------------------------------ reference (finding 1)
