@@ -14,6 +14,7 @@ import numpy as np
 from pyqtgraph.Qt import QtWidgets
 
 from . import state
+from .model.memory import live_device_for
 from .model.region import clamp_region, reference_crop, region_problem, roi_of
 
 log = logging.getLogger(__name__)
@@ -89,9 +90,7 @@ def rebuild_reconstructor(w):
 
         from .alignment import DOT_WINDOW_PX  # random dots: the windows the Alignment tab counts dots in
 
-        # the GPU only when the user asked for it (View ▸ Live reconstruction on the GPU, remembered)
-        device, text = live_device() if use_gpu else ("cpu", "CPU (GPU not asked for: View ▸ Live "
-                                                             "reconstruction on the GPU)")
+        device, text = live_device_for(use_gpu, live_device)  # the GPU only when asked for (remembered)
         if device == "cuda":
             try:
                 rec = Reconstructor(reference, geometry, planner_effort=w.planner_effort, device="cuda",

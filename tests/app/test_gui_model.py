@@ -297,10 +297,15 @@ def test_old_dimensionless_thresholds_come_back_in_mrad_and_gpu_is_off_unless_as
 
     assert threshold_mrad({"threshold": 0.002}, 1.0) == pytest.approx(2.0)
     assert threshold_mrad({"threshold_mrad": 0.5, "threshold": 0.002}, 1.0) == 0.5
+    from app.gui.model.memory import live_device_for
+
     m = SessionMemory()
     assert not m.use_gpu
+    asked = []
+    assert live_device_for(m.use_gpu, lambda: asked.append(1) or ("cuda", "GPU 0")) == \
+        ("cpu", "CPU (GPU not asked for: View ▸ Live reconstruction on the GPU)") and not asked  # not even probed
     m.use_gpu = True
-    assert m.data["gpu"] is True
+    assert m.data["gpu"] is True and live_device_for(m.use_gpu, lambda: ("cuda", "GPU 0")) == ("cuda", "GPU 0")
 
 
 def test_what_a_session_remembers_comes_back_for_its_own_camera_only():

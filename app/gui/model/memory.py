@@ -8,9 +8,9 @@ onto the window.
 from __future__ import annotations
 
 import dataclasses
-from typing import List, Optional
+from typing import Callable, List, Optional, Tuple
 
-__all__ = ["KEY", "SETTING_NAMES", "SessionMemory", "threshold_mrad"]
+__all__ = ["KEY", "SETTING_NAMES", "SessionMemory", "threshold_mrad", "live_device_for"]
 
 KEY = "session"
 #: The camera settings remembered per camera (what it accepted), and restored when it opens again.
@@ -28,6 +28,14 @@ def threshold_mrad(rec: dict, default: float) -> float:
     if "threshold" in rec:
         return 1e3 * float(rec["threshold"])
     return default
+
+
+def live_device_for(use_gpu: bool, probe: Callable[[], Tuple[str, str]]) -> Tuple[str, str]:
+    """``(device, text)`` of the live reconstruction: the GPU only when the user asked for it (``use_gpu``,
+    remembered) and ``probe`` (:func:`processing.gpu.live_device`, not called otherwise) finds one."""
+    if not use_gpu:
+        return "cpu", "CPU (GPU not asked for: View ▸ Live reconstruction on the GPU)"
+    return probe()
 
 
 @dataclasses.dataclass
