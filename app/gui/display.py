@@ -14,7 +14,7 @@ from pyqtgraph.Qt import QtCore
 from app.capture.trigger import rms_slope
 
 from . import state
-from .model.staleness import derived_text, view_staleness
+from .model.staleness import derived_text, unmeasured_messages, view_staleness
 from .model.status import camera_problem, status_texts
 
 
@@ -79,10 +79,8 @@ def draw_result(w, p, part: int = -1):
     views = w.map_views
     if r is None:
         if part in (0, -1):
-            text = p.error or ("no reference yet: capture one (Controls ▸ Reference & geometry)"
-                               if w.session.worker.reconstructor is None else "")
             # the full text on the height map; the small maps say what happened in a few words
-            short = text.split(":")[0] + " (see Height)" if ":" in text else None
+            text, short = unmeasured_messages(p.error, w.session.worker.reconstructor is not None)
             for v in views:
                 v.show_message(text, None if v is w.height_view else short)
             w._unmeasured = p  # the maps on screen (if any) are older than this frame: stale

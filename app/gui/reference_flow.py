@@ -15,6 +15,7 @@ from pyqtgraph.Qt import QtWidgets
 
 from . import state
 from .model.memory import live_device_for
+from .model.reference import capture_failed_label
 from .model.region import clamp_region, reference_crop, region_problem, roi_of
 
 log = logging.getLogger(__name__)
@@ -26,9 +27,7 @@ def capture_reference(w, n_frames: int):
 
     def done(result, error):
         if error:
-            kept = " (previous reference kept)" if w.reference is not None else ""
-            w.geometry_panel.reference_label.setText(
-                ("REFUSED: the water is moving" if "water is moving" in error else "capture failed") + kept)
+            w.geometry_panel.reference_label.setText(capture_failed_label(error, w.reference is not None))
             w.geometry_panel.reference_label.setStyleSheet("color: #c00000; font-weight: bold")
             w.show_error(f"Reference capture failed: {error}")
             return

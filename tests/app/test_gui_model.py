@@ -150,6 +150,16 @@ def test_rebuild_policy_only_the_newest_request_changes_the_worker_and_marks_old
     assert e.key(worker_has_reconstructor=False) is None  # taken away by someone else: none in use either
 
 
+def test_an_unmeasured_frame_says_why_on_every_map():
+    from app.gui.model.staleness import unmeasured_messages
+
+    assert unmeasured_messages(None, False) == ("no reference yet: capture one (Controls ▸ Reference & geometry)",
+                                                "no reference yet (see Height)")
+    assert unmeasured_messages("AllInvalidError: no valid pixel", True) == ("AllInvalidError: no valid pixel",
+                                                                             "AllInvalidError (see Height)")
+    assert unmeasured_messages(None, True) == ("", None)
+
+
 # ------------------------------------------------------------------ schedule
 def test_draw_clock_keeps_its_cadence_and_never_piles_up_late_ticks():
     from app.gui.model.schedule import DrawClock
@@ -263,6 +273,14 @@ def test_reference_of_still_water_agrees_and_of_waves_is_refused_with_the_figure
     assert min(avg.changes[1:]) > 4 * PHASE_BOUND_RAD  # the waves move the phase by far more than the bound
     with pytest.raises(WaterMovingError, match=r"the water is moving: wait and capture again\. 5 of 6 frames"):
         avg.result()
+
+
+def test_a_refused_capture_says_refused_only_for_moving_water():
+    from app.gui.model.reference import capture_failed_label
+
+    assert capture_failed_label("the water is moving: wait and capture again. 5 of 6 …", True) == \
+        "REFUSED: the water is moving (previous reference kept)"
+    assert capture_failed_label("camera lost", False) == "capture failed"
 
 
 def test_one_passing_glitch_is_left_out_not_averaged(tank):

@@ -13,7 +13,7 @@ import dataclasses
 from typing import Any, Callable, Optional
 
 __all__ = ["STALE_AFTER_S", "NO_REFERENCE", "Shown", "Staleness", "ReferenceEpochs", "format_age", "why_stale",
-           "view_staleness", "derived_text"]
+           "view_staleness", "derived_text", "unmeasured_messages"]
 
 #: A view whose data is this much older than expected is marked stale (s).
 STALE_AFTER_S = 1.0
@@ -196,3 +196,11 @@ def derived_text(text: str, maps_mark: Optional[str], *, measured_seq: Optional[
     if maps_mark is None:
         return text, False
     return f"{text} (stale: {maps_mark})", True
+
+
+def unmeasured_messages(error: Optional[str], has_reconstructor: bool) -> tuple:
+    """What the maps say over a frame the worker could not measure: ``(full, short)`` -- the full text on the
+    height map, a few words (or None) on the small maps. Without a reconstructor: "no reference yet"."""
+    text = error or ("no reference yet: capture one (Controls ▸ Reference & geometry)" if not has_reconstructor
+                     else "")
+    return text, (text.split(":")[0] + " (see Height)" if ":" in text else None)
