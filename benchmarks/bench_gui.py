@@ -6,7 +6,11 @@ For each frame size the real main window runs on the synthetic camera
 processing worker reconstructs heights continuously, while a pre/post-trigger
 recording writes every frame to disk. Measured over the recording:
 
-* shown fps  -- repaints of the raw-frame view that showed a new camera frame, per second;
+* shown fps  -- repaints of the raw-frame view that showed a new camera frame, per second; the
+  window draws at most ``DISPLAY_MAX_HZ`` (60, app/gui/model/schedule.py) whatever the camera
+  delivers, so "shown" can never exceed 60.0 and a camera at 60 Hz or less bounds it below that:
+  the measure of keeping up is ``shown / min(delivered, 60)`` (printed as "kept"), every frame
+  the display could show shown at 1.00;
 * latency    -- camera-to-screen: from the driver's host timestamp of a frame to
   the end of the paint that put it on screen (median and 95th percentile), for the
   raw view and for the height map (which adds the reconstruction);
@@ -16,7 +20,8 @@ Baseline, measured in the same run: pyqtgraph's ``ImageView`` (histogram and
 auto levels recomputed per frame, the usual peer approach) showing the same raw
 frames as fast as it can, alone; the ratio compares the raw display rate.
 
-Goal (issue): >= 60 fps shown at 1024^2 with all views open, < 50 ms latency, 0 recorder drops,
+Goal (issue): >= 60 fps shown at 1024^2 with all views open (read as kept >= 0.99: the camera here
+delivers 100 frames/s, above the 60 Hz cap, so 60 shown means every display tick showed a new frame), < 50 ms latency, 0 recorder drops,
 heights >= 20 Hz; and launch to first frame (``python3 -m app.gui`` spawned, first camera frame
 drawn) <= 3 s, printed for a first start (camera search) and a second (the remembered camera).
 
@@ -111,6 +116,7 @@ def measure_window(app, size, rate_hz, seconds, n_frames, nice=0):
         height.latencies_ms.clear()
         acq = w.session.acquisition
         p0, h0, k0, a0 = raw.painted, w.height_view.updates, w.session.worker.processed, acq.acquired
+        lost0 = w.clock.ticks_lost
         t0 = time.monotonic()
         _run_loop(app, seconds)
         dt = time.monotonic() - t0
@@ -121,6 +127,7 @@ def measure_window(app, size, rate_hz, seconds, n_frames, nice=0):
             "camera_fps": (acq.acquired - a0) / dt,
             "shown_fps": shown_new / dt,
             "paints_fps": (raw.painted - p0) / dt,
+            "ticks_lost": w.clock.ticks_lost - lost0,  # display ticks skipped: the GUI thread was late
             "height_fps": (w.height_view.updates - h0) / dt,
             "processed_fps": (w.session.worker.processed - k0) / dt,
             "lat_raw_ms": np.percentile(list(raw.latencies_ms), [50, 95]) if raw.latencies_ms else [np.nan] * 2,
@@ -232,12 +239,16 @@ def main(argv=None) -> int:
         r["baseline_fps"] = base
         rows.append(r)
     print()
-    print(f"{'size':>6} {'camera':>7} {'shown':>6} {'paints':>7} {'height':>7} {'proc':>6} {'baseline':>9} "
+    from app.gui.model.schedule import DISPLAY_MAX_HZ
+
+    print(f"{'size':>6} {'camera':>7} {'shown':>6} {'kept':>5} {'paints':>7} {'height':>7} {'proc':>6} {'baseline':>9} "
           f"{'ratio':>6} {'lat raw p50/p95':>16} {'lat height p50/p95':>19} {'recorded':>10} {'missing':>8} "
           f"{'MB/s':>6}")
     ok = True
     for r in rows:
-        print(f"{r['size']:>5}² {r['camera_fps']:7.1f} {r['shown_fps']:6.1f} {r['paints_fps']:7.1f} "
+        showable = min(r["camera_fps"], DISPLAY_MAX_HZ)  # new frames the display could show per second
+        kept = r["shown_fps"] / max(showable, 1e-9)
+        print(f"{r['size']:>5}² {r['camera_fps']:7.1f} {r['shown_fps']:6.1f} {kept:5.3f} {r['paints_fps']:7.1f} "
               f"{r['height_fps']:7.1f} {r['processed_fps']:6.1f} {r['baseline_fps']:9.1f} "
               f"{r['shown_fps'] / max(r['baseline_fps'], 1e-9):5.2f}x "
               f"{r['lat_raw_ms'][0]:7.1f}/{r['lat_raw_ms'][1]:6.1f} ms {r['lat_height_ms'][0]:8.1f}/"
@@ -246,9 +257,11 @@ def main(argv=None) -> int:
         if r["size"] >= 1024:
             # 60 Hz is also the display cap (views refresh at <= 60 Hz): within 1 % of it is "keeping up"
             # (one frame more or less in a 5 s window is 0.2 fps)
-            goal = r["shown_fps"] >= 0.99 * 60 and r["lat_raw_ms"][0] < 50
-            print(f"goal at {r['size']}²: >= 60 fps shown (the 60 Hz cap, within 1 %) and < 50 ms latency: "
-                  f"{'PASS' if goal else 'FAIL'} ({r['shown_fps']:.1f} fps, {r['lat_raw_ms'][0]:.1f} ms)")
+            goal = kept >= 0.99 and r["lat_raw_ms"][0] < 50
+            print(f"goal at {r['size']}²: shown / min(delivered, {DISPLAY_MAX_HZ:g} Hz cap) >= 0.99 and < 50 ms "
+                  f"latency: {'PASS' if goal else 'FAIL'} ({r['shown_fps']:.1f} fps shown of {r['camera_fps']:.1f} "
+                  f"delivered, kept {kept:.3f}, {r['ticks_lost']} display ticks lost to a late GUI thread; "
+                  f"{r['lat_raw_ms'][0]:.1f} ms)")
             ok &= goal
         rec_ok = r["recorder_missing"] == 0 and r["recorded"] == r["planned"] and r["camera_lost"] == 0
         print(f"recorder at {r['size']}²: {r['recorded']} of {r['planned']} frames, missing {r['recorder_missing']}, "
@@ -260,7 +273,9 @@ def main(argv=None) -> int:
         print(f"launch to first frame at {size}² (python3 -m app.gui, synthetic tank): "
               + ", ".join(f"{k} {v:.2f} s" for k, v in launch.items())
               + f" (goal <= 3 s: {'met' if max(starts) <= 3.0 else 'NOT met'})")
-    print("shown = new camera frames painted per second (<= 60 by design); paints = all repaints of the raw view;")
+    print("camera = frames the synthetic camera delivered per second; shown = new camera frames painted per second "
+          f"(<= {DISPLAY_MAX_HZ:g} by design); kept = shown / min(camera, {DISPLAY_MAX_HZ:g}); "
+          "paints = all repaints of the raw view;")
     print("height = height-map updates per second; proc = frames reconstructed per second; baseline = pyqtgraph "
           "ImageView alone, raw frames only")
     return 0 if ok else 1

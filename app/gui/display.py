@@ -14,7 +14,8 @@ from pyqtgraph.Qt import QtCore
 from app.capture.trigger import rms_slope
 
 from . import state
-from .model.staleness import derived_text, view_staleness
+from .model.staleness import derived_text, unmeasured_messages, view_staleness
+from .model.status import camera_problem, status_texts
 
 
 
@@ -78,10 +79,8 @@ def draw_result(w, p, part: int = -1):
     views = w.map_views
     if r is None:
         if part in (0, -1):
-            text = p.error or ("no reference yet: capture one (Controls ▸ Reference & geometry)"
-                               if w.session.worker.reconstructor is None else "")
             # the full text on the height map; the small maps say what happened in a few words
-            short = text.split(":")[0] + " (see Height)" if ":" in text else None
+            text, short = unmeasured_messages(p.error, w.session.worker.reconstructor is not None)
             for v in views:
                 v.show_message(text, None if v is w.height_view else short)
             w._unmeasured = p  # the maps on screen (if any) are older than this frame: stale
@@ -180,63 +179,50 @@ def draw_spectrum(w, spec):
 
 
 def update_status(w):
+    """The status bar (texts from model/status.py), the stale marks, the recording panel; 4 times a second."""
     st = w.session.status()
     worker = w.session.worker
     lab = w.status_labels
-    err = st.get("error")
     now = time.monotonic()
     # rates fall to 0 when nothing new arrives (a lost camera keeps its last measured rate otherwise)
-    camera_fps = w.rates.rate("camera", w._frames_acquired(), st.get("camera_fps", 0.0), now)
-    processed_fps = w.rates.rate("processed", worker.processed, worker.fps, now)
-    if err or w.session.acquisition is None:
-        camera_fps = 0.0
-    if err:
-        lab["camera"].setText(f"{st.get('camera_text', 'camera')} LOST")
-        lab["camera"].setStyleSheet("padding: 0 4px; color: #c00000; font-weight: bold")
-    else:
-        lab["camera"].setText(st.get("camera_text", ""))
-        lab["camera"].setStyleSheet("padding: 0 4px")
-    shown_fps = 0.0 if w.pause_box.isChecked() or w.frozen else w.displayed_fps
-    lab["fps"].setText(f"camera {camera_fps:.1f} · processed {processed_fps:.1f} · "
-                       f"shown {shown_fps:.1f} fps")
-    w.camera_fps_shown = camera_fps
-    lab["drops"].setText(
-        f"dropped: camera {st.get('dropped_camera', 0)} · ring→recorder {st.get('dropped_ring', 0)} · "
-        f"recorder backlog {st.get('recorder_backlog', 0)} · display skipped {worker.skipped} (by design)")
-    fill = st.get("ring_fill")
-    lab["ring"].setText(f"ring {100 * fill:.0f} %" if fill is not None else "")
-    lab["ring"].setToolTip(f"ring buffer {100 * fill:.0f} % full, {st.get('ring_frames', 0)} frames"
-                           if fill is not None else "")
-    lab["latency"].setText(f"latency {w.latency_ms:.0f} ms" if np.isfinite(w.latency_ms) else "")
     rec = worker.reconstructor  # where the live maps are computed: the GPU only when asked for
-    device_text = getattr(rec, "device_text", "") if rec is not None else ""
-    lab["device"].setText(f"live on {device_text.split(' (')[0]}" if device_text else "")
-    lab["device"].setToolTip(f"live reconstruction on the {device_text}" if device_text else "")
+    t = status_texts(st, camera_fps=w.rates.rate("camera", w._frames_acquired(), st.get("camera_fps", 0.0), now),
+                     processed_fps=w.rates.rate("processed", worker.processed, worker.fps, now),
+                     shown_fps=w.displayed_fps, frozen=w.pause_box.isChecked() or w.frozen,
+                     camera_open=w.session.acquisition is not None, display_skipped=worker.skipped,
+                     latency_ms=w.latency_ms, device_text=getattr(rec, "device_text", "") if rec is not None else "")
+    lab["camera"].setText(t.camera)
+    lab["camera"].setStyleSheet("padding: 0 4px; color: #c00000; font-weight: bold" if t.camera_lost
+                                else "padding: 0 4px")
+    lab["fps"].setText(t.fps)
+    w.camera_fps_shown = t.camera_fps
+    lab["drops"].setText(t.drops)
+    lab["ring"].setText(t.ring)
+    lab["ring"].setToolTip(t.ring_tip)
+    lab["latency"].setText(t.latency)
+    lab["device"].setText(t.device)
+    lab["device"].setToolTip(t.device_tip)
     w._update_staleness()
-    if err and err != w._shown_camera_error:
-        w._shown_camera_error = err
-        from .camera_messages import explain_open_error, is_controlled_elsewhere
-        if is_controlled_elsewhere(err):  # another program holds the camera: say so, not "check the cable"
-            w.show_error(f"Camera problem: {explain_open_error(w.session.camera_id, err)}")
-        else:
-            w.show_error(f"Camera problem: {err}\nCheck the cable, power and network, then press Open in "
-                            "Controls ▸ Camera. The app keeps running; frames already recorded are kept.")
-    lab["state"].setText("camera stopped" if err else "")
+    problem = camera_problem(st.get("error"), w.session.camera_id, w._shown_camera_error)
+    if problem is not None:
+        w._shown_camera_error = st.get("error")
+        w.show_error(problem)
+    lab["state"].setText(t.state)
     w._update_recording()
-    state.update_truth(w)
 
 
 def update_staleness(w) -> None:
     """Grey out and label every view whose data is not the newest the camera gave (ages refreshed 4x/s)."""
     if w.pause_box.isChecked() or w.frozen:
-        return  # the user froze the views on purpose
+        state.update_truth(w)  # the user froze the views on purpose (the tank's progress still shows)
+        return
     unmeasured = w._unmeasured
     w.stale = view_staleness(
         time.monotonic_ns(), w.session.acquisition, raw=w._raw_shown, maps=w._maps_shown,
         alignment=w._align_shown, unmeasured_seq=None if unmeasured is None else unmeasured.seq,
         frame_rate_hz=getattr(w.session.camera_settings(), "frame_rate_hz", None),
         camera_key=w._camera_key(),
-        reference_key=w._reference_epoch if w.session.worker.reconstructor is not None else None)
+        reference_key=w.references.key(w.session.worker.reconstructor is not None))
     for v in (w.raw_view, w.align_raw_view):
         v.set_stale(w.stale.raw)
     for v in (*w.map_views, w.profile_view, w.probe_view):
@@ -248,6 +234,7 @@ def update_staleness(w) -> None:
                              maps_seq=w._maps_shown.seq if w._maps_shown is not None else None)
     rp.rms_label.setText(text)
     rp.rms_label.setStyleSheet("color: #888" if old else "")
+    state.update_truth(w)  # "vs truth" with the same mark as the maps, whoever refreshed it
 
 
 def pause_toggled(w, paused: bool) -> None:

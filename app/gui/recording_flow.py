@@ -52,8 +52,8 @@ def arm(w):
 
 def threshold_from_now(w) -> Optional[float]:
     """"Set from now": the auto-trigger threshold = 5 x the recent RMS slope of the live maps (mrad)."""
-    proposal = w.rms_history.propose_mrad()
-    if proposal is None or w.stale.maps is not None:
+    proposal = w.rms_history.propose_mrad(live=w.stale.maps is None)
+    if proposal is None:
         w.show_error("No live slope maps to set the threshold from: capture a reference on still water "
                         "(Controls ▸ Reference & geometry) and let the maps run, then press Set from now.")
         return None

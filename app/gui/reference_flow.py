@@ -14,6 +14,8 @@ import numpy as np
 from pyqtgraph.Qt import QtWidgets
 
 from . import state
+from .model.memory import live_device_for
+from .model.reference import capture_failed_label
 from .model.region import clamp_region, reference_crop, region_problem, roi_of
 
 log = logging.getLogger(__name__)
@@ -25,9 +27,7 @@ def capture_reference(w, n_frames: int):
 
     def done(result, error):
         if error:
-            kept = " (previous reference kept)" if w.reference is not None else ""
-            w.geometry_panel.reference_label.setText(
-                ("REFUSED: the water is moving" if "water is moving" in error else "capture failed") + kept)
+            w.geometry_panel.reference_label.setText(capture_failed_label(error, w.reference is not None))
             w.geometry_panel.reference_label.setStyleSheet("color: #c00000; font-weight: bold")
             w.show_error(f"Reference capture failed: {error}")
             return
@@ -54,9 +54,17 @@ def set_reference(w, image: np.ndarray, origin: str = "", path: Optional[str] = 
     return True
 
 
+def _remove_reconstructor(w) -> None:
+    """The worker measures nothing from now on (maps on screen: "their reference is no longer in use")."""
+    w.session.worker.set_reconstructor(None)
+    w.pin_overlay.set_reconstructor(None)
+    w.references.remove(w.session.newest_seq())
+
+
 def rebuild_reconstructor(w):
+    request = w.references.request()  # any build still running is superseded (model/staleness.py)
     if w.reference is None or w.geometry is None:
-        w.session.worker.set_reconstructor(None)
+        _remove_reconstructor(w)
         return
     reference, geometry, use_gpu = w.reference, w.geometry, w.memory.use_gpu
 
@@ -81,9 +89,7 @@ def rebuild_reconstructor(w):
 
         from .alignment import DOT_WINDOW_PX  # random dots: the windows the Alignment tab counts dots in
 
-        # the GPU only when the user asked for it (View ▸ Live reconstruction on the GPU, remembered)
-        device, text = live_device() if use_gpu else ("cpu", "CPU (GPU not asked for: View ▸ Live "
-                                                             "reconstruction on the GPU)")
+        device, text = live_device_for(use_gpu, live_device)  # the GPU only when asked for (remembered)
         if device == "cuda":
             try:
                 rec = Reconstructor(reference, geometry, planner_effort=w.planner_effort, device="cuda",
@@ -104,17 +110,16 @@ def rebuild_reconstructor(w):
 
     def done(built, error):
         rec, problem = built if built is not None else (None, None)
-        if error:
-            w.session.worker.set_reconstructor(None)
-            w.pin_overlay.set_reconstructor(None)
+        action = w.references.outcome(request, error is None)
+        if action == "superseded":
+            return  # a newer reference/geometry is being built: this one (even failed) changes nothing
+        if action == "remove":
+            _remove_reconstructor(w)
             w.geometry_panel.reference_label.setText("reference NOT usable")
             w.show_error(f"Bad reference: {error}")
             return
-        if reference is not w.reference or geometry is not w.geometry:
-            return  # superseded by a newer reference/geometry
         newest = w.session.newest_seq()  # later frames are measured against this reference
-        w._reference_since_seq = newest if newest is not None else w._last_raw_seq
-        w._reference_epoch += 1
+        w.references.install(request, newest if newest is not None else w.clock.last_raw_seq)
         w.session.worker.set_reconstructor(rec)
         w.pin_overlay.set_reconstructor(rec)
         w.session.reference = reference
@@ -297,8 +302,8 @@ def follow_roi(w, settings) -> None:
         set_reference(w, w.reference[crop], f"cropped to the new ROI {new_roi[2]}×{new_roi[3]} at "
                                             f"({new_roi[0]}, {new_roi[1]}) from the one taken at ({old[0]}, {old[1]})")
         return
-    w.session.worker.set_reconstructor(None)
-    w.pin_overlay.set_reconstructor(None)
+    w.references.request()  # a build still running must not install a reference of the old ROI
+    _remove_reconstructor(w)
     w.geometry_panel.reference_label.setText(
         f"the reference ({w.reference_roi[2]}×{w.reference_roi[3]} at ({w.reference_roi[0]}, {w.reference_roi[1]})) "
         f"does not cover the new ROI: capture a new reference")

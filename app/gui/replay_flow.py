@@ -7,12 +7,12 @@ Functions take the :class:`app.gui.window.MainWindow` (``w``); it forwards its m
 from __future__ import annotations
 
 import logging
-import math
 import os
 
 import numpy as np
 from pyqtgraph.Qt import QtWidgets
 
+from .model.replay import frame_label, replay_inputs
 from .replay import RECORDING_FILTER, Recording
 
 log = logging.getLogger(__name__)
@@ -36,14 +36,9 @@ def open_recording(w, path: str) -> bool:
     w.replay_recording = rec
     w._replay_reconstructor = None
     w.replay.set_recording(rec)
-    reference = rec.reference if rec.reference is not None else w.reference
-    geometry = w.geometry
-    if rec.geometry_toml:
-        try:
-            from processing import Geometry
-            geometry = Geometry.from_toml_text(rec.geometry_toml)
-        except Exception as exc:  # noqa: BLE001
-            w.replay.message.setText(f"geometry stored in the file is unusable ({exc}); using the editor's")
+    reference, geometry, message = replay_inputs(rec.reference, w.reference, rec.geometry_toml, w.geometry)
+    if message:
+        w.replay.message.setText(message)
     if reference is not None and geometry is not None:
         def build():
             from processing import Reconstructor
@@ -61,12 +56,6 @@ def open_recording(w, path: str) -> bool:
                 w._replay_reconstructor = r
                 w._show_replay_frame(w.replay.slider.value())
         w.run_background("replay-reconstructor", build, done)
-    else:
-        missing = [what for what, have in (("reference (still water)", reference is not None),
-                                            ("geometry", geometry is not None)) if not have]
-        w.replay.message.setText(
-            f"raw frames only: no {' and no '.join(missing)} in this file or the window; for heights, "
-            f"load or capture them in Controls ▸ Reference & geometry, then open the file again")
     w._show_replay_frame(0)
     w.tabs.setCurrentWidget(w.replay)
     return True
@@ -78,12 +67,9 @@ def show_replay_frame(w, index: int):
         return
     frame = rec.frame(int(index))
     w.replay.raw.set_data(frame, levels=(0, float(frame.max()) or 1.0) if w.replay.raw.auto_levels else None)
-    rel = rec.trigger_index(int(index))
-    when = rec.frame_time_s  # NaN where the file has no times (recordings, TIFF stacks)
-    w.replay.index_label.setText(f"frame {index + 1}/{rec.n_frames}"
-                                    + (f"  (trigger {rel:+d})" if rel is not None else "")
-                                    + (f"  t = {when * 1e3:+.4f} ms from the {rec.time_origin}"
-                                       if math.isfinite(when) else ""))
+    # the frame's time: NaN where the file has none (recordings, TIFF stacks)
+    w.replay.index_label.setText(frame_label(int(index), rec.n_frames, rec.trigger_index(int(index)),
+                                             rec.frame_time_s, rec.time_origin))
     w.replay_queue.want(frame, int(index))
     w._process_replay_frame()
 

@@ -33,7 +33,7 @@ from typing import Optional
 
 import numpy as np
 
-from .model.memory import threshold_mrad
+from .model.memory import SETTING_NAMES, threshold_mrad
 from .model.staleness import derived_text
 
 log = logging.getLogger(__name__)
@@ -42,8 +42,6 @@ __all__ = ["map_views", "camera_to_open", "restore_early", "camera_opened", "sav
            "geometry_in_use",
            "reference_in_use", "remember_camera_settings", "save_experiment", "open_experiment", "update_truth"]
 
-_SETTING_NAMES = ("exposure_us", "gain_db", "frame_rate_hz", "offset_x", "offset_y", "width", "height",
-                  "pixel_format", "trigger_mode", "trigger_source", "trigger_activation")
 
 
 def map_views(w) -> dict:
@@ -63,13 +61,7 @@ def _camera(w, camera_id: Optional[str] = None) -> dict:
 # ------------------------------------------------------------------ start
 def camera_to_open(w, camera_id: Optional[str]) -> Optional[str]:
     """The camera to open: ``camera_id`` if given, else the last session's (no widget needed)."""
-    mem = w.memory
-    mem.restored.clear()
-    mem.remembered_camera = None
-    if camera_id is None and mem.data.get("camera_id"):
-        camera_id = mem.remembered_camera = str(mem.data["camera_id"])
-        mem.restored.append(f"camera {camera_id}")
-    return camera_id
+    return w.memory.camera_to_open(camera_id)
 
 
 def restore_early(w) -> None:
@@ -122,12 +114,8 @@ def _show_restored(w) -> None:
 
 def remembered_camera_failed(w, error: str) -> bool:
     """The last session's camera did not open: search cameras instead (True), saying so; once."""
-    cid = w.memory.remembered_camera
-    if not cid:
+    if not w.memory.remembered_camera_failed(error):
         return False
-    w.memory.remembered_camera = None
-    w.memory.restored[:] = [f"camera {cid} not available ({error.splitlines()[0]}); searching cameras instead"
-                            ] + [i for i in w.memory.restored if not i.startswith(f"camera {cid}")]
     _show_restored(w)
     w.open_camera(None)
     return True
@@ -170,17 +158,13 @@ def camera_opened(w, opened) -> None:
         _show_restored(w)
         return
     # the settings this camera accepted last time
-    stored = cam.get("settings") or {}
     now = opened.settings.as_dict() if opened.settings is not None and hasattr(opened.settings, "as_dict") else {}
-    names = _SETTING_NAMES if tank is None else [  # the tank's size is --size's, not remembered
-        k for k in _SETTING_NAMES if k not in ("offset_x", "offset_y", "width", "height", "pixel_format")]
-    values = {k: stored[k] for k in names if k in stored and stored[k] is not None and stored[k] != now.get(k)}
+    values = w.memory.settings_to_restore(cid, now, synthetic=tank is not None)
     if values:
         _restore_settings(w, cid, values)
     # the reference, if it belongs to this camera
-    ref = _memory(w).get("reference") or {}
-    if ref.get("camera") == cid and w.reference is None and ref.get("path"):
-        path = ref["path"]
+    path = w.memory.reference_of(cid)
+    if path is not None and w.reference is None:
         if os.path.exists(path):
             w.load_reference(path)
             w.memory.restored.append(f"reference {path}")
@@ -207,7 +191,7 @@ def _restore_settings(w, cid: str, values: dict) -> None:
 # ------------------------------------------------------------------ changes
 def update_geometry_banner(w) -> None:
     cid = w.session.camera_id
-    unconfirmed = bool(cid) and w.session.tank is None and not _camera(w, cid).get("geometry_confirmed")
+    unconfirmed = w.memory.geometry_unconfirmed(cid, synthetic=w.session.tank is not None)
     w.geometry_banner.setVisible(unconfirmed)
     w.geometry_confirm_button.setVisible(unconfirmed)
     w.geometry_panel.confirm_geo_button.setEnabled(bool(cid))
@@ -263,7 +247,7 @@ def reference_in_use(w) -> None:
 def remember_camera_settings(w, settings) -> None:
     if w.session.camera_id and hasattr(settings, "as_dict"):
         d = settings.as_dict()
-        _camera(w)["settings"] = {k: d.get(k) for k in _SETTING_NAMES}
+        _camera(w)["settings"] = {k: d.get(k) for k in SETTING_NAMES}
 
 
 def save(w) -> None:
@@ -294,7 +278,7 @@ def save_experiment(w, path) -> str:
     d = s.as_dict() if s is not None and hasattr(s, "as_dict") else {}
     out = write_experiment(
         path, geometry=w.geometry, reference=w.reference, camera_id=w.session.camera_id,
-        camera_settings={k: d[k] for k in _SETTING_NAMES if d.get(k) is not None},
+        camera_settings={k: d[k] for k in SETTING_NAMES if d.get(k) is not None},
         recording={"pre_frames": rp.pre.value(), "post_frames": rp.post.value(), "folder": rp.folder.text().strip(),
                    "auto_trigger": rp.auto.isChecked(), "threshold_mrad": rp.threshold.value(),
                    "n_average": w.geometry_panel.n_average.value()})
@@ -337,7 +321,7 @@ def open_experiment(w, path) -> bool:
     if exp.camera_settings and w.session.camera is not None and (exp.camera_id in (None, w.session.camera_id)):
         now = w.session.camera_settings()
         now = now.as_dict() if now is not None and hasattr(now, "as_dict") else {}
-        values = {k: v for k, v in exp.camera_settings.items() if k in _SETTING_NAMES and v != now.get(k)}
+        values = {k: v for k, v in exp.camera_settings.items() if k in SETTING_NAMES and v != now.get(k)}
         if values:
             w.configure_camera(values)
     w.memory.restored[:] = [f"experiment {exp.path}"]
@@ -369,15 +353,17 @@ def update_truth(w) -> None:
     if p is None or p.result is None:
         lab.setText("")
         return
-    fid = w.session.frame_id_of(p.seq)
-    truth = tank.truth(fid) if fid is not None else None
-    if truth is None:
-        return
-    r = p.result
-    e = height_error(r.height, r.valid, r.rows_px, r.cols_px, truth)
-    e["scene"] = tank.scene_of(fid)
-    e["seq"] = p.seq
-    w.height_error = e
+    e = w.height_error
+    if e is None or e.get("seq") != p.seq:  # once per map: the stale mark's age is refreshed more often
+        fid = w.session.frame_id_of(p.seq)
+        truth = tank.truth(fid) if fid is not None else None
+        if truth is None:
+            return
+        r = p.result
+        e = height_error(r.height, r.valid, r.rows_px, r.cols_px, truth)
+        e["scene"] = tank.scene_of(fid)
+        e["seq"] = p.seq
+        w.height_error = e
     if np.isfinite(e["rel_rms"]):
         text = f"vs truth {100 * e['rel_rms']:.1f} % rel. RMS ({e['scene']})"
     else:

@@ -26,8 +26,8 @@ from . import display, layout, recording_flow, reference_flow, replay_flow, stat
 from .collector import GuiThreadCollector
 from .model.memory import SessionMemory
 from .model.recording import RmsHistory
-from .model.schedule import DrawClock, ExportProgress, LiveRates, ReplayQueue
-from .model.staleness import STALE_AFTER_S, Shown, Staleness
+from .model.schedule import ALIGNMENT_TAB, LIVE_TAB, DrawClock, ExportProgress, LiveRates, RateCounter, ReplayQueue
+from .model.staleness import STALE_AFTER_S, ReferenceEpochs, Shown, Staleness
 from .replay import Recording
 from .session import LiveSession
 
@@ -83,11 +83,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.planner_effort = planner_effort
         self.geometry = None
         self.reference = None
-        self._last_raw_seq = -1
-        self._last_result_seq = -1
-        self._shown = 0
-        self._shown_t = time.monotonic()
-        self.displayed_fps = 0.0
+        self.shown_rate = RateCounter()  # new camera frames put on screen per second (the status bar's "shown")
         self.latency_ms = float("nan")
         self.result_latency_ms = float("nan")
         self._closing = False
@@ -107,10 +103,9 @@ class MainWindow(QtWidgets.QMainWindow):
         self.reference_path: Optional[str] = None  # the file of the reference in use (None: captured)
         self.reference_roi = None  # (offset_x, offset_y, width, height) the reference was taken with
         self._reference_text = ""
-        self._reference_epoch = 0  # counts reconstructors installed: maps of an older one are stale
-        self._reference_since_seq = -1  # frames after this one are measured against the newest reference
+        self.references = ReferenceEpochs()  # rebuild policy; which reference measured which frame
         self.scene_wanted: Optional[str] = None
-        self.clock = DrawClock()
+        self.clock = DrawClock()  # what each display tick draws (model/schedule.py)
         self.rates = LiveRates(STALE_AFTER_S)
         self.replay_queue = ReplayQueue()
         self.export = ExportProgress()
@@ -413,44 +408,33 @@ class MainWindow(QtWidgets.QMainWindow):
                 self._display_timer.start(max(1, int(round(wait_ms))))
 
     def _draw(self):
-        """One display tick: the newest camera frame, then (at <= 30 Hz) the newest processed maps.
-
-        ``displayed_fps`` counts new camera frames put on screen per second (the status bar's "shown").
-        """
+        """One display tick: what :meth:`DrawClock.plan` says (the newest camera frame, maps in two halves)."""
         tab = self.tabs.currentIndex()
-        if tab in (0, 1):
-            frame = self.session.latest_frame()
-            if frame is not None and frame[0] != self._last_raw_seq:
-                seq, image, host_ns = frame
-                if self.first_frame_s is None:
-                    self.first_frame_s = time.monotonic() - self._t_created
-                    log.info("first camera frame on screen %.2f s after the window was created",
-                             self.first_frame_s)
-                self._last_raw_seq = seq
-                self._draw_raw(image, tab, host_ns, seq)
-                self.latency_ms = (time.monotonic_ns() - host_ns) / 1e6 if host_ns else float("nan")
-                self._shown += 1
+        frame = self.session.latest_frame() if tab in (LIVE_TAB, ALIGNMENT_TAB) else None
         p = self.session.worker.latest()
-        maps_due = self.clock.maps_due(time.monotonic())
-        second_half = self.clock.take_second_half()
-        if second_half is not None and tab == 0:
-            # the other half of the maps of the result drawn on the previous tick: spreading the
-            # work over two ticks keeps every tick short, so the raw view keeps its cadence
-            self._draw_result(second_half, part=1)
-        elif p is not None and p.seq != self._last_result_seq and tab in (0, 1) and maps_due:
-            self._last_result_seq = p.seq
-            if tab == 0:
-                self._draw_result(p, part=0)
-                self.clock.maps_drawn(time.monotonic(), p)
-            else:
-                self.clock.maps_drawn(time.monotonic(), None)
-                self._draw_alignment(p)
+        plan = self.clock.plan(time.monotonic(), tab, None if frame is None else frame[0], p)
+        if plan.raw:
+            seq, image, host_ns = frame
+            if self.first_frame_s is None:
+                self.first_frame_s = time.monotonic() - self._t_created
+                log.info("first camera frame on screen %.2f s after the window was created", self.first_frame_s)
+            self._draw_raw(image, tab, host_ns, seq)
+            self.latency_ms = (time.monotonic_ns() - host_ns) / 1e6 if host_ns else float("nan")
+        if plan.maps == "second half":
+            self._draw_result(plan.result, part=1)
+        elif plan.maps == "first half":
+            self._draw_result(p, part=0)
+        elif plan.maps == "alignment":
+            self._draw_alignment(p)
+        if plan.maps in ("first half", "alignment"):
             self.result_latency_ms = (time.monotonic_ns() - p.host_timestamp_ns) / 1e6 if p.host_timestamp_ns \
                 else float("nan")
-        t = time.monotonic()
-        if t - self._shown_t >= 1.0:
-            self.displayed_fps = self._shown / (t - self._shown_t)
-            self._shown, self._shown_t = 0, t
+        self.shown_rate.add(time.monotonic(), int(plan.raw))
+
+    @property
+    def displayed_fps(self) -> float:
+        """New camera frames put on screen per second (the status bar's "shown")."""
+        return self.shown_rate.rate
 
     def _bit_depth(self):
         s = self.session.camera_settings()
@@ -479,10 +463,8 @@ class MainWindow(QtWidgets.QMainWindow):
     def _shown_now(self, seq, host_ns) -> Shown:
         """What a view showing frame ``seq`` now shows (model/staleness.py decides when it is stale)."""
         acq = self.session.acquisition
-        measured_with = self._reference_epoch if seq is None or seq > self._reference_since_seq \
-            else self._reference_epoch - 1
         return Shown(seq, host_ns, weakref.ref(acq) if acq is not None else None, self._camera_key(),
-                     measured_with)
+                     self.references.measured_with(seq))
 
     def maps_shown_seq(self) -> Optional[int]:
         """The frame the processed maps on screen show (None: none yet)."""

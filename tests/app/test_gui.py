@@ -60,7 +60,7 @@ def test_live_height_shows_the_bump_where_it_is(qtbot, window, scene, tmp_path):
     """Capture a reference through the window, then the live height map peaks at the bump, in um."""
     frames = Switchable(scene["flat"])
     window.use_camera(SyntheticCamera(frames, frame_rate_hz=100.0), geometry=scene["geometry"])
-    qtbot.waitUntil(lambda: window._last_raw_seq >= 0, timeout=10000)
+    qtbot.waitUntil(lambda: window.clock.last_raw_seq >= 0, timeout=10000)
     window.geometry_panel.n_average.setValue(5)
     window.geometry_panel.capture_button.click()
     _wait_reconstructor(qtbot, window)
@@ -102,8 +102,8 @@ def test_live_height_shows_the_bump_where_it_is(qtbot, window, scene, tmp_path):
     h0, h1 = window.profile_roi.getHandles()[:2]
     h0.setPos(float(r.x_mm[0]), yp)
     h1.setPos(float(r.x_mm[-1]), yp)
-    seq = window._last_result_seq
-    qtbot.waitUntil(lambda: window._last_result_seq != seq, timeout=5000)  # redrawn with the new line
+    seq = window.clock.last_result_seq
+    qtbot.waitUntil(lambda: window.clock.last_result_seq != seq, timeout=5000)  # redrawn with the new line
     dist, prof = window.profile_view.curve.getData()
     k = int(np.nanargmax(prof))
     assert prof[k] == pytest.approx(1e3 * truth.max(), rel=0.15)
@@ -200,8 +200,8 @@ def test_camera_that_stops_delivering_shows_error_and_window_lives(qtbot, window
     assert window._display_timer.isActive() or window._display_timer.remainingTime() >= 0
     # and a new camera can be opened in the same window
     window.use_camera(SyntheticCamera(Switchable(scene["flat"]), frame_rate_hz=100.0))
-    seq0 = window._last_raw_seq
-    qtbot.waitUntil(lambda: window._last_raw_seq not in (seq0, -1) and window.session.status().get("error") is None,
+    seq0 = window.clock.last_raw_seq
+    qtbot.waitUntil(lambda: window.clock.last_raw_seq not in (seq0, -1) and window.session.status().get("error") is None,
                     timeout=5000)
     assert window.session.worker.running
 
@@ -296,8 +296,8 @@ def test_bad_reference_is_explained_and_the_live_view_goes_on(qtbot, window, sce
     assert "carrier" in err and ("focus" in err or "pattern" in err)  # says what is wrong and what to check
     assert window.session.worker.reconstructor is None
     assert "NOT usable" in window.geometry_panel.reference_label.text()
-    seq = window._last_raw_seq
-    qtbot.waitUntil(lambda: window._last_raw_seq != seq, timeout=3000)  # the raw view still updates
+    seq = window.clock.last_raw_seq
+    qtbot.waitUntil(lambda: window.clock.last_raw_seq != seq, timeout=3000)  # the raw view still updates
     qtbot.waitUntil(lambda: "no reference" in window.height_view.message.toPlainText(), timeout=3000)
 
 
@@ -340,7 +340,7 @@ def test_pin_region_is_drawn_from_the_reference_with_its_valid_fraction(qtbot, w
     image, _ = forward.render_tir(forward.FlatSurface(), geometry, SHAPE, board)
     still = forward.quantize(image, bits=8, noise_rms=1.5, rng=np.random.default_rng(2))
     window.use_camera(SyntheticCamera(Switchable(still), frame_rate_hz=50.0), geometry=geometry)
-    qtbot.waitUntil(lambda: window._last_raw_seq >= 0, timeout=10000)
+    qtbot.waitUntil(lambda: window.clock.last_raw_seq >= 0, timeout=10000)
     window.geometry_panel.capture_button.click()
     _wait_reconstructor(qtbot, window)
     rec = window.session.worker.reconstructor

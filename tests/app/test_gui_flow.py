@@ -27,7 +27,7 @@ def _window(qtbot, camera_id="synthetic", resize=True, **kw):
 
     w = MainWindow(camera_id, synthetic_options={"shape": SHAPE, "n_frames": 12, "frame_rate_hz": 30.0},
                    planner_effort="FFTW_ESTIMATE", **kw)
-    qtbot.addWidget(w)
+    qtbot.addWidget(w, before_close_func=lambda widget: widget.shutdown())  # see tests/app/conftest.py
     if resize:  # else the size the window remembered
         w.resize(1600, 1000)
     w.show()

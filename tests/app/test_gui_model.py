@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-MODEL_MODULES = ("staleness", "schedule", "reference", "recording", "memory")
+MODEL_MODULES = ("staleness", "schedule", "reference", "recording", "memory", "region", "replay", "status")
 
 
 def test_the_model_imports_no_qt():
@@ -106,6 +106,60 @@ def test_maps_of_an_older_reference_are_stale_and_numbers_from_them_say_so():
     assert derived_text("now 0.1 mrad", None, measured_seq=9, maps_seq=10)[1]
 
 
+def test_maps_whose_reference_was_taken_away_are_stale_at_once():
+    """The flake of test_vs_truth_in_the_status_bar_carries_the_age_of_the_maps: a refused reference leaves
+    the worker without a reconstructor; the maps on screen were measured against the reference it had. They
+    must be stale at the first tick, not only once the worker publishes an unmeasured frame that the display
+    draws, or the raw view runs 1 s ahead (both late on a loaded PC: 5 s in one run of 15, never in one)."""
+    import weakref
+
+    from app.gui.model.staleness import Shown, view_staleness
+
+    a = _Acq()
+    maps = Shown(10, 1_000_000_000, weakref.ref(a), ("synthetic", None), 1)
+    raw = Shown(11, 1_030_000_000, weakref.ref(a), ("synthetic", None), 1)  # the raw view is not ahead yet
+    s = view_staleness(1_100_000_000, a, raw=raw, maps=maps, alignment=None, camera_key=("synthetic", None),
+                       reference_key=None)  # none in use: nothing measures any more
+    assert s.maps == "their reference is no longer in use — frame 10, 0.1 s ago"
+
+
+def test_rebuild_policy_only_the_newest_request_changes_the_worker_and_marks_older_maps():
+    from app.gui.model.staleness import ReferenceEpochs
+
+    e = ReferenceEpochs()
+    assert e.key() is None and e.measured_with(5) is None
+    first = e.request()
+    assert e.outcome(first, True) == "install"
+    e.install(first, since_seq=100)
+    assert e.key() == first and e.measured_with(101) == first and e.measured_with(100) is None
+    # a new reference is asked for: until it is built, maps of the first are "older reference"
+    second = e.request()
+    assert e.key() == second != e.measured_with(120)
+    # a third request comes before the second ends; the second then fails: superseded, not "remove"
+    third = e.request()
+    assert e.outcome(second, False) == "superseded" and e.installed == first
+    assert e.outcome(third, True) == "install"
+    e.install(third, since_seq=130)
+    assert (e.measured_with(130), e.measured_with(131)) == (first, third)
+    # the newest fails (a reference without a pattern): nothing measures; maps from before say so
+    fourth = e.request()
+    assert e.outcome(fourth, False) == "remove"
+    e.remove(since_seq=150)
+    assert e.key() is None and e.measured_with(151) is None and e.measured_with(140) == third
+    e.install(e.request(), since_seq=160)
+    assert e.key(worker_has_reconstructor=False) is None  # taken away by someone else: none in use either
+
+
+def test_an_unmeasured_frame_says_why_on_every_map():
+    from app.gui.model.staleness import unmeasured_messages
+
+    assert unmeasured_messages(None, False) == ("no reference yet: capture one (Controls ▸ Reference & geometry)",
+                                                "no reference yet (see Height)")
+    assert unmeasured_messages("AllInvalidError: no valid pixel", True) == ("AllInvalidError: no valid pixel",
+                                                                             "AllInvalidError (see Height)")
+    assert unmeasured_messages(None, True) == ("", None)
+
+
 # ------------------------------------------------------------------ schedule
 def test_draw_clock_keeps_its_cadence_and_never_piles_up_late_ticks():
     from app.gui.model.schedule import DrawClock
@@ -113,11 +167,39 @@ def test_draw_clock_keeps_its_cadence_and_never_piles_up_late_ticks():
     c = DrawClock(display_hz=50.0, maps_hz=25.0)
     waits = [c.tick(t) for t in (0.0, 0.021, 0.040)]  # ticks a little late or early: the cadence holds
     assert waits[0] == pytest.approx(0.02) and c.next_due == pytest.approx(0.06)
+    assert c.ticks_lost == 0
     assert c.tick(1.0) == pytest.approx(0.0)  # far behind: restart from now, no burst of ticks
+    assert c.ticks_lost == 46  # the ticks due at 0.08 ... 0.98 s were never drawn (and are counted)
     assert c.maps_due(1.0)
     c.maps_drawn(1.0, "result")
     assert not c.maps_due(1.02) and c.maps_due(1.04)
     assert c.take_second_half() == "result" and c.take_second_half() is None
+
+
+def test_tick_plan_draws_each_new_frame_and_a_result_in_two_halves_at_most_at_the_maps_rate():
+    from types import SimpleNamespace as R
+
+    from app.gui.model.schedule import ALIGNMENT_TAB, LIVE_TAB, DrawClock, RateCounter
+
+    c = DrawClock(display_hz=60.0, maps_hz=30.0)
+    r5, r7 = R(seq=5), R(seq=7)
+    p = c.plan(0.000, LIVE_TAB, 5, r5)
+    assert (p.raw, p.maps, p.result) == (True, "first half", r5)
+    p = c.plan(0.017, LIVE_TAB, 5, r5)  # no new camera frame; the other half of r5's maps
+    assert (p.raw, p.maps, p.result) == (False, "second half", r5)
+    p = c.plan(0.025, LIVE_TAB, 6, r7)  # a new result, but maps were begun 25 ms ago (< 1/30 s)
+    assert (p.raw, p.maps) == (True, None)
+    p = c.plan(0.034, LIVE_TAB, 7, r7)
+    assert (p.raw, p.maps, p.result) == (True, "first half", r7)
+    p = c.plan(0.050, ALIGNMENT_TAB, 8, R(seq=8))  # r7's second half is dropped on the Alignment tab
+    assert (p.raw, p.maps) == (True, None)
+    p = c.plan(0.070, ALIGNMENT_TAB, 9, R(seq=9))
+    assert (p.raw, p.maps) == (True, "alignment") and c.take_second_half() is None
+    p = c.plan(0.200, 2, 10, R(seq=10))  # the Replay tab shows no camera
+    assert (p.raw, p.maps) == (False, None) and c.last_raw_seq == 9
+    shown = RateCounter()
+    rates = [shown.add(0.02 * k, 1 if k % 2 else 0) for k in range(51)]  # a new frame every other 20 ms tick
+    assert rates[49] == 0.0 and rates[50] == pytest.approx(25.0)
 
 
 def test_replay_queue_keeps_only_the_newest_request():
@@ -138,6 +220,29 @@ def test_live_rate_falls_to_zero_when_the_counter_stops():
     assert r.rate("camera", 2, 30.0, 0.1) == 30.0
     assert r.rate("camera", 2, 30.0, 0.5) == 30.0
     assert r.rate("camera", 2, 30.0, 1.2) == 0.0
+
+
+def test_status_bar_says_lost_with_zero_rates_and_names_the_live_device():
+    from app.gui.model.status import camera_problem, status_texts
+
+    st = {"camera_text": "synthetic 256×256", "camera_fps": 30.0, "ring_fill": 0.25, "ring_frames": 40,
+          "dropped_camera": 2, "dropped_ring": 0, "recorder_backlog": 1}
+    t = status_texts(st, camera_fps=30.0, processed_fps=9.5, shown_fps=29.9, frozen=False, camera_open=True,
+                     display_skipped=7, latency_ms=12.4, device_text="CPU (GPU not asked for: View ▸ ...)")
+    assert (t.camera, t.camera_lost, t.state) == ("synthetic 256×256", False, "")
+    assert t.fps == "camera 30.0 · processed 9.5 · shown 29.9 fps" and t.latency == "latency 12 ms"
+    assert t.drops == "dropped: camera 2 · ring→recorder 0 · recorder backlog 1 · display skipped 7 (by design)"
+    assert (t.ring, t.ring_tip) == ("ring 25 %", "ring buffer 25 % full, 40 frames")
+    assert t.device == "live on CPU" and t.device_tip.startswith("live reconstruction on the CPU (GPU not asked")
+    lost = status_texts(dict(st, error="no frame for 3.0 s"), camera_fps=30.0, processed_fps=0.0, shown_fps=29.9,
+                        frozen=True, camera_open=True, display_skipped=7, latency_ms=float("nan"))
+    assert (lost.camera, lost.camera_lost, lost.camera_fps, lost.state) == \
+        ("synthetic 256×256 LOST", True, 0.0, "camera stopped")
+    assert "shown 0.0 fps" in lost.fps and lost.latency == "" and lost.device == ""
+    text = camera_problem("no frame for 3.0 s", "synthetic", None)
+    assert text.startswith("Camera problem: no frame for 3.0 s\nCheck the cable")
+    assert camera_problem("no frame for 3.0 s", "synthetic", "no frame for 3.0 s") is None  # shown once
+    assert camera_problem(None, "synthetic", None) is None
 
 
 # ------------------------------------------------------------------ reference (finding 1)
@@ -170,6 +275,14 @@ def test_reference_of_still_water_agrees_and_of_waves_is_refused_with_the_figure
         avg.result()
 
 
+def test_a_refused_capture_says_refused_only_for_moving_water():
+    from app.gui.model.reference import capture_failed_label
+
+    assert capture_failed_label("the water is moving: wait and capture again. 5 of 6 …", True) == \
+        "REFUSED: the water is moving (previous reference kept)"
+    assert capture_failed_label("camera lost", False) == "capture failed"
+
+
 def test_one_passing_glitch_is_left_out_not_averaged(tank):
     from app.gui.model.reference import ReferenceAverager
     from processing.carriers import find_carriers_live
@@ -193,6 +306,7 @@ def test_threshold_proposal_is_five_times_the_median_recent_rms_in_mrad():
     for v, seq in ((1e-4, 1), (2e-4, 2), (float("nan"), 3), (1.5e-4, 4)):
         h.add(v, seq)
     assert h.propose_mrad() == pytest.approx(5 * 0.15) and h.readout() == "now 0.15 mrad" and h.seq == 4
+    assert h.propose_mrad(live=False) is None  # not from maps that are stale
     assert threshold_attrs(0.75)["auto_trigger_threshold_unit"] == "mrad RMS slope"
 
 
@@ -201,10 +315,53 @@ def test_old_dimensionless_thresholds_come_back_in_mrad_and_gpu_is_off_unless_as
 
     assert threshold_mrad({"threshold": 0.002}, 1.0) == pytest.approx(2.0)
     assert threshold_mrad({"threshold_mrad": 0.5, "threshold": 0.002}, 1.0) == 0.5
+    from app.gui.model.memory import live_device_for
+
     m = SessionMemory()
     assert not m.use_gpu
+    asked = []
+    assert live_device_for(m.use_gpu, lambda: asked.append(1) or ("cuda", "GPU 0")) == \
+        ("cpu", "CPU (GPU not asked for: View ▸ Live reconstruction on the GPU)") and not asked  # not even probed
     m.use_gpu = True
-    assert m.data["gpu"] is True
+    assert m.data["gpu"] is True and live_device_for(m.use_gpu, lambda: ("cuda", "GPU 0")) == ("cuda", "GPU 0")
+
+
+def test_what_a_session_remembers_comes_back_for_its_own_camera_only():
+    from app.gui.model.memory import SessionMemory
+
+    m = SessionMemory({"cameras": {"aravis:A": {"settings": {"exposure_us": 500.0, "gain_db": 3.0, "width": 640,
+                                                            "height": None},
+                                                "geometry_confirmed": True},
+                                   "synthetic": {"settings": {"exposure_us": 800.0, "width": 256}}},
+                       "camera_id": "aravis:A", "reference": {"camera": "aravis:A", "path": "/data/ref.tif"}})
+    assert m.camera_to_open(None) == "aravis:A" and m.restored == ["camera aravis:A"]
+    assert m.camera_to_open("synthetic") == "synthetic" and m.restored == [] and m.remembered_camera is None
+    m.camera_to_open(None)
+    assert m.remembered_camera_failed("no such camera\n(details)") and not m.remembered_camera_failed("again")
+    assert m.restored == ["camera aravis:A not available (no such camera); searching cameras instead"]
+    # settings: only those that differ from what the camera has now; the tank keeps its own size
+    assert m.settings_to_restore("aravis:A", {"exposure_us": 500.0, "gain_db": 0.0, "width": 512}, False) == \
+        {"gain_db": 3.0, "width": 640}
+    assert m.settings_to_restore("synthetic", {"exposure_us": 100.0, "width": 512}, True) == {"exposure_us": 800.0}
+    assert m.reference_of("aravis:A") == "/data/ref.tif" and m.reference_of("synthetic") is None
+    assert not m.geometry_unconfirmed("aravis:A", False) and m.geometry_unconfirmed("aravis:B", False)
+    assert not m.geometry_unconfirmed("synthetic", True) and not m.geometry_unconfirmed(None, False)
+
+
+def test_replay_uses_the_recordings_reference_and_geometry_and_says_what_is_missing():
+    from app.capture.scene import default_geometry
+    from app.gui.model.replay import frame_label, replay_inputs
+
+    g = default_geometry((64, 64))
+    ref_file, ref_window = np.zeros((4, 4)), np.ones((4, 4))
+    reference, geometry, message = replay_inputs(ref_file, ref_window, g.to_toml_text(), None)
+    assert reference is ref_file and geometry.to_dict() == g.to_dict() and message is None
+    reference, geometry, message = replay_inputs(None, ref_window, "theta_deg = [", g)
+    assert reference is ref_window and geometry is g and message.startswith("geometry stored in the file is unusable")
+    _, _, message = replay_inputs(None, None, None, None)
+    assert message.startswith("raw frames only: no reference (still water) and no geometry in this file or the window")
+    assert frame_label(2, 60, -3, 1.2345e-3, "trigger") == "frame 3/60  (trigger -3)  t = +1.2345 ms from the trigger"
+    assert frame_label(0, 5, None, float("nan"), "trigger") == "frame 1/5"
 
 
 # ------------------------------------------------------------------ region (finding 4)

@@ -110,7 +110,7 @@ def test_lost_camera_shows_lost_at_0_fps_and_its_last_frame_stale(qtbot, window,
     window.camera_panel.camera_box.addItem(gv_fake_camera.camera_id, gv_fake_camera.camera_id)
     window.camera_panel.camera_box.setCurrentIndex(window.camera_panel.camera_box.count() - 1)
     window.camera_panel.open_button.click()
-    qtbot.waitUntil(lambda: window._last_raw_seq >= 5, timeout=30000)
+    qtbot.waitUntil(lambda: window.clock.last_raw_seq >= 5, timeout=30000)
     fps = window.status_labels["fps"]
     qtbot.waitUntil(lambda: window.camera_fps_shown > 1.0, timeout=10000)
     assert "LOST" not in window.status_labels["camera"].text()
@@ -264,8 +264,8 @@ def test_profile_line_ends_move_ends_body_moves_line_view_never_pans(qtbot, wind
     assert line.ends() == (q0, q1)
     assert view.plot.getViewBox().viewRange() == view_range
     # the profile follows the line
-    seq = window._last_result_seq
-    qtbot.waitUntil(lambda: window._last_result_seq != seq, timeout=5000)
+    seq = window.clock.last_result_seq
+    qtbot.waitUntil(lambda: window.clock.last_result_seq != seq, timeout=5000)
     assert np.ravel(window.profile_line_mm) == pytest.approx(np.ravel((q0, q1)))
 
 
@@ -339,7 +339,7 @@ def test_menus_and_shortcuts_listed_in_help_and_docs(qtbot, window, scene):
 
     frames = Switchable(scene["flat"])
     window.use_camera(SyntheticCamera(frames, frame_rate_hz=50.0), geometry=scene["geometry"])
-    qtbot.waitUntil(lambda: window._last_raw_seq >= 0, timeout=10000)
+    qtbot.waitUntil(lambda: window.clock.last_raw_seq >= 0, timeout=10000)
     window.activateWindow()
     qtbot.waitUntil(window.isActiveWindow, timeout=3000)  # keys go to the active window
     window.geometry_panel.n_average.setValue(3)

@@ -3,12 +3,16 @@
 The window (app/gui/window.py) builds widgets, forwards events here and draws what comes back:
 
 * :mod:`.staleness` -- what each view shows, how old it is, and the age of every number
-  derived from the processed maps (status bar "vs truth", probes, readouts);
-* :mod:`.schedule` -- the display cadence (raw <= 60 Hz, maps <= 30 Hz in two halves),
-  the replay queue (newest wanted frame only) and live rates that fall to 0;
+  derived from the processed maps (status bar "vs truth", probes, readouts); the reconstructor
+  rebuild policy and which reference measured which frame (``ReferenceEpochs``);
+* :mod:`.schedule` -- what each display tick draws (raw <= 60 Hz, maps <= 30 Hz in two halves:
+  ``DrawClock.plan``), the replay queue (newest wanted frame only) and rates (shown, live);
+* :mod:`.replay` -- the recording's reference and geometry before the window's, the frame label;
+* :mod:`.region` -- the reference region kept on the frame;
 * :mod:`.reference` -- a reference averaged only from frames that agree (still water);
 * :mod:`.recording` -- the auto-trigger threshold in physical units and what the panel says;
-* :mod:`.memory` -- what a session remembers (``settings.json``) and what came back.
+* :mod:`.memory` -- what a session remembers (``settings.json``), what it restores for which
+  camera, and what came back.
 
 None of these modules imports Qt or pyqtgraph (tests/app/test_gui_model.py checks it).
 """

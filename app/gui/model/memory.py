@@ -8,11 +8,16 @@ onto the window.
 from __future__ import annotations
 
 import dataclasses
-from typing import List, Optional
+from typing import Callable, List, Optional, Tuple
 
-__all__ = ["KEY", "SessionMemory", "threshold_mrad"]
+__all__ = ["KEY", "SETTING_NAMES", "SessionMemory", "threshold_mrad", "live_device_for"]
 
 KEY = "session"
+#: The camera settings remembered per camera (what it accepted), and restored when it opens again.
+SETTING_NAMES = ("exposure_us", "gain_db", "frame_rate_hz", "offset_x", "offset_y", "width", "height",
+                 "pixel_format", "trigger_mode", "trigger_source", "trigger_activation")
+#: Not restored on the synthetic tank: its size is the one it was started with (``--size``).
+TANK_OWN_SETTINGS = ("offset_x", "offset_y", "width", "height", "pixel_format")
 
 
 def threshold_mrad(rec: dict, default: float) -> float:
@@ -23,6 +28,14 @@ def threshold_mrad(rec: dict, default: float) -> float:
     if "threshold" in rec:
         return 1e3 * float(rec["threshold"])
     return default
+
+
+def live_device_for(use_gpu: bool, probe: Callable[[], Tuple[str, str]]) -> Tuple[str, str]:
+    """``(device, text)`` of the live reconstruction: the GPU only when the user asked for it (``use_gpu``,
+    remembered) and ``probe`` (:func:`processing.gpu.live_device`, not called otherwise) finds one."""
+    if not use_gpu:
+        return "cpu", "CPU (GPU not asked for: View ▸ Live reconstruction on the GPU)"
+    return probe()
 
 
 @dataclasses.dataclass
@@ -55,6 +68,41 @@ class SessionMemory:
     def camera(self, camera_id: Optional[str]) -> dict:
         """The entry of ``camera_id`` (created empty); ``{}`` (not kept) without a camera."""
         return self.data["cameras"].setdefault(str(camera_id), {}) if camera_id else {}
+
+    def camera_to_open(self, camera_id: Optional[str]) -> Optional[str]:
+        """The camera to open at a start: ``camera_id`` if given, else the last session's (noted as restored)."""
+        self.restored.clear()
+        self.remembered_camera = None
+        if camera_id is None and self.data.get("camera_id"):
+            camera_id = self.remembered_camera = str(self.data["camera_id"])
+            self.restored.append(f"camera {camera_id}")
+        return camera_id
+
+    def remembered_camera_failed(self, error: str) -> bool:
+        """The last session's camera did not open: True (once) when cameras are to be searched instead; the
+        restored list then says why, in place of "camera ID"."""
+        cid = self.remembered_camera
+        if not cid:
+            return False
+        self.remembered_camera = None
+        self.restored[:] = [f"camera {cid} not available ({error.splitlines()[0]}); searching cameras instead"
+                            ] + [i for i in self.restored if not i.startswith(f"camera {cid}")]
+        return True
+
+    def settings_to_restore(self, camera_id: str, now: dict, synthetic: bool) -> dict:
+        """The settings ``camera_id`` accepted last time that differ from ``now`` (its present ones)."""
+        stored = self.camera(camera_id).get("settings") or {}
+        names = [k for k in SETTING_NAMES if not (synthetic and k in TANK_OWN_SETTINGS)]
+        return {k: stored[k] for k in names if stored.get(k) is not None and stored[k] != now.get(k)}
+
+    def reference_of(self, camera_id: Optional[str]) -> Optional[str]:
+        """The file of the reference remembered for ``camera_id`` (None: none, or another camera's)."""
+        ref = self.data.get("reference") or {}
+        return ref["path"] if camera_id and ref.get("camera") == camera_id and ref.get("path") else None
+
+    def geometry_unconfirmed(self, camera_id: Optional[str], synthetic: bool) -> bool:
+        """The open camera's geometry was never confirmed (heights not to scale): the banner shows."""
+        return bool(camera_id) and not synthetic and not self.camera(camera_id).get("geometry_confirmed")
 
     @property
     def use_gpu(self) -> bool:

@@ -51,9 +51,10 @@ class RmsHistory:
     def latest(self) -> float:
         return self.values[-1] if self.values else float("nan")
 
-    def propose_mrad(self, factor: float = PROPOSE_FACTOR) -> Optional[float]:
-        """``factor`` x the median recent RMS, in mrad (None: no measurement yet)."""
-        if not self.values:
+    def propose_mrad(self, factor: float = PROPOSE_FACTOR, *, live: bool = True) -> Optional[float]:
+        """``factor`` x the median recent RMS, in mrad (None: no measurement yet, or the maps are not ``live``:
+        stale maps say nothing of the surface's present noise)."""
+        if not self.values or not live:
             return None
         ordered = sorted(self.values)
         return mrad(factor * ordered[len(ordered) // 2])

@@ -24,7 +24,7 @@ from typing import List, Optional
 import numpy as np
 
 __all__ = ["PHASE_BOUND_RAD", "MAX_DISAGREEING", "WaterMovingError", "ReferenceReport", "ReferenceAverager",
-           "carrier_baseband"]
+           "carrier_baseband", "capture_failed_label"]
 
 #: RMS carrier-phase change against the first frame (rad) above which a frame does not agree.
 #: Measured on the synthetic tank (256^2, 0.5 counts of noise): still water 0.0008 rad, the waves
@@ -150,3 +150,9 @@ class ReferenceAverager:
                 f"{rep.measure} (frame {worst + 1}: {self.changes[worst]:.2f} rad); a reference needs "
                 "still water. The previous reference is kept.")
         return (self._total / rep.n_averaged).astype(np.float32), rep
+
+
+def capture_failed_label(error: str, previous_kept: bool) -> str:
+    """The reference label (red) after a capture failed with ``error``: "REFUSED" when the water moved."""
+    return (("REFUSED: the water is moving" if "the water is moving" in error else "capture failed")
+            + (" (previous reference kept)" if previous_kept else ""))

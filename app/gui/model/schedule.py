@@ -9,10 +9,23 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, Dict, Hashable, Optional, Tuple
 
-__all__ = ["DISPLAY_MAX_HZ", "MAPS_MAX_HZ", "DrawClock", "LiveRates", "ReplayQueue", "ExportProgress"]
+__all__ = ["DISPLAY_MAX_HZ", "MAPS_MAX_HZ", "LIVE_TAB", "ALIGNMENT_TAB", "TickPlan", "DrawClock", "RateCounter",
+           "LiveRates", "ReplayQueue", "ExportProgress"]
 
 DISPLAY_MAX_HZ = 60.0  # the raw camera view refreshes at most this often
 MAPS_MAX_HZ = 30.0  # processed maps at most this often: leaves time for the raw view
+LIVE_TAB, ALIGNMENT_TAB = 0, 1  # the tabs that show the camera (the window's tab indices)
+
+
+@dataclasses.dataclass(frozen=True)
+class TickPlan:
+    """What one display tick draws: ``raw`` the newest camera frame; ``maps`` None, ``"first half"`` (height,
+    profile, mask, probes of ``result``), ``"second half"`` (displacement, slopes of ``result``, drawn first on
+    the tick before) or ``"alignment"`` (the Alignment tab's views of ``result``)."""
+
+    raw: bool = False
+    maps: Optional[str] = None
+    result: Any = None
 
 
 @dataclasses.dataclass
@@ -21,7 +34,8 @@ class DrawClock:
 
     :meth:`tick` is called at each display tick and returns the wait until the next one (s): the next
     tick is due one period after this one was due (drawing time does not stretch the period), and a
-    tick more than a period late restarts the cadence from now (late ticks never pile up).
+    tick more than a period late restarts the cadence from now (late ticks never pile up); ``ticks_lost``
+    counts the ticks so skipped (the display thread was busy or starved: benchmarks/bench_gui.py).
     A result's maps are drawn in two halves on consecutive ticks (:meth:`take_second_half`), so each
     tick stays short and the raw view keeps its cadence.
     """
@@ -31,11 +45,15 @@ class DrawClock:
     next_due: Optional[float] = None
     maps_t: float = float("-inf")
     second_half: Any = None
+    ticks_lost: int = 0
+    last_raw_seq: int = -1  # the camera frame on screen (-1: none yet)
+    last_result_seq: int = -1  # the worker's result whose maps were last begun (-1: none yet)
 
     def tick(self, now: float) -> float:
         period = 1.0 / self.display_hz
         due = (now if self.next_due is None else self.next_due) + period
         if due < now - period:
+            self.ticks_lost += int((now - due) / period + 1e-9)
             due = now
         self.next_due = due
         return due - now
@@ -55,6 +73,46 @@ class DrawClock:
     def take_second_half(self):
         pending, self.second_half = self.second_half, None
         return pending
+
+    def plan(self, now: float, tab: int, raw_seq: Optional[int], result) -> TickPlan:
+        """What to draw on this tick, and noted as drawn: ``raw_seq`` the newest camera frame's number (None:
+        none), ``result`` the worker's newest (anything with ``seq``; None: none) on tab ``tab``.
+
+        A new camera frame is drawn on every tick of the Live and Alignment tabs; maps at <= ``maps_hz``:
+        the second half of the result begun on the tick before (Live tab) comes first, else a result not
+        drawn yet begins (Live: its first half; Alignment: its alignment views).
+        """
+        camera_tab = tab in (LIVE_TAB, ALIGNMENT_TAB)
+        raw = camera_tab and raw_seq is not None and raw_seq != self.last_raw_seq
+        if raw:
+            self.last_raw_seq = raw_seq
+        pending = self.take_second_half()
+        if pending is not None and tab == LIVE_TAB:
+            return TickPlan(raw, "second half", pending)
+        if result is None or result.seq == self.last_result_seq or not camera_tab or not self.maps_due(now):
+            return TickPlan(raw)
+        self.last_result_seq = result.seq
+        self.maps_drawn(now, result if tab == LIVE_TAB else None)
+        return TickPlan(raw, "first half" if tab == LIVE_TAB else "alignment", result)
+
+
+@dataclasses.dataclass
+class RateCounter:
+    """Events per second, measured over each whole second (the status bar's "shown" frames per second)."""
+
+    rate: float = 0.0
+    count: int = 0
+    since: Optional[float] = None
+
+    def add(self, now: float, n: int = 1) -> float:
+        """Count ``n`` events at ``now``; returns the rate of the last whole second."""
+        if self.since is None:
+            self.since = now
+        self.count += n
+        if now - self.since >= 1.0:
+            self.rate = self.count / (now - self.since)
+            self.count, self.since = 0, now
+        return self.rate
 
 
 @dataclasses.dataclass

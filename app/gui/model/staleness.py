@@ -12,10 +12,14 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, Callable, Optional
 
-__all__ = ["STALE_AFTER_S", "Shown", "Staleness", "format_age", "why_stale", "view_staleness", "derived_text"]
+__all__ = ["STALE_AFTER_S", "NO_REFERENCE", "Shown", "Staleness", "ReferenceEpochs", "format_age", "why_stale",
+           "view_staleness", "derived_text", "unmeasured_messages"]
 
 #: A view whose data is this much older than expected is marked stale (s).
 STALE_AFTER_S = 1.0
+#: Why maps are stale whose reference (and geometry) the worker no longer measures with, none replacing it
+#: (a refused reference, an ROI the reference does not cover).
+NO_REFERENCE = "their reference is no longer in use"
 
 
 def format_age(frame_id, age_s: float) -> str:
@@ -65,6 +69,56 @@ def why_stale(shown: Optional[Shown], acquisition, camera_key: Any = None) -> Op
     return None
 
 
+@dataclasses.dataclass
+class ReferenceEpochs:
+    """The reconstructor rebuild policy, and which reference each processed frame was measured against.
+
+    Every change of reference, geometry or device asks for a new reconstructor, built in the background
+    (:meth:`request` gives the request's number). When a build ends, :meth:`outcome` says what to do with
+    it: only the newest request may change what the worker uses ("install" or, when it failed, "remove":
+    the worker then measures nothing), an older one is "superseded" and dropped, also when it failed (it
+    must not take away a newer reference). :meth:`key` is the reference in use, the ``reference_key`` of
+    :func:`view_staleness`: the newest request while the worker has a reconstructor, None when it has
+    none; maps measured against anything else are stale.
+    """
+
+    requested: int = 0  # requests made
+    installed: Optional[int] = None  # the request whose reconstructor the worker measures with (None: none)
+    previous: Optional[int] = None  # the one before it: frames up to ``since_seq`` were measured with that
+    since_seq: int = -1
+
+    def request(self) -> int:
+        self.requested += 1
+        return self.requested
+
+    def outcome(self, request: int, built: bool) -> str:
+        """``"install"``, ``"remove"`` (the newest request failed) or ``"superseded"``."""
+        if request != self.requested:
+            return "superseded"
+        return "install" if built else "remove"
+
+    def install(self, request: int, since_seq: Optional[int]) -> None:
+        """The worker measures frames after ``since_seq`` with the reconstructor of ``request``."""
+        self.previous, self.installed = self.installed, int(request)
+        self.since_seq = -1 if since_seq is None else int(since_seq)
+
+    def remove(self, since_seq: Optional[int] = None) -> None:
+        """The worker has no reconstructor any more (frames after ``since_seq`` are not measured)."""
+        if self.installed is not None:
+            self.previous = self.installed
+        self.installed = None
+        self.since_seq = self.since_seq if since_seq is None else int(since_seq)
+
+    def measured_with(self, seq: Optional[int]) -> Optional[int]:
+        """The request whose reconstructor measured frame ``seq`` (None: unknown frame: the newest)."""
+        return self.installed if seq is None or seq > self.since_seq else self.previous
+
+    def key(self, worker_has_reconstructor: bool = True):
+        """The reference in use (:func:`view_staleness`'s ``reference_key``): None when the worker has none
+        (removed by a failed build, or by anyone else: ``worker_has_reconstructor``)."""
+        return self.requested if self.installed is not None and worker_has_reconstructor else None
+
+
 @dataclasses.dataclass(frozen=True)
 class Staleness:
     """The marks of one moment: None where the view is live, else ``"why — frame n, t s ago"``."""
@@ -99,7 +153,10 @@ def view_staleness(now_ns: int, acquisition, *, raw: Optional[Shown], maps: Opti
     camera_key
         The open camera's (id, ROI), see :func:`why_stale`.
     reference_key
-        The reference in use: maps computed against another one are stale ("older reference").
+        The reference in use (:meth:`ReferenceEpochs.key`; None: none, the worker measures nothing): maps
+        computed against another one are stale at once, whatever the worker and the raw view do next:
+        "older reference" while a newer one is built or after it came, :data:`NO_REFERENCE` when none
+        replaced theirs (a refused reference).
     """
     raw_text = maps_text = align_text = None
     if raw is not None:
@@ -109,8 +166,8 @@ def view_staleness(now_ns: int, acquisition, *, raw: Optional[Shown], maps: Opti
         raw_text = _mark(why, raw, now_ns)
     if maps is not None:
         why = why_stale(maps, acquisition, camera_key)
-        if why is None and reference_key is not None and maps.reference_key != reference_key:
-            why = "older reference"
+        if why is None and maps.reference_key is not None and maps.reference_key != reference_key:
+            why = "older reference" if reference_key is not None else NO_REFERENCE
         elif why is None and unmeasured_seq is not None and maps.seq is not None and unmeasured_seq > maps.seq:
             why = f"newer frame {unmeasured_seq} not measured"
         elif why is None and raw is not None and raw.seq is not None and maps.seq is not None \
@@ -139,3 +196,11 @@ def derived_text(text: str, maps_mark: Optional[str], *, measured_seq: Optional[
     if maps_mark is None:
         return text, False
     return f"{text} (stale: {maps_mark})", True
+
+
+def unmeasured_messages(error: Optional[str], has_reconstructor: bool) -> tuple:
+    """What the maps say over a frame the worker could not measure: ``(full, short)`` -- the full text on the
+    height map, a few words (or None) on the small maps. Without a reconstructor: "no reference yet"."""
+    text = error or ("no reference yet: capture one (Controls ▸ Reference & geometry)" if not has_reconstructor
+                     else "")
+    return text, (text.split(":")[0] + " (see Height)" if ":" in text else None)

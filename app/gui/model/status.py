@@ -1,0 +1,65 @@
+"""What the status bar says: the camera (LOST in red after a loss), the rates, drops per stage, the
+ring buffer, the latency and where the live maps are computed, from the session's status."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Optional
+
+__all__ = ["StatusTexts", "status_texts", "camera_problem"]
+
+
+@dataclasses.dataclass(frozen=True)
+class StatusTexts:
+    """One refresh of the status bar (``*_tip``: tooltips; ``camera_lost``: drawn red and bold)."""
+
+    camera: str
+    camera_lost: bool
+    camera_fps: float
+    fps: str
+    drops: str
+    ring: str
+    ring_tip: str
+    latency: str
+    device: str
+    device_tip: str
+    state: str
+
+
+def status_texts(st: dict, *, camera_fps: float, processed_fps: float, shown_fps: float, frozen: bool,
+                 camera_open: bool, display_skipped: int, latency_ms: float, device_text: str = "") -> StatusTexts:
+    """The texts from ``st`` (``LiveSession.status()``) and the rates measured by the window.
+
+    ``camera_fps``/``processed_fps``: :class:`~app.gui.model.schedule.LiveRates` (0 once nothing new came);
+    a lost or closed camera gives 0 whatever its last rate; ``frozen``: Pause or a script holds the views
+    (nothing new is shown: 0); ``device_text``: the live Reconstructor's ``device_text``.
+    """
+    err = st.get("error")
+    camera_fps = 0.0 if err or not camera_open else float(camera_fps)
+    shown_fps = 0.0 if frozen else float(shown_fps)
+    fill = st.get("ring_fill")
+    return StatusTexts(
+        camera=f"{st.get('camera_text', 'camera')} LOST" if err else st.get("camera_text", ""),
+        camera_lost=bool(err), camera_fps=camera_fps,
+        fps=f"camera {camera_fps:.1f} · processed {processed_fps:.1f} · shown {shown_fps:.1f} fps",
+        drops=(f"dropped: camera {st.get('dropped_camera', 0)} · ring→recorder {st.get('dropped_ring', 0)} · "
+               f"recorder backlog {st.get('recorder_backlog', 0)} · display skipped {display_skipped} (by design)"),
+        ring=f"ring {100 * fill:.0f} %" if fill is not None else "",
+        ring_tip=f"ring buffer {100 * fill:.0f} % full, {st.get('ring_frames', 0)} frames" if fill is not None else "",
+        latency=f"latency {latency_ms:.0f} ms" if math.isfinite(latency_ms) else "",
+        device=f"live on {device_text.split(' (')[0]}" if device_text else "",
+        device_tip=f"live reconstruction on the {device_text}" if device_text else "",
+        state="camera stopped" if err else "")
+
+
+def camera_problem(error: Optional[str], camera_id: Optional[str], already_shown: Optional[str]) -> Optional[str]:
+    """The banner's text for a camera error not yet shown (None: no error, or this one is up already)."""
+    if not error or error == already_shown:
+        return None
+    from app.gui.camera_messages import explain_open_error, is_controlled_elsewhere
+
+    if is_controlled_elsewhere(error):  # another program holds the camera: say so, not "check the cable"
+        return f"Camera problem: {explain_open_error(camera_id, error)}"
+    return (f"Camera problem: {error}\nCheck the cable, power and network, then press Open in Controls ▸ Camera. "
+            "The app keeps running; frames already recorded are kept.")
