@@ -211,7 +211,15 @@ def update_status(w):
     rec = worker.reconstructor  # where the live maps are computed: the GPU only when asked for
     device_text = getattr(rec, "device_text", "") if rec is not None else ""
     lab["device"].setText(f"live on {device_text.split(' (')[0]}" if device_text else "")
-    lab["device"].setToolTip(f"live reconstruction on the {device_text}" if device_text else "")
+    lab["device"].setToolTip(f"live reconstruction on the {device_text}, {worker.reconstructed_in}"
+                             if device_text else "")
+    if worker.process_error:  # the reconstruction process died: heights go on here, slower; say so
+        lab["device"].setText(f"live on {device_text.split(' (')[0]} in the window's process "
+                              "(the reconstruction process died)")
+        lab["device"].setToolTip(worker.process_error)
+    style = "padding: 0 4px; color: #c00000" if worker.process_error else "padding: 0 4px"
+    if lab["device"].styleSheet() != style:
+        lab["device"].setStyleSheet(style)
     w._update_staleness()
     if err and err != w._shown_camera_error:
         w._shown_camera_error = err

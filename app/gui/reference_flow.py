@@ -115,7 +115,7 @@ def rebuild_reconstructor(w):
         newest = w.session.newest_seq()  # later frames are measured against this reference
         w._reference_since_seq = newest if newest is not None else w._last_raw_seq
         w._reference_epoch += 1
-        w.session.worker.set_reconstructor(rec)
+        w.session.worker.set_reconstructor(rec, reference=reference)  # the worker process builds its own
         w.pin_overlay.set_reconstructor(rec)
         w.session.reference = reference
         text = w._reference_text or "reference"
