@@ -223,3 +223,46 @@ def test_the_worker_process_ends_when_the_window_process_is_killed(tmp_path):
             proc.wait(10)
         proc.stdout.close()
         proc.stderr.close()
+
+
+@pytest.mark.gui
+def test_the_window_says_when_its_reconstruction_process_dies_and_records_every_frame(qtbot, window, scene,
+                                                                                       tmp_path):
+    """In the window: the heights come from the worker process; SIGKILL to it during a recording puts
+    the reason in the status bar, the height maps go on (from the window's process), and the file has
+    every frame, "no frame lost"."""
+    import h5py
+
+    frames = scene["frames"]
+    window.use_camera(SyntheticCamera(lambda i: frames[i % len(frames)], frame_rate_hz=100.0, n_buffers=64),
+                      geometry=scene["geometry"], reference=scene["reference"])
+    qtbot.waitUntil(lambda: window.last_drawn is not None and window.last_drawn.result is not None,
+                    timeout=240000)
+    where = window.session.worker.reconstructed_in
+    assert where.startswith("worker process (pid "), where
+    pid = int(where.split("pid ")[1].rstrip(")"))
+    rp = window.recording_panel
+    rp.folder.setText(str(tmp_path))
+    rp.pre.setValue(10)
+    rp.post.setValue(300)
+    rp.arm_button.click()
+    assert rp.state_label.text() == "armed", window.last_error
+    ring = window.session.acquisition.ring
+    armed_head = ring.head
+    qtbot.waitUntil(lambda: ring.head >= armed_head + 12, timeout=20000)
+    rp.trigger_button.click()
+    os.kill(pid, signal.SIGKILL)
+    label = window.status_labels["device"]
+    qtbot.waitUntil(lambda: "reconstruction process died" in label.text(), timeout=60000)
+    assert "killed by SIGKILL" in label.toolTip()
+    drawn = window.last_drawn.seq
+    qtbot.waitUntil(lambda: window.last_drawn.seq > drawn and window.last_drawn.result is not None,
+                    timeout=60000)
+    qtbot.waitUntil(lambda: rp.state_label.text() in ("done", "error"), timeout=120000)
+    assert rp.state_label.text() == "done", window.last_error
+    assert "no frame lost" in rp.result_label.text()
+    with h5py.File(window.session.recording["path"], "r") as f:
+        n = int(f.attrs["frames_written"])
+        ids = f["frame_table"][:n]["frame_id"]
+    assert n == 10 + 300 and np.all(np.diff(ids) == 1)
+    assert not _alive(pid)
