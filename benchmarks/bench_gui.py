@@ -90,9 +90,11 @@ def worker_breakdown(processed, height_latency_ms):
     """Where a height map's camera-to-screen latency goes, medians in ms over ``processed``
     (the worker's :class:`~app.capture.worker.Processed` of the measurement): ``waited`` (the frame's
     age when the worker took it: the previous frame's work), ``reconstruction`` (wall time) and its
-    ``cpu`` (CPU time in the thread that ran it, here or in the worker process: the rest is waiting
-    for a core or the GIL), ``handoff`` (taking it, the worker process's copies and pipe, publishing),
-    ``to screen`` (published to painted: the display's cadence, the maps' turn, drawing)."""
+    ``cpu`` (CPU time in the thread that ran it, here or in the worker process), ``waiting for a
+    core`` (runnable, not running: the machine's load), ``blocked (GIL)`` (the rest: in the window's
+    process above all waiting for the GIL; in the worker process for its FFT threads), ``handoff``
+    (taking it, the worker process's copies and pipe, publishing), ``to screen`` (published to
+    painted: the display's cadence, the maps' turn, drawing)."""
     import numpy as np
 
     if not processed:
@@ -104,6 +106,9 @@ def worker_breakdown(processed, height_latency_ms):
         "waited": med([(p.picked_ns - p.host_timestamp_ns) / 1e6 for p in picked]),
         "reconstruction": med([1e3 * p.processing_s for p in ok]),
         "cpu": med([1e3 * getattr(p, "cpu_s", np.nan) for p in ok]),
+        "waiting for a core": med([1e3 * getattr(p, "queued_s", np.nan) for p in ok]),
+        "blocked (GIL)": med([1e3 * (p.processing_s - getattr(p, "cpu_s", np.nan) - getattr(p, "queued_s", np.nan))
+                              for p in ok]),
         "handoff": med([(p.done_ns - p.picked_ns) / 1e6 - 1e3 * p.processing_s for p in picked]),
         "published": med([(p.done_ns - p.host_timestamp_ns) / 1e6 for p in ok]),
     }
@@ -140,6 +145,20 @@ class GuiThreadClock:
     def restore(self):
         for cls, name, original in self._undo:
             setattr(cls, name, original)
+
+
+def _worker_process_cpu_s(worker) -> float:
+    """CPU seconds (user + system, all threads) of the live worker process so far; NaN without one."""
+    where = getattr(worker, "reconstructed_in", "")
+    if "pid " not in where:
+        return float("nan")
+    pid = where.split("pid ")[1].rstrip(")")
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            fields = f.read().rpartition(b")")[2].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return float("nan")
 
 
 def measure_window(app, size, rate_hz, seconds, n_frames, nice=0, worker_process=None):
@@ -183,6 +202,7 @@ def measure_window(app, size, rate_hz, seconds, n_frames, nice=0, worker_process
         w.session.worker.add_listener(seen.append)
         p0, h0, k0, a0 = raw.painted, w.height_view.updates, w.session.worker.processed, acq.acquired
         gui0 = dict(clock.ms)
+        child0 = _worker_process_cpu_s(w.session.worker)
         t0, cpu0 = time.monotonic(), os.times()
         _run_loop(app, seconds)
         dt, cpu1 = time.monotonic() - t0, os.times()
@@ -204,6 +224,7 @@ def measure_window(app, size, rate_hz, seconds, n_frames, nice=0, worker_process
         out["gui_busy"] = {k: (clock.ms[k] - gui0[k]) / (10 * dt) for k in clock.ms}  # % of the wall time
         # this process's CPU (all its threads) and its children's that ended, in cores
         out["cpu_cores"] = (cpu1.user + cpu1.system - cpu0.user - cpu0.system) / dt
+        out["worker_process_cores"] = (_worker_process_cpu_s(w.session.worker) - child0) / dt
         out["reconstructed_in"] = getattr(w.session.worker, "reconstructed_in", "this process")
         t_end = time.monotonic() + 120
         while w.recording_panel.state_label.text() not in ("done", "error") and time.monotonic() < t_end:
@@ -342,12 +363,14 @@ def main(argv=None) -> int:
             print(f"height latency at {r['size']}² (medians, ms; reconstruction {r['reconstructed_in']}): "
                   + ", ".join(f"{k} {v:.1f}" for k, v in wb.items()))
         print(f"GUI thread at {r['size']}²: display ticks {r['gui_busy']['tick']:.0f} % and paints "
-              f"{r['gui_busy']['paint']:.0f} % of the time; the window's process used {r['cpu_cores']:.2f} cores")
+              f"{r['gui_busy']['paint']:.0f} % of the time; the window's process used {r['cpu_cores']:.2f} cores"
+              + (f", its worker process {r['worker_process_cores']:.2f}"
+                 if np.isfinite(r["worker_process_cores"]) else ""))
         goal_h = {512: 50.0, 1024: 30.0}.get(r["size"])
         if goal_h is not None:
             lat_goal = r["size"] < 1024 or r["lat_height_ms"][0] <= 50.0
-            print(f"heights at {r['size']}²: {r['height_fps']:.1f} Hz drawn, {r['processed_fps']:.1f} Hz reconstructed, "
-                  f"latency p50 {r['lat_height_ms'][0]:.1f} ms (goal >= {goal_h:g} Hz"
+            print(f"heights at {r['size']}²: {r['height_fps']:.1f} Hz drawn, {r['processed_fps']:.1f} Hz "
+                  f"reconstructed, latency p50 {r['lat_height_ms'][0]:.1f} ms (goal >= {goal_h:g} Hz"
                   + (", <= 50 ms" if r["size"] >= 1024 else "") + f"): "
                   + ("met" if r["height_fps"] >= goal_h and lat_goal else "NOT met"))
         rec_ok = r["recorder_missing"] == 0 and r["recorded"] == r["planned"] and r["camera_lost"] == 0

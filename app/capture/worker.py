@@ -92,8 +92,11 @@ class Processed:
         ``time.monotonic_ns()`` when the worker took the frame from the ring (the wait before it is
         the time the worker was busy with the previous frame).
     cpu_s : float
-        CPU time of the reconstruction in the thread that ran it (here or in the worker process);
-        ``processing_s - cpu_s`` is time spent waiting (for a core, or for this process's GIL).
+        CPU time of the reconstruction in the thread that ran it (here or in the worker process).
+    queued_s : float
+        Time of the reconstruction that thread was runnable but waited for a core (other programs);
+        ``processing_s - cpu_s - queued_s`` is time it was blocked: above all, in this process,
+        waiting for the GIL that the GUI, camera and recorder threads hold.
     """
 
     seq: int
@@ -108,6 +111,7 @@ class Processed:
     done_ns: int = 0
     picked_ns: int = 0
     cpu_s: float = 0.0
+    queued_s: float = 0.0
 
 
 def saturation_percent(image: np.ndarray, bit_depth: Optional[int] = None, *, step: int = 2) -> float:
@@ -413,7 +417,7 @@ class ProcessingWorker:
                          alignment=alignment, spectrum=spectrum,
                          saturation_pct=saturation_percent(image, bit_depth),
                          processing_s=m.processing_s, done_ns=time.monotonic_ns(), picked_ns=picked_ns,
-                         cpu_s=m.cpu_s)
+                         cpu_s=m.cpu_s, queued_s=m.queued_s)
 
     def _measure(self, rec, reference, image: np.ndarray, job: LiveJob) -> Measured:
         """:func:`measure_live` in the worker process where there is one to use, else here."""
