@@ -32,6 +32,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import signal
+import time
 import uuid
 from typing import Optional
 
@@ -89,9 +90,14 @@ class LiveProcess:
     ----------
     nice : int
         Linux nice increment of the child (0: none).
+    start_timeout_s : float
+        Longest wait for the child's first answer (its imports and first build): one that never
+        answers is ended and reported, e.g. a script that opens the window at its top level, not
+        under ``if __name__ == "__main__":`` (a spawned child imports the script it was started
+        from, and would run it).
     """
 
-    def __init__(self, nice: int = 0):
+    def __init__(self, nice: int = 0, start_timeout_s: float = 180.0):
         import multiprocessing
 
         ctx = multiprocessing.get_context("spawn")
@@ -103,6 +109,8 @@ class LiveProcess:
         self._blocks = {}  # "frames"/"maps" -> SharedMemory owned by this process
         self._built_for = None  # the window's reconstructor the child has built the same of
         self._closed = False
+        self._start_timeout_s = float(start_timeout_s)
+        self._answered = False  # the child answered once (it started)
 
     @property
     def pid(self) -> Optional[int]:
@@ -119,7 +127,8 @@ class LiveProcess:
         if self._built_for is not reconstructor:
             self._built_for = None
             self._send(("build", Recipe.of(reconstructor, reference)))
-            kind, message = self._wait(stop)
+            kind, message = self._wait(stop, None if self._answered else self._start_timeout_s)
+            self._answered = True
             if kind != "built":
                 raise LiveProcessError(f"the live reconstruction process could not build the reconstructor: "
                                        f"{message}")
@@ -179,12 +188,18 @@ class LiveProcess:
         except (OSError, ValueError):  # the child is gone: its end is closed
             raise LiveProcessError(self._death()) from None
 
-    def _wait(self, stop):
+    def _wait(self, stop, timeout_s: Optional[float] = None):
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
         while not self._conn.poll(POLL_S):
             if stop.is_set():
                 raise WorkerStopped()
             if not self._proc.is_alive():
                 break
+            if deadline is not None and time.monotonic() > deadline:
+                raise LiveProcessError(
+                    f"the live reconstruction process (pid {self._proc.pid}) did not answer within "
+                    f"{timeout_s:g} s of its start (a script that opens the window must do so under "
+                    f"`if __name__ == \"__main__\":`: the process imports the script)")
         try:
             return self._conn.recv()
         except (EOFError, OSError):
