@@ -271,6 +271,14 @@ class LiveSession:
                 ids.pop(old, None)
         return seq, f.image, f.host_timestamp_ns
 
+    def acquisition_of(self, seq: Optional[int]):
+        """The open acquisition if frame ``seq`` (numbered as ``Processed.seq``) is one of its frames, None
+        if it came from an earlier one (a result still in flight when the camera changed)."""
+        acq = self.acquisition
+        if acq is None or seq is None:
+            return acq
+        return acq if seq >= self._base_of.get(acq, 0) else None
+
     def newest_seq(self) -> Optional[int]:
         """The number (as ``Processed.seq``) of the newest frame in the ring, None if none; copies nothing."""
         acq = self.acquisition

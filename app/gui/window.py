@@ -478,11 +478,11 @@ class MainWindow(QtWidgets.QMainWindow):
     # ------------------------------------------- staleness, pause, snapshot
     def _shown_now(self, seq, host_ns) -> Shown:
         """What a view showing frame ``seq`` now shows (model/staleness.py decides when it is stale)."""
-        acq = self.session.acquisition
+        acq = self.session.acquisition_of(seq)  # a result of the camera before, drawn after a switch: stale
         measured_with = self._reference_epoch if seq is None or seq > self._reference_since_seq \
             else self._reference_epoch - 1
-        return Shown(seq, host_ns, weakref.ref(acq) if acq is not None else None, self._camera_key(),
-                     measured_with)
+        return Shown(seq, host_ns, weakref.ref(acq) if acq is not None else None,
+                     self._camera_key() if acq is not None else None, measured_with)
 
     def maps_shown_seq(self) -> Optional[int]:
         """The frame the processed maps on screen show (None: none yet)."""
