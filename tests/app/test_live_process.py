@@ -102,6 +102,41 @@ def test_maps_from_the_worker_process_equal_those_of_this_process(scene):
         assert err["rel_rms"] < 0.2, (p.seq, err)
 
 
+def test_a_new_reference_is_rebuilt_in_the_same_worker_process(scene):
+    """A reconstructor of another geometry (deeper water: other heights from the same frames) set while
+    frames stream: the same worker process builds it, and the frames after the change get its heights."""
+    import dataclasses
+
+    from processing import Reconstructor
+
+    frames = np.concatenate([scene["frames"]] * 40)
+    reference, geometry = scene["reference"], scene["geometry"]
+    deeper = dataclasses.replace(geometry, depth_mm=2.0 * geometry.depth_mm)
+    worker = ProcessingWorker(_in_order(frames), grid="decimated", separate_process=True)
+    worker.set_reconstructor(Reconstructor(reference, geometry), reference=reference)
+    try:
+        worker.start()
+        first = worker.wait_for(lambda p: p.result is not None, timeout_s=240)
+        assert first is not None, worker.counters()
+        where = worker.reconstructed_in
+        second = Reconstructor(reference, deeper)
+        worker.set_reconstructor(second, reference=reference)
+        mark = worker.latest().seq + 1  # the frame in flight may have begun with the first one
+        after = worker.wait_for(lambda p: p.result is not None and p.seq > mark, timeout_s=240)
+        assert after is not None, worker.counters()
+        assert worker.reconstructed_in == where  # rebuilt there, not a new process
+    finally:
+        worker.stop(10.0)
+    # its first frame after the change is measured from scratch (the series restarts), as here
+    expected = measure_live(Reconstructor(reference, deeper), frames[after.seq], LiveJob(reset_series=True)).result
+    old = measure_live(Reconstructor(reference, geometry), frames[after.seq], LiveJob()).result
+    scale = float(np.sqrt(np.nanmean(np.square(expected.height, dtype=np.float64))))
+    differ = float(np.nanmax(np.abs(expected.height - old.height)))
+    assert differ > 0.05 * scale  # the two geometries really give other heights
+    ok = after.result.valid & expected.valid
+    assert np.nanmax(np.abs(after.result.height - expected.height)[ok]) <= 1e-2 * differ
+
+
 def test_a_killed_worker_process_is_reported_and_the_recording_goes_on(scene, tmp_path):
     """SIGKILL to the worker process mid-stream: the frame it had is published with the reason, the
     worker says where it goes on (this process) and keeps giving heights, and the recorder writes every
