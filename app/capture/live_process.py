@@ -72,8 +72,8 @@ class Recipe:
 
         The child's FFTs use at most the cores the window's process leaves it (all but one: its GUI
         thread paints 45-70 % of the time), so that the FFTs' threads do not wait for each other:
-        on 2 cores 1 thread (measured at load 8-11, docs/acquisition.md: 512^2 18.6 and 21.8 Hz
-        against a median of 8.6 Hz over seven runs with 2). One thread's FFT plans sum in another
+        on 2 cores 1 thread (measured at load 6-11, docs/acquisition.md: 512^2 18.6-29.9 Hz in four
+        runs against a median of 8.6 Hz over seven runs with 2). One thread's FFT plans sum in another
         order: the heights agree to float32 rounding (tests/app/test_live_process.py).
         """
         from processing import fft
