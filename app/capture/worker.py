@@ -22,8 +22,19 @@ that raises is reported in ``last_error`` and does not stop the worker.
 
 Takes (commands, thread-safe)
 -----------------------------
-``set_reconstructor(reconstructor_or_None)``, ``set_grid("decimated"|"full")``,
+``set_reconstructor(reconstructor_or_None, reference=None)``, ``set_grid("decimated"|"full")``,
 ``set_alignment(enabled, interval_s=...)``, ``start()``, ``stop(timeout_s)``.
+
+Where the reconstruction runs
+-----------------------------
+One loop (:meth:`ProcessingWorker._run`) and one function of a frame
+(:func:`measure_live`). With ``separate_process=True`` and a reference given to
+:meth:`ProcessingWorker.set_reconstructor`, :func:`measure_live` runs in a spawned
+process (:class:`app.capture.live_process.LiveProcess`: the frame goes in and the
+maps come back through shared memory), so the reconstruction does not share this
+process's GIL with the camera, recorder and GUI threads. If that process dies, the
+frame being measured is published with the error, :attr:`ProcessingWorker.process_error`
+says why, and the worker goes on in its own thread (the recorder never depends on it).
 """
 
 from __future__ import annotations
@@ -33,12 +44,14 @@ import logging
 import os
 import threading
 import time
-import traceback
 from typing import Callable, List, Optional, Tuple
 
 import numpy as np
 
-__all__ = ["Processed", "ProcessingWorker", "saturation_percent", "ring_source"]
+from .live_measure import LiveJob, Measured, WorkerStopped, error_message, measure_live
+
+__all__ = ["Processed", "ProcessingWorker", "LiveJob", "Measured", "WorkerStopped", "measure_live",
+           "saturation_percent", "ring_source"]
 
 log = logging.getLogger(__name__)
 
@@ -75,6 +88,15 @@ class Processed:
         Wall time of the reconstruction in seconds.
     done_ns : int
         ``time.monotonic_ns()`` when processing finished.
+    picked_ns : int
+        ``time.monotonic_ns()`` when the worker took the frame from the ring (the wait before it is
+        the time the worker was busy with the previous frame).
+    cpu_s : float
+        CPU time of the reconstruction in the thread that ran it (here or in the worker process).
+    queued_s : float
+        Time of the reconstruction that thread was runnable but waited for a core (other programs);
+        ``processing_s - cpu_s - queued_s`` is time it was blocked: above all, in this process,
+        waiting for the GIL that the GUI, camera and recorder threads hold.
     """
 
     seq: int
@@ -87,6 +109,9 @@ class Processed:
     saturation_pct: float = 0.0
     processing_s: float = 0.0
     done_ns: int = 0
+    picked_ns: int = 0
+    cpu_s: float = 0.0
+    queued_s: float = 0.0
 
 
 def saturation_percent(image: np.ndarray, bit_depth: Optional[int] = None, *, step: int = 2) -> float:
@@ -152,14 +177,18 @@ class ProcessingWorker:
     poll_timeout_s : float
         Longest wait for a new frame before checking for stop (bounds :meth:`stop`).
     nice : int
-        Linux nice increment of the worker thread (0: none). A positive value lets
-        the camera, recorder and display threads win the CPU; the worker then
-        skips more frames.
+        Linux nice increment of the worker thread (0: none), and of the worker process.
+        A positive value lets the camera, recorder and display threads win the CPU; the
+        worker then skips more frames.
+    separate_process : bool
+        Reconstruct in a spawned process (:mod:`app.capture.live_process`) whenever
+        :meth:`set_reconstructor` is given the reference image (it is started then, and
+        ended by :meth:`stop`); False: in this thread.
     """
 
     def __init__(self, source: FrameSource, reconstructor=None, *, grid: str = "decimated",
                  bit_depth: Optional[int] = None, alignment_fn=None, poll_timeout_s: float = 0.05,
-                 nice: int = 0):
+                 nice: int = 0, separate_process: bool = False):
         if grid not in ("decimated", "full"):
             raise ValueError(f"grid must be 'decimated' or 'full'; got {grid!r}")
         self._source = source
@@ -186,12 +215,23 @@ class ProcessingWorker:
         self.processing_ms = 0.0
         self._last_seq = -1
         self._reset_series = False
+        self._reference = None  # the reconstructor's reference image (what the worker process builds on)
+        self._separate_process = bool(separate_process)
+        self._live_process = None  # app.capture.live_process.LiveProcess once started
+        #: Why reconstruction left the worker process for this thread (it died), else None.
+        self.process_error: Optional[str] = None
 
     # -- commands ------------------------------------------------------------
-    def set_reconstructor(self, reconstructor) -> None:
-        """Use ``reconstructor`` from the next frame on (None: publish raw frames only)."""
+    def set_reconstructor(self, reconstructor, reference: Optional[np.ndarray] = None) -> None:
+        """Use ``reconstructor`` from the next frame on (None: publish raw frames only).
+
+        ``reference``: the reference image ``reconstructor`` was built on; with
+        ``separate_process`` the worker process then builds the same reconstructor from it
+        (``reconstructor.geometry``, ``.options``, ``.carriers``) and measures there.
+        """
         with self._lock:
             self._reconstructor = reconstructor
+            self._reference = None if reconstructor is None else reference
             self._reset_series = reconstructor is not None
             self._latest = None if reconstructor is None else self._latest
 
@@ -248,6 +288,10 @@ class ProcessingWorker:
         thread, self._thread = self._thread, None
         if thread is not None:
             thread.join(timeout_s)
+        process, self._live_process = self._live_process, None
+        if process is not None:  # ended whatever the thread does: no process is left behind
+            process.close()
+        if thread is not None:
             if thread.is_alive():
                 raise TimeoutError(
                     f"processing worker did not stop within {timeout_s} s (a reconstruction is still "
@@ -276,7 +320,15 @@ class ProcessingWorker:
 
     def counters(self) -> dict:
         return {"processed": self.processed, "skipped": self.skipped, "failed": self.failed,
-                "fps": self.fps, "last_error": self.last_error, "processing_ms": self.processing_ms}
+                "fps": self.fps, "last_error": self.last_error, "processing_ms": self.processing_ms,
+                "reconstructed_in": self.reconstructed_in, "process_error": self.process_error}
+
+    @property
+    def reconstructed_in(self) -> str:
+        """Where the live reconstruction runs now: "worker process (pid N)" or "this process"."""
+        process = self._live_process
+        pid = process.pid if process is not None else None
+        return f"worker process (pid {pid})" if pid is not None else "this process"
 
     # -- thread --------------------------------------------------------------
     def _run(self) -> None:
@@ -304,10 +356,14 @@ class ProcessingWorker:
             if got is None:
                 continue
             seq, image, host_ns = got
+            picked_ns = time.monotonic_ns()
             if seq > self._last_seq + 1:  # frames never seen (also before the first one)
                 self.skipped += seq - self._last_seq - 1
             self._last_seq = seq
-            processed = self._process(seq, image, host_ns)
+            try:
+                processed = self._process(seq, image, host_ns, picked_ns)
+            except WorkerStopped:
+                break
             self.processed += 1
             count += 1
             with self._new_result:
@@ -321,40 +377,33 @@ class ProcessingWorker:
                     self.last_error = f"listener {getattr(fn, '__name__', fn)!s} failed: {exc}"
                     log.exception("worker listener failed")
 
-    def _process(self, seq: int, image: np.ndarray, host_ns: int) -> Processed:
+    def _process(self, seq: int, image: np.ndarray, host_ns: int, picked_ns: int = 0) -> Processed:
         with self._lock:
-            rec = self._reconstructor
+            rec, reference = self._reconstructor, self._reference
             grid = self._grid
             bit_depth = self._bit_depth
             do_alignment = self._alignment and (
                 time.monotonic() - self._last_alignment_t >= self._alignment_interval_s)
             alignment_fn = self._alignment_fn
             reset, self._reset_series = self._reset_series, False
-        result = error = alignment = spectrum = None
-        t0 = time.perf_counter()
+        t_start = time.monotonic()
         if rec is not None:
-            try:
-                if reset and hasattr(rec, "reset_series"):
-                    rec.reset_series()
-                result = rec(image, grid=grid)
-            except Exception as exc:  # TirdeflectError: show it, keep going
-                error = _message(exc)
-                self.failed += 1
-                self.last_error = error
-                if not isinstance(exc, ValueError):
-                    log.error("processing failed:\n%s", traceback.format_exc())
-        dt = time.perf_counter() - t0
-        self.processing_ms = 1e3 * dt
+            m = self._measure(rec, reference, image, LiveJob(grid, reset, do_alignment))
+        else:
+            m = Measured()
+            if do_alignment and alignment_fn is not None:
+                try:
+                    m.alignment, m.spectrum = alignment_fn(image)
+                except Exception as exc:
+                    m.alignment = {"error": error_message(exc)}
+        if m.error is not None:
+            self.failed += 1
+            self.last_error = m.error
+            if m.traceback_text:
+                log.error("processing failed:\n%s", m.traceback_text)
+        self.processing_ms = 1e3 * m.processing_s
+        alignment, spectrum = m.alignment, m.spectrum
         if do_alignment:
-            t_start = time.monotonic()
-            try:
-                if rec is not None and hasattr(rec, "alignment"):
-                    alignment = rec.alignment(image)
-                    spectrum = rec.spectrum(image) if hasattr(rec, "spectrum") else None
-                elif alignment_fn is not None:
-                    alignment, spectrum = alignment_fn(image)
-            except Exception as exc:
-                alignment = {"error": _message(exc)}
             t_end = time.monotonic()
             with self._lock:
                 # due interval_s after this one began, and never sooner than its own duration after it
@@ -362,14 +411,34 @@ class ProcessingWorker:
                 self._last_alignment_t = max(t_start, 2 * t_end - t_start - self._alignment_interval_s)
         elif self._latest is not None and self._alignment:
             alignment, spectrum = self._latest.alignment, self._latest.spectrum
-        if result is not None:
+        if m.result is not None:
             self.last_error = None
-        return Processed(seq=seq, host_timestamp_ns=host_ns, image=image, result=result, error=error,
+        return Processed(seq=seq, host_timestamp_ns=host_ns, image=image, result=m.result, error=m.error,
                          alignment=alignment, spectrum=spectrum,
                          saturation_pct=saturation_percent(image, bit_depth),
-                         processing_s=dt, done_ns=time.monotonic_ns())
+                         processing_s=m.processing_s, done_ns=time.monotonic_ns(), picked_ns=picked_ns,
+                         cpu_s=m.cpu_s, queued_s=m.queued_s)
 
+    def _measure(self, rec, reference, image: np.ndarray, job: LiveJob) -> Measured:
+        """:func:`measure_live` in the worker process where there is one to use, else here."""
+        if self._separate_process and reference is not None and self.process_error is None:
+            from .live_process import LiveProcess, LiveProcessError
 
-def _message(exc: BaseException) -> str:
-    text = str(exc) or type(exc).__name__
-    return text if isinstance(exc, ValueError) else f"{type(exc).__name__}: {text}"
+            try:
+                if self._live_process is None:
+                    try:
+                        self._live_process = LiveProcess(nice=self._nice)
+                    except Exception as exc:  # e.g. a script that starts the window unguarded by __main__
+                        raise LiveProcessError(f"the live reconstruction process could not start: "
+                                               f"{error_message(exc)}") from exc
+                return self._live_process.measure(rec, reference, image, job, self._stop)
+            except LiveProcessError as exc:  # it died or could not build: say so, go on here
+                process, self._live_process = self._live_process, None
+                if process is not None:
+                    process.close()
+                self.process_error = str(exc)
+                log.error("%s", exc)
+                with self._lock:
+                    self._reset_series = True  # this thread's reconstructor has its own series memory
+                return Measured(error=f"{exc}; the live heights go on in the window's process (slower)")
+        return measure_live(rec, image, job)

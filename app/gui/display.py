@@ -190,7 +190,8 @@ def update_status(w):
                      processed_fps=w.rates.rate("processed", worker.processed, worker.fps, now),
                      shown_fps=w.displayed_fps, frozen=w.pause_box.isChecked() or w.frozen,
                      camera_open=w.session.acquisition is not None, display_skipped=worker.skipped,
-                     latency_ms=w.latency_ms, device_text=getattr(rec, "device_text", "") if rec is not None else "")
+                     latency_ms=w.latency_ms, device_text=getattr(rec, "device_text", "") if rec is not None else "",
+                     reconstructed_in=worker.reconstructed_in, process_error=worker.process_error or "")
     lab["camera"].setText(t.camera)
     lab["camera"].setStyleSheet("padding: 0 4px; color: #c00000; font-weight: bold" if t.camera_lost
                                 else "padding: 0 4px")
@@ -202,6 +203,9 @@ def update_status(w):
     lab["latency"].setText(t.latency)
     lab["device"].setText(t.device)
     lab["device"].setToolTip(t.device_tip)
+    style = "padding: 0 4px; color: #c00000" if t.device_failed else "padding: 0 4px"
+    if lab["device"].styleSheet() != style:
+        lab["device"].setStyleSheet(style)
     w._update_staleness()
     problem = camera_problem(st.get("error"), w.session.camera_id, w._shown_camera_error)
     if problem is not None:

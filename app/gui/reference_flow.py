@@ -120,7 +120,7 @@ def rebuild_reconstructor(w):
             return
         newest = w.session.newest_seq()  # later frames are measured against this reference
         w.references.install(request, newest if newest is not None else w.clock.last_raw_seq)
-        w.session.worker.set_reconstructor(rec)
+        w.session.worker.set_reconstructor(rec, reference=reference)  # the worker process builds its own
         w.pin_overlay.set_reconstructor(rec)
         w.session.reference = reference
         text = w._reference_text or "reference"

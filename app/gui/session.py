@@ -60,10 +60,13 @@ class LiveSession:
         Memory for the camera ring buffer (bytes); the pre-trigger length must fit.
     stall_timeout_s : float
         A free-running camera that delivers nothing for this long is declared lost.
+    worker_process : bool
+        Reconstruct the live heights in a worker process of their own (its own GIL:
+        ``app/capture/live_process.py``); False: in the worker thread of this process.
     """
 
     def __init__(self, *, synthetic_options: Optional[dict] = None, ring_bytes: int = 512 * 2**20,
-                 stall_timeout_s: float = 3.0, worker_nice: int = 0):
+                 stall_timeout_s: float = 3.0, worker_nice: int = 0, worker_process: bool = True):
         self.synthetic_options = dict(synthetic_options or {})
         self.ring_bytes = int(ring_bytes)
         self.stall_timeout_s = float(stall_timeout_s)
@@ -83,7 +86,8 @@ class LiveSession:
         self._closed = False
         self.tank = None  # the synthetic camera's app.capture.scene.TankScene (scenes, true heights)
         self._frame_ids = {}  # worker seq -> camera frame id (recent frames; truth lookup)
-        self.worker = ProcessingWorker(self._newest_frame, grid="decimated", nice=worker_nice)
+        self.worker = ProcessingWorker(self._newest_frame, grid="decimated", nice=worker_nice,
+                                       separate_process=worker_process)
         self.worker.start()
         self.capture = None  # app.capture.trigger capture (pre/post) while armed
         self.recording: Optional[dict] = None
@@ -266,6 +270,14 @@ class LiveSession:
             for old in list(ids)[:256]:
                 ids.pop(old, None)
         return seq, f.image, f.host_timestamp_ns
+
+    def acquisition_of(self, seq: Optional[int]):
+        """The open acquisition if frame ``seq`` (numbered as ``Processed.seq``) is one of its frames, None
+        if it came from an earlier one (a result still in flight when the camera changed)."""
+        acq = self.acquisition
+        if acq is None or seq is None:
+            return acq
+        return acq if seq >= self._base_of.get(acq, 0) else None
 
     def newest_seq(self) -> Optional[int]:
         """The number (as ``Processed.seq``) of the newest frame in the ring, None if none; copies nothing."""

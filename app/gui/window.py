@@ -462,9 +462,9 @@ class MainWindow(QtWidgets.QMainWindow):
     # ------------------------------------------- staleness, pause, snapshot
     def _shown_now(self, seq, host_ns) -> Shown:
         """What a view showing frame ``seq`` now shows (model/staleness.py decides when it is stale)."""
-        acq = self.session.acquisition
-        return Shown(seq, host_ns, weakref.ref(acq) if acq is not None else None, self._camera_key(),
-                     self.references.measured_with(seq))
+        acq = self.session.acquisition_of(seq)  # a result of the camera before, drawn after a switch: stale
+        return Shown(seq, host_ns, weakref.ref(acq) if acq is not None else None,
+                     self._camera_key() if acq is not None else None, self.references.measured_with(seq))
 
     def maps_shown_seq(self) -> Optional[int]:
         """The frame the processed maps on screen show (None: none yet)."""

@@ -24,16 +24,21 @@ class StatusTexts:
     latency: str
     device: str
     device_tip: str
+    device_failed: bool  # the reconstruction process died: shown red
     state: str
 
 
 def status_texts(st: dict, *, camera_fps: float, processed_fps: float, shown_fps: float, frozen: bool,
-                 camera_open: bool, display_skipped: int, latency_ms: float, device_text: str = "") -> StatusTexts:
+                 camera_open: bool, display_skipped: int, latency_ms: float, device_text: str = "",
+                 reconstructed_in: str = "", process_error: str = "") -> StatusTexts:
     """The texts from ``st`` (``LiveSession.status()``) and the rates measured by the window.
 
     ``camera_fps``/``processed_fps``: :class:`~app.gui.model.schedule.LiveRates` (0 once nothing new came);
     a lost or closed camera gives 0 whatever its last rate; ``frozen``: Pause or a script holds the views
-    (nothing new is shown: 0); ``device_text``: the live Reconstructor's ``device_text``.
+    (nothing new is shown: 0); ``device_text``: the live Reconstructor's ``device_text``;
+    ``reconstructed_in``: where the worker runs it (its process or the window's);
+    ``process_error``: why the reconstruction process died ("" while it lives): heights go on in the
+    window's process, slower, and the label says so in red.
     """
     err = st.get("error")
     camera_fps = 0.0 if err or not camera_open else float(camera_fps)
@@ -48,8 +53,12 @@ def status_texts(st: dict, *, camera_fps: float, processed_fps: float, shown_fps
         ring=f"ring {100 * fill:.0f} %" if fill is not None else "",
         ring_tip=f"ring buffer {100 * fill:.0f} % full, {st.get('ring_frames', 0)} frames" if fill is not None else "",
         latency=f"latency {latency_ms:.0f} ms" if math.isfinite(latency_ms) else "",
-        device=f"live on {device_text.split(' (')[0]}" if device_text else "",
-        device_tip=f"live reconstruction on the {device_text}" if device_text else "",
+        device=(f"live on {device_text.split(' (')[0]}"
+                + (" in the window's process (the reconstruction process died)" if process_error else "")
+                if device_text else ""),
+        device_tip=(process_error or f"live reconstruction on the {device_text}"
+                    + (f", {reconstructed_in}" if reconstructed_in else "")) if device_text else "",
+        device_failed=bool(process_error),
         state="camera stopped" if err else "")
 
 
