@@ -239,6 +239,13 @@ def test_status_bar_says_lost_with_zero_rates_and_names_the_live_device():
     assert (lost.camera, lost.camera_lost, lost.camera_fps, lost.state) == \
         ("synthetic 256×256 LOST", True, 0.0, "camera stopped")
     assert "shown 0.0 fps" in lost.fps and lost.latency == "" and lost.device == ""
+    assert not t.device_failed
+    died = status_texts(st, camera_fps=30.0, processed_fps=4.0, shown_fps=29.9, frozen=False, camera_open=True,
+                        display_skipped=7, latency_ms=12.4, device_text="CPU", reconstructed_in="window process",
+                        process_error="the reconstruction process ended (signal 9)")
+    # heights go on in the window's process: said in the label, red, with the reason as its tooltip
+    assert died.device_failed and died.device.endswith("in the window's process (the reconstruction process died)")
+    assert died.device_tip == "the reconstruction process ended (signal 9)"
     text = camera_problem("no frame for 3.0 s", "synthetic", None)
     assert text.startswith("Camera problem: no frame for 3.0 s\nCheck the cable")
     assert camera_problem("no frame for 3.0 s", "synthetic", "no frame for 3.0 s") is None  # shown once
