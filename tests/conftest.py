@@ -150,6 +150,14 @@ def _cameras_one_test_at_a_time(request):
         yield
 
 
+# -- the longest first -----------------------------------------------------------
+# The ``slow`` tests (a whole install from a fresh clone, a wheel built and run:
+# minutes each, in subprocesses of their own) run first, so that under xdist the
+# other workers go through the rest meanwhile instead of waiting for them at the end.
+def pytest_collection_modifyitems(config, items):
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)  # stable: else as collected
+
+
 # -- nothing left running ----------------------------------------------------
 # A process or non-daemon thread that a test leaves behind can keep the test
 # run from ending: the interpreter joins non-daemon threads and
