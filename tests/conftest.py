@@ -150,6 +150,32 @@ def _cameras_one_test_at_a_time(request):
         yield
 
 
+@pytest.fixture(autouse=True)
+def _dask_clusters_one_at_a_time(request):
+    """A test with the ``dask_cluster`` mark starts a Dask cluster: one at a time on this PC."""
+    if request.node.get_closest_marker("dask_cluster") is None:
+        yield
+        return
+    import fcntl
+    import time
+
+    path = os.path.join(tempfile.gettempdir(), "tirdeflect-dask-cluster.lock")
+    with open(path, "w") as f:
+        deadline = time.monotonic() + 240.0  # hang detector: such a test takes about 40 s under load
+        while True:
+            try:
+                fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"another test held {path} for 240 s; is a test hanging?") from None
+                time.sleep(0.05)  # polling the lock, bounded by the deadline
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+
+
 # -- the longest first -----------------------------------------------------------
 # The ``slow`` tests (a whole install from a fresh clone, a wheel built and run:
 # minutes each, in subprocesses of their own) run first, so that under xdist the
