@@ -1,6 +1,7 @@
 """Shared test set-up: headless Qt, a private cache directory, fixed seeds, a
-watchdog that ends a stuck run with every thread's stack, and a check at the
-end of the session that the tests left nothing running."""
+watchdog that ends a stuck run with every thread's stack, a check at the
+end of the session that the tests left nothing running, and what makes the
+suite safe to run in parallel with pytest-xdist (tests/run.sh runs it so)."""
 
 import faulthandler
 import os
@@ -64,11 +65,23 @@ def _timeout_s(item) -> float:
     return float(value) if value not in (None, "") else DEFAULT_TIMEOUT_S
 
 
+def _xdist_worker() -> str:
+    """This process's pytest-xdist worker id (``gw0``, ``gw1``, ...); "" when not a worker
+    (a plain run, or the controller of an xdist run, which runs no test itself)."""
+    return os.environ.get("PYTEST_XDIST_WORKER", "")
+
+
 def pytest_configure(config):
     # the terminal's stderr as it is now, between tests: during a test, fd 2 is pytest's capture file
+    # (an xdist worker's fd 2 is the controller's stderr: the watchdog's stacks reach the terminal too)
     config._tirdeflect_watchdog_out = os.fdopen(os.dup(2), "w")
     path = os.environ.get("TIRDEFLECT_WATCHDOG_NOTE") or os.path.join(
         tempfile.gettempdir(), f"tirdeflect-watchdog-{os.getpid()}.txt")
+    if _xdist_worker():  # one note per worker (tests/run.sh reads NOTE.gw0, NOTE.gw1, ...)
+        path = f"{path}.{_xdist_worker()}"
+        # every process this worker's tests start carries this in its environment: how the
+        # check at the end tells this worker's orphans from a sibling worker's (below)
+        os.environ[_RUN_TAG] = f"{_xdist_worker()}-{os.getpid()}"
     config._tirdeflect_watchdog_note = path
     if not os.environ.get("TIRDEFLECT_WATCHDOG_NOTE"):
         config._tirdeflect_watchdog_out.write(f"watchdog: a test stuck past its limit ends the run; "
@@ -91,6 +104,84 @@ def pytest_runtest_protocol(item, nextitem):
     yield
     faulthandler.cancel_dump_traceback_later()
     _note(item.config, "")
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_testnodedown(node, error):
+    """xdist's controller: a worker died in the middle of the run (the watchdog above ended it, or
+    a crash). xdist has already reported its test as failed ("worker 'gw0' crashed while running
+    ..."), with the stacks above it; left alone it would start a new worker and go on for the
+    rest of the run. Stop it instead, as the watchdog stops a run without xdist: the other
+    workers are ended (after at most xdist's 10 s) and the run ends with status 2 (interrupted)."""
+    if error is None:
+        return
+    dsession = node.config.pluginmanager.getplugin("dsession")
+    if dsession is not None and not dsession.shouldstop:
+        dsession.shouldstop = f"worker {node.gateway.id} ended in the middle of a test ({error})"
+
+
+# -- one test at a time: the cameras -------------------------------------------
+# What a test sees of this machine's cameras must not change under it: only one
+# GigE Vision fake camera can listen on 127.0.0.1:3956, and while one runs,
+# Aravis' discovery in any other process finds it, so a window or command left
+# to open "the first camera found" would open it. Under pytest-xdist (tests/run.sh)
+# or beside another test run on the same PC, every test that starts a fake
+# camera, uses a GenTL producer or Aravis, or depends on what discovery finds
+# (the ``aravis``, ``gentl`` and ``cameras`` marks, the camera fixtures) holds
+# the machine-wide camera lock of tests/drivers/fixtures.py from its setup to its
+# teardown: those tests run one at a time, as in a plain run, while the others
+# go on in parallel. (xdist's own ``--dist loadgroup`` would do it by scheduling,
+# but its xdist 3.8 sets a node id attribute that pytest 9.2 no longer reads, and
+# it cannot keep a second test run on the PC apart.)
+_CAMERA_MARKS = ("aravis", "gentl", "cameras")
+_CAMERA_FIXTURES = ("gv_fake_camera", "gv_fake_camera_lossy", "viky_cti")
+
+
+@pytest.fixture(autouse=True)
+def _cameras_one_test_at_a_time(request):
+    item = request.node
+    if not (any(item.get_closest_marker(m) for m in _CAMERA_MARKS)
+            or any(f in request.fixturenames for f in _CAMERA_FIXTURES)):
+        yield
+        return
+    from tests.drivers.fixtures import camera_lock
+
+    with camera_lock():
+        yield
+
+
+@pytest.fixture(autouse=True)
+def _dask_clusters_one_at_a_time(request):
+    """A test with the ``dask_cluster`` mark starts a Dask cluster: one at a time on this PC."""
+    if request.node.get_closest_marker("dask_cluster") is None:
+        yield
+        return
+    import fcntl
+    import time
+
+    path = os.path.join(tempfile.gettempdir(), "tirdeflect-dask-cluster.lock")
+    with open(path, "w") as f:
+        deadline = time.monotonic() + 240.0  # hang detector: such a test takes about 40 s under load
+        while True:
+            try:
+                fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"another test held {path} for 240 s; is a test hanging?") from None
+                time.sleep(0.05)  # polling the lock, bounded by the deadline
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+
+
+# -- the longest first -----------------------------------------------------------
+# The ``slow`` tests (a whole install from a fresh clone, a wheel built and run:
+# minutes each, in subprocesses of their own) run first, so that under xdist the
+# other workers go through the rest meanwhile instead of waiting for them at the end.
+def pytest_collection_modifyitems(config, items):
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)  # stable: else as collected
 
 
 # -- nothing left running ----------------------------------------------------
@@ -166,14 +257,35 @@ def _ours(pid: int, places: tuple[str, ...]) -> bool:
     return any(path == p or path.startswith(p + os.sep) for p in places for path in [cwd, *words])
 
 
+#: environment variable that marks the processes an xdist worker's tests started
+_RUN_TAG = "TIRDEFLECT_TEST_WORKER"
+
+
+def _tagged(pid: int, tag: str) -> bool:
+    """Does ``pid``'s environment (as it was started) hold ``_RUN_TAG=tag``?"""
+    try:
+        with open(f"/proc/{pid}/environ", "rb") as f:
+            return f"{_RUN_TAG}={tag}".encode() in f.read().split(b"\0")
+    except OSError:
+        return False
+
+
 def _left_running(session) -> list[int]:
     """The tests' processes still running: those below this one, and orphans
-    started after it from this checkout or the session's temporary files."""
+    started after it from this checkout or the session's temporary files.
+
+    In an xdist worker, only the orphans that carry this worker's tag in their
+    environment: a sibling worker may still be running a test whose helpers
+    have been orphaned on purpose (a killed run's workers), and those are not
+    ours to end. The orphans without a tag (started with an environment of
+    their own) are left to the controller, whose check runs after every
+    worker has ended."""
     table = _processes()
     me = os.getpid()
     if me not in table:
         return []
     started = table[me][1]
+    tag = os.environ.get(_RUN_TAG, "") if _xdist_worker() else ""
     places = (str(session.config.rootpath),)
     try:
         places += (str(session.config._tmp_path_factory.getbasetemp()),)
@@ -182,11 +294,13 @@ def _left_running(session) -> list[int]:
     below = _descendants(me, table)
     pids = [pid for pid, (parent, start) in table.items()
             if pid != me and _alive(pid)
-            and (pid in below or (parent == 1 and start >= started and _ours(pid, places)))]
+            and (pid in below or (parent == 1 and start >= started
+                                  and (_tagged(pid, tag) if tag else _ours(pid, places))))]
     # multiprocessing's resource tracker ends with this process, by design
     return [pid for pid in pids if "multiprocessing.resource_tracker" not in _cmdline(pid)]
 
 
+@pytest.hookimpl(trylast=True)  # in xdist's controller: after its workers are ended (xdist's own hook)
 def pytest_sessionfinish(session, exitstatus):
     import signal
     import time

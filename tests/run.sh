@@ -10,15 +10,28 @@ cd "$here"
 export QT_QPA_PLATFORM=offscreen
 # A test stuck past its limit, even one holding the GIL, ends pytest with every
 # thread's stack (tests/conftest.py, "a stuck test ends the run"); its name is in this file.
+# With pytest-xdist each worker keeps its own note: this file's name with .gw0, .gw1, ...
 note=$(mktemp "${TMPDIR:-/tmp}/tirdeflect-watchdog.XXXXXX")
 export TIRDEFLECT_WATCHDOG_NOTE="$note"
-status=0
-"$venv/bin/python" -m pytest -q -p no:cacheprovider "$@" || status=$?
-if [ -s "$note" ]; then  # pytest ended in the middle of a test
-    echo "tests/run.sh: pytest ended (exit status $status) while this test ran: $(cat "$note")" >&2
-    [ "$status" -ne 0 ] || status=1
+# The tests run in parallel, one pytest-xdist worker per core (at most 4; TIRDEFLECT_TEST_WORKERS=N
+# sets it, 1 runs them in this one process). The tests that share the machine's cameras take a
+# lock and run one at a time (tests/conftest.py, "one test at a time: the cameras").
+workers="${TIRDEFLECT_TEST_WORKERS:-$(nproc 2>/dev/null || echo 1)}"
+[ "$workers" -le 4 ] || workers=4
+parallel=()
+if [ "$workers" -gt 1 ] && "$venv/bin/python" -c 'import xdist' 2>/dev/null; then
+    parallel=(-n "$workers" --dist worksteal)  # idle workers take tests queued for busy ones
 fi
-rm -f "$note"
+status=0
+"$venv/bin/python" -m pytest -q -p no:cacheprovider "${parallel[@]}" "$@" || status=$?
+for f in "$note" "$note".gw*; do
+    if [ -s "$f" ]; then  # pytest (or this worker) ended in the middle of a test
+        worker=${f#"$note"}
+        echo "tests/run.sh: pytest ended (exit status $status) while ${worker:+worker ${worker#.} ran }this test: $(cat "$f")" >&2
+        [ "$status" -ne 0 ] || status=1
+    fi
+    rm -f "$f"
+done
 
 # Whoever reads this script's output (CI) waits until no process holds it any
 # more. A process started during the run that still holds it (our standard

@@ -28,6 +28,7 @@ import platformdirs
 import pytest
 
 import app
+from tests.drivers.fixtures import camera_lock
 
 ROOT = Path(__file__).resolve().parent.parent
 PACKAGES = ("app", "drivers", "processing")
@@ -130,9 +131,10 @@ def test_install_script_from_a_fresh_clone_on_the_distribution_python(tmp_path, 
                  "QT_QPA_PLATFORM": "offscreen", "GENICAM_GENTL64_PATH": str(vendor_dir),
                  "TIRDEFLECT_CACHE_DIR": os.environ["TIRDEFLECT_CACHE_DIR"],
                  "TIRDEFLECT_CONFIG_DIR": os.environ["TIRDEFLECT_CONFIG_DIR"]}
-    shell = _run(["env", "-i", *(f"{k}={v}" for k, v in login_env.items()), "bash", "-l", "-c",
-                  "command -v tirdeflect && tirdeflect cameras --include-fake && tirdeflect gui --quit-after 1"],
-                 cwd=tmp_path, timeout=180)
+    with camera_lock():  # it lists the cameras and opens the first one found: no other test's fake camera
+        shell = _run(["env", "-i", *(f"{k}={v}" for k, v in login_env.items()), "bash", "-l", "-c",
+                      "command -v tirdeflect && tirdeflect cameras --include-fake && tirdeflect gui --quit-after 1"],
+                     cwd=tmp_path, timeout=180)
     lines = shell.stdout.splitlines()
     assert lines[0] == str(link)
     assert any(line.startswith("aravis:Fake_1 ") for line in lines), shell.stdout

@@ -301,6 +301,7 @@ def test_bad_reference_is_explained_and_the_live_view_goes_on(qtbot, window, sce
     qtbot.waitUntil(lambda: "no reference" in window.height_view.message.toPlainText(), timeout=3000)
 
 
+@pytest.mark.cameras  # opens the first camera found: not while another test's fake camera runs
 def test_app_runs_as_a_program_and_quits_cleanly(tmp_path):
     """`python3 -m app.gui` on the synthetic scene: runs, quits by itself, no traceback (style.md smoke test)."""
     import os

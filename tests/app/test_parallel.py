@@ -569,8 +569,15 @@ try:
     import distributed  # noqa: F401
 except ImportError:
     distributed = None
-needs_dask = pytest.mark.skipif(distributed is None,
-                                reason="Dask tests need pip install 'tirdeflect[dask]' (dask[distributed])")
+_skip_without_dask = pytest.mark.skipif(distributed is None,
+                                        reason="Dask tests need pip install 'tirdeflect[dask]' (dask[distributed])")
+
+
+def needs_dask(test):
+    """Skipped without Dask; one Dask cluster at a time on this PC (the ``dask_cluster`` mark,
+    tests/conftest.py): a second scheduler's HTTP server moves off port 8787 with a warning and
+    leaves the socket it could not bind unclosed."""
+    return pytest.mark.dask_cluster(_skip_without_dask(test))
 
 
 @needs_dask

@@ -11,12 +11,15 @@ Import the ones you need in a test module (pytest then finds them)::
 * ``viky_cti`` -- path of the ``viky.cti`` GenTL producer of the genicam wheel.
 
 Only one GigE fake camera can listen on 127.0.0.1:3956, so the fixtures take a
-machine-wide file lock (concurrent pytest runs wait for each other, at most
-``LOCK_TIMEOUT_S``). Every wait is bounded; the process is always killed.
+machine-wide file lock, :func:`camera_lock` (concurrent pytest runs and xdist
+workers wait for each other, at most ``LOCK_TIMEOUT_S``; tests/conftest.py holds
+it over every test that uses cameras). Every wait is bounded; the process is
+always killed.
 """
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import os
 import shutil
@@ -29,8 +32,50 @@ import pytest
 FAKE_GV_EXE = "arv-fake-gv-camera-0.8"
 ADDRESS = "127.0.0.1"
 GVCP_PORT = 3956
-LOCK_TIMEOUT_S = 120.0
+#: hang detector for the camera lock: the longest test that holds it takes about 20 s quiet
+LOCK_TIMEOUT_S = 240.0
 START_TIMEOUT_S = 5.0
+LOCK_PATH = os.path.join(tempfile.gettempdir(), "tirdeflect-fake-gv-camera.lock")
+_lock = {"file": None, "depth": 0}  # this process's hold on LOCK_PATH (taken again: counted)
+
+
+def _acquire_camera_lock() -> None:
+    if _lock["depth"] == 0:
+        f = open(LOCK_PATH, "w")
+        deadline = time.monotonic() + LOCK_TIMEOUT_S
+        while True:
+            try:
+                fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() > deadline:
+                    f.close()
+                    raise RuntimeError(
+                        f"another test held {LOCK_PATH} for {LOCK_TIMEOUT_S:g} s; is a test hanging?"
+                    ) from None
+                time.sleep(0.05)  # polling the lock, bounded by the deadline
+        _lock["file"] = f
+    _lock["depth"] += 1
+
+
+def _release_camera_lock() -> None:
+    _lock["depth"] -= 1
+    if _lock["depth"] == 0:
+        f, _lock["file"] = _lock["file"], None
+        fcntl.flock(f, fcntl.LOCK_UN)
+        f.close()
+
+
+@contextlib.contextmanager
+def camera_lock():
+    """Hold the machine-wide camera lock: no other test (of this run or another on this PC)
+    that starts a fake camera or depends on what camera discovery finds runs meanwhile.
+    Re-entrant within a process (a test holding it may start a :class:`FakeGvCamera`)."""
+    _acquire_camera_lock()
+    try:
+        yield
+    finally:
+        _release_camera_lock()
 
 
 def _udp_bound(address: str, port: int) -> bool:
@@ -58,25 +103,14 @@ class FakeGvCamera:
         self.address = ADDRESS
         self.camera_id = f"aravis:{ADDRESS}"
         self.process = None
-        self._lock_file = None
+        self._locked = False
 
     def start(self) -> "FakeGvCamera":
         exe = shutil.which(FAKE_GV_EXE)
         if exe is None:
             raise RuntimeError(f"{FAKE_GV_EXE} not found; install the aravis-tools package (Debian: aravis-tools)")
-        lock_path = os.path.join(tempfile.gettempdir(), "tirdeflect-fake-gv-camera.lock")
-        self._lock_file = open(lock_path, "w")
-        deadline = time.monotonic() + LOCK_TIMEOUT_S
-        while True:
-            try:
-                fcntl.flock(self._lock_file, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                break
-            except BlockingIOError:
-                if time.monotonic() > deadline:
-                    raise RuntimeError(
-                        f"another test run held {lock_path} for {LOCK_TIMEOUT_S:g} s; is a test hanging?"
-                    ) from None
-                time.sleep(0.05)
+        _acquire_camera_lock()
+        self._locked = True
         if _udp_bound(ADDRESS, GVCP_PORT):
             self._release_lock()
             raise RuntimeError(
@@ -111,10 +145,9 @@ class FakeGvCamera:
         self._release_lock()
 
     def _release_lock(self):
-        if self._lock_file is not None:
-            fcntl.flock(self._lock_file, fcntl.LOCK_UN)
-            self._lock_file.close()
-            self._lock_file = None
+        if self._locked:
+            self._locked = False
+            _release_camera_lock()
 
     def __enter__(self):
         return self.start()

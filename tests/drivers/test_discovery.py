@@ -12,6 +12,7 @@ from drivers.base import CameraError
 from tests.drivers.fixtures import gv_fake_camera  # noqa: F401
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+pytestmark = pytest.mark.cameras  # what discovery finds: with the fake cameras' group (tests/conftest.py)
 
 
 def test_list_cameras_is_bounded_and_offers_synthetic_last():
