@@ -36,8 +36,9 @@ def rng():
 #    on -- but its SIGALRM handler is Python code: it never runs while a thread
 #    holds the GIL in C (a deadlock in an extension's import or finalizer).
 # 2. Then, WATCHDOG_MARGIN_S later, faulthandler's own C thread, which needs no
-#    GIL, writes every thread's Python stack to the terminal and ends pytest
-#    with exit status 1. Its C thread cannot print the test's name, so that is
+#    GIL, writes every thread's Python stack to the terminal and ends the
+#    process (status 1 in a serial run; under xdist the worker dies and the run
+#    stops with status 2, "worker crashed while running ..."). Its C thread cannot print the test's name, so that is
 #    written when the test starts to the file $TIRDEFLECT_WATCHDOG_NOTE
 #    (tests/run.sh sets it and prints the file after such an end; without it, a
 #    file in the temporary folder, named on stderr at the start of the run).
@@ -99,7 +100,7 @@ def pytest_runtest_protocol(item, nextitem):
     limit_s = _timeout_s(item) + WATCHDOG_MARGIN_S
     # read after pytest ended in the middle of a test (the watchdog, a kill, a crash): which one was running
     _note(item.config, f"{item.nodeid} (its limit: {limit_s:g} s for setup, call and teardown; past it the "
-                       "watchdog prints 'Timeout' and every thread's stack, and ends pytest with status 1)\n")
+                       "watchdog prints 'Timeout' and every thread's stack, and ends this pytest process)\n")
     faulthandler.dump_traceback_later(limit_s, exit=True, file=item.config._tirdeflect_watchdog_out)
     yield
     faulthandler.cancel_dump_traceback_later()
