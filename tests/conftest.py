@@ -12,6 +12,8 @@ import threading
 import numpy as np
 import pytest
 
+from tests.helpers import pid_alive
+
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 
 
@@ -157,24 +159,14 @@ def _dask_clusters_one_at_a_time(request):
     if request.node.get_closest_marker("dask_cluster") is None:
         yield
         return
-    import fcntl
-    import time
+    from tests.helpers import acquire_file_lock, release_file_lock
 
     path = os.path.join(tempfile.gettempdir(), "tirdeflect-dask-cluster.lock")
-    with open(path, "w") as f:
-        deadline = time.monotonic() + 240.0  # hang detector: such a test takes about 40 s under load
-        while True:
-            try:
-                fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                break
-            except BlockingIOError:
-                if time.monotonic() > deadline:
-                    raise RuntimeError(f"another test held {path} for 240 s; is a test hanging?") from None
-                time.sleep(0.05)  # polling the lock, bounded by the deadline
-        try:
-            yield
-        finally:
-            fcntl.flock(f, fcntl.LOCK_UN)
+    f = acquire_file_lock(path, 240.0)  # hang detector: such a test takes about 40 s under load
+    try:
+        yield
+    finally:
+        release_file_lock(f)
 
 
 # -- the longest first -----------------------------------------------------------
@@ -238,15 +230,6 @@ def _cmdline(pid: int) -> str:
         return "?"
 
 
-def _alive(pid: int) -> bool:
-    """Is ``pid`` running (not gone, not a zombie)?"""
-    try:
-        with open(f"/proc/{pid}/stat", "rb") as f:
-            return f.read().rpartition(b")")[2].split()[0] != b"Z"
-    except OSError:
-        return False
-
-
 def _ours(pid: int, places: tuple[str, ...]) -> bool:
     """Was ``pid`` started in this checkout or the session's temporary files
     (its working directory there, or a path there on its command line)?"""
@@ -294,7 +277,7 @@ def _left_running(session) -> list[int]:
         pass
     below = _descendants(me, table)
     pids = [pid for pid, (parent, start) in table.items()
-            if pid != me and _alive(pid)
+            if pid != me and pid_alive(pid)
             and (pid in below or (parent == 1 and start >= started
                                   and (_tagged(pid, tag) if tag else _ours(pid, places))))]
     # multiprocessing's resource tracker ends with this process, by design
@@ -331,7 +314,7 @@ def pytest_sessionfinish(session, exitstatus):
             except OSError:
                 pass
         deadline = time.monotonic() + 5.0
-        while time.monotonic() < deadline and any(_alive(pid) for pid in pids):
+        while time.monotonic() < deadline and any(pid_alive(pid) for pid in pids):
             time.sleep(0.1)  # polling the processes' state, bounded by the deadline
 
 

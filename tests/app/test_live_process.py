@@ -18,6 +18,7 @@ from app.capture.acquisition import Acquisition
 from app.capture.scene import height_error
 from app.capture.worker import LiveJob, ProcessingWorker, measure_live, ring_source
 from drivers.synthetic import SyntheticCamera
+from tests.helpers import pid_alive
 
 SHAPE = (128, 128)
 ROOT = Path(__file__).resolve().parents[2]
@@ -45,14 +46,6 @@ def _in_order(frames):
         return i, frames[i].copy(), time.monotonic_ns()
 
     return source
-
-
-def _alive(pid: int) -> bool:
-    try:
-        with open(f"/proc/{pid}/stat", "rb") as f:
-            return f.read().rpartition(b")")[2].split()[0] != b"Z"
-    except OSError:
-        return False
 
 
 def _blocks_of(pid: int) -> list:
@@ -169,7 +162,7 @@ def test_a_killed_worker_process_is_reported_and_the_recording_goes_on(scene, tm
         assert worker.reconstructed_in == "this process"
         after = worker.wait_for(lambda p: p.result is not None and p.seq > died.seq, timeout_s=60)
         assert after is not None, worker.counters()
-        assert not _alive(pid) and not _blocks_of(os.getpid())  # its shared memory went with it
+        assert not pid_alive(pid) and not _blocks_of(os.getpid())  # its shared memory went with it
         assert rec.wait(120.0)
         assert rec.error in (None, "")
         assert rec.frames_written == n_frames and rec.lost_overrun == 0
@@ -198,12 +191,12 @@ def test_stop_leaves_no_process_and_no_shared_memory(scene):
     try:
         assert worker.wait_for(lambda p: p.result is not None, timeout_s=240) is not None, worker.counters()
         pid = int(worker.reconstructed_in.split("pid ")[1].rstrip(")"))
-        assert _alive(pid) and _blocks_of(os.getpid())
+        assert pid_alive(pid) and _blocks_of(os.getpid())
     finally:
         t0 = time.monotonic()
         worker.stop(10.0)
         took = time.monotonic() - t0
-    assert not _alive(pid)
+    assert not pid_alive(pid)
     assert not _blocks_of(os.getpid())
     assert took < 30.0  # hang detector: a frame and the process's exit, well under a second when quiet
 
@@ -242,13 +235,13 @@ def test_the_worker_process_ends_when_the_window_process_is_killed(tmp_path):
         line = proc.stdout.readline()
         assert "worker process (pid" in line, (line, proc.stderr.read() if proc.poll() is not None else "")
         pid = int(line.split("pid ")[1].split(")")[0])
-        assert _alive(pid)
+        assert pid_alive(pid)
         proc.kill()
         proc.wait(30)
         deadline = time.monotonic() + 30.0  # hang detector: it reads EOF at once
-        while _alive(pid) and time.monotonic() < deadline:
+        while pid_alive(pid) and time.monotonic() < deadline:
             time.sleep(0.05)  # polling the orphan's state, bounded by the deadline
-        assert not _alive(pid), f"live worker process {pid} still running after its parent was killed"
+        assert not pid_alive(pid), f"live worker process {pid} still running after its parent was killed"
         while _blocks_of(proc.pid) and time.monotonic() < deadline:
             time.sleep(0.05)  # multiprocessing's resource tracker removes them once the parent is gone
         assert not _blocks_of(proc.pid)
@@ -300,4 +293,4 @@ def test_the_window_says_when_its_reconstruction_process_dies_and_records_every_
         n = int(f.attrs["frames_written"])
         ids = f["frame_table"][:n]["frame_id"]
     assert n == 10 + 300 and np.all(np.diff(ids) == 1)
-    assert not _alive(pid)
+    assert not pid_alive(pid)

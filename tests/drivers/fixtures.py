@@ -20,7 +20,6 @@ always killed.
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import os
 import shutil
 import subprocess
@@ -28,6 +27,8 @@ import tempfile
 import time
 
 import pytest
+
+from tests.helpers import acquire_file_lock, release_file_lock
 
 FAKE_GV_EXE = "arv-fake-gv-camera-0.8"
 ADDRESS = "127.0.0.1"
@@ -41,20 +42,7 @@ _lock = {"file": None, "depth": 0}  # this process's hold on LOCK_PATH (taken ag
 
 def _acquire_camera_lock() -> None:
     if _lock["depth"] == 0:
-        f = open(LOCK_PATH, "w")
-        deadline = time.monotonic() + LOCK_TIMEOUT_S
-        while True:
-            try:
-                fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                break
-            except BlockingIOError:
-                if time.monotonic() > deadline:
-                    f.close()
-                    raise RuntimeError(
-                        f"another test held {LOCK_PATH} for {LOCK_TIMEOUT_S:g} s; is a test hanging?"
-                    ) from None
-                time.sleep(0.05)  # polling the lock, bounded by the deadline
-        _lock["file"] = f
+        _lock["file"] = acquire_file_lock(LOCK_PATH, LOCK_TIMEOUT_S)
     _lock["depth"] += 1
 
 
@@ -62,8 +50,7 @@ def _release_camera_lock() -> None:
     _lock["depth"] -= 1
     if _lock["depth"] == 0:
         f, _lock["file"] = _lock["file"], None
-        fcntl.flock(f, fcntl.LOCK_UN)
-        f.close()
+        release_file_lock(f)
 
 
 @contextlib.contextmanager

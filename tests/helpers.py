@@ -1,0 +1,40 @@
+"""Small helpers that several test modules and tests/conftest.py share: whether a
+process still runs, and a machine-wide file lock with a bounded wait."""
+
+from __future__ import annotations
+
+import fcntl
+import time
+
+
+def pid_alive(pid: int) -> bool:
+    """Is ``pid`` running (not gone, not a zombie)?"""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            return f.read().rpartition(b")")[2].split()[0] != b"Z"
+    except OSError:
+        return False
+
+
+def acquire_file_lock(path: str, timeout_s: float):
+    """Open ``path`` and take an exclusive ``flock`` on it, waiting at most ``timeout_s``
+    (a hang detector: another test, of this run or another run on this PC, holds it).
+
+    Returns the open file, which holds the lock until :func:`release_file_lock`."""
+    f = open(path, "w")
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return f
+        except BlockingIOError:
+            if time.monotonic() > deadline:
+                f.close()
+                raise RuntimeError(f"another test held {path} for {timeout_s:g} s; is a test hanging?") from None
+            time.sleep(0.05)  # polling the lock, bounded by the deadline
+
+
+def release_file_lock(f) -> None:
+    """Give back a lock taken by :func:`acquire_file_lock` and close its file."""
+    fcntl.flock(f, fcntl.LOCK_UN)
+    f.close()
