@@ -7,10 +7,13 @@ and window, and waits on conditions (qtbot.waitUntil), never on fixed sleeps.
 
 from __future__ import annotations
 
+import threading
+
 import h5py
 import numpy as np
 import pytest
 
+from drivers.base import FetchTimeout
 from drivers.synthetic import SyntheticCamera
 
 pytestmark = pytest.mark.gui
@@ -167,26 +170,53 @@ def test_record_pre_post_trigger_then_replay_and_export(qtbot, window, scene, tm
         assert f["height"].shape[0] == n
 
 
+class CableCamera(SyntheticCamera):
+    """A synthetic camera whose cable the test pulls: after :meth:`pull_cable` no frame comes
+    (``fetch`` raises FetchTimeout, as a stalled camera's does); counts the frames it delivered."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.pulled = threading.Event()
+        self.delivered = 0
+
+    def pull_cable(self):
+        self.pulled.set()
+
+    def fetch(self, timeout_s):
+        if self.pulled.is_set():
+            raise FetchTimeout(f"camera {self.camera_id!r}: cable pulled, no frame")
+        frame = super().fetch(timeout_s)
+        self.delivered += 1
+        return frame
+
+
 def test_camera_that_stops_delivering_shows_error_and_window_lives(qtbot, window, scene, tmp_path):
-    """A camera that stops mid-recording is declared lost: error shown, frames recorded so far kept, app runs."""
+    """A camera that stops mid-recording is declared lost: error shown, frames recorded so far kept, app runs.
+
+    The camera stops when the test pulls its cable, after the trigger, not after a fixed number of
+    frames: on a loaded machine a camera that ran out on its own clock had stalled (and was declared
+    lost) before the test could arm."""
     window.session.stall_timeout_s = 0.5
-    n_delivered = 40
-    cam = SyntheticCamera(np.stack([scene["flat"]] * n_delivered), frame_rate_hz=100.0, loop=False)
+    cam = CableCamera(Switchable(scene["flat"]), frame_rate_hz=100.0)
     window.use_camera(cam, geometry=scene["geometry"])
     rp = window.recording_panel
     rp.folder.setText(str(tmp_path))
     rp.pre.setValue(5)
-    rp.post.setValue(200)  # more than the camera will deliver
+    rp.post.setValue(1_000_000)  # far more than the camera will deliver
     ring = window.session.acquisition.ring
-    qtbot.waitUntil(lambda: ring.head >= 10, timeout=5000)
+    qtbot.waitUntil(lambda: ring.head >= 10, timeout=30000)
     rp.arm_button.click()
+    assert rp.state_label.text() == "armed", window.last_error
     trigger_seq = window.session.trigger_now()
-    qtbot.waitUntil(lambda: any("Camera problem" in e for e in window.errors), timeout=10000)
+    qtbot.waitUntil(lambda: ring.head >= trigger_seq + 10, timeout=30000)
+    cam.pull_cable()
+    qtbot.waitUntil(lambda: any("Camera problem" in e for e in window.errors), timeout=30000)
+    n_delivered = cam.delivered
     assert window.banner.isVisible()
     assert "lost" in window.banner.text() and "Open" in window.banner.text()  # what happened, what to do
     assert window.isVisible()
     # the recording ends with the error, and keeps every frame the camera delivered from pre-trigger on
-    qtbot.waitUntil(lambda: rp.state_label.text() == "error", timeout=10000)
+    qtbot.waitUntil(lambda: rp.state_label.text() == "error", timeout=30000)
     path = window.session.recording["path"]
     assert any(path in e and "kept" in e for e in window.errors)
     with h5py.File(path, "r") as f:
@@ -196,13 +226,13 @@ def test_camera_that_stops_delivering_shows_error_and_window_lives(qtbot, window
     assert table["trigger_index"][0] == -5 and np.all(np.diff(table["frame_id"]) == 1)
     # the GUI thread still runs: the display timer keeps re-arming and the status bar updates
     shown = window.status_labels["state"]
-    qtbot.waitUntil(lambda: shown.text() == "camera stopped", timeout=3000)
+    qtbot.waitUntil(lambda: shown.text() == "camera stopped", timeout=30000)
     assert window._display_timer.isActive() or window._display_timer.remainingTime() >= 0
     # and a new camera can be opened in the same window
     window.use_camera(SyntheticCamera(Switchable(scene["flat"]), frame_rate_hz=100.0))
     seq0 = window.clock.last_raw_seq
     qtbot.waitUntil(lambda: window.clock.last_raw_seq not in (seq0, -1) and window.session.status().get("error") is None,
-                    timeout=5000)
+                    timeout=30000)
     assert window.session.worker.running
 
 
