@@ -59,8 +59,9 @@ def test_fake1_open_configure_stream_close():
     ts = np.array([f.timestamp_ns for f in frames], dtype=np.int64)
     assert np.all(np.diff(ids) == 1), ids
     assert np.all(np.diff(ts) > 0)
-    # the fake paces frames at the configured rate: device clock says 5 ms apart
-    assert np.median(np.diff(ts)) == pytest.approx(5e6, rel=0.05)
+    # the fake paces frames at the configured 200 Hz: device clock says 5 ms apart (within 5 % quiet; the
+    # fake's own loop is held up on a loaded machine): far from 100 or 400 Hz, a misread setting
+    assert np.median(np.diff(ts)) == pytest.approx(5e6, rel=0.25)
     assert all(f.image.shape == (128, 256) and f.image.dtype == np.uint8 and not f.incomplete for f in frames)
     # the fake paints a diagonal ramp (value depends on x + y): rows are laid out right
     img = frames[0].image
