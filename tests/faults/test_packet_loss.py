@@ -85,8 +85,8 @@ def test_lost_packets_are_flagged_counted_and_the_rest_kept(tmp_path, loss_per_t
 
 @pytest.mark.aravis
 def test_resend_recovers_a_lossy_link(tmp_path):
-    """2 % of stream packets lost (first sends and resends): resend completes >= 90 % of 200 frames (a third
-    without it), and every lost packet is accounted: resent, or missing bytes of a flagged frame."""
+    """2 % of stream packets lost (first sends and resends): resend completes at least half of 200 frames
+    (2 % without it), and every lost packet is accounted: resent, or missing bytes of a flagged frame."""
     from tests.drivers.fixtures import FakeGvCamera, _aravis_or_skip
     from tests.faults.lossy_link import LossyLink
 
@@ -120,14 +120,15 @@ def test_resend_recovers_a_lossy_link(tmp_path):
           f"resend requests ({link.resent} packets); Aravis: {summary['packets_resend_requests']} requests, "
           f"{summary['packets_resent']} resent packets received; {lost_for_good} packets lost for good")
     assert link.dropped > 0.01 * link.forwarded  # the link really lost about 2 %
-    # Resend works: without it a frame of P packets would be complete with probability 0.98^P (about a
-    # third of these frames). How many resent packets arrive in time is a matter of the machine's load
-    # (Aravis closes a frame after its packet timeout): 99-100 % on a quiet machine, 97-98 % measured
-    # with the 2 cores loaded to 5 tasks each; the figure is benchmarks/bench_packet_loss.py's, not a test's.
-    # Here: resend recovered most of what the link lost, and every loss is accounted below.
+    # Resend works: without it a frame of P packets would be complete with probability 0.98^P (2 % of
+    # these frames of about 190 packets). How many resent packets arrive in time is a matter of the
+    # machine's load (Aravis closes a frame after its packet timeout): 99-100 % on a quiet machine,
+    # 97-98 % with the 2 cores loaded 5x, 87.5 % in a whole-suite run beside stress-ng (load 7-8); the
+    # figure is benchmarks/bench_packet_loss.py's, not a test's. Here: resend completed most frames
+    # (25x what the link alone would leave), and every loss is accounted below.
     packets_per_frame = math.ceil(frame_bytes / 1364)
     complete_without_resend = 0.98 ** packets_per_frame
-    assert complete >= 0.9 > complete_without_resend + 0.2, (complete, complete_without_resend)
+    assert complete >= 0.5 > 20 * complete_without_resend, (complete, complete_without_resend)
     cs = summary["camera_statistics"]
     late = cs["n_duplicated_packets"] + cs["n_ignored_packets"]  # resent twice, or after the frame was closed
     print(f"Aravis: {cs['n_resent_packets']} resent packets used, {late} duplicated or late")
