@@ -14,6 +14,7 @@ from pyqtgraph.Qt import QtCore
 from app.capture.trigger import rms_slope
 
 from . import state
+from .model.schedule import LIVE_TAB
 from .model.staleness import derived_text, unmeasured_messages, view_staleness
 from .model.status import camera_problem, status_texts
 
@@ -226,7 +227,8 @@ def update_staleness(w) -> None:
         alignment=w._align_shown, unmeasured_seq=None if unmeasured is None else unmeasured.seq,
         frame_rate_hz=getattr(w.session.camera_settings(), "frame_rate_hz", None),
         camera_key=w._camera_key(),
-        reference_key=w.references.key(w.session.worker.reconstructor is not None))
+        reference_key=w.references.key(w.session.worker.reconstructor is not None),
+        maps_drawn=w.tabs.currentIndex() == LIVE_TAB, newest_seq=w.session.newest_seq())
     for v in (w.raw_view, w.align_raw_view):
         v.set_stale(w.stale.raw)
     for v in (*w.map_views, w.profile_view, w.probe_view):
@@ -234,8 +236,10 @@ def update_staleness(w) -> None:
     for v in (w.spectrum_view, w.modulation_view):
         v.set_stale(w.stale.alignment)
     rp = w.recording_panel  # the auto-trigger's quantity, from the maps on screen: their age too
+    # measured on the slope maps, which are drawn one tick after the height (draw_result's second half): the
+    # frame to compare with is theirs, or the readout would be "stale" on every other tick of live maps
     text, old = derived_text(w.rms_history.readout(), w.stale.maps, measured_seq=w.rms_history.seq,
-                             maps_seq=w._maps_shown.seq if w._maps_shown is not None else None)
+                             maps_seq=w.slope_x_view.frame_id)
     rp.rms_label.setText(text)
     rp.rms_label.setStyleSheet("color: #888" if old else "")
     state.update_truth(w)  # "vs truth" with the same mark as the maps, whoever refreshed it

@@ -123,6 +123,32 @@ def test_maps_whose_reference_was_taken_away_are_stale_at_once():
     assert s.maps == "their reference is no longer in use — frame 10, 0.1 s ago"
 
 
+def test_live_maps_not_drawn_while_another_tab_is_shown_are_stale_and_so_are_numbers_from_them():
+    """By-hand trial 2 Dec 2026: on the Replay tab the live maps are not drawn (nor the raw view), so nothing
+    ran ahead of them and they were never marked: the status bar kept "vs truth 1.4 % (impact)" minutes after
+    the scene became waves, and F12 stored those maps with stale = "". Not drawn for longer than the raw
+    view's bound while the camera gave newer frames: stale, with their age."""
+    import weakref
+
+    from app.gui.model.staleness import NOT_DRAWN, Shown, short_derived_text, view_staleness
+
+    a = _Acq()
+    maps = Shown(10, 1_000_000_000, weakref.ref(a), ("synthetic", None), 1)
+    raw = Shown(10, 1_000_000_000, weakref.ref(a), ("synthetic", None), 1)  # not drawn either: not ahead
+    kw = dict(raw=raw, maps=maps, alignment=None, camera_key=("synthetic", None), reference_key=1,
+              frame_rate_hz=60.0)
+    hidden = view_staleness(13_000_000_000, a, maps_drawn=False, newest_seq=700, **kw)
+    assert hidden.maps == f"{NOT_DRAWN} — frame 10, 12.0 s ago"
+    # on the Live tab the same clock says nothing new (the drawing keeps up), nor when no newer frame came
+    assert view_staleness(1_200_000_000, a, maps_drawn=False, newest_seq=12, **kw).maps is None  # 0.2 s
+    assert view_staleness(13_000_000_000, a, maps_drawn=False, newest_seq=10, **kw).maps is None
+    assert view_staleness(1_500_000_000, a, maps_drawn=True, newest_seq=40, **kw).maps is None
+    # the status bar's few words keep the age in sight; the reason goes to the tooltip
+    assert short_derived_text("vs truth 1.4 % rel. RMS (impact)", hidden.maps) == \
+        "vs truth 1.4 % rel. RMS (impact) (STALE, 12.0 s ago)"
+    assert short_derived_text("vs truth 1.4 %", None) == "vs truth 1.4 %"
+
+
 def test_rebuild_policy_only_the_newest_request_changes_the_worker_and_marks_older_maps():
     from app.gui.model.staleness import ReferenceEpochs
 

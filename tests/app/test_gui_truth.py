@@ -182,6 +182,51 @@ def test_vs_truth_in_the_status_bar_carries_the_age_of_the_maps(qtbot, tmp_path)
     assert w.height_view.stale_text in truth.text()  # the same words, the same age as the maps
 
 
+def test_live_numbers_on_another_tab_carry_the_age_of_the_maps_and_fit_the_status_bar(qtbot):
+    """By-hand trial 2 Dec 2026: on the Replay tab the live maps are not drawn, yet "vs truth 1.4 % (impact)"
+    stayed in the status bar, unmarked, minutes after the scene changed (and F12 stored those maps as live).
+    And a stale "vs truth" with its whole reason took the status bar: camera, rates, drops cut to "…", the age
+    itself out of sight at 1280x800."""
+    from app.gui.model.staleness import NOT_DRAWN
+
+    w = _window(qtbot)
+    w.resize(1280, 800)
+    w.geometry_panel.n_average.setValue(3)
+    _ctrl(w, QtCore.Qt.Key_R)
+    qtbot.waitUntil(lambda: "✓" in w.geometry_panel.reference_label.text(), timeout=30000)
+    truth = w.status_labels["truth"]
+    qtbot.waitUntil(lambda: truth.text().startswith("vs truth") and "stale" not in truth.text(), timeout=20000)
+    _ctrl(w, QtCore.Qt.Key_3)  # the Replay tab
+    _until(qtbot, lambda: NOT_DRAWN in truth.text(), lambda: f"status bar {truth.text()!r}", 10000)
+    assert w.height_view.is_stale and NOT_DRAWN in w.height_view.stale_text  # and so is a snapshot of them
+    qtbot.wait(600)  # the status bar laid out again
+    shown = truth.shown_text()
+    assert "STALE" in shown and shown.endswith(" s ago)"), shown  # the age on screen, the reason in the tooltip
+    camera = w.status_labels["camera"]
+    assert camera.shown_text() == camera.text(), camera.shown_text()  # its neighbours keep their words
+    _ctrl(w, QtCore.Qt.Key_1)
+    _until(qtbot, lambda: "stale" not in truth.text() and not w.height_view.is_stale,
+           lambda: f"status bar {truth.text()!r}", 10000)
+
+
+def test_the_auto_trigger_readout_is_live_while_the_maps_are(qtbot, window, scene, tmp_path):
+    """By-hand trial 2 Dec 2026: the readout beside the threshold read "now 0.157 mrad (stale: from frame 11093,
+    the maps show 11094)" on live maps, on and off: it is measured on the slope maps, drawn one tick after the
+    height map, and was compared with the height map's frame."""
+    _live(qtbot, window, scene, tmp_path)
+    window.frozen = True  # the test draws, not the timer
+    p0 = window.last_drawn
+    window._draw_result(p0, part=-1)  # every map of one frame, the readout measured on its slopes
+    qtbot.waitUntil(lambda: window.session.worker.latest().seq > p0.seq, timeout=10000)
+    p1 = window.session.worker.latest()
+    window._draw_result(p1, part=0)  # the next frame's height: its slopes come on the next tick
+    window.frozen = False
+    window._update_staleness()
+    assert window.stale.maps is None  # live maps
+    text = window.recording_panel.rms_label.text()
+    assert text.startswith("now ") and "stale" not in text, text
+
+
 # --------------------------------------------------------------- the pattern chosen must be the one in view
 def test_random_dots_chosen_on_the_checkerboard_is_not_ready_with_the_reason(qtbot):
     """Finding 2: "random dots" picked while the tank shows its checkerboard: NOT READY (periodic), and the
