@@ -224,16 +224,13 @@ def apply_geometry_editor(w):
 def show_region(w, region):
     if region is None:
         w.region_roi.setVisible(False)
-        w._region_label.setVisible(False)
         return
     r0, r1, c0, c1 = (float(v) for v in region)
     w.region_roi.blockSignals(True)
     w.region_roi.setPos([c0, r0])
     w.region_roi.setSize([c1 - c0, r1 - r0])
     w.region_roi.blockSignals(False)
-    w._region_label.setPos(c0, r0)
     w.region_roi.setVisible(True)
-    w._region_label.setVisible(True)
 
 
 def frame_shape(w):
@@ -247,6 +244,7 @@ def region_dragged(w):
     pos, size = w.region_roi.pos(), w.region_roi.size()
     region = (pos.y(), pos.y() + size.y(), pos.x(), pos.x() + size.x())
     shape = w._frame_shape()
+    moved = False
     if shape is not None:
         region, moved = clamp_region(region, shape)
         if moved:
@@ -255,6 +253,10 @@ def region_dragged(w):
     w._show_region((r0, r1, c0, c1))
     w.geometry_panel.set_region((r0, r1, c0, c1))
     w.apply_geometry_editor()
+    if moved and w.geometry_panel.geometry_label.text() == "geometry OK":  # also where the user edits it: the
+        # status bar cuts the message at 1280x800
+        w.geometry_panel.geometry_label.setText("geometry OK — the reference region was kept inside the frame "
+                                                "(the box cannot leave the camera image)")
 
 
 def choose_load_geometry(w):

@@ -309,6 +309,50 @@ def test_reference_region_cannot_leave_the_frame_and_never_discards_the_referenc
     # the label saying why the pin region is green or red lies inside the frame (readable)
     label = w.pin_overlay.label
     assert label.isVisible() and 0 <= label.pos().y() <= SHAPE[0] and 0 <= label.pos().x() < SHAPE[1]
+    # ... all of it, on screen: the box in the bottom right corner, at 1600x1000 and 1280x800 (by-hand trial
+    # 2 Dec 2026: "reference_region [196, 256, 196, 256] (h = 0): 100 % valid" ran past the view's edge)
+    vb = w.raw_view.plot.getViewBox()
+    for size in ((1600, 1000), (1280, 800)):
+        w.resize(*size)
+        qtbot.waitUntil(lambda: "% valid" in w.pin_overlay.text and "reference," not in w.pin_overlay.text,
+                        timeout=20000)
+        qtbot.wait(300)
+        inside = vb.sceneBoundingRect().adjusted(-1, -1, 1, 1)
+        assert inside.contains(label.sceneBoundingRect()), (size, label.sceneBoundingRect(), inside,
+                                                             w.pin_overlay.short)
+        assert w.pin_overlay.text in label.toolTip()  # the whole sentence, on hovering
+
+
+def test_a_red_pin_region_says_why_in_words_that_fit():
+    """By-hand trial 2 Dec 2026: the sentence saying why the pin region is red ("too few, pinned on the N nearest
+    valid samples") was the label on the image, cut at the raw view's edge. The label keeps a few words, the
+    sentence goes to the raw view's wrapped message while the pin is red, and leaves when it is green again."""
+    import types
+
+    import pyqtgraph as pg
+
+    from app.gui.pinregion import PinRegionOverlay
+
+    notes = []
+    plot = pg.PlotItem()
+    overlay = PinRegionOverlay(plot, note=notes.append)
+    region = np.zeros((32, 32), bool)
+    region[28:, 24:] = True  # a box in the bottom right corner
+    rec = types.SimpleNamespace(reference_region=region, rows_px=np.arange(32) * 8.0, cols_px=np.arange(32) * 8.0,
+                                reference_region_name="reference_region [224, 256, 192, 256]",
+                                reference_region_valid_fraction=1.0)
+    overlay.set_reconstructor(rec)
+    assert overlay.label.anchor == pg.Point(1, 1)  # the right corner: the words run to the left, into the frame
+    bad = types.SimpleNamespace(pin=types.SimpleNamespace(valid_samples=2, region_samples=32, ok=False,
+                                                          used_samples=16), series=None)
+    overlay.update(bad)
+    assert overlay.bad and notes[-1] == ("height offset: reference_region [224, 256, 192, 256] (h = 0): 6 % valid — "
+                                         "too few, pinned on the 16 nearest valid samples")
+    assert overlay.label.textItem.toPlainText() == "h = 0: 6 % valid, too few"
+    good = types.SimpleNamespace(pin=types.SimpleNamespace(valid_samples=32, region_samples=32, ok=True,
+                                                           used_samples=32), series=None)
+    overlay.update(good)
+    assert not overlay.bad and notes[-1] == "" and overlay.label.textItem.toPlainText() == "h = 0: 100 % valid"
 
 
 # --------------------------------------------------------------- menus, device
