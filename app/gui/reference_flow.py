@@ -15,7 +15,7 @@ from pyqtgraph.Qt import QtWidgets
 
 from . import state
 from .model.memory import live_device_for
-from .model.reference import capture_failed_label
+from .model.reference import capture_failed_label, capture_failed_message
 from .model.region import clamp_region, reference_crop, region_problem, roi_of
 
 log = logging.getLogger(__name__)
@@ -29,7 +29,7 @@ def capture_reference(w, n_frames: int):
         if error:
             w.geometry_panel.reference_label.setText(capture_failed_label(error, w.reference is not None))
             w.geometry_panel.reference_label.setStyleSheet("color: #c00000; font-weight: bold")
-            w.show_error(f"Reference capture failed: {error}")
+            w.show_error(capture_failed_message(error, w.reference is not None))
             return
         image, report = result
         w.geometry_panel.reference_label.setStyleSheet("")
@@ -116,6 +116,7 @@ def rebuild_reconstructor(w):
         if action == "remove":
             _remove_reconstructor(w)
             w.geometry_panel.reference_label.setText("reference NOT usable")
+            w.geometry_panel.reference_label.setStyleSheet("color: #c00000; font-weight: bold")
             w.show_error(f"Bad reference: {error}")
             return
         newest = w.session.newest_seq()  # later frames are measured against this reference
@@ -139,6 +140,7 @@ def rebuild_reconstructor(w):
             state.reference_in_use(w)
             return
         w.geometry_panel.reference_label.setText(text + " ✓")
+        w.geometry_panel.reference_label.setStyleSheet("")  # no longer red: a tick in red read as a warning
         w.clear_error()
         state.reference_in_use(w)
     w.run_background("reconstructor", build_checked, done)

@@ -316,6 +316,24 @@ def test_a_refused_capture_says_refused_only_for_moving_water():
     assert capture_failed_label("camera lost", False) == "capture failed"
 
 
+def test_a_refused_first_capture_does_not_claim_a_previous_reference_is_kept(tank):
+    """By-hand trial 2 Dec 2026: Ctrl+R on the waves before any reference said "The previous reference is
+    kept." in the red banner: there was none, and no heights would come."""
+    from app.gui.model.reference import ReferenceAverager, WaterMovingError, capture_failed_message
+    from processing.carriers import find_carriers_live
+
+    waves = tank._clips["waves"][0]
+    avg = ReferenceAverager(find_carriers_live(waves[0])[0].freq)
+    for f in waves:
+        avg.add(f)
+    with pytest.raises(WaterMovingError) as err:
+        avg.result()
+    first = capture_failed_message(str(err.value), previous_kept=False)
+    assert "previous reference" not in first and "There is no reference yet" in first
+    assert capture_failed_message(str(err.value), previous_kept=True).endswith(
+        "The previous reference stays in use.")
+
+
 def test_one_passing_glitch_is_left_out_not_averaged(tank):
     from app.gui.model.reference import ReferenceAverager
     from processing.carriers import find_carriers_live

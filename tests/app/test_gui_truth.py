@@ -253,6 +253,15 @@ def test_random_dots_chosen_on_the_checkerboard_is_not_ready_with_the_reason(qtb
     assert "periodic pattern" in w.last_error
     qtbot.waitUntil(lambda: w.ready_label.text().startswith("NOT READY") and "periodic" in w.ready_label.text()
                     and "reference" in "".join(w.alignment_metrics.values()), timeout=20000)
+    # back to "checkerboard" (by keyboard): the tick comes back, and not in the red of the refusal (by-hand trial
+    # 2 Dec 2026: "periods 5.97, 5.97 px ✓" stayed red and bold)
+    box = w.geometry_panel.pattern
+    box.setFocus()
+    while box.currentText() != "checkerboard":
+        qtbot.keyClick(box, QtCore.Qt.Key_Up)
+    label = w.geometry_panel.reference_label
+    qtbot.waitUntil(lambda: label.text().endswith("✓"), timeout=60000)
+    assert "c00000" not in label.styleSheet(), label.styleSheet()
 
 
 def test_checkerboard_chosen_on_random_dots_is_not_ready_and_says_dots(qtbot, window):
@@ -298,7 +307,10 @@ def test_reference_region_cannot_leave_the_frame_and_never_discards_the_referenc
     r0, r1, c0, c1 = w.geometry.to_dict()["reference_region"]
     assert 0 <= r0 < r1 <= SHAPE[0] and 0 <= c0 < c1 <= SHAPE[1] and (r1 - r0, c1 - c0) == (60, 60)
     assert "inside the frame" in w.message_label.text()
-    assert w.session.worker.reconstructor is not None and w.geometry_panel.geometry_label.text() == "geometry OK"
+    # said where the user edits it too (the status bar cut it to "reference r…" at 1280x800)
+    assert w.session.worker.reconstructor is not None
+    assert w.geometry_panel.geometry_label.text().startswith("geometry OK") and \
+        "kept inside the frame" in w.geometry_panel.geometry_label.text()
     # typed outside the frame: refused at the edit, the region and reference in use stay
     _type_region(qtbot, w, "200, 400, 0, 50")
     assert "outside the 256×256 px frame" in w.geometry_panel.geometry_label.text()
