@@ -14,6 +14,7 @@ from pyqtgraph.Qt import QtCore
 from app.capture.trigger import rms_slope
 
 from . import state
+from .model.reference import pattern_mismatch_messages
 from .model.schedule import LIVE_TAB
 from .model.staleness import derived_text, unmeasured_messages, view_staleness
 from .model.status import camera_problem, status_texts
@@ -90,8 +91,9 @@ def draw_result(w, p, part: int = -1):
     x, y = r.x_mm, r.y_mm
     seq = p.seq
     if part in (0, -1):
+        text, short = pattern_mismatch_messages(w.pattern_problem)  # "" unless the pattern is not the one chosen
         for v in views:
-            v.show_message("")
+            v.show_message(text, None if v is w.height_view else short)
         w.last_drawn = p
         w.pin_overlay.update(r)
         w._unmeasured = None

@@ -253,6 +253,14 @@ def test_random_dots_chosen_on_the_checkerboard_is_not_ready_with_the_reason(qtb
     assert "periodic pattern" in w.last_error
     qtbot.waitUntil(lambda: w.ready_label.text().startswith("NOT READY") and "periodic" in w.ready_label.text()
                     and "reference" in "".join(w.alignment_metrics.values()), timeout=20000)
+    # the maps themselves say their heights are wrong (the banner can be closed; by-hand trial 2 Dec 2026: the
+    # Live tab showed PIV heights of the checkerboard with no word)
+    w.clear_error()
+    _click_tab(qtbot, w, "Live")
+    _until(qtbot, lambda: "NOT the chosen pattern" in w.height_view.message.text(),
+           lambda: f"height map says {w.height_view.message.text()!r}", 60000)
+    assert "periodic pattern" in w.height_view.message.text()
+    assert w.slope_x_view.message.text() == "NOT the chosen pattern (see Height)"
     # back to "checkerboard" (by keyboard): the tick comes back, and not in the red of the refusal (by-hand trial
     # 2 Dec 2026: "periods 5.97, 5.97 px ✓" stayed red and bold)
     box = w.geometry_panel.pattern
@@ -262,6 +270,7 @@ def test_random_dots_chosen_on_the_checkerboard_is_not_ready_with_the_reason(qtb
     label = w.geometry_panel.reference_label
     qtbot.waitUntil(lambda: label.text().endswith("✓"), timeout=60000)
     assert "c00000" not in label.styleSheet(), label.styleSheet()
+    qtbot.waitUntil(lambda: w.height_view.message.text() == "", timeout=20000)  # the right pattern: nothing to say
 
 
 def test_checkerboard_chosen_on_random_dots_is_not_ready_and_says_dots(qtbot, window):
