@@ -15,6 +15,7 @@ from app.capture.trigger import rms_slope
 
 from . import state
 from .model.reference import pattern_mismatch_messages
+from .model.region import profile_line_for
 from .model.schedule import LIVE_TAB
 from .model.staleness import derived_text, unmeasured_messages, view_staleness
 from .model.status import camera_problem, status_texts
@@ -116,10 +117,13 @@ def draw_result(w, p, part: int = -1):
 
 
 def draw_profile(w, height_um, x, y):
-    if not w._profile_placed and len(x) > 1 and len(y) > 1:
-        ym = float(y[len(y) // 2])
-        w.profile_roi.set_ends((float(x[0]), ym), (float(x[-1]), ym))
-        w._profile_placed = True
+    if len(x) > 1 and len(y) > 1:
+        extent = (float(x[0]), float(x[-1]), float(y[0]), float(y[-1]))
+        if w._profile_placed != extent:  # the first maps, or maps of another extent (a new ROI)
+            ends = profile_line_for(w.profile_roi.ends(), w._profile_placed, extent, float(y[len(y) // 2]))
+            if ends is not None:
+                w.profile_roi.set_ends(*ends)
+            w._profile_placed = extent
     p0, p1 = w.profile_roi.ends()
     distance_mm, values = line_profile(height_um, x, y, p0, p1)
     w.profile_line_mm = (p0, p1)

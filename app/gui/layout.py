@@ -113,7 +113,7 @@ def build_ui(w):
     # profile line on the height view (mm)
     w.profile_roi = ProfileLine([[0, 0], [1, 1]])
     w.height_view.plot.addItem(w.profile_roi)
-    w._profile_placed = False
+    w._profile_placed = None  # the maps' extent (mm) the profile line was last placed or checked against
     w.tabs.addTab(live, "Live")
 
     # Alignment tab

@@ -425,3 +425,17 @@ def test_a_region_dragged_off_the_frame_is_put_back_whole_and_one_typed_outside_
     assert "outside the 256×256 px frame" in region_problem((200, 400, 0, 50), (256, 256))
     assert region_problem((0, 12, 0, 12), (256, 256)) is None
     assert "smaller than" in region_problem((5, 6, 0, 50), (256, 256))
+
+
+def test_the_profile_line_follows_maps_of_a_new_roi_it_would_leave_and_stays_where_the_user_put_it():
+    """By-hand trial 2 Dec 2026: after Apply settings with a 256-px ROI of the 512-px frame the profile line kept
+    its ends at +-19 mm over maps of +-10 mm: half the profile was empty."""
+    from app.gui.model.region import profile_line_for
+
+    full, roi = (-20.0, 20.0, -33.0, 33.0), (-10.0, 10.0, -16.5, 16.5)
+    first = profile_line_for(((0, 0), (1, 1)), None, full)
+    assert first == ((-20.0, 0.0), (20.0, 0.0))  # the first maps: across the middle
+    assert profile_line_for(first, full, full) is None  # the same maps: left alone
+    assert profile_line_for(first, full, roi) == ((-10.0, 0.0), (10.0, 0.0))  # it would leave the new maps
+    dragged = ((-5.0, 2.0), (6.0, -3.0))
+    assert profile_line_for(dragged, full, roi) is None  # inside the new maps: where the user put it

@@ -518,6 +518,11 @@ def test_after_an_roi_change_the_reference_follows_and_the_maps_name_the_roi(qtb
     assert band == pytest.approx(128, abs=8)
     qtbot.waitUntil(lambda: w.last_drawn is not None and w.last_drawn.result is not None
                     and w.last_drawn.result.height.shape[1] < w.last_drawn.result.height.shape[0], timeout=20000)
+    # the profile line lies on the new maps (by-hand trial 2 Dec 2026: it kept the old frame's ends, half outside)
+    r = w.last_drawn.result
+    for px, py in w.profile_roi.ends():
+        assert r.x_mm.min() <= px <= r.x_mm.max() and r.y_mm.min() <= py <= r.y_mm.max(), (w.profile_roi.ends(),
+                                                                                          r.x_mm[[0, -1]])
 
 
 def test_scaled_axes_have_no_si_prefix(qtbot, window):
