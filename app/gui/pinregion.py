@@ -41,7 +41,7 @@ class PinRegionOverlay:
         self.image.setZValue(15)
         # anchored by a lower corner on the region's last row: drawn above it, inside the frame (below the
         # border band it would fall outside the view); by its right corner when the region lies to the right
-        self.label = pg.TextItem("", color="#00a000", anchor=(0, 1))
+        self.label = pg.TextItem("", color="#00a000", anchor=(0, 1), fill=pg.mkBrush(255, 255, 255, 210))  # readable on the pattern
         self.label.setZValue(21)
         plot.addItem(self.image)
         plot.addItem(self.label)
