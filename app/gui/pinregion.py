@@ -76,8 +76,18 @@ class PinRegionOverlay:
             left, right = float(cols[c.min()] - dc / 2), float(cols[c.max()] + dc / 2)
             mid = float(cols[0] + cols[-1]) / 2
             on_right = (left + right) / 2 > mid and left > cols[0] + 0.25 * (cols[-1] - cols[0])
-            self.label.setAnchor((1, 1) if on_right else (0, 1))
-            self.label.setPos(right if on_right else left, float(rows[r.max()] - dr))
+            # a box: the label above it, or below it, where the frame has room (about 15 % of its height at
+            # 1280x800), so that it does not hide the box; the border band: inside, above its last row
+            top, bottom = float(rows[r.min()] - dr / 2), float(rows[r.max()] + dr / 2)
+            span = float(rows[-1] - rows[0]) + dr
+            if top - (rows[0] - dr / 2) > 0.15 * span:
+                y, ay = top, 1
+            elif (rows[-1] + dr / 2) - bottom > 0.15 * span:
+                y, ay = bottom, 0
+            else:
+                y, ay = float(rows[r.max()] - dr), 1
+            self.label.setAnchor((1 if on_right else 0, ay))
+            self.label.setPos(right if on_right else left, y)
         pct = 100 * rec.reference_region_valid_fraction
         self._show(f"{self.name} (h = 0): {pct:.0f} % valid in the reference, {self.samples} samples",
                    f"h = 0: {pct:.0f} % valid", bad=self.samples == 0)
