@@ -202,8 +202,9 @@ def test_live_numbers_on_another_tab_carry_the_age_of_the_maps_and_fit_the_statu
     qtbot.wait(600)  # the status bar laid out again
     shown = truth.shown_text()
     assert "STALE" in shown and shown.endswith(" s ago)"), shown  # the age on screen, the reason in the tooltip
-    camera = w.status_labels["camera"]
-    assert camera.shown_text() == camera.text(), camera.shown_text()  # its neighbours keep their words
+    for key in ("camera", "device", "ring"):  # its neighbours keep their words
+        label = w.status_labels[key]
+        assert label.shown_text() == label.text(), (key, label.shown_text(), shown)
     _ctrl(w, QtCore.Qt.Key_1)
     _until(qtbot, lambda: "stale" not in truth.text() and not w.height_view.is_stale,
            lambda: f"status bar {truth.text()!r}", 10000)
