@@ -14,6 +14,9 @@ from pyqtgraph.Qt import QtCore
 from app.capture.trigger import rms_slope
 
 from . import state
+from .model.reference import pattern_mismatch_messages
+from .model.region import profile_line_for
+from .model.schedule import LIVE_TAB
 from .model.staleness import derived_text, unmeasured_messages, view_staleness
 from .model.status import camera_problem, status_texts
 
@@ -89,8 +92,9 @@ def draw_result(w, p, part: int = -1):
     x, y = r.x_mm, r.y_mm
     seq = p.seq
     if part in (0, -1):
+        text, short = pattern_mismatch_messages(w.pattern_problem)  # "" unless the pattern is not the one chosen
         for v in views:
-            v.show_message("")
+            v.show_message(text, None if v is w.height_view else short)
         w.last_drawn = p
         w.pin_overlay.update(r)
         w._unmeasured = None
@@ -113,10 +117,13 @@ def draw_result(w, p, part: int = -1):
 
 
 def draw_profile(w, height_um, x, y):
-    if not w._profile_placed and len(x) > 1 and len(y) > 1:
-        ym = float(y[len(y) // 2])
-        w.profile_roi.set_ends((float(x[0]), ym), (float(x[-1]), ym))
-        w._profile_placed = True
+    if len(x) > 1 and len(y) > 1:
+        extent = (float(x[0]), float(x[-1]), float(y[0]), float(y[-1]))
+        if w._profile_placed != extent:  # the first maps, or maps of another extent (a new ROI)
+            ends = profile_line_for(w.profile_roi.ends(), w._profile_placed, extent, float(y[len(y) // 2]))
+            if ends is not None:
+                w.profile_roi.set_ends(*ends)
+            w._profile_placed = extent
     p0, p1 = w.profile_roi.ends()
     distance_mm, values = line_profile(height_um, x, y, p0, p1)
     w.profile_line_mm = (p0, p1)
@@ -226,7 +233,8 @@ def update_staleness(w) -> None:
         alignment=w._align_shown, unmeasured_seq=None if unmeasured is None else unmeasured.seq,
         frame_rate_hz=getattr(w.session.camera_settings(), "frame_rate_hz", None),
         camera_key=w._camera_key(),
-        reference_key=w.references.key(w.session.worker.reconstructor is not None))
+        reference_key=w.references.key(w.session.worker.reconstructor is not None),
+        maps_drawn=w.tabs.currentIndex() == LIVE_TAB, newest_seq=w.session.newest_seq())
     for v in (w.raw_view, w.align_raw_view):
         v.set_stale(w.stale.raw)
     for v in (*w.map_views, w.profile_view, w.probe_view):
@@ -234,8 +242,10 @@ def update_staleness(w) -> None:
     for v in (w.spectrum_view, w.modulation_view):
         v.set_stale(w.stale.alignment)
     rp = w.recording_panel  # the auto-trigger's quantity, from the maps on screen: their age too
+    # measured on the slope maps, which are drawn one tick after the height (draw_result's second half): the
+    # frame to compare with is theirs, or the readout would be "stale" on every other tick of live maps
     text, old = derived_text(w.rms_history.readout(), w.stale.maps, measured_seq=w.rms_history.seq,
-                             maps_seq=w._maps_shown.seq if w._maps_shown is not None else None)
+                             maps_seq=w.slope_x_view.frame_id)
     rp.rms_label.setText(text)
     rp.rms_label.setStyleSheet("color: #888" if old else "")
     state.update_truth(w)  # "vs truth" with the same mark as the maps, whoever refreshed it

@@ -106,15 +106,14 @@ def build_ui(w):
     w.region_roi.setZValue(20)
     w.raw_view.plot.addItem(w.region_roi)
     w.region_roi.sigRegionChangeFinished.connect(w._region_dragged)
-    w._region_label = pg.TextItem("reference region (h = 0)", color="#00a000", anchor=(0, 1))
-    w.raw_view.plot.addItem(w._region_label)
-    # where the height offset is really pinned (from the reference), with its valid fraction
+    # where the height offset is really pinned (from the reference), with its valid fraction (it labels the box
+    # too: a second label for the box ran out of the view); why it is red, in words, over the raw view
     from app.gui.pinregion import PinRegionOverlay
-    w.pin_overlay = PinRegionOverlay(w.raw_view.plot)
+    w.pin_overlay = PinRegionOverlay(w.raw_view.plot, note=w.raw_view.show_message)
     # profile line on the height view (mm)
     w.profile_roi = ProfileLine([[0, 0], [1, 1]])
     w.height_view.plot.addItem(w.profile_roi)
-    w._profile_placed = False
+    w._profile_placed = None  # the maps' extent (mm) the profile line was last placed or checked against
     w.tabs.addTab(live, "Live")
 
     # Alignment tab

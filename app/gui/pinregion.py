@@ -22,25 +22,34 @@ _LUT_BAD = np.array([[0, 0, 0, 0], [220, 0, 0, 110]], np.uint8)
 class PinRegionOverlay:
     """Green tint of the reference region on a pixel-coordinate plot, plus a label.
 
+    The label on the image is a few words ("h = 0: 100 % valid"): the raw view is 140-220 px wide at
+    1280x800-1600x1000, and the whole sentence (:attr:`text`, also the label's tooltip) ran past its
+    edge. When the pin is in trouble (red), the whole sentence goes to ``note`` (the raw view's wrapped
+    message), where it can be read.
+
     Parameters
     ----------
     plot : pyqtgraph PlotItem or ViewBox
         The raw view's plot (coordinates in pixels: x = column, y = row).
+    note : callable, optional
+        ``note(text)`` shows why the pin is red (``""``: nothing to say any more).
     """
 
-    def __init__(self, plot):
+    def __init__(self, plot, note=None):
         self.image = pg.ImageItem(axisOrder="row-major")
         self.image.setLookupTable(_LUT_OK)
         self.image.setZValue(15)
-        # anchored by its lower left corner on the region's last row: drawn above it, inside the frame
-        # (below the border band it would fall outside the view and could not be read)
-        self.label = pg.TextItem("", color="#00a000", anchor=(0, 1))
+        # anchored by a lower corner on the region's last row: drawn above it, inside the frame (below the
+        # border band it would fall outside the view); by its right corner when the region lies to the right
+        self.label = pg.TextItem("", color="#00a000", anchor=(0, 1), fill=pg.mkBrush(255, 255, 255, 210))  # readable on the pattern
         self.label.setZValue(21)
         plot.addItem(self.image)
         plot.addItem(self.label)
+        self.note = note
         self.name = ""
         self.samples = 0
         self.text = ""
+        self.short = ""
         self.bad = False
         self.set_reconstructor(None)
 
@@ -50,7 +59,10 @@ class PinRegionOverlay:
         if region is None:
             self.image.setVisible(False)
             self.label.setVisible(False)
-            self.text = ""
+            self.text = self.short = ""
+            if self.bad and self.note is not None:
+                self.note("")
+            self.bad = False
             return
         rows, cols = np.asarray(rec.rows_px, float), np.asarray(rec.cols_px, float)
         dr = rows[1] - rows[0] if rows.size > 1 else 1.0
@@ -61,9 +73,24 @@ class PinRegionOverlay:
         self.samples = int(np.count_nonzero(region))
         r, c = np.nonzero(region)
         if r.size:
-            self.label.setPos(float(cols[c.min()]), float(rows[r.max()] - dr))
-        self._show(f"{self.name} (h = 0): {100 * rec.reference_region_valid_fraction:.0f} % valid in the "
-                   f"reference, {self.samples} samples", bad=self.samples == 0)
+            left, right = float(cols[c.min()] - dc / 2), float(cols[c.max()] + dc / 2)
+            mid = float(cols[0] + cols[-1]) / 2
+            on_right = (left + right) / 2 > mid and left > cols[0] + 0.25 * (cols[-1] - cols[0])
+            # a box: the label above it, or below it, where the frame has room (about 15 % of its height at
+            # 1280x800), so that it does not hide the box; the border band: inside, above its last row
+            top, bottom = float(rows[r.min()] - dr / 2), float(rows[r.max()] + dr / 2)
+            span = float(rows[-1] - rows[0]) + dr
+            if top - (rows[0] - dr / 2) > 0.15 * span:
+                y, ay = top, 1
+            elif (rows[-1] + dr / 2) - bottom > 0.15 * span:
+                y, ay = bottom, 0
+            else:
+                y, ay = float(rows[r.max()] - dr), 1
+            self.label.setAnchor((1 if on_right else 0, ay))
+            self.label.setPos(right if on_right else left, y)
+        pct = 100 * rec.reference_region_valid_fraction
+        self._show(f"{self.name} (h = 0): {pct:.0f} % valid in the reference, {self.samples} samples",
+                   f"h = 0: {pct:.0f} % valid", bad=self.samples == 0)
 
     def update(self, result) -> None:
         """Label the region with the fraction of it valid in ``result`` (a Result)."""
@@ -72,19 +99,26 @@ class PinRegionOverlay:
             return
         frac = pin.valid_samples / pin.region_samples if pin.region_samples else 0.0
         text = f"{self.name} (h = 0): {100 * frac:.0f} % valid"
+        short = f"h = 0: {100 * frac:.0f} % valid"
         bad = not pin.ok
         if bad:
             text += f" — too few, pinned on the {pin.used_samples} nearest valid samples"
+            short += ", too few"
         series = getattr(result, "series", None)
         if series is not None and series.flagged:
             text += " — JUMP against the previous frame"
+            short += ", JUMP"
             bad = True
-        self._show(text, bad=bad)
+        self._show(text, short, bad=bad)
 
-    def _show(self, text: str, *, bad: bool) -> None:
-        if text != self.text or bad != self.bad:
-            self.text, self.bad = text, bad
-            self.label.setText(text, color="#d00000" if bad else "#00a000")
+    def _show(self, text: str, short: str, *, bad: bool) -> None:
+        if text != self.text or bad != self.bad or short != self.short:
+            was_bad = self.bad
+            self.text, self.short, self.bad = text, short, bad
+            self.label.setText(short, color="#d00000" if bad else "#00a000")
+            self.label.setToolTip(text)
             self.image.setLookupTable(_LUT_BAD if bad else _LUT_OK)
+            if self.note is not None and (bad or was_bad):
+                self.note(f"height offset: {text}" if bad else "")
         self.image.setVisible(self.samples > 0)
         self.label.setVisible(True)

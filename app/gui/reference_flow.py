@@ -15,7 +15,7 @@ from pyqtgraph.Qt import QtWidgets
 
 from . import state
 from .model.memory import live_device_for
-from .model.reference import capture_failed_label
+from .model.reference import capture_failed_label, capture_failed_message
 from .model.region import clamp_region, reference_crop, region_problem, roi_of
 
 log = logging.getLogger(__name__)
@@ -29,7 +29,7 @@ def capture_reference(w, n_frames: int):
         if error:
             w.geometry_panel.reference_label.setText(capture_failed_label(error, w.reference is not None))
             w.geometry_panel.reference_label.setStyleSheet("color: #c00000; font-weight: bold")
-            w.show_error(f"Reference capture failed: {error}")
+            w.show_error(capture_failed_message(error, w.reference is not None))
             return
         image, report = result
         w.geometry_panel.reference_label.setStyleSheet("")
@@ -116,6 +116,7 @@ def rebuild_reconstructor(w):
         if action == "remove":
             _remove_reconstructor(w)
             w.geometry_panel.reference_label.setText("reference NOT usable")
+            w.geometry_panel.reference_label.setStyleSheet("color: #c00000; font-weight: bold")
             w.show_error(f"Bad reference: {error}")
             return
         newest = w.session.newest_seq()  # later frames are measured against this reference
@@ -139,6 +140,7 @@ def rebuild_reconstructor(w):
             state.reference_in_use(w)
             return
         w.geometry_panel.reference_label.setText(text + " ✓")
+        w.geometry_panel.reference_label.setStyleSheet("")  # no longer red: a tick in red read as a warning
         w.clear_error()
         state.reference_in_use(w)
     w.run_background("reconstructor", build_checked, done)
@@ -224,16 +226,13 @@ def apply_geometry_editor(w):
 def show_region(w, region):
     if region is None:
         w.region_roi.setVisible(False)
-        w._region_label.setVisible(False)
         return
     r0, r1, c0, c1 = (float(v) for v in region)
     w.region_roi.blockSignals(True)
     w.region_roi.setPos([c0, r0])
     w.region_roi.setSize([c1 - c0, r1 - r0])
     w.region_roi.blockSignals(False)
-    w._region_label.setPos(c0, r0)
     w.region_roi.setVisible(True)
-    w._region_label.setVisible(True)
 
 
 def frame_shape(w):
@@ -247,6 +246,7 @@ def region_dragged(w):
     pos, size = w.region_roi.pos(), w.region_roi.size()
     region = (pos.y(), pos.y() + size.y(), pos.x(), pos.x() + size.x())
     shape = w._frame_shape()
+    moved = False
     if shape is not None:
         region, moved = clamp_region(region, shape)
         if moved:
@@ -255,6 +255,10 @@ def region_dragged(w):
     w._show_region((r0, r1, c0, c1))
     w.geometry_panel.set_region((r0, r1, c0, c1))
     w.apply_geometry_editor()
+    if moved and w.geometry_panel.geometry_label.text() == "geometry OK":  # also where the user edits it: the
+        # status bar cuts the message at 1280x800
+        w.geometry_panel.geometry_label.setText("geometry OK — the reference region was kept inside the frame "
+                                                "(the box cannot leave the camera image)")
 
 
 def choose_load_geometry(w):

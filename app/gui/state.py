@@ -34,7 +34,7 @@ from typing import Optional
 import numpy as np
 
 from .model.memory import SETTING_NAMES, threshold_mrad
-from .model.staleness import derived_text
+from .model.staleness import derived_text, short_derived_text
 
 log = logging.getLogger(__name__)
 
@@ -366,13 +366,16 @@ def update_truth(w) -> None:
         w.height_error = e
     if np.isfinite(e["rel_rms"]):
         text = f"vs truth {100 * e['rel_rms']:.1f} % rel. RMS ({e['scene']})"
+        brief = f"vs truth {100 * e['rel_rms']:.1f} % ({e['scene']})"  # the status bar's room at 1280x800
     else:
-        text = f"vs truth {1e3 * e['rms_error_mm']:.3f} µm RMS ({e['scene']})"
+        text = brief = f"vs truth {1e3 * e['rms_error_mm']:.3f} µm RMS ({e['scene']})"
     # derived from the maps on screen: as old as they are, and greyed with them (app/gui/model/staleness.py)
     shown = w.maps_shown_seq()
-    text, old = derived_text(text, w.stale.maps, measured_seq=p.seq, maps_seq=p.seq if shown is None else shown)
+    full, old = derived_text(text, w.stale.maps, measured_seq=p.seq, maps_seq=p.seq if shown is None else shown)
     e["stale"] = old
-    lab.setText(text)
+    # the status bar shows the number and, when stale, its age; the reason is in the tooltip (a long one pushed
+    # the age and every neighbour out of sight, by-hand trial 2 Dec 2026)
+    lab.setText(full, short_derived_text(brief, w.stale.maps) if w.stale.maps else f"{brief} (STALE)" if old else brief)
     lab.setStyleSheet("padding: 0 4px; color: #888" if old else "padding: 0 4px")
-    lab.setToolTip("Synthetic tank: RMS of (measured − true height) on the live grid, offset removed, "
+    lab.setToolTip(full + "\n\nSynthetic tank: RMS of (measured − true height) on the live grid, offset removed, "
                    "over the RMS of the true height")

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Optional
+
 from pyqtgraph.Qt import QtCore, QtGui, QtWidgets
 
 __all__ = ["ElidedLabel"]
@@ -17,15 +19,18 @@ class ElidedLabel(QtWidgets.QLabel):
     def __init__(self, text: str = "", parent=None, *, min_chars: int = 6):
         super().__init__(parent)
         self._full = ""
+        self._shown = ""
         self._min_chars = int(min_chars)
         self.setSizePolicy(QtWidgets.QSizePolicy.Preferred, QtWidgets.QSizePolicy.Preferred)
         self.setText(text)
 
-    def setText(self, text: str) -> None:  # noqa: N802 - Qt name
+    def setText(self, text: str, shown: Optional[str] = None) -> None:  # noqa: N802 - Qt name
+        """``text`` (what :meth:`text` returns, and the tooltip); ``shown``: fewer words to paint instead."""
         text = str(text)
-        if text == self._full:
+        shown = text if shown is None else str(shown)
+        if text == self._full and shown == self._shown:
             return
-        self._full = text
+        self._full, self._shown = text, shown
         self.setToolTip(text)
         self.updateGeometry()
         self._elide()
@@ -40,7 +45,7 @@ class ElidedLabel(QtWidgets.QLabel):
     def sizeHint(self):
         fm = self.fontMetrics()
         m = self.contentsMargins()
-        return QtCore.QSize(fm.horizontalAdvance(self._full) + m.left() + m.right() + 4,
+        return QtCore.QSize(fm.horizontalAdvance(self._shown) + m.left() + m.right() + 4,
                             super().sizeHint().height())
 
     def minimumSizeHint(self):
@@ -54,6 +59,6 @@ class ElidedLabel(QtWidgets.QLabel):
     def _elide(self):
         m = self.contentsMargins()
         width = max(self.width() - m.left() - m.right() - 2, 0)
-        shown = self.fontMetrics().elidedText(self._full, QtCore.Qt.ElideRight, width)
+        shown = self.fontMetrics().elidedText(self._shown, QtCore.Qt.ElideRight, width)
         if shown != super().text():
             super().setText(shown)

@@ -123,6 +123,32 @@ def test_maps_whose_reference_was_taken_away_are_stale_at_once():
     assert s.maps == "their reference is no longer in use — frame 10, 0.1 s ago"
 
 
+def test_live_maps_not_drawn_while_another_tab_is_shown_are_stale_and_so_are_numbers_from_them():
+    """By-hand trial 2 Dec 2026: on the Replay tab the live maps are not drawn (nor the raw view), so nothing
+    ran ahead of them and they were never marked: the status bar kept "vs truth 1.4 % (impact)" minutes after
+    the scene became waves, and F12 stored those maps with stale = "". Not drawn for longer than the raw
+    view's bound while the camera gave newer frames: stale, with their age."""
+    import weakref
+
+    from app.gui.model.staleness import NOT_DRAWN, Shown, short_derived_text, view_staleness
+
+    a = _Acq()
+    maps = Shown(10, 1_000_000_000, weakref.ref(a), ("synthetic", None), 1)
+    raw = Shown(10, 1_000_000_000, weakref.ref(a), ("synthetic", None), 1)  # not drawn either: not ahead
+    kw = dict(raw=raw, maps=maps, alignment=None, camera_key=("synthetic", None), reference_key=1,
+              frame_rate_hz=60.0)
+    hidden = view_staleness(13_000_000_000, a, maps_drawn=False, newest_seq=700, **kw)
+    assert hidden.maps == f"{NOT_DRAWN} — frame 10, 12.0 s ago"
+    # on the Live tab the same clock says nothing new (the drawing keeps up), nor when no newer frame came
+    assert view_staleness(1_200_000_000, a, maps_drawn=False, newest_seq=12, **kw).maps is None  # 0.2 s
+    assert view_staleness(13_000_000_000, a, maps_drawn=False, newest_seq=10, **kw).maps is None
+    assert view_staleness(1_500_000_000, a, maps_drawn=True, newest_seq=40, **kw).maps is None
+    # the status bar's few words keep the age in sight; the reason goes to the tooltip
+    assert short_derived_text("vs truth 1.4 % rel. RMS (impact)", hidden.maps) == \
+        "vs truth 1.4 % rel. RMS (impact) (STALE, 12.0 s ago)"
+    assert short_derived_text("vs truth 1.4 %", None) == "vs truth 1.4 %"
+
+
 def test_rebuild_policy_only_the_newest_request_changes_the_worker_and_marks_older_maps():
     from app.gui.model.staleness import ReferenceEpochs
 
@@ -290,6 +316,24 @@ def test_a_refused_capture_says_refused_only_for_moving_water():
     assert capture_failed_label("camera lost", False) == "capture failed"
 
 
+def test_a_refused_first_capture_does_not_claim_a_previous_reference_is_kept(tank):
+    """By-hand trial 2 Dec 2026: Ctrl+R on the waves before any reference said "The previous reference is
+    kept." in the red banner: there was none, and no heights would come."""
+    from app.gui.model.reference import ReferenceAverager, WaterMovingError, capture_failed_message
+    from processing.carriers import find_carriers_live
+
+    waves = tank._clips["waves"][0]
+    avg = ReferenceAverager(find_carriers_live(waves[0])[0].freq)
+    for f in waves:
+        avg.add(f)
+    with pytest.raises(WaterMovingError) as err:
+        avg.result()
+    first = capture_failed_message(str(err.value), previous_kept=False)
+    assert "previous reference" not in first and "There is no reference yet" in first
+    assert capture_failed_message(str(err.value), previous_kept=True).endswith(
+        "The previous reference stays in use.")
+
+
 def test_one_passing_glitch_is_left_out_not_averaged(tank):
     from app.gui.model.reference import ReferenceAverager
     from processing.carriers import find_carriers_live
@@ -381,3 +425,17 @@ def test_a_region_dragged_off_the_frame_is_put_back_whole_and_one_typed_outside_
     assert "outside the 256×256 px frame" in region_problem((200, 400, 0, 50), (256, 256))
     assert region_problem((0, 12, 0, 12), (256, 256)) is None
     assert "smaller than" in region_problem((5, 6, 0, 50), (256, 256))
+
+
+def test_the_profile_line_follows_maps_of_a_new_roi_it_would_leave_and_stays_where_the_user_put_it():
+    """By-hand trial 2 Dec 2026: after Apply settings with a 256-px ROI of the 512-px frame the profile line kept
+    its ends at +-19 mm over maps of +-10 mm: half the profile was empty."""
+    from app.gui.model.region import profile_line_for
+
+    full, roi = (-20.0, 20.0, -33.0, 33.0), (-10.0, 10.0, -16.5, 16.5)
+    first = profile_line_for(((0, 0), (1, 1)), None, full)
+    assert first == ((-20.0, 0.0), (20.0, 0.0))  # the first maps: across the middle
+    assert profile_line_for(first, full, full) is None  # the same maps: left alone
+    assert profile_line_for(first, full, roi) == ((-10.0, 0.0), (10.0, 0.0))  # it would leave the new maps
+    dragged = ((-5.0, 2.0), (6.0, -3.0))
+    assert profile_line_for(dragged, full, roi) is None  # inside the new maps: where the user put it

@@ -182,6 +182,52 @@ def test_vs_truth_in_the_status_bar_carries_the_age_of_the_maps(qtbot, tmp_path)
     assert w.height_view.stale_text in truth.text()  # the same words, the same age as the maps
 
 
+def test_live_numbers_on_another_tab_carry_the_age_of_the_maps_and_fit_the_status_bar(qtbot):
+    """By-hand trial 2 Dec 2026: on the Replay tab the live maps are not drawn, yet "vs truth 1.4 % (impact)"
+    stayed in the status bar, unmarked, minutes after the scene changed (and F12 stored those maps as live).
+    And a stale "vs truth" with its whole reason took the status bar: camera, rates, drops cut to "…", the age
+    itself out of sight at 1280x800."""
+    from app.gui.model.staleness import NOT_DRAWN
+
+    w = _window(qtbot)
+    w.resize(1280, 800)
+    w.geometry_panel.n_average.setValue(3)
+    _ctrl(w, QtCore.Qt.Key_R)
+    qtbot.waitUntil(lambda: "✓" in w.geometry_panel.reference_label.text(), timeout=30000)
+    truth = w.status_labels["truth"]
+    qtbot.waitUntil(lambda: truth.text().startswith("vs truth") and "stale" not in truth.text(), timeout=20000)
+    _ctrl(w, QtCore.Qt.Key_3)  # the Replay tab
+    _until(qtbot, lambda: NOT_DRAWN in truth.text(), lambda: f"status bar {truth.text()!r}", 10000)
+    assert w.height_view.is_stale and NOT_DRAWN in w.height_view.stale_text  # and so is a snapshot of them
+    qtbot.wait(600)  # the status bar laid out again
+    shown = truth.shown_text()
+    assert "STALE" in shown and shown.endswith(" s ago)"), shown  # the age on screen, the reason in the tooltip
+    for key in ("camera", "device", "ring"):  # its neighbours keep their words
+        label = w.status_labels[key]
+        assert label.shown_text() == label.text(), (key, label.shown_text(), shown)
+    _ctrl(w, QtCore.Qt.Key_1)
+    _until(qtbot, lambda: "stale" not in truth.text() and not w.height_view.is_stale,
+           lambda: f"status bar {truth.text()!r}", 10000)
+
+
+def test_the_auto_trigger_readout_is_live_while_the_maps_are(qtbot, window, scene, tmp_path):
+    """By-hand trial 2 Dec 2026: the readout beside the threshold read "now 0.157 mrad (stale: from frame 11093,
+    the maps show 11094)" on live maps, on and off: it is measured on the slope maps, drawn one tick after the
+    height map, and was compared with the height map's frame."""
+    _live(qtbot, window, scene, tmp_path)
+    window.frozen = True  # the test draws, not the timer
+    p0 = window.last_drawn
+    window._draw_result(p0, part=-1)  # every map of one frame, the readout measured on its slopes
+    qtbot.waitUntil(lambda: window.session.worker.latest().seq > p0.seq, timeout=10000)
+    p1 = window.session.worker.latest()
+    window._draw_result(p1, part=0)  # the next frame's height: its slopes come on the next tick
+    window.frozen = False
+    window._update_staleness()
+    assert window.stale.maps is None  # live maps
+    text = window.recording_panel.rms_label.text()
+    assert text.startswith("now ") and "stale" not in text, text
+
+
 # --------------------------------------------------------------- the pattern chosen must be the one in view
 def test_random_dots_chosen_on_the_checkerboard_is_not_ready_with_the_reason(qtbot):
     """Finding 2: "random dots" picked while the tank shows its checkerboard: NOT READY (periodic), and the
@@ -208,6 +254,24 @@ def test_random_dots_chosen_on_the_checkerboard_is_not_ready_with_the_reason(qtb
     assert "periodic pattern" in w.last_error
     qtbot.waitUntil(lambda: w.ready_label.text().startswith("NOT READY") and "periodic" in w.ready_label.text()
                     and "reference" in "".join(w.alignment_metrics.values()), timeout=20000)
+    # the maps themselves say their heights are wrong (the banner can be closed; by-hand trial 2 Dec 2026: the
+    # Live tab showed PIV heights of the checkerboard with no word)
+    w.clear_error()
+    _click_tab(qtbot, w, "Live")
+    _until(qtbot, lambda: "NOT the chosen pattern" in w.height_view.message.text(),
+           lambda: f"height map says {w.height_view.message.text()!r}", 60000)
+    assert "periodic pattern" in w.height_view.message.text()
+    assert w.slope_x_view.message.text() == "NOT the chosen pattern (see Height)"
+    # back to "checkerboard" (by keyboard): the tick comes back, and not in the red of the refusal (by-hand trial
+    # 2 Dec 2026: "periods 5.97, 5.97 px ✓" stayed red and bold)
+    box = w.geometry_panel.pattern
+    box.setFocus()
+    while box.currentText() != "checkerboard":
+        qtbot.keyClick(box, QtCore.Qt.Key_Up)
+    label = w.geometry_panel.reference_label
+    qtbot.waitUntil(lambda: label.text().endswith("✓"), timeout=60000)
+    assert "c00000" not in label.styleSheet(), label.styleSheet()
+    qtbot.waitUntil(lambda: w.height_view.message.text() == "", timeout=20000)  # the right pattern: nothing to say
 
 
 def test_checkerboard_chosen_on_random_dots_is_not_ready_and_says_dots(qtbot, window):
@@ -253,7 +317,10 @@ def test_reference_region_cannot_leave_the_frame_and_never_discards_the_referenc
     r0, r1, c0, c1 = w.geometry.to_dict()["reference_region"]
     assert 0 <= r0 < r1 <= SHAPE[0] and 0 <= c0 < c1 <= SHAPE[1] and (r1 - r0, c1 - c0) == (60, 60)
     assert "inside the frame" in w.message_label.text()
-    assert w.session.worker.reconstructor is not None and w.geometry_panel.geometry_label.text() == "geometry OK"
+    # said where the user edits it too (the status bar cut it to "reference r…" at 1280x800)
+    assert w.session.worker.reconstructor is not None
+    assert w.geometry_panel.geometry_label.text().startswith("geometry OK") and \
+        "kept inside the frame" in w.geometry_panel.geometry_label.text()
     # typed outside the frame: refused at the edit, the region and reference in use stay
     _type_region(qtbot, w, "200, 400, 0, 50")
     assert "outside the 256×256 px frame" in w.geometry_panel.geometry_label.text()
@@ -264,6 +331,50 @@ def test_reference_region_cannot_leave_the_frame_and_never_discards_the_referenc
     # the label saying why the pin region is green or red lies inside the frame (readable)
     label = w.pin_overlay.label
     assert label.isVisible() and 0 <= label.pos().y() <= SHAPE[0] and 0 <= label.pos().x() < SHAPE[1]
+    # ... all of it, on screen: the box in the bottom right corner, at 1600x1000 and 1280x800 (by-hand trial
+    # 2 Dec 2026: "reference_region [196, 256, 196, 256] (h = 0): 100 % valid" ran past the view's edge)
+    vb = w.raw_view.plot.getViewBox()
+    for size in ((1600, 1000), (1280, 800)):
+        w.resize(*size)
+        qtbot.waitUntil(lambda: "% valid" in w.pin_overlay.text and "reference," not in w.pin_overlay.text,
+                        timeout=20000)
+        qtbot.wait(300)
+        inside = vb.sceneBoundingRect().adjusted(-1, -1, 1, 1)
+        assert inside.contains(label.sceneBoundingRect()), (size, label.sceneBoundingRect(), inside,
+                                                             w.pin_overlay.short)
+        assert w.pin_overlay.text in label.toolTip()  # the whole sentence, on hovering
+
+
+def test_a_red_pin_region_says_why_in_words_that_fit():
+    """By-hand trial 2 Dec 2026: the sentence saying why the pin region is red ("too few, pinned on the N nearest
+    valid samples") was the label on the image, cut at the raw view's edge. The label keeps a few words, the
+    sentence goes to the raw view's wrapped message while the pin is red, and leaves when it is green again."""
+    import types
+
+    import pyqtgraph as pg
+
+    from app.gui.pinregion import PinRegionOverlay
+
+    notes = []
+    plot = pg.PlotItem()
+    overlay = PinRegionOverlay(plot, note=notes.append)
+    region = np.zeros((32, 32), bool)
+    region[28:, 24:] = True  # a box in the bottom right corner
+    rec = types.SimpleNamespace(reference_region=region, rows_px=np.arange(32) * 8.0, cols_px=np.arange(32) * 8.0,
+                                reference_region_name="reference_region [224, 256, 192, 256]",
+                                reference_region_valid_fraction=1.0)
+    overlay.set_reconstructor(rec)
+    assert overlay.label.anchor == pg.Point(1, 1)  # the right corner: the words run to the left, into the frame
+    bad = types.SimpleNamespace(pin=types.SimpleNamespace(valid_samples=2, region_samples=32, ok=False,
+                                                          used_samples=16), series=None)
+    overlay.update(bad)
+    assert overlay.bad and notes[-1] == ("height offset: reference_region [224, 256, 192, 256] (h = 0): 6 % valid — "
+                                         "too few, pinned on the 16 nearest valid samples")
+    assert overlay.label.textItem.toPlainText() == "h = 0: 6 % valid, too few"
+    good = types.SimpleNamespace(pin=types.SimpleNamespace(valid_samples=32, region_samples=32, ok=True,
+                                                           used_samples=32), series=None)
+    overlay.update(good)
+    assert not overlay.bad and notes[-1] == "" and overlay.label.textItem.toPlainText() == "h = 0: 100 % valid"
 
 
 # --------------------------------------------------------------- menus, device
@@ -408,6 +519,11 @@ def test_after_an_roi_change_the_reference_follows_and_the_maps_name_the_roi(qtb
     assert band == pytest.approx(128, abs=8)
     qtbot.waitUntil(lambda: w.last_drawn is not None and w.last_drawn.result is not None
                     and w.last_drawn.result.height.shape[1] < w.last_drawn.result.height.shape[0], timeout=20000)
+    # the profile line lies on the new maps (by-hand trial 2 Dec 2026: it kept the old frame's ends, half outside)
+    r = w.last_drawn.result
+    for px, py in w.profile_roi.ends():
+        assert r.x_mm.min() <= px <= r.x_mm.max() and r.y_mm.min() <= py <= r.y_mm.max(), (w.profile_roi.ends(),
+                                                                                          r.x_mm[[0, -1]])
 
 
 def test_scaled_axes_have_no_si_prefix(qtbot, window):

@@ -24,7 +24,7 @@ from typing import List, Optional
 import numpy as np
 
 __all__ = ["PHASE_BOUND_RAD", "MAX_DISAGREEING", "WaterMovingError", "ReferenceReport", "ReferenceAverager",
-           "carrier_baseband", "capture_failed_label"]
+           "carrier_baseband", "capture_failed_label", "capture_failed_message", "pattern_mismatch_messages"]
 
 #: RMS carrier-phase change against the first frame (rad) above which a frame does not agree.
 #: Measured on the synthetic tank (256^2, 0.5 counts of noise): still water 0.0008 rad, the waves
@@ -148,7 +148,7 @@ class ReferenceAverager:
                 f"the water is moving: wait and capture again. {rep.n_frames - rep.n_averaged} of "
                 f"{rep.n_frames} frames differ from the first by more than {self.bound_rad:g} rad of "
                 f"{rep.measure} (frame {worst + 1}: {self.changes[worst]:.2f} rad); a reference needs "
-                "still water. The previous reference is kept.")
+                "still water.")
         return (self._total / rep.n_averaged).astype(np.float32), rep
 
 
@@ -156,3 +156,23 @@ def capture_failed_label(error: str, previous_kept: bool) -> str:
     """The reference label (red) after a capture failed with ``error``: "REFUSED" when the water moved."""
     return (("REFUSED: the water is moving" if "the water is moving" in error else "capture failed")
             + (" (previous reference kept)" if previous_kept else ""))
+
+
+def capture_failed_message(error: str, previous_kept: bool) -> str:
+    """The banner after a capture failed with ``error``: what stays in use. (The error itself used to end with
+    "The previous reference is kept." also when there was none: by-hand trial 2 Dec 2026.)"""
+    return (f"Reference capture failed: {error} "
+            + ("The previous reference stays in use." if previous_kept else
+               "There is no reference yet: no heights until one is captured on still water."))
+
+
+def pattern_mismatch_messages(problem: Optional[str]) -> tuple:
+    """What the maps say while the reference does not show the chosen pattern (``problem``, from
+    :func:`app.gui.alignment.periodic_pattern`; None: it does): ``(full, short)`` -- the full text in red on the
+    height map, a few words on the small maps, ``("", None)`` when there is nothing to say. Those heights are
+    wrong (random dots chosen on a checkerboard: 136-432 % off the truth), and the banner saying so can be
+    closed: the maps themselves keep saying it (by-hand trial 2 Dec 2026)."""
+    if not problem:
+        return "", None
+    return (f"NOT the chosen pattern, these heights are wrong: {problem}",
+            "NOT the chosen pattern (see Height)")

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import Optional, Tuple
 
-__all__ = ["MIN_REGION_PX", "clamp_region", "region_problem", "roi_of", "reference_crop"]
+__all__ = ["MIN_REGION_PX", "clamp_region", "region_problem", "roi_of", "reference_crop", "profile_line_for"]
 
 #: Smallest side of a reference region (px): a region that small is the user's choice (the pin then
 #: says how many of its samples were valid), but an empty one is none.
@@ -70,3 +70,22 @@ def reference_crop(reference_roi, new_roi):
     if nx < rx or ny < ry or nx + nw > rx + rw or ny + nh > ry + rh:
         return None
     return slice(ny - ry, ny - ry + nh), slice(nx - rx, nx - rx + nw)
+
+
+def profile_line_for(ends, placed_extent, extent, middle_y: Optional[float] = None):
+    """Where the profile line goes on maps spanning ``extent`` = (x0, x1, y0, y1) mm: ``None`` to leave it at
+    ``ends`` ((x, y), (x, y) mm), else new ends across the middle row.
+
+    ``placed_extent``: the extent it was last checked against (None: never placed). It is placed on the first
+    maps, and again when the maps' extent changed (a new ROI) and an end lies outside the new maps: the line of
+    the 512-px frame ran far past a 256-px ROI's maps, half its profile empty (by-hand trial 2 Dec 2026). A line
+    the user dragged stays where it is otherwise."""
+    x0, x1, y0, y1 = (float(v) for v in extent)
+    if placed_extent is not None:
+        if tuple(placed_extent) == (x0, x1, y0, y1):
+            return None
+        lo_x, hi_x, lo_y, hi_y = min(x0, x1), max(x0, x1), min(y0, y1), max(y0, y1)
+        if all(lo_x <= px <= hi_x and lo_y <= py <= hi_y for px, py in ends):
+            return None
+    ym = (y0 + y1) / 2 if middle_y is None else float(middle_y)  # the caller: the grid row nearest the middle
+    return (x0, ym), (x1, ym)

@@ -12,14 +12,17 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, Callable, Optional
 
-__all__ = ["STALE_AFTER_S", "NO_REFERENCE", "Shown", "Staleness", "ReferenceEpochs", "format_age", "why_stale",
-           "view_staleness", "derived_text", "unmeasured_messages"]
+__all__ = ["STALE_AFTER_S", "NO_REFERENCE", "NOT_DRAWN", "Shown", "Staleness", "ReferenceEpochs", "format_age",
+           "why_stale", "view_staleness", "derived_text", "short_derived_text", "unmeasured_messages"]
 
 #: A view whose data is this much older than expected is marked stale (s).
 STALE_AFTER_S = 1.0
 #: Why maps are stale whose reference (and geometry) the worker no longer measures with, none replacing it
 #: (a refused reference, an ROI the reference does not cover).
 NO_REFERENCE = "their reference is no longer in use"
+#: Why the live maps are stale while another tab is shown (they are drawn on the Live tab only): the numbers
+#: derived from them (the status bar's "vs truth", the auto-trigger readout, a snapshot) are as old.
+NOT_DRAWN = "not redrawn while the Live tab is hidden"
 
 
 def format_age(frame_id, age_s: float) -> str:
@@ -135,7 +138,8 @@ def _mark(why: Optional[str], shown: Shown, now_ns: int) -> Optional[str]:
 def view_staleness(now_ns: int, acquisition, *, raw: Optional[Shown], maps: Optional[Shown],
                    alignment: Optional[Shown], unmeasured_seq: Optional[int] = None,
                    frame_rate_hz: Optional[float] = None, camera_key: Any = None,
-                   reference_key: Any = None) -> Staleness:
+                   reference_key: Any = None, maps_drawn: bool = True,
+                   newest_seq: Optional[int] = None) -> Staleness:
     """The stale marks of the raw views, the processed maps and the alignment views.
 
     Parameters
@@ -157,6 +161,12 @@ def view_staleness(now_ns: int, acquisition, *, raw: Optional[Shown], maps: Opti
         computed against another one are stale at once, whatever the worker and the raw view do next:
         "older reference" while a newer one is built or after it came, :data:`NO_REFERENCE` when none
         replaced theirs (a refused reference).
+    maps_drawn : bool
+        Whether the window draws the live maps now (False: another tab is shown). Maps not drawn for longer
+        than the raw view's bound while the camera gave newer frames (``newest_seq``, its newest frame's
+        number) are stale: :data:`NOT_DRAWN`.
+    newest_seq : int, optional
+        The number of the camera's newest frame (None: unknown).
     """
     raw_text = maps_text = align_text = None
     if raw is not None:
@@ -168,6 +178,9 @@ def view_staleness(now_ns: int, acquisition, *, raw: Optional[Shown], maps: Opti
         why = why_stale(maps, acquisition, camera_key)
         if why is None and maps.reference_key is not None and maps.reference_key != reference_key:
             why = "older reference" if reference_key is not None else NO_REFERENCE
+        elif why is None and not maps_drawn and newest_seq is not None and maps.seq is not None \
+                and newest_seq > maps.seq and maps.age_s(now_ns) > max(STALE_AFTER_S, 3.0 / (frame_rate_hz or 10.0)):
+            why = NOT_DRAWN
         elif why is None and unmeasured_seq is not None and maps.seq is not None and unmeasured_seq > maps.seq:
             why = f"newer frame {unmeasured_seq} not measured"
         elif why is None and raw is not None and raw.seq is not None and maps.seq is not None \
@@ -196,6 +209,16 @@ def derived_text(text: str, maps_mark: Optional[str], *, measured_seq: Optional[
     if maps_mark is None:
         return text, False
     return f"{text} (stale: {maps_mark})", True
+
+
+def short_derived_text(text: str, maps_mark: Optional[str]) -> str:
+    """The few words of :func:`derived_text` a narrow place can show: ``text`` and, when stale, its age
+    (``"vs truth 1.2 % (waves) (STALE, 3.1 s ago)"``), the full mark going to a tooltip: a long reason
+    would otherwise push the age out of sight, or the neighbours out of the status bar."""
+    if maps_mark is None:
+        return text
+    age = maps_mark.rsplit(" — ", 1)[-1].rsplit(", ", 1)[-1]
+    return f"{text} (STALE, {age})" if age.endswith(" ago") else f"{text} (STALE)"
 
 
 def unmeasured_messages(error: Optional[str], has_reconstructor: bool) -> tuple:
