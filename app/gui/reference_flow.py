@@ -16,7 +16,7 @@ from pyqtgraph.Qt import QtWidgets
 from . import state
 from .model.memory import live_device_for
 from .model.reference import capture_failed_label, capture_failed_message
-from .model.region import clamp_region, reference_crop, region_problem, roi_of
+from .model.region import clamp_region, reference_crop, region_after_roi_change, region_problem, roi_of
 
 log = logging.getLogger(__name__)
 
@@ -294,6 +294,25 @@ def save_geometry(w, path: str) -> None:
     w.info(f"geometry saved to {path}")
 
 
+def _region_follows_roi(w, old_roi, new_roi) -> str:
+    """A reference region of the geometry in use, moved to the same place on the water in the new ROI's
+    pixels (or cut, or dropped for the default); before the reference is set, so that one rebuild uses it."""
+    from processing import Geometry
+
+    if w.geometry is None:
+        return ""
+    d = w.geometry.to_dict()
+    region, note = region_after_roi_change(d.get("reference_region"), old_roi, new_roi)
+    if note:
+        d["reference_region"] = None if region is None else list(region)
+        w.geometry = Geometry.from_dict(d)
+        w.geometry_panel.set_region(region)
+        w._show_region(region)
+        state.geometry_in_use(w)
+        w.info(note)
+    return note
+
+
 def follow_roi(w, settings) -> None:
     """The camera now delivers ``settings``' ROI: crop the reference to it (and rebuild, the pin band
     with it), or, when it is not inside the reference's, say that a new reference is needed."""
@@ -303,8 +322,10 @@ def follow_roi(w, settings) -> None:
     crop = reference_crop(w.reference_roi, new_roi)
     if crop is not None:
         old = w.reference_roi
+        note = _region_follows_roi(w, old, new_roi)
         set_reference(w, w.reference[crop], f"cropped to the new ROI {new_roi[2]}×{new_roi[3]} at "
-                                            f"({new_roi[0]}, {new_roi[1]}) from the one taken at ({old[0]}, {old[1]})")
+                                            f"({new_roi[0]}, {new_roi[1]}) from the one taken at ({old[0]}, {old[1]})"
+                                            + (f"; {note}" if note else ""))
         return
     w.references.request()  # a build still running must not install a reference of the old ROI
     _remove_reconstructor(w)

@@ -9,7 +9,8 @@ from __future__ import annotations
 
 from typing import Optional, Tuple
 
-__all__ = ["MIN_REGION_PX", "clamp_region", "region_problem", "roi_of", "reference_crop", "profile_line_for"]
+__all__ = ["MIN_REGION_PX", "clamp_region", "region_problem", "roi_of", "reference_crop", "region_after_roi_change",
+           "profile_line_for"]
 
 #: Smallest side of a reference region (px): a region that small is the user's choice (the pin then
 #: says how many of its samples were valid), but an empty one is none.
@@ -70,6 +71,35 @@ def reference_crop(reference_roi, new_roi):
     if nx < rx or ny < ry or nx + nw > rx + rw or ny + nh > ry + rh:
         return None
     return slice(ny - ry, ny - ry + nh), slice(nx - rx, nx - rx + nw)
+
+
+def region_after_roi_change(region, old_roi, new_roi) -> Tuple[Optional[Region], str]:
+    """The reference region ``(row0, row1, col0, col1)``, in pixels of frames of ``old_roi``, at the same
+    place on the water in pixels of frames of ``new_roi`` (both ``(offset_x, offset_y, width, height)`` on
+    the sensor); and a note for the user ("" when it lies whole in the new frame).
+
+    Part of it outside the new frame is cut off; when less than :data:`MIN_REGION_PX` of it is left on a
+    side, None (the reconstructor's default region) with a note that says so: keeping its numbers would
+    pin the heights at another place on the water, in silence.
+    """
+    if region is None or old_roi is None or new_roi is None:
+        return (None if region is None else tuple(int(v) for v in region)), ""
+    dx, dy = int(new_roi[0]) - int(old_roi[0]), int(new_roi[1]) - int(old_roi[1])
+    rows, cols = int(new_roi[3]), int(new_roi[2])
+    r0, r1, c0, c1 = (int(v) for v in region)
+    moved = (r0 - dy, r1 - dy, c0 - dx, c1 - dx)
+    cut = (max(moved[0], 0), min(moved[1], rows), max(moved[2], 0), min(moved[3], cols))
+    where = f"rows {r0}-{r1}, columns {c0}-{c1}"
+    if cut[1] - cut[0] < MIN_REGION_PX or cut[3] - cut[2] < MIN_REGION_PX:
+        return None, (f"the reference region ({where}) lies outside the new ROI: the default region is used; "
+                      "draw or type one in the new frame")
+    if cut != moved:
+        return cut, (f"the reference region ({where}) was cut to the part inside the new ROI: rows {cut[0]}-{cut[1]}, "
+                     f"columns {cut[2]}-{cut[3]}")
+    if (dx, dy) != (0, 0):
+        return cut, (f"the reference region moved with the ROI to rows {cut[0]}-{cut[1]}, columns {cut[2]}-{cut[3]} "
+                     "(the same place on the water)")
+    return cut, ""
 
 
 def profile_line_for(ends, placed_extent, extent, middle_y: Optional[float] = None):
