@@ -11,7 +11,7 @@ from typing import Optional
 
 from pyqtgraph.Qt import QtWidgets
 
-from .model.recording import slope_of_mrad
+from .model.recording import progress_line, slope_of_mrad
 
 log = logging.getLogger(__name__)
 
@@ -88,6 +88,7 @@ def update_recording(w):
     state = rec["state"]
     if state != rp.state_label.text():
         rp.set_state(state)
+        rp.result_label.setText(progress_line(state, rec.get("path"), rp.result_label.text()))
     rp.progress.setValue(int(round(100 * rec.get("progress", 0.0))))
     if state in ("done", "error") and rec.get("summary_text") and not rec.get("_shown"):
         rec["_shown"] = True

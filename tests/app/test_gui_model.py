@@ -427,6 +427,29 @@ def test_a_region_dragged_off_the_frame_is_put_back_whole_and_one_typed_outside_
     assert "smaller than" in region_problem((5, 6, 0, 50), (256, 256))
 
 
+def test_a_typed_region_stays_on_the_same_water_after_an_roi_change_or_says_why_not():
+    """By-hand trial 2 Dec 2026: after an ROI change a typed reference region kept its numbers, i.e. it
+    pinned the heights at another place on the water (0-60 px of a 256-px ROI at (128, 128) is 128-188 px
+    of the sensor, where the user had drawn it at 0-60)."""
+    from app.gui.model.region import region_after_roi_change
+
+    whole, roi = (0, 0, 512, 512), (128, 128, 256, 256)  # (offset_x, offset_y, width, height)
+    # a box at sensor rows 200-260, columns 150-210 is at rows 72-132, columns 22-82 of the ROI
+    region, note = region_after_roi_change((200, 260, 150, 210), whole, roi)
+    assert region == (72, 132, 22, 82) and "moved with the ROI" in note and "rows 72-132" in note
+    # and back to the whole frame: the same place again
+    assert region_after_roi_change(region, roi, whole)[0] == (200, 260, 150, 210)
+    # partly outside the new frame: cut to the part inside, and said
+    region, note = region_after_roi_change((100, 160, 100, 300), whole, roi)
+    assert region == (0, 32, 0, 172) and "cut" in note
+    # wholly outside (the default border band of the sensor's corner): the default region, said
+    region, note = region_after_roi_change((0, 40, 0, 512), whole, roi)
+    assert region is None and "outside the new ROI" in note and "default region" in note
+    # the same ROI, or no region typed: nothing to say
+    assert region_after_roi_change((10, 70, 10, 70), roi, roi) == ((10, 70, 10, 70), "")
+    assert region_after_roi_change(None, whole, roi) == (None, "")
+
+
 def test_the_profile_line_follows_maps_of_a_new_roi_it_would_leave_and_stays_where_the_user_put_it():
     """By-hand trial 2 Dec 2026: after Apply settings with a 256-px ROI of the 512-px frame the profile line kept
     its ends at +-19 mm over maps of +-10 mm: half the profile was empty."""
@@ -439,3 +462,16 @@ def test_the_profile_line_follows_maps_of_a_new_roi_it_would_leave_and_stays_whe
     assert profile_line_for(first, full, roi) == ((-10.0, 0.0), (10.0, 0.0))  # it would leave the new maps
     dragged = ((-5.0, 2.0), (6.0, -3.0))
     assert profile_line_for(dragged, full, roi) is None  # inside the new maps: where the user put it
+
+
+def test_the_recording_line_says_capturing_once_the_trigger_fired_not_armed():
+    """By-hand trial 2 Dec 2026: "armed: will write ..." stayed beside the state "capturing"."""
+    from app.gui.model.recording import progress_line
+
+    armed = "armed: will write /data/rec_001.h5"
+    assert progress_line("capturing", "/data/rec_001.h5", armed) == "capturing: writing /data/rec_001.h5"
+    assert progress_line("saving", "/data/rec_001.h5", armed).startswith("saving /data/rec_001.h5")
+    assert "armed" not in progress_line("capturing", "/data/rec_001.h5", armed)
+    # a finished recording's summary (written by the window) and the armed line itself stay
+    assert progress_line("done", "/data/rec_001.h5", "32 frames, no frame lost") == "32 frames, no frame lost"
+    assert progress_line("armed", "/data/rec_001.h5", armed) == armed

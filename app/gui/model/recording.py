@@ -1,4 +1,5 @@
-"""The auto-trigger threshold in physical units, the live readout beside it, and "set from now".
+"""The auto-trigger threshold in physical units, the live readout beside it, "set from now", and the
+recording panel's line of what the recording is doing.
 
 The auto-trigger (:class:`app.capture.trigger.AutoTrigger`) compares the RMS slope magnitude of each
 live slope map (dimensionless, mm/mm) with its threshold. The panel shows and takes it in mrad
@@ -15,7 +16,7 @@ import math
 from typing import Deque, Optional
 
 __all__ = ["THRESHOLD_UNIT", "PROPOSE_FACTOR", "HISTORY_N", "mrad", "slope_of_mrad", "RmsHistory",
-           "threshold_attrs"]
+           "threshold_attrs", "progress_line"]
 
 #: The unit of the threshold the panel shows, the settings remember and the recording file states.
 THRESHOLD_UNIT = "mrad RMS slope"
@@ -70,3 +71,15 @@ def threshold_attrs(threshold_mrad: Optional[float]) -> dict:
         return {}
     return {"auto_trigger_threshold": float(threshold_mrad), "auto_trigger_threshold_unit": THRESHOLD_UNIT,
             "auto_trigger_quantity": "sqrt(mean(slope_x^2 + slope_y^2)) over the live slope maps"}
+
+
+def progress_line(state: str, path: Optional[str], shown: str) -> str:
+    """The panel's line under the state for a recording in ``state`` writing ``path``; ``shown`` is the
+    line on screen now. Once the trigger fired, "armed: will write ..." is no longer true (the by-hand trial
+    of 2 Dec 2026 saw it beside "capturing"): the line says what is being written. The summary of a
+    recording that ended (done, error) is written by the window itself and is kept."""
+    if state == "capturing":
+        return f"capturing: writing {path}"
+    if state == "saving":
+        return f"saving {path}: every frame is captured, the last ones are being written"
+    return shown
