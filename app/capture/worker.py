@@ -207,6 +207,9 @@ class ProcessingWorker:
         self._stop = threading.Event()
         self._thread: Optional[threading.Thread] = None
         self._new_result = threading.Condition(self._lock)
+        # one list per running wait_for: the results published while it waits, each checked there (the
+        # newest-only _latest may have moved on before the waiting thread ran); none kept otherwise
+        self._waiting: List[List[Processed]] = []
         self.processed = 0
         self.skipped = 0
         self.failed = 0
@@ -234,6 +237,9 @@ class ProcessingWorker:
             self._reference = None if reconstructor is None else reference
             self._reset_series = reconstructor is not None
             self._latest = None if reconstructor is None else self._latest
+            if reconstructor is None:
+                for published in self._waiting:
+                    published.clear()
 
     @property
     def reconstructor(self):
@@ -307,16 +313,31 @@ class ProcessingWorker:
             return self._latest
 
     def wait_for(self, predicate: Callable[[Processed], bool], timeout_s: float) -> Optional[Processed]:
-        """Block until a published result satisfies ``predicate`` (or ``timeout_s`` passes)."""
+        """Block until the latest result, or one published while waiting, satisfies ``predicate``
+        (None when ``timeout_s`` passes first).
+
+        Every result published during the wait is checked, in order, not only the newest: on a loaded
+        machine the worker can publish the next frame before the waiting thread runs (a frame that
+        failed between two that did not was missed so).
+        """
         deadline = time.monotonic() + timeout_s
         with self._new_result:
-            while True:
-                if self._latest is not None and predicate(self._latest):
-                    return self._latest
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    return None
-                self._new_result.wait(left)
+            if self._latest is not None and predicate(self._latest):
+                return self._latest
+            published: List[Processed] = []
+            self._waiting.append(published)
+            try:
+                while True:
+                    left = deadline - time.monotonic()
+                    if left <= 0:
+                        return None
+                    self._new_result.wait(left)
+                    while published:
+                        p = published.pop(0)
+                        if predicate(p):
+                            return p
+            finally:
+                self._waiting = [other for other in self._waiting if other is not published]
 
     def counters(self) -> dict:
         return {"processed": self.processed, "skipped": self.skipped, "failed": self.failed,
@@ -368,6 +389,8 @@ class ProcessingWorker:
             count += 1
             with self._new_result:
                 self._latest = processed
+                for published in self._waiting:
+                    published.append(processed)
                 listeners = list(self._listeners)
                 self._new_result.notify_all()
             for fn in listeners:
