@@ -67,7 +67,13 @@ def test_fake1_open_configure_stream_close():
     img = frames[0].image
     np.testing.assert_array_equal(img[1:, :-1], img[:-1, 1:])
     assert img.std() > 10
-    assert stats["n_completed_buffers"] == stats["n_delivered"] + stats.get("n_output_buffers", 0) == 40 + stats.get("n_output_buffers", 0)
+    # every buffer Aravis completed was delivered or waits in its output queue. Read right after
+    # AcquisitionStop, the stream's thread may be finishing a buffer that was in flight: a loaded run saw it
+    # in the output queue before n_completed_buffers counted it (40 completed, 40 delivered + 1 waiting);
+    # stopping the stream's thread first to read final figures held up the lost-camera paths (tried).
+    assert stats["n_delivered"] == 40
+    in_flight = stats["n_delivered"] + stats.get("n_output_buffers", 0) - stats["n_completed_buffers"]
+    assert in_flight in (0, 1), stats
     with pytest.raises(CameraError, match="not open"):
         cam.fetch(0.1)
 
