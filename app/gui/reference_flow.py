@@ -327,6 +327,7 @@ def follow_roi(w, settings) -> None:
                                             f"({new_roi[0]}, {new_roi[1]}) from the one taken at ({old[0]}, {old[1]})"
                                             + (f"; {note}" if note else ""))
         return
+    _region_follows_roi(w, w.reference_roi, new_roi)  # for the next reference, at the same place on the water
     w.references.request()  # a build still running must not install a reference of the old ROI
     _remove_reconstructor(w)
     w.geometry_panel.reference_label.setText(

@@ -555,6 +555,38 @@ def test_after_an_roi_change_the_reference_follows_and_the_maps_name_the_roi(qtb
     assert "vs truth" in w.status_labels["truth"].text() and "waves" in w.status_labels["truth"].text()
 
 
+def test_a_typed_region_goes_back_with_the_roi_when_a_new_reference_is_needed(qtbot):
+    """Back from a narrow ROI to the whole frame: the cropped reference does not cover it (a new one is asked
+    for), and the typed reference region returns to its place on the water for that new reference."""
+    from tests.app.test_gui_flow import _open_section
+
+    w = _window(qtbot)
+    w.geometry_panel.n_average.setValue(2)
+    _ctrl(w, QtCore.Qt.Key_R)
+    qtbot.waitUntil(lambda: "✓" in w.geometry_panel.reference_label.text(), timeout=30000)
+    _open_section(qtbot, w, "Reference & geometry")
+    _type_region(qtbot, w, "100, 140, 80, 120")
+    qtbot.waitUntil(lambda: w.geometry.reference_region == (100, 140, 80, 120), timeout=10000)
+    _open_section(qtbot, w, "Camera")
+    cp = w.camera_panel
+
+    def apply_roi(x, width):
+        cp.offset_x.setValue(x)
+        cp.width.setValue(width)
+        cp.apply_button.click()
+        qtbot.waitUntil(lambda: w.session.camera_settings() is not None
+                        and w.session.camera_settings().width == width, timeout=20000)
+
+    apply_roi(64, 128)
+    qtbot.waitUntil(lambda: w.reference is not None and w.reference.shape == (SHAPE[0], 128), timeout=20000)
+    assert w.geometry.reference_region == (100, 140, 16, 56)
+    cp.offset_x.setValue(0)  # first the offset, then the width: the camera refuses a ROI past the sensor
+    apply_roi(0, SHAPE[1])
+    qtbot.waitUntil(lambda: "does not cover the new ROI" in w.geometry_panel.reference_label.text(), timeout=20000)
+    assert w.geometry.reference_region == (100, 140, 80, 120)  # where it was typed, for the next reference
+    assert w.geometry_panel.region.text() == "100, 140, 80, 120"
+
+
 def test_scaled_axes_have_no_si_prefix(qtbot, window):
     """Finding 11: still water's profile (heights ~1e-6 um) reads "height (µm)", never "height (µm) (x1e-06)"."""
     d = np.linspace(0.0, 40.0, 50)
