@@ -32,6 +32,13 @@ def _window(qtbot, **kw):
     return w
 
 
+def _capture_reference_by_keys(qtbot, w, n_average):
+    """Ctrl+R with ``n_average`` frames averaged, as a user does, until the reference label has its ✓."""
+    w.geometry_panel.n_average.setValue(n_average)
+    _ctrl(w, QtCore.Qt.Key_R)
+    qtbot.waitUntil(lambda: "✓" in w.geometry_panel.reference_label.text(), timeout=30000)
+
+
 def _until(qtbot, condition, seen, timeout):
     """``qtbot.waitUntil(condition)`` whose timeout names what was seen last (``seen()``)."""
     def check():
@@ -164,9 +171,7 @@ def test_vs_truth_in_the_status_bar_carries_the_age_of_the_maps(qtbot, tmp_path)
     import tifffile
 
     w = _window(qtbot)
-    w.geometry_panel.n_average.setValue(3)
-    _ctrl(w, QtCore.Qt.Key_R)
-    qtbot.waitUntil(lambda: "✓" in w.geometry_panel.reference_label.text(), timeout=30000)
+    _capture_reference_by_keys(qtbot, w, n_average=3)
     truth = w.status_labels["truth"]
     qtbot.waitUntil(lambda: truth.text().startswith("vs truth") and "stale" not in truth.text()
                     and w.height_error is not None and not w.height_error["stale"], timeout=20000)
@@ -191,9 +196,7 @@ def test_live_numbers_on_another_tab_carry_the_age_of_the_maps_and_fit_the_statu
 
     w = _window(qtbot)
     w.resize(1280, 800)
-    w.geometry_panel.n_average.setValue(3)
-    _ctrl(w, QtCore.Qt.Key_R)
-    qtbot.waitUntil(lambda: "✓" in w.geometry_panel.reference_label.text(), timeout=30000)
+    _capture_reference_by_keys(qtbot, w, n_average=3)
     truth = w.status_labels["truth"]
     qtbot.waitUntil(lambda: truth.text().startswith("vs truth") and "stale" not in truth.text(), timeout=20000)
     _ctrl(w, QtCore.Qt.Key_3)  # the Replay tab
@@ -302,9 +305,7 @@ def test_reference_region_cannot_leave_the_frame_and_never_discards_the_referenc
     from tests.app.test_gui_flow import _open_section
 
     w = _window(qtbot)
-    w.geometry_panel.n_average.setValue(3)
-    _ctrl(w, QtCore.Qt.Key_R)
-    qtbot.waitUntil(lambda: "✓" in w.geometry_panel.reference_label.text(), timeout=30000)
+    _capture_reference_by_keys(qtbot, w, n_average=3)
     _open_section(qtbot, w, "Reference & geometry")
     _type_region(qtbot, w, "20, 80, 20, 80")
     qtbot.waitUntil(lambda: w.geometry.to_dict().get("reference_region") is not None
@@ -387,9 +388,7 @@ def test_view_menu_holds_every_scene_and_the_gpu_is_used_only_when_asked(qtbot):
     sub = next(a.menu() for a in view.actions() if a.menu() is not None and a.text() == "Synthetic scene")
     assert [a.objectName() for a in sub.actions()] == ["scene_still", "scene_waves", "scene_drop", "scene_impact"]
     assert not [a for a in view.actions() if a.objectName().startswith("scene_")]
-    w.geometry_panel.n_average.setValue(2)
-    _ctrl(w, QtCore.Qt.Key_R)
-    qtbot.waitUntil(lambda: "✓" in w.geometry_panel.reference_label.text(), timeout=30000)
+    _capture_reference_by_keys(qtbot, w, n_average=2)
     qtbot.waitUntil(lambda: w.status_labels["device"].text() == "live on CPU", timeout=5000)
     assert w.session.worker.reconstructor.device == "cpu"
     w.actions_by_name["gpu"].trigger()  # the user asks for the GPU
@@ -461,9 +460,7 @@ def test_at_1280x800_nothing_is_cut_and_the_alignment_views_keep_their_size(qtbo
 
     w = _window(qtbot)
     w.resize(1280, 800)
-    w.geometry_panel.n_average.setValue(2)
-    _ctrl(w, QtCore.Qt.Key_R)
-    qtbot.waitUntil(lambda: "✓" in w.geometry_panel.reference_label.text(), timeout=30000)
+    _capture_reference_by_keys(qtbot, w, n_average=2)
     qtbot.waitUntil(lambda: w.last_drawn is not None and w.last_drawn.result is not None, timeout=20000)
     qtbot.wait(600)  # a few display ticks at the new size
     title = w.probe_view.plot.getPlotItem().titleLabel
@@ -487,9 +484,7 @@ def test_after_an_roi_change_the_reference_follows_and_the_maps_name_the_roi(qtb
     from tests.app.test_gui_flow import _open_section
 
     w = _window(qtbot)
-    w.geometry_panel.n_average.setValue(2)
-    _ctrl(w, QtCore.Qt.Key_R)
-    qtbot.waitUntil(lambda: "✓" in w.geometry_panel.reference_label.text(), timeout=30000)
+    _capture_reference_by_keys(qtbot, w, n_average=2)
     qtbot.waitUntil(lambda: w.last_drawn is not None and w.last_drawn.result is not None, timeout=20000)
     band = w.pin_overlay.image.mapRectToParent(w.pin_overlay.image.boundingRect()).width()
     assert band == pytest.approx(SHAPE[1], abs=8)
@@ -561,9 +556,7 @@ def test_a_typed_region_goes_back_with_the_roi_when_a_new_reference_is_needed(qt
     from tests.app.test_gui_flow import _open_section
 
     w = _window(qtbot)
-    w.geometry_panel.n_average.setValue(2)
-    _ctrl(w, QtCore.Qt.Key_R)
-    qtbot.waitUntil(lambda: "✓" in w.geometry_panel.reference_label.text(), timeout=30000)
+    _capture_reference_by_keys(qtbot, w, n_average=2)
     _open_section(qtbot, w, "Reference & geometry")
     _type_region(qtbot, w, "100, 140, 80, 120")
     qtbot.waitUntil(lambda: w.geometry.reference_region == (100, 140, 80, 120), timeout=10000)
