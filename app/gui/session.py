@@ -82,8 +82,6 @@ class LiveSession:
         # frame numbers run on across camera restarts: each acquisition's first frame is numbered after
         # every frame of the ones before (the raw view, the worker and the stale marks use one numbering)
         self._base_of = weakref.WeakKeyDictionary()
-        # where each acquisition's frames lie on the sensor: (row, col) of their pixel (0, 0), the ROI's offset
-        self._origin_of = weakref.WeakKeyDictionary()
         self._frames_before = 0
         self._closed = False
         self.tank = None  # the synthetic camera's app.capture.scene.TankScene (scenes, true heights)
@@ -201,7 +199,6 @@ class LiveSession:
         with self._lock:
             self._number_after(old)
             self._base_of[acq] = self._frames_before
-            self._origin_of[acq] = (int(settings.offset_y), int(settings.offset_x))
         acq.start()
         with self._lock:
             self._settings = settings
@@ -277,8 +274,11 @@ class LiveSession:
     def sensor_origin_of(self, seq: int) -> Optional[tuple]:
         """``(row, col)`` on the sensor of pixel (0, 0) of frame ``seq`` (its ROI's offset, px); None when the
         frame came from an earlier acquisition (its ROI may have been another)."""
-        acq = self.acquisition_of(seq)
-        return None if acq is None else self._origin_of.get(acq)
+        with self._lock:  # the open acquisition and its settings are set together
+            acq, settings = self.acquisition_of(seq), self._settings
+        if acq is None or settings is None:
+            return None
+        return int(settings.offset_y), int(settings.offset_x)
 
     def acquisition_of(self, seq: Optional[int]):
         """The open acquisition if frame ``seq`` (numbered as ``Processed.seq``) is one of its frames, None
