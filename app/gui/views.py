@@ -279,6 +279,14 @@ class ImageView(QtWidgets.QWidget):
         self.plot.setTitle(f"<b>{title}</b> ({units})" if units else f"<b>{title}</b>", color="#111", size="10pt")
         self.plot.setAspectLocked(True)
         self.plot.invertY(True)  # row 0 at the top, like the camera image
+        # The range is set explicitly (the image's rect, _refit), never by auto-range: before the first
+        # data, overlays that keep their size on screen (the profile line's handles, the pin label)
+        # grow in data units with the view, so auto-range grew the view to hold them, which grew them,
+        # every paint: a repaint storm (views 1e111 wide, the GUI thread busy for 25 s, no frame drawn)
+        # in a window restored with a reference.
+        # (not enableAutoRange(False): pyqtgraph reads that False as its axis number 0, the x axis,
+        # and turns x auto-range ON; the same call above the probes' and histogram's plots did so too)
+        self.plot.disableAutoRange()
         for side, name in (("bottom", "x"), ("left", "y")):
             axis = self.plot.getAxis(side)
             axis.enableAutoSIPrefix(False)
@@ -528,7 +536,7 @@ class ProfileView(QtWidgets.QWidget):
             self.plot.getAxis(name).enableAutoSIPrefix(False)
         self.plot.showGrid(x=True, y=True, alpha=0.3)
         self.curve = self.plot.plot(pen=pg.mkPen("#1f77b4", width=2))
-        self.plot.enableAutoRange(False)  # ranges set explicitly: axes are not redrawn every frame
+        self.plot.disableAutoRange()  # ranges set explicitly: axes are not redrawn every frame
         _cache_axes(self.plot.getPlotItem())
         self._range = None
         self._range_t = 0.0
@@ -593,7 +601,7 @@ class HistogramView(QtWidgets.QWidget):
         self.plot.setMinimumHeight(90)
         self.curve = self.plot.plot(stepMode="center", fillLevel=0, brush=(80, 80, 200, 120),
                                     pen=pg.mkPen("#3040a0"))
-        self.plot.enableAutoRange(False)
+        self.plot.disableAutoRange()
         _cache_axes(self.plot.getPlotItem())
         layout.addWidget(self.plot)
         self._title = ""

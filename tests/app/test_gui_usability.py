@@ -573,3 +573,30 @@ def test_a_resized_view_still_draws_the_whole_frame(qtbot):
         drawn.append((view.stride, view.image.image.shape))
         assert (shown.width(), shown.height()) == pytest.approx((1024, 1024)), (size, view.stride, shown)
     assert len({stride for stride, _ in drawn}) >= 2, f"the stride never changed: {drawn}"
+
+
+def test_a_map_with_a_line_and_no_data_yet_paints_once_not_forever(qtbot):
+    """Before its first frame a map already carries its overlays (the profile line on the height
+    map). Its handles keep their size on screen, so their extent in data units grows with the view:
+    auto-ranging the view to hold them changed the view, which changed the handles, which asked for
+    another paint, for ever. Seen in a window restored with a reference: views 1e111 units wide, the
+    GUI thread repainting for 25 s and no frame drawn. (pyqtgraph's ``enableAutoRange(False)`` turned
+    x auto-range ON: it reads False as axis 0.) A map with nothing new to show paints a few times."""
+    from app.gui.views import ImageView, ProfileLine
+
+    view = ImageView("Height", "µm", symmetric=True, pan=False)
+    qtbot.addWidget(view)
+    view.plot.addItem(ProfileLine([[0, 0], [1, 1]]))  # where the window puts it before any map
+    view.resize(600, 300)  # a wide tile
+    view.show()
+    qtbot.waitExposed(view)
+    for _ in range(100):  # each turn of the event loop painted the old view once more
+        qtbot.wait(1)
+    assert view.graphics.painted <= 10, f"painted {view.graphics.painted} times with nothing new to show"
+    (x0, x1), (y0, y1) = view.plot.getViewBox().viewRange()
+    assert x1 - x0 < 10 and y1 - y0 < 10  # the line spans 1 x 1
+    # the first data sets the range to the map's extent, 64 px
+    view.set_data(np.zeros((64, 64), np.float32))
+    view.graphics.viewport().repaint()
+    (x0, x1), (y0, y1) = view.plot.getViewBox().viewRange()
+    assert min(x1 - x0, y1 - y0) == pytest.approx(64, rel=0.05), (x0, x1, y0, y1)  # aspect 1:1
