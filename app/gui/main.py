@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import signal
+import socket
 import sys
 from typing import Optional, Sequence
 
@@ -49,8 +51,51 @@ def _start_scene_when_open(window, scene: str, QtCore) -> None:
     timer.start(100)
 
 
+#: exit status of a window closed by a signal from its terminal: 128 + the signal's number, as a shell
+#: reports it and as ``tirdeflect record`` exits (130 Ctrl-C, 143 SIGTERM, 129 SIGHUP)
+CLOSING_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
+def _close_on_signals(window, app, QtCore) -> dict:
+    """Ctrl-C, SIGTERM or SIGHUP (the terminal closed) close the window as its close button does, without
+    the question about a recording in progress: the recording stops with every frame written so far kept.
+
+    Python runs a signal's handler only between bytecodes, and an idle Qt event loop runs none: the
+    signal's byte on a socket (``signal.set_wakeup_fd``) wakes the loop, whose notifier then lets the
+    handler run. Returns ``{"signal": number}`` once one came (the exit status is 128 + it)."""
+    got: dict = {}
+    receive, send = socket.socketpair()
+    for sock in (receive, send):
+        sock.setblocking(False)
+    signal.set_wakeup_fd(send.fileno())
+    notifier = QtCore.QSocketNotifier(receive.fileno(), QtCore.QSocketNotifier.Type.Read, window)
+
+    def drain(*_):
+        try:
+            receive.recv(64)
+        except OSError:
+            pass
+
+    notifier.activated.connect(drain)
+
+    def handler(signum, _frame):
+        if "signal" in got:
+            return  # closing already
+        got["signal"] = signum
+        logging.getLogger(__name__).warning("%s: closing the window (a recording in progress keeps its frames)",
+                                            signal.Signals(signum).name)
+        QtCore.QTimer.singleShot(0, lambda: (window.shutdown(), app.quit()))
+
+    for sig in CLOSING_SIGNALS:
+        if signal.getsignal(sig) is not signal.SIG_IGN:  # ignored from the start (nohup, `&`): stays so
+            signal.signal(sig, handler)
+    got["_keep"] = (receive, send, notifier)  # alive as long as the loop runs
+    return got
+
+
 def main(argv: Optional[Sequence[str]] = None) -> int:
-    """Open the live window; returns the exit code of the Qt event loop (0 normally, 2 on bad arguments)."""
+    """Open the live window; returns the exit status: 0 closed normally, 2 bad arguments, 128 + the signal's
+    number when Ctrl-C (130), SIGTERM (143) or SIGHUP (129) closed it."""
     args = build_parser().parse_args(argv)
     if (sys.platform.startswith("linux") and not os.environ.get("QT_QPA_PLATFORM")
             and not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY")):
@@ -92,9 +137,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     window.show()
     if args.quit_after is not None:
         QtCore.QTimer.singleShot(int(1000 * args.quit_after), window.close)
+    closed_by = _close_on_signals(window, app, QtCore)
     try:
-        return int(app.exec())
+        code = int(app.exec())
+        return 128 + int(closed_by["signal"]) if "signal" in closed_by else code
     finally:
+        signal.set_wakeup_fd(-1)
         window.shutdown()
         try:
             cache.store_fftw_wisdom()
