@@ -278,19 +278,19 @@ def test_scene_option_starts_the_scene_and_ctrl_c_closes_the_window(tmp_path):
     import threading
 
     env = dict(os.environ, QT_QPA_PLATFORM="offscreen", TIRDEFLECT_CACHE_DIR=str(tmp_path / "cache"))
-    proc = subprocess.Popen([sys.executable, "-m", "app.cli", "--scene", "drop", "--size", "128", "--frames", "4"],
-                            cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    hang = threading.Timer(120, proc.kill)  # a hang detector: the scene streams within seconds
-    hang.start()
     lines = []
-    try:
-        for line in proc.stderr:
-            lines.append(line)
-            if "synthetic tank: scene drop streaming" in line:
-                proc.send_signal(signal.SIGINT)
-        code = proc.wait()
-    finally:
-        hang.cancel()
+    with subprocess.Popen([sys.executable, "-m", "app.cli", "--scene", "drop", "--size", "128", "--frames", "4"],
+                          cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True) as proc:
+        hang = threading.Timer(120, proc.kill)  # a hang detector: the scene streams within seconds
+        hang.start()
+        try:
+            for line in proc.stderr:
+                lines.append(line)
+                if "synthetic tank: scene drop streaming" in line:
+                    proc.send_signal(signal.SIGINT)
+            code = proc.wait()
+        finally:
+            hang.cancel()
     err = "".join(lines)
     assert code == 130, err[-2000:]
     assert "first camera frame on screen" in err
