@@ -53,7 +53,8 @@ def _start_scene_when_open(window, scene: str, QtCore) -> None:
 
 #: exit status of a window closed by a signal from its terminal: 128 + the signal's number, as a shell
 #: reports it and as ``tirdeflect record`` exits (130 Ctrl-C, 143 SIGTERM, 129 SIGHUP)
-CLOSING_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+#: (Windows has no SIGHUP)
+CLOSING_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
 
 
 def _close_on_signals(window, app, QtCore) -> dict:

@@ -285,7 +285,7 @@ class ImageView(QtWidgets.QWidget):
         # every paint: a repaint storm (views 1e111 wide, the GUI thread busy for 25 s, no frame drawn)
         # in a window restored with a reference.
         # (not enableAutoRange(False): pyqtgraph reads that False as its axis number 0, the x axis,
-        # and turns x auto-range ON; the same call above the probes' and histogram's plots did so too)
+        # and turns x auto-range ON; the same call in ProfileView and HistogramView below did so too)
         self.plot.disableAutoRange()
         for side, name in (("bottom", "x"), ("left", "y")):
             axis = self.plot.getAxis(side)
