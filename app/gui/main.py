@@ -57,41 +57,42 @@ def _start_scene_when_open(window, scene: str, QtCore) -> None:
 CLOSING_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
 
 
-def _close_on_signals(window, app, QtCore) -> dict:
+class _CloseOnSignals:
     """Ctrl-C, SIGTERM or SIGHUP (the terminal closed) close the window as its close button does, without
     the question about a recording in progress: the recording stops with every frame written so far kept.
 
     Python runs a signal's handler only between bytecodes, and an idle Qt event loop runs none: the
     signal's byte on a socket (``signal.set_wakeup_fd``) wakes the loop, whose notifier then lets the
-    handler run. Returns ``{"signal": number}`` once one came (the exit status is 128 + it)."""
-    got: dict = {}
-    receive, send = socket.socketpair()
-    for sock in (receive, send):
-        sock.setblocking(False)
-    signal.set_wakeup_fd(send.fileno())
-    notifier = QtCore.QSocketNotifier(receive.fileno(), QtCore.QSocketNotifier.Type.Read, window)
+    handler run. :attr:`signal` is the number of the signal that closed the window (None: none did; the
+    exit status is then 128 + it). Signals ignored from the start (``nohup``, ``&``) stay ignored."""
 
-    def drain(*_):
+    def __init__(self, window, app, QtCore):
+        self.signal: Optional[int] = None
+        self._window, self._app, self._QtCore = window, app, QtCore
+        self._receive, self._send = socket.socketpair()  # kept here as long as the loop runs
+        for sock in (self._receive, self._send):
+            sock.setblocking(False)
+        signal.set_wakeup_fd(self._send.fileno())
+        self._notifier = QtCore.QSocketNotifier(self._receive.fileno(), QtCore.QSocketNotifier.Type.Read, window)
+        self._notifier.activated.connect(self._drain)
+        for sig in CLOSING_SIGNALS:
+            if signal.getsignal(sig) is not signal.SIG_IGN:
+                signal.signal(sig, self._handler)
+
+    def _drain(self, *_):
         try:
-            receive.recv(64)
+            self._receive.recv(64)
         except OSError:
             pass
 
-    notifier.activated.connect(drain)
-
-    def handler(signum, _frame):
-        if "signal" in got:
+    def _handler(self, signum, _frame):
+        if self.signal is not None:
             return  # closing already
-        got["signal"] = signum
+        self.signal = signum
         logging.getLogger(__name__).warning("%s: closing the window (a recording in progress keeps its frames)",
                                             signal.Signals(signum).name)
-        QtCore.QTimer.singleShot(0, lambda: (window.shutdown(), app.quit()))
-
-    for sig in CLOSING_SIGNALS:
-        if signal.getsignal(sig) is not signal.SIG_IGN:  # ignored from the start (nohup, `&`): stays so
-            signal.signal(sig, handler)
-    got["_keep"] = (receive, send, notifier)  # alive as long as the loop runs
-    return got
+        window, app = self._window, self._app
+        self._QtCore.QTimer.singleShot(0, lambda: (window.shutdown(), app.quit()))
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
@@ -138,10 +139,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     window.show()
     if args.quit_after is not None:
         QtCore.QTimer.singleShot(int(1000 * args.quit_after), window.close)
-    closed_by = _close_on_signals(window, app, QtCore)
+    closed_by = _CloseOnSignals(window, app, QtCore)
     try:
         code = int(app.exec())
-        return 128 + int(closed_by["signal"]) if "signal" in closed_by else code
+        return code if closed_by.signal is None else 128 + int(closed_by.signal)
     finally:
         signal.set_wakeup_fd(-1)
         window.shutdown()
