@@ -27,6 +27,7 @@ import numpy as np
 from app.batch.compare import compare_heights
 from app.batch.engine import MEASURE_MIN_FRAMES, ProcessJob, check_input_file, run_process
 from app.batch.simulate import run_simulate
+from app.stop_signals import STOP_SIGNALS
 from processing.errors import TirdeflectError
 
 __all__ = ["add_process_parser", "add_simulate_parser", "add_compare_parser",
@@ -242,8 +243,6 @@ class _signals_interrupt:
     KeyboardInterrupt in the main thread, so they end a run the way Ctrl-C
     does: file closed valid, partial result named."""
 
-    SIGNALS = ("SIGTERM", "SIGHUP")
-
     def __enter__(self):
         import signal
         import threading
@@ -251,10 +250,8 @@ class _signals_interrupt:
         self._old = {}
         if threading.current_thread() is not threading.main_thread():
             return self
-        for name in self.SIGNALS:
-            sig = getattr(signal, name, None)
-            if sig is not None:
-                self._old[sig] = signal.signal(sig, self._raise)
+        for sig in STOP_SIGNALS:
+            self._old[sig] = signal.signal(sig, self._raise)
         return self
 
     @staticmethod

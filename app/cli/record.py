@@ -31,6 +31,8 @@ from typing import Optional
 
 import numpy as np
 
+from app.stop_signals import STOP_SIGNALS
+
 __all__ = ["add_cameras_arguments", "cmd_cameras", "add_record_arguments", "cmd_record", "main"]
 
 log = logging.getLogger("tirdeflect.record")
@@ -297,10 +299,6 @@ class _Signalled(KeyboardInterrupt):
     def __init__(self, signum: int):
         super().__init__(signum)
         self.signum = signum
-
-
-#: signals that end a recording like Ctrl-C: what `timeout` and systemd send, and a closing terminal
-STOP_SIGNALS = (signal.SIGTERM, signal.SIGHUP)
 
 
 def _say(text: str, stream=None) -> None:

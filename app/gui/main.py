@@ -10,6 +10,8 @@ import socket
 import sys
 from typing import Optional, Sequence
 
+from app.stop_signals import STOP_SIGNALS
+
 __all__ = ["main", "build_parser"]
 
 
@@ -51,10 +53,9 @@ def _start_scene_when_open(window, scene: str, QtCore) -> None:
     timer.start(100)
 
 
-#: exit status of a window closed by a signal from its terminal: 128 + the signal's number, as a shell
-#: reports it and as ``tirdeflect record`` exits (130 Ctrl-C, 143 SIGTERM, 129 SIGHUP)
-#: (Windows has no SIGHUP)
-CLOSING_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
+#: the signals that close the window (exit status 128 + the signal's number, as a shell reports it and as
+#: ``tirdeflect record`` exits: 130 Ctrl-C, 143 SIGTERM, 129 SIGHUP)
+CLOSING_SIGNALS = (signal.SIGINT,) + STOP_SIGNALS
 
 
 class _CloseOnSignals:
