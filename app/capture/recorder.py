@@ -40,7 +40,7 @@ import threading
 import time
 import zlib
 from pathlib import Path
-from typing import Callable, Dict, List, Optional
+from typing import Callable, Dict, List, Optional, Tuple
 
 import numpy as np
 
@@ -72,6 +72,7 @@ __all__ = [
     "software_version",
     "read_summary",
     "format_summary",
+    "summary_rows",
 ]
 
 log = logging.getLogger("tirdeflect.recorder")
@@ -973,29 +974,29 @@ def _keep_meta(fr: RingFrame) -> RingFrame:
     return RingFrame(None, fr.sequence, fr.frame_id, fr.device_timestamp_ns, fr.host_timestamp_ns, fr.flags)
 
 
-def format_summary(s: dict) -> str:
-    """Multi-line human summary of a recording (what ``tirdeflect record`` prints)."""
+def summary_rows(s: dict) -> List[Tuple[str, str]]:
+    """A recording's summary as (what, value) rows, after its first line ``recording PATH``: the CLI prints
+    them as columns (:func:`format_summary`), the window as a table whose values wrap in their cell."""
     planned = s.get("frames_planned", -1)
-    lines = [
-        f"recording {s.get('path', '')}",
-        f"  frames written   {s.get('frames_written', 0)}" + (f" of {planned} planned" if planned and planned > 0 else ""),
-        f"  lost upstream    {s.get('lost_upstream_id_gaps', 0)} (camera frame-id gaps"
-        + (f"; missing ids {_ranges(s.get('missing_frame_ids', []))}" if s.get("missing_frame_ids") else "") + ")",
-        f"  timestamp gaps   {s.get('time_gaps', 0)} (about {s.get('lost_by_time_estimate', 0)} frames "
-        "missing beyond the id gaps)",
-        f"  incomplete       {_incomplete_text(s)}",
-        f"  ring overrun     {s.get('lost_ring_overrun', 0)} frames lost (recorder backlog max "
-        f"{s.get('recorder_backlog_max', 0)} of {s.get('ring_frames', 0)})",
-        f"  data rate        {s.get('write_rate_mb_s', 0)} MB/s on average over {s.get('elapsed_s', 0)} s",
+    rows = [
+        ("frames written", f"{s.get('frames_written', 0)}" + (f" of {planned} planned" if planned and planned > 0 else "")),
+        ("lost upstream", f"{s.get('lost_upstream_id_gaps', 0)} (camera frame-id gaps"
+         + (f"; missing ids {_ranges(s.get('missing_frame_ids', []))}" if s.get("missing_frame_ids") else "") + ")"),
+        ("timestamp gaps", f"{s.get('time_gaps', 0)} (about {s.get('lost_by_time_estimate', 0)} frames "
+         "missing beyond the id gaps)"),
+        ("incomplete", _incomplete_text(s)),
+        ("ring overrun", f"{s.get('lost_ring_overrun', 0)} frames lost (recorder backlog max "
+         f"{s.get('recorder_backlog_max', 0)} of {s.get('ring_frames', 0)})"),
+        ("data rate", f"{s.get('write_rate_mb_s', 0)} MB/s on average over {s.get('elapsed_s', 0)} s"),
     ]
     if "packets_resend_requests" in s:
-        lines.insert(-1, f"  network packets  {s.get('packets_resend_requests', 0)} resend requests, "
-                         f"{s.get('packets_resent', 0)} packets resent by the camera")
+        rows.insert(-1, ("network packets", f"{s.get('packets_resend_requests', 0)} resend requests, "
+                                            f"{s.get('packets_resent', 0)} packets resent by the camera"))
     total = s.get("total_missing", 0)
     n_incomplete = s.get("incomplete", 0)
     suspect = s.get("lost_by_time_estimate", 0)
     if s.get("error"):
-        lines.append(f"  ERROR            {s['error']}")
+        rows.append(("ERROR", str(s["error"])))
     parts = []
     if total:
         parts.append(f"{total} frames missing")
@@ -1004,8 +1005,13 @@ def format_summary(s: dict) -> str:
     result = ("; ".join(parts) if parts else "no frame lost" if not s.get("error") else "incomplete recording")
     if suspect:
         result += f"; timestamp gaps suggest about {suspect} more (frames the camera ids do not show, or late frames)"
-    lines.append("  result           " + result)
-    return "\n".join(lines)
+    rows.append(("result", result))
+    return rows
+
+
+def format_summary(s: dict) -> str:
+    """Multi-line human summary of a recording (what ``tirdeflect record`` prints)."""
+    return "\n".join([f"recording {s.get('path', '')}"] + [f"  {name:<16} {value}" for name, value in summary_rows(s)])
 
 
 def _incomplete_text(s: dict) -> str:

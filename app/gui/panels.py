@@ -6,6 +6,7 @@ does the work (in background threads where it can block).
 
 from __future__ import annotations
 
+import html
 from typing import Optional
 
 from pyqtgraph.Qt import QtCore, QtGui, QtWidgets
@@ -513,9 +514,6 @@ class RecordingPanel(QtWidgets.QWidget):
         self.result_label = QtWidgets.QLabel("")
         self.result_label.setWordWrap(True)
         self.result_label.setTextInteractionFlags(QtCore.Qt.TextSelectableByMouse)
-        mono = QtGui.QFontDatabase.systemFont(QtGui.QFontDatabase.FixedFont)
-        mono.setPointSizeF(max(7.0, mono.pointSizeF() - 1))
-        self.result_label.setFont(mono)  # the drop summary is a column layout
         form.addRow(self.result_label)
         self.arm_button.clicked.connect(self.arm_requested.emit)
         self.disarm_button.clicked.connect(self.disarm_requested.emit)
@@ -525,6 +523,14 @@ class RecordingPanel(QtWidgets.QWidget):
         self.pre.valueChanged.connect(lambda *_: self.lengths_changed.emit())
         self.post.valueChanged.connect(lambda *_: self.lengths_changed.emit())
         self.set_state("idle")
+
+    def show_summary(self, path: str, rows) -> None:
+        """A finished recording's summary (``app.capture.recorder.summary_rows``) as a two-column table whose
+        values wrap inside their cell (the terminal's column layout wrapped line by line in the dock)."""
+        cells = "".join(f"<tr><td style='padding-right:6px; white-space:nowrap'>{html.escape(name)}</td>"
+                        f"<td>{html.escape(value)}</td></tr>" for name, value in rows)
+        self.result_label.setText(f"<b>recording</b> {html.escape(str(path))}"
+                                  f"<table cellspacing='0' cellpadding='1'>{cells}</table>")
 
     def set_cost(self, frame_bytes: int, rate_hz: Optional[float], ring_frames: Optional[int] = None) -> None:
         """Show what the capture costs: pre-trigger frames held in RAM (the ring), the file on disk."""

@@ -20,6 +20,8 @@ from pyqtgraph.Qt import QtCore, QtWidgets
 from processing.errors import TirdeflectError
 from processing.probe import probe_cell, sample_cell
 
+from .views import room_for_the_last_tick
+
 __all__ = ["Probe", "ProbeView", "HISTORY_S", "MAX_PROBES"]
 
 #: seconds of history a probe keeps and shows
@@ -111,13 +113,14 @@ class ProbeView(QtWidgets.QWidget):
         self._t0_ns: Optional[int] = None
         self.plot = pg.PlotWidget()
         self.plot.setBackground("w")
-        self.plot.setTitle("<b>Probes</b> (click the map)", color="#111", size="10pt")  # fits 1280x800's column
         self.plot.setLabel("bottom", "time (s)")
         self.plot.setLabel("left", "height (µm)")
         self.plot.getAxis("left").enableAutoSIPrefix(False)  # already in µm: no "(x1e-06)"
         self.stale_text = None
         self.plot.showGrid(x=True, y=True, alpha=0.3)
-        self.plot.addLegend(offset=(5, 5))
+        # the probes' colours are named in the title, never in a legend box over the series
+        self._show_title()
+        room_for_the_last_tick(self.plot.getPlotItem())
         self._hint = ("Click the height map to place a probe; drag it to move it, right-click it to "
                       "remove it. Last %d s." % HISTORY_S)
         self.plot.setToolTip(self._hint)
@@ -131,11 +134,22 @@ class ProbeView(QtWidgets.QWidget):
         if text == self.stale_text:
             return
         self.stale_text = text
-        title = "<b>Probes</b> (click the map)" if text is None else "<b>Probes</b> <span style='color:#a00'>STALE</span>"
-        self.plot.setTitle(title, color="#111", size="10pt")
+        self._show_title()
         self.plot.setToolTip(f"STALE: {text}" if text else self._hint)
         for probe in self.probes:
             probe.curve.setOpacity(0.3 if text else 1.0)
+
+    def _show_title(self) -> None:
+        """"Probes", STALE while the maps are, and each probe's name in its curve's colour (a few words:
+        1280x800's column holds them)."""
+        parts = ["<b>Probes</b>"]
+        if self.stale_text is not None:
+            parts.append("<span style='color:#a00'>STALE</span>")
+        if self.probes:
+            parts += [f"<span style='color:{p.colour}'>&#9472; {p.label}</span>" for p in self.probes]
+        else:
+            parts.append("(click the map)")
+        self.plot.setTitle(" ".join(parts), color="#111", size="10pt")
 
     def _clicked(self, ev):
         if ev.button() != QtCore.Qt.LeftButton or ev.isAccepted() or ev.double():
@@ -154,6 +168,7 @@ class ProbeView(QtWidgets.QWidget):
         probe = Probe(self, self._numbers, x_mm, y_mm, _COLOURS[(self._numbers - 1) % len(_COLOURS)])
         self.map_plot.addItem(probe.marker)
         self.probes.append(probe)
+        self._show_title()
         return probe
 
     def remove(self, probe: Probe) -> None:
@@ -161,9 +176,7 @@ class ProbeView(QtWidgets.QWidget):
             self.probes.remove(probe)
             self.map_plot.removeItem(probe.marker)
             self.plot.removeItem(probe.curve)
-            legend = self.plot.getPlotItem().legend
-            if legend is not None:
-                legend.removeItem(probe.curve)
+            self._show_title()
 
     def clear(self) -> None:
         for probe in list(self.probes):

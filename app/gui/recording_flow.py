@@ -11,6 +11,8 @@ from typing import Optional
 
 from pyqtgraph.Qt import QtWidgets
 
+from app.capture.recorder import summary_rows
+
 from .model.recording import progress_line, slope_of_mrad
 
 log = logging.getLogger(__name__)
@@ -92,7 +94,10 @@ def update_recording(w):
     rp.progress.setValue(int(round(100 * rec.get("progress", 0.0))))
     if state in ("done", "error") and rec.get("summary_text") and not rec.get("_shown"):
         rec["_shown"] = True
-        rp.result_label.setText(rec["summary_text"])
+        if rec.get("summary"):
+            rp.show_summary(rec.get("path", ""), summary_rows(rec["summary"]))
+        else:
+            rp.result_label.setText(rec["summary_text"])
         if state == "error":
             w.show_error(f"Recording stopped: {rec.get('error')}\nEvery frame received so far is kept "
                             f"in {rec.get('path')}.")

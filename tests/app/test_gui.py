@@ -141,6 +141,10 @@ def test_record_pre_post_trigger_then_replay_and_export(qtbot, window, scene, tm
     qtbot.waitUntil(lambda: rp.state_label.text() in ("done", "error"), timeout=15000)
     assert rp.state_label.text() == "done", window.last_error
     assert "no frame lost" in rp.result_label.text()
+    # the summary is a table (each row's name in a cell of its own, its value wrapping in the next),
+    # not terminal columns that wrap line by line in the dock; the row with the result is there
+    assert "<td style='padding-right:6px; white-space:nowrap'>result</td><td>no frame lost</td>" in \
+        rp.result_label.text()
     path = window.session.recording["path"]
     with h5py.File(path, "r") as f:
         n = int(f.attrs["frames_written"])

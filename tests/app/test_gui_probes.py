@@ -116,3 +116,32 @@ def test_probe_placed_by_click_follows_the_true_waves(qtbot):
     qtbot.mouseClick(viewport, QtCore.Qt.RightButton, pos=_map_pos(w, probe.x_mm, probe.y_mm))
     assert w.probe_view.probes == []
     assert probe.curve not in w.probe_view.plot.getPlotItem().items
+
+
+def test_probe_names_are_in_the_title_not_in_a_box_over_the_series(qtbot):
+    """The probes' legend sat in the plot's corner over the series (seen at 1280x800); their names
+    now stand in the title in their curves' colours, follow adds and removals, and the time axis'
+    last tick label has room to be drawn whole."""
+    import pyqtgraph as pg
+
+    from app.gui.probes import ProbeView
+
+    map_plot = pg.PlotWidget()
+    qtbot.addWidget(map_plot)
+    view = ProbeView(map_plot.getPlotItem())
+    qtbot.addWidget(view)
+    view.resize(330, 200)
+    view.show()
+    title = lambda: view.plot.getPlotItem().titleLabel.text  # noqa: E731
+    assert "(click the map)" in title()
+    p1, p2 = view.add(1.0, 2.0), view.add(3.0, 4.0)
+    assert view.plot.getPlotItem().legend is None
+    assert f"color:{p1.colour}'>&#9472; P1" in title() and f"color:{p2.colour}'>&#9472; P2" in title()
+    view.set_stale("frame 3, 2.0 s ago")
+    assert "STALE" in title() and "P2" in title()
+    view.remove(p1)
+    view.set_stale(None)
+    assert "P1" not in title() and "P2" in title() and "STALE" not in title()
+    axis = view.plot.getAxis("bottom")
+    half_label_px = QtGui.QFontMetrics(axis.style.get("tickFont") or axis.font()).horizontalAdvance("40") / 2
+    assert view.plot.getPlotItem().layout.getContentsMargins()[2] >= half_label_px

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 from pyqtgraph.Qt import QtCore, QtGui, QtTest, QtWidgets
 
+from app.gui.views import decimate_for_display
 from drivers.synthetic import SyntheticCamera
 from tests.app.test_gui import SHAPE, Switchable, _wait_reconstructor, scene  # noqa: F401  (window: tests/app/conftest.py)
 from tests.drivers.fixtures import gv_fake_camera  # noqa: F401
@@ -64,8 +65,9 @@ def test_unmeasurable_frames_mark_the_maps_stale_and_pause_freezes_one_frame(qtb
                        (window.height_view, 1e3 * r.height)):
         k = view.stride  # the view draws every k-th sample
         np.testing.assert_allclose(view.image.image, data[::k, ::k], rtol=1e-5, equal_nan=True)
-    np.testing.assert_array_equal(window.raw_view.image.image, p.image[::window.raw_view.stride,
-                                                                        ::window.raw_view.stride])
+    # the camera frame in blocks of stride x stride pixels, averaged (app.gui.views.decimate_for_display)
+    np.testing.assert_array_equal(window.raw_view.image.image,
+                                  decimate_for_display(p.image, window.raw_view.stride)[0])
     worker = window.session.worker
     qtbot.waitUntil(lambda: worker.latest() is not None and worker.latest().seq >= p.seq + 3, timeout=10000)
     qtbot.wait(100)  # several display ticks
@@ -571,8 +573,41 @@ def test_a_resized_view_still_draws_the_whole_frame(qtbot):
         view.set_data(frame)
         shown = view.image.mapRectToParent(view.image.boundingRect())
         drawn.append((view.stride, view.image.image.shape))
-        assert (shown.width(), shown.height()) == pytest.approx((1024, 1024)), (size, view.stride, shown)
+        # the averaged blocks cover the frame but for its last incomplete block (< stride px)
+        covered = 1024 // view.stride * view.stride
+        assert (shown.x(), shown.y(), shown.width(), shown.height()) == pytest.approx((0, 0, covered, covered)), \
+            (size, view.stride, shown)
+        assert view.image.image.shape == (1024 // view.stride,) * 2
     assert len({stride for stride, _ in drawn}) >= 2, f"the stride never changed: {drawn}"
+
+
+def test_a_fine_pattern_drawn_smaller_shows_no_moire(qtbot):
+    """A camera image drawn in fewer screen pixels than it has (the Alignment tab's camera image at
+    1280x800: 512 px in about 150) must not show bands that are not on the pattern. Picking every
+    k-th pixel of a pattern whose period is close to k draws it as a slow beat at full contrast (the
+    moire seen on the random-dot state); the view averages k x k blocks. A pattern of period 1.07 k:
+    the drawn image's spread must stay below 15 % of the pattern's amplitude (striding: about 50 %)."""
+    from app.gui.views import ImageView
+
+    view = ImageView("Raw frame", "counts", axis_units="px", pan=False)
+    qtbot.addWidget(view)
+    view.resize(300, 300)
+    view.show()
+    qtbot.waitUntil(lambda: view.plot.getViewBox().width() < 300, timeout=5000)
+    rows, cols = np.mgrid[0:1024, 0:1024].astype(np.float64)
+    view.set_data(np.zeros((1024, 1024), np.uint16))
+    k = view.stride
+    assert k >= 3
+    period_px = 16.0 / 15.0 * k  # beats with the stride every 16 drawn pixels
+    amplitude = 1000.0
+    frame = np.round(2048 + amplitude * np.cos(2 * np.pi * cols / period_px)
+                     * np.cos(2 * np.pi * rows / period_px)).astype(np.uint16)
+    view.set_data(frame)
+    drawn = view.image.image.astype(np.float64)
+    strided = frame[::k, ::k].astype(np.float64)
+    assert np.std(strided) > 0.4 * amplitude  # the test's pattern does beat with this stride
+    assert np.std(drawn) < 0.15 * amplitude, np.std(drawn)
+    assert abs(np.mean(drawn) - 2048) < 10  # the mean grey is kept
 
 
 def test_a_map_with_a_line_and_no_data_yet_paints_once_not_forever(qtbot):
