@@ -123,7 +123,7 @@ def build_ui(w):
     w.modulation_view = ImageView("Contrast (modulation)", "", cmap="viridis",
                                      axis_units="px")
     w.modulation_view.set_levels((0.0, 1.0))
-    w.align_raw_view = ImageView("Camera", "counts", cmap="CET-L1", axis_units="px")
+    w.align_raw_view = ImageView("Camera", "counts", cmap="CET-L1", axis_units="px", averaged=True)
     w.ready_label = QtWidgets.QLabel("waiting for frames…")
     w.ready_label.setAlignment(QtCore.Qt.AlignCenter)
     w.ready_label.setWordWrap(True)

@@ -176,7 +176,7 @@ class ReplayTab(QtWidgets.QWidget):
         bar.addWidget(self.progress)
         outer.addLayout(bar)
         views = QtWidgets.QHBoxLayout()
-        self.raw = ImageView("Recorded frame", "counts", cmap="CET-L1", axis_units="px")
+        self.raw = ImageView("Recorded frame", "counts", cmap="CET-L1", axis_units="px", averaged=True)
         self.height = ImageView("Height", "µm", cmap="CET-D1", symmetric=True)
         views.addWidget(self.raw)
         views.addWidget(self.height)

@@ -65,9 +65,9 @@ def test_unmeasurable_frames_mark_the_maps_stale_and_pause_freezes_one_frame(qtb
                        (window.height_view, 1e3 * r.height)):
         k = view.stride  # the view draws every k-th sample
         np.testing.assert_allclose(view.image.image, data[::k, ::k], rtol=1e-5, equal_nan=True)
-    # the camera frame in blocks of stride x stride pixels, averaged (app.gui.views.decimate_for_display)
+    # the camera frame as the Live tab's thumbnail draws it: every stride-th pixel (app.gui.views.decimate_for_display)
     np.testing.assert_array_equal(window.raw_view.image.image,
-                                  decimate_for_display(p.image, window.raw_view.stride)[0])
+                                  decimate_for_display(p.image, window.raw_view.stride, average=False)[0])
     worker = window.session.worker
     qtbot.waitUntil(lambda: worker.latest() is not None and worker.latest().seq >= p.seq + 3, timeout=10000)
     qtbot.wait(100)  # several display ticks
@@ -554,7 +554,8 @@ def test_window_opens_inside_a_1280x800_x_screen(tmp_path):
     assert (image.width(), image.height()) == (1280, 800)
 
 
-def test_a_resized_view_still_draws_the_whole_frame(qtbot):
+@pytest.mark.parametrize("averaged", [False, True])
+def test_a_resized_view_still_draws_the_whole_frame(qtbot, averaged):
     """The live views draw a strided frame when the screen shows fewer pixels than
     the camera has; after the user makes a view smaller (window resized, a panel
     opened), the stride grows and the frame must still cover its 1024 x 1024 px,
@@ -562,7 +563,7 @@ def test_a_resized_view_still_draws_the_whole_frame(qtbot):
     drawn over two thirds of its axes)."""
     from app.gui.views import ImageView
 
-    view = ImageView("Raw frame", "counts", axis_units="px", pan=False)
+    view = ImageView("Raw frame", "counts", axis_units="px", pan=False, averaged=averaged)
     qtbot.addWidget(view)
     frame = (np.arange(1024 * 1024, dtype=np.uint16).reshape(1024, 1024) % 4096)
     drawn = []
@@ -573,11 +574,11 @@ def test_a_resized_view_still_draws_the_whole_frame(qtbot):
         view.set_data(frame)
         shown = view.image.mapRectToParent(view.image.boundingRect())
         drawn.append((view.stride, view.image.image.shape))
-        # the averaged blocks cover the frame but for its last incomplete block (< stride px)
-        covered = 1024 // view.stride * view.stride
+        # picked pixels cover the whole frame; averaged blocks all of it but its last incomplete block
+        covered = 1024 // view.stride * view.stride if averaged else 1024
         assert (shown.x(), shown.y(), shown.width(), shown.height()) == pytest.approx((0, 0, covered, covered)), \
             (size, view.stride, shown)
-        assert view.image.image.shape == (1024 // view.stride,) * 2
+        assert view.image.image.shape == ((1024 // view.stride if averaged else -(-1024 // view.stride)),) * 2
     assert len({stride for stride, _ in drawn}) >= 2, f"the stride never changed: {drawn}"
 
 
@@ -593,7 +594,7 @@ def test_a_fine_pattern_drawn_smaller_shows_no_moire(qtbot, period_in_blocks):
     the pattern's (striding: all of it)."""
     from app.gui.views import ImageView
 
-    view = ImageView("Raw frame", "counts", axis_units="px", pan=False)
+    view = ImageView("Camera", "counts", axis_units="px", averaged=True)
     qtbot.addWidget(view)
     view.resize(300, 300)
     view.show()
