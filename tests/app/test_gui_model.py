@@ -157,7 +157,10 @@ def test_rebuild_policy_only_the_newest_request_changes_the_worker_and_marks_old
     first = e.request()
     assert e.outcome(first, True) == "install"
     e.install(first, since_seq=100)
-    assert e.key() == first and e.measured_with(101) == first and e.measured_with(100) is None
+    assert e.key() == first and e.measured_with(101) == first
+    # a result of frame 100 (taken before the install, measured by a worker late under load) can only come
+    # from the first: none was there before. None would read as "no reference to compare with": never stale
+    assert e.measured_with(100) == first
     # a new reference is asked for: until it is built, maps of the first are "older reference"
     second = e.request()
     assert e.key() == second != e.measured_with(120)
@@ -171,8 +174,13 @@ def test_rebuild_policy_only_the_newest_request_changes_the_worker_and_marks_old
     fourth = e.request()
     assert e.outcome(fourth, False) == "remove"
     e.remove(since_seq=150)
-    assert e.key() is None and e.measured_with(151) is None and e.measured_with(140) == third
-    e.install(e.request(), since_seq=160)
+    assert e.key() is None and e.measured_with(140) == third
+    # a result of a frame after the removal, in flight in the worker process when it came: the third measured
+    # it, and it is stale (None would read as "no reference to compare with", never stale)
+    assert e.measured_with(151) == third != e.key()
+    fifth = e.request()
+    e.install(fifth, since_seq=160)
+    assert (e.measured_with(160), e.measured_with(161)) == (third, fifth)  # the removal in between changes nothing
     assert e.key(worker_has_reconstructor=False) is None  # taken away by someone else: none in use either
 
 

@@ -181,7 +181,11 @@ def test_vs_truth_in_the_status_bar_carries_the_age_of_the_maps(qtbot, tmp_path)
     w.load_reference(str(tmp_path / "noise.tif"))
     # hang detector: stale at the first status tick after the refused build (model/staleness.py NO_REFERENCE;
     # before, it waited for an unmeasured frame to be drawn: 5 s late in 1 run of 15 on a loaded PC)
-    qtbot.waitUntil(lambda: w.height_view.is_stale, timeout=60000)
+    _until(qtbot, lambda: w.height_view.is_stale,
+           lambda: (f"maps not stale: {w.references}, worker has a reconstructor: "
+                    f"{w.session.worker.reconstructor is not None}, busy {sorted(w._busy)}, maps show {w._maps_shown}, "
+                    f"raw shows {w._raw_shown}, unmeasured {getattr(w._unmeasured, 'seq', None)}, marks {w.stale}, "
+                    f"newest frame {w.session.newest_seq()}, banner {w.last_error!r}"), 60000)
     _until(qtbot, lambda: "(stale: " in truth.text(), lambda: f"status bar {truth.text()!r}", 5000)
     assert w.height_error["stale"] and "#888" in truth.styleSheet()
     assert w.height_view.stale_text in truth.text()  # the same words, the same age as the maps

@@ -102,7 +102,9 @@ class ReferenceEpochs:
 
     def install(self, request: int, since_seq: Optional[int]) -> None:
         """The worker measures frames after ``since_seq`` with the reconstructor of ``request``."""
-        self.previous, self.installed = self.installed, int(request)
+        if self.installed is not None:  # after a removal the one before it measured the frames in flight
+            self.previous = self.installed
+        self.installed = int(request)
         self.since_seq = -1 if since_seq is None else int(since_seq)
 
     def remove(self, since_seq: Optional[int] = None) -> None:
@@ -113,8 +115,20 @@ class ReferenceEpochs:
         self.since_seq = self.since_seq if since_seq is None else int(since_seq)
 
     def measured_with(self, seq: Optional[int]) -> Optional[int]:
-        """The request whose reconstructor measured frame ``seq`` (None: unknown frame: the newest)."""
-        return self.installed if seq is None or seq > self.since_seq else self.previous
+        """The request whose reconstructor measured frame ``seq`` (None: unknown frame: the newest).
+
+        Frames after ``since_seq`` were measured with the one installed, those up to it with the one
+        before; where that one is None, the result can only come from the other: a result has a
+        reconstructor, and the worker (another process, late under load) may measure a frame it took
+        before it learned of an install or a removal. Labelled None ("no reference to compare with"),
+        such maps were never stale for their reference: after the first reference, the first maps could
+        carry None and stay live-looking after a refused reference (seen once in a run loaded to twice
+        the cores: not stale after 60 s)."""
+        if seq is None or seq > self.since_seq:
+            first, second = self.installed, self.previous
+        else:
+            first, second = self.previous, self.installed
+        return first if first is not None else second
 
     def key(self, worker_has_reconstructor: bool = True):
         """The reference in use (:func:`view_staleness`'s ``reference_key``): None when the worker has none
