@@ -251,7 +251,7 @@ def decimate_for_display(data: np.ndarray, stride: int, *, average: bool = True)
     moire bands that are not on the pattern, and a pattern of about two blocks' period, which the
     block mean keeps at 64 % of its contrast, beats with any scaling Qt does afterwards; the kernel
     removes what lies that close to the blocks' Nyquist frequency (what the view cannot show
-    anyway) and keeps a feature five blocks wide at 90 %. Maps (float, NaN where invalid) are smooth
+    anyway) and keeps a period of ten blocks at 90 % of its contrast (five blocks: 65 %). Maps (float, NaN where invalid) are smooth
     and keep every ``stride``-th sample, which keeps a NaN from spreading over its block; so do camera
     images with ``average=False``. Returns the data and the (rows, cols) of the full frame it covers.
     """
@@ -296,10 +296,10 @@ class ImageView(QtWidgets.QWidget):
         Colour bar under the map (narrow tiles: the map keeps the width) or beside it.
     averaged : bool
         A camera image drawn smaller than it is is averaged and smoothed (:func:`decimate_for_display`:
-        no moire, 0.3-0.6 ms a frame at 1024^2 in the GUI thread, which costs the 60-Hz Live tab about
-        one frame in a hundred); otherwise every k-th pixel is drawn. On for the views where one looks
-        at the pattern (the Alignment tab's camera image, a replayed frame), off for the Live tab's
-        raw-frame thumbnail.
+        no moire, 0.3-0.6 ms a frame at 1024^2 in the GUI thread); otherwise every k-th pixel is drawn.
+        On for the views where one looks at the pattern (the Alignment tab's camera image, a replayed
+        frame), off for the Live tab's 60-Hz raw-frame thumbnail (there it took 4-5 % more of the GUI
+        thread, and benchmarks/bench_gui.py at 1024^2 fell below 60 frames shown a second).
     """
 
     def __init__(self, title: str, units: str, *, cmap: str = "viridis", symmetric: bool = False,
