@@ -69,7 +69,7 @@ def build_ui(w):
     mask_cmap = pg.ColorMap([0.0, 1.0], [(190, 30, 30), (215, 240, 215)])  # masked red, valid pale green
     w.valid_view = ImageView("Valid (1) / masked (0)", "", cmap=mask_cmap,
                                 levels_controls=False)
-    w.profile_view = ProfileView("Profile along the line", "height (µm)")
+    w.profile_view = ProfileView("Line profile", "height (µm)")  # short: 1280x800 gives its column ~230 px
     w.histogram = HistogramView()
     # the histogram under the raw frame: the narrow tile then has about the frame's aspect
     raw_box = QtWidgets.QWidget()

@@ -591,7 +591,7 @@ class ProfileView(QtWidgets.QWidget):
         self.plot = pg.PlotWidget()
         self.plot.setTitle(f"<b>{title}</b>", color="#111", size="10pt")
         self.plot.setBackground("w")
-        self.plot.setLabel("bottom", "distance along the line (mm)")
+        self.plot.setLabel("bottom", "distance (mm)")  # along the line; short, or the column cuts the plot
         self.plot.setLabel("left", units)
         for name in ("left", "bottom"):  # already scaled (µm, mm): no SI prefix like "(x1e-06)"
             self.plot.getAxis(name).enableAutoSIPrefix(False)
