@@ -6,11 +6,15 @@ seen) and, in the main thread, held back every signal handler: only SIGKILL
 ended it. The serial batch now measures each frame in a daemon thread while
 the main thread waits in short interruptible steps (app/batch/interruptible.py).
 That frame is now refused before any solver (processing.reconstruct.check_sample_range)
-and the refinement bounds its steps, so the child is handed the same native call
+and the refinement bounds its steps, so the child is handed such a native call
 for real: a ``sitecustomize`` on its path makes the fourth frame's refinement
-first call ``cv2.remap`` with coordinates of 1e9 px under BORDER_REFLECT (OpenCV
-folds such a coordinate back one image width at a time, with the GIL released:
-minutes of one native call, as the 1e10 frame did).
+first call the C library's ``sleep`` for ten minutes through ctypes (one native
+call with the GIL released, as the 1e10 frame's cv2.remap was). It used to call
+``cv2.remap`` with coordinates of 1e9 px under BORDER_REFLECT, which OpenCV up to
+5.0 folded back one image width at a time for minutes; opencv-python-headless
+5.1.0.95 (released during the session of 2 Dec 2026) returns at once, the frame
+was measured and the signal came after the run: the test failed in a fresh clone
+for a change of OpenCV, not of tirdeflect.
 
 A real signal goes to a real CLI subprocess after it has logged that it is
 measuring that frame (three ordinary frames before it are written); it must
@@ -41,20 +45,20 @@ ROOT = Path(__file__).resolve().parents[2]
 EXIT_WITHIN_S = 30.0
 
 
-#: run by the child at start-up: the fourth refinement first sits in one long cv2.remap
+#: run by the child at start-up: the fourth refinement first sits in one long native call
+#: (ctypes.CDLL releases the GIL for the call, as OpenCV does)
 STUCK_REMAP = """
-import cv2, numpy as np
+import ctypes, ctypes.util
 import processing.dic as dic
 
 _refine, _calls = dic.refine_height, [0]
+_libc = ctypes.CDLL(ctypes.util.find_library("c"))
 
 
 def refine_height(*args, **kwargs):
     _calls[0] += 1
     if _calls[0] == 4:
-        coords = np.full((32, 32), 1e9, np.float32)
-        cv2.remap(np.zeros((64, 64), np.float32), coords, coords, cv2.INTER_LINEAR,
-                  borderMode=cv2.BORDER_REFLECT)
+        _libc.sleep(600)  # seconds, in C; a signal's Python handler cannot run in this thread meanwhile
     return _refine(*args, **kwargs)
 
 
@@ -95,9 +99,9 @@ def test_signal_ends_a_frame_stuck_in_native_code(stack, tmp_path, sig):
                 started = True
                 break
         assert started, "".join(lines)
-        # inside the frame now; give the refinement time to be in cv2.remap (it stays there for minutes)
+        # inside the frame now; give the refinement time to be in the native call (ten minutes)
         time.sleep(1.0)
-        assert proc.poll() is None, "the frame with the long cv2.remap ended by itself\n" + "".join(lines)
+        assert proc.poll() is None, "the frame with the long native call ended by itself\n" + "".join(lines)
         t0 = time.monotonic()
         proc.send_signal(sig)
         try:
