@@ -251,9 +251,9 @@ def decimate_for_display(data: np.ndarray, stride: int, *, average: bool = True)
     moire bands that are not on the pattern, and a pattern of about two blocks' period, which the
     block mean keeps at 64 % of its contrast, beats with any scaling Qt does afterwards; the kernel
     removes what lies that close to the blocks' Nyquist frequency (what the view cannot show
-    anyway) and keeps a period of ten blocks at 90 % of its contrast (five blocks: 65 %). Maps (float, NaN where invalid) are smooth
-    and keep every ``stride``-th sample, which keeps a NaN from spreading over its block; so do camera
-    images with ``average=False``. Returns the data and the (rows, cols) of the full frame it covers.
+    anyway) and keeps a period of ten blocks at 90 % of its contrast (five blocks: 65 %). Maps
+    (float, NaN where invalid) are smooth and keep every ``stride``-th sample, which keeps a NaN from
+    spreading over its block; so do camera images with ``average=False``. Returns the data and the (rows, cols) of the full frame it covers.
     """
     if stride <= 1:
         return data, data.shape

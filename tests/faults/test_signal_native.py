@@ -47,7 +47,7 @@ EXIT_WITHIN_S = 30.0
 
 #: run by the child at start-up: the fourth refinement first sits in one long native call
 #: (ctypes.CDLL releases the GIL for the call, as OpenCV does)
-STUCK_REMAP = """
+STUCK_NATIVE_CALL = """
 import ctypes, ctypes.util
 import processing.dic as dic
 
@@ -75,7 +75,7 @@ def stack(tmp_path_factory):
     frame = imageio.read_image(d / "frame_0000.tif").astype(np.float32)
     tifffile.imwrite(d / "stack.tif", np.stack([frame] * 4), photometric="minisblack")
     (d / "site").mkdir()
-    (d / "site" / "sitecustomize.py").write_text(STUCK_REMAP)
+    (d / "site" / "sitecustomize.py").write_text(STUCK_NATIVE_CALL)
     return d
 
 
