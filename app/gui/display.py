@@ -1,4 +1,4 @@
-"""What the window draws at each tick: raw frame, maps in two halves, alignment, status bar and
+"""What the window draws at each tick: raw frame, maps (in one tick or two halves), alignment, status bar and
 stale marks (the rules are in app/gui/model/).
 
 Functions take the :class:`app.gui.window.MainWindow` (``w``); it forwards its methods here.
@@ -242,8 +242,9 @@ def update_staleness(w) -> None:
     for v in (w.spectrum_view, w.modulation_view):
         v.set_stale(w.stale.alignment)
     rp = w.recording_panel  # the auto-trigger's quantity, from the maps on screen: their age too
-    # measured on the slope maps, which are drawn one tick after the height (draw_result's second half): the
-    # frame to compare with is theirs, or the readout would be "stale" on every other tick of live maps
+    # measured on the slope maps, which are drawn one tick after the height when the maps go in two halves
+    # (draw_result's second half): the frame to compare with is theirs, or the readout would be "stale" on
+    # every other tick of live maps
     text, old = derived_text(w.rms_history.readout(), w.stale.maps, measured_seq=w.rms_history.seq,
                              maps_seq=w.slope_x_view.frame_id)
     rp.rms_label.setText(text)

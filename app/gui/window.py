@@ -408,7 +408,7 @@ class MainWindow(QtWidgets.QMainWindow):
                 self._display_timer.start(max(1, int(round(wait_ms))))
 
     def _draw(self):
-        """One display tick: what :meth:`DrawClock.plan` says (the newest camera frame, maps in two halves)."""
+        """One display tick: what :meth:`DrawClock.plan` says (the newest camera frame, maps in one tick or two)."""
         tab = self.tabs.currentIndex()
         frame = self.session.latest_frame() if tab in (LIVE_TAB, ALIGNMENT_TAB) else None
         p = self.session.worker.latest()
@@ -420,13 +420,13 @@ class MainWindow(QtWidgets.QMainWindow):
                 log.info("first camera frame on screen %.2f s after the window was created", self.first_frame_s)
             self._draw_raw(image, tab, host_ns, seq)
             self.latency_ms = (time.monotonic_ns() - host_ns) / 1e6 if host_ns else float("nan")
-        if plan.maps == "second half":
-            self._draw_result(plan.result, part=1)
-        elif plan.maps == "first half":
-            self._draw_result(p, part=0)
+        if plan.maps in ("all", "first half", "second half"):
+            t0 = time.perf_counter()
+            self._draw_result(plan.result, part={"all": -1, "first half": 0, "second half": 1}[plan.maps])
+            self.clock.maps_took(plan.maps, time.perf_counter() - t0)  # one tick or two next time
         elif plan.maps == "alignment":
             self._draw_alignment(p)
-        if plan.maps in ("first half", "alignment"):
+        if plan.maps in ("all", "first half", "alignment"):
             self.result_latency_ms = (time.monotonic_ns() - p.host_timestamp_ns) / 1e6 if p.host_timestamp_ns \
                 else float("nan")
         self.shown_rate.add(time.monotonic(), int(plan.raw))

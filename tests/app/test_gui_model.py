@@ -216,12 +216,13 @@ def test_tick_plan_draws_each_new_frame_and_a_result_in_two_halves_at_most_at_th
     from app.gui.model.schedule import ALIGNMENT_TAB, LIVE_TAB, DrawClock, RateCounter
 
     c = DrawClock(display_hz=60.0, maps_hz=30.0)
+    c.maps_took("all", 0.010)  # drawing all maps took 10 ms, 60 % of a 60 Hz tick: two halves from now on
     r5, r7 = R(seq=5), R(seq=7)
     p = c.plan(0.000, LIVE_TAB, 5, r5)
     assert (p.raw, p.maps, p.result) == (True, "first half", r5)
     p = c.plan(0.017, LIVE_TAB, 5, r5)  # no new camera frame; the other half of r5's maps
     assert (p.raw, p.maps, p.result) == (False, "second half", r5)
-    p = c.plan(0.025, LIVE_TAB, 6, r7)  # a new result, but maps were begun 25 ms ago (< 1/30 s)
+    p = c.plan(0.022, LIVE_TAB, 6, r7)  # a new result, but maps were begun 22 ms ago (< 1/30 s - half a tick)
     assert (p.raw, p.maps) == (True, None)
     p = c.plan(0.034, LIVE_TAB, 7, r7)
     assert (p.raw, p.maps, p.result) == (True, "first half", r7)
@@ -234,6 +235,42 @@ def test_tick_plan_draws_each_new_frame_and_a_result_in_two_halves_at_most_at_th
     shown = RateCounter()
     rates = [shown.add(0.02 * k, 1 if k % 2 else 0) for k in range(51)]  # a new frame every other 20 ms tick
     assert rates[49] == 0.0 and rates[50] == pytest.approx(25.0)
+
+
+def test_maps_cheap_to_draw_go_in_one_tick_on_every_tick_and_slow_ones_in_two_halves():
+    from types import SimpleNamespace as R
+
+    from app.gui.model.schedule import LIVE_TAB, DrawClock
+
+    c = DrawClock()  # 60 Hz display, maps at most 60 Hz
+    assert c.display_hz == 60.0 and c.maps_hz == 60.0
+    # a result per tick, ticks a little early or late (16.7 ms +- 2 ms): every tick draws all maps of its
+    # new result (the worker's 70 results a second at 512^2 are shown at 60 Hz, not every other tick)
+    times = [k / 60.0 + (0.002 if k % 2 else -0.002) for k in range(12)]
+    plans = []
+    for k, t in enumerate(times):
+        p = c.plan(t, LIVE_TAB, k, R(seq=k))
+        plans.append(p.maps)
+        c.maps_took(p.maps, 0.0015)  # 1.5 ms: the decimated maps of a 1024^2 camera
+    assert plans == ["all"] * 12
+    # the same result is never drawn twice, and two results in one tick are one drawing
+    assert c.plan(times[-1] + 1 / 60, LIVE_TAB, 12, R(seq=11)).maps is None
+    # drawing becomes slow (8 ms of a 16.7 ms tick): the estimate follows within a few drawings and the
+    # maps go in halves, the second half on the next tick
+    t, seq, parts = times[-1] + 2 / 60, 20, []
+    for _ in range(8):
+        p = c.plan(t, LIVE_TAB, seq, R(seq=seq))
+        parts.append(p.maps)
+        c.maps_took(p.maps, 0.008 if p.maps == "all" else 0.004)
+        t, seq = t + 1 / 60, seq + 1
+    assert parts[0] == "all" and parts[-2:] in (["first half", "second half"], ["second half", "first half"])
+    assert c.maps_draw_s == pytest.approx(0.008, rel=0.2)
+    # cheap again: back to one tick
+    for _ in range(12):
+        p = c.plan(t, LIVE_TAB, seq, R(seq=seq))
+        c.maps_took(p.maps, 0.0015 if p.maps == "all" else 0.00075)
+        t, seq = t + 1 / 60, seq + 1
+    assert p.maps == "all" and c.whole_maps()
 
 
 def test_replay_queue_keeps_only_the_newest_request():

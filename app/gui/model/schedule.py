@@ -9,19 +9,24 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, Dict, Hashable, Optional, Tuple
 
-__all__ = ["DISPLAY_MAX_HZ", "MAPS_MAX_HZ", "LIVE_TAB", "ALIGNMENT_TAB", "TickPlan", "DrawClock", "RateCounter",
+__all__ = ["DISPLAY_MAX_HZ", "MAPS_MAX_HZ", "MAPS_WHOLE_MAX_FRACTION", "LIVE_TAB", "ALIGNMENT_TAB", "TickPlan", "DrawClock", "RateCounter",
            "LiveRates", "ReplayQueue", "ExportProgress"]
 
 DISPLAY_MAX_HZ = 60.0  # the raw camera view refreshes at most this often
-MAPS_MAX_HZ = 30.0  # processed maps at most this often: leaves time for the raw view
+MAPS_MAX_HZ = 60.0  # processed maps at most this often (and never more than one result per display tick)
+# A result's maps are drawn in one tick while that took at most this fraction of a display period (the
+# decimated maps of a 512^2 or 1024^2 camera: about 1.5 ms of 16.7); slower, they go in two halves on
+# consecutive ticks, so that no tick is long enough to make the raw view miss its cadence
+MAPS_WHOLE_MAX_FRACTION = 0.35
 LIVE_TAB, ALIGNMENT_TAB = 0, 1  # the tabs that show the camera (the window's tab indices)
 
 
 @dataclasses.dataclass(frozen=True)
 class TickPlan:
-    """What one display tick draws: ``raw`` the newest camera frame; ``maps`` None, ``"first half"`` (height,
-    profile, mask, probes of ``result``), ``"second half"`` (displacement, slopes of ``result``, drawn first on
-    the tick before) or ``"alignment"`` (the Alignment tab's views of ``result``)."""
+    """What one display tick draws: ``raw`` the newest camera frame; ``maps`` None, ``"all"`` (every map of
+    ``result``), ``"first half"`` (height, profile, mask, probes of ``result``), ``"second half"``
+    (displacement, slopes of ``result``, whose first half was drawn on the tick before) or ``"alignment"``
+    (the Alignment tab's views of ``result``)."""
 
     raw: bool = False
     maps: Optional[str] = None
@@ -30,18 +35,23 @@ class TickPlan:
 
 @dataclasses.dataclass
 class DrawClock:
-    """The display cadence: raw frames at <= ``display_hz``, maps at <= ``maps_hz`` over two ticks.
+    """The display cadence: raw frames at <= ``display_hz``, maps at <= ``maps_hz``.
 
     :meth:`tick` is called at each display tick and returns the wait until the next one (s): the next
     tick is due one period after this one was due (drawing time does not stretch the period), and a
     tick more than a period late restarts the cadence from now (late ticks never pile up); ``ticks_lost``
     counts the ticks so skipped (the display thread was busy or starved: benchmarks/bench_gui.py).
-    A result's maps are drawn in two halves on consecutive ticks (:meth:`take_second_half`), so each
-    tick stays short and the raw view keeps its cadence.
+    A result's maps are drawn in one tick while drawing them all took at most ``whole_max_fraction`` of
+    a display period (:meth:`maps_took` is told each drawing's seconds; ``maps_draw_s`` is their running
+    estimate), else in two halves on consecutive ticks (:meth:`take_second_half`), so each tick stays
+    short and the raw view keeps its cadence.
     """
 
     display_hz: float = DISPLAY_MAX_HZ
     maps_hz: float = MAPS_MAX_HZ
+    whole_max_fraction: float = MAPS_WHOLE_MAX_FRACTION
+    maps_draw_s: float = 0.0  # running estimate of the seconds drawing one result's maps takes (0: none yet)
+    first_half_s: float = 0.0  # the first half's seconds, until its second half is drawn
     next_due: Optional[float] = None
     maps_t: float = float("-inf")
     second_half: Any = None
@@ -63,10 +73,28 @@ class DrawClock:
         return (self.next_due if self.next_due is not None else now) - now
 
     def maps_due(self, now: float) -> bool:
-        return now - self.maps_t >= 1.0 / self.maps_hz
+        """True if maps may be begun at ``now``: ``1 / maps_hz`` after the last, less half a display period
+        (ticks come a little early or late; at ``maps_hz == display_hz`` every tick may draw maps)."""
+        return now - self.maps_t >= 1.0 / self.maps_hz - 0.5 / self.display_hz
+
+    def whole_maps(self) -> bool:
+        """True if the next result's maps go in one tick (their drawing is short enough)."""
+        return self.maps_draw_s <= self.whole_max_fraction / self.display_hz
+
+    def maps_took(self, part: str, seconds: float) -> None:
+        """The drawing of ``part`` (a :class:`TickPlan` ``maps``: "all", "first half" or "second half")
+        took ``seconds``; the estimate follows the newest drawings (a quarter weight each)."""
+        if part == "first half":
+            self.first_half_s = float(seconds)
+            return
+        if part == "second half":
+            seconds, self.first_half_s = self.first_half_s + float(seconds), 0.0
+        elif part != "all":
+            return
+        self.maps_draw_s = float(seconds) if self.maps_draw_s == 0.0 else 0.75 * self.maps_draw_s + 0.25 * seconds
 
     def maps_drawn(self, now: float, result) -> None:
-        """The first half of ``result``'s maps was drawn at ``now``; the second half goes on the next tick."""
+        """Maps were begun at ``now``; ``result`` (None: nothing left) has its second half drawn on the next tick."""
         self.maps_t = now
         self.second_half = result
 
@@ -80,7 +108,8 @@ class DrawClock:
 
         A new camera frame is drawn on every tick of the Live and Alignment tabs; maps at <= ``maps_hz``:
         the second half of the result begun on the tick before (Live tab) comes first, else a result not
-        drawn yet begins (Live: its first half; Alignment: its alignment views).
+        drawn yet (Live: all its maps, or its first half when drawing them all is slow, :meth:`whole_maps`;
+        Alignment: its alignment views).
         """
         camera_tab = tab in (LIVE_TAB, ALIGNMENT_TAB)
         raw = camera_tab and raw_seq is not None and raw_seq != self.last_raw_seq
@@ -92,8 +121,14 @@ class DrawClock:
         if result is None or result.seq == self.last_result_seq or not camera_tab or not self.maps_due(now):
             return TickPlan(raw)
         self.last_result_seq = result.seq
-        self.maps_drawn(now, result if tab == LIVE_TAB else None)
-        return TickPlan(raw, "first half" if tab == LIVE_TAB else "alignment", result)
+        if tab != LIVE_TAB:
+            self.maps_drawn(now, None)
+            return TickPlan(raw, "alignment", result)
+        if self.whole_maps():
+            self.maps_drawn(now, None)
+            return TickPlan(raw, "all", result)
+        self.maps_drawn(now, result)
+        return TickPlan(raw, "first half", result)
 
 
 @dataclasses.dataclass
