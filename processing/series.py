@@ -17,7 +17,7 @@ import numpy as np
 
 from .pin import PIN_MIN_PIECE_SAMPLES
 from .result import SeriesCheck
-from .unwrap import TWO_PI, unwrap_spatial, unwrap_temporal, wrap
+from .unwrap import TWO_PI, has_wraps, unwrap_spatial, unwrap_temporal, wrap
 
 __all__ = ["SeriesState", "SERIES_MAX_SLIP_FRACTION", "SERIES_MAX_PIN_SHIFT", "EMPTY", "unwrap_phase",
            "after_unwrap", "check_series", "copy_check"]
@@ -218,6 +218,13 @@ def _disagrees_with_spatial(phase, valid, ref_mask):
     judged = np.isin(labels, anchored)
     out = np.zeros(valid.shape, bool)
     for s in range(2):
+        # One connected valid region on which the series' phase has no jump over pi between valid
+        # neighbours: it is itself a consistent spatial unwrapping of this frame, and a consistent
+        # unwrapping is unique up to one 2 pi multiple per region, so the frame's own unwrapping can
+        # only differ by that common offset (no slip). Its spatial unwrapping (most of the live
+        # chain's time on fast waves) is then not needed.
+        if count == 1 and not has_wraps(np.where(valid, phase[s], 0.0), valid):
+            continue
         own = unwrap_spatial(wrap(np.where(valid, phase[s], 0.0)), valid, ref_mask=ref_mask)
         turns = np.round((np.where(judged, phase[s], 0.0) - np.where(judged, own, 0.0)) / TWO_PI)
         if judged.any():

@@ -225,3 +225,37 @@ def test_a_piece_the_pin_cannot_reach_is_invalid_not_flat(series):
     left[:, :115] = True
     assert res.valid[left & disk].mean() > 0.8
     assert _rel_error(res, series.heights_mm[-1]) < TOLERANCE
+
+
+def test_the_series_check_without_its_spatial_unwrapping_where_it_cannot_differ(series, monkeypatch):
+    """The check skips the frame's own spatial unwrapping where the series' phase is itself a consistent
+    unwrapping of the frame (one valid region, no jump over pi between valid neighbours): the same
+    verdict, slip fraction and pin shift on every frame as with the unwrapping done everywhere, both
+    on the clean series and with a slipped block handed over (where it must still unwrap and flag)."""
+    import processing.series as S
+
+    def run():
+        rec = Reconstructor(series.reference, FSSS, grid="decimated")
+        # jumps between 30 and 300 um: more than pi of change, so the check runs
+        checks = [rec(f).series for f in series.frames[[0, 9, 0, 5, 9]]]
+        state = rec.series_state()
+        rows, cols = state.valid.shape
+        block = np.zeros_like(state.valid)
+        block[rows // 4: rows // 2, cols // 4: cols // 2] = True
+        state.phase[:, block & state.valid] += 2 * np.pi
+        rec.restore_series(state)
+        checks.append(rec(series.frames[8]).series)
+        return checks
+
+    skipped = []
+    real_unwrap = S.unwrap_spatial
+    monkeypatch.setattr(S, "unwrap_spatial", lambda *a, **k: skipped.append(1) or real_unwrap(*a, **k))
+    fast = run()
+    n_fast = len(skipped)
+    monkeypatch.setattr(S, "has_wraps", lambda *a, **k: True)  # the check unwraps every carrier of every frame
+    full = run()
+    assert len(skipped) - n_fast >= n_fast + 4  # the shortcut was taken (both carriers of two frames or more)
+    assert fast[-1].flagged and fast[-1].unwrap_slip_fraction > 0.01  # the handed-over slip is still seen
+    for a, b in zip(fast[1:], full[1:]):
+        assert (a.flagged, a.reason, a.compared_samples) == (b.flagged, b.reason, b.compared_samples)
+        assert a.unwrap_slip_fraction == b.unwrap_slip_fraction and a.pin_shift_mm == b.pin_shift_mm
