@@ -167,15 +167,30 @@ def _worker_process_cpu_s(worker) -> float:
         return float("nan")
 
 
-def measure_window(app, size, rate_hz, seconds, n_frames, nice=0, worker_process=None):
+def scene_camera(scene, size, rate_hz, n_frames):
+    """``(camera, reference, geometry)`` of the benchmark's scene: "evolving" (:func:`app.capture.scene.build_scene`:
+    waves and a dimple deepening over the ``n_frames`` looped frames: every frame far from the one before, the
+    unwrapper's heavy case; the default, as in every earlier figure) or one of the window's synthetic tank's
+    scenes (:class:`app.capture.scene.TankScene`, what a newcomer's window shows: ``n_frames`` frames of it at
+    ``rate_hz``, looped)."""
+    from app.capture.scene import TankScene, build_scene
+    from drivers.synthetic import SyntheticCamera
+
+    if scene == "evolving":
+        sim, geometry = build_scene((size, size), n_frames, frame_rate_hz=rate_hz)
+        return SyntheticCamera(sim.frames, frame_rate_hz=rate_hz), sim.reference, geometry
+    tank = TankScene((size, size), n_frames=n_frames, frame_rate_hz=rate_hz)
+    tank.set_scene(tank.prepare(scene))
+    return SyntheticCamera(tank, frame_rate_hz=rate_hz, bit_depth=tank.bits), tank.reference, tank.geometry
+
+
+def measure_window(app, size, rate_hz, seconds, n_frames, nice=0, worker_process=None, scene="evolving"):
     import numpy as np
 
     from app.gui.window import MainWindow
-    from app.capture.scene import build_scene
-    from drivers.synthetic import SyntheticCamera
 
     t = time.monotonic()
-    sim, geometry = build_scene((size, size), n_frames, frame_rate_hz=rate_hz)
+    camera, reference, geometry = scene_camera(scene, size, rate_hz, n_frames)
     build_s = time.monotonic() - t
     options = {"worker_nice": nice}
     if worker_process is not None:
@@ -186,8 +201,7 @@ def measure_window(app, size, rate_hz, seconds, n_frames, nice=0, worker_process
     w.show()
     tmp = tempfile.mkdtemp(prefix="bench-gui-")
     try:
-        w.use_camera(SyntheticCamera(sim.frames, frame_rate_hz=rate_hz), geometry=geometry,
-                     reference=sim.reference)
+        w.use_camera(camera, geometry=geometry, reference=reference)
         t_end = time.monotonic() + 60
         while (w.session.worker.reconstructor is None or w.last_drawn is None) and time.monotonic() < t_end:
             _run_loop(app, 0.1)
@@ -302,7 +316,12 @@ def main(argv=None) -> int:
     p.add_argument("--sizes", type=int, nargs="+", default=[512, 1024])
     p.add_argument("--seconds", type=float, default=5.0, help="measurement time per size (s)")
     p.add_argument("--rate", type=float, default=100.0, help="synthetic camera frame rate (Hz)")
-    p.add_argument("--frames", type=int, default=4, help="ray-traced frames the camera loops over")
+    p.add_argument("--frames", type=int, default=None,
+                   help="ray-traced frames the camera loops over (default 4 for 'evolving', 24 for the tank's)")
+    p.add_argument("--scene", default="evolving", choices=("evolving", "still", "waves", "drop", "impact"),
+                   help="'evolving' (default): waves and a dimple deepening fast over the looped frames, every "
+                        "frame far from the last (the unwrapper's heavy case); else a scene of the window's "
+                        "synthetic tank (app/capture/scene.py TankScene), what a newcomer sees")
     p.add_argument("--nice", type=int, default=0, help="nice increment of the processing worker thread")
     p.add_argument("--xvfb", action="store_true", help="run on a private Xvfb display (xcb) instead of offscreen")
     p.add_argument("--no-launch", action="store_true", help="skip the launch-to-first-frame measurement")
@@ -337,14 +356,15 @@ def main(argv=None) -> int:
         sys.setswitchinterval(args.switch_interval_ms / 1e3)
     app = pg.mkQApp("bench")
     print(f"platform {app.platformName()}, {os.cpu_count()} cores, camera {args.rate:g} Hz, "
-          f"{args.seconds:g} s per size")
+          f"{args.seconds:g} s per size, scene {args.scene}")
     rows = []
     for size in args.sizes:
         rng = np.random.default_rng(0)
         frames = [rng.integers(0, 256, (size, size), dtype=np.uint8) for _ in range(4)]
         base = baseline_imageview(app, frames, min(args.seconds, 3.0))
-        r = measure_window(app, size, args.rate, args.seconds, args.frames, args.nice,
-                           worker_process=False if args.in_process else None)
+        n_frames = args.frames if args.frames is not None else (4 if args.scene == "evolving" else 24)
+        r = measure_window(app, size, args.rate, args.seconds, n_frames, args.nice,
+                           worker_process=False if args.in_process else None, scene=args.scene)
         r["baseline_fps"] = base
         rows.append(r)
     print()
