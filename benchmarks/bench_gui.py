@@ -244,6 +244,8 @@ def measure_window(app, size, rate_hz, seconds, n_frames, nice=0, worker_process
         }
         out["worker"] = worker_breakdown(seen, out["lat_height_ms"][0])
         out["gui_busy"] = {k: (clock.ms[k] - gui0[k]) / (10 * dt) for k in clock.ms}  # % of the wall time
+        # the window's estimate of drawing one result's maps (s), and whether they now go in one tick
+        out["maps_draw"] = (w.clock.maps_draw_s, w.clock.whole_maps())
         # this process's CPU (all its threads) and its children's that ended, in cores
         out["cpu_cores"] = (cpu1.user + cpu1.system - cpu0.user - cpu0.system) / dt
         out["worker_process_cores"] = (_worker_process_cpu_s(w.session.worker) - child0) / dt
@@ -399,7 +401,9 @@ def main(argv=None) -> int:
         print(f"GUI thread at {r['size']}²: display ticks {r['gui_busy']['tick']:.0f} % and paints "
               f"{r['gui_busy']['paint']:.0f} % of the time; the window's process used {r['cpu_cores']:.2f} cores"
               + (f", its worker process {r['worker_process_cores']:.2f}"
-                 if np.isfinite(r["worker_process_cores"]) else ""))
+                 if np.isfinite(r["worker_process_cores"]) else "")
+              + f"; drawing one result's maps {1e3 * r['maps_draw'][0]:.1f} ms "
+              f"({'one tick' if r['maps_draw'][1] else 'two halves'})")
         goal_h = {512: 50.0, 1024: 30.0}.get(r["size"])
         if goal_h is not None:
             lat_goal = r["size"] < 1024 or r["lat_height_ms"][0] <= 50.0
