@@ -26,7 +26,7 @@ class ImageRefinement:
         self.chain = chain
         ng = self.node_grid = dic.NodeGrid(chain.shape)
         self.height_nodes = dic.HeightNodes(chain.geometry, ng)
-        self.ref_fine = dic.fine_reference(chain.ref_f32)
+        self.ref_fine = dic.fine_reference(chain.ref_f32, dic.fine_factor(chain.demod.freq, chain.shape))
         pick_r = np.abs(ng.rows_px[:, None] - chain.rows_px[None, :]).argmin(axis=1)
         pick_c = np.abs(ng.cols_px[:, None] - chain.cols_px[None, :]).argmin(axis=1)
         near = chain.region.near

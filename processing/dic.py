@@ -31,9 +31,9 @@ range where it can be right raises :class:`RefinementDiverged`, and the
 Reconstructor keeps FD's heights with a note (:attr:`Result.note`).
 
 The reference is warped by linear interpolation of its cubic-spline
-interpolation on a grid :data:`FINE` times finer (:func:`fine_reference`):
-OpenCV's cubic remap biases image matching towards whole pixels by up to
-0.035 px.
+interpolation on a grid 2-3 times finer (:func:`fine_reference`, the factor
+by :func:`fine_factor`: within 1e-3 px on the shortest carrier): OpenCV's
+cubic remap biases image matching towards whole pixels by up to 0.035 px.
 
 Each step's pixel pass and the conjugate gradients' operator are compiled
 (:mod:`processing.dic_kernels`); the five node sums run in bands on the
@@ -52,10 +52,10 @@ import os
 import cv2
 import numpy as np
 
-from .dic_nodes import BLUR_PX, FINE, NODE_PX, HeightNodes, NodeGrid, fine_reference, fits
+from .dic_nodes import BLUR_PX, NODE_PX, HeightNodes, NodeGrid, fine_factor, fine_reference, fits
 
 __all__ = ["NODE_PX", "BLUR_PX", "INTENSITY_CELL_PX", "NodeGrid", "HeightNodes", "RefinementDiverged",
-           "fine_reference", "fits", "intensity_fit", "refine_height"]
+           "fine_factor", "fine_reference", "fits", "intensity_fit", "refine_height"]
 
 
 # ------------------------------------------------------------------ intensity model
@@ -181,7 +181,7 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
     Parameters
     ----------
     fine : ndarray float32
-        :func:`fine_reference` of the reference.
+        :func:`fine_reference` of the reference (any factor: read from its shape).
     frame : ndarray (rows, cols)
     h0 : ndarray (n_rows, n_cols)
         Starting heights at the nodes (mm; FD's; NaN: the nearest finite node's).
@@ -256,9 +256,10 @@ def _warp(fine, grid, u, blur_px):
     pixels), blurred as the frame."""
     # both components in one two-channel resize (the same Lanczos weights, computed
     # once), interleaved (column, row) as the CV_32FC2 map that remap takes
+    factor = fine.shape[0] // grid.frame_shape[0]  # fine_reference's factor
     up = grid.up(np.stack([u[1], u[0]], axis=-1), cv2.INTER_LANCZOS4)
-    up *= np.float32(FINE)
-    warped = cv2.remap(fine, np.subtract(grid.fine_map(FINE), up, out=up), None, cv2.INTER_LINEAR,
+    up *= np.float32(factor)
+    warped = cv2.remap(fine, np.subtract(grid.fine_map(factor), up, out=up), None, cv2.INTER_LINEAR,
                        borderMode=cv2.BORDER_REFLECT)
     if blur_px:
         warped = cv2.GaussianBlur(warped, (0, 0), blur_px)

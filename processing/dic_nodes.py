@@ -10,16 +10,34 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-__all__ = ["FINE", "NODE_PX", "BLUR_PX", "NodeGrid", "HeightNodes", "Stencil9", "fine_reference", "fits"]
+__all__ = ["FINE", "NODE_PX", "BLUR_PX", "NodeGrid", "HeightNodes", "Stencil9", "fine_factor", "fine_reference",
+           "fits"]
 
 
-#: Refinement of the grid the reference is interpolated from (see :func:`fine_reference`).
+#: Least refinement of the grid the reference is interpolated from (see :func:`fine_reference`); the
+#: image chain takes more for short carriers (:func:`fine_factor`).
 FINE = 2
 
 
-def fine_reference(reference):
-    """The reference, cubic-spline interpolated to a grid ``FINE`` times finer
-    (sample ``i`` at pixel ``i / FINE``), float32.
+def fine_factor(freq, shape) -> int:
+    """How many times finer than the pixels :func:`fine_reference` samples the reference for image
+    matching: FD's warp grid rule (:func:`processing.refine.warp_fine_factor`: linear interpolation
+    within 1e-3 px on the shortest carrier, a bounded number of samples), at least :data:`FINE`.
+
+    2 for the 11.5-20 px carriers of a 2 mm board at 0.1 mm/px, 3 for 8 px carriers. Measured
+    (docs/processing.md section 6) on the pure cosines of 8 px with J0 ring waves (issue 19): 2x
+    finer 0.64 % full-grid displacement error, 3x 0.42 %, 4x 0.41 %, 8x 0.39 %: on 2x the linear
+    interpolation's pull towards the fine samples (0.0034 px at 2 x 8 px, ``linear_interpolation_shift_px``)
+    was image matching's largest error in the middle of the frame.
+    """
+    from .refine import warp_fine_factor
+
+    return max(FINE, warp_fine_factor(freq, shape))
+
+
+def fine_reference(reference, factor: int = FINE):
+    """The reference, cubic-spline interpolated to a grid ``factor`` times finer
+    (sample ``i`` at pixel ``i / factor``), float32.
 
     Warping it with linear interpolation is as accurate as warping the
     reference with the cubic spline itself, at OpenCV's speed: measured on a
@@ -32,8 +50,9 @@ def fine_reference(reference):
     from scipy import ndimage
 
     ref = np.asarray(reference, np.float64)
-    r = np.arange(FINE * ref.shape[0]) / FINE
-    c = np.arange(FINE * ref.shape[1]) / FINE
+    factor = int(factor)
+    r = np.arange(factor * ref.shape[0]) / factor
+    c = np.arange(factor * ref.shape[1]) / factor
     coef = ndimage.spline_filter(ref, order=3, mode="mirror")
     out = np.empty((r.size, c.size), np.float32)
     # rows in blocks: the coordinate arrays stay small
