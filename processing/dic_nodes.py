@@ -10,6 +10,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from .refine import warp_fine_factor
+
 __all__ = ["FINE", "NODE_PX", "BLUR_PX", "NodeGrid", "HeightNodes", "Stencil9", "fine_factor", "fine_reference",
            "fits"]
 
@@ -30,8 +32,6 @@ def fine_factor(freq, shape) -> int:
     interpolation's pull towards the fine samples (0.0034 px at 2 x 8 px, ``linear_interpolation_shift_px``)
     was image matching's largest error in the middle of the frame.
     """
-    from .refine import warp_fine_factor
-
     return max(FINE, warp_fine_factor(freq, shape))
 
 

@@ -9,14 +9,15 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, Dict, Hashable, Optional, Tuple
 
-__all__ = ["DISPLAY_MAX_HZ", "MAPS_MAX_HZ", "MAPS_WHOLE_MAX_FRACTION", "LIVE_TAB", "ALIGNMENT_TAB", "TickPlan", "DrawClock", "RateCounter",
-           "LiveRates", "ReplayQueue", "ExportProgress"]
+__all__ = ["DISPLAY_MAX_HZ", "MAPS_MAX_HZ", "MAPS_WHOLE_MAX_FRACTION", "LIVE_TAB", "ALIGNMENT_TAB", "TickPlan",
+           "DrawClock", "RateCounter", "LiveRates", "ReplayQueue", "ExportProgress"]
 
 DISPLAY_MAX_HZ = 60.0  # the raw camera view refreshes at most this often
 MAPS_MAX_HZ = 60.0  # processed maps at most this often (and never more than one result per display tick)
 # A result's maps are drawn in one tick while that took at most this fraction of a display period (the
-# decimated maps of a 512^2 or 1024^2 camera: about 1.5 ms of 16.7); slower, they go in two halves on
-# consecutive ticks, so that no tick is long enough to make the raw view miss its cadence
+# decimated maps of a 512^2 camera: 2-2.5 ms of 16.7; of 1024^2 about 6 ms, at the limit: measured in the
+# window by benchmarks/bench_gui.py); slower, they go in two halves on consecutive ticks, so that no tick
+# is long enough to make the raw view miss its cadence
 MAPS_WHOLE_MAX_FRACTION = 0.35
 LIVE_TAB, ALIGNMENT_TAB = 0, 1  # the tabs that show the camera (the window's tab indices)
 
