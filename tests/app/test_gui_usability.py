@@ -244,12 +244,22 @@ def test_profile_line_ends_move_ends_body_moves_line_view_never_pans(qtbot, wind
     view_range = view.plot.getViewBox().viewRange()
     tol = 0.02 * span_x  # 2 % of the map: a few screen pixels
 
+    def not_panned():
+        # a pan moves the view's centre by the drag (10-20 % of the map here); the edges alone may move
+        # when the tile is laid out again: beside stress-ng, 4 of 7 runs took the snapshot while the
+        # tile was still settling, the aspect-locked x range then +-43.007 mm, later +-42.930 (a pixel's
+        # width less; the centre at 0 and the y range unchanged), which the exact comparison called a pan
+        now = view.plot.getViewBox().viewRange()
+        centre = [(lo + hi) / 2 for lo, hi in now]
+        assert centre == pytest.approx([(lo + hi) / 2 for lo, hi in view_range], abs=0.2 * tol), (now, view_range)
+        return True
+
     # an end handle moves that end only
     target = (xb, ym + 0.2 * span_y)
     _drag(view, (xb, ym), target)
     p0, p1 = line.ends()
     assert p0 == pytest.approx((xa, ym), abs=tol) and p1 == pytest.approx(target, abs=tol)
-    assert view.plot.getViewBox().viewRange() == view_range
+    assert not_panned()
 
     # the body moves the whole line
     mid = ((p0[0] + p1[0]) / 2, (p0[1] + p1[1]) / 2)
@@ -258,13 +268,13 @@ def test_profile_line_ends_move_ends_body_moves_line_view_never_pans(qtbot, wind
     q0, q1 = line.ends()
     for before, after in ((p0, q0), (p1, q1)):
         assert (after[0] - before[0], after[1] - before[1]) == pytest.approx(shift, abs=tol)
-    assert view.plot.getViewBox().viewRange() == view_range
+    assert not_panned()
 
     # a drag on the map away from the line moves neither the line nor the view
     _drag(view, (float(x[0]) + 0.1 * span_x, float(y[0]) + 0.1 * span_y),
           (float(x[0]) + 0.3 * span_x, float(y[0]) + 0.3 * span_y))
     assert line.ends() == (q0, q1)
-    assert view.plot.getViewBox().viewRange() == view_range
+    assert not_panned()
     # the profile follows the line
     seq = window.clock.last_result_seq
     qtbot.waitUntil(lambda: window.clock.last_result_seq != seq, timeout=5000)
