@@ -198,8 +198,10 @@ def test_recorder_lapped_by_camera_counts_every_lost_frame(tmp_path):
     seq = t["sequence"]
     assert np.all(np.diff(seq) >= 1)
     lost_in_file = int((np.diff(seq) - 1).sum())
-    # rows + lost == the 3000 planned sequence numbers [0, 3000)
-    assert seq[-1] <= 2999 and n + lost_in_file + (2999 - seq[-1]) + seq[0] == 3000
+    # rows + lost == the 3000 planned sequence numbers [0, 3000); beside stress-ng the camera can lap the
+    # recorder on every one of them (a fresh-clone loaded run wrote no row): all 3000 are then counted lost
+    if n:
+        assert seq[-1] <= 2999 and n + lost_in_file + (2999 - seq[-1]) + seq[0] == 3000
     assert rec.lost_overrun == 3000 - n > 0
     s = rec.summary()
     assert s["lost_ring_overrun"] == rec.lost_overrun and s["total_missing"] >= rec.lost_overrun
