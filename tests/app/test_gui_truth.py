@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from pyqtgraph.Qt import QtCore, QtTest
+from pyqtgraph.Qt import QtCore, QtTest, QtWidgets
 
 from tests.app.test_gui_flow import _choose_scene_by_hand
 
@@ -204,7 +204,12 @@ def test_live_numbers_on_another_tab_carry_the_age_of_the_maps_and_fit_the_statu
     truth = w.status_labels["truth"]
     qtbot.waitUntil(lambda: truth.text().startswith("vs truth") and "stale" not in truth.text(), timeout=20000)
     _ctrl(w, QtCore.Qt.Key_3)  # the Replay tab
-    _until(qtbot, lambda: NOT_DRAWN in truth.text(), lambda: f"status bar {truth.text()!r}", 10000)
+    # a quiet fresh-clone run once timed out here with the status bar still live ('vs truth 0.000 um RMS
+    # (still)'), not reproduced: the timeout now says which tab was shown and what the maps' staleness saw
+    _until(qtbot, lambda: NOT_DRAWN in truth.text(),
+           lambda: (f"status bar {truth.text()!r}, tab {w.tabs.currentIndex()}, maps stale {w.stale.maps!r}, "
+                    f"maps show frame {w.maps_shown_seq()}, newest {w.session.newest_seq()}, "
+                    f"active window {w.isActiveWindow()}, focus {QtWidgets.QApplication.focusWidget()!r}"), 10000)
     assert w.height_view.is_stale and NOT_DRAWN in w.height_view.stale_text  # and so is a snapshot of them
     qtbot.wait(600)  # the status bar laid out again
     shown = truth.shown_text()
