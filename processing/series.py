@@ -223,9 +223,10 @@ def _disagrees_with_spatial(phase, valid, ref_mask):
         # unwrapping is unique up to one 2 pi multiple per region, so the frame's own unwrapping can
         # only differ by that common offset (no slip). Its spatial unwrapping (most of the live
         # chain's time on fast waves) is then not needed.
-        if count == 1 and not has_wraps(np.where(valid, phase[s], 0.0), valid):
+        masked = np.where(valid, phase[s], 0.0)
+        if count == 1 and not has_wraps(masked, valid):
             continue
-        own = unwrap_spatial(wrap(np.where(valid, phase[s], 0.0)), valid, ref_mask=ref_mask)
+        own = unwrap_spatial(wrap(masked), valid, ref_mask=ref_mask)
         turns = np.round((np.where(judged, phase[s], 0.0) - np.where(judged, own, 0.0)) / TWO_PI)
         if judged.any():
             turns -= np.median(turns[judged])  # one common offset is no slip
