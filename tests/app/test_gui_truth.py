@@ -6,6 +6,8 @@ the moving scenes are ray-traced in seconds. Each test starts from a clean setti
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 from pyqtgraph.Qt import QtCore, QtTest, QtWidgets
@@ -47,6 +49,15 @@ def _until(qtbot, condition, seen, timeout):
 
 
 def _ctrl(w, key):
+    """Ctrl+``key`` to the window, made the active window first as a user's click on it would: a window
+    shortcut fires only in the active window (offscreen, any window shown and hidden again, a menu or a
+    tooltip, leaves none active), and a key sent to an inactive one is dropped without a word."""
+    if not w.isActiveWindow():
+        w.activateWindow()
+        deadline = time.monotonic() + 3.0  # a hang detector: activation takes one event-loop turn
+        while not w.isActiveWindow() and time.monotonic() < deadline:
+            QtWidgets.QApplication.processEvents(QtCore.QEventLoop.AllEvents, 50)
+        assert w.isActiveWindow(), f"the window could not be made active for Ctrl+{key!r}"
     QtTest.QTest.keyClick(w, key, QtCore.Qt.ControlModifier)
 
 

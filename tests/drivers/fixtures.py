@@ -76,6 +76,20 @@ def _udp_bound(address: str, port: int) -> bool:
         return False
 
 
+def fake_camera_command(exe: str, loss_per_thousand: int = 0) -> list:
+    """The command line of a fake camera on :data:`ADDRESS` that dies with the thread that starts it.
+
+    A pytest run killed mid-test (Ctrl+C twice, CI's limit, ``pkill``) skips every finalizer; the fake
+    camera it had started then kept 127.0.0.1:3956 and the next run's 17 camera tests failed with "already
+    in use". ``setpriv --pdeathsig KILL`` (util-linux, in every Debian) execs the camera with the kernel's
+    parent-death signal set, so it is SIGKILLed when its parent goes, however that goes."""
+    cmd = [exe, "-i", ADDRESS]
+    if loss_per_thousand:
+        cmd += ["-r", str(int(loss_per_thousand))]
+    setpriv = shutil.which("setpriv")
+    return [setpriv, "--pdeathsig", "KILL", "--", *cmd] if setpriv else cmd
+
+
 class FakeGvCamera:
     """A running ``arv-fake-gv-camera-0.8`` process on loopback.
 
@@ -103,10 +117,8 @@ class FakeGvCamera:
             raise RuntimeError(
                 f"UDP {ADDRESS}:{GVCP_PORT} is already in use (a stray {FAKE_GV_EXE}?); stop it and rerun"
             )
-        cmd = [exe, "-i", ADDRESS]
-        if self.loss_per_thousand:
-            cmd += ["-r", str(self.loss_per_thousand)]
-        self.process = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        self.process = subprocess.Popen(fake_camera_command(exe, self.loss_per_thousand),
+                                        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
         deadline = time.monotonic() + START_TIMEOUT_S
         while not _udp_bound(ADDRESS, GVCP_PORT):
             if self.process.poll() is not None:

@@ -293,3 +293,53 @@ def test_camera_dropped_without_close_is_released():
     assert ref() is None  # no reference cycle through the signal handler or the watchdog
     watchdog.join(2.0)
     assert not watchdog.is_alive()
+
+
+def test_a_killed_test_run_leaves_no_fake_camera_behind():
+    """A pytest run killed mid-test (no finalizer runs) once left ``arv-fake-gv-camera-0.8`` holding
+    127.0.0.1:3956, and the next run's 17 camera tests failed "already in use": the fixture's camera
+    now dies with the process that started it. Here a real child process starts it as the fixture does
+    and is SIGKILLed; the port must come free without anyone stopping the camera."""
+    import os
+    import shutil
+    import signal
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from tests.drivers.fixtures import ADDRESS, FAKE_GV_EXE, GVCP_PORT, _udp_bound
+
+    exe = shutil.which(FAKE_GV_EXE)
+    if exe is None:
+        pytest.skip(f"{FAKE_GV_EXE} not installed")
+    assert not _udp_bound(ADDRESS, GVCP_PORT), "a fake camera is already running (this test holds the lock)"
+    starter = ("import subprocess, sys, time\n"
+               "from tests.drivers.fixtures import fake_camera_command\n"
+               "camera = subprocess.Popen(fake_camera_command(sys.argv[1]))\n"
+               "print(camera.pid, flush=True)\n"
+               "time.sleep(600)\n")
+    root = Path(__file__).resolve().parents[2]
+    run = subprocess.Popen([sys.executable, "-c", starter, exe], cwd=root, stdout=subprocess.PIPE, text=True)
+    try:
+        camera_pid = int(run.stdout.readline())
+        deadline = time.monotonic() + 30.0  # hang detector: it binds in ~10 ms
+        while not _udp_bound(ADDRESS, GVCP_PORT):
+            assert time.monotonic() < deadline, "the fake camera never bound its port"
+            time.sleep(0.01)
+        with open(f"/proc/{camera_pid}/comm") as f:
+            assert f.read().strip().startswith("arv-fake"), "the pid printed is not the camera itself"
+        os.kill(run.pid, signal.SIGKILL)  # the killed test run: no finalizer, no stop()
+        run.wait(30)
+        deadline = time.monotonic() + 30.0  # hang detector: the kernel signals at once
+        while _udp_bound(ADDRESS, GVCP_PORT):
+            assert time.monotonic() < deadline, f"the fake camera (pid {camera_pid}) outlived the killed run"
+            time.sleep(0.01)
+    finally:
+        if run.poll() is None:
+            run.kill()
+            run.wait(30)
+        run.stdout.close()
+        try:
+            os.kill(camera_pid, signal.SIGKILL)  # only if the test failed: never leave it for the next run
+        except (OSError, NameError):
+            pass
