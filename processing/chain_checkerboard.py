@@ -28,7 +28,7 @@ from .fullgrid import Upsampler, full_ifft, interpolate_full
 from .mask import (POOR_FRAME_VALID_FRACTION, brightness_sample, choose_reference_region, dilate_invalid,
                    drop_islands, exposure_gain, fold_ok, reference_contrast_ok)
 from .plan import ReferencePlan, read_only
-from .refine import band_limited_reference, refine_fd, static_phase, warp_fine_factor
+from .refine import refine_fd, static_phase, warp_reference
 from .result import Result
 from .series import after_unwrap, check_series, unwrap_phase
 
@@ -81,7 +81,7 @@ class CheckerboardChain(GridChain):
                                               self.shape, skip=int(o.dilate))
         self.upsampler = Upsampler(self.shape, d.window_shape, o.full_interpolation)
         self.cg_tol = CG_TOL
-        self.warp_interpolation = cv2.INTER_LINEAR  # from a grid fine enough for the period (warp_fine_factor)
+        self.warp_interpolation = cv2.INTER_LINEAR  # of the carriers' slow envelopes (refine.warp_reference)
         # pattern-check tolerance in bins: 2 % of the carrier frequency (a
         # pattern 4 % off moves the centroid about 3 %; the full check decides)
         self.check_tol_bins = np.maximum(0.02 * np.hypot(*(d.freq * np.array(self.shape)).T), 0.75)
@@ -101,13 +101,11 @@ class CheckerboardChain(GridChain):
 
     # ------------------------------------------------------- built on first use
     def warp_reference(self):
-        """Reference band-limited around the two carriers (no apodization) on the
-        grid the refinement warps it from: ``(fine, factor)``, ``fine[i, j]`` at
-        pixel ``(i / factor, j / factor)`` (:func:`processing.refine.warp_fine_factor`)."""
+        """The reference band-limited around the two carriers (no apodization),
+        as carrier envelopes and carriers (:class:`processing.refine.WarpReference`)."""
         if self._smooth_ref is None:
             d = self.demod
-            factor = warp_fine_factor(d.freq, self.shape)
-            self._smooth_ref = (band_limited_reference(self.ref_f32, d.freq, d.radius, factor), factor)
+            self._smooth_ref = warp_reference(self.ref_f32, d.freq, d.radius)
         return self._smooth_ref
 
     def image_refinement(self):
@@ -192,10 +190,10 @@ class CheckerboardChain(GridChain):
 
     def refine(self, g, u, valid, iterations):
         """FD's bias removal (:func:`processing.refine.refine_fd`), ``iterations`` times."""
-        smooth = self.warp_reference()
+        plan = self.warp_reference()
         if self._smooth_static is None:
-            self._smooth_static = static_phase(self.demod, *smooth)
-        return refine_fd(self.demod, smooth, self._smooth_static, g, u, valid, iterations, self.upsampler,
+            self._smooth_static = static_phase(self.demod, plan.band_limited)
+        return refine_fd(self.demod, plan, self._smooth_static, g, u, valid, iterations, self.upsampler,
                          interpolation=self.warp_interpolation, threads=self.planner.threads)
 
     def measure(self, frame, grid, state, t0):

@@ -7,8 +7,9 @@ FFTs (decimated grid), phase, amplitude ratio and mask, temporal unwrapping
 (a cumulative sum of the wrapped changes over the batch, with the reference
 region kept nearest 0 as the CPU path does), displacement, the fold test,
 the bias-removal iteration (upsampling of ``u`` as two matrix products with
-cv2's INTER_LANCZOS4 weights, as the CPU's warp maps; bilinear warp of the smooth
-reference with cv2.remap's reflecting border, its FFT and windows), the
+cv2's INTER_LANCZOS4 weights, as the CPU's warp maps; the band-limited reference
+warped as on the CPU: its carriers' envelopes bilinearly with cv2.remap's reflecting
+border, the carriers exact; its FFT and windows), the
 spectral height solve (as matrix products) and the full grid (the CPU's
 kernel as two matrix products: the cubic B-spline of
 :func:`processing.fullgrid.spline_matrix`, or Lanczos4 with
@@ -41,6 +42,7 @@ import time
 import numpy as np
 
 from .fullgrid import spline_matrix
+from .refine import WarpReference, modulate, static_phase
 from .unwrap import TWO_PI
 
 __all__ = ["BatchChain", "cupy_or_reason", "lanczos_matrix", "live_device"]
@@ -234,20 +236,24 @@ class BatchChain:
         return self.xp.matmul(self.xp.matmul(self.up_r, field), self.up_cT)
 
     def _warp_smooth(self, u):
-        """The smooth reference sampled at r - u(r) (cv2.remap, bilinear, reflecting border), (B, rows, cols),
-        from its grid ``factor`` times finer than the pixels, as the CPU chain warps it."""
+        """The band-limited reference sampled at r - u(r), (B, rows, cols), as the CPU chain warps it
+        (:func:`processing.refine.sample_band_limited`): the carriers' envelopes interpolated bilinearly
+        (reflecting border), the carriers exact."""
         xp = self.xp
         if self.smooth is None:
-            fine, self.smooth_factor = self.r.warp_reference()
-            self.smooth = xp.asarray(fine)
-        f = np.float32(self.smooth_factor)
-        rows, cols = self.smooth.shape
-        X = f * (self.cols_f - self._up(u[:, 1], warp=True))
-        Y = f * (self.rows_f - self._up(u[:, 0], warp=True))
+            plan = self.r.warp_reference()
+            self.smooth = WarpReference(xp.asarray(plan.envelopes), xp.asarray(plan.carrier_cos),
+                                        xp.asarray(plan.carrier_sin), plan.wavevectors, plan.band_limited)
+        plan = self.smooth
+        rows, cols = plan.envelopes.shape[:2]
+        off_c = -self._up(u[:, 1], warp=True)
+        off_r = -self._up(u[:, 0], warp=True)
+        X = self.cols_f + off_c
+        Y = self.rows_f + off_r
         ix = xp.floor(X)
         iy = xp.floor(Y)
-        fx = (X - ix).astype(xp.float32)
-        fy = (Y - iy).astype(xp.float32)
+        fx = (X - ix).astype(xp.float32)[..., None]
+        fy = (Y - iy).astype(xp.float32)[..., None]
         ix = ix.astype(xp.int32)
         iy = iy.astype(xp.int32)
 
@@ -257,10 +263,11 @@ class BatchChain:
 
         x0, x1 = reflect(ix, cols), reflect(ix + 1, cols)
         y0, y1 = reflect(iy, rows), reflect(iy + 1, rows)
-        s = self.smooth
-        top = (1 - fx) * s[y0, x0] + fx * s[y0, x1]
-        bottom = (1 - fx) * s[y1, x0] + fx * s[y1, x1]
-        return ((1 - fy) * top + fy * bottom).astype(xp.float32)
+        e = plan.envelopes
+        top = (1 - fx) * e[y0, x0] + fx * e[y0, x1]
+        bottom = (1 - fx) * e[y1, x0] + fx * e[y1, x1]
+        sampled = ((1 - fy) * top + fy * bottom).astype(xp.float32)
+        return modulate(xp, sampled, plan, off_r.astype(xp.float32), off_c.astype(xp.float32)).astype(xp.float32)
 
     def _height(self, u):
         """Spectral least-squares height of all-valid u (B, 2, m_r, m_c): (h, slope_x, slope_y)."""
@@ -388,9 +395,7 @@ class BatchChain:
             iterations = {"decimated": 0, "full": 1}[grid]
         if iterations > 0 and self.static is None:
             d = r.demod
-            fine, factor = r.warp_reference()
-            coarse = np.ascontiguousarray(fine[::factor, ::factor])
-            self.static = xp.asarray(np.angle(d.g0 * np.conj(d.decimated(coarse))).astype(np.float32))
+            self.static = xp.asarray(static_phase(d, r.warp_reference().band_limited).astype(np.float32))
         for _ in range(iterations):
             gw = self._decimated(self._warp_smooth(u))
             dphi = _wrap(xp, xp.angle(g * xp.conj(gw)).astype(xp.float32) - self.static)

@@ -305,8 +305,8 @@ class Reconstructor:
         return self.chain.to_grid(measured, res, grid)
 
     def warp_reference(self):
-        """The band-limited reference FD's refinement warps: ``(fine, factor)``
-        (:meth:`processing.chain_checkerboard.CheckerboardChain.warp_reference`)."""
+        """The band-limited reference FD's refinement warps (:class:`processing.refine.WarpReference`,
+        :meth:`processing.chain_checkerboard.CheckerboardChain.warp_reference`)."""
         return self.chain.warp_reference()
 
     def height_solver(self):
