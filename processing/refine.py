@@ -198,8 +198,9 @@ def modulate(xp, envelopes, plan: WarpReference, offset_rows, offset_cols):
 
 @numba.njit(nogil=True, cache=True)
 def _modulate_rows(envelopes, offset_rows, offset_cols, carrier_cos, carrier_sin, k, out, r0, r1):  # pragma: no cover
-    """:func:`modulate` of rows ``r0 <= i < r1`` in one pass (compiled: NumPy's version made
-    about 30 full-size passes, 29 ms at 1024^2 on a quiet machine; this one 8 ms, one thread)."""
+    """:func:`modulate` (the GPU chain's, written for any array module) of rows ``r0 <= i < r1``, compiled,
+    in one pass: at 1024^2 on a quiet machine, one thread, 11-12 ms where NumPy's about 30 full-size passes
+    took 29 ms; 8-9 of them are the 4 sines and cosines a pixel."""
     two = np.float32(2.0)
     for i in range(r0, r1):
         for j in range(out.shape[1]):
