@@ -16,7 +16,12 @@ frame's edge in carrier periods (8 px) and by component, each band's RMS
 error over the RMS displacement of the 8 % interior.  About 20 s.
 
 ``--interpolation lanczos`` runs the full grid with cv2's Lanczos4 resize
-(before issue 19's spline) for comparison.
+(before issue 19's spline) for comparison; ``--size 512`` a 512^2 frame (the 8 %
+margin is then 5 carrier periods: the border bands of docs/processing.md
+section 6 fall outside). The last two columns are the height error (the
+accuracy table's measure: interior, 8 % margin, null space removed), which is
+what image matching fits: its displacement is the height's (``u = a h + B grad
+h``), so it can be the best height with a larger displacement error.
 """
 
 from __future__ import annotations
@@ -29,6 +34,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
+from benchmarks.bench_processing import rel_height_error  # noqa: E402
 from processing import forward as F  # noqa: E402
 from processing.geometry import Geometry  # noqa: E402
 from processing.reconstruct import Reconstructor  # noqa: E402
@@ -77,27 +83,34 @@ def where_the_error_is(res, u_true):
 def main(argv=None):
     import argparse
 
+    global N
+
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--interpolation", default="spline", choices=("spline", "lanczos"),
                     help="full-grid interpolation (full_interpolation)")
+    ap.add_argument("--size", type=int, default=256, help="frame side, pixels (default 256)")
     args = ap.parse_args(argv)
+    N = args.size
     ref, _ = F.render_tir(F.FlatSurface(), GEOMETRY, (N, N), PATTERN, supersample=2)
     img, _ = F.render_tir(RINGS, GEOMETRY, (N, N), PATTERN, supersample=2)
     u_true, _ = F.true_displacement(RINGS, GEOMETRY, (N, N))
     print(f"pure cosines 8 px, rotated 9 deg; J0 ring waves: max |u| {np.hypot(*u_true).max():.2f} px")
-    print("full-grid relative RMS displacement error (%), interior")
-    print(f"{'method':44s} {'8-bit 8%':>9s} {'8-bit 15%':>10s} {'float 8%':>9s} {'float 15%':>10s}")
+    print(f"{N}^2; full-grid relative RMS displacement error (%), interior; height error (%)")
+    print(f"{'method':44s} {'8-bit 8%':>9s} {'8-bit 15%':>10s} {'float 8%':>9s} {'float 15%':>10s}"
+          f" {'h 8-bit':>8s} {'h float':>8s}")
     pairs = ((F.quantize(ref, bits=8), F.quantize(img, bits=8)), (ref, img))
     rows = METHODS + [("decimated grid (live)", dict(grid="decimated"))]
     where = []
     for label, kw in rows:
-        cells = []
+        cells, heights = [], []
         for r, i in pairs:
             res = Reconstructor(r, GEOMETRY, full_interpolation=args.interpolation, **kw)(i)
             cells += [displacement_error(res, u_true, 0.08), displacement_error(res, u_true, 0.15)]
+            heights.append(rel_height_error(res, RINGS, GEOMETRY))
         if res.grid == "full" and kw:
             where.append((label, where_the_error_is(res, u_true)))
-        print(f"{label:44s} {cells[0]:9.2f} {cells[1]:10.2f} {cells[2]:9.2f} {cells[3]:10.2f}", flush=True)
+        print(f"{label:44s} {cells[0]:9.2f} {cells[1]:10.2f} {cells[2]:9.2f} {cells[3]:10.2f}"
+              f" {heights[0]:8.2f} {heights[1]:8.2f}", flush=True)
     print("where the error is, float frames: RMS error (% of the interior's RMS u) by distance from the edge")
     print(f"{'(carrier periods; the 8 % margin is 2.56)':44s}" + "".join(f"{f'{lo}-{hi}':>7s}" for lo, hi in BANDS)
           + "    u_row  u_col")
