@@ -204,7 +204,10 @@ def update_status(w):
                                 else "padding: 0 4px")
     lab["fps"].setText(t.fps)
     w.camera_fps_shown = t.camera_fps
-    lab["drops"].setText(t.drops)
+    lab["drops"].setText(t.drops_tip, shown=t.drops)  # every counter in the tooltip
+    style = "padding: 0 4px; color: #c00000; font-weight: bold" if t.drops_alarm else "padding: 0 4px"
+    if lab["drops"].styleSheet() != style:
+        lab["drops"].setStyleSheet(style)
     lab["ring"].setText(t.ring)
     lab["ring"].setToolTip(t.ring_tip)
     lab["latency"].setText(t.latency)

@@ -221,14 +221,17 @@ def build_ui(w):
     w.message_label = ElidedLabel("")  # info() messages: where a snapshot went, what was loaded
     w.message_label.setStyleSheet("padding: 0 4px; color: #004080")
     sb.addPermanentWidget(w.message_label, 1)
+    # hidden while it has nothing to say: empty, its stretch took half the room the drop counts needed
+    w.message_label.setVisible(False)
     w._message_timer = QtCore.QTimer(w)
     w._message_timer.setSingleShot(True)
-    w._message_timer.timeout.connect(lambda: w.message_label.setText(""))
+    w._message_timer.timeout.connect(lambda: (w.message_label.setText(""), w.message_label.setVisible(False)))
     w.status_labels = {}
     stretch = {"camera": 0, "fps": 0, "device": 0, "truth": 0, "drops": 1, "ring": 0, "latency": 0,
                "state": 0}
     for key in ("camera", "fps", "device", "truth", "drops", "ring", "latency", "state"):
-        lab = ElidedLabel("")
+        # the drops keep room for "dropped: none" / "DROPPED camera N": cut first, they hid the counts
+        lab = ElidedLabel("", min_chars=16 if key == "drops" else 6)
         lab.setStyleSheet("padding: 0 4px")
         sb.addPermanentWidget(lab, stretch[key])
         w.status_labels[key] = lab

@@ -212,6 +212,7 @@ class MainWindow(QtWidgets.QMainWindow):
         """A passing message in the status bar (full text as its tooltip)."""
         self.statusBar().showMessage(text, timeout_ms)
         self.message_label.setText(text)
+        self.message_label.setVisible(bool(text))
         self._message_timer.start(timeout_ms)
 
     # ------------------------------------------------------------- camera

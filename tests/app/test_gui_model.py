@@ -302,7 +302,15 @@ def test_status_bar_says_lost_with_zero_rates_and_names_the_live_device():
                      display_skipped=7, latency_ms=12.4, device_text="CPU (GPU not asked for: View ▸ ...)")
     assert (t.camera, t.camera_lost, t.state) == ("synthetic 256×256", False, "")
     assert t.fps == "camera 30.0 · processed 9.5 · shown 29.9 fps" and t.latency == "latency 12 ms"
-    assert t.drops == "dropped: camera 2 · ring→recorder 0 · recorder backlog 1 · display skipped 7 (by design)"
+    # a few words that a laptop's status bar shows whole, red once a frame is lost; every counter in the tip
+    assert t.drops_tip == "dropped: camera 2 · ring→recorder 0 · recorder backlog 1 · display skipped 7 (by design)"
+    assert (t.drops, t.drops_alarm) == ("DROPPED camera 2 · ring→recorder 0 · backlog 1", True)
+    calm = status_texts(dict(st, dropped_camera=0, recorder_backlog=0), camera_fps=30.0, processed_fps=9.5,
+                        shown_fps=29.9, frozen=False, camera_open=True, display_skipped=7, latency_ms=12.4)
+    assert (calm.drops, calm.drops_alarm) == ("dropped: none", False)  # skipped display frames are no loss
+    ring = status_texts(dict(st, dropped_camera=0, dropped_ring=5), camera_fps=30.0, processed_fps=9.5,
+                        shown_fps=29.9, frozen=False, camera_open=True, display_skipped=0, latency_ms=12.4)
+    assert (ring.drops, ring.drops_alarm) == ("DROPPED camera 0 · ring→recorder 5 · backlog 1", True)
     assert (t.ring, t.ring_tip) == ("ring 25 %", "ring buffer 25 % full, 40 frames")
     assert t.device == "live on CPU" and t.device_tip.startswith("live reconstruction on the CPU (GPU not asked")
     lost = status_texts(dict(st, error="no frame for 3.0 s"), camera_fps=30.0, processed_fps=0.0, shown_fps=29.9,

@@ -199,10 +199,9 @@ def test_long_messages_wrap_or_elide_with_the_full_text_as_tooltip(qtbot, window
     assert view.message.height() >= 2 * view.message.fontMetrics().height()
     view.show_message(text, short="no clear carrier peak (see Height)")  # small tiles: a few words
     assert view.message.toPlainText().startswith("no clear") and view.graphics.toolTip() == text
-    label = window.status_labels["drops"]
-    assert label.toolTip() == label.text() and label.text().startswith("dropped:")
-    if label.fontMetrics().horizontalAdvance(label.text()) > label.width():
-        assert label.shown_text().endswith("…")
+    label = window.status_labels["drops"]  # a few words on screen, every counter in the tooltip
+    assert label.toolTip() == label.text() and label.text().startswith("dropped: camera ")
+    assert label.shown_text() in ("dropped: none", label.text()) or label.shown_text().endswith("…")
 
 
 def _view_point(view, x_mm, y_mm):

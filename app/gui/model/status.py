@@ -7,7 +7,7 @@ import dataclasses
 import math
 from typing import Optional
 
-__all__ = ["StatusTexts", "status_texts", "camera_problem"]
+__all__ = ["StatusTexts", "status_texts", "drops_text", "camera_problem"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -18,7 +18,9 @@ class StatusTexts:
     camera_lost: bool
     camera_fps: float
     fps: str
-    drops: str
+    drops: str  # a few words that fit a laptop's status bar: the losses (red when any), the backlog
+    drops_tip: str  # every counter, the display's skips included
+    drops_alarm: bool  # a frame was lost (camera or ring -> recorder): drawn red and bold
     ring: str
     ring_tip: str
     latency: str
@@ -48,8 +50,10 @@ def status_texts(st: dict, *, camera_fps: float, processed_fps: float, shown_fps
         camera=f"{st.get('camera_text', 'camera')} LOST" if err else st.get("camera_text", ""),
         camera_lost=bool(err), camera_fps=camera_fps,
         fps=f"camera {camera_fps:.1f} · processed {processed_fps:.1f} · shown {shown_fps:.1f} fps",
-        drops=(f"dropped: camera {st.get('dropped_camera', 0)} · ring→recorder {st.get('dropped_ring', 0)} · "
-               f"recorder backlog {st.get('recorder_backlog', 0)} · display skipped {display_skipped} (by design)"),
+        drops=drops_text(st),
+        drops_tip=(f"dropped: camera {st.get('dropped_camera', 0)} · ring→recorder {st.get('dropped_ring', 0)} · "
+                   f"recorder backlog {st.get('recorder_backlog', 0)} · display skipped {display_skipped} (by design)"),
+        drops_alarm=bool(st.get("dropped_camera", 0) or st.get("dropped_ring", 0)),
         ring=f"ring {100 * fill:.0f} %" if fill is not None else "",
         ring_tip=f"ring buffer {100 * fill:.0f} % full, {st.get('ring_frames', 0)} frames" if fill is not None else "",
         latency=f"latency {latency_ms:.0f} ms" if math.isfinite(latency_ms) else "",
@@ -60,6 +64,17 @@ def status_texts(st: dict, *, camera_fps: float, processed_fps: float, shown_fps
                     + (f", {reconstructed_in}" if reconstructed_in else "")) if device_text else "",
         device_failed=bool(process_error),
         state="camera stopped" if err else "")
+
+
+def drops_text(st: dict) -> str:
+    """The status bar's few words on lost frames: ``"dropped: none"`` while no frame was lost, else the
+    losses per stage (``"DROPPED camera 2 · ring→recorder 0"``), and the recorder's backlog when it has
+    one. The whole sentence, with the counters that are not losses, was cut to "dropped: ca…" at
+    1280x800 (by-hand trial 2 Dec 2026): the one number a user must see was the first to go."""
+    camera, ring = st.get("dropped_camera", 0), st.get("dropped_ring", 0)
+    text = f"DROPPED camera {camera} · ring→recorder {ring}" if camera or ring else "dropped: none"
+    backlog = st.get("recorder_backlog", 0)
+    return f"{text} · backlog {backlog}" if backlog else text
 
 
 def camera_problem(error: Optional[str], camera_id: Optional[str], already_shown: Optional[str]) -> Optional[str]:
