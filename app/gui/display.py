@@ -223,6 +223,9 @@ def update_status(w):
         w.show_error(problem)
     lab["state"].setText(t.state)
     w._update_recording()
+    for label in lab.values():  # an empty label takes no room (the state's kept 43 px from the others at 1280)
+        if label.isVisibleTo(w) != bool(label.text()):
+            label.setVisible(bool(label.text()))
 
 
 def update_staleness(w) -> None:

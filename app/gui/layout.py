@@ -230,8 +230,8 @@ def build_ui(w):
     stretch = {"camera": 0, "fps": 0, "device": 0, "truth": 0, "drops": 1, "ring": 0, "latency": 0,
                "state": 0}
     for key in ("camera", "fps", "device", "truth", "drops", "ring", "latency", "state"):
-        # the drops keep room for "dropped: none" / "DROPPED camera N": cut first, they hid the counts
-        lab = ElidedLabel("", min_chars=16 if key == "drops" else 6)
+        # the drops keep room for "dropped: none" (cut first, they hid the counts); a loss is red and bold
+        lab = ElidedLabel("", min_text="dropped: none" if key == "drops" else "")
         lab.setStyleSheet("padding: 0 4px")
         sb.addPermanentWidget(lab, stretch[key])
         w.status_labels[key] = lab

@@ -16,11 +16,12 @@ class ElidedLabel(QtWidgets.QLabel):
     ``text()`` returns the full text.
     """
 
-    def __init__(self, text: str = "", parent=None, *, min_chars: int = 6):
+    def __init__(self, text: str = "", parent=None, *, min_chars: int = 6, min_text: str = ""):
         super().__init__(parent)
         self._full = ""
         self._shown = ""
         self._min_chars = int(min_chars)
+        self._min_text = str(min_text)  # never cut below this text's width
         self.setSizePolicy(QtWidgets.QSizePolicy.Preferred, QtWidgets.QSizePolicy.Preferred)
         self.setText(text)
 
@@ -50,7 +51,10 @@ class ElidedLabel(QtWidgets.QLabel):
 
     def minimumSizeHint(self):
         fm = self.fontMetrics()
-        return QtCore.QSize(fm.horizontalAdvance("x" * self._min_chars), super().minimumSizeHint().height())
+        m = self.contentsMargins()
+        least = max(fm.horizontalAdvance("x" * self._min_chars),
+                    fm.horizontalAdvance(self._min_text) + m.left() + m.right() + 4 if self._min_text else 0)
+        return QtCore.QSize(least, super().minimumSizeHint().height())
 
     def resizeEvent(self, ev):
         super().resizeEvent(ev)
