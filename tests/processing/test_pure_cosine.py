@@ -171,3 +171,25 @@ def test_image_matching_warps_on_fd_s_grid_rule():
     ref, _ = F.render_tir(F.FlatSurface(), G55, (N, N), COSINES, supersample=1)
     rec = Reconstructor(ref, G55, refine_method="image")
     assert rec.chain.image_refinement().ref_fine.shape == (3 * N, 3 * N)
+
+
+def test_compiled_warp_sum_is_the_array_module_one(pair):
+    # The CPU chain's compiled pass (refine._modulate_rows) and the GPU chain's array-module sum
+    # (refine.modulate, run here with NumPy) are one formula written twice: they must agree to float32
+    # rounding on envelopes sampled at arbitrary offsets (up to 3 px, any sign).
+    import cv2
+
+    from processing.refine import modulate, sample_band_limited, warp_reference
+
+    ref = pair[0]
+    demod = Reconstructor(ref, G55).demod
+    plan = warp_reference(ref, demod.freq, demod.radius)
+    rng = np.random.default_rng(3)
+    off_r = (3.0 * np.sin(np.arange(N) / 17.0)[:, None] * rng.uniform(-1, 1, (1, N))).astype(np.float32)
+    off_c = (3.0 * np.cos(np.arange(N) / 23.0)[None, :] * rng.uniform(-1, 1, (N, 1))).astype(np.float32)
+    compiled = sample_band_limited(plan, off_r, off_c, np.empty((N, N), np.float32), threads=2)
+    sampled = cv2.remap(plan.envelopes, np.arange(N, dtype=np.float32)[None, :] + off_c,
+                        np.arange(N, dtype=np.float32)[:, None] + off_r, cv2.INTER_LINEAR,
+                        borderMode=cv2.BORDER_REFLECT)
+    by_numpy = modulate(np, sampled, plan, off_r, off_c)
+    assert np.abs(compiled - by_numpy).max() <= 1e-5 * np.abs(by_numpy).max()
