@@ -45,7 +45,7 @@ def _ip_int(address: str) -> int:
 class LossyLink:
     """GVCP/GVSP relay ``link_ip`` <-> ``camera_ip`` that loses stream packets and serves resend requests.
 
-    Publishes ``forwarded``, ``dropped`` (first sends lost), ``resend_requests``, ``resent`` (packets
+    Publishes ``forwarded``, ``dropped`` (first sends lost; per block: ``dropped_in_block``), ``resend_requests``, ``resent`` (packets
     sent again), ``resent_dropped`` (of those, lost again), ``resend_unknown`` (asked packets no longer kept).
     """
 
@@ -64,6 +64,8 @@ class LossyLink:
         self._stream_dest = None  # (ip, port) Aravis wants the stream at
         self._blocks = collections.OrderedDict()  # block id -> {packet id: bytes}
         self.forwarded = self.dropped = self.resend_requests = self.resent = self.resent_dropped = 0
+        #: first sends lost, per GVSP block id (16 bit): a frame's own losses
+        self.dropped_in_block = collections.Counter()
         self.resend_unknown = 0
 
     def start(self) -> "LossyLink":
@@ -161,6 +163,7 @@ class LossyLink:
         packets[packet_id] = data
         if not self._send_lossy(data):
             self.dropped += 1
+            self.dropped_in_block[block_id] += 1
 
     def _send_lossy(self, data: bytes) -> bool:
         if self._rng.random() < self.loss:

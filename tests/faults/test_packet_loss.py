@@ -136,5 +136,9 @@ def test_resend_recovers_a_lossy_link(tmp_path):
     assert summary["packets_resend_requests"] == link.resent + link.resend_unknown
     # (a few resent packets can still be in flight when the stream stops: at most 1 % of them)
     assert cs["n_resent_packets"] <= received_again <= (cs["n_resent_packets"] + late) * 1.01
-    # every first send the link lost came back or is missing in a flagged frame
-    assert link.dropped <= cs["n_resent_packets"] + late + lost_for_good + link.resend_unknown
+    # every first send the link lost in a recorded frame came back or is missing in that (flagged) frame; the
+    # camera streams on until the recorder stops it, and losses in frames after the last one recorded are
+    # nobody's to ask for (a quiet fresh-clone run: 854 lost, 3 of them after the 200th frame, 851 resent)
+    lost_in_recorded = sum(link.dropped_in_block[int(i) & 0xFFFF] for i in table["frame_id"])
+    assert lost_in_recorded >= 0.9 * link.dropped  # the frame ids are the link's block ids: nearly all losses
+    assert lost_in_recorded <= cs["n_resent_packets"] + late + lost_for_good + link.resend_unknown
