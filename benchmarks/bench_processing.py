@@ -322,7 +322,7 @@ def bench_accuracy():
     class _Shape:
         shape = (256, 256)
 
-    print(f"{'random dots, PIV 16 px windows (dec / full)':42s}")
+    print(f"{'random dots, PIV 16 px windows (dec / full: image matching from PIV)':42s}")
     for label, surface, kw in cases:
         if "pattern" in kw:
             continue

@@ -1,6 +1,8 @@
 """The random-dot chain: displacement by PIV (:class:`processing.piv.DotDisplacement`),
 then the same island removal, masked height solve and pin as the checkerboard
-chain, then every pixel (:func:`processing.fullgrid.dots_full`)."""
+chain; on the full grid then image matching for the height from PIV's start
+(:class:`processing.chain_image.DotsImageRefinement`, ``refine_method="image"``,
+the default there) or PIV's heights to every pixel (:func:`processing.fullgrid.dots_full`)."""
 
 from __future__ import annotations
 
@@ -24,6 +26,7 @@ class DotsMeasured(NamedTuple):
 
     u: np.ndarray  # displacement (2, n_rows, n_cols), pixels
     valid: np.ndarray
+    frame: np.ndarray  # the validated frame (image matching reads it)
     timings: dict
     t0: float
 
@@ -48,6 +51,15 @@ class DotsChain(GridChain):
         self.region = choose_reference_region(geometry, self.reference_valid, self.rows_px, self.cols_px,
                                               self.shape, skip=0)
         self.cg_tol = 1e-4  # as the checkerboard chain's masked solve
+        self._image = None
+
+    def image_refinement(self):
+        """Image matching from PIV's start (:class:`processing.chain_image.DotsImageRefinement`, built once)."""
+        if self._image is None:
+            from .chain_image import DotsImageRefinement
+
+            self._image = DotsImageRefinement(self)
+        return self._image
 
     def measure(self, frame, grid, state, t0):
         """``(DotsMeasured, state)``: PIV of one validated frame, small islands
@@ -59,7 +71,7 @@ class DotsChain(GridChain):
             raise AllInvalidError("no interrogation window of the frame correlates with the reference: check that "
                                   "the dots are in focus and lit, and that the frame shows the reference's pattern")
         valid = drop_islands(valid, self.region.region, self.options.min_island)
-        return DotsMeasured(u, valid, timings, t0), state
+        return DotsMeasured(u, valid, frame, timings, t0), state
 
     def solve(self, m, grid, state):
         """``(Result, state)``: heights and pin on the PIV grid."""
@@ -79,10 +91,23 @@ class DotsChain(GridChain):
         return res, state
 
     def to_grid(self, m, res, grid) -> Result:
-        """``res`` on ``grid``: every pixel by cubic spline (:func:`processing.fullgrid.dots_full`)."""
+        """``res`` on ``grid``: on the full grid image matching from PIV's start
+        where ``refine_method="image"`` (PIV's heights kept, with a note, where it
+        diverges), else every pixel by cubic spline (:func:`processing.fullgrid.dots_full`)."""
         if grid == "full":
             t2 = time.perf_counter()
-            res = dots_full(res, self.shape, self.full_coordinates())
-            m.timings["interpolate"] = 1e3 * (time.perf_counter() - t2)
+            refined = None
+            if self.options.refine_method == "image":
+                from .dic import RefinementDiverged
+
+                try:
+                    refined = self.image_refinement()(m, res)
+                except RefinementDiverged as exc:  # PIV's heights below, and the reason with them
+                    res.note = f"image refinement stopped: {exc}; PIV's heights kept"
+            if refined is None:
+                res = dots_full(res, self.shape, self.full_coordinates())
+                m.timings["interpolate"] = 1e3 * (time.perf_counter() - t2)
+            else:
+                res = refined
         m.timings["total"] = 1e3 * (time.perf_counter() - m.t0)
         return res

@@ -1,21 +1,24 @@
 """The image-domain refinement chain of the full grid (``refine_method="image"``):
-FD's heights on a node grid every ``dic.NODE_PX`` pixels refined by image
-matching (:func:`processing.dic.refine_height`), then the same masked height
-solver and pin, then every pixel (:class:`ImageRefinement`)."""
+FD's heights (checkerboards, :class:`ImageRefinement`) or PIV's (random dots,
+:class:`DotsImageRefinement`) on a node grid every ``dic.NODE_PX`` pixels
+refined by image matching (:func:`processing.dic.refine_height`), then the
+same masked height solver and pin, then every pixel."""
 
 from __future__ import annotations
 
 import dataclasses
 import time
 
+import cv2
 import numpy as np
 
 from . import dic
 from .fill import nearest_fill_index
+from .fullgrid import interpolate_full
 from .height import solver_for
 from .result import Result
 
-__all__ = ["ImageRefinement"]
+__all__ = ["ImageRefinement", "DotsImageRefinement", "DOTS_BLUR_PX", "DOTS_FINE"]
 
 
 class ImageRefinement:
@@ -83,4 +86,99 @@ class ImageRefinement:
         res = chain.interpolate_full(res, solver=hs)
         timings["interpolate"] = 1e3 * (time.perf_counter() - t5)
         timings["total"] = 1e3 * (time.perf_counter() - m.t0)
+        return res
+
+
+#: Gaussian blur (sigma, pixels) of frame and warped reference when image matching reads random
+#: dots (:class:`DotsImageRefinement`), instead of :data:`processing.dic.BLUR_PX` (1.25 px, for
+#: sharp-edged boards). Gaussian dots are smooth already and their contrast sits at high
+#: frequencies. Measured on the accuracy table's dot cases (256^2, 8 bit, noise 1 DN, dots
+#: 0.5 mm, docs/processing.md section 11), rel. RMS height error of narrow bump / waves 12-30 mm /
+#: deep dimple / waves 6-12 mm / bump 1 um (%): blur 1.25 px 0.96 / 0.41 / 0.50 / 2.65 / 1.00,
+#: 1.0 px 0.80 / 0.28 / 0.44 / 2.33 / 0.78, 0.6 px 0.70 / 0.25 / 0.31 / 2.09 / 0.53, 0.4 px
+#: 0.76 / 0.23 / 0.28 / 1.90 / 0.49, none 0.78 / 0.22 / 0.28 / 2.36 / 0.49; 1.8 px worse again.
+DOTS_BLUR_PX = 0.5
+
+#: How many times finer than the pixels the dot reference is sampled for the warp
+#: (:func:`processing.dic.fine_reference`): 3, as for 8 px carriers (2x measured within 0.05
+#: points of it on the cases above, the narrow bump 0.98 against 0.96 %).
+DOTS_FINE = 3
+
+
+class DotsImageRefinement:
+    """Image matching for the height on random dots: the PIV displacement of a
+    :class:`processing.chain_dots.DotsChain` as the start, then the same global
+    Gauss-Newton height solve as checkerboards (:func:`processing.dic.refine_height`:
+    it does not care what the pattern is), the masked height solver and pin on
+    the node grid, then every pixel by cubic spline."""
+
+    def __init__(self, chain):
+        from .fullgrid import Upsampler
+
+        self.chain = chain
+        ng = self.node_grid = dic.NodeGrid(chain.shape)
+        self.height_nodes = dic.HeightNodes(chain.geometry, ng)
+        self.ref_fine = dic.fine_reference(chain.reference_image, DOTS_FINE)
+        self.solver = solver_for(chain.geometry, ng.rows_px, ng.cols_px, chain.shape)
+        self.upsampler = Upsampler(chain.shape, ng.shape, "spline")
+        # each node's place on the PIV grid, in samples (the start's spline) and its nearest sample (the region)
+        step_r = chain.rows_px[1] - chain.rows_px[0]
+        step_c = chain.cols_px[1] - chain.cols_px[0]
+        at_r = (ng.rows_px - chain.rows_px[0]) / step_r
+        at_c = (ng.cols_px - chain.cols_px[0]) / step_c
+        self.at = np.meshgrid(at_r, at_c, indexing="ij")
+        pick_r = np.clip(np.rint(at_r).astype(int), 0, chain.rows_px.size - 1)
+        pick_c = np.clip(np.rint(at_c).astype(int), 0, chain.cols_px.size - 1)
+        near = chain.region.near
+        self.reference_region = chain.region.region[np.ix_(pick_r, pick_c)]
+        self.near = None if near is None else near[np.ix_(pick_r, pick_c)]
+        self.valid_at = (pick_r, pick_c)
+
+    def _solve(self, u, valid):
+        o = self.chain.options
+        return self.solver.solve_at_tolerance(np.where(valid, u, np.nan), valid, o.solver, self.chain.cg_tol,
+                                              self.reference_region, pin_fallback=o.pin_fallback,
+                                              region_name=self.chain.region.name, near=self.near)
+
+    def start(self, u_piv, valid_piv):
+        """``(valid_px, valid_nodes, PIV's surface at the nodes)``: the PIV
+        displacement (invalid samples: the nearest valid one's) to the nodes by
+        cubic spline, solved for the height there."""
+        from scipy import ndimage
+
+        fill = nearest_fill_index(valid_piv)
+        src = u_piv if fill is None else u_piv[:, fill[0], fill[1]]
+        u_nodes = np.stack([ndimage.map_coordinates(np.nan_to_num(src[i]).astype(np.float64), self.at, order=3,
+                                                    mode="nearest") for i in range(2)])
+        ng = self.node_grid
+        valid_nodes = valid_piv[np.ix_(*self.valid_at)]
+        valid_px = np.ones(self.chain.shape, bool) if valid_nodes.all() else ng.up(valid_nodes, cv2.INTER_NEAREST) > 0
+        return valid_px, valid_nodes, self._solve(u_nodes, valid_nodes)
+
+    def __call__(self, m, piv: Result) -> Result:
+        """Full-grid result of a frame from its PIV result ``piv`` (PIV grid),
+        ``m`` its :class:`processing.chain_dots.DotsMeasured`."""
+        chain, ng, timings = self.chain, self.node_grid, piv.timings_ms
+        t3 = time.perf_counter()
+        valid_px, valid_nodes, start = self.start(piv.displacement, piv.valid)
+        window = float(chain.options.window_px)
+        _, u_nodes, free = dic.refine_height(
+            self.ref_fine, m.frame, np.asarray(start.height_mm, np.float64), valid_px, self.height_nodes,
+            outer=chain.options.image_iterations, blur_px=DOTS_BLUR_PX, period_px=window / 2,
+            intensity_cell_px=max(dic.INTENSITY_CELL_PX, window))
+        t4 = time.perf_counter()
+        timings["refine"] = 1e3 * (t4 - t3)
+        surf = self._solve(u_nodes, free & valid_nodes)
+        valid_nodes = np.asarray(surf.valid, bool)
+        u_nodes = np.where(valid_nodes, u_nodes, np.float32(np.nan)).astype(np.float32)
+        t5 = time.perf_counter()
+        timings["height"] += 1e3 * (t5 - t4)
+        res = Result(height=np.asarray(surf.height_mm, np.float32), valid=valid_nodes,
+                     slope_x=np.asarray(surf.slope_x, np.float32), slope_y=np.asarray(surf.slope_y, np.float32),
+                     displacement=u_nodes, amplitude=valid_nodes.astype(np.float32), x_mm=np.asarray(surf.x_mm),
+                     y_mm=np.asarray(surf.y_mm), grid="decimated", rows_px=ng.rows_px, cols_px=ng.cols_px,
+                     carriers=None, phase=piv.phase, valid_fraction=float(valid_nodes.mean()), timings_ms=timings,
+                     pin=surf.pin)
+        res = interpolate_full(res, self.upsampler, chain.full_coordinates(), self.solver)
+        timings["interpolate"] = 1e3 * (time.perf_counter() - t5)
         return res

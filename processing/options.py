@@ -135,15 +135,16 @@ class ReconstructOptions:
         What the reference shows (None, default: ``geometry.pattern``).  "dots": a random-dot pattern, displacement
         by PIV with window deformation (:class:`processing.piv.DotDisplacement`,
         OpenPIV), last window ``window_px`` (default 16) px, one sample every
-        ``window_px / 2`` px; then the same mask, height solve and pin (the
-        carrier options, unwrapping, refinement, ``alignment`` and
+        ``window_px / 2`` px; then the same mask, height solve and pin, and on
+        the full grid image matching from PIV's start (``refine_method``; the
+        carrier options, unwrapping, FD's refinement, ``alignment`` and
         ``spectrum`` do not apply; ``Result.carriers`` is None).
     refine_method : {"auto", "fd", "image"}, optional
         "auto" (default): :func:`processing.options.full_grid_refinement`
         chooses, the same for every caller (this snippet, ``tirdeflect
-        process``, the GUI's export): "image" for checkerboards on the CPU
-        with frame sides multiples of 4 px, else "fd".  "fd": the
-        warp-and-redemodulate refinement only.  "image":
+        process``, the GUI's export): "image" on the CPU with frame sides
+        multiples of 4 px, else "fd".  "fd": the warp-and-redemodulate
+        refinement only (random dots: PIV's heights alone).  "image":
         after it, on the full grid, ``image_iterations`` (default 3) global
         Gauss-Newton steps of image matching for the height on a node grid
         every 4 px (:func:`processing.dic.refine_height`), starting from FD's
@@ -156,6 +157,10 @@ class ReconstructOptions:
         3-6 carrier periods long 2.87 % -> 0.82 %, a bump of 1.25 periods
         1.42 % -> 0.32 %, every case of the accuracy table at or below "fd";
         2-3.5x the time of "fd" per frame (about 5x its single-thread CPU).
+        Random dots: the same solve from PIV's displacement
+        (:class:`processing.chain_image.DotsImageRefinement`; measured,
+        section 11: a bump 2.5 windows wide 4.8 % -> 0.8 %, every dot case
+        of the accuracy table at a third of PIV's error or less).
         The decimated (live) grid never runs it.
     device : {"cpu", "cuda"}, optional
         "cuda": the chain runs on the GPU through CuPy, batched by
@@ -245,8 +250,8 @@ def full_grid_refinement(options: ReconstructOptions, frame_shape, pattern: str,
     ``refine_method="auto"`` (the default): image matching for the height
     (:mod:`processing.dic`), the most accurate method on every ray-traced case
     of docs/processing.md's accuracy table (waves 3-6 carrier periods long
-    2.9 % -> 0.8 %) at about 5x FD's CPU time, where it applies: a
-    checkerboard, the full grid, the CPU, frame sides multiples of
+    2.9 % -> 0.8 %; random dots from PIV's start: 6.6 % -> 1.8 %) at about 5x
+    FD's CPU time, where it applies: the full grid, the CPU, frame sides multiples of
     ``dic.NODE_PX``, not ``refine_iterations=0`` (no refinement) nor
     ``full_method="ifft"``; elsewhere FD's refinement.  The decimated (live) grid
     never runs it.  ``why``: None, or the reason image matching does not
@@ -266,9 +271,7 @@ def full_grid_refinement(options: ReconstructOptions, frame_shape, pattern: str,
         return "fd", None
     rows, cols = frame_shape
     why = None
-    if pattern == "dots":
-        why = "random-dot patterns are measured by PIV"
-    elif grid != "full":
+    if grid != "full":
         why = "it refines the full grid only"
     elif options.device == "cuda":
         why = "it runs on the CPU, not with device 'cuda'"

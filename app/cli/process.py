@@ -116,9 +116,10 @@ def add_process_parser(sub) -> None:
                         "else checkerboard")
     p.add_argument("--refine", dest="refine_method", choices=("auto", "image", "fd"), default="auto",
                    help="auto (default): image matching for the height on a 4 px node grid where it applies "
-                        "(checkerboard, full grid, CPU, frame sides multiples of 4 px), else fd; fd: Fourier "
-                        "demodulation's refinement only, about 5x faster, smooths features a few carrier "
-                        "periods wide (docs/processing.md section 6)")
+                        "(full grid, CPU, frame sides multiples of 4 px; from FD's start on checkerboards, from "
+                        "PIV's on dots), else fd; fd: Fourier demodulation's refinement only (dots: PIV alone), "
+                        "about 5x faster, smooths features a few carrier periods (PIV windows) wide "
+                        "(docs/processing.md sections 6 and 11)")
     p.add_argument("--no-unwrap", action="store_true",
                    help="do not unwrap carrier phases (only for small displacements)")
     p.add_argument("--first", type=_FRAME_INDEX, default=0, metavar="K",

@@ -428,10 +428,11 @@ def test_refine_auto_takes_fd_where_image_matching_does_not_apply():
     from processing.errors import TirdeflectError
 
     assert batch_refine_method("auto", (256, 256), "checkerboard", "full") == "image"
-    assert batch_refine_method("auto", (256, 256), "dots", "full") == "fd"
+    assert batch_refine_method("auto", (256, 256), "dots", "full") == "image"  # from PIV's start
+    assert batch_refine_method("auto", (256, 258), "dots", "full") == "fd"  # PIV alone
     assert batch_refine_method("auto", (256, 256), "checkerboard", "decimated") == "fd"
     assert batch_refine_method("auto", (256, 256), "checkerboard", "full", "cuda") == "fd"
     assert batch_refine_method("auto", (256, 258), "checkerboard", "full") == "fd"
     assert batch_refine_method("fd", (256, 256), "checkerboard", "full") == "fd"
-    with pytest.raises(TirdeflectError, match="random-dot patterns are measured by PIV; use --refine fd"):
-        batch_refine_method("image", (256, 256), "dots", "full")
+    with pytest.raises(TirdeflectError, match=r"must be multiples of 4 px.*; use --refine fd"):
+        batch_refine_method("image", (256, 258), "dots", "full")
