@@ -165,7 +165,7 @@ class DotsImageRefinement:
         _, u_nodes, free = dic.refine_height(
             self.ref_fine, m.frame, np.asarray(start.height_mm, np.float64), valid_px, self.height_nodes,
             outer=chain.options.image_iterations, blur_px=DOTS_BLUR_PX, period_px=window / 2,
-            intensity_cell_px=max(dic.INTENSITY_CELL_PX, window))
+            intensity_cell_px=max(dic.INTENSITY_CELL_PX, window), threads=int(chain.options.threads))
         t4 = time.perf_counter()
         timings["refine"] = 1e3 * (t4 - t3)
         surf = self._solve(u_nodes, free & valid_nodes)

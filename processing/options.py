@@ -159,8 +159,8 @@ class ReconstructOptions:
         2-3.5x the time of "fd" per frame (about 5x its single-thread CPU).
         Random dots: the same solve from PIV's displacement
         (:class:`processing.chain_image.DotsImageRefinement`; measured,
-        section 11: a bump 2.5 windows wide 4.8 % -> 0.8 %, every dot case
-        of the accuracy table at a third of PIV's error or less).
+        section 11: a bump 3.7 windows wide at half height 4.8 % -> 0.8 %,
+        every dot case of the accuracy table at 0.1-0.6x PIV's error).
         The decimated (live) grid never runs it.
     device : {"cpu", "cuda"}, optional
         "cuda": the chain runs on the GPU through CuPy, batched by

@@ -45,8 +45,9 @@ def _ip_int(address: str) -> int:
 class LossyLink:
     """GVCP/GVSP relay ``link_ip`` <-> ``camera_ip`` that loses stream packets and serves resend requests.
 
-    Publishes ``forwarded``, ``dropped`` (first sends lost; per block: ``dropped_in_block``), ``resend_requests``, ``resent`` (packets
-    sent again), ``resent_dropped`` (of those, lost again), ``resend_unknown`` (asked packets no longer kept).
+    Publishes ``forwarded``, ``dropped`` (first sends lost; per block: ``dropped_in_block``),
+    ``resend_requests``, ``resent`` (packets sent again), ``resent_dropped`` (of those, lost again),
+    ``resend_unknown`` (asked packets no longer kept).
     """
 
     def __init__(self, camera_ip: str = "127.0.0.1", link_ip: str = "127.0.0.2", *, loss_per_thousand: int = 20,
