@@ -21,26 +21,36 @@ from .result import Result
 __all__ = ["ImageRefinement", "DotsImageRefinement", "DOTS_BLUR_PX", "DOTS_FINE"]
 
 
-class ImageRefinement:
-    """The node grid's constants over a :class:`processing.chain_checkerboard.CheckerboardChain`
-    (built once), called on a frame's FD result."""
+class _NodeRefinement:
+    """What both image refinements fix over a chain (checkerboard or dots): the node grid, its
+    height operator, and the chain's reference region (and the pin fallback's box) carried to
+    the nodes by each node's nearest sample of the chain's grid (``pick``)."""
 
     def __init__(self, chain):
         self.chain = chain
         ng = self.node_grid = dic.NodeGrid(chain.shape)
         self.height_nodes = dic.HeightNodes(chain.geometry, ng)
-        self.ref_fine = dic.fine_reference(chain.ref_f32, dic.fine_factor(chain.demod.freq, chain.shape))
-        pick_r = np.abs(ng.rows_px[:, None] - chain.rows_px[None, :]).argmin(axis=1)
-        pick_c = np.abs(ng.cols_px[:, None] - chain.cols_px[None, :]).argmin(axis=1)
+        self.pick = (np.abs(ng.rows_px[:, None] - chain.rows_px[None, :]).argmin(axis=1),
+                     np.abs(ng.cols_px[:, None] - chain.cols_px[None, :]).argmin(axis=1))
         near = chain.region.near
-        self.reference_region = chain.plan.reference_region[np.ix_(pick_r, pick_c)]
-        self.near = None if near is None else near[np.ix_(pick_r, pick_c)]
+        self.reference_region = chain.region.region[np.ix_(*self.pick)]
+        self.near = None if near is None else near[np.ix_(*self.pick)]
 
     def _solve(self, hs, u, valid):
+        """Heights and pin of the node displacement ``u`` by the height solver ``hs`` of the node grid."""
         o = self.chain.options
         return hs.solve_at_tolerance(np.where(valid, u, np.nan), valid, o.solver, self.chain.cg_tol, self.reference_region,
                                      pin_fallback=o.pin_fallback, region_name=self.chain.region.name,
                                      near=self.near)
+
+
+class ImageRefinement(_NodeRefinement):
+    """The node grid's constants over a :class:`processing.chain_checkerboard.CheckerboardChain`
+    (built once), called on a frame's FD result."""
+
+    def __init__(self, chain):
+        _NodeRefinement.__init__(self, chain)
+        self.ref_fine = dic.fine_reference(chain.ref_f32, dic.fine_factor(chain.demod.freq, chain.shape))
 
     def start(self, u, valid, hs):
         """``(valid_px, valid_nodes, FD's surface at the nodes)``: the start."""
@@ -105,7 +115,7 @@ DOTS_BLUR_PX = 0.5
 DOTS_FINE = 3
 
 
-class DotsImageRefinement:
+class DotsImageRefinement(_NodeRefinement):
     """Image matching for the height on random dots: the PIV displacement of a
     :class:`processing.chain_dots.DotsChain` as the start, then the same global
     Gauss-Newton height solve as checkerboards (:func:`processing.dic.refine_height`:
@@ -115,30 +125,14 @@ class DotsImageRefinement:
     def __init__(self, chain):
         from .fullgrid import Upsampler
 
-        self.chain = chain
-        ng = self.node_grid = dic.NodeGrid(chain.shape)
-        self.height_nodes = dic.HeightNodes(chain.geometry, ng)
+        _NodeRefinement.__init__(self, chain)
+        ng = self.node_grid
         self.ref_fine = dic.fine_reference(chain.reference_image, DOTS_FINE)
         self.solver = solver_for(chain.geometry, ng.rows_px, ng.cols_px, chain.shape)
         self.upsampler = Upsampler(chain.shape, ng.shape, "spline")
-        # each node's place on the PIV grid, in samples (the start's spline) and its nearest sample (the region)
-        step_r = chain.rows_px[1] - chain.rows_px[0]
-        step_c = chain.cols_px[1] - chain.cols_px[0]
-        at_r = (ng.rows_px - chain.rows_px[0]) / step_r
-        at_c = (ng.cols_px - chain.cols_px[0]) / step_c
-        self.at = np.meshgrid(at_r, at_c, indexing="ij")
-        pick_r = np.clip(np.rint(at_r).astype(int), 0, chain.rows_px.size - 1)
-        pick_c = np.clip(np.rint(at_c).astype(int), 0, chain.cols_px.size - 1)
-        near = chain.region.near
-        self.reference_region = chain.region.region[np.ix_(pick_r, pick_c)]
-        self.near = None if near is None else near[np.ix_(pick_r, pick_c)]
-        self.valid_at = (pick_r, pick_c)
-
-    def _solve(self, u, valid):
-        o = self.chain.options
-        return self.solver.solve_at_tolerance(np.where(valid, u, np.nan), valid, o.solver, self.chain.cg_tol,
-                                              self.reference_region, pin_fallback=o.pin_fallback,
-                                              region_name=self.chain.region.name, near=self.near)
+        # each node's place on the PIV grid, in samples (the start's spline)
+        self.at = np.meshgrid((ng.rows_px - chain.rows_px[0]) / (chain.rows_px[1] - chain.rows_px[0]),
+                              (ng.cols_px - chain.cols_px[0]) / (chain.cols_px[1] - chain.cols_px[0]), indexing="ij")
 
     def start(self, u_piv, valid_piv):
         """``(valid_px, valid_nodes, PIV's surface at the nodes)``: the PIV
@@ -151,9 +145,9 @@ class DotsImageRefinement:
         u_nodes = np.stack([ndimage.map_coordinates(np.nan_to_num(src[i]).astype(np.float64), self.at, order=3,
                                                     mode="nearest") for i in range(2)])
         ng = self.node_grid
-        valid_nodes = valid_piv[np.ix_(*self.valid_at)]
+        valid_nodes = valid_piv[np.ix_(*self.pick)]
         valid_px = np.ones(self.chain.shape, bool) if valid_nodes.all() else ng.up(valid_nodes, cv2.INTER_NEAREST) > 0
-        return valid_px, valid_nodes, self._solve(u_nodes, valid_nodes)
+        return valid_px, valid_nodes, self._solve(self.solver, u_nodes, valid_nodes)
 
     def __call__(self, m, piv: Result) -> Result:
         """Full-grid result of a frame from its PIV result ``piv`` (PIV grid),
@@ -168,7 +162,7 @@ class DotsImageRefinement:
             intensity_cell_px=max(dic.INTENSITY_CELL_PX, window), threads=int(chain.options.threads))
         t4 = time.perf_counter()
         timings["refine"] = 1e3 * (t4 - t3)
-        surf = self._solve(u_nodes, free & valid_nodes)
+        surf = self._solve(self.solver, u_nodes, free & valid_nodes)
         valid_nodes = np.asarray(surf.valid, bool)
         u_nodes = np.where(valid_nodes, u_nodes, np.float32(np.nan)).astype(np.float32)
         t5 = time.perf_counter()
