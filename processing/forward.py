@@ -82,11 +82,15 @@ class RenderInfo:
         sign against the flat map): ray crossing, caustics.
     pattern_xy : ndarray, shape (2, rows, cols)
         Pattern-plane point of each pixel's central ray (mm), frame of the tracer.
+    height_mm : ndarray float64
+        Height where each pixel's central ray meets the surface, mm: what
+        :func:`true_height` gives, from the same trace (no second one).
     """
 
     lost_tir: np.ndarray
     crossing: np.ndarray
     pattern_xy: np.ndarray = field(repr=False)
+    height_mm: np.ndarray = field(repr=False)
 
 
 def _intersect(surface: Surface, geometry: Geometry, origin, d, *, to_image, tol_mm=1e-9, max_iter=60):
@@ -278,21 +282,22 @@ def render_tir(
     offs = _sub_offsets(supersample)
     for orow in offs:
         for ocol in offs:
-            pat, lost, _, _, cos_i = trace_tir(surface, geometry, rows + orow, cols + ocol, (n_rows, n_cols))
+            pat, lost, _, height, cos_i = trace_tir(surface, geometry, rows + orow, cols + ocol, (n_rows, n_cols))
             px = np.nan_to_num(pat[..., 0] - pattern_offset_mm[0])
             py = np.nan_to_num(pat[..., 1] - y_off - pattern_offset_mm[1])
             val = pattern(px, py)
-            refl = np.where(lost, _fresnel_r(np.abs(cos_i), geometry.n_water, geometry.n_air), 1.0)
-            refl = np.where(pat[..., 0] == pat[..., 0], refl, 0.0)
+            refl = np.ones(lost.shape)  # the Fresnel reflectance only where TIR is lost (often nowhere)
+            refl[lost] = _fresnel_r(np.abs(cos_i[lost]), geometry.n_water, geometry.n_air)
+            refl[np.isnan(pat[..., 0])] = 0.0
             acc += refl * val
             lost_any |= lost
     image = (acc / supersample**2).astype(np.float32)
     if supersample != 1:
-        pat, _, _, _, _ = trace_tir(surface, geometry, rows, cols, (n_rows, n_cols))
+        pat, _, _, height, _ = trace_tir(surface, geometry, rows, cols, (n_rows, n_cols))
     flat = np.stack(geometry.flat_pattern_point(rows, cols, (n_rows, n_cols)), axis=-1)
     crossing = _crossing_mask(pat, flat)
     centre_pat = np.moveaxis(pat, -1, 0)
-    return np.clip(image, 0.0, 1.0), RenderInfo(lost_any, crossing, centre_pat)
+    return np.clip(image, 0.0, 1.0), RenderInfo(lost_any, crossing, centre_pat, height)
 
 
 def render_fsss(surface: Surface, geometry: Geometry, shape, pattern: Callable, *, supersample: int = 1):
@@ -308,15 +313,15 @@ def render_fsss(surface: Surface, geometry: Geometry, shape, pattern: Callable, 
     lost_any = np.zeros((n_rows, n_cols), dtype=bool)
     for orow in _sub_offsets(supersample):
         for ocol in _sub_offsets(supersample):
-            pat, lost, _, _ = trace_fsss(surface, geometry, rows + orow, cols + ocol, (n_rows, n_cols))
+            pat, lost, _, height = trace_fsss(surface, geometry, rows + orow, cols + ocol, (n_rows, n_cols))
             acc += np.where(lost, 0.0, pattern(pat[..., 0], pat[..., 1]))
             lost_any |= lost
     if supersample != 1:
-        pat, _, _, _ = trace_fsss(surface, geometry, rows, cols, (n_rows, n_cols))
+        pat, _, _, height = trace_fsss(surface, geometry, rows, cols, (n_rows, n_cols))
     flat = np.stack(geometry.flat_pattern_point(rows, cols, (n_rows, n_cols)), axis=-1)
     crossing = _crossing_mask(pat, flat)
     image = (acc / supersample**2).astype(np.float32)
-    return np.clip(image, 0.0, 1.0), RenderInfo(lost_any, crossing, np.moveaxis(pat, -1, 0))
+    return np.clip(image, 0.0, 1.0), RenderInfo(lost_any, crossing, np.moveaxis(pat, -1, 0), height)
 
 
 def render(surface: Surface, geometry: Geometry, shape, pattern: Callable, *, supersample: int = 1):
@@ -476,6 +481,6 @@ def simulate(
             surf = surface_or_scene(t)
         img, info = render(surf, geometry, shape, pattern, supersample=supersample)
         frames[i] = quantize(img, bits=bits, noise_rms=noise_rms, rng=rng)
-        heights[i] = true_height(surf, geometry, shape)
+        heights[i] = info.height_mm
         lost[i] = info.lost_tir | info.crossing
     return Simulation(reference, frames, heights, times, lost)

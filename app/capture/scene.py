@@ -310,9 +310,9 @@ class TankScene:
         self.progress[name] = (0, n)
         for i in range(n):
             surf = scene_surface(name, self.field_mm, i / self.frame_rate_hz, duration, self.seed)
-            img, _ = forward.render_tir(surf, self.geometry, self.shape, self.pattern)
+            img, info = forward.render_tir(surf, self.geometry, self.shape, self.pattern)
             frames[i] = self._quantize(img)
-            heights[i] = forward.true_height(surf, self.geometry, self.shape)
+            heights[i] = info.height_mm
             self.progress[name] = (i + 1, n)
         with self._lock:
             self._clips[name] = (frames, heights)

@@ -1,12 +1,13 @@
 """Ring buffer: every frame in order for the cursor, exact overrun counts, newest-only with counted skips."""
 
+import os
 import threading
 import time
 
 import numpy as np
 import pytest
 
-from app.capture.ringbuffer import MemoryBudgetError, RingBuffer, RingClosed, check_memory
+from app.capture.ringbuffer import MemoryBudgetError, RingBuffer, RingClosed, check_memory, committed_zeros
 from drivers.base import FrameFlags
 
 
@@ -139,3 +140,22 @@ def test_bad_arguments_are_echoed():
     ring = RingBuffer((4, 4), np.uint8, 4)
     with pytest.raises(ValueError, match=r"frame shape \(5, 4\) does not match the ring's \(4, 4\)"):
         ring.put(np.zeros((5, 4), np.uint8), 0, 0, 0)
+
+
+def _resident_bytes() -> int:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/statm"), reason="needs Linux's /proc")
+def test_ring_memory_is_committed_when_made_not_while_the_camera_writes():
+    """The ring's frames are in memory (resident) as soon as the ring exists, zeroed and writable:
+    writing a frame at the camera's rate takes no page fault. 64 MiB must show in the resident
+    size (a lazily mapped array adds nothing until written)."""
+    before = _resident_bytes()
+    ring = RingBuffer((512, 512), np.uint16, 128)  # 64 MiB
+    grown = _resident_bytes() - before
+    assert grown >= 0.95 * ring.nbytes, (grown, ring.nbytes)
+    assert ring.frames.flags.writeable and not ring.frames.any()
+    small = committed_zeros((3, 5), np.uint8)  # below a page: written zeros, same result
+    assert small.shape == (3, 5) and small.dtype == np.uint8 and not small.any()
