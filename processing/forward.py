@@ -28,6 +28,7 @@ Examples
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 from typing import Callable
@@ -219,19 +220,31 @@ def _fresnel_r(cos_i, n1, n2):
     return np.where(tir, 1.0, 0.5 * (rs + rp))
 
 
-def _crossing_mask(pat, flat):
+def _jacobian_det(p):
+    """Determinant of the Jacobian of pixel -> pattern point, ``p`` (rows, cols, 2)."""
+    a_r = np.gradient(p[..., 0], axis=0)
+    a_c = np.gradient(p[..., 0], axis=1)
+    b_r = np.gradient(p[..., 1], axis=0)
+    b_c = np.gradient(p[..., 1], axis=1)
+    return a_r * b_c - a_c * b_r
+
+
+@functools.lru_cache(maxsize=8)
+def _flat_jacobian_sign(geometry: Geometry, n_rows: int, n_cols: int) -> np.ndarray:
+    """Sign of the flat surface's pixel -> pattern Jacobian (the same for every frame of a
+    series: computed once per geometry and frame size; read-only)."""
+    rows = np.arange(n_rows, dtype=np.float64)[:, None]
+    cols = np.arange(n_cols, dtype=np.float64)[None, :]
+    flat = np.stack(geometry.flat_pattern_point(rows, cols, (n_rows, n_cols)), axis=-1)
+    sign = np.sign(_jacobian_det(flat))
+    sign.flags.writeable = False
+    return sign
+
+
+def _crossing_mask(pat, geometry: Geometry):
     """Pixels where the Jacobian of pixel -> pattern differs in sign from the flat map."""
-
-    def det(p):
-        a_r = np.gradient(p[..., 0], axis=0)
-        a_c = np.gradient(p[..., 0], axis=1)
-        b_r = np.gradient(p[..., 1], axis=0)
-        b_c = np.gradient(p[..., 1], axis=1)
-        return a_r * b_c - a_c * b_r
-
-    dj = det(pat)
-    d0 = det(flat)
-    return ~(np.sign(dj) == np.sign(d0))
+    n_rows, n_cols = pat.shape[:2]
+    return ~(np.sign(_jacobian_det(pat)) == _flat_jacobian_sign(geometry, n_rows, n_cols))
 
 
 def render_tir(
@@ -294,8 +307,7 @@ def render_tir(
     image = (acc / supersample**2).astype(np.float32)
     if supersample != 1:
         pat, _, _, height, _ = trace_tir(surface, geometry, rows, cols, (n_rows, n_cols))
-    flat = np.stack(geometry.flat_pattern_point(rows, cols, (n_rows, n_cols)), axis=-1)
-    crossing = _crossing_mask(pat, flat)
+    crossing = _crossing_mask(pat, geometry)
     centre_pat = np.moveaxis(pat, -1, 0)
     return np.clip(image, 0.0, 1.0), RenderInfo(lost_any, crossing, centre_pat, height)
 
@@ -318,8 +330,7 @@ def render_fsss(surface: Surface, geometry: Geometry, shape, pattern: Callable, 
             lost_any |= lost
     if supersample != 1:
         pat, _, _, height = trace_fsss(surface, geometry, rows, cols, (n_rows, n_cols))
-    flat = np.stack(geometry.flat_pattern_point(rows, cols, (n_rows, n_cols)), axis=-1)
-    crossing = _crossing_mask(pat, flat)
+    crossing = _crossing_mask(pat, geometry)
     image = (acc / supersample**2).astype(np.float32)
     return np.clip(image, 0.0, 1.0), RenderInfo(lost_any, crossing, np.moveaxis(pat, -1, 0), height)
 
