@@ -17,7 +17,7 @@ one per frame the writer committed. Copies out of the ring are validated
 seqlock-style: a copy is only returned if the writer did not start
 overwriting that slot while it was being copied.
 
-Memory is allocated (and touched, so it is really committed) once, in the
+Memory is allocated (and committed: every page mapped, :func:`committed_zeros`) once, in the
 constructor; :meth:`RingBuffer.bytes_for` says the cost beforehand and
 :func:`check_memory` compares it with the memory the system has available.
 """
