@@ -236,12 +236,17 @@ class LiveSession:
         with self._lock:
             acq, self.acquisition = self.acquisition, None
             cam, self.camera = self.camera, None
-            self._number_after(acq)
         if acq is not None:
             try:
                 acq.stop(timeout_s=5.0)
             except Exception:  # noqa: BLE001
                 pass
+        with self._lock:
+            # counted once stopped: a frame the camera committed while it stopped, handed to the worker
+            # (which may still wait on this ring), must number below the next camera's first frame, or its
+            # maps would pass for the next camera's (seen: "older reference" instead of "from the previous
+            # camera" on a camera switch)
+            self._number_after(acq)
         if cam is not None:
             try:
                 cam.close()

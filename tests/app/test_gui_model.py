@@ -5,6 +5,7 @@ from __future__ import annotations
 import ast
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -528,3 +529,34 @@ def test_the_recording_line_says_capturing_once_the_trigger_fired_not_armed():
     # a finished recording's summary (written by the window) and the armed line itself stay
     assert progress_line("done", "/data/rec_001.h5", "32 frames, no frame lost") == "32 frames, no frame lost"
     assert progress_line("armed", "/data/rec_001.h5", armed) == armed
+
+
+def test_a_frame_committed_while_a_camera_stops_is_not_numbered_as_the_next_camera_s():
+    """Switching cameras: every frame the old camera committed, also those that came while it was
+    being stopped, numbers below the new camera's first frame, so late maps of the old camera are
+    marked "from the previous camera", never taken for the new one's. A real camera thread at
+    2,000 frames/s commits frames during the stop (before the fix, the frames were counted first
+    and the stop came after: the old camera's last frames had the new camera's first numbers)."""
+    from app.gui.session import LiveSession
+    from drivers.synthetic import SyntheticCamera
+
+    image = np.zeros((32, 32), np.uint8)
+    session = LiveSession(ring_bytes=64 * 32 * 32, worker_process=False)
+    try:
+        for _ in range(3):
+            session.use_camera(SyntheticCamera(image[None], frame_rate_hz=2000.0), camera_id="fast")
+            old = session.acquisition
+            deadline = time.monotonic() + 60.0  # hang detector
+            while old.ring.head < 50 and time.monotonic() < deadline:
+                time.sleep(0.01)
+            first_of_old = session.newest_seq() - (old.ring.head - 1)
+            session.use_camera(SyntheticCamera(image[None], frame_rate_hz=2000.0), camera_id="fast")
+            last_of_old = first_of_old + old.ring.head - 1  # the ring's count once stopped: final
+            assert not old.running
+            assert session.acquisition_of(last_of_old) is None
+            new = session.acquisition
+            while new.ring.head < 1 and time.monotonic() < deadline:
+                time.sleep(0.01)
+            assert session.newest_seq() > last_of_old
+    finally:
+        session.close()
