@@ -244,7 +244,11 @@ def _flat_jacobian_sign(geometry: Geometry, n_rows: int, n_cols: int) -> np.ndar
 def _crossing_mask(pat, geometry: Geometry):
     """Pixels where the Jacobian of pixel -> pattern differs in sign from the flat map."""
     n_rows, n_cols = pat.shape[:2]
-    return ~(np.sign(_jacobian_det(pat)) == _flat_jacobian_sign(geometry, n_rows, n_cols))
+    try:
+        flat_sign = _flat_jacobian_sign(geometry, n_rows, n_cols)
+    except TypeError:  # a geometry holding a list (unhashable): computed, not cached
+        flat_sign = _flat_jacobian_sign.__wrapped__(geometry, n_rows, n_cols)
+    return ~(np.sign(_jacobian_det(pat)) == flat_sign)
 
 
 def render_tir(

@@ -27,6 +27,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import mmap
+import sys
 import threading
 import time
 from typing import Optional, Tuple
@@ -144,8 +145,10 @@ class RingFrame:
     missing_bytes: int = 0
 
 
-#: Linux's madvise(MADV_POPULATE_WRITE) (5.14 and later; Python's mmap module names it from 3.13 on)
-_MADV_POPULATE_WRITE = getattr(mmap, "MADV_POPULATE_WRITE", 23 if hasattr(mmap, "MADV_HUGEPAGE") else None)
+#: Linux's madvise(MADV_POPULATE_WRITE) (kernel 5.14 and later; Python's mmap module names it from 3.13
+#: on, its value on Linux is 23); None elsewhere
+_MADV_POPULATE_WRITE = (getattr(mmap, "MADV_POPULATE_WRITE", 23)
+                        if sys.platform.startswith("linux") and hasattr(mmap.mmap, "madvise") else None)
 
 
 def committed_zeros(shape, dtype) -> np.ndarray:
