@@ -174,8 +174,9 @@ def _dask_clusters_one_at_a_time(request):
 
 # -- the longest first -----------------------------------------------------------
 # The ``slow`` tests (a whole install from a fresh clone, a wheel built and run:
-# minutes each, in subprocesses of their own) run first, so that under xdist the
-# other workers go through the rest meanwhile instead of waiting for them at the end.
+# minutes each, in subprocesses of their own; the GUI flows of 10-17 s that need
+# no shared fixture or camera lock) run first, so that under xdist the other
+# workers go through the rest meanwhile instead of waiting for them at the end.
 def pytest_collection_modifyitems(config, items):
     items.sort(key=lambda item: item.get_closest_marker("slow") is None)  # stable: else as collected
 

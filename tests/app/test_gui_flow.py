@@ -68,6 +68,7 @@ def _choose_scene_by_hand(qtbot, w, text):
         qtbot.keyClick(box, QtCore.Qt.Key_Down if box.currentIndex() < target else QtCore.Qt.Key_Up)
 
 
+@pytest.mark.slow  # 10-17 s: started first (tests/conftest.py, "the longest first")
 def test_first_run_by_hand_alignment_reference_waves_heights(qtbot):
     """Launch -> Alignment READY with numbers -> Capture reference -> waves -> heights within 2 % of the truth."""
     from app.capture.scene import height_error
@@ -148,6 +149,7 @@ def test_alignment_gives_numbers_on_moving_water_and_warns(qtbot):
     assert "NOT READY" in w.ready_label.text() and "still water" in w.ready_label.text()
 
 
+@pytest.mark.slow  # 10-17 s: started first (tests/conftest.py, "the longest first")
 def test_restart_restores_the_session_and_flags_unconfirmed_geometry(qtbot, tmp_path):
     """Reference, pre/post, camera come back with "restored from last session"; a camera whose geometry
     was never confirmed gets the banner until the user confirms it, and not after the next start."""

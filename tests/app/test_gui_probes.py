@@ -34,6 +34,7 @@ def _drag(widget, start: QtCore.QPoint, end: QtCore.QPoint, steps=8):
     send(QtCore.QEvent.MouseButtonRelease, end, QtCore.Qt.NoButton)
 
 
+@pytest.mark.slow  # 10-17 s: started first (tests/conftest.py, "the longest first")
 def test_probe_placed_by_click_follows_the_true_waves(qtbot):
     """Click the height map -> a probe there; its series = the waves' true height at that point.
 
