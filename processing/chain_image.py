@@ -43,6 +43,23 @@ class _NodeRefinement:
                                      pin_fallback=o.pin_fallback, region_name=self.chain.region.name,
                                      near=self.near)
 
+    def _refined(self, hs, u_nodes, valid):
+        """``(surface, valid_nodes, u_nodes)`` of image matching's node displacement: heights and pin
+        solved, the displacement NaN where the solve left a node out."""
+        surf = self._solve(hs, u_nodes, valid)
+        valid_nodes = np.asarray(surf.valid, bool)
+        return surf, valid_nodes, np.where(valid_nodes, u_nodes, np.float32(np.nan)).astype(np.float32)
+
+    def _node_result(self, surf, valid_nodes, u_nodes, **fields) -> Result:
+        """The node grid's :class:`Result` of a refined surface; ``fields``: the pattern's own
+        (amplitude, carriers, phase, timings_ms, pin, series)."""
+        ng = self.node_grid
+        return Result(height=np.asarray(surf.height_mm, np.float32), valid=valid_nodes,
+                      slope_x=np.asarray(surf.slope_x, np.float32), slope_y=np.asarray(surf.slope_y, np.float32),
+                      displacement=u_nodes, x_mm=np.asarray(surf.x_mm), y_mm=np.asarray(surf.y_mm),
+                      grid="decimated", rows_px=ng.rows_px, cols_px=ng.cols_px,
+                      valid_fraction=float(valid_nodes.mean()), **fields)
+
 
 class ImageRefinement(_NodeRefinement):
     """The node grid's constants over a :class:`processing.chain_checkerboard.CheckerboardChain`
@@ -76,9 +93,7 @@ class ImageRefinement(_NodeRefinement):
             intensity_cell_px=max(dic.INTENSITY_CELL_PX, 1.6 * float(periods.max())), threads=chain.planner.threads)
         t4 = time.perf_counter()
         timings["refine"] += 1e3 * (t4 - t3)
-        surf = self._solve(hs, u_nodes, valid_nodes)
-        valid_nodes = np.asarray(surf.valid, bool)
-        u_nodes = np.where(valid_nodes, u_nodes, np.float32(np.nan)).astype(np.float32)
+        surf, valid_nodes, u_nodes = self._refined(hs, u_nodes, valid_nodes)
         pin, fd_pin = surf.pin, fd.pin
         if fd_pin is not None and fd_pin.unpinned_fraction > 0:
             # FD dropped them before the node grid: of FD's valid samples, that share and the nodes' own
@@ -87,12 +102,8 @@ class ImageRefinement(_NodeRefinement):
         t5 = time.perf_counter()
         timings["height"] += 1e3 * (t5 - t4)
         amp_nodes = ng.down(chain.upsampler(m.amplitude))
-        res = Result(height=np.asarray(surf.height_mm, np.float32), valid=valid_nodes,
-                     slope_x=np.asarray(surf.slope_x, np.float32), slope_y=np.asarray(surf.slope_y, np.float32),
-                     displacement=u_nodes, amplitude=amp_nodes, x_mm=np.asarray(surf.x_mm),
-                     y_mm=np.asarray(surf.y_mm), grid="decimated", rows_px=ng.rows_px, cols_px=ng.cols_px,
-                     carriers=chain.carriers, phase=np.asarray(m.phase, np.float32),
-                     valid_fraction=float(valid_nodes.mean()), timings_ms=timings, pin=pin, series=fd.series)
+        res = self._node_result(surf, valid_nodes, u_nodes, amplitude=amp_nodes, carriers=chain.carriers,
+                                phase=np.asarray(m.phase, np.float32), timings_ms=timings, pin=pin, series=fd.series)
         res = chain.interpolate_full(res, solver=hs)
         timings["interpolate"] = 1e3 * (time.perf_counter() - t5)
         timings["total"] = 1e3 * (time.perf_counter() - m.t0)
@@ -152,7 +163,7 @@ class DotsImageRefinement(_NodeRefinement):
     def __call__(self, m, piv: Result) -> Result:
         """Full-grid result of a frame from its PIV result ``piv`` (PIV grid),
         ``m`` its :class:`processing.chain_dots.DotsMeasured`."""
-        chain, ng, timings = self.chain, self.node_grid, piv.timings_ms
+        chain, timings = self.chain, piv.timings_ms
         t3 = time.perf_counter()
         valid_px, valid_nodes, start = self.start(piv.displacement, piv.valid)
         window = float(chain.options.window_px)
@@ -162,17 +173,11 @@ class DotsImageRefinement(_NodeRefinement):
             intensity_cell_px=max(dic.INTENSITY_CELL_PX, window), threads=int(chain.options.threads))
         t4 = time.perf_counter()
         timings["refine"] = 1e3 * (t4 - t3)
-        surf = self._solve(self.solver, u_nodes, free & valid_nodes)
-        valid_nodes = np.asarray(surf.valid, bool)
-        u_nodes = np.where(valid_nodes, u_nodes, np.float32(np.nan)).astype(np.float32)
+        surf, valid_nodes, u_nodes = self._refined(self.solver, u_nodes, free & valid_nodes)
         t5 = time.perf_counter()
         timings["height"] += 1e3 * (t5 - t4)
-        res = Result(height=np.asarray(surf.height_mm, np.float32), valid=valid_nodes,
-                     slope_x=np.asarray(surf.slope_x, np.float32), slope_y=np.asarray(surf.slope_y, np.float32),
-                     displacement=u_nodes, amplitude=valid_nodes.astype(np.float32), x_mm=np.asarray(surf.x_mm),
-                     y_mm=np.asarray(surf.y_mm), grid="decimated", rows_px=ng.rows_px, cols_px=ng.cols_px,
-                     carriers=None, phase=piv.phase, valid_fraction=float(valid_nodes.mean()), timings_ms=timings,
-                     pin=surf.pin)
+        res = self._node_result(surf, valid_nodes, u_nodes, amplitude=valid_nodes.astype(np.float32), carriers=None,
+                                phase=piv.phase, timings_ms=timings, pin=surf.pin)
         res = interpolate_full(res, self.upsampler, chain.full_coordinates(), self.solver)
         timings["interpolate"] = 1e3 * (time.perf_counter() - t5)
         return res
