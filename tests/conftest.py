@@ -8,11 +8,12 @@ import os
 import sys
 import tempfile
 import threading
+import time
 
 import numpy as np
 import pytest
 
-from tests.helpers import pid_alive
+from tests.helpers import FORK_SERVER_COMMAND, is_fork_server, pid_alive
 
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 
@@ -284,14 +285,22 @@ def _left_running(session) -> list[int]:
             if pid != me and pid_alive(pid)
             and (pid in below or (parent == 1 and start >= started
                                   and (_tagged(pid, tag) if tag else _ours(pid, places))))]
-    # multiprocessing's resource tracker ends with this process, by design
-    return [pid for pid in pids if "multiprocessing.resource_tracker" not in _cmdline(pid)]
+    # multiprocessing's resource tracker, and the app's fork server (app/worker_processes.py: its
+    # workers are below it, and checked), end with this process, by design
+    pids = [pid for pid in pids if "multiprocessing.resource_tracker" not in _cmdline(pid)
+            and not is_fork_server(pid, me)]
+    # a fork server (or a worker of one) whose process has just ended (an xdist worker's, seen from
+    # the controller) ends by itself a moment later: given 5 s, far above the milliseconds it takes
+    deadline = time.monotonic() + 5.0
+    while (time.monotonic() < deadline
+           and any(FORK_SERVER_COMMAND in _cmdline(pid) and pid_alive(pid) for pid in pids)):
+        time.sleep(0.05)  # polling their state, bounded by the deadline
+    return [pid for pid in pids if pid_alive(pid)]
 
 
 @pytest.hookimpl(trylast=True)  # in xdist's controller: after its workers are ended (xdist's own hook)
 def pytest_sessionfinish(session, exitstatus):
     import signal
-    import time
     import traceback
 
     session.config._tirdeflect_exitstatus = int(exitstatus)

@@ -1,5 +1,6 @@
 """Small helpers that several test modules and tests/conftest.py share: whether a
-process still runs, and a machine-wide file lock with a bounded wait."""
+process still runs, which of a process's children are its multiprocessing workers,
+and a machine-wide file lock with a bounded wait."""
 
 from __future__ import annotations
 
@@ -14,6 +15,35 @@ def pid_alive(pid: int) -> bool:
             return f.read().rpartition(b")")[2].split()[0] != b"Z"
     except OSError:
         return False
+
+
+#: what the command line of the app's fork server (app/worker_processes.py) and of the workers it forks holds
+FORK_SERVER_COMMAND = "from multiprocessing.forkserver import main"
+
+
+def is_fork_server(pid: int, parent: int) -> bool:
+    """Is ``pid`` the multiprocessing fork server that process ``parent`` started?"""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            ppid = int(f.read().rpartition(b")")[2].split()[1])
+        with open(f"/proc/{pid}/cmdline", "rb") as f:
+            command = f.read().replace(b"\0", b" ").decode(errors="replace")
+    except (OSError, ValueError, IndexError):
+        return False
+    return ppid == parent and FORK_SERVER_COMMAND in command
+
+
+def worker_processes(process) -> list:
+    """The multiprocessing workers a ``psutil.Process`` started and that still run: the children
+    of its fork server (the app's way, app/worker_processes.py), or spawned children."""
+    workers = []
+    for child in process.children():
+        command = " ".join(child.cmdline())
+        if FORK_SERVER_COMMAND in command:
+            workers += child.children()
+        elif "spawn_main" in command:
+            workers.append(child)
+    return workers
 
 
 def acquire_file_lock(path: str, timeout_s: float):

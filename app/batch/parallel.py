@@ -882,45 +882,69 @@ def _frame_bytes(reconstruct, grid: str) -> int:
     return rows * cols * (3 * 4 + 1)
 
 
-def _init_worker(run_pid: int):
+def _init_worker(run_pid: int, parent):
     """Set up a worker process of the run whose process is ``run_pid``.
 
-    Ctrl-C at the terminal reaches the workers too: the run's own process
-    handles it (stops, keeps what was written, shuts the pool down), so the
-    workers ignore it. If the run's process dies without shutting the pool
-    down (SIGKILL, a crash, the OOM killer), the worker ends too, within
-    half a second, instead of waiting for work forever; with the workers
-    gone, the resource tracker frees the shared-memory blocks still held."""
+    The worker takes the run's environment and working directory (``parent``, an
+    :class:`app.worker_processes.ParentState`; forked from the app's fork server, it has the
+    server's, from when the server started). Ctrl-C at the terminal reaches
+    the workers too: the run's own process handles it (stops, keeps what was written, shuts the
+    pool down), so the workers ignore it. If the run's process dies without shutting the pool
+    down (SIGKILL, a crash, the OOM killer), the worker ends too, within half a second, instead
+    of waiting for work forever (and so does the fork server, once no worker holds it); with the
+    workers gone, the resource tracker frees the shared-memory blocks still held. The worker
+    watches the run itself: its parent is the fork server, which lives as long as its workers."""
     import signal
     import threading
 
+    from app.worker_processes import adopt_parent_state
+
+    adopt_parent_state(parent)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
     def exit_with_the_run():
         import time
 
-        while os.getppid() == run_pid:
-            time.sleep(0.5)  # polling the parent: there is no portable "parent died" event
+        while _process_alive(run_pid):
+            time.sleep(0.5)  # polling the run: there is no portable "that process died" event
         os._exit(1)
 
     threading.Thread(target=exit_with_the_run, name="tirdeflect-run-watch", daemon=True).start()
 
 
+def _process_alive(pid: int) -> bool:
+    """Is process ``pid`` running (a killed process not yet reaped by its parent, a zombie, is not)?"""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:  # Linux: the state follows the command's ")"
+            return f.read().rpartition(b")")[2].split()[0] != b"Z"
+    except FileNotFoundError:
+        return False
+    except (OSError, IndexError):  # no /proc (macOS): whether a signal could reach it
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return False
+        except PermissionError:
+            return True
+        return True
+
+
 class _Pool:
-    """``workers`` spawned processes (a fresh interpreter each: safe from a Qt GUI
-    or a threaded program, where fork is not); :meth:`restart` replaces a pool
-    broken by a dead worker."""
+    """``workers`` processes from the app's fork server (:mod:`app.worker_processes`: a fresh
+    interpreter's state, safe from a Qt GUI or a threaded program, where a plain fork is not);
+    :meth:`restart` replaces a pool broken by a dead worker."""
 
     def __init__(self, workers: int):
         self.workers = workers
         self._pool = self._new()
 
     def _new(self):
-        import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
-        return ProcessPoolExecutor(max_workers=self.workers, mp_context=multiprocessing.get_context("spawn"),
-                                   initializer=_init_worker, initargs=(os.getpid(),))
+        from app.worker_processes import context, parent_state
+
+        return ProcessPoolExecutor(max_workers=self.workers, mp_context=context(),
+                                   initializer=_init_worker, initargs=(os.getpid(), parent_state()))
 
     def submit(self, fn, *args):
         from concurrent.futures import Future

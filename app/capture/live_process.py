@@ -4,12 +4,13 @@ Why: in the window's process the reconstruction shares one GIL with the GUI thre
 draws 1024^2 images in Python and NumPy), the camera thread and the recorder; measured in the
 running window, the GUI thread held the GIL about four fifths of the time the GIL was held and
 the worker thread got about a tenth, so the heights came at a fraction of what the reconstruction
-alone allows (docs/acquisition.md, "Live heights"). A spawned process has its own interpreter and
+alone allows (docs/acquisition.md, "Live heights"). A worker process has its own interpreter and
 GIL; the window's process keeps the camera, the ring, the recorder (lossless, untouched) and the
 drawing.
 
 How: :class:`LiveProcess` (used by :class:`app.capture.worker.ProcessingWorker`, one frame at a
-time, newest only) starts one process (``multiprocessing``, spawn: safe beside Qt and threads).
+time, newest only) starts one process from the app's fork server (:mod:`app.worker_processes`: a
+fresh interpreter's state, safe beside Qt and threads, ready at once after the first one).
 It sends the child a :class:`Recipe` when the reconstructor changes (the reference image,
 ``Geometry``, the picklable ``ReconstructOptions``, the reference's carriers and this process's
 FFTW wisdom, so that the child demodulates exactly as the window's own reconstructor would); the
@@ -95,7 +96,7 @@ class Recipe:
 
 
 class LiveProcess:
-    """One spawned worker process measuring live frames (see the module docstring).
+    """One worker process measuring live frames (see the module docstring).
 
     Parameters
     ----------
@@ -104,14 +105,14 @@ class LiveProcess:
     start_timeout_s : float
         Longest wait for the child's first answer (its imports and first build): one that never
         answers is ended and reported, e.g. a script that opens the window at its top level, not
-        under ``if __name__ == "__main__":`` (a spawned child imports the script it was started
+        under ``if __name__ == "__main__":`` (a worker process imports the script it was started
         from, and would run it).
     """
 
     def __init__(self, nice: int = 0, start_timeout_s: float = 180.0):
-        import multiprocessing
+        from app.worker_processes import context
 
-        ctx = multiprocessing.get_context("spawn")
+        ctx = context()
         self._conn, child_end = ctx.Pipe()
         self._proc = ctx.Process(target=serve, args=(child_end, int(nice)), name="tirdeflect-live",
                                  daemon=True)

@@ -29,7 +29,7 @@ Where the reconstruction runs
 -----------------------------
 One loop (:meth:`ProcessingWorker._run`) and one function of a frame
 (:func:`measure_live`). With ``separate_process=True`` and a reference given to
-:meth:`ProcessingWorker.set_reconstructor`, :func:`measure_live` runs in a spawned
+:meth:`ProcessingWorker.set_reconstructor`, :func:`measure_live` runs in a worker
 process (:class:`app.capture.live_process.LiveProcess`: the frame goes in and the
 maps come back through shared memory), so the reconstruction does not share this
 process's GIL with the camera, recorder and GUI threads. If that process dies, the
@@ -181,7 +181,7 @@ class ProcessingWorker:
         A positive value lets the camera, recorder and display threads win the CPU; the
         worker then skips more frames.
     separate_process : bool
-        Reconstruct in a spawned process (:mod:`app.capture.live_process`) whenever
+        Reconstruct in a worker process (:mod:`app.capture.live_process`) whenever
         :meth:`set_reconstructor` is given the reference image (it is started then, and
         ended by :meth:`stop`); False: in this thread.
     """

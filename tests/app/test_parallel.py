@@ -23,6 +23,7 @@ from app.batch import parallel
 from app.cli import main
 from app.files import imageio
 from processing.errors import TirdeflectError
+from tests.helpers import worker_processes
 
 SIZE = 256
 N_FRAMES = 12
@@ -189,7 +190,7 @@ def test_a_killed_worker_process_is_replaced(series, serial, tmp_path, caplog):
     def kill_a_worker(done, total):
         if killed or done < 1:
             return
-        workers = [p for p in psutil.Process().children() if "spawn_main" in " ".join(p.cmdline())]
+        workers = worker_processes(psutil.Process())
         assert workers, "no worker process found"
         killed.append(workers[0].pid)
         os.kill(workers[0].pid, signal.SIGKILL)
@@ -245,8 +246,7 @@ def test_ctrl_c_stops_workers_and_keeps_written_frames(series, tmp_path):
             if re.search(r"frame \d+ .* written", line):
                 done += 1
                 if done == 3:
-                    workers = [c.pid for c in psutil.Process(proc.pid).children()
-                               if "spawn_main" in " ".join(c.cmdline())]
+                    workers = [c.pid for c in worker_processes(psutil.Process(proc.pid))]
                     os.killpg(proc.pid, signal.SIGINT)
                     break
         rest = proc.stderr.read()
@@ -315,11 +315,13 @@ def test_workers_end_when_the_run_is_killed(series, tmp_path):
         cwd=root, stderr=subprocess.PIPE, text=True, start_new_session=True)
     watchdog = threading.Timer(120.0, proc.kill)
     watchdog.start()
-    helpers, cmdlines = [], {}
+    helpers, workers, cmdlines = [], [], {}
     try:
         for line in proc.stderr:
             if re.search(r"frame \d+ .* written", line):  # under way: chunks in flight
-                helpers = psutil.Process(proc.pid).children()
+                run = psutil.Process(proc.pid)
+                helpers = run.children(recursive=True)  # the fork server, its workers, the resource tracker
+                workers = worker_processes(run)
                 # read while the run is alive: once it is killed, a helper that ends
                 # is a zombie until init reaps it, and a zombie has no command line
                 cmdlines = {c.pid: _cmdline_or_gone(c) for c in helpers}
@@ -331,7 +333,6 @@ def test_workers_end_when_the_run_is_killed(series, tmp_path):
         if proc.poll() is None:
             proc.kill()
         proc.stderr.close()
-    workers = [c for c in helpers if "spawn_main" in cmdlines[c.pid]]
     assert len(workers) == 2, list(cmdlines.values())
     # each worker checks twice a second whether the run is still there
     gone, alive = psutil.wait_procs(helpers, timeout=10)

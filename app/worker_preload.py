@@ -1,0 +1,60 @@
+"""Imported once by the app's fork server (:mod:`app.worker_processes`): prepares a process to reconstruct.
+
+Importing it imports the modules every worker needs (the live measurement, the batch engine's
+worker side, the processing chain and its libraries) and then reconstructs one small synthetic
+checkerboard frame with the default options, one thread and FFTW's estimate planner: the first
+call of each Numba kernel of the default chain loads it from Numba's cache and sets up Numba's
+compiler context (0.4 s on a quiet 2-core PC), once here instead of in every forked worker.
+
+Nothing here may end the server: a failure is ignored (the workers then load what they need
+themselves). OpenCV is kept at one thread during the warm-up and set back to its default after,
+so that its thread pool is first made in each worker, never inherited half-made by a fork.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+import app.batch.parallel  # noqa: F401  (the pool workers' side)
+import app.capture.live_measure  # noqa: F401  (the live process's side)
+import processing.chain_image  # noqa: F401
+import processing.reconstruct  # noqa: F401
+
+__all__ = ["warm_up"]
+
+log = logging.getLogger(__name__)
+
+
+def warm_up(size_px: int = 96) -> bool:
+    """Reconstruct a ``size_px`` square synthetic frame once; True when it ran through."""
+    import cv2
+
+    from processing import ReconstructOptions, Reconstructor
+    from processing.geometry import Geometry
+
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        period_px = 8.0
+        rows, cols = np.mgrid[0:size_px, 0:size_px].astype(np.float64)
+
+        def board(shift_px: float) -> np.ndarray:
+            phase = 2 * np.pi / period_px
+            image = 0.5 + 0.2 * (np.cos(phase * (cols - shift_px)) + np.cos(phase * rows))
+            return np.round(200 * image).astype(np.uint8)
+
+        geometry = Geometry(theta_deg=55.0, depth_mm=300.0, pixel_mm=0.08, rows_toward_camera=False)
+        options = ReconstructOptions(threads=1, planner_effort="FFTW_ESTIMATE")
+        shift = 0.3 * np.exp(-((rows - size_px / 2) ** 2 + (cols - size_px / 2) ** 2) / (2 * (size_px / 6) ** 2))
+        Reconstructor(board(0.0), geometry, options)(board(shift))
+        return True
+    except Exception as exc:  # noqa: BLE001 - a warm-up only: the workers load what they need themselves
+        log.debug("worker warm-up skipped: %s", exc)
+        return False
+    finally:
+        cv2.setNumThreads(threads)
+
+
+warm_up()
