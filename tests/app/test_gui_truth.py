@@ -213,10 +213,12 @@ def test_live_numbers_on_another_tab_carry_the_age_of_the_maps_and_fit_the_statu
     w.resize(1280, 800)
     _capture_reference_by_keys(qtbot, w, n_average=3)
     truth = w.status_labels["truth"]
-    qtbot.waitUntil(lambda: truth.text().startswith("vs truth") and "stale" not in truth.text(), timeout=20000)
+    # the maps drawn on the Live tab, as the user saw them: before any is drawn, "vs truth" is of the worker's
+    # newest frame, current on every tab (two runs timed out below with 'maps show frame None' when the
+    # tab was switched, under load, between the reference's tick and the first maps drawn)
+    qtbot.waitUntil(lambda: truth.text().startswith("vs truth") and "stale" not in truth.text()
+                    and w.maps_shown_seq() is not None, timeout=20000)
     _ctrl(w, QtCore.Qt.Key_3)  # the Replay tab
-    # a quiet fresh-clone run once timed out here with the status bar still live ('vs truth 0.000 um RMS
-    # (still)'), not reproduced: the timeout now says which tab was shown and what the maps' staleness saw
     _until(qtbot, lambda: NOT_DRAWN in truth.text(),
            lambda: (f"status bar {truth.text()!r}, tab {w.tabs.currentIndex()}, maps stale {w.stale.maps!r}, "
                     f"maps show frame {w.maps_shown_seq()}, newest {w.session.newest_seq()}, "
