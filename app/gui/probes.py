@@ -20,7 +20,7 @@ from pyqtgraph.Qt import QtCore, QtWidgets
 from processing.errors import TirdeflectError
 from processing.probe import probe_cell, sample_cell
 
-from .views import room_for_the_last_tick
+from .views import LazyMenuViewBox, room_for_the_last_tick
 
 __all__ = ["Probe", "ProbeView", "HISTORY_S", "MAX_PROBES"]
 
@@ -111,7 +111,7 @@ class ProbeView(QtWidgets.QWidget):
         self.probes: list = []
         self._numbers = 0
         self._t0_ns: Optional[int] = None
-        self.plot = pg.PlotWidget()
+        self.plot = pg.PlotWidget(viewBox=LazyMenuViewBox())
         self.plot.setBackground("w")
         self.plot.setLabel("bottom", "time (s)")
         self.plot.setLabel("left", "height (µm)")

@@ -219,6 +219,48 @@ def room_for_the_last_tick(plot_item) -> None:
     plot_item.layout.setContentsMargins(left, top, max(right, LAST_TICK_ROOM_PX), bottom)
 
 
+class LazyMenuViewBox(pg.ViewBox):
+    """A ViewBox whose right-click menu is made the first time it is opened.
+
+    pyqtgraph makes each ViewBox's menu (a QMenu with the axis controls, 12-18 ms) when it makes the
+    view: the window's 14 were a quarter of its construction (1.1 s on a 2-core PC, every start and
+    every camera switch's rebuild), for menus a session seldom opens. ``menu_actions``: ``(text,
+    slot)`` pairs added to the menu when it is made.
+    """
+
+    def __init__(self, *args, menu_actions: Sequence = (), **kwargs):
+        super().__init__(*args, enableMenu=False, **kwargs)
+        self.state["enableMenu"] = True  # the menu is on: only its making waits for the first right click
+        self._menu_actions = tuple(menu_actions)
+
+    def getMenu(self, ev=None):
+        if self.menu is None and self.menuEnabled():
+            from pyqtgraph.graphicsItems.ViewBox.ViewBoxMenu import ViewBoxMenu
+
+            self.menu = ViewBoxMenu(self)
+            self.updateViewLists()
+            for text, slot in self._menu_actions:
+                self.menu.addAction(text).triggered.connect(slot)
+        return self.menu
+
+    def getContextMenus(self, event):
+        menu = self.getMenu(event)
+        return menu.actions() if menu is not None else []
+
+
+class _LazyMenuPlotItem(pg.PlotItem):
+    """A PlotItem on a :class:`LazyMenuViewBox` (what :class:`_ColorBar` is made on)."""
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("viewBox", LazyMenuViewBox())
+        super().__init__(*args, **kwargs)
+
+
+class _ColorBar(pg.ColorBarItem, _LazyMenuPlotItem):
+    """pyqtgraph's colour bar, whose plot (a PlotItem: ColorBarItem calls ``super().__init__()``, which
+    is :class:`_LazyMenuPlotItem` here) never makes the menu it switches off at once."""
+
+
 class _Graphics(pg.GraphicsLayoutWidget):
     """GraphicsLayoutWidget that records when it really painted (for shown fps and camera-to-screen latency)."""
 
@@ -330,7 +372,8 @@ class ImageView(QtWidgets.QWidget):
         self.graphics.setBackground("w")
         self.graphics.setMinimumSize(120, 100)
         layout.addWidget(self.graphics, 1)
-        self.plot = self.graphics.addPlot()
+        self.plot = self.graphics.addPlot(viewBox=LazyMenuViewBox(
+            menu_actions=(("Auto levels", self.reset_levels), ("Fit image", self.fit))))
         # the units go in the title: the colour bar under the map then needs no label of its own
         self.plot.setTitle(f"<b>{title}</b> ({units})" if units else f"<b>{title}</b>", color="#111", size="10pt")
         self.plot.setAspectLocked(True)
@@ -356,7 +399,7 @@ class ImageView(QtWidgets.QWidget):
         self.plot.addItem(self.image)
         cmap_obj = cmap if isinstance(cmap, pg.ColorMap) else pg.colormap.get(cmap)
         # no drag handles on the bar: the range is typed (levels row) or follows the data
-        self.colorbar = pg.ColorBarItem(values=(0, 1), colorMap=cmap_obj, label=None,
+        self.colorbar = _ColorBar(values=(0, 1), colorMap=cmap_obj, label=None,
                                         interactive=False, width=10, orientation=colorbar)
         self.colorbar.setImageItem(self.image, insert_in=self.plot)
         cb_axis = getattr(self.colorbar, "axis", None)
@@ -366,10 +409,6 @@ class ImageView(QtWidgets.QWidget):
         self.colorbar.sigLevelsChangeFinished.connect(self._user_levels)
         self._setting_levels = False
         vb = self.plot.getViewBox()
-        act = vb.menu.addAction("Auto levels")
-        act.triggered.connect(self.reset_levels)
-        fit = vb.menu.addAction("Fit image")
-        fit.triggered.connect(self.fit)
         vb.sigRangeChangedManually.connect(self._zoomed)
         vb.sigResized.connect(self._refit)
         if not pan:  # a left-drag never moves the view (the wheel still zooms)
@@ -588,7 +627,7 @@ class ProfileView(QtWidgets.QWidget):
         super().__init__(parent)
         layout = QtWidgets.QVBoxLayout(self)
         layout.setContentsMargins(0, 0, 0, 0)
-        self.plot = pg.PlotWidget()
+        self.plot = pg.PlotWidget(viewBox=LazyMenuViewBox())
         self.plot.setTitle(f"<b>{title}</b>", color="#111", size="10pt")
         self.plot.setBackground("w")
         self.plot.setLabel("bottom", "distance (mm)")  # along the line; short, or the column cuts the plot
@@ -655,7 +694,7 @@ class HistogramView(QtWidgets.QWidget):
         super().__init__(parent)
         layout = QtWidgets.QVBoxLayout(self)
         layout.setContentsMargins(0, 0, 0, 0)
-        self.plot = pg.PlotWidget()
+        self.plot = pg.PlotWidget(viewBox=LazyMenuViewBox())
         self.plot.setBackground("w")
         self.plot.setLabel("bottom", "pixel value")
         self.plot.setLabel("left", "pixels (log10)")

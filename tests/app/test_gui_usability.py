@@ -659,3 +659,31 @@ def test_a_map_with_a_line_and_no_data_yet_paints_once_not_forever(qtbot):
     view.graphics.viewport().repaint()
     (x0, x1), (y0, y1) = view.plot.getViewBox().viewRange()
     assert min(x1 - x0, y1 - y0) == pytest.approx(64, rel=0.05), (x0, x1, y0, y1)  # aspect 1:1
+
+
+def test_a_maps_right_click_menu_is_made_when_opened_and_fits_the_image_again(qtbot):
+    """The views' right-click menus are made on the first right click (making all 25 with the window was a
+    quarter of its start): a right click on a zoomed map opens the menu with the map's own entries, and
+    "Fit image" shows the whole image again."""
+    from app.gui.views import ImageView
+
+    view = ImageView("Height", "µm", axis_units="mm")
+    qtbot.addWidget(view)
+    view.resize(400, 400)
+    view.show()
+    vb = view.plot.getViewBox()
+    qtbot.waitUntil(lambda: vb.width() > 100, timeout=5000)
+    view.set_data(np.zeros((64, 64), np.float32), x=np.arange(64) * 0.1, y=np.arange(64) * 0.1)
+    whole = vb.viewRect()
+    assert vb.menu is None  # not made with the view
+    vb.scaleBy((0.25, 0.25))  # the user zooms in (the wheel)
+    vb.sigRangeChangedManually.emit([True, True])
+    assert vb.viewRect().width() < 0.5 * whole.width()
+    centre = view.graphics.mapFromScene(vb.mapViewToScene(vb.viewRect().center()))
+    qtbot.mouseClick(view.graphics.viewport(), QtCore.Qt.RightButton, pos=centre)
+    qtbot.waitUntil(lambda: vb.menu is not None and vb.menu.isVisible(), timeout=5000)
+    entries = {action.text(): action for action in vb.menu.actions()}
+    assert {"Auto levels", "Fit image", "View All"} <= set(entries), sorted(entries)
+    entries["Fit image"].trigger()
+    vb.menu.hide()
+    assert vb.viewRect().width() == pytest.approx(whole.width(), rel=1e-6)
