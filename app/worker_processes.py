@@ -13,13 +13,13 @@ asked for starts one server process (a new interpreter, by exec, like spawn: not
 asking process's threads or Qt state), which imports :data:`PRELOAD` once (that module also runs
 one small reconstruction with one thread, so that Numba's kernels are loaded); every worker is
 then forked from the server, ready in milliseconds, its modules' memory shared with the server.
-The server ends when the process that started it ends.
+The server ends once the process that started it and every worker forked for it have ended.
 
 What differs for a worker, and how the callers deal with it:
 
-* its parent is the server, not the process that asked for it: a worker that must end with its
-  run watches the process that started it (``os.getppid()`` at its start), which is the server,
-  and the server ends with the run (:func:`app.batch.parallel` does so);
+* its parent is the server, not the process that asked for it, and the server lives as long as
+  its workers: a worker that must end with its run watches the run's own process (the batch
+  pool's initializer in :mod:`app.batch.parallel` is given its pid);
 * its environment and working directory are the server's, as they were when the server started,
   not the asking process's of now: :func:`parent_state` is those, to hand to the worker, and
   :func:`adopt_parent_state` makes them the worker's (the batch pool's initializer does, so that

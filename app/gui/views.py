@@ -400,7 +400,7 @@ class ImageView(QtWidgets.QWidget):
         cmap_obj = cmap if isinstance(cmap, pg.ColorMap) else pg.colormap.get(cmap)
         # no drag handles on the bar: the range is typed (levels row) or follows the data
         self.colorbar = _ColorBar(values=(0, 1), colorMap=cmap_obj, label=None,
-                                        interactive=False, width=10, orientation=colorbar)
+                                  interactive=False, width=10, orientation=colorbar)
         self.colorbar.setImageItem(self.image, insert_in=self.plot)
         cb_axis = getattr(self.colorbar, "axis", None)
         if cb_axis is not None:
