@@ -26,13 +26,16 @@ What differs for a worker, and how the callers deal with it:
   the cache directory a run was given is the one its workers use, and relative paths mean the
   same in the workers as in the run).
 
-Where there is no fork server (Windows), :func:`context` is spawn's and nothing of this applies.
+On Linux only (where the app and its tests run every day): elsewhere :func:`context` is spawn's, as
+before, and nothing of this applies (Windows has no fork server; on macOS a fork of a process that has
+loaded Apple's frameworks, which NumPy's and OpenCV's wheels link there, can abort in the child).
 """
 
 from __future__ import annotations
 
 import multiprocessing
 import os
+import sys
 from typing import NamedTuple
 
 __all__ = ["PRELOAD", "ParentState", "adopt_parent_state", "context", "parent_state"]
@@ -45,7 +48,7 @@ PRELOAD = ("app.worker_preload",)
 
 def context():
     """The multiprocessing context the app's worker processes are started with (see the module docstring)."""
-    if "forkserver" not in multiprocessing.get_all_start_methods():
+    if not sys.platform.startswith("linux") or "forkserver" not in multiprocessing.get_all_start_methods():
         return multiprocessing.get_context("spawn")
     ctx = multiprocessing.get_context("forkserver")
     ctx.set_forkserver_preload(list(PRELOAD))  # used when the server starts; no effect once it runs
