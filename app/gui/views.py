@@ -223,8 +223,9 @@ class LazyMenuViewBox(pg.ViewBox):
     """A ViewBox whose right-click menu is made the first time it is opened.
 
     pyqtgraph makes each ViewBox's menu (a QMenu with the axis controls, 12-18 ms) when it makes the
-    view: the window's 14 were a quarter of its construction (1.1 s on a 2-core PC, every start and
-    every camera switch's rebuild), for menus a session seldom opens. ``menu_actions``: ``(text,
+    view: the window's 14 maps and plots made theirs at every start and camera switch's rebuild, for
+    menus a session seldom opens. (The colour bars' plots make one too, which pyqtgraph switches off
+    at once; a ColorBarItem on this ViewBox lost its ViewBox's parent and drew no gradient.) ``menu_actions``: ``(text,
     slot)`` pairs added to the menu when it is made.
     """
 
@@ -246,19 +247,6 @@ class LazyMenuViewBox(pg.ViewBox):
     def getContextMenus(self, event):
         menu = self.getMenu(event)
         return menu.actions() if menu is not None else []
-
-
-class _LazyMenuPlotItem(pg.PlotItem):
-    """A PlotItem on a :class:`LazyMenuViewBox` (what :class:`_ColorBar` is made on)."""
-
-    def __init__(self, *args, **kwargs):
-        kwargs.setdefault("viewBox", LazyMenuViewBox())
-        super().__init__(*args, **kwargs)
-
-
-class _ColorBar(pg.ColorBarItem, _LazyMenuPlotItem):
-    """pyqtgraph's colour bar, whose plot (a PlotItem: ColorBarItem calls ``super().__init__()``, which
-    is :class:`_LazyMenuPlotItem` here) never makes the menu it switches off at once."""
 
 
 class _Graphics(pg.GraphicsLayoutWidget):
@@ -399,8 +387,8 @@ class ImageView(QtWidgets.QWidget):
         self.plot.addItem(self.image)
         cmap_obj = cmap if isinstance(cmap, pg.ColorMap) else pg.colormap.get(cmap)
         # no drag handles on the bar: the range is typed (levels row) or follows the data
-        self.colorbar = _ColorBar(values=(0, 1), colorMap=cmap_obj, label=None,
-                                  interactive=False, width=10, orientation=colorbar)
+        self.colorbar = pg.ColorBarItem(values=(0, 1), colorMap=cmap_obj, label=None,
+                                        interactive=False, width=10, orientation=colorbar)
         self.colorbar.setImageItem(self.image, insert_in=self.plot)
         cb_axis = getattr(self.colorbar, "axis", None)
         if cb_axis is not None:

@@ -687,3 +687,24 @@ def test_a_maps_right_click_menu_is_made_when_opened_and_fits_the_image_again(qt
     entries["Fit image"].trigger()
     vb.menu.hide()
     assert vb.viewRect().width() == pytest.approx(whole.width(), rel=1e-6)
+
+
+def test_a_maps_colour_bar_shows_its_colour_map(qtbot):
+    """The colour bar under a map is drawn with its colours (a colour bar built on another ViewBox once
+    drew only its axis: seen in a screenshot, no test had looked)."""
+    from app.gui.views import ImageView
+
+    view = ImageView("Height", "µm", axis_units="mm")
+    qtbot.addWidget(view)
+    view.resize(400, 400)
+    view.show()
+    qtbot.waitUntil(lambda: view.plot.getViewBox().width() > 100, timeout=5000)
+    view.set_data(np.linspace(-1, 1, 64 * 64, dtype=np.float32).reshape(64, 64),
+                  x=np.arange(64) * 0.1, y=np.arange(64) * 0.1)
+    qtbot.wait(50)
+    bar = view.colorbar.bar  # pyqtgraph's pixmap of the colour map, inside the colour bar's plot
+    rect = view.graphics.mapFromScene(bar.mapToScene(bar.boundingRect())).boundingRect()
+    image = view.graphics.grab().toImage()
+    y = rect.center().y()
+    colours = {image.pixelColor(x, y).name() for x in range(rect.left() + 1, rect.right() - 1)}
+    assert rect.width() > 100 and len(colours) >= 30, (rect, len(colours))
