@@ -224,9 +224,9 @@ class LazyMenuViewBox(pg.ViewBox):
 
     pyqtgraph makes each ViewBox's menu (a QMenu with the axis controls, 12-18 ms) when it makes the
     view: the window's 14 maps and plots made theirs at every start and camera switch's rebuild, for
-    menus a session seldom opens. (The colour bars' plots make one too, which pyqtgraph switches off
-    at once; a ColorBarItem on this ViewBox lost its ViewBox's parent and drew no gradient.) ``menu_actions``: ``(text,
-    slot)`` pairs added to the menu when it is made.
+    menus a session seldom opens. ``menu_actions``: ``(text, slot)`` pairs added to the menu when it
+    is made. (The colour bars' plots still make theirs, which pyqtgraph switches off at once: a
+    ColorBarItem put on this ViewBox lost its ViewBox's parent and drew no colours.)
     """
 
     def __init__(self, *args, menu_actions: Sequence = (), **kwargs):
