@@ -13,7 +13,7 @@ import time
 import numpy as np
 import pytest
 
-from tests.helpers import FORK_SERVER_COMMAND, is_fork_server, pid_alive
+from tests.helpers import FORK_SERVER_COMMAND, pid_alive
 
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 
@@ -288,7 +288,7 @@ def _left_running(session) -> list[int]:
     # multiprocessing's resource tracker, and the app's fork server (app/worker_processes.py: its
     # workers are below it, and checked), end with this process, by design
     pids = [pid for pid in pids if "multiprocessing.resource_tracker" not in _cmdline(pid)
-            and not is_fork_server(pid, me)]
+            and not (table[pid][0] == me and FORK_SERVER_COMMAND in _cmdline(pid))]
     # a fork server (or a worker of one) whose process has just ended (an xdist worker's, seen from
     # the controller) ends by itself a moment later: given 5 s, far above the milliseconds it takes
     deadline = time.monotonic() + 5.0

@@ -21,18 +21,6 @@ def pid_alive(pid: int) -> bool:
 FORK_SERVER_COMMAND = "from multiprocessing.forkserver import main"
 
 
-def is_fork_server(pid: int, parent: int) -> bool:
-    """Is ``pid`` the multiprocessing fork server that process ``parent`` started?"""
-    try:
-        with open(f"/proc/{pid}/stat", "rb") as f:
-            ppid = int(f.read().rpartition(b")")[2].split()[1])
-        with open(f"/proc/{pid}/cmdline", "rb") as f:
-            command = f.read().replace(b"\0", b" ").decode(errors="replace")
-    except (OSError, ValueError, IndexError):
-        return False
-    return ppid == parent and FORK_SERVER_COMMAND in command
-
-
 def worker_processes(process) -> list:
     """The multiprocessing workers a ``psutil.Process`` started and that still run: the children
     of its fork server (the app's way, app/worker_processes.py), or spawned children."""
