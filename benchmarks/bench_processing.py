@@ -23,7 +23,10 @@ displacement whose carrier phase reaches about 5 rad, so the unwrapper runs.
 
 Accuracy: ray-traced TIR frames (processing.forward), relative RMS height
 error in the interior after removing the null space, for the default
-settings, the options, and the published method.
+settings, the options, and the published method.  Each pixel is rendered
+from ``--supersample`` x ``--supersample`` rays (default
+:data:`ACCURACY_SUPERSAMPLE`); the last line says whether any refinement
+came out worse than none on any case (issue 19).
 """
 
 from __future__ import annotations
@@ -258,15 +261,45 @@ def bench_speed(sizes, repeats):
 
 
 # --------------------------------------------------------------- accuracy
-def bench_accuracy():
+#: Rays per pixel side of the accuracy table's renders (8 x 8 a pixel).  The
+#: board's 0.1 mm edges are 1 px wide: with 2 x 2 rays (the table until
+#: 2026-12-03) the render aliases them, and under perspective (camera at
+#: 1.5 m) the aliasing differs across the field: moire bands in u_row that
+#: every method measured alike, 0.42-0.48 % on the camera's bump, which
+#: made image matching look worse than no refinement (0.48 vs 0.42 %).  With
+#: 4 x 4 rays 0.09 / 0.07 / 0.08 % (none / FD / image), 6 x 6 and 8 x 8 within
+#: 0.01 points of each other (0.13 / 0.08 / 0.08 %).  Telecentric cases moved
+#: by up to 0.16 points (board sharp 0.1 mm: 0.31 -> 0.15 %, image matching).
+#: About 100 s for the table instead of 20 s.
+ACCURACY_SUPERSAMPLE = 8
+
+
+#: Each refined column of the accuracy table and the unrefined one it must not be worse than.
+REFINED_AGAINST_NONE = (("full fd", "full no-ref"), ("full image", "full no-ref"), ("default", "full no-ref"),
+                        ("dec refine 1", "decimated"))
+
+
+def refinement_verdict(rows, pairs=REFINED_AGAINST_NONE):
+    """Issue 19: where a refinement came out worse than none, as
+    ``"case: column a.aa > column b.bb"`` strings (``rows``: ``(case, {column:
+    error %})``; compared as printed, to 0.01 points)."""
+    worse = []
+    for case, cells in rows:
+        for refined, plain in pairs:
+            if refined in cells and plain in cells and round(cells[refined], 2) > round(cells[plain], 2):
+                worse.append(f"{case}: {refined} {cells[refined]:.2f} > {plain} {cells[plain]:.2f}")
+    return worse
+
+
+def bench_accuracy(supersample=ACCURACY_SUPERSAMPLE):
     from processing import forward as F
 
     board_ = F.Checkerboard(period_mm=2.0, edge_softness_mm=0.1)
 
     def render(surface, geometry=GEOMETRY, n=256, bits=8, noise=0.0, pattern=board_):
         rng = np.random.default_rng(0)
-        ref, _ = F.render_tir(F.FlatSurface(), geometry, (n, n), pattern, supersample=2)
-        img, _ = F.render_tir(surface, geometry, (n, n), pattern, supersample=2)
+        ref, _ = F.render_tir(F.FlatSurface(), geometry, (n, n), pattern, supersample=supersample)
+        img, _ = F.render_tir(surface, geometry, (n, n), pattern, supersample=supersample)
         return (F.quantize(ref, bits=bits, noise_rms=noise, rng=rng),
                 F.quantize(img, bits=bits, noise_rms=noise, rng=rng))
 
@@ -303,17 +336,20 @@ def bench_accuracy():
                            unwrap=False, border="none", refine_iterations=0)),
     ]
     print("Accuracy: rel. RMS height error (%), ray-traced TIR 256^2, H 300 mm, theta 55 deg,")
-    print("2 mm board (20 x 11.5 px), interior, null space removed")
+    print(f"2 mm board (20 x 11.5 px), {supersample} x {supersample} rays a pixel, interior, null space removed")
     print("(full fd: FD's refinement; full image = default: what every caller gets by default)")
     print(f"{'case':42s}" + "".join(f"{name:>13s}" for name, _ in variants))
+    table = []
     for label, surface, kw in cases:
         ref, img = render(surface, **kw)
-        cells = []
-        for _, opts in variants:
+        cells, errors = [], {}
+        for name, opts in variants:
             try:
-                cells.append(f"{rel(Reconstructor(ref, GEOMETRY, **opts)(img), surface):13.2f}")
+                errors[name] = rel(Reconstructor(ref, GEOMETRY, **opts)(img), surface)
+                cells.append(f"{errors[name]:13.2f}")
             except Exception as exc:  # noqa: BLE001 - a failing variant is a result
                 cells.append(f"{type(exc).__name__[:12]:>13s}")
+        table.append((label, errors))
         print(f"{label:42s}" + "".join(cells))
     # random dots (issue 11): the same surfaces, dots 0.5 mm (5 x 2.9 px), 8 bit, noise 1 DN, PIV with
     # 16 px final windows (a sample every 8 px); goal <= 2 % where features are >= 8 windows (128 px) wide
@@ -339,10 +375,16 @@ def bench_accuracy():
     g = Geometry(theta_deg=60, depth_mm=300, pixel_mm=0.1, rows_toward_camera=False, camera_distance_mm=1500.0)
     bump = F.GaussianBump(0.004, 5.0)
     ref, img = render(bump, geometry=g)
-    print(f"{'camera at 1.5 m, theta 60, bump (dec/fd/default)':42s}"
-          f"{rel(Reconstructor(ref, g, grid='decimated')(img), bump, g):13.2f}"
-          f"{rel(Reconstructor(ref, g, grid='full', refine_method='fd')(img), bump, g):13.2f}"
-          f"{rel(Reconstructor(ref, g, grid='full')(img), bump, g):13.2f}")
+    camera = {name: rel(Reconstructor(ref, g, **opts)(img), bump, g) for name, opts in
+              (("decimated", dict(grid="decimated")), ("full fd", dict(grid="full", refine_method="fd")),
+               ("full no-ref", dict(grid="full", refine_iterations=0)), ("default", {}))}
+    table.append(("camera at 1.5 m, theta 60, bump", camera))
+    print(f"{'camera 1.5 m, theta 60 (dec/fd/none/default)':42s}"
+          + "".join(f"{v:13.2f}" for v in camera.values()))
+    worse = refinement_verdict(table)
+    print("refinement worse than none (full fd / full image / default against full no-ref, dec refine 1 "
+          "against decimated): "
+          + ("; ".join(worse) if worse else "on no case"))
     print()
 
 
@@ -380,6 +422,8 @@ def main(argv=None):
     ap.add_argument("--no-speed", action="store_true")
     ap.add_argument("--no-issue22", action="store_true", help="leave out issue 22's table (ray-traced 1024^2)")
     ap.add_argument("--issue22-size", type=int, default=1024)
+    ap.add_argument("--supersample", type=int, default=ACCURACY_SUPERSAMPLE,
+                    help=f"rays per pixel side of the accuracy table's renders (default {ACCURACY_SUPERSAMPLE})")
     args = ap.parse_args(argv)
     cv2.setNumThreads(2)
     print(f"tirdeflect processing benchmark, {os.cpu_count()} CPUs visible, numpy {np.__version__}\n")
@@ -390,7 +434,7 @@ def main(argv=None):
         bench_speed(args.sizes, args.repeats)
         bench_dots_speed([n for n in args.sizes if n <= 1024], args.repeats)
     if not args.no_accuracy:
-        bench_accuracy()
+        bench_accuracy(args.supersample)
 
 
 if __name__ == "__main__":
