@@ -78,8 +78,13 @@ class DenseDotFlow:
         self._grid = (grid_c.astype(np.float32), grid_r.astype(np.float32))  # remap's (x, y)
         self._dis = None
 
+    def __getstate__(self):
+        state = dict(self.__dict__)
+        state["_dis"] = None  # cv2's objects do not pickle; made again on first use
+        return state
+
     def _flow(self):
-        if self._dis is None:  # made on first use: cv2's objects do not pickle
+        if self._dis is None:  # made on first use (and after unpickling)
             dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
             dis.setFinestScale(0)  # down to the pixels (the preset stops one scale above)
             self._dis = dis

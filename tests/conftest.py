@@ -290,10 +290,12 @@ def _left_running(session) -> list[int]:
     pids = [pid for pid in pids if "multiprocessing.resource_tracker" not in _cmdline(pid)
             and not (table[pid][0] == me and FORK_SERVER_COMMAND in _cmdline(pid))]
     # a fork server (or a worker of one) whose process has just ended (an xdist worker's, seen from
-    # the controller) ends by itself a moment later: given 5 s, far above the milliseconds it takes
+    # the controller) ends by itself a moment later, and so does a process already exiting (an xdist
+    # worker seen from the controller: its memory, command line included, is already gone): given
+    # 5 s, far above the milliseconds it takes
     deadline = time.monotonic() + 5.0
     while (time.monotonic() < deadline
-           and any(FORK_SERVER_COMMAND in _cmdline(pid) and pid_alive(pid) for pid in pids)):
+           and any((FORK_SERVER_COMMAND in _cmdline(pid) or not _cmdline(pid)) and pid_alive(pid) for pid in pids)):
         time.sleep(0.05)  # polling their state, bounded by the deadline
     return [pid for pid in pids if pid_alive(pid)]
 
