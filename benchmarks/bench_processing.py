@@ -358,7 +358,7 @@ def bench_accuracy(supersample=ACCURACY_SUPERSAMPLE):
     class _Shape:
         shape = (256, 256)
 
-    print(f"{'random dots, PIV 16 px windows (dec / full: image matching from the dense flow)':42s}")
+    print(f"{'random dots, PIV 16 px windows (dec / full: image matching from PIV)':42s}")
     for label, surface, kw in cases:
         if "pattern" in kw:
             continue

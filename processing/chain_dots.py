@@ -1,10 +1,8 @@
 """The random-dot chain: displacement by PIV (:class:`processing.piv.DotDisplacement`),
 then the same island removal, masked height solve and pin as the checkerboard
-chain; on the full grid then image matching for the height
+chain; on the full grid then image matching for the height from PIV's start
 (:class:`processing.chain_image.DotsImageRefinement`, ``refine_method="image"``,
-the default there), started from the dense optical flow
-(:class:`processing.flow.DenseDotFlow`) sampled on the PIV grid, or PIV's
-heights to every pixel (:func:`processing.fullgrid.dots_full`)."""
+the default there) or PIV's heights to every pixel (:func:`processing.fullgrid.dots_full`)."""
 
 from __future__ import annotations
 
@@ -24,7 +22,7 @@ __all__ = ["DotsChain", "DotsMeasured"]
 
 
 class DotsMeasured(NamedTuple):
-    """A frame after :meth:`DotsChain.measure`: its displacement on the PIV grid."""
+    """A frame after :meth:`DotsChain.measure`: the PIV grid."""
 
     u: np.ndarray  # displacement (2, n_rows, n_cols), pixels
     valid: np.ndarray
@@ -54,38 +52,21 @@ class DotsChain(GridChain):
                                               self.shape, skip=0)
         self.cg_tol = 1e-4  # as the checkerboard chain's masked solve
         self._image = None
-        self._flow = None
 
     def image_refinement(self):
-        """Image matching on the full grid (:class:`processing.chain_image.DotsImageRefinement`, built once)."""
+        """Image matching from PIV's start (:class:`processing.chain_image.DotsImageRefinement`, built once)."""
         if self._image is None:
             from .chain_image import DotsImageRefinement
 
             self._image = DotsImageRefinement(self)
         return self._image
 
-    def dense_flow(self):
-        """Image matching's start on the full grid (:class:`processing.flow.DenseDotFlow`, built once)."""
-        if self._flow is None:
-            from .flow import DenseDotFlow
-
-            self._flow = DenseDotFlow(self.reference_image, self.rows_px, self.cols_px,
-                                      window_px=self.piv.window_px, max_displacement_px=self.piv.max_displacement_px)
-        return self._flow
-
     def measure(self, frame, grid, state, t0):
-        """``(DotsMeasured, state)``: the displacement of one validated frame on
-        the PIV grid, small islands dropped (``state``, the series memory,
-        passes through: dots keep none).  PIV measures it, except where image
-        matching follows (full grid, ``refine_method="image"``): there the
-        dense flow starts it, five times faster (:mod:`processing.flow`)."""
+        """``(DotsMeasured, state)``: PIV of one validated frame, small islands
+        dropped (``state``, the series memory, passes through: dots keep none)."""
         timings = {}
-        if grid == "full" and self.options.refine_method == "image":
-            u, valid = self.dense_flow()(frame)
-            timings["flow"] = 1e3 * (time.perf_counter() - t0)
-        else:
-            u, valid = self.piv(frame)
-            timings["piv"] = 1e3 * (time.perf_counter() - t0)
+        u, valid = self.piv(frame)
+        timings["piv"] = 1e3 * (time.perf_counter() - t0)
         if not valid.any():
             raise AllInvalidError("no interrogation window of the frame correlates with the reference: check that "
                                   "the dots are in focus and lit, and that the frame shows the reference's pattern")
@@ -110,10 +91,9 @@ class DotsChain(GridChain):
         return res, state
 
     def to_grid(self, m, res, grid) -> Result:
-        """``res`` on ``grid``: on the full grid image matching from the dense flow's start
-        where ``refine_method="image"`` (where it diverges PIV measures the frame
-        and its heights are kept, with a note), else every pixel by cubic spline
-        (:func:`processing.fullgrid.dots_full`)."""
+        """``res`` on ``grid``: on the full grid image matching from PIV's start
+        where ``refine_method="image"`` (PIV's heights kept, with a note, where it
+        diverges), else every pixel by cubic spline (:func:`processing.fullgrid.dots_full`)."""
         if grid == "full":
             t2 = time.perf_counter()
             refined = None
@@ -123,9 +103,6 @@ class DotsChain(GridChain):
                 try:
                     refined = self.image_refinement()(m, res)
                 except RefinementDiverged as exc:  # PIV's heights below, and the reason with them
-                    # the dense flow only starts image matching: PIV, the more accurate alone, measures instead
-                    m, _ = self.measure(m.frame, "decimated", None, m.t0)  # dots keep no series state
-                    res, _ = self.solve(m, grid, None)
                     res.note = f"image refinement stopped: {exc}; PIV's heights kept"
             if refined is None:
                 res = dots_full(res, self.shape, self.full_coordinates())

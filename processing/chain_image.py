@@ -127,9 +127,8 @@ DOTS_FINE = 3
 
 
 class DotsImageRefinement(_NodeRefinement):
-    """Image matching for the height on random dots: the displacement a
-    :class:`processing.chain_dots.DotsChain` measured on its PIV grid (the dense
-    flow of :mod:`processing.flow` there) as the start, then the same global
+    """Image matching for the height on random dots: the PIV displacement of a
+    :class:`processing.chain_dots.DotsChain` as the start, then the same global
     Gauss-Newton height solve as checkerboards (:func:`processing.dic.refine_height`:
     it does not care what the pattern is), the masked height solver and pin on
     the node grid, then every pixel by cubic spline."""

@@ -136,7 +136,7 @@ class ReconstructOptions:
         by PIV with window deformation (:class:`processing.piv.DotDisplacement`,
         OpenPIV), last window ``window_px`` (default 16) px, one sample every
         ``window_px / 2`` px; then the same mask, height solve and pin, and on
-        the full grid image matching from the dense flow's start (``refine_method``; the
+        the full grid image matching from PIV's start (``refine_method``; the
         carrier options, unwrapping, FD's refinement, ``alignment`` and
         ``spectrum`` do not apply; ``Result.carriers`` is None).
     refine_method : {"auto", "fd", "image"}, optional
@@ -157,11 +157,10 @@ class ReconstructOptions:
         3-6 carrier periods long 2.87 % -> 0.82 %, a bump of 1.25 periods
         1.42 % -> 0.32 %, every case of the accuracy table at or below "fd";
         2-3.5x the time of "fd" per frame (about 5x its single-thread CPU).
-        Random dots: the same solve, started from the dense optical flow
-        (:class:`processing.chain_image.DotsImageRefinement`,
-        :mod:`processing.flow`; measured, section 11: a bump 3.7 windows wide
-        at half height 4.8 % (PIV) -> 0.5 %, every dot case of the accuracy
-        table at 0.1-0.6x PIV's error).
+        Random dots: the same solve from PIV's displacement
+        (:class:`processing.chain_image.DotsImageRefinement`; measured,
+        section 11: a bump 3.7 windows wide at half height 4.8 % -> 0.8 %,
+        every dot case of the accuracy table at 0.1-0.6x PIV's error).
         The decimated (live) grid never runs it.
     device : {"cpu", "cuda"}, optional
         "cuda": the chain runs on the GPU through CuPy, batched by
@@ -251,7 +250,7 @@ def full_grid_refinement(options: ReconstructOptions, frame_shape, pattern: str,
     ``refine_method="auto"`` (the default): image matching for the height
     (:mod:`processing.dic`), the most accurate method on every ray-traced case
     of docs/processing.md's accuracy table (waves 3-6 carrier periods long
-    2.9 % -> 0.8 %; random dots, waves 6-12 mm: 6.6 % (PIV) -> 1.2 %) at about 5x
+    2.9 % -> 0.8 %; random dots from PIV's start: 6.6 % -> 1.8 %) at about 5x
     FD's CPU time, where it applies: the full grid, the CPU, frame sides multiples of
     ``dic.NODE_PX``, not ``refine_iterations=0`` (no refinement) nor
     ``full_method="ifft"``; elsewhere FD's refinement.  The decimated (live) grid

@@ -97,7 +97,6 @@ class DotDisplacement:
         s.show_plot = s.save_plot = s.show_all_plots = False
         self.settings = s
         self.window_px = window_px
-        self.max_displacement_px = float(max_displacement_px)
         self._ref = ref.astype(np.float64)
         # grid of the last pass: OpenPIV's window centres (measured: taking
         # them half a pixel earlier, at start + (window - 1) / 2, raised the

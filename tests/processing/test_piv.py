@@ -79,77 +79,20 @@ def test_dots_heights_within_2_percent(name, surface):
 
 @pytest.mark.parametrize("name,surface,piv_error,full_error", [
     # features 2-4 windows wide, where PIV's windows smooth them: measured PIV 4.83 / 6.55 %,
-    # image matching from the dense flow 0.60 / 1.12 % (from PIV's own displacement, before: 0.82 /
-    # 1.82 %, which these bounds fail)
-    ("bump 2 um, sigma 2.5 mm", F.GaussianBump(0.002, 2.5), 0.04, 0.007),
+    # image matching 0.82 / 1.82 %
+    ("bump 2 um, sigma 2.5 mm", F.GaussianBump(0.002, 2.5), 0.04, 0.012),
     ("waves 0.3 um rms, 6-12 mm", F.WaveField.random(8, amplitude_rms_mm=0.0003, wavelength_range_mm=(6, 12), seed=1),
-     0.05, 0.014),
+     0.05, 0.025),
 ])
 def test_image_matching_reads_dots_features_that_piv_windows_smooth(name, surface, piv_error, full_error):
-    """The full grid's default on dots (image matching from the dense flow's start, issue 22) against
-    PIV alone (``refine_method="fd"``: no image matching) on the same frame."""
+    """The full grid's default on dots (image matching from PIV's start, issue 22) against PIV alone
+    (``refine_method="fd"``: no image matching) on the same frame."""
     ref, img = render(surface)
     piv = Reconstructor(ref, G55, pattern="dots", refine_method="fd")(img)
     full = Reconstructor(ref, G55, pattern="dots")(img)
     assert rel_error(piv, surface) > piv_error  # the case is one PIV cannot read
     assert rel_error(full, surface) <= full_error
     assert rel_error(full, surface) <= 0.4 * rel_error(piv, surface)
-
-
-def test_dots_full_grid_on_a_frame_darker_than_its_reference():
-    """Image matching's start on dots (DIS optical flow, processing.flow) compares patch intensities:
-    a frame at 0.6x the reference's brightness plus an offset is brought to the reference's contrast
-    first.  Measured (narrow bump): 0.34 %; as bright as the reference 0.60 %; mapped to 8 bits
-    with the reference's range instead (no contrast matching) 1.00 %; PIV's start 0.79 %."""
-    surface = F.GaussianBump(0.002, 2.5)
-    ref, img = render(surface)
-    dark = np.clip(img.astype(np.float32) * 0.6 + 10, 0, 255).astype(img.dtype)
-    full = Reconstructor(ref, G55, pattern="dots")(dark)
-    assert "flow" in full.timings_ms and not full.note  # the dense flow started it, image matching held
-    assert rel_error(full, surface) <= 0.006
-
-
-def test_dots_full_grid_marks_a_blank_part_invalid_and_measures_the_rest():
-    """Where the frame shows no dots (a shadow, lost TIR) the dense flow has nothing to follow: its
-    samples there must be refused (the reference warped by the flow does not correlate with the
-    frame), not turned into heights.  Measured: 86 % of the grid samples in a 60 x 60 px black patch
-    invalid (the rest straddle its edge), every sample away from it valid; height error over the valid
-    pixels 1.15 % (PIV's start: 1.30 %; the same frame without the patch 0.12 %: the heights are
-    integrated around the hole)."""
-    surface = F.GaussianBump(0.004, 5.0)
-    ref, img = render(surface)
-    blank = img.copy()
-    blank[100:160, 60:120] = 0
-    rec = Reconstructor(ref, G55, pattern="dots")
-    m, _ = rec.chain.measure(blank, "full", None, 0.0)  # the stage that measures the displacement
-    R, C = np.meshgrid(rec.chain.rows_px, rec.chain.cols_px, indexing="ij")
-    inside = (R >= 100) & (R < 160) & (C >= 60) & (C < 120)
-    away = (R < 84) | (R >= 176) | (C < 44) | (C >= 136)
-    assert np.mean(~m.valid[inside]) >= 0.75 and np.all(np.isnan(m.u[:, ~m.valid]))
-    assert m.valid[away].all()
-    full = rec(blank)
-    assert np.mean(~full.valid[110:150, 70:110]) >= 0.95  # the patch's middle carries no height
-    assert rel_error(full, surface) <= 0.015
-
-
-def test_dots_image_matching_that_diverges_keeps_piv_s_heights(monkeypatch):
-    """The dense flow only starts image matching; where image matching gives up the frame is measured
-    by PIV (the more accurate alone: 0.51 against 1.16 % on this bump) and PIV's heights are kept,
-    with the reason, as ``refine_method="fd"`` gives them."""
-    from processing import dic
-
-    surface = F.GaussianBump(0.004, 5.0)
-    ref, img = render(surface)
-    piv_alone = Reconstructor(ref, G55, pattern="dots", refine_method="fd")(img)
-
-    def diverges(*args, **kwargs):
-        raise dic.RefinementDiverged("image residual rose after a step (made to, by this test)")
-
-    monkeypatch.setattr(dic, "refine_height", diverges)
-    full = Reconstructor(ref, G55, pattern="dots")(img)
-    assert full.note.startswith("image refinement stopped: image residual rose") and "PIV's heights kept" in full.note
-    assert "piv" in full.timings_ms and "flow" not in full.timings_ms
-    np.testing.assert_array_equal(full.height, piv_alone.height)
 
 
 def test_a_lone_feature_on_still_water_is_not_piv_s_outlier():
