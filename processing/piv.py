@@ -188,23 +188,22 @@ def window_correlation(reference, frame, displacement, rows_px, cols_px, window_
 
     Returns float32 (n_rows, n_cols) in [-1, 1]; 0 where either window is flat."""
     import cv2
-    from scipy import ndimage
 
     from .fill import nearest_fill_index
 
     rows, cols = frame.shape
-    u = np.asarray(displacement, np.float64)
+    u = np.asarray(displacement, np.float32)
     fill = nearest_fill_index(np.isfinite(u[0]) & np.isfinite(u[1]))
     if fill is not None:
         u = u[:, fill[0], fill[1]]
     # every pixel's place on the grid, in samples (constant beyond the outer samples)
     gr = np.clip((np.arange(rows) - rows_px[0]) / (rows_px[1] - rows_px[0]), 0, len(rows_px) - 1)
     gc = np.clip((np.arange(cols) - cols_px[0]) / (cols_px[1] - cols_px[0]), 0, len(cols_px) - 1)
-    at = np.meshgrid(gr, gc, indexing="ij")
-    u_px = [ndimage.map_coordinates(u[i], at, order=1) for i in range(2)]
+    at_c, at_r = np.meshgrid(gc.astype(np.float32), gr.astype(np.float32))
     px, py = np.meshgrid(np.arange(cols, dtype=np.float32), np.arange(rows, dtype=np.float32))
-    moved = cv2.remap(np.asarray(reference, np.float32), px - u_px[1].astype(np.float32),
-                      py - u_px[0].astype(np.float32), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    px -= cv2.remap(np.ascontiguousarray(u[1]), at_c, at_r, cv2.INTER_LINEAR)
+    py -= cv2.remap(np.ascontiguousarray(u[0]), at_c, at_r, cv2.INTER_LINEAR)
+    moved = cv2.remap(np.asarray(reference, np.float32), px, py, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     a = np.asarray(frame, np.float32)
     box = (int(window_px), int(window_px))
 
