@@ -40,7 +40,7 @@ _NETWORK_ENV = ("SSL_CERT_FILE", "SSL_CERT_DIR", "REQUESTS_CA_BUNDLE", "CURL_CA_
 
 def _network_env() -> dict:
     return {k: v for k, v in os.environ.items()
-            if k in _NETWORK_ENV or k.startswith("PIP_") or k.lower().endswith("_proxy")}
+            if k in _NETWORK_ENV or k.startswith(("PIP_", "UV_")) or k.lower().endswith("_proxy")}
 
 
 def _fresh_checkout(dst: Path) -> Path:
@@ -82,7 +82,7 @@ def _run(cmd, **kw) -> subprocess.CompletedProcess:
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(600)  # a cold pip cache downloads about 300 MB of wheels
+@pytest.mark.timeout(600)  # a cold cache downloads about 300 MB of wheels
 @pytest.mark.skipif(not sys.platform.startswith("linux") or not DISTRO_PYTHON.exists()
                     or shutil.which("dpkg") is None or shutil.which("git") is None,
                     reason="the install script is for Debian/Ubuntu: needs /usr/bin/python3, dpkg and git")
@@ -104,6 +104,8 @@ def test_install_script_from_a_fresh_clone_on_the_distribution_python(tmp_path, 
         "PATH": f"{home / '.local' / 'bin'}:{login_path}",  # the distribution's python3 is the first python3
         "XDG_DATA_HOME": str(home / ".local" / "share"),
         "PIP_CACHE_DIR": os.environ.get("PIP_CACHE_DIR") or platformdirs.user_cache_dir("pip"),  # pip's own cache
+        # uv's (install.sh installs the packages with it): ~/.cache/uv of the user running the tests
+        "UV_CACHE_DIR": os.environ.get("UV_CACHE_DIR") or platformdirs.user_cache_dir("uv"),
     }
     first_python = _run(["bash", "-c", "command -v python3"], env=env).stdout.strip()
     assert Path(first_python).resolve() == DISTRO_PYTHON.resolve()
@@ -116,6 +118,8 @@ def test_install_script_from_a_fresh_clone_on_the_distribution_python(tmp_path, 
     with capsys.disabled():  # the figure shows in CI's quiet output
         print(f"\n[install.sh from a fresh clone on {DISTRO_PYTHON}: {install_s:.1f} s", end="")
     assert f"tirdeflect {app.version()}" in out.stdout.splitlines()[-1]
+    # uv installed the packages (pip, the fallback, takes about a minute more)
+    assert "pip installs them instead" not in out.stdout, out.stderr
     venv = clone / ".venv"
     cfg = dict(line.split(" = ", 1) for line in (venv / "pyvenv.cfg").read_text().splitlines() if " = " in line)
     assert Path(cfg["home"]) == DISTRO_PYTHON.parent, cfg
