@@ -717,8 +717,8 @@ class Recorder:
         self.start_sequence = start
         self.trigger_sequence = trigger_sequence
         self._cursor = self.ring.cursor(start)
-        if trigger_sequence is not None:
-            self.file.set_attrs(trigger_sequence=trigger_sequence)
+        if trigger_sequence is not None:  # how many pre-trigger frames the file holds
+            self.file.set_attrs(trigger_sequence=trigger_sequence, pre_available=trigger_sequence - start)
         self.file.set_attrs(start_sequence=start)
         self.state = "recording"
         self._t_begin = time.monotonic()

@@ -333,29 +333,47 @@ class TriggeredCapture:
                 return self.trigger_sequence if self.trigger_sequence is not None else -1
             ring = self.acquisition.ring
             seq = int(sequence)
-            start = max(seq - self.pre_frames, ring.oldest, 0)
-            self.pre_available = seq - start
-            n = self.pre_available + self.post_frames
             self.trigger_sequence = seq
             self.fired_by = source
             self.state = "triggered"
             ring.add_flags(seq, FrameFlags.TRIGGER)
             rec = self.recorder
-            rec.n_frames = n
-            rec.set_trigger(seq, host_trigger_ns=int(host_timestamp_ns or time.monotonic_ns()),
-                            source=source, pre_available=self.pre_available, **info)
-            rec.file.set_attrs(trigger_sequence=seq, pre_available=self.pre_available, trigger_source=source)
-            if self.pre_available < self.pre_frames:
-                rec.file.add_event("note", f"only {self.pre_available} of {self.pre_frames} pre-trigger frames "
-                                           "existed when the trigger came", sequence=seq)
+            rec.file.set_attrs(trigger_sequence=seq, trigger_source=source)  # file I/O: before the start is read
             if self.stop_camera:
                 self.acquisition.stop_after(seq + self.post_frames - 1)
             try:
-                rec.begin(start, trigger_sequence=seq)
+                start = self._begin_recorder(seq)
             except RecorderError:
                 self.state = "error"
                 raise
+            self.pre_available = seq - start
+            rec.set_trigger(seq, host_trigger_ns=int(host_timestamp_ns or time.monotonic_ns()),
+                            source=source, pre_available=self.pre_available, **info)
+            if self.pre_available < self.pre_frames:
+                rec.file.add_event("note", f"only {self.pre_available} of {self.pre_frames} pre-trigger frames "
+                                           "existed when the trigger came", sequence=seq)
             return seq
+
+    def _begin_recorder(self, seq: int) -> int:
+        """Start the recorder at the first pre-trigger frame the ring still holds; returns that sequence.
+
+        The camera goes on writing meanwhile: after a stall it delivers a burst of frames, and one that
+        overwrites the start between reading ``ring.oldest`` and the recorder's cursor made the whole
+        recording fail (``RecorderError``: seen once in a test run, a 48-frame ring at 500 Hz lapped by
+        65 frames). The start then moves up to what is left, as for a trigger that came before the
+        pre-trigger frames existed: fewer pre-trigger frames, said in a note. Only a trigger frame that is
+        itself overwritten is an error.
+        """
+        ring, rec = self.acquisition.ring, self.recorder
+        while True:
+            start = max(seq - self.pre_frames, ring.oldest, 0)
+            rec.n_frames = (seq - start) + self.post_frames
+            try:
+                rec.begin(start, trigger_sequence=seq)
+                return start
+            except RecorderError:
+                if seq < ring.oldest or start >= ring.oldest:  # the trigger frame is gone, or another error
+                    raise
 
     def ready_for(self, sequence: int) -> bool:
         """True when a trigger on ring frame ``sequence`` would get all ``pre_frames`` before it.
