@@ -704,8 +704,13 @@ class Recorder:
                            incomplete=0, missing_bytes=0, no_timestamp=0, overrun_events=[])
 
     # ----------------------------------------------------------- commands
-    def begin(self, start_sequence: Optional[int] = None, *, trigger_sequence: Optional[int] = None) -> "Recorder":
-        """Start writing from ring sequence ``start_sequence`` (default: the next frame)."""
+    def begin(self, start_sequence: Optional[int] = None, *, trigger_sequence: Optional[int] = None,
+              attrs: Optional[dict] = None) -> "Recorder":
+        """Start writing from ring sequence ``start_sequence`` (default: the next frame).
+
+        The ring cursor takes hold of the start first; then the file's attributes (``trigger_sequence``,
+        ``pre_available``, ``start_sequence`` and ``attrs``) are written, before the writing thread starts.
+        """
         if self._thread is not None:
             raise RecorderError("this recorder already began; create a new one for another recording")
         start = self.ring.head if start_sequence is None else int(start_sequence)
@@ -719,7 +724,7 @@ class Recorder:
         self._cursor = self.ring.cursor(start)
         if trigger_sequence is not None:  # how many pre-trigger frames the file holds
             self.file.set_attrs(trigger_sequence=trigger_sequence, pre_available=trigger_sequence - start)
-        self.file.set_attrs(start_sequence=start)
+        self.file.set_attrs(start_sequence=start, **(attrs or {}))
         self.state = "recording"
         self._t_begin = time.monotonic()
         self._thread = threading.Thread(target=self._run, name="tirdeflect-recorder", daemon=True)

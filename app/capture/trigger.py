@@ -338,11 +338,10 @@ class TriggeredCapture:
             self.state = "triggered"
             ring.add_flags(seq, FrameFlags.TRIGGER)
             rec = self.recorder
-            rec.file.set_attrs(trigger_sequence=seq, trigger_source=source)  # file I/O: before the start is read
             if self.stop_camera:
                 self.acquisition.stop_after(seq + self.post_frames - 1)
-            try:
-                start = self._begin_recorder(seq)
+            try:  # nothing slow (the file) before the recorder holds its first frame: the camera goes on
+                start = self._begin_recorder(seq, source)
             except RecorderError:
                 self.state = "error"
                 raise
@@ -354,22 +353,23 @@ class TriggeredCapture:
                                            "existed when the trigger came", sequence=seq)
             return seq
 
-    def _begin_recorder(self, seq: int) -> int:
+    def _begin_recorder(self, seq: int, source: str) -> int:
         """Start the recorder at the first pre-trigger frame the ring still holds; returns that sequence.
 
         The camera goes on writing meanwhile: after a stall it delivers a burst of frames, and one that
         overwrites the start between reading ``ring.oldest`` and the recorder's cursor made the whole
         recording fail (``RecorderError``: seen once in a test run, a 48-frame ring at 500 Hz lapped by
-        65 frames). The start then moves up to what is left, as for a trigger that came before the
-        pre-trigger frames existed: fewer pre-trigger frames, said in a note. Only a trigger frame that is
-        itself overwritten is an error.
+        65 frames while the trigger wrote the file's attributes; the recorder writes them now, once its
+        cursor holds the start). The start then moves up to what is left, as for a trigger that came
+        before the pre-trigger frames existed: fewer pre-trigger frames, said in a note. Only a trigger
+        frame that is itself overwritten is an error.
         """
         ring, rec = self.acquisition.ring, self.recorder
         while True:
             start = max(seq - self.pre_frames, ring.oldest, 0)
             rec.n_frames = (seq - start) + self.post_frames
             try:
-                rec.begin(start, trigger_sequence=seq)
+                rec.begin(start, trigger_sequence=seq, attrs={"trigger_source": source})
                 return start
             except RecorderError:
                 if seq < ring.oldest or start >= ring.oldest:  # the trigger frame is gone, or another error
