@@ -411,7 +411,27 @@ def bench_dots_speed(sizes, repeats):
         t = interleaved_medians([lambda i: (rb.reset_series(), rb(frames_board[i % 3])),
                                  lambda i: rd(frames_dots[i % 2])], max(4, repeats // 4))
         print(f"{n:>6} checkerboard batch {t[0]:8.1f}   dots {t[1]:8.1f}   ratio {t[1] / t[0]:5.1f}x")
+        bench_piv_passes(ref_dots, frames_dots, max(4, repeats // 4))
     print()
+
+
+def bench_piv_passes(reference, frames, repeats):
+    """PIV's passes alone (the displacement of the dots' decimated grid, the
+    live view's): OpenPIV's own loop (``openpiv.windef``, SciPy backend: what
+    ran before 2026-12-03) against processing/piv.py's passes (the same
+    vectors bit for bit), each backend, every core of the machine."""
+    from processing.piv import DotDisplacement, correlation_backend
+    from tests.processing.test_piv import openpiv_windef_passes
+
+    threads = os.cpu_count() or 1
+    own = {b: DotDisplacement(reference, threads=threads, backend=b) for b in ("scipy", correlation_backend())}
+    img = [np.asarray(f, np.float64) for f in frames]
+    fns = [lambda i: openpiv_windef_passes(own["scipy"], reference, img[i % 2], "scipy")]
+    fns += [lambda i, p=p: p.passes(img[i % 2]) for p in own.values()]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = interleaved_medians(fns, repeats)
+    line = "  ".join(f"own passes ({b}) {ms:7.1f} ({t[0] / ms:.1f}x)" for b, ms in zip(own, t[1:]))
+    print(f"{'':>6} PIV passes: openpiv.windef loop (scipy) {t[0]:7.1f}   {line}")
 
 
 def main(argv=None):

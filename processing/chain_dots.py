@@ -44,7 +44,7 @@ class DotsChain(GridChain):
         self.geometry = geometry
         self.shape = ref.shape
         self.reference_image = ref
-        self.piv = DotDisplacement(ref, window_px=options.window_px)
+        self.piv = DotDisplacement(ref, window_px=options.window_px, threads=options.threads)
         self.rows_px, self.cols_px = self.piv.rows_px, self.piv.cols_px
         self.reference_valid = np.ones((self.rows_px.size, self.cols_px.size), bool)
         # no mask dilation here: the band starts at the grid's border

@@ -3,10 +3,16 @@
 Labs that film a random-dot pattern instead of a checkerboard (the usual
 FS-SS set-up) get the displacement ``u`` (pixels, ``I(r) = I0(r - u(r))``,
 the same convention as Fourier demodulation) from OpenPIV's multi-pass
-cross-correlation with window deformation (:func:`openpiv.windef.first_pass`,
-:func:`openpiv.windef.multipass_img_deform`; symmetric deformation, cubic
-spline interpolation, Gaussian sub-pixel peak), reference as the first image
-and the frame as the second.  The :class:`processing.reconstruct.Reconstructor`
+cross-correlation with window deformation (the passes of
+:func:`openpiv.windef.first_pass` and :func:`openpiv.windef.multipass_img_deform`;
+symmetric deformation, cubic spline interpolation, Gaussian sub-pixel peak),
+reference as the first image and the frame as the second.  The passes are
+driven here (:meth:`DotDisplacement.passes`) with OpenPIV's own
+correlation, validation and replacement functions, so that each image's
+spline coefficients are computed once instead of on every pass and the
+images move in threads; the vectors equal ``openpiv.windef``'s bit for bit
+(tests/processing/test_piv.py).  OpenPIV's compiled backend
+(``openpiv-rust``) correlates where its wheel is installed.  The :class:`processing.reconstruct.Reconstructor`
 then masks, integrates and pins the heights exactly as for checkerboards
 (``Reconstructor(reference, geometry, pattern="dots")``).
 
@@ -70,11 +76,18 @@ class DotDisplacement:
         four such windows).
     max_displacement_px : float
         Largest displacement the validation accepts, pixels.
+    threads : int
+        Threads that move the images between passes (the rows split among
+        them); OpenPIV's compiled correlations (``openpiv-rust``) use their
+        own pool (``RAYON_NUM_THREADS``, set by the batch workers).
+    backend : {"rust", "scipy"}, optional
+        OpenPIV's correlation backend (default :func:`correlation_backend`).
     """
 
-    def __init__(self, reference, *, window_px: int = 16, max_displacement_px: float = 30.0):
+    def __init__(self, reference, *, window_px: int = 16, max_displacement_px: float = 30.0, threads: int = 1,
+                 backend: str | None = None):
         try:
-            from openpiv import windef
+            from openpiv import filters, pyprocess, validation, windef
         except ImportError as exc:  # pragma: no cover - a dependency in pyproject
             raise TirdeflectError("pattern='dots' needs the openpiv package: pip install openpiv") from exc
         ref = np.asarray(reference)
@@ -87,7 +100,11 @@ class DotDisplacement:
             raise ValueError(f"the frame {ref.shape} is too small for {window_px} px windows "
                              f"(needs at least {4 * window_px} px a side): use smaller windows")
         self.shape = ref.shape
-        self._windef = windef
+        self._pyprocess, self._validation, self._filters = pyprocess, validation, filters
+        self.backend = correlation_backend() if backend is None else backend
+        if self.backend not in ("rust", "scipy"):
+            raise ValueError(f"backend must be 'rust' or 'scipy'; got {backend!r}")
+        self.threads = max(1, int(threads))
         _quiet_openpiv()
         sizes = [w for w in (4 * window_px, 2 * window_px, window_px) if min(ref.shape) >= 4 * w]
         sizes += [window_px] * FINAL_REPEATS
@@ -115,6 +132,7 @@ class DotDisplacement:
         self.window_px = window_px
         self._ref = ref.astype(np.float64)
         self._ref32 = ref.astype(np.float32)  # what the vectors' check moves, converted once
+        self._ref_coef = spline_coefficients(self._ref)  # what every pass moves, computed once
         # grid of the last pass: OpenPIV's window centres (measured: taking
         # them half a pixel earlier, at start + (window - 1) / 2, raised the
         # height error of a ray-traced bump from 0.5 % to 1.6 %)
@@ -131,20 +149,11 @@ class DotDisplacement:
             ``(u_row, u_col)`` in pixels at ``(rows_px, cols_px)``, NaN where invalid.
         valid : ndarray bool (n_rows, n_cols)
         """
-        w = self._windef
-        s = self.settings
         img = np.asarray(frame, np.float64)
         # a window with nothing to correlate (a shadow, lost TIR) has a flat correlation map, whose
         # Gaussian sub-pixel fit takes the log of zeros: that vector is refused below, not an error
         with np.errstate(divide="ignore", invalid="ignore"):
-            x, y, u, v, s2n = w.first_pass(self._ref, img, s)
-            flags = np.zeros(u.shape, bool)
-            for it in range(1, s.num_iterations):
-                u = np.ma.masked_array(np.nan_to_num(u), mask=np.zeros(u.shape, bool))
-                v = np.ma.masked_array(np.nan_to_num(v), mask=np.zeros(v.shape, bool))
-                x, y, u, v, _grid_mask, flags = w.multipass_img_deform(self._ref, img, it, x, y, u, v, s)
-        if s.num_iterations == 1:
-            flags = ~np.isfinite(u) | ~np.isfinite(v)
+            u, v, flags = self.passes(img)
         u = np.ma.filled(u, np.nan).astype(np.float32)
         v = np.ma.filled(v, np.nan).astype(np.float32)
         valid = ~np.asarray(flags, bool) & np.isfinite(u) & np.isfinite(v)
@@ -155,6 +164,69 @@ class DotDisplacement:
                                         self.window_px) >= MIN_WINDOW_CORRELATION
         disp[:, ~valid] = np.nan
         return disp, valid
+
+    def _correlate(self, a, b, it):
+        """One pass's displacement ``(u, v, s2n)``, each (n_rows, n_cols), of
+        image ``b`` against image ``a`` (OpenPIV's windows, FFT correlation,
+        sub-pixel peak and signal-to-noise ratio)."""
+        s, pp = self.settings, self._pyprocess
+        size, overlap = s.windowsizes[it], s.overlap[it]
+        u, v, s2n = pp.extended_search_area_piv(
+            a, b, window_size=size, overlap=overlap, search_area_size=size, width=s.sig2noise_mask,
+            subpixel_method=s.subpixel_method, sig2noise_method=s.sig2noise_method,
+            correlation_method=s.correlation_method, normalized_correlation=s.normalized_correlation,
+            use_vectorized=s.use_vectorized, backend=self.backend)
+        shape = tuple(pp.get_field_shape(self.shape, (size, size), (overlap, overlap)))
+        return u.reshape(shape), v.reshape(shape), s2n.reshape(shape)
+
+    def passes(self, img):
+        """OpenPIV's multi-pass window deformation (``openpiv.windef``: first
+        pass, then each pass correlating the reference and the frame moved
+        half way back and forth by the last pass's displacement, validated
+        and with outliers replaced), with the cubic-spline coefficients of
+        both images computed once instead of on every pass.  ``(u, v,
+        flags)`` of the last pass on its grid (OpenPIV's axes: ``u`` along
+        the columns, ``v`` along the rows), ``img`` float64."""
+        from scipy.interpolate import RectBivariateSpline
+
+        s, pp = self.settings, self._pyprocess
+        u, v, _s2n = self._correlate(self._ref, img, 0)
+        y, x = self._pass_grid(0)
+        flags = np.zeros(u.shape, bool)
+        coef_img = None
+        for it in range(1, s.num_iterations):
+            if coef_img is None:
+                coef_img = spline_coefficients(img)
+            y_new, x_new = self._pass_grid(it)
+            u_pre = RectBivariateSpline(y, x, np.nan_to_num(np.ma.filled(u, 0.0)))(y_new, x_new)
+            v_pre = RectBivariateSpline(y, x, np.nan_to_num(np.ma.filled(v, 0.0)))(y_new, x_new)
+            # the dense field: cubic spline through the pass's grid at every pixel
+            side_r = np.arange(self.shape[0])
+            side_c = np.arange(self.shape[1])
+            half_u = 0.5 * RectBivariateSpline(y_new, x_new, u_pre, kx=3, ky=3)(side_r, side_c)
+            half_v = 0.5 * RectBivariateSpline(y_new, x_new, v_pre, kx=3, ky=3)(side_r, side_c)
+            rows = side_r[:, None].astype(np.float64)
+            cols = side_c[None, :].astype(np.float64)
+            moved_ref = sample_spline(self._ref_coef, rows - half_v, cols - half_u, self.threads)
+            moved_img = sample_spline(coef_img, rows + half_v, cols + half_u, self.threads)
+            du, dv, s2n = self._correlate(moved_ref, moved_img, it)
+            u = np.ma.masked_array(du + u_pre, mask=np.zeros(du.shape, bool))
+            v = np.ma.masked_array(dv + v_pre, mask=np.zeros(dv.shape, bool))
+            flags = self._validation.typical_validation(u, v, s2n, s)
+            if np.all(flags):
+                raise ValueError("Something happened in the validation")  # OpenPIV's words, kept
+            u, v = self._filters.replace_outliers(u, v, flags, method=s.filter_method,
+                                                  max_iter=s.max_filter_iteration, kernel_size=s.filter_kernel_size)
+            y, x = y_new, x_new
+        if s.num_iterations == 1:
+            flags = ~np.isfinite(u) | ~np.isfinite(v)
+        return u, v, flags
+
+    def _pass_grid(self, it):
+        """Window centres ``(rows, cols)`` of pass ``it``, pixels (OpenPIV's)."""
+        size, overlap = self.settings.windowsizes[it], self.settings.overlap[it]
+        x, y = self._pyprocess.get_rect_coordinates(self.shape, size, overlap)
+        return np.asarray(y[:, 0], float), np.asarray(x[0, :], float)
 
     def _to_frame_positions(self, disp, valid):
         """Symmetric window deformation measures the displacement half way
@@ -179,6 +251,58 @@ class DotDisplacement:
             u = np.stack([ndimage.map_coordinates(coef[i], at, order=3, prefilter=False, mode="nearest")
                           for i in range(2)])
         return u.astype(np.float32)
+
+
+#: Pixels of edge padding before the spline coefficients (scipy.ndimage's own for ``mode="nearest"``).
+_SPLINE_PAD = 12
+
+
+def spline_coefficients(image) -> np.ndarray:
+    """Cubic B-spline coefficients of ``image`` (float64, padded by
+    :data:`_SPLINE_PAD` edge pixels), as ``scipy.ndimage.map_coordinates(...,
+    order=3, mode="nearest")`` computes them on every call: computed once per
+    image here, :func:`sample_spline` reads them."""
+    from scipy import ndimage
+
+    padded = np.pad(np.asarray(image, np.float64), _SPLINE_PAD, mode="edge")
+    return ndimage.spline_filter(padded, order=3, output=np.float64, mode="nearest")
+
+
+def sample_spline(coef, rows, cols, threads: int = 1) -> np.ndarray:
+    """The image of :func:`spline_coefficients` at pixel positions ``(rows,
+    cols)`` (broadcast to one 2-D shape), float64; the rows split among
+    ``threads`` threads (``scipy.ndimage`` lets go of the GIL)."""
+    from scipy import ndimage
+
+    rows, cols = np.broadcast_arrays(np.asarray(rows, np.float64) + _SPLINE_PAD,
+                                     np.asarray(cols, np.float64) + _SPLINE_PAD)
+    out = np.empty(rows.shape, np.float64)
+
+    def run(lo, hi):
+        ndimage.map_coordinates(coef, (rows[lo:hi], cols[lo:hi]), output=out[lo:hi], order=3,
+                                mode="nearest", prefilter=False)
+
+    n = rows.shape[0]
+    if threads <= 1 or n < 64:
+        run(0, n)
+        return out
+    from concurrent.futures import ThreadPoolExecutor
+
+    bounds = np.linspace(0, n, threads + 1).astype(int)
+    with ThreadPoolExecutor(threads) as pool:
+        list(pool.map(run, bounds[:-1], bounds[1:]))
+    return out
+
+
+def correlation_backend() -> str:
+    """OpenPIV's backend: ``"rust"`` where the ``openpiv-rust`` wheel is
+    installed (the same correlations and peaks, bit for bit, compiled),
+    else ``"scipy"``."""
+    try:
+        import openpiv_rust  # noqa: F401
+    except ImportError:
+        return "scipy"
+    return "rust"
 
 
 def window_correlation(reference, frame, displacement, rows_px, cols_px, window_px: int) -> np.ndarray:

@@ -216,6 +216,9 @@ def _reconstructor(spec: ReconstructorSpec):
     import cv2
 
     cv2.setNumThreads(threads)
+    # OpenPIV's compiled correlations (random dots) start their thread pool on first use, one
+    # thread per core unless told: one worker's share instead, as OpenCV's and FFTW's
+    os.environ.setdefault("RAYON_NUM_THREADS", str(threads))
     from app.files import cache
     from processing import Reconstructor
 

@@ -239,3 +239,46 @@ def test_openpiv_notes_go_to_the_log_and_other_output_stays(capsys, caplog, rng)
     assert "bad peak" not in out
     assert "progress of another thread" in out and "the program's own line" in out
     assert any("bad peak" in r.getMessage() for r in caplog.records)
+
+
+def openpiv_windef_passes(piv, reference, frame, backend):
+    """What ``DotDisplacement`` ran before it drove the passes itself: OpenPIV's
+    ``windef.first_pass`` then ``multipass_img_deform`` for every later pass."""
+    from openpiv import windef
+
+    s = piv.settings
+    s.backend = backend
+    img, ref = np.asarray(frame, np.float64), np.asarray(reference, np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x, y, u, v, _s2n = windef.first_pass(ref, img, s)
+        flags = np.zeros(u.shape, bool)
+        for it in range(1, s.num_iterations):
+            u = np.ma.masked_array(np.nan_to_num(u), mask=np.zeros(u.shape, bool))
+            v = np.ma.masked_array(np.nan_to_num(v), mask=np.zeros(v.shape, bool))
+            x, y, u, v, _mask, flags = windef.multipass_img_deform(ref, img, it, x, y, u, v, s)
+    return np.ma.filled(u, np.nan), np.ma.filled(v, np.nan), np.asarray(flags, bool)
+
+
+@pytest.mark.parametrize("backend", ["scipy", "rust"])
+@pytest.mark.parametrize("threads", [1, 2])
+def test_own_passes_give_openpiv_s_vectors_bit_for_bit(backend, threads):
+    # The passes are driven in processing/piv.py (spline coefficients of each image once, images moved
+    # in threads) with OpenPIV's correlation, validation and replacement: every vector, every flag
+    # equal to openpiv.windef's own loop, on waves (2-3 px) and with a flat patch whose vectors fail
+    # validation and are replaced between passes.
+    if backend == "rust":
+        pytest.importorskip("openpiv_rust", reason="openpiv-rust has wheels for Linux x86-64 only")
+    from processing.piv import DotDisplacement
+
+    waves = F.WaveField.random(6, amplitude_rms_mm=0.001, wavelength_range_mm=(12, 30), seed=3)
+    ref, img = render(waves, n=192)
+    img[60:100, 80:120] = np.median(img)  # lost TIR: nothing to correlate there
+    piv = DotDisplacement(ref, threads=threads, backend=backend)
+    u_old, v_old, flags_old = openpiv_windef_passes(piv, ref, img, backend)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u, v, flags = piv.passes(np.asarray(img, np.float64))
+    assert flags_old.any() and not flags_old.all()  # the patch's windows are flagged, the rest are not
+    assert np.array_equal(flags, flags_old)
+    assert np.array_equal(np.ma.filled(u, np.nan), u_old, equal_nan=True)
+    assert np.array_equal(np.ma.filled(v, np.nan), v_old, equal_nan=True)
+    assert np.nanmax(np.abs(u_old)) > 1.0  # the waves move the dots by pixels, not hundredths
