@@ -270,27 +270,23 @@ def spline_coefficients(image) -> np.ndarray:
 
 def sample_spline(coef, rows, cols, threads: int = 1) -> np.ndarray:
     """The image of :func:`spline_coefficients` at pixel positions ``(rows,
-    cols)`` (broadcast to one 2-D shape), float64; the rows split among
-    ``threads`` threads (``scipy.ndimage`` lets go of the GIL)."""
-    from scipy import ndimage
+    cols)`` (broadcast to one 2-D shape), float64
+    (:func:`processing.spline_kernels.sample_rows`: ``scipy.ndimage.map_coordinates``'s
+    cubic spline, compiled); the rows split among ``threads`` threads."""
+    from .spline_kernels import sample_rows
 
     rows, cols = np.broadcast_arrays(np.asarray(rows, np.float64) + _SPLINE_PAD,
                                      np.asarray(cols, np.float64) + _SPLINE_PAD)
     out = np.empty(rows.shape, np.float64)
-
-    def run(lo, hi):
-        ndimage.map_coordinates(coef, (rows[lo:hi], cols[lo:hi]), output=out[lo:hi], order=3,
-                                mode="nearest", prefilter=False)
-
     n = rows.shape[0]
     if threads <= 1 or n < 64:
-        run(0, n)
+        sample_rows(coef, rows, cols, out, 0, n)
         return out
     from concurrent.futures import ThreadPoolExecutor
 
     bounds = np.linspace(0, n, threads + 1).astype(int)
     with ThreadPoolExecutor(threads) as pool:
-        list(pool.map(run, bounds[:-1], bounds[1:]))
+        list(pool.map(lambda lo, hi: sample_rows(coef, rows, cols, out, lo, hi), bounds[:-1], bounds[1:]))
     return out
 
 
