@@ -282,3 +282,23 @@ def test_own_passes_give_openpiv_s_vectors_bit_for_bit(backend, threads):
     assert np.array_equal(np.ma.filled(u, np.nan), u_old, equal_nan=True)
     assert np.array_equal(np.ma.filled(v, np.nan), v_old, equal_nan=True)
     assert np.nanmax(np.abs(u_old)) > 1.0  # the waves move the dots by pixels, not hundredths
+
+
+def test_compiled_spline_sampler_is_ndimage_s_cubic_spline():
+    # processing/spline_kernels.py against scipy.ndimage.map_coordinates(order=3, mode="nearest") on
+    # an image of grey levels 0-255 moved by up to 20 px, partly beyond its edges, 1 and 2 threads
+    from scipy import ndimage
+
+    from processing.piv import sample_spline, spline_coefficients
+
+    image = np.random.default_rng(5).random((150, 170)) * 255
+    rows, cols = np.meshgrid(np.arange(150.0), np.arange(170.0), indexing="ij")
+    rows = rows + 20 * np.sin(cols / 25) - 3
+    cols = cols + 0.37 - 15 * np.cos(rows / 30)
+    expected = ndimage.map_coordinates(image, (rows, cols), order=3, mode="nearest")
+    inside = (rows > 0) & (rows < 149) & (cols > 0) & (cols < 169)
+    assert 0.2 < inside.mean() < 0.95
+    for threads in (1, 2):
+        got = sample_spline(spline_coefficients(image), rows, cols, threads)
+        assert np.abs(got - expected)[inside].max() <= 1e-9
+        assert np.abs(got - expected).max() <= 1e-3  # beyond the edge: the edge's grey level either way
