@@ -134,8 +134,12 @@ def test_resend_recovers_a_lossy_link(tmp_path):
     print(f"Aravis: {cs['n_resent_packets']} resent packets used, {late} duplicated or late")
     # every packet Aravis asked for again was asked of the link; every one that came back was counted by Aravis
     assert summary["packets_resend_requests"] == link.resent + link.resend_unknown
-    # (a few resent packets can still be in flight when the stream stops: at most 1 % of them)
-    assert cs["n_resent_packets"] <= received_again <= (cs["n_resent_packets"] + late) * 1.01
+    # (a few resent packets can still be in flight when the stream stops: at most 1 % of them).  Aravis counts
+    # as resent the first copy to arrive after it asked again, so an original that was only late (the machine
+    # busy) whose resent copy the link then lost counts too: a quiet fresh-clone run had 867 counted against
+    # 866 resent copies received, 16 resent copies lost by the link.
+    assert cs["n_resent_packets"] <= received_again + link.resent_dropped
+    assert received_again <= (cs["n_resent_packets"] + late) * 1.01
     # every first send the link lost in a recorded frame came back or is missing in that (flagged) frame; the
     # camera streams on until the recorder stops it, and losses in frames after the last one recorded are
     # nobody's to ask for (a quiet fresh-clone run: 854 lost, 3 of them after the 200th frame, 851 resent)
