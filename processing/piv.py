@@ -133,6 +133,7 @@ class DotDisplacement:
         self._ref = ref.astype(np.float64)
         self._ref32 = ref.astype(np.float32)  # what the vectors' check moves, converted once
         self._ref_coef = spline_coefficients(self._ref)  # what every pass moves, computed once
+        self._bases = {}  # pass -> the B-spline bases of its dense field (_dense)
         # grid of the last pass: OpenPIV's window centres (measured: taking
         # them half a pixel earlier, at start + (window - 1) / 2, raised the
         # height error of a ray-traced bump from 0.5 % to 1.6 %)
@@ -201,12 +202,10 @@ class DotDisplacement:
             u_pre = RectBivariateSpline(y, x, np.nan_to_num(np.ma.filled(u, 0.0)))(y_new, x_new)
             v_pre = RectBivariateSpline(y, x, np.nan_to_num(np.ma.filled(v, 0.0)))(y_new, x_new)
             # the dense field: cubic spline through the pass's grid at every pixel
-            side_r = np.arange(self.shape[0])
-            side_c = np.arange(self.shape[1])
-            half_u = 0.5 * RectBivariateSpline(y_new, x_new, u_pre, kx=3, ky=3)(side_r, side_c)
-            half_v = 0.5 * RectBivariateSpline(y_new, x_new, v_pre, kx=3, ky=3)(side_r, side_c)
-            rows = side_r[:, None].astype(np.float64)
-            cols = side_c[None, :].astype(np.float64)
+            half_u = 0.5 * self._dense(RectBivariateSpline(y_new, x_new, u_pre, kx=3, ky=3), it)
+            half_v = 0.5 * self._dense(RectBivariateSpline(y_new, x_new, v_pre, kx=3, ky=3), it)
+            rows = np.arange(self.shape[0], dtype=np.float64)[:, None]
+            cols = np.arange(self.shape[1], dtype=np.float64)[None, :]
             moved_ref = sample_spline(self._ref_coef, rows - half_v, cols - half_u, self.threads)
             moved_img = sample_spline(coef_img, rows + half_v, cols + half_u, self.threads)
             du, dv, s2n = self._correlate(moved_ref, moved_img, it)
@@ -221,6 +220,18 @@ class DotDisplacement:
         if s.num_iterations == 1:
             flags = ~np.isfinite(u) | ~np.isfinite(v)
         return u, v, flags
+
+    def _dense(self, spline, it):
+        """``spline`` (a cubic RectBivariateSpline through pass ``it``'s grid) at
+        every pixel, as FITPACK evaluates it (positions beyond the outer knots
+        clamped to them), as two matrix products with the B-spline basis at
+        the pixels, which depends on the grid alone (built once per pass):
+        1.8 against 6.8 ms a 512^2 field, equal to 2e-15."""
+        t_r, t_c, coef = spline.tck
+        basis = self._bases.get(it)
+        if basis is None:
+            basis = self._bases[it] = (_spline_basis(t_r, self.shape[0]), _spline_basis(t_c, self.shape[1]))
+        return basis[0] @ coef.reshape(len(t_r) - 4, len(t_c) - 4) @ basis[1].T
 
     def _pass_grid(self, it):
         """Window centres ``(rows, cols)`` of pass ``it``, pixels (OpenPIV's)."""
@@ -288,6 +299,17 @@ def sample_spline(coef, rows, cols, threads: int = 1) -> np.ndarray:
     with ThreadPoolExecutor(threads) as pool:
         list(pool.map(lambda lo, hi: sample_rows(coef, rows, cols, out, lo, hi), bounds[:-1], bounds[1:]))
     return out
+
+
+def _spline_basis(knots, n_px: int) -> np.ndarray:
+    """(n_px, n_basis) float64: the cubic B-splines of ``knots`` at pixels
+    ``0 ... n_px - 1``, each position clamped to the knots' base interval
+    (FITPACK's evaluation outside it)."""
+    from scipy.interpolate import BSpline
+
+    n_basis = len(knots) - 4
+    pos = np.clip(np.arange(n_px, dtype=np.float64), knots[3], knots[n_basis])
+    return BSpline(knots, np.eye(n_basis), 3, extrapolate=False)(pos)
 
 
 def correlation_backend() -> str:
