@@ -44,7 +44,7 @@ import sys
 
 import numpy as np
 
-from .errors import TirdeflectError
+from .errors import AllInvalidError, TirdeflectError
 
 __all__ = ["DotDisplacement", "FINAL_REPEATS", "MIN_WINDOW_CORRELATION", "dot_alignment", "window_correlation"]
 
@@ -185,9 +185,12 @@ class DotDisplacement:
         pass, then each pass correlating the reference and the frame moved
         half way back and forth by the last pass's displacement, validated
         and with outliers replaced), with the cubic-spline coefficients of
-        both images computed once instead of on every pass.  ``(u, v,
-        flags)`` of the last pass on its grid (OpenPIV's axes: ``u`` along
-        the columns, ``v`` along the rows), ``img`` float64."""
+        both images computed once instead of on every pass, the images
+        moved by :func:`sample_spline` and each pass's dense field by
+        :meth:`_dense`.  ``(u, v, flags)`` of the last pass on its grid
+        (OpenPIV's axes: ``u`` along the columns, ``v`` along the rows),
+        ``img`` float64.  Raises AllInvalidError when every vector of a pass
+        fails validation (a frame without dots)."""
         from scipy.interpolate import RectBivariateSpline
 
         s, pp = self.settings, self._pyprocess
@@ -212,8 +215,10 @@ class DotDisplacement:
             u = np.ma.masked_array(du + u_pre, mask=np.zeros(du.shape, bool))
             v = np.ma.masked_array(dv + v_pre, mask=np.zeros(dv.shape, bool))
             flags = self._validation.typical_validation(u, v, s2n, s)
-            if np.all(flags):
-                raise ValueError("Something happened in the validation")  # OpenPIV's words, kept
+            if np.all(flags):  # OpenPIV's windef stops here too ("Something happened in the validation")
+                raise AllInvalidError(f"every PIV vector of the frame failed validation (pass {it + 1} of "
+                                      f"{s.num_iterations}, {s.windowsizes[it]} px windows): check that the dots "
+                                      "are in focus and lit, and that the frame shows the reference's pattern")
             u, v = self._filters.replace_outliers(u, v, flags, method=s.filter_method,
                                                   max_iter=s.max_filter_iteration, kernel_size=s.filter_kernel_size)
             y, x = y_new, x_new

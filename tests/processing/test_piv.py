@@ -302,3 +302,34 @@ def test_compiled_spline_sampler_is_ndimage_s_cubic_spline():
         got = sample_spline(spline_coefficients(image), rows, cols, threads)
         assert np.abs(got - expected)[inside].max() <= 1e-9
         assert np.abs(got - expected).max() <= 1e-3  # beyond the edge: the edge's grey level either way
+
+
+def test_a_frame_without_any_dots_is_a_no_contrast_frame_not_a_crash(tmp_path):
+    # a frame that shows no dots, only smooth light (the dot slide out of focus or taken away): every vector
+    # fails OpenPIV's validation and OpenPIV's own loop stopped with "ValueError: Something happened in the
+    # validation": `tirdeflect process` ended with that traceback (exit 1), the other frames lost. Now that
+    # frame is invalid with the reason, the others are measured
+    from processing.errors import AllInvalidError
+
+    surface = F.GaussianBump(0.004, 5.0)
+    ref, img = render(surface)
+    no_dots = np.tile(np.linspace(50, 150, N), (N, 1)).astype(img.dtype)
+    rec = Reconstructor(ref, G55, pattern="dots")
+    for grid in ("decimated", "full"):
+        with pytest.raises(AllInvalidError, match="failed validation .* check that the dots are in focus"):
+            rec(no_dots, grid=grid)
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for k, frame in enumerate([img, no_dots, img]):
+        tifffile.imwrite(frames / f"f{k}.tif", frame)
+    tifffile.imwrite(tmp_path / "ref.tif", ref)
+    (tmp_path / "g.toml").write_text(G55.to_toml_text())
+    out = tmp_path / "out.h5"
+    proc = subprocess.run([sys.executable, "-m", "app.cli", "process", str(tmp_path / "ref.tif"), str(frames),
+                           "--geometry", str(tmp_path / "g.toml"), "--pattern", "dots", "--out", str(out),
+                           "--no-progress"], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 3 and "Traceback" not in proc.stderr, proc.stderr  # 3: some frames invalid
+    assert "frame 1" in proc.stderr and "no contrast" in proc.stderr and "dots are in focus" in proc.stderr
+    with h5py.File(out) as f:
+        measured = [bool(np.isfinite(f["height"][k]).any()) for k in range(3)]
+    assert measured == [True, False, True]
