@@ -2,8 +2,8 @@
 
 Importing it imports the modules every worker needs (the live measurement, the batch engine's
 worker side, the processing chain and its libraries) and then reconstructs one small synthetic
-checkerboard frame with the default options, one thread and FFTW's estimate planner: the first
-call of each Numba kernel of the default chain loads it from Numba's cache and sets up Numba's
+checkerboard frame with the default options, one thread and FFTW's estimate planner (and calls the
+unwrapper's compiled path following once): the first call of each Numba kernel of the default chain loads it from Numba's cache and sets up Numba's
 compiler context (0.4 s on a quiet 2-core PC), once here instead of in every forked worker.
 
 Nothing here may end the server: a failure is ignored (the workers then load what they need
@@ -49,6 +49,11 @@ def warm_up(size_px: int = 96) -> bool:
         options = ReconstructOptions(threads=1, planner_effort="FFTW_ESTIMATE")
         shift = 0.3 * np.exp(-((rows - size_px / 2) ** 2 + (cols - size_px / 2) ** 2) / (2 * (size_px / 6) ** 2))
         Reconstructor(board(0.0), geometry, options)(board(shift))
+        # the unwrapper's compiled path following, which a frame this smooth does not reach
+        # (compiled on the first call after a checkout, 1.5 s; loaded from Numba's cache after)
+        from processing.unwrap_kernels import path_follow
+
+        path_follow(np.zeros((4, 4)), np.ones((4, 4), bool), np.zeros((4, 4)))
         return True
     except Exception as exc:  # noqa: BLE001 - a warm-up only: the workers load what they need themselves
         log.debug("worker warm-up skipped: %s", exc)

@@ -8,13 +8,15 @@ phase is unwrapped:
 - in space: :func:`unwrap_spatial`: least squares of the wrapped phase
   differences (DCT Poisson solve, Ghiglia & Romero 1994) rounded to the
   congruent 2 pi multiple, accepted only if every valid neighbour pair then
-  differs by less than pi; otherwise the few inconsistent spots (residues
-  next to masked samples) are cut out with a margin, path-followed there
-  and re-anchored on the least-squares result, accepted under the same
-  test; only if that fails, reliability-sorted path following of
-  scikit-image (Herraez et al. 2002) over the whole map with the invalid
-  samples masked out (the repair is also accepted when its only jumps are
-  sides of residues among valid samples, which no unwrapping removes);
+  differs by less than pi; otherwise compiled quality-guided path
+  following over the whole map (:mod:`processing.unwrap_kernels`), accepted
+  under the same test or when its only jumps are sides of residues among
+  valid samples, which no unwrapping removes; otherwise the few
+  inconsistent spots (residues next to masked samples) are cut out with a
+  margin, path-followed there and re-anchored on the least-squares result,
+  accepted under the same test; only if that fails, reliability-sorted path
+  following of scikit-image (Herraez et al. 2002) over the whole map with
+  the invalid samples masked out;
   the result is shifted by the multiple of 2 pi that puts the reference
   region's median phase nearest to 0;
 - in time: :func:`unwrap_temporal` adds the wrapped change since the
@@ -34,6 +36,8 @@ import numpy as np
 import scipy.fft
 from scipy import ndimage
 from skimage.restoration import unwrap_phase
+
+from .unwrap_kernels import path_follow
 
 __all__ = ["wrap", "unwrap_spatial", "unwrap_temporal", "has_wraps"]
 
@@ -205,6 +209,23 @@ def _wraps_only_at_residues(phase, valid, out):
     return not (np.any(jr & ~near_r) or np.any(jc & ~near_c))
 
 
+def _unwrap_path_following(phase, valid):
+    """Quality-guided path following over the whole map (compiled,
+    :func:`processing.unwrap_kernels.path_follow`), or None.
+
+    Accepted only when it is consistent (no pair of valid neighbours differs
+    by pi or more) or its only jumps are sides of residues, the local
+    repair's test; then it is what scikit-image's path following gives up to
+    one 2 pi multiple per connected region (where there are no residues) at
+    a seventh of the cost.  None: the caller falls back to scikit-image.
+    """
+    out = np.zeros(phase.shape)
+    path_follow(np.ascontiguousarray(phase, dtype=np.float64), np.ascontiguousarray(valid), out)
+    if has_wraps(out, valid) and not _wraps_only_at_residues(phase, valid, out):
+        return None
+    return out
+
+
 def _align_components(phase, valid, ref_mask):
     """Shift each connected valid region by 2 pi k: the one(s) holding the
     reference region so that its median is nearest 0, the others so that
@@ -259,11 +280,13 @@ def unwrap_spatial(phase, valid=None, *, ref_mask=None) -> np.ndarray:
         return np.full(phase.shape, np.nan)
     work = np.where(valid, phase, 0.0)
     if has_wraps(work, valid):
-        out = _lsq_rounded(work, valid)
-        if has_wraps(out, valid):
-            out = _unwrap_local_repair(work, valid, out)
+        rough = out = _lsq_rounded(work, valid)
         # one connected region: consistent.  Several: each got its own offset
         # from the smooth solution, which _align_components then resets.
+        if has_wraps(out, valid):
+            out = _unwrap_path_following(work, valid)
+        if out is None:
+            out = _unwrap_local_repair(work, valid, rough)
         if out is None:
             if valid.all():
                 out = unwrap_phase(work)

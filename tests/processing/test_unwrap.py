@@ -3,6 +3,7 @@
 import numpy as np
 
 from processing.unwrap import has_wraps, unwrap_spatial, unwrap_temporal, wrap
+from processing.unwrap_kernels import path_follow
 
 
 def bowl(n=64, depth=12.0):
@@ -116,3 +117,65 @@ def test_temporal_grows_into_newly_valid_samples_far_from_the_old_ones():
     prev = np.where(prev_valid, true * 0.97, np.nan)
     out = unwrap_temporal(wrap(true), prev, None, prev_valid, ref_mask=border())
     np.testing.assert_allclose(out, true, atol=1e-9)
+
+
+def _steep_map_with_spots_and_a_seam():
+    """A steep phase (up to 2.4 rad per sample) with 25 masked spots and a dry seam cutting the map
+    in two: the rounded least squares is inconsistent in many places, and the local repair's boxes
+    cover more than its share of the map."""
+    n = 160
+    y, x = np.mgrid[0:n, 0:n].astype(float)
+    truth = 120.0 * np.exp(-((y - 80) ** 2 + (x - 80) ** 2) / 70.0 ** 2) + 0.9 * x
+    rng = np.random.default_rng(3)
+    valid = np.ones((n, n), bool)
+    for cy, cx in rng.uniform(10, 150, (25, 2)):
+        valid &= (y - cy) ** 2 + (x - cx) ** 2 > 3.0 ** 2
+    valid[:, 100:103] = False
+    return truth, valid
+
+
+def test_compiled_path_following_unwraps_where_least_squares_and_local_repair_fail():
+    """The compiled quality-guided path following (processing/unwrap_kernels.py) gives the true phase
+    on each connected region up to one 2 pi multiple, as scikit-image's whole-map path following
+    does, where the rounded least squares and the local repair both fail; unwrap_spatial takes it."""
+    from scipy import ndimage
+    from skimage.restoration import unwrap_phase
+
+    from processing import unwrap as U
+
+    truth, valid = _steep_map_with_spots_and_a_seam()
+    work = np.where(valid, wrap(truth), 0.0)
+    rough = U._lsq_rounded(work, valid)
+    assert has_wraps(rough, valid)
+    assert U._unwrap_local_repair(work, valid, rough) is None
+    out = U._unwrap_path_following(work, valid)
+    assert out is not None and not has_wraps(out, valid)
+    sk = unwrap_phase(np.ma.masked_array(work, mask=~valid)).filled(0.0)
+    labels, n_regions = ndimage.label(valid)
+    assert n_regions == 2
+    for k in range(1, n_regions + 1):
+        region = labels == k
+        for other in (truth, sk):
+            turns = (out[region] - other[region]) / (2 * np.pi)
+            assert np.ptp(turns) < 1e-9 and abs(turns[0] - round(turns[0])) < 1e-9
+    spatial = unwrap_spatial(wrap(truth), valid)
+    for k in range(1, n_regions + 1):
+        region = labels == k
+        assert np.ptp(spatial[region] - truth[region]) < 1e-9
+
+
+def test_compiled_path_following_is_refused_where_its_jumps_are_not_at_residues():
+    """A single phase singularity among valid samples: every unwrapping has a 2 pi cut from it to the
+    frame's edge, and the compiled path following's cut is not only sides of the residue's cell, so
+    it is refused (None) and scikit-image's whole-map result decides
+    (test_spatial_with_an_inherent_residue_matches_whole_map_path_following)."""
+    from processing import unwrap as U
+
+    n = 100
+    y, x = np.mgrid[0:n, 0:n].astype(float)
+    truth = 25.0 * np.exp(-((y - 50) ** 2 + (x - 50) ** 2) / 35.0 ** 2) + np.arctan2(y - 30.5, x - 70.5)
+    valid = np.ones((n, n), bool)
+    out = np.zeros((n, n))
+    path_follow(wrap(truth), valid, out)
+    assert has_wraps(out, valid)  # it ran and left a cut
+    assert U._unwrap_path_following(wrap(truth), valid) is None

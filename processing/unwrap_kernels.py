@@ -1,0 +1,137 @@
+"""Compiled quality-guided path following of a wrapped phase map (Numba): what
+:func:`processing.unwrap.unwrap_spatial` tries when the rounded least squares
+is inconsistent.
+
+:func:`path_follow` unwraps sample by sample, the most reliable first, in
+the sense of Herraez et al. (2002, Applied Optics 41, 7437), whose
+reliability-sorted method scikit-image implements: a sample's reliability
+is ``1 / D``, ``D`` the root sum of squares of its wrapped second
+differences (horizontal, vertical, both diagonals; unknown at the frame's
+edge and next to an invalid sample, which come last).  Where scikit-image
+sorts every edge and merges groups of samples, this grows one region at a
+time from a seed, always taking next the most reliable sample next to the
+unwrapped ones (``D`` quantised in steps of 1/64 rad: a bucket queue, no
+sort), each from its most reliable unwrapped 4-neighbour.  On the live
+270 x 270 phase maps of a 1024^2 frame it takes 2.7 ms where scikit-image's
+masked unwrapping takes 14-15 ms.  On a region without residues both give a
+consistent unwrapping, which is unique up to one 2 pi multiple per connected
+region; where there are residues they may put their 2 pi jumps in
+different places, and the caller accepts the result only when its jumps
+are sides of residues.  Compiled once per checkout and cached in
+``__pycache__``.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+__all__ = ["path_follow"]
+
+_TWO_PI = 2.0 * np.pi
+
+
+@numba.njit(nogil=True, cache=True, inline="always")
+def _wrap(x):  # pragma: no cover - compiled
+    return x - _TWO_PI * np.rint(x / _TWO_PI)
+
+
+#: Reliability levels of the bucket queue: a sample's level is its ``D``
+#: (radians) in steps of ``1 / _LEVELS_PER_RAD``; samples whose ``D`` is
+#: unknown (edge, invalid neighbour) take the last level.
+_LEVELS_PER_RAD = 64
+_N_LEVELS = 1024
+
+
+@numba.njit(nogil=True, cache=True)
+def _levels(phase, valid):  # pragma: no cover - compiled
+    """Each sample's reliability level: ``D`` quantised (0 most reliable)."""
+    rows, cols = phase.shape
+    level = np.full((rows, cols), _N_LEVELS - 1, np.int64)
+    for i in range(1, rows - 1):
+        for j in range(1, cols - 1):
+            ok = True
+            for di in range(-1, 2):
+                for dj in range(-1, 2):
+                    if not valid[i + di, j + dj]:
+                        ok = False
+            if not ok:
+                continue
+            c = phase[i, j]
+            h = _wrap(phase[i, j - 1] - c) - _wrap(c - phase[i, j + 1])
+            v = _wrap(phase[i - 1, j] - c) - _wrap(c - phase[i + 1, j])
+            d1 = _wrap(phase[i - 1, j - 1] - c) - _wrap(c - phase[i + 1, j + 1])
+            d2 = _wrap(phase[i - 1, j + 1] - c) - _wrap(c - phase[i + 1, j - 1])
+            d = np.sqrt(h * h + v * v + d1 * d1 + d2 * d2)
+            level[i, j] = min(int(d * _LEVELS_PER_RAD), _N_LEVELS - 2)
+    return level
+
+
+@numba.njit(nogil=True, cache=True)
+def path_follow(phase, valid, out):  # pragma: no cover - compiled
+    """Unwrap ``phase`` (float64, 2-D, radians, wrapped) on ``valid`` (bool,
+    same shape) into ``out`` (float64, same shape; left as given outside
+    ``valid``): ``out = phase + 2 pi k`` on the valid samples, the most
+    reliable sample next to the unwrapped ones first, each from its most
+    reliable unwrapped 4-neighbour.  Each connected valid region is seeded at
+    its first sample in memory order."""
+    rows, cols = phase.shape
+    n = rows * cols
+    level = _levels(phase, valid).ravel()
+    flat_phase = phase.ravel()
+    flat_valid = valid.ravel()
+    flat_out = np.zeros(n)
+    queued = np.zeros(n, np.bool_)
+    done = np.zeros(n, np.bool_)
+    head = np.full(_N_LEVELS, -1, np.int64)  # a stack of samples per level, linked through nxt
+    nxt = np.empty(n, np.int64)
+    nbr = np.empty(4, np.int64)
+    for seed in range(n):
+        if queued[seed] or not flat_valid[seed]:
+            continue
+        queued[seed] = True
+        nxt[seed] = -1
+        head[level[seed]] = seed
+        lowest = level[seed]
+        while lowest < _N_LEVELS:
+            a = head[lowest]
+            if a < 0:
+                lowest += 1
+                continue
+            head[lowest] = nxt[a]
+            r, c = a // cols, a % cols
+            k = 0
+            if r > 0:
+                nbr[k] = a - cols
+                k += 1
+            if r < rows - 1:
+                nbr[k] = a + cols
+                k += 1
+            if c > 0:
+                nbr[k] = a - 1
+                k += 1
+            if c < cols - 1:
+                nbr[k] = a + 1
+                k += 1
+            # from the most reliable unwrapped neighbour (none: the seed)
+            best = _N_LEVELS
+            value = flat_phase[a]
+            for m in range(k):
+                b = nbr[m]
+                if done[b] and level[b] < best:
+                    best = level[b]
+                    value = flat_out[b] + _wrap(flat_phase[a] - flat_phase[b])
+            flat_out[a] = value
+            done[a] = True
+            for m in range(k):
+                b = nbr[m]
+                if flat_valid[b] and not queued[b]:
+                    queued[b] = True
+                    lb = level[b]
+                    nxt[b] = head[lb]
+                    head[lb] = b
+                    if lb < lowest:
+                        lowest = lb
+    for i in range(n):
+        if flat_valid[i]:
+            out.flat[i] = flat_out[i]
