@@ -217,7 +217,8 @@ def _unwrap_path_following(phase, valid):
     by pi or more) or its only jumps are sides of residues, the local
     repair's test; then it is what scikit-image's path following gives up to
     one 2 pi multiple per connected region (where there are no residues) at
-    a seventh of the cost.  None: the caller falls back to scikit-image.
+    a seventh of the cost.  None: the caller tries the local repair, then
+    scikit-image.
     """
     out = np.zeros(phase.shape)
     path_follow(np.ascontiguousarray(phase, dtype=np.float64), np.ascontiguousarray(valid), out)

@@ -68,8 +68,9 @@ def test_temporal_new_valid_samples_join_consistently():
 def test_spatial_repairs_residues_next_to_a_masked_spot_locally():
     """A masked spot holding a pair of phase singularities on the flank of a
     steep bowl: least squares with the dropped differences is inconsistent
-    near the spot; the local path-following repair must be used and give the
-    phase exactly (up to 2 pi) everywhere outside the spot."""
+    near the spot; the local path-following repair (now tried after the
+    compiled whole-map path following) succeeds on it, and unwrap_spatial
+    gives the phase exactly (up to 2 pi) everywhere outside the spot."""
     from processing import unwrap as U
 
     n = 120
