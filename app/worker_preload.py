@@ -3,8 +3,9 @@
 Importing it imports the modules every worker needs (the live measurement, the batch engine's
 worker side, the processing chain and its libraries) and then reconstructs one small synthetic
 checkerboard frame with the default options, one thread and FFTW's estimate planner (and calls the
-unwrapper's compiled path following once): the first call of each Numba kernel of the default chain loads it from Numba's cache and sets up Numba's
-compiler context (0.4 s on a quiet 2-core PC), once here instead of in every forked worker.
+unwrapper's compiled path following once): the first call of each Numba kernel of the default chain
+loads it from Numba's cache and sets up Numba's compiler context (0.4 s on a quiet 2-core PC), once
+here instead of in every forked worker.
 
 Nothing here may end the server: a failure is ignored (the workers then load what they need
 themselves). OpenCV is kept at one thread during the warm-up and set back to its default after,
