@@ -30,9 +30,13 @@ What stays on the CPU, frame by frame, through the Reconstructor itself:
 - the cheap pattern check (frames of one recording show the reference's
   pattern; ``tirdeflect process`` checks the first frame on the CPU).
 
-UNCHECKED ON GPU HARDWARE: written without a GPU; the NumPy run of this code
-matches the CPU Reconstructor (tests), but CuPy itself and every speed claim
-wait for ``python3 benchmarks/gpu_check.py`` on a machine with a GPU.
+Checked on an NVIDIA H200 (2026-12-04, ``benchmarks/gpu_check.py``): heights
+within 1.3e-5 of the RMS height of the CPU Reconstructor's, the same masks;
+its speed goals are not met yet (1024^2: 727 frames/s full grid, 3400
+decimated, 3.4 ms a live frame; docs/processing.md section 8), so the GPU
+stays opt-in. Host copies go through page-locked memory; FD's warp of the
+reference is one CuPy elementwise kernel where CuPy runs (NumPy runs the
+array code it fuses, which is how the rest is tested without a GPU).
 """
 
 from __future__ import annotations
@@ -196,6 +200,7 @@ class BatchChain:
         self.coef = hs.slope_coefficients()
         self.smooth = None
         self.static = None
+        self.staging = None  # page-locked host buffer the frames go up from (reused: each batch ends synchronised)
         self.rows_f = xp.arange(rows, dtype=xp.float32)[:, None]
         self.cols_f = xp.arange(cols, dtype=xp.float32)[None, :]
 
@@ -242,12 +247,19 @@ class BatchChain:
         xp = self.xp
         if self.smooth is None:
             plan = self.r.warp_reference()
-            self.smooth = WarpReference(xp.asarray(plan.envelopes), xp.asarray(plan.carrier_cos),
-                                        xp.asarray(plan.carrier_sin), plan.wavevectors, plan.band_limited)
+            dense = [xp.ascontiguousarray(xp.asarray(a, dtype=xp.float32))
+                     for a in (plan.envelopes, plan.carrier_cos, plan.carrier_sin)]
+            self.smooth = WarpReference(*dense, plan.wavevectors, plan.band_limited)
         plan = self.smooth
         rows, cols = plan.envelopes.shape[:2]
         off_c = -self._up(u[:, 1], warp=True)
         off_r = -self._up(u[:, 0], warp=True)
+        kernel = _warp_kernel(xp)
+        if kernel is not None:  # CuPy: the lines below fused into one pass (a tenth of their time on an H200)
+            k = np.asarray(plan.wavevectors, np.float32)
+            return kernel(off_r.astype(xp.float32, copy=False), off_c.astype(xp.float32, copy=False),
+                          plan.envelopes, plan.carrier_cos, plan.carrier_sin,
+                          k[0, 0], k[0, 1], k[1, 0], k[1, 1], np.int32(rows), np.int32(cols))
         X = self.cols_f + off_c
         Y = self.rows_f + off_r
         ix = xp.floor(X)
@@ -287,8 +299,15 @@ class BatchChain:
     def _demodulate(self, frames):
         """Frames -> (analytic signals g, wrapped phase, amplitude ratio, all_valid per frame)."""
         xp = self.xp
-        images = xp.asarray(np.stack([self.r.validate_frame(f) for f in frames])).astype(xp.float32)
-        B = images.shape[0]
+        checked = [self.r.validate_frame(f) for f in frames]
+        B = len(checked)
+        # the frames go up as they came (uint8: a quarter of float32's bytes) from page-locked memory
+        dtype = np.result_type(*checked)
+        if self.staging is None or self.staging.shape[0] < B or self.staging.dtype != dtype:
+            self.staging = _host_empty(xp, (B,) + checked[0].shape, dtype)
+        for k, frame in enumerate(checked):
+            self.staging[k] = frame
+        images = xp.asarray(self.staging[:B]).astype(xp.float32)
         g = self._decimated(images)
         wrapped = xp.angle(g * self.conj_g0).astype(xp.float32)
         ratio = xp.abs(g) / self.g0_den
@@ -334,8 +353,7 @@ class BatchChain:
         xp = self.xp
         B = phase.shape[0]
         vals = phase.reshape(B, 2, -1)[:, :, self.ref_idx]
-        lo, hi = _host(xp, vals.min(axis=2)), _host(xp, vals.max(axis=2))
-        med = _host(xp, xp.median(vals, axis=2))
+        lo, hi, med = _host(xp, xp.stack([vals.min(axis=2), vals.max(axis=2), xp.median(vals, axis=2)]))  # one copy
         J = np.zeros((B, 2))
         shift = np.zeros(2)
         for n in range(first, B):
@@ -408,7 +426,7 @@ class BatchChain:
         Returns (phase on the host, [SeriesCheck])."""
         xp = self.xp
         r = self.r
-        ph_host = _host(xp, phase).astype(np.float32)
+        ph_host = _host(xp, phase.astype(xp.float32, copy=False))
         h_host = _host(xp, h)
         valid_dec = np.ones(phase.shape[2:], bool)
         series = [r.check_series(ph_host[k], valid_dec, _Surface(h_host[k], self.pin_samples))
@@ -481,11 +499,57 @@ class BatchChain:
             valid = valid_dec
         if essentials:
             fields["displacement"] = fields["amplitude"] = None
-        host = {k: (None if v is None else _host(xp, v).astype(np.float32)) for k, v in fields.items()}
+        # down into fresh page-locked memory (CuPy's pool: back to it once the Results are dropped);
+        # a pageable copy ran at 1.7 GB/s on an H200, 7 of the full grid's 8.5 ms a frame
+        host = {k: (None if v is None else _host(xp, v.astype(xp.float32, copy=False), pinned=True))
+                for k, v in fields.items()}
         return [Result(valid=valid.copy(), carriers=r.carriers, phase=ph[k], valid_fraction=1.0,
                        timings_ms=dict(timings), pin=self.pin, series=series[k], **{key: None if v is None else v[k] for key, v in host.items()},
                        **extra)
                 for k in range(n)]
+
+
+# BatchChain._warp_smooth's bilinear sample of the envelopes (cv2.remap's reflecting border, one
+# reflection) and processing.refine.modulate, per output sample, in float32 as the array code does
+_WARP_SOURCE = """
+    const int plane = rows * cols;
+    const int p = (int)(i % plane);
+    const int row = p / cols, col = p - row * cols;
+    const float X = (float)col + off_c, Y = (float)row + off_r;
+    const float fx0 = floorf(X), fy0 = floorf(Y);
+    const float fx = X - fx0, fy = Y - fy0;
+    int x0 = (int)fx0, y0 = (int)fy0, x1 = x0 + 1, y1 = y0 + 1;
+    x0 = x0 < 0 ? -x0 - 1 : x0;  x0 = x0 >= cols ? 2 * cols - x0 - 1 : x0;
+    x1 = x1 < 0 ? -x1 - 1 : x1;  x1 = x1 >= cols ? 2 * cols - x1 - 1 : x1;
+    y0 = y0 < 0 ? -y0 - 1 : y0;  y0 = y0 >= rows ? 2 * rows - y0 - 1 : y0;
+    y1 = y1 < 0 ? -y1 - 1 : y1;  y1 = y1 >= rows ? 2 * rows - y1 - 1 : y1;
+    float e[4];
+    for (int ch = 0; ch < 4; ++ch) {
+        const float top = (1.0f - fx) * env[(y0 * cols + x0) * 4 + ch] + fx * env[(y0 * cols + x1) * 4 + ch];
+        const float bottom = (1.0f - fx) * env[(y1 * cols + x0) * 4 + ch] + fx * env[(y1 * cols + x1) * 4 + ch];
+        e[ch] = (1.0f - fy) * top + fy * bottom;
+    }
+    const float phi0 = k00 * off_r + k01 * off_c, phi1 = k10 * off_r + k11 * off_c;
+    const float c0 = cosf(phi0), s0 = sinf(phi0), c1 = cosf(phi1), s1 = sinf(phi1);
+    const float cc0 = ccos[p], cs0 = csin[p], cc1 = ccos[plane + p], cs1 = csin[plane + p];
+    const float t0 = e[0] * (cc0 * c0 - cs0 * s0) - e[1] * (cc0 * s0 + cs0 * c0);
+    const float t1 = e[2] * (cc1 * c1 - cs1 * s1) - e[3] * (cc1 * s1 + cs1 * c1);
+    out = 2.0f * (t0 + t1);
+"""
+_WARP_KERNELS = {}
+
+
+def _warp_kernel(xp):
+    """The fused warp of :meth:`BatchChain._warp_smooth` as a CuPy elementwise kernel, or None
+    when ``xp`` has none (NumPy, which runs the array code instead)."""
+    if not hasattr(xp, "ElementwiseKernel"):
+        return None
+    if "warp" not in _WARP_KERNELS:
+        _WARP_KERNELS["warp"] = xp.ElementwiseKernel(
+            "float32 off_r, float32 off_c, raw float32 env, raw float32 ccos, raw float32 csin, "
+            "float32 k00, float32 k01, float32 k10, float32 k11, int32 rows, int32 cols",
+            "float32 out", _WARP_SOURCE, "tirdeflect_warp_smooth")
+    return _WARP_KERNELS["warp"]
 
 
 class _Surface:
@@ -496,6 +560,31 @@ class _Surface:
         self.pin_samples = pin_samples
 
 
-def _host(xp, a):
-    return xp.asnumpy(a) if hasattr(xp, "asnumpy") else np.asarray(a)
+# one page-locked host array at most this large; a larger one is plain (pageable) memory
+PINNED_LIMIT_BYTES = 512 << 20
+
+
+def _host_empty(xp, shape, dtype):
+    """An empty host array that the device copies to and from at full speed:
+    page-locked (``cupyx.empty_pinned``, CuPy's pinned memory pool) when ``xp``
+    is CuPy and it holds at most :data:`PINNED_LIMIT_BYTES`; else plain NumPy."""
+    if xp is not np and int(np.prod(shape)) * np.dtype(dtype).itemsize <= PINNED_LIMIT_BYTES:
+        try:
+            import cupyx
+        except ImportError:  # NumPy standing in for CuPy (tests)
+            pass
+        else:
+            return cupyx.empty_pinned(shape, dtype)
+    return np.empty(shape, dtype)
+
+
+def _host(xp, a, pinned=False):
+    """``a`` on the host, as a NumPy array (into page-locked memory with ``pinned``)."""
+    if not hasattr(xp, "asnumpy"):
+        return np.asarray(a)
+    if not pinned:
+        return xp.asnumpy(a)
+    out = _host_empty(xp, a.shape, a.dtype)
+    xp.asnumpy(a, out=out)
+    return out
 

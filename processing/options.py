@@ -165,8 +165,8 @@ class ReconstructOptions:
     device : {"cpu", "cuda"}, optional
         "cuda": the chain runs on the GPU through CuPy, batched by
         :meth:`batch` (processing/gpu.py says which frames and steps stay on
-        the CPU); checkerboards only; TirdeflectError when CuPy or a GPU is missing.  UNCHECKED ON GPU
-        HARDWARE so far (benchmarks/gpu_check.py).
+        the CPU); checkerboards only; TirdeflectError when CuPy or a GPU is missing.  Heights checked
+        on an H200 (benchmarks/gpu_check.py); its speed goals not met yet, so opt-in.
 
 
     Raises
