@@ -159,3 +159,30 @@ def test_the_prepared_gpu_check_runs_through(tmp_path):
     # the correctness lines all passed, so exit 1 can only be NumPy missing the GPU's goals
     assert r.returncode in (0, 1) and "Traceback" not in r.stderr, r.stdout + r.stderr
     assert "gpu_check: all PASS" in r.stdout or "gpu_check: some FAIL" in r.stdout
+
+
+def test_the_gpu_profile_runs_through(tmp_path):
+    """benchmarks/gpu_profile.py (the stage times docs/processing.md quotes) runs on a
+    lent GPU in the same call as gpu_check: its flow runs here on NumPy named cupy. Every
+    stage of the chain must be timed (a renamed stage would silently drop out), and the
+    stages must account for the batch's wall time (they are the whole batch)."""
+    import os
+    import re
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).parent / "numpy_cupy"))
+    r = subprocess.run([sys.executable, str(root / "benchmarks" / "gpu_profile.py"), "--size", "256",
+                        "--batch", "4", "--rounds", "1"], cwd=tmp_path, env=env,
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stdout + r.stderr
+    rows = [line for line in r.stdout.splitlines() if "ms/frame wall" in line]
+    assert len(rows) == 4, r.stdout
+    for line in rows:
+        wall, stages = map(float, re.search(r"([\d.]+) ms/frame wall \(stages ([\d.]+)\)", line).groups())
+        assert 0.5 * wall <= stages <= 1.05 * wall, line  # loose: a loaded machine preempts between stages
+        for stage in ("demodulate", "unwrap", "height", "results") + (("warp_smooth",) if "full" in line else ()):
+            assert f" {stage} " in line, line
+    assert "live single frame:" in r.stdout
