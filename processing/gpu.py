@@ -49,7 +49,7 @@ from .fullgrid import spline_matrix
 from .refine import WarpReference, modulate, static_phase
 from .unwrap import TWO_PI
 
-__all__ = ["BatchChain", "cupy_or_reason", "lanczos_matrix", "live_device"]
+__all__ = ["BatchChain", "cupy_or_reason", "lanczos_matrix", "live_device", "ran_on_gpu"]
 
 
 def cupy_or_reason():
@@ -88,6 +88,14 @@ def live_device() -> tuple:
     except Exception:  # noqa: BLE001 - the name is only for the user
         name = "CUDA device"
     return "cuda", f"GPU {name}"
+
+
+def ran_on_gpu(result) -> bool:
+    """Whether ``result`` (a :class:`~processing.result.Result`) came from the GPU chain: a
+    ``device="cuda"`` Reconstructor sends frames it cannot do to the CPU (a frame with masked
+    samples, folds or 2 pi jumps since the last, a series' first frame), each such Result as
+    the CPU makes it. The GPU chain's Results time their whole batch (``timings_ms["batch"]``)."""
+    return "batch" in getattr(result, "timings_ms", {})
 
 
 def lanczos_matrix(n_out: int, n_in: int) -> np.ndarray:

@@ -185,6 +185,15 @@ def draw_spectrum(w, spec):
     w.spectrum_view.set_spectrum(mag, fx, fy, pts)
 
 
+def _last_on_gpu(processed):
+    """Where the newest live result was computed (None before the first): see status_texts."""
+    if processed is None or processed.result is None:
+        return None
+    from processing.gpu import ran_on_gpu
+
+    return ran_on_gpu(processed.result)
+
+
 def update_status(w):
     """The status bar (texts from model/status.py), the stale marks, the recording panel; 4 times a second."""
     st = w.session.status()
@@ -198,7 +207,8 @@ def update_status(w):
                      shown_fps=w.displayed_fps, frozen=w.pause_box.isChecked() or w.frozen,
                      camera_open=w.session.acquisition is not None, display_skipped=worker.skipped,
                      latency_ms=w.latency_ms, device_text=getattr(rec, "device_text", "") if rec is not None else "",
-                     reconstructed_in=worker.reconstructed_in, process_error=worker.process_error or "")
+                     reconstructed_in=worker.reconstructed_in, process_error=worker.process_error or "",
+                     last_on_gpu=_last_on_gpu(worker.latest()))
     lab["camera"].setText(t.camera)
     lab["camera"].setStyleSheet("padding: 0 4px; color: #c00000; font-weight: bold" if t.camera_lost
                                 else "padding: 0 4px")

@@ -326,6 +326,17 @@ def test_status_bar_says_lost_with_zero_rates_and_names_the_live_device():
     # heights go on in the window's process: said in the label, red, with the reason as its tooltip
     assert died.device_failed and died.device.endswith("in the window's process (the reconstruction process died)")
     assert died.device_tip == "the reconstruction process ended (signal 9)"
+    # asked for the GPU: the label follows where the newest frame ran (a GPU reconstructor sends frames
+    # with masked samples to the CPU; the app's own scene has some in every frame)
+    gpu = dict(st=st, camera_fps=30.0, processed_fps=9.5, shown_fps=29.9, frozen=False, camera_open=True,
+               display_skipped=0, latency_ms=12.4, device_text="GPU NVIDIA H200")
+    assert status_texts(**gpu).device == "live on GPU NVIDIA H200"  # no result yet
+    assert status_texts(**gpu, last_on_gpu=True).device == "live on GPU NVIDIA H200"
+    fell_back = status_texts(**gpu, last_on_gpu=False)
+    assert fell_back.device == "live on CPU" and "asked for the GPU NVIDIA H200" in fell_back.device_tip
+    assert "masked samples" in fell_back.device_tip
+    cpu_asked = status_texts(**dict(gpu, device_text="CPU (GPU not asked for)"), last_on_gpu=False)
+    assert cpu_asked.device == "live on CPU" and "asked for the GPU" not in cpu_asked.device_tip
     text = camera_problem("no frame for 3.0 s", "synthetic", None)
     assert text.startswith("Camera problem: no frame for 3.0 s\nCheck the cable")
     assert camera_problem("no frame for 3.0 s", "synthetic", "no frame for 3.0 s") is None  # shown once

@@ -32,7 +32,8 @@ class StatusTexts:
 
 def status_texts(st: dict, *, camera_fps: float, processed_fps: float, shown_fps: float, frozen: bool,
                  camera_open: bool, display_skipped: int, latency_ms: float, device_text: str = "",
-                 reconstructed_in: str = "", process_error: str = "") -> StatusTexts:
+                 reconstructed_in: str = "", process_error: str = "",
+                 last_on_gpu: Optional[bool] = None) -> StatusTexts:
     """The texts from ``st`` (``LiveSession.status()``) and the rates measured by the window.
 
     ``camera_fps``/``processed_fps``: :class:`~app.gui.model.schedule.LiveRates` (0 once nothing new came);
@@ -40,8 +41,13 @@ def status_texts(st: dict, *, camera_fps: float, processed_fps: float, shown_fps
     (nothing new is shown: 0); ``device_text``: the live Reconstructor's ``device_text``;
     ``reconstructed_in``: where the worker runs it (its process or the window's);
     ``process_error``: why the reconstruction process died ("" while it lives): heights go on in the
-    window's process, slower, and the label says so in red.
+    window's process, slower, and the label says so in red; ``last_on_gpu``: where the newest live
+    result was computed (:func:`processing.gpu.ran_on_gpu`; None before the first): a GPU
+    reconstructor hands each frame it cannot do to the CPU, and the label says so rather than "GPU".
     """
+    if last_on_gpu is False and device_text.startswith("GPU"):
+        device_text = (f"CPU (asked for the {device_text}, which takes only frames valid everywhere: "
+                       "this frame has masked samples, folds or 2 pi jumps since the last, or starts a series)")
     err = st.get("error")
     camera_fps = 0.0 if err or not camera_open else float(camera_fps)
     shown_fps = 0.0 if frozen else float(shown_fps)
