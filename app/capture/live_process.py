@@ -8,8 +8,9 @@ alone allows (docs/acquisition.md, "Live heights"). A worker process has its own
 GIL; the window's process keeps the camera, the ring, the recorder (lossless, untouched) and the
 drawing.
 
-How: :class:`LiveProcess` (used by :class:`app.capture.worker.ProcessingWorker`, one frame at a
-time, newest only) starts one process from the app's fork server (:mod:`app.worker_processes`: a
+How: :class:`LiveProcess` (used by :class:`app.capture.worker.ProcessingWorker`, newest frame
+only, the next one sent as soon as the child answers: see :meth:`LiveProcess.measure`) starts one
+process from the app's fork server (:mod:`app.worker_processes`: a
 fresh interpreter's state, safe beside Qt and threads, ready at once after the first one).
 It sends the child a :class:`Recipe` when the reconstructor changes (the reference image,
 ``Geometry``, the picklable ``ReconstructOptions``, the reference's carriers and this process's
@@ -18,7 +19,8 @@ child builds its :class:`processing.Reconstructor` from it. For each frame the i
 shared-memory block, a small message through a pipe says which job to run; the child runs
 :func:`app.capture.live_measure.measure_live`, writes the result's arrays into a second
 shared-memory block and answers with the rest (pickled: a few hundred bytes, plus the alignment
-metrics and spectrum when asked for). Both blocks belong to this process (created, grown and
+metrics and spectrum when asked for). Two maps blocks, used in turn, let the child write one
+frame's maps while this process copies out the previous frame's. Both blocks belong to this process (created, grown and
 removed here), so a child that dies leaves nothing behind.
 
 Life: the child ends when told (:meth:`LiveProcess.close`: asked, then SIGTERM, then SIGKILL,
@@ -118,8 +120,11 @@ class LiveProcess:
                                  daemon=True)
         self._proc.start()
         child_end.close()  # the child's death then reads as EOF here
-        self._blocks = {}  # "frames"/"maps" -> SharedMemory owned by this process
+        self._blocks = {}  # "frames"/"maps0"/"maps1" -> SharedMemory owned by this process
         self._built_for = None  # the window's reconstructor the child has built the same of
+        self._slot = 0  # the maps block ("maps0"/"maps1") the next frame's maps go into
+        self._ahead = None  # (token, slot) of a frame sent before its measure() call (see measure)
+        self.sent_ahead = 0  # frames sent while the one before them was handed on (pipelined)
         self._closed = False
         self._start_timeout_s = float(start_timeout_s)
         self._answered = False  # the child answered once (it started)
@@ -128,35 +133,45 @@ class LiveProcess:
     def pid(self) -> Optional[int]:
         return None if self._closed else self._proc.pid
 
-    def measure(self, reconstructor, reference: np.ndarray, image: np.ndarray, job: LiveJob, stop) -> Measured:
+    def measure(self, reconstructor, reference: np.ndarray, image: np.ndarray, job: LiveJob, stop,
+                token=None, ahead=None) -> Measured:
         """:func:`~app.capture.live_measure.measure_live` of ``image`` in the child.
 
         ``reconstructor`` (built on ``reference``) is rebuilt in the child whenever it is another
         than the last one. ``stop``: a ``threading.Event``; set, the wait ends with
         :class:`~app.capture.live_measure.WorkerStopped`. Raises :class:`LiveProcessError` when the
         child died or could not build the reconstructor.
+
+        Pipelining (``ahead``, ``token``): once the child has answered, ``ahead()`` may return
+        ``(token, reconstructor, image, job)`` of the next frame, which is sent at once, so that
+        the child measures it while this frame's maps are copied out and handed on here (the
+        window's process does that under its GUI thread's GIL: 5-10 ms a frame at 1024^2). The
+        next call with that ``token`` then only waits for its answer; a call with another
+        token or reconstructor first waits for that answer and drops it. The maps of two
+        frames in flight go through two blocks, used in turn.
         """
-        if self._built_for is not reconstructor:
-            self._built_for = None
-            self._send(("build", Recipe.of(reconstructor, reference)))
-            kind, message = self._wait(stop, None if self._answered else self._start_timeout_s)
-            self._answered = True
-            if kind != "built":
-                raise LiveProcessError(f"the live reconstruction process could not build the reconstructor: "
-                                       f"{message}")
-            self._built_for = reconstructor
-        image = np.ascontiguousarray(image)
-        frames = self._block("frames", image.nbytes)
-        np.ndarray(image.shape, image.dtype, buffer=frames.buf)[...] = image
-        maps = self._blocks.get("maps")
-        self._send(("frame", frames.name, image.shape, image.dtype.str, job, None if maps is None else maps.name))
+        if self._ahead is not None and (self._ahead[0] != token or self._built_for is not reconstructor):
+            self._drop_ahead(stop)
+        if self._ahead is None:
+            if self._built_for is not reconstructor:
+                self._build(reconstructor, reference, stop)
+            slot = self._send_frame(image, job)
+        else:
+            slot = self._ahead[1]
+            self._ahead = None
         _, measured, layout, needed = self._wait(stop)
+        if ahead is not None:
+            nxt = ahead()
+            if nxt is not None and nxt[1] is self._built_for:
+                self._ahead = (nxt[0], self._send_frame(nxt[2], nxt[3]))
+                self.sent_ahead += 1
+        maps = self._blocks.get(slot)
         if layout:
             measured.result = dataclasses.replace(measured.result, **{
                 name: np.array(np.ndarray(shape, np.dtype(dt), buffer=maps.buf, offset=offset))
                 for name, shape, dt, offset in layout})
         if needed > (maps.size if maps is not None else 0):
-            self._block("maps", needed)  # this frame's maps came pickled; the next ones through the block
+            self._block(slot, needed)  # this frame's maps came pickled; the next ones through the block
         return measured
 
     def close(self, timeout_s: float = 2.0) -> None:
@@ -180,6 +195,33 @@ class LiveProcess:
         self._blocks.clear()
 
     # -- here ------------------------------------------------------------------
+    def _build(self, reconstructor, reference, stop) -> None:
+        self._built_for = None
+        self._send(("build", Recipe.of(reconstructor, reference)))
+        kind, message = self._wait(stop, None if self._answered else self._start_timeout_s)
+        self._answered = True
+        if kind != "built":
+            raise LiveProcessError(f"the live reconstruction process could not build the reconstructor: "
+                                   f"{message}")
+        self._built_for = reconstructor
+
+    def _send_frame(self, image: np.ndarray, job: LiveJob) -> str:
+        """``image`` into the frames block (the child copies it out first thing) and the job to the
+        child, its maps to go into the next maps block; returns that block's kind."""
+        image = np.ascontiguousarray(image)
+        frames = self._block("frames", image.nbytes)
+        np.ndarray(image.shape, image.dtype, buffer=frames.buf)[...] = image
+        slot, other = f"maps{self._slot}", f"maps{1 - self._slot}"
+        self._slot = 1 - self._slot
+        names = [self._blocks[k].name if k in self._blocks else None for k in (slot, other)]
+        self._send(("frame", frames.name, image.shape, image.dtype.str, job, *names))
+        return slot
+
+    def _drop_ahead(self, stop) -> None:
+        """Wait for the answer to the frame sent ahead, and drop it."""
+        self._ahead = None
+        self._wait(stop)
+
     def _block(self, kind: str, nbytes: int):
         """This process's shared-memory block ``kind`` of at least ``nbytes`` (a new one if smaller)."""
         from multiprocessing import shared_memory
@@ -269,8 +311,8 @@ def serve(conn, nice: int = 0) -> None:
             except Exception as exc:  # a bad reference, out of memory: the worker says so
                 conn.send(("build_failed", error_message(exc)))
             continue
-        _, frames_name, shape, dtype, job, maps_name = message
-        frames = _attach(attached, frames_name, maps_name)
+        _, frames_name, shape, dtype, job, maps_name, other_maps_name = message
+        frames = _attach(attached, frames_name, maps_name, other_maps_name)  # both maps blocks stay mapped
         # a private copy: the reconstructor's series memory may keep the frame, the block is rewritten
         image = np.array(np.ndarray(shape, np.dtype(dtype), buffer=frames.buf))
         measured = measure_live(reconstructor, image, job)

@@ -157,6 +157,18 @@ def ring_source(ring) -> FrameSource:
     return source
 
 
+@dataclasses.dataclass(frozen=True)
+class _Plan:
+    """What the worker does with one frame, decided when it takes the frame (see ProcessingWorker._plan)."""
+
+    reconstructor: object
+    reference: Optional[np.ndarray]
+    job: LiveJob
+    bit_depth: Optional[int]
+    alignment_fn: object
+    t_start: float
+
+
 class ProcessingWorker:
     """Thread that turns the newest frame into the newest :class:`Processed`.
 
@@ -221,6 +233,9 @@ class ProcessingWorker:
         self._reference = None  # the reconstructor's reference image (what the worker process builds on)
         self._separate_process = bool(separate_process)
         self._live_process = None  # app.capture.live_process.LiveProcess once started
+        self._taken_ahead = None  # a frame taken while the one before it was handed on (see _look_ahead)
+        #: Frames the worker process began while the one before them was handed on here (pipelined).
+        self.sent_ahead = 0
         #: Why reconstruction left the worker process for this thread (it died), else None.
         self.process_error: Optional[str] = None
 
@@ -342,7 +357,8 @@ class ProcessingWorker:
     def counters(self) -> dict:
         return {"processed": self.processed, "skipped": self.skipped, "failed": self.failed,
                 "fps": self.fps, "last_error": self.last_error, "processing_ms": self.processing_ms,
-                "reconstructed_in": self.reconstructed_in, "process_error": self.process_error}
+                "reconstructed_in": self.reconstructed_in, "process_error": self.process_error,
+                "sent_ahead": self.sent_ahead}
 
     @property
     def reconstructed_in(self) -> str:
@@ -363,26 +379,24 @@ class ProcessingWorker:
         count_start = time.monotonic()
         count = 0
         while not self._stop.is_set():
-            try:
-                got = self._source(self._last_seq, self._poll_timeout_s)
-            except Exception as exc:  # the source (ring) failed: report, keep trying
-                self.last_error = f"frame source failed: {exc}"
-                log.exception("frame source failed")
-                self._stop.wait(0.1)
-                continue
+            taken, self._taken_ahead = self._taken_ahead, None
+            if taken is None:
+                try:
+                    got = self._source(self._last_seq, self._poll_timeout_s)
+                except Exception as exc:  # the source (ring) failed: report, keep trying
+                    self.last_error = f"frame source failed: {exc}"
+                    log.exception("frame source failed")
+                    self._stop.wait(0.1)
+                    continue
+                taken = None if got is None else self._take(got)
             now = time.monotonic()
             if now - count_start >= 1.0:
                 self.fps = count / (now - count_start)
                 count, count_start = 0, now
-            if got is None:
+            if taken is None:
                 continue
-            seq, image, host_ns = got
-            picked_ns = time.monotonic_ns()
-            if seq > self._last_seq + 1:  # frames never seen (also before the first one)
-                self.skipped += seq - self._last_seq - 1
-            self._last_seq = seq
             try:
-                processed = self._process(seq, image, host_ns, picked_ns)
+                processed = self._process(*taken)
             except WorkerStopped:
                 break
             self.processed += 1
@@ -400,18 +414,51 @@ class ProcessingWorker:
                     self.last_error = f"listener {getattr(fn, '__name__', fn)!s} failed: {exc}"
                     log.exception("worker listener failed")
 
-    def _process(self, seq: int, image: np.ndarray, host_ns: int, picked_ns: int = 0) -> Processed:
+    def _take(self, got) -> tuple:
+        """A frame from the source, counted (frames jumped over are skipped ones), with what is to be
+        done with it: ``(seq, image, host_ns, picked_ns, plan)``."""
+        seq, image, host_ns = got
+        picked_ns = time.monotonic_ns()
+        if seq > self._last_seq + 1:  # frames never seen (also before the first one)
+            self.skipped += seq - self._last_seq - 1
+        self._last_seq = seq
+        return seq, image, host_ns, picked_ns, self._plan()
+
+    def _plan(self) -> _Plan:
+        """What the next frame gets, decided when it is taken (a frame sent ahead to the worker process
+        is taken before the one in front of it is handed on)."""
         with self._lock:
-            rec, reference = self._reconstructor, self._reference
-            grid = self._grid
-            bit_depth = self._bit_depth
-            do_alignment = self._alignment and (
-                time.monotonic() - self._last_alignment_t >= self._alignment_interval_s)
-            alignment_fn = self._alignment_fn
+            t_start = time.monotonic()
+            do_alignment = self._alignment and t_start - self._last_alignment_t >= self._alignment_interval_s
+            if do_alignment:
+                self._last_alignment_t = t_start  # until it ends (below): the next frame is not due as well
             reset, self._reset_series = self._reset_series, False
-        t_start = time.monotonic()
+            return _Plan(self._reconstructor, self._reference, LiveJob(self._grid, reset, do_alignment),
+                         self._bit_depth, self._alignment_fn, t_start)
+
+    def _look_ahead(self):
+        """Called by the worker process's :meth:`LiveProcess.measure` once the child has answered:
+        the newest frame, if one is newer, taken now and returned for the child to start at once."""
+        try:
+            got = self._source(self._last_seq, 0.0)
+        except Exception:  # noqa: BLE001 - the loop's own call reports a failing source
+            return None
+        if got is None:
+            return None
+        self._taken_ahead = taken = self._take(got)
+        plan = taken[4]
+        return (taken[0], plan.reconstructor, taken[1], plan.job) if plan.reconstructor is not None else None
+
+    def _process(self, seq: int, image: np.ndarray, host_ns: int, picked_ns: int = 0,
+                 plan: Optional[_Plan] = None) -> Processed:
+        with self._lock:  # a frame taken ahead, then the reconstructor or grid changed: planned anew
+            stale = plan is not None and (plan.reconstructor is not self._reconstructor or plan.job.grid != self._grid)
+        plan = self._plan() if plan is None or stale else plan
+        rec, reference, job = plan.reconstructor, plan.reference, plan.job
+        bit_depth, alignment_fn, t_start = plan.bit_depth, plan.alignment_fn, plan.t_start
+        do_alignment = job.alignment
         if rec is not None:
-            m = self._measure(rec, reference, image, LiveJob(grid, reset, do_alignment))
+            m = self._measure(rec, reference, image, job, token=seq)
         else:
             m = Measured()
             if do_alignment and alignment_fn is not None:
@@ -442,7 +489,7 @@ class ProcessingWorker:
                          processing_s=m.processing_s, done_ns=time.monotonic_ns(), picked_ns=picked_ns,
                          cpu_s=m.cpu_s, queued_s=m.queued_s)
 
-    def _measure(self, rec, reference, image: np.ndarray, job: LiveJob) -> Measured:
+    def _measure(self, rec, reference, image: np.ndarray, job: LiveJob, token=None) -> Measured:
         """:func:`measure_live` in the worker process where there is one to use, else here."""
         if self._separate_process and reference is not None and self.process_error is None:
             from .live_process import LiveProcess, LiveProcessError
@@ -454,7 +501,13 @@ class ProcessingWorker:
                     except Exception as exc:  # e.g. a script that starts the window unguarded by __main__
                         raise LiveProcessError(f"the live reconstruction process could not start: "
                                                f"{error_message(exc)}") from exc
-                return self._live_process.measure(rec, reference, image, job, self._stop)
+                process = self._live_process
+                before = process.sent_ahead
+                try:
+                    return process.measure(rec, reference, image, job, self._stop, token=token,
+                                           ahead=self._look_ahead)
+                finally:
+                    self.sent_ahead += process.sent_ahead - before
             except LiveProcessError as exc:  # it died or could not build: say so, go on here
                 process, self._live_process = self._live_process, None
                 if process is not None:

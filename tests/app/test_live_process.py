@@ -75,6 +75,9 @@ def test_maps_from_the_worker_process_equal_those_of_this_process(scene):
         worker.stop(10.0)
     assert where.startswith("worker process (pid ") and f"pid {os.getpid()})" not in where, where
     assert [p.seq for p in seen] == list(range(len(frames)))
+    # pipelined: every frame but the first was sent while the one before it was handed on here (its
+    # maps copied out and published), through the other of two maps blocks; the maps above stay exact
+    assert worker.counters()["sent_ahead"] == len(frames) - 1, worker.counters()
     here = Reconstructor(reference, geometry)
     for p in seen:
         assert p.error is None and p.result is not None, p.error
