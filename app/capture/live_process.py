@@ -123,7 +123,7 @@ class LiveProcess:
         self._blocks = {}  # "frames"/"maps0"/"maps1" -> SharedMemory owned by this process
         self._built_for = None  # the window's reconstructor the child has built the same of
         self._slot = 0  # the maps block ("maps0"/"maps1") the next frame's maps go into
-        self._ahead = None  # (token, slot) of a frame sent before its measure() call (see measure)
+        self._ahead = None  # (token, slot, job) of a frame sent before its measure() call (see measure)
         self.sent_ahead = 0  # frames sent while the one before them was handed on (pipelined)
         self._closed = False
         self._start_timeout_s = float(start_timeout_s)
@@ -146,11 +146,13 @@ class LiveProcess:
         ``(token, reconstructor, image, job)`` of the next frame, which is sent at once, so that
         the child measures it while this frame's maps are copied out and handed on here (the
         window's process does that under its GUI thread's GIL: 5-10 ms a frame at 1024^2). The
-        next call with that ``token`` then only waits for its answer; a call with another
-        token or reconstructor first waits for that answer and drops it. The maps of two
+        next call with that ``token`` and job then only waits for its answer; a call with another
+        token, job (the grid changed meanwhile) or reconstructor first waits for that answer and
+        drops it. The maps of two
         frames in flight go through two blocks, used in turn.
         """
-        if self._ahead is not None and (self._ahead[0] != token or self._built_for is not reconstructor):
+        if self._ahead is not None and (self._ahead[0] != token or self._ahead[2] != job
+                                        or self._built_for is not reconstructor):
             self._drop_ahead(stop)
         if self._ahead is None:
             if self._built_for is not reconstructor:
@@ -163,7 +165,7 @@ class LiveProcess:
         if ahead is not None:
             nxt = ahead()
             if nxt is not None and nxt[1] is self._built_for:
-                self._ahead = (nxt[0], self._send_frame(nxt[2], nxt[3]))
+                self._ahead = (nxt[0], self._send_frame(nxt[2], nxt[3]), nxt[3])
                 self.sent_ahead += 1
         maps = self._blocks.get(slot)
         if layout:

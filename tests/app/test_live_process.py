@@ -133,6 +133,41 @@ def test_a_new_reference_is_rebuilt_in_the_same_worker_process(scene):
     assert np.nanmax(np.abs(after.result.height - expected.height)[ok]) <= 1e-2 * differ
 
 
+def test_a_grid_switch_while_a_frame_is_sent_ahead_gives_that_grid_from_the_next_frame(scene):
+    """The user switches the live grid (decimated <-> full) while the worker process already has the next
+    frame, sent ahead with the old grid: that answer is dropped and the frame measured anew, series
+    reset; every frame after the switch comes on the new grid and none fails (one measured on the old
+    grid's series memory raises that the previous phase has another shape). The switch is made from a
+    listener: it runs while the next frame is already sent ahead, the window this test is about."""
+    from processing import Reconstructor
+
+    frames = np.concatenate([scene["frames"]] * 40)
+    reference, geometry = scene["reference"], scene["geometry"]
+    worker = ProcessingWorker(_in_order(frames), grid="decimated", separate_process=True)
+    worker.set_reconstructor(Reconstructor(reference, geometry), reference=reference)
+    switches = {3: "full", 9: "decimated", 15: "full"}
+    seen = []
+
+    def listener(p):
+        seen.append(p)
+        if p.seq in switches:
+            worker.set_grid(switches[p.seq])
+
+    worker.add_listener(listener)
+    try:
+        worker.start()
+        assert worker.wait_for(lambda p: p.seq >= 20, timeout_s=240) is not None, worker.counters()
+    finally:
+        worker.stop(10.0)
+    grid = "decimated"
+    for p in seen:
+        assert p.error is None and p.result is not None, (p.seq, p.error)
+        assert p.result.grid == grid, (p.seq, p.result.grid, grid)
+        assert (p.result.height.shape == SHAPE) == (grid == "full"), (p.seq, p.result.height.shape)
+        grid = switches.get(p.seq, grid)
+    assert worker.counters()["sent_ahead"] > 0, worker.counters()
+
+
 def test_a_killed_worker_process_is_reported_and_the_recording_goes_on(scene, tmp_path):
     """SIGKILL to the worker process mid-stream: the frame it had is published with the reason, the
     worker says where it goes on (this process) and keeps giving heights, and the recorder writes every
