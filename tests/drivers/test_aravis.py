@@ -156,8 +156,12 @@ def test_gige_packet_loss_is_counted_not_hidden(gv_fake_camera_lossy):
                        for f in frames[known_from + max(0, k - 2):known_from + k + 3]]) for k in jumps[:3]]
     assert span == len(ids) + stats["n_id_gap_frames"], f"ids jump at {where}; stats {stats}"
     assert len(set(ids.tolist())) == len(ids)
-    # every failed buffer reached the consumer, flagged -- unless only its leader/trailer was lost (all pixels there)
-    assert n_incomplete == stats["n_incomplete_delivered"] == stats["n_failures"] - stats["n_failed_but_all_pixels"]
+    # every failed buffer reached the consumer, flagged -- unless only its leader/trailer was lost (all pixels
+    # there), or it was still in Aravis' output queue when the test stopped fetching after its 200 frames (the
+    # stream runs on until stop(): once beside stress-ng a buffer failed there, 13 failed against 12 delivered)
+    assert n_incomplete == stats["n_incomplete_delivered"]
+    queued_failures = stats["n_failures"] - stats["n_failed_but_all_pixels"] - n_incomplete
+    assert 0 <= queued_failures <= stats["n_output_buffers"], stats
     assert sum(f.missing_bytes for f in frames) == stats["n_missing_bytes"]
     assert all((f.missing_bytes > 0) == f.incomplete for f in frames)
     assert stats["n_completed_buffers"] + stats["n_failures"] == n + stats["n_output_buffers"]
