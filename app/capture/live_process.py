@@ -20,8 +20,8 @@ shared-memory block, a small message through a pipe says which job to run; the c
 :func:`app.capture.live_measure.measure_live`, writes the result's arrays into a second
 shared-memory block and answers with the rest (pickled: a few hundred bytes, plus the alignment
 metrics and spectrum when asked for). Two maps blocks, used in turn, let the child write one
-frame's maps while this process copies out the previous frame's. Both blocks belong to this process (created, grown and
-removed here), so a child that dies leaves nothing behind.
+frame's maps while this process copies out the previous frame's. All blocks belong to this
+process (created, grown and removed here), so a child that dies leaves nothing behind.
 
 Life: the child ends when told (:meth:`LiveProcess.close`: asked, then SIGTERM, then SIGKILL,
 each waited for a bounded time), and by itself when the window's process is gone (its end of
@@ -148,8 +148,7 @@ class LiveProcess:
         window's process does that under its GUI thread's GIL: 5-10 ms a frame at 1024^2). The
         next call with that ``token`` and job then only waits for its answer; a call with another
         token, job (the grid changed meanwhile) or reconstructor first waits for that answer and
-        drops it. The maps of two
-        frames in flight go through two blocks, used in turn.
+        drops it. The maps of two frames in flight go through two blocks, used in turn.
         """
         if self._ahead is not None and (self._ahead[0] != token or self._ahead[2] != job
                                         or self._built_for is not reconstructor):
