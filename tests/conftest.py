@@ -90,6 +90,15 @@ def pytest_configure(config):
         # check at the end tells this worker's orphans from a sibling worker's (below)
         os.environ[_RUN_TAG] = f"{_xdist_worker()}-{os.getpid()}"
     config._tirdeflect_watchdog_note = path
+    if not _xdist_worker() and not os.environ.get(_STOP_FILE):
+        # the controller (or a plain run) names the file through which it stops its workers; they
+        # inherit the name through their environment
+        os.environ[_STOP_FILE] = os.path.join(tempfile.gettempdir(), f"tirdeflect-stop-{os.getpid()}")
+        config._tirdeflect_stop_file = os.environ[_STOP_FILE]
+        try:  # one left by a killed run whose process had this number
+            os.unlink(config._tirdeflect_stop_file)
+        except OSError:
+            pass
     if not os.environ.get("TIRDEFLECT_WATCHDOG_NOTE"):
         config._tirdeflect_watchdog_out.write(f"watchdog: a test stuck past its limit ends the run; "
                                               f"the running test's name is kept in {path}\n")
@@ -111,6 +120,24 @@ def pytest_runtest_protocol(item, nextitem):
     yield
     faulthandler.cancel_dump_traceback_later()
     _note(item.config, "")
+    why = _stop_requested()
+    if why and not item.session.shouldstop:  # xdist's worker loop stops after this test
+        item.session.shouldstop = why
+
+
+#: environment variable naming the file whose existence tells xdist's workers to stop after their
+#: current test (written by the controller when one of them died in the middle of a test)
+_STOP_FILE = "TIRDEFLECT_TEST_STOP_FILE"
+
+
+def _stop_requested() -> str:
+    """Why this worker must stop after its current test; "" to go on."""
+    path = os.environ.get(_STOP_FILE, "")
+    try:
+        with open(path) as f:
+            return f.read() or "stop"
+    except OSError:
+        return ""
 
 
 @pytest.hookimpl(optionalhook=True)
@@ -118,13 +145,23 @@ def pytest_testnodedown(node, error):
     """xdist's controller: a worker died in the middle of the run (the watchdog above ended it, or
     a crash). xdist has already reported its test as failed ("worker 'gw0' crashed while running
     ..."), with the stacks above it; left alone it would start a new worker and go on for the
-    rest of the run. Stop it instead, as the watchdog stops a run without xdist: the other
-    workers are ended (after at most xdist's 10 s) and the run ends with status 2 (interrupted)."""
+    rest of the run. Stop it instead, as the watchdog stops a run without xdist, and the run ends
+    with status 2 (interrupted).
+
+    xdist's own shutdown lets each worker first run every test already queued to it (with
+    ``--dist worksteal`` up to half the suite: a deadlock demo ran 8 minutes, the other worker going
+    through 109 more tests). So the workers are also told through a file (``_STOP_FILE``) that each
+    reads after every test: each stops after the test it is running, itself bounded by its limit."""
     if error is None:
         return
+    why = f"worker {node.gateway.id} ended in the middle of a test ({error})"
+    path = os.environ.get(_STOP_FILE)
+    if path:
+        with open(path, "w") as f:
+            f.write(why)
     dsession = node.config.pluginmanager.getplugin("dsession")
     if dsession is not None and not dsession.shouldstop:
-        dsession.shouldstop = f"worker {node.gateway.id} ended in the middle of a test ({error})"
+        dsession.shouldstop = why
 
 
 # -- one test at a time: the cameras -------------------------------------------
@@ -346,6 +383,12 @@ def pytest_unconfigure(config):
     out = getattr(config, "_tirdeflect_watchdog_out", None)
     if out is not None:
         out.close()
+    stop_file = getattr(config, "_tirdeflect_stop_file", None)
+    if stop_file:
+        try:
+            os.unlink(stop_file)
+        except OSError:
+            pass
     note = getattr(config, "_tirdeflect_watchdog_note", None)
     if note and not os.environ.get("TIRDEFLECT_WATCHDOG_NOTE"):
         try:

@@ -303,6 +303,10 @@ def _in_dask() -> bool:
         return False
 
 
+#: the run's process, in one of its pool's workers (set by ``_init_worker``); None elsewhere
+_RUN_PID = None
+
+
 def shm_name(run_pid: int) -> str:
     """A new shared-memory block's name for the run whose process is
     ``run_pid``: ``tdf<pid>_<random>`` (in /dev/shm on Linux), so that what a
@@ -328,7 +332,9 @@ class _Shared:
         from multiprocessing import shared_memory
 
         arrays = [(name, np.ascontiguousarray(a)) for name, a in frame.maps.items()]
-        block = shared_memory.SharedMemory(name=shm_name(os.getppid()), create=True,
+        # named after the run (a pool worker's parent is the app's fork server, not the run)
+        run_pid = _RUN_PID if _RUN_PID is not None else os.getppid()
+        block = shared_memory.SharedMemory(name=shm_name(run_pid), create=True,
                                            size=max(1, sum(a.nbytes for _, a in arrays)))
         layout, offset = [], 0
         for name, a in arrays:
@@ -785,6 +791,9 @@ class _Chunked:
                         f"or --workers 1, and --first {chunk.first} to go on from there"
                         f"{_script_hint()}") from None
                 self.restarts += 1
+                for _, old in self._pending:  # chunks the surviving workers finished: done again below
+                    if old.done() and not old.cancelled() and old.exception() is None:
+                        _discard(old.result().frames)
                 log.warning("a worker process died during %s; starting new workers for the %d "
                             "chunk(s) in flight", chunk.label, len(self._pending) + 1)
                 self._restart()
@@ -902,6 +911,8 @@ def _init_worker(run_pid: int, parent):
 
     from app.worker_processes import adopt_parent_state
 
+    global _RUN_PID
+    _RUN_PID = run_pid
     adopt_parent_state(parent)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 

@@ -1,0 +1,77 @@
+"""A test stuck while holding the GIL ends the whole run in minutes, with its
+name and every thread's stack (tests/conftest.py, "a stuck test ends the run").
+
+Run for real: pytest in a subprocess, two pytest-xdist workers as tests/run.sh
+starts them, this project's conftest as its plugin, on a throwaway test file
+in which one test deadlocks (a pthread mutex locked twice through
+``ctypes.PyDLL``: the GIL stays held, pytest-timeout's SIGALRM handler never
+runs) and the others are ordinary one-second tests."""
+
+import os
+import re
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import WATCHDOG_MARGIN_S
+
+ROOT = Path(__file__).resolve().parents[1]
+#: the ordinary tests beside the stuck one, one second each. xdist queues about half of them
+#: to each worker at the start; run to the end (xdist's own shutdown lets a worker finish its
+#: queue) the other worker goes on for ~N/2 s, well past the stuck test's 1 + WATCHDOG_MARGIN_S
+N_ORDINARY = 100
+
+STUCK = '''
+import ctypes
+import ctypes.util
+import time
+
+import pytest
+
+
+@pytest.mark.slow  # run first, as tests/conftest.py orders the slow ones
+@pytest.mark.timeout(1)
+def test_stuck_holding_the_gil():
+    libc = ctypes.PyDLL(ctypes.util.find_library("c"))
+    mutex = ctypes.create_string_buffer(64)  # zeroed: PTHREAD_MUTEX_INITIALIZER on glibc
+    libc.pthread_mutex_lock(mutex)
+    libc.pthread_mutex_lock(mutex)  # never returns
+
+
+@pytest.mark.parametrize("k", range({n}))
+def test_ordinary(k):
+    time.sleep(1.0)  # one second of a test's work
+'''
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(240)  # hang detector: the run below takes ~30 s on a quiet machine
+def test_a_deadlocked_test_ends_the_run_with_its_name_and_every_stack(tmp_path):
+    pytest.importorskip("xdist")
+    (tmp_path / "test_stuck.py").write_text(textwrap.dedent(STUCK.format(n=N_ORDINARY)))
+    note = tmp_path / "watchdog-note"
+    env = dict(os.environ, TIRDEFLECT_WATCHDOG_NOTE=str(note))
+    env.pop("PYTEST_XDIST_WORKER", None)  # the run below has workers of its own
+    env.pop("TIRDEFLECT_TEST_STOP_FILE", None)  # and its own stop file
+    run = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "tests.conftest",
+         "--rootdir", str(ROOT), "-c", str(ROOT / "pyproject.toml"), "-n", "2", "--dist", "worksteal",
+         str(tmp_path / "test_stuck.py")],
+        cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, timeout=200)
+    out = run.stdout
+    assert run.returncode != 0, out[-3000:]
+    # the watchdog fired at the stuck test's limit plus its margin, and printed every thread's stack
+    assert f"Timeout (0:00:{1 + WATCHDOG_MARGIN_S:02.0f})!" in out, out[-3000:]
+    assert re.search(r'File ".*test_stuck\.py", line \d+ in test_stuck_holding_the_gil', out), out[-3000:]
+    assert re.search(r"worker 'gw\d' crashed while running '[^']*test_stuck_holding_the_gil'", out), out[-3000:]
+    # the stuck test's name was in the worker's note, for tests/run.sh to print
+    notes = {p.name: p.read_text() for p in tmp_path.glob("watchdog-note.gw*")}
+    assert any("test_stuck_holding_the_gil" in text for text in notes.values()), notes
+    # the run stopped instead of going through the rest of the ordinary tests: the other worker
+    # stopped after the test it was running when the stuck one's worker died
+    passed = re.search(r"(\d+) passed", out)
+    n_passed = int(passed.group(1)) if passed else 0
+    assert n_passed <= N_ORDINARY // 2 - 10, f"{n_passed} of {N_ORDINARY} ran: the run did not stop\n{out[-3000:]}"
