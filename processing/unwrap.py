@@ -5,13 +5,13 @@ Ordinary experiments exceed pi (notes.md: a 15 um dimple at H = 300 mm,
 theta = 55 deg, 2 mm period drives the y-carrier to about 5 rad), so the
 phase is unwrapped:
 
-- in space: :func:`unwrap_spatial`: least squares of the wrapped phase
-  differences (DCT Poisson solve, Ghiglia & Romero 1994) rounded to the
-  congruent 2 pi multiple, accepted only if every valid neighbour pair then
-  differs by less than pi; otherwise compiled quality-guided path
-  following over the whole map (:mod:`processing.unwrap_kernels`), accepted
-  under the same test or when its only jumps are sides of residues among
-  valid samples, which no unwrapping removes; otherwise the few
+- in space: :func:`unwrap_spatial`: compiled quality-guided path following
+  over the whole map (:mod:`processing.unwrap_kernels`), accepted if every
+  valid neighbour pair then differs by at most pi or its only jumps are
+  sides of residues among valid samples, which no unwrapping removes;
+  otherwise least squares of the wrapped phase differences (DCT Poisson
+  solve, Ghiglia & Romero 1994) rounded to the congruent 2 pi multiple,
+  accepted under the first test; otherwise the few
   inconsistent spots (residues next to masked samples) are cut out with a
   margin, path-followed there and re-anchored on the least-squares result,
   accepted under the same test; only if that fails, reliability-sorted path
@@ -37,11 +37,12 @@ import scipy.fft
 from scipy import ndimage
 from skimage.restoration import unwrap_phase
 
-from .unwrap_kernels import path_follow
+from .unwrap_kernels import jump_over_pi, path_follow
 
 __all__ = ["wrap", "unwrap_spatial", "unwrap_temporal", "has_wraps"]
 
 TWO_PI = 2.0 * np.pi
+_NO_MASK = np.ones((1, 1), dtype=bool)  # stands for "no mask" in jump_over_pi's signature
 
 
 def wrap(phase):
@@ -57,12 +58,12 @@ def has_wraps(phase, valid=None) -> bool:
     A phase map without such jumps is already unwrapped (up to 2 pi
     overall), which skips the unwrapper on most live frames.
     """
-    dr = np.abs(np.diff(phase, axis=0))
-    dc = np.abs(np.diff(phase, axis=1))
-    if valid is not None:
-        dr = np.where(valid[1:, :] & valid[:-1, :], dr, 0.0)
-        dc = np.where(valid[:, 1:] & valid[:, :-1], dc, 0.0)
-    return bool(dr.max(initial=0.0) > np.pi or dc.max(initial=0.0) > np.pi)
+    phase = np.asarray(phase)
+    if phase.ndim != 2 or phase.dtype.kind != "f":
+        phase = np.atleast_2d(np.asarray(phase, dtype=np.float64))
+    if valid is None:
+        return bool(jump_over_pi(phase, _NO_MASK, False))
+    return bool(jump_over_pi(phase, np.asarray(valid, dtype=bool), True))
 
 
 @functools.lru_cache(maxsize=8)
@@ -281,13 +282,16 @@ def unwrap_spatial(phase, valid=None, *, ref_mask=None) -> np.ndarray:
         return np.full(phase.shape, np.nan)
     work = np.where(valid, phase, 0.0)
     if has_wraps(work, valid):
-        rough = out = _lsq_rounded(work, valid)
-        # one connected region: consistent.  Several: each got its own offset
-        # from the smooth solution, which _align_components then resets.
-        if has_wraps(out, valid):
-            out = _unwrap_path_following(work, valid)
+        # Compiled path following first: where the rounded least squares would be consistent there
+        # are no residues, and path following is consistent too, the same unwrapping up to one 2 pi
+        # multiple per connected region (which _align_components resets); where the least squares is
+        # not (residues: fast waves, noise), it was a wasted DCT solve (measured on the live 270^2
+        # maps of the app's 1024^2 tank: 72 % of the calls).
+        out = _unwrap_path_following(work, valid)
         if out is None:
-            out = _unwrap_local_repair(work, valid, rough)
+            rough = out = _lsq_rounded(work, valid)
+            if has_wraps(out, valid):
+                out = _unwrap_local_repair(work, valid, rough)
         if out is None:
             if valid.all():
                 out = unwrap_phase(work)

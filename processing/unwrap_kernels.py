@@ -1,6 +1,7 @@
 """Compiled quality-guided path following of a wrapped phase map (Numba): what
-:func:`processing.unwrap.unwrap_spatial` tries when the rounded least squares
-is inconsistent.
+:func:`processing.unwrap.unwrap_spatial` tries first; and the test for a
+jump of more than pi between neighbours (:func:`jump_over_pi`), which the
+unwrappers run several times a frame.
 
 :func:`path_follow` unwraps sample by sample, the most reliable first, in
 the sense of Herraez et al. (2002, Applied Optics 41, 7437), whose
@@ -26,7 +27,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["path_follow"]
+__all__ = ["jump_over_pi", "path_follow"]
 
 _TWO_PI = 2.0 * np.pi
 
@@ -135,3 +136,23 @@ def path_follow(phase, valid, out):  # pragma: no cover - compiled
     for i in range(n):
         if flat_valid[i]:
             out.flat[i] = flat_out[i]
+
+
+@numba.njit(nogil=True, cache=True)
+def jump_over_pi(phase, valid, use_valid):  # pragma: no cover - compiled
+    """True if two neighbouring samples of ``phase`` (2-D, radians) differ by
+    more than pi, both valid in ``valid`` (bool, same shape) when
+    ``use_valid``; stops at the first such pair.  NaN differences count as
+    no jump."""
+    rows, cols = phase.shape
+    pi = np.pi
+    for i in range(rows):
+        for j in range(cols):
+            if use_valid and not valid[i, j]:
+                continue
+            c = phase[i, j]
+            if i + 1 < rows and (not use_valid or valid[i + 1, j]) and abs(phase[i + 1, j] - c) > pi:
+                return True
+            if j + 1 < cols and (not use_valid or valid[i, j + 1]) and abs(phase[i, j + 1] - c) > pi:
+                return True
+    return False

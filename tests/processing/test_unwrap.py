@@ -39,6 +39,26 @@ def test_fast_path_when_no_wraps():
     np.testing.assert_allclose(unwrap_spatial(phase, ref_mask=border()), phase)
 
 
+def test_jump_test_matches_the_neighbour_differences(rng):
+    """has_wraps (a compiled scan that stops at the first jump) says what the
+    neighbour differences say: any valid pair more than pi apart, NaN pairs not."""
+    for trial in range(40):
+        rows, cols = rng.integers(1, 40, size=2)
+        phase = rng.normal(0.0, rng.uniform(0.05, 1.5), (rows, cols)).cumsum(axis=1)
+        if trial % 3 == 0:
+            phase = phase.astype(np.float32)
+        valid = rng.random((rows, cols)) > rng.uniform(0.0, 0.6)
+        if trial % 5 == 0:
+            phase[rng.random((rows, cols)) < 0.1] = np.nan
+        dr, dc = np.abs(np.diff(phase, axis=0)), np.abs(np.diff(phase, axis=1))
+        unmasked = bool(np.any(dr > np.pi) or np.any(dc > np.pi))
+        masked = bool(np.any((dr > np.pi) & valid[1:] & valid[:-1])
+                      or np.any((dc > np.pi) & valid[:, 1:] & valid[:, :-1]))
+        assert has_wraps(phase) == unmasked
+        assert has_wraps(phase, valid) == masked
+    assert has_wraps(np.array([0.0, 3.2])) and not has_wraps(np.array([0.0, 3.1]))  # one row
+
+
 def test_temporal_fixes_an_island_space_cannot():
     # an island cut off by an invalid ring: space alone cannot know its 2 pi
     # offset; the previous frame of the series can
