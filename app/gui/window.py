@@ -46,6 +46,7 @@ class _Bridge(QtCore.QObject):
     """Carries results of background threads into the GUI thread (queued signal)."""
 
     done = QtCore.Signal(object, object, object)  # callback, result, error message
+    result_arrived = QtCore.Signal()  # the processing worker published a result (app/capture/worker.py)
 
 
 class MainWindow(QtWidgets.QMainWindow):
@@ -145,6 +146,10 @@ class MainWindow(QtWidgets.QMainWindow):
         self._status_timer.timeout.connect(self._update_status)
         self._status_timer.start()
         self._display_timer.start(DISPLAY_PERIOD_MS)
+        # a result is drawn when it arrives if the next tick is far (DrawClock.plan_early): the worker's
+        # listener runs in its thread and only posts the news to this one
+        self._bridge.result_arrived.connect(self._draw_early, QtCore.Qt.QueuedConnection)
+        self.session.worker.add_listener(self._result_published)
         # remembered state (app/gui/state.py): layout, recording, levels now; geometry, reference on open
         state.restore_early(self)
         if open_at_start:
@@ -421,6 +426,27 @@ class MainWindow(QtWidgets.QMainWindow):
                 log.info("first camera frame on screen %.2f s after the window was created", self.first_frame_s)
             self._draw_raw(image, tab, host_ns, seq)
             self.latency_ms = (time.monotonic_ns() - host_ns) / 1e6 if host_ns else float("nan")
+        self._draw_maps(plan, p)
+        self.shown_rate.add(time.monotonic(), int(plan.raw))
+
+    def _result_published(self, _processed) -> None:
+        """The worker's listener (its thread): tell the GUI thread (:meth:`_draw_early`)."""
+        if not self._closing:
+            self._bridge.result_arrived.emit()
+
+    def _draw_early(self):
+        """A result has arrived: its maps now, between two ticks, when :meth:`DrawClock.plan_early` says so."""
+        if self._closing or self.pause_box.isChecked() or self.frozen:
+            return
+        try:
+            p = self.session.worker.latest()
+            to_tick_s = self._display_timer.remainingTime() / 1e3  # negative: no tick armed (one is drawing)
+            self._draw_maps(self.clock.plan_early(time.monotonic(), self.tabs.currentIndex(), p, to_tick_s), p)
+        except Exception:  # noqa: BLE001 - a drawing bug must not stop the display
+            log.exception("display of a new result failed")
+
+    def _draw_maps(self, plan, p):
+        """The maps part of ``plan`` (a :class:`TickPlan`), of the worker's result ``p``."""
         if plan.maps in ("all", "first half", "second half"):
             t0 = time.perf_counter()
             self._draw_result(plan.result, part={"all": -1, "first half": 0, "second half": 1}[plan.maps])
@@ -430,7 +456,6 @@ class MainWindow(QtWidgets.QMainWindow):
         if plan.maps in ("all", "first half", "alignment"):
             self.result_latency_ms = (time.monotonic_ns() - p.host_timestamp_ns) / 1e6 if p.host_timestamp_ns \
                 else float("nan")
-        self.shown_rate.add(time.monotonic(), int(plan.raw))
 
     @property
     def displayed_fps(self) -> float:
@@ -546,6 +571,7 @@ class MainWindow(QtWidgets.QMainWindow):
         except Exception:  # noqa: BLE001 - remembering must never stop the window from closing
             log.exception("could not remember the session")
         self._closing = True
+        self.session.worker.remove_listener(self._result_published)
         self._display_timer.stop()
         self._status_timer.stop()
         try:

@@ -274,6 +274,39 @@ def test_maps_cheap_to_draw_go_in_one_tick_on_every_tick_and_slow_ones_in_two_ha
     assert p.maps == "all" and c.whole_maps()
 
 
+def test_a_result_arriving_between_ticks_is_drawn_at_once_when_the_next_tick_is_far():
+    """DrawClock.plan_early: the Live tab's maps of a new result are drawn when it arrives (not up to a
+    display period later, on the next tick) if that tick is far enough and the drawing ends before it;
+    a result is still drawn once, at most at the maps rate, and never a camera frame between ticks."""
+    from types import SimpleNamespace as R
+
+    from app.gui.model.schedule import ALIGNMENT_TAB, EARLY_MIN_WAIT, LIVE_TAB, DrawClock
+
+    c = DrawClock()  # 60 Hz: a period of 16.7 ms
+    period = 1 / 60
+    c.maps_took("all", 0.002)  # 2 ms to draw all maps: one part
+    p = c.plan_early(0.100, LIVE_TAB, R(seq=1), to_tick_s=0.012)
+    assert (p.raw, p.maps, p.result.seq) == (False, "all", 1)
+    assert c.plan(0.105, LIVE_TAB, 40, R(seq=1)).maps is None  # the tick does not draw it again
+    assert c.plan_early(0.106, LIVE_TAB, R(seq=1), to_tick_s=0.010).maps is None  # nor a second early draw
+    # the next tick is too close (it draws the result itself), or the drawing would run into it
+    assert c.plan_early(0.130, LIVE_TAB, R(seq=2), to_tick_s=0.5 * EARLY_MIN_WAIT * period).maps is None
+    assert c.plan_early(0.130, LIVE_TAB, R(seq=2), to_tick_s=EARLY_MIN_WAIT * period + 0.001).maps is None
+    assert c.plan_early(0.130, LIVE_TAB, R(seq=2), to_tick_s=-0.001).maps is None  # no tick armed: one is drawing
+    assert c.plan(0.131, LIVE_TAB, 41, R(seq=2)).maps == "all"
+    # at most at the maps rate: a result 5 ms after the last maps waits for a tick
+    assert c.plan_early(0.136, LIVE_TAB, R(seq=3), to_tick_s=0.012).maps is None
+    # not on the Alignment tab (its views follow the ticks), nor while a second half waits
+    assert c.plan_early(0.200, ALIGNMENT_TAB, R(seq=4), to_tick_s=0.012).maps is None
+    c = DrawClock()
+    c.maps_took("all", 0.010)  # slow maps (10 ms): two halves of ~5 ms, the second on the next tick
+    p = c.plan_early(0.220, LIVE_TAB, R(seq=5), to_tick_s=0.012)
+    assert p.maps == "first half" and c.second_half is p.result
+    assert c.plan_early(0.240, LIVE_TAB, R(seq=6), to_tick_s=0.012).maps is None
+    assert c.plan(0.232, LIVE_TAB, 42, R(seq=6)).maps == "second half"
+    assert c.plan_early(0.300, LIVE_TAB, R(seq=7), to_tick_s=0.008).maps is None  # 8 - 5 ms < a quarter period
+
+
 def test_replay_queue_keeps_only_the_newest_request():
     from app.gui.model.schedule import ReplayQueue
 

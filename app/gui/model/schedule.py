@@ -9,8 +9,8 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, Dict, Hashable, Optional, Tuple
 
-__all__ = ["DISPLAY_MAX_HZ", "MAPS_MAX_HZ", "MAPS_WHOLE_MAX_FRACTION", "LIVE_TAB", "ALIGNMENT_TAB", "TickPlan",
-           "DrawClock", "RateCounter", "LiveRates", "ReplayQueue", "ExportProgress"]
+__all__ = ["DISPLAY_MAX_HZ", "MAPS_MAX_HZ", "MAPS_WHOLE_MAX_FRACTION", "EARLY_MIN_WAIT", "LIVE_TAB", "ALIGNMENT_TAB",
+           "TickPlan", "DrawClock", "RateCounter", "LiveRates", "ReplayQueue", "ExportProgress"]
 
 DISPLAY_MAX_HZ = 60.0  # the raw camera view refreshes at most this often
 MAPS_MAX_HZ = 60.0  # processed maps at most this often (and never more than one result per display tick)
@@ -19,6 +19,9 @@ MAPS_MAX_HZ = 60.0  # processed maps at most this often (and never more than one
 # window by benchmarks/bench_gui.py); slower, they go in two halves on consecutive ticks, so that no tick
 # is long enough to make the raw view miss its cadence
 MAPS_WHOLE_MAX_FRACTION = 0.35
+# A result that arrives between two ticks is drawn at once (DrawClock.plan_early) when the next tick is at
+# least this fraction of a display period away, after its drawing too; else it waits for the tick
+EARLY_MIN_WAIT = 0.25
 LIVE_TAB, ALIGNMENT_TAB = 0, 1  # the tabs that show the camera (the window's tab indices)
 
 
@@ -121,6 +124,9 @@ class DrawClock:
             return TickPlan(raw, "second half", pending)
         if result is None or result.seq == self.last_result_seq or not camera_tab or not self.maps_due(now):
             return TickPlan(raw)
+        return self._begin_maps(now, tab, raw, result)
+
+    def _begin_maps(self, now: float, tab: int, raw: bool, result) -> TickPlan:
         self.last_result_seq = result.seq
         if tab != LIVE_TAB:
             self.maps_drawn(now, None)
@@ -130,6 +136,22 @@ class DrawClock:
             return TickPlan(raw, "all", result)
         self.maps_drawn(now, result)
         return TickPlan(raw, "first half", result)
+
+    def plan_early(self, now: float, tab: int, result, to_tick_s: float) -> TickPlan:
+        """Maps of a result that has just arrived, drawn between two ticks: ``to_tick_s`` is the wait to the next
+        tick (s). Waiting for it would add on average half a display period to the height map's latency (8 ms
+        at 60 Hz: a sixth of the live latency at 1024^2, benchmarks/bench_gui.py), so the Live tab's maps (all,
+        or the first half) are drawn at once when the next tick is at least ``EARLY_MIN_WAIT`` of a period away
+        and their drawing (the running estimate) ends before it with that much to spare; the rules of
+        :meth:`plan` otherwise hold (a result drawn once, at <= ``maps_hz``, its second half on the next tick).
+        No camera frame is drawn early: the raw view keeps the tick's cadence."""
+        period = 1.0 / self.display_hz
+        draw_s = self.maps_draw_s if self.whole_maps() else self.maps_draw_s / 2
+        if (tab != LIVE_TAB or result is None or result.seq == self.last_result_seq or self.second_half is not None
+                or not self.maps_due(now) or to_tick_s < EARLY_MIN_WAIT * period
+                or to_tick_s - draw_s < EARLY_MIN_WAIT * period):
+            return TickPlan()
+        return self._begin_maps(now, tab, False, result)
 
 
 @dataclasses.dataclass
