@@ -93,9 +93,9 @@ def pytest_configure(config):
         # check at the end tells this worker's orphans from a sibling worker's (below)
         os.environ[_RUN_TAG] = f"{_xdist_worker()}-{os.getpid()}"
     config._tirdeflect_watchdog_note = path
-    if not _xdist_worker() and not os.environ.get(_STOP_FILE):
+    if not _xdist_worker():
         # the controller (or a plain run) names the file through which it stops its workers; they
-        # inherit the name through their environment
+        # inherit the name through their environment (a pytest run inside a test names its own)
         os.environ[_STOP_FILE] = os.path.join(tempfile.gettempdir(), f"tirdeflect-stop-{os.getpid()}")
         config._tirdeflect_stop_file = os.environ[_STOP_FILE]
         try:  # one left by a killed run whose process had this number
