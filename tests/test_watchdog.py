@@ -54,8 +54,7 @@ def test_a_deadlocked_test_ends_the_run_with_its_name_and_every_stack(tmp_path):
     (tmp_path / "test_stuck.py").write_text(textwrap.dedent(STUCK.format(n=N_ORDINARY)))
     note = tmp_path / "watchdog-note"
     env = dict(os.environ, TIRDEFLECT_WATCHDOG_NOTE=str(note))
-    env.pop("PYTEST_XDIST_WORKER", None)  # the run below has workers of its own
-    env.pop("TIRDEFLECT_TEST_STOP_FILE", None)  # and its own stop file
+    env.pop("PYTEST_XDIST_WORKER", None)  # the run below has workers (and a stop file) of its own
     run = subprocess.run(
         [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "tests.conftest",
          "--rootdir", str(ROOT), "-c", str(ROOT / "pyproject.toml"), "-n", "2", "--dist", "worksteal",

@@ -557,6 +557,17 @@ def _discard(frames) -> None:
             payload[0].discard()
 
 
+def _discard_finished(futures) -> None:
+    """Free the shared memory of the chunks among ``futures`` that finished but that nobody will
+    take (cancelled too late, or submitted again)."""
+    for future in futures:
+        try:
+            if future.done() and not future.cancelled() and future.exception() is None:
+                _discard(future.result().frames)
+        except Exception:  # a Dask future after its client closed: nothing in shared memory
+            pass
+
+
 # ----------------------------------------------------------------- runners
 
 
@@ -791,9 +802,7 @@ class _Chunked:
                         f"or --workers 1, and --first {chunk.first} to go on from there"
                         f"{_script_hint()}") from None
                 self.restarts += 1
-                for _, old in self._pending:  # chunks the surviving workers finished: done again below
-                    if old.done() and not old.cancelled() and old.exception() is None:
-                        _discard(old.result().frames)
+                _discard_finished(f for _, f in self._pending)  # the survivors' chunks: done again below
                 log.warning("a worker process died during %s; starting new workers for the %d "
                             "chunk(s) in flight", chunk.label, len(self._pending) + 1)
                 self._restart()
@@ -870,12 +879,7 @@ class _Chunked:
         for future in futures:
             future.cancel()
         self._shutdown()
-        for future in futures:  # finished before they could be cancelled
-            try:
-                if future.done() and not future.cancelled() and future.exception() is None:
-                    _discard(future.result().frames)
-            except Exception:  # a Dask future after its client closed: nothing in shared memory
-                pass
+        _discard_finished(futures)  # finished before they could be cancelled
         self._pending.clear()
 
 

@@ -148,8 +148,7 @@ class DrawClock:
         period = 1.0 / self.display_hz
         draw_s = self.maps_draw_s if self.whole_maps() else self.maps_draw_s / 2
         if (tab != LIVE_TAB or result is None or result.seq == self.last_result_seq or self.second_half is not None
-                or not self.maps_due(now) or to_tick_s < EARLY_MIN_WAIT * period
-                or to_tick_s - draw_s < EARLY_MIN_WAIT * period):
+                or not self.maps_due(now) or to_tick_s - draw_s < EARLY_MIN_WAIT * period):
             return TickPlan()
         return self._begin_maps(now, tab, False, result)
 
