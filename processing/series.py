@@ -17,7 +17,7 @@ import numpy as np
 
 from .pin import PIN_MIN_PIECE_SAMPLES
 from .result import SeriesCheck
-from .unwrap import TWO_PI, has_wraps, unwrap_spatial, unwrap_temporal, wrap
+from .unwrap import TWO_PI, has_wraps, jumps_only_at_residues, unwrap_spatial, unwrap_temporal, wrap
 
 __all__ = ["SeriesState", "SERIES_MAX_SLIP_FRACTION", "SERIES_MAX_PIN_SHIFT", "EMPTY", "unwrap_phase",
            "after_unwrap", "check_series", "copy_check"]
@@ -97,17 +97,58 @@ def unwrap_phase(wrapped, valid, all_valid, state: SeriesState, *, unwrap: bool,
     if not unwrap:
         return np.where(valid, wrapped, np.nan)
     prev = state.phase
-    if all_valid and temporal and prev is not None and state.all_valid:
-        out = _unwrap_temporal_all_valid(wrapped, prev, ref_idx)
-        if out is not None:
-            return out
-    out = np.empty_like(wrapped)
-    for s in range(2):
-        if temporal and prev is not None:
-            out[s] = unwrap_temporal(wrapped[s], prev[s], valid, state.valid, ref_mask=ref_mask)
-        else:
+    if not (temporal and prev is not None):
+        out = np.empty_like(wrapped)
+        for s in range(2):
             out[s] = unwrap_spatial(wrapped[s], valid, ref_mask=ref_mask)
+        return out
+    out = None
+    if all_valid and state.all_valid:
+        out = _unwrap_temporal_all_valid(wrapped, prev, ref_idx)
+    if out is None:
+        out = np.empty_like(wrapped)
+        for s in range(2):
+            out[s] = unwrap_temporal(wrapped[s], prev[s], valid, state.valid, ref_mask=ref_mask)
+    for s in range(2):
+        _heal_specks(out[s], wrapped[s], valid, ref_mask)
     return out
+
+
+def _heal_specks(phase, wrapped, valid, ref_mask):
+    """Give back to this frame's own spatial unwrapping the few samples on
+    which the temporally unwrapped ``phase`` (2-D, changed in place) counts
+    other periods than it does.
+
+    A jump of more than pi between two valid neighbours of ``phase`` that is
+    not a side of a residue is a slope of more than half a carrier period
+    per decimated sample: beyond what the demodulation resolves, so not a
+    surface the method can measure.  Such jumps come from samples newly
+    valid at the frame's edge or a mask's rim, grown from a neighbour whose
+    change was near pi, and temporal unwrapping would carry them on through
+    every later frame.  On each connected valid region whose disagreement
+    with the frame's own unwrapping is at most
+    :data:`SERIES_MAX_SLIP_FRACTION` of its samples, those samples take the
+    frame's count; a larger disagreement is left for the series check to
+    report (a slip of the whole series, or a surface too fast for the frame
+    rate).  Nothing is done (nor unwrapped) when ``phase`` has no such jump.
+    """
+    work = np.where(valid, phase, 0.0)
+    if not has_wraps(work, valid) or jumps_only_at_residues(wrap(work), valid, work):
+        return
+    from scipy import ndimage
+
+    own = unwrap_spatial(np.where(valid, wrapped, 0.0), valid, ref_mask=ref_mask)
+    turns = np.where(valid, np.round((work - np.where(valid, own, 0.0)) / TWO_PI), 0.0)
+    labels, _ = ndimage.label(valid)
+    for lab, box in enumerate(ndimage.find_objects(labels), start=1):
+        region = labels[box] == lab
+        t = turns[box][region]
+        t -= np.median(t)  # one common offset per region is no slip
+        bad = t != 0
+        n_bad = int(np.count_nonzero(bad))
+        if 0 < n_bad <= SERIES_MAX_SLIP_FRACTION * t.size:
+            piece = phase[box]
+            piece[region] = piece[region] - TWO_PI * t
 
 
 def _unwrap_temporal_all_valid(wrapped, prev, ref_idx):
@@ -218,14 +259,18 @@ def _disagrees_with_spatial(phase, valid, ref_mask):
     judged = np.isin(labels, anchored)
     out = np.zeros(valid.shape, bool)
     for s in range(2):
-        # One connected valid region on which the series' phase has no jump over pi between valid
-        # neighbours: it is itself a consistent spatial unwrapping of this frame, and a consistent
-        # unwrapping is unique up to one 2 pi multiple per region, so the frame's own unwrapping can
-        # only differ by that common offset (no slip). Its spatial unwrapping (most of the live
-        # chain's time on fast waves) is then not needed.
+        # One judged region on which the series' phase has no jump over pi between valid neighbours
+        # except on the sides of residues (2 x 2 cells whose wrapped differences do not sum to 0, where
+        # every unwrapping of this frame must put a jump): it is itself an unwrapping of this frame, as
+        # good as any spatial unwrapper's (without residues a consistent unwrapping is unique up to one
+        # 2 pi multiple per region; with them the frame alone cannot say on which side of a residue the
+        # 2 pi goes), so the frame's own unwrapping is no witness against it: no slip.  Its spatial
+        # unwrapping (most of the live chain's time on fast waves) is then not needed.
+        if anchored.size == 1:
+            masked = np.where(judged, phase[s], 0.0)
+            if not has_wraps(masked, judged) or jumps_only_at_residues(wrap(masked), judged, masked):
+                continue
         masked = np.where(valid, phase[s], 0.0)
-        if count == 1 and not has_wraps(masked, valid):
-            continue
         own = unwrap_spatial(wrap(masked), valid, ref_mask=ref_mask)
         turns = np.round((np.where(judged, phase[s], 0.0) - np.where(judged, own, 0.0)) / TWO_PI)
         if judged.any():

@@ -37,9 +37,9 @@ import scipy.fft
 from scipy import ndimage
 from skimage.restoration import unwrap_phase
 
-from .unwrap_kernels import jump_over_pi, path_follow
+from .unwrap_kernels import jump_over_pi, jumps_off_residues, path_follow
 
-__all__ = ["wrap", "unwrap_spatial", "unwrap_temporal", "has_wraps"]
+__all__ = ["wrap", "unwrap_spatial", "unwrap_temporal", "has_wraps", "jumps_only_at_residues"]
 
 TWO_PI = 2.0 * np.pi
 _NO_MASK = np.ones((1, 1), dtype=bool)  # stands for "no mask" in jump_over_pi's signature
@@ -180,34 +180,20 @@ def _unwrap_local_repair(phase, valid, rough=None):
                 continue  # no anchor: keep the least-squares values (the check below decides)
             shift = TWO_PI * np.round(np.median(target[sel] - patch[sel]) / TWO_PI)
             target[piece] = patch[piece] + shift
-    if has_wraps(out, valid) and not _wraps_only_at_residues(phase, valid, out):
+    if has_wraps(out, valid) and not jumps_only_at_residues(phase, valid, out):
         return None
     return out
 
 
-def _wraps_only_at_residues(phase, valid, out):
+def jumps_only_at_residues(phase, valid, out):
     """True if every pair of valid neighbours of ``out`` that differs by more
     than pi is a side of a residue: a 2 x 2 cell of valid samples whose
     wrapped differences do not sum to 0.  No unwrapping removes those (the
     data are inconsistent around the cell); whole-map path following cannot
-    do better than a jump on one of its sides."""
-    vr = valid[1:, :] & valid[:-1, :]
-    vc = valid[:, 1:] & valid[:, :-1]
-    jr = (np.abs(np.diff(out, axis=0)) > np.pi) & vr
-    jc = (np.abs(np.diff(out, axis=1)) > np.pi) & vc
-    dr = wrap(np.diff(phase, axis=0))
-    dc = wrap(np.diff(phase, axis=1))
-    circ = dr[:, :-1] + dc[1:, :] - dr[:, 1:] - dc[:-1, :]
-    res = (np.abs(circ) > np.pi) & vr[:, :-1] & vr[:, 1:]
-    # row pair (i, j)-(i+1, j) borders cells (i, j-1) and (i, j); column pair
-    # (i, j)-(i, j+1) borders cells (i-1, j) and (i, j)
-    near_r = np.zeros(jr.shape, dtype=bool)
-    near_r[:, :-1] |= res
-    near_r[:, 1:] |= res
-    near_c = np.zeros(jc.shape, dtype=bool)
-    near_c[:-1, :] |= res
-    near_c[1:, :] |= res
-    return not (np.any(jr & ~near_r) or np.any(jc & ~near_c))
+    do better than a jump on one of its sides.  One compiled scan
+    (:func:`processing.unwrap_kernels.jumps_off_residues`)."""
+    return not jumps_off_residues(np.ascontiguousarray(phase, dtype=np.float64), np.ascontiguousarray(valid),
+                                  np.ascontiguousarray(out, dtype=np.float64))
 
 
 def _unwrap_path_following(phase, valid):
@@ -223,7 +209,7 @@ def _unwrap_path_following(phase, valid):
     """
     out = np.zeros(phase.shape)
     path_follow(np.ascontiguousarray(phase, dtype=np.float64), np.ascontiguousarray(valid), out)
-    if has_wraps(out, valid) and not _wraps_only_at_residues(phase, valid, out):
+    if has_wraps(out, valid) and not jumps_only_at_residues(phase, valid, out):
         return None
     return out
 
@@ -231,7 +217,9 @@ def _unwrap_path_following(phase, valid):
 def _align_components(phase, valid, ref_mask):
     """Shift each connected valid region by 2 pi k: the one(s) holding the
     reference region so that its median is nearest 0, the others so that
-    their median is nearest 0 as well (no other information links them)."""
+    their median is nearest 0 as well (no other information links them).
+    Each region is read through its bounding box (the live maps hold a few
+    large regions and many specks of a few samples)."""
     labels, n = ndimage.label(valid)
     if n == 0:
         return phase
@@ -242,18 +230,18 @@ def _align_components(phase, valid, ref_mask):
     if ref_mask is not None and np.any(ref_mask & valid):
         ref_vals = phase[ref_mask & valid]
         shift = TWO_PI * np.round(np.median(ref_vals) / TWO_PI)
-        ref_labels = np.unique(labels[ref_mask & valid])
+        ref_labels = set(np.unique(labels[ref_mask & valid]).tolist())
     else:
         shift = None
-        ref_labels = np.array([], dtype=labels.dtype)
-    idx = np.arange(1, n + 1)
-    medians = ndimage.median(phase, labels, idx)
-    for lab, med in zip(idx, np.atleast_1d(medians)):
-        region = labels == lab
+        ref_labels = set()
+    for lab, box in enumerate(ndimage.find_objects(labels), start=1):
+        region = labels[box] == lab
         if lab in ref_labels:
-            out[region] -= shift
+            k_shift = shift
         else:
-            out[region] -= TWO_PI * np.round(med / TWO_PI)
+            k_shift = TWO_PI * np.round(np.median(phase[box][region]) / TWO_PI)
+        if k_shift:
+            out[box][region] -= k_shift
     return out
 
 

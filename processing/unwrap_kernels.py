@@ -27,7 +27,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["jump_over_pi", "path_follow"]
+__all__ = ["jump_over_pi", "jumps_off_residues", "path_follow"]
 
 _TWO_PI = 2.0 * np.pi
 
@@ -75,22 +75,32 @@ def path_follow(phase, valid, out):  # pragma: no cover - compiled
     ``valid``): ``out = phase + 2 pi k`` on the valid samples, the most
     reliable sample next to the unwrapped ones first, each from its most
     reliable unwrapped 4-neighbour.  Each connected valid region is seeded at
-    its first sample in memory order."""
+    its first sample in memory order.
+
+    Works on a copy framed by one invalid sample on every side, so that a
+    sample's four neighbours are always ``a -+ 1`` and ``a -+ width`` (no
+    bounds tests), with one state byte per sample."""
     rows, cols = phase.shape
-    n = rows * cols
-    level = _levels(phase, valid).ravel()
-    flat_phase = phase.ravel()
-    flat_valid = valid.ravel()
+    width = cols + 2
+    n = (rows + 2) * width
+    levels = _levels(phase, valid)
+    level = np.full(n, _N_LEVELS - 1, np.int16)
+    flat_phase = np.zeros(n)
+    state = np.zeros(n, np.uint8)  # 0 not valid, 1 valid, 2 queued, 3 unwrapped
+    for i in range(rows):
+        for j in range(cols):
+            a = (i + 1) * width + j + 1
+            level[a] = levels[i, j]
+            flat_phase[a] = phase[i, j]
+            if valid[i, j]:
+                state[a] = 1
     flat_out = np.zeros(n)
-    queued = np.zeros(n, np.bool_)
-    done = np.zeros(n, np.bool_)
     head = np.full(_N_LEVELS, -1, np.int32)  # a stack of samples per level, linked through nxt
     nxt = np.empty(n, np.int32)  # int32: half the memory traffic of int64 (grids up to 2^31 samples)
-    nbr = np.empty(4, np.int64)
     for seed in range(n):
-        if queued[seed] or not flat_valid[seed]:
+        if state[seed] != 1:
             continue
-        queued[seed] = True
+        state[seed] = 2
         nxt[seed] = -1
         head[level[seed]] = seed
         lowest = level[seed]
@@ -100,42 +110,66 @@ def path_follow(phase, valid, out):  # pragma: no cover - compiled
                 lowest += 1
                 continue
             head[lowest] = nxt[a]
-            r, c = a // cols, a % cols
-            k = 0
-            if r > 0:
-                nbr[k] = a - cols
-                k += 1
-            if r < rows - 1:
-                nbr[k] = a + cols
-                k += 1
-            if c > 0:
-                nbr[k] = a - 1
-                k += 1
-            if c < cols - 1:
-                nbr[k] = a + 1
-                k += 1
-            # from the most reliable unwrapped neighbour (none: the seed)
+            pa = flat_phase[a]
+            # from the most reliable unwrapped neighbour (none: the seed); queue the others
             best = _N_LEVELS
-            value = flat_phase[a]
-            for m in range(k):
-                b = nbr[m]
-                if done[b] and level[b] < best:
-                    best = level[b]
-                    value = flat_out[b] + _wrap(flat_phase[a] - flat_phase[b])
-            flat_out[a] = value
-            done[a] = True
-            for m in range(k):
-                b = nbr[m]
-                if flat_valid[b] and not queued[b]:
-                    queued[b] = True
+            value = pa
+            for off in (-width, width, -1, 1):
+                b = a + off
+                sb = state[b]
+                if sb == 3:
+                    if level[b] < best:
+                        best = level[b]
+                        value = flat_out[b] + _wrap(pa - flat_phase[b])
+                elif sb == 1:
+                    state[b] = 2
                     lb = level[b]
                     nxt[b] = head[lb]
                     head[lb] = b
                     if lb < lowest:
                         lowest = lb
-    for i in range(n):
-        if flat_valid[i]:
-            out.flat[i] = flat_out[i]
+            flat_out[a] = value
+            state[a] = 3
+    for i in range(rows):
+        for j in range(cols):
+            if valid[i, j]:
+                out[i, j] = flat_out[(i + 1) * width + j + 1]
+
+
+@numba.njit(nogil=True, cache=True)
+def jumps_off_residues(phase, valid, out):  # pragma: no cover - compiled
+    """True if two valid 4-neighbours of ``out`` (2-D, radians, an
+    unwrapping of the wrapped ``phase``) differ by more than pi and neither
+    2 x 2 cell beside the pair is a residue (four valid samples whose wrapped
+    differences around the cell do not sum to 0); stops at the first."""
+    rows, cols = out.shape
+    pi = np.pi
+    for i in range(rows):
+        for j in range(cols):
+            if not valid[i, j]:
+                continue
+            c = out[i, j]
+            if i + 1 < rows and valid[i + 1, j] and abs(out[i + 1, j] - c) > pi:
+                # pair (i, j)-(i+1, j): the cells with corners at columns j-1 and j
+                if not ((j > 0 and _is_residue(phase, valid, i, j - 1))
+                        or (j + 1 < cols and _is_residue(phase, valid, i, j))):
+                    return True
+            if j + 1 < cols and valid[i, j + 1] and abs(out[i, j + 1] - c) > pi:
+                if not ((i > 0 and _is_residue(phase, valid, i - 1, j))
+                        or (i + 1 < rows and _is_residue(phase, valid, i, j))):
+                    return True
+    return False
+
+
+@numba.njit(nogil=True, cache=True, inline="always")
+def _is_residue(phase, valid, i, j):  # pragma: no cover - compiled
+    """The cell with top-left corner (i, j): all four valid and its wrapped
+    differences summing to +-2 pi."""
+    if not (valid[i, j] and valid[i + 1, j] and valid[i, j + 1] and valid[i + 1, j + 1]):
+        return False
+    circ = (_wrap(phase[i + 1, j] - phase[i, j]) + _wrap(phase[i + 1, j + 1] - phase[i + 1, j])
+            - _wrap(phase[i + 1, j + 1] - phase[i, j + 1]) - _wrap(phase[i, j + 1] - phase[i, j]))
+    return abs(circ) > np.pi
 
 
 @numba.njit(nogil=True, cache=True)
