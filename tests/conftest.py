@@ -1,10 +1,13 @@
 """Shared test set-up: headless Qt, a private cache directory, fixed seeds, a
 watchdog that ends a stuck run with every thread's stack, a check at the
-end of the session that the tests left nothing running, and what makes the
-suite safe to run in parallel with pytest-xdist (tests/run.sh runs it so)."""
+end of the session that the tests left nothing running and no shared memory
+of an ended run behind, and what makes the suite safe to run in parallel
+with pytest-xdist (tests/run.sh runs it so)."""
 
 import faulthandler
+import glob
 import os
+import re
 import sys
 import tempfile
 import threading
@@ -93,6 +96,8 @@ def pytest_configure(config):
         # check at the end tells this worker's orphans from a sibling worker's (below)
         os.environ[_RUN_TAG] = f"{_xdist_worker()}-{os.getpid()}"
     config._tirdeflect_watchdog_note = path
+    config._tirdeflect_shm_seen = {}  # block of an ended run -> the test it was first seen after
+    config._tirdeflect_shm_before = _blocks_of_ended_runs()  # left by something before this session
     if not _xdist_worker():
         # the controller (or a plain run) names the file through which it stops its workers; they
         # inherit the name through their environment (a pytest run inside a test names its own)
@@ -123,9 +128,63 @@ def pytest_runtest_protocol(item, nextitem):
     yield
     faulthandler.cancel_dump_traceback_later()
     _note(item.config, "")
+    seen = item.config._tirdeflect_shm_seen
+    for name in _blocks_of_ended_runs() - seen.keys():
+        seen[name] = item.nodeid
     why = _stop_requested()
     if why and not item.session.shouldstop:  # xdist's worker loop stops after this test
         item.session.shouldstop = why
+
+
+# -- no shared memory of an ended run left behind ------------------------------------------
+# The batch engine's workers hand their maps over in /dev/shm blocks named after the run
+# (app.batch.parallel.shm_name: tdf<run pid>_<hex>); when a run ends, however it ends, the
+# blocks nobody took are freed by multiprocessing's resource tracker. After every test each
+# pytest process notes the blocks of ended runs it had not seen yet, with the test; at the end
+# of the session, once every test has ended (and with it every tracker's clean-up), the
+# controller reports the ones still there with the test they were first seen after, removes
+# them, and the session fails. A leak found this way (a worker ending with its run half way
+# through making a block) stayed in RAM until reboot.
+_SHM_DIR = "/dev/shm"
+_SHM_BLOCK = re.compile(r"tdf(\d+)_[0-9a-f]+$")
+
+
+def _blocks_of_ended_runs() -> set:
+    """Names of the /dev/shm blocks of app.batch.parallel whose run's process has ended."""
+    try:
+        names = os.listdir(_SHM_DIR)
+    except OSError:
+        return set()
+    return {n for n in names if (m := _SHM_BLOCK.match(n)) and not pid_alive(int(m.group(1)))}
+
+
+def _shm_record(config) -> str:
+    """The file through which an xdist worker hands its notes to the controller."""
+    return f"{os.environ.get(_STOP_FILE, '')}.shm.{_xdist_worker()}"
+
+
+def _shm_leaks(session) -> list:
+    """In the controller (or a plain run), after every test: ``(block, size, first seen after)``
+    for every block of an ended run seen during this session and still in /dev/shm."""
+    seen = dict(session.config._tirdeflect_shm_seen)
+    for path in glob.glob(f"{os.environ.get(_STOP_FILE, '')}.shm.gw*"):
+        with open(path) as f:
+            for line in f:
+                name, _, test = line.rstrip("\n").partition("\t")
+                seen.setdefault(name, test)
+        os.unlink(path)
+    seen = {n: t for n, t in seen.items() if n not in session.config._tirdeflect_shm_before}
+    # a run killed by one of the last tests: its resource tracker frees the blocks within a second
+    deadline = time.monotonic() + 10.0
+    while time.monotonic() < deadline and any(os.path.exists(os.path.join(_SHM_DIR, n)) for n in seen):
+        time.sleep(0.1)  # polling the trackers' clean-up, bounded by the deadline
+    leaks = []
+    for name, test in sorted(seen.items()):
+        try:
+            leaks.append((name, os.stat(os.path.join(_SHM_DIR, name)).st_size, test))
+        except OSError:
+            continue  # freed
+    return leaks
 
 
 #: environment variable naming the file whose existence tells xdist's workers to stop after their
@@ -346,6 +405,21 @@ def pytest_sessionfinish(session, exitstatus):
     import traceback
 
     session.config._tirdeflect_exitstatus = int(exitstatus)
+    if _xdist_worker():
+        with open(_shm_record(session.config), "w") as f:
+            f.writelines(f"{n}\t{t}\n" for n, t in session.config._tirdeflect_shm_seen.items())
+    else:
+        leaks = _shm_leaks(session)
+        if leaks:
+            sys.stderr.write("\nshared-memory blocks of ended runs left in /dev/shm (removed now):\n" + "".join(
+                f"  {name} ({size / 1024:.0f} KB), first seen after {test}\n" for name, size, test in leaks))
+            for name, _, _ in leaks:
+                try:
+                    os.unlink(os.path.join(_SHM_DIR, name))
+                except OSError:
+                    pass
+            if session.config._tirdeflect_exitstatus == 0:
+                session.config._tirdeflect_exitstatus = 1
     problems = []
     frames = sys._current_frames()
     for t in threading.enumerate():

@@ -38,6 +38,7 @@ import functools
 import logging
 import math
 import os
+import threading
 import uuid
 import warnings
 from pathlib import Path
@@ -305,6 +306,10 @@ def _in_dask() -> bool:
 
 #: the run's process, in one of its pool's workers (set by ``_init_worker``); None elsewhere
 _RUN_PID = None
+#: Held while a worker creates a shared-memory block (:meth:`_Shared.put`): between the file's
+#: creation in /dev/shm and its registration with the resource tracker, a worker that ends with
+#: its run (``_init_worker``'s watch thread) would leave the block for good.
+_MAKING_BLOCK = threading.Lock()
 
 
 def shm_name(run_pid: int) -> str:
@@ -334,8 +339,9 @@ class _Shared:
         arrays = [(name, np.ascontiguousarray(a)) for name, a in frame.maps.items()]
         # named after the run (a pool worker's parent is the app's fork server, not the run)
         run_pid = _RUN_PID if _RUN_PID is not None else os.getppid()
-        block = shared_memory.SharedMemory(name=shm_name(run_pid), create=True,
-                                           size=max(1, sum(a.nbytes for _, a in arrays)))
+        with _MAKING_BLOCK:  # created and registered with the resource tracker, or not at all
+            block = shared_memory.SharedMemory(name=shm_name(run_pid), create=True,
+                                               size=max(1, sum(a.nbytes for _, a in arrays)))
         layout, offset = [], 0
         for name, a in arrays:
             np.ndarray(a.shape, a.dtype, buffer=block.buf, offset=offset)[...] = a
@@ -911,7 +917,6 @@ def _init_worker(run_pid: int, parent):
     workers gone, the resource tracker frees the shared-memory blocks still held. The worker
     watches the run itself: its parent is the fork server, which lives as long as its workers."""
     import signal
-    import threading
 
     from app.worker_processes import adopt_parent_state
 
@@ -925,6 +930,8 @@ def _init_worker(run_pid: int, parent):
 
         while _process_alive(run_pid):
             time.sleep(0.5)  # polling the run: there is no portable "that process died" event
+        # not half way through making a block (what the tracker does not know of stays in /dev/shm)
+        _MAKING_BLOCK.acquire(timeout=10.0)
         os._exit(1)
 
     threading.Thread(target=exit_with_the_run, name="tirdeflect-run-watch", daemon=True).start()
