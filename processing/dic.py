@@ -47,12 +47,12 @@ accuracy table at or below FD's.
 from __future__ import annotations
 
 import math
-import os
 
 import cv2
 import numpy as np
 
 from .dic_nodes import BLUR_PX, NODE_PX, HeightNodes, NodeGrid, fine_factor, fine_reference, fits
+from .pools import thread_map
 
 __all__ = ["NODE_PX", "BLUR_PX", "INTENSITY_CELL_PX", "NodeGrid", "HeightNodes", "RefinementDiverged",
            "fine_factor", "fine_reference", "fits", "intensity_fit", "refine_height"]
@@ -335,24 +335,6 @@ def _normalised_frame(raw, blurred, warped, weight, cell_px, blur_px):
     return img
 
 
-_POOLS: dict = {}
-# a forked child inherits the pools but not their threads: it would wait on them forever
-os.register_at_fork(after_in_child=_POOLS.clear)
-
-
-def _map(fn, jobs, threads):
-    """``[fn(*job) for job in jobs]``, on ``threads`` threads when more than 1 (one
-    pool per thread count, kept for the process's life; numpy releases the GIL)."""
-    if threads <= 1 or len(jobs) < 2:
-        return [fn(*job) for job in jobs]
-    from concurrent.futures import ThreadPoolExecutor
-
-    pool = _POOLS.get(threads)
-    if pool is None:
-        pool = _POOLS[threads] = ThreadPoolExecutor(threads, thread_name_prefix="dic")
-    return list(pool.map(lambda job: fn(*job), jobs))
-
-
 def _node_sums(nodes, warped, img, w, threads):
     """``(weighted residual sum of squares, (Nrr, Nrc, Ncc, br, bc))`` of one step:
     the gradients ``g`` of ``warped``, the residual ``e = img - warped``, the node
@@ -372,7 +354,7 @@ def _node_sums(nodes, warped, img, w, threads):
     def band(b, t0, t1):
         return row_moments(warped, img, w, s, t0, t1, xd, xo, xl, firsts[b], np.empty((5, cols), np.float32))
 
-    cost = sum(_map(band, [(b, edges[b], edges[b + 1]) for b in range(n_bands)], threads))
+    cost = sum(thread_map(band, [(b, edges[b], edges[b + 1]) for b in range(n_bands)], threads))
     for b in range(n_bands):  # each band's first node row, after the previous band's share of it
         r = edges[b] + 1
         xd[:, r] += firsts[b, 0:3]

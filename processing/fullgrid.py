@@ -7,12 +7,12 @@ from __future__ import annotations
 import dataclasses
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
 
 import cv2
 import numpy as np
 
 from .fill import nearest_fill_index
+from .pools import pool
 from .result import Result
 
 __all__ = ["Upsampler", "run_pair", "resize_all", "full_coordinates", "interpolate_full", "dots_full", "full_ifft",
@@ -137,19 +137,6 @@ class Upsampler:
         return v > 0.999
 
 
-_POOL = None
-_POOL_LOCK = threading.Lock()
-
-
-def _pool():
-    global _POOL
-    if _POOL is None:
-        with _POOL_LOCK:
-            if _POOL is None:
-                _POOL = ThreadPoolExecutor(2, thread_name_prefix="tirdeflect-resize")
-    return _POOL
-
-
 def run_pair(shape, job_a, job_b, threads=2):
     """Run two full-size jobs (numpy/cv2 release the GIL), in parallel on large frames
     when ``threads`` > 1 (one thread: a worker of a parallel batch run, whose
@@ -158,7 +145,7 @@ def run_pair(shape, job_a, job_b, threads=2):
         job_a()
         job_b()
         return
-    other = _pool().submit(job_b)
+    other = pool(2).submit(job_b)
     job_a()
     other.result()
 

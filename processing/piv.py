@@ -45,6 +45,7 @@ import sys
 import numpy as np
 
 from .errors import AllInvalidError, TirdeflectError
+from .pools import thread_map
 
 __all__ = ["DotDisplacement", "FINAL_REPEATS", "MIN_WINDOW_CORRELATION", "dot_alignment", "window_correlation"]
 
@@ -298,11 +299,9 @@ def sample_spline(coef, rows, cols, threads: int = 1) -> np.ndarray:
     if threads <= 1 or n < 64:
         sample_rows(coef, rows, cols, out, 0, n)
         return out
-    from concurrent.futures import ThreadPoolExecutor
-
     bounds = np.linspace(0, n, threads + 1).astype(int)
-    with ThreadPoolExecutor(threads) as pool:
-        list(pool.map(lambda lo, hi: sample_rows(coef, rows, cols, out, lo, hi), bounds[:-1], bounds[1:]))
+    thread_map(lambda lo, hi: sample_rows(coef, rows, cols, out, lo, hi), list(zip(bounds[:-1], bounds[1:])),
+               threads)
     return out
 
 
