@@ -101,7 +101,9 @@ def child(size: int, out_dir: str, screen: str, suffix: str) -> int:
 
     def grab(name):
         path = Path(out_dir) / f"screenshot-{name}{suffix}.png"
-        app.primaryScreen().grabWindow(0).save(str(path))
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if not app.primaryScreen().grabWindow(0).save(str(path)):
+            raise RuntimeError(f"could not write {path}")
         print(f"wrote {path} (launch to first frame {w.first_frame_s:.2f} s)", flush=True)
 
     spin_until(lambda: w.first_frame_s is not None, 60, "first frame")

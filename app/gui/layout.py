@@ -13,7 +13,7 @@ from pyqtgraph.Qt import QtCore, QtWidgets
 
 from .panels import CameraPanel, GeometryPanel, RecordingPanel
 from .replay import ReplayTab
-from .views import HistogramView, ImageView, ProfileLine, ProfileView, SpectrumView
+from .views import SURFACE_PERCENTILES, HistogramView, ImageView, ProfileLine, ProfileView, SpectrumView
 from .widgets import ElidedLabel
 
 
@@ -62,10 +62,11 @@ def build_ui(w):
     grid.setSpacing(4)
     w.raw_view = ImageView("Raw frame", "counts", cmap="CET-L1", axis_units="px", pan=False)
     w.raw_view.levels_row.auto_box.setToolTip("grey levels over the sensor's full range (0 … 2^bits - 1)")
-    w.height_view = ImageView("Height", "µm", cmap="CET-D1", symmetric=True, pan=False)
-    w.disp_view = ImageView("Displacement |u|", "px", cmap="viridis")
-    w.slope_x_view = ImageView("Slope ∂h/∂x", "mrad", cmap="CET-D1", symmetric=True)
-    w.slope_y_view = ImageView("Slope ∂h/∂y", "mrad", cmap="CET-D1", symmetric=True)
+    surface = dict(levels_percentiles=SURFACE_PERCENTILES)  # a small dimple's core is not drawn flat
+    w.height_view = ImageView("Height", "µm", cmap="CET-D1", symmetric=True, pan=False, **surface)
+    w.disp_view = ImageView("Displacement |u|", "px", cmap="viridis", **surface)
+    w.slope_x_view = ImageView("Slope ∂h/∂x", "mrad", cmap="CET-D1", symmetric=True, **surface)
+    w.slope_y_view = ImageView("Slope ∂h/∂y", "mrad", cmap="CET-D1", symmetric=True, **surface)
     mask_cmap = pg.ColorMap([0.0, 1.0], [(190, 30, 30), (215, 240, 215)])  # masked red, valid pale green
     w.valid_view = ImageView("Valid (1) / masked (0)", "", cmap=mask_cmap,
                                 levels_controls=False)

@@ -9,7 +9,7 @@ from typing import Optional
 import numpy as np
 from pyqtgraph.Qt import QtCore, QtWidgets
 
-from .views import ImageView
+from .views import SURFACE_PERCENTILES, ImageView
 from .widgets import ElidedLabel
 
 __all__ = ["ReplayTab", "Recording", "RECORDING_FILTER"]
@@ -177,7 +177,8 @@ class ReplayTab(QtWidgets.QWidget):
         outer.addLayout(bar)
         views = QtWidgets.QHBoxLayout()
         self.raw = ImageView("Recorded frame", "counts", cmap="CET-L1", axis_units="px", averaged=True)
-        self.height = ImageView("Height", "µm", cmap="CET-D1", symmetric=True)
+        self.height = ImageView("Height", "µm", cmap="CET-D1", symmetric=True,
+                                levels_percentiles=SURFACE_PERCENTILES)
         views.addWidget(self.raw)
         views.addWidget(self.height)
         outer.addLayout(views, 1)

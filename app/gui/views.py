@@ -20,9 +20,14 @@ import pyqtgraph as pg
 from pyqtgraph.Qt import QtCore, QtGui, QtWidgets
 
 __all__ = ["ImageView", "ProfileView", "HistogramView", "SpectrumView", "ProfileLine", "robust_levels",
-           "format_age", "decimate_for_display", "room_for_the_last_tick"]
+           "SURFACE_PERCENTILES", "format_age", "decimate_for_display", "room_for_the_last_tick"]
 
 # every ImageItem here is created with axisOrder="row-major"; no global pyqtgraph options are changed
+
+#: Automatic colour range of the surface's maps (height, slopes, displacement): the 0.1st to 99.9th
+#: percentile (``ImageView(levels_percentiles=...)``): a feature on 0.1 % of the map sets the range,
+#: fewer stray samples than that do not.
+SURFACE_PERCENTILES = (0.1, 99.9)
 
 
 def robust_levels(data: np.ndarray, *, symmetric: bool = False, lo_pct: float = 1.0,
@@ -135,7 +140,8 @@ class _LevelsRow(QtWidgets.QWidget):
             edit.setToolTip(f"{what} value of the colour range ({view.units}); type a number and press Enter")
             edit.editingFinished.connect(self._typed)
         self.auto_box = QtWidgets.QCheckBox("auto")
-        self.auto_box.setToolTip("colour range follows the data (1st-99th percentile)")
+        lo_pct, hi_pct = view.levels_percentiles
+        self.auto_box.setToolTip(f"colour range follows the data (its {lo_pct:g} to {hi_pct:g} percentile)")
         self.auto_box.setChecked(True)
         self.symmetric_box = QtWidgets.QCheckBox("±")
         self.symmetric_box.setToolTip("colour range symmetric about zero (-m … +m)")
@@ -324,6 +330,13 @@ class ImageView(QtWidgets.QWidget):
         Let a left-drag pan the view (off where the drag belongs to a line or box on the map).
     colorbar : {"horizontal", "vertical"}
         Colour bar under the map (narrow tiles: the map keeps the width) or beside it.
+    levels_percentiles : (float, float)
+        Percentiles of the data that the automatic colour range spans (:func:`robust_levels`; the upper
+        one of ``|data|`` when ``symmetric``): (1, 99) for camera images, whose hot pixels and glints
+        must not set the range; :data:`SURFACE_PERCENTILES` for the maps of the surface, where the event
+        being watched (a disc's dimple, a drop) may cover a percent of the field: at the 99th percentile
+        its core was drawn flat in the end colour (the synthetic tank's impact: a 2.4 um dimple under a
+        +-0.85 um colour range).
     averaged : bool
         A camera image drawn smaller than it is is averaged and smoothed (:func:`decimate_for_display`:
         no moire, 0.3-0.6 ms a frame at 1024^2 in the GUI thread); otherwise every k-th pixel is drawn.
@@ -335,9 +348,10 @@ class ImageView(QtWidgets.QWidget):
     def __init__(self, title: str, units: str, *, cmap: str = "viridis", symmetric: bool = False,
                  axis_units: str = "mm", parent=None, levels_interval_s: float = 0.5,
                  levels_controls: bool = True, pan: bool = True, colorbar: str = "horizontal",
-                 averaged: bool = False):
+                 averaged: bool = False, levels_percentiles: Tuple[float, float] = (1.0, 99.0)):
         super().__init__(parent)
         self.title = title
+        self.levels_percentiles = (float(levels_percentiles[0]), float(levels_percentiles[1]))
         self.averaged = averaged
         self.units = units
         self.symmetric = symmetric
@@ -505,13 +519,17 @@ class ImageView(QtWidgets.QWidget):
         elif self.auto_levels and (data.size <= 65536 or now - self._levels_t >= self._levels_interval_s
                                    or self._shape != full_shape):
             # Small (decimated) maps are checked every frame (< 1 ms), large ones a few times per second.
-            # The colour bar (whose axis is costly to redraw) moves at once when the data range doubled or
-            # shrank to a quarter, otherwise at most every levels_interval_s and only by > 10 %.
-            lo, hi = robust_levels(data, symmetric=self.symmetric)
+            # The colour bar (whose axis is costly to redraw) moves at once when the data reach more than
+            # 10 % of the range past either end (a deepening dimple is never drawn clipped for long: with
+            # "at once only when the range doubled" the synthetic impact's 2.4 um dimple stood under a
+            # +-1.16 um range) or the range shrank to a quarter; otherwise at most every levels_interval_s
+            # and only by > 10 %.
+            lo_pct, hi_pct = self.levels_percentiles
+            lo, hi = robust_levels(data, symmetric=self.symmetric, lo_pct=lo_pct, hi_pct=hi_pct)
             old_lo, old_hi = self._levels
             span = max(old_hi - old_lo, 1e-30)
             new_span = hi - lo
-            jump = new_span > 2 * span or new_span < 0.25 * span or lo < old_lo - span or hi > old_hi + span
+            jump = new_span < 0.25 * span or lo < old_lo - 0.1 * span or hi > old_hi + 0.1 * span
             due = now - self._levels_t >= self._levels_interval_s
             moved = abs(lo - old_lo) > 0.1 * span or abs(hi - old_hi) > 0.1 * span
             if self._shape != full_shape or not self._levels_set or jump or (due and moved):

@@ -303,11 +303,12 @@ def test_colour_range_typed_auto_and_symmetric(qtbot, window, scene):
     assert view.levels == (-1.25, 3.5) and "c00" in row.min_edit.styleSheet()
     row.symmetric_box.click()  # symmetric about zero: -m..m with m the larger end
     assert view.levels == (-3.5, 3.5)
-    row.auto_box.click()  # auto: follows the data again (symmetric, 99th percentile of |h|)
+    row.auto_box.click()  # auto: follows the data again (symmetric, 99.9th percentile of |h|)
+    assert view.levels_percentiles == (0.1, 99.9) and "0.1 to 99.9 percentile" in row.auto_box.toolTip()
     n = view.updates
     qtbot.waitUntil(lambda: view.updates >= n + 2, timeout=5000)
     data = view.image.image
-    m = float(np.nanpercentile(np.abs(data[np.isfinite(data)]), 99))
+    m = float(np.nanpercentile(np.abs(data[np.isfinite(data)]), 99.9))
     lo, hi = view.levels
     assert lo == -hi and hi == pytest.approx(m, rel=0.25)
     # the raw frame: auto is the sensor's full range; a typed contrast stretch stays on new frames
