@@ -147,10 +147,16 @@ def child(size: int, out_dir: str, screen: str, suffix: str) -> int:
     spin_until(lambda: w.slope_y_view.updates > updates, 5, "the second half of the maps")
     painted = [v.graphics.painted for v in views]
     spin_until(lambda: all(v.graphics.painted > n for v, n in zip(views, painted)), 5, "paints")
-    w.frozen = True  # hold this frame while the pending paints reach the X server
+    # hold this frame while the pending paints reach the X server; the status bar keeps what it said
+    # while the maps were live (frozen, it would say what a paused display does: "shown 0.0 fps")
+    status_timer = w.findChild(QtCore.QTimer, "status_timer")
+    status_timer.stop()
+    status_timer.timeout.emit()  # the status bar of the maps on screen, then no more updates
+    w.frozen = True
     spin(0.5)
     grab("height")
     w.frozen = False
+    status_timer.start()
     e = w.height_error or {}
     if e:
         print(f"height error vs the scene's truth: {100 * e['rel_rms']:.1f} % rel. RMS ({e.get('scene')})")

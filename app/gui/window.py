@@ -142,6 +142,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self._display_timer.setTimerType(QtCore.Qt.PreciseTimer)
         self._display_timer.timeout.connect(self._refresh)
         self._status_timer = QtCore.QTimer(self)
+        self._status_timer.setObjectName("status_timer")  # docs/screenshots.py holds it while it grabs
         self._status_timer.setInterval(250)
         self._status_timer.timeout.connect(self._update_status)
         self._status_timer.start()
