@@ -12,7 +12,7 @@ measure: interior, null space removed) is what no better displacement can
 take off.  It grows with the displacement (the linear model ``u = a h + B
 grad h`` of notes.md is first order).  Then the same solve after removing two
 second-order terms, each computed from the first solve's heights (a
-measurement, not yet what the Reconstructor does):
+measurement of what ``processing.second_order.SecondOrderOptics`` does):
 
 * the reflection's nonlinearity in the slope: the exact trace of the surface
   taken as a plane at each sample (its height and gradient), less its linear
@@ -28,7 +28,8 @@ their difference: either alone is no better (the nonlinearity 0.190 -> 0.139 %
 on the accuracy table's deep dimple, 15 um, sigma 9 mm, telecentric, but worse
 with the camera at 1.5 m; the hit point alone worse everywhere); both together
 take off 95-98 % in every geometry here: 0.190 -> 0.003 %, 60 um 1.509 ->
-0.083 % (5 Dec 2026).  About 20 s.
+0.083 % (5 Dec 2026).  About 20 s.  Image matching's final solve now does this
+(``processing.second_order``) where the slopes make it count.
 """
 
 from __future__ import annotations
@@ -46,9 +47,9 @@ from processing import forward as F  # noqa: E402
 from processing.geometry import Geometry  # noqa: E402
 from processing.height import solver_for  # noqa: E402
 from processing.reconstruct import Reconstructor  # noqa: E402
+from processing.second_order import SecondOrderOptics  # noqa: E402
 
 N = 256
-EPS = 1e-3  # scale of the linear part's trace
 GEOMETRIES = {
     "theta 55, telecentric": Geometry(theta_deg=55, depth_mm=300, pixel_mm=0.1, rows_toward_camera=False),
     "theta 55, rows towards the camera": Geometry(theta_deg=55, depth_mm=300, pixel_mm=0.1, rows_toward_camera=True),
@@ -58,43 +59,18 @@ GEOMETRIES = {
 DIMPLES = ((0.001, 9.0), (0.005, 4.0), (0.015, 9.0), (0.03, 4.0), (0.06, 4.0))
 
 
-class _LocalPlanes:
-    """The surface as a plane at each ray: height ``h`` and gradient ``(gx, gy)`` (image frame) through
-    the ray's point on the flat surface ``(x0, y0)`` (arrays of the rays' shape)."""
-
-    def __init__(self, h, gx, gy, x0, y0):
-        self.h, self.gx, self.gy, self.x0, self.y0 = h, gx, gy, x0, y0
-
-    def height_and_gradient(self, x, y):
-        return self.h + self.gx * (x - self.x0) + self.gy * (y - self.y0), self.gx, self.gy
-
-
 class Grid:
-    """A decimated grid of the Reconstructor, its height solver and camera rays."""
+    """A decimated grid of the Reconstructor, its height solver and second-order optics."""
 
     def __init__(self, geometry):
         board = F.Checkerboard(period_mm=2.0, edge_softness_mm=0.1)
         ref, _ = F.render_tir(F.FlatSurface(), geometry, (N, N), board, supersample=1)
         self.template = Reconstructor(ref, geometry)(ref, grid="decimated")
         self.g = geometry
-        self.rows, self.cols = np.meshgrid(self.template.rows_px, self.template.cols_px, indexing="ij")
-        self.solver = solver_for(geometry, self.template.rows_px, self.template.cols_px, (N, N))
-        origin, d = geometry.camera_rays(self.rows, self.cols, (N, N))
-        self.x0, self.y0 = geometry.surface_point(self.rows, self.cols, (N, N))
-        # hit point's move per mm of height, image frame (x along the columns, y = row_sign * canonical y)
-        self.t = np.stack([d[..., 0] / d[..., 2], geometry.row_sign * d[..., 1] / d[..., 2]])
-        self.valid = np.ones(self.rows.shape, bool)
-
-    def gradient(self, h):
-        gy, gx = np.gradient(h, self.solver.y_mm, self.solver.x_mm)
-        return gx, gy
-
-    def trace(self, h):
-        """Exact displacement (px) of the local planes of heights ``h``."""
-        gx, gy = self.gradient(h)
-        pat, _, _, _, _ = F.trace_tir(_LocalPlanes(h, gx, gy, self.x0, self.y0), self.g, self.rows, self.cols, (N, N))
-        r0, c0 = self.g.pixel_of_pattern_point(pat[..., 0], pat[..., 1], (N, N))
-        return np.stack([self.rows - r0, self.cols - c0])
+        rows_px, cols_px = self.template.rows_px, self.template.cols_px
+        self.solver = solver_for(geometry, rows_px, cols_px, (N, N))
+        self.optics = SecondOrderOptics(geometry, rows_px, cols_px, (N, N), self.solver.x_mm, self.solver.y_mm)
+        self.valid = np.ones((rows_px.size, cols_px.size), bool)
 
     def solve(self, u):
         return np.asarray(self.solver.solve(np.asarray(u, np.float32), self.valid).height_mm, np.float64)
@@ -115,9 +91,8 @@ def main() -> int:
             u = F.true_displacement(surface, geometry, (N, N), rows_px=grid.template.rows_px,
                                     cols_px=grid.template.cols_px)[0]
             h1 = grid.solve(u)
-            nonlinear = grid.trace(h1) - grid.trace(EPS * h1) / EPS
-            gx, gy = grid.gradient(h1)
-            spacing = 1.0 + grid.t[0] * gx + grid.t[1] * gy
+            nonlinear = grid.optics.nonlinear_part(h1, grid.valid)
+            spacing = grid.optics.spacing_scale(h1, grid.valid)
             cells = [grid.error(h1, surface), grid.error(grid.solve(u - nonlinear), surface),
                      grid.error(grid.solve(u * spacing), surface),
                      grid.error(grid.solve((u - nonlinear) * spacing), surface)]
