@@ -13,6 +13,7 @@ series memory (:class:`processing.series.SeriesState`) instead of keeping it.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from typing import NamedTuple, Optional
 
@@ -30,6 +31,7 @@ from .mask import (POOR_FRAME_VALID_FRACTION, brightness_sample, choose_referenc
 from .plan import ReferencePlan, read_only
 from .refine import refine_fd, static_phase, warp_reference
 from .result import Result
+from .second_order import SECOND_ORDER_MIN_EFFECT, SecondOrderOptics
 from .series import after_unwrap, check_series, unwrap_phase
 
 __all__ = ["CheckerboardChain", "Measured", "CG_TOL", "DEFAULT_ITERATIONS"]
@@ -97,7 +99,7 @@ class CheckerboardChain(GridChain):
             region_near=read_only(self.region.near), reference_valid_everywhere=bool(self.reference_valid.all()),
             demodulation=d.plan)
         self._smooth_ref = self._smooth_static = None
-        self._g0_full = self._region_full = self._image = None
+        self._g0_full = self._region_full = self._image = self._second_order = None
 
     # ------------------------------------------------------- built on first use
     def warp_reference(self):
@@ -278,11 +280,31 @@ class CheckerboardChain(GridChain):
             except RefinementDiverged as exc:  # FD's heights below, and the reason with them
                 res.note = f"image refinement stopped: {exc}; FD's heights kept"
         if grid == "full":
-            res = interpolate_full(res, self.upsampler, self.full_coordinates(), self.height_solver(),
-                                   self.planner.threads)
+            res, second = self.to_second_order(res)
+            # the slopes of second-order heights are not the linear map of u and h: interpolated as they are
+            res = interpolate_full(res, self.upsampler, self.full_coordinates(),
+                                   None if second else self.height_solver(), self.planner.threads)
             res.timings_ms["interpolate"] = 1e3 * (time.perf_counter() - t4)
         res.timings_ms["total"] = 1e3 * (time.perf_counter() - m.t0)
         return res
+
+    def to_second_order(self, res: Result):
+        """``(res, corrected)``: the decimated heights of FD's full grid solved again without the linear
+        model's second-order terms where its slopes make them count
+        (:class:`processing.second_order.SecondOrderOptics`, ``timings_ms["second_order"]``)."""
+        hs = self.height_solver()
+        if self._second_order is None:
+            self._second_order = SecondOrderOptics(self.geometry, self.rows_px, self.cols_px, self.shape,
+                                                   hs.x_mm, hs.y_mm)
+        if self._second_order.effect(res.height, res.valid) < SECOND_ORDER_MIN_EFFECT:
+            return res, False
+        t0 = time.perf_counter()
+        u2 = self._second_order.corrected_displacement(res.displacement, res.height, res.valid)
+        surf = self.solve_height(u2, res.valid, bool(res.valid.all()))
+        res.timings_ms["second_order"] = 1e3 * (time.perf_counter() - t0)
+        return dataclasses.replace(res, height=np.asarray(surf.height_mm, np.float32),
+                                   slope_x=np.asarray(surf.slope_x, np.float32),
+                                   slope_y=np.asarray(surf.slope_y, np.float32), pin=surf.pin), True
 
     def full_reference_signal(self):
         """The reference's analytic signals on the full grid (``full_method="ifft"``, built once)."""

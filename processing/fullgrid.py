@@ -16,7 +16,7 @@ from .pools import pool
 from .result import Result
 
 __all__ = ["Upsampler", "run_pair", "resize_all", "full_coordinates", "interpolate_full", "dots_full", "full_ifft",
-           "spline_weights", "spline_matrix"]
+           "lanczos_matrix", "spline_weights", "spline_matrix"]
 
 
 def spline_weights(n_out: int, n_in: int):
@@ -42,6 +42,35 @@ def spline_coefficients(field) -> np.ndarray:
     from scipy import ndimage
 
     return ndimage.spline_filter(np.asarray(field, np.float64), order=3, mode="reflect").astype(np.float32)
+
+
+def lanczos_matrix(n_out: int, n_in: int) -> np.ndarray:
+    """(n_out, n_in) float32 matrix of cv2.resize's INTER_LANCZOS4 along one axis
+    (8 taps, pixel-centre mapping, replicated border): ``A @ f @ B.T`` is
+    ``cv2.resize(f, (n_cols_out, n_rows_out), interpolation=INTER_LANCZOS4)``
+    to float32 rounding (measured 2.5e-6 of the values at 171 -> 1024)."""
+    scale = n_in / n_out
+    A = np.zeros((n_out, n_in), np.float64)
+    s45 = 0.70710678118654752440084436210485
+    cs = ((1, 0), (-s45, -s45), (0, 1), (s45, -s45), (-1, 0), (s45, s45), (0, -1), (-s45, s45))
+    for d in range(n_out):
+        fx = np.float32((d + 0.5) * scale - 0.5)
+        sx = int(np.floor(fx))
+        x = np.float32(fx - sx)
+        y0 = -(x + 3) * np.pi * 0.25
+        s0, c0 = np.sin(y0), np.cos(y0)
+        co = np.empty(8, np.float32)
+        for i in range(8):
+            t = np.float32(x + 3 - i)
+            if abs(t) >= 1e-6:
+                y = -t * np.pi * 0.25
+                co[i] = np.float32((cs[i][0] * s0 + cs[i][1] * c0) / (y * y))
+            else:
+                co[i] = np.float32(1e30)
+        co *= np.float32(1.0 / co.sum(dtype=np.float32))
+        for i in range(8):
+            A[d, min(max(sx - 3 + i, 0), n_in - 1)] += co[i]
+    return A.astype(np.float32)
 
 
 def spline_matrix(n_out: int, n_in: int) -> np.ndarray:

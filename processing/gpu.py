@@ -27,6 +27,8 @@ What stays on the CPU, frame by frame, through the Reconstructor itself:
   samples are sequential, irregular work that the CPU path does well;
 - geometries without uniform optics (a finite camera distance: no spectral
   solver) and ``full_method="ifft"``: every frame;
+- on the full grid, a frame whose heights need the second-order solve
+  (:mod:`processing.second_order`), and the rest of its batch;
 - the cheap pattern check (frames of one recording show the reference's
   pattern; ``tirdeflect process`` checks the first frame on the CPU).
 
@@ -45,8 +47,9 @@ import time
 
 import numpy as np
 
-from .fullgrid import spline_matrix
+from .fullgrid import lanczos_matrix, spline_matrix
 from .refine import WarpReference, modulate, static_phase
+from .second_order import SecondOrderOptics, first_needing_second_order
 from .unwrap import TWO_PI
 
 __all__ = ["BatchChain", "cupy_or_reason", "lanczos_matrix", "live_device", "ran_on_gpu"]
@@ -96,35 +99,6 @@ def ran_on_gpu(result) -> bool:
     samples, folds or 2 pi jumps since the last, a series' first frame), each such Result as
     the CPU makes it. The GPU chain's Results time their whole batch (``timings_ms["batch"]``)."""
     return "batch" in getattr(result, "timings_ms", {})
-
-
-def lanczos_matrix(n_out: int, n_in: int) -> np.ndarray:
-    """(n_out, n_in) float32 matrix of cv2.resize's INTER_LANCZOS4 along one axis
-    (8 taps, pixel-centre mapping, replicated border): ``A @ f @ B.T`` is
-    ``cv2.resize(f, (n_cols_out, n_rows_out), interpolation=INTER_LANCZOS4)``
-    to float32 rounding (measured 2.5e-6 of the values at 171 -> 1024)."""
-    scale = n_in / n_out
-    A = np.zeros((n_out, n_in), np.float64)
-    s45 = 0.70710678118654752440084436210485
-    cs = ((1, 0), (-s45, -s45), (0, 1), (s45, -s45), (-1, 0), (s45, s45), (0, -1), (-s45, s45))
-    for d in range(n_out):
-        fx = np.float32((d + 0.5) * scale - 0.5)
-        sx = int(np.floor(fx))
-        x = np.float32(fx - sx)
-        y0 = -(x + 3) * np.pi * 0.25
-        s0, c0 = np.sin(y0), np.cos(y0)
-        co = np.empty(8, np.float32)
-        for i in range(8):
-            t = np.float32(x + 3 - i)
-            if abs(t) >= 1e-6:
-                y = -t * np.pi * 0.25
-                co[i] = np.float32((cs[i][0] * s0 + cs[i][1] * c0) / (y * y))
-            else:
-                co[i] = np.float32(1e30)
-        co *= np.float32(1.0 / co.sum(dtype=np.float32))
-        for i in range(8):
-            A[d, min(max(sx - 3 + i, 0), n_in - 1)] += co[i]
-    return A.astype(np.float32)
 
 
 def _wrap(xp, a):
@@ -206,6 +180,8 @@ class BatchChain:
         self.nn = float(nn)
         self.sx, self.sy_u, self.sy_h = float(F["sx"]), float(F["sy_u"]), float(F["sy_h"])
         self.coef = hs.slope_coefficients()
+        second = SecondOrderOptics(recon.geometry, recon.rows_px, recon.cols_px, recon.shape, hs.x_mm, hs.y_mm)
+        self.second = (to(second.t.astype(np.float32)), hs.y_mm, hs.x_mm) if second.applies else None
         self.smooth = None
         self.static = None
         self.staging = None  # page-locked host buffer the frames go up from (reused: each batch ends synchronised)
@@ -467,6 +443,14 @@ class BatchChain:
         phase, u, g, amplitude = phase[:n], u[:n], g[:n], amplitude[:n]
         u = self._refine(u, g, grid)
         h, sx, sy = self._height(u)
+        m = n
+        if grid == "full" and self.second is not None:
+            t, y_mm, x_mm = self.second
+            m = first_needing_second_order(self.xp, t, h, y_mm, x_mm)
+        if m < n:  # heights the CPU solves again to second order (processing.second_order), and the rest
+            if m == 0:
+                return [r.call_cpu(f, grid=grid) for f in frames]
+            n, phase, u, g, amplitude, h, sx, sy = m, phase[:m], u[:m], g[:m], amplitude[:m], h[:m], sx[:m], sy[:m]
         ph_host, series = self._check_series(phase, h)
         results = self._results(grid, u, h, sx, sy, amplitude, ph_host, n, 1e3 * (time.perf_counter() - t0),
                                 essentials, series)

@@ -22,6 +22,14 @@ the exact displacement's heights came within 0.003 % (15 um) and 0.08 %
 (60 um) of the truth, telecentric either way round and with the camera at
 1.5 m.  TIR only: FS-SS looks at the surface nearly head-on (``t`` about 0)
 through refraction, whose second order is not modelled here.
+
+Where it runs: the full grid's final height solve, where the first solve's
+slopes make the terms count (:data:`SECOND_ORDER_MIN_EFFECT`): image
+matching's (``processing.chain_image``, checkerboards and random dots) and
+FD's or no refinement's decimated heights before every pixel
+(``CheckerboardChain.to_second_order``; the GPU chain hands such frames to
+the CPU, :func:`first_needing_second_order`).  The live (decimated) grid and
+``full_method="ifft"`` keep the linear model.
 """
 
 from __future__ import annotations
@@ -31,7 +39,7 @@ import numpy as np
 from .fill import nearest_fill_index
 from .forward import trace_tir
 
-__all__ = ["SecondOrderOptics", "SECOND_ORDER_MIN_EFFECT"]
+__all__ = ["SecondOrderOptics", "SECOND_ORDER_MIN_EFFECT", "first_needing_second_order"]
 
 #: The correction runs where ``|t . grad h|`` (the hit point's relative move, which the
 #: reflection's nonlinearity matches in size) reaches this somewhere.  Below it the floor is
@@ -135,3 +143,14 @@ class SecondOrderOptics:
         if not self.applies:
             return u.astype(np.float32)
         return ((u - self.nonlinear_part(height_mm, valid)) * self.spacing_scale(height_mm, valid)).astype(np.float32)
+
+
+def first_needing_second_order(xp, t, heights, y_mm, x_mm) -> int:
+    """Index of the first of a batch of height maps ``heights`` (B, n_rows, n_cols), mm, valid
+    everywhere, whose ``|t . grad h|`` reaches :data:`SECOND_ORDER_MIN_EFFECT` (B: none), as
+    :meth:`SecondOrderOptics.effect` judges one map; ``xp``: numpy or cupy (the GPU chain's batches),
+    ``t`` a :attr:`SecondOrderOptics.t` on ``xp``, ``y_mm``, ``x_mm`` the grid's coordinates (host)."""
+    gy, gx = xp.gradient(heights, xp.asarray(y_mm), xp.asarray(x_mm), axis=(1, 2))
+    effect = xp.abs(t[0] * gx + t[1] * gy).reshape(heights.shape[0], -1).max(axis=1)
+    need = np.flatnonzero(np.asarray(effect.get() if hasattr(effect, "get") else effect) >= SECOND_ORDER_MIN_EFFECT)
+    return int(need[0]) if need.size else int(heights.shape[0])

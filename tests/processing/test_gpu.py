@@ -101,6 +101,22 @@ def test_chain_without_unwrapping_leaves_masked_frames_to_the_cpu(series):
     assert ran_on_gpu(got[1]) and not ran_on_gpu(got[2]), "the masked frame stayed on the batch"
 
 
+def test_heights_that_need_the_second_order_go_to_the_cpu(series):
+    """On the full grid the CPU solves the heights of a deep dimple again to second order
+    (processing/second_order.py); the batch hands such frames to the CPU instead of returning
+    first-order heights (0.2 % off): heights equal to the CPU's. A shallow dimple's batch stays on it."""
+    ref, frames = series
+    deep, _ = F.render_tir(F.Dimple(0.015, 9.0), G55, (N, N), BOARD, supersample=1)
+    deep = F.quantize(deep, bits=8, noise_rms=0.0, rng=np.random.default_rng(7))
+    for batch, on_chain in (([frames[0], frames[1]], [True, True]), ([deep, deep], [False, False])):
+        cpu = Reconstructor(ref, G55, refine_method="fd")
+        expected = [cpu(f, grid="full") for f in batch]
+        assert [("second_order" in r.timings_ms) for r in expected] == [not c for c in on_chain]
+        got = BatchChain(Reconstructor(ref, G55, refine_method="fd"), np)(batch, "full")
+        _compare(expected, got)
+        assert [ran_on_gpu(r) for r in got] == on_chain
+
+
 def test_chain_takes_only_what_it_reproduces(series):
     """The chain resizes with the spline (default) or Lanczos only: another full-grid
     interpolation (4 % of the RMS height apart) goes through the CPU, and the Reconstructor says why."""
