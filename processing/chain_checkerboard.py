@@ -31,7 +31,7 @@ from .mask import (POOR_FRAME_VALID_FRACTION, brightness_sample, choose_referenc
 from .plan import ReferencePlan, read_only
 from .refine import refine_fd, static_phase, warp_reference
 from .result import Result
-from .second_order import SECOND_ORDER_MIN_EFFECT, SecondOrderOptics
+from .second_order import SecondOrderOptics, solved_again
 from .series import after_unwrap, check_series, unwrap_phase
 
 __all__ = ["CheckerboardChain", "Measured", "CG_TOL", "DEFAULT_ITERATIONS"]
@@ -296,12 +296,10 @@ class CheckerboardChain(GridChain):
         if self._second_order is None:
             self._second_order = SecondOrderOptics(self.geometry, self.rows_px, self.cols_px, self.shape,
                                                    hs.x_mm, hs.y_mm)
-        if self._second_order.effect(res.height, res.valid) < SECOND_ORDER_MIN_EFFECT:
+        surf = solved_again(self._second_order, res.displacement, res.height, res.valid,
+                            lambda u2: self.solve_height(u2, res.valid, bool(res.valid.all())), res.timings_ms)
+        if surf is None:
             return res, False
-        t0 = time.perf_counter()
-        u2 = self._second_order.corrected_displacement(res.displacement, res.height, res.valid)
-        surf = self.solve_height(u2, res.valid, bool(res.valid.all()))
-        res.timings_ms["second_order"] = 1e3 * (time.perf_counter() - t0)
         return dataclasses.replace(res, height=np.asarray(surf.height_mm, np.float32),
                                    slope_x=np.asarray(surf.slope_x, np.float32),
                                    slope_y=np.asarray(surf.slope_y, np.float32), pin=surf.pin), True

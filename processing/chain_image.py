@@ -17,7 +17,7 @@ from .fill import nearest_fill_index
 from .fullgrid import interpolate_full
 from .height import solver_for
 from .result import Result
-from .second_order import SECOND_ORDER_MIN_EFFECT, SecondOrderOptics
+from .second_order import SecondOrderOptics, solved_again
 
 __all__ = ["ImageRefinement", "DotsImageRefinement", "DOTS_BLUR_PX", "DOTS_FINE"]
 
@@ -58,13 +58,12 @@ class _NodeRefinement:
         if self._second_order is None:
             self._second_order = SecondOrderOptics(self.chain.geometry, self.node_grid.rows_px,
                                                    self.node_grid.cols_px, self.chain.shape, hs.x_mm, hs.y_mm)
-        second = self._second_order.effect(surf.height_mm, valid_nodes) >= SECOND_ORDER_MIN_EFFECT
+        again = solved_again(self._second_order, u_nodes, surf.height_mm, valid_nodes,
+                             lambda u2: self._solve(hs, u2, valid_nodes), timings)
+        second = again is not None
         if second:
-            t0 = time.perf_counter()
-            u2 = self._second_order.corrected_displacement(u_nodes, surf.height_mm, valid_nodes)
-            surf = self._solve(hs, u2, valid_nodes)
+            surf = again
             valid_nodes = np.asarray(surf.valid, bool)
-            timings["second_order"] = 1e3 * (time.perf_counter() - t0)
         return surf, valid_nodes, np.where(valid_nodes, u_nodes, np.float32(np.nan)).astype(np.float32), second
 
     def _node_result(self, surf, valid_nodes, u_nodes, **fields) -> Result:

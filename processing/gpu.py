@@ -49,7 +49,7 @@ import numpy as np
 
 from .fullgrid import lanczos_matrix, spline_matrix
 from .refine import WarpReference, modulate, static_phase
-from .second_order import SecondOrderOptics, first_needing_second_order
+from .second_order import SECOND_ORDER_MIN_EFFECT, SecondOrderOptics, batch_effects
 from .unwrap import TWO_PI
 
 __all__ = ["BatchChain", "cupy_or_reason", "lanczos_matrix", "live_device", "ran_on_gpu"]
@@ -446,7 +446,8 @@ class BatchChain:
         m = n
         if grid == "full" and self.second is not None:
             t, y_mm, x_mm = self.second
-            m = first_needing_second_order(self.xp, t, h, y_mm, x_mm)
+            need = np.flatnonzero(_host(self.xp, batch_effects(self.xp, t, h, y_mm, x_mm)) >= SECOND_ORDER_MIN_EFFECT)
+            m = int(need[0]) if need.size else n
         if m < n:  # heights the CPU solves again to second order (processing.second_order), and the rest
             if m == 0:
                 return [r.call_cpu(f, grid=grid) for f in frames]

@@ -2,10 +2,11 @@
 chains use to run NumPy, OpenCV and compiled work that releases the GIL on
 several cores within one frame (:func:`thread_map`, :func:`pool`).
 
-Starting a thread costs about a millisecond on a loaded machine; a pool made
-per call (random dots' spline sampling did, twice a PIV pass) spent 15-17 ms
-of a 512^2 frame starting threads.  A forked child inherits the pools but
-not their threads, so they are forgotten in the child (it makes its own).
+Before, three modules kept pools of their own and random dots' spline
+sampling made one per call (twice a PIV pass): under cProfile the thread
+starts looked like 15-17 ms of a 512^2 frame, but timed without it the dots'
+frame was 227-236 ms either way.  A forked child inherits the pools but not
+their threads, so they are forgotten in the child (it makes its own).
 """
 
 from __future__ import annotations

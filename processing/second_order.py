@@ -28,18 +28,20 @@ slopes make the terms count (:data:`SECOND_ORDER_MIN_EFFECT`): image
 matching's (``processing.chain_image``, checkerboards and random dots) and
 FD's or no refinement's decimated heights before every pixel
 (``CheckerboardChain.to_second_order``; the GPU chain hands such frames to
-the CPU, :func:`first_needing_second_order`).  The live (decimated) grid and
+the CPU, :func:`batch_effects`).  The live (decimated) grid and
 ``full_method="ifft"`` keep the linear model.
 """
 
 from __future__ import annotations
+
+import time
 
 import numpy as np
 
 from .fill import nearest_fill_index
 from .forward import trace_tir
 
-__all__ = ["SecondOrderOptics", "SECOND_ORDER_MIN_EFFECT", "first_needing_second_order"]
+__all__ = ["SecondOrderOptics", "SECOND_ORDER_MIN_EFFECT", "batch_effects", "solved_again"]
 
 #: The correction runs where ``|t . grad h|`` (the hit point's relative move, which the
 #: reflection's nonlinearity matches in size) reaches this somewhere.  Below it the floor is
@@ -50,6 +52,7 @@ __all__ = ["SecondOrderOptics", "SECOND_ORDER_MIN_EFFECT", "first_needing_second
 #: errors that had partly cancelled the floor.  At 1e-3 only the deep dimple is corrected.
 SECOND_ORDER_MIN_EFFECT = 1e-3
 _EPS = 1e-3  # scale of the heights whose trace is the linear part
+
 
 class _LocalPlanes:
     """The surface as a plane at each ray: height ``h`` and gradient ``(gx, gy)`` (image frame,
@@ -99,17 +102,17 @@ class SecondOrderOptics:
         fill = nearest_fill_index(np.asarray(valid, bool) & np.isfinite(h))
         return np.nan_to_num(h if fill is None else h[fill[0], fill[1]])
 
-    def _gradient(self, h):
+    def _hit_move(self, h):
+        """``t . grad h`` (n_rows, n_cols) of filled heights: the hit point's relative move."""
         gy, gx = np.gradient(h, self.y_mm, self.x_mm)
-        return gx, gy
+        return gx, gy, self.t[0] * gx + self.t[1] * gy
 
     def effect(self, height_mm, valid) -> float:
         """Largest ``|t . grad h|`` on the valid samples (0 where nothing applies)."""
         v = np.asarray(valid, bool)
         if not self.applies or not v.any():
             return 0.0
-        gx, gy = self._gradient(self._filled(height_mm, v))
-        return float(np.max(np.abs(self.t[0] * gx + self.t[1] * gy)[v]))
+        return float(np.max(np.abs(self._hit_move(self._filled(height_mm, v))[2])[v]))
 
     def _trace(self, h, gx, gy):
         """Exact displacement (px, (2, n_rows, n_cols)) of the local planes; NaN where TIR is lost."""
@@ -120,19 +123,23 @@ class SecondOrderOptics:
         u[:, lost] = np.nan
         return u
 
+    def _terms(self, height_mm, valid):
+        """``(N(h), 1 + t . grad h)`` of the filled heights, their gradient taken once."""
+        h = self._filled(height_mm, valid)
+        gx, gy, move = self._hit_move(h)
+        nonlinear = np.nan_to_num(self._trace(h, gx, gy) - self._trace(_EPS * h, _EPS * gx, _EPS * gy) / _EPS)
+        return nonlinear, 1.0 + move
+
     def nonlinear_part(self, height_mm, valid) -> np.ndarray:
         """The reflection's second-order displacement (px, (2, n_rows, n_cols)) of heights ``height_mm``
         (mm; NaN or not ``valid``: the nearest valid sample's): the exact trace of the local planes less
         its linear part (the trace of the heights times 1e-3, divided by 1e-3)."""
-        h = self._filled(height_mm, valid)
-        gx, gy = self._gradient(h)
-        return np.nan_to_num(self._trace(h, gx, gy) - self._trace(_EPS * h, _EPS * gx, _EPS * gy) / _EPS)
+        return self._terms(height_mm, valid)[0]
 
     def spacing_scale(self, height_mm, valid) -> np.ndarray:
         """``1 + t . grad h`` (n_rows, n_cols): what the hit point's move with the height does to the
         slopes seen on the pixel grid."""
-        gx, gy = self._gradient(self._filled(height_mm, valid))
-        return 1.0 + self.t[0] * gx + self.t[1] * gy
+        return 1.0 + self._hit_move(self._filled(height_mm, valid))[2]
 
     def corrected_displacement(self, u, height_mm, valid) -> np.ndarray:
         """The displacement ``u`` (px, (2, n_rows, n_cols)) whose first-order heights are the surface's
@@ -142,15 +149,26 @@ class SecondOrderOptics:
         u = np.asarray(u)
         if not self.applies:
             return u.astype(np.float32)
-        return ((u - self.nonlinear_part(height_mm, valid)) * self.spacing_scale(height_mm, valid)).astype(np.float32)
+        nonlinear, scale = self._terms(height_mm, valid)
+        return ((u - nonlinear) * scale).astype(np.float32)
 
 
-def first_needing_second_order(xp, t, heights, y_mm, x_mm) -> int:
-    """Index of the first of a batch of height maps ``heights`` (B, n_rows, n_cols), mm, valid
-    everywhere, whose ``|t . grad h|`` reaches :data:`SECOND_ORDER_MIN_EFFECT` (B: none), as
-    :meth:`SecondOrderOptics.effect` judges one map; ``xp``: numpy or cupy (the GPU chain's batches),
-    ``t`` a :attr:`SecondOrderOptics.t` on ``xp``, ``y_mm``, ``x_mm`` the grid's coordinates (host)."""
+def solved_again(optics: SecondOrderOptics, u, height_mm, valid, solve, timings):
+    """``solve(u2)``, the heights ``height_mm`` (a first solve of ``u`` on ``optics``' grid, valid on
+    ``valid``) solved again without the second-order terms, where their slopes make them count (the
+    time in ``timings["second_order"]``); None where they do not.  What the chains' final solves call."""
+    if optics.effect(height_mm, valid) < SECOND_ORDER_MIN_EFFECT:
+        return None
+    t0 = time.perf_counter()
+    again = solve(optics.corrected_displacement(u, height_mm, valid))
+    timings["second_order"] = 1e3 * (time.perf_counter() - t0)
+    return again
+
+
+def batch_effects(xp, t, heights, y_mm, x_mm):
+    """Largest ``|t . grad h|`` of each of a batch of height maps ``heights`` (B, n_rows, n_cols), mm,
+    valid everywhere, as :meth:`SecondOrderOptics.effect` judges one map (compare with
+    :data:`SECOND_ORDER_MIN_EFFECT`); ``xp``: numpy or cupy (the GPU chain's batches; the result stays
+    on ``xp``), ``t`` a :attr:`SecondOrderOptics.t` on ``xp``, ``y_mm``, ``x_mm`` the grid's coordinates."""
     gy, gx = xp.gradient(heights, xp.asarray(y_mm), xp.asarray(x_mm), axis=(1, 2))
-    effect = xp.abs(t[0] * gx + t[1] * gy).reshape(heights.shape[0], -1).max(axis=1)
-    need = np.flatnonzero(np.asarray(effect.get() if hasattr(effect, "get") else effect) >= SECOND_ORDER_MIN_EFFECT)
-    return int(need[0]) if need.size else int(heights.shape[0])
+    return xp.abs(t[0] * gx + t[1] * gy).reshape(heights.shape[0], -1).max(axis=1)

@@ -158,16 +158,16 @@ def _blocks_of_ended_runs() -> set:
     return {n for n in names if (m := _SHM_BLOCK.match(n)) and not pid_alive(int(m.group(1)))}
 
 
-def _shm_record(config) -> str:
-    """The file through which an xdist worker hands its notes to the controller."""
-    return f"{os.environ.get(_STOP_FILE, '')}.shm.{_xdist_worker()}"
+def _shm_record(worker: str) -> str:
+    """The file through which xdist worker ``worker`` (a glob pattern too) hands its notes to the controller."""
+    return f"{os.environ.get(_STOP_FILE, '')}.shm.{worker}"
 
 
 def _shm_leaks(session) -> list:
     """In the controller (or a plain run), after every test: ``(block, size, first seen after)``
     for every block of an ended run seen during this session and still in /dev/shm."""
     seen = dict(session.config._tirdeflect_shm_seen)
-    for path in glob.glob(f"{os.environ.get(_STOP_FILE, '')}.shm.gw*"):
+    for path in glob.glob(_shm_record("gw*")):
         with open(path) as f:
             for line in f:
                 name, _, test = line.rstrip("\n").partition("\t")
@@ -406,7 +406,7 @@ def pytest_sessionfinish(session, exitstatus):
 
     session.config._tirdeflect_exitstatus = int(exitstatus)
     if _xdist_worker():
-        with open(_shm_record(session.config), "w") as f:
+        with open(_shm_record(_xdist_worker()), "w") as f:
             f.writelines(f"{n}\t{t}\n" for n, t in session.config._tirdeflect_shm_seen.items())
     else:
         leaks = _shm_leaks(session)
