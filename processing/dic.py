@@ -52,6 +52,7 @@ import cv2
 import numpy as np
 
 from .dic_nodes import BLUR_PX, NODE_PX, HeightNodes, NodeGrid, fine_factor, fine_reference, fits
+from .fill import nearest_fill_index
 from .pools import thread_map
 
 __all__ = ["NODE_PX", "BLUR_PX", "INTENSITY_CELL_PX", "NodeGrid", "HeightNodes", "RefinementDiverged",
@@ -291,15 +292,11 @@ def _start_heights(h0):
     """``h0`` as float64, nodes without a start given the nearest valid node's
     height (no jump at the mask's edge)."""
     h = np.asarray(h0, np.float64).copy()
-    if not np.isfinite(h).all():
-        from scipy import ndimage
-
-        bad = ~np.isfinite(h)
-        if bad.all():
-            raise _diverged("no finite starting height", "every node is NaN or infinite")
-        _, idx = ndimage.distance_transform_edt(bad, return_indices=True)
-        h = h[idx[0], idx[1]]
-    return h
+    finite = np.isfinite(h)
+    if not finite.any():
+        raise _diverged("no finite starting height", "every node is NaN or infinite")
+    fill = nearest_fill_index(finite)
+    return h if fill is None else h[fill[0], fill[1]]
 
 
 def _check_displacement(u, u_start, k, frame_shape, period_px):
