@@ -2,6 +2,7 @@
 
     python3 benchmarks/bench_scale.py [--size 1024] [--frames 96] [--max-workers N] [--no-dask]
     python3 benchmarks/bench_scale.py --writer [--baseline-rev REV] [--compression gzip] [--rounds 2] [--out-dir DIR]
+    python3 benchmarks/bench_scale.py --default-vs [REV] [--frames 1000] [--rounds 1]
 
 One HDF5 recording (ray-traced travelling waves, full grid, FFTW_ESTIMATE so
 that planning does not blur the comparison) is processed by the batch engine
@@ -24,11 +25,20 @@ flushing after every frame (writer.FLUSH_INTERVAL_S = 0), and with
 change), for --workers 1 and 2, all with FD's refinement (--refine fd: the
 trees before the image refinement know no other), so that only the writer
 differs.
+
+--default-vs (issue 22) times what a user's `tirdeflect process IN -o OUT`
+does by default (the batch engine's ProcessJob with nothing but its input
+and output: every core, the default refinement, the default FFT planning)
+on --frames frames (1,000 for the issue's figure), with this tree and with
+the code of REV (default: DEFAULT_VS_REV, the code before issue 22's speed
+work), each in a fresh process, in turn: the wall time of the whole run and
+the ratio, same recording, same machine, same minutes.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 import tempfile
@@ -42,6 +52,11 @@ ROOT = Path(__file__).resolve().parent.parent
 #: file again as their main module, must import that tree too
 TREE = os.environ.get("TIRDEFLECT_BENCH_TREE", str(ROOT))
 sys.path.insert(0, TREE)
+
+
+#: The code before issue 22's speed work (docs/processing.md section 6: "cc879fb, the code before this
+#: work"): what --default-vs compares this tree's default `process` with.
+DEFAULT_VS_REV = "cc879fb"
 
 
 def _recording(tmp: Path, size: int, n_frames: int):
@@ -73,8 +88,10 @@ def _run(path: Path, out: Path, **kw):
     from app.batch import ProcessJob, run_process
 
     stamps = []
+    kw = {"fft_effort": "estimate", **kw}
+    if kw.pop("defaults", False):  # what `tirdeflect process IN -o OUT` runs: the job's own defaults
+        kw = {}
     job = ProcessJob(reference=str(path), frames=[str(path)], out=str(out), overwrite=True,
-                     fft_effort="estimate",
                      on_progress=lambda done, total: stamps.append((time.perf_counter(), time.process_time())),
                      **kw)
     t0 = time.perf_counter()
@@ -95,8 +112,9 @@ def _child(spec: str) -> int:
     import app
     from app.batch import ProcessJob
 
-    if "refine_method" in ProcessJob.__dataclass_fields__:  # the same reconstruction in every tree:
-        spec["job"].setdefault("refine_method", "fd")  # FD's (trees before the image refinement)
+    if "refine_method" in ProcessJob.__dataclass_fields__ and not spec["job"].get("defaults"):
+        # the same reconstruction in every tree: FD's (trees before the image refinement)
+        spec["job"].setdefault("refine_method", "fd")
 
     assert Path(app.__file__).resolve().parent.parent == Path(spec["tree"]).resolve(), app.__file__
     if spec.get("flush_every_frame"):
@@ -107,19 +125,58 @@ def _child(spec: str) -> int:
     return 0
 
 
-def _writer_rounds(args, path: Path, tmp: Path) -> None:
-    """The writer of OUT.h5: this tree, this tree flushing every frame, --baseline-rev."""
+def _tree_of(rev: str, tmp: Path) -> str:
+    """The files of git revision ``rev`` of this repository, extracted under ``tmp``."""
+    import subprocess
+
+    base = tmp / f"rev-{rev}"
+    base.mkdir()
+    archive = subprocess.run(["git", "-C", str(ROOT), "archive", rev], capture_output=True, check=True).stdout
+    subprocess.run(["tar", "-x", "-C", str(base)], input=archive, check=True)
+    return str(base)
+
+
+def _in_child(tree: str, spec: dict):
+    """``(whole, steady, cpu)`` of one run of ``spec`` by the code of ``tree`` in a fresh process, or
+    the tail of its error output (str) where it failed."""
     import json
     import subprocess
 
+    proc = subprocess.run([sys.executable, __file__, "--child", json.dumps(dict(spec, tree=tree))], cwd=tree,
+                          capture_output=True, text=True, env=dict(os.environ, TIRDEFLECT_BENCH_TREE=tree))
+    if proc.returncode != 0:
+        return proc.stderr[-2000:]
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def _default_vs(args, path: Path, tmp: Path) -> None:
+    """Issue 22: `tirdeflect process` by default, this tree against the code of ``args.default_vs``."""
+    trees = [("this tree", str(ROOT)), (f"rev {args.default_vs}", _tree_of(args.default_vs, tmp))]
+    print(f"`tirdeflect process` by default (every core, default refinement and FFT planning), "
+          f"{args.frames} frames; this tree against the code of {args.default_vs}, fresh processes in turn")
+    walls = {}
+    for r in range(args.rounds):
+        for name, tree in trees[r % 2:] + trees[:r % 2]:  # order alternates
+            load = os.getloadavg()[0]
+            t0 = time.perf_counter()
+            got = _in_child(tree, dict(path=str(path), out=str(tmp / "out.h5"), job=dict(defaults=True)))
+            wall = time.perf_counter() - t0
+            if isinstance(got, str):
+                print(f"{name}: failed\n{got}")
+                continue
+            walls.setdefault(name, []).append(wall)
+            print(f"round {r}  {name:16s} load {load:5.2f}  wall {wall:7.1f} s (process start included)  "
+                  f"{got[0]:6.2f} frames/s whole run  {got[1]:6.2f} frames/s steady", flush=True)
+    (mine, *_), (old, *_) = (sorted(walls.get(name, [math.nan])) for name, _ in trees)
+    print(f"best wall time: this tree {mine:.1f} s, rev {args.default_vs} {old:.1f} s: "
+          f"x{old / mine:.2f} faster (goal of issue 22: >= 3x)")
+
+
+def _writer_rounds(args, path: Path, tmp: Path) -> None:
+    """The writer of OUT.h5: this tree, this tree flushing every frame, --baseline-rev."""
     trees = [("this tree", str(ROOT), False), ("flush every frame", str(ROOT), True)]
     if args.baseline_rev:
-        base = tmp / "baseline"
-        base.mkdir()
-        archive = subprocess.run(["git", "-C", str(ROOT), "archive", args.baseline_rev],
-                                 capture_output=True, check=True).stdout
-        subprocess.run(["tar", "-x", "-C", str(base)], input=archive, check=True)
-        trees.append((f"rev {args.baseline_rev}", str(base), False))
+        trees.append((f"rev {args.baseline_rev}", _tree_of(args.baseline_rev, tmp), False))
     where = args.out_dir or "a temporary directory"
     print(f"writer of OUT.h5, compression {args.compression}, written to {where}; 'parent CPU': CPU "
           f"time of the process that writes, per frame")
@@ -129,16 +186,13 @@ def _writer_rounds(args, path: Path, tmp: Path) -> None:
         for n in (1, 2):
             for name, tree, every in trees[r % len(trees):] + trees[:r % len(trees)]:  # order rotates
                 job = dict(workers=n, compression=args.compression)
-                spec = dict(tree=tree, flush_every_frame=every, path=str(path), out=str(out_dir / "out.h5"),
-                            job=job)
+                spec = dict(flush_every_frame=every, path=str(path), out=str(out_dir / "out.h5"), job=job)
                 load = os.getloadavg()[0]
-                proc = subprocess.run([sys.executable, __file__, "--child", json.dumps(spec)], cwd=tree,
-                                      capture_output=True, text=True,
-                                      env=dict(os.environ, TIRDEFLECT_BENCH_TREE=tree))
-                if proc.returncode != 0:
-                    print(f"{name}: failed\n{proc.stderr[-2000:]}")
+                got = _in_child(tree, spec)
+                if isinstance(got, str):
+                    print(f"{name}: failed\n{got}")
                     continue
-                whole, steady, cpu = json.loads(proc.stdout.strip().splitlines()[-1])
+                whole, steady, cpu = got
                 figures.setdefault((n, name), []).append(cpu)
                 print(f"round {r}  workers {n}  {name:20s} load {load:5.2f}  {whole:6.1f} frames/s whole run  "
                       f"{steady:6.1f} frames/s steady  parent CPU {cpu:6.1f} ms/frame", flush=True)
@@ -165,6 +219,8 @@ def main(argv=None) -> int:
     ap.add_argument("--writer", action="store_true", help="compare the writer of OUT.h5 (see above)")
     ap.add_argument("--baseline-rev", help="with --writer: also the code of this git revision")
     ap.add_argument("--compression", default="none", choices=("none", "gzip", "lzf"))
+    ap.add_argument("--default-vs", nargs="?", const=DEFAULT_VS_REV, metavar="REV",
+                    help=f"issue 22: default `process`, this tree against REV (default {DEFAULT_VS_REV})")
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--out-dir", help="with --writer: write OUT.h5 there (e.g. /dev/shm: no disk "
                                       "write-back in the figures); default: a temporary directory")
@@ -179,6 +235,9 @@ def main(argv=None) -> int:
         path = _recording(tmp, args.size, args.frames)
         if args.writer:
             _writer_rounds(args, path, tmp)
+            return 0
+        if args.default_vs:
+            _default_vs(args, path, tmp)
             return 0
         rows = []
         base = None
