@@ -430,3 +430,27 @@ def test_real_mismatched_pattern_refused():
     rec = Reconstructor(ref, fsss_geometry(), grid="decimated")
     with pytest.raises(PatternMismatchError, match="Record a new reference"):
         rec(frame)
+
+
+def test_fd_refinement_not_worse_than_none_on_the_deep_dimple_wherever_the_board_lies():
+    # Issue 19's last "worse than none" line: the accuracy table's deep dimple (15 um, sigma 9 mm; 8 bit,
+    # 8 x 8 rays) came out at 0.068 % with FD's refinement against 0.055 % without. At that level the
+    # board's phase on the pixel grid decides: shifted by fractions of its period, the same surface gave
+    # 0.05-0.16 % without refinement and 0.07-0.11 % with FD's (placements of bench_processing.py
+    # --placements, 8: FD - none -0.046 +- 0.014 points, paired). Here the table's placement and three
+    # more, 4 x 4 rays, paired on the same frames: FD's mean is below none's (measured FD 0.071-0.116 %,
+    # none 0.056-0.180 %, mean difference -0.039 points), and the table's single placement, where FD is
+    # above by 0.014, is well within the spread the placements give.
+    from benchmarks.bench_processing import placement_offsets, rel_height_error
+
+    dimple = F.Dimple(0.015, 9.0)
+    none, fd = [], []
+    for offset in placement_offsets(4):
+        ref, _ = F.render_tir(F.FlatSurface(), G55, (256, 256), BOARD, supersample=4, pattern_offset_mm=offset)
+        img, _ = F.render_tir(dimple, G55, (256, 256), BOARD, supersample=4, pattern_offset_mm=offset)
+        ref, img = F.quantize(ref, bits=8), F.quantize(img, bits=8)
+        none.append(rel_height_error(Reconstructor(ref, G55, refine_iterations=0)(img), dimple))
+        fd.append(rel_height_error(Reconstructor(ref, G55, refine_method="fd")(img), dimple))
+    d = np.subtract(fd, none)
+    assert d.mean() < 0.0, (none, fd)
+    assert max(none) - min(none) > abs(d[0]), (none, fd)  # the table's placement: within the board's spread
