@@ -485,13 +485,16 @@ def bench_dots_speed(sizes, repeats):
 def bench_piv_passes(reference, frames, repeats):
     """PIV's passes alone (the displacement of the dots' decimated grid, the
     live view's): OpenPIV's own loop (``openpiv.windef``, SciPy backend: what
-    ran before 2026-12-03) against processing/piv.py's passes (the same
-    vectors bit for bit), each backend, every core of the machine."""
+    ran before 2026-12-03) against processing/piv.py's passes with OpenPIV's
+    correlation stage on each of its backends (the same vectors bit for bit)
+    and on FFTW plans (``"fftw"``, the default: within 1e-6 px), every core
+    of the machine."""
     from processing.piv import DotDisplacement, correlation_backend
     from tests.processing.test_piv import openpiv_windef_passes
 
     threads = os.cpu_count() or 1
-    own = {b: DotDisplacement(reference, threads=threads, backend=b) for b in ("scipy", correlation_backend())}
+    own = {b: DotDisplacement(reference, threads=threads, backend=b)
+           for b in dict.fromkeys(("scipy", correlation_backend(), "fftw"))}
     img = [np.asarray(f, np.float64) for f in frames]
     fns = [lambda i: openpiv_windef_passes(own["scipy"], reference, img[i % 2], "scipy")]
     fns += [lambda i, p=p: p.passes(img[i % 2]) for p in own.values()]

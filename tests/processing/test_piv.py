@@ -259,29 +259,98 @@ def openpiv_windef_passes(piv, reference, frame, backend):
     return np.ma.filled(u, np.nan), np.ma.filled(v, np.nan), np.asarray(flags, bool)
 
 
-@pytest.mark.parametrize("backend", ["scipy", "rust"])
+@pytest.mark.parametrize("backend", ["scipy", "rust", "fftw"])
 @pytest.mark.parametrize("threads", [1, 2])
-def test_own_passes_give_openpiv_s_vectors_bit_for_bit(backend, threads):
+def test_own_passes_give_openpiv_s_vectors(backend, threads):
     # The passes are driven in processing/piv.py (spline coefficients of each image once, images moved
-    # in threads) with OpenPIV's correlation, validation and replacement: every vector, every flag
-    # equal to openpiv.windef's own loop, on waves (2-3 px) and with a flat patch whose vectors fail
-    # validation and are replaced between passes.
+    # in threads) with OpenPIV's validation and replacement, and its correlation stage on OpenPIV's
+    # backends (every vector, every flag equal to openpiv.windef's own loop, bit for bit) or on FFTW
+    # plans (processing/piv_correlate.py: every flag equal, every vector within 1e-6 px), on waves
+    # (2-3 px) and with a flat patch whose vectors fail validation and are replaced between passes.
     if backend == "rust":
         pytest.importorskip("openpiv_rust", reason="openpiv-rust has wheels for Linux x86-64 only")
-    from processing.piv import DotDisplacement
+    from processing.piv import DotDisplacement, correlation_backend
 
     waves = F.WaveField.random(6, amplitude_rms_mm=0.001, wavelength_range_mm=(12, 30), seed=3)
     ref, img = render(waves, n=192)
     img[60:100, 80:120] = np.median(img)  # lost TIR: nothing to correlate there
     piv = DotDisplacement(ref, threads=threads, backend=backend)
-    u_old, v_old, flags_old = openpiv_windef_passes(piv, ref, img, backend)
+    u_old, v_old, flags_old = openpiv_windef_passes(piv, ref, img,
+                                                    correlation_backend() if backend == "fftw" else backend)
     with np.errstate(divide="ignore", invalid="ignore"):
         u, v, flags = piv.passes(np.asarray(img, np.float64))
     assert flags_old.any() and not flags_old.all()  # the patch's windows are flagged, the rest are not
     assert np.array_equal(flags, flags_old)
-    assert np.array_equal(np.ma.filled(u, np.nan), u_old, equal_nan=True)
-    assert np.array_equal(np.ma.filled(v, np.nan), v_old, equal_nan=True)
+    u, v = np.ma.filled(u, np.nan), np.ma.filled(v, np.nan)
+    if backend == "fftw":
+        assert np.array_equal(np.isnan(u), np.isnan(u_old)) and np.array_equal(np.isnan(v), np.isnan(v_old))
+        assert np.nanmax(np.abs(u - u_old)) < 1e-6 and np.nanmax(np.abs(v - v_old)) < 1e-6
+    else:
+        assert np.array_equal(u, u_old, equal_nan=True)
+        assert np.array_equal(v, v_old, equal_nan=True)
     assert np.nanmax(np.abs(u_old)) > 1.0  # the waves move the dots by pixels, not hundredths
+
+
+def test_fftw_correlation_stage_is_openpiv_s(rng):
+    # processing/piv_correlate.py against OpenPIV's own stage functions on the same windows: the maps
+    # within 1e-15 of their scale, and on the same maps the peaks, Gaussian fits and peak-to-mean
+    # ratios equal (the fit is OpenPIV's float32 arithmetic, NumPy's logarithms), at the three window
+    # sizes of the passes, with windows of nothing to correlate (NaN vectors, parabolic fallbacks)
+    import cv2
+    from openpiv import pyprocess
+
+    from processing.piv import _quiet_openpiv, interrogation_windows
+    from processing.piv_correlate import WindowCorrelation, correlation_peaks
+
+    _quiet_openpiv()
+    a = cv2.GaussianBlur((rng.random((200, 168)) > 0.9).astype(np.float64), (0, 0), 1.0) * 200
+    a += rng.normal(0, 1, a.shape)
+    b = np.roll(a, (1, 2), (0, 1)) + rng.normal(0, 1, a.shape)
+    b[40:100, 30:90] = 50.0
+    for size in (64, 32, 16):
+        wc = WindowCorrelation(a.shape, size, size // 2)
+        theirs = pyprocess.fft_correlate_images(interrogation_windows(a, size, size // 2),
+                                                interrogation_windows(b, size, size // 2),
+                                                normalized_correlation=False, backend="scipy")
+        maps = wc.maps(a, b)
+        assert maps.shape == theirs.shape
+        assert np.abs(maps - theirs).max() < 1e-15 * np.abs(theirs).max()
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u_ref, v_ref = pyprocess.vectorized_correlation_to_displacements(theirs, None, None, "gaussian")
+            s2n_ref = pyprocess.vectorized_sig2noise_ratio(theirs, sig2noise_method="peak2mean", width=2)
+        u, v, s2n = correlation_peaks(theirs)
+        assert np.array_equal(u, u_ref, equal_nan=True) and np.array_equal(v, v_ref, equal_nan=True)
+        np.testing.assert_allclose(s2n, s2n_ref, rtol=1e-12)
+        assert np.isnan(u).any() or size > 16  # the flat patch's 16 px windows have no peak
+        u2, v2, s2n2 = wc.displacements(a, b)  # chunk by chunk: the peaks of the maps above
+        np.testing.assert_array_equal(u2.ravel(), correlation_peaks(maps)[0])
+        two = WindowCorrelation(a.shape, size, size // 2, threads=2)  # chunks on two threads: the same
+        assert all(np.array_equal(x, y, equal_nan=True) for x, y in zip(two.displacements(a, b), (u2, v2, s2n2)))
+        assert u2.shape == wc.field_shape == tuple(pyprocess.get_field_shape(a.shape, (size, size),
+                                                                             (size // 2, size // 2)))
+
+
+@pytest.mark.parametrize("backend", ["scipy", "rust"])
+def test_interrogation_windows_are_openpiv_s_own(backend, rng):
+    # processing/piv.py cuts the windows by a strided copy instead of OpenPIV's sliding_window_array
+    # (its compiled version 3.5x slower): the same samples in the same order, on sides that the windows
+    # fit exactly and on sides they do not
+    if backend == "rust":
+        pytest.importorskip("openpiv_rust", reason="openpiv-rust has wheels for Linux x86-64 only")
+    from openpiv import pyprocess
+
+    from processing.piv import interrogation_windows
+
+    for shape in ((128, 128), (131, 97), (70, 200)):
+        image = rng.integers(0, 4096, shape).astype(np.uint16)
+        for size in (16, 32, 64):
+            if min(shape) < size:
+                continue
+            ours = interrogation_windows(image, size, size // 2)
+            theirs = pyprocess.sliding_window_array(np.asarray(image, np.float64), (size, size),
+                                                    (size // 2, size // 2), backend=backend)
+            assert ours.shape == theirs.shape and ours.dtype == np.float64
+            assert np.array_equal(ours, theirs)
 
 
 def test_compiled_spline_sampler_is_ndimage_s_cubic_spline():
