@@ -143,6 +143,9 @@ class DotDisplacement:
         # is OpenPIV's stage for exactly these settings
         assert (s.correlation_method, s.normalized_correlation, s.use_vectorized, s.subpixel_method,
                 s.sig2noise_method) == ("circular", False, True, "gaussian", "peak2mean")
+        # and its validation and replacement (processing.piv_validate): these tests and this filter
+        assert (s.median_normalized, s.median_size, s.filter_method, math.isinf(s.std_threshold)) == (
+            False, 1, "localmean", True)
         self._correlations = {}
         self.window_px = window_px
         self._ref = ref.astype(np.float64)
@@ -239,19 +242,40 @@ class DotDisplacement:
             moved_ref = sample_spline(self._ref_coef, rows - half_v, cols - half_u, self.threads)
             moved_img = sample_spline(coef_img, rows + half_v, cols + half_u, self.threads)
             du, dv, s2n = self._correlate(moved_ref, moved_img, it)
-            u = np.ma.masked_array(du + u_pre, mask=np.zeros(du.shape, bool))
-            v = np.ma.masked_array(dv + v_pre, mask=np.zeros(dv.shape, bool))
-            flags = self._validation.typical_validation(u, v, s2n, s)
+            u, v, flags = self._validate(du + u_pre, dv + v_pre, s2n)
             if np.all(flags):  # OpenPIV's windef stops here too ("Something happened in the validation")
                 raise AllInvalidError(f"every PIV vector of the frame failed validation (pass {it + 1} of "
                                       f"{s.num_iterations}, {s.windowsizes[it]} px windows): check that the dots "
                                       "are in focus and lit, and that the frame shows the reference's pattern")
-            u, v = self._filters.replace_outliers(u, v, flags, method=s.filter_method,
-                                                  max_iter=s.max_filter_iteration, kernel_size=s.filter_kernel_size)
+            u, v = self._replace(u, v, flags)
             y, x = y_new, x_new
         if s.num_iterations == 1:
             flags = ~np.isfinite(u) | ~np.isfinite(v)
         return u, v, flags
+
+    def _validate(self, u, v, s2n):
+        """``(u, v, flags)`` of a pass: OpenPIV's ``typical_validation`` (compiled,
+        :func:`processing.piv_validate.outlier_flags`, with backend ``"fftw"``)."""
+        s = self.settings
+        if self.backend == "fftw":
+            from .piv_validate import outlier_flags
+
+            return u, v, outlier_flags(u, v, s2n, s.min_max_u_disp, s.min_max_v_disp, s.median_threshold,
+                                       s.sig2noise_threshold if s.sig2noise_validate else -np.inf)
+        u = np.ma.masked_array(u, mask=np.zeros(u.shape, bool))
+        v = np.ma.masked_array(v, mask=np.zeros(v.shape, bool))
+        return u, v, self._validation.typical_validation(u, v, s2n, s)
+
+    def _replace(self, u, v, flags):
+        """``(u, v)`` with the flagged vectors replaced by their neighbours' mean (OpenPIV's
+        ``replace_outliers``; compiled, :func:`processing.piv_validate.replace_outliers`, with ``"fftw"``)."""
+        s = self.settings
+        if self.backend == "fftw":
+            from .piv_validate import replace_outliers
+
+            return replace_outliers(u, v, flags, max_iter=s.max_filter_iteration, kernel_size=s.filter_kernel_size)
+        return self._filters.replace_outliers(u, v, flags, method=s.filter_method, max_iter=s.max_filter_iteration,
+                                              kernel_size=s.filter_kernel_size)
 
     def _dense(self, spline, it):
         """``spline`` (a cubic RectBivariateSpline through pass ``it``'s grid) at

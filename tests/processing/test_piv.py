@@ -353,6 +353,41 @@ def test_interrogation_windows_are_openpiv_s_own(backend, rng):
             assert np.array_equal(ours, theirs)
 
 
+def test_compiled_validation_and_replacement_are_openpiv_s(rng):
+    # processing/piv_validate.py against OpenPIV's typical_validation and replace_outliers with the
+    # passes' settings, on a smooth field with spikes, NaN vectors (peaks on a map's border), a
+    # block of NaNs that takes several replacement rounds, a few vectors out of range and a few of
+    # low signal-to-noise ratio: the same flags, the same replaced field to rounding
+    from openpiv import filters, validation
+
+    from processing.piv import DotDisplacement
+    from processing.piv_validate import outlier_flags, replace_outliers
+
+    s = DotDisplacement(np.zeros((64, 64)), window_px=16).settings
+    rows, cols = np.mgrid[:40, :50]
+    u = 2.0 * np.sin(rows / 7.0) + 0.01 * rng.normal(size=rows.shape)
+    v = 1.5 * np.cos(cols / 9.0) + 0.01 * rng.normal(size=rows.shape)
+    spikes = rng.random(u.shape) < 0.03
+    u[spikes] += rng.choice([-6.0, 5.0], spikes.sum())
+    u[rng.random(u.shape) < 0.02] = np.nan
+    v[10:15, 20:26] = np.nan
+    u[3, 3], v[7, 40] = 45.0, -33.0  # beyond the +-30 px range
+    s2n = 1.0 + 3.0 * rng.random(u.shape)
+    s2n[rng.random(u.shape) < 0.02] = 0.5
+    um, vm = np.ma.masked_array(u, mask=np.zeros(u.shape, bool)), np.ma.masked_array(v, mask=np.zeros(v.shape, bool))
+    with np.errstate(invalid="ignore"):
+        theirs = np.asarray(validation.typical_validation(um, vm, s2n, s), bool)
+    ours = outlier_flags(u, v, s2n, s.min_max_u_disp, s.min_max_v_disp, s.median_threshold, s.sig2noise_threshold)
+    assert theirs.sum() > 40 and np.array_equal(ours, theirs)
+    uf_t, vf_t = filters.replace_outliers(um, vm, theirs, method="localmean", max_iter=s.max_filter_iteration,
+                                          kernel_size=s.filter_kernel_size)
+    uf, vf = replace_outliers(u, v, ours, max_iter=s.max_filter_iteration, kernel_size=s.filter_kernel_size)
+    for a, b in ((uf, uf_t), (vf, vf_t)):
+        b = np.ma.getdata(b)
+        assert np.array_equal(np.isnan(a), np.isnan(b)) and np.isfinite(a).all()
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)
+
+
 def test_compiled_spline_sampler_is_ndimage_s_cubic_spline():
     # processing/spline_kernels.py against scipy.ndimage.map_coordinates(order=3, mode="nearest") on
     # an image of grey levels 0-255 moved by up to 20 px, partly beyond its edges, 1 and 2 threads
