@@ -34,16 +34,17 @@ def _weights(t, w):  # pragma: no cover - compiled
 
 
 @numba.njit(nogil=True, cache=True)
-def sample_rows(coef, rows, cols, out, r0, r1):  # pragma: no cover - compiled
+def sample_rows(coef, rows, cols, out, r0, r1, pad=0.0):  # pragma: no cover - compiled
     """``out[i, j]``, ``r0 <= i < r1``: the spline ``coef`` (float64, 2-D) at
-    ``(rows[i, j], cols[i, j])`` (float64, in ``coef``'s pixels)."""
+    ``(rows[i, j] + pad, cols[i, j] + pad)`` (float64, in ``coef``'s pixels;
+    ``pad``: where the caller's pixel 0 lies in a padded ``coef``)."""
     n_r, n_c = coef.shape
     wr = np.empty(4)
     wc = np.empty(4)
     for i in range(r0, r1):
         for j in range(out.shape[1]):
-            y = min(max(rows[i, j], 0.0), n_r - 1.0)
-            x = min(max(cols[i, j], 0.0), n_c - 1.0)
+            y = min(max(rows[i, j] + pad, 0.0), n_r - 1.0)
+            x = min(max(cols[i, j] + pad, 0.0), n_c - 1.0)
             fy = np.floor(y)
             fx = np.floor(x)
             _weights(y - fy, wr)
