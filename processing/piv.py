@@ -7,15 +7,15 @@ cross-correlation with window deformation (the passes of
 :func:`openpiv.windef.first_pass` and :func:`openpiv.windef.multipass_img_deform`;
 symmetric deformation, cubic spline interpolation, Gaussian sub-pixel peak),
 reference as the first image and the frame as the second.  The passes are
-driven here (:meth:`DotDisplacement.passes`) with OpenPIV's own
-validation and replacement functions, so that each image's spline
+driven here (:meth:`DotDisplacement.passes`), so that each image's spline
 coefficients are computed once instead of on every pass and the images move
-in threads.  Each pass's correlation stage (FFT correlation, Gaussian peak,
-signal-to-noise ratio) is OpenPIV's, run on FFTW plans a chunk of windows at
-a time (:mod:`processing.piv_correlate`): every vector within 1e-6 px of
-``openpiv.windef``'s, every flag equal; with ``backend="rust"`` or
-``"scipy"`` OpenPIV's own functions give its vectors bit for bit
-(tests/processing/test_piv.py).  The :class:`processing.reconstruct.Reconstructor`
+in threads.  Each pass's stages are OpenPIV's, compiled: the correlation
+(FFT correlation, Gaussian peak, signal-to-noise ratio) on FFTW plans a
+chunk of windows at a time (:mod:`processing.piv_correlate`), the validation
+and outlier replacement in two loops (:mod:`processing.piv_validate`):
+every flag equal to ``openpiv.windef``'s, every vector within 1e-6 px; with
+``backend="rust"`` or ``"scipy"`` OpenPIV's own functions give its vectors
+bit for bit (tests/processing/test_piv.py).  The :class:`processing.reconstruct.Reconstructor`
 then masks, integrates and pins the heights exactly as for checkerboards
 (``Reconstructor(reference, geometry, pattern="dots")``).
 
@@ -86,12 +86,13 @@ class DotDisplacement:
         them); OpenPIV's compiled correlations (``openpiv-rust``) use their
         own pool (``RAYON_NUM_THREADS``, set by the batch workers).
     backend : {"fftw", "rust", "scipy"}, optional
-        The correlation stage: ``"fftw"`` (default) OpenPIV's correlation,
-        peak and signal-to-noise ratio on FFTW plans a chunk of windows at a
-        time (:class:`processing.piv_correlate.WindowCorrelation`: the same
-        vectors to rounding, 2.5x faster); ``"rust"`` or ``"scipy"``
-        OpenPIV's own functions on that backend (bit for bit
-        ``openpiv.windef``'s vectors; for comparison).
+        Each pass's stages: ``"fftw"`` (default) OpenPIV's correlation, peak
+        and signal-to-noise ratio on FFTW plans a chunk of windows at a time
+        (:class:`processing.piv_correlate.WindowCorrelation`), its validation
+        and replacement compiled (:mod:`processing.piv_validate`): the same
+        flags, the vectors to rounding, 2.5x faster; ``"rust"`` or
+        ``"scipy"``: OpenPIV's own functions, correlating on that backend
+        (``openpiv.windef``'s vectors bit for bit; for comparison).
     """
 
     def __init__(self, reference, *, window_px: int = 16, max_displacement_px: float = 30.0, threads: int = 1,
