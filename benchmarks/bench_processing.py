@@ -486,9 +486,10 @@ def bench_piv_passes(reference, frames, repeats):
     """PIV's passes alone (the displacement of the dots' decimated grid, the
     live view's): OpenPIV's own loop (``openpiv.windef``, SciPy backend: what
     ran before 2026-12-03) against processing/piv.py's passes with OpenPIV's
-    correlation stage on each of its backends (the same vectors bit for bit)
-    and on FFTW plans (``"fftw"``, the default: within 1e-6 px), every core
-    of the machine."""
+    own stages correlating on each of its backends (the same vectors bit for
+    bit) and with the compiled stages (``"fftw"``, the default: correlation on
+    FFTW plans, validation and replacement compiled; within 1e-6 px), every
+    core of the machine."""
     from processing.piv import DotDisplacement, correlation_backend
     from tests.processing.test_piv import openpiv_windef_passes
 
