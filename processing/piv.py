@@ -380,11 +380,9 @@ def interrogation_windows(image, size: int, overlap: int) -> np.ndarray:
     of ``image`` that start every ``size - overlap`` pixels from its top-left
     corner, row by row (as many as fit: OpenPIV's ``get_field_shape``), the
     layout of OpenPIV's ``sliding_window_array``."""
-    from numpy.lib.stride_tricks import sliding_window_view
+    from .piv_correlate import window_view
 
-    step = size - overlap
-    view = sliding_window_view(np.asarray(image, np.float64), (size, size))[::step, ::step]
-    return np.ascontiguousarray(view).reshape(-1, size, size)
+    return np.ascontiguousarray(window_view(image, size, overlap)).reshape(-1, size, size)
 
 
 def correlation_backend() -> str:

@@ -27,7 +27,18 @@ import numpy as np
 
 from .fft import pyfftw
 
-__all__ = ["CHUNK_SAMPLES", "WindowCorrelation", "correlation_peaks"]
+__all__ = ["CHUNK_SAMPLES", "WindowCorrelation", "correlation_peaks", "window_view"]
+
+
+def window_view(image, size: int, overlap: int) -> np.ndarray:
+    """``(n_rows, n_cols, size, size)`` float64 view (no copy where ``image`` is
+    float64) of the square windows of ``image`` that start every ``size -
+    overlap`` pixels from its top-left corner, as many as fit: OpenPIV's window
+    layout (``get_field_shape``, ``sliding_window_array``)."""
+    from numpy.lib.stride_tricks import sliding_window_view
+
+    step = int(size) - int(overlap)
+    return sliding_window_view(np.asarray(image, np.float64), (size, size))[::step, ::step]
 
 
 #: Samples of one window array a chunk of windows holds (512 KB of float64): each chunk goes through
@@ -100,13 +111,10 @@ class WindowCorrelation:
     def _run(self, image_a, image_b, use):
         """``use(first window, plans)`` for each chunk once its maps are computed (zero shift at
         ``[size // 2] * 2``), the chunks shared among :attr:`threads` threads."""
-        from numpy.lib.stride_tricks import sliding_window_view
-
         from .pools import thread_map
 
         s, (n_r, n_c) = self.size, self.field_shape
-        views = [sliding_window_view(np.asarray(x, np.float64), (s, s))[::self.step, ::self.step][:n_r, :n_c]
-                 for x in (image_a, image_b)]
+        views = [window_view(x, s, s - self.step) for x in (image_a, image_b)]
 
         def work(t):
             for r0 in self.starts[t::self.threads]:

@@ -79,22 +79,10 @@ def outlier_flags(u, v, s2n, u_range, v_range, median_threshold, s2n_threshold):
 
 
 @numba.njit(nogil=True, cache=True)
-def _fill(field, max_iter, tol, k):  # pragma: no cover - compiled
+def _fill(field, at, max_iter, tol, k):  # pragma: no cover - compiled
+    """The samples ``at`` (n, 2) of ``field`` (NaN there) filled in place (:func:`replace_outliers`)."""
     rows, cols = field.shape
-    n = 0
-    for i in range(rows):
-        for j in range(cols):
-            if np.isnan(field[i, j]):
-                n += 1
-    if n == 0:
-        return
-    at = np.empty((n, 2), np.int64)
-    n = 0
-    for i in range(rows):
-        for j in range(cols):
-            if np.isnan(field[i, j]):
-                at[n, 0], at[n, 1] = i, j
-                n += 1
+    n = at.shape[0]
     old = np.zeros(n)
     new = np.empty(n)
     for _ in range(max_iter):
@@ -128,6 +116,8 @@ def replace_outliers(u, v, flags, *, max_iter: int, kernel_size: int, tol: float
     for field in (u, v):
         f = np.array(np.ma.getdata(field), np.float64, copy=True)
         f[np.asarray(flags, bool)] = np.nan
-        _fill(f, int(max_iter), float(tol), int(kernel_size))
+        at = np.argwhere(np.isnan(f))  # row-major, as OpenPIV's np.nonzero
+        if at.size:
+            _fill(f, at, int(max_iter), float(tol), int(kernel_size))
         out.append(f)
     return out[0], out[1]
