@@ -166,12 +166,12 @@ class DotsImageRefinement(_NodeRefinement):
         """``(valid_px, valid_nodes, PIV's surface at the nodes)``: the PIV
         displacement (invalid samples: the nearest valid one's) to the nodes by
         cubic spline, solved for the height there."""
-        from scipy import ndimage
+        from .piv import sample_spline, spline_coefficients
 
         fill = nearest_fill_index(valid_piv)
         src = u_piv if fill is None else u_piv[:, fill[0], fill[1]]
-        u_nodes = np.stack([ndimage.map_coordinates(np.nan_to_num(src[i]).astype(np.float64), self.at, order=3,
-                                                    mode="nearest") for i in range(2)])
+        # scipy.ndimage.map_coordinates(src, at, order=3, mode="nearest"), compiled (to 1e-13)
+        u_nodes = np.stack([sample_spline(spline_coefficients(np.nan_to_num(src[i])), *self.at) for i in range(2)])
         ng = self.node_grid
         valid_nodes = valid_piv[np.ix_(*self.pick)]
         valid_px = np.ones(self.chain.shape, bool) if valid_nodes.all() else ng.up(valid_nodes, cv2.INTER_NEAREST) > 0

@@ -217,7 +217,7 @@ class DotDisplacement:
         half way back and forth by the last pass's displacement, validated
         and with outliers replaced), with the cubic-spline coefficients of
         both images computed once instead of on every pass, the images
-        moved by :func:`sample_spline` and each pass's dense field by
+        moved half way each by :func:`sample_moved` and each pass's dense field by
         :meth:`_dense`.  ``(u, v, flags)`` of the last pass on its grid
         (OpenPIV's axes: ``u`` along the columns, ``v`` along the rows),
         ``img`` float64.  Raises AllInvalidError when every vector of a pass
@@ -236,12 +236,10 @@ class DotDisplacement:
             u_pre = RectBivariateSpline(y, x, np.nan_to_num(np.ma.filled(u, 0.0)))(y_new, x_new)
             v_pre = RectBivariateSpline(y, x, np.nan_to_num(np.ma.filled(v, 0.0)))(y_new, x_new)
             # the dense field: cubic spline through the pass's grid at every pixel
-            half_u = 0.5 * self._dense(RectBivariateSpline(y_new, x_new, u_pre, kx=3, ky=3), it)
-            half_v = 0.5 * self._dense(RectBivariateSpline(y_new, x_new, v_pre, kx=3, ky=3), it)
-            rows = np.arange(self.shape[0], dtype=np.float64)[:, None]
-            cols = np.arange(self.shape[1], dtype=np.float64)[None, :]
-            moved_ref = sample_spline(self._ref_coef, rows - half_v, cols - half_u, self.threads)
-            moved_img = sample_spline(coef_img, rows + half_v, cols + half_u, self.threads)
+            dense_u = self._dense(RectBivariateSpline(y_new, x_new, u_pre, kx=3, ky=3), it)
+            dense_v = self._dense(RectBivariateSpline(y_new, x_new, v_pre, kx=3, ky=3), it)
+            moved_ref = sample_moved(self._ref_coef, dense_v, dense_u, -0.5, self.threads)
+            moved_img = sample_moved(coef_img, dense_v, dense_u, 0.5, self.threads)
             du, dv, s2n = self._correlate(moved_ref, moved_img, it)
             u, v, flags = self._validate(du + u_pre, dv + v_pre, s2n)
             if np.all(flags):  # OpenPIV's windef stops here too ("Something happened in the validation")
@@ -349,18 +347,33 @@ def sample_spline(coef, rows, cols, threads: int = 1) -> np.ndarray:
     cols)`` (broadcast to one 2-D shape), float64
     (:func:`processing.spline_kernels.sample_rows`: ``scipy.ndimage.map_coordinates``'s
     cubic spline, compiled); the rows split among ``threads`` threads."""
+    rows, cols = np.broadcast_arrays(np.asarray(rows, np.float64), np.asarray(cols, np.float64))  # views
+    return _sample(coef, rows, cols, 0.0, 1.0, threads)
+
+
+def sample_moved(coef, disp_rows, disp_cols, scale: float, threads: int = 1) -> np.ndarray:
+    """The image of :func:`spline_coefficients` at every pixel ``(i, j)``
+    moved by ``scale`` times the displacement ``(disp_rows, disp_cols)``
+    (pixels, the image's shape): :func:`sample_spline` at ``(i + scale *
+    disp_rows, j + scale * disp_cols)``, the same floats, without building
+    the position arrays."""
+    return _sample(coef, np.asarray(disp_rows, np.float64), np.asarray(disp_cols, np.float64), 1.0, float(scale),
+                   threads)
+
+
+def _sample(coef, rows, cols, grid, scale, threads):
+    """:func:`processing.spline_kernels.sample_rows` over every row, split among ``threads`` threads."""
     from .spline_kernels import sample_rows
 
-    rows, cols = np.broadcast_arrays(np.asarray(rows, np.float64), np.asarray(cols, np.float64))  # views
     out = np.empty(rows.shape, np.float64)
     n = rows.shape[0]
     pad = float(_SPLINE_PAD)
     if threads <= 1 or n < 64:
-        sample_rows(coef, rows, cols, out, 0, n, pad)
+        sample_rows(coef, rows, cols, out, 0, n, pad, grid, scale)
         return out
     bounds = np.linspace(0, n, threads + 1).astype(int)
-    thread_map(lambda lo, hi: sample_rows(coef, rows, cols, out, lo, hi, pad), list(zip(bounds[:-1], bounds[1:])),
-               threads)
+    thread_map(lambda lo, hi: sample_rows(coef, rows, cols, out, lo, hi, pad, grid, scale),
+               list(zip(bounds[:-1], bounds[1:])), threads)
     return out
 
 

@@ -34,13 +34,21 @@ def _weights(t, w, j):  # pragma: no cover - compiled
 
 
 @numba.njit(nogil=True, cache=True)
-def sample_rows(coef, rows, cols, out, r0, r1, pad=0.0):  # pragma: no cover - compiled
+def sample_rows(coef, rows, cols, out, r0, r1, pad=0.0, grid=0.0, scale=1.0):  # pragma: no cover - compiled
     """``out[i, j]``, ``r0 <= i < r1``: the spline ``coef`` (float64, 2-D) at
-    ``(rows[i, j] + pad, cols[i, j] + pad)`` (float64, in ``coef``'s pixels;
-    ``pad``: where the caller's pixel 0 lies in a padded ``coef``).  Each row
+    ``(grid * i + scale * rows[i, j] + pad, grid * j + scale * cols[i, j] +
+    pad)`` (float64, in ``coef``'s pixels; ``pad``: where the caller's pixel
+    0 lies in a padded ``coef``): positions ``rows, cols`` with ``grid=0,
+    scale=1``, pixel ``(i, j)`` moved by ``scale`` times a displacement
+    ``(rows, cols)`` with ``grid=1`` (no position arrays to build: the
+    positions are the same floats as ``i + scale * rows[i, j]`` computed
+    apart).  Each row
     in two sweeps, the taps' first indices and weights of every pixel, then
     the sums (the same sums, 18 % faster than one sweep: 2.9 against 3.5 ms
-    a 512^2 image)."""
+    a 512^2 image).  Where all 16 taps lie inside ``coef`` (everywhere but
+    within two pixels of a padded array's edge) the sum skips the edge
+    clamps, in the same order: 1.9 against 2.9 ms, the same output bit for
+    bit."""
     n_r, n_c = coef.shape
     m = out.shape[1]
     first_r = np.empty(m, np.int64)
@@ -49,8 +57,8 @@ def sample_rows(coef, rows, cols, out, r0, r1, pad=0.0):  # pragma: no cover - c
     wc = np.empty((4, m))
     for i in range(r0, r1):
         for j in range(m):
-            y = min(max(rows[i, j] + pad, 0.0), n_r - 1.0)
-            x = min(max(cols[i, j] + pad, 0.0), n_c - 1.0)
+            y = min(max(grid * i + scale * rows[i, j] + pad, 0.0), n_r - 1.0)
+            x = min(max(grid * j + scale * cols[i, j] + pad, 0.0), n_c - 1.0)
             fy = np.floor(y)
             fx = np.floor(x)
             _weights(y - fy, wr, j)
@@ -61,11 +69,17 @@ def sample_rows(coef, rows, cols, out, r0, r1, pad=0.0):  # pragma: no cover - c
             iy = first_r[j]
             ix = first_c[j]
             acc = 0.0
-            for a in range(4):
-                ra = min(max(iy + a, 0), n_r - 1)
-                line = 0.0
-                for b in range(4):
-                    cb = min(max(ix + b, 0), n_c - 1)
-                    line += wc[b, j] * coef[ra, cb]
-                acc += wr[a, j] * line
+            if iy >= 0 and ix >= 0 and iy + 3 < n_r and ix + 3 < n_c:  # every tap inside: no clamps
+                for a in range(4):
+                    line = (wc[0, j] * coef[iy + a, ix] + wc[1, j] * coef[iy + a, ix + 1]
+                            + wc[2, j] * coef[iy + a, ix + 2] + wc[3, j] * coef[iy + a, ix + 3])
+                    acc += wr[a, j] * line
+            else:
+                for a in range(4):
+                    ra = min(max(iy + a, 0), n_r - 1)
+                    line = 0.0
+                    for b in range(4):
+                        cb = min(max(ix + b, 0), n_c - 1)
+                        line += wc[b, j] * coef[ra, cb]
+                    acc += wr[a, j] * line
             out[i, j] = acc

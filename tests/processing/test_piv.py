@@ -408,6 +408,25 @@ def test_compiled_spline_sampler_is_ndimage_s_cubic_spline():
         assert np.abs(got - expected).max() <= 1e-3  # beyond the edge: the edge's grey level either way
 
 
+def test_moving_every_pixel_by_a_displacement_samples_the_same_floats_as_the_positions():
+    # PIV's passes move both images half way by the pass's dense field (sample_moved, no position
+    # arrays): it must equal sample_spline at i + s * d, j + s * d bit for bit, with taps clamped where
+    # the field carries a pixel beyond the edge, 1 and 2 threads
+    from processing.piv import sample_moved, sample_spline, spline_coefficients
+
+    rng = np.random.default_rng(6)
+    coef = spline_coefficients(rng.random((130, 140)) * 255)
+    rows, cols = np.meshgrid(np.arange(130.0), np.arange(140.0), indexing="ij")
+    d_rows = 30 * np.sin(cols / 17) + rng.normal(0, 0.3, rows.shape)
+    d_cols = 25 * np.cos(rows / 21)
+    for scale in (-0.5, 0.5, 1.0):
+        for threads in (1, 2):
+            moved = sample_moved(coef, d_rows, d_cols, scale, threads)
+            at = sample_spline(coef, rows + scale * d_rows, cols + scale * d_cols, threads)
+            assert np.array_equal(moved, at)
+    assert ((rows + d_rows < -12) | (rows + d_rows > 141)).any()  # the clamped taps were taken
+
+
 def test_a_frame_without_any_dots_is_a_no_contrast_frame_not_a_crash(tmp_path):
     # a frame that shows no dots, only smooth light (the dot slide out of focus or taken away): every vector
     # fails OpenPIV's validation and OpenPIV's own loop stopped with "ValueError: Something happened in the
