@@ -233,6 +233,30 @@ class CameraModel:
             return S[..., 0] + t * d[..., 0], S[..., 1] + t * d[..., 1]
         return fsss_flat_trace(self, origin, d)
 
+    def board_period_mm(self, carrier_freq, frame_shape) -> float:
+        """The printed checkerboard's period along its x (mm) that carriers
+        ``carrier_freq`` (``(2, 2)``, ``(f_row, f_col)`` cycles per pixel, the
+        two diagonal peaks of :func:`processing.carriers.find_carriers`) of a
+        frame of ``frame_shape`` show through this setup, at the image centre.
+
+        The flat-surface map pixel -> pattern plane (:meth:`flat_pattern_point`)
+        has the Jacobian ``J`` (mm per pixel) there; a pattern frequency
+        ``f`` (cycles per mm) shows in the image as ``J^T f``.  Both diagonal
+        carriers of a board with periods ``p`` along x and ``p s`` along y
+        (``s = pattern_stretch_y``) have ``|f| = sqrt(1 + 1 / s^2) / p``
+        however the board is turned: ``p`` is that over the carriers'
+        mean length.  It reads ``pixel_mm``, ``theta_deg``, ``depth_mm`` and
+        the camera distance: the pattern's scale, not the surface's (the notes'
+        two magnifications), which a pinhole camera sees smaller by ``D / (D +
+        H / cos(theta))``."""
+        rows, cols = frame_shape
+        centre_r, centre_c = np.array([(rows - 1) / 2.0]), np.array([(cols - 1) / 2.0])
+        jac = _pixel_jacobian(lambda r, c: np.stack(self.flat_pattern_point(r, c, frame_shape), axis=-1),
+                              centre_r, centre_c)[0]  # (pattern x, y) x (row, col), mm per pixel
+        f_pattern = np.linalg.solve(jac.T, np.asarray(carrier_freq, np.float64).T).T  # cycles per mm
+        stretch = float(getattr(self, "pattern_stretch_y", None) or 1.0)
+        return float(math.sqrt(1.0 + 1.0 / stretch ** 2) / np.mean(np.hypot(f_pattern[:, 0], f_pattern[:, 1])))
+
     def pixel_of_pattern_point(self, px, py, frame_shape):
         """Inverse of :meth:`flat_pattern_point`: pixel ``(row, col)`` (float).
 

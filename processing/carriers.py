@@ -10,7 +10,9 @@ The method (the two diagonal peaks, sub-bin precision, theta from the aspect
 of a square pattern) is described in :mod:`processing.carrier_peaks`.  The
 checks here refuse frames whose pattern differs from the reference's
 (:class:`~processing.errors.PatternMismatchError`) or that show none
-(:class:`~processing.errors.NoCarrierError`).
+(:class:`~processing.errors.NoCarrierError`), and a reference whose board
+disagrees with the geometry's ``pattern_period_mm``
+(:func:`check_board_period`).
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ import scipy.fft
 from .carrier_peaks import (ISOLATION_RING_BINS, ISOLATION_RING_DC, ISOLATION_RING_DR, MIN_ISOLATION,  # noqa: F401
                             MIN_PEAK_CONTRAST, Carriers, as_float_image, display_bins, display_spectrum, find_carriers,
                             frame_spectrum, hann, rotation_from_carriers, theta_from_carriers)
-from .errors import NoCarrierError, PatternMismatchError
+from .errors import GeometryError, NoCarrierError, PatternMismatchError
 
 __all__ = [
     "Carriers",
@@ -33,6 +35,8 @@ __all__ = [
     "tile_origins",
     "hann",
     "check_pattern_match",
+    "check_board_period",
+    "BOARD_PERIOD_TOLERANCE",
     "match_error",
     "theta_from_carriers",
     "rotation_from_carriers",
@@ -184,6 +188,49 @@ SMEARED_ROTATION_TOL_DEG = 6.0
 SMEARED_MIN_CONTRAST = 25.0
 #: Fraction of each image side tapered by the window of that check.
 SMEARED_TAPER = 0.25
+
+
+#: Largest relative difference between the board period a reference's carriers show through the
+#: geometry and the geometry's ``pattern_period_mm`` (:func:`check_board_period`).  The measure is exact
+#: on ray-traced references (telecentric and pinhole, turned and stretched boards: 1.2000 mm for 1.2);
+#: a theta_deg 2 deg off moves it 2.5-3.5 %, so 5 % lets such a theta pass (heights hardly depend on
+#: it) and catches a pixel_mm 5 % off, which moves every height by about 10 %.
+BOARD_PERIOD_TOLERANCE = 0.05
+
+
+def check_board_period(geometry, carriers: Carriers, frame_shape) -> None:
+    """Refuse a reference whose checkerboard is not the geometry's.
+
+    Where ``geometry.pattern_period_mm`` is given, the period that the
+    reference's ``carriers`` show through ``pixel_mm``, ``theta_deg`` and the
+    camera distance (:meth:`processing.geometry.Geometry.board_period_mm`)
+    must agree with it within :data:`BOARD_PERIOD_TOLERANCE`: heights scale
+    with ``pixel_mm`` squared, and nothing else in a frame tells a wrong
+    ``pixel_mm`` apart.  Nothing is checked without ``pattern_period_mm``.
+
+    Raises
+    ------
+    GeometryError
+        Naming both periods, the ``pixel_mm`` that the board implies and the
+        keys to correct.
+    """
+    expected = geometry.pattern_period_mm
+    if expected is None:
+        return
+    seen = geometry.board_period_mm(carriers.freq, frame_shape)
+    off = seen / expected - 1.0
+    if abs(off) <= BOARD_PERIOD_TOLERANCE:
+        return
+    distance = geometry.camera_distance_mm if geometry.setup == "tir" else geometry.fsss_camera_distance_mm
+    camera = "telecentric" if distance is None else f"camera {distance:g} mm away"
+    angle = f", theta_deg = {geometry.theta_deg:g}" if geometry.setup == "tir" else ""
+    raise GeometryError(
+        f"the reference's checkerboard has a period of {seen:.4g} mm through this geometry (pixel_mm = "
+        f"{geometry.pixel_mm:g}{angle}, {camera}), but pattern_period_mm = {expected:g}: {100 * abs(off):.0f} % "
+        f"apart (more than {100 * BOARD_PERIOD_TOLERANCE:.0f} %). Heights scale with pixel_mm squared and would "
+        f"be about {100 * abs((1 + off) ** 2 - 1):.0f} % off. If the board is the one printed with that period, "
+        f"pixel_mm should be {geometry.pixel_mm * expected / seen:.4g}; otherwise correct pattern_period_mm"
+        f"{', theta_deg' if angle else ''} or the camera distance in the geometry")
 
 
 def check_pattern_match(carriers: Carriers, frame, *, period_tol: float = 0.04,

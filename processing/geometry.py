@@ -75,6 +75,7 @@ _EXAMPLES = {
     "n_air": "n_air = 1.0003",
     "fsss_camera_distance_mm": "fsss_camera_distance_mm = 800.0",
     "pattern_stretch_y": "pattern_stretch_y = 1.7434",
+    "pattern_period_mm": "pattern_period_mm = 2.0",
 }
 
 _MEANING = {
@@ -91,6 +92,8 @@ _MEANING = {
     "fsss_camera_distance_mm": "FS-SS: height of the camera above the water surface, mm (omit: telecentric)",
     "pattern_stretch_y": "cell height / width of the printed board along y (omit: square cells; "
                          "1/cos(theta) for a board printed to look square, `tirdeflect pattern --suggest`)",
+    "pattern_period_mm": "full period of the printed checkerboard along x (one dark plus one bright square), mm "
+                         "(omit: not checked; given, the reference's carriers must agree with it and pixel_mm)",
 }
 
 _REQUIRED = {
@@ -107,6 +110,7 @@ _NUMBER_UNITS = {
     "n_water": "a number (refractive index)",
     "n_air": "a number (refractive index)",
     "pattern_stretch_y": "a number (cell height / width)",
+    "pattern_period_mm": "a number of millimetres",
 }
 
 
@@ -165,6 +169,16 @@ class Geometry(CameraModel):
         ``1/cos(theta)`` looks square to a TIR camera; the theta estimate from
         the carriers' aspect divides the stretch out. It does not enter the
         heights (they depend on the displacement only).
+    pattern_period_mm : float or None
+        Full period of the printed checkerboard along its x (one dark plus
+        one bright square; along y it is ``pattern_stretch_y`` times that),
+        mm: what ``tirdeflect pattern --period-mm`` printed. None: not
+        checked. Given, a checkerboard reference's carriers measure it
+        through ``pixel_mm``, ``theta_deg`` and the camera distance
+        (:meth:`board_period_mm`), and a reconstructor refuses a reference
+        that disagrees by more than :data:`BOARD_PERIOD_TOLERANCE`: a wrong
+        ``pixel_mm`` scales every height by its square and nothing else
+        shows it.
 
     Examples
     --------
@@ -190,6 +204,7 @@ class Geometry(CameraModel):
     fsss_camera_distance_mm: float | None = None
     pattern_stretch_y: float | None = None
     pattern: str = "checkerboard"
+    pattern_period_mm: float | None = None
 
     # ------------------------------------------------------------------ validation
     def __post_init__(self) -> None:
@@ -224,7 +239,7 @@ class Geometry(CameraModel):
             raise GeometryError(
                 f"pattern_stretch_y must be a positive ratio (cell height / width), got "
                 f"{self.pattern_stretch_y!r}; omit it for square cells")
-        for key in ("depth_mm", "pixel_mm", "camera_distance_mm", "fsss_camera_distance_mm"):
+        for key in ("depth_mm", "pixel_mm", "camera_distance_mm", "fsss_camera_distance_mm", "pattern_period_mm"):
             value = getattr(self, key)
             if value is not None and value <= 0:
                 raise GeometryError(

@@ -443,13 +443,15 @@ class Suggestion:
             f"rule: image periods between {MIN_PERIOD_PX:g} and {MAX_PERIOD_PX:g} px along both image "
             f"axes, geometric mean {TARGET_PERIOD_PX:g} px (square board: x-period P/s, y-period "
             f"P cos(theta)/s; s = {self.pixel_mm:g} mm per column)",
-            f"suggested period: {self.period_mm:g} mm (squares {self.period_mm / 2:g} mm)",
+            f"suggested period: {self.period_mm:g} mm (squares {self.period_mm / 2:g} mm); set "
+            f"pattern_period_mm = {self.period_mm:g} in the geometry, and the reference is checked against pixel_mm",
             f"  square board:    {sx:.1f} px per period along x (columns), {sy:.1f} px along y (rows)",
             f"or a board stretched by 1/cos(theta) = {self.stretch_y:.4f} along y (--stretch-y "
             f"{self.stretch_y:.4f}), seen with square cells: period {self.period_stretched_mm:g} mm, cells "
             f"{self.period_stretched_mm / 2:g} x {self.period_stretched_mm * self.stretch_y / 2:.4g} mm: "
             f"{tx:.1f} px along x, {ty:.1f} px along y; then set pattern_stretch_y = {self.stretch_y:.4f} "
-            f"in the geometry so that theta estimated from the carriers accounts for the stretch",
+            f"(theta estimated from the carriers accounts for the stretch) and pattern_period_mm = "
+            f"{self.period_stretched_mm:g} in the geometry",
             f"field of view on the surface: {self.field_mm[0]:.1f} x {self.field_mm[1]:.1f} mm "
             f"({self.camera[0]} x {self.camera[1]} px); board at least {self.board_mm[0]:g} x "
             f"{self.board_mm[1]:g} mm (field + 20 %)",

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import re
@@ -145,6 +146,8 @@ def run_simulate(args) -> None:
         geometry = Geometry.from_dict(dict(DEFAULT_SIM_GEOMETRY))
     pattern = forward.Checkerboard(period_mm=SIM_PATTERN_PERIOD_PX * geometry.pixel_mm,
                                    edge_softness_mm=geometry.pixel_mm)
+    # the geometry written beside the frames names the board they show, so that it is checked
+    geometry = dataclasses.replace(geometry, pattern_period_mm=pattern.period_mm)
     target = SIM_MAX_PHASE_RAD[args.surface] if args.max_phase is None else args.max_phase
     if not (math.isfinite(target) and target > 0):
         raise TirdeflectError(f"--max-phase must be a positive number of radians; got {target}")

@@ -323,6 +323,10 @@ class GeometryPanel(QtWidgets.QWidget):
         self.theta = _spin(0, 89.9, 55, decimals=2, step=0.1, suffix=" °", exact=True)
         self.depth = _spin(0.001, 100_000, 300, decimals=3, suffix=" mm", exact=True)
         self.pixel = _spin(0.0001, 100, 0.1, decimals=5, step=0.001, suffix=" mm/px", exact=True)
+        self.board_period = _spin(0, 10_000, 0, decimals=4, step=0.1, suffix=" mm", special="not checked", exact=True)
+        self.board_period.setToolTip("full period of the printed checkerboard along its x (one dark plus one bright "
+                                     "square), as `tirdeflect pattern` printed it: the reference is then checked "
+                                     "against the scale (a wrong scale multiplies every height by its square)")
         self.rows_toward_camera = QtWidgets.QCheckBox("rows run towards camera")
         self.rows_toward_camera.setToolTip("image rows run towards the camera (checked) or away from it")
         self.camera_distance = _spin(0, 1e6, 0, decimals=1, suffix=" mm", special="telecentric", exact=True)
@@ -337,6 +341,7 @@ class GeometryPanel(QtWidgets.QWidget):
         gf.addRow("θ (incidence)", self.theta)
         gf.addRow("H (pattern depth)", self.depth)
         gf.addRow("Scale", self.pixel)
+        gf.addRow("Board period", self.board_period)
         gf.addRow("Orientation", self.rows_toward_camera)
         gf.addRow("Camera distance", self.camera_distance)
         gf.addRow("Reference region", self.region)
@@ -364,7 +369,8 @@ class GeometryPanel(QtWidgets.QWidget):
         self.load_geo_button.clicked.connect(self.load_geometry_requested.emit)
         self.save_geo_button.clicked.connect(self.save_geometry_requested.emit)
         self.confirm_geo_button.clicked.connect(self.confirm_geometry_requested.emit)
-        for w in (self.theta, self.depth, self.pixel, self.camera_distance, self.fsss_camera_distance):
+        for w in (self.theta, self.depth, self.pixel, self.board_period, self.camera_distance,
+                  self.fsss_camera_distance):
             w.valueChanged.connect(lambda *_: self.geometry_changed.emit())
         self.setup.currentTextChanged.connect(lambda *_: self._setup_changed())
         self.pattern.currentIndexChanged.connect(lambda *_: self.geometry_changed.emit())
@@ -406,6 +412,8 @@ class GeometryPanel(QtWidgets.QWidget):
             "pixel_mm": float(self.pixel.value()),
             "rows_toward_camera": bool(self.rows_toward_camera.isChecked()),
         }
+        period = self.board_period.value()
+        d["pattern_period_mm"] = None if period <= 0 else float(period)
         cd = self.camera_distance.value()
         d["camera_distance_mm"] = None if cd <= 0 else float(cd)
         region = self.region_tuple()
@@ -426,8 +434,8 @@ class GeometryPanel(QtWidgets.QWidget):
         return d
 
     def set_values(self, d: dict) -> None:
-        widgets = [self.setup, self.pattern, self.theta, self.depth, self.pixel, self.rows_toward_camera,
-                   self.camera_distance, self.fsss_camera_distance, self.fsss_layers]
+        widgets = [self.setup, self.pattern, self.theta, self.depth, self.pixel, self.board_period,
+                   self.rows_toward_camera, self.camera_distance, self.fsss_camera_distance, self.fsss_layers]
         for w in widgets:
             w.blockSignals(True)
         try:
@@ -437,6 +445,7 @@ class GeometryPanel(QtWidgets.QWidget):
                 self.theta.setValue(float(d["theta_deg"]))
             self.depth.setValue(float(d.get("depth_mm", self.depth.value())))
             self.pixel.setValue(float(d.get("pixel_mm", self.pixel.value())))
+            self.board_period.setValue(float(d.get("pattern_period_mm") or 0))
             self.rows_toward_camera.setChecked(bool(d.get("rows_toward_camera", False)))
             self.camera_distance.setValue(float(d.get("camera_distance_mm") or 0))
             self.fsss_camera_distance.setValue(float(d.get("fsss_camera_distance_mm") or 0))

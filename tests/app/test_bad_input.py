@@ -132,6 +132,17 @@ def test_theta_below_critical_angle(sim, tmp_path, capsys):
     assert_clean_error(code, err, "theta", "40")
 
 
+def test_a_pixel_size_that_the_board_contradicts_is_refused(sim, tmp_path, capsys):
+    # simulate writes the board's period into geometry.toml; a user who types pixel_mm twice too large
+    # (which would make every height 4x too large, exit 0) is told so, with the pixel_mm the board implies
+    assert "pattern_period_mm = 2.0" in (sim / "geometry.toml").read_text()
+    g = _edit_toml(sim, tmp_path, lambda t: _replace_key(t, "pixel_mm", "0.2"))
+    code, err = run_cli(capsys, *process_args(sim, tmp_path, geometry=g))
+    line = assert_clean_error(code, err, "pattern_period_mm = 2", "period of 4 mm", "pixel_mm should be 0.1;")
+    assert "300 % off" in line
+    assert not (tmp_path / "out.h5").exists()
+
+
 def test_toml_missing_key(sim, tmp_path, capsys):
     import re
 

@@ -131,6 +131,37 @@ def test_first_run_by_hand_alignment_reference_waves_heights(qtbot):
     assert gpu.isCheckable() and not gpu.isChecked()
 
 
+def _type_into(qtbot, spin, text):
+    """Select the box's number and type ``text``, then Enter: what a user does."""
+    spin.setFocus()
+    spin.selectAll()
+    qtbot.keyClicks(spin, text)
+    qtbot.keyClick(spin, QtCore.Qt.Key_Enter)
+
+
+def test_a_scale_that_contradicts_the_board_period_makes_the_reference_unusable(qtbot):
+    """The user types the printed board's period (the tank's board: 12 px at 0.078125 mm = 0.9375 mm):
+    the reference stays usable; then a scale 28 % too large (which would make every height 64 %
+    too large and show nothing wrong) is refused with the scale that the board implies."""
+    w = _window(qtbot)
+    qtbot.waitUntil(lambda: w.first_frame_s is not None, timeout=20000)
+    _capture_reference_by_hand(qtbot, w)
+    gp = w.geometry_panel
+    assert gp.board_period.text() == "not checked"
+    _type_into(qtbot, gp.board_period, "0.9375")
+    qtbot.waitUntil(lambda: w.geometry.pattern_period_mm == 0.9375 and not w.busy("reconstructor"), timeout=30000)
+    assert w.session.worker.reconstructor is not None and w.last_error is None
+    assert gp.geometry_label.text() == "geometry OK"
+
+    _type_into(qtbot, gp.pixel, "0.1")
+    qtbot.waitUntil(lambda: w.last_error is not None and "Bad reference" in w.last_error, timeout=30000)
+    assert "pattern_period_mm = 0.9375" in w.last_error and "64 % off" in w.last_error
+    implied = float(w.last_error.split("pixel_mm should be ")[1].split(";")[0])
+    assert implied == pytest.approx(0.078125, rel=0.002)
+    assert gp.reference_label.text() == "reference NOT usable"
+    assert w.banner.isVisible()
+
+
 def test_alignment_gives_numbers_on_moving_water_and_warns(qtbot):
     """On waves with no reference: periods, rotation, theta from local patches, NOT READY for a reference."""
     w = _window(qtbot)

@@ -181,7 +181,7 @@ def test_stretched_board_looks_square_and_theta_accounts_for_it():
 
     geometry = Geometry.from_dict({"setup": "tir", "theta_deg": theta, "depth_mm": 300.0,
                                    "pixel_mm": pixel_mm, "rows_toward_camera": False,
-                                   "pattern_stretch_y": s.stretch_y})
+                                   "pattern_stretch_y": s.stretch_y, "pattern_period_mm": s.period_stretched_mm})
     assert Geometry.from_toml_text(geometry.to_toml_text()) == geometry
     image, _ = forward.render(forward.FlatSurface(), geometry, (256, 256), stretched)
     carriers = find_carriers(image)
@@ -191,8 +191,9 @@ def test_stretched_board_looks_square_and_theta_accounts_for_it():
     # a square-board reading says the camera looks straight on; the stretch fixes it
     assert not abs(theta_from_carriers(carriers.freq) - theta) < 5
     assert theta_from_carriers(carriers.freq, s.stretch_y) == pytest.approx(theta, abs=0.5)
-    alignment = Reconstructor(image, geometry).alignment(image)
+    alignment = Reconstructor(image, geometry).alignment(image)  # the board's period checked and accepted
     assert alignment["theta_estimate_deg"] == pytest.approx(theta, abs=0.5)
+    assert geometry.board_period_mm(carriers.freq, image.shape) == pytest.approx(s.period_stretched_mm, rel=0.005)
 
 
 #: Run by a small launcher process: caps its address space, forks the CLI and reports the

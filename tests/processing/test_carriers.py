@@ -8,6 +8,7 @@ import pytest
 import tifffile
 
 from processing.carriers import (
+    BOARD_PERIOD_TOLERANCE,
     check_pattern_match,
     find_carriers,
     rotation_from_carriers,
@@ -168,3 +169,63 @@ def test_disturbed_surface_carriers_from_local_tiles():
     noise = np.random.default_rng(3).normal(100.0, 10.0, (512, 512))
     with pytest.raises(NoCarrierError):
         find_carriers_local(noise)
+
+
+def _board(period_mm, rotation_deg, stretch_y, softness_mm):
+    """A checkerboard of ``period_mm`` along its x, ``stretch_y`` times that along its y, turned by
+    ``rotation_deg`` on the pattern plane (a printed board laid down at an angle)."""
+    from processing import forward
+
+    square = forward.Checkerboard(period_mm=period_mm, edge_softness_mm=softness_mm)
+    c, s = math.cos(math.radians(rotation_deg)), math.sin(math.radians(rotation_deg))
+    return lambda x, y: square(c * np.asarray(x) + s * np.asarray(y), (-s * np.asarray(x) + c * np.asarray(y)) / stretch_y)
+
+
+@pytest.mark.parametrize("camera", [{}, {"camera_distance_mm": 3000.0},
+                                    {"camera_distance_mm": 2000.0, "rows_toward_camera": True}])
+@pytest.mark.parametrize("rotation_deg, stretch_y", [(0, 1.0), (9, 1.0), (0, 1 / math.cos(math.radians(55))),
+                                                     (20, 1.3)])
+def test_the_board_period_is_measured_through_the_geometry(camera, rotation_deg, stretch_y):
+    # ray-traced references of a 1.2 mm board, telecentric and pinhole cameras, turned and stretched
+    # boards: the carriers give the printed period back (a printer's scale is good to ~0.5 %)
+    from processing import Geometry, forward
+
+    geometry = Geometry.from_dict({"setup": "tir", "theta_deg": 55.0, "depth_mm": 300.0, "pixel_mm": 0.1,
+                                   "rows_toward_camera": False, **camera,
+                                   **({} if stretch_y == 1 else {"pattern_stretch_y": stretch_y})})
+    image, _ = forward.render_tir(forward.FlatSurface(), geometry, (384, 384),
+                                  _board(1.2, rotation_deg, stretch_y, 0.1), supersample=2)
+    freq = find_carriers(image).freq
+    assert geometry.board_period_mm(freq, image.shape) == pytest.approx(1.2, rel=0.002)
+    # theta 2 deg off moves it by less than the check's tolerance; pixel_mm 5 % off by 5 %
+    for theta in (53.0, 57.0):
+        off = Geometry.from_dict({**geometry.to_dict(), "theta_deg": theta}).board_period_mm(freq, image.shape)
+        assert 0.01 < abs(off / 1.2 - 1) < BOARD_PERIOD_TOLERANCE
+    wrong = Geometry.from_dict({**geometry.to_dict(), "pixel_mm": 0.105})
+    assert wrong.board_period_mm(freq, image.shape) == pytest.approx(1.26, rel=0.002)
+
+
+def test_a_wrong_pixel_size_is_refused_once_the_board_period_is_given():
+    # a wrong pixel_mm scales the heights by its square and nothing in the frames shows it; with
+    # pattern_period_mm the reference's carriers do
+    from processing import Geometry, Reconstructor, forward
+    from processing.errors import GeometryError
+
+    right = Geometry(theta_deg=55, depth_mm=300, pixel_mm=0.1, rows_toward_camera=False)
+    bump = forward.GaussianBump(0.004, 4.0)
+    ref, _ = forward.render_tir(forward.FlatSurface(), right, (256, 256), _board(1.2, 0, 1.0, 0.1), supersample=2)
+    frame, _ = forward.render_tir(bump, right, (256, 256), _board(1.2, 0, 1.0, 0.1), supersample=2)
+    rms = {}
+    for pixel_mm in (0.1, 0.15):
+        g = Geometry.from_dict({**right.to_dict(), "pixel_mm": pixel_mm})
+        rms[pixel_mm] = float(np.sqrt(np.nanmean(Reconstructor(ref, g)(frame).height ** 2)))
+        checked = Geometry.from_dict({**g.to_dict(), "pattern_period_mm": 1.2})
+        if pixel_mm == 0.1:
+            Reconstructor(ref, checked)  # the right one passes
+        else:
+            with pytest.raises(GeometryError) as err:
+                Reconstructor(ref, checked)
+            msg = str(err.value)
+            assert "pattern_period_mm = 1.2" in msg and "1.8 mm" in msg and "pixel_mm should be 0.1;" in msg
+            assert "125 % off" in msg  # 1.5^2 - 1
+    assert rms[0.15] / rms[0.1] == pytest.approx(1.5 ** 2, rel=0.05)  # what the message says
