@@ -205,6 +205,20 @@ def test_the_board_period_is_measured_through_the_geometry(camera, rotation_deg,
     assert wrong.board_period_mm(freq, image.shape) == pytest.approx(1.26, rel=0.002)
 
 
+@pytest.mark.parametrize("distance", [None, 800.0])
+def test_the_board_period_is_measured_through_an_fsss_geometry(distance):
+    # free-surface synthetic schlieren: the pattern is seen through the layers (an apparent depth),
+    # telecentric and pinhole; the same measure gives the printed 3 mm board back
+    from processing import Geometry, forward
+
+    d = {"setup": "fsss", "pixel_mm": 0.207, "n_water": 1.34, "n_air": 1.0003,
+         "fsss_layers": [[57.0, 1.0003], [12.0, 1.48899], [43.0, 1.34]]}
+    geometry = Geometry.from_dict(d if distance is None else {**d, "fsss_camera_distance_mm": distance})
+    image, _ = forward.render(forward.FlatSurface(), geometry, (384, 384),
+                              forward.Checkerboard(period_mm=3.0, edge_softness_mm=0.2))
+    assert geometry.board_period_mm(find_carriers(image).freq, image.shape) == pytest.approx(3.0, rel=0.002)
+
+
 def test_a_wrong_pixel_size_is_refused_once_the_board_period_is_given():
     # a wrong pixel_mm scales the heights by its square and nothing in the frames shows it; with
     # pattern_period_mm the reference's carriers do
