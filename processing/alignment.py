@@ -577,7 +577,8 @@ def checkerboard_alignment(demod, search: CarrierSearch, reference: Carriers, fr
                    theta_estimate_deg=float("nan"), focus=0.0, error=str(exc))
         return out, shown
     theta = theta_configured_deg if theta_configured_deg is not None else 0.0
-    out.update(periods_px=np.asarray(c.periods_px, float), rotation_deg=float(c.rotation_deg),
+    out.update(periods_px=np.asarray(c.periods_px, float), carrier_freq=np.asarray(c.freq, float),
+               rotation_deg=float(c.rotation_deg),
                surface_rotation_deg=c.surface_rotation_deg(theta),
                theta_estimate_deg=theta_from_carriers(c.freq, pattern_stretch_y or 1.0),
                focus=float(np.min(c.sharpness)), disturbed=disturbed,

@@ -68,6 +68,8 @@ class LiveView:
             theta_configured_deg=(float(g.theta_deg) if getattr(g, "setup", "tir") == "tir" else None),
             pattern_stretch_y=getattr(g, "pattern_stretch_y", None) or 1.0)
         out["saturation_pct"] = saturation_pct(frame)
+        if "carrier_freq" in out:  # the board's period through the scale (Geometry.board_period_mm)
+            out["board_period_mm"] = g.board_period_mm(out["carrier_freq"], frame.shape)
         # the display spectrum of the same FFT, for spectrum(frame) right after (the live worker's order)
         self._shown = (frame_key(frame), shown)
         return out

@@ -346,7 +346,10 @@ class Reconstructor:
             ``modulation_rows_px``, ``modulation_cols_px``, ``contrast`` (its
             median), ``amplitude`` (map ``|g|/|g0|``), ``saturation_pct``
             (pixels at the top code of the frame's bit depth), ``error``
-            (only when the frame shows no pattern), ``disturbed`` (True when the carriers
+            (only when the frame shows no pattern), ``carrier_freq`` (2, 2) of
+            the frame, ``board_period_mm`` (the printed board's period that
+            they show through the geometry, :meth:`processing.geometry.Geometry.board_period_mm`),
+            ``disturbed`` (True when the carriers
             came from local tiles because the surface distorts the pattern: not still water).  Random dots
             (``pattern="dots"``): :func:`processing.piv.dot_alignment` of the
             frame (``dot_size_px``, ``dots_per_window``, ``contrast``,

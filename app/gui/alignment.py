@@ -118,7 +118,7 @@ def _looks_like_dots(frame: np.ndarray) -> bool:
 
 
 def frame_alignment(frame: np.ndarray, theta_configured_deg: Optional[float] = None,
-                    pattern: str = "checkerboard"):
+                    pattern: str = "checkerboard", geometry=None):
     """``(alignment_dict, spectrum_dict)`` of a live frame without reference.
 
     ``pattern="dots"``: :func:`processing.piv.dot_alignment` of the frame
@@ -130,8 +130,10 @@ def frame_alignment(frame: np.ndarray, theta_configured_deg: Optional[float] = N
     ``theta_configured_deg``, ``focus`` (carrier peak sharpness, 0..1), ``modulation``
     (map, see :func:`modulation_map`), ``contrast`` (its median) and ``disturbed``
     (the pattern is distorted by a moving surface: carriers from local tiles,
-    :func:`processing.carriers.find_carriers_live`) -- or ``error`` with the
-    message of :class:`processing.errors.NoCarrierError`.
+    :func:`processing.carriers.find_carriers_live`), with a ``geometry`` also
+    ``board_period_mm`` (the printed board's period that the carriers show
+    through it) -- or ``error`` with the message of
+    :class:`processing.errors.NoCarrierError`.
     """
     from processing.carriers import find_carriers_live
 
@@ -174,6 +176,8 @@ def frame_alignment(frame: np.ndarray, theta_configured_deg: Optional[float] = N
     }
     if theta_configured_deg is not None:
         a["theta_configured_deg"] = float(theta_configured_deg)
+    if geometry is not None:
+        a["board_period_mm"] = geometry.board_period_mm(c.freq, frame.shape)
     return a, spectrum
 
 
@@ -273,6 +277,29 @@ def _assess_dots(a: dict, saturation_pct: float, geometry, has_reference: bool, 
     return (not reasons), reasons, lines, notes
 
 
+def _check_board_period(period_mm, geometry, reasons, lines) -> None:
+    """The board's period through the scale (a line) and, where the geometry names the printed
+    one (``pattern_period_mm``), a reason not to measure when they disagree by more than
+    :data:`processing.carriers.BOARD_PERIOD_TOLERANCE` (a wrong scale multiplies every height by
+    its square)."""
+    from processing.carriers import BOARD_PERIOD_TOLERANCE
+
+    if period_mm is None or not np.isfinite(period_mm) or geometry is None:
+        return
+    printed = geometry.pattern_period_mm
+    if printed is None:
+        lines.append(("board period", f"{period_mm:.4g} mm through the scale (printed: not given)"))
+        return
+    off = period_mm / printed - 1.0
+    lines.append(("board period", f"{period_mm:.4g} mm through the scale vs {printed:g} mm printed "
+                                  f"(Δ {100 * off:+.1f} %)"))
+    if abs(off) > BOARD_PERIOD_TOLERANCE:
+        reasons.append(f"the board's period through the scale ({period_mm:.4g} mm) is {100 * off:+.0f} % off the "
+                       f"printed {printed:g} mm: the scale (pixel_mm {geometry.pixel_mm:g}) should be about "
+                       f"{geometry.pixel_mm * printed / period_mm:.4g} mm/px, or the board period or θ is wrong "
+                       "(Controls ▸ Reference & geometry)")
+
+
 def assess(a: dict, saturation_pct: float, geometry=None, has_reference: bool = False,
            pattern_problem: Optional[str] = None):
     """Decide "ready to measure" from alignment metrics.
@@ -358,6 +385,7 @@ def assess(a: dict, saturation_pct: float, geometry=None, has_reference: bool = 
                 reasons.append(f"θ from the pattern differs by {diff:+.1f}° from the geometry's: check θ "
                                "(Controls ▸ Reference & geometry) or the camera's tilt")
         lines.append(("θ", th_text))
+    _check_board_period(a.get("board_period_mm"), geometry, reasons, lines)
     mod = a.get("modulation")
     contrast = num("contrast", "modulation_median")
     if contrast is None and mod is not None:

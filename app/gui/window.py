@@ -383,7 +383,7 @@ class MainWindow(QtWidgets.QMainWindow):
         from .alignment import frame_alignment
         geometry = self.geometry
         return frame_alignment(frame, getattr(geometry, "theta_deg", None),
-                               pattern=getattr(geometry, "pattern", "checkerboard"))
+                               pattern=getattr(geometry, "pattern", "checkerboard"), geometry=geometry)
 
     # ------------------------------------------------------------- replay
     # replay_flow.py

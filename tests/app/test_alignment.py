@@ -58,3 +58,22 @@ def test_theta_and_pattern_changes_are_flagged(tank):
     same = dict(a, reference_periods_px=np.asarray(a["periods_px"]) * 1.005,
                 reference_rotation_deg=a["rotation_deg"] + 0.2)
     assert assess(same, 0.0, tank.geometry, has_reference=True)[0]
+
+
+def test_the_board_period_through_the_scale_is_shown_and_checked(tank):
+    # the tank's board: 12 px at 0.078125 mm = 0.9375 mm; frames of still water and of waves
+    for frame in (tank(0), tank(1)):
+        a, _ = frame_alignment(frame, tank.geometry.theta_deg, geometry=tank.geometry)
+        assert a["board_period_mm"] == pytest.approx(0.9375, rel=0.003)
+        ready, _, lines, _ = assess(a, 0.0, tank.geometry)  # no printed period given: shown, not checked
+        assert ready and dict(lines)["board period"].endswith("(printed: not given)")
+    a, _ = frame_alignment(tank(0), tank.geometry.theta_deg, geometry=tank.geometry)
+    printed = Geometry.from_dict({**tank.geometry.to_dict(), "pattern_period_mm": 0.9375})
+    ready, reasons, lines, _ = assess(a, 0.0, printed)
+    assert ready, reasons
+    assert "vs 0.9375 mm printed (Δ +0.0 %)" in dict(lines)["board period"] or "(Δ -0.0 %)" in dict(lines)["board period"]
+    # the scale 8 % too large: heights 17 % too large, and the alignment says which scale the board implies
+    wrong = Geometry.from_dict({**printed.to_dict(), "pixel_mm": 0.078125 * 1.08})
+    a, _ = frame_alignment(tank(0), wrong.theta_deg, geometry=wrong)
+    ready, reasons, _, _ = assess(a, 0.0, wrong)
+    assert not ready and any("+8 % off the printed 0.9375 mm" in r and "about 0.0781" in r for r in reasons)

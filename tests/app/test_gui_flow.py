@@ -152,6 +152,15 @@ def test_a_scale_that_contradicts_the_board_period_makes_the_reference_unusable(
     qtbot.waitUntil(lambda: w.geometry.pattern_period_mm == 0.9375 and not w.busy("reconstructor"), timeout=30000)
     assert w.session.worker.reconstructor is not None and w.last_error is None
     assert gp.geometry_label.text() == "geometry OK"
+    _click_tab(qtbot, w, "Alignment")  # the board through the scale, beside the printed one
+
+    def shown(text):
+        line = (getattr(w, "alignment_metrics", None) or {}).get("board period", "")
+        return text in line
+
+    qtbot.waitUntil(lambda: shown("vs 0.9375 mm printed"), timeout=20000)
+    period = float(w.alignment_metrics["board period"].split()[0])
+    assert period == pytest.approx(0.9375, rel=0.005) and w.ready_label.text() == "READY TO MEASURE"
 
     _type_into(qtbot, gp.pixel, "0.1")
     qtbot.waitUntil(lambda: w.last_error is not None and "Bad reference" in w.last_error, timeout=30000)
@@ -160,6 +169,10 @@ def test_a_scale_that_contradicts_the_board_period_makes_the_reference_unusable(
     assert implied == pytest.approx(0.078125, rel=0.002)
     assert gp.reference_label.text() == "reference NOT usable"
     assert w.banner.isVisible()
+    # and the Alignment tab, from the live frames alone now, says why it is not ready
+    qtbot.waitUntil(lambda: shown("vs 0.9375 mm printed (Δ +28."), timeout=20000)
+    qtbot.waitUntil(lambda: "should be about 0.078" in w.ready_label.text(), timeout=20000)
+    assert w.ready_label.text().startswith("NOT READY")
 
 
 def test_alignment_gives_numbers_on_moving_water_and_warns(qtbot):

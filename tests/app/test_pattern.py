@@ -194,6 +194,7 @@ def test_stretched_board_looks_square_and_theta_accounts_for_it():
     alignment = Reconstructor(image, geometry).alignment(image)  # the board's period checked and accepted
     assert alignment["theta_estimate_deg"] == pytest.approx(theta, abs=0.5)
     assert geometry.board_period_mm(carriers.freq, image.shape) == pytest.approx(s.period_stretched_mm, rel=0.005)
+    assert alignment["board_period_mm"] == pytest.approx(s.period_stretched_mm, rel=0.005)  # the Alignment tab's
 
 
 #: Run by a small launcher process: caps its address space, forks the CLI and reports the
