@@ -324,9 +324,11 @@ class GeometryPanel(QtWidgets.QWidget):
         self.depth = _spin(0.001, 100_000, 300, decimals=3, suffix=" mm", exact=True)
         self.pixel = _spin(0.0001, 100, 0.1, decimals=5, step=0.001, suffix=" mm/px", exact=True)
         self.board_period = _spin(0, 10_000, 0, decimals=4, step=0.1, suffix=" mm", special="not checked", exact=True)
-        self.board_period.setToolTip("full period of the printed checkerboard along its x (one dark plus one bright "
-                                     "square), as `tirdeflect pattern` printed it: the reference is then checked "
-                                     "against the scale (a wrong scale multiplies every height by its square)")
+        self.board_period.setToolTip("pattern_period_mm: full period of the printed checkerboard along its x (one "
+                                     "dark plus one bright square), as `tirdeflect pattern` printed it: the reference "
+                                     "is then checked against the scale (a wrong scale multiplies every height by "
+                                     "its square)")
+        self.pixel.setToolTip("pixel_mm: surface mm per image column at the image centre")
         self.rows_toward_camera = QtWidgets.QCheckBox("rows run towards camera")
         self.rows_toward_camera.setToolTip("image rows run towards the camera (checked) or away from it")
         self.camera_distance = _spin(0, 1e6, 0, decimals=1, suffix=" mm", special="telecentric", exact=True)
