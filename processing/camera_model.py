@@ -248,13 +248,17 @@ class CameraModel:
         mean length.  It reads ``pixel_mm``, ``theta_deg``, ``depth_mm`` and
         the camera distance: the pattern's scale, not the surface's (the notes'
         two magnifications), which a pinhole camera sees smaller by ``D / (D +
-        H / cos(theta))``."""
+        H / cos(theta))``.  NaN where the map is degenerate there (a camera
+        that :meth:`check_frame` refuses)."""
         rows, cols = frame_shape
         centre_r, centre_c = np.array([(rows - 1) / 2.0]), np.array([(cols - 1) / 2.0])
-        jac = _pixel_jacobian(lambda r, c: np.stack(self.flat_pattern_point(r, c, frame_shape), axis=-1),
-                              centre_r, centre_c)[0]  # (pattern x, y) x (row, col), mm per pixel
+        with np.errstate(all="ignore"):
+            jac = _pixel_jacobian(lambda r, c: np.stack(self.flat_pattern_point(r, c, frame_shape), axis=-1),
+                                  centre_r, centre_c)[0]  # (pattern x, y) x (row, col), mm per pixel
+        if not np.all(np.isfinite(jac)) or abs(np.linalg.det(jac)) < 1e-300:
+            return float("nan")
         f_pattern = np.linalg.solve(jac.T, np.asarray(carrier_freq, np.float64).T).T  # cycles per mm
-        stretch = float(getattr(self, "pattern_stretch_y", None) or 1.0)
+        stretch = float(self.pattern_stretch_y or 1.0)
         return float(math.sqrt(1.0 + 1.0 / stretch ** 2) / np.mean(np.hypot(f_pattern[:, 0], f_pattern[:, 1])))
 
     def pixel_of_pattern_point(self, px, py, frame_shape):

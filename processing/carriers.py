@@ -219,7 +219,7 @@ def check_board_period(geometry, carriers: Carriers, frame_shape) -> None:
         return
     seen = geometry.board_period_mm(carriers.freq, frame_shape)
     off = seen / expected - 1.0
-    if abs(off) <= BOARD_PERIOD_TOLERANCE:
+    if not abs(off) > BOARD_PERIOD_TOLERANCE:  # NaN: a camera check_frame refuses, with its own reason
         return
     distance = geometry.camera_distance_mm if geometry.setup == "tir" else geometry.fsss_camera_distance_mm
     camera = "telecentric" if distance is None else f"camera {distance:g} mm away"
