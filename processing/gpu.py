@@ -43,6 +43,7 @@ array code it fuses, which is how the rest is tested without a GPU).
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import numpy as np
@@ -176,6 +177,7 @@ class BatchChain:
             np.ones(hs.shape, bool), True, plan.reference_region, recon.pin_fallback,
             recon.reference_region_name, plan.region_near)
         self.pin_samples = samples
+        self.pin_index = to(np.flatnonzero(samples))  # where each frame's motion there is measured
         self.F["w"] = to(w)
         self.nn = float(nn)
         self.sx, self.sy_u, self.sy_h = float(F["sx"]), float(F["sy_u"]), float(F["sy_h"])
@@ -464,6 +466,9 @@ class BatchChain:
         r = self.r
         hs = r.height_solver()
         timings = {"total": ms / max(n, 1), "batch": ms}
+        # processing.pin.region_motion_px of each frame's displacement on the pin samples (as the CPU's solve)
+        med = xp.median(u[:n].reshape(n, 2, -1)[:, :, self.pin_index], axis=2)
+        motion = _host(xp, xp.hypot(med[:, 0], med[:, 1]))
         valid_dec = np.ones(ph.shape[2:], bool)
         if grid == "full":
             rows, cols = r.shape
@@ -497,7 +502,8 @@ class BatchChain:
         host = {k: (None if v is None else _host(xp, v.astype(xp.float32, copy=False), pinned=True))
                 for k, v in fields.items()}
         return [Result(valid=valid.copy(), carriers=r.carriers, phase=ph[k], valid_fraction=1.0,
-                       timings_ms=dict(timings), pin=self.pin, series=series[k], **{key: None if v is None else v[k] for key, v in host.items()},
+                       timings_ms=dict(timings), pin=dataclasses.replace(self.pin, region_motion_px=float(motion[k])),
+                       series=series[k], **{key: None if v is None else v[k] for key, v in host.items()},
                        **extra)
                 for k in range(n)]
 

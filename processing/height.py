@@ -79,7 +79,7 @@ from .geometry import Geometry
 from .height_kernels import cell_average, check_grid, div_T, neumann_eigenvalues, poisson_neumann, variable_optics
 from .height_masked import apply_AT, edge_data, solve_masked
 from .height_spectral import prepare_spectral, spectral_solve
-from .pin import PIN_MIN_PIECE_SAMPLES, PinStatus, choose_pin_samples
+from .pin import PIN_MIN_PIECE_SAMPLES, PinStatus, choose_pin_samples, region_motion_px
 
 __all__ = [
     "SurfaceResult",
@@ -341,6 +341,7 @@ class HeightSolver:
         everywhere (needs :attr:`spectral_coefficients`, uniform optics)."""
         h, sx, sy, status, samples = spectral_solve(self, self._fast, displacement_px, valid, reference_mask,
                                                     pin_fallback=pin_fallback, region_name=region_name, near=near)
+        status = dataclasses.replace(status, region_motion_px=region_motion_px(displacement_px, samples))
         return SurfaceResult(h, sx, sy, self.x_mm.copy(), self.y_mm.copy(), valid, 0, self.surface_xy, status,
                              samples)
 
@@ -381,6 +382,7 @@ class HeightSolver:
             return self.solve_spectral(u, v, reference_mask, pin_fallback=pin_fallback, region_name=region_name,
                                        near=near)
         samples, status, _ = self.pin_choice(v, all_valid, reference_mask, pin_fallback, region_name, near)
+        status = dataclasses.replace(status, region_motion_px=region_motion_px(u, samples & v))
         uz = np.where(v, u, 0.0) if not all_valid else u
         gr, gc = self.gradients(uz)
         iterations = 0

@@ -17,6 +17,7 @@ import numpy as np
 
 from .errors import SampleRangeError
 from .geometry import DEFAULT_REFERENCE_BAND, default_reference_region_mask
+from .pin import USER_REGION_PREFIX
 
 __all__ = ["MIN_EXPOSURE_GAIN", "MAX_SAMPLE_MAGNITUDE", "POOR_FRAME_VALID_FRACTION", "exposure_gain",
            "brightness_sample", "check_sample_range", "validate_image", "dilate_invalid", "fold_ok",
@@ -247,7 +248,7 @@ def choose_reference_region(geometry, reference_valid, rows_px, cols_px, shape, 
     else:
         candidate = geometry.reference_mask(rows_px, cols_px, shape)
         region = candidate & reference_valid
-        name = f"reference_region {list(geometry.reference_region)}"
+        name = f"{USER_REGION_PREFIX} {list(geometry.reference_region)}"
         if not region.any():
             near = candidate  # the fallback measures "nearest" from the box
     fraction = (float(np.count_nonzero(candidate & reference_valid)) / max(1, int(np.count_nonzero(candidate))))

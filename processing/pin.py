@@ -12,7 +12,8 @@ from scipy import ndimage
 from .errors import GeometryError, TirdeflectError
 
 __all__ = ["PIN_MIN_SAMPLES", "PIN_MIN_FRACTION", "PIN_MIN_PIECE_SAMPLES", "PIN_FALLBACKS", "PinStatus",
-           "choose_pin_samples", "pin_samples_needed"]
+           "STILL_REGION_MAX_MOTION_PX", "USER_REGION_PREFIX", "choose_pin_samples", "pin_samples_needed",
+           "region_motion_px"]
 
 
 #: Fewest valid samples the pin of the null space needs (see the module docstring).
@@ -23,6 +24,31 @@ PIN_MIN_FRACTION = 0.25
 #: (one independent filter footprint); smaller pieces are reported invalid.
 PIN_MIN_PIECE_SAMPLES = 4
 PIN_FALLBACKS = ("nearest", "refuse")
+
+
+#: Largest median displacement (pixels) of the pin samples of the user's ``reference_region`` for
+#: which its surface counts as at rest and the camera and board as where the reference saw them
+#: (:attr:`PinStatus.region_motion_px`, :attr:`PinStatus.still`).  Where the surface is at rest
+#: ``u = a h + B grad h = 0`` exactly: ray-traced frames give at most 0.004 px there (8 and 12 bit,
+#: 20 DN noise).  A board moved 3 um on the tank bottom (0.03 px) gives 0.031 px and a 4 um bump 3.2 %
+#: off (a tilt); 10 um, 0.100 px and 10.4 %; 30 um, 0.300 px and 31 %.  Only the user's region is
+#: judged: the default border band sees the slopes of whatever reaches it through the 2H lever arm
+#: (a centred 4 um bump: median 0 but 0.6 px at the 90th percentile; waves filling the frame, medians
+#: of 0.2-0.7 px), so there the figure is kept, not judged.
+STILL_REGION_MAX_MOTION_PX = 0.03
+#: How the name of the user's ``reference_region`` starts (:func:`processing.mask.choose_reference_region`).
+USER_REGION_PREFIX = "reference_region"
+
+
+def region_motion_px(displacement_px, samples) -> float:
+    """Length of the median displacement vector (pixels; componentwise medians) of
+    ``displacement_px`` (2, n_rows, n_cols) over the pin ``samples`` (bool, its
+    finite samples only); NaN when none is finite."""
+    u = np.asarray(displacement_px)
+    sel = np.asarray(samples, bool) & np.isfinite(u[0]) & np.isfinite(u[1])
+    if not sel.any():
+        return float("nan")
+    return float(math.hypot(float(np.median(u[0][sel])), float(np.median(u[1][sel]))))
 
 
 def pin_samples_needed(region_samples: int) -> int:
@@ -53,6 +79,14 @@ class PinStatus:
     unpinned_fraction : float
         Fraction of the frame's valid samples dropped (NaN) because their
         connected piece held fewer than :data:`PIN_MIN_PIECE_SAMPLES` pin samples.
+    region_motion_px : float
+        :func:`region_motion_px` of the displacement on the samples the
+        offset was measured on: how far the pattern moved there since the
+        reference (NaN: not measured).  In the user's ``reference_region``
+        (where the user says the surface is at rest), above
+        :data:`STILL_REGION_MAX_MOTION_PX` the surface there is not at rest,
+        or the camera or the board moved (a shift of the whole image reads as
+        a tilt): :attr:`still` is False.
     """
 
     rule: str
@@ -62,11 +96,19 @@ class PinStatus:
     needed: int
     used_samples: int
     unpinned_fraction: float = 0.0
+    region_motion_px: float = float("nan")
 
     @property
     def ok(self) -> bool:
         """Pinned on the region itself, with as many samples as it needs."""
         return self.rule == "region"
+
+    @property
+    def still(self) -> bool:
+        """False when the pattern moved on the pin samples of the user's ``reference_region`` by more
+        than :data:`STILL_REGION_MAX_MOTION_PX` (a default region, or NaN: not judged, True)."""
+        judged = self.rule == "region" and self.region.startswith(USER_REGION_PREFIX)
+        return not (judged and self.region_motion_px > STILL_REGION_MAX_MOTION_PX)
 
     def describe(self) -> str:
         """One line for logs and summaries."""
@@ -81,6 +123,9 @@ class PinStatus:
             text = f"FALLBACK: {where}, pinned on the {self.used_samples} valid samples nearest it"
         if self.unpinned_fraction > 0:
             text += f"; {100 * self.unpinned_fraction:.1f} % of valid samples dropped (no pin sample in their piece)"
+        if not self.still:
+            text += (f"; the pattern moved there by {self.region_motion_px:.3g} px since the reference (the surface "
+                     "there is not at rest, or the camera or the board moved: the heights carry a tilt)")
         return text
 
 

@@ -561,6 +561,7 @@ class _PinCounter:
         self.nearest = []
         self.jumps = []  # (sequence index, reason)
         self.noted = []  # (sequence index, Result.note): e.g. the image refinement fell back to FD
+        self.moving = []  # (sequence index, PinStatus.region_motion_px) where the pattern moved on the pin samples
         self.min_valid = None
 
     def write_region(self, writer) -> None:
@@ -588,6 +589,10 @@ class _PinCounter:
                 "frame %d (%s): %s", item.sequence_index, item.label, pin.describe())
         if self.min_valid is None or pin.valid_samples < self.min_valid[0]:
             self.min_valid = (pin.valid_samples, pin.region_samples)
+        if not pin.still:
+            self.moving.append((item.sequence_index, pin.region_motion_px))
+            (log.warning if len(self.moving) == 1 else log.debug)(
+                "frame %d (%s): %s", item.sequence_index, item.label, pin.describe())
         note = getattr(result, "note", "")
         if note:
             self.noted.append((item.sequence_index, note))
@@ -602,7 +607,8 @@ class _PinCounter:
 
     def attrs(self) -> dict:
         return {"pin_region": self.name, "frames_pin_fallback": len(self.nearest),
-                "frames_flagged_jump": len(self.jumps), "frames_noted": len(self.noted)}
+                "frames_flagged_jump": len(self.jumps), "frames_noted": len(self.noted),
+                "frames_pin_region_moving": len(self.moving)}
 
     def summary(self) -> str:
         if not self.frames:
@@ -627,6 +633,15 @@ class _PinCounter:
             idx, reason = self.jumps[0]
             out.append(f"{len(self.jumps)} frame(s) jump against the previous frame while the images do not "
                        f"explain it, e.g. frame {idx}: {reason}; see /pin_status")
+        if self.moving:
+            moved = [m for _, m in self.moving]
+            span = f"{min(moved):.2g}" + (f"-{max(moved):.2g}" if f"{max(moved):.2g}" != f"{min(moved):.2g}" else "")
+            out.append(f"in {len(self.moving)} frame(s) the pattern moved in the {self.name}, where the geometry "
+                       f"says the surface is at rest and the heights are pinned (median displacement there {span} "
+                       f"px, e.g. frame {self.moving[0][0]}; at rest it is 0): the surface there is not at rest, or "
+                       f"the camera or the board moved since the reference, which reads as a tilt of the heights "
+                       f"(0.1 px: 10 % on a 4 um bump). Take the reference again if the set-up moved, or move the "
+                       f"reference_region to where the surface is at rest; see /pin_status region_motion_px")
         if self.noted:
             idx, note = self.noted[0]
             out.append(f"{len(self.noted)} frame(s) were measured otherwise than asked, e.g. frame {idx}: "

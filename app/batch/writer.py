@@ -45,6 +45,9 @@ _PIN_FIELDS = (
     ("needed", "valid samples the pin needs: max(16, 25 % of the region)"),
     ("used_samples", "samples the offset was measured on"),
     ("unpinned_fraction", "fraction of the valid samples dropped: their piece held no pin sample"),
+    ("region_motion_px", "median displacement on the pin samples, px: above 0.03 in the user's reference_region, "
+                         "the surface there is not at rest or the camera or the board moved since the reference "
+                         "(NaN: not measured)"),
     ("jump", "1: the result is not continuous with the previous frame's (see reason)"),
     ("unwrap_slip_fraction", "fraction of samples where the unwrapped phase change differs by 2 pi "
                              "from the images' wrapped one"),
@@ -59,7 +62,7 @@ def _pin_status_dtype():
     s = h5py.string_dtype()
     return np.dtype([("rule", s), ("region_samples", np.int32), ("valid_samples", np.int32),
                      ("needed", np.int32), ("used_samples", np.int32), ("unpinned_fraction", np.float32),
-                     ("jump", np.uint8), ("unwrap_slip_fraction", np.float32), ("pin_shift_um", np.float32),
+                     ("region_motion_px", np.float32), ("jump", np.uint8), ("unwrap_slip_fraction", np.float32), ("pin_shift_um", np.float32),
                      ("reason", s)])
 
 
@@ -70,10 +73,12 @@ def _pin_status_row(result) -> np.ndarray:
     row["reason"] = ""
     row["pin_shift_um"] = np.nan
     row["unwrap_slip_fraction"] = np.nan
+    row["region_motion_px"] = np.nan
     pin = getattr(result, "pin", None)
     if pin is not None:
         row["rule"] = pin.rule
-        for name in ("region_samples", "valid_samples", "needed", "used_samples", "unpinned_fraction"):
+        for name in ("region_samples", "valid_samples", "needed", "used_samples", "unpinned_fraction",
+                     "region_motion_px"):
             row[name] = getattr(pin, name)
     series = getattr(result, "series", None)
     if series is not None:

@@ -75,8 +75,9 @@ def frame_list(indices, limit: int = 12) -> str:
 def describe_export(out_path: str) -> tuple:
     """What an exported OUT.h5 holds, for the message and the log: ``(text, clean)``.
 
-    Names the frames stored invalid (``/frame_status`` non-zero), flagged as jumps (``/pin_status["jump"]``)
-    and recorded INCOMPLETE (``/frame_flags``), by index; ``clean`` is False when there is any.
+    Names the frames stored invalid (``/frame_status`` non-zero), flagged as jumps (``/pin_status["jump"]``),
+    whose pattern moved on the pin samples (``/pin_status["region_motion_px"]``) and recorded INCOMPLETE
+    (``/frame_flags``), by index; ``clean`` is False when there is any.
     """
     import h5py
 
@@ -93,6 +94,14 @@ def describe_export(out_path: str) -> tuple:
             jumps = np.flatnonzero(np.asarray(f["pin_status"]["jump"][:n]) != 0)
             if jumps.size:
                 parts.append(f"{jumps.size} flagged as jumps against the previous frame (frames {frame_list(jumps)})")
+        user_region = "pin_region" in f and str(f["pin_region"].attrs.get("region", "")).startswith("reference_region")
+        if user_region and "pin_status" in f and "region_motion_px" in (f["pin_status"].dtype.names or ()):
+            from processing.pin import STILL_REGION_MAX_MOTION_PX
+
+            moved = np.flatnonzero(np.asarray(f["pin_status"]["region_motion_px"][:n]) > STILL_REGION_MAX_MOTION_PX)
+            if moved.size:
+                parts.append(f"{moved.size} where the pattern moved in the pin region: surface not at rest there, "
+                             f"or camera or board moved since the reference (frames {frame_list(moved)})")
         if "frame_flags" in f:
             inc = np.flatnonzero((np.asarray(f["frame_flags"][:n]).astype(np.int64) & int(FrameFlags.INCOMPLETE)) != 0)
             if inc.size:

@@ -6,7 +6,9 @@ where the reference shows the pattern, or by default the border band of the
 reference's valid area). This overlay tints it green and labels it with the
 fraction of it valid in the newest frame (``Result.pin``), or where the
 reference is valid until a frame arrives; red when the pin fell back to the
-samples nearest the region or the frame jumps against the previous one.
+samples nearest the region, the pattern moved in the user's region (a surface
+not at rest, or a camera or board that moved: ``PinStatus.still``) or the
+frame jumps against the previous one.
 """
 
 from __future__ import annotations
@@ -104,6 +106,11 @@ class PinRegionOverlay:
         if bad:
             text += f" — too few, pinned on the {pin.used_samples} nearest valid samples"
             short += ", too few"
+        if not pin.still:
+            text += (f" — the pattern MOVED here by {pin.region_motion_px:.2g} px since the reference: the surface "
+                     "here is not at rest, or the camera or the board moved (the heights carry a tilt)")
+            short += ", MOVED"
+            bad = True
         series = getattr(result, "series", None)
         if series is not None and series.flagged:
             text += " — JUMP against the previous frame"

@@ -436,3 +436,34 @@ def test_refine_auto_takes_fd_where_image_matching_does_not_apply():
     assert batch_refine_method("fd", (256, 256), "checkerboard", "full") == "fd"
     with pytest.raises(TirdeflectError, match=r"must be multiples of 4 px.*; use --refine fd"):
         batch_refine_method("image", (256, 258), "dots", "full")
+
+
+def test_a_board_that_moved_since_the_reference_is_named_in_the_summary(sim, tmp_path, capsys):
+    """The board slid 30 um on the tank bottom after the reference (ray traced): every height carries a
+    tilt (31 % on a bump) that nothing showed. The reference_region the user says is at rest (a corner
+    box far from the bump) shows the pattern's 0.3 px move there: the run says so, and /pin_status and
+    the attributes keep it; the frame whose board stayed is not named."""
+    from processing import Geometry, forward
+
+    g = Geometry.from_toml(sim / "geometry.toml")
+    with h5py.File(sim / "heights.h5") as f:
+        amplitude_mm = float(f["height"][0].max())
+    bump = forward.GaussianBump(amplitude_mm=amplitude_mm, sigma_mm=SIZE * g.pixel_mm / 8.0)
+    board = forward.Checkerboard(period_mm=g.pattern_period_mm, edge_softness_mm=g.pixel_mm)
+    moved, _ = forward.render_tir(bump, g, (SIZE, SIZE), board, pattern_offset_mm=(0.03, 0.0))
+    imageio.write_image(tmp_path / "frame_board_moved.png", forward.quantize(moved, bits=8))
+    geometry = tmp_path / "geometry.toml"
+    geometry.write_text((sim / "geometry.toml").read_text() + "reference_region = [0, 32, 0, 32]\n")
+    out = tmp_path / "out.h5"
+    code, err = _run(capsys, "process", sim / "reference.png", sim / "frame_0000.png", tmp_path / "frame_board_moved.png",
+                     "--geometry", geometry, "--out", out)
+    assert code == 0, err  # measured, and said
+    assert re.search(r"note: in 1 frame\(s\) the pattern moved in the reference_region \[0, 32, 0, 32\], where the "
+                     r"geometry says the surface is at rest and the heights are pinned \(median displacement there "
+                     r"0\.\d+ px, e\.g\. frame 1", err), err
+    assert "the camera or the board moved since the reference" in err
+    with h5py.File(out) as f:
+        motion = f["pin_status"]["region_motion_px"]
+        assert motion[0] < 0.01 and motion[1] == pytest.approx(0.3, rel=0.1)  # (0.28: the box is at the frame's edge)
+        assert f.attrs["frames_pin_region_moving"] == 1
+        assert any(str(line).startswith("region_motion_px: ") for line in f["pin_status"].attrs["fields"])

@@ -371,7 +371,7 @@ def test_reference_region_cannot_leave_the_frame_and_never_discards_the_referenc
         assert w.pin_overlay.text in label.toolTip()  # the whole sentence, on hovering
 
 
-def test_a_red_pin_region_says_why_in_words_that_fit():
+def test_a_red_pin_region_says_why_in_words_that_fit(qapp):  # qapp: a QApplication when run alone
     """By-hand trial 2 Dec 2026: the sentence saying why the pin region is red ("too few, pinned on the N nearest
     valid samples") was the label on the image, cut at the raw view's edge. The label keeps a few words, the
     sentence goes to the raw view's wrapped message while the pin is red, and leaves when it is green again."""
@@ -380,6 +380,7 @@ def test_a_red_pin_region_says_why_in_words_that_fit():
     import pyqtgraph as pg
 
     from app.gui.pinregion import PinRegionOverlay
+    from processing.pin import PinStatus
 
     notes = []
     plot = pg.PlotItem()
@@ -391,16 +392,20 @@ def test_a_red_pin_region_says_why_in_words_that_fit():
                                 reference_region_valid_fraction=1.0)
     overlay.set_reconstructor(rec)
     assert overlay.label.anchor == pg.Point(1, 1)  # the right corner: the words run to the left, into the frame
-    bad = types.SimpleNamespace(pin=types.SimpleNamespace(valid_samples=2, region_samples=32, ok=False,
-                                                          used_samples=16), series=None)
+    name = "reference_region [224, 256, 192, 256]"
+    bad = types.SimpleNamespace(pin=PinStatus("nearest", name, 32, 2, 16, 16), series=None)
     overlay.update(bad)
     assert overlay.bad and notes[-1] == ("height offset: reference_region [224, 256, 192, 256] (h = 0): 6 % valid — "
                                          "too few, pinned on the 16 nearest valid samples")
     assert overlay.label.textItem.toPlainText() == "h = 0: 6 % valid, too few"
-    good = types.SimpleNamespace(pin=types.SimpleNamespace(valid_samples=32, region_samples=32, ok=True,
-                                                           used_samples=32), series=None)
+    good = types.SimpleNamespace(pin=PinStatus("region", name, 32, 32, 16, 32, region_motion_px=0.002), series=None)
     overlay.update(good)
     assert not overlay.bad and notes[-1] == "" and overlay.label.textItem.toPlainText() == "h = 0: 100 % valid"
+    # the pattern moved by 0.3 px in the region the user says is at rest: the camera or the board moved
+    moved = types.SimpleNamespace(pin=PinStatus("region", name, 32, 32, 16, 32, region_motion_px=0.3), series=None)
+    overlay.update(moved)
+    assert overlay.bad and overlay.label.textItem.toPlainText() == "h = 0: 100 % valid, MOVED"
+    assert "MOVED here by 0.3 px since the reference" in notes[-1] and "camera or the board moved" in notes[-1]
 
 
 # --------------------------------------------------------------- menus, device

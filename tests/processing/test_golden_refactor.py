@@ -58,6 +58,9 @@ WORST_DIFFERENCE_OF_RMS = 1e-3
 #: last bit)
 TEXT_NUMBER_RELATIVE = 1e-6
 _NUMBER = re.compile(r"[-+]?(?:\d+\.\d*|\.\d+|\d+)(?:[eE][-+]?\d+)?")
+#: PinStatus fields added after the golden file was made (5 Dec 2026: how far the pattern moved on the
+#: pin samples, a measure of the frame, not a change of the chain): left out of the comparison
+_NEWER_PIN_FIELD = re.compile(r", 'region_motion_px': [^,}]*")
 
 
 def _same_text(new: str, old: str) -> bool:
@@ -105,14 +108,15 @@ def _differences(now, then):
             bad.append(f"{key}: missing")
             continue
         new = now[key]
+        if old.dtype.kind == "U" and old.shape == () and new.dtype.kind == "U" and new.shape == ():
+            if not _same_text(_NEWER_PIN_FIELD.sub("", str(new)), str(old)):
+                bad.append(f"{key}: differs: {new} (was {old})")
+            inexact += str(new) != str(old)
+            continue
         if new.shape != old.shape or new.dtype != old.dtype:
             bad.append(f"{key}: {new.dtype}{new.shape} != {old.dtype}{old.shape}")
         elif np.array_equal(new, old, equal_nan=old.dtype.kind in "fc"):
             continue
-        elif old.dtype.kind == "U" and old.shape == ():
-            if not _same_text(str(new), str(old)):
-                bad.append(f"{key}: differs: {new} (was {old})")
-            inexact += 1
         elif old.dtype.kind not in "fc":
             bad.append(f"{key}: differs")
         elif not np.array_equal(np.isnan(new), np.isnan(old)):

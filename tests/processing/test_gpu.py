@@ -6,6 +6,8 @@ of the RMS height; measured ~4e-6). With CuPy and a GPU the same comparison
 runs on the device; without them those tests skip and say why.
 """
 
+import dataclasses
+
 import cv2
 import numpy as np
 import pytest
@@ -39,7 +41,9 @@ def _compare(cpu_results, other_results):
     for a, b in zip(cpu_results, other_results, strict=True):
         np.testing.assert_array_equal(a.valid, b.valid)
         # where the height was pinned, and the series check against the frame before
-        assert a.pin == b.pin
+        # (the pattern's motion on the pin samples: float32 medians on the device, to 1e-4 px)
+        assert dataclasses.replace(a.pin, region_motion_px=0.0) == dataclasses.replace(b.pin, region_motion_px=0.0)
+        assert a.pin.region_motion_px == pytest.approx(b.pin.region_motion_px, abs=1e-4)
         assert (a.series is None) == (b.series is None)
         if a.series is not None:
             assert (a.series.flagged, a.series.compared_samples) == (b.series.flagged, b.series.compared_samples)

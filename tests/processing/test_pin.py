@@ -15,6 +15,7 @@ here 0.3-1.0 %), and the pin adds the dimple's tail at the rim of the disk
 """
 
 import dataclasses
+import math
 
 import numpy as np
 import pytest
@@ -297,3 +298,41 @@ def test_a_slipped_speck_is_given_back_to_the_frames_own_count(series, monkeypat
     assert np.abs(kept.phase[0, speck] - alone.phase[0, speck]).min() > 6.0  # the speck stayed a period off
     vk = kept.valid & alone.valid
     assert np.abs(kept.height[vk] - alone.height[vk]).max() > 0.05 * rms
+
+
+def test_a_camera_or_board_that_moved_since_the_reference_is_seen_on_the_pin_samples():
+    # the board slid on the tank bottom after the reference (ray traced: the pattern offset by 4-30 um):
+    # the whole image shifts, a uniform displacement that the optics reads as a tilt (0.3 px: a 4 um
+    # bump 31 % off, 0.03 px: 3 %). Where the surface is at rest the displacement is 0 exactly, so the
+    # pin samples of a reference_region at rest (a corner box 2 mm wide, 4 sigma from the bump) show
+    # the shift, to 5 %; 256^2, 2 mm board, 8 bit, every grid and refinement
+    from benchmarks.bench_processing import rel_height_error
+    from processing.pin import STILL_REGION_MAX_MOTION_PX
+
+    g = Geometry(theta_deg=55, depth_mm=300, pixel_mm=0.1, rows_toward_camera=False,
+                 reference_region=(0, 24, 0, 24))
+    board = F.Checkerboard(period_mm=2.0, edge_softness_mm=0.1)
+    bump = F.GaussianBump(0.004, 5.0)
+    ref, _ = F.render_tir(F.FlatSurface(), g, (256, 256), board, supersample=2)
+
+    def frame(offset_mm):
+        img, _ = F.render_tir(bump, g, (256, 256), board, supersample=2, pattern_offset_mm=offset_mm)
+        return F.quantize(img, bits=8)
+
+    frames = {off: frame(off) for off in ((0.0, 0.0), (0.03, 0.0), (0.0, 0.03), (0.004, 0.0))}
+    for opts, grid in (({}, "full"), ({"refine_method": "fd"}, "full"), ({}, "decimated")):
+        rec = Reconstructor(F.quantize(ref, bits=8), g, **opts)
+        res = rec(frames[0.0, 0.0], grid=grid)
+        assert res.pin.still and res.pin.region_motion_px < 0.002 and "moved" not in res.pin.describe()
+        # 0.03 mm along x is 0.3 px along the columns; along y, cos(theta) of it along the rows
+        for off, expected_px in (((0.03, 0.0), 0.3), ((0.0, 0.03), 0.3 * math.cos(math.radians(55)))):
+            res = rec(frames[off], grid=grid)
+            assert not res.pin.still and res.pin.region_motion_px == pytest.approx(expected_px, rel=0.05)
+            assert "the camera or the board moved" in res.pin.describe()
+            assert rel_height_error(res, bump, g) > 15  # what goes unseen without it
+        # 4 um, 0.04 px, 4 % in height here: above the bound
+        assert not rec(frames[0.004, 0.0], grid=grid).pin.still
+    # the default border band is measured but not judged: a bump's tails move it by tenths of a pixel
+    default = Reconstructor(F.quantize(ref, bits=8), dataclasses.replace(g, reference_region=None))
+    res = default(frames[0.03, 0.0])
+    assert res.pin.region_motion_px > STILL_REGION_MAX_MOTION_PX and res.pin.still
