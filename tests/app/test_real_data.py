@@ -74,3 +74,22 @@ def test_packed_10bit_camera_tiffs_process_end_to_end(tmp_path, fsss_toml, capsy
         assert f["reference"].dtype == np.uint16 and f["reference"][()].max() <= 1023
         assert f["valid"][0].mean() > 0.9
         assert f["source"][0].decode().endswith("C1S0001000211.tif")
+
+
+def test_the_needle_frames_overall_shift_is_named_in_a_region_at_rest(tmp_path, fsss_toml, capsys):
+    """The real needle frame is shifted by about (0.8, 1.7) px overall against its reference (the data's
+    README): the camera or the board moved between the two. With a reference_region in the lower left
+    corner, far from the needle in the upper right, `tirdeflect process` measures that move there (1.88 px)
+    and says that the camera or the board moved."""
+    toml = tmp_path / "corner.toml"
+    toml.write_text(fsss_toml.read_text() + "reference_region = [900, 1024, 0, 120]\n")
+    out = tmp_path / "needle.h5"
+    code = main(["process", str(NEEDLE / "reference_2.png"), str(NEEDLE / "202406_1457001661.bmp"),
+                 "--geometry", str(toml), "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert "the pattern moved in the reference_region [900, 1024, 0, 120]" in err
+    assert "the camera or the board moved since the reference" in err
+    with h5py.File(out) as f:
+        assert f["pin_status"]["region_motion_px"][0] == pytest.approx(np.hypot(0.8, 1.7), abs=0.15)
+        assert f.attrs["frames_pin_region_moving"] == 1
