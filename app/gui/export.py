@@ -82,6 +82,7 @@ def describe_export(out_path: str) -> tuple:
     import h5py
 
     from drivers.base import FrameFlags
+    from processing.pin import STILL_REGION_MAX_MOTION_PX, USER_REGION_PREFIX
 
     with h5py.File(out_path, "r") as f:
         n = int(f["height"].shape[0]) if "height" in f else 0
@@ -94,10 +95,10 @@ def describe_export(out_path: str) -> tuple:
             jumps = np.flatnonzero(np.asarray(f["pin_status"]["jump"][:n]) != 0)
             if jumps.size:
                 parts.append(f"{jumps.size} flagged as jumps against the previous frame (frames {frame_list(jumps)})")
-        user_region = "pin_region" in f and str(f["pin_region"].attrs.get("region", "")).startswith("reference_region")
+        region = f["pin_region"].attrs.get("region", "") if "pin_region" in f else ""
+        region = region.decode() if isinstance(region, bytes) else str(region)
+        user_region = region.startswith(USER_REGION_PREFIX)  # the default band is not judged (PinStatus.still)
         if user_region and "pin_status" in f and "region_motion_px" in (f["pin_status"].dtype.names or ()):
-            from processing.pin import STILL_REGION_MAX_MOTION_PX
-
             moved = np.flatnonzero(np.asarray(f["pin_status"]["region_motion_px"][:n]) > STILL_REGION_MAX_MOTION_PX)
             if moved.size:
                 parts.append(f"{moved.size} where the pattern moved in the pin region: surface not at rest there, "

@@ -467,3 +467,8 @@ def test_a_board_that_moved_since_the_reference_is_named_in_the_summary(sim, tmp
         assert motion[0] < 0.01 and motion[1] == pytest.approx(0.3, rel=0.1)  # (0.28: the box is at the frame's edge)
         assert f.attrs["frames_pin_region_moving"] == 1
         assert any(str(line).startswith("region_motion_px: ") for line in f["pin_status"].attrs["fields"])
+    # what the window's export says of such a file (app.gui.export, no Qt): frame 1 named, not clean
+    from app.gui.export import describe_export
+
+    text, clean = describe_export(str(out))
+    assert not clean and "1 where the pattern moved in the pin region" in text and "(frames 1)" in text
