@@ -46,6 +46,10 @@ class Checkerboard:
         Width of the cosine taper of the contrast across the disk's rim, mm.
     sharp_centre_mm : (float, float)
         Centre (x, y) of the sharp disk on the pattern plane, mm.
+    stretch_y : float
+        Cell height / cell width along the board's own y (a board printed
+        stretched, ``Geometry.pattern_stretch_y``): the period along it is
+        ``stretch_y * period_mm``; turned with the board by ``rotation_deg``.
     """
 
     period_mm: float
@@ -57,10 +61,13 @@ class Checkerboard:
     sharp_radius_mm: float | None = None
     sharp_edge_mm: float = 2.0
     sharp_centre_mm: tuple = (0.0, 0.0)
+    stretch_y: float = 1.0
 
     def __post_init__(self):
         if not self.period_mm > 0:
             raise GeometryError(f"period_mm must be positive, got {self.period_mm!r}")
+        if not self.stretch_y > 0:
+            raise GeometryError(f"stretch_y must be positive, got {self.stretch_y!r}")
         if self.edge_softness_mm < 0:
             raise GeometryError(f"edge_softness_mm must be >= 0, got {self.edge_softness_mm!r}")
         if self.sharp_radius_mm is not None and not self.sharp_radius_mm > 0:
@@ -90,7 +97,7 @@ class Checkerboard:
         x = np.asarray(x_mm, dtype=np.float64)
         y = np.asarray(y_mm, dtype=np.float64)
         u = c * x + s * y
-        v = -s * x + c * y
+        v = (-s * x + c * y) / self.stretch_y
         k = 2 * np.pi / self.period_mm
         su, sv = np.sin(k * u), np.sin(k * v)
         if self.sinusoidal:

@@ -144,9 +144,10 @@ def run_simulate(args) -> None:
         geometry = load_geometry(args.geometry)
     else:
         geometry = Geometry.from_dict(dict(DEFAULT_SIM_GEOMETRY))
+    # the board the geometry describes (stretched along y where it says so), and the geometry written
+    # beside the frames names its period, so that it is checked
     pattern = forward.Checkerboard(period_mm=SIM_PATTERN_PERIOD_PX * geometry.pixel_mm,
-                                   edge_softness_mm=geometry.pixel_mm)
-    # the geometry written beside the frames names the board they show, so that it is checked
+                                   edge_softness_mm=geometry.pixel_mm, stretch_y=geometry.pattern_stretch_y or 1.0)
     geometry = dataclasses.replace(geometry, pattern_period_mm=pattern.period_mm)
     target = SIM_MAX_PHASE_RAD[args.surface] if args.max_phase is None else args.max_phase
     if not (math.isfinite(target) and target > 0):

@@ -472,3 +472,26 @@ def test_a_board_that_moved_since_the_reference_is_named_in_the_summary(sim, tmp
 
     text, clean = describe_export(str(out))
     assert not clean and "1 where the pattern moved in the pin region" in text and "(frames 1)" in text
+
+
+def test_simulate_renders_the_stretched_board_its_geometry_names(tmp_path, capsys):
+    """A geometry with pattern_stretch_y (a board printed stretched to look square): simulate renders that
+    board, and its geometry.toml (with the board's pattern_period_mm) passes the reference's board check,
+    where a square board under that geometry was 18 % off and refused."""
+    from processing import Geometry
+    from processing.carriers import find_carriers
+
+    g = tmp_path / "stretched.toml"
+    g.write_text('setup = "tir"\ntheta_deg = 55.0\ndepth_mm = 300.0\npixel_mm = 0.1\nrows_toward_camera = false\n'
+                 'pattern_stretch_y = 1.7434\n')
+    d = tmp_path / "sim"
+    assert main(["simulate", "--out", str(d), "--surface", "bump", "--size", "192", "--frames", "1",
+                 "--geometry", str(g)]) == 0
+    written = Geometry.from_toml(d / "geometry.toml")
+    assert written.pattern_stretch_y == 1.7434 and written.pattern_period_mm == pytest.approx(2.0)
+    periods = find_carriers(imageio.read_image(d / "reference.png")).periods_px
+    np.testing.assert_allclose(periods, periods[0], rtol=0.01)  # stretched by 1/cos(theta): seen square
+    code, err = _run(capsys, "process", d / "reference.png", d / "frame_0000.png", "--geometry", d / "geometry.toml",
+                     "--out", tmp_path / "out.h5")
+    assert code == 0, err
+    assert main(["compare", str(tmp_path / "out.h5"), str(d / "heights.h5"), "--max-error", "0.02"]) == 0

@@ -243,3 +243,16 @@ def test_a_wrong_pixel_size_is_refused_once_the_board_period_is_given():
             assert "pattern_period_mm = 1.2" in msg and "1.8 mm" in msg and "pixel_mm should be 0.1;" in msg
             assert "125 % off" in msg  # 1.5^2 - 1
     assert rms[0.15] / rms[0.1] == pytest.approx(1.5 ** 2, rel=0.05)  # what the message says
+
+
+@pytest.mark.parametrize("n", [160, 192, 200, 256])
+@pytest.mark.parametrize("softness_px", [0.5, 1.0])
+def test_a_sharp_board_gives_its_fundamental_whatever_the_frame_size(n, softness_px):
+    # a sharp 20 px checkerboard at 192^2 (9.6 bins a carrier): the carriers ranked by how far they stand
+    # above their ring were all harmonics and their leakage, and the (1, 5) harmonic, 3.9 px, won
+    r, c = np.mgrid[:n, :n].astype(float)
+    k = 2 * np.pi / 20
+    eps = k * softness_px / 2
+    board = (0.5 + 0.4 * np.tanh(np.sin(k * c) / eps) * np.tanh(np.sin(k * r) / eps)) * 255
+    found = find_carriers(board.astype(np.uint8))
+    np.testing.assert_allclose(found.periods_px, 20 / math.sqrt(2), rtol=0.002)
