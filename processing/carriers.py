@@ -32,6 +32,7 @@ __all__ = [
     "find_carriers",
     "find_carriers_local",
     "find_carriers_live",
+    "find_reference_carriers",
     "tile_origins",
     "hann",
     "check_pattern_match",
@@ -147,6 +148,35 @@ def find_carriers_live(image) -> tuple:
             return find_carriers_local(image), True
         except NoCarrierError:
             raise whole from None
+
+
+def find_reference_carriers(reference) -> Carriers:
+    """The reference's carriers (:func:`find_carriers`), refusing a reference of moving water.
+
+    Where the whole image shows no clear peak but local tiles do
+    (:func:`find_carriers_live` says ``disturbed``), the checkerboard is
+    there, distorted: the surface moved while the reference was taken, and
+    every height would be measured against that surface.
+
+    Raises
+    ------
+    NoCarrierError
+        Saying so and what to do; or :func:`find_carriers`' own message where
+        no checkerboard is seen at all, with the same advice (waves strong
+        enough smear the local patches' peaks too).
+    """
+    try:
+        carriers, disturbed = find_carriers_live(reference)
+    except NoCarrierError as exc:
+        raise NoCarrierError(f"{exc}; if the water was moving when the reference was taken, take it again on "
+                             "still water") from None
+    if disturbed:
+        raise NoCarrierError(
+            f"the reference shows the checkerboard distorted (periods {carriers.periods_px[0]:.1f} and "
+            f"{carriers.periods_px[1]:.1f} px in local patches, no clear peak over the whole image): the water "
+            "surface was moving when it was taken; take the reference again on still water (the Alignment tab "
+            "says when the surface has settled)")
+    return carriers
 
 
 def match_error(expected: Carriers, measured_freq) -> tuple:

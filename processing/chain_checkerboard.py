@@ -20,7 +20,7 @@ from typing import NamedTuple, Optional
 import cv2
 import numpy as np
 
-from .carriers import check_board_period, check_pattern_match, find_carriers
+from .carriers import check_board_period, check_pattern_match, find_reference_carriers
 from .demodulation import Demodulator
 from .chain_base import GridChain
 from .errors import AllInvalidError
@@ -71,7 +71,7 @@ class CheckerboardChain(GridChain):
         self.geometry = geometry
         self.shape = ref.shape
         self.planner = FFTPlanner(threads=o.threads, planner_effort=o.planner_effort)
-        self.carriers = carriers if carriers is not None else find_carriers(ref)
+        self.carriers = carriers if carriers is not None else find_reference_carriers(ref)
         check_board_period(geometry, self.carriers, ref.shape)
         self.demod = d = Demodulator(ref, self.carriers, planner=self.planner, filter_radius=o.filter_radius,
                                      filter_flat=o.filter_flat, filter_shape=o.filter_shape,

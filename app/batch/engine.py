@@ -341,7 +341,11 @@ def run_process(args: ProcessJob) -> BatchReport:
 
     options = job_options(args, np.shape(reference), geometry, effort)
     refine_method = options.refine_method
-    reconstruct = Reconstructor(reference, geometry, options)
+    try:
+        reconstruct = Reconstructor(reference, geometry, options)
+    except NoCarrierError as exc:  # which input: the reference
+        where = "the reference" if reference_given else f"the reference {str(args.reference)!r}"
+        raise NoCarrierError(f"{where}: {exc}") from None
     reconstruct.reset_series()
 
     geometry_toml, geometry_info = geometry_attrs(geometry)

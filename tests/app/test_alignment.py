@@ -77,3 +77,21 @@ def test_the_board_period_through_the_scale_is_shown_and_checked(tank):
     a, _ = frame_alignment(tank(0), wrong.theta_deg, geometry=wrong)
     ready, reasons, _, _ = assess(a, 0.0, wrong)
     assert not ready and any("+8 % off the printed 0.9375 mm" in r and "about 0.0781" in r for r in reasons)
+
+
+def test_a_reference_of_moving_water_is_refused_with_what_to_do(tank):
+    # the tank's waves: the whole image's peaks are smeared, local patches still show the board
+    # (the Alignment tab says "moving"); a reconstructor built on such a frame would measure every
+    # height against that surface: refused, with the periods it saw and what to do
+    from processing import Reconstructor
+    from processing.errors import NoCarrierError
+
+    tank.set_scene("waves")
+    frame = tank(5)
+    a, _ = frame_alignment(frame, tank.geometry.theta_deg)
+    assert a["disturbed"]
+    with pytest.raises(NoCarrierError, match=r"distorted \(periods \d+\.\d and \d+\.\d px in local patches.*surface was "
+                                             r"moving when it was taken; take the reference again on still water"):
+        Reconstructor(frame, tank.geometry)
+    tank.set_scene("still")
+    Reconstructor(tank(0), tank.geometry)  # still water: accepted
