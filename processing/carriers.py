@@ -175,7 +175,8 @@ def find_reference_carriers(reference) -> Carriers:
             f"the reference shows the checkerboard distorted (periods {carriers.periods_px[0]:.1f} and "
             f"{carriers.periods_px[1]:.1f} px in local patches, no clear peak over the whole image): the water "
             "surface was moving when it was taken; take the reference again on still water (the Alignment tab "
-            "says when the surface has settled)")
+            "says when the surface has settled). A still surface seen this distorted needs a flatter view of "
+            "the board: a longer lens, a farther camera")
     return carriers
 
 
