@@ -18,6 +18,7 @@ disagrees with the geometry's ``pattern_period_mm``
 from __future__ import annotations
 
 import math
+from typing import NamedTuple, Optional
 
 import numpy as np
 import scipy.fft
@@ -37,6 +38,8 @@ __all__ = [
     "hann",
     "check_pattern_match",
     "check_board_period",
+    "board_period_check",
+    "BoardPeriodCheck",
     "BOARD_PERIOD_TOLERANCE",
     "match_error",
     "theta_from_carriers",
@@ -229,15 +232,44 @@ SMEARED_TAPER = 0.25
 BOARD_PERIOD_TOLERANCE = 0.05
 
 
+class BoardPeriodCheck(NamedTuple):
+    """The board period seen through the scale against the printed one (:func:`board_period_check`)."""
+
+    #: Period the carriers show through the geometry, mm (NaN: not measurable there).
+    period_mm: float
+    #: ``geometry.pattern_period_mm`` (None: not given, nothing judged).
+    printed_mm: Optional[float]
+    #: ``period_mm / printed_mm - 1`` (NaN without a printed period).
+    off: float
+    #: The ``pixel_mm`` that makes them agree (the period seen scales with it).
+    implied_pixel_mm: float
+    #: ``|off|`` above :data:`BOARD_PERIOD_TOLERANCE`.
+    wrong: bool
+
+
+def board_period_check(geometry, period_mm: float) -> BoardPeriodCheck:
+    """Judge ``period_mm`` (:meth:`processing.geometry.Geometry.board_period_mm`) against the
+    geometry's ``pattern_period_mm``: the one judgement of the reference's check
+    (:func:`check_board_period`) and of the Alignment tab."""
+    printed = geometry.pattern_period_mm
+    if printed is None:
+        return BoardPeriodCheck(period_mm, None, math.nan, math.nan, False)
+    off = period_mm / printed - 1.0
+    # NaN (a camera check_frame refuses, with its own reason) is not judged wrong
+    return BoardPeriodCheck(period_mm, printed, off, geometry.pixel_mm * printed / period_mm,
+                            bool(abs(off) > BOARD_PERIOD_TOLERANCE))
+
+
 def check_board_period(geometry, carriers: Carriers, frame_shape) -> None:
     """Refuse a reference whose checkerboard is not the geometry's.
 
     Where ``geometry.pattern_period_mm`` is given, the period that the
     reference's ``carriers`` show through ``pixel_mm``, ``theta_deg`` and the
     camera distance (:meth:`processing.geometry.Geometry.board_period_mm`)
-    must agree with it within :data:`BOARD_PERIOD_TOLERANCE`: heights scale
-    with ``pixel_mm`` squared, and nothing else in a frame tells a wrong
-    ``pixel_mm`` apart.  Nothing is checked without ``pattern_period_mm``.
+    must agree with it within :data:`BOARD_PERIOD_TOLERANCE`
+    (:func:`board_period_check`): heights scale with ``pixel_mm`` squared,
+    and nothing else in a frame tells a wrong ``pixel_mm`` apart.  Nothing is
+    checked without ``pattern_period_mm``.
 
     Raises
     ------
@@ -245,22 +277,20 @@ def check_board_period(geometry, carriers: Carriers, frame_shape) -> None:
         Naming both periods, the ``pixel_mm`` that the board implies and the
         keys to correct.
     """
-    expected = geometry.pattern_period_mm
-    if expected is None:
+    if geometry.pattern_period_mm is None:
         return
-    seen = geometry.board_period_mm(carriers.freq, frame_shape)
-    off = seen / expected - 1.0
-    if not abs(off) > BOARD_PERIOD_TOLERANCE:  # NaN: a camera check_frame refuses, with its own reason
+    c = board_period_check(geometry, geometry.board_period_mm(carriers.freq, frame_shape))
+    if not c.wrong:
         return
     distance = geometry.camera_distance_mm if geometry.setup == "tir" else geometry.fsss_camera_distance_mm
     camera = "telecentric" if distance is None else f"camera {distance:g} mm away"
     angle = f", theta_deg = {geometry.theta_deg:g}" if geometry.setup == "tir" else ""
     raise GeometryError(
-        f"the reference's checkerboard has a period of {seen:.4g} mm through this geometry (pixel_mm = "
-        f"{geometry.pixel_mm:g}{angle}, {camera}), but pattern_period_mm = {expected:g}: {100 * abs(off):.0f} % "
+        f"the reference's checkerboard has a period of {c.period_mm:.4g} mm through this geometry (pixel_mm = "
+        f"{geometry.pixel_mm:g}{angle}, {camera}), but pattern_period_mm = {c.printed_mm:g}: {100 * abs(c.off):.0f} % "
         f"apart (more than {100 * BOARD_PERIOD_TOLERANCE:.0f} %). Heights scale with pixel_mm squared and would "
-        f"be about {100 * abs((1 + off) ** 2 - 1):.0f} % off. If the board is the one printed with that period, "
-        f"pixel_mm should be {geometry.pixel_mm * expected / seen:.4g}; otherwise correct pattern_period_mm"
+        f"be about {100 * abs((1 + c.off) ** 2 - 1):.0f} % off. If the board is the one printed with that period, "
+        f"pixel_mm should be {c.implied_pixel_mm:.4g}; otherwise correct pattern_period_mm"
         f"{', theta_deg' if angle else ''} or the camera distance in the geometry")
 
 

@@ -12,8 +12,8 @@ from scipy import ndimage
 from .errors import GeometryError, TirdeflectError
 
 __all__ = ["PIN_MIN_SAMPLES", "PIN_MIN_FRACTION", "PIN_MIN_PIECE_SAMPLES", "PIN_FALLBACKS", "PinStatus",
-           "STILL_REGION_MAX_MOTION_PX", "USER_REGION_PREFIX", "choose_pin_samples", "pin_samples_needed",
-           "region_motion_px"]
+           "STILL_REGION_MAX_MOTION_PX", "USER_REGION_PREFIX", "choose_pin_samples", "pattern_moved",
+           "pin_samples_needed", "region_motion_px"]
 
 
 #: Fewest valid samples the pin of the null space needs (see the module docstring).
@@ -49,6 +49,16 @@ def region_motion_px(displacement_px, samples) -> float:
     if not sel.any():
         return float("nan")
     return float(math.hypot(float(np.median(u[0][sel])), float(np.median(u[1][sel]))))
+
+
+def pattern_moved(region: str, rule: str, motion_px: float) -> bool:
+    """Did the pattern move where the user says the surface is at rest?  ``region``: the pin
+    region's name (the user's starts with :data:`USER_REGION_PREFIX`), ``rule``: the frame's pin
+    rule (only "region" measured on the region itself), ``motion_px``: :func:`region_motion_px`
+    (NaN: not measured).  True above :data:`STILL_REGION_MAX_MOTION_PX`; a default region is not
+    judged (:attr:`PinStatus.still`, ``/pin_status`` read back by the GUI's export)."""
+    judged = rule == "region" and region.startswith(USER_REGION_PREFIX)
+    return bool(judged and motion_px > STILL_REGION_MAX_MOTION_PX)
 
 
 def pin_samples_needed(region_samples: int) -> int:
@@ -105,10 +115,9 @@ class PinStatus:
 
     @property
     def still(self) -> bool:
-        """False when the pattern moved on the pin samples of the user's ``reference_region`` by more
-        than :data:`STILL_REGION_MAX_MOTION_PX` (a default region, or NaN: not judged, True)."""
-        judged = self.rule == "region" and self.region.startswith(USER_REGION_PREFIX)
-        return not (judged and self.region_motion_px > STILL_REGION_MAX_MOTION_PX)
+        """False when the pattern moved on the pin samples of the user's ``reference_region``
+        (:func:`pattern_moved`)."""
+        return not pattern_moved(self.region, self.rule, self.region_motion_px)
 
     def describe(self) -> str:
         """One line for logs and summaries."""

@@ -279,24 +279,23 @@ def _assess_dots(a: dict, saturation_pct: float, geometry, has_reference: bool, 
 
 def _check_board_period(period_mm, geometry, reasons, lines) -> None:
     """The board's period through the scale (a line) and, where the geometry names the printed
-    one (``pattern_period_mm``), a reason not to measure when they disagree by more than
-    :data:`processing.carriers.BOARD_PERIOD_TOLERANCE` (a wrong scale multiplies every height by
-    its square)."""
-    from processing.carriers import BOARD_PERIOD_TOLERANCE
+    one (``pattern_period_mm``), a reason not to measure when they disagree
+    (:func:`processing.carriers.board_period_check`: a wrong scale multiplies every height by its
+    square)."""
+    from processing.carriers import board_period_check
 
     if period_mm is None or not np.isfinite(period_mm) or geometry is None:
         return
-    printed = geometry.pattern_period_mm
-    if printed is None:
+    c = board_period_check(geometry, period_mm)
+    if c.printed_mm is None:
         lines.append(("board period", f"{period_mm:.4g} mm through the scale (printed: not given)"))
         return
-    off = period_mm / printed - 1.0
-    lines.append(("board period", f"{period_mm:.4g} mm through the scale vs {printed:g} mm printed "
-                                  f"(Δ {100 * off:+.1f} %)"))
-    if abs(off) > BOARD_PERIOD_TOLERANCE:
-        reasons.append(f"the board's period through the scale ({period_mm:.4g} mm) is {100 * off:+.0f} % off the "
-                       f"printed {printed:g} mm: the scale (pixel_mm {geometry.pixel_mm:g}) should be about "
-                       f"{geometry.pixel_mm * printed / period_mm:.4g} mm/px, or the board period or θ is wrong "
+    lines.append(("board period", f"{period_mm:.4g} mm through the scale vs {c.printed_mm:g} mm printed "
+                                  f"(Δ {100 * c.off:+.1f} %)"))
+    if c.wrong:
+        reasons.append(f"the board's period through the scale ({period_mm:.4g} mm) is {100 * c.off:+.0f} % off the "
+                       f"printed {c.printed_mm:g} mm: the scale (pixel_mm {geometry.pixel_mm:g}) should be about "
+                       f"{c.implied_pixel_mm:.4g} mm/px, or the board period or θ is wrong "
                        "(Controls ▸ Reference & geometry)")
 
 

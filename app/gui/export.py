@@ -72,6 +72,11 @@ def frame_list(indices, limit: int = 12) -> str:
     return ", ".join(str(i) for i in idx[:limit]) + (f", … ({len(idx)} in all)" if len(idx) > limit else "")
 
 
+def _text(value) -> str:
+    """An HDF5 string (bytes or str) as str."""
+    return value.decode() if isinstance(value, bytes) else str(value)
+
+
 def describe_export(out_path: str) -> tuple:
     """What an exported OUT.h5 holds, for the message and the log: ``(text, clean)``.
 
@@ -82,7 +87,7 @@ def describe_export(out_path: str) -> tuple:
     import h5py
 
     from drivers.base import FrameFlags
-    from processing.pin import STILL_REGION_MAX_MOTION_PX, USER_REGION_PREFIX
+    from processing.pin import pattern_moved
 
     with h5py.File(out_path, "r") as f:
         n = int(f["height"].shape[0]) if "height" in f else 0
@@ -95,11 +100,11 @@ def describe_export(out_path: str) -> tuple:
             jumps = np.flatnonzero(np.asarray(f["pin_status"]["jump"][:n]) != 0)
             if jumps.size:
                 parts.append(f"{jumps.size} flagged as jumps against the previous frame (frames {frame_list(jumps)})")
-        region = f["pin_region"].attrs.get("region", "") if "pin_region" in f else ""
-        region = region.decode() if isinstance(region, bytes) else str(region)
-        user_region = region.startswith(USER_REGION_PREFIX)  # the default band is not judged (PinStatus.still)
-        if user_region and "pin_status" in f and "region_motion_px" in (f["pin_status"].dtype.names or ()):
-            moved = np.flatnonzero(np.asarray(f["pin_status"]["region_motion_px"][:n]) > STILL_REGION_MAX_MOTION_PX)
+        if "pin_region" in f and "pin_status" in f and "region_motion_px" in (f["pin_status"].dtype.names or ()):
+            region = _text(f["pin_region"].attrs.get("region", ""))
+            st = f["pin_status"][:n]
+            moved = np.flatnonzero([pattern_moved(region, _text(rule), float(m))  # PinStatus.still's judgement
+                                    for rule, m in zip(st["rule"], st["region_motion_px"])])
             if moved.size:
                 parts.append(f"{moved.size} where the pattern moved in the pin region: surface not at rest there, "
                              f"or camera or board moved since the reference (frames {frame_list(moved)})")
