@@ -12,7 +12,7 @@ phase against the reference, ``u = -K^-1 phi``; no unwrapping, no mask, no
 refinement) on ray-traced pairs made by the project's forward model, with
 each border treatment applied to frame and reference alike:
 
-* ``taper P``: the pipeline's (``demodulation.tukey``, a cosine taper ``P``
+* ``taper P``: the live grid's (``demodulation.tukey``, a cosine taper ``P``
   pixels wide at each border; the pipeline uses one carrier period);
 * ``Gerchberg pad p it n``: the image placed in a frame ``p`` pixels larger
   on each side, then ``n`` times: band-limit the whole padded frame to the
@@ -21,7 +21,10 @@ each border treatment applied to frame and reference alike:
 * ``extend pad p d0 d it n``: the pad filled once with the pattern itself,
   each carrier's envelope from the tapered demodulation taken at the
   nearest point ``d0`` pixels inside the border and put back on its
-  carrier, then ``n`` Gerchberg iterations.
+  carrier, then ``n`` Gerchberg iterations.  The pipeline's full grid does
+  this without the iterations (``processing/continuation.py``, which
+  measures the envelopes by a Gaussian window over the pixels instead of
+  a transform: one transform less).
 
 Printed: the relative RMS displacement error over the interior (8 % margin,
 the accuracy table's rule) and by distance from the frame's edge in carrier

@@ -29,7 +29,8 @@ from .fullgrid import Upsampler, full_ifft, interpolate_full
 from .mask import (POOR_FRAME_VALID_FRACTION, brightness_sample, choose_reference_region, dilate_invalid,
                    drop_islands, exposure_gain, fold_ok, reference_contrast_ok)
 from .plan import ReferencePlan, read_only
-from .refine import refine_fd, static_phase, warp_reference
+from .continuation import ContinuedSignals
+from .refine import refine_fd, warp_reference
 from .result import Result
 from .second_order import SecondOrderOptics, solved_again
 from .series import after_unwrap, check_series, unwrap_phase
@@ -99,17 +100,24 @@ class CheckerboardChain(GridChain):
             reference_region=read_only(region), reference_region_index=read_only(np.flatnonzero(region)),
             region_near=read_only(self.region.near), reference_valid_everywhere=bool(self.reference_valid.all()),
             demodulation=d.plan)
-        self._smooth_ref = self._smooth_static = None
+        self._smooth_ref = self._continued = None
         self._g0_full = self._region_full = self._image = self._second_order = None
 
     # ------------------------------------------------------- built on first use
     def warp_reference(self):
-        """The reference band-limited around the two carriers (no apodization),
-        as carrier envelopes and carriers (:class:`processing.refine.WarpReference`)."""
+        """The reference band-limited around the two carriers (continued beyond its border, no
+        apodization), as carrier envelopes and carriers (:class:`processing.refine.WarpReference`)."""
         if self._smooth_ref is None:
             d = self.demod
             self._smooth_ref = warp_reference(self.ref_f32, d.freq, d.radius)
         return self._smooth_ref
+
+    def continued_signals(self):
+        """The demodulation of frames continued beyond their border that FD's refinement measures
+        its correction with (:class:`processing.continuation.ContinuedSignals`)."""
+        if self._continued is None:
+            self._continued = ContinuedSignals(self.demod, self.ref_f32)
+        return self._continued
 
     def image_refinement(self):
         """The image-domain refinement over this chain (:class:`processing.chain_image.ImageRefinement`)."""
@@ -191,13 +199,12 @@ class CheckerboardChain(GridChain):
                 "blocks the view")
         return valid, all_valid
 
-    def refine(self, g, u, valid, iterations):
-        """FD's bias removal (:func:`processing.refine.refine_fd`), ``iterations`` times."""
-        plan = self.warp_reference()
-        if self._smooth_static is None:
-            self._smooth_static = static_phase(self.demod, plan.band_limited)
-        return refine_fd(self.demod, plan, self._smooth_static, g, u, valid, iterations, self.upsampler,
-                         interpolation=self.warp_interpolation, threads=self.planner.threads)
+    def refine(self, frame, phase, u, valid, iterations):
+        """FD's displacement on the continued frame and its bias removal
+        (:func:`processing.refine.refine_fd`), ``iterations`` times."""
+        return refine_fd(self.demod, self.warp_reference(), self.continued_signals(), frame, phase, u, valid,
+                         iterations, self.upsampler, interpolation=self.warp_interpolation,
+                         threads=self.planner.threads)
 
     def measure(self, frame, grid, state, t0):
         """``(Measured, state)``: demodulate, mask, unwrap (against ``state``)
@@ -217,8 +224,10 @@ class CheckerboardChain(GridChain):
         timings["unwrap_mask"] = 1e3 * (t2 - t1)
         iterations = DEFAULT_ITERATIONS[grid] if o.refine_iterations is None else o.refine_iterations
         u_first = u
-        if iterations > 0:
-            u = self.refine(g, u, valid, iterations)
+        if iterations > 0 or grid == "full":
+            # the full grid and any refinement: the phase measured on the continued frame (the live
+            # grid keeps the taper's, one transform less)
+            u = self.refine(frame, phase, u, valid, iterations)
         timings["refine"] = 1e3 * (time.perf_counter() - t2)
         # series memory (unwrapped phase of the final displacement)
         all_valid = all_valid and bool(valid.all())

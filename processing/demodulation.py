@@ -152,6 +152,8 @@ class Demodulator:
             raise ValueError(f"carriers were measured on shape {carriers.shape}, reference is {self.shape}")
         self.planner = planner if planner is not None else FFTPlanner(planner_effort="FFTW_ESTIMATE")
         self.filter_shape = filter_shape
+        self.filter_radius = float(filter_radius)
+        self.oversample = float(oversample)
         self.border = border
         freq = np.array(carriers.freq, dtype=np.float64)
         if not subbin:

@@ -16,7 +16,7 @@ from .pools import pool
 from .result import Result
 
 __all__ = ["Upsampler", "run_pair", "resize_all", "full_coordinates", "interpolate_full", "dots_full", "full_ifft",
-           "lanczos_matrix", "spline_weights", "spline_matrix"]
+           "lanczos_matrix", "spline_weights", "spline_taps", "spline_taps_matrix", "spline_matrix"]
 
 
 def spline_weights(n_out: int, n_in: int):
@@ -25,7 +25,15 @@ def spline_weights(n_out: int, n_in: int):
     position ``(j + 0.5) n_out / n_in - 0.5`` (cv2.resize's pixel-centre
     mapping); coefficients beyond the ends mirrored about the half sample
     (``scipy.ndimage``'s ``mode="reflect"``, which :func:`spline_coefficients` matches)."""
-    pos = (np.arange(n_out, dtype=np.float64) + 0.5) * (n_in / n_out) - 0.5
+    return spline_taps((np.arange(n_out, dtype=np.float64) + 0.5) * (n_in / n_out) - 0.5, n_in)
+
+
+def spline_taps(pos, n_in: int):
+    """``(index, weight)``, each (n, 4): the cubic B-spline taps of ``n_in`` spline
+    coefficients at the positions ``pos`` (in samples of the input grid), mirror ends as
+    :func:`spline_weights`."""
+    pos = np.asarray(pos, np.float64)
+    n_out = pos.size
     i0 = np.floor(pos).astype(np.int64)
     t = (pos - i0)[:, None]
     weight = np.concatenate([(1 - t) ** 3, 3 * t**3 - 6 * t**2 + 4, -3 * t**3 + 3 * t**2 + 3 * t + 1, t**3],
@@ -35,6 +43,19 @@ def spline_weights(n_out: int, n_in: int):
         index = np.where(index < 0, -index - 1, index)
         index = np.where(index >= n_in, 2 * n_in - index - 1, index)
     return np.clip(index, 0, n_in - 1), weight
+
+
+def spline_taps_matrix(pos, n_in: int):
+    """(n, n_in) sparse float64 matrix of :func:`spline_taps`: cubic B-spline coefficients of a
+    grid of ``n_in`` samples to its values at ``pos`` (samples); the coefficients by
+    :func:`spline_coefficients` or ``scipy.ndimage.spline_filter(..., mode="reflect")``."""
+    from scipy import sparse
+
+    index, weight = spline_taps(pos, n_in)
+    n = index.shape[0]
+    m = sparse.csr_matrix((weight.ravel(), index.ravel(), np.arange(0, 4 * n + 1, 4)), shape=(n, n_in))
+    m.sum_duplicates()
+    return m
 
 
 def spline_coefficients(field) -> np.ndarray:

@@ -45,11 +45,13 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from typing import NamedTuple
 
 import numpy as np
 
 from .fullgrid import lanczos_matrix, spline_matrix
-from .refine import WarpReference, modulate, static_phase
+from .gpu_device import host_empty, to_host, warp_kernel
+from .refine import WarpReference, modulate
 from .second_order import SECOND_ORDER_MIN_EFFECT, SecondOrderOptics, batch_effects
 from .unwrap import TWO_PI
 
@@ -106,6 +108,40 @@ def _wrap(xp, a):
     return a - np.float32(TWO_PI) * xp.rint(a / np.float32(TWO_PI))
 
 
+class _Windows(NamedTuple):
+    """A Demodulator's constants on ``xp`` (its :class:`processing.plan.DemodulationPlan`):
+    border window, carrier windows' bins, filters, DC leak and the small inverse's scale."""
+
+    window2d: object
+    gather: object
+    mirror: object
+    filters: object
+    dc_leak: object
+    scale: np.float32
+
+
+def _windows(xp, demod) -> _Windows:
+    dp = demod.plan
+    (rows, cols), (m_r, m_c) = demod.shape, demod.window_shape
+    to = xp.asarray
+    return _Windows(None if dp.window2d is None else to(dp.window2d.astype(np.float32)), to(dp.gather_index),
+                    None if dp.gather_mirror is None else to(dp.gather_mirror), to(dp.filters),
+                    None if dp.dc_leak is None else to(dp.dc_leak),
+                    np.float32(m_r * m_c / (rows * cols)))  # ifft2 of xp normalises by 1/(m_r m_c)
+
+
+class _Continued(NamedTuple):
+    """FD's demodulation of frames continued beyond their border on ``xp``
+    (:class:`processing.continuation.ContinuedSignals`)."""
+
+    continuation: object
+    windows: _Windows
+    g0: object
+    rows_matrix: object
+    cols_matrix_t: object
+    static: object
+
+
 class BatchChain:
     """Batches of frames through one Reconstructor's chain on ``xp`` (see module doc).
 
@@ -144,12 +180,8 @@ class BatchChain:
         to = xp.asarray
         rows, cols = recon.shape
         m_r, m_c = d.window_shape
-        self.window2d = None if dp.window2d is None else to(dp.window2d.astype(np.float32))
-        self.gather = to(dp.gather_index)
-        self.mirror = None if dp.gather_mirror is None else to(dp.gather_mirror)
-        self.filters = to(dp.filters)
-        self.dc_leak = None if dp.dc_leak is None else to(dp.dc_leak)
-        self.dec_scale = np.float32(m_r * m_c / (rows * cols))  # ifft2 of xp normalises by 1/(m_r m_c)
+        self.windows = _windows(xp, d)
+        self.continued = None  # FD's continued demodulation (_Continued), made on first use
         self.conj_g0 = to(plan.conj_g0)
         self.g0_den = to(plan.g0_amplitude)
         self.local_inv = None if dp.local_inverse is None else to(dp.local_inverse)
@@ -191,25 +223,50 @@ class BatchChain:
         self.cols_f = xp.arange(cols, dtype=xp.float32)[None, :]
 
     # ------------------------------------------------------------ pieces
-    def _decimated(self, images):
-        """(B, rows, cols) float32 -> analytic signals (B, 2, m_r, m_c) complex64."""
+    def _decimated(self, images, windows=None):
+        """(B, rows, cols) float32 -> analytic signals (B, 2, m_r, m_c) complex64 through
+        ``windows`` (the Reconstructor's demodulator's, or another :class:`_Windows`)."""
         xp = self.xp
+        w = self.windows if windows is None else windows
         B = images.shape[0]
         means = images[:, ::4, ::4].astype(xp.float64).mean(axis=(1, 2))
-        if self.window2d is None:
+        if w.window2d is None:
             prepared = images - means.astype(xp.float32)[:, None, None]
             means = xp.zeros_like(means)
         else:
-            prepared = images * self.window2d
+            prepared = images * w.window2d
         spec = xp.fft.rfft2(prepared, axes=(-2, -1)).astype(xp.complex64)
-        wins = xp.take(spec.reshape(B, -1), self.gather.reshape(-1), axis=1).reshape((B,) + self.gather.shape)
-        if self.mirror is not None:
-            wins = xp.where(self.mirror, xp.conj(wins), wins)
-        wins = wins * self.filters
-        if self.dc_leak is not None:
-            wins = wins - means.astype(xp.complex64)[:, None, None, None] * self.dc_leak
+        wins = xp.take(spec.reshape(B, -1), w.gather.reshape(-1), axis=1).reshape((B,) + w.gather.shape)
+        if w.mirror is not None:
+            wins = xp.where(w.mirror, xp.conj(wins), wins)
+        wins = wins * w.filters
+        if w.dc_leak is not None:
+            wins = wins - means.astype(xp.complex64)[:, None, None, None] * w.dc_leak
         g = xp.fft.ifft2(wins, axes=(-2, -1)).astype(xp.complex64)
-        return g * self.dec_scale
+        return g * w.scale
+
+    def _continued(self) -> _Continued:
+        """FD's continued demodulation on ``xp`` (the CPU chain's constants, moved once)."""
+        if self.continued is None:
+            xp, cs = self.xp, self.r.continued_signals()
+            a_rows, a_cols = cs.spline_matrices()
+            static = cs.static_phase(self.r.warp_reference().band_limited)
+            self.continued = _Continued(cs.continuation, _windows(xp, cs.demod), xp.asarray(cs.g0),
+                                        xp.asarray(a_rows), xp.asarray(np.ascontiguousarray(a_cols.T)),
+                                        xp.asarray(static))
+        return self.continued
+
+    def _continued_signals(self, images):
+        """(B, rows, cols) -> the analytic signals (B, 2, ...) of the images continued beyond their border."""
+        c = self._continued()
+        return self._decimated(c.continuation(images, xp=self.xp), c.windows)
+
+    def _phase_difference(self, g_a, g_b):
+        """``arg(g_a conj(g_b))`` on the decimated grid (B, 2, m_r, m_c) of two continued signals, as
+        :meth:`processing.continuation.ContinuedSignals.phase_difference` (its spline as two products)."""
+        xp, c = self.xp, self._continued()
+        p = g_a * xp.conj(g_b)
+        return xp.angle(xp.matmul(xp.matmul(c.rows_matrix, p), c.cols_matrix_t)).astype(xp.float32)
 
     def _to_displacement(self, phase):
         xp = self.xp
@@ -240,7 +297,7 @@ class BatchChain:
         rows, cols = plan.envelopes.shape[:2]
         off_c = -self._up(u[:, 1], warp=True)
         off_r = -self._up(u[:, 0], warp=True)
-        kernel = _warp_kernel(xp)
+        kernel = warp_kernel(xp)
         if kernel is not None:  # CuPy: the lines below fused into one pass (a tenth of their time on an H200)
             k = np.asarray(plan.wavevectors, np.float32)
             return kernel(off_r.astype(xp.float32, copy=False), off_c.astype(xp.float32, copy=False),
@@ -283,14 +340,15 @@ class BatchChain:
 
     # --------------------------------------------------------------- stages
     def _demodulate(self, frames):
-        """Frames -> (analytic signals g, wrapped phase, amplitude ratio, all_valid per frame)."""
+        """Frames -> (the frames on the device as float32, analytic signals g, wrapped phase,
+        amplitude ratio, all_valid per frame)."""
         xp = self.xp
         checked = [self.r.validate_frame(f) for f in frames]
         B = len(checked)
         # the frames go up as they came (uint8: a quarter of float32's bytes) from page-locked memory
         dtype = np.result_type(*checked)
         if self.staging is None or self.staging.shape[0] < B or self.staging.dtype != dtype:
-            self.staging = _host_empty(xp, (B,) + checked[0].shape, dtype)
+            self.staging = host_empty(xp, (B,) + checked[0].shape, dtype)
         for k, frame in enumerate(checked):
             self.staging[k] = frame
         images = xp.asarray(self.staging[:B]).astype(xp.float32)
@@ -298,8 +356,8 @@ class BatchChain:
         wrapped = xp.angle(g * self.conj_g0).astype(xp.float32)
         ratio = xp.abs(g) / self.g0_den
         amplitude = xp.minimum(ratio[:, 0], ratio[:, 1])
-        all_valid = _host(xp, amplitude.reshape(B, -1).min(axis=1)) >= self.r.min_amplitude
-        return g, wrapped, amplitude, all_valid
+        all_valid = to_host(xp, amplitude.reshape(B, -1).min(axis=1)) >= self.r.min_amplitude
+        return images, g, wrapped, amplitude, all_valid
 
     def _series_start(self, state, wrapped, all_valid):
         """Where the batch's unwrapping starts: ``(first, prev, start)``, or None
@@ -315,7 +373,7 @@ class BatchChain:
             return 0, xp.asarray(state.phase.astype(np.float32)), None
         if not bool(all_valid[0]):
             return None
-        w0 = _host(xp, wrapped[0])
+        w0 = to_host(xp, wrapped[0])
         start = r.unwrap_phase(w0, np.ones(w0.shape[1:], bool), True)
         return 1, None, xp.asarray(np.asarray(start, np.float32))
 
@@ -328,7 +386,7 @@ class BatchChain:
         delta = _wrap(xp, seq - prior)
         jumps = xp.maximum(xp.abs(xp.diff(delta, axis=2)).reshape(delta.shape[0], -1).max(axis=1),
                            xp.abs(xp.diff(delta, axis=3)).reshape(delta.shape[0], -1).max(axis=1))
-        jumps = _host(xp, jumps) > np.pi
+        jumps = to_host(xp, jumps) > np.pi
         summed = before + xp.cumsum(delta, axis=0)
         # snapped to the wrapped phase + 2 pi k (no drift from the sum)
         return seq + np.float32(TWO_PI) * xp.rint((summed - seq) / np.float32(TWO_PI)), jumps
@@ -339,7 +397,7 @@ class BatchChain:
         xp = self.xp
         B = phase.shape[0]
         vals = phase.reshape(B, 2, -1)[:, :, self.ref_idx]
-        lo, hi, med = _host(xp, xp.stack([vals.min(axis=2), vals.max(axis=2), xp.median(vals, axis=2)]))  # one copy
+        lo, hi, med = to_host(xp, xp.stack([vals.min(axis=2), vals.max(axis=2), xp.median(vals, axis=2)]))  # one copy
         J = np.zeros((B, 2))
         shift = np.zeros(2)
         for n in range(first, B):
@@ -378,31 +436,36 @@ class BatchChain:
         dr, dc = self.spacing
         t = xp.maximum(xp.abs(xp.diff(u, axis=2)).reshape(B, -1).max(axis=1) / dr,
                        xp.abs(xp.diff(u, axis=3)).reshape(B, -1).max(axis=1) / dc)
-        need = _host(xp, 1.0 - 2.0 * t) <= self.r.min_fold + 1e-6
+        need = to_host(xp, 1.0 - 2.0 * t) <= self.r.min_fold + 1e-6
         if need.any():
             dur_dr, dur_dc = xp.gradient(u[:, 0], float(dr), float(dc), axis=(1, 2))
             duc_dr, duc_dc = xp.gradient(u[:, 1], float(dr), float(dc), axis=(1, 2))
             det = (1.0 - dur_dr) * (1.0 - duc_dc) - dur_dc * duc_dr
-            folded = _host(xp, det.reshape(B, -1).min(axis=1)) <= self.r.min_fold
+            folded = to_host(xp, det.reshape(B, -1).min(axis=1)) <= self.r.min_fold
             bad = np.flatnonzero(need & folded)
             if bad.size:
                 ok_upto = min(ok_upto, int(bad[0]))
         return ok_upto
 
-    def _refine(self, u, g, grid):
-        """FD's bias removal: the smooth reference warped by ``u``, re-demodulated,
-        the phase left over added to ``u`` (the Reconstructor's iterations)."""
+    def _refine(self, images, phase, u, grid):
+        """FD's full grid and refinement as the CPU's (:func:`processing.refine.refine_fd`): the
+        phase measured again on the frames continued beyond their border (unwrapped by the
+        taper's ``phase``), then the smooth reference warped by ``u``, continued, re-demodulated,
+        and the phase left over added to ``u`` (the Reconstructor's iterations)."""
         xp = self.xp
         r = self.r
         iterations = r.refine_iterations
         if iterations is None:
             iterations = {"decimated": 0, "full": 1}[grid]
-        if iterations > 0 and self.static is None:
-            d = r.demod
-            self.static = xp.asarray(static_phase(d, r.warp_reference().band_limited).astype(np.float32))
+        if iterations <= 0 and grid != "full":
+            return u
+        c = self._continued()
+        g_frames = self._continued_signals(images)
+        measured = self._phase_difference(g_frames, c.g0[None])
+        u = self._to_displacement(phase + _wrap(xp, measured - phase))
         for _ in range(iterations):
-            gw = self._decimated(self._warp_smooth(u))
-            dphi = _wrap(xp, xp.angle(g * xp.conj(gw)).astype(xp.float32) - self.static)
+            gw = self._continued_signals(self._warp_smooth(u))
+            dphi = _wrap(xp, self._phase_difference(g_frames, gw) - c.static)
             u = u + self._to_displacement(dphi)
         return u
 
@@ -412,12 +475,12 @@ class BatchChain:
         Returns (phase on the host, [SeriesCheck])."""
         xp = self.xp
         r = self.r
-        ph_host = _host(xp, phase.astype(xp.float32, copy=False))
-        h_host = _host(xp, h)
+        ph_host = to_host(xp, phase.astype(xp.float32, copy=False))
+        h_host = to_host(xp, h)
         valid_dec = np.ones(phase.shape[2:], bool)
         series = [r.check_series(ph_host[k], valid_dec, _Surface(h_host[k], self.pin_samples))
                   for k in range(phase.shape[0])]
-        r.remember_phase(_host(xp, phase[-1]), np.ones(phase.shape[2:], bool), True)
+        r.remember_phase(to_host(xp, phase[-1]), np.ones(phase.shape[2:], bool), True)
         return ph_host, series
 
     # --------------------------------------------------------------- call
@@ -429,7 +492,7 @@ class BatchChain:
         if self.reason is not None:
             return [r.call_cpu(f, grid=grid) for f in frames]
         t0 = time.perf_counter()
-        g, wrapped, amplitude, all_valid = self._demodulate(frames)
+        images, g, wrapped, amplitude, all_valid = self._demodulate(frames)
         state = r.series_state()  # a copy of the decimated grid's memory (small)
         if r.unwrap and state is not None and not state.all_valid:
             # the previous frame was masked: this one follows it on the CPU, then the rest here
@@ -443,12 +506,12 @@ class BatchChain:
         if n == 0:
             return [r.call_cpu(f, grid=grid) for f in frames]
         phase, u, g, amplitude = phase[:n], u[:n], g[:n], amplitude[:n]
-        u = self._refine(u, g, grid)
+        u = self._refine(images[:n], phase, u, grid)
         h, sx, sy = self._height(u)
         m = n
         if grid == "full" and self.second is not None:
             t, y_mm, x_mm = self.second
-            need = np.flatnonzero(_host(self.xp, batch_effects(self.xp, t, h, y_mm, x_mm)) >= SECOND_ORDER_MIN_EFFECT)
+            need = np.flatnonzero(to_host(self.xp, batch_effects(self.xp, t, h, y_mm, x_mm)) >= SECOND_ORDER_MIN_EFFECT)
             m = int(need[0]) if need.size else n
         if m < n:  # heights the CPU solves again to second order (processing.second_order), and the rest
             if m == 0:
@@ -468,7 +531,7 @@ class BatchChain:
         timings = {"total": ms / max(n, 1), "batch": ms}
         # processing.pin.region_motion_px of each frame's displacement on the pin samples (as the CPU's solve)
         med = xp.median(u[:n].reshape(n, 2, -1)[:, :, self.pin_index], axis=2)
-        motion = _host(xp, xp.hypot(med[:, 0], med[:, 1]))
+        motion = to_host(xp, xp.hypot(med[:, 0], med[:, 1]))
         valid_dec = np.ones(ph.shape[2:], bool)
         if grid == "full":
             rows, cols = r.shape
@@ -499,7 +562,7 @@ class BatchChain:
             fields["displacement"] = fields["amplitude"] = None
         # down into fresh page-locked memory (CuPy's pool: back to it once the Results are dropped);
         # a pageable copy ran at 1.7 GB/s on an H200, 7 of the full grid's 8.5 ms a frame
-        host = {k: (None if v is None else _host(xp, v.astype(xp.float32, copy=False), pinned=True))
+        host = {k: (None if v is None else to_host(xp, v.astype(xp.float32, copy=False), pinned=True))
                 for k, v in fields.items()}
         return [Result(valid=valid.copy(), carriers=r.carriers, phase=ph[k], valid_fraction=1.0,
                        timings_ms=dict(timings), pin=dataclasses.replace(self.pin, region_motion_px=float(motion[k])),
@@ -508,82 +571,9 @@ class BatchChain:
                 for k in range(n)]
 
 
-# BatchChain._warp_smooth's bilinear sample of the envelopes (cv2.remap's reflecting border, one
-# reflection) and processing.refine.modulate, per output sample, in float32 as the array code does
-_WARP_SOURCE = """
-    const int plane = rows * cols;
-    const int p = (int)(i % plane);
-    const int row = p / cols, col = p - row * cols;
-    const float X = (float)col + off_c, Y = (float)row + off_r;
-    const float fx0 = floorf(X), fy0 = floorf(Y);
-    const float fx = X - fx0, fy = Y - fy0;
-    int x0 = (int)fx0, y0 = (int)fy0, x1 = x0 + 1, y1 = y0 + 1;
-    x0 = x0 < 0 ? -x0 - 1 : x0;  x0 = x0 >= cols ? 2 * cols - x0 - 1 : x0;
-    x1 = x1 < 0 ? -x1 - 1 : x1;  x1 = x1 >= cols ? 2 * cols - x1 - 1 : x1;
-    y0 = y0 < 0 ? -y0 - 1 : y0;  y0 = y0 >= rows ? 2 * rows - y0 - 1 : y0;
-    y1 = y1 < 0 ? -y1 - 1 : y1;  y1 = y1 >= rows ? 2 * rows - y1 - 1 : y1;
-    float e[4];
-    for (int ch = 0; ch < 4; ++ch) {
-        const float top = (1.0f - fx) * env[(y0 * cols + x0) * 4 + ch] + fx * env[(y0 * cols + x1) * 4 + ch];
-        const float bottom = (1.0f - fx) * env[(y1 * cols + x0) * 4 + ch] + fx * env[(y1 * cols + x1) * 4 + ch];
-        e[ch] = (1.0f - fy) * top + fy * bottom;
-    }
-    const float phi0 = k00 * off_r + k01 * off_c, phi1 = k10 * off_r + k11 * off_c;
-    const float c0 = cosf(phi0), s0 = sinf(phi0), c1 = cosf(phi1), s1 = sinf(phi1);
-    const float cc0 = ccos[p], cs0 = csin[p], cc1 = ccos[plane + p], cs1 = csin[plane + p];
-    const float t0 = e[0] * (cc0 * c0 - cs0 * s0) - e[1] * (cc0 * s0 + cs0 * c0);
-    const float t1 = e[2] * (cc1 * c1 - cs1 * s1) - e[3] * (cc1 * s1 + cs1 * c1);
-    out = 2.0f * (t0 + t1);
-"""
-_WARP_KERNELS = {}
-
-
-def _warp_kernel(xp):
-    """The fused warp of :meth:`BatchChain._warp_smooth` as a CuPy elementwise kernel, or None
-    when ``xp`` has none (NumPy, which runs the array code instead)."""
-    if not hasattr(xp, "ElementwiseKernel"):
-        return None
-    if "warp" not in _WARP_KERNELS:
-        _WARP_KERNELS["warp"] = xp.ElementwiseKernel(
-            "float32 off_r, float32 off_c, raw float32 env, raw float32 ccos, raw float32 csin, "
-            "float32 k00, float32 k01, float32 k10, float32 k11, int32 rows, int32 cols",
-            "float32 out", _WARP_SOURCE, "tirdeflect_warp_smooth")
-    return _WARP_KERNELS["warp"]
-
-
 class _Surface:
     """What the Reconstructor's series check reads of a height solve."""
 
     def __init__(self, height_mm, pin_samples):
         self.height_mm = height_mm
         self.pin_samples = pin_samples
-
-
-# one page-locked host array at most this large; a larger one is plain (pageable) memory
-PINNED_LIMIT_BYTES = 512 << 20
-
-
-def _host_empty(xp, shape, dtype):
-    """An empty host array that the device copies to and from at full speed:
-    page-locked (``cupyx.empty_pinned``, CuPy's pinned memory pool) when ``xp``
-    is CuPy and it holds at most :data:`PINNED_LIMIT_BYTES`; else plain NumPy."""
-    if xp is not np and int(np.prod(shape)) * np.dtype(dtype).itemsize <= PINNED_LIMIT_BYTES:
-        try:
-            import cupyx
-        except ImportError:  # NumPy standing in for CuPy (tests)
-            pass
-        else:
-            return cupyx.empty_pinned(shape, dtype)
-    return np.empty(shape, dtype)
-
-
-def _host(xp, a, pinned=False):
-    """``a`` on the host, as a NumPy array (into page-locked memory with ``pinned``)."""
-    if not hasattr(xp, "asnumpy"):
-        return np.asarray(a)
-    if not pinned:
-        return xp.asnumpy(a)
-    out = _host_empty(xp, a.shape, a.dtype)
-    xp.asnumpy(a, out=out)
-    return out
-

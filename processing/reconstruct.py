@@ -309,6 +309,12 @@ class Reconstructor:
         :meth:`processing.chain_checkerboard.CheckerboardChain.warp_reference`)."""
         return self.chain.warp_reference()
 
+    def continued_signals(self):
+        """The demodulation of frames continued beyond their border that FD's full grid and
+        refinement measure with (:class:`processing.continuation.ContinuedSignals`,
+        :meth:`processing.chain_checkerboard.CheckerboardChain.continued_signals`)."""
+        return self.chain.continued_signals()
+
     def height_solver(self):
         """Height solver of the decimated grid (built once)."""
         return self.chain.height_solver()

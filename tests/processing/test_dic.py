@@ -69,12 +69,13 @@ def test_image_refinement_keeps_a_wide_bump_accurate():
 
 
 def test_image_refinement_with_a_camera_at_finite_distance():
-    # per-node optics (theta varies across the field); measured FD 5.3 % -> 3.6 %
+    # per-node optics (theta varies across the field); measured FD 3.5 % (5.3 % before FD's
+    # full grid measured on the frame continued beyond its border) -> 3.1 %
     g = Geometry(theta_deg=60, depth_mm=300, pixel_mm=0.1, rows_toward_camera=False, camera_distance_mm=1500.0)
     ref, img, _ = render(WAVES, geometry=g, bits=12)
     fd = rel_error(Reconstructor(ref, g, refine_method="fd")(img), WAVES, geometry=g)
     image = rel_error(Reconstructor(ref, g, refine_method="image")(img), WAVES, geometry=g)
-    assert image <= 0.8 * fd
+    assert image <= 0.9 * fd
 
 
 def test_image_refinement_only_on_the_full_grid(wave_frames):
