@@ -30,7 +30,7 @@ from .mask import (POOR_FRAME_VALID_FRACTION, brightness_sample, choose_referenc
                    drop_islands, exposure_gain, fold_ok, reference_contrast_ok)
 from .plan import ReferencePlan, read_only
 from .continuation import ContinuedSignals
-from .refine import refine_fd, warp_reference
+from .refine import refine_fd, refine_fd_tapered, static_phase, warp_reference
 from .result import Result
 from .second_order import SecondOrderOptics, solved_again
 from .series import after_unwrap, check_series, unwrap_phase
@@ -100,21 +100,22 @@ class CheckerboardChain(GridChain):
             reference_region=read_only(region), reference_region_index=read_only(np.flatnonzero(region)),
             region_near=read_only(self.region.near), reference_valid_everywhere=bool(self.reference_valid.all()),
             demodulation=d.plan)
-        self._smooth_ref = self._continued = None
+        self._smooth_ref, self._continued, self._tapered = {}, None, None
         self._g0_full = self._region_full = self._image = self._second_order = None
 
     # ------------------------------------------------------- built on first use
-    def warp_reference(self):
-        """The reference band-limited around the two carriers (continued beyond its border, no
-        apodization), as carrier envelopes and carriers (:class:`processing.refine.WarpReference`)."""
-        if self._smooth_ref is None:
+    def warp_reference(self, continued: bool = True):
+        """The reference band-limited around the two carriers (continued beyond its border, or alone
+        for image matching's start; no apodization), as carrier envelopes and carriers
+        (:class:`processing.refine.WarpReference`)."""
+        if continued not in self._smooth_ref:
             d = self.demod
-            self._smooth_ref = warp_reference(self.ref_f32, d.freq, d.radius)
-        return self._smooth_ref
+            self._smooth_ref[continued] = warp_reference(self.ref_f32, d.freq, d.radius, continued=continued)
+        return self._smooth_ref[continued]
 
     def continued_signals(self):
-        """The demodulation of frames continued beyond their border that FD's refinement measures
-        its correction with (:class:`processing.continuation.ContinuedSignals`)."""
+        """The demodulation of frames continued beyond their border that FD's full grid measures its
+        phase, and its refinement its correction, with (:class:`processing.continuation.ContinuedSignals`)."""
         if self._continued is None:
             self._continued = ContinuedSignals(self.demod, self.ref_f32)
         return self._continued
@@ -206,6 +207,15 @@ class CheckerboardChain(GridChain):
                          iterations, self.upsampler, interpolation=self.warp_interpolation,
                          threads=self.planner.threads)
 
+    def refine_tapered(self, g, u, valid, iterations):
+        """Image matching's start: FD's bias removal through the taper
+        (:func:`processing.refine.refine_fd_tapered`), ``iterations`` times."""
+        plan = self.warp_reference(continued=False)
+        if self._tapered is None:
+            self._tapered = static_phase(self.demod, plan.band_limited)
+        return refine_fd_tapered(self.demod, plan, self._tapered, g, u, valid, iterations, self.upsampler,
+                                 interpolation=self.warp_interpolation, threads=self.planner.threads)
+
     def measure(self, frame, grid, state, t0):
         """``(Measured, state)``: demodulate, mask, unwrap (against ``state``)
         and refine one validated frame; ``state`` continued by its phase."""
@@ -224,9 +234,12 @@ class CheckerboardChain(GridChain):
         timings["unwrap_mask"] = 1e3 * (t2 - t1)
         iterations = DEFAULT_ITERATIONS[grid] if o.refine_iterations is None else o.refine_iterations
         u_first = u
-        if iterations > 0 or grid == "full":
-            # the full grid and any refinement: the phase measured on the continued frame (the live
-            # grid keeps the taper's, one transform less)
+        if grid == "full" and o.refine_method == "image":
+            if iterations > 0:  # image matching's start keeps the taper (refine.refine_fd_tapered)
+                u = self.refine_tapered(g, u, valid, iterations)
+        elif iterations > 0 or grid == "full":
+            # FD's full grid and any FD refinement: the phase measured on the continued frame (the
+            # live grid keeps the taper's, one transform less)
             u = self.refine(frame, phase, u, valid, iterations)
         timings["refine"] = 1e3 * (time.perf_counter() - t2)
         # series memory (unwrapped phase of the final displacement)

@@ -20,16 +20,18 @@ outer half of the pad closes the frame.  :class:`ContinuedSignals`
 demodulates continued images on the padded frame (a ``Demodulator`` with no
 border window of its own) and takes the product of two images' analytic
 signals to a chain's decimated grid by cubic B-spline (the padded frame's
-samples do not fall on the chain's).  FD's refinement
-(:func:`processing.refine.refine_fd`) measures its correction this way, and
-the reference it warps is band-limited on its continued frame
-(:func:`processing.refine.warp_reference`).
+samples do not fall on the chain's).  FD's full grid measures its phase this
+way and its refinement its correction (:func:`processing.refine.refine_fd`),
+and the reference it warps is band-limited on its continued frame
+(:func:`processing.refine.warp_reference`).  The live decimated grid and
+image matching's start keep the taper.
 
 Measured (docs/processing.md section 6; ``benchmarks/bench_border_extension.py``
-for the demodulation alone): ray-traced pure cosines of issue 19, FD's
-refinement 0.73 -> 0.67 % displacement, 0.53 -> 0.21 % height; accuracy
-table, 12-30 mm waves 0.50 -> 0.19 %, and FD no longer worse than no
-refinement on the deep dimple (0.07 -> 0.04 against 0.05 %).
+for the demodulation alone): ray-traced pure cosines of issue 19 (float
+frames), no refinement 0.92 -> 0.46 %, FD's refinement 0.73 -> 0.48 %
+displacement and 0.53 -> 0.16 % height; accuracy table, FD on the 12-30 mm
+waves 0.50 -> 0.12 %, and FD no longer worse than no refinement on the deep
+dimple (0.07 -> 0.03 against 0.04 %).
 """
 
 from __future__ import annotations

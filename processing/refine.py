@@ -21,7 +21,7 @@ from .unwrap import wrap
 
 __all__ = ["WARP_MAX_INTERPOLATION_ERROR_PX", "WARP_MAP_INTERPOLATION", "linear_interpolation_shift_px", "warp_fine_factor",
            "band_limited_reference", "WarpReference", "warp_reference", "modulate", "sample_band_limited",
-           "refine_fd"]
+           "refine_fd", "static_phase", "refine_fd_tapered"]
 
 #: Largest error (pixels) that linear interpolation of a warped reference may
 #: add to the position of the pattern's shortest carrier (:func:`warp_fine_factor`:
@@ -141,7 +141,7 @@ class WarpReference(NamedTuple):
     band_limited: np.ndarray
 
 
-def warp_reference(reference, freq, radius) -> WarpReference:
+def warp_reference(reference, freq, radius, *, continued: bool = True) -> WarpReference:
     """The reference band-limited around its carriers (:func:`band_limited_reference`'s band, mean
     removed) as carrier envelopes and carriers, for :func:`sample_band_limited`.
 
@@ -160,19 +160,23 @@ def warp_reference(reference, freq, radius) -> WarpReference:
     the ringing with the pattern.  With it FD's refinement went to a biased
     fixed point there (the pure cosines' displacement 0.70 % after 2
     iterations, 0.79 % after 8; continued 0.67 / 0.53 %), and was worse than
-    no refinement on the deep dimple of the accuracy table.
+    no refinement on the deep dimple of the accuracy table.  ``continued=False``
+    keeps the reference alone (image matching's start, :func:`refine_fd_tapered`).
     """
     from .continuation import PatternContinuation
 
     ref = np.asarray(reference, np.float64)
     rows, cols = ref.shape
-    cont = PatternContinuation(ref.shape, freq)
-    padded = cont(ref).astype(np.float64)
+    if continued:
+        cont = PatternContinuation(ref.shape, freq)
+        padded, (top, left) = cont(ref).astype(np.float64), cont.offset
+    else:
+        padded, (top, left) = ref - ref.mean(), (0, 0)
     R, C = padded.shape
     spec = np.fft.fft2(padded)
     keep, nearest = _carrier_bands(np.fft.fftfreq(R)[:, None], np.fft.fftfreq(C)[None, :], freq, radius)
     spec *= keep
-    inside = (slice(cont.offset[0], cont.offset[0] + rows), slice(cont.offset[1], cont.offset[1] + cols))
+    inside = (slice(top, top + rows), slice(left, left + cols))
     wavevectors = (2.0 * np.pi * np.asarray(freq, np.float64))
     r = np.arange(rows, dtype=np.float64)[:, None]
     c = np.arange(cols, dtype=np.float64)[None, :]
@@ -252,6 +256,30 @@ def sample_band_limited(plan: WarpReference, offset_rows, offset_cols, out, *, i
     return out
 
 
+def _remove_bias(plan: WarpReference, u, valid, iterations, up, correction, *, interpolation, threads):
+    """``iterations`` times: the band-limited reference (``plan``) warped by ``u``
+    and ``correction(write)`` (the displacement left between frame and warped
+    reference, ``write(dst)`` putting the warped reference into ``dst``) added to
+    ``u`` on the ``valid`` samples."""
+    fill = nearest_fill_index(valid)
+    for _ in range(iterations):
+        # invalid samples take their nearest valid neighbour's u: a jump to
+        # 0 would tear the warped reference and ring through the band-pass
+        uf = u if fill is None else u[:, fill[0], fill[1]]
+        if fill is not None or not np.isfinite(uf).all():
+            uf = np.nan_to_num(uf)
+        # the reference sampled at r - u(r)
+        off_c = np.empty(up.shape, np.float32)
+        off_r = np.empty(up.shape, np.float32)
+        resize_all(lambda src, out: up(src, WARP_MAP_INTERPOLATION, out=out),
+                   [(np.negative(uf[1], dtype=np.float32), off_c), (np.negative(uf[0], dtype=np.float32), off_r)],
+                   threads)
+        du = correction(lambda dst: sample_band_limited(plan, off_r, off_c, dst, interpolation=interpolation,
+                                                        threads=threads))
+        u = u + np.where(valid, du, 0.0)
+    return u
+
+
 def refine_fd(demod, plan: WarpReference, continued, frame, phase, u, valid, iterations, up, *,
               interpolation=cv2.INTER_LINEAR, threads=2):
     """FD's displacement on the frame continued beyond its border, then its band-pass bias removed.
@@ -273,23 +301,38 @@ def refine_fd(demod, plan: WarpReference, continued, frame, phase, u, valid, ite
     u = np.where(valid, demod.phase_to_displacement((tapered + wrap(measured - tapered)).astype(np.float32)), u)
     if iterations <= 0:
         return u
-    fill = nearest_fill_index(valid)
     static = continued.static_phase(plan.band_limited)
     model = np.empty(up.shape, np.float32)
-    for _ in range(iterations):
-        # invalid samples take their nearest valid neighbour's u: a jump to
-        # 0 would tear the warped reference and ring through the band-pass
-        uf = u if fill is None else u[:, fill[0], fill[1]]
-        if fill is not None or not np.isfinite(uf).all():
-            uf = np.nan_to_num(uf)
-        # sample the reference at r - u(r)
-        off_c = np.empty(up.shape, np.float32)
-        off_r = np.empty(up.shape, np.float32)
-        resize_all(lambda src, out: up(src, WARP_MAP_INTERPOLATION, out=out),
-                   [(np.negative(uf[1], dtype=np.float32), off_c), (np.negative(uf[0], dtype=np.float32), off_r)],
-                   threads)
-        sample_band_limited(plan, off_r, off_c, model, interpolation=interpolation, threads=threads)
+
+    def correction(write):
+        write(model)
         dphi = wrap(continued.phase_difference(g_frame, continued.signals(model)) - static)
-        du = demod.phase_to_displacement(dphi.astype(np.float32))
-        u = u + np.where(valid, du, 0.0)
-    return u
+        return demod.phase_to_displacement(dphi.astype(np.float32))
+
+    return _remove_bias(plan, u, valid, iterations, up, correction, interpolation=interpolation, threads=threads)
+
+
+def static_phase(demod, band_limited):
+    """Phase of the reference against its band-limited copy (``warp_reference(...,
+    continued=False)``) on the decimated grid (wrap-around leakage at the borders):
+    what a right displacement leaves in :func:`refine_fd_tapered`."""
+    return np.angle(demod.g0 * np.conj(demod.decimated(np.ascontiguousarray(band_limited))))
+
+
+def refine_fd_tapered(demod, plan: WarpReference, static, g, u, valid, iterations, up, *,
+                      interpolation=cv2.INTER_LINEAR, threads=2):
+    """FD's bias removal through the demodulator's own taper: the band-limited reference of the
+    reference alone (``plan``, ``warp_reference(..., continued=False)``) warped by ``u``,
+    demodulated as the frame was (decimated signals ``g``), the phase left over minus ``static``
+    (:func:`static_phase`) added to ``u``, ``iterations`` times.
+
+    What image matching starts from (``processing.chain_image``): its own Gauss-Newton solve
+    moves the border's heights, and the continued border (:func:`refine_fd`) cost it 21-23 % of
+    its time at 1024^2 for 0.00-0.05 points of its figures (docs/processing.md section 6)."""
+    d = demod
+
+    def correction(write):
+        gw = d.decimated_from_windows(d.windows(d.spectrum_of(write)))
+        return d.phase_to_displacement(wrap(np.angle(g * np.conj(gw)) - static))
+
+    return _remove_bias(plan, u, valid, iterations, up, correction, interpolation=interpolation, threads=threads)

@@ -229,7 +229,7 @@ TABLE_CASES = [
     ("bump 2 um, sigma 4 mm", F.GaussianBump(0.002, 4.0), {}, 0.15),
     ("bump 2 um, sigma 2.5 mm (narrow)", F.GaussianBump(0.002, 2.5), {}, 0.23),
     ("waves 1 um rms, 12-30 mm", F.WaveField.random(6, amplitude_rms_mm=0.001, wavelength_range_mm=(12, 30), seed=3),
-     {}, 0.14),
+     {}, 0.13),
     ("dimple 5 um, 12 bit, noise 20 DN", F.Dimple(0.005, 6.0), dict(bits=12, noise=20.0), 0.09),
     ("deep dimple 15 um, sigma 9 mm", F.Dimple(0.015, 9.0), {}, 0.20),
     ("board soft 0.4 mm, period 2.1 mm, bump", F.GaussianBump(0.004, 5.0),
