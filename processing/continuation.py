@@ -204,10 +204,9 @@ class ContinuedSignals:
         from .fullgrid import spline_taps_matrix
 
         # the chain's samples on this grid, in its samples
-        self._along_r = spline_taps_matrix((np.asarray(demod.rows_px) + cont.offset[0] - d.rows_px[0])
-                                           / (d.rows_px[1] - d.rows_px[0]), d.window_shape[0])
-        self._along_c = spline_taps_matrix((np.asarray(demod.cols_px) + cont.offset[1] - d.cols_px[0])
-                                           / (d.cols_px[1] - d.cols_px[0]), d.window_shape[1])
+        self._at = ((np.asarray(demod.rows_px) + cont.offset[0] - d.rows_px[0]) / (d.rows_px[1] - d.rows_px[0]),
+                    (np.asarray(demod.cols_px) + cont.offset[1] - d.cols_px[0]) / (d.cols_px[1] - d.cols_px[0]))
+        self._along_r, self._along_c = (spline_taps_matrix(at, n) for at, n in zip(self._at, d.window_shape))
         self.g0 = d.g0
         self._static = self._static_of = None
 
@@ -224,14 +223,9 @@ class ContinuedSignals:
         """``(A_rows, A_cols)``, dense float32 (n_chain, n_padded) per axis, the cubic B-spline
         of :meth:`phase_difference` with its prefilter folded in: ``A_rows @ p @ A_cols.T`` takes
         a product ``p`` to the chain's grid (the GPU chain's two matrix products)."""
-        from scipy import ndimage
+        from .fullgrid import spline_matrix_at
 
-        out = []
-        for taps in (self._along_r, self._along_c):
-            n = taps.shape[1]
-            prefilter = ndimage.spline_filter1d(np.eye(n), order=3, axis=0, mode="reflect")
-            out.append(np.asarray(taps @ prefilter, np.float32))
-        return tuple(out)
+        return tuple(spline_matrix_at(at, n) for at, n in zip(self._at, self.demod.window_shape))
 
     def signals(self, image) -> np.ndarray:
         """Analytic signals (2, m_rows, m_cols of the padded frame) of ``image`` continued."""

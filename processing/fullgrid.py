@@ -16,7 +16,8 @@ from .pools import pool
 from .result import Result
 
 __all__ = ["Upsampler", "run_pair", "resize_all", "full_coordinates", "interpolate_full", "dots_full", "full_ifft",
-           "lanczos_matrix", "spline_weights", "spline_taps", "spline_taps_matrix", "spline_matrix"]
+           "lanczos_matrix", "spline_weights", "spline_taps", "spline_taps_matrix", "spline_matrix_at",
+           "spline_matrix"]
 
 
 def spline_weights(n_out: int, n_in: int):
@@ -25,7 +26,12 @@ def spline_weights(n_out: int, n_in: int):
     position ``(j + 0.5) n_out / n_in - 0.5`` (cv2.resize's pixel-centre
     mapping); coefficients beyond the ends mirrored about the half sample
     (``scipy.ndimage``'s ``mode="reflect"``, which :func:`spline_coefficients` matches)."""
-    return spline_taps((np.arange(n_out, dtype=np.float64) + 0.5) * (n_in / n_out) - 0.5, n_in)
+    return spline_taps(_pixel_centres(n_out, n_in), n_in)
+
+
+def _pixel_centres(n_out: int, n_in: int) -> np.ndarray:
+    """Where ``n_out`` output samples sit on a grid of ``n_in`` (cv2.resize's pixel-centre mapping), samples."""
+    return (np.arange(n_out, dtype=np.float64) + 0.5) * (n_in / n_out) - 0.5
 
 
 def spline_taps(pos, n_in: int):
@@ -45,17 +51,27 @@ def spline_taps(pos, n_in: int):
     return np.clip(index, 0, n_in - 1), weight
 
 
-def spline_taps_matrix(pos, n_in: int):
-    """(n, n_in) sparse float64 matrix of :func:`spline_taps`: cubic B-spline coefficients of a
+def spline_taps_matrix(pos, n_in: int, dtype=np.float64):
+    """(n, n_in) sparse matrix of :func:`spline_taps`: cubic B-spline coefficients of a
     grid of ``n_in`` samples to its values at ``pos`` (samples); the coefficients by
     :func:`spline_coefficients` or ``scipy.ndimage.spline_filter(..., mode="reflect")``."""
     from scipy import sparse
 
     index, weight = spline_taps(pos, n_in)
     n = index.shape[0]
-    m = sparse.csr_matrix((weight.ravel(), index.ravel(), np.arange(0, 4 * n + 1, 4)), shape=(n, n_in))
+    m = sparse.csr_matrix((weight.ravel().astype(dtype), index.ravel(), np.arange(0, 4 * n + 1, 4)), shape=(n, n_in))
     m.sum_duplicates()
     return m
+
+
+def spline_matrix_at(pos, n_in: int) -> np.ndarray:
+    """(n, n_in) float32: the cubic B-spline interpolation of a grid of ``n_in`` samples at
+    the positions ``pos`` (samples), its prefilter folded in (a dense matrix: one product
+    per axis takes samples to values)."""
+    from scipy import ndimage
+
+    prefilter = ndimage.spline_filter1d(np.eye(n_in), order=3, axis=0, mode="reflect")
+    return np.asarray(spline_taps_matrix(pos, n_in) @ prefilter).astype(np.float32)
 
 
 def spline_coefficients(field) -> np.ndarray:
@@ -98,13 +114,7 @@ def spline_matrix(n_out: int, n_in: int) -> np.ndarray:
     """(n_out, n_in) float32: the cubic B-spline interpolation of :class:`Upsampler`
     along one axis (prefilter included), so that ``A @ f @ B.T`` is
     ``Upsampler(..., "spline")(f)`` (the GPU chain's two matrix products)."""
-    index, weight = spline_weights(n_out, n_in)
-    taps = np.zeros((n_out, n_in))
-    np.add.at(taps, (np.repeat(np.arange(n_out), 4), index.ravel()), weight.ravel())
-    from scipy import ndimage
-
-    prefilter = ndimage.spline_filter1d(np.eye(n_in), order=3, axis=0, mode="reflect")
-    return (taps @ prefilter).astype(np.float32)
+    return spline_matrix_at(_pixel_centres(n_out, n_in), n_in)
 
 
 class _SplineResize:
@@ -113,15 +123,8 @@ class _SplineResize:
     taps per axis as two sparse products (built once per source shape)."""
 
     def __init__(self, shape, src_shape):
-        from scipy import sparse
-
-        self.mats = []
-        for n_out, n_in in zip(shape, src_shape):
-            index, weight = spline_weights(n_out, n_in)
-            m = sparse.csr_matrix((weight.ravel().astype(np.float32), index.ravel(),
-                                   np.arange(0, 4 * n_out + 1, 4)), shape=(n_out, n_in))
-            m.sum_duplicates()
-            self.mats.append(m)
+        self.mats = [spline_taps_matrix(_pixel_centres(n_out, n_in), n_in, np.float32)
+                     for n_out, n_in in zip(shape, src_shape)]
 
     def __call__(self, field, out):
         along_rows, along_cols = self.mats
