@@ -66,6 +66,19 @@ INTENSITY_CELL_PX = 16
 #: Smallest gain the frame is divided by, as a fraction of its median gain.
 MIN_GAIN = 0.1
 
+#: Pixels along each side of the frame left out of the match: on them the gradient of the blurred
+#: warped reference is a one-sided difference of OpenCV's mirror image, not the warp's response (its
+#: mirrored half moves the other way), and the Gauss-Newton steps of the border nodes overshot.
+#: Measured over four board placements (bench_processing.py --placements 4; 256^2 ray-traced, 4 x 4
+#: rays; narrow bump / waves 6-12 mm / waves 12-30 mm, interior): 0 px 0.361 / 0.758 / 0.230 %,
+#: 1 px 0.365 / 0.757 / 0.232 %, 2 px 0.360 / 0.763 / 0.230 %, 3 px 0.359 / 0.787 / 0.229 %, 4 px
+#: (the blur's reach) 0.360 / 0.760 / 0.228 %; over the whole frame 2 px 0.400 / 1.281 / 0.437 %,
+#: 4 px 0.400 / 1.701 / 0.464 % (fewer data for the border's nodes).  What decides is convergence: on
+#: the 12-30 mm waves at the fourth placement the rms residual over six steps went 4.00, 1.98, 2.28,
+#: 1.53, 1.94, 1.45 grey levels with 0 px (the border's steps from one side of the answer to the
+#: other), 2.81, 1.26, 1.11, 1.02, 1.02, 1.00 with 2 px, the steps shrinking 0.090 -> 0.004 px rms.
+BORDER_PX = 2
+
 
 def intensity_fit(frame, warped, weight=None, *, cell_px: float = INTENSITY_CELL_PX):
     """Smooth gain and offset fields with ``frame ~ gain * warped + offset``.
@@ -166,7 +179,7 @@ def _diverged(test: str, figures: str):
 def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int = 3, cg_iterations: int = 3,
                   regularisation: float = 0.03, blur_px: float = BLUR_PX,
                   intensity_cell_px: float | None = INTENSITY_CELL_PX, period_px: float | None = None,
-                  threads: int = 1):
+                  threads: int = 1, border_px: int = BORDER_PX):
     """Global Gauss-Newton image matching for the height on the node grid of ``nodes``.
 
     Minimises ``sum_r w [G*((I - b) / a) - G*I0(r - P L h)]^2 + lam (|D3r h|^2 + |D3c h|^2)``
@@ -196,6 +209,8 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
     threads : int
         Threads for the node stencils of each step (1 when a parallel run gives
         each frame one core); the result does not depend on it.
+    border_px : int
+        Pixels along each side of the frame left out of the match (:data:`BORDER_PX`).
 
     Returns
     -------
@@ -213,35 +228,44 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
     """
     grid = nodes.grid
     rows, cols = grid.frame_shape
-    raw, img, w, all_valid, free = _frame_and_weights(frame, valid_px, grid, blur_px)
+    raw, img, w, all_valid, free = _frame_and_weights(frame, valid_px, grid, blur_px, border_px)
     h = _start_heights(h0)
     u_start = nodes.displacement(h)
     prev_step = prev_cost = None
+    w_sum, wk_buf = float(w.sum()), np.empty_like(w)
     for k in range(outer + 1):
         u = nodes.displacement(h)
         _check_displacement(u, u_start, k, (rows, cols), period_px)  # before any warp
         if k == outer:
             break
-        warped = _warp(fine, grid, u, blur_px)
+        warped, outside = _warp(fine, grid, u, blur_px)
+        wk = _weights_within(w, outside, wk_buf)
         if intensity_cell_px and k == 0:
             # once, against the reference warped by FD's start (the ratio of standard
             # deviations hardly moves with the warp: fitting before every step gave the
-            # same heights, 10-20 % slower)
-            img = _normalised_frame(raw, img, warped, None if all_valid else w, intensity_cell_px, blur_px)
-        cost, sums = _node_sums(nodes, warped, img, w, threads)
-        prev_cost = _check_cost(cost, prev_cost, k, w.size)
+            # same heights, 10-20 % slower); the border's few pixels do not move cells of
+            # 16-32 px (weighted by wk: the same heights, 3 ms more at 1024^2)
+            img = _normalised_frame(raw, img, warped, None if all_valid else wk, intensity_cell_px, blur_px)
+        cost, sums = _node_sums(nodes, warped, img, wk, threads)
+        # per pixel that counts (how many do moves with the warp at the border), in units of w.size pixels
+        counted = float(wk.sum()) if outside else w_sum
+        if not counted > 0.0:
+            raise _diverged("no pixel left to match", f"the warp samples the reference nowhere after {k} step(s)")
+        prev_cost = _check_cost(cost * w.size / counted, prev_cost, k, w.size)
         x = _gauss_newton_step(nodes, sums, h, regularisation, cg_iterations, k)
         prev_step = _check_step(_rms(nodes.displacement(x)), prev_step, k)
         h += x
     return h, u.astype(np.float32), free
 
 
-def _frame_and_weights(frame, valid_px, grid, blur_px):
-    """``(raw, blurred frame, pixel weights, all valid, free nodes)`` of :func:`refine_height`."""
+def _frame_and_weights(frame, valid_px, grid, blur_px, border_px):
+    """``(raw, blurred frame, pixel weights, all valid, free nodes)`` of :func:`refine_height`
+    (the weights 0 on the outer ``border_px`` pixels of each side; ``all valid``: every pixel of
+    ``valid_px`` is)."""
     raw = img = np.asarray(frame, np.float32)
     if blur_px:
         img = cv2.GaussianBlur(img, (0, 0), blur_px)
-    w = np.asarray(valid_px, np.float32)
+    w = np.array(valid_px, np.float32)  # a copy: its border is written below
     all_valid = bool(w.all())
     free = grid.down(w) > 0.999
     if not all_valid and blur_px:
@@ -249,22 +273,71 @@ def _frame_and_weights(frame, valid_px, grid, blur_px):
         # pixels whose blurred frame and warped reference see valid pixels alone count
         reach = int(math.ceil(2.5 * blur_px))
         w = cv2.erode(w, np.ones((2 * reach + 1, 2 * reach + 1), np.uint8), borderType=cv2.BORDER_REPLICATE)
+    b = int(border_px)
+    if b > 0:
+        w[:b], w[-b:], w[:, :b], w[:, -b:] = 0.0, 0.0, 0.0, 0.0
     return raw, img, w, all_valid, free
 
 
 def _warp(fine, grid, u, blur_px):
-    """The fine reference warped by the node displacement ``u`` (Lanczos to the
-    pixels), blurred as the frame."""
+    """``(warped, outside)``: the fine reference warped by the node displacement
+    ``u`` (Lanczos to the pixels), blurred as the frame, and :func:`_outside` of
+    the warp (empty: every pixel is the reference's own)."""
     # both components in one two-channel resize (the same Lanczos weights, computed
     # once), interleaved (column, row) as the CV_32FC2 map that remap takes
     factor = fine.shape[0] // grid.frame_shape[0]  # fine_reference's factor
     up = grid.up(np.stack([u[1], u[0]], axis=-1), cv2.INTER_LANCZOS4)
     up *= np.float32(factor)
-    warped = cv2.remap(fine, np.subtract(grid.fine_map(factor), up, out=up), None, cv2.INTER_LINEAR,
-                       borderMode=cv2.BORDER_REFLECT)
+    fine_map = np.subtract(grid.fine_map(factor), up, out=up)
+    # Lanczos overshoots the node values by a few per cent: one pixel more than the largest
+    band_px = int(math.ceil(1.1 * float(np.abs(u).max()))) + 1 if u.size else 1
+    outside = _outside(fine_map, fine.shape, band_px)
+    warped = cv2.remap(fine, fine_map, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
     if blur_px:
         warped = cv2.GaussianBlur(warped, (0, 0), blur_px)
-    return warped
+    return warped, outside
+
+
+def _outside(fine_map, fine_shape, band_px):
+    """``[(slice, bad), ...]``: the pixels whose warped reference is not a sample of the
+    reference, ``bad`` (bool) within the strip ``slice`` of the frame, where the warp
+    (``fine_map``, :func:`_warp`'s map into the fine reference of ``fine_shape``)
+    reaches beyond the reference's border; empty where no pixel does.  Only the
+    outer ``band_px`` pixels of each side can (``band_px``: more than the largest
+    displacement).
+
+    Beyond its border the warped reference is the mirror image OpenCV makes,
+    not the pattern the frame shows there, and matching it pulled the border
+    nodes by pixels a step: on ray-traced 12-30 mm waves (256^2, FD's start 2-5
+    px at the upper border) steps of 4-10 px at the first node row, an rms
+    residual of 10 grey levels that did not fall, and heights 0.14-0.69 % off
+    over four board placements where no refinement gave 0.23-0.51 %
+    (docs/processing.md, section 6).  The pixels within the blur's reach of
+    those are not left out as well: measured, that cost as much as it gained.
+    """
+    rows, cols = fine_map.shape[:2]
+    b_r, b_c = min(band_px, rows), min(band_px, cols)
+    # each side tests its own coordinate (channel 0: column, 1: row); a corner pixel is in two strips
+    sides = ((np.s_[:b_r, :], 1, None), (np.s_[rows - b_r:, :], 1, fine_shape[0] - 1),
+             (np.s_[:, :b_c], 0, None), (np.s_[:, cols - b_c:], 0, fine_shape[1] - 1))
+    outside = []
+    for sl, channel, top in sides:
+        at = fine_map[sl + (channel,)]
+        bad = at < 0 if top is None else at > top
+        if bad.any():
+            outside.append((sl, bad))
+    return outside
+
+
+def _weights_within(w, outside, out):
+    """``w`` with the pixels of :func:`_outside`'s list set to 0, into ``out`` (``w`` itself
+    when the list is empty)."""
+    if not outside:
+        return w
+    np.copyto(out, w)
+    for sl, bad in outside:
+        out[sl][bad] = 0.0
+    return out
 
 
 def _check_cost(cost, prev_cost, k, n_px):

@@ -228,8 +228,10 @@ TABLE_CASES = [
     ("bump 4 um, sigma 5 mm", F.GaussianBump(0.004, 5.0), {}, 0.08),
     ("bump 2 um, sigma 4 mm", F.GaussianBump(0.002, 4.0), {}, 0.15),
     ("bump 2 um, sigma 2.5 mm (narrow)", F.GaussianBump(0.002, 2.5), {}, 0.23),
+    # 0.13 until image matching left out the warp's samples beyond the reference's border (5 Dec 2026):
+    # 0.134 -> 0.143 % at this board placement, 0.69 -> 0.19 % at another (test_dic, four placements)
     ("waves 1 um rms, 12-30 mm", F.WaveField.random(6, amplitude_rms_mm=0.001, wavelength_range_mm=(12, 30), seed=3),
-     {}, 0.13),
+     {}, 0.14),
     ("dimple 5 um, 12 bit, noise 20 DN", F.Dimple(0.005, 6.0), dict(bits=12, noise=20.0), 0.09),
     ("deep dimple 15 um, sigma 9 mm", F.Dimple(0.015, 9.0), {}, 0.20),
     ("board soft 0.4 mm, period 2.1 mm, bump", F.GaussianBump(0.004, 5.0),
