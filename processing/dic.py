@@ -291,20 +291,21 @@ def _warp(fine, grid, u, blur_px):
     fine_map = np.subtract(grid.fine_map(factor), up, out=up)
     # Lanczos overshoots the node values by a few per cent: one pixel more than the largest
     band_px = int(math.ceil(1.1 * float(np.abs(u).max()))) + 1 if u.size else 1
-    outside = _outside(fine_map, fine.shape, band_px)
+    outside = _outside(fine_map, fine.shape, band_px, factor)
     warped = cv2.remap(fine, fine_map, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
     if blur_px:
         warped = cv2.GaussianBlur(warped, (0, 0), blur_px)
     return warped, outside
 
 
-def _outside(fine_map, fine_shape, band_px):
-    """``[(slice, bad), ...]``: the pixels whose warped reference is not a sample of the
-    reference, ``bad`` (bool) within the strip ``slice`` of the frame, where the warp
-    (``fine_map``, :func:`_warp`'s map into the fine reference of ``fine_shape``)
-    reaches beyond the reference's border; empty where no pixel does.  Only the
-    outer ``band_px`` pixels of each side can (``band_px``: more than the largest
-    displacement).
+def _outside(fine_map, fine_shape, band_px, ramp):
+    """``[(slice, weight), ...]``: where the warp (``fine_map``, :func:`_warp`'s map
+    into the fine reference of ``fine_shape``) reaches beyond the reference's
+    border, within the strip ``slice`` of the frame, each pixel's ``weight``
+    (float32): 1 inside, falling linearly to 0 at ``ramp`` fine samples (one
+    pixel) beyond the border, 0 further out; empty where no pixel reaches
+    beyond.  Only the outer ``band_px`` pixels of each side can (``band_px``:
+    more than the largest displacement).
 
     Beyond its border the warped reference is the mirror image OpenCV makes,
     not the pattern the frame shows there, and matching it pulled the border
@@ -314,6 +315,10 @@ def _outside(fine_map, fine_shape, band_px):
     over four board placements where no refinement gave 0.23-0.51 %
     (docs/processing.md, section 6).  The pixels within the blur's reach of
     those are not left out as well: measured, that cost as much as it gained.
+    The ramp keeps the heights a continuous function of the frame: with a
+    pixel simply in or out, FFT plans that differ in the last bits (a parallel
+    run's workers against a serial run) moved whole pixels in or out and the
+    heights by 5e-4 of themselves.
     """
     rows, cols = fine_map.shape[:2]
     b_r, b_c = min(band_px, rows), min(band_px, cols)
@@ -323,20 +328,20 @@ def _outside(fine_map, fine_shape, band_px):
     outside = []
     for sl, channel, top in sides:
         at = fine_map[sl + (channel,)]
-        bad = at < 0 if top is None else at > top
-        if bad.any():
-            outside.append((sl, bad))
+        beyond = -at if top is None else at - np.float32(top)
+        if (beyond > 0).any():
+            outside.append((sl, np.clip(1.0 - beyond / np.float32(ramp), 0.0, 1.0).astype(np.float32)))
     return outside
 
 
 def _weights_within(w, outside, out):
-    """``w`` with the pixels of :func:`_outside`'s list set to 0, into ``out`` (``w`` itself
+    """``w`` times the weights of :func:`_outside`'s list, into ``out`` (``w`` itself
     when the list is empty)."""
     if not outside:
         return w
     np.copyto(out, w)
-    for sl, bad in outside:
-        out[sl][bad] = 0.0
+    for sl, weight in outside:
+        out[sl] *= weight
     return out
 
 
