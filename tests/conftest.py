@@ -20,6 +20,15 @@ from tests.helpers import FORK_SERVER_COMMAND, pid_alive
 
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 
+# Module- and session-scoped fixtures run before the per-test directories below are set: they
+# get this process's own, so that no test reads or writes the user's FFTW wisdom or settings.
+# (tests/app/test_parallel.py's serial run, a module fixture, once loaded the user's wisdom,
+# measured over weeks of benchmarks, while the parallel run it is compared with planned afresh:
+# other FFT plans, and the region motion of /pin_status off by 2e-6 px against a 1e-6 bound.)
+_SESSION_DIRS = tempfile.TemporaryDirectory(prefix="tirdeflect-test-dirs-")
+os.environ["TIRDEFLECT_CACHE_DIR"] = os.path.join(_SESSION_DIRS.name, "cache")
+os.environ["TIRDEFLECT_CONFIG_DIR"] = os.path.join(_SESSION_DIRS.name, "config")
+
 
 @pytest.fixture(autouse=True)
 def _private_cache_dir(tmp_path, monkeypatch):
