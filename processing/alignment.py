@@ -9,7 +9,7 @@ reference the frame's carriers lie near the reference's, so here:
 - **One FFT**: the demodulator's spectrum of the frame (its border window,
   mean removed through the window's own spectrum). The modulation map comes
   from its carrier windows exactly as the reconstruction's analytic signals do;
-  :func:`display_spectrum_of` reads only the part of it that is shown.
+  :func:`processing.half_spectrum.display_spectrum_of` reads only the part of it that is shown.
 - **The carrier search's spectrum from that one**: multiplying an image by the
   Hann window ``0.5 - 0.5 cos(2 pi (j + 1/2) / n)`` is, exactly, the 3-tap
   stencil ``X_h[k] = X[k] / 2 - e^(i pi/n) X[k-1] / 4 - e^(-i pi/n) X[k+1] / 4``
@@ -48,14 +48,13 @@ from typing import Optional
 import numpy as np
 import scipy.fft
 
-from .carriers import (display_bins, ISOLATION_RING_BINS, ISOLATION_RING_DC, ISOLATION_RING_DR, MIN_ISOLATION,
-                       MIN_PEAK_CONTRAST, Carriers, find_carriers_live, hann, match_error,
-                       theta_from_carriers, tile_origins)
+from .carriers import (ISOLATION_RING_BINS, ISOLATION_RING_DC, ISOLATION_RING_DR, MIN_ISOLATION, MIN_PEAK_CONTRAST,
+                       Carriers, find_carriers_live, hann, match_error, theta_from_carriers, tile_origins)
 from .errors import NoCarrierError
+from .half_spectrum import display_spectrum_of, half_spectrum_index
 
 __all__ = ["CarrierSearch", "carrier_search", "checkerboard_alignment", "frame_carriers", "frame_key", "hann_stencil",
-           "half_spectrum_index", "patch_peaks", "tile_carriers_near", "display_spectrum_of",
-           "modulation_map", "whole_image_carriers"]
+           "patch_peaks", "tile_carriers_near", "modulation_map", "whole_image_carriers"]
 
 #: Half width of the search around each reference carrier, as a fraction of
 #: its distance to DC (at least :data:`MIN_SEARCH_BINS`): a pattern or camera
@@ -70,26 +69,6 @@ _MARGIN = max(ISOLATION_RING_BINS[1], _REFINE_HALF)
 
 
 # ------------------------------------------------------------------ spectra
-def half_spectrum_index(shape, kr, kc) -> tuple:
-    """Where the full 2-D DFT's bins ``(kr, kc)`` (any integers) sit in an rfft2 half spectrum.
-
-    Returns
-    -------
-    (flat_index, conjugate)
-        Flat indices into the ``(rows, cols // 2 + 1)`` half spectrum and a
-        boolean array: True where the bin is the conjugate of the stored one
-        (columns beyond ``cols // 2``, by the symmetry of a real image).
-    """
-    rows, cols = shape
-    kr = np.asarray(kr) % rows
-    kc = np.asarray(kc) % cols
-    conj = kc > cols // 2
-    r = np.where(conj, (-kr) % rows, kr)
-    c = np.where(conj, cols - kc, kc)
-    r, c, conj = np.broadcast_arrays(r, c, conj)
-    return r * (cols // 2 + 1) + c, conj
-
-
 def hann_stencil(shape, kr, kc) -> tuple:
     """Indices, conjugation flags and weights of the Hann window as a 3 x 3 stencil in frequency.
 
@@ -295,6 +274,17 @@ def _order(freq, sharp):
     return freq, np.asarray(sharp)
 
 
+def _order_tiles(freq, sharp):
+    """:func:`_order` of every tile: ``freq`` (T, 2, 2), ``sharp`` (T, 2) -> new arrays."""
+    freq = np.array(freq, float)
+    sharp = np.array(sharp, float)
+    freq *= np.where(freq[:, :, 1:] < 0, -1.0, 1.0)
+    swap = freq[:, 0, 0] > freq[:, 1, 0]
+    freq[swap] = freq[swap][:, ::-1]
+    sharp[swap] = sharp[swap][:, ::-1]
+    return freq, sharp
+
+
 def whole_image_carriers(search: CarrierSearch, half_spectrum, mean: float = 0.0):
     """Carriers of a frame from the demodulator's half spectrum, near the reference's.
 
@@ -340,6 +330,26 @@ def whole_image_carriers(search: CarrierSearch, half_spectrum, mean: float = 0.0
     return Carriers(freq=freq, shape=tuple(search.shape), contrast=np.full(2, np.nan), sharpness=sharp), None
 
 
+@functools.lru_cache(maxsize=16)
+def _tile_rings(size: int, centres, searches):
+    """``(ring, sel, lo, counts)`` of :func:`tile_carriers_near`'s ``size`` px tiles: every
+    half-spectrum bin's ring (flat), the bins of the rings ``lo .. hi`` that the searches
+    around ``centres`` (bins, one per carrier) with ``searches`` bins can read, smoothing
+    included (+-3 rings), and each of those rings' bin count."""
+    fr = np.fft.fftfreq(size) * size
+    ring = _ring_of((size, size), fr[:, None], np.arange(size // 2 + 1)[None, :]).ravel()
+    reach = []
+    for (r0, c0), search in zip(centres, searches):
+        q = np.arange(-search, search + 1)
+        reach.append(_ring_of((size, size), r0 + q[:, None], c0 + q[None, :]))
+    n_rings = size + 1
+    lo = max(0, min(int(r.min()) for r in reach) - 3)
+    hi = min(n_rings - 1, max(int(r.max()) for r in reach) + 3)
+    sel = np.flatnonzero((ring >= lo) & (ring <= hi))
+    counts = np.bincount(ring[sel] - lo, minlength=hi - lo + 1)
+    return ring, sel, lo, counts
+
+
 # ------------------------------------------------------------ tiles
 def tile_carriers_near(frame, reference_freq, *, max_tiles: int = 64, min_fraction: float = 1.0 / 3.0):
     """:func:`~processing.carriers.find_carriers_local` near known carriers, all tiles in one FFT.
@@ -366,25 +376,28 @@ def tile_carriers_near(frame, reference_freq, *, max_tiles: int = 64, min_fracti
         tiles *= w[:, None] * w[None, :]
         spec = scipy.fft.rfft2(tiles, axes=(-2, -1), workers=2)
         T = spec.shape[0]
-        mag = np.abs(spec).astype(np.float64)
-        mag = np.maximum(mag, (_FLOOR * mag.reshape(T, -1).max(axis=1) + 1e-30)[:, None, None])
-        # each tile's ring profile, smoothed over +-3 rings (find_carriers)
-        fr = np.fft.fftfreq(size) * size
-        ring = _ring_of((size, size), fr[:, None], np.arange(size // 2 + 1)[None, :])
-        n_rings = size + 1
-        lab = (np.arange(T)[:, None, None] * n_rings + ring[None]).ravel()
-        counts = np.bincount(ring.ravel(), minlength=n_rings)
-        sums = np.bincount(lab, weights=np.log(mag + 1e-30).ravel(), minlength=T * n_rings)
-        prof = np.pad(sums.reshape(T, n_rings) / np.maximum(counts, 1), ((0, 0), (3, 3)), mode="edge")
-        c = np.cumsum(np.pad(prof, ((0, 0), (1, 0))), axis=1)
-        level = (c[:, 7:] - c[:, :-7]) / 7.0  # (T, n_rings)
         flat = spec.reshape(T, -1)
+        mag = np.abs(flat)
+        floor = (_FLOOR * mag.max(axis=1).astype(np.float64) + 1e-30)[:, None]
+        searches = [max(MIN_SEARCH_BINS, int(math.ceil(SEARCH_FRACTION * np.hypot(*(freq_ref[s] * size)))))
+                    for s in range(2)]
+        # each tile's ring profile, smoothed over +-3 rings (find_carriers), of the rings the
+        # carriers' searches can read (the others are not needed: measured 2 of 7 ms at 512^2)
+        ring, sel, lo, counts = _tile_rings(size, tuple(map(tuple, np.round(freq_ref * size).astype(int))),
+                                            tuple(searches))
+        logs = np.log(np.maximum(mag[:, sel].astype(np.float64), floor) + 1e-30)
+        n_rings = counts.size
+        lab = (np.arange(T)[:, None] * n_rings + (ring[sel] - lo)[None, :]).ravel()
+        sums = np.bincount(lab, weights=logs.ravel(), minlength=T * n_rings).reshape(T, n_rings)
+        prof = np.pad(sums / np.maximum(counts, 1), ((0, 0), (3, 3)), mode="edge")
+        c = np.cumsum(np.pad(prof, ((0, 0), (1, 0))), axis=1)
+        level = (c[:, 7:] - c[:, :-7]) / 7.0  # (T, rings lo .. hi)
         ok = np.ones(T, bool)
         freqs = np.empty((T, 2, 2))
         sharps = np.empty((T, 2))
         for s in range(2):
             centre = np.round(freq_ref[s] * size).astype(np.int64)
-            search = max(MIN_SEARCH_BINS, int(math.ceil(SEARCH_FRACTION * np.hypot(*(freq_ref[s] * size)))))
+            search = searches[s]
             h = search + _MARGIN
             q = np.arange(-h, h + 1)
             idx, conj = half_spectrum_index((size, size), centre[0] + q[:, None], centre[1] + q[None, :])
@@ -394,15 +407,15 @@ def tile_carriers_near(frame, reference_freq, *, max_tiles: int = 64, min_fracti
             kr, kc = centre[0] + p["d_row"], centre[1] + p["d_col"]
             f = np.stack([kr + p["offset"][:, 0], kc + p["offset"][:, 1]], axis=1) / size
             radius = np.hypot(f[:, 0], f[:, 1])
-            contrast = p["amplitude"] / np.exp(level[np.arange(T), _ring_of((size, size), kr, kc)])
+            contrast = p["amplitude"] / np.exp(level[np.arange(T), _ring_of((size, size), kr, kc) - lo])
             ok &= (p["inside"] & (p["isolation"] >= MIN_ISOLATION) & (contrast >= MIN_PEAK_CONTRAST)
                    & (radius >= 4.0 / size) & (radius <= 1.0 / 2.5))
             freqs[:, s] = f
             sharps[:, s] = p["sharpness"]
         if np.count_nonzero(ok) and np.count_nonzero(ok) >= min_fraction * T:
-            pairs = [_order(freqs[t], sharps[t]) for t in np.flatnonzero(ok)]
-            return Carriers(freq=np.median(np.array([a for a, _ in pairs]), axis=0), shape=(rows, cols),
-                            contrast=np.full(2, np.nan), sharpness=np.median(np.array([b for _, b in pairs]), axis=0))
+            f, sh = _order_tiles(freqs[ok], sharps[ok])
+            return Carriers(freq=np.median(f, axis=0), shape=(rows, cols), contrast=np.full(2, np.nan),
+                            sharpness=np.median(sh, axis=0))
     return None
 
 
@@ -429,7 +442,7 @@ def frame_carriers(search: CarrierSearch, frame, half_spectrum, mean: float = 0.
     return find_carriers_live(frame)
 
 
-# ------------------------------------------------------------ modulation, spectrum
+# ------------------------------------------------------------ modulation
 @functools.lru_cache(maxsize=8)
 def _local_mean_layout(shape, window_shape, radius: float) -> tuple:
     """Bins of the DC window (ifftshift order) and its radial low-pass, for :func:`modulation_map`."""
@@ -471,55 +484,6 @@ def modulation_map(demod, half_spectrum, frame) -> tuple:
     mod = (std / np.maximum(mean, 1e-6 * max(float(np.abs(mean).max()), 1e-30))).astype(np.float32)
     amplitude = (np.abs(g) / np.maximum(d.g0_abs, 1e-30)).min(axis=0).astype(np.float32)
     return mod, amplitude
-
-
-@functools.lru_cache(maxsize=8)
-def _display_layout(shape, size: int, max_freq: float) -> tuple:
-    """Where :func:`display_spectrum_of` reads: the half-spectrum rows and
-    columns shown, and for every shown bin, block by block, its place among them."""
-    rows, cols = shape
-    fy, fx, keep_r, keep_c, step_r, step_c = display_bins(shape, size, max_freq)
-    nr, nc = len(keep_r) // step_r, len(keep_c) // step_c
-    # shifted index i holds the unshifted bin (i - n // 2) mod n
-    kr, kc = (keep_r - rows // 2)[:, None], (keep_c - cols // 2)[None, :]
-    idx, _ = half_spectrum_index(shape, kr, kc)
-    h = cols // 2 + 1
-    r_half, c_half = np.divmod(idx, h)
-    # read only the rows and leading columns of the half spectrum that hold shown bins
-    r_sel = np.unique(r_half)
-    n_c = int(c_half.max()) + 1
-    local = np.searchsorted(r_sel, r_half) * n_c + c_half
-    # (step_r * step_c, nr * nc): the blocks' members along the first axis
-    local = local.reshape(nr, step_r, nc, step_c).transpose(1, 3, 0, 2).reshape(step_r * step_c, nr * nc)
-    freq_x = fx[keep_c].reshape(nc, step_c).mean(axis=1)
-    freq_y = fy[keep_r].reshape(nr, step_r).mean(axis=1)
-    return r_sel, n_c, local, (nr, nc), freq_x, freq_y
-
-
-def display_spectrum_of(half_spectrum, shape, *, leak=None, size: int = 256, max_freq: float = 0.25) -> dict:
-    """:func:`processing.carriers.display_spectrum` of ``|half_spectrum - leak|``, reading only the shown bins.
-
-    Parameters
-    ----------
-    half_spectrum : ndarray, complex (rows, cols // 2 + 1)
-    shape : (rows, cols)
-    leak : (mean, window_spectrum) or None
-        Subtract ``mean * window_spectrum`` (the frame's mean through the
-        border window: its peak at DC) first.
-
-    Returns
-    -------
-    dict
-        The same ``log_magnitude``, ``freq_x``, ``freq_y`` as ``display_spectrum``.
-    """
-    r_sel, n_c, local, (nr, nc), freq_x, freq_y = _display_layout(tuple(shape), int(size), float(max_freq))
-    vals = np.asarray(half_spectrum)[r_sel, :n_c]
-    if leak is not None and leak[0]:
-        vals = vals - np.complex64(leak[0]) * np.asarray(leak[1])[r_sel, :n_c]
-    mag = np.abs(vals).astype(np.float32, copy=False).reshape(-1)
-    sub = mag[local].max(axis=0).reshape(nr, nc)
-    out = np.log10(sub + 1e-6 * float(sub.max() or 1.0)).astype(np.float32)
-    return {"log_magnitude": out, "freq_x": freq_x.copy(), "freq_y": freq_y.copy()}
 
 
 # ------------------------------------------------------------ all of it

@@ -80,7 +80,8 @@ class LiveView:
             from .carriers import frame_spectrum
 
             return dict(frame_spectrum(frame, size=size, max_freq=max_freq), carriers=[])
-        from .alignment import display_spectrum_of, frame_key
+        from .alignment import frame_key
+        from .half_spectrum import display_spectrum_of
 
         d = self.chain.demod
         cached = self._shown

@@ -17,7 +17,8 @@ import pytest
 
 import processing.alignment as alignment
 from processing import forward
-from processing.alignment import display_spectrum_of, hann_stencil
+from processing.alignment import hann_stencil
+from processing.half_spectrum import display_spectrum_of
 from processing.carriers import display_spectrum, find_carriers_live, hann, theta_from_carriers
 from processing.geometry import Geometry
 from processing.reconstruct import Reconstructor
