@@ -315,10 +315,9 @@ def _outside(fine_map, fine_shape, band_px, ramp):
     over four board placements where no refinement gave 0.23-0.51 %
     (docs/processing.md, section 6).  The pixels within the blur's reach of
     those are not left out as well: measured, that cost as much as it gained.
-    The ramp keeps the heights a continuous function of the frame: with a
-    pixel simply in or out, FFT plans that differ in the last bits (a parallel
-    run's workers against a serial run) moved whole pixels in or out and the
-    heights by 5e-4 of themselves.
+    The ramp keeps the weights, and with them the heights, a continuous
+    function of the displacement: a pixel simply in or out is a jump that the
+    last bits of an FFT plan could flip.
     """
     rows, cols = fine_map.shape[:2]
     b_r, b_c = min(band_px, rows), min(band_px, cols)
