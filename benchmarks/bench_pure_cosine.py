@@ -66,17 +66,28 @@ BANDS = ((0, 1), (1, 2), (2, 2.56), (2.56, 3), (3, 4), (4, 6), (6, 99))
 PERIOD_PX = 8.0
 
 
-def where_the_error_is(res, u_true):
-    """``(by band, (row, col))``: RMS error per distance band and per component (8 % interior),
-    each over the RMS displacement of the 8 % interior, %."""
-    r = np.arange(N)
-    edge = np.minimum.outer(np.minimum(r, N - 1 - r), np.minimum(r, N - 1 - r)) / PERIOD_PX
+def band_errors(u, u_true, period_px, valid=None):
+    """``(interior, by band, (row, col))`` of a square frame's displacement ``u`` (2, n, n): the
+    RMS error over the 8 % interior, per band of distance from the edge (:data:`BANDS`, in
+    carrier periods of ``period_px``) and per component (8 % interior), each over the RMS
+    displacement of the 8 % interior, %; ``valid`` (n, n): the samples that count (None: all)."""
+    n = u.shape[1]
+    valid = np.ones(u.shape[1:], bool) if valid is None else valid
+    r = np.arange(n)
+    edge = np.minimum.outer(np.minimum(r, n - 1 - r), np.minimum(r, n - 1 - r)) / period_px
     R, C = np.meshgrid(r, r, indexing="ij")
-    inner = res.valid & (R > 0.08 * N) & (R < 0.92 * N) & (C > 0.08 * N) & (C < 0.92 * N)
+    inner = valid & (R > 0.08 * n) & (R < 0.92 * n) & (C > 0.08 * n) & (C < 0.92 * n)
     norm = np.sqrt(np.mean(u_true[:, inner] ** 2))
-    e = res.displacement - u_true
-    bands = [100 * np.sqrt(np.mean(e[:, res.valid & (edge >= lo) & (edge < hi)] ** 2)) / norm for lo, hi in BANDS]
+    e = u - u_true
+    interior = 100 * np.sqrt(np.mean(e[:, inner] ** 2)) / norm
+    bands = [100 * np.sqrt(np.mean(e[:, valid & (edge >= lo) & (edge < hi)] ** 2)) / norm for lo, hi in BANDS]
     parts = [100 * np.sqrt(np.mean(e[i][inner] ** 2)) / norm for i in range(2)]
+    return interior, bands, parts
+
+
+def where_the_error_is(res, u_true):
+    """``(by band, (row, col))`` of :func:`band_errors` for a full-grid result."""
+    _, bands, parts = band_errors(res.displacement, u_true, PERIOD_PX, res.valid)
     return bands, parts
 
 

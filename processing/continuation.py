@@ -235,14 +235,14 @@ class ContinuedSignals:
     def phase_difference(self, g_a, g_b) -> np.ndarray:
         """``arg(g_a conj(g_b))`` (2, the chain's decimated grid) of two :meth:`signals`: their
         product taken to the chain's samples by cubic B-spline, then its argument, float32."""
-        from scipy import ndimage
+        from .fullgrid import spline_coefficients
 
         p = g_a * np.conj(g_b)
         out = np.empty((2,) + (self._along_r.shape[0], self._along_c.shape[0]), np.float32)
         for s in range(2):
             parts = []
             for part in (p[s].real, p[s].imag):
-                coef = ndimage.spline_filter(part.astype(np.float64), order=3, mode="reflect")
+                coef = spline_coefficients(part, np.float64)
                 parts.append(self._along_r @ (self._along_c @ coef.T).T)
             out[s] = np.arctan2(parts[1], parts[0])
         return out

@@ -74,11 +74,12 @@ def spline_matrix_at(pos, n_in: int) -> np.ndarray:
     return np.asarray(spline_taps_matrix(pos, n_in) @ prefilter).astype(np.float32)
 
 
-def spline_coefficients(field) -> np.ndarray:
-    """Cubic B-spline coefficients of a 2-D grid of samples (mirror ends), float32."""
+def spline_coefficients(field, dtype=np.float32) -> np.ndarray:
+    """Cubic B-spline coefficients of a 2-D grid of samples (mirror ends), computed in float64,
+    returned as ``dtype``."""
     from scipy import ndimage
 
-    return ndimage.spline_filter(np.asarray(field, np.float64), order=3, mode="reflect").astype(np.float32)
+    return ndimage.spline_filter(np.asarray(field, np.float64), order=3, mode="reflect").astype(dtype, copy=False)
 
 
 def lanczos_matrix(n_out: int, n_in: int) -> np.ndarray:

@@ -217,7 +217,6 @@ class BatchChain:
         second = SecondOrderOptics(recon.geometry, recon.rows_px, recon.cols_px, recon.shape, hs.x_mm, hs.y_mm)
         self.second = (to(second.t.astype(np.float32)), hs.y_mm, hs.x_mm) if second.applies else None
         self.smooth = None
-        self.static = None
         self.staging = None  # page-locked host buffer the frames go up from (reused: each batch ends synchronised)
         self.rows_f = xp.arange(rows, dtype=xp.float32)[:, None]
         self.cols_f = xp.arange(cols, dtype=xp.float32)[None, :]
