@@ -93,7 +93,7 @@ class ImageRefinement(_NodeRefinement):
         uf = u if fill is None else u[:, fill[0], fill[1]]
         valid_px = np.ones(self.chain.shape, bool) if all_valid else up.mask(valid)
         valid_nodes = ng.down(valid_px.astype(np.float32)) > 0.999
-        u_start = np.stack([ng.down(up(np.nan_to_num(uf[i]))) for i in range(2)])
+        u_start = np.stack([up.cell_means(np.nan_to_num(uf[i]), ng.s) for i in range(2)])
         return valid_px, valid_nodes, self._solve(hs, u_start, valid_nodes)
 
     def __call__(self, m, fd: Result, t3) -> Result:
@@ -117,7 +117,7 @@ class ImageRefinement(_NodeRefinement):
             pin = dataclasses.replace(pin, unpinned_fraction=dropped)
         t5 = time.perf_counter()
         timings["height"] += 1e3 * (t5 - t4)
-        amp_nodes = ng.down(chain.upsampler(m.amplitude))
+        amp_nodes = chain.upsampler.cell_means(m.amplitude, ng.s)
         res = self._node_result(surf, valid_nodes, u_nodes, amplitude=amp_nodes, carriers=chain.carriers,
                                 phase=np.asarray(m.phase, np.float32), timings_ms=timings, pin=pin, series=fd.series)
         # the slopes of second-order heights are not the linear map of u and h: interpolated as they are

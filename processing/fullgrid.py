@@ -190,6 +190,42 @@ class Upsampler:
         v = self(valid.astype(np.float32), cv2.INTER_LINEAR)
         return v > 0.999
 
+    def cell_means(self, field, cell_px: int) -> np.ndarray:
+        """Means over cells of ``cell_px`` x ``cell_px`` pixels of the field interpolated to
+        every pixel, float32 (frame sides multiples of ``cell_px``): what
+        ``cv2.resize(self(field), cells, interpolation=cv2.INTER_AREA)`` gives, to float32
+        rounding, without the full-size field (the spline's taps and the cells' means folded
+        into one sparse matrix per axis; other kinds through the full-size field)."""
+        src = np.ascontiguousarray(field, dtype=np.float32)
+        rows, cols = self.shape
+        cells = (rows // cell_px, cols // cell_px)
+        if self.interpolation is not None:
+            return cv2.resize(self(src), (cells[1], cells[0]), interpolation=cv2.INTER_AREA)
+        key = ("cells", src.shape, int(cell_px))
+        mats = self._spline.get(key)
+        if mats is None:
+            with self._lock:
+                mats = self._spline[key] = [_cell_taps(n_out, n_in, int(cell_px))
+                                            for n_out, n_in in zip(self.shape, src.shape)]
+        if not np.isfinite(src).all():  # as the full-size path: NaN wherever a linear resize of the bad samples reaches
+            return cv2.resize(self(src), (cells[1], cells[0]), interpolation=cv2.INTER_AREA)
+        along_rows, along_cols = mats
+        coef = spline_coefficients(src)
+        half = np.ascontiguousarray((along_cols @ coef.T).T)
+        return np.ascontiguousarray(along_rows @ half, dtype=np.float32)
+
+
+def _cell_taps(n_out: int, n_in: int, cell_px: int):
+    """(n_out // cell_px, n_in) sparse float32: the cubic B-spline taps of :class:`_SplineResize`
+    along one axis, averaged over each cell of ``cell_px`` output samples."""
+    from scipy import sparse
+
+    taps = spline_taps_matrix(_pixel_centres(n_out, n_in), n_in, np.float64)
+    n_cells = n_out // cell_px
+    box = sparse.csr_matrix((np.full(n_cells * cell_px, 1.0 / cell_px), np.arange(n_cells * cell_px),
+                             np.arange(0, n_cells * cell_px + 1, cell_px)), shape=(n_cells, n_out))
+    return (box @ taps).astype(np.float32).tocsr()
+
 
 def run_pair(shape, job_a, job_b, threads=2):
     """Run two full-size jobs (numpy/cv2 release the GIL), in parallel on large frames

@@ -214,25 +214,59 @@ def modulate(xp, envelopes, plan: WarpReference, offset_rows, offset_cols):
     return out * np.float32(2.0)
 
 
-@numba.njit(nogil=True, cache=True)
+#: Polynomial sine and cosine on [-pi/4, pi/4] (:func:`_modulate_rows`): ``sin r = r + r^3 (S0 + S1 z + S2 z^2)``,
+#: ``cos r = 1 - z / 2 + z^2 (C0 + C1 z + C2 z^2)``, ``z = r^2``; coefficients fitted here by iteratively
+#: reweighted least squares on Chebyshev nodes (largest error 1.8e-9 for the sine, 1e-10 for the cosine, in
+#: float64: below float32's rounding).
+_SIN = (-1.6666650719e-01, 8.3319815580e-03, -1.9495987503e-04)
+_COS = (4.1666646840e-02, -1.3887366647e-03, 2.4438384123e-05)
+
+
+@numba.njit(nogil=True, cache=True, fastmath={"contract"})
 def _modulate_rows(envelopes, offset_rows, offset_cols, carrier_cos, carrier_sin, k, out, r0, r1):  # pragma: no cover
-    """:func:`modulate` (the GPU chain's, written for any array module) of rows ``r0 <= i < r1``, compiled,
-    in one pass: at 1024^2 on a quiet machine, one thread, 11-12 ms where NumPy's about 30 full-size passes
-    took 29 ms; 8-9 of them are the 4 sines and cosines a pixel."""
-    two = np.float32(2.0)
+    """:func:`modulate` (the GPU chain's, written for any array module) of rows ``r0 <= i < r1``, compiled.
+
+    Each row in two sweeps the compiler vectorises: the phase ``k . offset`` of both carriers, its sine and
+    cosine (reduced to [-pi/4, pi/4] by three-part pi/2, exact for ``|k . offset|`` up to about 1e4 rad, then
+    the polynomials :data:`_SIN`, :data:`_COS`, the quadrant by arithmetic, no branch), then the sum.  At
+    1024^2 on a quiet machine, one thread: 5.0 ms, where the same pass with ``np.sin``/``np.cos`` a pixel took
+    12.6 ms (NumPy's about 30 full-size passes 29 ms); within 1.4e-6 of the signal's largest value of it
+    (float32 rounding; tests/processing/test_pure_cosine.py compares with :func:`modulate`)."""
+    cols = out.shape[1]
+    sines = np.empty((2, cols), np.float32)
+    cosines = np.empty((2, cols), np.float32)
+    two_over_pi = np.float32(0.636619772367581343)
+    # pi / 2 in three parts: the first two hold few bits, so j * part is exact for |j| < 2^16
+    p1, p2, p3 = np.float32(1.5703125), np.float32(4.837512969970703125e-4), np.float32(7.549789948768648e-8)
+    s0, s1, s2 = np.float32(_SIN[0]), np.float32(_SIN[1]), np.float32(_SIN[2])
+    c0, c1, c2 = np.float32(_COS[0]), np.float32(_COS[1]), np.float32(_COS[2])
+    one, half, two = np.float32(1.0), np.float32(0.5), np.float32(2.0)
     for i in range(r0, r1):
-        for j in range(out.shape[1]):
+        rows_i, cols_i = offset_rows[i], offset_cols[i]
+        for s in range(2):
+            k0, k1 = k[s, 0], k[s, 1]
+            for j in range(cols):
+                phi = k0 * rows_i[j] + k1 * cols_i[j]
+                quarter = np.floor(phi * two_over_pi + half)
+                r = ((phi - quarter * p1) - quarter * p2) - quarter * p3
+                z = r * r
+                sin_r = r + r * z * (s0 + z * (s1 + z * s2))
+                cos_r = one - half * z + z * z * (c0 + z * (c1 + z * c2))
+                q = np.int32(quarter) & 3
+                odd = np.float32(q & 1)  # quadrants 1 and 3 swap sine and cosine
+                sines[s, j] = (sin_r + odd * (cos_r - sin_r)) * np.float32(1 - (q & 2))
+                cosines[s, j] = (cos_r + odd * (sin_r - cos_r)) * np.float32(1 - ((q + 1) & 2))
+        env, out_i = envelopes[i], out[i]
+        for j in range(cols):
             acc = np.float32(0.0)
             for s in range(2):
-                phi = k[s, 0] * offset_rows[i, j] + k[s, 1] * offset_cols[i, j]
-                cos_phi, sin_phi = np.cos(phi), np.sin(phi)
                 cc, cs = carrier_cos[s, i, j], carrier_sin[s, i, j]
-                er, ei = envelopes[i, j, 2 * s], envelopes[i, j, 2 * s + 1]
+                er, ei = env[j, 2 * s], env[j, 2 * s + 1]
                 # Re((er + i ei)(cc + i cs)(cos_phi + i sin_phi))
                 a = er * cc - ei * cs
                 b = er * cs + ei * cc
-                acc += a * cos_phi - b * sin_phi
-            out[i, j] = two * acc
+                acc += a * cosines[s, j] - b * sines[s, j]
+            out_i[j] = two * acc
 
 
 def sample_band_limited(plan: WarpReference, offset_rows, offset_cols, out, *, interpolation=cv2.INTER_LINEAR,

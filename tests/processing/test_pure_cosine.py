@@ -91,6 +91,27 @@ def test_spline_upsampler_is_exact_and_keeps_a_bad_sample_local():
     assert 0 < bad.sum() <= 12 * 12 and bad[90:100, 120:130].any()
 
 
+
+def test_cell_means_of_the_spline_are_those_of_the_full_size_field():
+    # Upsampler.cell_means (image matching's start and amplitude at its nodes) folds the spline's taps
+    # and the cells' means into one matrix per axis: the same numbers as interpolating every pixel and
+    # averaging 4 x 4 cells (cv2's INTER_AREA), to float32 rounding, on a frame whose sides are not
+    # a multiple of the source grid's; a NaN sample reaches the cells it reaches through the full field.
+    import cv2
+
+    from processing.fullgrid import Upsampler
+
+    rng = np.random.default_rng(2)
+    f = np.cumsum(np.cumsum(rng.standard_normal((43, 37)), 0), 1).astype(np.float32)
+    up = Upsampler((200, 256), f.shape)
+    full = cv2.resize(up(f), (64, 50), interpolation=cv2.INTER_AREA)
+    got = up.cell_means(f, 4)
+    assert got.shape == (50, 64) and got.dtype == np.float32
+    assert np.abs(got - full).max() <= 1e-6 * np.abs(full).max()
+    f[20, 18] = np.nan
+    assert np.array_equal(np.isnan(up.cell_means(f, 4)),
+                          np.isnan(cv2.resize(up(f), (64, 50), interpolation=cv2.INTER_AREA)))
+
 def test_pure_cosine_full_grid_methods_and_refinement_never_hurts(pair):
     # 12 bit, 8 % margin.  Issue 19's goal: <= 0.6 % for every full-grid method.
     # Measured now (5 Dec 2026: FD's full grid measures its phase on the frame
@@ -202,3 +223,27 @@ def test_compiled_warp_sum_is_the_array_module_one(pair):
                         borderMode=cv2.BORDER_REFLECT)
     by_numpy = modulate(np, sampled, plan, off_r, off_c)
     assert np.abs(compiled - by_numpy).max() <= 1e-5 * np.abs(by_numpy).max()
+
+
+def test_compiled_warp_sines_hold_float32_over_the_phase_range():
+    # refine._modulate_rows takes its sines and cosines from polynomials after a reduction to
+    # [-pi/4, pi/4]: with one envelope of 1 on carrier s and carriers of phase 0 the pass gives
+    # 2 cos(k_s . offset), and -2 sin with the envelope i; checked against float64 over phases of
+    # +-3000 rad (offsets of +-3000 px at 1 rad/px, far beyond any displacement) and at the
+    # quadrant boundaries: within a few float32 roundings of 1 whatever the phase (a reduction by
+    # one float32 pi / 2 would be 8e-5 off at 3000 rad).
+    from processing.refine import _modulate_rows
+
+    n = 4096
+    phase = np.concatenate([np.linspace(-3000.0, 3000.0, n - 64),
+                            np.pi / 4 * np.arange(-32, 32) + np.float32(1e-6)]).astype(np.float32)[None, :]
+    zero = np.zeros_like(phase)
+    k = np.array([[1.0, 0.0], [0.0, 1.0]], np.float32)
+    cos_c, sin_c = np.ones((2, 1, n), np.float32), np.zeros((2, 1, n), np.float32)
+    truth = phase.astype(np.float64)
+    for channel, expected in ((0, 2 * np.cos(truth)), (1, -2 * np.sin(truth))):
+        env = np.zeros((1, n, 4), np.float32)
+        env[..., channel] = 1.0
+        out = np.empty((1, n), np.float32)
+        _modulate_rows(env, phase, zero, cos_c, sin_c, k, out, 0, 1)
+        assert np.abs(out - expected).max() <= 8 * np.finfo(np.float32).eps
