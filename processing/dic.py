@@ -179,13 +179,13 @@ def _diverged(test: str, figures: str):
 def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int = 3, cg_iterations: int = 3,
                   regularisation: float = 0.03, blur_px: float = BLUR_PX,
                   intensity_cell_px: float | None = INTENSITY_CELL_PX, period_px: float | None = None,
-                  threads: int = 1, border_px: int = BORDER_PX):
+                  threads: int = 1, border_px: int = BORDER_PX, matrix_once: bool = False):
     """Global Gauss-Newton image matching for the height on the node grid of ``nodes``.
 
     Minimises ``sum_r w [G*((I - b) / a) - G*I0(r - P L h)]^2 + lam (|D3r h|^2 + |D3c h|^2)``
     (module docstring; docs/processing.md section 6 for the settings measured):
     ``outer`` steps, each solving the normal equations by ``cg_iterations``
-    preconditioned conjugate-gradient iterations (:func:`_gauss_newton_step`);
+    preconditioned conjugate-gradient iterations (:class:`_NormalOperator`);
     ``lam`` is ``regularisation`` times the data term's weight per node at unit
     spatial frequency.  Every loop is bounded, and the iterations stop with
     :class:`RefinementDiverged` (the caller keeps FD's answer) when they leave
@@ -211,6 +211,12 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
         each frame one core); the result does not depend on it.
     border_px : int
         Pixels along each side of the frame left out of the match (:data:`BORDER_PX`).
+    matrix_once : bool
+        Keep the first step's Gauss-Newton matrix for the later steps (their
+        right-hand sides, the image residual's gradient, are each step's own, so
+        a converged answer is the same): checkerboards, whose start (FD's
+        refinement) is close enough; random dots, started from PIV, need every
+        step's matrix (:data:`processing.chain_image.MATRIX_ONCE`).
 
     Returns
     -------
@@ -231,7 +237,7 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
     raw, img, w, all_valid, free = _frame_and_weights(frame, valid_px, grid, blur_px, border_px)
     h = _start_heights(h0)
     u_start = nodes.displacement(h)
-    prev_step = prev_cost = None
+    prev_step = prev_cost = operator = None
     w_sum, wk_buf = float(w.sum()), np.empty_like(w)
     for k in range(outer + 1):
         u = nodes.displacement(h)
@@ -246,13 +252,16 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
             # same heights, 10-20 % slower); the border's few pixels do not move cells of
             # 16-32 px (weighted by wk: the same heights, 3 ms more at 1024^2)
             img = _normalised_frame(raw, img, warped, None if all_valid else wk, intensity_cell_px, blur_px)
-        cost, sums = _node_sums(nodes, warped, img, wk, threads)
+        cost, stencils, rhs = _node_sums(nodes, warped, img, wk, threads, matrix=operator is None)
         # per pixel that counts (how many do moves with the warp at the border), in units of w.size pixels
         counted = float(wk.sum()) if outside else w_sum
         if not counted > 0.0:
             raise _diverged("no pixel left to match", f"the warp samples the reference nowhere after {k} step(s)")
         prev_cost = _check_cost(cost * w.size / counted, prev_cost, k, w.size)
-        x = _gauss_newton_step(nodes, sums, h, regularisation, cg_iterations, k)
+        step_operator = operator or _NormalOperator(nodes, stencils, regularisation, k)
+        if matrix_once:
+            operator = step_operator
+        x = step_operator.solve(rhs, h, cg_iterations)
         prev_step = _check_step(_rms(nodes.displacement(x)), prev_step, k)
         h += x
     return h, u.astype(np.float32), free
@@ -409,12 +418,13 @@ def _normalised_frame(raw, blurred, warped, weight, cell_px, blur_px):
     return img
 
 
-def _node_sums(nodes, warped, img, w, threads):
-    """``(weighted residual sum of squares, (Nrr, Nrc, Ncc, br, bc))`` of one step:
+def _node_sums(nodes, warped, img, w, threads, matrix=True):
+    """``(weighted residual sum of squares, (Nrr, Nrc, Ncc), (br, bc))`` of one step:
     the gradients ``g`` of ``warped``, the residual ``e = img - warped``, the node
     stencils ``P^T (w g_a g_b) P`` and right-hand sides ``P^T (w g_a e)``.  The
     pixel rows in one compiled pass (:func:`processing.dic_kernels.row_moments`,
-    bands of node rows on ``threads``), the columns by :meth:`HeightNodes.column_sums`."""
+    bands of node rows on ``threads``), the columns by :meth:`HeightNodes.column_sums`.
+    ``matrix`` False: the right-hand sides alone (the stencils None)."""
     from .dic_kernels import row_moments
 
     rows, cols = warped.shape
@@ -422,79 +432,96 @@ def _node_sums(nodes, warped, img, w, threads):
     # bands of about 32 node rows whatever the thread count: the sums do not depend on it
     n_bands = max(1, (m + 1) // 32)
     edges = [-1 + (m + 1) * b // n_bands for b in range(n_bands + 1)]
-    xd, xo, xl = (np.zeros((k, m + 2, cols), np.float32) for k in (3, 3, 2))
+    k_matrix = 3 if matrix else 0
+    xd, xo = (np.zeros((k_matrix, m + 2, cols), np.float32) for _ in range(2))
+    xl = np.zeros((2, m + 2, cols), np.float32)
     firsts = np.zeros((n_bands, 8, cols), np.float32)
 
     def band(b, t0, t1):
-        return row_moments(warped, img, w, s, t0, t1, xd, xo, xl, firsts[b], np.empty((5, cols), np.float32))
+        return row_moments(warped, img, w, s, t0, t1, xd, xo, xl, firsts[b], np.empty((5, cols), np.float32), matrix)
 
     cost = sum(thread_map(band, [(b, edges[b], edges[b + 1]) for b in range(n_bands)], threads))
     for b in range(n_bands):  # each band's first node row, after the previous band's share of it
         r = edges[b] + 1
-        xd[:, r] += firsts[b, 0:3]
-        xo[:, r] += firsts[b, 3:6]
+        if matrix:
+            xd[:, r] += firsts[b, 0:3]
+            xo[:, r] += firsts[b, 3:6]
         xl[:, r] += firsts[b, 6:8]
-    return float(cost), nodes.column_sums(xd[:, 1:m + 1], xo[:, 1:m], xl[:, 1:m + 1])
+    if not matrix:
+        return float(cost), None, nodes.column_rhs(xl[:, 1:m + 1])
+    sums = nodes.column_sums(xd[:, 1:m + 1], xo[:, 1:m], xl[:, 1:m + 1])
+    return float(cost), sums[:3], sums[3:]
 
 
-def _gauss_newton_step(nodes, sums, h, regularisation, cg_iterations, k):
-    """The step ``dh`` of :func:`refine_height` from one step's node sums ``sums``
-    (:func:`_node_sums`): the normal equations
-    ``(L^T P^T N P L + lam R) dh = -L^T P^T g e - lam R h`` by
-    ``cg_iterations`` conjugate-gradient iterations (bounded, no tolerance
-    loop), preconditioned by the constant-coefficient operator's DCT."""
-    import scipy.fft as sfft
+class _NormalOperator:
+    """The normal equations of one Gauss-Newton step of :func:`refine_height` from
+    its node stencils (:func:`_node_sums`): ``(L^T P^T N P L + lam R) dh = -L^T P^T g e
+    - lam R h``, solved (:meth:`solve`) by ``cg_iterations`` conjugate-gradient
+    iterations (bounded, no tolerance loop), preconditioned by the
+    constant-coefficient operator's DCT.  Built once per matrix: with
+    ``matrix_once`` the first step's serves every step."""
 
-    Bm = nodes.B_mean
-    Nrr, Nrc, Ncc, br, bc = sums
-    nr = Nrr.mean_row_sum()
-    nc = Ncc.mean_row_sum()
-    lam = regularisation * (nr * Bm[0, 0] ** 2 + nc * Bm[1, 1] ** 2) / nodes.grid.s ** 2
-    if not (math.isfinite(lam) and lam > 0):
-        raise _diverged("no image gradient to match", f"data weight {lam:.3g} at step {k + 1}")
-    sym = (nr * Bm[0, 0] ** 2 + nc * Bm[1, 0] ** 2) * nodes.symbol_d1[0]
-    sym = sym + (nr * Bm[0, 1] ** 2 + nc * Bm[1, 1] ** 2) * nodes.symbol_d1[1] + lam * nodes.symbol_reg
-    sym[0, 0] = np.inf  # the null space (a near-constant height) is the pin's business
-    sym = sym.astype(np.float32)
-    lam = np.float32(lam)
+    def __init__(self, nodes, stencils, regularisation, k):
+        from .dic_kernels import pad_stencil
 
-    from .dic_kernels import normal_apply, pad_stencil
+        Bm = nodes.B_mean
+        Nrr, Nrc, Ncc = stencils
+        nr = Nrr.mean_row_sum()
+        nc = Ncc.mean_row_sum()
+        lam = regularisation * (nr * Bm[0, 0] ** 2 + nc * Bm[1, 1] ** 2) / nodes.grid.s ** 2
+        if not (math.isfinite(lam) and lam > 0):
+            raise _diverged("no image gradient to match", f"data weight {lam:.3g} at step {k + 1}")
+        sym = (nr * Bm[0, 0] ** 2 + nc * Bm[1, 0] ** 2) * nodes.symbol_d1[0]
+        sym = sym + (nr * Bm[0, 1] ** 2 + nc * Bm[1, 1] ** 2) * nodes.symbol_d1[1] + lam * nodes.symbol_reg
+        sym[0, 0] = np.inf  # the null space (a near-constant height) is the pin's business
+        self.nodes = nodes
+        self.sym = sym.astype(np.float32)
+        self.lam = np.float32(lam)
+        self.A = nodes.dense_response()
+        self.stencils = [np.stack(p) for p in zip(*(pad_stencil(S.parts) for S in stencils))]
+        shape = nodes.grid.shape
+        self.work = np.empty((4,) + shape, np.float32)
+        self.vpad = np.zeros((2, shape[0] + 2, shape[1] + 2), np.float32)
+        self.inv_s = np.float32(1.0 / nodes.grid.s)
 
-    A = nodes.dense_response()
-    SD, SDO, SOD, SOO = (np.stack(p) for p in zip(*(pad_stencil(S.parts) for S in (Nrr, Nrc, Ncc))))
-    work = np.empty((4,) + h.shape, np.float32)
-    vpad = np.zeros((2, h.shape[0] + 2, h.shape[1] + 2), np.float32)
-    inv_s = np.float32(1.0 / nodes.grid.s)
+    def apply(self, x):
+        """``(L^T M L + lam R) x``, compiled (:func:`processing.dic_kernels.normal_apply`)."""
+        from .dic_kernels import normal_apply
 
-    def apply_K(x):  # (L^T M L + lam R) x, compiled (processing.dic_kernels)
         out = np.empty_like(x)
-        normal_apply(x, A, SD, SDO, SOD, SOO, inv_s, lam, work, vpad, out)
+        normal_apply(x, self.A, *self.stencils, self.inv_s, self.lam, self.work, self.vpad, out)
         return out
 
-    def prec(r):
+    def precondition(self, r):
+        import scipy.fft as sfft
+
         c = sfft.dctn(r, type=2, norm="ortho")
-        c /= sym
+        c /= self.sym
         return sfft.idctn(c, type=2, norm="ortho", overwrite_x=True)
 
-    r = (-nodes.displacement_T(br, bc) - lam * nodes.regulariser(h)).astype(np.float32)
-    x = np.zeros(h.shape, np.float32)
-    z = prec(r)
-    p = z.copy()
-    rz = _dot(r, z)
-    r0 = math.sqrt(_dot(r, r))
-    for _k in range(cg_iterations):
-        if r0 == 0.0 or not math.isfinite(rz):
-            break
-        q = apply_K(p)
-        pq = _dot(p, q)
-        if not (pq > 0.0 and math.isfinite(pq)):
-            break
-        al = np.float32(rz / pq)
-        x += al * p
-        r -= al * q
-        z = prec(r)
-        rz_new = _dot(r, z)
-        p *= np.float32(rz_new / rz)
-        p += z
-        rz = rz_new
-    return x
+    def solve(self, rhs, h, cg_iterations):
+        """The step ``dh`` for the right-hand sides ``rhs`` (``(br, bc)`` of
+        :func:`_node_sums`) at the node heights ``h``."""
+        nodes, lam = self.nodes, self.lam
+        r = (-nodes.displacement_T(*rhs) - lam * nodes.regulariser(h)).astype(np.float32)
+        x = np.zeros(h.shape, np.float32)
+        z = self.precondition(r)
+        p = z.copy()
+        rz = _dot(r, z)
+        r0 = math.sqrt(_dot(r, r))
+        for _k in range(cg_iterations):
+            if r0 == 0.0 or not math.isfinite(rz):
+                break
+            q = self.apply(p)
+            pq = _dot(p, q)
+            if not (pq > 0.0 and math.isfinite(pq)):
+                break
+            al = np.float32(rz / pq)
+            x += al * p
+            r -= al * q
+            z = self.precondition(r)
+            rz_new = _dot(r, z)
+            p *= np.float32(rz_new / rz)
+            p += z
+            rz = rz_new
+        return x

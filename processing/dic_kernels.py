@@ -50,7 +50,7 @@ def _pixel(Wp, Wu, Wd, Ip, wp, c, cl, cr, tmp):  # pragma: no cover - compiled
 
 
 @numba.njit(nogil=True, cache=True, fastmath={"reassoc", "contract"})
-def row_moments(W, img, w, s, t0, t1, xd, xo, xl, first, tmp):  # pragma: no cover - compiled
+def row_moments(W, img, w, s, t0, t1, xd, xo, xl, first, tmp, matrix=True):  # pragma: no cover - compiled
     """Sums of the pixel rows of node intervals ``t0 <= t < t1`` to the node rows.
 
     Interval ``t`` holds the pixel rows between node rows ``t`` and ``t + 1``
@@ -63,8 +63,11 @@ def row_moments(W, img, w, s, t0, t1, xd, xo, xl, first, tmp):  # pragma: no cov
     first node row ``t0`` goes to ``first`` (8, cols) instead, ``xd``'s three
     rows, ``xo``'s, ``xl``'s two (it is the previous band's last: bands then
     write no row in common and may run side by side; the caller adds it).
-    ``tmp`` (5, cols) float32 scratch.  Returns the weighted residual sum of
-    squares of those pixel rows (float64)."""
+    ``tmp`` (5, cols) float32 scratch.  ``matrix`` False: the right-hand
+    sides ``xl`` alone (``xd``, ``xo`` and their rows of ``first`` are not
+    touched; :func:`processing.dic.refine_height` keeps its first step's
+    matrix).  Returns the weighted residual sum of squares of those pixel
+    rows (float64)."""
     rows, cols = W.shape
     m = rows // s
     hs = s // 2
@@ -101,7 +104,7 @@ def row_moments(W, img, w, s, t0, t1, xd, xo, xl, first, tmp):  # pragma: no cov
             ab = np.float32(al * be)
             a1 = np.float32(al)
             b1 = np.float32(be)
-            for q in range(3):
+            for q in range(3 if matrix else 0):
                 d_lo = first[q] if t == t0 else xd[q, t + 1]
                 o_lo = first[3 + q] if t == t0 else xo[q, t + 1]
                 d_hi, tq = xd[q, t + 2], tmp[q]

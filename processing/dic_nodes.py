@@ -342,7 +342,12 @@ class HeightNodes:
             dd, do = _pair_sums(np.ascontiguousarray(xd[q]), s, True, 1)
             od, oo = _pair_sums(np.ascontiguousarray(xo[q]), s, True, 1)
             out.append(Stencil9(dd, do, od, oo))
-        return (*out, *(_pair_sums(np.ascontiguousarray(xl[q]), s, False, 1) for q in range(2)))
+        return (*out, *self.column_rhs(xl))
+
+    def column_rhs(self, xl):
+        """``(br, bc)`` alone from the row sums ``xl`` (:meth:`column_sums`)."""
+        s = self.grid.s
+        return tuple(_pair_sums(np.ascontiguousarray(xl[q]), s, False, 1) for q in range(2))
 
     def node_rhs(self, y_px):
         """``P^T y`` (m_r, m_c)."""

@@ -168,15 +168,20 @@ def test_compiled_pixel_pass_gives_the_node_operators_sums(shape):
     gr, gc = (cv2.Sobel(warped, cv2.CV_32F, dx, dy, ksize=1, scale=0.5, borderType=cv2.BORDER_REFLECT) * w
               for dx, dy in ((0, 1), (1, 0)))
     e = img - warped
-    cost, sums = _node_sums(nodes, warped, img, w, threads=2)
+    cost, stencils, rhs = _node_sums(nodes, warped, img, w, threads=2)
     assert cost == pytest.approx(float(np.sum(w * e * e, dtype=np.float64)), rel=1e-5)
     x = rng.standard_normal(grid.shape).astype(np.float32)
-    for got, n_px in zip(sums[:3], (gr * gr, gr * gc, gc * gc)):
+    for got, n_px in zip(stencils, (gr * gr, gr * gc, gc * gc)):
         want = nodes.node_normal(n_px) @ x
         np.testing.assert_allclose(got @ x, want, rtol=0, atol=2e-5 * np.abs(want).max())
-    for got, y_px in zip(sums[3:], (gr * e, gc * e)):
+    for got, y_px in zip(rhs, (gr * e, gc * e)):
         want = nodes.node_rhs(y_px)
         np.testing.assert_allclose(got, want, rtol=0, atol=2e-5 * np.abs(want).max())
+    # the later steps of matrix_once: the right-hand sides alone, the same to the bit
+    cost_rhs, none, rhs_alone = _node_sums(nodes, warped, img, w, threads=2, matrix=False)
+    assert none is None and cost_rhs == cost
+    for a, b in zip(rhs_alone, rhs):
+        np.testing.assert_array_equal(a, b)
 
 
 @pytest.mark.parametrize("camera_distance_mm", [None, 1500.0])  # uniform optics, per-node optics
