@@ -187,10 +187,9 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
     ``outer`` steps, each solving the normal equations by ``cg_iterations``
     preconditioned conjugate-gradient iterations (:class:`_NormalOperator`);
     ``lam`` is ``regularisation`` times the data term's weight per node at unit
-    spatial frequency.  Every loop is bounded, and the iterations stop with
-    :class:`RefinementDiverged` (the caller keeps FD's answer) when they leave
-    the range where they can be right (:func:`_check_displacement` before each
-    warp, :func:`_check_cost`, :func:`_check_step`).
+    spatial frequency.  Every loop is bounded; the iterations stop with
+    :class:`RefinementDiverged` (the caller keeps FD's answer) when they leave the range
+    where they can be right (:func:`_check_displacement`, :func:`_check_cost`, :func:`_check_step`).
 
     Parameters
     ----------
@@ -207,16 +206,12 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
     period_px : float or None
         The pattern's shorter carrier period, pixels (None: no bound from it).
     threads : int
-        Threads for the node stencils of each step (1 when a parallel run gives
-        each frame one core); the result does not depend on it.
+        Threads for each step's node sums (the result does not depend on it).
     border_px : int
         Pixels along each side of the frame left out of the match (:data:`BORDER_PX`).
     matrix_once : bool
-        Keep the first step's Gauss-Newton matrix for the later steps (their
-        right-hand sides, the image residual's gradient, are each step's own, so
-        a converged answer is the same): checkerboards, whose start (FD's
-        refinement) is close enough; random dots, started from PIV, need every
-        step's matrix (:data:`processing.chain_image.MATRIX_ONCE`).
+        Keep the first step's Gauss-Newton matrix for the later steps, each step's
+        right-hand side its own (:data:`processing.chain_image.MATRIX_ONCE`).
 
     Returns
     -------
@@ -233,7 +228,6 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
         The message names the test that stopped the iterations and its figures.
     """
     grid = nodes.grid
-    rows, cols = grid.frame_shape
     raw, img, w, all_valid, free = _frame_and_weights(frame, valid_px, grid, blur_px, border_px)
     h = _start_heights(h0)
     u_start = nodes.displacement(h)
@@ -241,16 +235,14 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
     w_sum, wk_buf = float(w.sum()), np.empty_like(w)
     for k in range(outer + 1):
         u = nodes.displacement(h)
-        _check_displacement(u, u_start, k, (rows, cols), period_px)  # before any warp
+        _check_displacement(u, u_start, k, grid.frame_shape, period_px)  # before any warp
         if k == outer:
             break
         warped, outside = _warp(fine, grid, u, blur_px)
         wk = _weights_within(w, outside, wk_buf)
         if intensity_cell_px and k == 0:
-            # once, against the reference warped by FD's start (the ratio of standard
-            # deviations hardly moves with the warp: fitting before every step gave the
-            # same heights, 10-20 % slower); the border's few pixels do not move cells of
-            # 16-32 px (weighted by wk: the same heights, 3 ms more at 1024^2)
+            # once, against the reference warped by FD's start (before every step: the same
+            # heights, 10-20 % slower; weighted by wk at the border: the same, 3 ms more)
             img = _normalised_frame(raw, img, warped, None if all_valid else wk, intensity_cell_px, blur_px)
         cost, stencils, rhs = _node_sums(nodes, warped, img, wk, threads, matrix=operator is None)
         # per pixel that counts (how many do moves with the warp at the border), in units of w.size pixels
@@ -259,8 +251,7 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
             raise _diverged("no pixel left to match", f"the warp samples the reference nowhere after {k} step(s)")
         prev_cost = _check_cost(cost * w.size / counted, prev_cost, k, w.size)
         step_operator = operator or _NormalOperator(nodes, stencils, regularisation, k)
-        if matrix_once:
-            operator = step_operator
+        operator = step_operator if matrix_once else None
         x = step_operator.solve(rhs, h, cg_iterations)
         prev_step = _check_step(_rms(nodes.displacement(x)), prev_step, k)
         h += x
