@@ -120,7 +120,7 @@ class ImageRefinement(_NodeRefinement):
             self.ref_fine, m.frame, np.asarray(start.height_mm, np.float64), valid_px, self.height_nodes,
             outer=chain.options.image_iterations, period_px=float(periods.min()),
             intensity_cell_px=max(dic.INTENSITY_CELL_PX, 1.6 * float(periods.max())), threads=chain.planner.threads,
-            matrix_once=MATRIX_ONCE)
+            matrix_once=MATRIX_ONCE, masked_cg_iterations=dic.MASKED_CG_ITERATIONS)
         t4 = time.perf_counter()
         timings["refine"] += 1e3 * (t4 - t3)
         surf, valid_nodes, u_nodes, second = self._refined(hs, u_nodes, valid_nodes, timings)

@@ -146,6 +146,24 @@ def intensity_fit(frame, warped, weight=None, *, cell_px: float = INTENSITY_CELL
     return up[0], up[1]
 
 
+#: Conjugate-gradient iterations of each Gauss-Newton step (:func:`refine_height`): on frames whose
+#: pixels all count 3 and 15 give the same heights (docs/processing.md section 6).
+CG_ITERATIONS = 3
+
+#: ... and on checkerboards where some do not (a masked patch, ray crossings, FD's mask: the
+#: ``masked_cg_iterations`` that :class:`processing.chain_image.ImageRefinement` passes): the DCT
+#: preconditioner knows no mask, and 3 iterations left the steps far from solved there. Measured (5 Dec 2026, 256^2, 4 x 4
+#: rays, two board placements, a 40 x 70 px blank patch in the frame; rel. RMS height error %, no
+#: refinement / 3 / 6 / 10 / 20 iterations): 4 um bump 0.314 / 0.415 / 0.398 / 0.209 / 0.172, narrow
+#: bump 3.016 / 0.884 / 0.772 / 0.618 / 0.602, waves 12-30 mm 0.581 / 1.148 / 0.619 / 0.417 / 0.339,
+#: noisy dimple 0.279 / 0.542 / 0.283 / 0.162 / 0.127, deep dimple 0.212 / 0.449 / 0.501 / 0.201 /
+#: 0.226, waves 6-12 mm 6.499 / 1.229 / 1.471 / 0.882 / 0.822: with 3, worse than no refinement on
+#: four of six; a 10 um spike (sigma 0.8 mm, 6 % masked by its ray crossings) 4.120 / 7.260 / - /
+#: 2.489, a 20 um dimple (26 % masked) 4.667 / 2.544 / - / 1.509. Not on random dots, whose PIV
+#: start leaves samples out on most frames: four dot seeds (4 x 4 rays), waves 6-12 mm 1.802 -> 3.023 %
+#: with 10 (waves 12-30 mm 0.262 -> 0.192 %).
+MASKED_CG_ITERATIONS = 10
+
 #: Divergence: the residual (sum of squares) grew by this factor over its smallest so far.
 #: Sound steps were seen to raise it by up to 3.3x (camera at 1.5 m, where the heights still
 #: improved); a diverging solve raises it by orders of magnitude.
@@ -176,7 +194,8 @@ def _diverged(test: str, figures: str):
     return RefinementDiverged(f"{test} ({figures})")
 
 
-def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int = 3, cg_iterations: int = 3,
+def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int = 3,
+                  cg_iterations: int = CG_ITERATIONS, masked_cg_iterations: int | None = None,
                   regularisation: float = 0.03, blur_px: float = BLUR_PX,
                   intensity_cell_px: float | None = INTENSITY_CELL_PX, period_px: float | None = None,
                   threads: int = 1, border_px: int = BORDER_PX, matrix_once: bool = False):
@@ -185,7 +204,8 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
     Minimises ``sum_r w [G*((I - b) / a) - G*I0(r - P L h)]^2 + lam (|D3r h|^2 + |D3c h|^2)``
     (module docstring; docs/processing.md section 6 for the settings measured):
     ``outer`` steps, each solving the normal equations by ``cg_iterations``
-    preconditioned conjugate-gradient iterations (:class:`_NormalOperator`);
+    preconditioned conjugate-gradient iterations (:class:`_NormalOperator`;
+    ``masked_cg_iterations``, if given, where ``valid_px`` leaves pixels out);
     ``lam`` is ``regularisation`` times the data term's weight per node at unit
     spatial frequency.  Every loop is bounded; the iterations stop with
     :class:`RefinementDiverged` (the caller keeps FD's answer) when they leave the range
@@ -245,14 +265,11 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
             # heights, 10-20 % slower; weighted by wk at the border: the same, 3 ms more)
             img = _normalised_frame(raw, img, warped, None if all_valid else wk, intensity_cell_px, blur_px)
         cost, stencils, rhs = _node_sums(nodes, warped, img, wk, threads, matrix=operator is None)
-        # per pixel that counts (how many do moves with the warp at the border), in units of w.size pixels
-        counted = float(wk.sum()) if outside else w_sum
-        if not counted > 0.0:
-            raise _diverged("no pixel left to match", f"the warp samples the reference nowhere after {k} step(s)")
-        prev_cost = _check_cost(cost * w.size / counted, prev_cost, k, w.size)
+        # per pixel that counts (how many do moves with the warp at the border)
+        prev_cost = _check_cost(cost, float(wk.sum()) if outside else w_sum, prev_cost, k, w.size)
         step_operator = operator or _NormalOperator(nodes, stencils, regularisation, k)
         operator = step_operator if matrix_once else None
-        x = step_operator.solve(rhs, h, cg_iterations)
+        x = step_operator.solve(rhs, h, cg_iterations if all_valid or not masked_cg_iterations else masked_cg_iterations)
         prev_step = _check_step(_rms(nodes.displacement(x)), prev_step, k)
         h += x
     return h, u.astype(np.float32), free
@@ -344,8 +361,12 @@ def _weights_within(w, outside, out):
     return out
 
 
-def _check_cost(cost, prev_cost, k, n_px):
-    """The lowest image residual so far; RefinementDiverged when it is not finite or rose."""
+def _check_cost(cost, counted, prev_cost, k, n_px):
+    """The lowest image residual so far, per pixel that counts (``counted`` of the ``n_px`` pixels'
+    weight) in units of ``n_px`` pixels; RefinementDiverged when none counts, or it is not finite or rose."""
+    if not counted > 0.0:
+        raise _diverged("no pixel left to match", f"the warp samples the reference nowhere after {k} step(s)")
+    cost = cost * n_px / counted
     if not math.isfinite(cost):
         raise _diverged("non-finite image residual", f"after {k} step(s)")
     if prev_cost is not None and cost > RESIDUAL_RISE * prev_cost:
