@@ -6,6 +6,7 @@ Run from the repository root::
     python3 benchmarks/bench_processing.py --sizes 1024 --repeats 30
     python3 benchmarks/bench_processing.py --no-accuracy
     python3 benchmarks/bench_processing.py --no-accuracy --sizes   # issue 22's table alone
+    python3 benchmarks/bench_processing.py --no-speed --no-issue22 --no-accuracy --masked 4   # beside a blank patch
 
 Speed: median milliseconds per frame, FFTW plans (FFTW_MEASURE) built outside
 the timed loop, one warm-up call; all variants, baseline included, are timed
@@ -331,22 +332,11 @@ def paired_verdict(errors, pairs=REFINED_AGAINST_NONE, min_points=WORSE_BY_POINT
     return lines, worse
 
 
-def bench_accuracy(supersample=ACCURACY_SUPERSAMPLE, placements=1):
+def accuracy_cases():
+    """``[(label, surface, render options), ...]``: the accuracy table's checkerboard cases."""
     from processing import forward as F
 
-    board_ = F.Checkerboard(period_mm=2.0, edge_softness_mm=0.1)
-
-    def render(surface, geometry=GEOMETRY, n=256, bits=8, noise=0.0, pattern=board_, offset=(0.0, 0.0)):
-        rng = np.random.default_rng(0)
-        ref, _ = F.render_tir(F.FlatSurface(), geometry, (n, n), pattern, supersample=supersample,
-                              pattern_offset_mm=offset)
-        img, _ = F.render_tir(surface, geometry, (n, n), pattern, supersample=supersample, pattern_offset_mm=offset)
-        return (F.quantize(ref, bits=bits, noise_rms=noise, rng=rng),
-                F.quantize(img, bits=bits, noise_rms=noise, rng=rng))
-
-    rel = rel_height_error
-
-    cases = [
+    return [
         ("bump 4 um, sigma 5 mm", F.GaussianBump(0.004, 5.0), {}),
         ("bump 2 um, sigma 4 mm", F.GaussianBump(0.002, 4.0), {}),
         ("bump 2 um, sigma 2.5 mm (narrow)", F.GaussianBump(0.002, 2.5), {}),
@@ -362,6 +352,24 @@ def bench_accuracy(supersample=ACCURACY_SUPERSAMPLE, placements=1):
                                                                  wavelength_range_mm=(6, 12), seed=1), dict(bits=12)),
         ("bump 1 um, sigma 3 mm (1.5 periods), 12 bit", F.GaussianBump(0.001, 3.0), dict(bits=12)),
     ]
+
+
+def bench_accuracy(supersample=ACCURACY_SUPERSAMPLE, placements=1):
+    from processing import forward as F
+
+    board_ = F.Checkerboard(period_mm=2.0, edge_softness_mm=0.1)
+
+    def render(surface, geometry=GEOMETRY, n=256, bits=8, noise=0.0, pattern=board_, offset=(0.0, 0.0)):
+        rng = np.random.default_rng(0)
+        ref, _ = F.render_tir(F.FlatSurface(), geometry, (n, n), pattern, supersample=supersample,
+                              pattern_offset_mm=offset)
+        img, _ = F.render_tir(surface, geometry, (n, n), pattern, supersample=supersample, pattern_offset_mm=offset)
+        return (F.quantize(ref, bits=bits, noise_rms=noise, rng=rng),
+                F.quantize(img, bits=bits, noise_rms=noise, rng=rng))
+
+    rel = rel_height_error
+
+    cases = accuracy_cases()
     variants = [
         ("decimated", dict(grid="decimated")),
         ("full fd", dict(grid="full", refine_method="fd")),
@@ -455,6 +463,50 @@ def bench_placements(cases, variants, render, k):
     print(f"refinement worse than none over {k} placements: " + ("; ".join(all_worse) if all_worse else "on no case"))
 
 
+#: The blank patch of :func:`bench_masked` (rows, columns of a 256^2 frame): lost contrast, as under a
+#: shadow, a splash or a corner out of the light.
+BLANK_PATCH = np.s_[150:190, 40:110]
+
+
+def bench_masked(placements, supersample=4):
+    """The table's checkerboard cases with :data:`BLANK_PATCH` blanked in the frame (its mean grey), over
+    ``placements`` board placements: mean error of no refinement, FD's and the default, and the paired
+    verdict (a refinement worse than none beside masked pixels: issue 19's "refinement never hurts")."""
+    from processing import forward as F
+
+    board_ = F.Checkerboard(period_mm=2.0, edge_softness_mm=0.1)
+    columns = [("full no-ref", dict(refine_iterations=0)), ("full fd", dict(refine_method="fd")), ("default", {})]
+    print(f"Beside a blank patch (rows 150-190, columns 40-110 of 256^2; {supersample} x {supersample} rays, "
+          f"{placements} placements): mean rel. RMS height error (%)")
+    print(f"{'case':42s}" + "".join(f"{name:>13s}" for name, _ in columns) + f"{'valid':>8s}")
+    all_worse = []
+    for label, surface, kw in accuracy_cases():
+        if "pattern" in kw:
+            continue
+        errors, valid = {name: [] for name, _ in columns}, []
+        for offset in placement_offsets(placements):
+            rng = np.random.default_rng(0)
+            bits, noise = kw.get("bits", 8), kw.get("noise", 0.0)
+            ref, _ = F.render_tir(F.FlatSurface(), GEOMETRY, (256, 256), board_, supersample=supersample,
+                                  pattern_offset_mm=offset)
+            img, _ = F.render_tir(surface, GEOMETRY, (256, 256), board_, supersample=supersample,
+                                  pattern_offset_mm=offset)
+            ref = F.quantize(ref, bits=bits, noise_rms=noise, rng=rng)
+            img = F.quantize(img, bits=bits, noise_rms=noise, rng=rng).copy()
+            img[BLANK_PATCH] = int(img.mean())
+            for name, opts in columns:
+                res = Reconstructor(ref, GEOMETRY, **opts)(img)
+                errors[name].append(rel_height_error(res, surface))
+                valid.append(res.valid.mean())
+        lines, worse = paired_verdict(errors)
+        all_worse += [f"{label}: {w}" for w in worse]
+        print(f"{label:42s}" + "".join(f"{np.mean(errors[name]):13.3f}" for name, _ in columns)
+              + f"{np.mean(valid):8.3f}")
+        print(f"{'':44s}" + "; ".join(lines))
+    print("refinement worse than none beside the patch: " + ("; ".join(all_worse) if all_worse else "on no case"))
+    print()
+
+
 def bench_dots_speed(sizes, repeats):
     """Cost per frame of random-dot frames (PIV) against the checkerboard batch
     default, interleaved in the same run (analytic warps, as for the speed table)."""
@@ -515,6 +567,8 @@ def main(argv=None):
     ap.add_argument("--issue22-size", type=int, default=1024)
     ap.add_argument("--placements", type=int, default=8,
                     help="board placements of issue 19's paired verdict (1: the table alone; default 8)")
+    ap.add_argument("--masked", type=int, default=0, metavar="K",
+                    help="the table's cases beside a blank patch over K placements (issue 19; 0: not run)")
     ap.add_argument("--supersample", type=int, default=ACCURACY_SUPERSAMPLE,
                     help=f"rays per pixel side of the accuracy table's renders (default {ACCURACY_SUPERSAMPLE})")
     args = ap.parse_args(argv)
@@ -528,6 +582,8 @@ def main(argv=None):
         bench_dots_speed([n for n in args.sizes if n <= 1024], args.repeats)
     if not args.no_accuracy:
         bench_accuracy(args.supersample, args.placements)
+    if args.masked:
+        bench_masked(args.masked)
 
 
 if __name__ == "__main__":
