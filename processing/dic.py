@@ -159,9 +159,10 @@ CG_ITERATIONS = 3
 #: noisy dimple 0.279 / 0.542 / 0.283 / 0.162 / 0.127, deep dimple 0.212 / 0.449 / 0.501 / 0.201 /
 #: 0.226, waves 6-12 mm 6.499 / 1.229 / 1.471 / 0.882 / 0.822: with 3, worse than no refinement on
 #: four of six; a 10 um spike (sigma 0.8 mm, 6 % masked by its ray crossings) 4.120 / 7.260 / - /
-#: 2.489, a 20 um dimple (26 % masked) 4.667 / 2.544 / - / 1.509. Not on random dots, whose PIV
-#: start leaves samples out on most frames: four dot seeds (4 x 4 rays), waves 6-12 mm 1.802 -> 3.023 %
-#: with 10 (waves 12-30 mm 0.262 -> 0.192 %).
+#: 2.489, a 20 um dimple (26 % masked) 4.667 / 2.544 / - / 1.509; a patch of 20 x 30 px as well (the
+#: 4 um bump 0.246 / 0.313 / - / 0.158). Not on random dots: started from PIV, their steps come out
+#: worse with more iterations, masked or not (four dot seeds, 4 x 4 rays, 3 -> 10 iterations on every
+#: frame: narrow bump 1.460 -> 1.871 %, waves 6-12 mm 1.802 -> 3.058 %).
 MASKED_CG_ITERATIONS = 10
 
 #: Divergence: the residual (sum of squares) grew by this factor over its smallest so far.
