@@ -152,9 +152,9 @@ CG_ITERATIONS = 3
 
 #: ... and on checkerboards where some do not (a masked patch, ray crossings, FD's mask: the
 #: ``masked_cg_iterations`` that :class:`processing.chain_image.ImageRefinement` passes): the DCT
-#: preconditioner knows no mask, and 3 iterations left the steps far from solved there. Measured (5 Dec 2026, 256^2, 4 x 4
-#: rays, two board placements, a 40 x 70 px blank patch in the frame; rel. RMS height error %, no
-#: refinement / 3 / 6 / 10 / 20 iterations): 4 um bump 0.314 / 0.415 / 0.398 / 0.209 / 0.172, narrow
+#: preconditioner knows no mask, and 3 iterations left the steps far from solved there. Measured
+#: (5 Dec 2026, 256^2, 4 x 4 rays, two board placements, a 40 x 70 px blank patch in the frame;
+#: rel. RMS height error %, no refinement / 3 / 6 / 10 / 20 iterations): 4 um bump 0.314 / 0.415 / 0.398 / 0.209 / 0.172, narrow
 #: bump 3.016 / 0.884 / 0.772 / 0.618 / 0.602, waves 12-30 mm 0.581 / 1.148 / 0.619 / 0.417 / 0.339,
 #: noisy dimple 0.279 / 0.542 / 0.283 / 0.162 / 0.127, deep dimple 0.212 / 0.449 / 0.501 / 0.201 /
 #: 0.226, waves 6-12 mm 6.499 / 1.229 / 1.471 / 0.882 / 0.822: with 3, worse than no refinement on
@@ -250,6 +250,7 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
     """
     grid = nodes.grid
     raw, img, w, all_valid, free = _frame_and_weights(frame, valid_px, grid, blur_px, border_px)
+    n_cg = masked_cg_iterations if masked_cg_iterations and not all_valid else cg_iterations
     h = _start_heights(h0)
     u_start = nodes.displacement(h)
     prev_step = prev_cost = operator = None
@@ -270,7 +271,7 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
         prev_cost = _check_cost(cost, float(wk.sum()) if outside else w_sum, prev_cost, k, w.size)
         step_operator = operator or _NormalOperator(nodes, stencils, regularisation, k)
         operator = step_operator if matrix_once else None
-        x = step_operator.solve(rhs, h, cg_iterations if all_valid or not masked_cg_iterations else masked_cg_iterations)
+        x = step_operator.solve(rhs, h, n_cg)
         prev_step = _check_step(_rms(nodes.displacement(x)), prev_step, k)
         h += x
     return h, u.astype(np.float32), free

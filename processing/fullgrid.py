@@ -199,7 +199,8 @@ class Upsampler:
         src = np.ascontiguousarray(field, dtype=np.float32)
         rows, cols = self.shape
         cells = (rows // cell_px, cols // cell_px)
-        if self.interpolation is not None:
+        if self.interpolation is not None or not np.isfinite(src).all():
+            # (a NaN sample: NaN wherever the full-size path puts it)
             return cv2.resize(self(src), (cells[1], cells[0]), interpolation=cv2.INTER_AREA)
         key = ("cells", src.shape, int(cell_px))
         mats = self._spline.get(key)
@@ -207,8 +208,6 @@ class Upsampler:
             with self._lock:
                 mats = self._spline[key] = [_cell_taps(n_out, n_in, int(cell_px))
                                             for n_out, n_in in zip(self.shape, src.shape)]
-        if not np.isfinite(src).all():  # as the full-size path: NaN wherever a linear resize of the bad samples reaches
-            return cv2.resize(self(src), (cells[1], cells[0]), interpolation=cv2.INTER_AREA)
         along_rows, along_cols = mats
         coef = spline_coefficients(src)
         half = np.ascontiguousarray((along_cols @ coef.T).T)

@@ -236,8 +236,9 @@ def _modulate_rows(envelopes, offset_rows, offset_cols, carrier_cos, carrier_sin
     sines = np.empty((2, cols), np.float32)
     cosines = np.empty((2, cols), np.float32)
     two_over_pi = np.float32(0.636619772367581343)
-    # pi / 2 in three parts: the first two hold few bits, so j * part is exact for |j| < 2^16
-    p1, p2, p3 = np.float32(1.5703125), np.float32(4.837512969970703125e-4), np.float32(7.549789948768648e-8)
+    # pi / 2 split into its first 9 significant bits, the next 11, and the float32 rest: the products
+    # of the first two with a quarter count below 2^13 (phases up to 1e4 rad) are exact in float32
+    p1, p2, p3 = np.float32(1.5703125), np.float32(4.837512969970703e-4), np.float32(7.549790126404332e-8)
     s0, s1, s2 = np.float32(_SIN[0]), np.float32(_SIN[1]), np.float32(_SIN[2])
     c0, c1, c2 = np.float32(_COS[0]), np.float32(_COS[1]), np.float32(_COS[2])
     one, half, two = np.float32(1.0), np.float32(0.5), np.float32(2.0)
