@@ -396,11 +396,10 @@ def test_image_refinement_not_worse_than_none_on_long_waves_wherever_the_board_l
 @pytest.mark.parametrize("surface", [F.GaussianBump(0.004, 5.0), F.Dimple(0.005, 6.0)], ids=["bump", "dimple"])
 def test_image_refinement_not_worse_than_none_beside_a_blank_patch(surface):
     # A blank patch in the frame (lost contrast: a shadow, a splash, a corner out of the light), the
-    # table's 4 um bump and 5 um dimple, 256^2, 2 x 2 rays: the default against no refinement on the same
-    # frame. Measured 5 Dec 2026 (this render): with 3 conjugate-gradient iterations a step the default
-    # was worse than no refinement beside the patch, with dic.MASKED_CG_ITERATIONS (10) better; over two
-    # placements and 4 x 4 rays (dic.MASKED_CG_ITERATIONS' comment) bump 0.314 / 0.415 / 0.209 %, noisy
-    # dimple 0.279 / 0.542 / 0.162 % (none / 3 / 10).
+    # table's 4 um bump and 5 um dimple surfaces, 256^2, 8 bit, 2 x 2 rays: the default against no
+    # refinement on the same frame. Measured 5 Dec 2026 on this render, no refinement / the default with
+    # 3 conjugate-gradient iterations a step / with dic.MASKED_CG_ITERATIONS (10): bump 0.302 / 0.359 /
+    # 0.190 %, dimple 0.289 / 0.570 / 0.159 % (bench_processing.py --masked: every table case).
     from benchmarks.bench_processing import rel_height_error
 
     board = F.Checkerboard(period_mm=2.0, edge_softness_mm=0.1)
