@@ -47,6 +47,14 @@ the truth 2.13 / 2.00 / 17.25 -> 2.12 / 1.99 / 17.48 %, heights over the interio
 checkerboards began to take ``dic.MASKED_CG_ITERATIONS`` (10) conjugate-gradient
 iterations a step on frames with masked pixels: displacement 17.48 -> 18.22 %,
 heights over the interior 8.15 -> 6.95 %, over the whole frame 9.59 -> 7.41 %.
+``masked_full``, ``ifft_full`` and ``series_full_fd`` the same day, when FD's
+bias removal began to leave the samples within ``refine.MASK_REACH_SAMPLES`` (2)
+of a masked one as measured: displacement against the truth 18.22 / 10.76 /
+7.88 / 24.32 -> 18.24 / 9.97 / 7.53 / 30.60 % (series_full_fd's two frames
+last), heights over the whole frame 7.41 / 4.23 / 3.66 / 12.24 -> 6.61 / 4.09 /
+3.51 / 12.91 %, over the interior 6.95 / 2.88 / 3.73 / 14.30 -> 6.36 / 3.08 /
+3.68 / 14.66 % (the deeper bump, 45 % of its 128^2 frame masked by ray
+crossings, is the one worse; refine.MASK_REACH_SAMPLES says why it is kept).
 """
 
 from __future__ import annotations
