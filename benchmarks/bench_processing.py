@@ -354,18 +354,26 @@ def accuracy_cases():
     ]
 
 
+def render_case(surface, supersample, geometry=GEOMETRY, n=256, bits=8, noise=0.0, pattern=None, offset=(0.0, 0.0)):
+    """``(reference, frame)`` of an accuracy case: flat water and ``surface`` ray-traced at ``n``^2 with
+    ``supersample``^2 rays a pixel through ``pattern`` (None: the 2 mm board) shifted by ``offset`` mm,
+    quantised to ``bits`` with ``noise`` DN rms (the same seeded noise for every case)."""
+    from processing import forward as F
+
+    pattern = F.Checkerboard(period_mm=2.0, edge_softness_mm=0.1) if pattern is None else pattern
+    rng = np.random.default_rng(0)
+    ref, _ = F.render_tir(F.FlatSurface(), geometry, (n, n), pattern, supersample=supersample,
+                          pattern_offset_mm=offset)
+    img, _ = F.render_tir(surface, geometry, (n, n), pattern, supersample=supersample, pattern_offset_mm=offset)
+    return (F.quantize(ref, bits=bits, noise_rms=noise, rng=rng),
+            F.quantize(img, bits=bits, noise_rms=noise, rng=rng))
+
+
 def bench_accuracy(supersample=ACCURACY_SUPERSAMPLE, placements=1):
     from processing import forward as F
 
-    board_ = F.Checkerboard(period_mm=2.0, edge_softness_mm=0.1)
-
-    def render(surface, geometry=GEOMETRY, n=256, bits=8, noise=0.0, pattern=board_, offset=(0.0, 0.0)):
-        rng = np.random.default_rng(0)
-        ref, _ = F.render_tir(F.FlatSurface(), geometry, (n, n), pattern, supersample=supersample,
-                              pattern_offset_mm=offset)
-        img, _ = F.render_tir(surface, geometry, (n, n), pattern, supersample=supersample, pattern_offset_mm=offset)
-        return (F.quantize(ref, bits=bits, noise_rms=noise, rng=rng),
-                F.quantize(img, bits=bits, noise_rms=noise, rng=rng))
+    def render(surface, **kw):
+        return render_case(surface, supersample, **kw)
 
     rel = rel_height_error
 
@@ -472,9 +480,6 @@ def bench_masked(placements, supersample=4):
     """The table's checkerboard cases with :data:`BLANK_PATCH` blanked in the frame (its mean grey), over
     ``placements`` board placements: mean error of no refinement, FD's and the default, and the paired
     verdict (a refinement worse than none beside masked pixels: issue 19's "refinement never hurts")."""
-    from processing import forward as F
-
-    board_ = F.Checkerboard(period_mm=2.0, edge_softness_mm=0.1)
     columns = [("full no-ref", dict(refine_iterations=0)), ("full fd", dict(refine_method="fd")), ("default", {})]
     print(f"Beside a blank patch (rows 150-190, columns 40-110 of 256^2; {supersample} x {supersample} rays, "
           f"{placements} placements): mean rel. RMS height error (%)")
@@ -485,14 +490,8 @@ def bench_masked(placements, supersample=4):
             continue
         errors, valid = {name: [] for name, _ in columns}, []
         for offset in placement_offsets(placements):
-            rng = np.random.default_rng(0)
-            bits, noise = kw.get("bits", 8), kw.get("noise", 0.0)
-            ref, _ = F.render_tir(F.FlatSurface(), GEOMETRY, (256, 256), board_, supersample=supersample,
-                                  pattern_offset_mm=offset)
-            img, _ = F.render_tir(surface, GEOMETRY, (256, 256), board_, supersample=supersample,
-                                  pattern_offset_mm=offset)
-            ref = F.quantize(ref, bits=bits, noise_rms=noise, rng=rng)
-            img = F.quantize(img, bits=bits, noise_rms=noise, rng=rng).copy()
+            ref, img = render_case(surface, supersample, offset=offset, **kw)
+            img = img.copy()
             img[BLANK_PATCH] = int(img.mean())
             for name, opts in columns:
                 res = Reconstructor(ref, GEOMETRY, **opts)(img)

@@ -80,8 +80,8 @@ class _NodeRefinement:
 #: Checkerboards' image matching keeps its first Gauss-Newton step's matrix for the later steps
 #: (:func:`processing.dic.refine_height`, ``matrix_once``: the right-hand sides are each step's own,
 #: so a converged answer is the same; the later steps' pixel pass sums 2 products instead of 5,
-#: their column sums are 2 of 8, and the operator is not set up again). Measured (5 Dec 2026), mean rel. RMS height error (%), every step's matrix -> the first's:
-#: eight board placements (256^2, 8 x 8 rays) narrow bump 0.391 -> 0.379, waves 6-12 mm 0.789 ->
+#: their column sums are 2 of 8, and the operator is not set up again). Measured (5 Dec 2026), mean
+#: rel. RMS height error (%), every step's matrix -> the first's: eight board placements (256^2, 8 x 8 rays) narrow bump 0.391 -> 0.379, waves 6-12 mm 0.789 ->
 #: 0.783, waves 12-30 mm 0.211 -> 0.212, deep dimple 0.044 -> 0.045, the six others equal to the
 #: printed digit; the held-out 1024^2 waves (issue 22's three frames) 0.370 -> 0.362; the golden
 #: masked spike 9.99 -> 9.59 % (whole frame), the 128^2 bump 2.88 -> 2.90 %. Random dots, started

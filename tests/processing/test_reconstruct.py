@@ -467,17 +467,27 @@ def test_fd_refinement_not_worse_than_none_on_the_deep_dimple_wherever_the_board
     assert max(none) - min(none) > abs(d[0]), (none, fd)  # the table's placement: within the board's spread
 
 
-@pytest.mark.parametrize("surface, bits, noise", [
-    (F.Dimple(0.005, 6.0), 12, 20.0),
-    (F.WaveField.random(6, amplitude_rms_mm=0.001, wavelength_range_mm=(12, 30), seed=3), 8, 0.0),
-    (F.GaussianBump(0.001, 3.0), 12, 0.0),
-], ids=["noisy dimple", "waves 12-30 mm", "bump 1.5 periods"])
-def test_fd_refinement_not_worse_than_none_beside_a_blank_patch(surface, bits, noise):
-    # FD's refinement (refine_method="fd") beside a blank patch in the frame: its correction is left
-    # out within refine.MASK_REACH_SAMPLES of masked samples, where the frame's band holds what the
-    # mask hides and the warped reference's does not. Measured 5 Dec 2026 on these renders (256^2, 2 x 2
-    # rays), no refinement / FD correcting up to the mask / FD now: noisy dimple 0.290 / 0.366 / 0.272 %,
-    # 12-30 mm waves 0.591 / 0.610 / 0.483 %, 1.5-period bump 0.652 / 0.728 / 0.625 %.
+
+@pytest.mark.parametrize("options, surface, bits, noise, at_most", [
+    ({}, F.GaussianBump(0.004, 5.0), 8, 0.0, 0.8),
+    ({}, F.Dimple(0.005, 6.0), 8, 0.0, 0.8),
+    (dict(refine_method="fd"), F.Dimple(0.005, 6.0), 12, 20.0, 1.0),
+    (dict(refine_method="fd"), F.WaveField.random(6, amplitude_rms_mm=0.001, wavelength_range_mm=(12, 30), seed=3),
+     8, 0.0, 1.0),
+    (dict(refine_method="fd"), F.GaussianBump(0.001, 3.0), 12, 0.0, 1.0),
+], ids=["default bump", "default dimple", "fd noisy dimple", "fd waves 12-30 mm", "fd bump 1.5 periods"])
+def test_refinement_not_worse_than_none_beside_a_blank_patch(options, surface, bits, noise, at_most):
+    # A blank patch in the frame (lost contrast: a shadow, a splash, a corner out of the light), 256^2,
+    # 2 x 2 rays: the refinement's heights against no refinement's on the same frame, at most
+    # ``at_most`` times them. Measured 5 Dec 2026 on these renders (bench_processing.py --masked: every
+    # table case):
+    # - the default, image matching: no refinement / 3 conjugate-gradient iterations a step / with
+    #   dic.MASKED_CG_ITERATIONS (10): 4 um bump 0.302 / 0.359 / 0.190 %, 5 um dimple 0.289 / 0.570 /
+    #   0.159 %;
+    # - FD's refinement, whose correction is left out within refine.MASK_REACH_SAMPLES of masked samples
+    #   (the frame's band holds what the mask hides, the warped reference's does not): no refinement /
+    #   correcting up to the mask / now: noisy dimple 0.290 / 0.366 / 0.272 %, 12-30 mm waves 0.591 /
+    #   0.610 / 0.483 %, 1.5-period bump 0.652 / 0.728 / 0.625 %.
     from benchmarks.bench_processing import rel_height_error
 
     board = F.Checkerboard(period_mm=2.0, edge_softness_mm=0.1)
@@ -488,6 +498,6 @@ def test_fd_refinement_not_worse_than_none_beside_a_blank_patch(surface, bits, n
     img = F.quantize(img, bits=bits, noise_rms=noise, rng=rng).copy()
     img[150:190, 40:110] = int(img.mean())
     none = rel_height_error(Reconstructor(ref, G55, refine_iterations=0)(img), surface)
-    fd = Reconstructor(ref, G55, refine_method="fd")(img)
-    assert 0.9 < fd.valid.mean() < 0.97
-    assert rel_height_error(fd, surface) <= none
+    refined = Reconstructor(ref, G55, **options)(img)
+    assert 0.9 < refined.valid.mean() < 0.97  # the patch is left out, the rest measured
+    assert rel_height_error(refined, surface) <= at_most * none
