@@ -51,11 +51,11 @@ import math
 import cv2
 import numpy as np
 
-from .dic_nodes import BLUR_PX, NODE_PX, HeightNodes, NodeGrid, fine_factor, fine_reference, fits
+from .dic_nodes import BLUR_PX, NODE_PX, FineReference, HeightNodes, NodeGrid, fine_factor, fine_reference, fits
 from .fill import nearest_fill_index
 from .pools import thread_map
 
-__all__ = ["NODE_PX", "BLUR_PX", "INTENSITY_CELL_PX", "NodeGrid", "HeightNodes", "RefinementDiverged",
+__all__ = ["NODE_PX", "BLUR_PX", "INTENSITY_CELL_PX", "FineReference", "NodeGrid", "HeightNodes", "RefinementDiverged",
            "fine_factor", "fine_reference", "fits", "intensity_fit", "refine_height"]
 
 
@@ -214,8 +214,8 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
 
     Parameters
     ----------
-    fine : ndarray float32
-        :func:`fine_reference` of the reference (any factor: read from its shape).
+    fine : FineReference
+        :func:`fine_reference` of the reference (any factor).
     frame : ndarray (rows, cols)
     h0 : ndarray (n_rows, n_cols)
         Starting heights at the nodes (mm; FD's; NaN: the nearest finite node's).
@@ -260,7 +260,7 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
         _check_displacement(u, u_start, k, grid.frame_shape, period_px)  # before any warp
         if k == outer:
             break
-        warped, outside = _warp(fine, grid, u, blur_px)
+        warped, outside = _warp(fine, grid, u, blur_px, threads)
         wk = _weights_within(w, outside, wk_buf)
         if intensity_cell_px and k == 0:
             # once, against the reference warped by FD's start (before every step: the same
@@ -298,23 +298,19 @@ def _frame_and_weights(frame, valid_px, grid, blur_px, border_px):
     return raw, img, w, all_valid, free
 
 
-def _warp(fine, grid, u, blur_px):
+def _warp(fine, grid, u, blur_px, threads=1):
     """``(warped, outside)``: the fine reference warped by the node displacement
-    ``u`` (Lanczos to the pixels), blurred as the frame, and :func:`_outside` of
-    the warp (empty: every pixel is the reference's own)."""
-    # both components in one two-channel resize (the same Lanczos weights, computed
-    # once), interleaved (column, row) as the CV_32FC2 map that remap takes
-    factor = fine.shape[0] // grid.frame_shape[0]  # fine_reference's factor
-    up = grid.up(np.stack([u[1], u[0]], axis=-1), cv2.INTER_LANCZOS4)
-    up *= np.float32(factor)
-    fine_map = np.subtract(grid.fine_map(factor), up, out=up)
+    ``u`` (Lanczos to the pixels, :meth:`NodeGrid.warp_map`), blurred as the frame,
+    and :func:`_outside` of the warp (empty: every pixel is the reference's own)."""
+    factor = fine.factor
+    fine_map = grid.warp_map(u, factor, threads)
     # Lanczos overshoots the node values by a few per cent: one pixel more than the largest
     band_px = int(math.ceil(1.1 * float(np.abs(u).max()))) + 1 if u.size else 1
     outside = _outside(fine_map, fine.shape, band_px, factor)
-    warped = cv2.remap(fine, fine_map, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    warped = cv2.remap(fine.counts, fine_map, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT).astype(np.float32)
     if blur_px:
         warped = cv2.GaussianBlur(warped, (0, 0), blur_px)
-    return warped, outside
+    return fine.grey(warped), outside
 
 
 def _outside(fine_map, fine_shape, band_px, ramp):

@@ -19,7 +19,13 @@ a compiled version was slower).
 passes), with the stencils zero-padded (:func:`pad_stencil`) so that no
 inner loop branches.
 
-Both compute what the NumPy operators of :mod:`processing.dic_nodes` do
+:func:`lanczos_columns` and :func:`warp_map_rows`, the warp's map
+(:meth:`processing.dic_nodes.NodeGrid.warp_map`): OpenCV's Lanczos resize of
+the node displacement to every pixel, in two passes of 8 taps each, written
+straight into ``cv2.remap``'s map (was a resize, a scaling and a subtraction
+of full-size two-channel arrays).
+
+All compute what the NumPy and OpenCV operations they replace do
 (tests compare them, to float32 rounding); compiled once per checkout and
 cached in ``__pycache__``.
 """
@@ -29,7 +35,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["row_moments"]
+__all__ = ["row_moments", "normal_apply", "pad_stencil", "lanczos_columns", "warp_map_rows"]
 
 
 @numba.njit(nogil=True, cache=True, inline="always")
@@ -257,6 +263,46 @@ def normal_apply(x, A, SD, SDO, SOD, SOO, inv_s, lam, work, vpad, out):  # pragm
     _add_d1_T(dr, inv_s, 0, out)
     _add_d1_T(dc, inv_s, 1, out)
     _add_d3_T_d3(x, lam, out)
+
+
+@numba.njit(**_FAST)
+def _taps8(src, idx, wts, k, out):  # pragma: no cover - compiled
+    """``out[:] = sum_t wts[k, t] * src[idx[k, t], :]`` over the 8 taps ``t`` (rows of ``src``
+    contiguous): the 8 rows' values summed in registers, one store per output."""
+    a0, a1, a2, a3 = src[idx[k, 0]], src[idx[k, 1]], src[idx[k, 2]], src[idx[k, 3]]
+    a4, a5, a6, a7 = src[idx[k, 4]], src[idx[k, 5]], src[idx[k, 6]], src[idx[k, 7]]
+    w0, w1, w2, w3 = wts[k, 0], wts[k, 1], wts[k, 2], wts[k, 3]
+    w4, w5, w6, w7 = wts[k, 4], wts[k, 5], wts[k, 6], wts[k, 7]
+    for c in range(out.shape[0]):
+        out[c] = (w0 * a0[c] + w1 * a1[c] + w2 * a2[c] + w3 * a3[c]
+                  + w4 * a4[c] + w5 * a5[c] + w6 * a6[c] + w7 * a7[c])
+
+
+@numba.njit(**_FAST)
+def lanczos_columns(u_t, idx, wts, out):  # pragma: no cover - compiled
+    """First pass of :meth:`processing.dic_nodes.NodeGrid.warp_map`: ``u_t`` (node columns,
+    2 x node rows) the node displacement with the node columns as rows (u_col, u_row
+    interleaved), resampled to every pixel column: ``out`` (cols, 2 x node rows)."""
+    for c in range(out.shape[0]):
+        _taps8(u_t, idx, wts, c, out[c])
+
+
+@numba.njit(**_FAST)
+def warp_map_rows(h, idx, wts, factor, r0, r1, out, acc):  # pragma: no cover - compiled
+    """Second pass of :meth:`processing.dic_nodes.NodeGrid.warp_map`, pixel rows ``r0 <= r < r1``:
+    ``h`` (node rows, 2 x cols) the first pass (u_col, u_row interleaved), resampled to pixel
+    row ``r`` and written as ``cv2.remap``'s map into a grid ``factor`` times finer:
+    ``out[r, 2 c] = factor (c - u_col)``, ``out[r, 2 c + 1] = factor (r - u_row)``
+    (``out`` (rows, 2 x cols)); ``acc`` (2 x cols) float32 scratch."""
+    cols = h.shape[1] // 2
+    f = np.float32(factor)
+    for r in range(r0, r1):
+        _taps8(h, idx, wts, r, acc)
+        o = out[r]
+        rf = np.float32(r)
+        for c in range(cols):
+            o[2 * c] = f * (np.float32(c) - acc[2 * c])
+            o[2 * c + 1] = f * (rf - acc[2 * c + 1])
 
 
 def pad_stencil(parts):

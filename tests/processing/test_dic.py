@@ -184,6 +184,43 @@ def test_compiled_pixel_pass_gives_the_node_operators_sums(shape):
         np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.parametrize("shape", [(40, 24), (264, 200)])
+@pytest.mark.parametrize("threads", [1, 3])
+def test_compiled_warp_map_is_opencvs_lanczos_resize(shape, threads):
+    # NodeGrid.warp_map (two compiled 8-tap passes) against what it replaced: OpenCV's
+    # Lanczos resize of the node displacement, scaled and subtracted from the identity
+    rng = np.random.default_rng(3)
+    grid = dic.NodeGrid(shape)
+    u = rng.normal(0.0, 2.0, (2, *grid.shape)).astype(np.float32)
+    up = cv2.resize(np.stack([u[1], u[0]], axis=-1), (shape[1], shape[0]), interpolation=cv2.INTER_LANCZOS4)
+    for factor in (2, 3):
+        want = np.empty((*shape, 2), np.float32)
+        want[..., 0] = np.arange(shape[1])[None, :] * factor - factor * up[..., 0]
+        want[..., 1] = np.arange(shape[0])[:, None] * factor - factor * up[..., 1]
+        got = grid.warp_map(u, factor, threads)
+        # float32 rounding of coordinates up to factor * side (2.4e-4 at 3 x 264 samples)
+        np.testing.assert_allclose(got, want, rtol=0, atol=4 * np.spacing(np.float32(factor * max(shape))))
+
+
+def test_fine_reference_counts_hold_the_reference_to_a_fraction_of_a_grey_level():
+    # 16-bit counts of the fine reference: the warp's linear interpolation of them is the
+    # float interpolation to the counts' step (range / 65535), far below a camera count
+    rng = np.random.default_rng(4)
+    ref = cv2.GaussianBlur(rng.random((64, 48)), (0, 0), 2.0) * 4000.0 + 50.0
+    fine = dic.fine_reference(ref, 3)
+    assert fine.counts.dtype == np.uint16 and fine.shape == (192, 144) and fine.factor == 3
+    grey = fine.grey(fine.counts)
+    assert np.abs(grey[::3, ::3] - ref).max() < 1e-3 * 4000.0  # the spline passes through the pixels
+    assert fine.scale <= (ref.max() - ref.min()) * 1.5 / 65535  # the range (spline overshoot included)
+    step = fine.scale
+    # the counts are the float samples rounded: within half a step (plus float32 rounding)
+    from scipy import ndimage
+    coef = ndimage.spline_filter(ref, order=3, mode="mirror")
+    rr, cc = np.meshgrid(np.arange(192) / 3, np.arange(144) / 3, indexing="ij")
+    exact = ndimage.map_coordinates(coef, [rr, cc], order=3, prefilter=False, mode="mirror")
+    assert np.abs(grey - exact).max() <= 0.5 * step + 1e-3
+
+
 @pytest.mark.parametrize("camera_distance_mm", [None, 1500.0])  # uniform optics, per-node optics
 def test_compiled_normal_operator_is_the_numpy_one(camera_distance_mm):
     # dic_kernels.normal_apply (the CG's (L^T M L + lam R) x) against the NumPy
