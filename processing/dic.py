@@ -252,11 +252,10 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
     raw, img, w, all_valid, free = _frame_and_weights(frame, valid_px, grid, blur_px, border_px)
     n_cg = masked_cg_iterations if masked_cg_iterations and not all_valid else cg_iterations
     h = _start_heights(h0)
-    u_start = nodes.displacement(h)
+    u = u_start = nodes.displacement(h)
     prev_step = prev_cost = operator = None
     w_sum, wk_buf = float(w.sum()), np.empty_like(w)
     for k in range(outer + 1):
-        u = nodes.displacement(h)
         _check_displacement(u, u_start, k, grid.frame_shape, period_px)  # before any warp
         if k == outer:
             break
@@ -272,8 +271,10 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
         step_operator = operator or _NormalOperator(nodes, stencils, regularisation, k)
         operator = step_operator if matrix_once else None
         x = step_operator.solve(rhs, h, n_cg)
-        prev_step = _check_step(_rms(nodes.displacement(x)), prev_step, k)
+        du = nodes.displacement(x)
+        prev_step = _check_step(_rms(du), prev_step, k)
         h += x
+        u = u + du  # the displacement is linear in the heights: one operator call a step, not two
     return h, u.astype(np.float32), free
 
 
