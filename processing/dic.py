@@ -204,11 +204,10 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
 
     Minimises ``sum_r w [G*((I - b) / a) - G*I0(r - P L h)]^2 + lam (|D3r h|^2 + |D3c h|^2)``
     (module docstring; docs/processing.md section 6 for the settings measured):
-    ``outer`` steps, each solving the normal equations by ``cg_iterations``
-    preconditioned conjugate-gradient iterations (:class:`_NormalOperator`;
-    ``masked_cg_iterations``, if given, where ``valid_px`` leaves pixels out);
-    ``lam`` is ``regularisation`` times the data term's weight per node at unit
-    spatial frequency.  Every loop is bounded; the iterations stop with
+    ``outer`` steps, each solving the normal equations by ``cg_iterations`` preconditioned
+    conjugate-gradient iterations (:class:`_NormalOperator`; ``masked_cg_iterations``, if given,
+    where ``valid_px`` leaves pixels out); ``lam`` is ``regularisation`` times the data term's
+    weight per node at unit spatial frequency.  Every loop is bounded; the iterations stop with
     :class:`RefinementDiverged` (the caller keeps FD's answer) when they leave the range
     where they can be right (:func:`_check_displacement`, :func:`_check_cost`, :func:`_check_step`).
 
