@@ -32,8 +32,11 @@ Reconstructor keeps FD's heights with a note (:attr:`Result.note`).
 
 The reference is warped by linear interpolation of its cubic-spline
 interpolation on a grid 2-3 times finer (:func:`fine_reference`, the factor
-by :func:`fine_factor`: within 1e-3 px on the shortest carrier): OpenCV's
-cubic remap biases image matching towards whole pixels by up to 0.035 px.
+by :func:`fine_factor`: within 1e-3 px on the shortest carrier; kept as
+16-bit counts, :class:`FineReference`, so the warp reads half the memory):
+OpenCV's cubic remap biases image matching towards whole pixels by up to
+0.035 px.  The remap's map is written from the node displacement by
+:meth:`NodeGrid.warp_map` (OpenCV's Lanczos taps, compiled).
 
 Each step's pixel pass and the conjugate gradients' operator are compiled
 (:mod:`processing.dic_kernels`); the five node sums run in bands on the
