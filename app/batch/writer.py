@@ -581,7 +581,12 @@ class ResultWriter:
                     raise TirdeflectError(f"a frame compressed with {frame.compression} for an output "
                                           f"written with {self.compression or 'none'}")
                 ds.id.write_direct_chunk((k, 0, 0), frame.maps[name])
-            else:
+            elif self.compression is None:
+                # a map is one whole chunk and nothing filters it: its bytes are the chunk. Written
+                # through as they are, not through h5py's selection (``ds[k] = map``: 7.0 CPU-ms a
+                # 1024^2 float32 map, this 0.8; 22 of the parent's 41 CPU-ms a frame at 2 workers)
+                ds.id.write_direct_chunk((k, 0, 0), np.ascontiguousarray(frame.maps[name], ds.dtype))
+            else:  # lzf: HDF5 compresses here
                 ds[k] = frame.maps[name]
 
     def _drop_frame(self, k: int, exc: BaseException) -> None:
