@@ -14,9 +14,8 @@ import numpy as np
 
 from .refine import warp_fine_factor
 
-__all__ = ["FINE", "FINE_COUNTS", "NODE_PX", "BLUR_PX", "FineReference", "NodeGrid", "lanczos_taps", "HeightNodes", "Stencil9",
-           "fine_factor", "fine_reference",
-           "fits"]
+__all__ = ["FINE", "FINE_COUNTS", "NODE_PX", "BLUR_PX", "FineReference", "NodeGrid", "lanczos_taps", "HeightNodes",
+           "Stencil9", "fine_factor", "fine_reference", "fits"]
 
 
 #: Least refinement of the grid the reference is interpolated from (see :func:`fine_reference`); the
