@@ -371,6 +371,7 @@ def run_process(args: ProcessJob) -> BatchReport:
         "height_units": "mm",
         "reference_bits": (_bits_of_counts(args.reference) if reference_given
                            else _bits_hint(args.reference, reference)),
+        "stuck_pixels_repaired": int(reconstruct.defects.size),
         **timing,
     }
     for attempt in range(5):  # another run beside this one may take the name first

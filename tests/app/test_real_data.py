@@ -71,6 +71,11 @@ def test_packed_10bit_camera_tiffs_process_end_to_end(tmp_path, fsss_toml, capsy
     assert code == 0, capsys.readouterr().err
     with h5py.File(out) as f:
         assert f.attrs["reference_bits"] == 10
+        # the camera's dead pixels (row 688, column 468: 691 among 925-1023; row 894, column 315: 0 among
+        # 898-990, dead in the needle recording's reference too) are repaired, and said; the file keeps
+        # the reference as read
+        assert f.attrs["stuck_pixels_repaired"] == 2
+        assert f["reference"][894, 315] == 0
         assert f["reference"].dtype == np.uint16 and f["reference"][()].max() <= 1023
         assert f["valid"][0].mean() > 0.9
         assert f["source"][0].decode().endswith("C1S0001000211.tif")
