@@ -156,7 +156,8 @@ def repair_pixels(image, defects):
     r, c = np.unravel_index(np.asarray(defects), a.shape)
     near = [a[np.clip(r + dr, 0, rows - 1), np.clip(c + dc, 0, cols - 1)].astype(np.float64)
             for dr in (-1, 0, 1) for dc in (-1, 0, 1) if dr or dc]
-    a[r, c] = np.median(np.stack(near), axis=0).astype(a.dtype)
+    median = np.median(np.stack(near), axis=0)
+    a[r, c] = (np.rint(median) if a.dtype.kind in "ui" else median).astype(a.dtype)
     return a
 
 
