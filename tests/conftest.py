@@ -147,7 +147,7 @@ def pytest_runtest_protocol(item, nextitem):
 
 # -- no shared memory of an ended run left behind ------------------------------------------
 # The batch engine's workers hand their maps over in /dev/shm blocks named after the run
-# (app.batch.parallel.shm_name: tdf<run pid>_<hex>); when a run ends, however it ends, the
+# (app.batch.shm_results.shm_name: tdf<run pid>_<hex>); when a run ends, however it ends, the
 # blocks nobody took are freed by multiprocessing's resource tracker. After every test each
 # pytest process notes the blocks of ended runs it had not seen yet, with the test; at the end
 # of the session, once every test has ended (and with it every tracker's clean-up), the
@@ -159,7 +159,7 @@ _SHM_BLOCK = re.compile(r"tdf(\d+)_[0-9a-f]+$")
 
 
 def _blocks_of_ended_runs() -> set:
-    """Names of the /dev/shm blocks of app.batch.parallel whose run's process has ended."""
+    """Names of the /dev/shm blocks of app.batch.shm_results whose run's process has ended."""
     try:
         names = os.listdir(_SHM_DIR)
     except OSError:

@@ -47,6 +47,7 @@ from typing import Optional
 import numpy as np
 
 from app.batch.interruptible import call_interruptibly
+from app.batch.shm_results import MAKING_BLOCK, ParentBlocks, SharedFrame, set_run_pid
 from app.batch.writer import output_frame
 from app.files import imageio
 from processing.errors import TirdeflectError
@@ -304,92 +305,6 @@ def _in_dask() -> bool:
         return False
 
 
-#: the run's process, in one of its pool's workers (set by ``_init_worker``); None elsewhere
-_RUN_PID = None
-#: Held while a worker creates a shared-memory block (:meth:`_Shared.put`): between the file's
-#: creation in /dev/shm and its registration with the resource tracker, a worker that ends with
-#: its run (``_init_worker``'s watch thread) would leave the block for good.
-_MAKING_BLOCK = threading.Lock()
-
-
-def shm_name(run_pid: int) -> str:
-    """A new shared-memory block's name for the run whose process is
-    ``run_pid``: ``tdf<pid>_<random>`` (in /dev/shm on Linux), so that what a
-    run holds can be told apart from any other program's; short enough for
-    macOS (31 characters)."""
-    return f"tdf{run_pid}_{uuid.uuid4().hex[:10]}"
-
-
-@dataclasses.dataclass
-class _Shared:
-    """An :class:`~app.batch.writer.OutputFrame` whose maps wait in a shared-memory
-    block (worker processes on this machine): copied in once by the worker, and
-    written to OUT.h5 by the parent straight from the block (no copy out),
-    instead of pickling 13 MB per 1024^2 frame through a pipe (measured 7.7 ms
-    a frame for pickling alone, on the parent's core)."""
-
-    name: str
-    layout: tuple
-    rest: object
-
-    @classmethod
-    def put(cls, frame):
-        from multiprocessing import shared_memory
-
-        arrays = [(name, np.ascontiguousarray(a)) for name, a in frame.maps.items()]
-        # named after the run (a pool worker's parent is the app's fork server, not the run)
-        run_pid = _RUN_PID if _RUN_PID is not None else os.getppid()
-        with _MAKING_BLOCK:  # created and registered with the resource tracker, or not at all
-            block = shared_memory.SharedMemory(name=shm_name(run_pid), create=True,
-                                               size=max(1, sum(a.nbytes for _, a in arrays)))
-        layout, offset = [], 0
-        for name, a in arrays:
-            np.ndarray(a.shape, a.dtype, buffer=block.buf, offset=offset)[...] = a
-            layout.append((name, a.shape, a.dtype.str, offset))
-            offset += a.nbytes
-        block.close()
-        return cls(block.name, tuple(layout), dataclasses.replace(frame, maps={}))
-
-    def _attach(self):
-        from multiprocessing import shared_memory
-
-        # the worker registered the block with the resource tracker it shares with
-        # this process; unlink() here unregisters it (a block left behind by a crash
-        # is removed when this process ends)
-        return shared_memory.SharedMemory(name=self.name)
-
-    def take(self):
-        """The OutputFrame, its maps views of the block. The block's name is
-        removed at once (nothing is left in /dev/shm whatever happens next); its
-        memory is unmapped when the writer is done with the maps
-        (``OutputFrame.done``)."""
-        block = self._attach()
-        block.unlink()
-        maps = {name: np.ndarray(shape, np.dtype(dt), buffer=block.buf, offset=off)
-                for name, shape, dt, off in self.layout}
-        return dataclasses.replace(self.rest, maps=maps, release=functools.partial(_unmap, block))
-
-    def discard(self):
-        try:
-            block = self._attach()
-            block.close()
-            block.unlink()
-        except OSError:
-            pass
-
-
-#: Blocks still viewed by someone after the writer was done with them (their names are
-#: gone already): kept mapped until this process ends.
-_STILL_MAPPED = []
-
-
-def _unmap(block) -> None:
-    try:
-        block.close()
-    except BufferError:  # a view of the maps outlived the write (kept by a caller)
-        _STILL_MAPPED.append(block)
-
-
 def measure(reconstruct, item, ref_shape, grid: str):
     """``(Result, OK)`` or ``(None, why the frame is invalid)`` of one input frame,
     as the engine's serial loop measures it (:mod:`app.batch.frame_status`)."""
@@ -437,7 +352,7 @@ def process_chunk(spec: ReconstructorSpec, chunk: Chunk) -> ChunkOutcome:
             else:  # the per-pixel part of writing it (NaN mask, compression) is done here
                 result = output_frame(result, spec.compression)
                 if spec.shared_memory:
-                    result = _Shared.put(result)
+                    result = SharedFrame.put(result, spec.key)
             out.append((dataclasses.replace(item, image=None), (result, outcome)))
     except TirdeflectError as exc:  # a whole file became unreadable: frames before it stand
         if _in_dask():
@@ -556,20 +471,21 @@ def _wait(future, timeout_s: float) -> bool:
     return future.done()
 
 
-def _discard(frames) -> None:
-    """Free the shared memory of results nobody will take."""
+def _discard(frames, blocks) -> None:
+    """Hand back the shared memory of results nobody will take (``blocks``: the run's
+    :class:`~app.batch.shm_results.ParentBlocks`)."""
     for item, payload in frames:
-        if item is not None and isinstance(payload[0], _Shared):
-            payload[0].discard()
+        if item is not None and isinstance(payload[0], SharedFrame):
+            payload[0].discard(blocks)
 
 
-def _discard_finished(futures) -> None:
-    """Free the shared memory of the chunks among ``futures`` that finished but that nobody will
-    take (cancelled too late, or submitted again)."""
+def _discard_finished(futures, blocks) -> None:
+    """Hand back the shared memory of the chunks among ``futures`` that finished but that nobody
+    will take (cancelled too late, or submitted again)."""
     for future in futures:
         try:
             if future.done() and not future.cancelled() and future.exception() is None:
-                _discard(future.result().frames)
+                _discard(future.result().frames, blocks)
         except Exception:  # a Dask future after its client closed: nothing in shared memory
             pass
 
@@ -772,6 +688,7 @@ class _Chunked:
         self.redone = []
         self.attrs = {"parallel": description, "chunks": len(chunks), "chunks_redone": 0}
         self._closed = False
+        self._blocks = ParentBlocks()  # the workers' shared-memory blocks, mapped once for the run
         self._interrupt = _DeferredInterrupt()
         self._fill()
 
@@ -808,7 +725,7 @@ class _Chunked:
                         f"or --workers 1, and --first {chunk.first} to go on from there"
                         f"{_script_hint()}") from None
                 self.restarts += 1
-                _discard_finished(f for _, f in self._pending)  # the survivors' chunks: done again below
+                _discard_finished((f for _, f in self._pending), self._blocks)  # the survivors' chunks: done again below
                 log.warning("a worker process died during %s; starting new workers for the %d "
                             "chunk(s) in flight", chunk.label, len(self._pending) + 1)
                 self._restart()
@@ -837,7 +754,7 @@ class _Chunked:
         if chunk.index > 0 and not _states_agree(out.start, self._prev_end):
             log.info("%s: its start (unwrapped in space) disagrees with the end of the chunk before; "
                      "redone in time from there", chunk.label)
-            _discard(self._frames)
+            _discard(self._frames, self._blocks)
             self.redone.append(chunk.index)
             self.attrs["chunks_redone"] = len(self.redone)
             redo = dataclasses.replace(chunk, redo=True, start=self._prev_end, overlap=None, items=None)
@@ -864,11 +781,11 @@ class _Chunked:
                     raise payload
                 item = dataclasses.replace(item, source=self._sources.get(item.source, item.source))
                 result, outcome = payload
-                if isinstance(result, _Shared):
+                if isinstance(result, SharedFrame):
                     try:
-                        result = result.take()
+                        result = result.take(self._blocks)
                     except BaseException:  # Ctrl-C while attaching: free the block all the same
-                        result.discard()
+                        result.discard(self._blocks)
                         raise
                 return item, functools.partial(_given, (result, outcome))
             if not self._pending:
@@ -880,13 +797,14 @@ class _Chunked:
             return
         self._closed = True
         self._interrupt.restore()
-        _discard(self._frames)
+        _discard(self._frames, self._blocks)
         futures = [f for _, f in self._pending] + ([self._redo] if self._redo is not None else [])
         for future in futures:
             future.cancel()
         self._shutdown()
-        _discard_finished(futures)  # finished before they could be cancelled
+        _discard_finished(futures, self._blocks)  # finished before they could be cancelled
         self._pending.clear()
+        self._blocks.close()
 
 
 def _spec(job, reconstruct, reference, geometry, threads, shared_memory=False, tasks_per_host=()):
@@ -920,8 +838,7 @@ def _init_worker(run_pid: int, parent):
 
     from app.worker_processes import adopt_parent_state
 
-    global _RUN_PID
-    _RUN_PID = run_pid
+    set_run_pid(run_pid)
     adopt_parent_state(parent)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
@@ -931,7 +848,7 @@ def _init_worker(run_pid: int, parent):
         while _process_alive(run_pid):
             time.sleep(0.5)  # polling the run: there is no portable "that process died" event
         # not half way through making a block (what the tracker does not know of stays in /dev/shm)
-        _MAKING_BLOCK.acquire(timeout=10.0)
+        MAKING_BLOCK.acquire(timeout=10.0)
         os._exit(1)
 
     threading.Thread(target=exit_with_the_run, name="tirdeflect-run-watch", daemon=True).start()

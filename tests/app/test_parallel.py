@@ -284,8 +284,8 @@ def test_ctrl_c_stops_workers_and_keeps_written_frames(series, tmp_path):
 
 def _shm_blocks_of(run_pid: int) -> list:
     """The shared-memory blocks the run with process ``run_pid`` holds (named by
-    app.batch.parallel.shm_name; other programs' blocks do not count)."""
-    from app.batch.parallel import shm_name
+    app.batch.shm_results.shm_name; other programs' blocks do not count)."""
+    from app.batch.shm_results import shm_name
 
     prefix = shm_name(run_pid).rpartition("_")[0] + "_"
     return sorted(n for n in os.listdir("/dev/shm") if n.startswith(prefix)) if os.path.isdir("/dev/shm") else []
@@ -351,7 +351,7 @@ import dataclasses, multiprocessing as mp, os, sys, time
 import numpy as np
 from multiprocessing import resource_tracker
 sys.path.insert(0, sys.argv[1])
-from app.batch import parallel
+from app.batch import parallel, shm_results
 from app.worker_processes import parent_state
 
 @dataclasses.dataclass
@@ -363,7 +363,7 @@ def worker(run_pid, state, ready):
     frame = Frame({"height": np.zeros(64, np.float32)})
     ready.set()
     while True:  # a worker handing its maps over, as fast as it can
-        parallel._Shared.put(frame)
+        shm_results.SharedFrame.put(frame)
 
 if __name__ == "__main__":
     resource_tracker.ensure_running()
