@@ -626,12 +626,23 @@ class ResultWriter:
             raise self._write_error(done, exc) from exc
         # (KeyboardInterrupt between two calls: the handle is sound and the next flush writes it all)
         self.frames_done = n
+        self._drop_written_pages()
         for values in self._rows.values():
             values.clear()
         for index, label in self._labels:
             log.debug("frame %d (%s) written to %s", index, label, self.path)
         self._labels.clear()
         self._flushed_at = time.monotonic()
+
+    def _drop_written_pages(self) -> None:
+        """What the file's flushed pages hold goes to disk and out of the page cache
+        (:func:`h5safe.drop_written_pages`; OUT.h5 is not read back while written)."""
+        try:
+            fd = self.f.id.get_vfd_handle()
+        except Exception:  # noqa: BLE001 - a file driver without a descriptor: nothing to drop
+            return
+        if isinstance(fd, int):
+            h5safe.drop_written_pages(fd)
 
     def _write_error(self, k: int, exc: BaseException, next_index=None) -> OSError:
         text = _one_line(exc)

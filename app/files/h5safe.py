@@ -57,6 +57,7 @@ __all__ = [
     "room_bytes",
     "fallocate",
     "detach_descriptor",
+    "drop_written_pages",
     "Preallocation",
     "SpaceReserve",
     "reserve_path",
@@ -199,6 +200,27 @@ def detach_descriptor(fd: int) -> None:
         os.dup2(sink, fd)
     finally:
         os.close(sink)
+
+
+def drop_written_pages(fd: int) -> None:
+    """Have the kernel write out what the page cache holds of file ``fd`` and drop
+    what it has written (``posix_fadvise(DONTNEED)``: dirty pages start their
+    write-back, clean ones are freed; nothing waits for the disk). Called after
+    each flush, the cache holds about one flush interval of a file that is
+    written once and not read back here, instead of growing by the whole file.
+
+    Measured on the 2-core test machine (a VM), ``tirdeflect process`` of 500
+    1024^2 frames: as the cache grew by 13 MB a frame, copying the maps into it
+    took a quarter of both cores (``perf``: ``copy_folio_from_iter_atomic``),
+    10 frames/s after the first 200; with this, 13-15 frames/s. Does nothing
+    where the system has no ``posix_fadvise`` (macOS, Windows) or the
+    descriptor is not a plain file's."""
+    if not hasattr(os, "posix_fadvise"):
+        return
+    try:
+        os.posix_fadvise(fd, 0, 0, os.POSIX_FADV_DONTNEED)
+    except OSError:
+        pass
 
 
 #: fallocate answers meaning "no room" (as opposed to "cannot reserve here")
