@@ -1,6 +1,6 @@
 """Small helpers that several test modules and tests/conftest.py share: whether a
 process still runs, which of a process's children are its multiprocessing workers,
-and a machine-wide file lock with a bounded wait."""
+a machine-wide file lock with a bounded wait, and how much of a file the page cache holds."""
 
 from __future__ import annotations
 
@@ -56,3 +56,28 @@ def release_file_lock(f) -> None:
     """Give back a lock taken by :func:`acquire_file_lock` and close its file."""
     fcntl.flock(f, fcntl.LOCK_UN)
     f.close()
+
+
+def resident_bytes(path) -> int:
+    """How many bytes of ``path`` the page cache holds (whole pages; Linux ``mincore``)."""
+    import ctypes
+    import mmap
+    import os
+
+    import numpy as np
+
+    size = os.path.getsize(path)
+    pages = -(-size // mmap.PAGESIZE)
+    with open(path, "rb") as f:
+        mapping = mmap.mmap(f.fileno(), size, prot=mmap.PROT_READ)
+    try:
+        view = np.frombuffer(mapping, np.uint8)
+        resident = np.zeros(pages, np.uint8)
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.mincore(ctypes.c_void_p(view.ctypes.data), ctypes.c_size_t(size),
+                        resident.ctypes.data_as(ctypes.c_void_p)) != 0:
+            raise OSError(ctypes.get_errno(), "mincore failed")
+        del view
+    finally:
+        mapping.close()
+    return int((resident & 1).sum()) * mmap.PAGESIZE

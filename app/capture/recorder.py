@@ -493,6 +493,8 @@ class RecordingFile:
                 self.failed = True
                 raise
         self.n_flushed = n
+        if self._fd is not None:  # written once, read back by nobody here: out of the page cache
+            h5safe.drop_written_pages(self._fd)
         if attempt == 1 and stop_when_full:
             raise self._disk_full(0, "disk")
 

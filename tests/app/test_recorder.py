@@ -214,3 +214,33 @@ def test_recording_larger_than_the_file_system_allows_is_refused(tmp_path, monke
     with h5py.File(rf.path, "r") as f:
         assert f["frames"].shape[0] == f["frames"].attrs["frames_written"] == n
     assert os.path.getsize(rf.path) < 6 * 1024 * 1024
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads the page cache with Linux's mincore")
+def test_recorded_frames_leave_the_page_cache_once_flushed(tmp_path):
+    """A recording is written once and not read back while it runs: once a flush's frames are
+    on disk, the next flush drops them from the page cache (h5safe.drop_written_pages). With
+    the cache growing by the whole recording instead, 4 GB went to disk at 590-700 MB/s on the
+    test machine, and at 1100-1180 MB/s with the drop (the same run, in turn)."""
+    from app.files.h5safe import filesystem_type
+    from tests.helpers import resident_bytes
+
+    path = tmp_path / "rec.h5"
+    if filesystem_type(path) in ("tmpfs", "ramfs"):
+        pytest.skip("a tmpfs file lives in the page cache")
+    rf = RecordingFile(path, shape=(256, 256), dtype=np.uint8, n_frames=64)
+    image = (np.arange(256 * 256) % 251).astype(np.uint8).reshape(256, 256)
+    for i in range(64):
+        rf.write(image, (i, i, i, i, 0, i))
+    frames_bytes = 64 * image.nbytes
+    written = resident_bytes(path)
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)  # on disk now, as the write-back started by a flush leaves it
+    finally:
+        os.close(fd)
+    rf.flush()
+    flushed = resident_bytes(path)
+    rf.close()
+    assert written > 0.9 * frames_bytes, f"only {written} of the {frames_bytes} bytes written were in the page cache"
+    assert flushed < 0.25 * frames_bytes, f"{flushed} bytes of the recording stayed in the page cache after the flush"

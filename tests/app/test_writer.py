@@ -12,6 +12,7 @@ import pytest
 
 from app.batch import writer as W
 from app.files.imageio import FrameItem
+from tests.helpers import resident_bytes
 
 ROOT = Path(__file__).resolve().parents[2]
 SHAPE = (96, 128)
@@ -92,28 +93,6 @@ def test_frames_done_moves_only_at_a_flush(tmp_path, rng):
     w.close("complete")
 
 
-def _resident_fraction(path) -> float:
-    """The fraction of ``path``'s pages in the page cache (Linux ``mincore``)."""
-    import ctypes
-    import mmap
-
-    size = os.path.getsize(path)
-    pages = -(-size // mmap.PAGESIZE)
-    with open(path, "rb") as f:
-        mapping = mmap.mmap(f.fileno(), size, prot=mmap.PROT_READ)
-    try:
-        view = np.frombuffer(mapping, np.uint8)
-        resident = np.zeros(pages, np.uint8)
-        libc = ctypes.CDLL(None, use_errno=True)
-        if libc.mincore(ctypes.c_void_p(view.ctypes.data), ctypes.c_size_t(size),
-                        resident.ctypes.data_as(ctypes.c_void_p)) != 0:
-            raise OSError(ctypes.get_errno(), "mincore failed")
-        del view
-    finally:
-        mapping.close()
-    return float((resident & 1).mean())
-
-
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads the page cache with Linux's mincore")
 def test_flushed_frames_leave_the_page_cache(tmp_path, rng):
     """OUT.h5 is written once and not read back during the run: once a flush's frames are on
@@ -128,13 +107,14 @@ def test_flushed_frames_leave_the_page_cache(tmp_path, rng):
     w = _writer(path, flush_interval_s=3600)
     for k in range(16):
         w.append(_item(k), _Result(rng))
-    written = _resident_fraction(path)
+    maps_bytes = 16 * SHAPE[0] * SHAPE[1] * (3 * 4 + 1)
+    written = resident_bytes(path)
     os.fsync(w.f.id.get_vfd_handle())  # on disk now, as the write-back started by a flush leaves it
     w.flush()
-    flushed = _resident_fraction(path)
+    flushed = resident_bytes(path)
     w.close("complete")
-    assert written > 0.9, f"only {written:.0%} of the freshly written file was in the page cache"
-    assert flushed < 0.25, f"{flushed:.0%} of OUT.h5 stayed in the page cache after the flush"
+    assert written > 0.9 * maps_bytes, f"only {written} of the {maps_bytes} bytes written were in the page cache"
+    assert flushed < 0.25 * maps_bytes, f"{flushed} bytes of OUT.h5 stayed in the page cache after the flush"
 
 
 _CRASH_CHILD = """
