@@ -132,6 +132,9 @@ def rebuild_reconstructor(w):
                 text += " — periods " + ", ".join(f"{p:.2f}" for p in np.ravel(periods)) + " px"
         except Exception:  # noqa: BLE001 - information only
             pass
+        stuck = int(rec.defects.size)
+        if stuck:  # repaired in the reference and in every frame (processing.mask.defect_pixels)
+            text += f" — {stuck} stuck sensor pixel{'s' if stuck > 1 else ''} repaired"
         w.pattern_problem = problem
         if problem:  # every height would be wrong: red where the user looks, not a tick
             w.geometry_panel.reference_label.setText(text + " — NOT the chosen pattern")

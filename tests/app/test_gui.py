@@ -320,6 +320,33 @@ def test_auto_trigger_fires_on_the_bump(qtbot, window, scene, tmp_path):
     assert np.array_equal(frames_rec[0], scene["flat"])  # the pre-trigger frames show still water
 
 
+def test_stuck_sensor_pixels_of_a_loaded_reference_are_named_beside_it(qtbot, window, scene, tmp_path):
+    """A reference file from a sensor with three pixels stuck at full scale: the window names the
+    three it repaired beside the reference's tick, and the live heights go on (the worker's
+    reconstructor repairs the same pixels in every frame)."""
+    import tifffile
+    from scipy import ndimage
+
+    window.use_camera(SyntheticCamera(Switchable(scene["flat"]), frame_rate_hz=100.0), geometry=scene["geometry"])
+    reference = np.array(scene["flat"], copy=True)
+    # three pixels in dark squares (everything around them darker than mid-grey), well apart
+    dark = ndimage.maximum_filter(reference, size=3) < 100
+    dark[:16], dark[-16:], dark[:, :16], dark[:, -16:] = False, False, False, False
+    rows, cols = np.nonzero(dark)
+    stuck = [(rows[k], cols[k]) for k in np.linspace(0, rows.size - 1, 3).astype(int)]
+    for r, c in stuck:
+        reference[r, c] = 255
+    tifffile.imwrite(tmp_path / "stuck.tif", reference)
+    window.load_reference(str(tmp_path / "stuck.tif"))
+    label = window.geometry_panel.reference_label
+    qtbot.waitUntil(lambda: "✓" in label.text(), timeout=30000)
+    assert "3 stuck sensor pixels repaired" in label.text(), label.text()
+    seq = window.clock.last_raw_seq
+    qtbot.waitUntil(lambda: window.last_drawn is not None and window.last_drawn.result is not None
+                    and window.last_drawn.seq > seq, timeout=15000)
+    assert window.last_error is None
+
+
 def test_bad_reference_is_explained_and_the_live_view_goes_on(qtbot, window, scene, tmp_path):
     """A reference without a pattern (noise) is refused with NoCarrierError's advice; streaming continues."""
     import tifffile
