@@ -51,7 +51,8 @@ from .chain_dots import DotsChain
 from .errors import ShapeMismatchError, TirdeflectError
 from .live_view import LiveView, saturation_pct
 from .mask import (MAX_SAMPLE_MAGNITUDE, MIN_EXPOSURE_GAIN, POOR_FRAME_VALID_FRACTION, check_sample_range,
-                   defect_pixels, exposure_gain, reference_pin_region, repair_pixels, validate_image)
+                   defect_pixels, exposure_gain, hot_pixel_limits, hot_pixels_above, reference_pin_region,
+                   repair_pixels, validate_image)
 from .options import PATTERNS, ReconstructOptions, full_grid_refinement
 from .refine import (WARP_MAX_INTERPOLATION_ERROR_PX, band_limited_reference, linear_interpolation_shift_px,
                      warp_fine_factor)
@@ -147,6 +148,7 @@ class Reconstructor:
         #: The sensor's hot and dead pixels found in the reference (flat indices), repaired in it and every frame.
         self.defects = defect_pixels(ref)
         ref = repair_pixels(ref, self.defects)
+        self._hot_limits = hot_pixel_limits(ref)  # a frame's pixels beyond the reference's reach
         geometry.check_frame(ref.shape)  # the field size is known here first: camera and rays vs the frame
         #: What this Reconstructor runs (pattern and refine_method resolved).
         self.options, self.pattern = opts, pattern = _resolved(ref, geometry, options, overrides)
@@ -200,13 +202,15 @@ class Reconstructor:
 
     def validate_frame(self, frame):
         """``frame`` as an array, checked: the reference's shape (ShapeMismatchError), 2-D, a grey dtype;
-        the reference's :attr:`defects` repaired (:func:`processing.mask.repair_pixels`)."""
+        the reference's :attr:`defects` and the frame's own isolated pixels beyond the reference's
+        reach (:func:`processing.mask.hot_pixels_above`: cosmic rays) repaired (a copy, if any)."""
         a = np.asarray(frame)
         if a.shape != self.shape:
             raise ShapeMismatchError(
                 f"reference and frame must have equal shapes; got {self.shape} and {a.shape}: "
                 "use the reference recorded with the same camera region of interest and binning")
-        return repair_pixels(validate_image(a, "frame"), self.defects)
+        a = repair_pixels(validate_image(a, "frame"), self.defects)
+        return repair_pixels(a, hot_pixels_above(a, *self._hot_limits))
 
     # ------------------------------------------------------------ series memory
     def reset_series(self) -> None:
