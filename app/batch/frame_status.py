@@ -25,6 +25,7 @@ from processing.errors import (
     ShapeMismatchError,
     TirdeflectError,
 )
+from processing.live_view import SATURATION_MAX_PCT, saturation_pct
 
 __all__ = ["FrameStatus", "FrameOutcome", "FrameTally", "measure_frame", "outcome_of_error"]
 
@@ -62,6 +63,9 @@ class FrameOutcome:
 
     status: FrameStatus = FrameStatus.OK
     reason: str = ""
+    #: of a measured frame: the percentage of its pixels at its bit depth's top code
+    #: (:func:`processing.live_view.saturation_pct`)
+    saturated_pct: float = 0.0
 
     @property
     def ok(self) -> bool:
@@ -127,7 +131,7 @@ def measure_frame(reconstruct, image: np.ndarray, ref_shape, grid: str):
             FrameStatus.NO_CONTRAST,
             "no pixel of the frame could be measured (no pattern contrast: black, saturated or "
             "fully blurred frame); check exposure and that the pattern is in view")
-    return result, FrameOutcome()
+    return result, FrameOutcome(saturated_pct=saturation_pct(image))
 
 
 class FrameTally:
@@ -147,11 +151,17 @@ class FrameTally:
         self.invalid: dict = {}  # FrameStatus -> list of (sequence_index, label, reason)
         self.incomplete = []
         self.gaps = []
+        self.saturated = []  # (sequence index, % of pixels saturated) above SATURATION_MAX_PCT
 
     def add(self, item, outcome: FrameOutcome) -> None:
         self.frames += 1
         if outcome.ok:
             self.valid += 1
+            if outcome.saturated_pct > SATURATION_MAX_PCT:
+                self.saturated.append((item.sequence_index, outcome.saturated_pct))
+                (log.warning if len(self.saturated) == 1 else log.debug)(
+                    "frame %d (%s): %.1f %% of its pixels saturated", item.sequence_index, item.label,
+                    outcome.saturated_pct)
         else:
             self.invalid.setdefault(outcome.status, []).append(
                 (item.sequence_index, item.label, outcome.reason))
@@ -192,7 +202,8 @@ class FrameTally:
                   for status in FrameStatus if status != FrameStatus.OK}
         return {"frames_valid": self.valid, "frames_invalid": self.n_invalid, **counts,
                 "frames_flagged_incomplete": len(self.incomplete),
-                "frames_with_loss_before": len(self.gaps)}
+                "frames_with_loss_before": len(self.gaps), "frames_saturated": len(self.saturated),
+                "saturated_pct_max": max((pct for _, pct in self.saturated), default=0.0)}
 
     def notes(self) -> list:
         out = []
@@ -204,4 +215,10 @@ class FrameTally:
             out.append(f"the recording lost frames before {len(self.gaps)} processed frame(s), "
                        f"e.g. before frame {self.gaps[0]}: time steps are not uniform; "
                        f"see /frame_flags and /device_timestamp_ns")
+        if self.saturated:
+            k, pct = max(self.saturated, key=lambda row: row[1])
+            out.append(f"{len(self.saturated)} frame(s) have more than {SATURATION_MAX_PCT:g} % of their pixels "
+                       f"saturated (up to {pct:.1f} %, frame {k}): clipped bright squares cost accuracy "
+                       f"(ray-traced, 40 % clipped: 3x the rms height error); lower the exposure or gain "
+                       f"for the next recording")
         return out

@@ -18,6 +18,8 @@ from typing import Optional
 
 import numpy as np
 
+from processing.live_view import SATURATION_MAX_PCT
+
 __all__ = ["frame_alignment", "display_spectrum", "modulation_map", "assess", "DOT_WINDOW_PX", "periodic_pattern"]
 
 #: Final interrogation window (px) of the live random-dot Reconstructor; its
@@ -206,8 +208,6 @@ DOT_CONTRAST_MIN = 0.2
 DOT_FOCUS_MIN = 0.08
 
 
-#: Saturated pixels (%) above which a frame is not ready: clipped grey levels flatten the pattern.
-SATURATION_MAX_PCT = 1.0
 NO_GEOMETRY = "no geometry: enter θ and H (Controls ▸ Reference & geometry)"
 
 

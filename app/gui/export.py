@@ -82,7 +82,8 @@ def describe_export(out_path: str) -> tuple:
 
     Names the frames stored invalid (``/frame_status`` non-zero), flagged as jumps (``/pin_status["jump"]``),
     whose pattern moved on the pin samples (``/pin_status["region_motion_px"]``) and recorded INCOMPLETE
-    (``/frame_flags``), by index; ``clean`` is False when there is any.
+    (``/frame_flags``), by index, and how many were saturated (root attribute ``frames_saturated``);
+    ``clean`` is False when there is any.
     """
     import h5py
 
@@ -112,6 +113,10 @@ def describe_export(out_path: str) -> tuple:
             inc = np.flatnonzero((np.asarray(f["frame_flags"][:n]).astype(np.int64) & int(FrameFlags.INCOMPLETE)) != 0)
             if inc.size:
                 parts.append(f"{inc.size} recorded INCOMPLETE (frames {frame_list(inc)})")
+        saturated = int(f.attrs.get("frames_saturated", 0))
+        if saturated:
+            parts.append(f"{saturated} with more than 1 % of their pixels saturated (up to "
+                         f"{float(f.attrs.get('saturated_pct_max', 0.0)):.1f} %): lower the exposure or gain")
     text = f"heights of {n} frames exported to {out_path}"
     if parts:
         text += ": " + "; ".join(parts) + " — see /frame_status and /pin_status (docs/output-format.md)"

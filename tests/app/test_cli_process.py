@@ -495,3 +495,29 @@ def test_simulate_renders_the_stretched_board_its_geometry_names(tmp_path, capsy
                      "--out", tmp_path / "out.h5")
     assert code == 0, err
     assert main(["compare", str(tmp_path / "out.h5"), str(d / "heights.h5"), "--max-error", "0.02"]) == 0
+
+
+def test_saturated_frames_are_named_in_the_summary_and_the_file(sim, tmp_path, capsys):
+    """A frame over-exposed until its bright squares clip (8 bit, 1.5x the reference's light): its
+    heights are measured, but their error is several times the clean frame's (ray-traced: 40 % of
+    the pixels clipped, 3x); the run says how many frames and how much, OUT.h5 keeps the count, and
+    the clean frame is not counted."""
+    clean = imageio.read_image(sim / "frame_0000.png")
+    bright = np.clip(np.rint(clean.astype(np.float64) * 1.5), 0, 255).astype(np.uint8)
+    imageio.write_image(tmp_path / "frame_bright.png", bright)
+    saturated_pct = 100.0 * np.count_nonzero(bright == 255) / bright.size
+    assert saturated_pct > 10  # (the render: bright squares near 200 of 255)
+    out = tmp_path / "out.h5"
+    code, err = _run(capsys, "process", sim / "reference.png", sim / "frame_0000.png", tmp_path / "frame_bright.png",
+                     "--geometry", sim / "geometry.toml", "--out", out)
+    assert code == 0, err
+    assert re.search(rf"note: 1 frame\(s\) have more than 1 % of their pixels saturated \(up to "
+                     rf"{saturated_pct:.1f} %, frame 1\)", err), err
+    assert "lower the exposure or gain" in err
+    with h5py.File(out) as f:
+        assert f.attrs["frames_saturated"] == 1
+        assert f.attrs["saturated_pct_max"] == pytest.approx(saturated_pct, abs=0.05)
+    from app.gui.export import describe_export
+
+    text, clean_export = describe_export(str(out))
+    assert not clean_export and "1 with more than 1 % of their pixels saturated" in text
