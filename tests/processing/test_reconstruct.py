@@ -503,6 +503,19 @@ def test_refinement_not_worse_than_none_beside_a_blank_patch(options, surface, b
     assert rel_height_error(refined, surface) <= at_most * none
 
 
+def _ray_traced_12bit(surface):
+    """Reference and frame of ``surface``: ray-traced 256^2, 12 bit, as uint16."""
+    ref, _ = F.render_tir(F.FlatSurface(), G55, (256, 256), BOARD, supersample=2)
+    img, _ = F.render_tir(surface, G55, (256, 256), BOARD, supersample=2)
+    return F.quantize(ref, bits=12).astype(np.uint16), F.quantize(img, bits=12).astype(np.uint16)
+
+
+def _twenty_inner_pixels():
+    """Flat indices of 20 random pixels of a 256^2 frame off its outer row and column (not judged)."""
+    rng = np.random.default_rng(0)
+    return np.unique(rng.integers(1, 255, 20) * 256 + rng.integers(1, 255, 20))
+
+
 def test_stuck_sensor_pixels_are_repaired_in_the_reference_and_every_frame():
     # 20 pixels stuck at 65535 (a 16-bit camera's hot pixels, the pattern at 12 bits) in the reference
     # and the frame, as a sensor's defects are: FD's band-pass spreads each over a few carrier periods of
@@ -511,14 +524,11 @@ def test_stuck_sensor_pixels_are_repaired_in_the_reference_and_every_frame():
     from benchmarks.bench_processing import rel_height_error
 
     bump = F.GaussianBump(0.004, 5.0)
-    ref, _ = F.render_tir(F.FlatSurface(), G55, (256, 256), BOARD, supersample=2)
-    img, _ = F.render_tir(bump, G55, (256, 256), BOARD, supersample=2)
-    ref, img = F.quantize(ref, bits=12).astype(np.uint16), F.quantize(img, bits=12).astype(np.uint16)
+    ref, img = _ray_traced_12bit(bump)
     clean = Reconstructor(ref, G55)
     assert clean.defects.size == 0  # nothing of the pattern is taken for a defect
     err_clean = rel_height_error(clean(img), bump)
-    rng = np.random.default_rng(0)
-    stuck = np.unique(rng.integers(1, 255, 20) * 256 + rng.integers(1, 255, 20))  # (the outer pixels are not judged)
+    stuck = _twenty_inner_pixels()
     bad_ref, bad_img = ref.copy(), img.copy()
     bad_ref.flat[stuck] = 65535
     bad_img.flat[stuck] = 65535
@@ -540,13 +550,10 @@ def test_hot_pixels_of_a_frame_alone_are_repaired_and_a_brighter_frame_is_left_a
     from processing.mask import hot_pixel_limits, hot_pixels_above
 
     bump = F.GaussianBump(0.002, 2.5)
-    ref, _ = F.render_tir(F.FlatSurface(), G55, (256, 256), BOARD, supersample=2)
-    img, _ = F.render_tir(bump, G55, (256, 256), BOARD, supersample=2)
-    ref, img = F.quantize(ref, bits=12).astype(np.uint16), F.quantize(img, bits=12).astype(np.uint16)
+    ref, img = _ray_traced_12bit(bump)
     rec = Reconstructor(ref, G55)
     err_clean = rel_height_error(rec(img), bump)
-    rng = np.random.default_rng(0)
-    hot = np.unique(rng.integers(1, 255, 20) * 256 + rng.integers(1, 255, 20))
+    hot = _twenty_inner_pixels()
     bad_img = img.copy()
     bad_img.flat[hot] = 65535
     assert np.array_equal(hot_pixels_above(bad_img, *hot_pixel_limits(ref)), hot)
