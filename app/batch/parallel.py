@@ -606,8 +606,11 @@ class _GpuBatches:
                 raise
             self._one_by_one(items)  # one frame at a time from the batch's start: each frame's own outcome
             return True
+        from processing.live_view import saturation_pct
+
         for it, r in zip(plain, results):
-            self._ready.append((it, functools.partial(_given, (r, FrameOutcome()))))
+            outcome = FrameOutcome(saturated_pct=saturation_pct(it.image))
+            self._ready.append((it, functools.partial(_given, (r, outcome))))
         self._one_by_one(items[len(plain):])
         return True
 

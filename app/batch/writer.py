@@ -371,7 +371,7 @@ class ResultWriter:
     PER_FRAME = ("height", "slope_x", "slope_y")
     PER_FRAME_1D = ("frame_index", "source_index", "source", "camera_frame_id",
                     "device_timestamp_ns", "host_timestamp_ns", "frame_flags", "trigger_index",
-                    "frame_status", "frame_status_text", "time_s", "pin_status")
+                    "frame_status", "frame_status_text", "time_s", "saturated_pct", "pin_status")
 
     def __init__(self, path: Path, *, compression: str, attrs: dict,
                  geometry_toml: str, geometry_attrs: dict, carrier_attrs: dict,
@@ -481,6 +481,12 @@ class ResultWriter:
         f["time_s"].attrs["description"] = (
             "time of the frame from its file: relative to the trigger (MRAW, CINE), the stream "
             "start (video) or the recording's first frame (HDF5); NaN unknown (image files)")
+        f.create_dataset("saturated_pct", shape=(0,), maxshape=(None,), dtype=np.float32, chunks=(1024,),
+                         fillvalue=np.nan)
+        f["saturated_pct"].attrs["units"] = "%"
+        f["saturated_pct"].attrs["description"] = (
+            "percentage of the frame's pixels at its bit depth's top code (clipped: over 1 % costs "
+            "accuracy); NaN for a frame that could not be measured")
         f.attrs["grid"] = str(grid)
         self._create_pin_status()
 
@@ -531,9 +537,11 @@ class ResultWriter:
         or a processing Result, made into one here), or None for a frame that could
         not be measured (all-NaN heights, ``valid`` 0, ``outcome``'s status and
         reason stored). An OutputFrame's maps are released once written. Flushes
-        when :attr:`flush_interval_s` has passed since the last flush."""
+        when :attr:`flush_interval_s` has passed since the last flush. ``/saturated_pct``
+        is the outcome's (NaN when no outcome is given or the frame was not measured)."""
         from app.batch.frame_status import FrameOutcome
 
+        measured_saturation = outcome is not None and outcome.ok  # (no outcome given: not known)
         outcome = FrameOutcome() if outcome is None else outcome
         frame = result if isinstance(result, OutputFrame) or result is None else output_frame(result)
         k = self.n
@@ -563,6 +571,7 @@ class ResultWriter:
         rows["frame_status"].append(int(outcome.status))
         rows["frame_status_text"].append(outcome.reason or ("" if frame is None else frame.note))
         rows["time_s"].append(item.time_s)
+        rows["saturated_pct"].append(outcome.saturated_pct if measured_saturation else np.nan)
         rows["pin_status"].append(_pin_status_row(frame))
         if log.isEnabledFor(logging.DEBUG):
             self._labels.append((item.sequence_index, item.label))

@@ -517,6 +517,7 @@ def test_saturated_frames_are_named_in_the_summary_and_the_file(sim, tmp_path, c
     with h5py.File(out) as f:
         assert f.attrs["frames_saturated"] == 1
         assert f.attrs["saturated_pct_max"] == pytest.approx(saturated_pct, abs=0.05)
+        assert f["saturated_pct"][0] < 1.0 and f["saturated_pct"][1] == pytest.approx(saturated_pct, abs=0.05)
     from app.gui.export import describe_export
 
     text, clean_export = describe_export(str(out))
