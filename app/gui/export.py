@@ -82,12 +82,13 @@ def describe_export(out_path: str) -> tuple:
 
     Names the frames stored invalid (``/frame_status`` non-zero), flagged as jumps (``/pin_status["jump"]``),
     whose pattern moved on the pin samples (``/pin_status["region_motion_px"]``) and recorded INCOMPLETE
-    (``/frame_flags``), by index, and how many were saturated (root attribute ``frames_saturated``);
-    ``clean`` is False when there is any.
+    (``/frame_flags``) and saturated (``/saturated_pct`` above
+    :data:`processing.live_view.SATURATION_MAX_PCT`), by index; ``clean`` is False when there is any.
     """
     import h5py
 
     from drivers.base import FrameFlags
+    from processing.live_view import SATURATION_MAX_PCT
     from processing.pin import pattern_moved
 
     with h5py.File(out_path, "r") as f:
@@ -113,10 +114,13 @@ def describe_export(out_path: str) -> tuple:
             inc = np.flatnonzero((np.asarray(f["frame_flags"][:n]).astype(np.int64) & int(FrameFlags.INCOMPLETE)) != 0)
             if inc.size:
                 parts.append(f"{inc.size} recorded INCOMPLETE (frames {frame_list(inc)})")
-        saturated = int(f.attrs.get("frames_saturated", 0))
-        if saturated:
-            parts.append(f"{saturated} with more than 1 % of their pixels saturated (up to "
-                         f"{float(f.attrs.get('saturated_pct_max', 0.0)):.1f} %): lower the exposure or gain")
+        if "saturated_pct" in f:
+            pct = np.asarray(f["saturated_pct"][:n], np.float64)
+            clipped = np.flatnonzero(pct > SATURATION_MAX_PCT)  # (NaN: not measured, not counted)
+            if clipped.size:
+                parts.append(f"{clipped.size} with more than {SATURATION_MAX_PCT:g} % of their pixels saturated "
+                             f"(up to {pct[clipped].max():.1f} %; frames {frame_list(clipped)}): lower the "
+                             f"exposure or gain")
     text = f"heights of {n} frames exported to {out_path}"
     if parts:
         text += ": " + "; ".join(parts) + " — see /frame_status and /pin_status (docs/output-format.md)"

@@ -521,4 +521,4 @@ def test_saturated_frames_are_named_in_the_summary_and_the_file(sim, tmp_path, c
     from app.gui.export import describe_export
 
     text, clean_export = describe_export(str(out))
-    assert not clean_export and "1 with more than 1 % of their pixels saturated" in text
+    assert not clean_export and "1 with more than 1 % of their pixels saturated" in text and "frames 1)" in text
