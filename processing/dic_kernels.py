@@ -93,16 +93,21 @@ def row_moments(W, img, w, s, t0, t1, xd, xo, xl, first, tmp, matrix=True):  # p
             row_cost = _pixel(Wp, Wu, Wd, Ip, wp, 0, 0, min(1, cols - 1), tmp)
             if cols > 1:
                 row_cost += _pixel(Wp, Wu, Wd, Ip, wp, cols - 1, cols - 2, cols - 1, tmp)
-            for c in range(1, cols - 1):  # the interior without the edge's branches
-                wt = wp[c]
-                gr = half * (Wd[c] - Wu[c]) * wt
-                gc = half * (Wp[c + 1] - Wp[c - 1]) * wt
-                e = Ip[c] - Wp[c]
-                tmp[0, c] = gr * gr
-                tmp[1, c] = gr * gc
-                tmp[2, c] = gc * gc
-                tmp[3, c] = gr * e
-                tmp[4, c] = gc * e
+            # the interior without the edge's branches, through views shifted by one column
+            # (indices from 0: no wraparound test, SIMD)
+            n_in = cols - 2
+            w1, d1, u1, i1, p1, pl, pr = wp[1:], Wd[1:], Wu[1:], Ip[1:], Wp[1:], Wp[0:], Wp[2:]
+            t_0, t_1, t_2, t_3, t_4 = tmp[0, 1:], tmp[1, 1:], tmp[2, 1:], tmp[3, 1:], tmp[4, 1:]
+            for k in range(n_in):
+                wt = w1[k]
+                gr = half * (d1[k] - u1[k]) * wt
+                gc = half * (pr[k] - pl[k]) * wt
+                e = i1[k] - p1[k]
+                t_0[k] = gr * gr
+                t_1[k] = gr * gc
+                t_2[k] = gc * gc
+                t_3[k] = gr * e
+                t_4[k] = gc * e
                 row_cost += np.float64(wt * e * e)
             cost += row_cost
             a2 = np.float32(al * al)
@@ -156,46 +161,90 @@ def _d1_cols(x, inv_s, out):  # pragma: no cover - compiled
     n, m = x.shape
     c12, c8 = np.float32(1.0 / 12.0), np.float32(8.0 / 12.0)
     for i in range(n):
-        r, o = x[i], out[i]
-        for j in range(2, m - 2):
-            o[j] = (c12 * (r[j - 2] - r[j + 2]) + c8 * (r[j + 1] - r[j - 1])) * inv_s
-        o[1] = np.float32(0.5) * (r[2] - r[0]) * inv_s
-        o[m - 2] = np.float32(0.5) * (r[m - 1] - r[m - 3]) * inv_s
-        o[0] = (np.float32(-1.5) * r[0] + np.float32(2.0) * r[1] - np.float32(0.5) * r[2]) * inv_s
-        o[m - 1] = (np.float32(1.5) * r[m - 1] - np.float32(2.0) * r[m - 2] + np.float32(0.5) * r[m - 3]) * inv_s
+        # offset views indexed from 0: a loop index numba knows is not negative (no wraparound test: SIMD)
+        a, b, c, d, o = x[i, 0:m - 4], x[i, 4:m], x[i, 3:m - 1], x[i, 1:m - 3], out[i, 2:m - 2]
+        for k in range(m - 4):
+            o[k] = (c12 * (a[k] - b[k]) + c8 * (c[k] - d[k])) * inv_s
+        out[i, 1] = np.float32(0.5) * (x[i, 2] - x[i, 0]) * inv_s
+        out[i, m - 2] = np.float32(0.5) * (x[i, m - 1] - x[i, m - 3]) * inv_s
+        out[i, 0] = (np.float32(-1.5) * x[i, 0] + np.float32(2.0) * x[i, 1] - np.float32(0.5) * x[i, 2]) * inv_s
+        out[i, m - 1] = (np.float32(1.5) * x[i, m - 1] - np.float32(2.0) * x[i, m - 2]
+                         + np.float32(0.5) * x[i, m - 3]) * inv_s
+
+
+@numba.njit(**_FAST)
+def _d1_T_weights(k, n):
+    """The weights of ``y[k + 2], y[k - 2], y[k - 1], y[k + 1]`` in ``(D1^T y)[k]`` from
+    D1's centred rows ``2 <= i <= n - 3`` (0 where that row is not centred), and
+    those rows clipped into the array (their weight is 0 where clipped)."""
+    c12, c8, zero = np.float32(1.0 / 12.0), np.float32(8.0 / 12.0), np.float32(0.0)
+    w = (c12 if 2 <= k + 2 <= n - 3 else zero, -c12 if 2 <= k - 2 <= n - 3 else zero,
+         c8 if 2 <= k - 1 <= n - 3 else zero, -c8 if 2 <= k + 1 <= n - 3 else zero)
+    rows = (min(k + 2, n - 1), max(k - 2, 0), max(k - 1, 0), min(k + 1, n - 1))
+    return w, rows
+
+
+@numba.njit(**_FAST)
+def _d1_T_edge(n, i):
+    """D1's row ``i`` when it is not centred (``i`` in 0, 1, n - 2, n - 1): the rows
+    ``k0..k3`` it reads and their weights ``w0..w3`` (:func:`_d1_rows`)."""
+    if i == 1 or i == n - 2:
+        return (i + 1, i - 1, i, i), (np.float32(0.5), np.float32(-0.5), np.float32(0.0), np.float32(0.0))
+    if i == 0:
+        return (0, 1, 2, 0), (np.float32(-1.5), np.float32(2.0), np.float32(-0.5), np.float32(0.0))
+    return (n - 1, n - 2, n - 3, n - 1), (np.float32(1.5), np.float32(-2.0), np.float32(0.5), np.float32(0.0))
 
 
 @numba.njit(**_FAST)
 def _add_d1_T(y, inv_s, axis, z):  # pragma: no cover - compiled
-    """``z += D1^T y`` along ``axis`` (the transpose of :func:`_d1_rows` / :func:`_d1_cols`)."""
-    n = y.shape[0] if axis == 0 else y.shape[1]
-    other = y.shape[1] if axis == 0 else y.shape[0]
-    c12, c8 = np.float32(1.0 / 12.0), np.float32(8.0 / 12.0)
-    for t in range(other):
+    """``z += D1^T y`` along ``axis`` (the transpose of :func:`_d1_rows` / :func:`_d1_cols`):
+    the centred rows of D1 gathered (one store a sample, SIMD along the rows), its four
+    one-sided and half-width rows scattered."""
+    n, m = y.shape
+    if axis == 0:
+        for k in range(n):
+            (w0, w1, w2, w3), (r0, r1, r2, r3) = _d1_T_weights(k, n)
+            a, b, c, d, o = y[r0], y[r1], y[r2], y[r3], z[k]
+            for j in range(m):
+                o[j] += (w0 * a[j] + w1 * b[j] + w2 * c[j] + w3 * d[j]) * inv_s
         for i in range(n):
-            v = (y[i, t] if axis == 0 else y[t, i]) * inv_s
-            if 2 <= i < n - 2:
-                k0, k1, k2, k3 = i - 2, i + 2, i + 1, i - 1
-                w0, w1, w2, w3 = c12 * v, -c12 * v, c8 * v, -c8 * v
-            elif i == 1 or i == n - 2:
-                k0, k1, k2, k3 = i + 1, i - 1, i, i
-                w0, w1, w2, w3 = np.float32(0.5) * v, np.float32(-0.5) * v, np.float32(0.0), np.float32(0.0)
-            elif i == 0:
-                k0, k1, k2, k3 = 0, 1, 2, 0
-                w0, w1, w2, w3 = np.float32(-1.5) * v, np.float32(2.0) * v, np.float32(-0.5) * v, np.float32(0.0)
-            else:
-                k0, k1, k2, k3 = n - 1, n - 2, n - 3, n - 1
-                w0, w1, w2, w3 = np.float32(1.5) * v, np.float32(-2.0) * v, np.float32(0.5) * v, np.float32(0.0)
-            if axis == 0:
-                z[k0, t] += w0
-                z[k1, t] += w1
-                z[k2, t] += w2
-                z[k3, t] += w3
-            else:
-                z[t, k0] += w0
-                z[t, k1] += w1
-                z[t, k2] += w2
-                z[t, k3] += w3
+            if 2 <= i <= n - 3:
+                continue
+            (k0, k1, k2, k3), (w0, w1, w2, w3) = _d1_T_edge(n, i)
+            for j in range(m):
+                v = y[i, j] * inv_s
+                z[k0, j] += w0 * v
+                z[k1, j] += w1 * v
+                z[k2, j] += w2 * v
+                z[k3, j] += w3 * v
+        return
+    c12, c8 = np.float32(1.0 / 12.0), np.float32(8.0 / 12.0)
+    for t in range(n):
+        yr, zr = y[t], z[t]
+        if m > 8:  # columns 4 .. m - 5 read four centred rows: offset views from 0 (SIMD)
+            a, b, c, d, o = yr[6:m - 1], yr[2:m - 5], yr[3:m - 4], yr[5:m - 2], zr[4:m - 4]
+            for q in range(m - 8):
+                o[q] += (c12 * (a[q] - b[q]) + c8 * (c[q] - d[q])) * inv_s
+        edge = min(4, m) if m > 8 else m  # the columns the loop above left: 0..3, m - 4..m - 1
+        for k in range(m):
+            if k == edge and m > 8:
+                break
+            (w0, w1, w2, w3), (r0, r1, r2, r3) = _d1_T_weights(k, m)
+            zr[k] += (w0 * yr[r0] + w1 * yr[r1] + w2 * yr[r2] + w3 * yr[r3]) * inv_s
+        if m > 8:
+            for k in range(m - 4, m):
+                (w0, w1, w2, w3), (r0, r1, r2, r3) = _d1_T_weights(k, m)
+                zr[k] += (w0 * yr[r0] + w1 * yr[r1] + w2 * yr[r2] + w3 * yr[r3]) * inv_s
+        for e in range(4):  # D1's rows 0, 1, m - 2, m - 1 (each once, also when they meet)
+            i = e if e < 2 else m - 4 + e
+            if i < 0 or i >= m or (e >= 2 and i < 2) or 2 <= i <= m - 3:
+                continue
+            (k0, k1, k2, k3), (w0, w1, w2, w3) = _d1_T_edge(m, i)
+            v = yr[i] * inv_s
+            zr[k0] += w0 * v
+            zr[k1] += w1 * v
+            zr[k2] += w2 * v
+            zr[k3] += w3 * v
 
 
 @numba.njit(**_FAST)
@@ -203,20 +252,29 @@ def _add_d3_T_d3(x, lam, z):  # pragma: no cover - compiled
     """``z += lam (D3r^T D3r + D3c^T D3c) x``."""
     n, m = x.shape
     three = np.float32(3.0)
-    for i in range(n - 3):
-        for j in range(m):
-            d = lam * (x[i + 3, j] - x[i, j] + three * (x[i + 1, j] - x[i + 2, j]))
-            z[i, j] -= d
-            z[i + 3, j] += d
-            z[i + 1, j] += three * d
-            z[i + 2, j] -= three * d
+    if n >= 4:  # along the columns: the rows of differences D[i + 3] = d_i, zero around them, gathered
+        dr = np.zeros((n + 3, m), np.float32)
+        for i in range(n - 3):
+            a, b, c, e, d = x[i + 3], x[i], x[i + 1], x[i + 2], dr[i + 3]
+            for j in range(m):
+                d[j] = lam * (a[j] - b[j] + three * (c[j] - e[j]))
+        for k in range(n):
+            d0, d1, d2, d3, zr = dr[k + 3], dr[k], dr[k + 2], dr[k + 1], z[k]
+            for j in range(m):
+                zr[j] += -d0[j] + d1[j] + three * d2[j] - three * d3[j]
+    if m < 4:
+        return
+    # along the rows: the differences first (dp[j + 3] = d_j, zero around them), then gathered,
+    # one store a sample, indices from 0 (SIMD; the scatter above ran scalar along a row)
+    dp = np.zeros(m + 3, np.float32)
     for i in range(n):
+        r, d, zr = x[i], dp[3:m], z[i]
+        a, b, c, e = r[3:m], r[0:m - 3], r[1:m - 2], r[2:m - 1]
         for j in range(m - 3):
-            d = lam * (x[i, j + 3] - x[i, j] + three * (x[i, j + 1] - x[i, j + 2]))
-            z[i, j] -= d
-            z[i, j + 3] += d
-            z[i, j + 1] += three * d
-            z[i, j + 2] -= three * d
+            d[j] = lam * (a[j] - b[j] + three * (c[j] - e[j]))
+        d0, d1, d2, d3 = dp[3:m + 3], dp[0:m], dp[2:m + 2], dp[1:m + 1]
+        for k in range(m):
+            zr[k] += -d0[k] + d1[k] + three * d2[k] - three * d3[k]
 
 
 @numba.njit(**_FAST)
