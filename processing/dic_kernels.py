@@ -219,25 +219,22 @@ def _add_d1_T(y, inv_s, axis, z):  # pragma: no cover - compiled
                 z[k3, j] += w3 * v
         return
     c12, c8 = np.float32(1.0 / 12.0), np.float32(8.0 / 12.0)
+    inner = 4 if m > 8 else m  # columns 4 .. m - 5 (m > 8) read four centred rows of D1
     for t in range(n):
         yr, zr = y[t], z[t]
-        if m > 8:  # columns 4 .. m - 5 read four centred rows: offset views from 0 (SIMD)
+        if m > 8:  # offset views from 0 (SIMD)
             a, b, c, d, o = yr[6:m - 1], yr[2:m - 5], yr[3:m - 4], yr[5:m - 2], zr[4:m - 4]
             for q in range(m - 8):
                 o[q] += (c12 * (a[q] - b[q]) + c8 * (c[q] - d[q])) * inv_s
-        edge = min(4, m) if m > 8 else m  # the columns the loop above left: 0..3, m - 4..m - 1
-        for k in range(m):
-            if k == edge and m > 8:
-                break
+        for k in range(inner):  # the columns left: 0..3 and m - 4..m - 1 (all of them if m <= 8)
             (w0, w1, w2, w3), (r0, r1, r2, r3) = _d1_T_weights(k, m)
             zr[k] += (w0 * yr[r0] + w1 * yr[r1] + w2 * yr[r2] + w3 * yr[r3]) * inv_s
-        if m > 8:
-            for k in range(m - 4, m):
-                (w0, w1, w2, w3), (r0, r1, r2, r3) = _d1_T_weights(k, m)
-                zr[k] += (w0 * yr[r0] + w1 * yr[r1] + w2 * yr[r2] + w3 * yr[r3]) * inv_s
-        for e in range(4):  # D1's rows 0, 1, m - 2, m - 1 (each once, also when they meet)
+        for k in range(max(inner, m - 4), m):
+            (w0, w1, w2, w3), (r0, r1, r2, r3) = _d1_T_weights(k, m)
+            zr[k] += (w0 * yr[r0] + w1 * yr[r1] + w2 * yr[r2] + w3 * yr[r3]) * inv_s
+        for e in range(4):  # D1's non-centred rows 0, 1, m - 2, m - 1, each once (0..m - 1 if m < 4)
             i = e if e < 2 else m - 4 + e
-            if i < 0 or i >= m or (e >= 2 and i < 2) or 2 <= i <= m - 3:
+            if e >= 2 and i < 2:
                 continue
             (k0, k1, k2, k3), (w0, w1, w2, w3) = _d1_T_edge(m, i)
             v = yr[i] * inv_s
