@@ -120,6 +120,20 @@ def validate_image(image, name):
 DEFECT_CONTRAST_FRACTION = 0.25
 
 
+def _contrast(x) -> float:
+    """The contrast of image ``x`` the defect tests measure against: its 1st to 99th
+    percentile (of every 4th pixel each way), grey levels."""
+    p1, p99 = np.percentile(x[::4, ::4], (1.0, 99.0))
+    return float(p99 - p1)
+
+
+def _neighbours(a, r, c):
+    """The 8 neighbours (8, n) of the pixels ``(r, c)`` of ``a``, float64, clamped at the border."""
+    rows, cols = a.shape
+    return np.stack([a[np.clip(r + dr, 0, rows - 1), np.clip(c + dc, 0, cols - 1)].astype(np.float64)
+                     for dr in (-1, 0, 1) for dc in (-1, 0, 1) if dr or dc])
+
+
 def defect_pixels(image, contrast_fraction: float = DEFECT_CONTRAST_FRACTION):
     """Flat indices (int64, sorted) of the isolated hot or dead pixels of ``image``: above the
     largest of its 8 neighbours, or below the smallest, by more than the neighbours' range and
@@ -135,8 +149,7 @@ def defect_pixels(image, contrast_fraction: float = DEFECT_CONTRAST_FRACTION):
     ring[1, 1] = 0
     high = cv2.dilate(x, ring, borderType=cv2.BORDER_REFLECT_101)  # the extremes of the 8 neighbours
     low = cv2.erode(x, ring, borderType=cv2.BORDER_REFLECT_101)
-    p1, p99 = np.percentile(x[::4, ::4], (1.0, 99.0))
-    margin = np.maximum(high - low, np.float32(contrast_fraction * (p99 - p1)))
+    margin = np.maximum(high - low, np.float32(contrast_fraction * _contrast(x)))
     found = ((x - high) > margin) | ((low - x) > margin)
     # the outer pixels are left alone: half their neighbours are missing, and a dot or a
     # square's corner cut by the border peaks there like a defect (a 0.5 mm dot did)
@@ -152,8 +165,8 @@ def hot_pixel_limits(reference) -> tuple:
     twice as bright as the reference over a pattern whose dark squares are below half its
     bright ones stays under it)."""
     x = np.asarray(reference, np.float32)
-    p1, p99 = np.percentile(x[::4, ::4], (1.0, 99.0))
-    return float(x.max()) + float(p99 - p1), float(p99 - p1)
+    contrast = _contrast(x)
+    return float(x.max()) + contrast, contrast
 
 
 def hot_pixels_above(image, level: float, contrast: float,
@@ -174,7 +187,7 @@ def hot_pixels_above(image, level: float, contrast: float,
     r, c = np.nonzero(a > level)
     inner = (r > 0) & (r < rows - 1) & (c > 0) & (c < cols - 1)
     r, c = r[inner], c[inner]
-    near = np.stack([a[r + dr, c + dc] for dr in (-1, 0, 1) for dc in (-1, 0, 1) if dr or dc]).astype(np.float32)
+    near = _neighbours(a, r, c).astype(np.float32)
     high, low = near.max(axis=0, initial=-np.inf), near.min(axis=0, initial=np.inf)
     margin = np.maximum(high - low, np.float32(contrast_fraction * contrast))
     hot = (a[r, c].astype(np.float32) - high) > margin
@@ -188,11 +201,8 @@ def repair_pixels(image, defects):
     if len(defects) == 0:
         return image
     a = np.array(image, copy=True)
-    rows, cols = a.shape
     r, c = np.unravel_index(np.asarray(defects), a.shape)
-    near = [a[np.clip(r + dr, 0, rows - 1), np.clip(c + dc, 0, cols - 1)].astype(np.float64)
-            for dr in (-1, 0, 1) for dc in (-1, 0, 1) if dr or dc]
-    median = np.median(np.stack(near), axis=0)
+    median = np.median(_neighbours(a, r, c), axis=0)
     a[r, c] = (np.rint(median) if a.dtype.kind in "ui" else median).astype(a.dtype)
     return a
 
