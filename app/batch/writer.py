@@ -5,6 +5,7 @@ docs/output-format.md; room, space reserve and superblock repair: app.files.h5sa
 from __future__ import annotations
 
 import dataclasses
+import functools
 import datetime as _dt
 import logging
 import os
@@ -350,6 +351,16 @@ def output_frame(result, compression: Optional[str] = None) -> OutputFrame:
 _repair_eof = repair_eof
 
 
+def _per_frame_rows(f, name: str, dtype, description: str, *, units=None, fillvalue=None) -> None:
+    """``f[name]``: a per-frame 1-D dataset of OUT.h5, empty, grown at each flush (chunks of
+    1024 rows), with its ``units`` (if any) and ``description``."""
+    fill = {} if fillvalue is None else {"fillvalue": fillvalue}
+    ds = f.create_dataset(name, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(1024,), **fill)
+    if units is not None:
+        ds.attrs["units"] = units
+    ds.attrs["description"] = description
+
+
 class ResultWriter:
     """Write results to OUT.h5 one frame at a time (see docs/output-format.md).
 
@@ -386,6 +397,7 @@ class ResultWriter:
         # failed write (disk full) raises here instead of being lost when h5py
         # closes a dataset handle and HDF5 flushes its cache (errors ignored there)
         self.f = h5py.File(path, "x", rdcc_nbytes=0)
+        self._fd = h5safe.descriptor_of(self.f)  # for dropping flushed pages (None: another driver)
         _hold_metadata_until_flush(self.f)
         self._reserve = SpaceReserve(path, RESERVE_BYTES)
         f = self.f
@@ -445,14 +457,10 @@ class ResultWriter:
         for name in (*self.PER_FRAME, "valid"):
             f[name].dims[1].attach_scale(y)
             f[name].dims[2].attach_scale(x)
-        f.create_dataset("frame_index", shape=(0,), maxshape=(None,), dtype=np.int64, chunks=(1024,))
-        f["frame_index"].attrs["description"] = (
-            "0-based index of each output frame in the whole input sequence")
-        f.create_dataset("source_index", shape=(0,), maxshape=(None,), dtype=np.int64, chunks=(1024,))
-        f["source_index"].attrs["description"] = "page / recording frame within its source file"
-        f.create_dataset("source", shape=(0,), maxshape=(None,), dtype=h5py.string_dtype(),
-                         chunks=(1024,))
-        f["source"].attrs["description"] = "input file of each output frame"
+        per_frame = functools.partial(_per_frame_rows, f)
+        per_frame("frame_index", np.int64, "0-based index of each output frame in the whole input sequence")
+        per_frame("source_index", np.int64, "page / recording frame within its source file")
+        per_frame("source", h5py.string_dtype(), "input file of each output frame")
         per_frame_meta = {
             "camera_frame_id": "camera block/frame id from the recording's frame table; -1 unknown",
             "device_timestamp_ns": "camera clock of the frame, ns; -1 unknown",
@@ -462,31 +470,20 @@ class ResultWriter:
                               f"{TRIGGER_INDEX_UNKNOWN} for frames of sources without one (image files)"),
         }
         for name, text in per_frame_meta.items():
-            f.create_dataset(name, shape=(0,), maxshape=(None,), dtype=np.int64, chunks=(1024,))
-            f[name].attrs["description"] = text
-        status_type = h5py.enum_dtype({s.name: int(s) for s in FrameStatus}, basetype="u1")
-        f.create_dataset("frame_status", shape=(0,), maxshape=(None,), dtype=status_type,
-                         chunks=(1024,))
-        f["frame_status"].attrs["description"] = (
-            "why a frame has no heights: " + ", ".join(f"{int(s)} {s.name}" for s in FrameStatus)
-            + " (app.batch.frame_status.FrameStatus); 0 = measured")
-        f.create_dataset("frame_status_text", shape=(0,), maxshape=(None,), dtype=h5py.string_dtype(),
-                         chunks=(1024,))
-        f["frame_status_text"].attrs["description"] = (
-            "the reason of a non-zero frame_status; if 0, a note on how the frame was measured "
-            "(e.g. the image refinement's fallback to FD), else empty")
-        f.create_dataset("time_s", shape=(0,), maxshape=(None,), dtype=np.float64, chunks=(1024,),
-                         fillvalue=np.nan)
-        f["time_s"].attrs["units"] = "s"
-        f["time_s"].attrs["description"] = (
-            "time of the frame from its file: relative to the trigger (MRAW, CINE), the stream "
-            "start (video) or the recording's first frame (HDF5); NaN unknown (image files)")
-        f.create_dataset("saturated_pct", shape=(0,), maxshape=(None,), dtype=np.float32, chunks=(1024,),
-                         fillvalue=np.nan)
-        f["saturated_pct"].attrs["units"] = "%"
-        f["saturated_pct"].attrs["description"] = (
-            "percentage of the frame's pixels at its bit depth's top code (clipped: over 1 % costs "
-            "accuracy); NaN for a frame that could not be measured")
+            per_frame(name, np.int64, text)
+        per_frame("frame_status", h5py.enum_dtype({s.name: int(s) for s in FrameStatus}, basetype="u1"),
+             "why a frame has no heights: " + ", ".join(f"{int(s)} {s.name}" for s in FrameStatus)
+             + " (app.batch.frame_status.FrameStatus); 0 = measured")
+        per_frame("frame_status_text", h5py.string_dtype(),
+             "the reason of a non-zero frame_status; if 0, a note on how the frame was measured "
+             "(e.g. the image refinement's fallback to FD), else empty")
+        per_frame("time_s", np.float64,
+             "time of the frame from its file: relative to the trigger (MRAW, CINE), the stream "
+             "start (video) or the recording's first frame (HDF5); NaN unknown (image files)",
+             units="s", fillvalue=np.nan)
+        per_frame("saturated_pct", np.float32,
+             "percentage of the frame's pixels at its bit depth's top code (clipped: over 1 % costs "
+             "accuracy); NaN for a frame that could not be measured", units="%", fillvalue=np.nan)
         f.attrs["grid"] = str(grid)
         self._create_pin_status()
 
@@ -635,23 +632,14 @@ class ResultWriter:
             raise self._write_error(done, exc) from exc
         # (KeyboardInterrupt between two calls: the handle is sound and the next flush writes it all)
         self.frames_done = n
-        self._drop_written_pages()
+        if self._fd is not None:  # written once, not read back here: out of the page cache
+            h5safe.drop_written_pages(self._fd)
         for values in self._rows.values():
             values.clear()
         for index, label in self._labels:
             log.debug("frame %d (%s) written to %s", index, label, self.path)
         self._labels.clear()
         self._flushed_at = time.monotonic()
-
-    def _drop_written_pages(self) -> None:
-        """What the file's flushed pages hold goes to disk and out of the page cache
-        (:func:`h5safe.drop_written_pages`; OUT.h5 is not read back while written)."""
-        try:
-            fd = self.f.id.get_vfd_handle()
-        except Exception:  # noqa: BLE001 - a file driver without a descriptor: nothing to drop
-            return
-        if isinstance(fd, int):
-            h5safe.drop_written_pages(fd)
 
     def _write_error(self, k: int, exc: BaseException, next_index=None) -> OSError:
         text = _one_line(exc)

@@ -310,7 +310,7 @@ class RecordingFile:
         f.flush()
         # Space is reserved on disk ahead of HDF5 (fallocate), so that another program filling the disk
         # gets "disk full" instead of us, and so that closing (trim, events, summary) always has room.
-        self._fd = self._vfd_handle()
+        self._fd = h5safe.descriptor_of(self._f)  # None: another HDF5 driver, no reservation
         self._alloc = Preallocation(self._fd, os.path.getsize(p), file_size_limit(self._fs_max_bytes))
         self._spare: Optional[SpaceReserve] = None  # the hidden reserve file (file systems without fallocate)
         if self.planned_bytes is not None and not self._reserve(self.planned_bytes):
@@ -322,13 +322,6 @@ class RecordingFile:
                 )
 
     # ------------------------------------------------------------ space
-    def _vfd_handle(self) -> Optional[int]:
-        try:
-            fd = int(self._f.id.get_vfd_handle())
-            return fd if fd >= 0 else None
-        except Exception:  # another HDF5 driver: no descriptor, no reservation
-            return None
-
     def _reserve(self, target: int) -> bool:
         """Make sure the first ``target`` bytes of the file are allocated on disk; False when there is no room.
 

@@ -57,6 +57,7 @@ __all__ = [
     "room_bytes",
     "fallocate",
     "detach_descriptor",
+    "descriptor_of",
     "drop_written_pages",
     "Preallocation",
     "SpaceReserve",
@@ -200,6 +201,16 @@ def detach_descriptor(fd: int) -> None:
         os.dup2(sink, fd)
     finally:
         os.close(sink)
+
+
+def descriptor_of(h5file) -> Optional[int]:
+    """The file descriptor an open ``h5py.File`` writes through (the default sec2 driver), or
+    None where its driver has none (another driver, a file in memory)."""
+    try:
+        fd = int(h5file.id.get_vfd_handle())
+    except Exception:  # noqa: BLE001 - another HDF5 driver: no descriptor
+        return None
+    return fd if fd >= 0 else None
 
 
 def drop_written_pages(fd: int) -> None:
