@@ -11,9 +11,10 @@ import numpy as np
 import pyqtgraph as pg
 from pyqtgraph.Qt import QtCore, QtWidgets
 
+from .model.colour_range import SURFACE
 from .panels import CameraPanel, GeometryPanel, RecordingPanel
 from .replay import ReplayTab
-from .views import SURFACE_PERCENTILES, HistogramView, ImageView, ProfileLine, ProfileView, SpectrumView
+from .views import HistogramView, ImageView, ProfileLine, ProfileView, SpectrumView
 from .widgets import ElidedLabel
 
 
@@ -62,7 +63,7 @@ def build_ui(w):
     grid.setSpacing(4)
     w.raw_view = ImageView("Raw frame", "counts", cmap="CET-L1", axis_units="px", pan=False)
     w.raw_view.levels_row.auto_box.setToolTip("grey levels over the sensor's full range (0 … 2^bits - 1)")
-    surface = dict(levels_percentiles=SURFACE_PERCENTILES)  # a small dimple's core is not drawn flat
+    surface = dict(colour_rule=SURFACE)  # a small dimple's core is not drawn flat
     w.height_view = ImageView("Height", "µm", cmap="CET-D1", symmetric=True, pan=False, **surface)
     w.disp_view = ImageView("Displacement |u|", "px", cmap="viridis", **surface)
     w.slope_x_view = ImageView("Slope ∂h/∂x", "mrad", cmap="CET-D1", symmetric=True, **surface)

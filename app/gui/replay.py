@@ -9,7 +9,8 @@ from typing import Optional
 import numpy as np
 from pyqtgraph.Qt import QtCore, QtWidgets
 
-from .views import SURFACE_PERCENTILES, ImageView
+from .model.colour_range import SURFACE
+from .views import ImageView
 from .widgets import ElidedLabel
 
 __all__ = ["ReplayTab", "Recording", "RECORDING_FILTER"]
@@ -177,8 +178,7 @@ class ReplayTab(QtWidgets.QWidget):
         outer.addLayout(bar)
         views = QtWidgets.QHBoxLayout()
         self.raw = ImageView("Recorded frame", "counts", cmap="CET-L1", axis_units="px", averaged=True)
-        self.height = ImageView("Height", "µm", cmap="CET-D1", symmetric=True,
-                                levels_percentiles=SURFACE_PERCENTILES)
+        self.height = ImageView("Height", "µm", cmap="CET-D1", symmetric=True, colour_rule=SURFACE)
         views.addWidget(self.raw)
         views.addWidget(self.height)
         outer.addLayout(views, 1)

@@ -19,57 +19,12 @@ import numpy as np
 import pyqtgraph as pg
 from pyqtgraph.Qt import QtCore, QtGui, QtWidgets
 
-__all__ = ["ImageView", "ProfileView", "HistogramView", "SpectrumView", "ProfileLine", "robust_levels",
-           "SURFACE_PERCENTILES", "format_age", "decimate_for_display", "room_for_the_last_tick"]
+from .model.colour_range import CAMERA, ColourRule, data_levels, range_moves, robust_levels
+
+__all__ = ["ImageView", "ProfileView", "HistogramView", "SpectrumView", "ProfileLine", "decimate_for_display",
+           "room_for_the_last_tick"]
 
 # every ImageItem here is created with axisOrder="row-major"; no global pyqtgraph options are changed
-
-#: Automatic colour range of the surface's maps (height, slopes, displacement): the 0.1st to 99.9th
-#: percentile (``ImageView(levels_percentiles=...)``): a feature on 0.1 % of the map sets the range,
-#: fewer stray samples than that do not.
-SURFACE_PERCENTILES = (0.1, 99.9)
-
-
-def robust_levels(data: np.ndarray, *, symmetric: bool = False, lo_pct: float = 1.0,
-                  hi_pct: float = 99.0, max_samples: int = 20000) -> Tuple[float, float]:
-    """Display levels from percentiles of a subsample, ignoring NaN.
-
-    Parameters
-    ----------
-    data : ndarray
-        Any 2-D array (NaN allowed).
-    symmetric : bool
-        Levels ``(-m, m)`` around zero (heights, slopes).
-    lo_pct, hi_pct : float
-        Percentiles for the low and high level.
-
-    Returns
-    -------
-    (float, float)
-        Low and high level, ``low < high`` always.
-    """
-    flat = data.ravel()
-    step = max(1, flat.size // max_samples)
-    sub = flat[::step]
-    if sub.dtype.kind == "f":
-        sub = sub[np.isfinite(sub)]
-    if sub.size == 0:
-        return (0.0, 1.0)
-    if symmetric:
-        m = float(np.percentile(np.abs(sub), hi_pct))
-        m = m if m > 0 else 1.0
-        return (-m, m)
-    lo, hi = (float(v) for v in np.percentile(sub, [lo_pct, hi_pct]))
-    if not hi > lo:
-        hi = lo + 1.0
-    return (lo, hi)
-
-
-def format_age(frame_id, age_s: float) -> str:
-    """``"frame 1234, 2.3 s ago"`` (the words the stale marks use)."""
-    age = f"{age_s:.1f} s" if age_s < 100 else f"{age_s / 60:.0f} min"
-    return f"frame {frame_id}, {age} ago" if frame_id is not None else f"{age} ago"
-
 
 class _Overlay(QtWidgets.QLabel):
     """A wrapped message drawn over a plot; the full text is also its tooltip."""
@@ -140,7 +95,7 @@ class _LevelsRow(QtWidgets.QWidget):
             edit.setToolTip(f"{what} value of the colour range ({view.units}); type a number and press Enter")
             edit.editingFinished.connect(self._typed)
         self.auto_box = QtWidgets.QCheckBox("auto")
-        lo_pct, hi_pct = view.levels_percentiles
+        lo_pct, hi_pct = view.colour_rule.percentiles
         self.auto_box.setToolTip(f"colour range follows the data (its {lo_pct:g} to {hi_pct:g} percentile)")
         self.auto_box.setChecked(True)
         self.symmetric_box = QtWidgets.QCheckBox("±")
@@ -330,13 +285,13 @@ class ImageView(QtWidgets.QWidget):
         Let a left-drag pan the view (off where the drag belongs to a line or box on the map).
     colorbar : {"horizontal", "vertical"}
         Colour bar under the map (narrow tiles: the map keeps the width) or beside it.
-    levels_percentiles : (float, float)
-        Percentiles of the data that the automatic colour range spans (:func:`robust_levels`; the upper
-        one of ``|data|`` when ``symmetric``): (1, 99) for camera images, whose hot pixels and glints
-        must not set the range; :data:`SURFACE_PERCENTILES` for the maps of the surface, where the event
-        being watched (a disc's dimple, a drop) may cover a percent of the field: at the 99th percentile
-        its core was drawn flat in the end colour (the synthetic tank's impact: a 2.4 um dimple under a
-        +-0.85 um colour range).
+    colour_rule : ColourRule
+        How the automatic colour range follows the data (:mod:`app.gui.model.colour_range`):
+        ``CAMERA`` (1st-99th percentile: hot pixels and glints do not set the range) for camera
+        images; ``SURFACE`` for the maps of the surface, where the event being watched (a disc's
+        dimple, a drop) may cover a percent of the field or, at its start, a few samples: at the 99th
+        percentile its core was drawn flat in the end colour (the synthetic tank's impact: a 2.4 um
+        dimple under a +-0.85 um colour range).
     averaged : bool
         A camera image drawn smaller than it is is averaged and smoothed (:func:`decimate_for_display`:
         no moire, 0.3-0.6 ms a frame at 1024^2 in the GUI thread); otherwise every k-th pixel is drawn.
@@ -348,10 +303,10 @@ class ImageView(QtWidgets.QWidget):
     def __init__(self, title: str, units: str, *, cmap: str = "viridis", symmetric: bool = False,
                  axis_units: str = "mm", parent=None, levels_interval_s: float = 0.5,
                  levels_controls: bool = True, pan: bool = True, colorbar: str = "horizontal",
-                 averaged: bool = False, levels_percentiles: Tuple[float, float] = (1.0, 99.0)):
+                 averaged: bool = False, colour_rule: ColourRule = CAMERA):
         super().__init__(parent)
         self.title = title
-        self.levels_percentiles = (float(levels_percentiles[0]), float(levels_percentiles[1]))
+        self.colour_rule = colour_rule
         self.averaged = averaged
         self.units = units
         self.symmetric = symmetric
@@ -518,22 +473,13 @@ class ImageView(QtWidgets.QWidget):
             self._apply_levels(levels)
         elif self.auto_levels and (data.size <= 65536 or now - self._levels_t >= self._levels_interval_s
                                    or self._shape != full_shape):
-            # Small (decimated) maps are checked every frame (< 1 ms), large ones a few times per second.
-            # The colour bar (whose axis is costly to redraw) moves at once when the data reach more than
-            # 10 % of the range past either end (a deepening dimple is never drawn clipped for long: with
-            # "at once only when the range doubled" the synthetic impact's 2.4 um dimple stood under a
-            # +-1.16 um range) or the range shrank to a quarter; otherwise at most every levels_interval_s
-            # and only by > 10 %.
-            lo_pct, hi_pct = self.levels_percentiles
-            lo, hi = robust_levels(data, symmetric=self.symmetric, lo_pct=lo_pct, hi_pct=hi_pct)
-            old_lo, old_hi = self._levels
-            span = max(old_hi - old_lo, 1e-30)
-            new_span = hi - lo
-            jump = new_span < 0.25 * span or lo < old_lo - 0.1 * span or hi > old_hi + 0.1 * span
+            # Small (decimated) maps are checked every frame (< 1 ms), large ones a few times per second;
+            # the range moves as range_moves says
             due = now - self._levels_t >= self._levels_interval_s
-            moved = abs(lo - old_lo) > 0.1 * span or abs(hi - old_hi) > 0.1 * span
-            if self._shape != full_shape or not self._levels_set or jump or (due and moved):
-                self._apply_levels((lo, hi))
+            new_levels = data_levels(data, self.colour_rule, symmetric=self.symmetric)
+            if (self._shape != full_shape or not self._levels_set
+                    or range_moves(self._levels, new_levels, due=due)):
+                self._apply_levels(new_levels)
                 self._levels_t = now
         self.image.setImage(data, autoLevels=False, levels=self._levels)
         rect = self._rect_for(full_shape, x, y)

@@ -304,7 +304,7 @@ def test_colour_range_typed_auto_and_symmetric(qtbot, window, scene):
     row.symmetric_box.click()  # symmetric about zero: -m..m with m the larger end
     assert view.levels == (-3.5, 3.5)
     row.auto_box.click()  # auto: follows the data again (symmetric, 99.9th percentile of |h|)
-    assert view.levels_percentiles == (0.1, 99.9) and "0.1 to 99.9 percentile" in row.auto_box.toolTip()
+    assert view.colour_rule.percentiles == (0.1, 99.9) and "0.1 to 99.9 percentile" in row.auto_box.toolTip()
     n = view.updates
     qtbot.waitUntil(lambda: view.updates >= n + 2, timeout=5000)
     data = view.image.image

@@ -11,6 +11,8 @@ The window (app/gui/window.py) builds widgets, forwards events here and draws wh
 * :mod:`.region` -- the reference region kept on the frame;
 * :mod:`.reference` -- a reference averaged only from frames that agree (still water);
 * :mod:`.recording` -- the auto-trigger threshold in physical units and what the panel says;
+* :mod:`.colour_range` -- which levels a map is drawn with (percentiles, a feature's core held)
+  and when its colour range moves;
 * :mod:`.memory` -- what a session remembers (``settings.json``), what it restores for which
   camera, and what came back.
 
