@@ -340,9 +340,9 @@ class BatchChain:
     # --------------------------------------------------------------- stages
     def _demodulate(self, frames):
         """Frames -> (the frames on the device as float32, analytic signals g, wrapped phase,
-        amplitude ratio, all_valid per frame)."""
+        amplitude ratio, all_valid per frame, hot pixels repaired per frame)."""
         xp = self.xp
-        checked = [self.r.validate_frame(f) for f in frames]
+        checked, hot = zip(*(self.r.checked_frame(f) for f in frames))
         B = len(checked)
         # the frames go up as they came (uint8: a quarter of float32's bytes) from page-locked memory
         dtype = np.result_type(*checked)
@@ -356,7 +356,7 @@ class BatchChain:
         ratio = xp.abs(g) / self.g0_den
         amplitude = xp.minimum(ratio[:, 0], ratio[:, 1])
         all_valid = to_host(xp, amplitude.reshape(B, -1).min(axis=1)) >= self.r.min_amplitude
-        return images, g, wrapped, amplitude, all_valid
+        return images, g, wrapped, amplitude, all_valid, hot
 
     def _series_start(self, state, wrapped, all_valid):
         """Where the batch's unwrapping starts: ``(first, prev, start)``, or None
@@ -491,7 +491,7 @@ class BatchChain:
         if self.reason is not None:
             return [r.call_cpu(f, grid=grid) for f in frames]
         t0 = time.perf_counter()
-        images, g, wrapped, amplitude, all_valid = self._demodulate(frames)
+        images, g, wrapped, amplitude, all_valid, hot = self._demodulate(frames)
         state = r.series_state()  # a copy of the decimated grid's memory (small)
         if r.unwrap and state is not None and not state.all_valid:
             # the previous frame was masked: this one follows it on the CPU, then the rest here
@@ -518,10 +518,10 @@ class BatchChain:
             n, phase, u, g, amplitude, h, sx, sy = m, phase[:m], u[:m], g[:m], amplitude[:m], h[:m], sx[:m], sy[:m]
         ph_host, series = self._check_series(phase, h)
         results = self._results(grid, u, h, sx, sy, amplitude, ph_host, n, 1e3 * (time.perf_counter() - t0),
-                                essentials, series)
+                                essentials, series, hot)
         return results + [r.call_cpu(f, grid=grid) for f in frames[n:]]
 
-    def _results(self, grid, u, h, sx, sy, amplitude, ph, n, ms, essentials, series):
+    def _results(self, grid, u, h, sx, sy, amplitude, ph, n, ms, essentials, series, hot):
         from .result import Result
 
         xp = self.xp
@@ -565,8 +565,8 @@ class BatchChain:
                 for k, v in fields.items()}
         return [Result(valid=valid.copy(), carriers=r.carriers, phase=ph[k], valid_fraction=1.0,
                        timings_ms=dict(timings), pin=dataclasses.replace(self.pin, region_motion_px=float(motion[k])),
-                       series=series[k], **{key: None if v is None else v[k] for key, v in host.items()},
-                       **extra)
+                       series=series[k], hot_pixels=hot[k],
+                       **{key: None if v is None else v[k] for key, v in host.items()}, **extra)
                 for k in range(n)]
 
 

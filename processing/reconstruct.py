@@ -37,8 +37,6 @@ what the reference fixes once is :attr:`Reconstructor.plan` (:mod:`processing.pl
 
 from __future__ import annotations
 
-from __future__ import annotations
-
 import dataclasses
 import time
 from typing import Optional
@@ -201,16 +199,22 @@ class Reconstructor:
             raise ValueError(f"grid must be 'full' or 'decimated'; got {grid!r}")
 
     def validate_frame(self, frame):
-        """``frame`` as an array, checked: the reference's shape (ShapeMismatchError), 2-D, a grey dtype;
-        the reference's :attr:`defects` and the frame's own isolated pixels beyond the reference's
-        reach (:func:`processing.mask.hot_pixels_above`: cosmic rays) repaired (a copy, if any)."""
+        """:meth:`checked_frame`'s array."""
+        return self.checked_frame(frame)[0]
+
+    def checked_frame(self, frame):
+        """``(frame, hot_pixels)``: ``frame`` as an array, checked: the reference's shape (ShapeMismatchError),
+        2-D, a grey dtype; the reference's :attr:`defects` and the frame's own isolated pixels beyond the
+        reference's reach (:func:`processing.mask.hot_pixels_above`: cosmic rays; ``hot_pixels`` of them)
+        repaired (a copy, if any)."""
         a = np.asarray(frame)
         if a.shape != self.shape:
             raise ShapeMismatchError(
                 f"reference and frame must have equal shapes; got {self.shape} and {a.shape}: "
                 "use the reference recorded with the same camera region of interest and binning")
         a = repair_pixels(validate_image(a, "frame"), self.defects)
-        return repair_pixels(a, hot_pixels_above(a, *self._hot_limits))
+        hot = hot_pixels_above(a, *self._hot_limits)
+        return repair_pixels(a, hot), int(hot.size)
 
     # ------------------------------------------------------------ series memory
     def reset_series(self) -> None:
@@ -303,14 +307,14 @@ class Reconstructor:
     def call_cpu(self, frame, *, grid: Optional[str] = None) -> Result:
         """:meth:`__call__` on the CPU, whatever the device (the GPU chain's path for what it leaves to the CPU)."""
         t0 = time.perf_counter()
-        frame = self.validate_frame(frame)
+        frame, hot_pixels = self.checked_frame(frame)
         grid = self.grid if grid is None else grid
         self._check_grid(grid)
         # the chains (checkerboard, dots) have the same three stages; each hands the series
         # memory on, so a frame that fails keeps what its stages already moved
         measured, self._series = self.chain.measure(frame, grid, self._series, t0)
         res, self._series = self.chain.solve(measured, grid, self._series)
-        return self.chain.to_grid(measured, res, grid)
+        return dataclasses.replace(self.chain.to_grid(measured, res, grid), hot_pixels=hot_pixels)
 
     def warp_reference(self):
         """The band-limited reference FD's refinement warps (:class:`processing.refine.WarpReference`,

@@ -94,6 +94,10 @@ class Result:
         How this frame was measured where it differs from what was asked, one
         line ("" when nothing to say): e.g. the image refinement stopped as
         diverging and FD's heights were kept (docs/processing.md, section 6).
+    hot_pixels : int
+        The frame's own isolated pixels brighter than anything the reference's
+        pattern shows (cosmic rays, hot pixels the reference lacks:
+        :func:`processing.mask.hot_pixels_above`), repaired before measuring.
     """
 
     height: np.ndarray
@@ -114,3 +118,4 @@ class Result:
     pin: Optional[PinStatus] = None
     series: Optional[SeriesCheck] = None
     note: str = ""
+    hot_pixels: int = 0

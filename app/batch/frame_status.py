@@ -66,6 +66,9 @@ class FrameOutcome:
     #: of a measured frame: the percentage of its pixels at its bit depth's top code
     #: (:func:`processing.live_view.saturation_pct`)
     saturated_pct: float = 0.0
+    #: of a measured frame: its own isolated pixels brighter than anything the reference's pattern
+    #: shows, repaired before measuring (:attr:`processing.result.Result.hot_pixels`)
+    hot_pixels: int = 0
 
     @property
     def ok(self) -> bool:
@@ -131,7 +134,7 @@ def measure_frame(reconstruct, image: np.ndarray, ref_shape, grid: str):
             FrameStatus.NO_CONTRAST,
             "no pixel of the frame could be measured (no pattern contrast: black, saturated or "
             "fully blurred frame); check exposure and that the pattern is in view")
-    return result, FrameOutcome(saturated_pct=saturation_pct(image))
+    return result, FrameOutcome(saturated_pct=saturation_pct(image), hot_pixels=result.hot_pixels)
 
 
 class FrameTally:
@@ -152,6 +155,7 @@ class FrameTally:
         self.incomplete = []
         self.gaps = []
         self.saturated = []  # (sequence index, % of pixels saturated) above SATURATION_MAX_PCT
+        self.hot = []  # (sequence index, hot pixels repaired) of frames with any
 
     def add(self, item, outcome: FrameOutcome) -> None:
         self.frames += 1
@@ -162,6 +166,11 @@ class FrameTally:
                 (log.warning if len(self.saturated) == 1 else log.debug)(
                     "frame %d (%s): %.1f %% of its pixels saturated", item.sequence_index, item.label,
                     outcome.saturated_pct)
+            if outcome.hot_pixels:
+                self.hot.append((item.sequence_index, outcome.hot_pixels))
+                (log.warning if len(self.hot) == 1 else log.debug)(
+                    "frame %d (%s): %d isolated pixel(s) brighter than anything the reference's pattern shows "
+                    "repaired", item.sequence_index, item.label, outcome.hot_pixels)
         else:
             self.invalid.setdefault(outcome.status, []).append(
                 (item.sequence_index, item.label, outcome.reason))
@@ -203,7 +212,9 @@ class FrameTally:
         return {"frames_valid": self.valid, "frames_invalid": self.n_invalid, **counts,
                 "frames_flagged_incomplete": len(self.incomplete),
                 "frames_with_loss_before": len(self.gaps), "frames_saturated": len(self.saturated),
-                "saturated_pct_max": max((pct for _, pct in self.saturated), default=0.0)}
+                "saturated_pct_max": max((pct for _, pct in self.saturated), default=0.0),
+                "frames_with_hot_pixels": len(self.hot),
+                "hot_pixels_max": max((n for _, n in self.hot), default=0)}
 
     def notes(self) -> list:
         out = []
@@ -221,4 +232,10 @@ class FrameTally:
                        f"saturated (up to {pct:.1f} %, frame {k}): clipped bright squares cost accuracy "
                        f"(ray-traced, 40 % clipped: 3x the rms height error); lower the exposure or gain "
                        f"for the next recording")
+        if self.hot:
+            k, n = max(self.hot, key=lambda row: row[1])
+            out.append(f"{len(self.hot)} frame(s) had isolated pixels brighter than anything the reference's "
+                       f"pattern shows (up to {n}, frame {k}): repaired before measuring (cosmic rays, or hot "
+                       f"pixels the reference does not have: take the reference at the frames' exposure); "
+                       f"see /hot_pixels in the output")
         return out

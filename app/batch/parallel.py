@@ -609,7 +609,7 @@ class _GpuBatches:
         from processing.live_view import saturation_pct
 
         for it, r in zip(plain, results):
-            outcome = FrameOutcome(saturated_pct=saturation_pct(it.image))
+            outcome = FrameOutcome(saturated_pct=saturation_pct(it.image), hot_pixels=r.hot_pixels)
             self._ready.append((it, functools.partial(_given, (r, outcome))))
         self._one_by_one(items[len(plain):])
         return True

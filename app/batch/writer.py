@@ -382,7 +382,8 @@ class ResultWriter:
     PER_FRAME = ("height", "slope_x", "slope_y")
     PER_FRAME_1D = ("frame_index", "source_index", "source", "camera_frame_id",
                     "device_timestamp_ns", "host_timestamp_ns", "frame_flags", "trigger_index",
-                    "frame_status", "frame_status_text", "time_s", "saturated_pct", "pin_status")
+                    "frame_status", "frame_status_text", "time_s", "saturated_pct", "hot_pixels",
+                    "pin_status")
 
     def __init__(self, path: Path, *, compression: str, attrs: dict,
                  geometry_toml: str, geometry_attrs: dict, carrier_attrs: dict,
@@ -484,6 +485,10 @@ class ResultWriter:
         per_frame("saturated_pct", np.float32,
              "percentage of the frame's pixels at its bit depth's top code (clipped: over 1 % costs "
              "accuracy); NaN for a frame that could not be measured", units="%", fillvalue=np.nan)
+        per_frame("hot_pixels", np.int32,
+             "the frame's own isolated pixels brighter than anything the reference's pattern shows "
+             "(cosmic rays, hot pixels the reference lacks), repaired before measuring; -1 for a frame "
+             "that could not be measured", fillvalue=-1)
         f.attrs["grid"] = str(grid)
         self._create_pin_status()
 
@@ -535,10 +540,11 @@ class ResultWriter:
         not be measured (all-NaN heights, ``valid`` 0, ``outcome``'s status and
         reason stored). An OutputFrame's maps are released once written. Flushes
         when :attr:`flush_interval_s` has passed since the last flush. ``/saturated_pct``
-        is the outcome's (NaN when no outcome is given or the frame was not measured)."""
+        and ``/hot_pixels`` are the outcome's (NaN and -1 when no outcome is given or the
+        frame was not measured)."""
         from app.batch.frame_status import FrameOutcome
 
-        measured_saturation = outcome is not None and outcome.ok  # (no outcome given: not known)
+        measured = outcome is not None and outcome.ok  # (no outcome given: not known)
         outcome = FrameOutcome() if outcome is None else outcome
         frame = result if isinstance(result, OutputFrame) or result is None else output_frame(result)
         k = self.n
@@ -568,7 +574,8 @@ class ResultWriter:
         rows["frame_status"].append(int(outcome.status))
         rows["frame_status_text"].append(outcome.reason or ("" if frame is None else frame.note))
         rows["time_s"].append(item.time_s)
-        rows["saturated_pct"].append(outcome.saturated_pct if measured_saturation else np.nan)
+        rows["saturated_pct"].append(outcome.saturated_pct if measured else np.nan)
+        rows["hot_pixels"].append(outcome.hot_pixels if measured else -1)
         rows["pin_status"].append(_pin_status_row(frame))
         if log.isEnabledFor(logging.DEBUG):
             self._labels.append((item.sequence_index, item.label))

@@ -84,6 +84,8 @@ def describe_export(out_path: str) -> tuple:
     whose pattern moved on the pin samples (``/pin_status["region_motion_px"]``) and recorded INCOMPLETE
     (``/frame_flags``) and saturated (``/saturated_pct`` above
     :data:`processing.live_view.SATURATION_MAX_PCT`), by index; ``clean`` is False when there is any.
+    Frames whose own hot pixels were repaired (``/hot_pixels``) are named in a note that leaves
+    ``clean`` as it is.
     """
     import h5py
 
@@ -121,6 +123,13 @@ def describe_export(out_path: str) -> tuple:
                 parts.append(f"{clipped.size} with more than {SATURATION_MAX_PCT:g} % of their pixels saturated "
                              f"(up to {pct[clipped].max():.1f} %; frames {frame_list(clipped)}): lower the "
                              f"exposure or gain")
+        repaired = ""
+        if "hot_pixels" in f:
+            hot = np.asarray(f["hot_pixels"][:n], np.int64)
+            with_hot = np.flatnonzero(hot > 0)  # (-1: not measured, not counted)
+            if with_hot.size:
+                repaired = (f"{with_hot.size} frame(s) had isolated pixels brighter than the pattern, repaired "
+                            f"before measuring (up to {hot.max()}; frames {frame_list(with_hot)}; /hot_pixels)")
     text = f"heights of {n} frames exported to {out_path}"
     if parts:
         text += ": " + "; ".join(parts) + " — see /frame_status and /pin_status (docs/output-format.md)"
@@ -128,6 +137,9 @@ def describe_export(out_path: str) -> tuple:
     else:
         text += ": every frame measured, none flagged"
         log.info("%s", text)
+    if repaired:  # a note, not a flag: the heights are measured as without them
+        text += f". Note: {repaired}"
+        log.info("%s", repaired)
     return text, not parts
 
 

@@ -497,6 +497,43 @@ def test_simulate_renders_the_stretched_board_its_geometry_names(tmp_path, capsy
     assert main(["compare", str(tmp_path / "out.h5"), str(d / "heights.h5"), "--max-error", "0.02"]) == 0
 
 
+@pytest.mark.parametrize("workers", [1, 2])
+def test_frames_with_their_own_hot_pixels_are_repaired_counted_and_named(tmp_path, capsys, workers):
+    """A reference taken at half the frames' exposure (12 bit), and a frame with six cosmic-ray hits at the
+    sensor's top code on dark squares: brighter than anything the reference's pattern shows, they are
+    repaired before measuring (unrepaired, 20 such pixels took a ray-traced bump from 0.185 to 11.5 %),
+    and the run says so: the summary's note, /hot_pixels per frame, the attributes and the GUI export's
+    message (a note there, not a flag); the clean frame counts 0."""
+    d = tmp_path / "sim"
+    assert main(["simulate", "--out", str(d), "--surface", "bump", "--size", str(SIZE), "--frames", "2",
+                 "--bits", "12"]) == 0
+    capsys.readouterr()
+    ref = imageio.read_image(d / "reference.tif").astype(np.int64)
+    imageio.write_image(tmp_path / "reference_dim.tif", (ref // 2).astype(np.uint16))
+    frame = imageio.read_image(d / "frame_0001.tif").astype(np.uint16)
+    dark = frame < np.percentile(frame, 20)
+    inner = np.zeros_like(dark)
+    inner[16:-16, 16:-16] = dark[15:-17, 15:-17] & dark[17:-15, 17:-15] & dark[16:-16, 16:-16]
+    hits = np.flatnonzero(inner)[:: max(1, np.count_nonzero(inner) // 6)][:6]
+    frame.flat[hits] = 4095
+    imageio.write_image(tmp_path / "frame_hot.tif", frame)
+    out = tmp_path / "out.h5"
+    code, err = _run(capsys, "process", tmp_path / "reference_dim.tif", d / "frame_0000.tif",
+                     tmp_path / "frame_hot.tif", "--geometry", d / "geometry.toml", "--out", out,
+                     "--workers", workers)
+    assert code == 0, err
+    assert re.search(r"note: 1 frame\(s\) had isolated pixels brighter than anything the reference's pattern "
+                     r"shows \(up to 6, frame 1\)", err), err
+    with h5py.File(out) as f:
+        assert list(f["hot_pixels"][:]) == [0, 6]
+        assert f.attrs["frames_with_hot_pixels"] == 1 and f.attrs["hot_pixels_max"] == 6
+        assert np.isfinite(f["height"][1]).mean() > 0.9
+    from app.gui.export import describe_export
+
+    text, _ = describe_export(str(out))
+    assert "Note: 1 frame(s) had isolated pixels brighter than the pattern" in text and "frames 1;" in text
+
+
 def test_saturated_frames_are_named_in_the_summary_and_the_file(sim, tmp_path, capsys):
     """A frame over-exposed until its bright squares clip (8 bit, 1.5x the reference's light): its
     heights are measured, but their error is several times the clean frame's (ray-traced: 40 % of
