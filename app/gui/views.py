@@ -26,6 +26,7 @@ __all__ = ["ImageView", "ProfileView", "HistogramView", "SpectrumView", "Profile
 
 # every ImageItem here is created with axisOrder="row-major"; no global pyqtgraph options are changed
 
+
 class _Overlay(QtWidgets.QLabel):
     """A wrapped message drawn over a plot; the full text is also its tooltip."""
 
@@ -96,7 +97,8 @@ class _LevelsRow(QtWidgets.QWidget):
             edit.editingFinished.connect(self._typed)
         self.auto_box = QtWidgets.QCheckBox("auto")
         lo_pct, hi_pct = view.colour_rule.percentiles
-        self.auto_box.setToolTip(f"colour range follows the data (its {lo_pct:g} to {hi_pct:g} percentile)")
+        held = ", and at least what two neighbouring samples reach" if view.colour_rule.hold_features else ""
+        self.auto_box.setToolTip(f"colour range follows the data (its {lo_pct:g} to {hi_pct:g} percentile{held})")
         self.auto_box.setChecked(True)
         self.symmetric_box = QtWidgets.QCheckBox("±")
         self.symmetric_box.setToolTip("colour range symmetric about zero (-m … +m)")
