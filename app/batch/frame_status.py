@@ -162,15 +162,10 @@ class FrameTally:
         if outcome.ok:
             self.valid += 1
             if outcome.saturated_pct > SATURATION_MAX_PCT:
-                self.saturated.append((item.sequence_index, outcome.saturated_pct))
-                (log.warning if len(self.saturated) == 1 else log.debug)(
-                    "frame %d (%s): %.1f %% of its pixels saturated", item.sequence_index, item.label,
-                    outcome.saturated_pct)
+                _add_row(self.saturated, item, outcome.saturated_pct, "%.1f %% of its pixels saturated")
             if outcome.hot_pixels:
-                self.hot.append((item.sequence_index, outcome.hot_pixels))
-                (log.warning if len(self.hot) == 1 else log.debug)(
-                    "frame %d (%s): %d isolated pixel(s) brighter than anything the reference's pattern shows "
-                    "repaired", item.sequence_index, item.label, outcome.hot_pixels)
+                _add_row(self.hot, item, outcome.hot_pixels,
+                         "%d isolated pixel(s) brighter than anything the reference's pattern shows repaired")
         else:
             self.invalid.setdefault(outcome.status, []).append(
                 (item.sequence_index, item.label, outcome.reason))
@@ -212,9 +207,8 @@ class FrameTally:
         return {"frames_valid": self.valid, "frames_invalid": self.n_invalid, **counts,
                 "frames_flagged_incomplete": len(self.incomplete),
                 "frames_with_loss_before": len(self.gaps), "frames_saturated": len(self.saturated),
-                "saturated_pct_max": max((pct for _, pct in self.saturated), default=0.0),
-                "frames_with_hot_pixels": len(self.hot),
-                "hot_pixels_max": max((n for _, n in self.hot), default=0)}
+                "saturated_pct_max": _worst(self.saturated, 0.0)[1],
+                "frames_with_hot_pixels": len(self.hot), "hot_pixels_max": _worst(self.hot, 0)[1]}
 
     def notes(self) -> list:
         out = []
@@ -227,15 +221,28 @@ class FrameTally:
                        f"e.g. before frame {self.gaps[0]}: time steps are not uniform; "
                        f"see /frame_flags and /device_timestamp_ns")
         if self.saturated:
-            k, pct = max(self.saturated, key=lambda row: row[1])
+            k, pct = _worst(self.saturated, 0.0)
             out.append(f"{len(self.saturated)} frame(s) have more than {SATURATION_MAX_PCT:g} % of their pixels "
                        f"saturated (up to {pct:.1f} %, frame {k}): clipped bright squares cost accuracy "
                        f"(ray-traced, 40 % clipped: 3x the rms height error); lower the exposure or gain "
                        f"for the next recording")
         if self.hot:
-            k, n = max(self.hot, key=lambda row: row[1])
+            k, n = _worst(self.hot, 0)
             out.append(f"{len(self.hot)} frame(s) had isolated pixels brighter than anything the reference's "
                        f"pattern shows (up to {n}, frame {k}): repaired before measuring (cosmic rays, or hot "
                        f"pixels the reference does not have: take the reference at the frames' exposure); "
                        f"see /hot_pixels in the output")
         return out
+
+
+def _add_row(rows: list, item, value, what: str) -> None:
+    """Append ``(item.sequence_index, value)`` to ``rows``; log the first such frame as a warning
+    (``what`` % ``value`` after the frame's name), the later ones at debug level (counted in the summary)."""
+    rows.append((item.sequence_index, value))
+    (log.warning if len(rows) == 1 else log.debug)(f"frame %d (%s): {what}", item.sequence_index, item.label, value)
+
+
+def _worst(rows: list, nothing):
+    """``(sequence index, value)`` of the row of ``rows`` with the largest value (the first of equals);
+    ``(None, nothing)`` when there is none."""
+    return max(rows, key=lambda row: row[1], default=(None, nothing))
