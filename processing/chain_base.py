@@ -15,7 +15,20 @@ class GridChain:
     frame's), and calls ``GridChain.__init__`` first."""
 
     def __init__(self):
-        self._solver = self._coords = None
+        self._solver = self._coords = self._turn = None
+
+    #: Pixels along the frame's border whose displacement the turn check leaves out (set by the subclass).
+    turn_band_px = 0.0
+    #: The pin region of the chain's grid for the turn check's saddle (set by the subclass; None: the geometry's).
+    turn_reference_mask = None
+
+    def turn_gauge(self):
+        """The grid's :class:`processing.turn.TurnGauge` (built once): has the pattern turned since the reference?"""
+        if self._turn is None:
+            from .turn import TurnGauge
+
+            self._turn = TurnGauge(self.height_solver(), self.turn_band_px, self.turn_reference_mask)
+        return self._turn
 
     def height_solver(self):
         """Height solver of the chain's grid (built once)."""

@@ -34,6 +34,7 @@ from .refine import refine_fd, refine_fd_tapered, static_phase, warp_reference
 from .result import Result
 from .second_order import SecondOrderOptics, solved_again
 from .series import after_unwrap, check_series, unwrap_phase
+from .turn import TURN_BAND_PERIODS
 
 __all__ = ["CheckerboardChain", "Measured", "CG_TOL", "DEFAULT_ITERATIONS"]
 
@@ -100,6 +101,9 @@ class CheckerboardChain(GridChain):
             reference_region=read_only(region), reference_region_index=read_only(np.flatnonzero(region)),
             region_near=read_only(self.region.near), reference_valid_everywhere=bool(self.reference_valid.all()),
             demodulation=d.plan)
+        # the turn check (processing.turn) leaves out FD's least true displacement, near the border
+        self.turn_band_px = TURN_BAND_PERIODS * float(np.max(self.carriers.periods_px))
+        self.turn_reference_mask = region
         self._smooth_ref, self._continued, self._tapered = {}, None, None
         self._g0_full = self._region_full = self._image = self._second_order = None
 
@@ -270,6 +274,9 @@ class CheckerboardChain(GridChain):
             m.timings["total"] = 1e3 * (time.perf_counter() - m.t0)
             return res, state
         u, valid, all_valid = m.u, m.valid, m.all_valid
+        # a turn of camera or board since the reference is no surface's: judged, and taken out where flagged
+        gauge = self.turn_gauge()
+        u, turn = gauge.removed(u, gauge(u, valid), self.rows_px, self.cols_px)
         surf = self.solve_height(u, valid, all_valid)
         if surf.valid is not valid and not np.array_equal(surf.valid, valid):
             # pieces the pin could not reach: their offset was not measured
@@ -285,7 +292,7 @@ class CheckerboardChain(GridChain):
                      grid="decimated", rows_px=self.rows_px, cols_px=self.cols_px,
                      carriers=self.carriers, phase=np.asarray(m.phase, np.float32),
                      valid_fraction=1.0 if all_valid else float(valid.mean()), timings_ms=m.timings,
-                     pin=surf.pin, series=series)
+                     pin=surf.pin, series=series, turn=turn)
         return res, state
 
     def to_grid(self, m: Measured, res: Result, grid) -> Result:

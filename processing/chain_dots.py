@@ -18,6 +18,10 @@ from .mask import choose_reference_region, drop_islands
 from .piv import DotDisplacement
 from .result import Result
 
+#: PIV windows along the frame's border whose displacement the turn check leaves out
+#: (:class:`processing.turn.TurnGauge`).
+TURN_BAND_WINDOWS = 2.0
+
 __all__ = ["DotsChain", "DotsMeasured"]
 
 
@@ -51,6 +55,9 @@ class DotsChain(GridChain):
         self.region = choose_reference_region(geometry, self.reference_valid, self.rows_px, self.cols_px,
                                               self.shape, skip=0)
         self.cg_tol = 1e-4  # as the checkerboard chain's masked solve
+        # the turn check (processing.turn): PIV's outermost windows see the border
+        self.turn_band_px = TURN_BAND_WINDOWS * float(options.window_px)
+        self.turn_reference_mask = self.region.region
         self._image = None
 
     def image_refinement(self):
@@ -76,18 +83,22 @@ class DotsChain(GridChain):
     def solve(self, m, grid, state):
         """``(Result, state)``: heights and pin on the PIV grid."""
         o, t1 = self.options, time.perf_counter()
+        # a turn of camera or board since the reference is no surface's: judged, and taken out where flagged
+        gauge = self.turn_gauge()
+        u, turn = gauge.removed(m.u, gauge(np.nan_to_num(m.u), m.valid), self.rows_px, self.cols_px)
         surf = self.height_solver().solve_at_tolerance(
-            np.where(m.valid, m.u, np.nan), m.valid, o.solver, self.cg_tol, self.region.region,
+            np.where(m.valid, u, np.nan), m.valid, o.solver, self.cg_tol, self.region.region,
             pin_fallback=o.pin_fallback, region_name=self.region.name, near=self.region.near)
         valid = np.asarray(surf.valid, bool)
-        u = np.where(valid, m.u, np.float32(np.nan)).astype(np.float32)
+        u = np.where(valid, u, np.float32(np.nan)).astype(np.float32)
         m.timings["height"] = 1e3 * (time.perf_counter() - t1)
         res = Result(height=np.asarray(surf.height_mm, np.float32), valid=valid,
                      slope_x=np.asarray(surf.slope_x, np.float32), slope_y=np.asarray(surf.slope_y, np.float32),
                      displacement=u, amplitude=valid.astype(np.float32), x_mm=np.asarray(surf.x_mm),
                      y_mm=np.asarray(surf.y_mm), grid="decimated", rows_px=self.rows_px, cols_px=self.cols_px,
                      carriers=None, phase=np.zeros((2, 0, 0), np.float32),
-                     valid_fraction=float(valid.mean()), timings_ms=m.timings, pin=surf.pin)
+                     valid_fraction=float(valid.mean()), timings_ms=m.timings, pin=surf.pin,
+                     turn=turn)
         return res, state
 
     def to_grid(self, m, res, grid) -> Result:

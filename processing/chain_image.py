@@ -66,6 +66,15 @@ class _NodeRefinement:
             valid_nodes = np.asarray(surf.valid, bool)
         return surf, valid_nodes, np.where(valid_nodes, u_nodes, np.float32(np.nan)).astype(np.float32), second
 
+    def turn_offset(self, turn):
+        """The node displacement (2, n_rows, n_cols) of a turn the chain took out of the start
+        (``turn``: the start's :class:`processing.turn.TurnCheck`), added to image matching's warp
+        and not solved for; None when nothing was taken out."""
+        if turn is None or not turn.removed:
+            return None
+        ng = self.node_grid
+        return self.chain.turn_gauge().field(turn.turn_mrad, ng.rows_px, ng.cols_px)
+
     def _node_result(self, surf, valid_nodes, u_nodes, **fields) -> Result:
         """The node grid's :class:`Result` of a refined surface; ``fields``: the pattern's own
         (amplitude, carriers, phase, timings_ms, pin, series)."""
@@ -116,11 +125,14 @@ class ImageRefinement(_NodeRefinement):
         hs = solver_for(chain.geometry, ng.rows_px, ng.cols_px, chain.shape)
         valid_px, valid_nodes, start = self.start(fd.displacement, fd.valid, hs)
         periods = np.asarray(chain.carriers.periods_px, np.float64)
+        offset = self.turn_offset(fd.turn)
         _, u_nodes, valid_nodes = dic.refine_height(
             self.ref_fine, m.frame, np.asarray(start.height_mm, np.float64), valid_px, self.height_nodes,
             outer=chain.options.image_iterations, period_px=float(periods.min()),
             intensity_cell_px=max(dic.INTENSITY_CELL_PX, 1.6 * float(periods.max())), threads=chain.planner.threads,
-            matrix_once=MATRIX_ONCE, masked_cg_iterations=dic.MASKED_CG_ITERATIONS)
+            matrix_once=MATRIX_ONCE, masked_cg_iterations=dic.MASKED_CG_ITERATIONS, offset_px=offset)
+        if offset is not None:
+            u_nodes = u_nodes - offset
         t4 = time.perf_counter()
         timings["refine"] += 1e3 * (t4 - t3)
         surf, valid_nodes, u_nodes, second = self._refined(hs, u_nodes, valid_nodes, timings)
@@ -133,7 +145,8 @@ class ImageRefinement(_NodeRefinement):
         timings["height"] += 1e3 * (t5 - t4)
         amp_nodes = chain.upsampler.cell_means(m.amplitude, ng.s)
         res = self._node_result(surf, valid_nodes, u_nodes, amplitude=amp_nodes, carriers=chain.carriers,
-                                phase=np.asarray(m.phase, np.float32), timings_ms=timings, pin=pin, series=fd.series)
+                                phase=np.asarray(m.phase, np.float32), timings_ms=timings, pin=pin, series=fd.series,
+                                turn=fd.turn)
         # the slopes of second-order heights are not the linear map of u and h: interpolated as they are
         res = chain.interpolate_full(res, solver=None if second else hs)
         timings["interpolate"] = 1e3 * (time.perf_counter() - t5)
@@ -208,18 +221,21 @@ class DotsImageRefinement(_NodeRefinement):
         t3 = time.perf_counter()
         valid_px, valid_nodes, start = self.start(piv.displacement, piv.valid)
         window = float(chain.options.window_px)
+        offset = self.turn_offset(piv.turn)
         _, u_nodes, free = dic.refine_height(
             self.ref_fine, m.frame, np.asarray(start.height_mm, np.float64), valid_px, self.height_nodes,
             outer=chain.options.image_iterations, blur_px=DOTS_BLUR_PX, period_px=window / 2,
             intensity_cell_px=max(dic.INTENSITY_CELL_PX, window), threads=int(chain.options.threads),
-            border_px=DOTS_BORDER_PX)
+            border_px=DOTS_BORDER_PX, offset_px=offset)
+        if offset is not None:
+            u_nodes = u_nodes - offset
         t4 = time.perf_counter()
         timings["refine"] = 1e3 * (t4 - t3)
         surf, valid_nodes, u_nodes, second = self._refined(self.solver, u_nodes, free & valid_nodes, timings)
         t5 = time.perf_counter()
         timings["height"] += 1e3 * (t5 - t4)
         res = self._node_result(surf, valid_nodes, u_nodes, amplitude=valid_nodes.astype(np.float32), carriers=None,
-                                phase=piv.phase, timings_ms=timings, pin=surf.pin)
+                                phase=piv.phase, timings_ms=timings, pin=surf.pin, turn=piv.turn)
         res = interpolate_full(res, self.upsampler, chain.full_coordinates(), None if second else self.solver)
         timings["interpolate"] = 1e3 * (time.perf_counter() - t5)
         return res

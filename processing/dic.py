@@ -202,17 +202,18 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
                   cg_iterations: int = CG_ITERATIONS, masked_cg_iterations: int | None = None,
                   regularisation: float = 0.03, blur_px: float = BLUR_PX,
                   intensity_cell_px: float | None = INTENSITY_CELL_PX, period_px: float | None = None,
-                  threads: int = 1, border_px: int = BORDER_PX, matrix_once: bool = False):
+                  threads: int = 1, border_px: int = BORDER_PX, matrix_once: bool = False,
+                  offset_px=None):
     """Global Gauss-Newton image matching for the height on the node grid of ``nodes``.
 
     Minimises ``sum_r w [G*((I - b) / a) - G*I0(r - P L h)]^2 + lam (|D3r h|^2 + |D3c h|^2)``
     (module docstring; docs/processing.md section 6 for the settings measured):
-    ``outer`` steps, each solving the normal equations by ``cg_iterations`` preconditioned
-    conjugate-gradient iterations (:class:`_NormalOperator`; ``masked_cg_iterations``, if given,
-    where ``valid_px`` leaves pixels out); ``lam`` is ``regularisation`` times the data term's
-    weight per node at unit spatial frequency.  Every loop is bounded; the iterations stop with
-    :class:`RefinementDiverged` (the caller keeps FD's answer) when they leave the range
-    where they can be right (:func:`_check_displacement`, :func:`_check_cost`, :func:`_check_step`).
+    ``outer`` steps, each solving the normal equations by ``cg_iterations`` preconditioned CG
+    iterations (:class:`_NormalOperator`; ``masked_cg_iterations``, if given, where ``valid_px``
+    leaves pixels out); ``lam`` is ``regularisation`` times the data term's weight per node at unit
+    spatial frequency.  Every loop is bounded; the iterations stop with :class:`RefinementDiverged`
+    (the caller keeps FD's answer; the message names the test and its figures) when they leave the
+    range where they can be right (:func:`_check_displacement`, :func:`_check_cost`, :func:`_check_step`).
 
     Parameters
     ----------
@@ -227,34 +228,30 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
     intensity_cell_px : float or None
         Cell of the gain and offset fields (:func:`intensity_fit`); None: gain 1, offset 0.
     period_px : float or None
-        The pattern's shorter carrier period, pixels (None: no bound from it).
+        The pattern's shorter carrier period, px (None: no bound).
     threads : int
         Threads for each step's node sums (the result does not depend on it).
     border_px : int
-        Pixels along each side of the frame left out of the match (:data:`BORDER_PX`).
+        Pixels along each side left out of the match (:data:`BORDER_PX`).
     matrix_once : bool
-        Keep the first step's Gauss-Newton matrix for the later steps, each step's
-        right-hand side its own (:data:`processing.chain_image.MATRIX_ONCE`).
+        Keep the first step's Gauss-Newton matrix for the later steps (right-hand sides their own).
+    offset_px : ndarray (2, n_rows, n_cols) or None
+        Node displacement (px) added to the warp, not solved for (a turn: :mod:`processing.turn`).
 
     Returns
     -------
     h : ndarray float64 (n_rows, n_cols)
         Node heights (mm; their null-space offset is not pinned: pass ``u`` to the height solver).
     u : ndarray float32 (2, n_rows, n_cols)
-        Displacement at the nodes (pixels).
+        Displacement at the nodes (pixels; ``offset_px`` included).
     valid : ndarray bool (n_rows, n_cols)
         Nodes whose cell is all valid.
-
-    Raises
-    ------
-    RefinementDiverged
-        The message names the test that stopped the iterations and its figures.
     """
     grid = nodes.grid
     raw, img, w, all_valid, free = _frame_and_weights(frame, valid_px, grid, blur_px, border_px)
     n_cg = masked_cg_iterations if masked_cg_iterations and not all_valid else cg_iterations
     h = _start_heights(h0)
-    u = u_start = nodes.displacement(h)
+    u = u_start = nodes.displacement(h) if offset_px is None else nodes.displacement(h) + offset_px
     prev_step = prev_cost = operator = None
     w_sum, wk_buf = float(w.sum()), np.empty_like(w)
     for k in range(outer + 1):

@@ -259,6 +259,7 @@ def render_tir(
     *,
     supersample: int = 1,
     pattern_offset_mm: tuple[float, float] = (0.0, 0.0),
+    camera_turn_mrad: float = 0.0,
 ):
     """Render the camera image of ``pattern`` reflected by the deformed surface.
 
@@ -279,6 +280,12 @@ def render_tir(
         boards realistic).
     pattern_offset_mm : (float, float)
         Shift of the pattern on its plane (x, y), mm.
+    camera_turn_mrad : float
+        The camera turned about its optical axis (through the image centre) by
+        this angle, mrad: the image turns the other way, clockwise as shown
+        (rows down) for a positive angle; each pixel sees what the unturned
+        camera's pixel at its place turned back sees (a camera knocked after
+        the reference was taken).
 
     Returns
     -------
@@ -293,6 +300,12 @@ def render_tir(
     y_off = geometry.depth_mm * math.tan(geometry.theta)
     rows = np.arange(n_rows, dtype=np.float64)[:, None]
     cols = np.arange(n_cols, dtype=np.float64)[None, :]
+    if camera_turn_mrad:
+        # pixel (r, c) sees the unturned camera's pixel at (r - w (c - c0), c + w (r - r0)), exactly turned
+        w = 1e-3 * float(camera_turn_mrad)
+        r0, c0 = (n_rows - 1) / 2.0, (n_cols - 1) / 2.0
+        rows, cols = (r0 + math.cos(w) * (rows - r0) - math.sin(w) * (cols - c0),
+                      c0 + math.sin(w) * (rows - r0) + math.cos(w) * (cols - c0))
     acc = np.zeros((n_rows, n_cols))
     lost_any = np.zeros((n_rows, n_cols), dtype=bool)
     centre_pat = None

@@ -396,4 +396,5 @@ def full_ifft(chain, wins, u, u_first, valid, amplitude, phase, timings, t3):
                   y_mm=np.asarray(surf.y_mm), grid="full",
                   rows_px=np.arange(rows, dtype=float), cols_px=np.arange(cols, dtype=float),
                   carriers=chain.carriers, phase=np.asarray(phase, np.float32),
-                  valid_fraction=float(valid_full.mean()), timings_ms=timings, pin=surf.pin)
+                  valid_fraction=float(valid_full.mean()), timings_ms=timings, pin=surf.pin,
+                  turn=chain.turn_gauge()(u, valid))

@@ -14,6 +14,7 @@ import numpy as np
 
 from .carriers import Carriers
 from .pin import PinStatus
+from .turn import TurnCheck
 
 __all__ = ["Result", "SeriesCheck"]
 
@@ -98,6 +99,10 @@ class Result:
         The frame's own isolated pixels brighter than anything the reference's
         pattern shows (cosmic rays, hot pixels the reference lacks:
         :func:`processing.mask.hot_pixels_above`), repaired before measuring.
+    turn : processing.turn.TurnCheck or None
+        How far the pattern turned since the reference (camera or board moved:
+        heights carry a saddle), from the displacement's circulation on the
+        decimated grid; None where not judged (the GPU chain).
     """
 
     height: np.ndarray
@@ -119,3 +124,4 @@ class Result:
     series: Optional[SeriesCheck] = None
     note: str = ""
     hot_pixels: int = 0
+    turn: Optional[TurnCheck] = None

@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import enum
 import logging
+from typing import Optional
 
 import numpy as np
 
@@ -26,6 +27,7 @@ from processing.errors import (
     TirdeflectError,
 )
 from processing.live_view import SATURATION_MAX_PCT, saturation_pct
+from processing.turn import TURN_MAX_MRAD, TurnCheck
 
 __all__ = ["FrameStatus", "FrameOutcome", "FrameTally", "measure_frame", "outcome_of_error"]
 
@@ -69,6 +71,9 @@ class FrameOutcome:
     #: of a measured frame: its own isolated pixels brighter than anything the reference's pattern
     #: shows, repaired before measuring (:attr:`processing.result.Result.hot_pixels`)
     hot_pixels: int = 0
+    #: of a measured frame: how far its pattern turned since the reference (camera or board moved;
+    #: :attr:`processing.result.Result.turn`); None where not judged
+    turn: Optional[TurnCheck] = None
 
     @property
     def ok(self) -> bool:
@@ -134,7 +139,8 @@ def measure_frame(reconstruct, image: np.ndarray, ref_shape, grid: str):
             FrameStatus.NO_CONTRAST,
             "no pixel of the frame could be measured (no pattern contrast: black, saturated or "
             "fully blurred frame); check exposure and that the pattern is in view")
-    return result, FrameOutcome(saturated_pct=saturation_pct(image), hot_pixels=result.hot_pixels)
+    return result, FrameOutcome(saturated_pct=saturation_pct(image), hot_pixels=result.hot_pixels,
+                                turn=result.turn)
 
 
 class FrameTally:
@@ -156,6 +162,7 @@ class FrameTally:
         self.gaps = []
         self.saturated = []  # (sequence index, % of pixels saturated) above SATURATION_MAX_PCT
         self.hot = []  # (sequence index, hot pixels repaired) of frames with any
+        self.turned = []  # (sequence index, |turn| mrad, TurnCheck) of frames whose pattern turned
 
     def add(self, item, outcome: FrameOutcome) -> None:
         self.frames += 1
@@ -166,6 +173,10 @@ class FrameTally:
             if outcome.hot_pixels:
                 _add_row(self.hot, item, outcome.hot_pixels,
                          "%d isolated pixel(s) brighter than anything the reference's pattern shows repaired")
+            if outcome.turn is not None and outcome.turn.flagged:
+                _add_row(self.turned, item, abs(outcome.turn.turn_mrad),
+                         "the pattern turned by %.2f mrad since the reference (the camera or the board moved)",
+                         outcome.turn)
         else:
             self.invalid.setdefault(outcome.status, []).append(
                 (item.sequence_index, item.label, outcome.reason))
@@ -208,7 +219,8 @@ class FrameTally:
                 "frames_flagged_incomplete": len(self.incomplete),
                 "frames_with_loss_before": len(self.gaps), "frames_saturated": len(self.saturated),
                 "saturated_pct_max": _worst(self.saturated, 0.0)[1],
-                "frames_with_hot_pixels": len(self.hot), "hot_pixels_max": _worst(self.hot, 0)[1]}
+                "frames_with_hot_pixels": len(self.hot), "hot_pixels_max": _worst(self.hot, 0)[1],
+                "frames_turned": len(self.turned), "turn_mrad_max": _worst(self.turned, 0.0)[1]}
 
     def notes(self) -> list:
         out = []
@@ -232,17 +244,21 @@ class FrameTally:
                        f"pattern shows (up to {n}, frame {k}): repaired before measuring (cosmic rays, or hot "
                        f"pixels the reference does not have: take the reference at the frames' exposure); "
                        f"see /hot_pixels in the output")
+        if self.turned:
+            k, mrad, turn = _worst(self.turned, 0.0)
+            out.append(f"{len(self.turned)} frame(s) flagged above {TURN_MAX_MRAD:g} mrad of turn, the most at frame "
+                       f"{k}: {turn.describe()}; see /turn_mrad in the output")
         return out
 
 
-def _add_row(rows: list, item, value, what: str) -> None:
-    """Append ``(item.sequence_index, value)`` to ``rows``; log the first such frame as a warning
+def _add_row(rows: list, item, value, what: str, *more) -> None:
+    """Append ``(item.sequence_index, value, *more)`` to ``rows``; log the first such frame as a warning
     (``what`` % ``value`` after the frame's name), the later ones at debug level (counted in the summary)."""
-    rows.append((item.sequence_index, value))
+    rows.append((item.sequence_index, value, *more))
     (log.warning if len(rows) == 1 else log.debug)(f"frame %d (%s): {what}", item.sequence_index, item.label, value)
 
 
 def _worst(rows: list, nothing):
-    """``(sequence index, value)`` of the row of ``rows`` with the largest value (the first of equals);
+    """The row ``(sequence index, value, ...)`` of ``rows`` with the largest value (the first of equals);
     ``(None, nothing)`` when there is none."""
     return max(rows, key=lambda row: row[1], default=(None, nothing))

@@ -82,8 +82,9 @@ def describe_export(out_path: str) -> tuple:
 
     Names the frames stored invalid (``/frame_status`` non-zero), flagged as jumps (``/pin_status["jump"]``),
     whose pattern moved on the pin samples (``/pin_status["region_motion_px"]``) and recorded INCOMPLETE
-    (``/frame_flags``) and saturated (``/saturated_pct`` above
-    :data:`processing.live_view.SATURATION_MAX_PCT`), by index; ``clean`` is False when there is any.
+    (``/frame_flags``), saturated (``/saturated_pct`` above
+    :data:`processing.live_view.SATURATION_MAX_PCT`) and turned since the reference (``/turn_mrad``
+    above :data:`processing.turn.TURN_MAX_MRAD`), by index; ``clean`` is False when there is any.
     Frames whose own hot pixels were repaired (``/hot_pixels``) are named in a note that leaves
     ``clean`` as it is.
     """
@@ -92,6 +93,7 @@ def describe_export(out_path: str) -> tuple:
     from drivers.base import FrameFlags
     from processing.live_view import SATURATION_MAX_PCT
     from processing.pin import pattern_moved
+    from processing.turn import TURN_MAX_MRAD
 
     with h5py.File(out_path, "r") as f:
         n = int(f["height"].shape[0]) if "height" in f else 0
@@ -123,6 +125,13 @@ def describe_export(out_path: str) -> tuple:
                 parts.append(f"{clipped.size} with more than {SATURATION_MAX_PCT:g} % of their pixels saturated "
                              f"(up to {pct[clipped].max():.1f} %; frames {frame_list(clipped)}): lower the "
                              f"exposure or gain")
+        if "turn_mrad" in f:
+            turn = np.abs(np.asarray(f["turn_mrad"][:n], np.float64))
+            turned = np.flatnonzero(turn > TURN_MAX_MRAD)  # (NaN: not judged, not counted)
+            if turned.size:
+                parts.append(f"{turned.size} where the pattern turned since the reference (up to "
+                             f"{turn[turned].max():.2f} mrad; frames {frame_list(turned)}): the camera or the board "
+                             f"moved; capture a new reference on still water (/turn_mrad)")
         repaired = ""
         if "hot_pixels" in f:
             hot = np.asarray(f["hot_pixels"][:n], np.int64)

@@ -111,6 +111,11 @@ class PinRegionOverlay:
                      "here is not at rest, or the camera or the board moved (the heights carry a tilt)")
             short += ", MOVED"
             bad = True
+        turn = getattr(result, "turn", None)
+        if turn is not None and turn.flagged:
+            text += f" — {turn.describe().replace('pattern turned', 'pattern TURNED', 1)}"
+            short += ", TURNED"
+            bad = True
         series = getattr(result, "series", None)
         if series is not None and series.flagged:
             text += " — JUMP against the previous frame"

@@ -1,0 +1,149 @@
+"""A camera (or board) turned since the reference: measured from the displacement's circulation,
+flagged, and taken out of the heights (processing/turn.py, docs/processing.md section 5).
+
+The frames are ray-traced with the camera itself turned about its axis (``render_tir(...,
+camera_turn_mrad=...)``: every pixel's ray turned, no image resampling; OpenCV's cubic warp of a
+rendered frame made FD read 1 mrad as 1.35)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from processing import forward as F
+from processing.patterns import Checkerboard
+from processing.reconstruct import Reconstructor
+from processing.turn import TURN_MAX_MRAD
+
+from .test_reconstruct import G55
+
+BOARD = Checkerboard(period_mm=2.0, edge_softness_mm=0.1)
+N = 256
+
+
+def _render(surface, turn_mrad=0.0, pattern=BOARD, noise_rms=0.0, seed=0):
+    image, _ = F.render_tir(surface, G55, (N, N), pattern, supersample=2, camera_turn_mrad=turn_mrad)
+    return F.quantize(image, bits=8, noise_rms=noise_rms, rng=np.random.default_rng(seed))
+
+
+@pytest.fixture(scope="module")
+def board_reconstructor():
+    return Reconstructor(_render(F.FlatSurface()), G55)
+
+
+def _rel_error(res, surface):
+    from benchmarks.bench_processing import rel_height_error
+
+    return rel_height_error(res, surface, geometry=G55)
+
+
+@pytest.mark.parametrize("turn_mrad", [0.3, -1.0])
+def test_a_turned_camera_is_measured_flagged_and_taken_out_of_the_heights(board_reconstructor, turn_mrad):
+    # Measured 6 Dec 2026 (this render, 2 um bump, 4 mm): nothing turned 0.15 %; the camera turned by
+    # 1 mrad 7.95 % with the turn left in (0.3 mrad: 2.34 %, 0.1 mrad: 0.84 %), 0.29 % taken out
+    rec = board_reconstructor
+    bump = F.GaussianBump(0.002, 4.0)
+    clean = _rel_error(rec(_render(bump)), bump)
+    for grid in ("full", "decimated"):
+        res = rec(_render(bump, turn_mrad), grid=grid)
+        t = res.turn
+        assert t.flagged and t.removed
+        assert t.turn_mrad == pytest.approx(turn_mrad, rel=0.1)  # the sign: clockwise as shown is positive
+        assert t.uncertainty_mrad < 0.1 * abs(turn_mrad)  # the same turn in every block of the frame
+        assert f"turned by {abs(t.turn_mrad):.2f} +- {t.uncertainty_mrad:.2f} mrad" in t.describe()
+        assert ("clockwise" if turn_mrad > 0 else "anticlockwise") in t.describe()
+        assert t.saddle_um > 0.003 * abs(turn_mrad)  # what it would have done: 0.0129 um rms a mrad here
+    # the default's heights: within 0.25 points of the unturned frame's (left in: 2.3 / 8 %)
+    assert _rel_error(rec(_render(bump, turn_mrad)), bump) < clean + 0.25
+
+
+def test_the_turn_left_in_would_cost_the_saddle_it_names(board_reconstructor):
+    # the decimated heights of a turned frame, turn left in, differ from the unturned frame's by the
+    # saddle TurnCheck names (the solve's answer to the turn), within 15 %
+    from processing.turn import TurnGauge
+
+    rec = board_reconstructor
+    chain = rec.chain
+    straight = rec(_render(F.FlatSurface()), grid="decimated")
+    turned = rec(_render(F.FlatSurface(), 1.0), grid="decimated")
+    gauge = TurnGauge(rec.height_solver(), chain.turn_band_px, chain.turn_reference_mask)
+    left_in = rec.height_solver().solve(turned.displacement + gauge.field(turned.turn.turn_mrad, rec.rows_px,
+                                                                          rec.cols_px),
+                                        turned.valid, reference_mask=chain.turn_reference_mask)
+    diff_um = 1e3 * np.sqrt(np.nanmean((np.asarray(left_in.height_mm) - straight.height) ** 2))
+    assert turned.turn.saddle_um == pytest.approx(diff_um, rel=0.15)
+
+
+@pytest.mark.parametrize("case", ["waves", "noisy flat", "deep dimple", "masked patch"])
+def test_nothing_turned_is_not_flagged_and_the_heights_are_untouched(board_reconstructor, case):
+    # With nothing turned the estimate stays far below the flag on the frames that come nearest (measured
+    # 6 Dec 2026 on FD's decimated displacement: waves filling the frame 0.056 mrad, 60 DN of noise at 12
+    # bit 0.026, every other accuracy-table case 0.013 or less); nothing is taken out
+    rec = board_reconstructor
+    if case == "waves":
+        frame = _render(F.WaveField.random(6, amplitude_rms_mm=0.001, wavelength_range_mm=(12, 30), seed=3))
+    elif case == "noisy flat":
+        frame = _render(F.FlatSurface(), noise_rms=3.0, seed=1)
+    elif case == "deep dimple":
+        frame = _render(F.Dimple(0.015, 9.0))
+    else:
+        frame = _render(F.GaussianBump(0.002, 4.0)).copy()
+        frame[40:110, 150:190] = frame.mean()  # a blank patch: no pattern there
+    for grid in ("full", "decimated"):
+        res = rec(frame, grid=grid)
+        assert abs(res.turn.turn_mrad) < 0.7 * TURN_MAX_MRAD, res.turn
+        assert not res.turn.flagged and not res.turn.removed and res.turn.describe() == ""
+        assert res.turn.cells > 500
+
+
+def test_a_turned_camera_over_random_dots_is_flagged_too():
+    dots = F.RandomDots(dot_diameter_mm=0.5, density=0.3, seed=1)
+    rec = Reconstructor(_render(F.FlatSurface(), pattern=dots, noise_rms=1.0), G55, pattern="dots")
+    bump = F.GaussianBump(0.004, 5.0)
+    straight = rec(_render(bump, pattern=dots, noise_rms=1.0, seed=2), grid="decimated").turn
+    turned = rec(_render(bump, 1.0, pattern=dots, noise_rms=1.0, seed=2), grid="decimated").turn
+    assert not straight.flagged and abs(straight.turn_mrad) < 0.5 * TURN_MAX_MRAD
+    assert turned.flagged and turned.removed and turned.turn_mrad == pytest.approx(1.0, rel=0.25)
+
+
+def test_a_frame_too_small_for_the_band_is_not_judged():
+    small = 96  # 3.5 carrier periods of 10 px from each side leave 26 px: too few cells
+    ref, _ = F.render_tir(F.FlatSurface(), G55, (small, small), BOARD, supersample=2)
+    ref = F.quantize(ref, bits=8)
+    res = Reconstructor(ref, G55)(ref, grid="decimated")
+    assert np.isnan(res.turn.turn_mrad) and not res.turn.flagged and res.turn.describe() == ""
+
+
+def test_a_frame_valid_everywhere_is_judged_as_the_cells_circulations_say(board_reconstructor):
+    # the gauge's fast path (a fixed linear map of u) against the definition, written out here: the
+    # least-squares turn of the circulations of w = exp(Phi) B^-1 u around the interior cells
+    rec = board_reconstructor
+    hs, chain = rec.height_solver(), rec.chain
+    gauge = chain.turn_gauge()
+    rng = np.random.default_rng(4)
+    shape = (rec.rows_px.size, rec.cols_px.size)
+    dr, dc = rec.rows_px[1] - rec.rows_px[0], rec.cols_px[1] - rec.cols_px[0]
+
+    def circulation(u):
+        gr, gc = hs.gradients(u)
+        wr, wc = np.exp(hs.phi) * gr, np.exp(hs.phi) * gc
+        er = 0.5 * (wr[1:, :] + wr[:-1, :]) * dr
+        ec = 0.5 * (wc[:, 1:] + wc[:, :-1]) * dc
+        return ec[:-1, :] + er[:, 1:] - ec[1:, :] - er[:, :-1]
+
+    unit = circulation(gauge.field(1.0, rec.rows_px, rec.cols_px).astype(np.float64))
+    for _ in range(3):
+        u = rng.normal(size=(2, *shape)).astype(np.float32) + gauge.field(rng.normal(), rec.rows_px, rec.cols_px)
+        c = circulation(u.astype(np.float64))
+        expected = np.sum((c * unit)[gauge.inner]) / np.sum((unit ** 2)[gauge.inner])
+        got = gauge(u, np.ones(shape, bool))
+        assert got.turn_mrad == pytest.approx(expected, rel=1e-9, abs=1e-12) and got.cells == gauge.inner.sum()
+        # a masked sample inside the band: its four cells leave the estimate, the rest as defined
+        valid = np.ones(shape, bool)
+        valid[shape[0] // 2, shape[1] // 2] = False
+        cells = gauge.inner.copy()
+        cells[shape[0] // 2 - 1:shape[0] // 2 + 1, shape[1] // 2 - 1:shape[1] // 2 + 1] = False
+        c = circulation(np.where(valid, u, 0.0))
+        masked = gauge(np.where(valid, u, np.nan), valid)
+        assert masked.turn_mrad == pytest.approx(np.sum((c * unit)[cells]) / np.sum((unit ** 2)[cells]), rel=1e-9)
+        assert masked.cells == cells.sum()
