@@ -5,6 +5,7 @@ of an ended run behind, and what makes the suite safe to run in parallel
 with pytest-xdist (tests/run.sh runs it so)."""
 
 import faulthandler
+import signal
 import glob
 import os
 import re
@@ -97,6 +98,12 @@ def pytest_configure(config):
     # the terminal's stderr as it is now, between tests: during a test, fd 2 is pytest's capture file
     # (an xdist worker's fd 2 is the controller's stderr: the watchdog's stacks reach the terminal too)
     config._tirdeflect_watchdog_out = os.fdopen(os.dup(2), "w")
+    # GLib's fatal errors (g_error: Qt's event loop, Aravis) end the process with SIGTRAP, which pytest's
+    # faulthandler does not watch; its message goes to the test's capture file and is lost with the
+    # process ("worker 'gw0' crashed", nothing else: seen once, 6 Dec 2026, in test_gui_usability). Every
+    # thread's Python stack then goes to the terminal first, and the trap goes on as before.
+    if hasattr(signal, "SIGTRAP"):
+        faulthandler.register(signal.SIGTRAP, file=config._tirdeflect_watchdog_out, all_threads=True, chain=True)
     path = os.environ.get("TIRDEFLECT_WATCHDOG_NOTE") or os.path.join(
         tempfile.gettempdir(), f"tirdeflect-watchdog-{os.getpid()}.txt")
     if _xdist_worker():  # one note per worker (tests/run.sh reads NOTE.gw0, NOTE.gw1, ...)

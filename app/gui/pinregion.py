@@ -101,26 +101,27 @@ class PinRegionOverlay:
             return
         frac = pin.valid_samples / pin.region_samples if pin.region_samples else 0.0
         text = f"{self.name} (h = 0): {100 * frac:.0f} % valid"
-        short = f"h = 0: {100 * frac:.0f} % valid"
-        bad = not pin.ok
-        if bad:
+        flags = []  # the label's words for what is wrong; the tooltip and the raw view's message say why
+        if not pin.ok:
             text += f" — too few, pinned on the {pin.used_samples} nearest valid samples"
-            short += ", too few"
+            flags.append("too few")
         if not pin.still:
             text += (f" — the pattern MOVED here by {pin.region_motion_px:.2g} px since the reference: the surface "
                      "here is not at rest, or the camera or the board moved (the heights carry a tilt)")
-            short += ", MOVED"
-            bad = True
+            flags.append("MOVED")
         turn = getattr(result, "turn", None)
         if turn is not None and turn.flagged:
-            text += f" — {turn.describe().replace('pattern turned', 'pattern TURNED', 1)}"
-            short += ", TURNED"
-            bad = True
+            text += (f" — the pattern TURNED by {abs(turn.turn_mrad):.2f} mrad since the reference (camera or board "
+                     f"moved{'; taken out of the heights' if turn.removed else ''}): capture a new reference")
+            flags.append("TURNED")
         series = getattr(result, "series", None)
         if series is not None and series.flagged:
             text += " — JUMP against the previous frame"
-            short += ", JUMP"
-            bad = True
+            flags.append("JUMP")
+        # a few words on a raw view that may be 150 px wide: "100 % valid" says nothing beside a flag
+        valid = [] if flags and frac >= 1.0 else [f"{100 * frac:.0f} % valid"]
+        short = "h = 0: " + ", ".join(valid + flags)
+        bad = bool(flags)
         self._show(text, short, bad=bad)
 
     def _show(self, text: str, short: str, *, bad: bool) -> None:
