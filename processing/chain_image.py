@@ -73,7 +73,7 @@ class _NodeRefinement:
         if turn is None or not turn.removed:
             return None
         ng = self.node_grid
-        return self.chain.turn_gauge().field(turn.turn_mrad, ng.rows_px, ng.cols_px)
+        return self.chain.turn_gauge().field(turn.turn_mrad, ng.rows_px, ng.cols_px, turn.removed)
 
     def _node_result(self, surf, valid_nodes, u_nodes, **fields) -> Result:
         """The node grid's :class:`Result` of a refined surface; ``fields``: the pattern's own

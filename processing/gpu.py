@@ -175,6 +175,8 @@ class BatchChain:
             self.reason = "the reference has blank parts (every frame is masked)"
         elif recon.options.full_interpolation not in ("spline", "lanczos"):
             self.reason = "full_interpolation other than 'spline' or 'lanczos' (the GPU resizes with those only)"
+        elif recon.options.turn_removal != "none":
+            self.reason = "turn_removal (the turn since the reference is measured and taken out on the CPU)"
         if self.reason is not None:
             return
         to = xp.asarray

@@ -6,9 +6,12 @@ reference was taken turns the whole image: a displacement ``u = omega (c - c0,
 saddle: ray-traced, 256^2, a camera turned by 1 mrad (0.06 deg) took a 2 um bump
 from 0.15 to 7.95 % rms height error, 0.1 mrad to 0.84 %, and nothing said so
 (6 Dec 2026; docs/processing.md section 5).  Above :data:`TURN_MAX_MRAD`, and the same
-in every part of the frame (:data:`TURN_MIN_SIGNIFICANCE`), the turn is flagged and taken
-out of the displacement (and added to image matching's warp, not solved for): the same
-bump at 1 mrad 0.29 %, at 0.1 mrad 0.16 %.
+in every part of the frame (:data:`TURN_MIN_SIGNIFICANCE`), the turn is flagged.  Where the
+user says what moved (the option ``turn_removal``: "camera" or "board") it is taken out of
+the displacement as that one's turn (and added to image matching's warp, not solved for):
+the bump at 1 mrad 0.29 %, at 0.1 mrad 0.16 %.  Not by itself: a board turned in its plane
+is seen foreshortened, turned and sheared, and the shear reads as a surface; taken out as
+the camera's, the board's 1 mrad cost the bump 8.70 % instead of the 1.82 % it cost left in.
 
 What tells it from water: every surface's displacement is ``u = a h + B grad h``
 (:mod:`processing.height`), so ``w = exp(Phi) B^-1 u`` is the gradient of
@@ -39,13 +42,13 @@ __all__ = ["TurnCheck", "TurnGauge", "TURN_MAX_MRAD", "TURN_BAND_PERIODS"]
 TURN_BAND_PERIODS = 3.5
 
 #: A frame whose pattern turned by more than this (mrad) since the reference, and by
-#: :data:`TURN_MIN_SIGNIFICANCE` standard errors, is flagged, and the turn is taken out of its
-#: displacement (:attr:`TurnCheck.removed`). With nothing turned the estimate stayed within 0.056 mrad on
+#: :data:`TURN_MIN_SIGNIFICANCE` standard errors, is flagged (and taken out as the option
+#: ``turn_removal`` says, :attr:`TurnCheck.removed`). With nothing turned the estimate stayed within 0.056 mrad on
 #: the accuracy table's cases, flat frames with 1-60 DN of noise, the synthetic tank's scenes and the real
 #: FS-SS needle pair (0.024 where FD's refinement ran first, as on the full grid); waves of 6-30 mm, 0.2-2
 #: um rms, read up to 0.142 mrad, never at more than 1.4 standard errors. A camera turned by 0.1 mrad
-#: (0.006 deg) took a 2 um bump's full-grid heights from 0.15 to 0.84 % rms error (0.16 % taken out),
-#: 1 mrad to 7.95 % (0.29 %).
+#: (0.006 deg) took a 2 um bump's full-grid heights from 0.15 to 0.84 % rms error (0.16 % taken out as
+#: the camera's), 1 mrad to 7.95 % (0.29 %).
 TURN_MAX_MRAD = 0.1
 
 #: Fewest interior cells the estimate needs (else it is not measured: NaN).
@@ -76,9 +79,10 @@ class TurnCheck:
         positive clockwise as the frame is shown (rows down). NaN where not
         measured (fewer than :data:`MIN_CELLS` valid cells inside the band).
     saddle_um : float
-        The rms height (um) that the turn alone puts into the heights (the
-        solve's answer to a turn of ``turn_mrad`` on this grid, pinned as
-        the frames are): what the heights are off by where the water is at rest.
+        The rms height (um) that the turn alone puts into FD's heights (the
+        height solve's answer to the camera's turn of ``turn_mrad`` on this
+        grid, pinned as the frames are); image matching's heights get more
+        (3.5x on the ray-traced board).
     flagged : bool
         ``|turn_mrad|`` above :data:`TURN_MAX_MRAD` and :data:`TURN_MIN_SIGNIFICANCE`
         standard errors.
@@ -88,11 +92,12 @@ class TurnCheck:
         Standard error of ``turn_mrad`` from the spread of its estimates over the
         interior's blocks (:data:`TURN_MIN_SIGNIFICANCE`); NaN when not needed
         (``turn_mrad`` within :data:`TURN_MAX_MRAD`) or not measured.
-    removed : bool
-        The turn was taken out of the displacement before the heights were
-        solved (and out of image matching's warp): the heights are the
-        surface's as if the camera had not turned (about the frame's centre;
-        a turn about another point also shifts the image, which reads as a tilt).
+    removed : str
+        "" when the turn is left in the heights; else what it was taken out as
+        ("camera" or "board", the option ``turn_removal``): out of the displacement
+        before the heights were solved, and out of image matching's warp (about the
+        frame's centre; a turn about another point also shifts the image, which
+        reads as a tilt).
     """
 
     turn_mrad: float
@@ -100,7 +105,7 @@ class TurnCheck:
     flagged: bool
     cells: int
     uncertainty_mrad: float = math.nan
-    removed: bool = False
+    removed: str = ""
 
     def describe(self) -> str:
         """One line for the user ("" when not flagged)."""
@@ -110,10 +115,15 @@ class TurnCheck:
         text = (f"the pattern turned by {abs(self.turn_mrad):.2f} +- {self.uncertainty_mrad:.2f} mrad ({way} as "
                 f"shown) since the reference: the camera or the board moved")
         if self.removed:
-            return (text + f"; the turn was taken out before the heights were solved (left in, a saddle of at "
-                    f"least {self.saddle_um:.2g} um rms); capture a new reference on still water")
-        return text + (f"; that alone puts a saddle of at least {self.saddle_um:.2g} um rms into the heights; "
-                       f"capture a new reference on still water")
+            return text + (f"; taken out of the heights as the {self.removed}'s turn; capture a new reference on "
+                           f"still water")
+        return text + (f"; left in, it puts a saddle of at least {self.saddle_um:.2g} um rms into the heights; "
+                       f"capture a new reference on still water, or take it out as the turn of whichever moved "
+                       f"(turn_removal='camera' or 'board'; tirdeflect process --turn-removal)")
+
+
+#: A turn of the image by 1 rad: ``(u_row, u_col) = T (row - r0, col - c0)``, clockwise as shown (rows down).
+_IMAGE_TURN = np.array([[0.0, 1.0], [-1.0, 0.0]])
 
 
 def _circulation(wr, wc, dr, dc):
@@ -163,22 +173,40 @@ class TurnGauge:
             corners[dr_:dr_ + self.inner.shape[0], dc_:dc_ + self.inner.shape[1]] |= self.inner
         self._corners = corners
 
-    def field(self, turn_mrad: float, rows_px, cols_px):
-        """The displacement (2, rows, cols), pixels, float32, of a turn by ``turn_mrad`` about the
-        frame's centre at the pixel coordinates ``rows_px``, ``cols_px`` (1-D)."""
+    def field(self, turn_mrad: float, rows_px, cols_px, kind: str = "camera"):
+        """The displacement (2, rows, cols), pixels, float32, at the pixel coordinates ``rows_px``,
+        ``cols_px`` (1-D) of a measured turn of ``turn_mrad`` (:attr:`TurnCheck.turn_mrad`) taken as
+        ``kind``'s: "camera", the image turned about the frame's centre; "board", the board turned in
+        its plane about the point under the centre, seen through the geometry's foreshortening (the
+        image turned and sheared; the measured turn is its turning part)."""
+        m = self._board_map() if kind == "board" else _IMAGE_TURN
         n_rows, n_cols = self._solver.grid.frame_shape
         rows = np.asarray(rows_px, np.float64)[:, None] - (n_rows - 1) / 2.0
         cols = np.asarray(cols_px, np.float64)[None, :] - (n_cols - 1) / 2.0
-        w = 1e-3 * float(turn_mrad)
-        return np.stack(np.broadcast_arrays(w * cols, -w * rows)).astype(np.float32)
+        w = 1e-3 * float(turn_mrad) / (0.5 * (m[0, 1] - m[1, 0]))  # the turning part of m is the turn measured
+        return np.stack(np.broadcast_arrays(w * (m[0, 0] * rows + m[0, 1] * cols),
+                                            w * (m[1, 0] * rows + m[1, 1] * cols))).astype(np.float32)
 
-    def removed(self, displacement_px, check: TurnCheck, rows_px, cols_px):
+    def _board_map(self):
+        """``J^-1 T J``: the image displacement per (row, col) offset of the board turned in its plane,
+        ``J`` the surface's (y, x) mm per (row, col) px at the frame's centre (the pattern plane is the
+        surface's, shifted), ``T`` a turn."""
+        s = self._solver
+        g, shape = s.geometry, s.grid.frame_shape
+        r0, c0 = (shape[0] - 1) / 2.0, (shape[1] - 1) / 2.0
+        at = np.array([[r0, c0], [r0 + 1.0, c0], [r0, c0 + 1.0]])
+        x, y = (np.asarray(v, np.float64).ravel() for v in g.surface_point(at[:, :1], at[:, 1:], shape))
+        jac = np.array([[y[1] - y[0], y[2] - y[0]], [x[1] - x[0], x[2] - x[0]]])
+        return np.linalg.solve(jac, _IMAGE_TURN @ jac)
+
+    def removed(self, displacement_px, check: TurnCheck, rows_px, cols_px, kind: str = "none"):
         """``(displacement, check)``: a flagged turn taken out of ``displacement_px`` (on the grid
-        ``rows_px`` x ``cols_px``; NaN stays NaN) and ``check.removed`` set; else both as given."""
-        if not check.flagged:
+        ``rows_px`` x ``cols_px``; NaN stays NaN) as ``kind``'s (:meth:`field`) and ``check.removed``
+        set to it; both as given when not flagged or ``kind`` is "none"."""
+        if not check.flagged or kind == "none":
             return displacement_px, check
-        u = np.asarray(displacement_px, np.float32) - self.field(check.turn_mrad, rows_px, cols_px)
-        return u, dataclasses.replace(check, removed=True)
+        u = np.asarray(displacement_px, np.float32) - self.field(check.turn_mrad, rows_px, cols_px, kind)
+        return u, dataclasses.replace(check, removed=kind)
 
     def _weights(self, cells):
         """``W`` (2, rows, cols) with ``turn_mrad = sum(W * u)`` for a displacement valid on every

@@ -137,7 +137,7 @@ def job_options(args, shape, geometry, effort: str):
     pattern = args.pattern or geometry.pattern or "checkerboard"
     refine_method = batch_refine_method(args.refine_method, shape, pattern, args.grid, args.device)
     return ReconstructOptions(grid=args.grid, unwrap=not args.no_unwrap, pattern=args.pattern,
-                              refine_method=refine_method,
+                              refine_method=refine_method, turn_removal=args.turn_removal,
                               planner_effort="FFTW_MEASURE" if effort == "measure" else "FFTW_ESTIMATE",
                               threads=parallel.fft_threads(1))
 
@@ -160,6 +160,9 @@ class ProcessJob:
         recording's stored geometry.
     grid : {"full", "decimated"}
     no_unwrap : bool
+    turn_removal : {"none", "camera", "board"}
+        A flagged turn since the reference left in, or taken out as the camera's or the board's
+        (:class:`processing.ReconstructOptions`).
     first, last, step : int
         Frame selection over the whole input sequence (``last`` inclusive, None = end).
     frame_range : slice or None
@@ -210,6 +213,7 @@ class ProcessJob:
     geometry: object = None  # str (a TOML file), Geometry, or None
     grid: str = "full"
     no_unwrap: bool = False
+    turn_removal: str = "none"
     first: int = 0
     last: int | None = None
     step: int = 1
@@ -364,6 +368,7 @@ def run_process(args: ProcessJob) -> BatchReport:
         "last": -1 if args.last is None else args.last,
         "step": args.step,
         "unwrap": not args.no_unwrap,
+        "turn_removal": args.turn_removal,
         "grid_requested": args.grid,
         "refine_method": refine_method,
         "fft_effort": effort,

@@ -122,6 +122,12 @@ def add_process_parser(sub) -> None:
                         "(docs/processing.md sections 6 and 11)")
     p.add_argument("--no-unwrap", action="store_true",
                    help="do not unwrap carrier phases (only for small displacements)")
+    p.add_argument("--turn-removal", choices=("none", "camera", "board"), default="none",
+                   help="a turn of the pattern since the reference (camera or board knocked) is always measured "
+                        "and named (/turn_mrad); none (default): left in the heights (a saddle); camera: taken out "
+                        "as the camera's turn about its axis; board: as the board's turn in its plane. Taken out "
+                        "as the wrong one it costs more than left in: say only what you know moved "
+                        "(docs/processing.md section 5)")
     p.add_argument("--first", type=_FRAME_INDEX, default=0, metavar="K",
                    help="first frame to process (0-based, counting every frame of every "
                    "input in order)")

@@ -535,12 +535,14 @@ def test_frames_with_their_own_hot_pixels_are_repaired_counted_and_named(tmp_pat
 
 
 @pytest.mark.parametrize("workers", [1, 2])
-def test_a_camera_turned_after_the_reference_is_named_and_taken_out_of_the_heights(tmp_path, capsys, workers):
+def test_a_camera_turned_after_the_reference_is_named_and_taken_out_when_asked(tmp_path, capsys, workers):
     """The camera knocked by 1 mrad (0.06 deg) about its axis between the reference and the second frame
-    (ray-traced: every pixel's ray turned). Left in, that turn put a saddle into the heights that took a
-    2 um bump from 0.15 to 8 % rms error with nothing said (6 Dec 2026); now the run names the frame and
-    the turn, OUT.h5 keeps it per frame (/turn_mrad) with its attributes, the turn is taken out of the
-    heights (they match the straight frame's), and the GUI export's message flags the frame."""
+    (ray-traced: every pixel's ray turned). That turn puts a saddle into the heights that took a 2 um
+    bump from 0.15 to 8 % rms error with nothing said (6 Dec 2026). Now the run names the frame and the
+    turn, OUT.h5 keeps it per frame (/turn_mrad) with its attributes, and the GUI export's message flags
+    the frame; by default the turn stays in the heights (taken out as the camera's when the board had
+    turned, it would cost more than it saves), and with --turn-removal camera it is taken out: the
+    heights match the straight frame's."""
     from processing import Geometry
     from processing import forward as F
     from processing.patterns import Checkerboard
@@ -555,26 +557,31 @@ def test_a_camera_turned_after_the_reference_is_named_and_taken_out_of_the_heigh
         return tmp_path / name
 
     (tmp_path / "geometry.toml").write_text(geometry.to_toml_text())
-    out = tmp_path / "out.h5"
-    code, err = _run(capsys, "process", shot(F.FlatSurface(), 0.0, "reference.png"), shot(bump, 0.0, "f0.png"),
-                     shot(bump, 1.0, "f1.png"), "--geometry", tmp_path / "geometry.toml", "--out", out,
-                     "--workers", workers)
-    assert code == 0, err  # measured: a note, not a failure
-    assert re.search(r"note: 1 frame\(s\) flagged above 0.1 mrad of turn, the most at frame 1: the pattern turned "
-                     r"by 1\.0\d \+- 0\.0\d mrad \(clockwise as shown\) since the reference: the camera or the board moved; "
-                     r"the turn was taken out", err), err
-    with h5py.File(out) as f:
-        turn = f["turn_mrad"][:]
-        assert abs(turn[0]) < 0.05 and turn[1] == pytest.approx(1.0, rel=0.1)
-        assert f.attrs["frames_turned"] == 1 and f.attrs["turn_mrad_max"] == pytest.approx(turn[1])
-        h0, h1 = f["height"][0], f["height"][1]
-        both = np.isfinite(h0) & np.isfinite(h1)
-        # the heights of the straight and the turned frame: the turn left in differs by 0.045 um rms
-        assert 1e3 * np.sqrt(np.mean((h1 - h0)[both] ** 2)) < 0.01
-    from app.gui.export import describe_export
+    inputs = [shot(F.FlatSurface(), 0.0, "reference.png"), shot(bump, 0.0, "f0.png"), shot(bump, 1.0, "f1.png")]
+    saddle_um = {}
+    for removal in ("none", "camera"):
+        out = tmp_path / f"out-{removal}.h5"
+        code, err = _run(capsys, "process", *inputs, "--geometry", tmp_path / "geometry.toml", "--out", out,
+                         "--workers", workers, "--turn-removal", removal)
+        assert code == 0, err  # measured: a note, not a failure
+        assert re.search(r"note: 1 frame\(s\) flagged above 0.1 mrad of turn, the most at frame 1: the pattern "
+                         r"turned by 1\.0\d \+- 0\.0\d mrad \(clockwise as shown\) since the reference: the camera "
+                         r"or the board moved; ", err), err
+        assert ("taken out of the heights as the camera's turn" in err) == (removal == "camera"), err
+        with h5py.File(out) as f:
+            turn = f["turn_mrad"][:]
+            assert abs(turn[0]) < 0.05 and turn[1] == pytest.approx(1.0, rel=0.1)
+            assert f.attrs["frames_turned"] == 1 and f.attrs["turn_mrad_max"] == pytest.approx(turn[1])
+            assert f.attrs["turn_removal"] == removal
+            h0, h1 = f["height"][0], f["height"][1]
+            both = np.isfinite(h0) & np.isfinite(h1)
+            saddle_um[removal] = 1e3 * np.sqrt(np.mean((h1 - h0)[both] ** 2))
+        from app.gui.export import describe_export
 
-    text, clean = describe_export(str(out))
-    assert not clean and "1 where the pattern turned since the reference" in text and "frames 1)" in text
+        text, clean = describe_export(str(out))
+        assert not clean and "1 where the pattern turned since the reference" in text and "frames 1)" in text
+    # the straight and the turned frame's heights: left in 0.045 um rms apart, taken out 0.001-0.003
+    assert saddle_um["none"] > 0.02 and saddle_um["camera"] < 0.01, saddle_um
 
 
 def test_saturated_frames_are_named_in_the_summary_and_the_file(sim, tmp_path, capsys):

@@ -409,7 +409,7 @@ def test_a_red_pin_region_says_why_in_words_that_fit(qapp):  # qapp: a QApplicat
     # the camera turned by 0.8 mrad about its axis (processing.turn measured it and took it out of the heights)
     from processing.turn import TurnCheck
 
-    turned = types.SimpleNamespace(pin=good.pin, series=None, turn=TurnCheck(-0.8, 0.01, True, 900, 0.05, removed=True))
+    turned = types.SimpleNamespace(pin=good.pin, series=None, turn=TurnCheck(-0.8, 0.01, True, 900, 0.05, removed="camera"))
     overlay.update(turned)
     assert overlay.bad and overlay.label.textItem.toPlainText() == "h = 0: TURNED"
     assert notes[-1].endswith("— the pattern TURNED by 0.80 mrad since the reference (camera or board moved; taken "

@@ -123,7 +123,8 @@ def test_heights_that_need_the_second_order_go_to_the_cpu(series):
 
 def test_chain_takes_only_what_it_reproduces(series):
     """The chain resizes with the spline (default) or Lanczos only: another full-grid
-    interpolation (4 % of the RMS height apart) goes through the CPU, and the Reconstructor says why."""
+    interpolation (4 % of the RMS height apart) goes through the CPU, and the Reconstructor says why;
+    so do frames whose turn since the reference is to be taken out."""
     ref, _ = series
     for interpolation in ("cubic", "linear"):
         chain = BatchChain(Reconstructor(ref, G55, full_interpolation=interpolation, refine_method="fd"), np)
@@ -131,6 +132,10 @@ def test_chain_takes_only_what_it_reproduces(series):
     assert BatchChain(Reconstructor(ref, G55, refine_method="fd"), np).reason is None
     assert BatchChain(Reconstructor(ref, G55, refine_method="fd", full_interpolation="lanczos"), np).reason is None
     assert Reconstructor(ref, G55).gpu_fallback is None  # device="cpu": nothing falls back
+    # a turn of camera or board taken out (processing.turn): the chain does not measure it, the CPU does
+    for removal in ("camera", "board"):
+        chain = BatchChain(Reconstructor(ref, G55, refine_method="fd", turn_removal=removal), np)
+        assert chain.reason is not None and "turn_removal" in chain.reason
 
 
 def test_device_cuda_without_a_gpu_says_why(series):
