@@ -246,8 +246,9 @@ class FrameTally:
                        f"see /hot_pixels in the output")
         if self.turned:
             k, mrad, turn = _worst(self.turned, 0.0)
-            out.append(f"{len(self.turned)} frame(s) flagged above {TURN_MAX_MRAD:g} mrad of turn, the most at frame "
-                       f"{k}: {turn.describe()}; see /turn_mrad in the output")
+            first = self.turned[0][0]  # when it happened: a knock turns every frame after it
+            out.append(f"{len(self.turned)} frame(s) flagged above {TURN_MAX_MRAD:g} mrad of turn, from frame {first}, "
+                       f"the most at frame {k}: {turn.describe()}; see /turn_mrad in the output")
         return out
 
 

@@ -564,7 +564,7 @@ def test_a_camera_turned_after_the_reference_is_named_and_taken_out_when_asked(t
         code, err = _run(capsys, "process", *inputs, "--geometry", tmp_path / "geometry.toml", "--out", out,
                          "--workers", workers, "--turn-removal", removal)
         assert code == 0, err  # measured: a note, not a failure
-        assert re.search(r"note: 1 frame\(s\) flagged above 0.1 mrad of turn, the most at frame 1: the pattern "
+        assert re.search(r"note: 1 frame\(s\) flagged above 0.1 mrad of turn, from frame 1, the most at frame 1: the pattern "
                          r"turned by 1\.0\d \+- 0\.0\d mrad \(clockwise as shown\) since the reference: the camera "
                          r"or the board moved; ", err), err
         assert ("taken out of the heights as the camera's turn" in err) == (removal == "camera"), err
