@@ -1,9 +1,9 @@
 """Has the pattern turned since the reference?  (:class:`TurnGauge`, :class:`TurnCheck`)
 
-A camera turned about its axis, or a board turned on the tank bottom, after the
-reference was taken turns the whole image: a displacement ``u = omega (c - c0,
--(r - r0))`` that no water surface makes.  The height solve still fits it, as a
-saddle: ray-traced, 256^2, a camera turned by 1 mrad (0.06 deg) took a 2 um bump
+A camera turned about its axis after the reference was taken turns the whole
+image: a displacement ``u = omega (c - c0, -(r - r0))`` that no water surface makes
+(a board turned on the tank bottom turns it and, foreshortened, shears it).  The
+height solve still fits it, as a saddle: ray-traced, 256^2, a camera turned by 1 mrad (0.06 deg) took a 2 um bump
 from 0.15 to 7.95 % rms height error, 0.1 mrad to 0.84 %, and nothing said so
 (6 Dec 2026; docs/processing.md section 5).  Above :data:`TURN_MAX_MRAD`, and the same
 in every part of the frame (:data:`TURN_MIN_SIGNIFICANCE`), the turn is flagged.  Where the
