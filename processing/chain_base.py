@@ -11,8 +11,8 @@ __all__ = ["GridChain"]
 class GridChain:
     """Base of the chains (:class:`~processing.chain_checkerboard.CheckerboardChain`,
     :class:`~processing.chain_dots.DotsChain`): a subclass sets ``geometry``,
-    ``rows_px``, ``cols_px`` (its grid's pixel coordinates) and ``shape`` (the
-    frame's), and calls ``GridChain.__init__`` first."""
+    ``options``, ``rows_px``, ``cols_px`` (its grid's pixel coordinates) and ``shape``
+    (the frame's), and calls ``GridChain.__init__`` first."""
 
     def __init__(self):
         self._solver = self._coords = self._turn = None
@@ -21,6 +21,13 @@ class GridChain:
     turn_band_px = 0.0
     #: The pin region of the chain's grid for the turn check's saddle (set by the subclass; None: the geometry's).
     turn_reference_mask = None
+
+    def judge_turn(self, u, valid):
+        """``(u, turn)``: the :class:`processing.turn.TurnCheck` of the grid's displacement ``u`` on its
+        ``valid`` samples, and ``u`` with a flagged turn taken out as the option ``turn_removal`` says
+        (what moved; "none": as given)."""
+        gauge = self.turn_gauge()
+        return gauge.removed(u, gauge(u, valid), self.rows_px, self.cols_px, self.options.turn_removal)
 
     def turn_gauge(self):
         """The grid's :class:`processing.turn.TurnGauge` (built once): has the pattern turned since the reference?"""

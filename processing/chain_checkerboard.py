@@ -274,10 +274,7 @@ class CheckerboardChain(GridChain):
             m.timings["total"] = 1e3 * (time.perf_counter() - m.t0)
             return res, state
         u, valid, all_valid = m.u, m.valid, m.all_valid
-        # a turn of camera or board since the reference is no surface's: judged; taken out where flagged, as the
-        # option turn_removal says (what moved)
-        gauge = self.turn_gauge()
-        u, turn = gauge.removed(u, gauge(u, valid), self.rows_px, self.cols_px, self.options.turn_removal)
+        u, turn = self.judge_turn(u, valid)  # a turn of camera or board since the reference is no surface's
         surf = self.solve_height(u, valid, all_valid)
         if surf.valid is not valid and not np.array_equal(surf.valid, valid):
             # pieces the pin could not reach: their offset was not measured

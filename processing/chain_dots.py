@@ -83,11 +83,7 @@ class DotsChain(GridChain):
     def solve(self, m, grid, state):
         """``(Result, state)``: heights and pin on the PIV grid."""
         o, t1 = self.options, time.perf_counter()
-        # a turn of camera or board since the reference is no surface's: judged; taken out where flagged, as the
-        # option turn_removal says (what moved)
-        gauge = self.turn_gauge()
-        u, turn = gauge.removed(m.u, gauge(np.nan_to_num(m.u), m.valid), self.rows_px, self.cols_px,
-                                o.turn_removal)
+        u, turn = self.judge_turn(m.u, m.valid)  # a turn of camera or board since the reference is no surface's
         surf = self.height_solver().solve_at_tolerance(
             np.where(m.valid, u, np.nan), m.valid, o.solver, self.cg_tol, self.region.region,
             pin_fallback=o.pin_fallback, region_name=self.region.name, near=self.region.near)

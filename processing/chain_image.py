@@ -125,14 +125,12 @@ class ImageRefinement(_NodeRefinement):
         hs = solver_for(chain.geometry, ng.rows_px, ng.cols_px, chain.shape)
         valid_px, valid_nodes, start = self.start(fd.displacement, fd.valid, hs)
         periods = np.asarray(chain.carriers.periods_px, np.float64)
-        offset = self.turn_offset(fd.turn)
         _, u_nodes, valid_nodes = dic.refine_height(
             self.ref_fine, m.frame, np.asarray(start.height_mm, np.float64), valid_px, self.height_nodes,
             outer=chain.options.image_iterations, period_px=float(periods.min()),
             intensity_cell_px=max(dic.INTENSITY_CELL_PX, 1.6 * float(periods.max())), threads=chain.planner.threads,
-            matrix_once=MATRIX_ONCE, masked_cg_iterations=dic.MASKED_CG_ITERATIONS, offset_px=offset)
-        if offset is not None:
-            u_nodes = u_nodes - offset
+            matrix_once=MATRIX_ONCE, masked_cg_iterations=dic.MASKED_CG_ITERATIONS,
+            offset_px=self.turn_offset(fd.turn))
         t4 = time.perf_counter()
         timings["refine"] += 1e3 * (t4 - t3)
         surf, valid_nodes, u_nodes, second = self._refined(hs, u_nodes, valid_nodes, timings)
@@ -221,14 +219,11 @@ class DotsImageRefinement(_NodeRefinement):
         t3 = time.perf_counter()
         valid_px, valid_nodes, start = self.start(piv.displacement, piv.valid)
         window = float(chain.options.window_px)
-        offset = self.turn_offset(piv.turn)
         _, u_nodes, free = dic.refine_height(
             self.ref_fine, m.frame, np.asarray(start.height_mm, np.float64), valid_px, self.height_nodes,
             outer=chain.options.image_iterations, blur_px=DOTS_BLUR_PX, period_px=window / 2,
             intensity_cell_px=max(dic.INTENSITY_CELL_PX, window), threads=int(chain.options.threads),
-            border_px=DOTS_BORDER_PX, offset_px=offset)
-        if offset is not None:
-            u_nodes = u_nodes - offset
+            border_px=DOTS_BORDER_PX, offset_px=self.turn_offset(piv.turn))
         t4 = time.perf_counter()
         timings["refine"] = 1e3 * (t4 - t3)
         surf, valid_nodes, u_nodes, second = self._refined(self.solver, u_nodes, free & valid_nodes, timings)

@@ -243,7 +243,7 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
     h : ndarray float64 (n_rows, n_cols)
         Node heights (mm; their null-space offset is not pinned: pass ``u`` to the height solver).
     u : ndarray float32 (2, n_rows, n_cols)
-        Displacement at the nodes (pixels; ``offset_px`` included).
+        The surface's displacement at the nodes (pixels; ``offset_px`` not included).
     valid : ndarray bool (n_rows, n_cols)
         Nodes whose cell is all valid.
     """
@@ -274,7 +274,7 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
         prev_step = _check_step(_rms(du), prev_step, k)
         h += x
         u = u + du  # the displacement is linear in the heights: one operator call a step, not two
-    return h, u.astype(np.float32), free
+    return h, (u if offset_px is None else u - offset_px).astype(np.float32), free
 
 
 def _frame_and_weights(frame, valid_px, grid, blur_px, border_px):
