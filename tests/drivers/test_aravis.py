@@ -247,6 +247,83 @@ def test_a_camera_dropped_right_after_it_died_does_not_hold_up_the_collecting_th
         t.join(30.0)  # the dead stream is freed within Aravis' GVCP timeouts
 
 
+def test_a_camera_restarted_on_its_address_is_lost_at_once(gv_fake_camera):
+    """A GigE camera that restarts (power cycle, a new fake camera on the same address) answers again
+    but no longer has this program as its controller: lost at once, long before ``lost_timeout_s``."""
+    from tests.drivers.fixtures import FakeGvCamera
+
+    with aravis.AravisCamera("127.0.0.1", lost_timeout_s=60.0, probe_period_s=0.1) as cam:
+        cam.configure(width=64, height=64, frame_rate_hz=100.0)
+        cam.start()
+        _stream(cam, 5)
+        gv_fake_camera.kill()
+        with FakeGvCamera():  # the same address answers again, its control channel free
+            t0 = time.monotonic()
+            with pytest.raises(CameraLost, match="no longer lists this program as its controller") as lost:
+                while time.monotonic() - t0 < 30.0:  # hang detector; lost_timeout_s (60 s) is not what ends it
+                    try:
+                        cam.fetch(0.2)
+                    except FetchTimeout:
+                        pass
+            assert "127.0.0.1" in str(lost.value)
+
+
+def test_dead_cameras_released_while_the_address_answers_again_and_cameras_are_searched(gv_fake_camera):
+    """The CI's crash (GLib: "Resource deadlock avoided" in g_system_thread_wait, SIGTRAP, the whole test
+    process gone): a camera killed mid-stream and closed, and a new camera on its address while the dead
+    one's objects were still being released, with cameras being searched (the window searches whenever it
+    opens). A ``control-lost`` handler ran in Aravis' heartbeat thread, which then held the device and
+    finalized it in itself. Done as the suite did it, eight rounds: with the handler this process died
+    in 2 of 3 runs of these rounds (and within 1-5 rounds in each of 3 longer runs); without it, in none
+    of 2 x 40 rounds."""
+    import drivers
+    from tests.drivers.fixtures import FakeGvCamera
+
+    searching = threading.Event()
+    searching.set()
+
+    def search():
+        while searching.is_set():
+            drivers.list_cameras(timeout_s=3.0)
+            time.sleep(0.05)
+
+    searchers = [threading.Thread(target=search, name=f"test-search-{k}", daemon=True) for k in range(2)]
+    for t in searchers:
+        t.start()
+    fake = gv_fake_camera
+    try:
+        for _ in range(8):
+            cam = aravis.AravisCamera("127.0.0.1").open()
+            cam.start()
+            for _ in range(5):
+                try:
+                    cam.fetch(1.0)
+                except FetchTimeout:
+                    pass
+            fake.kill()
+            t0 = time.monotonic()
+            with pytest.raises(CameraLost):
+                while time.monotonic() - t0 < 30.0:  # hang detector: lost after ~1 s
+                    try:
+                        cam.fetch(0.5)
+                    except FetchTimeout:
+                        pass
+            cam.close()  # the dead stream and device are freed in the driver's release threads
+            del cam
+            if fake is not gv_fake_camera:
+                fake.stop()
+            time.sleep(0.3)
+            fake = FakeGvCamera().start()  # the address answers again
+    finally:
+        searching.clear()
+        if fake is not gv_fake_camera:
+            fake.stop()
+        for t in searchers:
+            t.join(10.0)
+    for t in [t for t in threading.enumerate() if t.name == "aravis-release"]:
+        t.join(30.0)  # every release ended in its own thread, none took the process with it
+
+
 def _gobjects_held_by(tb) -> list[str]:
     """'function: name' of each GObject (stream, buffer, device) a traceback's frames hold in a local."""
     from gi.repository import GObject
