@@ -98,12 +98,8 @@ def pytest_configure(config):
     # the terminal's stderr as it is now, between tests: during a test, fd 2 is pytest's capture file
     # (an xdist worker's fd 2 is the controller's stderr: the watchdog's stacks reach the terminal too)
     config._tirdeflect_watchdog_out = os.fdopen(os.dup(2), "w")
-    # GLib's fatal errors (g_error: Qt's event loop, Aravis) end the process with SIGTRAP, which pytest's
-    # faulthandler does not watch; its message goes to the test's capture file and is lost with the
-    # process ("worker 'gw0' crashed", nothing else: seen once, 6 Dec 2026, in test_gui_usability). Every
-    # thread's Python stack then goes to the terminal first, and the trap goes on as before.
     if hasattr(signal, "SIGTRAP"):
-        faulthandler.register(signal.SIGTRAP, file=config._tirdeflect_watchdog_out, all_threads=True, chain=True)
+        _report_glib_traps(config)
     path = os.environ.get("TIRDEFLECT_WATCHDOG_NOTE") or os.path.join(
         tempfile.gettempdir(), f"tirdeflect-watchdog-{os.getpid()}.txt")
     if _xdist_worker():  # one note per worker (tests/run.sh reads NOTE.gw0, NOTE.gw1, ...)
@@ -129,6 +125,66 @@ def pytest_configure(config):
         config._tirdeflect_watchdog_out.write(f"watchdog: a test stuck past its limit ends the run; "
                                               f"the running test's name is kept in {path}\n")
         config._tirdeflect_watchdog_out.flush()
+
+
+# -- a fatal GLib error is named --------------------------------------------------------------
+# GLib's fatal errors (g_error: Qt's event loop, Aravis) end the process with SIGTRAP. Its one-line
+# message went to the test's capture file and was lost with the process: the CI printed "worker 'gw0'
+# crashed" and nothing else, twice (6 Dec 2026, test_gui_usability; the cause was a handler Aravis'
+# heartbeat thread ran, docs/cameras.md). Now faulthandler writes every thread's Python stack into a
+# pipe when the trap comes, without the GIL; the trap then returns (a Python-level handler is chained
+# after it, so SIGTRAP no longer ends the process at once) and GLib's thread spins in g_error's loop. A
+# thread of this process reads the pipe, takes GLib's message from pytest's capture, writes both to
+# the terminal and the message to the note tests/run.sh prints last, and ends the process (status 70).
+# Forked children get SIGTRAP's default back. If the erring thread holds the GIL, the watchdog ends
+# the test later with the stacks, as before.
+
+#: exit status of a pytest process that GLib's fatal error ended
+GLIB_TRAP_STATUS = 70
+
+
+def _report_glib_traps(config) -> None:
+    read_fd, write_fd = os.pipe()
+    signal.signal(signal.SIGTRAP, lambda signum, frame: None)
+    faulthandler.register(signal.SIGTRAP, file=write_fd, all_threads=True, chain=True)
+
+    def default_in_child():
+        faulthandler.unregister(signal.SIGTRAP)
+        signal.signal(signal.SIGTRAP, signal.SIG_DFL)
+
+    os.register_at_fork(after_in_child=default_in_child)
+    threading.Thread(target=_glib_trap_reporter, args=(config, read_fd), name="tirdeflect-glib-trap",
+                     daemon=True).start()
+
+
+def _glib_trap_reporter(config, read_fd: int) -> None:
+    import select
+
+    stacks = os.read(read_fd, 1 << 20)  # blocks until a trap
+    while select.select([read_fd], [], [], 0.5)[0]:  # the rest of the stacks, written at once
+        chunk = os.read(read_fd, 1 << 20)
+        if not chunk:
+            break
+        stacks += chunk
+    header = stacks.split(b"\n", 1)[0]
+    again = stacks.find(header, len(header))  # g_log traps twice (its writer, then g_logv): one copy
+    if header and again > 0:
+        stacks = stacks[:again]
+    err = ""
+    capman = config.pluginmanager.getplugin("capturemanager")
+    try:
+        err = capman.read_global_capture().err if capman is not None else ""
+    except Exception:  # capture not running (pytest -s): GLib's message is on the terminal already
+        pass
+    lines = [line.strip() for line in (err or "").splitlines() if "-ERROR **" in line or "-CRITICAL **" in line]
+    message = lines[-1] if lines else "(no GLib message in the captured output)"
+    out = config._tirdeflect_watchdog_out
+    out.write(f"\nGLib ended this process (SIGTRAP): {message}\nEvery thread's Python stack at the trap:\n"
+              f"{stacks.decode(errors='replace')}\n")
+    out.flush()
+    with open(config._tirdeflect_watchdog_note, "a") as f:
+        f.write(f"GLib ended it (SIGTRAP): {message}\n")
+    os._exit(GLIB_TRAP_STATUS)
 
 
 def _note(config, text: str) -> None:

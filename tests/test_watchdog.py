@@ -74,3 +74,48 @@ def test_a_deadlocked_test_ends_the_run_with_its_name_and_every_stack(tmp_path):
     passed = re.search(r"(\d+) passed", out)
     n_passed = int(passed.group(1)) if passed else 0
     assert n_passed <= N_ORDINARY // 2 - 10, f"{n_passed} of {N_ORDINARY} ran: the run did not stop\n{out[-3000:]}"
+
+
+TRAPPED = '''
+import ctypes
+import threading
+import time
+
+
+def test_glib_fatal_error_in_a_thread():
+    glib = ctypes.CDLL("{library}")
+    glib.g_log.argtypes = [ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_char_p]
+    G_LOG_LEVEL_ERROR = 1 << 2
+    erring = threading.Thread(target=glib.g_log, args=(b"TirdeflectTest", G_LOG_LEVEL_ERROR, b"%s",
+                                                       b"a fatal error raised by the test"))
+    erring.start()
+    time.sleep(60)  # the report ends this process long before
+'''
+
+
+@pytest.mark.timeout(120)  # hang detector: the run below takes ~3 s
+def test_a_fatal_glib_error_ends_the_run_with_its_message_the_test_and_every_stack(tmp_path):
+    """GLib's g_error (Qt's event loop, Aravis) raises SIGTRAP: its one-line message used to be lost with the
+    process (pytest's capture file); now it reaches the terminal and the note tests/run.sh prints last."""
+    import ctypes.util
+
+    from tests.conftest import GLIB_TRAP_STATUS
+
+    library = ctypes.util.find_library("glib-2.0")
+    if library is None:
+        pytest.skip("no GLib on this machine")
+    (tmp_path / "test_trapped.py").write_text(textwrap.dedent(TRAPPED.format(library=library)))
+    note = tmp_path / "watchdog-note"
+    env = dict(os.environ, TIRDEFLECT_WATCHDOG_NOTE=str(note))
+    env.pop("PYTEST_XDIST_WORKER", None)
+    run = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "tests.conftest",
+         "--rootdir", str(ROOT), "-c", str(ROOT / "pyproject.toml"), str(tmp_path / "test_trapped.py")],
+        cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, timeout=100)
+    out = run.stdout
+    assert run.returncode == GLIB_TRAP_STATUS, out[-3000:]
+    assert re.search(r"GLib ended this process \(SIGTRAP\): .*TirdeflectTest-ERROR \*\*.*a fatal error raised "
+                     r"by the test", out), out[-3000:]
+    assert re.search(r'File ".*test_trapped\.py", line \d+ in test_glib_fatal_error_in_a_thread', out), out[-3000:]
+    text = note.read_text()
+    assert "test_glib_fatal_error_in_a_thread" in text and "a fatal error raised by the test" in text, text
