@@ -203,6 +203,9 @@ def _canary_bytes(data: np.ndarray, canary: np.ndarray, min_run: int = 8) -> np.
     return lost
 
 
+#: The watchdog's reason when a GigE camera's control channel privilege register reads 0
+CONTROL_TAKEN = "control taken"
+
 #: How long stop() and close() wait for Aravis to stop a camera or let go of its objects (s). A live
 #: camera's take milliseconds; a dead GigE camera's wait for GVCP timeouts (measured: 2.5 s to stop
 #: acquisition, 7.5 s to free the stream), which then go on in a daemon thread. Without this bound a
@@ -496,8 +499,7 @@ class AravisCamera(Camera):
                 return
             if error is None and gige and not int(value) & 0x3:
                 if not me._lost.is_set():
-                    me._lost_reason = ("the camera no longer lists this program as its controller (another "
-                                       "program took it, or it restarted)")
+                    me._lost_reason = CONTROL_TAKEN
                 me._lost.set()
             elif error is None:
                 me._last_alive = time.monotonic()
@@ -514,6 +516,9 @@ class AravisCamera(Camera):
             if silent_s > self.lost_timeout_s:
                 self._lost_reason = self._lost_reason or f"no register read succeeded for {silent_s:.1f} s"
                 self._lost.set()
+        if self._lost.is_set() and self._lost_reason == CONTROL_TAKEN:
+            raise CameraLost(f"{self.camera_id} no longer lists this program as its controller (another program took "
+                             "it, or the camera restarted); close the other program, then reopen the camera")
         if self._lost.is_set():
             raise CameraLost(
                 f"{self.camera_id} stopped answering ({self._lost_reason}); check power, cable and network, then reopen it"
