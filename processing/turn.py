@@ -257,7 +257,9 @@ class TurnGauge:
             w = self._per_u
             if not v.all():
                 u = np.where(v, u, np.float32(0.0))
-            turn = float(np.vdot(w[0], u[0]) + np.vdot(w[1], u[1]))
+            # numpy's own loop, not BLAS: OpenBLAS ran this float64 dot on a second thread that then
+            # spun, and the live worker took 2 cores where it has 1 (the window's raw view lost frames)
+            turn = float(np.einsum("kij,kij->", w, u, dtype=np.float64))
             cells = None
         else:
             cells = self.inner & v[:-1, :-1] & v[1:, :-1] & v[:-1, 1:] & v[1:, 1:]

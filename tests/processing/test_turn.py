@@ -157,3 +157,47 @@ def test_a_frame_valid_everywhere_is_judged_as_the_cells_circulations_say(board_
         masked = gauge(np.where(valid, u, np.nan), valid)
         assert masked.turn_mrad == pytest.approx(np.sum((c * unit)[cells]) / np.sum((unit ** 2)[cells]), rel=1e-9)
         assert masked.cells == cells.sum()
+
+
+ONE_THREAD = """
+import os, time
+import numpy as np
+from processing import forward as F
+from processing.patterns import Checkerboard
+from processing.reconstruct import Reconstructor
+from tests.processing.test_reconstruct import G55
+
+n = 512  # with a 1 mm board, a decimated grid of 25,600 samples: OpenBLAS threads dot products
+board = Checkerboard(period_mm=1.0, edge_softness_mm=0.05)  # of 10,000 and more
+rec = Reconstructor(F.quantize(F.render_tir(F.FlatSurface(), G55, (n, n), board, supersample=1)[0], bits=8),
+                    G55, threads=1)
+bump = F.GaussianBump(amplitude_mm=0.002, sigma_mm=4.0)
+frame = F.quantize(F.render_tir(bump, G55, (n, n), board, supersample=1)[0], bits=8)
+res = rec(frame, grid="decimated")
+assert res.height.size >= 10_000 and res.turn is not None and res.valid.all()
+process_0, thread_0 = os.times(), time.thread_time()
+for _ in range(40):
+    rec(frame, grid="decimated")
+process_1, thread_1 = os.times(), time.thread_time()
+print((process_1.user - process_0.user) + (process_1.system - process_0.system), thread_1 - thread_0)
+"""
+
+
+def test_the_live_chain_with_one_thread_computes_in_one_thread():
+    """``threads=1`` is the live worker's budget (a 2-core PC: the other core draws the window). The
+    turn check's float64 dot product once went through OpenBLAS, which ran it on a second thread that
+    then spun: the worker took 2 cores, and the window's raw view showed 43 of 60 frames a second at
+    512^2 (benchmarks/bench_gui.py). Measured as CPU time in a process of its own (nothing else runs
+    there), so a loaded machine cannot fail it: every thread of that process together against the
+    thread that reconstructs (2.2x with OpenBLAS' thread, 1.0x now)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    run = subprocess.run([sys.executable, "-c", ONE_THREAD], cwd=root, capture_output=True, text=True,
+                         timeout=200)  # hang detector: about 5 s
+    assert run.returncode == 0, run.stderr[-2000:]
+    process_s, this_thread_s = (float(x) for x in run.stdout.split())
+    # the process's clock ticks are 10 ms: allow them and a little of the interpreter's own
+    assert process_s <= 1.25 * this_thread_s + 0.05, (process_s, this_thread_s)
