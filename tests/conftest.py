@@ -130,14 +130,14 @@ def pytest_configure(config):
 # -- a fatal GLib error is named --------------------------------------------------------------
 # GLib's fatal errors (g_error: Qt's event loop, Aravis) end the process with SIGTRAP. Its one-line
 # message went to the test's capture file and was lost with the process: the CI printed "worker 'gw0'
-# crashed" and nothing else, twice (6 Dec 2026, test_gui_usability; the cause was a handler Aravis'
-# heartbeat thread ran, docs/cameras.md). Now faulthandler writes every thread's Python stack into a
-# pipe when the trap comes, without the GIL; the trap then returns (a Python-level handler is chained
-# after it, so SIGTRAP no longer ends the process at once) and GLib's thread spins in g_error's loop. A
-# thread of this process reads the pipe, takes GLib's message from pytest's capture, writes both to
-# the terminal and the message to the note tests/run.sh prints last, and ends the process (status 70).
-# Forked children get SIGTRAP's default back. If the erring thread holds the GIL, the watchdog ends
-# the test later with the stacks, as before.
+# crashed" and nothing else, twice (6 Dec 2026, test_gui_usability; the likeliest cause, reproduced
+# outside pytest: a handler that Aravis' heartbeat thread ran, docs/cameras.md). Now faulthandler
+# writes every thread's Python stack into a pipe when the trap comes, without the GIL; the trap then
+# returns (a Python-level handler is chained after it, so SIGTRAP no longer ends the process at once)
+# and GLib's thread spins in g_error's loop. A thread of this process reads the pipe, takes GLib's
+# message from pytest's capture, writes both to the terminal and the message to the note tests/run.sh
+# prints last, and ends the process (status 70). Forked children get SIGTRAP's default back. If the
+# erring thread holds the GIL, the watchdog ends the test later with the stacks, as before.
 
 #: exit status of a pytest process that GLib's fatal error ended
 GLIB_TRAP_STATUS = 70
@@ -167,7 +167,7 @@ def _glib_trap_reporter(config, read_fd: int) -> None:
             break
         stacks += chunk
     header = stacks.split(b"\n", 1)[0]
-    again = stacks.find(header, len(header))  # g_log traps twice (its writer, then g_logv): one copy
+    again = stacks.find(header, len(header))  # one g_log call trapped twice (seen): keep one copy
     if header and again > 0:
         stacks = stacks[:again]
     err = ""
