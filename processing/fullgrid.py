@@ -383,6 +383,9 @@ def full_ifft(chain, wins, u, u_first, valid, amplitude, phase, timings, t3):
     uf = d.phase_to_displacement(full_phase)
     corr = np.nan_to_num(np.where(valid, u - u_first, 0.0))
     uf = uf + np.stack([up(corr[0]), up(corr[1])])
+    _, turn = chain.judge_turn(u, valid)
+    if turn.removed:  # the turn taken out as the decimated chain does, here on every pixel
+        uf = uf - chain.turn_gauge().field(turn.turn_mrad, np.arange(rows), np.arange(cols), turn.removed)
     uf = np.where(valid_full, uf, np.nan).astype(np.float32)
     surf = surface_from_displacement(uf, valid_full, chain.geometry, rows_px=np.arange(rows, dtype=float),
                                      cols_px=np.arange(cols, dtype=float), frame_shape=chain.shape,
@@ -396,5 +399,4 @@ def full_ifft(chain, wins, u, u_first, valid, amplitude, phase, timings, t3):
                   y_mm=np.asarray(surf.y_mm), grid="full",
                   rows_px=np.arange(rows, dtype=float), cols_px=np.arange(cols, dtype=float),
                   carriers=chain.carriers, phase=np.asarray(phase, np.float32),
-                  valid_fraction=float(valid_full.mean()), timings_ms=timings, pin=surf.pin,
-                  turn=chain.turn_gauge()(u, valid))
+                  valid_fraction=float(valid_full.mean()), timings_ms=timings, pin=surf.pin, turn=turn)
