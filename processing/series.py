@@ -17,7 +17,7 @@ import numpy as np
 
 from .pin import PIN_MIN_PIECE_SAMPLES
 from .result import SeriesCheck
-from .unwrap import TWO_PI, has_wraps, jumps_only_at_residues, unwrap_spatial, unwrap_temporal, wrap
+from .unwrap import TWO_PI, has_wraps, jumps_only_at_residues, median_turn, unwrap_spatial, unwrap_temporal, wrap
 
 __all__ = ["SeriesState", "SERIES_MAX_SLIP_FRACTION", "SERIES_MAX_PIN_SHIFT", "EMPTY", "unwrap_phase",
            "after_unwrap", "check_series", "copy_check"]
@@ -167,12 +167,8 @@ def _unwrap_temporal_all_valid(wrapped, prev, ref_idx):
     out = prev + delta
     if ref_idx.size:
         vals = out.reshape(2, -1)[:, ref_idx]
-        lo = vals.min(axis=1)
-        hi = vals.max(axis=1)
         for s in range(2):
-            # median within (-pi, pi): the 2 pi multiple nearest it is 0
-            if not (lo[s] > -pi and hi[s] < pi):
-                out[s] -= TWO_PI * np.round(np.median(vals[s]) / TWO_PI)
+            out[s] -= median_turn(vals[s])
     return out
 
 

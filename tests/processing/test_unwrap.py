@@ -200,3 +200,55 @@ def test_compiled_path_following_is_refused_where_its_jumps_are_not_at_residues(
     path_follow(wrap(truth), valid, out)
     assert has_wraps(out, valid)  # it ran and left a cut
     assert U._unwrap_path_following(wrap(truth), valid) is None
+
+
+def test_the_plain_flood_fill_is_path_followings_unwrapping_wherever_it_accepts():
+    """The flood fill that unwrap_spatial tries before path following (no reliability order, a few
+    times cheaper) is accepted only when consistent, and then gives path following's result on every
+    connected region up to one 2 pi multiple; a map with a residue it refuses.  Smooth fields of 2-30
+    rad with masks, stripes and noise of 0-1 rad, some with residues and some without."""
+    from scipy import ndimage
+
+    from processing.unwrap_kernels import flood_fill
+
+    rng = np.random.default_rng(7)
+    accepted = refused = 0
+    for _ in range(60):
+        rows, cols = (int(v) for v in rng.integers(20, 120, 2))
+        r, c = np.mgrid[:rows, :cols]
+        truth = np.zeros((rows, cols))
+        for _ in range(3):
+            truth += rng.uniform(2, 30) * np.sin(r / rng.uniform(6, 40) + rng.uniform(0, 6)) * np.cos(c / rng.uniform(6, 40))
+        truth += rng.normal(0, rng.choice([0.0, 0.3, 1.0]), truth.shape)
+        valid = rng.random(truth.shape) > rng.choice([0.0, 0.05, 0.3])
+        valid[rows // 3: rows // 2] &= rng.random() < 0.5  # sometimes a masked stripe: two regions
+        work = np.where(valid, wrap(truth), 0.0)
+        fill = np.zeros(truth.shape)
+        if not flood_fill(work, valid, fill):
+            refused += 1
+            continue
+        accepted += 1
+        assert not has_wraps(fill, valid)
+        followed = np.zeros(truth.shape)
+        path_follow(work, valid, followed)
+        labels, n_regions = ndimage.label(valid)
+        for k in range(1, n_regions + 1):
+            turns = (fill - followed)[labels == k] / (2 * np.pi)
+            assert np.ptp(turns) < 1e-9 and abs(turns[0] - round(turns[0])) < 1e-9
+    assert accepted >= 10 and refused >= 10
+
+    n = 100  # one phase singularity: no consistent unwrapping exists
+    y, x = np.mgrid[0:n, 0:n].astype(float)
+    spiral = np.arctan2(y - 30.5, x - 70.5)
+    assert not flood_fill(wrap(spiral), np.ones((n, n), bool), np.zeros((n, n)))
+
+
+def test_the_median_turn_is_the_2pi_multiple_nearest_the_median():
+    """median_turn reads the multiple from the extremes when they agree; it is always
+    2 pi round(median / 2 pi), whether the values span one multiple or several."""
+    from processing.unwrap import median_turn
+
+    rng = np.random.default_rng(11)
+    for _ in range(300):
+        values = rng.normal(rng.uniform(-20, 20), rng.choice([0.1, 1.0, 5.0]), int(rng.integers(1, 400)))
+        assert median_turn(values) == 2 * np.pi * np.round(np.median(values) / (2 * np.pi))
