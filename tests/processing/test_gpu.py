@@ -207,7 +207,10 @@ def test_the_gpu_profile_runs_through(tmp_path):
     assert len(rows) == 4, r.stdout
     for line in rows:
         wall, stages = map(float, re.search(r"([\d.]+) ms/frame wall \(stages ([\d.]+)\)", line).groups())
-        assert 0.5 * wall <= stages <= 1.05 * wall, line  # loose: a loaded machine preempts between stages
+        # loose: a loaded machine preempts between stages, for a scheduler tick or more (up to 4 ms):
+        # on the decimated rows' 1-2 ms a frame one preemption is half the wall time (it failed so
+        # once under pytest -n 2), so there the names below are the check
+        assert stages <= 1.05 * wall and (stages >= 0.5 * wall or wall - stages < 5.0), line
         for stage in ("demodulate", "unwrap", "height", "results") + (("warp_smooth",) if "full" in line else ()):
             assert f" {stage} " in line, line
     assert "live single frame:" in r.stdout
