@@ -142,11 +142,12 @@ def flood_fill(phase, valid, out):  # pragma: no cover - compiled
     """Unwrap ``phase`` (float64, 2-D, radians, wrapped) on ``valid`` (bool,
     same shape) into ``out`` (float64, same shape; left as given outside
     ``valid``) by a plain flood fill, each sample from the neighbour that
-    reached it; True when the result is consistent (no two valid
-    4-neighbours differ by pi or more), False at the first pair that does
-    (``out`` is then partly written and must not be used).
+    reached it; when the result is consistent (no two valid
+    4-neighbours differ by pi or more): the number of connected regions of
+    ``valid`` (4-neighbours, as ``scipy.ndimage.label``), or -1 at the first
+    pair that does (``out`` is then partly written and must not be used).
 
-    Where it returns True the map has no residue (a residue forces a jump
+    Where it returns a count the map has no residue (a residue forces a jump
     on one of its cell's sides), so its consistent unwrapping is unique up
     to one 2 pi multiple per connected region: :func:`path_follow`'s, at a
     few times less cost (no reliability levels, no queue by level; on the
@@ -161,9 +162,11 @@ def flood_fill(phase, valid, out):  # pragma: no cover - compiled
     flat_out = out.reshape(n)
     done = np.zeros(n, np.uint8)
     stack = np.empty(n, np.int32)
+    regions = 0
     for seed in range(n):
         if not flat_valid[seed] or done[seed]:
             continue
+        regions += 1
         done[seed] = 1
         flat_out[seed] = flat_phase[seed]
         top = 0
@@ -196,13 +199,13 @@ def flood_fill(phase, valid, out):  # pragma: no cover - compiled
                     continue
                 if done[b]:
                     if abs(flat_out[b] - va) >= pi:
-                        return False
+                        return -1
                     continue
                 done[b] = 1
                 flat_out[b] = va + _wrap(flat_phase[b] - pa)
                 top += 1
                 stack[top] = b
-    return True
+    return regions
 
 
 @numba.njit(nogil=True, cache=True)

@@ -205,7 +205,8 @@ def test_compiled_path_following_is_refused_where_its_jumps_are_not_at_residues(
 def test_the_plain_flood_fill_is_path_followings_unwrapping_wherever_it_accepts():
     """The flood fill that unwrap_spatial tries before path following (no reliability order, a few
     times cheaper) is accepted only when consistent, and then gives path following's result on every
-    connected region up to one 2 pi multiple; a map with a residue it refuses.  Smooth fields of 2-30
+    connected region up to one 2 pi multiple, and counts the regions as ndimage.label does; a map
+    with a residue it refuses (-1).  Smooth fields of 2-30
     rad with masks, stripes and noise of 0-1 rad, some with residues and some without."""
     from scipy import ndimage
 
@@ -224,7 +225,8 @@ def test_the_plain_flood_fill_is_path_followings_unwrapping_wherever_it_accepts(
         valid[rows // 3: rows // 2] &= rng.random() < 0.5  # sometimes a masked stripe: two regions
         work = np.where(valid, wrap(truth), 0.0)
         fill = np.zeros(truth.shape)
-        if not flood_fill(work, valid, fill):
+        regions = flood_fill(work, valid, fill)
+        if regions < 0:
             refused += 1
             continue
         accepted += 1
@@ -232,6 +234,7 @@ def test_the_plain_flood_fill_is_path_followings_unwrapping_wherever_it_accepts(
         followed = np.zeros(truth.shape)
         path_follow(work, valid, followed)
         labels, n_regions = ndimage.label(valid)
+        assert regions == n_regions
         for k in range(1, n_regions + 1):
             turns = (fill - followed)[labels == k] / (2 * np.pi)
             assert np.ptp(turns) < 1e-9 and abs(turns[0] - round(turns[0])) < 1e-9
@@ -240,7 +243,7 @@ def test_the_plain_flood_fill_is_path_followings_unwrapping_wherever_it_accepts(
     n = 100  # one phase singularity: no consistent unwrapping exists
     y, x = np.mgrid[0:n, 0:n].astype(float)
     spiral = np.arctan2(y - 30.5, x - 70.5)
-    assert not flood_fill(wrap(spiral), np.ones((n, n), bool), np.zeros((n, n)))
+    assert flood_fill(wrap(spiral), np.ones((n, n), bool), np.zeros((n, n))) == -1
 
 
 def test_the_median_turn_is_the_2pi_multiple_nearest_the_median():
