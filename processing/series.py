@@ -252,7 +252,7 @@ def _disagrees_with_spatial(phase, valid, ref_mask):
     anchored = anchored[anchored > 0]
     if not anchored.size and count:
         anchored = np.array([1 + int(np.argmax(np.bincount(labels[valid])[1:]))])
-    judged = np.isin(labels, anchored)
+    judged = labels == anchored[0] if anchored.size == 1 else np.isin(labels, anchored)
     out = np.zeros(valid.shape, bool)
     for s in range(2):
         # One judged region on which the series' phase has no jump over pi between valid neighbours
