@@ -419,6 +419,15 @@ def _descendants(pid: int, table: dict[int, tuple[int, int]]) -> set[int]:
     return found
 
 
+def _ancestors(pid: int, table: dict[int, tuple[int, int]]) -> set[int]:
+    """``pid``'s parent, its parent, ... up to (not including) init."""
+    found = set()
+    while pid in table and table[pid][0] > 1 and table[pid][0] not in found:
+        pid = table[pid][0]
+        found.add(pid)
+    return found
+
+
 def _cmdline(pid: int) -> str:
     try:
         with open(f"/proc/{pid}/cmdline", "rb") as f:
@@ -473,8 +482,12 @@ def _left_running(session) -> list[int]:
     except Exception:  # noqa: BLE001 - no temporary directory was made
         pass
     below = _descendants(me, table)
+    # what runs this run is not left by it: a wrapper started in the same clock tick from the
+    # checkout and orphaned (`setsid nohup timeout ... pytest &`) looked like an orphan of the
+    # tests, and was ended with the run inside it before its summary
+    above = _ancestors(me, table)
     pids = [pid for pid, (parent, start) in table.items()
-            if pid != me and pid_alive(pid)
+            if pid != me and pid not in above and pid_alive(pid)
             and (pid in below or (parent == 1 and start >= started
                                   and (_tagged(pid, tag) if tag else _ours(pid, places))))]
     # multiprocessing's resource tracker, and the app's fork server (app/worker_processes.py: its
