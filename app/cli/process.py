@@ -21,6 +21,7 @@ The work is done by :mod:`app.batch`; this module parses arguments and prints.
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 
 import numpy as np
 
@@ -206,7 +207,8 @@ def add_compare_parser(sub) -> None:
         "of the field, after removing each map's mean over the geometry's reference region.",
     )
     p.add_argument("out", metavar="OUT.h5", help="output of tirdeflect process")
-    p.add_argument("truth", metavar="heights.h5", help="heights.h5 of tirdeflect simulate")
+    p.add_argument("truth", metavar="heights.h5",
+                   help="heights.h5 of tirdeflect simulate (or the directory it wrote, which holds it)")
     p.add_argument("--margin", type=float, default=0.125, metavar="F",
                    help="border left out on each side, as a fraction of the size (default 0.125)")
     p.add_argument("--max-error", type=float, default=None, metavar="REL",
@@ -280,7 +282,11 @@ def cmd_simulate(args) -> int:
 
 
 def cmd_compare(args) -> int:
-    """Run ``tirdeflect compare``; 0, or 1 if --max-error is exceeded."""
+    """Run ``tirdeflect compare``; 0, or 1 if --max-error is exceeded.  The truth may be given
+    as the directory ``tirdeflect simulate`` wrote (its ``heights.h5``)."""
+    truth = Path(args.truth)
+    if truth.is_dir() and (truth / "heights.h5").is_file():
+        args.truth = str(truth / "heights.h5")
     for path, what in ((args.out, "processed file"), (args.truth, "truth file")):
         check_input_file(path, what)
     if not 0 <= args.margin < 0.5:

@@ -126,6 +126,10 @@ def test_round_trip_height_error_within_2_percent(tmp_path, capsys, surface, bit
     # pin region, this test over the geometry's reference region (at 0.16 % error they differ by 0.007)
     np.testing.assert_allclose(figures, np.array(rels) * 100, rtol=0.05, atol=0.006)
     assert main(["compare", str(out), str(d / "heights.h5"), "--max-error", str(min(rels) / 2)]) == 1
+    # the directory simulate wrote, as the help's "DIR/heights.h5" reads: the same figures
+    capsys.readouterr()
+    assert main(["compare", str(out), str(d)]) == 0
+    assert [float(x) for x in re.findall(r"^\s*\d+\s+([\d.]+) %", capsys.readouterr().out, re.M)] == figures
 
 
 def test_output_layout_matches_docs(sim, tmp_path, capsys):
