@@ -114,7 +114,10 @@ def rel_rms_error(height, truth, geometry_path):
 #: these runs of small frames last about a second, and the fault must land between
 #: two flushes, mid-run, after the frames the log reported written (flushed)
 _CHILD = """
-import sys
+import signal, sys
+# Ctrl-C as at a terminal, even when the suite itself runs with SIGINT ignored (a background job
+# of a script: `bash tests/run.sh &`), which the child would inherit and keep (as it must, for nohup)
+signal.signal(signal.SIGINT, signal.default_int_handler)
 import app.batch.writer
 app.batch.writer.FLUSH_INTERVAL_S = 0.02
 {extra}
