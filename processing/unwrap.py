@@ -289,6 +289,16 @@ def unwrap_spatial(phase, valid=None, *, ref_mask=None) -> np.ndarray:
     valid = valid & np.isfinite(phase)
     if not valid.any():
         return np.full(phase.shape, np.nan)
+    out, regions = _unwrapped(phase, valid)
+    out = _align_components(out, valid, ref_mask, regions)
+    return np.where(valid, out, np.nan)
+
+
+def _unwrapped(phase, valid):
+    """``(out, regions)``: ``phase`` (float64) unwrapped on ``valid`` (bool, some True; 0 elsewhere)
+    up to one 2 pi multiple per connected region, by the first of :func:`unwrap_spatial`'s methods
+    that is accepted; ``regions`` the number of connected regions where the flood fill counted
+    them, else None."""
     work = np.where(valid, phase, 0.0)
     regions = None
     if has_wraps(work, valid):
@@ -316,8 +326,7 @@ def unwrap_spatial(phase, valid=None, *, ref_mask=None) -> np.ndarray:
                 out = unwrap_phase(np.ma.masked_array(work, mask=~valid)).filled(0.0)
     else:
         out = work
-    out = _align_components(out, valid, ref_mask, regions)
-    return np.where(valid, out, np.nan)
+    return out, regions
 
 
 _GROW_STEPS = 16  # samples newly valid within this many steps of the common ones are grown into
@@ -407,8 +416,14 @@ def unwrap_temporal(phase, previous, valid=None, previous_valid=None, *, ref_mas
         return unwrap_spatial(phase, valid, ref_mask=ref_mask)
     prev0 = np.where(both, previous, 0.0)
     delta = wrap(np.where(both, phase, 0.0) - prev0)
+    anchored = ref_mask is not None and bool(np.any(ref_mask & valid))
     if has_wraps(delta, both):
-        delta = unwrap_spatial(delta, both)  # each island's median change nearest 0
+        delta, regions = _unwrapped(delta, both)
+        # each island's median change nearest 0; one island's 2 pi multiple is the whole map's,
+        # which the reference region's anchoring below sets (the same heights, a median less)
+        if not (regions == 1 and anchored):
+            delta = _align_components(delta, both, None, regions)
+        delta = np.where(both, delta, np.nan)
     out = prev0 + delta
     only_now = valid & ~both
     if only_now.any():
@@ -420,9 +435,7 @@ def unwrap_temporal(phase, previous, valid=None, previous_valid=None, *, ref_mas
         out[only_now] = spatial[only_now]
     # keep the reference region's phase nearest 0 (its median may drift by 2 pi
     # only if the region itself jumped, which then was spatially ambiguous)
-    if ref_mask is not None:
-        sel = ref_mask & valid
-        if sel.any():
-            out -= median_turn(out[sel])
+    if anchored:
+        out -= median_turn(out[ref_mask & valid])
     out[~valid] = np.nan
     return out
