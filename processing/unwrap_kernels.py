@@ -28,7 +28,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["flood_fill", "jump_over_pi", "jumps_off_residues", "path_follow"]
+__all__ = ["flood_fill", "grow_into", "jump_over_pi", "jumps_off_residues", "path_follow"]
 
 _TWO_PI = 2.0 * np.pi
 
@@ -206,6 +206,68 @@ def flood_fill(phase, valid, out):  # pragma: no cover - compiled
                 top += 1
                 stack[top] = b
     return regions
+
+
+@numba.njit(nogil=True, cache=True)
+def grow_into(out, phase, known, todo, rows, cols, steps):  # pragma: no cover - compiled
+    """:func:`processing.unwrap._grow_into`'s steps on flat arrays: ``out`` (float64, rows * cols,
+    written), ``phase`` (float64, wrapped), ``known`` (bool, written: a copy of the caller's),
+    ``todo`` (flat indices of the samples to unwrap).  Each step gives every sample of ``todo`` with
+    a ``known`` 4-neighbour (as the step began) the congruent value nearest the mean of
+    ``neighbour + wrap(phase - neighbour)`` over those neighbours (up, down, left, right, summed in
+    that order); returns the indices still to do after ``steps`` steps."""
+    todo = todo.copy()
+    m = todo.size
+    value = np.empty(m)
+    reached = np.zeros(m, np.bool_)
+    for _ in range(steps):
+        any_reached = False
+        for t in range(m):
+            a = todo[t]
+            i = a // cols
+            j = a - i * cols
+            p = phase[a]
+            acc = 0.0
+            cnt = 0.0
+            for d in range(4):
+                if d == 0:
+                    if i == 0:
+                        continue
+                    b = a - cols
+                elif d == 1:
+                    if i == rows - 1:
+                        continue
+                    b = a + cols
+                elif d == 2:
+                    if j == 0:
+                        continue
+                    b = a - 1
+                else:
+                    if j == cols - 1:
+                        continue
+                    b = a + 1
+                if known[b]:
+                    v = out[b]
+                    acc += v + _wrap(p - v)
+                    cnt += 1.0
+            reached[t] = cnt > 0.0
+            if cnt > 0.0:
+                value[t] = p + _TWO_PI * np.rint((acc / cnt - p) / _TWO_PI)
+                any_reached = True
+        if not any_reached:
+            break
+        k = 0
+        for t in range(m):
+            if reached[t]:
+                out[todo[t]] = value[t]
+                known[todo[t]] = True
+            else:
+                todo[k] = todo[t]
+                k += 1
+        m = k
+        if m == 0:
+            break
+    return todo[:m].copy()
 
 
 @numba.njit(nogil=True, cache=True)
