@@ -137,6 +137,19 @@ def path_follow(phase, valid, out):  # pragma: no cover - compiled
                 out[i, j] = flat_out[(i + 1) * width + j + 1]
 
 
+@numba.njit(nogil=True, cache=True, inline="always")
+def _neighbour(a, i, j, d, rows, cols):  # pragma: no cover - compiled
+    """Flat index of the ``d``-th 4-neighbour (up, down, left, right) of sample ``a`` at row ``i``,
+    column ``j`` of a ``rows`` x ``cols`` map; -1 beyond its edge."""
+    if d == 0:
+        return a - cols if i > 0 else -1
+    if d == 1:
+        return a + cols if i < rows - 1 else -1
+    if d == 2:
+        return a - 1 if j > 0 else -1
+    return a + 1 if j < cols - 1 else -1
+
+
 @numba.njit(nogil=True, cache=True)
 def flood_fill(phase, valid, out):  # pragma: no cover - compiled
     """Unwrap ``phase`` (float64, 2-D, radians, wrapped) on ``valid`` (bool,
@@ -179,23 +192,8 @@ def flood_fill(phase, valid, out):  # pragma: no cover - compiled
             va = flat_out[a]
             pa = flat_phase[a]
             for d in range(4):
-                if d == 0:
-                    if i == 0:
-                        continue
-                    b = a - cols
-                elif d == 1:
-                    if i == rows - 1:
-                        continue
-                    b = a + cols
-                elif d == 2:
-                    if j == 0:
-                        continue
-                    b = a - 1
-                else:
-                    if j == cols - 1:
-                        continue
-                    b = a + 1
-                if not flat_valid[b]:
+                b = _neighbour(a, i, j, d, rows, cols)
+                if b < 0 or not flat_valid[b]:
                     continue
                 if done[b]:
                     if abs(flat_out[b] - va) >= pi:
@@ -230,23 +228,8 @@ def grow_into(out, phase, known, todo, rows, cols, steps):  # pragma: no cover -
             acc = 0.0
             cnt = 0.0
             for d in range(4):
-                if d == 0:
-                    if i == 0:
-                        continue
-                    b = a - cols
-                elif d == 1:
-                    if i == rows - 1:
-                        continue
-                    b = a + cols
-                elif d == 2:
-                    if j == 0:
-                        continue
-                    b = a - 1
-                else:
-                    if j == cols - 1:
-                        continue
-                    b = a + 1
-                if known[b]:
+                b = _neighbour(a, i, j, d, rows, cols)
+                if b >= 0 and known[b]:
                     v = out[b]
                     acc += v + _wrap(p - v)
                     cnt += 1.0
