@@ -394,12 +394,13 @@ def unwrap_temporal(phase, previous, valid=None, previous_valid=None, *, ref_mas
     delta = wrap(np.where(both, phase, 0.0) - prev0)
     anchored = ref_mask is not None and bool(np.any(ref_mask & valid))
     if has_wraps(delta, both):
-        delta, regions = _unwrapped(delta, both)
+        changed = both & np.isfinite(delta)
+        delta, regions = _unwrapped(delta, changed)
         # each island's median change nearest 0; one island's 2 pi multiple is the whole map's,
         # which the reference region's anchoring below sets (the same heights, a median less)
         if not (regions == 1 and anchored):
-            delta = _align_components(delta, both, None, regions)
-        delta = np.where(both, delta, np.nan)
+            delta = _align_components(delta, changed, None, regions)
+        delta = np.where(changed, delta, np.nan)
     out = prev0 + delta
     only_now = valid & ~both
     if only_now.any():
