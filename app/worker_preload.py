@@ -3,9 +3,9 @@
 Importing it imports the modules every worker needs (the live measurement, the batch engine's
 worker side, the processing chain and its libraries) and then reconstructs one small synthetic
 checkerboard frame with the default options, one thread and FFTW's estimate planner (and calls the
-unwrapper's compiled path following once): the first call of each Numba kernel of the default chain
-loads it from Numba's cache and sets up Numba's compiler context (0.4 s on a quiet 2-core PC), once
-here instead of in every forked worker.
+unwrapper's compiled kernels and the masked height solve's operator once): the first call of each
+Numba kernel of the default chain loads it from Numba's cache and sets up Numba's compiler context
+(0.4 s on a quiet 2-core PC), once here instead of in every forked worker.
 
 Nothing here may end the server: a failure is ignored (the workers then load what they need
 themselves). OpenCV is kept at one thread during the warm-up and set back to its default after,
@@ -57,6 +57,13 @@ def warm_up(size_px: int = 96) -> bool:
         flood_fill(np.zeros((4, 4)), np.ones((4, 4), bool), np.zeros((4, 4)))
         grow_into(np.zeros(16), np.zeros(16), np.ones(16, bool), np.array([5]), 4, 4, 16)
         path_follow(np.zeros((4, 4)), np.ones((4, 4), bool), np.zeros((4, 4)))
+        # and the masked height solve's operator (a frame with invalid samples)
+        from processing.height_compiled import masked_normal_apply
+
+        f32 = np.float32
+        ones = np.ones((4, 4), f32)
+        masked_normal_apply(ones, ones[:, 1:], ones[1:], ones, f32(1), f32(1), np.zeros((0, 0)), np.zeros((0, 0)),
+                            np.zeros((4, 5), f32), np.zeros((5, 4), f32), np.empty((4, 4), f32))
         return True
     except Exception as exc:  # noqa: BLE001 - a warm-up only: the workers load what they need themselves
         log.debug("worker warm-up skipped: %s", exc)

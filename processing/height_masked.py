@@ -21,6 +21,7 @@ import numpy as np
 import scipy.fft as sfft
 
 from .errors import TirdeflectError
+from .height_compiled import masked_normal_apply
 from .height_kernels import cell_average, div_T, fft_workers
 
 __all__ = ["edge_data", "apply_A", "apply_AT", "solve_masked"]
@@ -78,13 +79,16 @@ def solve_masked(solver, gr, gc, v, tol=None):
     b = apply_AT(solver, (wc * ec).astype(f32), (wr * er).astype(f32))
     vf = v.astype(f32)
     denom = solver.denom.astype(f32)
+    # apply_A, the weights, apply_AT and the mask in one compiled call (the same values to the bit)
+    no_dk = np.zeros((0, 0))
+    dk_c, dk_r = (no_dk, no_dk) if solver.dk_c is None else (solver.dk_c, solver.dk_r)
+    dc, dr = f32(solver.grid.dc), f32(solver.grid.dr)
+    rows, cols = v.shape
+    ec_buf, er_buf = np.zeros((rows, cols + 1), f32), np.zeros((rows + 1, cols), f32)
 
     def op(x):
-        ac, ar = apply_A(solver, x)
-        ac *= wc
-        ar *= wr
-        out = apply_AT(solver, ac, ar)
-        out *= vf
+        out = np.empty(x.shape, f32)
+        masked_normal_apply(x, wc, wr, vf, dc, dr, dk_c, dk_r, ec_buf, er_buf, out)
         return out
 
     w = fft_workers(solver.shape)

@@ -128,6 +128,37 @@ def test_spectral_equals_masked_when_all_valid(rng):
         _solve(u, np.broadcast_to(np.arange(SHAPE[1]) > 3, SHAPE), g, solver="spectral")
 
 
+@pytest.mark.parametrize("camera_distance_mm", [None, 600.0])  # telecentric, finite distance (the dk terms)
+def test_the_compiled_masked_operator_is_the_numpy_one_to_the_bit(camera_distance_mm, rng):
+    # the masked solve's CG operator (height_compiled.masked_normal_apply) against the NumPy
+    # operators it replaced (apply_A, the edge weights, apply_AT, the sample weights)
+    from processing.height import solver_for
+    from processing.height_compiled import masked_normal_apply
+    from processing.height_masked import apply_A, apply_AT
+
+    f32 = np.float32
+    g = _tir(camera_distance_mm=camera_distance_mm)
+    for shape in ((61, 40), (37, 53)):
+        # spacings whose reciprocal is not exact in float32 (a division written as a product shows)
+        s = solver_for(g, np.arange(shape[0]) * 3.7 + 2, np.arange(shape[1]) * 3.3 + 2,
+                       (4 * shape[0] + 4, 4 * shape[1] + 4))
+        assert (s.dk_c is None) == (camera_distance_mm is None)
+        no_dk = np.zeros((0, 0))
+        dk_c, dk_r = (no_dk, no_dk) if s.dk_c is None else (s.dk_c, s.dk_r)
+        for invalid_share in (0.0, 0.05, 0.5):  # all valid, specks, fragments
+            v = rng.random(shape) >= invalid_share
+            wc = (v[:, 1:] & v[:, :-1]).astype(f32)
+            wr = (v[1:, :] & v[:-1, :]).astype(f32)
+            x = rng.standard_normal(shape).astype(f32)
+            ac, ar = apply_A(s, x)
+            want = apply_AT(s, ac * wc, ar * wr) * v.astype(f32)
+            got = np.empty(shape, f32)
+            masked_normal_apply(x, wc, wr, v.astype(f32), f32(s.grid.dc), f32(s.grid.dr), dk_c, dk_r,
+                                np.zeros((shape[0], shape[1] + 1), f32), np.zeros((shape[0] + 1, shape[1]), f32), got)
+            assert got.dtype == want.dtype
+            np.testing.assert_array_equal(got, want)
+
+
 def test_unreferenced_pieces_are_invalid_and_an_empty_reference_falls_back_or_refuses():
     g = _tir()
     X, Y = _xy(g)
