@@ -181,8 +181,11 @@ class RefinementDiverged(ArithmeticError):
 
 
 def _dot(a, b) -> float:
-    """Dot product without BLAS threads (they spin on a loaded 2-core machine)."""
-    return float(np.einsum("ij,ij->", a, b, dtype=np.float64))
+    """Dot product of two float32 node arrays in float64, without BLAS threads (they spin on a
+    loaded 2-core machine): :func:`processing.dic_kernels.dot64`."""
+    from .dic_kernels import dot64
+
+    return float(dot64(a, b))
 
 
 def _rms(u) -> float:

@@ -247,6 +247,17 @@ def test_compiled_normal_operator_is_the_numpy_one(camera_distance_mm):
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-5 * np.abs(want).max())
 
 
+def test_compiled_dot_is_the_float64_dot():
+    # dic_kernels.dot64 (the CG's dot products) against the products and the sum in float64
+    from processing.dic_kernels import dot64
+
+    rng = np.random.default_rng(4)
+    for shape in ((256, 256), (37, 61), (1, 1)):
+        a, b = (rng.standard_normal(shape).astype(np.float32) for _ in range(2))
+        want = float(np.dot(a.ravel().astype(np.float64), b.ravel().astype(np.float64)))
+        assert abs(dot64(a, b) - want) <= 1e-12 * float(np.sum(np.abs(a.astype(np.float64) * b)))
+
+
 def test_image_refinement_keeps_the_series_check(wave_frames):
     # the batch flags temporal-unwrapping slips and pin jumps from Result.series:
     # the image refinement takes it from FD's heights of the same frame
