@@ -522,7 +522,7 @@ class _NormalOperator:
         p = z.copy()
         rz = _dot(r, z)
         r0 = math.sqrt(_dot(r, r))
-        for _k in range(cg_iterations):
+        for k in range(cg_iterations):
             if r0 == 0.0 or not math.isfinite(rz):
                 break
             q = self.apply(p)
@@ -531,6 +531,8 @@ class _NormalOperator:
                 break
             al = np.float32(rz / pq)
             x += al * p
+            if k == cg_iterations - 1:
+                break  # the last step: no next search direction (its preconditioner and dot product unused)
             r -= al * q
             z = self.precondition(r)
             rz_new = _dot(r, z)

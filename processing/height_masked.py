@@ -113,34 +113,37 @@ def _dot(a, b):
 
 def _conjugate_gradients(op, prec, b, bnorm, tol, max_iter):
     """Preconditioned CG from ``prec(b)``: ``(x float64, iterations)``; a
-    TirdeflectError if the residual stays above ``100 tol |b|``."""
+    TirdeflectError if the residual stays above ``100 tol |b|``.  The residual
+    is tested as soon as it is updated, so the converged iteration spends no
+    preconditioner on a search direction that is not used (the same ``x``
+    and count as testing it at the top of the next iteration)."""
     f32 = np.float32
     dot = _dot
     x = prec(b)
     r = b - op(x)
-    z = prec(r)
-    p = z.copy()
-    rz = dot(r, z)
     it = 0
-    converged = False
-    for it in range(1, max_iter + 1):
-        if math.sqrt(dot(r, r)) <= tol * bnorm:
-            it -= 1
-            converged = True
-            break
-        q = op(p)
-        pq = dot(p, q)
-        if pq <= 0:
-            converged = True
-            break
-        a = rz / pq
-        x += f32(a) * p
-        r -= f32(a) * q
+    converged = math.sqrt(dot(r, r)) <= tol * bnorm
+    if not converged:
         z = prec(r)
-        rz_new = dot(r, z)
-        p *= f32(rz_new / rz)
-        p += z
-        rz = rz_new
+        p = z.copy()
+        rz = dot(r, z)
+        for it in range(1, max_iter + 1):
+            q = op(p)
+            pq = dot(p, q)
+            if pq <= 0:
+                converged = True
+                break
+            a = rz / pq
+            x += f32(a) * p
+            r -= f32(a) * q
+            if math.sqrt(dot(r, r)) <= tol * bnorm:
+                converged = True
+                break
+            z = prec(r)
+            rz_new = dot(r, z)
+            p *= f32(rz_new / rz)
+            p += z
+            rz = rz_new
     if not converged and math.sqrt(dot(r, r)) > 1e2 * tol * bnorm:
         raise TirdeflectError(
             f"masked height solver did not converge in {max_iter} iterations "
