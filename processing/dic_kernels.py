@@ -147,7 +147,7 @@ _FAST = dict(nogil=True, cache=True, fastmath={"reassoc", "contract"})
 
 @numba.njit(**_FAST)
 def _d1_rows(x, inv_s, out):  # pragma: no cover - compiled
-    """:func:`processing.dic_nodes._d1` along axis 0."""
+    """D1 (:func:`_d1_into`'s differences) along axis 0, times ``inv_s``, with fastmath (the CG's operator)."""
     n, m = x.shape
     c12, c8 = np.float32(1.0 / 12.0), np.float32(8.0 / 12.0)
     for i in range(2, n - 2):
@@ -163,7 +163,7 @@ def _d1_rows(x, inv_s, out):  # pragma: no cover - compiled
 
 @numba.njit(**_FAST)
 def _d1_cols(x, inv_s, out):  # pragma: no cover - compiled
-    """:func:`processing.dic_nodes._d1` along axis 1."""
+    """D1 along axis 1, as :func:`_d1_rows`."""
     n, m = x.shape
     c12, c8 = np.float32(1.0 / 12.0), np.float32(8.0 / 12.0)
     for i in range(n):

@@ -206,52 +206,6 @@ class NodeGrid:
 
 
 # ------------------------------------------------------------------ height on the node grid
-def _d1(x, s):
-    """First derivative along axis 0 (fourth-order central inside, second-order
-    at the ends), per ``s`` pixels of node spacing."""
-    y = np.empty_like(x)
-    y[2:-2] = (x[:-4] - x[4:] + 8.0 * (x[3:-1] - x[1:-3])) / 12.0
-    y[1] = 0.5 * (x[2] - x[0])
-    y[-2] = 0.5 * (x[-1] - x[-3])
-    y[0] = -1.5 * x[0] + 2.0 * x[1] - 0.5 * x[2]
-    y[-1] = 1.5 * x[-1] - 2.0 * x[-2] + 0.5 * x[-3]
-    y /= s
-    return y
-
-
-def _d1_T(y, s):
-    """Transpose of :func:`_d1`."""
-    z = np.zeros_like(y)
-    yi = y[2:-2] / 12.0
-    z[:-4] += yi
-    z[4:] -= yi
-    z[3:-1] += 8.0 * yi
-    z[1:-3] -= 8.0 * yi
-    z[0] -= 0.5 * y[1]
-    z[2] += 0.5 * y[1]
-    z[-3] -= 0.5 * y[-2]
-    z[-1] += 0.5 * y[-2]
-    z[0] -= 1.5 * y[0]
-    z[1] += 2.0 * y[0]
-    z[2] -= 0.5 * y[0]
-    z[-1] += 1.5 * y[-1]
-    z[-2] -= 2.0 * y[-1]
-    z[-3] += 0.5 * y[-1]
-    z /= s
-    return z
-
-
-def _d3_T_d3(x):
-    """``D3^T D3 x`` along axis 0 (third differences)."""
-    d = x[3:] - x[:-3] + 3.0 * (x[1:-2] - x[2:-1])
-    z = np.zeros_like(x)
-    z[:-3] -= d
-    z[3:] += d
-    z[1:-2] += 3.0 * d
-    z[2:-1] -= 3.0 * d
-    return z
-
-
 def _tent_weights(s: int, quadratic: bool) -> np.ndarray:
     """``(s, k)`` weights of the ``s`` pixels between two nodes: the lower and
     upper node's bilinear weight (k = 2), or their squares and product (k = 3)."""
@@ -342,6 +296,7 @@ class HeightNodes:
             raise ValueError("the height refinement needs an even node spacing and at least 5 x 5 nodes")
         self.grid = grid
         self._dense = None
+        self._kernel_cache = {}
         lr = geometry.linear_response(grid.rows_px[:, None], grid.cols_px[None, :], grid.frame_shape)
 
         def coef(x):  # a constant (telecentric camera) as a scalar, 0 as None
@@ -374,43 +329,57 @@ class HeightNodes:
                                     for t in terms])
         return self._dense
 
-    def _grad(self, h):
-        s = self.grid.s
-        return _d1(h, s), _d1(h.T, s).T
+    def _kernel_args(self, dtype):
+        """``(coef, present, constants)`` of the compiled node operators for arrays of ``dtype``
+        (float32 or float64): the six coefficients a_r, a_c, B_rr, B_rc, B_cr, B_cc as NumPy's
+        expressions meet them (a float32 array, or a scalar taken in the array's type), which of
+        them the geometry has, and D1's constants and the node spacing; built once per type."""
+        dtype = np.dtype(dtype)
+        if dtype not in self._kernel_cache:
+            terms = [self.a[0], self.a[1], self.B[0][0], self.B[0][1], self.B[1][0], self.B[1][1]]
+            coef = np.stack([np.broadcast_to(np.asarray(0.0 if t is None else t).astype(dtype), self.grid.shape)
+                             for t in terms])
+            present = np.array([t is not None for t in terms])
+            constants = np.array([8.0, 12.0, 0.5, 1.5, 2.0, -1.5, self.grid.s], dtype)
+            self._kernel_cache[dtype] = (coef, present, constants)
+        return self._kernel_cache[dtype]
+
+    @staticmethod
+    def _float(x):
+        """``x`` as float32 or float64 (what the compiled node operators take)."""
+        x = np.asarray(x)
+        return x if x.dtype in (np.float32, np.float64) else x.astype(np.float64)
 
     def displacement(self, h):
-        """``(2, m_r, m_c)`` displacement (pixels) at the nodes of node heights ``h`` (mm)."""
-        dr, dc = self._grad(h)
-        out = []
-        for i in range(2):
-            u = np.zeros_like(h)
-            for c, x in ((self.a[i], h), (self.B[i][0], dr), (self.B[i][1], dc)):
-                if c is not None:
-                    u += c * x
-            out.append(u)
-        return np.stack(out)
+        """``(2, m_r, m_c)`` displacement (pixels) at the nodes of node heights ``h`` (mm):
+        ``u_i = a_i h + B_i0 D1r h + B_i1 D1c h`` (:func:`processing.dic_node_ops.node_displacement`,
+        ``h``'s type)."""
+        from .dic_node_ops import node_displacement
+
+        h = self._float(h)
+        out = np.empty((2,) + h.shape, h.dtype)
+        node_displacement(h, *self._kernel_args(h.dtype), out)
+        return out
 
     def displacement_T(self, vr, vc):
-        """Transpose of :meth:`displacement`."""
-        s = self.grid.s
-        out = np.zeros_like(vr)
-        yr = np.zeros_like(vr)
-        yc = np.zeros_like(vr)
-        for i, v in enumerate((vr, vc)):
-            if self.a[i] is not None:
-                out += self.a[i] * v
-            if self.B[i][0] is not None:
-                yr += self.B[i][0] * v
-            if self.B[i][1] is not None:
-                yc += self.B[i][1] * v
-        out += _d1_T(yr, s)
-        out += _d1_T(yc.T, s).T
+        """Transpose of :meth:`displacement` (:func:`processing.dic_node_ops.node_displacement_T`)."""
+        from .dic_node_ops import node_displacement_T
+
+        vr, vc = self._float(vr), self._float(vc)
+        vc = vc.astype(vr.dtype, copy=False)
+        out = np.empty(vr.shape, vr.dtype)
+        node_displacement_T(vr, vc, *self._kernel_args(vr.dtype), out)
         return out
 
     @staticmethod
     def regulariser(h):
-        """``(D3r^T D3r + D3c^T D3c) h``."""
-        return _d3_T_d3(h) + _d3_T_d3(h.T).T
+        """``(D3r^T D3r + D3c^T D3c) h`` (:func:`processing.dic_node_ops.node_regulariser`, ``h``'s type)."""
+        from .dic_node_ops import node_regulariser
+
+        h = HeightNodes._float(h)
+        out = np.empty(h.shape, h.dtype)
+        node_regulariser(h, h.dtype.type(3.0), out)
+        return out
 
     def node_normal(self, n_px):
         """``P^T N P`` for the pixel weight ``n_px`` (:class:`Stencil9`)."""

@@ -131,6 +131,100 @@ def test_node_displacement_is_the_linear_response_of_a_smooth_height():
         assert err < bound
 
 
+# The node operators as NumPy expressions: what HeightNodes computed before its compiled kernels
+# (processing/dic_node_ops.py: node_displacement, node_displacement_T, node_regulariser), which
+# must give these numbers to the bit.
+def _numpy_d1(x, s):
+    """First derivative along axis 0 (fourth-order central inside, second-order
+    at the ends), per ``s`` pixels of node spacing."""
+    y = np.empty_like(x)
+    y[2:-2] = (x[:-4] - x[4:] + 8.0 * (x[3:-1] - x[1:-3])) / 12.0
+    y[1] = 0.5 * (x[2] - x[0])
+    y[-2] = 0.5 * (x[-1] - x[-3])
+    y[0] = -1.5 * x[0] + 2.0 * x[1] - 0.5 * x[2]
+    y[-1] = 1.5 * x[-1] - 2.0 * x[-2] + 0.5 * x[-3]
+    y /= s
+    return y
+
+
+def _numpy_d1_T(y, s):
+    """Transpose of :func:`_numpy_d1`."""
+    z = np.zeros_like(y)
+    yi = y[2:-2] / 12.0
+    z[:-4] += yi
+    z[4:] -= yi
+    z[3:-1] += 8.0 * yi
+    z[1:-3] -= 8.0 * yi
+    z[0] -= 0.5 * y[1]
+    z[2] += 0.5 * y[1]
+    z[-3] -= 0.5 * y[-2]
+    z[-1] += 0.5 * y[-2]
+    z[0] -= 1.5 * y[0]
+    z[1] += 2.0 * y[0]
+    z[2] -= 0.5 * y[0]
+    z[-1] += 1.5 * y[-1]
+    z[-2] -= 2.0 * y[-1]
+    z[-3] += 0.5 * y[-1]
+    z /= s
+    return z
+
+
+def _numpy_d3_T_d3(x):
+    """``D3^T D3 x`` along axis 0 (third differences)."""
+    d = x[3:] - x[:-3] + 3.0 * (x[1:-2] - x[2:-1])
+    z = np.zeros_like(x)
+    z[:-3] -= d
+    z[3:] += d
+    z[1:-2] += 3.0 * d
+    z[2:-1] -= 3.0 * d
+    return z
+
+
+def _numpy_displacement(nodes, h):
+    s = nodes.grid.s
+    dr, dc = _numpy_d1(h, s), _numpy_d1(h.T, s).T
+    out = []
+    for i in range(2):
+        u = np.zeros_like(h)
+        for c, x in ((nodes.a[i], h), (nodes.B[i][0], dr), (nodes.B[i][1], dc)):
+            if c is not None:
+                u += c * x
+        out.append(u)
+    return np.stack(out)
+
+
+def _numpy_displacement_T(nodes, vr, vc):
+    s = nodes.grid.s
+    out, yr, yc = np.zeros_like(vr), np.zeros_like(vr), np.zeros_like(vr)
+    for i, v in enumerate((vr, vc)):
+        if nodes.a[i] is not None:
+            out += nodes.a[i] * v
+        if nodes.B[i][0] is not None:
+            yr += nodes.B[i][0] * v
+        if nodes.B[i][1] is not None:
+            yc += nodes.B[i][1] * v
+    out += _numpy_d1_T(yr, s)
+    out += _numpy_d1_T(yc.T, s).T
+    return out
+
+
+@pytest.mark.parametrize("camera_distance_mm", [None, 1500.0])  # scalar coefficients, per-node ones
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])  # the CG's step, the heights
+def test_compiled_node_operators_are_the_numpy_ones_to_the_bit(camera_distance_mm, dtype):
+    rng = np.random.default_rng(7)
+    g = Geometry(theta_deg=60, depth_mm=300, pixel_mm=0.1, rows_toward_camera=True,
+                 camera_distance_mm=camera_distance_mm)
+    for frame_shape in ((264, 200), (40, 28), (20, 44)):  # node grids 66 x 50, 10 x 7, 5 x 11 (the shortest)
+        nodes = dic.HeightNodes(g, dic.NodeGrid(frame_shape))
+        h = (1e-3 * rng.standard_normal(nodes.grid.shape)).astype(dtype)
+        vr, vc = (rng.standard_normal(nodes.grid.shape).astype(dtype) for _ in range(2))
+        for got, want in ((nodes.displacement(h), _numpy_displacement(nodes, h)),
+                          (nodes.displacement_T(vr, vc), _numpy_displacement_T(nodes, vr, vc)),
+                          (nodes.regulariser(h), _numpy_d3_T_d3(h) + _numpy_d3_T_d3(h.T).T)):
+            assert got.dtype == want.dtype == dtype
+            np.testing.assert_array_equal(got, want)
+
+
 def test_node_operators_are_exact_transposes_of_what_the_warp_uses():
     rng = np.random.default_rng(0)
     grid = dic.NodeGrid((40, 28))
