@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 
 from .fill import nearest_fill_index
+from .fullgrid_kernels import sparse_rows
 from .pools import pool
 from .result import Result
 
@@ -139,7 +140,7 @@ class _SplineResize:
             return out
         coef = spline_coefficients(field)
         half = np.ascontiguousarray((along_cols @ coef.T).T)  # (m_rows, cols)
-        np.copyto(out, along_rows @ half)
+        sparse_rows(along_rows.indptr, along_rows.indices, along_rows.data, half, out)  # along_rows @ half
         return out
 
 

@@ -92,6 +92,21 @@ def test_spline_upsampler_is_exact_and_keeps_a_bad_sample_local():
 
 
 
+def test_the_compiled_row_pass_is_scipys_sparse_product_to_the_bit():
+    # fullgrid_kernels.sparse_rows (the spline's pass along the rows) against the SciPy product it replaced
+    from processing.fullgrid import spline_taps_matrix
+    from processing.fullgrid_kernels import sparse_rows
+
+    rng = np.random.default_rng(3)
+    for n_out, n_in, cols in ((1024, 256, 300), (200, 43, 37), (7, 5, 3), (6, 2, 4)):  # (6, 2): mirrored taps
+        pos = (np.arange(n_out) + 0.5) * (n_in / n_out) - 0.5  # cv2.resize's pixel centres, as the Upsampler's
+        taps = spline_taps_matrix(pos, n_in, np.float32)
+        src = rng.standard_normal((n_in, cols)).astype(np.float32)
+        got = np.empty((n_out, cols), np.float32)
+        sparse_rows(taps.indptr, taps.indices, taps.data, src, got)
+        np.testing.assert_array_equal(got, taps @ src)
+
+
 def test_cell_means_of_the_spline_are_those_of_the_full_size_field():
     # Upsampler.cell_means (image matching's start and amplitude at its nodes) folds the spline's taps
     # and the cells' means into one matrix per axis: the same numbers as interpolating every pixel and
