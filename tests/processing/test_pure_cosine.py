@@ -107,6 +107,33 @@ def test_the_compiled_row_pass_is_scipys_sparse_product_to_the_bit():
         np.testing.assert_array_equal(got, taps @ src)
 
 
+def test_spline_coefficients_are_scipys_and_interpolate_short_grids_too():
+    # fullgrid.spline_coefficients (fullgrid_kernels.spline_prefilter) against scipy.ndimage.spline_filter
+    # (mode "reflect"): the same bits on grids of 20 or more samples a side; on shorter ones the cubic
+    # B-spline they define passes through every sample (c[i-1] + 4 c[i] + c[i+1]) / 6 = x[i], the ends
+    # mirrored (c[-1] = c[0]), to float64 rounding, which SciPy 1.17's (gh-24550) does not on 2-3 samples
+    from scipy import ndimage
+
+    from processing.fullgrid import spline_coefficients
+
+    rng = np.random.default_rng(4)
+    for shape in ((256, 256), (160, 213), (20, 300), (300, 21)):
+        x = rng.standard_normal(shape)
+        np.testing.assert_array_equal(spline_coefficients(x, np.float64),
+                                      ndimage.spline_filter(x, order=3, mode="reflect"))
+    for shape in ((2, 5), (3, 9), (7, 2), (1, 6), (4, 1)):
+        x = rng.standard_normal(shape)
+        c = spline_coefficients(x, np.float64)
+        for axis in (0, 1):
+            if x.shape[axis] < 2:
+                continue
+            p = np.concatenate([np.take(c, [0], axis), c, np.take(c, [-1], axis)], axis)
+            n = x.shape[axis]
+            c = (np.take(p, range(0, n), axis) + 4 * np.take(p, range(1, n + 1), axis)
+                 + np.take(p, range(2, n + 2), axis)) / 6  # the spline along this axis at the samples
+        assert np.abs(c - x).max() <= 1e-12 * np.abs(x).max()
+
+
 def test_cell_means_of_the_spline_are_those_of_the_full_size_field():
     # Upsampler.cell_means (image matching's start and amplitude at its nodes) folds the spline's taps
     # and the cells' means into one matrix per axis: the same numbers as interpolating every pixel and
