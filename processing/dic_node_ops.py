@@ -33,34 +33,21 @@ def _d1_at(xa, xb, xc, xd, c8, c12):  # pragma: no cover - compiled
 
 
 @numba.njit(**_INLINE)
-def _d1_T_at(q2, qm2, qm1, qp1, f0, f1, f2, f3, c8):  # pragma: no cover - compiled
-    """D1^T's centred part at ``i`` from ``q = y / 12``: ``q[i+2] - q[i-2] + 8 q[i-1] - 8 q[i+1]``,
-    each term only where its flag says the NumPy version's slices reach ``i``, from a zero, in their order."""
-    t = c8 - c8
+def _four_terms(a, b, c, d, f0, f1, f2, f3, sign, w):  # pragma: no cover - compiled
+    """``sign a - sign b + w c - w d`` summed from a zero in that order, each term only where its flag
+    says the NumPy version's slices reach the sample (``sign`` +-1: exact, and adding a negated term
+    is subtracting it).  D1^T's centred part from ``q = y / 12``: ``(q[i+2], q[i-2], q[i-1], q[i+1])``,
+    sign +1, ``w`` 8; D3^T D3's from the third differences ``d``: ``(d[i], d[i-3], d[i-1], d[i-2])``,
+    sign -1, ``w`` 3."""
+    t = w - w
     if f0:
-        t = t + q2
+        t = t + sign * a
     if f1:
-        t = t - qm2
+        t = t - sign * b
     if f2:
-        t = t + c8 * qm1
+        t = t + w * c
     if f3:
-        t = t - c8 * qp1
-    return t
-
-
-@numba.njit(**_INLINE)
-def _d3_at(d0, dm3, dm1, dm2, f0, f1, f2, f3, three):  # pragma: no cover - compiled
-    """D3^T D3's value at ``i`` from the third differences ``d``: ``-d[i] + d[i-3] + 3 d[i-1] - 3 d[i-2]``,
-    each term only where the NumPy version's slices reach ``i``, from a zero, in their order."""
-    t = three - three
-    if f0:
-        t = t - d0
-    if f1:
-        t = t + dm3
-    if f2:
-        t = t + three * dm1
-    if f3:
-        t = t - three * dm2
+        t = t - w * d
     return t
 
 
@@ -98,7 +85,7 @@ def _d1_T_into(y, k, axis, z):  # pragma: no cover - compiled
     as :func:`_d1_into`'s."""
     n, m = y.shape
     c8, c12, half, c15, c2, s = k[0], k[1], k[2], k[3], k[4], k[6]
-    yes = True
+    yes, one = True, c8 / c8  # 1 in y's type
     q = np.empty_like(y)  # y / 12 once a sample, as the NumPy version's yi
     for i in range(n):
         for j in range(m):
@@ -109,10 +96,10 @@ def _d1_T_into(y, k, axis, z):  # pragma: no cover - compiled
             a, b, c, d, o = q[min(i + 2, n - 1)], q[max(i - 2, 0)], q[max(i - 1, 0)], q[min(i + 1, n - 1)], z[i]
             if f0 and f1 and f2 and f3:
                 for j in range(m):
-                    o[j] = _d1_T_at(a[j], b[j], c[j], d[j], yes, yes, yes, yes, c8)
+                    o[j] = _four_terms(a[j], b[j], c[j], d[j], yes, yes, yes, yes, one, c8)
             else:
                 for j in range(m):
-                    o[j] = _d1_T_at(a[j], b[j], c[j], d[j], f0, f1, f2, f3, c8)
+                    o[j] = _four_terms(a[j], b[j], c[j], d[j], f0, f1, f2, f3, one, c8)
         for j in range(m):  # the end rows, in the NumPy version's order
             z[0, j] -= half * y[1, j]
             z[2, j] += half * y[1, j]
@@ -132,12 +119,12 @@ def _d1_T_into(y, k, axis, z):  # pragma: no cover - compiled
     for i in range(n):
         r, p, o = y[i], q[i], z[i]
         for j in range(4, m - 4):
-            o[j] = _d1_T_at(p[j + 2], p[j - 2], p[j - 1], p[j + 1], yes, yes, yes, yes, c8)
+            o[j] = _four_terms(p[j + 2], p[j - 2], p[j - 1], p[j + 1], yes, yes, yes, yes, one, c8)
         for j in range(m):
             if 4 <= j <= m - 5:
                 continue
-            o[j] = _d1_T_at(p[min(j + 2, m - 1)], p[max(j - 2, 0)], p[max(j - 1, 0)], p[min(j + 1, m - 1)],
-                            j <= m - 5, j >= 4, 3 <= j <= m - 2, 1 <= j <= m - 4, c8)
+            o[j] = _four_terms(p[min(j + 2, m - 1)], p[max(j - 2, 0)], p[max(j - 1, 0)], p[min(j + 1, m - 1)],
+                               j <= m - 5, j >= 4, 3 <= j <= m - 2, 1 <= j <= m - 4, one, c8)
         o[0] -= half * r[1]
         o[2] += half * r[1]
         o[m - 3] -= half * r[m - 2]
@@ -179,6 +166,18 @@ def node_displacement(h, coef, present, k, out):  # pragma: no cover - compiled
                 o[j] = t
 
 
+@numba.njit(**_INLINE)
+def _three_terms(t, u, v, ct, cu, cv, pt, pu, pv, x):  # pragma: no cover - compiled
+    """``(t + ct x, u + cu x, v + cv x)``, each only where its term is present (``pt``, ``pu``, ``pv``)."""
+    if pt:
+        t = t + ct * x
+    if pu:
+        u = u + cu * x
+    if pv:
+        v = v + cv * x
+    return t, u, v
+
+
 @numba.njit(**_EXACT)
 def node_displacement_T(vr, vc, coef, present, k, out):  # pragma: no cover - compiled
     """``out = L^T (vr, vc)`` (``HeightNodes.displacement_T``), arguments as :func:`node_displacement`'s."""
@@ -190,20 +189,9 @@ def node_displacement_T(vr, vc, coef, present, k, out):  # pragma: no cover - co
     for i in range(n):
         a, b, o, r_, c_ = vr[i], vc[i], out[i], yr[i], yc[i]
         for j in range(m):
-            t, u, v = zero, zero, zero
-            if p0:
-                t = t + coef[0, i, j] * a[j]
-            if p2:
-                u = u + coef[2, i, j] * a[j]
-            if p3:
-                v = v + coef[3, i, j] * a[j]
-            if p1:
-                t = t + coef[1, i, j] * b[j]
-            if p4:
-                u = u + coef[4, i, j] * b[j]
-            if p5:
-                v = v + coef[5, i, j] * b[j]
-            o[j], r_[j], c_[j] = t, u, v
+            # vr's terms (a_r, B_rr, B_rc), then vc's (a_c, B_cr, B_cc), as displacement_T's loop adds them
+            t, u, v = _three_terms(zero, zero, zero, coef[0, i, j], coef[2, i, j], coef[3, i, j], p0, p2, p3, a[j])
+            o[j], r_[j], c_[j] = _three_terms(t, u, v, coef[1, i, j], coef[4, i, j], coef[5, i, j], p1, p4, p5, b[j])
     z = np.empty_like(vr)
     _d1_T_into(yr, k, 0, z)
     for i in range(n):
@@ -219,7 +207,7 @@ def node_displacement_T(vr, vc, coef, present, k, out):  # pragma: no cover - co
 def _d3_T_d3_into(x, three, axis, z):  # pragma: no cover - compiled
     """``z = D3^T D3 x`` along ``axis`` (the test's ``_numpy_d3_T_d3``; axis 1 its transposed use)."""
     n, m = x.shape
-    yes = True
+    yes, one = True, three / three  # 1 in x's type
     if (n if axis == 0 else m) < 4:  # no third difference fits: D3^T D3 x = 0 (as the empty slices give)
         for i in range(n):
             for j in range(m):
@@ -237,10 +225,10 @@ def _d3_T_d3_into(x, three, axis, z):  # pragma: no cover - compiled
             a, b, c, e, o = d[min(i, lo)], d[max(i - 3, 0)], d[min(max(i - 1, 0), lo)], d[min(max(i - 2, 0), lo)], z[i]
             if f0 and f1 and f2 and f3:
                 for j in range(m):
-                    o[j] = _d3_at(a[j], b[j], c[j], e[j], yes, yes, yes, yes, three)
+                    o[j] = _four_terms(a[j], b[j], c[j], e[j], yes, yes, yes, yes, -one, three)
             else:
                 for j in range(m):
-                    o[j] = _d3_at(a[j], b[j], c[j], e[j], f0, f1, f2, f3, three)
+                    o[j] = _four_terms(a[j], b[j], c[j], e[j], f0, f1, f2, f3, -one, three)
         return
     d = np.empty(m - 3, x.dtype)
     lo = m - 4
@@ -249,12 +237,12 @@ def _d3_T_d3_into(x, three, axis, z):  # pragma: no cover - compiled
         for j in range(m - 3):
             d[j] = (r[j + 3] - r[j]) + three * (r[j + 1] - r[j + 2])
         for j in range(3, m - 3):
-            o[j] = _d3_at(d[j], d[j - 3], d[j - 1], d[j - 2], yes, yes, yes, yes, three)
+            o[j] = _four_terms(d[j], d[j - 3], d[j - 1], d[j - 2], yes, yes, yes, yes, -one, three)
         for j in range(m):
             if 3 <= j <= m - 4:
                 continue
-            o[j] = _d3_at(d[min(j, lo)], d[max(j - 3, 0)], d[min(max(j - 1, 0), lo)], d[min(max(j - 2, 0), lo)],
-                          j <= m - 4, j >= 3, 1 <= j <= m - 3, 2 <= j <= m - 2, three)
+            o[j] = _four_terms(d[min(j, lo)], d[max(j - 3, 0)], d[min(max(j - 1, 0), lo)], d[min(max(j - 2, 0), lo)],
+                               j <= m - 4, j >= 3, 1 <= j <= m - 3, 2 <= j <= m - 2, -one, three)
 
 
 @numba.njit(**_EXACT)
