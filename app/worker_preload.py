@@ -58,12 +58,14 @@ def warm_up(size_px: int = 96) -> bool:
         grow_into(np.zeros(16), np.zeros(16), np.ones(16, bool), np.array([5]), 4, 4, 16)
         path_follow(np.zeros((4, 4)), np.ones((4, 4), bool), np.zeros((4, 4)))
         # and the masked height solve's operator (a frame with invalid samples)
-        from processing.height_compiled import masked_normal_apply
+        from processing.height_compiled import edge_data_into, masked_normal_apply
 
         f32 = np.float32
         ones = np.ones((4, 4), f32)
         masked_normal_apply(ones, ones[:, 1:], ones[1:], ones, f32(1), f32(1), np.zeros((0, 0)), np.zeros((0, 0)),
                             np.zeros((4, 5), f32), np.zeros((5, 4), f32), np.empty((4, 4), f32))
+        grid64 = np.ones((4, 4))
+        edge_data_into(grid64, grid64, grid64, np.ones((4, 4), bool), np.empty((3, 4)), np.empty((4, 3)))
         return True
     except Exception as exc:  # noqa: BLE001 - a warm-up only: the workers load what they need themselves
         log.debug("worker warm-up skipped: %s", exc)

@@ -128,6 +128,29 @@ def test_spectral_equals_masked_when_all_valid(rng):
         _solve(u, np.broadcast_to(np.arange(SHAPE[1]) > 3, SHAPE), g, solver="spectral")
 
 
+def test_the_compiled_edge_data_is_the_numpy_cell_average_to_the_bit(rng):
+    # height_masked.edge_data (height_compiled.edge_data_into) against cell_average of g / n along each
+    # axis, with no mask, specks and fragments, on grids down to the shortest with a fourth-order edge
+    from processing.height import solver_for
+    from processing.height_kernels import cell_average
+    from processing.height_masked import edge_data
+
+    from types import SimpleNamespace
+
+    g = _tir(camera_distance_mm=600.0)  # n varies across the grid
+    solvers = [solver_for(g, np.arange(shape[0]) * 3.7 + 2, np.arange(shape[1]) * 3.3 + 2,
+                          (4 * shape[0] + 4, 4 * shape[1] + 4)) for shape in ((61, 40), (37, 53))]
+    # and axes too short for a solver's reference region: 4 samples (one fourth-order edge), 3 (none)
+    solvers += [SimpleNamespace(null=np.exp(rng.random(shape)), shape=shape) for shape in ((30, 4), (3, 30))]
+    for s in solvers:
+        shape = s.shape
+        gr, gc = rng.standard_normal((2, *shape))
+        for valid in (None, rng.random(shape) >= 0.05, rng.random(shape) >= 0.5):
+            ec, er = edge_data(s, gr, gc, valid)
+            np.testing.assert_array_equal(er, cell_average(gr / s.null, 0, valid))
+            np.testing.assert_array_equal(ec, cell_average(gc / s.null, 1, valid))
+
+
 @pytest.mark.parametrize("camera_distance_mm", [None, 600.0])  # telecentric, finite distance (the dk terms)
 def test_the_compiled_masked_operator_is_the_numpy_one_to_the_bit(camera_distance_mm, rng):
     # the masked solve's CG operator (height_compiled.masked_normal_apply) against the NumPy
