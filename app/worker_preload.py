@@ -66,6 +66,10 @@ def warm_up(size_px: int = 96) -> bool:
                             np.zeros((4, 5), f32), np.zeros((5, 4), f32), np.empty((4, 4), f32))
         grid64 = np.ones((4, 4))
         edge_data_into(grid64, grid64, grid64, np.ones((4, 4), bool), np.empty((3, 4)), np.empty((4, 3)))
+        # and the fold test of a strained frame (a smooth one never reaches its determinant)
+        from processing.mask_kernels import fold_determinant
+
+        fold_determinant(np.ones((2, 4, 4), f32), 1.0, 1.0, f32(1), np.empty((4, 4), f32))
         return True
     except Exception as exc:  # noqa: BLE001 - a warm-up only: the workers load what they need themselves
         log.debug("worker warm-up skipped: %s", exc)

@@ -218,19 +218,22 @@ def dilate_invalid(invalid, n):
 def fold_ok(u, rows_px, cols_px, min_fold, finite=False):
     """det(I - grad u) > min_fold on the decimated grid (u in pixels);
     None when it holds everywhere."""
+    from .mask_kernels import fold_determinant, largest_steps
+
     dr = rows_px[1] - rows_px[0]
     dc = cols_px[1] - cols_px[0]
-    uf = u if finite else np.nan_to_num(u)
+    uf = np.asarray(u if finite else np.nan_to_num(u))
+    if uf.dtype not in (np.float32, np.float64):
+        uf = uf.astype(np.float64)
     # |every partial derivative| <= t (central and one-sided differences
     # are bounded by the largest neighbour difference) gives
     # det >= (1 - t)^2 - t^2 = 1 - 2 t: no fold test needed below this
-    t = max(float(np.abs(np.diff(uf, axis=1)).max(initial=0.0)) / dr,
-            float(np.abs(np.diff(uf, axis=2)).max(initial=0.0)) / dc)
+    step_r, step_c = largest_steps(uf)
+    t = max(float(step_r) / dr, float(step_c) / dc)
     if 1.0 - 2.0 * t > min_fold + 1e-6:
         return None
-    dur_dr, dur_dc = np.gradient(uf[0], dr, dc)
-    duc_dr, duc_dc = np.gradient(uf[1], dr, dc)
-    det = (1.0 - dur_dr) * (1.0 - duc_dc) - dur_dc * duc_dr
+    det = np.empty(uf.shape[1:], uf.dtype)
+    fold_determinant(uf, float(dr), float(dc), uf.dtype.type(1.0), det)  # np.gradient's det(I - grad u)
     return det > min_fold
 
 

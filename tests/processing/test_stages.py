@@ -106,6 +106,25 @@ def test_series_check_flags_a_pin_that_moved():
     assert moved.flagged and moved.pin_shift_mm == pytest.approx(2e-4)
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])  # the chain's displacement, a script's
+def test_the_compiled_fold_determinant_is_numpys_to_the_bit(dtype):
+    # mask_kernels.fold_determinant against np.gradient's det(I - grad u), and largest_steps against
+    # np.diff's largest step, on grids down to 2 samples a side
+    from processing.mask_kernels import fold_determinant, largest_steps
+
+    rng = np.random.default_rng(5)
+    for shape, dr, dc in (((135, 135), 3.8, 3.8), ((37, 52), 3.7, 4.1), ((2, 3), 1.0, 2.5)):
+        u = (rng.standard_normal((2, *shape)) * 2.0).astype(dtype)
+        dur_dr, dur_dc = np.gradient(u[0], np.float64(dr), np.float64(dc))
+        duc_dr, duc_dc = np.gradient(u[1], np.float64(dr), np.float64(dc))
+        want = (1.0 - dur_dr) * (1.0 - duc_dc) - dur_dc * duc_dr
+        got = np.empty(shape, dtype)
+        fold_determinant(u, dr, dc, u.dtype.type(1.0), got)
+        assert got.dtype == want.dtype == dtype
+        np.testing.assert_array_equal(got, want)
+        assert largest_steps(u) == (np.abs(np.diff(u, axis=1)).max(), np.abs(np.diff(u, axis=2)).max())
+
+
 def test_fold_test_finds_crossing_rays_and_islands_are_dropped():
     rows = cols = np.arange(0.0, 40.0, 2.0)
     r = rows[:, None] * np.ones((1, 20))
