@@ -3,8 +3,11 @@ edges between neighbouring samples, and the masked solve on it.
 
 ``A f``: on every edge the difference ``(f_j - f_i) / spacing`` plus, for a
 finite camera distance, the variable part of ``kappa`` times the edge's mean
-(:func:`apply_A`); :func:`apply_AT` is its transpose and :func:`edge_data`
-the data the edges are fitted to (cell averages of ``g / n``).
+(inside the masked solve's compiled normal operator,
+:func:`processing.height_compiled.masked_normal_apply`; its NumPy form is the
+reference of tests/processing/test_height.py); :func:`apply_AT` is its
+transpose and :func:`edge_data` the data the edges are fitted to (cell
+averages of ``g / n``).
 :func:`solve_masked` solves the weighted normal equations for any validity
 mask by preconditioned conjugate gradients (invalid samples carry no
 equation).  The discretisation is the one of :mod:`processing.height`'s
@@ -24,7 +27,7 @@ from .errors import TirdeflectError
 from .height_compiled import edge_data_into, masked_normal_apply
 from .height_kernels import div_T, fft_workers
 
-__all__ = ["edge_data", "apply_A", "apply_AT", "solve_masked"]
+__all__ = ["edge_data", "apply_AT", "solve_masked"]
 
 
 def edge_data(solver, gr, gc, valid):
@@ -39,17 +42,6 @@ def edge_data(solver, gr, gc, valid):
     ok = np.zeros((0, 0), bool) if valid is None else np.asarray(valid, bool)
     edge_data_into(gr, gc, solver.null, ok, er, ec)
     return ec, er
-
-
-def apply_A(solver, f):
-    """The operator on ``f``: its values on the column and row edges ``(ac, ar)``."""
-    dr, dc = solver.grid.dr, solver.grid.dc
-    ac = np.diff(f, axis=1) / dc
-    ar = np.diff(f, axis=0) / dr
-    if solver.dk_c is not None:
-        ac += (solver.dk_c * 0.5 * (f[:, 1:] + f[:, :-1])).astype(ac.dtype, copy=False)
-        ar += (solver.dk_r * 0.5 * (f[1:, :] + f[:-1, :])).astype(ar.dtype, copy=False)
-    return ac, ar
 
 
 def apply_AT(solver, ec, er):

@@ -157,7 +157,16 @@ def test_the_compiled_masked_operator_is_the_numpy_one_to_the_bit(camera_distanc
     # operators it replaced (apply_A, the edge weights, apply_AT, the sample weights)
     from processing.height import solver_for
     from processing.height_compiled import masked_normal_apply
-    from processing.height_masked import apply_A, apply_AT
+    from processing.height_masked import apply_AT
+
+    def apply_A(solver, f):  # the edge operator as NumPy, the form the compiled one replaced
+        dr, dc = solver.grid.dr, solver.grid.dc
+        ac = np.diff(f, axis=1) / dc
+        ar = np.diff(f, axis=0) / dr
+        if solver.dk_c is not None:
+            ac += (solver.dk_c * 0.5 * (f[:, 1:] + f[:, :-1])).astype(ac.dtype, copy=False)
+            ar += (solver.dk_r * 0.5 * (f[1:, :] + f[:-1, :])).astype(ar.dtype, copy=False)
+        return ac, ar
 
     f32 = np.float32
     g = _tir(camera_distance_mm=camera_distance_mm)
