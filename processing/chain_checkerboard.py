@@ -224,7 +224,7 @@ class CheckerboardChain(GridChain):
         """``(Measured, state)``: demodulate, mask, unwrap (against ``state``)
         and refine one validated frame; ``state`` continued by its phase."""
         o, d, timings = self.options, self.demod, {}
-        wins = d.windows(d.spectrum(frame))
+        wins = d.frame_windows(frame)
         g = d.decimated_from_windows(wins)
         checked = self.cheap_pattern_check(wins, frame)
         t1 = time.perf_counter()
@@ -336,7 +336,7 @@ class CheckerboardChain(GridChain):
         """The reference's analytic signals on the full grid (``full_method="ifft"``, built once)."""
         if self._g0_full is None:
             d = self.demod
-            self._g0_full = d.full_from_windows(d.windows(d.spectrum(self.ref_f32))).copy()
+            self._g0_full = d.full_from_windows(d.frame_windows(self.ref_f32)).copy()
         return self._g0_full
 
     def full_reference_region(self):

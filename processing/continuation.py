@@ -230,7 +230,7 @@ class ContinuedSignals:
     def signals(self, image) -> np.ndarray:
         """Analytic signals (2, m_rows, m_cols of the padded frame) of ``image`` continued."""
         d = self.demod
-        return d.decimated_from_windows(d.windows(d.spectrum_of(lambda dst: self.continuation(image, out=dst))))
+        return d.decimated_from_windows(d.frame_windows(write=lambda dst: self.continuation(image, out=dst)))
 
     def phase_difference(self, g_a, g_b) -> np.ndarray:
         """``arg(g_a conj(g_b))`` (2, the chain's decimated grid) of two :meth:`signals`: their

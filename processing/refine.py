@@ -390,7 +390,7 @@ def refine_fd_tapered(demod, plan: WarpReference, static, g, u, valid, iteration
     d = demod
 
     def correction(write):
-        gw = d.decimated_from_windows(d.windows(d.spectrum_of(write)))
+        gw = d.decimated_from_windows(d.frame_windows(write=write))
         return d.phase_to_displacement(wrap(np.angle(g * np.conj(gw)) - static))
 
     return _remove_bias(plan, u, valid, iterations, up, correction, interpolation=interpolation, threads=threads)

@@ -148,3 +148,35 @@ def test_fft_planner_and_wisdom_round_trip():
         FFTPlanner(planner_effort="FFTW_FAST")
     y = (np.random.default_rng(3).normal(size=(32, 48)) + 1j).astype(np.complex64)
     np.testing.assert_allclose(p.ifft2(p.fft2(y).copy()), y, atol=1e-5)
+
+
+def test_rfft2_of_a_column_band_is_the_spectrum_there():
+    # the carrier windows' transform does the columns pass on a band of columns only; planning
+    # a new band with FFTW_MEASURE (which overwrites the arrays it plans on) must keep the data
+    p = FFTPlanner(threads=1, planner_effort="FFTW_MEASURE")
+    x = np.random.default_rng(4).normal(size=(64, 96)).astype(np.float32)
+    full = np.fft.rfft2(x.astype(np.float64))
+    p.input_array("rfft2", x.shape)[...] = x
+    band = p.execute("rfft2", x.shape, columns=11)  # not prepared: planned here, on the frame's data
+    scale = np.abs(full).max()
+    assert np.abs(band[:, :11] - full[:, :11]).max() < 1e-6 * scale
+    assert np.abs(band[:, 11:] - full[:, 11:]).max() > 0.1 * scale  # the rest: not the spectrum
+    with pytest.raises(ValueError, match="columns"):
+        p.execute("rfft2", x.shape, columns=49 + 1)
+
+
+@pytest.mark.parametrize("rotation_deg", [0.0, 5.0, 30.0, 45.0])
+def test_carrier_windows_from_the_column_band(rotation_deg):
+    # the windows read from the band transform are those of the whole spectrum, whatever the board's turn
+    r, c = np.mgrid[:N, :N].astype(float)
+    ref = board(r, c, rotation_deg)
+    u = displacement(r, c, 1.0, 25.0)
+    frame = board(r - u[0], c - u[1], rotation_deg)
+    d = Demodulator(ref, find_carriers(ref))
+    whole = d.windows(d.spectrum(frame)).copy()
+    from_band = d.frame_windows(frame)
+    assert np.abs(from_band - whole).max() < 1e-6 * np.abs(whole).max()
+    if d.carrier_columns is not None:  # the band ends where the windows do
+        assert d.carrier_columns - 1 == max(int(np.max(g % (N // 2 + 1))) for g in d.plan.gather_index)
+    if rotation_deg == 5.0:
+        assert d.carrier_columns is not None and d.carrier_columns < 0.6 * (N // 2 + 1)
