@@ -138,6 +138,9 @@ class Demodulator:
         ``2 pi (f_row, f_col)`` of the carriers used, radians per pixel.
     g0 : ndarray, complex64, shape (2, m_rows, m_cols)
         Reference analytic signals on the decimated grid.
+    carrier_columns : int or None
+        The carrier windows read the real FFT's columns ``0 .. carrier_columns - 1``
+        only (:meth:`carrier_spectrum` transforms just those); None: most of them.
     """
 
     def __init__(self, reference, carriers: Carriers, *, planner: FFTPlanner | None = None,
@@ -211,12 +214,7 @@ class Demodulator:
         self._dc_leak = None
         if self._window2d is not None:
             self._dc_leak = self.windows(np.fft.rfft2(self._window2d).astype(np.complex64), mean=0.0)
-        # the carrier windows read the real FFT's columns 0 .. carrier_columns - 1 only
-        half_cols = cols // 2 + 1
-        used = max(int(np.max(g[0] % half_cols)) for g in self._gather) + 1
-        #: columns of the half spectrum the carrier windows read (:meth:`carrier_spectrum`);
-        #: None when they span most of it (then the whole transform costs no more)
-        self.carrier_columns = used if used <= 0.75 * half_cols else None
+        self.carrier_columns = self._carrier_columns()
         self.planner.prepare("rfft2", (rows, cols))
         self.planner.prepare("rfft2", (rows, cols), columns=self.carrier_columns)
         self.planner.prepare("ifft2", (2,) + self.window_shape)
@@ -269,6 +267,14 @@ class Demodulator:
             self._gains.append(filt)
             self._ramps.append(np.conj(ramp).astype(np.complex64))
             # absolute bins for the full-grid variant (full complex spectrum)
+
+    def _carrier_columns(self):
+        """How many of the real FFT's first columns (``0 .. n - 1`` of the half spectrum) the
+        carrier windows gather from, or None where that is more than 3/4 of them (then the
+        whole transform costs no more)."""
+        half_cols = self.shape[1] // 2 + 1
+        used = max(int(np.max(g[0] % half_cols)) for g in self._gather) + 1
+        return used if used <= 0.75 * half_cols else None
 
     @property
     def plan(self) -> DemodulationPlan:
