@@ -180,3 +180,15 @@ def test_carrier_windows_from_the_column_band(rotation_deg):
         assert d.carrier_columns - 1 == max(int(np.max(g % (N // 2 + 1))) for g in d.plan.gather_index)
     if rotation_deg == 5.0:
         assert d.carrier_columns is not None and d.carrier_columns < 0.6 * (N // 2 + 1)
+
+
+@pytest.mark.parametrize("shape", [(192, 256), (256, 191)])
+def test_carrier_windows_from_the_column_band_of_other_frame_shapes(shape):
+    # not square, an odd width: the band's columns come from the half spectrum of that width
+    r, c = np.mgrid[:shape[0], :shape[1]].astype(float)
+    ref = board(r, c, 12.0)
+    frame = board(r - 0.6, c + 0.3, 12.0)
+    d = Demodulator(ref, find_carriers(ref))
+    assert d.carrier_columns is not None and d.carrier_columns < shape[1] // 2 + 1
+    whole = d.windows(d.spectrum(frame)).copy()
+    assert np.abs(d.frame_windows(frame) - whole).max() < 1e-6 * np.abs(whole).max()
