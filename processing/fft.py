@@ -1,9 +1,11 @@
 """FFTW plans for the demodulation: float32/complex64, multithreaded, built once.
 
 The numerics need three kinds of transforms, each for one fixed shape per
-reference: a real-to-complex forward transform of the full frame, small
-complex inverse transforms of the windows cut around each carrier (decimated
-grid) and, optionally, full-size complex inverse transforms (full grid).
+reference: a real-to-complex forward transform of the full frame (as its two
+1-D passes, the second optionally on a band of low column frequencies only:
+all that the carrier windows read), small complex inverse transforms of the
+windows cut around each carrier (decimated grid) and, optionally, full-size
+complex inverse transforms (full grid).
 
 :class:`FFTPlanner` builds a plan the first time a (kind, shape) is asked for
 and keeps it; planning happens on scratch arrays (FFTW_MEASURE overwrites
@@ -291,7 +293,7 @@ class _RealPlan:
     """
 
     def __init__(self, shape, planner_effort, threads):
-        rows, cols = shape[-2:]
+        cols = shape[-1]
         self.output_array = pyfftw.empty_aligned(shape[:-1] + (cols // 2 + 1,), dtype="complex64")
         self.input_array = self.output_array.view(np.float32)[..., :cols]
         self._flags = (planner_effort, "FFTW_DESTROY_INPUT")
