@@ -95,17 +95,20 @@ class RenderInfo:
 
 
 def _intersect(surface: Surface, geometry: Geometry, origin, d, *, to_image, tol_mm=1e-9, max_iter=60):
-    """Newton solve of ``O_z + t d_z = h(O_xy + t d_xy)``; returns point, gradient (tracer frame), height."""
+    """Newton solve of ``O_z + t d_z = h(O_xy + t d_xy)``; returns point, gradient (tracer frame), height.
+
+    On the components of the rays (``origin``, ``d``: S + (3,)), not on (S, 3) arrays: the same
+    arithmetic in the same order (the same bits), without the strided passes over the last axis."""
     ysign = geometry.row_sign if geometry.setup == "tir" else 1.0
-    t = -origin[..., 2] / d[..., 2]
+    ox, oy, oz = origin[..., 0], origin[..., 1], origin[..., 2]
+    dx, dy, dz = d[..., 0], d[..., 1], d[..., 2]
+    t = -oz / dz
     for _ in range(max_iter):
-        P = origin + t[..., None] * d
-        xi, yi = to_image(P[..., 0], P[..., 1])
+        px, py, pz = ox + t * dx, oy + t * dy, oz + t * dz
+        xi, yi = to_image(px, py)
         h, gx, gy_i = surface.height_and_gradient(xi, yi)
         gy = gy_i * ysign
-        F = P[..., 2] - h
-        dF = d[..., 2] - gx * d[..., 0] - gy * d[..., 1]
-        step = F / dF
+        step = (pz - h) / (dz - gx * dx - gy * dy)
         if np.max(np.abs(step)) < tol_mm:
             # the point is within tol_mm of the root: keep it and its (consistent) normal
             break
@@ -114,11 +117,14 @@ def _intersect(surface: Surface, geometry: Geometry, origin, d, *, to_image, tol
         raise GeometryError(
             "ray-surface intersection did not converge; the surface is too steep for the camera rays"
         )
-    return P, gx, gy, h
+    return np.stack([px, py, pz], axis=-1), gx, gy, h
 
 
-def trace_tir(surface: Surface, geometry: Geometry, rows_px, cols_px, frame_shape):
+def trace_tir(surface: Surface, geometry: Geometry, rows_px, cols_px, frame_shape, *, rays=None):
     """Trace TIR camera rays for pixels ``(rows_px, cols_px)`` (broadcast).
+
+    ``rays``: ``geometry.camera_rays(rows_px, cols_px, frame_shape)`` where the caller
+    keeps them (the same pixels traced again and again: the second-order correction).
 
     Returns
     -------
@@ -135,18 +141,23 @@ def trace_tir(surface: Surface, geometry: Geometry, rows_px, cols_px, frame_shap
     """
     if geometry.setup != "tir":
         raise GeometryError(f"trace_tir needs a TIR geometry, got setup={geometry.setup!r}")
-    origin, d = geometry.camera_rays(rows_px, cols_px, frame_shape)
+    origin, d = geometry.camera_rays(rows_px, cols_px, frame_shape) if rays is None else rays
     s = geometry.row_sign
     P, gx, gy, h = _intersect(surface, geometry, origin, d, to_image=lambda x, y: (x, s * y))
-    nrm = np.stack([-gx, -gy, np.ones_like(gx)], axis=-1)
-    nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
-    cos_i = np.sum(d * nrm, axis=-1)
+    # the unit normal (-gx, -gy, 1) / |.|, the incidence and the reflected ray, by components
+    # (norm and dot products summed x, y, z in turn, as np.linalg.norm and np.sum over the last axis)
+    nx, ny = -gx, -gy
+    length = np.sqrt(nx * nx + ny * ny + 1.0)
+    nx, ny, nz = nx / length, ny / length, 1.0 / length
+    dx, dy, dz = d[..., 0], d[..., 1], d[..., 2]
+    cos_i = dx * nx + dy * ny + dz * nz
     sin_i = np.sqrt(np.clip(1.0 - cos_i**2, 0.0, None))
-    r = d - 2.0 * cos_i[..., None] * nrm
-    lost = (sin_i <= geometry.n_air / geometry.n_water) | (r[..., 2] >= 0)
+    twice = 2.0 * cos_i
+    rx, ry, rz = dx - twice * nx, dy - twice * ny, dz - twice * nz
+    lost = (sin_i <= geometry.n_air / geometry.n_water) | (rz >= 0)
     with np.errstate(divide="ignore", invalid="ignore"):
-        t = np.where(r[..., 2] < 0, (-geometry.depth_mm - P[..., 2]) / r[..., 2], np.nan)
-    pat = P[..., :2] + t[..., None] * r[..., :2]
+        t = np.where(rz < 0, (-geometry.depth_mm - P[..., 2]) / rz, np.nan)
+    pat = np.stack([P[..., 0] + t * rx, P[..., 1] + t * ry], axis=-1)
     return pat, lost, P, h, cos_i
 
 

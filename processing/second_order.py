@@ -91,7 +91,10 @@ class SecondOrderOptics:
         self.rows, self.cols = np.meshgrid(np.asarray(rows_px, np.float64), np.asarray(cols_px, np.float64),
                                            indexing="ij")
         if self.applies:
-            _, d = geometry.camera_rays(self.rows, self.cols, self.frame_shape)
+            self._rays = geometry.camera_rays(self.rows, self.cols, self.frame_shape)  # traced at every correction
+            for ray in self._rays:
+                ray.flags.writeable = False
+            d = self._rays[1]
             self.x0, self.y0 = geometry.surface_point(self.rows, self.cols, self.frame_shape)
             # the hit point's move per mm of height, image frame (x along the columns, y = row_sign * canonical y)
             self.t = np.stack([d[..., 0] / d[..., 2], geometry.row_sign * d[..., 1] / d[..., 2]])
@@ -123,7 +126,7 @@ class SecondOrderOptics:
     def _trace(self, h, gx, gy):
         """Exact displacement (px, (2, n_rows, n_cols)) of the local planes; NaN where TIR is lost."""
         pat, lost, _, _, _ = trace_tir(_LocalPlanes(h, gx, gy, self.x0, self.y0), self.geometry, self.rows,
-                                       self.cols, self.frame_shape)
+                                       self.cols, self.frame_shape, rays=self._rays)
         r0, c0 = self.geometry.pixel_of_pattern_point(pat[..., 0], pat[..., 1], self.frame_shape)
         u = np.stack([self.rows - r0, self.cols - c0])
         u[:, lost] = np.nan
