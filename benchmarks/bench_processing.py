@@ -148,11 +148,23 @@ def heldout_frames(n, count=3):
     return F.quantize(ref, bits=12, rng=rng), frames, surfaces
 
 
+def blank_patch(frame):
+    """``frame`` with :data:`BLANK_PATCH` (given for 256^2) scaled to its size set to its mean grey."""
+    out = np.array(frame, copy=True)
+    rows, cols = out.shape
+    r, c = BLANK_PATCH
+    out[r.start * rows // 256:r.stop * rows // 256, c.start * cols // 256:c.stop * cols // 256] = int(out.mean())
+    return out
+
+
 def bench_issue22(n, repeats, thread_counts):
     """Issue 22's table: each path's ms/frame on a ray-traced ``n``^2 frame, its
     speed against the peer-style yardstick (Baseline: numpy FCD, displacement
     only, no height) measured in the same rounds, and its height error, at
-    each of ``thread_counts`` (the Reconstructor's ``threads`` and OpenCV's)."""
+    each of ``thread_counts`` (the Reconstructor's ``threads`` and OpenCV's);
+    last, the default on the same frames with :data:`BLANK_PATCH` (scaled to
+    ``n``) blanked: what masked samples cost, which the all-valid frames do
+    not show."""
     ref, frames, surfaces = heldout_frames(n)
     nf = len(frames)
     print(f"Issue 22 table: {n}^2 ray-traced frames (random waves 1 um rms, 12-30 mm, 12 bit), "
@@ -177,7 +189,16 @@ def bench_issue22(n, repeats, thread_counts):
                 return rec(frames[i % nf], grid=grid)
             return run
 
-        fns = [lambda i: base(frames[i % nf])] + [call(rec, grid) for _, rec, grid in paths]
+        # the default again on the same frames with a blank patch (lost contrast: a shadow, a splash):
+        # what a frame with masked samples costs, which the all-valid frames above do not show
+        blanked = [blank_patch(f) for f in frames]
+        rec_default = paths[-1][1]
+
+        def call_blanked(i):
+            rec_default.reset_series()
+            return rec_default(blanked[i % nf])
+
+        fns = [lambda i: base(frames[i % nf])] + [call(rec, grid) for _, rec, grid in paths] + [call_blanked]
         t = interleaved_medians(fns, repeats, block=2)
         load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
         print(f"  threads {threads} (load average {load:.1f})")
@@ -192,6 +213,12 @@ def bench_issue22(n, repeats, thread_counts):
                     errs.append(rel_height_error(rec(frame, grid=grid), sf))
                 err = f"{np.mean(errs):.3f} %"
             print(f"  {label:40s} {ms:9.1f} {t[0] / ms:11.1f}x {ms / t[3]:9.2f}x {err:>13s}")
+        errs = []
+        for frame, sf in zip(blanked, surfaces):
+            rec_default.reset_series()
+            errs.append(rel_height_error(rec_default(frame), sf))
+        print(f"  {'  the default beside a blank patch':40s} {t[-1]:9.1f} {t[0] / t[-1]:11.1f}x "
+              f"{t[-1] / t[3]:9.2f}x {np.mean(errs):11.3f} %")
     print("  goals (issue 22): default >= 3x the yardstick and <= 2.5x FD refinement's time; issue 19: "
           "live decimated >= 25x, default within 5x of FD's batch time")
     print()
