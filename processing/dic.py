@@ -258,7 +258,7 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
     prev_step = prev_cost = operator = None
     w_sum, wk_buf = float(w.sum()), np.empty_like(w)
     for k in range(outer + 1):
-        _check_displacement(u, u_start, k, grid.frame_shape, period_px)  # before any warp
+        _check_displacement(u, u_start, k, grid.frame_shape, period_px, free)  # before any warp
         if k == outer:
             break
         warped, outside = _warp(fine, grid, u, blur_px, threads)
@@ -398,12 +398,26 @@ def _start_heights(h0):
     return h if fill is None else h[fill[0], fill[1]]
 
 
-def _check_displacement(u, u_start, k, frame_shape, period_px):
+def _check_displacement(u, u_start, k, frame_shape, period_px, free=None):
     """The divergence tests on the node displacement ``u`` after ``k`` steps
     (:func:`refine_height`): finite, within the frame's size anywhere, within
-    half the pattern's period of the start (rms)."""
+    half the pattern's period of the start (rms over the ``free`` nodes, those
+    whose cell is all valid, where there are any).
+
+    Why only those: where the frame shows no pattern (a blank patch, a splash)
+    the nodes have no data, only the regulariser, and their displacement is an
+    extension of their surroundings' that may lie far from FD's start there (FD
+    has nothing there either); counted, it stopped sound solves. Measured
+    (``bench_processing.py --masked``'s deep dimple, 15 um, 2 placements, 4 x 4
+    rays): one of two placements stopped "5 px rms from FD's" and kept FD's
+    heights, 0.199 % mean; counting the free nodes, neither stops: 0.153 %
+    (no refinement 0.212 %); the other masked cases unchanged (none stopped).
+    On an all-valid frame every node is free: the same test as before."""
     size = float(np.abs(u).max()) if u.size else 0.0
-    move = _rms(u - u_start)
+    if free is not None and free.any() and not free.all():
+        move = _rms(u[:, free] - u_start[:, free])
+    else:
+        move = _rms(u - u_start)
     if not (math.isfinite(size) and math.isfinite(move)):
         raise _diverged("non-finite displacement", f"after {k} step(s)")
     if size > max(frame_shape):
