@@ -518,8 +518,7 @@ def bench_masked(placements, supersample=4):
         errors, valid = {name: [] for name, _ in columns}, []
         for offset in placement_offsets(placements):
             ref, img = render_case(surface, supersample, offset=offset, **kw)
-            img = img.copy()
-            img[BLANK_PATCH] = int(img.mean())
+            img = blank_patch(img)
             for name, opts in columns:
                 res = Reconstructor(ref, GEOMETRY, **opts)(img)
                 errors[name].append(rel_height_error(res, surface))

@@ -509,12 +509,11 @@ def test_image_matching_is_not_stopped_by_nodes_without_data():
     # moved far from FD's start there; counted by the divergence test it stopped the refinement ("5 px rms
     # from FD's", FD's heights kept: 0.222 % against no refinement's 0.212 %). The test counts the nodes
     # whose cell is all valid: the refinement runs, 0.132 %.
-    from benchmarks.bench_processing import BLANK_PATCH, GEOMETRY, placement_offsets, render_case, rel_height_error
+    from benchmarks.bench_processing import GEOMETRY, blank_patch, placement_offsets, render_case, rel_height_error
 
     surface = F.Dimple(0.015, 9.0)
     ref, img = render_case(surface, 2, offset=placement_offsets(4)[1])
-    img = img.copy()
-    img[BLANK_PATCH] = int(img.mean())
+    img = blank_patch(img)
     none = rel_height_error(Reconstructor(ref, GEOMETRY, refine_iterations=0)(img), surface)
     refined = Reconstructor(ref, GEOMETRY)(img)
     assert not refined.note, refined.note  # image matching ran to its end
