@@ -215,7 +215,8 @@ class Demodulator:
         if self._window2d is not None:
             self._dc_leak = self.windows(np.fft.rfft2(self._window2d).astype(np.complex64), mean=0.0)
         self.carrier_columns = self._carrier_columns()
-        self.planner.prepare("rfft2", (rows, cols))
+        # the carriers' band only: the whole transform (alignment, the display spectrum) is
+        # planned by its first call, which batch runs never make
         self.planner.prepare("rfft2", (rows, cols), columns=self.carrier_columns)
         self.planner.prepare("ifft2", (2,) + self.window_shape)
         self.g0 = self.decimated(ref)

@@ -301,8 +301,7 @@ class _RealPlan:
         with _wisdom_lock:
             self._rows = pyfftw.FFTW(self.input_array, self.output_array, axes=(-1,),
                                      direction="FFTW_FORWARD", flags=self._flags, threads=threads)
-        self._columns = {}
-        self.columns_plan()
+        self._columns = {}  # the column passes, planned when first asked for (batch never takes all)
 
     def columns_plan(self, columns=None):
         """The pass along the rows axis of the first ``columns`` columns (None: all)."""
