@@ -8,8 +8,10 @@ windows cut around each carrier (decimated grid) and, optionally, full-size
 complex inverse transforms (full grid).
 
 :class:`FFTPlanner` builds a plan the first time a (kind, shape) is asked for
-and keeps it; planning happens on scratch arrays (FFTW_MEASURE overwrites
-its arrays), so callers never lose data to the planner.  One planner belongs
+and keeps it; planning happens on scratch arrays, or on the plan's own arrays
+with their data copied aside and put back (FFTW_MEASURE overwrites the arrays
+it plans on: the real transform's column passes, planned when first asked
+for), so callers never lose data to the planner.  One planner belongs
 to one :class:`~processing.reconstruct.Reconstructor`: plans own their
 arrays, so two threads must not share a planner.
 
@@ -211,11 +213,10 @@ class FFTPlanner:
             rfft2 only: plan the transform of the first ``columns`` output
             columns alone (see :meth:`execute`).
         """
+        _columns_of(kind, columns)
         plan = self._plan(kind, shape)
         if kind == "rfft2":
             plan.columns_plan(columns)
-        elif columns is not None:
-            raise ValueError(f"columns applies to rfft2 only, not {kind!r}")
 
     def input_array(self, kind: str, shape) -> np.ndarray:
         """The plan's own input array: write into it, then call ``execute(kind, shape)``.
@@ -235,11 +236,10 @@ class FFTPlanner:
         the spectrum (for callers that read only those columns: the carrier
         windows).
         """
+        _columns_of(kind, columns)
         plan = self._plan(kind, shape)
         if kind == "rfft2":
             plan.execute(columns)
-        elif columns is not None:
-            raise ValueError(f"columns applies to rfft2 only, not {kind!r}")
         else:
             plan.execute()
         out = plan.output_array
@@ -275,6 +275,12 @@ class FFTPlanner:
         shape = spectrum.shape
         self.input_array("ifft2", shape)[...] = spectrum
         return self.execute("ifft2", shape)
+
+
+def _columns_of(kind, columns):
+    """Refuse ``columns`` (a band of the real transform's output columns) for any other transform."""
+    if columns is not None and kind != "rfft2":
+        raise ValueError(f"columns applies to rfft2 only, not {kind!r}")
 
 
 class _RealPlan:
