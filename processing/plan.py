@@ -3,7 +3,8 @@ reference and every chain over it reads: :class:`ReferencePlan` (read-only).
 
 The GPU chain (:mod:`processing.gpu`) is built from it and from the public
 methods of the Reconstructor, never from its private attributes, so a change
-inside the CPU chain cannot silently change a path that has not run on a GPU.
+inside the CPU chain cannot silently change a path that rarely runs on a GPU
+(checked on one once, docs/processing.md section 8).
 """
 
 from __future__ import annotations
