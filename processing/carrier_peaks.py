@@ -27,9 +27,10 @@ import numpy as np
 import scipy.fft
 
 from .errors import NoCarrierError
+from .half_spectrum import display_bins, display_spectrum_of
 
 __all__ = ["Carriers", "find_carriers", "hann", "theta_from_carriers", "rotation_from_carriers", "display_bins", "display_spectrum",
-           "frame_spectrum", "as_float_image", "MIN_PEAK_CONTRAST", "MIN_ISOLATION", "ISOLATION_RING_BINS"]
+           "frame_spectrum", "windowed_spectrum", "as_float_image", "MIN_PEAK_CONTRAST", "MIN_ISOLATION", "ISOLATION_RING_BINS"]
 
 # A peak must stand this many times (in amplitude) above the spectrum's
 # typical level at the same radius.  Measured: sharp or soft checkerboards
@@ -201,32 +202,32 @@ def as_float_image(image, name):
     return a
 
 
-def _spectrum(image):
-    """rfft2 of the mean-free, Hann-windowed image and the frequency grids."""
+def windowed_spectrum(image) -> np.ndarray:
+    """rfft2 half spectrum, complex64 (rows, cols // 2 + 1), of the mean-free image times
+    :func:`hann` along both axes: what :func:`find_carriers` searches and
+    :func:`frame_spectrum` shows.  A caller that needs both computes it once and
+    passes it to each (``half_spectrum=``): the live alignment before a reference.
+
+    Parameters
+    ----------
+    image : ndarray, float32 (rows, cols)
+    """
+    image = np.asarray(image, np.float32)
     rows, cols = image.shape
     w = hann(rows)[:, None] * hann(cols)[None, :]
-    x = (image - image.mean()) * w
-    spec = scipy.fft.rfft2(x, workers=2)
+    return scipy.fft.rfft2((image - image.mean()) * w, workers=2)
+
+
+def _spectrum(image, half_spectrum=None):
+    """:func:`windowed_spectrum` of the image (or ``half_spectrum``, that of the
+    same image) and the frequency grids."""
+    rows, cols = image.shape
+    spec = windowed_spectrum(image) if half_spectrum is None else half_spectrum
+    if spec.shape != (rows, cols // 2 + 1):
+        raise ValueError(f"half spectrum of shape {spec.shape} does not belong to a {rows} x {cols} image")
     fr = scipy.fft.fftfreq(rows)[:, None]
     fc = scipy.fft.rfftfreq(cols)[None, :]
     return spec, fr, fc
-
-
-def display_bins(shape, size: int, max_freq: float) -> tuple:
-    """The centred (fftshift) spectrum's bins a display of ``size`` shows:
-    ``(freq_y, freq_x, keep_rows, keep_cols, step_rows, step_cols)``, the
-    frequencies (cycles/px) of every row and column, the rows and columns
-    within ``max_freq`` cut to whole blocks of ``step`` bins (block maxima)."""
-    rows, cols = shape
-    fy = np.fft.fftshift(np.fft.fftfreq(rows))
-    fx = np.fft.fftshift(np.fft.fftfreq(cols))
-    keep_r = np.flatnonzero(np.abs(fy) <= max_freq)
-    keep_c = np.flatnonzero(np.abs(fx) <= max_freq)
-    step_r = max(1, len(keep_r) // size)
-    step_c = max(1, len(keep_c) // size)
-    keep_r = keep_r[: len(keep_r) // step_r * step_r]
-    keep_c = keep_c[: len(keep_c) // step_c * step_c]
-    return fy, fx, keep_r, keep_c, step_r, step_c
 
 
 def display_spectrum(half_magnitude, cols: int, *, size: int = 256, max_freq: float = 0.25) -> dict:
@@ -272,14 +273,14 @@ def display_spectrum(half_magnitude, cols: int, *, size: int = 256, max_freq: fl
     return {"log_magnitude": mag, "freq_x": fc_k, "freq_y": fr_k}
 
 
-def frame_spectrum(frame, *, size: int = 256, max_freq: float = 0.25) -> dict:
-    """:func:`display_spectrum` of a raw frame (mean removed, Hann window): the
-    live spectrum before any reference, and that of a random-dot pattern."""
+def frame_spectrum(frame, *, size: int = 256, max_freq: float = 0.25, half_spectrum=None) -> dict:
+    """:func:`display_spectrum` of a raw frame's :func:`windowed_spectrum` (mean removed,
+    Hann window; ``half_spectrum``: that spectrum, if already computed), reading only the
+    bins shown (:func:`processing.half_spectrum.display_spectrum_of`): the live spectrum
+    before any reference, and that of a random-dot pattern."""
     img = np.asarray(frame, np.float32)
-    rows, cols = img.shape
-    win = np.outer(np.hanning(rows).astype(np.float32), np.hanning(cols).astype(np.float32))
-    half = np.abs(np.fft.rfft2((img - img.mean()) * win))
-    return display_spectrum(half, cols, size=size, max_freq=max_freq)
+    half = windowed_spectrum(img) if half_spectrum is None else half_spectrum
+    return display_spectrum_of(half, img.shape, size=size, max_freq=max_freq)
 
 
 def _gather(spec, rr, cc, rows):
@@ -447,7 +448,8 @@ def _no_clear_peak(contrast, min_contrast) -> NoCarrierError:
 
 
 def find_carriers(reference, *, min_period_px: float = 2.5, max_period_px: float | None = None,
-                  min_contrast: float = MIN_PEAK_CONTRAST, min_angle_deg: float = 15.0) -> Carriers:
+                  min_contrast: float = MIN_PEAK_CONTRAST, min_angle_deg: float = 15.0,
+                  half_spectrum=None) -> Carriers:
     """Find the two carrier peaks of a checkerboard image.
 
     Parameters
@@ -463,6 +465,8 @@ def find_carriers(reference, *, min_period_px: float = 2.5, max_period_px: float
     min_angle_deg : float, optional
         Smallest angle between the two carriers (the second peak must not be
         a harmonic of the first).
+    half_spectrum : ndarray, complex (rows, cols // 2 + 1), optional
+        The image's :func:`windowed_spectrum`, where the caller has it already.
 
     Returns
     -------
@@ -489,7 +493,7 @@ def find_carriers(reference, *, min_period_px: float = 2.5, max_period_px: float
     _check_not_uniform(img)
     if max_period_px is None:
         max_period_px = min(rows, cols) / 4.0
-    spec_c, fr, fc = _spectrum(img)
+    spec_c, fr, fc = _spectrum(img, half_spectrum)
     spec = np.abs(spec_c).astype(np.float64)
     # floor at float32 round-off of the largest component: exact zeros (synthetic
     # separable images) must not make every non-zero bin look like a peak

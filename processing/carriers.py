@@ -24,9 +24,10 @@ import numpy as np
 import scipy.fft
 
 from .carrier_peaks import (ISOLATION_RING_BINS, ISOLATION_RING_DC, ISOLATION_RING_DR, MIN_ISOLATION,  # noqa: F401
-                            MIN_PEAK_CONTRAST, Carriers, as_float_image, display_bins, display_spectrum, find_carriers,
-                            frame_spectrum, hann, rotation_from_carriers, theta_from_carriers)
+                            MIN_PEAK_CONTRAST, Carriers, as_float_image, display_spectrum, find_carriers,
+                            frame_spectrum, hann, rotation_from_carriers, theta_from_carriers, windowed_spectrum)
 from .errors import GeometryError, NoCarrierError, PatternMismatchError
+from .half_spectrum import display_bins
 
 __all__ = [
     "Carriers",
@@ -45,7 +46,7 @@ __all__ = [
     "theta_from_carriers",
     "rotation_from_carriers",
     "display_bins", "display_spectrum",
-    "frame_spectrum",
+    "frame_spectrum", "windowed_spectrum",
 ]
 
 
@@ -131,13 +132,14 @@ def find_carriers_local(image, *, tile_px: int | None = None, max_tiles: int = 6
         f"need {min_fraction:.0%}): check that the checkerboard is in focus, lit and fills the view")
 
 
-def find_carriers_live(image) -> tuple:
+def find_carriers_live(image, *, half_spectrum=None) -> tuple:
     """Carriers of a live frame for alignment: ``(Carriers, disturbed)``.
 
-    The whole image's peaks first (:func:`find_carriers`, most precise); when
-    they are smeared by a disturbed surface, the median of local carriers
-    (:func:`find_carriers_local`) and ``disturbed=True``: the numbers are
-    right, but a reference taken now would not be of still water.
+    The whole image's peaks first (:func:`find_carriers`, most precise; on
+    ``half_spectrum``, the image's :func:`windowed_spectrum`, where the caller
+    has it already); when they are smeared by a disturbed surface, the median
+    of local carriers (:func:`find_carriers_local`) and ``disturbed=True``: the
+    numbers are right, but a reference taken now would not be of still water.
 
     Raises
     ------
@@ -145,7 +147,7 @@ def find_carriers_live(image) -> tuple:
         The whole image's message, if neither finds a checkerboard.
     """
     try:
-        return find_carriers(image), False
+        return find_carriers(image, half_spectrum=half_spectrum), False
     except NoCarrierError as whole:
         try:
             return find_carriers_local(image), True

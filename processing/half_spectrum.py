@@ -1,8 +1,9 @@
 """Reading an rfft2 half spectrum: where a full DFT's bin sits in it
-(:func:`half_spectrum_index`), and the display spectrum of the Alignment tab
-from it, reading only the bins shown (:func:`display_spectrum_of`).  Shared by
-:mod:`processing.alignment` (the live alignment metrics) and
-:mod:`processing.live_view` (the live spectrum)."""
+(:func:`half_spectrum_index`), which bins the display spectrum of the Alignment
+tab shows (:func:`display_bins`), and that display from it, reading only the bins
+shown (:func:`display_spectrum_of`).  Shared by :mod:`processing.alignment` (the
+live alignment metrics), :mod:`processing.live_view` (the live spectrum) and
+:func:`processing.carrier_peaks.frame_spectrum` (the spectrum before a reference)."""
 
 from __future__ import annotations
 
@@ -10,9 +11,24 @@ import functools
 
 import numpy as np
 
-from .carriers import display_bins
+__all__ = ["half_spectrum_index", "display_bins", "display_spectrum_of"]
 
-__all__ = ["half_spectrum_index", "display_spectrum_of"]
+
+def display_bins(shape, size: int, max_freq: float) -> tuple:
+    """The centred (fftshift) spectrum's bins a display of ``size`` shows:
+    ``(freq_y, freq_x, keep_rows, keep_cols, step_rows, step_cols)``, the
+    frequencies (cycles/px) of every row and column, the rows and columns
+    within ``max_freq`` cut to whole blocks of ``step`` bins (block maxima)."""
+    rows, cols = shape
+    fy = np.fft.fftshift(np.fft.fftfreq(rows))
+    fx = np.fft.fftshift(np.fft.fftfreq(cols))
+    keep_r = np.flatnonzero(np.abs(fy) <= max_freq)
+    keep_c = np.flatnonzero(np.abs(fx) <= max_freq)
+    step_r = max(1, len(keep_r) // size)
+    step_c = max(1, len(keep_c) // size)
+    keep_r = keep_r[: len(keep_r) // step_r * step_r]
+    keep_c = keep_c[: len(keep_c) // step_c * step_c]
+    return fy, fx, keep_r, keep_c, step_r, step_c
 
 
 def half_spectrum_index(shape, kr, kc) -> tuple:
@@ -59,7 +75,7 @@ def _display_layout(shape, size: int, max_freq: float) -> tuple:
 
 
 def display_spectrum_of(half_spectrum, shape, *, leak=None, size: int = 256, max_freq: float = 0.25) -> dict:
-    """:func:`processing.carriers.display_spectrum` of ``|half_spectrum - leak|``, reading only the shown bins.
+    """:func:`processing.carrier_peaks.display_spectrum` of ``|half_spectrum - leak|``, reading only the shown bins.
 
     Parameters
     ----------

@@ -27,7 +27,7 @@ __all__ = ["frame_alignment", "display_spectrum", "modulation_map", "assess", "D
 DOT_WINDOW_PX = 16
 
 
-def display_spectrum(frame: np.ndarray, *, size: int = 256, max_freq: float = 0.25) -> dict:
+def display_spectrum(frame: np.ndarray, *, size: int = 256, max_freq: float = 0.25, half_spectrum=None) -> dict:
     """Centred log-magnitude spectrum of ``frame`` for display.
 
     Parameters
@@ -38,6 +38,8 @@ def display_spectrum(frame: np.ndarray, *, size: int = 256, max_freq: float = 0.
         At most about this many samples per axis (block maxima keep the peaks).
     max_freq : float
         Show frequencies up to this many cycles per pixel (0.25: periods >= 4 px).
+    half_spectrum : ndarray, optional
+        The frame's :func:`processing.carriers.windowed_spectrum`, where it was computed already.
 
     Returns
     -------
@@ -48,7 +50,7 @@ def display_spectrum(frame: np.ndarray, *, size: int = 256, max_freq: float = 0.
     """
     from processing.carriers import frame_spectrum
 
-    return frame_spectrum(frame, size=size, max_freq=max_freq)
+    return frame_spectrum(frame, size=size, max_freq=max_freq, half_spectrum=half_spectrum)
 
 
 def modulation_map(frame: np.ndarray, *, window_px: int = 32, step_px: int = 16):
@@ -137,10 +139,10 @@ def frame_alignment(frame: np.ndarray, theta_configured_deg: Optional[float] = N
     through it) -- or ``error`` with the message of
     :class:`processing.errors.NoCarrierError`.
     """
-    from processing.carriers import find_carriers_live
+    from processing.carriers import find_carriers_live, windowed_spectrum
 
-    spectrum = display_spectrum(frame)
     if pattern == "dots":
+        spectrum = display_spectrum(frame)
         from processing.piv import dot_alignment
 
         a = dot_alignment(frame, window_px=DOT_WINDOW_PX)
@@ -148,9 +150,12 @@ def frame_alignment(frame: np.ndarray, theta_configured_deg: Optional[float] = N
         a.update(window_px=DOT_WINDOW_PX, modulation=mod, modulation_rows_px=rows, modulation_cols_px=cols,
                  periodic=periodic_pattern(frame))
         return a, spectrum
+    # one transform of the frame for the display and the carriers' search (the same window)
+    half = windowed_spectrum(frame)
+    spectrum = display_spectrum(frame, half_spectrum=half)
     try:
         # a disturbed surface smears the whole image's carrier peaks: then local carriers (tiles)
-        c, disturbed = find_carriers_live(frame)
+        c, disturbed = find_carriers_live(frame, half_spectrum=half)
     except ValueError as exc:  # NoCarrierError
         mod, rows, cols = modulation_map(frame)
         error = str(exc)

@@ -26,6 +26,30 @@ def test_still_water_is_ready_with_numbers(tank):
     assert len(spectrum["carriers"]) == 4
 
 
+@pytest.mark.parametrize("scene, k", [("still", 0), ("waves", 5)])
+def test_one_transform_serves_the_display_and_the_carriers(tank, scene, k):
+    """Before a reference the alignment transforms the frame once: the carriers are
+    find_carriers_live's own to the bit (the whole image's search on still water, the
+    tiles' on waves) and the spectrum is the full-array display's of the same
+    half spectrum (the search's Hann window) to float32 rounding."""
+    from processing.carriers import display_spectrum, find_carriers_live, windowed_spectrum
+
+    tank.set_scene(scene)
+    try:
+        frame = tank(k)
+        a, spectrum = frame_alignment(frame, tank.geometry.theta_deg)
+        c, disturbed = find_carriers_live(frame)
+        assert a["disturbed"] is disturbed is (scene == "waves")
+        np.testing.assert_array_equal(a["periods_px"], c.periods_px)
+        assert a["rotation_deg"] == c.rotation_deg and a["theta_estimate_deg"] == c.theta_deg
+        want = display_spectrum(np.abs(windowed_spectrum(frame)), frame.shape[1])
+        np.testing.assert_allclose(spectrum["log_magnitude"], want["log_magnitude"], atol=1e-5)
+        np.testing.assert_array_equal(spectrum["freq_x"], want["freq_x"])
+        np.testing.assert_array_equal(spectrum["freq_y"], want["freq_y"])
+    finally:
+        tank.set_scene("still")
+
+
 def test_moving_water_gives_numbers_but_no_reference(tank):
     tank.set_scene("waves")
     a, _ = frame_alignment(tank(5), tank.geometry.theta_deg)
