@@ -29,7 +29,7 @@ import scipy.fft
 from .errors import NoCarrierError
 from .half_spectrum import display_bins, display_spectrum_of
 
-__all__ = ["Carriers", "find_carriers", "hann", "theta_from_carriers", "rotation_from_carriers", "display_bins", "display_spectrum",
+__all__ = ["Carriers", "find_carriers", "hann", "theta_from_carriers", "rotation_from_carriers", "display_spectrum",
            "frame_spectrum", "windowed_spectrum", "as_float_image", "MIN_PEAK_CONTRAST", "MIN_ISOLATION", "ISOLATION_RING_BINS"]
 
 # A peak must stand this many times (in amplitude) above the spectrum's
@@ -231,7 +231,10 @@ def _spectrum(image, half_spectrum=None):
 
 
 def display_spectrum(half_magnitude, cols: int, *, size: int = 256, max_freq: float = 0.25) -> dict:
-    """Centred log-magnitude spectrum for display, from an rfft2 magnitude.
+    """Centred log-magnitude spectrum for display, from an rfft2 magnitude: what the
+    Alignment tab shows, written out on the whole array (the definition; the app reads
+    the same from the bins shown alone, :func:`processing.half_spectrum.display_spectrum_of`,
+    which the tests hold to this).
 
     Parameters
     ----------
