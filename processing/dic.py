@@ -415,7 +415,11 @@ def _check_displacement(u, u_start, k, frame_shape, period_px, free=None):
     On an all-valid frame every node is free: the same test as before."""
     size = float(np.abs(u).max()) if u.size else 0.0
     if free is not None and free.any() and not free.all():
-        move = _rms(u[:, free] - u_start[:, free])
+        # the squares summed over the components first, then the free nodes picked from that
+        # 2-D map (NumPy's boolean index of the 3-D pair took 2 ms a call at 256^2 nodes)
+        d = u - u_start
+        sq = np.einsum("kij,kij->ij", d, d, dtype=np.float64)
+        move = math.sqrt(float(sq[free].sum()) / int(np.count_nonzero(free)))
     else:
         move = _rms(u - u_start)
     if not (math.isfinite(size) and math.isfinite(move)):
