@@ -12,7 +12,8 @@ from scipy import ndimage
 from .errors import GeometryError, TirdeflectError
 
 __all__ = ["PIN_MIN_SAMPLES", "PIN_MIN_FRACTION", "PIN_MIN_PIECE_SAMPLES", "PIN_FALLBACKS", "PinStatus",
-           "STILL_REGION_MAX_MOTION_PX", "USER_REGION_PREFIX", "choose_pin_samples", "pattern_moved",
+           "STILL_REGION_MAX_MOTION_PX", "BAND_MAX_MOTION_PX", "USER_REGION_PREFIX", "band_moved",
+           "choose_pin_samples", "pattern_moved",
            "pin_samples_needed", "region_motion_px"]
 
 
@@ -36,6 +37,13 @@ PIN_FALLBACKS = ("nearest", "refuse")
 #: (a centred 4 um bump: median 0 but 0.6 px at the 90th percentile; waves filling the frame, medians
 #: of 0.2-0.7 px), so there the figure is kept, not judged.
 STILL_REGION_MAX_MOTION_PX = 0.03
+#: The same for the default border band, where only a moving surface is named (:func:`band_moved`):
+#: features inside the frame leave its median displacement at 0 (``tirdeflect simulate``'s bump,
+#: dimple and deep dimple at 512^2: 0.000 px in every frame) while waves that fill the frame move it
+#: (its travelling waves: 0.26-0.52 px at 256^2, 0.06-0.65 px, median 0.42, over 80 frames at
+#: 1024^2); there the TIR heights' null mode ``exp(-T y/H)`` is set by the band's motion: at 1024^2
+#: up to 2.7 % of their RMS (0.10-0.20 % with that mode pinned alike, ``tirdeflect compare``).
+BAND_MAX_MOTION_PX = 0.1
 #: How the name of the user's ``reference_region`` starts (:func:`processing.mask.choose_reference_region`).
 USER_REGION_PREFIX = "reference_region"
 
@@ -59,6 +67,14 @@ def pattern_moved(region: str, rule: str, motion_px: float) -> bool:
     judged (:attr:`PinStatus.still`, ``/pin_status`` read back by the GUI's export)."""
     judged = rule == "region" and region.startswith(USER_REGION_PREFIX)
     return bool(judged and motion_px > STILL_REGION_MAX_MOTION_PX)
+
+
+def band_moved(region: str, rule: str, motion_px: float) -> bool:
+    """Did the surface move on the default border band the heights were pinned on?  True above
+    :data:`BAND_MAX_MOTION_PX` of :func:`region_motion_px` where the region is not the user's
+    (:func:`pattern_moved` judges that one) and the pin was measured on it."""
+    judged = rule == "region" and not region.startswith(USER_REGION_PREFIX)
+    return bool(judged and motion_px > BAND_MAX_MOTION_PX)
 
 
 def pin_samples_needed(region_samples: int) -> int:

@@ -32,6 +32,7 @@ from processing.errors import (
     ShapeMismatchError,
     TirdeflectError,
 )
+from processing.pin import band_moved
 
 from app import version as _version
 from app.batch import parallel
@@ -572,6 +573,11 @@ class _PinCounter:
         self.jumps = []  # (sequence index, reason)
         self.noted = []  # (sequence index, Result.note): e.g. the image refinement fell back to FD
         self.moving = []  # (sequence index, PinStatus.region_motion_px) where the pattern moved on the pin samples
+        # the same on the default border band, judged for TIR only (there the band's motion sets the null mode
+        # exp(-T y/H), which tilts the heights; FS-SS's is a constant: an offset)
+        geometry = getattr(reconstruct, "geometry", None)
+        self.judge_band = getattr(geometry, "setup", "") == "tir"
+        self.band_moving = []  # (sequence index, PinStatus.region_motion_px)
         self.min_valid = None
 
     def write_region(self, writer) -> None:
@@ -603,6 +609,10 @@ class _PinCounter:
             self.moving.append((item.sequence_index, pin.region_motion_px))
             (log.warning if len(self.moving) == 1 else log.debug)(
                 "frame %d (%s): %s", item.sequence_index, item.label, pin.describe())
+        elif self.judge_band and band_moved(pin.region, pin.rule, pin.region_motion_px):
+            self.band_moving.append((item.sequence_index, pin.region_motion_px))
+            log.debug("frame %d (%s): the surface moved on the %s by %.3g px", item.sequence_index, item.label,
+                      pin.region, pin.region_motion_px)
         note = getattr(result, "note", "")
         if note:
             self.noted.append((item.sequence_index, note))
@@ -618,7 +628,7 @@ class _PinCounter:
     def attrs(self) -> dict:
         return {"pin_region": self.name, "frames_pin_fallback": len(self.nearest),
                 "frames_flagged_jump": len(self.jumps), "frames_noted": len(self.noted),
-                "frames_pin_region_moving": len(self.moving)}
+                "frames_pin_region_moving": len(self.moving), "frames_pin_band_moving": len(self.band_moving)}
 
     def summary(self) -> str:
         if not self.frames:
@@ -652,6 +662,15 @@ class _PinCounter:
                        f"the camera or the board moved since the reference, which reads as a tilt of the heights "
                        f"(0.1 px: 10 % on a 4 um bump). Take the reference again if the set-up moved, or move the "
                        f"reference_region to where the surface is at rest; see /pin_status region_motion_px")
+        if self.band_moving:
+            moved = [m for _, m in self.band_moving]
+            out.append(f"in {len(self.band_moving)} of {self.frames} frame(s) the pattern moved on the {self.name}, "
+                       f"where the heights are pinned by default (median displacement there {min(moved):.2g}-"
+                       f"{max(moved):.2g} px, e.g. frame {self.band_moving[0][0]}; features inside the frame leave it "
+                       f"at 0): waves reaching it, or the camera or the board moved since the reference. The heights' "
+                       f"part along exp(-T y/H), which no deflectometry measures, is then set by that motion, a tilt "
+                       f"of up to a few per cent of their RMS (docs/processing.md, section 5). Give a "
+                       f"reference_region where the water is still; see /pin_status region_motion_px")
         if self.noted:
             idx, note = self.noted[0]
             out.append(f"{len(self.noted)} frame(s) were measured otherwise than asked, e.g. frame {idx}: "

@@ -77,6 +77,19 @@ def _text(value) -> str:
     return value.decode() if isinstance(value, bytes) else str(value)
 
 
+def _setup(f) -> str:
+    """The geometry's ``setup`` ("tir", "fsss") of an open OUT.h5, or "" where it holds none."""
+    from processing import Geometry
+
+    text = f.attrs.get("geometry_toml")
+    if text is None:
+        return ""
+    try:
+        return Geometry.from_toml_text(_text(text)).setup
+    except ValueError:  # GeometryError or TOML's: an unreadable geometry names nothing here
+        return ""
+
+
 def describe_export(out_path: str) -> tuple:
     """What an exported OUT.h5 holds, for the message and the log: ``(text, clean)``.
 
@@ -92,12 +105,13 @@ def describe_export(out_path: str) -> tuple:
 
     from drivers.base import FrameFlags
     from processing.live_view import SATURATION_MAX_PCT
-    from processing.pin import pattern_moved
+    from processing.pin import band_moved, pattern_moved
     from processing.turn import TURN_MAX_MRAD
 
     with h5py.File(out_path, "r") as f:
         n = int(f["height"].shape[0]) if "height" in f else 0
         parts = []
+        band_note = ""
         if "frame_status" in f:
             bad = np.flatnonzero(np.asarray(f["frame_status"][:n]) != 0)
             if bad.size:
@@ -114,6 +128,14 @@ def describe_export(out_path: str) -> tuple:
             if moved.size:
                 parts.append(f"{moved.size} where the pattern moved in the pin region: surface not at rest there, "
                              f"or camera or board moved since the reference (frames {frame_list(moved)})")
+            if _setup(f) == "tir":
+                band = np.flatnonzero([band_moved(region, _text(rule), float(m))
+                                       for rule, m in zip(st["rule"], st["region_motion_px"])])
+                if band.size:
+                    band_note = (f"in {band.size} frame(s) the pattern moved on the {region} the heights are pinned on "
+                                 f"by default (waves reaching it, or the camera or the board moved; frames "
+                                 f"{frame_list(band)}): their part along exp(-T y/H) is set by that; a reference "
+                                 f"region where the water is still fixes it (/pin_status region_motion_px)")
         if "frame_flags" in f:
             inc = np.flatnonzero((np.asarray(f["frame_flags"][:n]).astype(np.int64) & int(FrameFlags.INCOMPLETE)) != 0)
             if inc.size:
@@ -149,6 +171,9 @@ def describe_export(out_path: str) -> tuple:
     if repaired:  # a note, not a flag: the heights are measured as without them
         text += f". Note: {repaired}"
         log.info("%s", repaired)
+    if band_note:  # a note as well: the heights are as measured; what pins them is the user's to choose
+        text += f". Note: {band_note}"
+        log.info("%s", band_note)
     return text, not parts
 
 

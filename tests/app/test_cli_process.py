@@ -105,6 +105,9 @@ def test_round_trip_height_error_within_2_percent(tmp_path, capsys, surface, bit
         est = f["height"][()].astype(np.float64)
         x_mm, y_mm = f["x_mm"][()], f["y_mm"][()]
         assert f.attrs["frames_done"] == 2 and f.attrs["status"] == "complete"
+        # a feature inside the frame leaves the default border band at rest: nothing to say of it
+        assert f.attrs["frames_pin_band_moving"] == 0
+    assert "moved on the default border band" not in err
     assert est.shape == truth.shape
     ref = _reference_mask(geometry, truth.shape[1:])
     # both maps pinned alike: less their least squares of the null mode on the region
@@ -143,6 +146,32 @@ def test_round_trip_height_error_within_2_percent(tmp_path, capsys, surface, bit
     capsys.readouterr()
     assert main(["compare", str(out), str(d)]) == 0
     assert [float(x) for x in re.findall(r"^\s*\d+\s+([\d.]+) %", capsys.readouterr().out, re.M)] == figures
+
+
+def test_waves_that_fill_the_frame_move_the_default_pin_band_and_the_run_says_so(tmp_path, capsys):
+    """simulate's travelling waves fill the frame, its border band included (the band's median
+    displacement 0.26-0.52 px at 256^2): the heights' null mode exp(-T y/H) is then set by the band's
+    motion. process says so and what to do, counts the frames; the GUI's export adds the same note;
+    compare, pinning both maps alike, gives the processing's own error and says the region moves."""
+    d = tmp_path / "sim"
+    code, err = _run(capsys, "simulate", "--out", d, "--surface", "waves", "--size", SIZE, "--frames", 2)
+    assert code == 0, err
+    out = tmp_path / "out.h5"
+    code, err = _run(capsys, "process", d / "reference.png", *sorted(d.glob("frame_*.png")),
+                     "--geometry", d / "geometry.toml", "--out", out)
+    assert code == 0, err  # measured, and said
+    assert re.search(r"note: in 2 of 2 frame\(s\) the pattern moved on the default border band of the frame, "
+                     r"where the heights are pinned by default \(median displacement there 0\.\d+-0\.\d+ px", err), err
+    assert "Give a reference_region where the water is still" in err
+    with h5py.File(out) as f:
+        assert f.attrs["frames_pin_band_moving"] == 2 and f.attrs["frames_pin_region_moving"] == 0
+        assert np.all(f["pin_status"]["region_motion_px"][:] > 0.1)
+    from app.gui.export import describe_export
+
+    text, clean = describe_export(str(out))
+    assert clean and "Note: in 2 frame(s) the pattern moved on the default border band" in text, text
+    assert main(["compare", str(out), str(d), "--max-error", "0.01"]) == 0
+    assert "not at rest on the reference region in 2 of 2 frame(s)" in capsys.readouterr().out
 
 
 def test_output_layout_matches_docs(sim, tmp_path, capsys):

@@ -332,7 +332,18 @@ def test_a_camera_or_board_that_moved_since_the_reference_is_seen_on_the_pin_sam
             assert rel_height_error(res, bump, g) > 15  # what goes unseen without it
         # 4 um, 0.04 px, 4 % in height here: above the bound
         assert not rec(frames[0.004, 0.0], grid=grid).pin.still
-    # the default border band is measured but not judged: a bump's tails move it by tenths of a pixel
+    # the default border band is not judged by `still` (the user's region's bound); band_moved names
+    # what moves it by more than a tenth of a pixel: here the board's 0.3 px, not the centred bump,
+    # whose median there is 0 (waves filling the frame move it too: tests/app/test_cli_process.py)
+    from processing.pin import BAND_MAX_MOTION_PX, band_moved
+
     default = Reconstructor(F.quantize(ref, bits=8), dataclasses.replace(g, reference_region=None))
     res = default(frames[0.03, 0.0])
     assert res.pin.region_motion_px > STILL_REGION_MAX_MOTION_PX and res.pin.still
+    assert band_moved(res.pin.region, res.pin.rule, res.pin.region_motion_px)
+    res = default(frames[0.0, 0.0])
+    assert res.pin.region_motion_px < 0.1 * BAND_MAX_MOTION_PX
+    assert not band_moved(res.pin.region, res.pin.rule, res.pin.region_motion_px)
+    # never the user's region (pattern_moved judges that one) nor a fallback's samples
+    assert not band_moved("reference_region [0, 24, 0, 24]", "region", 1.0)
+    assert not band_moved(res.pin.region, "nearest", 1.0)
