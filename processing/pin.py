@@ -32,12 +32,12 @@ PIN_FALLBACKS = ("nearest", "refuse")
 #: (:attr:`PinStatus.region_motion_px`, :attr:`PinStatus.still`).  Where the surface is at rest
 #: ``u = a h + B grad h = 0`` exactly: ray-traced frames give at most 0.004 px there (8 and 12 bit,
 #: 20 DN noise).  A board moved 3 um on the tank bottom (0.03 px) gives 0.031 px and a 4 um bump 3.2 %
-#: off (a tilt); 10 um, 0.100 px and 10.4 %; 30 um, 0.300 px and 31 %.  Only the user's region is
-#: judged: the default border band sees the slopes of whatever reaches it through the 2H lever arm
+#: off (a tilt); 10 um, 0.100 px and 10.4 %; 30 um, 0.300 px and 31 %.  Only the user's region is held
+#: to it: the default border band sees the slopes of whatever reaches it through the 2H lever arm
 #: (a centred 4 um bump: median 0 but 0.6 px at the 90th percentile; waves filling the frame, medians
-#: of 0.2-0.7 px), so there the figure is kept, not judged.
+#: of 0.2-0.7 px), so there this bound is not applied (:data:`BAND_MAX_MOTION_PX` is).
 STILL_REGION_MAX_MOTION_PX = 0.03
-#: The same for the default border band, where only a moving surface is named (:func:`band_moved`):
+#: The looser bound of the default border band (:func:`band_moved`):
 #: features inside the frame leave its median displacement at 0 (``tirdeflect simulate``'s bump,
 #: dimple and deep dimple at 512^2: 0.000 px in every frame) while waves that fill the frame move it
 #: (its travelling waves: 0.26-0.52 px at 256^2, 0.06-0.65 px, median 0.42, over 80 frames at
@@ -70,7 +70,8 @@ def pattern_moved(region: str, rule: str, motion_px: float) -> bool:
 
 
 def band_moved(region: str, rule: str, motion_px: float) -> bool:
-    """Did the surface move on the default border band the heights were pinned on?  True above
+    """Did the pattern move on the default border band the heights were pinned on (waves reaching
+    it, or the camera or the board moved: there the two cannot be told apart)?  True above
     :data:`BAND_MAX_MOTION_PX` of :func:`region_motion_px` where the region is not the user's
     (:func:`pattern_moved` judges that one) and the pin was measured on it."""
     judged = rule == "region" and not region.startswith(USER_REGION_PREFIX)

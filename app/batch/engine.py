@@ -611,7 +611,7 @@ class _PinCounter:
                 "frame %d (%s): %s", item.sequence_index, item.label, pin.describe())
         elif self.judge_band and band_moved(pin.region, pin.rule, pin.region_motion_px):
             self.band_moving.append((item.sequence_index, pin.region_motion_px))
-            log.debug("frame %d (%s): the surface moved on the %s by %.3g px", item.sequence_index, item.label,
+            log.debug("frame %d (%s): the pattern moved on the %s by %.3g px", item.sequence_index, item.label,
                       pin.region, pin.region_motion_px)
         note = getattr(result, "note", "")
         if note:
