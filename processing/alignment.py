@@ -49,12 +49,13 @@ import numpy as np
 import scipy.fft
 
 from .carriers import (ISOLATION_RING_BINS, ISOLATION_RING_DC, ISOLATION_RING_DR, MIN_ISOLATION, MIN_PEAK_CONTRAST,
-                       Carriers, find_carriers_live, hann, match_error, theta_from_carriers, tile_origins)
+                       Carriers, find_carriers, find_carriers_live, find_carriers_local, hann, match_error,
+                       theta_from_carriers, tile_origins)
 from .errors import NoCarrierError
 from .half_spectrum import display_spectrum_of, half_spectrum_index
 
-__all__ = ["CarrierSearch", "carrier_search", "checkerboard_alignment", "frame_carriers", "frame_key", "hann_stencil",
-           "patch_peaks", "tile_carriers_near", "modulation_map", "whole_image_carriers"]
+__all__ = ["CarrierSearch", "carrier_search", "carriers_without_reference", "checkerboard_alignment", "frame_carriers",
+           "frame_key", "hann_stencil", "patch_peaks", "tile_carriers_near", "modulation_map", "whole_image_carriers"]
 
 #: Half width of the search around each reference carrier, as a fraction of
 #: its distance to DC (at least :data:`MIN_SEARCH_BINS`): a pattern or camera
@@ -417,6 +418,57 @@ def tile_carriers_near(frame, reference_freq, *, max_tiles: int = 64, min_fracti
             return Carriers(freq=np.median(f, axis=0), shape=(rows, cols), contrast=np.full(2, np.nan),
                             sharpness=np.median(sh, axis=0))
     return None
+
+
+def _seed_tiles(r0s, c0s) -> list:
+    """Five of :func:`~processing.carriers.tile_origins`' tiles spread over the image: the
+    centre one and one in each quarter."""
+    def at(origins, quarter):
+        return int(origins[min(len(origins) - 1, (quarter * len(origins)) // 4)])
+
+    return [(at(r0s, 2), at(c0s, 2)), (at(r0s, 1), at(c0s, 1)), (at(r0s, 1), at(c0s, 3)),
+            (at(r0s, 3), at(c0s, 1)), (at(r0s, 3), at(c0s, 3))]
+
+
+def carriers_without_reference(frame, half_spectrum=None) -> tuple:
+    """``(Carriers, disturbed)`` of a live frame before any reference exists: the numbers of
+    :func:`~processing.carriers.find_carriers_live`, its tiles searched together.
+
+    The whole image's full search first (:func:`~processing.carriers.find_carriers`, on
+    ``half_spectrum``, the frame's :func:`~processing.carriers.windowed_spectrum`, where the caller
+    has it). Where its peaks are smeared (moving water), the full search of five tiles spread over
+    the frame gives carriers to look near (their median), and all of
+    :func:`~processing.carriers.find_carriers_local`'s tiles are searched there in one FFT
+    (:func:`tile_carriers_near`); where that finds too few, ``find_carriers_local`` itself. On the
+    app's tank's waves: the periods within 6e-7 px, rotation and theta within 6e-6 deg, the focus
+    equal, of ``find_carriers_live``'s (tests/processing/test_alignment.py), in 16-17 instead of
+    57-61 ms at 512^2 and 33-36 instead of 79-89 ms at 1024^2 (the whole image's search included).
+
+    Raises
+    ------
+    NoCarrierError
+        The whole image's message, if no checkerboard is found (as ``find_carriers_live``).
+    """
+    img = np.asarray(frame, np.float32)
+    try:
+        return find_carriers(img, half_spectrum=half_spectrum), False
+    except NoCarrierError as whole:
+        for size in (s for s in (64, 128) if s <= min(img.shape)):
+            seeds = []
+            for r0, c0 in _seed_tiles(*tile_origins(img.shape, size)):
+                try:
+                    seeds.append(find_carriers(img[r0:r0 + size, c0:c0 + size]).freq)
+                except NoCarrierError:
+                    continue
+            if seeds:
+                local = tile_carriers_near(img, np.median(np.array(seeds), axis=0))
+                if local is not None:
+                    return local, True
+                break
+        try:
+            return find_carriers_local(img), True
+        except NoCarrierError:
+            raise whole from None
 
 
 def frame_carriers(search: CarrierSearch, frame, half_spectrum, mean: float = 0.0) -> tuple:

@@ -132,14 +132,15 @@ def find_carriers_local(image, *, tile_px: int | None = None, max_tiles: int = 6
         f"need {min_fraction:.0%}): check that the checkerboard is in focus, lit and fills the view")
 
 
-def find_carriers_live(image, *, half_spectrum=None) -> tuple:
+def find_carriers_live(image) -> tuple:
     """Carriers of a live frame for alignment: ``(Carriers, disturbed)``.
 
-    The whole image's peaks first (:func:`find_carriers`, most precise; on
-    ``half_spectrum``, the image's :func:`windowed_spectrum`, where the caller
-    has it already); when they are smeared by a disturbed surface, the median
-    of local carriers (:func:`find_carriers_local`) and ``disturbed=True``: the
-    numbers are right, but a reference taken now would not be of still water.
+    The whole image's peaks first (:func:`find_carriers`, most precise); when
+    they are smeared by a disturbed surface, the median of local carriers
+    (:func:`find_carriers_local`) and ``disturbed=True``: the numbers are
+    right, but a reference taken now would not be of still water.
+    (:func:`processing.alignment.carriers_without_reference` gives the same
+    numbers faster, the tiles searched together: the Alignment tab's.)
 
     Raises
     ------
@@ -147,7 +148,7 @@ def find_carriers_live(image, *, half_spectrum=None) -> tuple:
         The whole image's message, if neither finds a checkerboard.
     """
     try:
-        return find_carriers(image, half_spectrum=half_spectrum), False
+        return find_carriers(image), False
     except NoCarrierError as whole:
         try:
             return find_carriers_local(image), True

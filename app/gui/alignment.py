@@ -139,7 +139,8 @@ def frame_alignment(frame: np.ndarray, theta_configured_deg: Optional[float] = N
     through it) -- or ``error`` with the message of
     :class:`processing.errors.NoCarrierError`.
     """
-    from processing.carriers import find_carriers_live, windowed_spectrum
+    from processing.alignment import carriers_without_reference
+    from processing.carriers import windowed_spectrum
 
     if pattern == "dots":
         spectrum = display_spectrum(frame)
@@ -154,8 +155,9 @@ def frame_alignment(frame: np.ndarray, theta_configured_deg: Optional[float] = N
     half = windowed_spectrum(frame)
     spectrum = display_spectrum(frame, half_spectrum=half)
     try:
-        # a disturbed surface smears the whole image's carrier peaks: then local carriers (tiles)
-        c, disturbed = find_carriers_live(frame, half_spectrum=half)
+        # a disturbed surface smears the whole image's carrier peaks: then local carriers (tiles,
+        # searched together near what a few of them show: find_carriers_live's numbers)
+        c, disturbed = carriers_without_reference(frame, half_spectrum=half)
     except ValueError as exc:  # NoCarrierError
         mod, rows, cols = modulation_map(frame)
         error = str(exc)

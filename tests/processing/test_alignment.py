@@ -95,6 +95,33 @@ def test_frames_tell_what_they_show(rec, frames):
         math.radians(55.0))))) < 0.1
 
 
+@pytest.mark.parametrize("name", ["still", "waves", "defocused", "saturated", "rotated", "turned"])
+def test_without_a_reference_the_numbers_are_the_full_searchs(frames, name):
+    """carriers_without_reference (the Alignment tab before a reference): find_carriers_live's
+    numbers; on waves its tiles searched together near what five of them show (within 1e-5 px and
+    deg: the same peaks, their sub-bin steps computed otherwise), elsewhere the same search."""
+    frame = frames[name]
+    c, disturbed = alignment.carriers_without_reference(frame)
+    want, want_disturbed = find_carriers_live(frame)
+    assert disturbed == want_disturbed == (name == "waves")
+    tol = 1e-5 if name == "waves" else 0.0
+    np.testing.assert_allclose(c.periods_px, want.periods_px, rtol=0, atol=tol)
+    assert abs(c.rotation_deg - want.rotation_deg) <= tol and abs(c.theta_deg - want.theta_deg) <= tol
+    np.testing.assert_allclose(c.sharpness, want.sharpness, rtol=0, atol=tol)
+
+
+@pytest.mark.parametrize("image", [np.full((N, N), 120, np.uint8),
+                                   np.random.default_rng(6).integers(0, 255, (N, N), dtype=np.uint8)])
+def test_without_a_reference_no_pattern_gives_the_full_search_message(image):
+    from processing.errors import NoCarrierError
+
+    with pytest.raises(NoCarrierError) as got:
+        alignment.carriers_without_reference(image)
+    with pytest.raises(NoCarrierError) as want:
+        find_carriers_live(image)
+    assert str(got.value) == str(want.value)
+
+
 def test_no_pattern_gives_the_full_search_message(rec):
     a = rec.alignment(np.full((N, N), 120, np.uint8))
     assert "uniform" in a["error"] and np.all(np.isnan(a["periods_px"]))
