@@ -431,24 +431,16 @@ def _seed_tiles(r0s, c0s) -> list:
 
 
 def carriers_without_reference(frame, half_spectrum=None) -> tuple:
-    """``(Carriers, disturbed)`` of a live frame before any reference exists: the numbers of
+    """``(Carriers, disturbed)`` of a live frame before any reference: the numbers of
     :func:`~processing.carriers.find_carriers_live`, its tiles searched together.
 
-    The whole image's full search first (:func:`~processing.carriers.find_carriers`, on
-    ``half_spectrum``, the frame's :func:`~processing.carriers.windowed_spectrum`, where the caller
-    has it). Where its peaks are smeared (moving water), the full search of five tiles spread over
-    the frame gives carriers to look near (their median), and all of
-    :func:`~processing.carriers.find_carriers_local`'s tiles are searched there in one FFT
-    (:func:`tile_carriers_near`); where that finds too few, ``find_carriers_local`` itself. On the
-    app's tank's waves: the periods within 6e-7 px, rotation and theta within 6e-6 deg, the focus
-    equal, of ``find_carriers_live``'s (tests/processing/test_alignment.py), in 16-17 instead of
-    57-61 ms at 512^2 and 33-36 instead of 79-89 ms at 1024^2 (the whole image's search included).
-
-    Raises
-    ------
-    NoCarrierError
-        The whole image's message, if no checkerboard is found (as ``find_carriers_live``).
-    """
+    The whole image's search (:func:`~processing.carriers.find_carriers`, on ``half_spectrum``,
+    the frame's ``windowed_spectrum``, if given); where its peaks are smeared (moving water), the
+    full search of five tiles gives carriers to look near (their median) and all tiles of
+    ``find_carriers_local`` are searched there in one FFT (:func:`tile_carriers_near`);
+    ``find_carriers_local`` itself where that finds too few. The tank's waves: periods within 6e-7
+    px, rotation and theta within 6e-6 deg, focus equal; 16-17 instead of 57-61 ms at 512^2, 33-36
+    instead of 79-89 ms at 1024^2. Raises NoCarrierError as ``find_carriers_live``."""
     img = np.asarray(frame, np.float32)
     try:
         return find_carriers(img, half_spectrum=half_spectrum), False
