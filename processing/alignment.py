@@ -421,8 +421,7 @@ def tile_carriers_near(frame, reference_freq, *, max_tiles: int = 64, min_fracti
 
 
 def _seed_tiles(r0s, c0s) -> list:
-    """Five of :func:`~processing.carriers.tile_origins`' tiles spread over the image: the
-    centre one and one in each quarter."""
+    """Five of :func:`~processing.carriers.tile_origins`' tiles: the centre one, one in each quarter."""
     def at(origins, quarter):
         return int(origins[min(len(origins) - 1, (quarter * len(origins)) // 4)])
 
@@ -430,17 +429,22 @@ def _seed_tiles(r0s, c0s) -> list:
             (at(r0s, 3), at(c0s, 1)), (at(r0s, 3), at(c0s, 3))]
 
 
-def carriers_without_reference(frame, half_spectrum=None) -> tuple:
-    """``(Carriers, disturbed)`` of a live frame before any reference: the numbers of
-    :func:`~processing.carriers.find_carriers_live`, its tiles searched together.
+def _agreed_seed(seeds, size):
+    """The median of the tiles' carriers ``seeds`` (k, 2, 2) if each is within 2 bins (of a ``size``-px tile)
+    of it and it lies 2 bins or more off the mirror line ``f_col`` 0 (either sign, either order there)."""
+    seed = np.median(seeds, axis=0)
+    if np.abs(seeds - seed).max() * size > 2.0 or np.abs(seed[:, 1]).min() * size < 2.0:
+        return None
+    return seed
 
-    The whole image's search (:func:`~processing.carriers.find_carriers`, on ``half_spectrum``,
-    the frame's ``windowed_spectrum``, if given); where its peaks are smeared (moving water), the
-    full search of five tiles gives carriers to look near (their median) and all tiles of
-    ``find_carriers_local`` are searched there in one FFT (:func:`tile_carriers_near`);
-    ``find_carriers_local`` itself where that finds too few. The tank's waves: periods within 6e-7
-    px, rotation and theta within 6e-6 deg, focus equal; 16-17 instead of 57-61 ms at 512^2, 33-36
-    instead of 79-89 ms at 1024^2. Raises NoCarrierError as ``find_carriers_live``."""
+
+def carriers_without_reference(frame, half_spectrum=None) -> tuple:
+    """``(Carriers, disturbed)`` of a live frame before a reference: :func:`~processing.carriers.find_carriers_live`'s
+    numbers. The whole image's search (on ``half_spectrum``, its ``windowed_spectrum``, if given); where
+    its peaks are smeared, five tiles' full search gives carriers to look near (:func:`_agreed_seed`) and
+    all tiles are searched there in one FFT (:func:`tile_carriers_near`); else ``find_carriers_local``.
+    The tank's waves: within 6e-7 px and 6e-6 deg, 16-17 instead of 57-61 ms at 512^2, 33-36 instead of
+    79-89 ms at 1024^2. Raises NoCarrierError as ``find_carriers_live``."""
     img = np.asarray(frame, np.float32)
     try:
         return find_carriers(img, half_spectrum=half_spectrum), False
@@ -453,7 +457,8 @@ def carriers_without_reference(frame, half_spectrum=None) -> tuple:
                 except NoCarrierError:
                     continue
             if seeds:
-                local = tile_carriers_near(img, np.median(np.array(seeds), axis=0))
+                seed = _agreed_seed(np.array(seeds), size)
+                local = None if seed is None else tile_carriers_near(img, seed)
                 if local is not None:
                     return local, True
                 break

@@ -110,6 +110,22 @@ def test_without_a_reference_the_numbers_are_the_full_searchs(frames, name):
     np.testing.assert_allclose(c.sharpness, want.sharpness, rtol=0, atol=tol)
 
 
+@pytest.mark.parametrize("rotation_deg", [45.0, 15.0])
+def test_without_a_reference_carriers_near_the_mirror_line_keep_the_full_searchs_numbers(rotation_deg):
+    """A board turned 45 deg on the surface puts its carriers on the image axes, on the half spectrum's
+    mirror line (f_col 0), where tiles give either sign and either order: there the full search's
+    tiles are kept (before that guard the seeds' median put the period 0.47 px and the rotation 1.7 deg
+    off); at 15 deg the tiles are searched together, to 1e-5."""
+    waves = forward.WaveField(((0.0005, 2 * np.pi / 20.0, 2 * np.pi / 35.0, 0.3),
+                               (0.00035, -2 * np.pi / 14.4, 2 * np.pi / 30.0, 1.1)))
+    _, frame = render(waves, rotation_deg=rotation_deg, seed=7)
+    c, disturbed = alignment.carriers_without_reference(frame)
+    want, want_disturbed = find_carriers_live(frame)
+    assert disturbed and want_disturbed
+    np.testing.assert_allclose(c.periods_px, want.periods_px, rtol=0, atol=1e-5)
+    assert abs(c.rotation_deg - want.rotation_deg) <= 1e-5
+
+
 @pytest.mark.parametrize("image", [np.full((N, N), 120, np.uint8),
                                    np.random.default_rng(6).integers(0, 255, (N, N), dtype=np.uint8)])
 def test_without_a_reference_no_pattern_gives_the_full_search_message(image):
