@@ -79,7 +79,7 @@ from .geometry import Geometry
 from .height_kernels import cell_average, check_grid, div_T, neumann_eigenvalues, poisson_neumann, variable_optics
 from .height_masked import apply_AT, edge_data, solve_masked
 from .height_spectral import prepare_spectral, spectral_solve
-from .pin import PIN_MIN_PIECE_SAMPLES, PinStatus, choose_pin_samples, region_motion_px
+from .pin import PIN_MIN_PIECE_SAMPLES, PinStatus, choose_pin_samples, null_mode_offset, region_motion_px
 
 __all__ = [
     "SurfaceResult",
@@ -433,9 +433,7 @@ class HeightSolver:
             raise AllInvalidError("no valid pin sample: the height offset cannot be measured; check the mask")
         n = self.null
         if pieces is None:
-            nr = n[ref]
-            alpha = float(np.dot(h[ref], nr) / np.dot(nr, nr))
-            h -= alpha * n
+            h -= null_mode_offset(h, n, ref) * n
             return v
         v = v.copy()
         # per-piece sums over the pin samples alone (a tenth of the grid or so: 20x faster than

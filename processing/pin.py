@@ -13,7 +13,7 @@ from .errors import GeometryError, TirdeflectError
 
 __all__ = ["PIN_MIN_SAMPLES", "PIN_MIN_FRACTION", "PIN_MIN_PIECE_SAMPLES", "PIN_FALLBACKS", "PinStatus",
            "STILL_REGION_MAX_MOTION_PX", "BAND_MAX_MOTION_PX", "USER_REGION_PREFIX", "band_moved",
-           "choose_pin_samples", "pattern_moved",
+           "choose_pin_samples", "null_mode_offset", "pattern_moved",
            "pin_samples_needed", "region_motion_px"]
 
 
@@ -69,12 +69,21 @@ def pattern_moved(region: str, rule: str, motion_px: float) -> bool:
     return bool(judged and motion_px > STILL_REGION_MAX_MOTION_PX)
 
 
-def band_moved(region: str, rule: str, motion_px: float) -> bool:
+def null_mode_offset(height, null, samples) -> float:
+    """``alpha`` of the least squares of ``alpha * null`` to ``height`` on ``samples`` (bool): what
+    the pin takes out of one connected piece (``height - alpha * null`` has its ``null``-weighted
+    mean 0 there; :class:`processing.height.HeightSolver`, and ``tirdeflect compare`` on both maps)."""
+    nr = null[samples]
+    return float(np.dot(height[samples], nr) / np.dot(nr, nr))
+
+
+def band_moved(region: str, rule: str, motion_px: float, setup: str) -> bool:
     """Did the pattern move on the default border band the heights were pinned on (waves reaching
     it, or the camera or the board moved: there the two cannot be told apart)?  True above
     :data:`BAND_MAX_MOTION_PX` of :func:`region_motion_px` where the region is not the user's
-    (:func:`pattern_moved` judges that one) and the pin was measured on it."""
-    judged = rule == "region" and not region.startswith(USER_REGION_PREFIX)
+    (:func:`pattern_moved` judges that one), the pin was measured on it and ``setup`` (the
+    geometry's) is "tir": FS-SS's null mode is a constant, which the band's motion only offsets."""
+    judged = setup == "tir" and rule == "region" and not region.startswith(USER_REGION_PREFIX)
     return bool(judged and motion_px > BAND_MAX_MOTION_PX)
 
 

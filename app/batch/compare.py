@@ -25,9 +25,10 @@ def null_mode(geometry, shape) -> np.ndarray:
 
 def _pinned(h, n, r):
     """``h`` less its least-squares multiple of the null mode ``n`` on the samples ``r``: what
-    the pin of :mod:`processing.height` does to the heights."""
-    nr = n[r]
-    return h - n * (float(np.dot(h[r], nr)) / float(np.dot(nr, nr)))
+    the pin of :mod:`processing.height` does to the heights (:func:`processing.pin.null_mode_offset`)."""
+    from processing.pin import null_mode_offset
+
+    return h - null_mode_offset(h, n, r) * n
 
 
 def compare_heights(out_path, truth_path, *, margin: float = 0.125) -> list:

@@ -573,10 +573,8 @@ class _PinCounter:
         self.jumps = []  # (sequence index, reason)
         self.noted = []  # (sequence index, Result.note): e.g. the image refinement fell back to FD
         self.moving = []  # (sequence index, PinStatus.region_motion_px) where the pattern moved on the pin samples
-        # the same on the default border band, judged for TIR only (there the band's motion sets the null mode
-        # exp(-T y/H), which tilts the heights; FS-SS's is a constant: an offset)
-        geometry = getattr(reconstruct, "geometry", None)
-        self.judge_band = getattr(geometry, "setup", "") == "tir"
+        # the same on the default border band (processing.pin.band_moved: TIR only)
+        self.setup = getattr(getattr(reconstruct, "geometry", None), "setup", "")
         self.band_moving = []  # (sequence index, PinStatus.region_motion_px)
         self.min_valid = None
 
@@ -609,7 +607,7 @@ class _PinCounter:
             self.moving.append((item.sequence_index, pin.region_motion_px))
             (log.warning if len(self.moving) == 1 else log.debug)(
                 "frame %d (%s): %s", item.sequence_index, item.label, pin.describe())
-        elif self.judge_band and band_moved(pin.region, pin.rule, pin.region_motion_px):
+        elif band_moved(pin.region, pin.rule, pin.region_motion_px, self.setup):
             self.band_moving.append((item.sequence_index, pin.region_motion_px))
             log.debug("frame %d (%s): the pattern moved on the %s by %.3g px", item.sequence_index, item.label,
                       pin.region, pin.region_motion_px)

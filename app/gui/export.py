@@ -128,14 +128,14 @@ def describe_export(out_path: str) -> tuple:
             if moved.size:
                 parts.append(f"{moved.size} where the pattern moved in the pin region: surface not at rest there, "
                              f"or camera or board moved since the reference (frames {frame_list(moved)})")
-            if _setup(f) == "tir":
-                band = np.flatnonzero([band_moved(region, _text(rule), float(m))
-                                       for rule, m in zip(st["rule"], st["region_motion_px"])])
-                if band.size:
-                    band_note = (f"in {band.size} frame(s) the pattern moved on the {region} the heights are pinned on "
-                                 f"by default (waves reaching it, or the camera or the board moved; frames "
-                                 f"{frame_list(band)}): their part along exp(-T y/H) is set by that; a reference "
-                                 f"region where the water is still fixes it (/pin_status region_motion_px)")
+            setup = _setup(f)
+            band = np.flatnonzero([band_moved(region, _text(rule), float(m), setup)
+                                   for rule, m in zip(st["rule"], st["region_motion_px"])])
+            if band.size:
+                band_note = (f"in {band.size} frame(s) the pattern moved on the {region} the heights are pinned on "
+                             f"by default (waves reaching it, or the camera or the board moved; frames "
+                             f"{frame_list(band)}): their part along exp(-T y/H) is set by that; a reference "
+                             f"region where the water is still fixes it (/pin_status region_motion_px)")
         if "frame_flags" in f:
             inc = np.flatnonzero((np.asarray(f["frame_flags"][:n]).astype(np.int64) & int(FrameFlags.INCOMPLETE)) != 0)
             if inc.size:

@@ -340,10 +340,12 @@ def test_a_camera_or_board_that_moved_since_the_reference_is_seen_on_the_pin_sam
     default = Reconstructor(F.quantize(ref, bits=8), dataclasses.replace(g, reference_region=None))
     res = default(frames[0.03, 0.0])
     assert res.pin.region_motion_px > STILL_REGION_MAX_MOTION_PX and res.pin.still
-    assert band_moved(res.pin.region, res.pin.rule, res.pin.region_motion_px)
+    assert band_moved(res.pin.region, res.pin.rule, res.pin.region_motion_px, "tir")
+    # FS-SS's null mode is a constant: the band's motion only offsets its heights
+    assert not band_moved(res.pin.region, res.pin.rule, res.pin.region_motion_px, "fsss")
     res = default(frames[0.0, 0.0])
     assert res.pin.region_motion_px < 0.1 * BAND_MAX_MOTION_PX
-    assert not band_moved(res.pin.region, res.pin.rule, res.pin.region_motion_px)
+    assert not band_moved(res.pin.region, res.pin.rule, res.pin.region_motion_px, "tir")
     # never the user's region (pattern_moved judges that one) nor a fallback's samples
-    assert not band_moved("reference_region [0, 24, 0, 24]", "region", 1.0)
-    assert not band_moved(res.pin.region, "nearest", 1.0)
+    assert not band_moved("reference_region [0, 24, 0, 24]", "region", 1.0, "tir")
+    assert not band_moved(res.pin.region, "nearest", 1.0, "tir")
