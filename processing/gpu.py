@@ -51,6 +51,7 @@ import numpy as np
 
 from .fullgrid import lanczos_matrix, spline_matrix
 from .gpu_device import host_empty, to_host, warp_kernel
+from .pin import SHIFT_TOL_PX, frame_motion_step
 from .refine import WarpReference, modulate
 from .second_order import SECOND_ORDER_MIN_EFFECT, SecondOrderOptics, batch_effects
 from .unwrap import TWO_PI
@@ -207,6 +208,7 @@ class BatchChain:
             np.ascontiguousarray(cc.T))
         self.F = {k: to(F[k]) for k in ("gc", "null", "inv_denom")}
         # the pin of a frame valid everywhere depends on the reference region only
+        self.reference_region, self.region_near = plan.reference_region, plan.region_near
         samples, self.pin, (w, nn) = hs.pin_choice(
             np.ones(hs.shape, bool), True, plan.reference_region, recon.pin_fallback,
             recon.reference_region_name, plan.region_near)
@@ -534,6 +536,17 @@ class BatchChain:
         med = xp.median(u[:n].reshape(n, 2, -1)[:, :, self.pin_index], axis=2)
         motion = to_host(xp, xp.hypot(med[:, 0], med[:, 1]))
         valid_dec = np.ones(ph.shape[2:], bool)
+        # processing.pin.frame_motion of each frame (every k-th row and column, as the CPU's), and where the
+        # whole pattern shifted, what that puts into the heights (HeightSolver.shift_status, on the host)
+        step = frame_motion_step(valid_dec.size)
+        sub = u[:n, :, ::step, ::step].reshape(n, 2, -1)
+        shift = xp.median(sub, axis=2)
+        share = to_host(xp, xp.mean(xp.hypot(sub[:, 0] - shift[:, 0, None], sub[:, 1] - shift[:, 1, None])
+                                    <= SHIFT_TOL_PX, axis=1))
+        shift = to_host(xp, shift)
+        pins = [hs.shift_status(dataclasses.replace(self.pin, region_motion_px=float(motion[k])), shift[k], share[k],
+                                valid_dec, self.reference_region, pin_fallback=r.pin_fallback,
+                                region_name=r.reference_region_name, near=self.region_near) for k in range(n)]
         if grid == "full":
             rows, cols = r.shape
             disp = self._up(u)
@@ -566,7 +579,7 @@ class BatchChain:
         host = {k: (None if v is None else to_host(xp, v.astype(xp.float32, copy=False), pinned=True))
                 for k, v in fields.items()}
         return [Result(valid=valid.copy(), carriers=r.carriers, phase=ph[k], valid_fraction=1.0,
-                       timings_ms=dict(timings), pin=dataclasses.replace(self.pin, region_motion_px=float(motion[k])),
+                       timings_ms=dict(timings), pin=pins[k],
                        series=series[k], hot_pixels=hot[k],
                        **{key: None if v is None else v[k] for key, v in host.items()}, **extra)
                 for k in range(n)]

@@ -79,7 +79,8 @@ from .geometry import Geometry
 from .height_kernels import cell_average, check_grid, div_T, neumann_eigenvalues, poisson_neumann, variable_optics
 from .height_masked import apply_AT, edge_data, solve_masked
 from .height_spectral import prepare_spectral, spectral_solve
-from .pin import PIN_MIN_PIECE_SAMPLES, PinStatus, choose_pin_samples, null_mode_offset, region_motion_px
+from .pin import (PIN_MIN_PIECE_SAMPLES, PinStatus, choose_pin_samples, frame_motion, level_of_shift_um, null_mode_offset,
+                  region_motion_px)
 
 __all__ = [
     "SurfaceResult",
@@ -336,19 +337,40 @@ class HeightSolver:
                            region_name=region_name, near=near)
 
     def solve_spectral(self, displacement_px, valid, reference_mask=None, *, pin_fallback="nearest",
-                       region_name=None, near=None) -> SurfaceResult:
+                       region_name=None, near=None, judge_shift=True) -> SurfaceResult:
         """The spectral path of :meth:`solve` for a finite displacement valid
         everywhere (needs :attr:`spectral_coefficients`, uniform optics)."""
         h, sx, sy, status, samples = spectral_solve(self, self._fast, displacement_px, valid, reference_mask,
                                                     pin_fallback=pin_fallback, region_name=region_name, near=near)
         status = dataclasses.replace(status, region_motion_px=region_motion_px(displacement_px, samples))
+        if judge_shift:  # (the whole pattern shifted alike since the reference?)
+            status = self.shift_status(status, *frame_motion(displacement_px, valid), valid, reference_mask,
+                                       pin_fallback=pin_fallback, region_name=region_name, near=near)
         return SurfaceResult(h, sx, sy, self.x_mm.copy(), self.y_mm.copy(), valid, 0, self.surface_xy, status,
                              samples)
 
+    def shift_status(self, status, median_px, share, valid, reference_mask=None, *, pin_fallback="nearest",
+                     region_name=None, near=None) -> PinStatus:
+        """``status`` with a frame's :func:`processing.pin.frame_motion` (``median_px`` (2,), ``share``); where
+        the whole pattern shifted (:attr:`PinStatus.shifted`), also the RMS (um) of the heights that uniform
+        displacement alone gives, solved on ``valid`` and pinned as the frame (linear: what the shift put
+        into them), and the water level that moves the pattern so (TIR's ``a = B kappa``, grid mean)."""
+        status = dataclasses.replace(status, frame_motion_px=float(np.hypot(*median_px)), frame_shift_share=float(share))
+        if not status.shifted:
+            return status
+        uniform = np.empty((2,) + self.shape)
+        uniform[0], uniform[1] = median_px
+        h = np.asarray(self._solve(uniform, valid, "auto", self.tol, reference_mask, pin_fallback=pin_fallback,
+                                   region_name=region_name, near=near, judge_shift=False).height_mm, np.float64)
+        effect_um = 1e3 * float(np.sqrt(np.nanmean(h[np.asarray(valid, bool)] ** 2)))
+        a = np.linalg.solve(self.Binv, self.kappa[..., None])[..., 0].reshape(-1, 2).mean(axis=0)
+        return dataclasses.replace(status, shift_effect_um=effect_um, shift_level_um=level_of_shift_um(median_px, a))
+
     def _solve(self, displacement_px, valid, solver, tol, reference_mask=None, *, pin_fallback="nearest",
-               region_name=None, near=None):
+               region_name=None, near=None, judge_shift=True):
         """:meth:`solve` with the conjugate-gradient tolerance given (the
-        Reconstructor's is tied to the noise of measured displacements)."""
+        Reconstructor's is tied to the noise of measured displacements); ``judge_shift``: whether
+        the whole pattern shifted (:meth:`_judge_shift`; not for the uniform shift's own solve)."""
         u = np.asarray(displacement_px)
         if u.ndim != 3 or u.shape[0] != 2 or u.shape[1:] != self.shape:
             raise ShapeMismatchError(
@@ -380,9 +402,12 @@ class HeightSolver:
         use_spectral = solver == "spectral" or (solver == "auto" and all_valid and self.constant)
         if use_spectral and self._fast is not None:
             return self.solve_spectral(u, v, reference_mask, pin_fallback=pin_fallback, region_name=region_name,
-                                       near=near)
+                                       near=near, judge_shift=judge_shift)
         samples, status, _ = self.pin_choice(v, all_valid, reference_mask, pin_fallback, region_name, near)
         status = dataclasses.replace(status, region_motion_px=region_motion_px(u, samples & v))
+        if judge_shift:
+            status = self.shift_status(status, *frame_motion(u, v), v, reference_mask, pin_fallback=pin_fallback,
+                                       region_name=region_name, near=near)
         uz = np.where(v, u, 0.0) if not all_valid else u
         gr, gc = self.gradients(uz)
         iterations = 0

@@ -14,7 +14,8 @@ from .errors import GeometryError, TirdeflectError
 __all__ = ["PIN_MIN_SAMPLES", "PIN_MIN_FRACTION", "PIN_MIN_PIECE_SAMPLES", "PIN_FALLBACKS", "PinStatus",
            "STILL_REGION_MAX_MOTION_PX", "BAND_MAX_MOTION_PX", "USER_REGION_PREFIX", "band_moved",
            "choose_pin_samples", "null_mode_offset", "pattern_moved",
-           "pin_samples_needed", "region_motion_px"]
+           "pin_samples_needed", "region_motion_px", "SHIFT_MIN_PX", "SHIFT_TOL_PX", "SHIFT_MIN_SHARE",
+           "frame_motion", "frame_motion_step", "FRAME_MOTION_SAMPLES", "pattern_shifted", "level_of_shift_um"]
 
 
 #: Fewest valid samples the pin of the null space needs (see the module docstring).
@@ -87,6 +88,72 @@ def band_moved(region: str, rule: str, motion_px: float, setup: str) -> bool:
     return bool(judged and motion_px > BAND_MAX_MOTION_PX)
 
 
+#: The whole pattern moved alike since the reference (:func:`pattern_shifted`): its median
+#: displacement over the frame's valid samples is at least this long (px; the user's region's bound,
+#: :data:`STILL_REGION_MAX_MOTION_PX`) ...
+SHIFT_MIN_PX = 0.03
+#: ... and at least :data:`SHIFT_MIN_SHARE` of them lie within this (px) of it: a large part of the
+#: frame moved by the same amount, as it does when the camera or the board moved, or (TIR) the water
+#: level changed, while the surface there is at rest (at rest and with nothing moved, ``u`` is 0
+#: there).  Measured (6 Dec 2026): with nothing moved the share stays 0.61-0.71 around a median of
+#: 0.000 px beside ``tirdeflect simulate``'s bump (512^2), 0.81-1.0 on the synthetic tank's impact,
+#: 0.19-0.60 on its drop, 0.27 beside a 4 um bump of sigma 5 mm in a 25.6 mm frame, 0.000-0.004 on
+#: waves filling the frame (simulate's, issue 22's held-out ones, the tank's; their medians 0.001-0.11
+#: px); the board shifted by 0.05-0.5 px beside the bump: the median 0.07-0.50 px, the share unchanged.
+#: Waves filling the frame hide a shift from this test (the pin band's motion, :func:`band_moved`, is
+#: what names it there).
+SHIFT_TOL_PX = 0.05
+SHIFT_MIN_SHARE = 0.2
+
+
+#: About how many samples :func:`frame_motion` reads (every k-th row and column, :func:`frame_motion_step`).
+FRAME_MOTION_SAMPLES = 4096
+
+
+def frame_motion_step(n_samples: int) -> int:
+    """The k of :func:`frame_motion`'s every k-th row and column on a grid of ``n_samples``."""
+    return max(1, int(math.sqrt(n_samples / FRAME_MOTION_SAMPLES)))
+
+
+def frame_motion(displacement_px, valid):
+    """``(median, share)`` of a frame's displacement (px, (2, n_rows, n_cols)) on its ``valid``
+    finite samples (every k-th row and column, about :data:`FRAME_MOTION_SAMPLES`): the componentwise
+    median vector (2,) and the share of the samples within :data:`SHIFT_TOL_PX` of it; NaNs where
+    no sample is valid."""
+    u = np.asarray(displacement_px)
+    k = frame_motion_step(u[0].size)
+    ur, uc, v = u[0, ::k, ::k], u[1, ::k, ::k], np.asarray(valid, bool)[::k, ::k]
+    sel = v & np.isfinite(ur) & np.isfinite(uc)
+    if not sel.any():
+        return np.full(2, np.nan), float("nan")
+    ur, uc = ur[sel], uc[sel]
+    median = np.array([np.median(ur), np.median(uc)], np.float64)
+    share = float(np.mean(np.hypot(ur - median[0], uc - median[1]) <= SHIFT_TOL_PX))
+    return median, share
+
+
+def pattern_shifted(motion_px: float, share: float) -> bool:
+    """Did the whole pattern move alike since the reference (:func:`frame_motion`'s median of
+    length ``motion_px`` on at least :data:`SHIFT_MIN_SHARE` of the frame, ``share``)?  NaN: no."""
+    return bool(motion_px >= SHIFT_MIN_PX and share >= SHIFT_MIN_SHARE)
+
+
+def level_of_shift_um(median_px, a_px_per_mm) -> float:
+    """The change of water level (um, positive up) that moves a still surface's pattern by the
+    uniform displacement ``median_px`` (2,): TIR's ``u = a h`` of a height ``h`` the same
+    everywhere, ``a_px_per_mm`` (2,) the grid's mean ``a``.  NaN where no level change moves it so
+    (FS-SS: ``a`` = 0; or the shift is more than a quarter of its length off ``a``'s direction)."""
+    a = np.asarray(a_px_per_mm, np.float64)
+    m = np.asarray(median_px, np.float64)
+    aa = float(a @ a)
+    if not aa > 0 or not np.all(np.isfinite(m)):
+        return float("nan")
+    level_mm = float(m @ a) / aa
+    if np.hypot(*(m - level_mm * a)) > 0.25 * np.hypot(*m):
+        return float("nan")
+    return 1e3 * level_mm
+
+
 def pin_samples_needed(region_samples: int) -> int:
     """How many valid samples the pin needs in a region of ``region_samples`` samples."""
     return max(PIN_MIN_SAMPLES, math.ceil(PIN_MIN_FRACTION * int(region_samples)))
@@ -123,6 +190,17 @@ class PinStatus:
         :data:`STILL_REGION_MAX_MOTION_PX` the surface there is not at rest,
         or the camera or the board moved (a shift of the whole image reads as
         a tilt): :attr:`still` is False.
+    frame_motion_px, frame_shift_share : float
+        :func:`frame_motion` of the whole frame: the length of its median
+        displacement (px) and the share of it that moved alike; both above
+        their bounds (:func:`pattern_shifted`), :attr:`shifted` is True.
+    shift_effect_um : float
+        Where :attr:`shifted`: the RMS (um) of the heights that the uniform
+        displacement alone gives, solved and pinned as the frame: the tilt
+        the shift puts into the heights (NaN: not shifted, or not measured).
+    shift_level_um : float
+        Where :attr:`shifted`: the change of water level (um, up) that moves
+        the pattern so (:func:`level_of_shift_um`; NaN: none does).
     """
 
     rule: str
@@ -133,6 +211,29 @@ class PinStatus:
     used_samples: int
     unpinned_fraction: float = 0.0
     region_motion_px: float = float("nan")
+    frame_motion_px: float = float("nan")
+    frame_shift_share: float = float("nan")
+    shift_effect_um: float = float("nan")
+    shift_level_um: float = float("nan")
+
+    @property
+    def shifted(self) -> bool:
+        """The whole pattern moved alike since the reference (:func:`pattern_shifted`): the camera or
+        the board moved, or (TIR) the water level changed; the heights carry :attr:`shift_effect_um`."""
+        return pattern_shifted(self.frame_motion_px, self.frame_shift_share)
+
+    def shift_text(self) -> str:
+        """What a shifted frame's heights carry, one sentence ("" when not :attr:`shifted`)."""
+        if not self.shifted:
+            return ""
+        level = ("" if not math.isfinite(self.shift_level_um) else
+                 f"the water level is {abs(self.shift_level_um):.3g} um {'higher' if self.shift_level_um > 0 else 'lower'} "
+                 f"than at the reference (evaporation, filling, displaced water), or ")
+        effect = ("" if not math.isfinite(self.shift_effect_um) else
+                  f"; the heights carry {self.shift_effect_um:.2g} um RMS from it (a tilt, not the surface)")
+        return (f"the whole pattern SHIFTED by {self.frame_motion_px:.2g} px since the reference "
+                f"({100 * self.frame_shift_share:.0f} % of the frame alike): {level}the camera or the board "
+                f"moved{effect}; take the reference again")
 
     @property
     def ok(self) -> bool:
@@ -158,7 +259,9 @@ class PinStatus:
             text = f"FALLBACK: {where}, pinned on the {self.used_samples} valid samples nearest it"
         if self.unpinned_fraction > 0:
             text += f"; {100 * self.unpinned_fraction:.1f} % of valid samples dropped (no pin sample in their piece)"
-        if not self.still:
+        if self.shifted:
+            text += "; " + self.shift_text()
+        elif not self.still:
             text += (f"; the pattern moved there by {self.region_motion_px:.3g} px since the reference (the surface "
                      "there is not at rest, or the camera or the board moved: the heights carry a tilt)")
         return text

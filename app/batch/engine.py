@@ -572,10 +572,13 @@ class _PinCounter:
         self.nearest = []
         self.jumps = []  # (sequence index, reason)
         self.noted = []  # (sequence index, Result.note): e.g. the image refinement fell back to FD
-        self.moving = []  # (sequence index, PinStatus.region_motion_px) where the pattern moved on the pin samples
+        # (sequence index, PinStatus.region_motion_px, PinStatus.shifted) where the pattern moved on the pin
+        # samples of the user's region (the shifted ones are said by the whole frame's shift)
+        self.moving = []
         # the same on the default border band (processing.pin.band_moved: TIR only)
         self.setup = getattr(getattr(reconstruct, "geometry", None), "setup", "")
         self.band_moving = []  # (sequence index, PinStatus.region_motion_px)
+        self.shifted = []  # (sequence index, PinStatus) where the whole pattern shifted (PinStatus.shifted)
         self.min_valid = None
 
     def write_region(self, writer) -> None:
@@ -603,11 +606,16 @@ class _PinCounter:
                 "frame %d (%s): %s", item.sequence_index, item.label, pin.describe())
         if self.min_valid is None or pin.valid_samples < self.min_valid[0]:
             self.min_valid = (pin.valid_samples, pin.region_samples)
+        if pin.shifted:  # says more than the pin samples' motion, which it explains (their notes leave it out)
+            self.shifted.append((item.sequence_index, pin))
+            (log.warning if len(self.shifted) == 1 else log.debug)(
+                "frame %d (%s): %s", item.sequence_index, item.label, pin.shift_text())
         if not pin.still:
-            self.moving.append((item.sequence_index, pin.region_motion_px))
-            (log.warning if len(self.moving) == 1 else log.debug)(
+            self.moving.append((item.sequence_index, pin.region_motion_px, pin.shifted))
+            first = not pin.shifted and sum(not shifted for _, _, shifted in self.moving) == 1
+            (log.warning if first else log.debug)(
                 "frame %d (%s): %s", item.sequence_index, item.label, pin.describe())
-        elif band_moved(pin.region, pin.rule, pin.region_motion_px, self.setup):
+        elif band_moved(pin.region, pin.rule, pin.region_motion_px, self.setup) and not pin.shifted:
             self.band_moving.append((item.sequence_index, pin.region_motion_px))
             log.debug("frame %d (%s): the pattern moved on the %s by %.3g px", item.sequence_index, item.label,
                       pin.region, pin.region_motion_px)
@@ -626,7 +634,8 @@ class _PinCounter:
     def attrs(self) -> dict:
         return {"pin_region": self.name, "frames_pin_fallback": len(self.nearest),
                 "frames_flagged_jump": len(self.jumps), "frames_noted": len(self.noted),
-                "frames_pin_region_moving": len(self.moving), "frames_pin_band_moving": len(self.band_moving)}
+                "frames_pin_region_moving": len(self.moving), "frames_pin_band_moving": len(self.band_moving),
+                "frames_shifted": len(self.shifted)}
 
     def summary(self) -> str:
         if not self.frames:
@@ -651,29 +660,58 @@ class _PinCounter:
             idx, reason = self.jumps[0]
             out.append(f"{len(self.jumps)} frame(s) jump against the previous frame while the images do not "
                        f"explain it, e.g. frame {idx}: {reason}; see /pin_status")
-        if self.moving:
-            moved = [m for _, m in self.moving]
-            span = f"{min(moved):.2g}" + (f"-{max(moved):.2g}" if f"{max(moved):.2g}" != f"{min(moved):.2g}" else "")
-            out.append(f"in {len(self.moving)} frame(s) the pattern moved in the {self.name}, where the geometry "
+        unexplained = [(i, m) for i, m, shifted in self.moving if not shifted]
+        if unexplained:
+            moved = [m for _, m in unexplained]
+            span = _span(moved)
+            out.append(f"in {len(unexplained)} frame(s) the pattern moved in the {self.name}, where the geometry "
                        f"says the surface is at rest and the heights are pinned (median displacement there {span} "
-                       f"px, e.g. frame {self.moving[0][0]}; at rest it is 0): the surface there is not at rest, or "
+                       f"px, e.g. frame {unexplained[0][0]}; at rest it is 0): the surface there is not at rest, or "
                        f"the camera or the board moved since the reference, which reads as a tilt of the heights "
                        f"(0.1 px: 10 % on a 4 um bump). Take the reference again if the set-up moved, or move the "
                        f"reference_region to where the surface is at rest; see /pin_status region_motion_px")
+        if self.shifted:
+            motion = [p.frame_motion_px for _, p in self.shifted]
+            effect = [p.shift_effect_um for _, p in self.shifted if np.isfinite(p.shift_effect_um)]
+            level = [p.shift_level_um for _, p in self.shifted if np.isfinite(p.shift_level_um)]
+            text = (f"in {len(self.shifted)} of {self.frames} frame(s) the whole pattern shifted alike since the "
+                    f"reference ({_span(motion)} px, e.g. frame {self.shifted[0][0]})")
+            if level:
+                text += (f", as a water level {_span(np.abs(level), '.3g')} um {_up_or_down(level)} "
+                         f"would move it (evaporation, filling, displaced water), or a camera or board that moved")
+            else:
+                text += ": the camera or the board moved"
+            if effect:
+                text += (f"; the heights carry {_span(effect)} um RMS from it, a tilt that is not the surface "
+                         f"(/pin_status shift_effect_um)")
+            out.append(text + ". Take the reference again as the set-up is now (after the level settled)")
         if self.band_moving:
             moved = [m for _, m in self.band_moving]
             out.append(f"in {len(self.band_moving)} of {self.frames} frame(s) the pattern moved on the {self.name}, "
                        f"where the heights are pinned by default (median displacement there {min(moved):.2g}-"
                        f"{max(moved):.2g} px, e.g. frame {self.band_moving[0][0]}; features inside the frame leave it "
                        f"at 0): waves reaching it, or the camera or the board moved since the reference. The heights' "
-                       f"part along exp(-T y/H), which no deflectometry measures, is then set by that motion, a tilt "
-                       f"of up to a few per cent of their RMS (docs/processing.md, section 5). Give a "
-                       f"reference_region where the water is still; see /pin_status region_motion_px")
+                       f"part along exp(-T y/H), which no deflectometry measures, is then set by that motion: a few "
+                       f"per cent of their RMS where waves reach it; where the set-up moved, a tilt that can be as "
+                       f"large as the heights (waves filling the frame hide such a shift from the whole-frame test, "
+                       f"/pin_status frame_shift_share). Give a reference_region where the water is still; see "
+                       f"/pin_status region_motion_px")
         if self.noted:
             idx, note = self.noted[0]
             out.append(f"{len(self.noted)} frame(s) were measured otherwise than asked, e.g. frame {idx}: "
                        f"{note}; see /frame_status_text")
         return out
+
+
+def _span(values, fmt: str = ".2g") -> str:
+    """``"lo-hi"`` of ``values`` at ``fmt`` (one number where both read the same)."""
+    lo, hi = format(float(min(values)), fmt), format(float(max(values)), fmt)
+    return lo if lo == hi else f"{lo}-{hi}"
+
+
+def _up_or_down(levels) -> str:
+    """"higher", "lower" or "higher or lower" of water level changes ``levels`` (um, up)."""
+    return "higher" if min(levels) > 0 else "lower" if max(levels) < 0 else "higher or lower"
 
 
 def _error_of(outcome) -> TirdeflectError:

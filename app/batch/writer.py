@@ -50,6 +50,12 @@ _PIN_FIELDS = (
     ("region_motion_px", "median displacement on the pin samples, px: above 0.03 in the user's reference_region, "
                          "the surface there is not at rest or the camera or the board moved since the reference "
                          "(NaN: not measured)"),
+    ("frame_motion_px", "median displacement over the whole frame's valid samples, px (NaN: not measured)"),
+    ("frame_shift_share", "share of the frame's valid samples within 0.05 px of that median: from 0.5 on, with the "
+                          "median at 0.03 px or more, the whole pattern shifted since the reference (camera or "
+                          "board moved, or the water level changed)"),
+    ("shift_effect_um", "where it shifted: RMS of the heights that shift alone gives (a tilt, not the surface), um"),
+    ("shift_level_um", "where it shifted: the change of water level that moves the pattern so, um up (NaN: none)"),
     ("jump", "1: the result is not continuous with the previous frame's (see reason)"),
     ("unwrap_slip_fraction", "fraction of samples where the unwrapped phase change differs by 2 pi "
                              "from the images' wrapped one"),
@@ -64,7 +70,9 @@ def _pin_status_dtype():
     s = h5py.string_dtype()
     return np.dtype([("rule", s), ("region_samples", np.int32), ("valid_samples", np.int32),
                      ("needed", np.int32), ("used_samples", np.int32), ("unpinned_fraction", np.float32),
-                     ("region_motion_px", np.float32), ("jump", np.uint8), ("unwrap_slip_fraction", np.float32), ("pin_shift_um", np.float32),
+                     ("region_motion_px", np.float32), ("frame_motion_px", np.float32),
+                     ("frame_shift_share", np.float32), ("shift_effect_um", np.float32), ("shift_level_um", np.float32),
+                     ("jump", np.uint8), ("unwrap_slip_fraction", np.float32), ("pin_shift_um", np.float32),
                      ("reason", s)])
 
 
@@ -75,12 +83,14 @@ def _pin_status_row(result) -> np.ndarray:
     row["reason"] = ""
     row["pin_shift_um"] = np.nan
     row["unwrap_slip_fraction"] = np.nan
-    row["region_motion_px"] = np.nan
+    shift_fields = ("frame_motion_px", "frame_shift_share", "shift_effect_um", "shift_level_um")
+    for name in ("region_motion_px",) + shift_fields:
+        row[name] = np.nan
     pin = getattr(result, "pin", None)
     if pin is not None:
         row["rule"] = pin.rule
         for name in ("region_samples", "valid_samples", "needed", "used_samples", "unpinned_fraction",
-                     "region_motion_px"):
+                     "region_motion_px") + shift_fields:
             row[name] = getattr(pin, name)
     series = getattr(result, "series", None)
     if series is not None:

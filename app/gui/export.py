@@ -94,7 +94,8 @@ def describe_export(out_path: str) -> tuple:
     """What an exported OUT.h5 holds, for the message and the log: ``(text, clean)``.
 
     Names the frames stored invalid (``/frame_status`` non-zero), flagged as jumps (``/pin_status["jump"]``),
-    whose pattern moved on the pin samples (``/pin_status["region_motion_px"]``) and recorded INCOMPLETE
+    whose pattern moved on the pin samples (``/pin_status["region_motion_px"]``) or shifted alike over the
+    whole frame (``/pin_status["frame_shift_share"]``, ``PinStatus.shifted``) and recorded INCOMPLETE
     (``/frame_flags``), saturated (``/saturated_pct`` above
     :data:`processing.live_view.SATURATION_MAX_PCT`) and turned since the reference (``/turn_mrad``
     above :data:`processing.turn.TURN_MAX_MRAD`), by index; ``clean`` is False when there is any.
@@ -105,7 +106,7 @@ def describe_export(out_path: str) -> tuple:
 
     from drivers.base import FrameFlags
     from processing.live_view import SATURATION_MAX_PCT
-    from processing.pin import band_moved, pattern_moved
+    from processing.pin import band_moved, pattern_moved, pattern_shifted
     from processing.turn import TURN_MAX_MRAD
 
     with h5py.File(out_path, "r") as f:
@@ -123,14 +124,26 @@ def describe_export(out_path: str) -> tuple:
         if "pin_region" in f and "pin_status" in f and "region_motion_px" in (f["pin_status"].dtype.names or ()):
             region = _text(f["pin_region"].attrs.get("region", ""))
             st = f["pin_status"][:n]
-            moved = np.flatnonzero([pattern_moved(region, _text(rule), float(m))  # PinStatus.still's judgement
-                                    for rule, m in zip(st["rule"], st["region_motion_px"])])
+            shifted = np.zeros(0, np.int64)
+            if "frame_shift_share" in (st.dtype.names or ()):
+                shifted = np.flatnonzero([pattern_shifted(float(m), float(share))  # PinStatus.shifted's judgement
+                                          for m, share in zip(st["frame_motion_px"], st["frame_shift_share"])])
+                if shifted.size:
+                    effect = np.asarray(st["shift_effect_um"][shifted], np.float64)
+                    carry = (f"; the heights carry up to {np.nanmax(effect):.2g} um RMS from it, a tilt"
+                             if np.isfinite(effect).any() else "")
+                    parts.append(f"{shifted.size} where the whole pattern shifted since the reference: the water "
+                                 f"level changed, or the camera or the board moved{carry}; take the reference "
+                                 f"again (frames {frame_list(shifted)}, /pin_status shift_effect_um)")
+            moved = np.setdiff1d(np.flatnonzero([pattern_moved(region, _text(rule), float(m))  # PinStatus.still's
+                                                 for rule, m in zip(st["rule"], st["region_motion_px"])]),
+                                 shifted)  # (where the whole frame shifted, that is said instead)
             if moved.size:
                 parts.append(f"{moved.size} where the pattern moved in the pin region: surface not at rest there, "
                              f"or camera or board moved since the reference (frames {frame_list(moved)})")
             setup = _setup(f)
-            band = np.flatnonzero([band_moved(region, _text(rule), float(m), setup)
-                                   for rule, m in zip(st["rule"], st["region_motion_px"])])
+            band = np.setdiff1d(np.flatnonzero([band_moved(region, _text(rule), float(m), setup)
+                                                for rule, m in zip(st["rule"], st["region_motion_px"])]), shifted)
             if band.size:
                 band_note = (f"in {band.size} frame(s) the pattern moved on the {region} the heights are pinned on "
                              f"by default (waves reaching it, or the camera or the board moved; frames "

@@ -7,8 +7,9 @@ reference's valid area). This overlay tints it green and labels it with the
 fraction of it valid in the newest frame (``Result.pin``), or where the
 reference is valid until a frame arrives; red when the pin fell back to the
 samples nearest the region, the pattern moved in the user's region (a surface
-not at rest, or a camera or board that moved: ``PinStatus.still``) or the
-frame jumps against the previous one.
+not at rest, or a camera or board that moved: ``PinStatus.still``), the whole
+pattern shifted alike (the water level changed, or the camera or the board
+moved: ``PinStatus.shifted``) or the frame jumps against the previous one.
 """
 
 from __future__ import annotations
@@ -105,7 +106,10 @@ class PinRegionOverlay:
         if not pin.ok:
             text += f" — too few, pinned on the {pin.used_samples} nearest valid samples"
             flags.append("too few")
-        if not pin.still:
+        if pin.shifted:  # the whole frame moved alike: says more than the region's motion, which it explains
+            text += " — " + pin.shift_text()
+            flags.append("SHIFTED")
+        elif not pin.still:
             text += (f" — the pattern MOVED here by {pin.region_motion_px:.2g} px since the reference: the surface "
                      "here is not at rest, or the camera or the board moved (the heights carry a tilt)")
             flags.append("MOVED")

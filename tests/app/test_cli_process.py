@@ -1,5 +1,6 @@
 """`tirdeflect simulate` then `tirdeflect process`, through the CLI, against ray-traced truth."""
 
+import logging
 import os
 import re
 import signal
@@ -106,8 +107,8 @@ def test_round_trip_height_error_within_2_percent(tmp_path, capsys, surface, bit
         x_mm, y_mm = f["x_mm"][()], f["y_mm"][()]
         assert f.attrs["frames_done"] == 2 and f.attrs["status"] == "complete"
         # a feature inside the frame leaves the default border band at rest: nothing to say of it
-        assert f.attrs["frames_pin_band_moving"] == 0
-    assert "moved on the default border band" not in err
+        assert f.attrs["frames_pin_band_moving"] == 0 and f.attrs["frames_shifted"] == 0
+    assert "moved on the default border band" not in err and "SHIFTED" not in err
     assert est.shape == truth.shape
     ref = _reference_mask(geometry, truth.shape[1:])
     # both maps pinned alike: less their least squares of the null mode on the region
@@ -166,12 +167,79 @@ def test_waves_that_fill_the_frame_move_the_default_pin_band_and_the_run_says_so
     with h5py.File(out) as f:
         assert f.attrs["frames_pin_band_moving"] == 2 and f.attrs["frames_pin_region_moving"] == 0
         assert np.all(f["pin_status"]["region_motion_px"][:] > 0.1)
+        # waves filling the frame are not a shift of the whole pattern (no still part moved alike)
+        assert f.attrs["frames_shifted"] == 0 and np.all(f["pin_status"]["frame_shift_share"][:] < 0.05)
     from app.gui.export import describe_export
 
     text, clean = describe_export(str(out))
     assert clean and "Note: in 2 frame(s) the pattern moved on the default border band" in text, text
     assert main(["compare", str(out), str(d), "--max-error", "0.01"]) == 0
     assert "not at rest on the reference region in 2 of 2 frame(s)" in capsys.readouterr().out
+
+
+class _Level:
+    """A still surface raised by ``level_mm`` everywhere (the water level changed), plus ``surface``."""
+
+    def __init__(self, surface, level_mm):
+        self.surface, self.level_mm = surface, level_mm
+
+    def height_and_gradient(self, x_mm, y_mm):
+        h, gx, gy = self.surface.height_and_gradient(x_mm, y_mm)
+        return h + self.level_mm, gx, gy
+
+
+def test_a_water_level_that_dropped_since_the_reference_is_named_with_what_it_does_to_the_heights(tmp_path, capsys,
+                                                                                                  caplog):
+    """Evaporation lowers a tank by tens of um an hour. In TIR a level change moves the whole pattern
+    alike (u = a h: 16 px/mm here); the heights' pin, on the border band, turns it into a tilt. Ray
+    traced with the project's forward model (256^2, 12 bit): the reference of still water, then the same
+    bump before and after the level fell 20 um. process measures both, names the second frame's shift,
+    the level that explains it and the RMS it puts into the heights, which is the heights' measured change
+    between the two frames (to 10 %); the GUI's export says so too."""
+    from processing import Geometry, forward as F
+
+    g = Geometry(theta_deg=55, depth_mm=300, pixel_mm=0.1, rows_toward_camera=False)
+    board = F.Checkerboard(period_mm=2.0, edge_softness_mm=0.1)
+    bump = F.GaussianBump(0.004, 2.5)
+    rng = np.random.default_rng(5)
+
+    def render(surface):
+        image, _ = F.render_tir(surface, g, (SIZE, SIZE), board, supersample=2)
+        return F.quantize(image, bits=12, noise_rms=1.0, rng=rng)
+
+    d = tmp_path / "tank"
+    d.mkdir()
+    tifffile.imwrite(d / "reference.tif", render(F.FlatSurface()))
+    tifffile.imwrite(d / "frame_0000.tif", render(bump))
+    tifffile.imwrite(d / "frame_0001.tif", render(_Level(bump, -0.020)))
+    (d / "geometry.toml").write_text(g.to_toml_text())
+    out = tmp_path / "out.h5"
+    code, err = _run(capsys, "process", d / "reference.tif", d / "frame_0000.tif", d / "frame_0001.tif",
+                     "--geometry", d / "geometry.toml", "--out", out)
+    assert code == 0, err  # measured, and said
+    assert re.search(r"note: in 1 of 2 frame\(s\) the whole pattern shifted alike since the reference \(0\.3\d? px, "
+                     r"e\.g\. frame 1\), as a water level (19|20|21)\.?\d* um lower would move it", err), err
+    assert "Take the reference again" in err
+    # the frame's own line, at the warning level (the first such frame of a run)
+    loud = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING and "SHIFTED" in r.getMessage()]
+    assert len(loud) == 1 and "frame 1 (" in loud[0], loud
+    assert re.search(r"the whole pattern SHIFTED by 0\.3\d? px since the reference \(\d+ % of the frame alike\): "
+                     r"the water level is (19|20|21)\.?\d* um lower than at the reference", loud[0]), loud
+    with h5py.File(out) as f:
+        assert f.attrs["frames_shifted"] == 1
+        st = f["pin_status"][:]
+        height = f["height"][()].astype(np.float64)
+        bump_rms_um = 1e3 * np.sqrt(np.mean(bump.height(f["x_mm"][()][None, :], f["y_mm"][()][:, None]) ** 2))
+    assert np.isnan(st["shift_effect_um"][0]) and np.isnan(st["shift_level_um"][0])
+    assert st["shift_level_um"][1] == pytest.approx(-20.0, rel=0.1)
+    both = np.isfinite(height[0]) & np.isfinite(height[1])
+    change_um = 1e3 * np.sqrt(np.mean((height[1][both] - height[0][both]) ** 2))
+    assert change_um > 0.5 * bump_rms_um  # what went unsaid before: a tilt of the bump's size (0.41 / 0.49 um)
+    assert st["shift_effect_um"][1] == pytest.approx(change_um, rel=0.1)
+    from app.gui.export import describe_export
+
+    text, clean = describe_export(str(out))
+    assert not clean and "1 where the whole pattern shifted since the reference" in text, text
 
 
 def test_output_layout_matches_docs(sim, tmp_path, capsys):
@@ -487,8 +555,9 @@ def test_refine_auto_takes_fd_where_image_matching_does_not_apply():
 def test_a_board_that_moved_since_the_reference_is_named_in_the_summary(sim, tmp_path, capsys):
     """The board slid 30 um on the tank bottom after the reference (ray traced): every height carries a
     tilt (31 % on a bump) that nothing showed. The reference_region the user says is at rest (a corner
-    box far from the bump) shows the pattern's 0.3 px move there: the run says so, and /pin_status and
-    the attributes keep it; the frame whose board stayed is not named."""
+    box far from the bump) shows the pattern's 0.3 px move there, and the whole frame moved alike beyond
+    the bump: the run says so, with the RMS it put into the heights, and /pin_status and the attributes
+    keep it; the frame whose board stayed is not named."""
     from processing import Geometry, forward
 
     g = Geometry.from_toml(sim / "geometry.toml")
@@ -504,20 +573,22 @@ def test_a_board_that_moved_since_the_reference_is_named_in_the_summary(sim, tmp
     code, err = _run(capsys, "process", sim / "reference.png", sim / "frame_0000.png", tmp_path / "frame_board_moved.png",
                      "--geometry", geometry, "--out", out)
     assert code == 0, err  # measured, and said
-    assert re.search(r"note: in 1 frame\(s\) the pattern moved in the reference_region \[0, 32, 0, 32\], where the "
-                     r"geometry says the surface is at rest and the heights are pinned \(median displacement there "
-                     r"0\.\d+ px, e\.g\. frame 1", err), err
-    assert "the camera or the board moved since the reference" in err
+    # the whole frame moved alike beyond the bump (a shift along x: no water level's), which says more than
+    # the region's own motion (its note is then left out; the count stays)
+    assert re.search(r"note: in 1 of 2 frame\(s\) the whole pattern shifted alike since the reference \(0\.\d+ px, "
+                     r"e\.g\. frame 1\): the camera or the board moved; the heights carry 0\.\d+ um RMS from it", err), err
+    assert "pattern moved in the reference_region" not in err
     with h5py.File(out) as f:
         motion = f["pin_status"]["region_motion_px"]
         assert motion[0] < 0.01 and motion[1] == pytest.approx(0.3, rel=0.1)  # (0.28: the box is at the frame's edge)
-        assert f.attrs["frames_pin_region_moving"] == 1
+        assert f.attrs["frames_pin_region_moving"] == 1 and f.attrs["frames_shifted"] == 1
         assert any(str(line).startswith("region_motion_px: ") for line in f["pin_status"].attrs["fields"])
     # what the window's export says of such a file (app.gui.export, no Qt): frame 1 named, not clean
     from app.gui.export import describe_export
 
     text, clean = describe_export(str(out))
-    assert not clean and "1 where the pattern moved in the pin region" in text and "(frames 1)" in text
+    assert not clean and "1 where the whole pattern shifted since the reference" in text and "(frames 1," in text
+    assert "moved in the pin region" not in text
 
 
 def test_simulate_renders_the_stretched_board_its_geometry_names(tmp_path, capsys):

@@ -416,6 +416,18 @@ def test_a_red_pin_region_says_why_in_words_that_fit(qapp):  # qapp: a QApplicat
                               "out of the heights): capture a new reference")
     overlay.update(good)
     assert not overlay.bad and notes[-1] == ""
+    # the whole pattern shifted alike since the reference (the water level fell 20 um, or the set-up moved:
+    # PinStatus.shifted, which the live decimated grid measures too): named before the region's own motion
+    shifted = types.SimpleNamespace(pin=PinStatus("region", name, 32, 32, 16, 32, region_motion_px=0.33,
+                                                  frame_motion_px=0.33, frame_shift_share=0.6, shift_effect_um=0.41,
+                                                  shift_level_um=-20.1), series=None)
+    overlay.update(shifted)
+    assert overlay.bad and overlay.label.textItem.toPlainText() == "h = 0: SHIFTED"
+    assert ("the whole pattern SHIFTED by 0.33 px since the reference (60 % of the frame alike): the water level is "
+            "20.1 um lower than at the reference") in notes[-1] and "carry 0.41 um RMS from it" in notes[-1]
+    assert "MOVED here" not in notes[-1]
+    overlay.update(good)
+    assert not overlay.bad and notes[-1] == ""
 
 
 # --------------------------------------------------------------- menus, device

@@ -96,12 +96,16 @@ def _assert_same(serial, other, complete=True):
     # /pin_status: where each frame was pinned and its series check against the frame before
     a, b = serial["pin_status"], other["pin_status"]
     for name in a.dtype.names:
-        if name == "region_motion_px":
+        if name in ("region_motion_px", "frame_motion_px"):  # (the second over the whole frame, read at 0.03 px)
             # a median of the displacement (~1e-3 px here): the plans' rounding moves it by up to 1.9e-6
             # px between serial and parallel runs (measured 5 Dec 2026; 3.6e-6 in a loaded suite run),
             # which rtol 1e-3 of 1e-3 px did not hold. What it is read for is a move of 0.03 px
             # (pin.STILL_REGION_MAX_MOTION_PX) and a 2 pi slip moves it by a period: 1e-4 px.
             np.testing.assert_allclose(b[name], a[name], rtol=0, atol=1e-4, equal_nan=True, err_msg=name)
+        elif name == "frame_shift_share":
+            # a share of about 4,000 samples within 0.05 px of that median: one sample's side of the bound
+            # is 2.4e-4; read at 0.2 (pin.SHIFT_MIN_SHARE)
+            np.testing.assert_allclose(b[name], a[name], rtol=0, atol=1e-3, equal_nan=True, err_msg=name)
         elif a.dtype[name].kind == "f":
             np.testing.assert_allclose(b[name], a[name], rtol=1e-3, atol=1e-6, equal_nan=True, err_msg=name)
         else:

@@ -343,8 +343,21 @@ def test_a_camera_or_board_that_moved_since_the_reference_is_seen_on_the_pin_sam
     assert band_moved(res.pin.region, res.pin.rule, res.pin.region_motion_px, "tir")
     # FS-SS's null mode is a constant: the band's motion only offsets its heights
     assert not band_moved(res.pin.region, res.pin.rule, res.pin.region_motion_px, "fsss")
+    # the whole frame moved alike (the surface at rest beyond the bump): named, with what it puts into the
+    # heights; a shift along the columns is no water level's (TIR's a h moves the pattern along the rows)
+    # (what it puts in: the heights' change against the same bump with nothing moved, to 10 %)
+    shifted = res
+    assert shifted.pin.shifted and shifted.pin.frame_motion_px == pytest.approx(0.3, rel=0.05)
+    assert math.isnan(shifted.pin.shift_level_um)
+    assert "the whole pattern SHIFTED by 0.3 px" in shifted.pin.describe()
     res = default(frames[0.0, 0.0])
     assert res.pin.region_motion_px < 0.1 * BAND_MAX_MOTION_PX
+    assert not res.pin.shifted and res.pin.frame_motion_px < 0.002 and math.isnan(res.pin.shift_effect_um)
+    both = shifted.valid & res.valid
+    change_um = 1e3 * np.sqrt(np.mean((shifted.height[both] - res.height[both]).astype(np.float64) ** 2))
+    assert shifted.pin.shift_effect_um == pytest.approx(change_um, rel=0.1)
+    live = default(frames[0.03, 0.0], grid="decimated").pin  # what the live window's pin label shows
+    assert live.shifted and live.shift_effect_um == pytest.approx(shifted.pin.shift_effect_um, rel=0.1)
     assert not band_moved(res.pin.region, res.pin.rule, res.pin.region_motion_px, "tir")
     # never the user's region (pattern_moved judges that one) nor a fallback's samples
     assert not band_moved("reference_region [0, 24, 0, 24]", "region", 1.0, "tir")
