@@ -22,7 +22,7 @@ from .pin import USER_REGION_PREFIX
 
 __all__ = ["MIN_EXPOSURE_GAIN", "MAX_SAMPLE_MAGNITUDE", "POOR_FRAME_VALID_FRACTION", "DEFECT_CONTRAST_FRACTION",
            "exposure_gain", "brightness_sample", "check_sample_range", "validate_image", "defect_pixels",
-           "hot_pixel_limits", "hot_pixels_above", "repair_pixels", "dilate_invalid", "fold_ok",
+           "HOT_CANDIDATES_MAX_FRACTION", "HOT_EXCESS_FRACTION", "HOT_EXCESS_OVER_REFERENCE", "hot_pixel_limits", "hot_pixels_above", "repair_pixels", "dilate_invalid", "fold_ok",
            "drop_islands", "reference_contrast_ok", "reference_pin_region", "ReferenceRegion",
            "choose_reference_region"]
 
@@ -158,40 +158,86 @@ def defect_pixels(image, contrast_fraction: float = DEFECT_CONTRAST_FRACTION):
     return np.flatnonzero(found)
 
 
+#: :func:`hot_pixels_above` first looks at a frame's pixels brighter than the reference's brightest;
+#: where more than this fraction of the frame is (a brighter frame: exposure, lamp), at those beyond
+#: its ``level`` alone.
+HOT_CANDIDATES_MAX_FRACTION = 0.005
+#: Where only a few pixels are brighter than the whole reference, one of them is hot where it lies
+#: above all eight neighbours by this fraction of the reference's contrast (not their range as well:
+#: a camera's hot pixel at its ceiling beside a square's edge is above the bright side by 12 % of
+#: the contrast, and the edge's range is most of it) ...
+HOT_EXCESS_FRACTION = 0.1
+#: ... and by this many times the most any pixel of the reference's own pattern stands above its
+#: neighbours (:func:`hot_pixel_limits`' ``peak_excess``): boards 0.03 of the contrast or less,
+#: 0.5 mm random dots 0.29, real FS-SS frames 0.11-0.20 (docs/processing.md section 3): a frame's
+#: dot a little brighter than the reference's brightest is the pattern, not a hot pixel.
+HOT_EXCESS_OVER_REFERENCE = 1.5
+
+
 def hot_pixel_limits(reference) -> tuple:
-    """``(level, contrast)`` of :func:`hot_pixels_above` from the reference: its contrast
-    (1st to 99th percentile, grey levels), and the level above which a frame's pixel is
-    beyond anything its pattern can show: its brightest pixel plus that contrast (a frame
-    twice as bright as the reference over a pattern whose dark squares are below half its
-    bright ones stays under it)."""
+    """``(level, contrast, brightest, peak_excess)`` of :func:`hot_pixels_above` from the
+    reference: its contrast (1st to 99th percentile, grey levels), its brightest pixel, the
+    level above which a frame's pixel is beyond anything its pattern can show (the brightest
+    plus that contrast: a frame twice as bright as the reference over a pattern whose dark
+    squares are below half its bright ones stays under it), and the most any of its inner
+    pixels stands above all eight neighbours (grey levels: how peaked the pattern itself is)."""
     x = np.asarray(reference, np.float32)
     contrast = _contrast(x)
-    return float(x.max()) + contrast, contrast
+    ring = np.ones((3, 3), np.uint8)
+    ring[1, 1] = 0
+    excess = (x - cv2.dilate(x, ring, borderType=cv2.BORDER_REFLECT_101))[1:-1, 1:-1]
+    return float(x.max()) + contrast, contrast, float(x.max()), float(max(excess.max(initial=0.0), 0.0))
 
 
-def hot_pixels_above(image, level: float, contrast: float,
-                     contrast_fraction: float = DEFECT_CONTRAST_FRACTION):
-    """Flat indices (int64, sorted) of a frame's isolated pixels brighter than ``level``
-    (:func:`hot_pixel_limits` of the reference) and above the largest of their 8
-    neighbours by more than the neighbours' range and by more than ``contrast_fraction``
-    of ``contrast`` (the reference's, grey levels): a cosmic ray, or a hot pixel that the
-    reference, taken at another exposure or temperature, does not show
-    (:func:`defect_pixels` finds the ones it does). One at 65535 in a 12-bit frame took
-    a narrow ray-traced bump from 0.185 to 3.1 % rms height error, 20 to 11.5 %
-    (256^2, 5 Dec 2026). A frame whose brightest pixel is under ``level`` costs one
-    maximum; pixels on the outer row and column are not judged."""
+def hot_pixels_above(image, level: float, contrast: float, brightest: float | None = None,
+                     peak_excess: float = 0.0, contrast_fraction: float = DEFECT_CONTRAST_FRACTION):
+    """Flat indices (int64, sorted) of a frame's isolated pixels: brighter than ``level`` and
+    above the largest of their 8 neighbours by more than the neighbours' range and by more
+    than ``contrast_fraction`` of ``contrast`` (the reference's, grey levels,
+    :func:`hot_pixel_limits`); or, where at most :data:`HOT_CANDIDATES_MAX_FRACTION` of the
+    frame is brighter than ``brightest`` (the reference's brightest pixel), those above all 8
+    neighbours by :data:`HOT_EXCESS_FRACTION` of ``contrast`` and
+    :data:`HOT_EXCESS_OVER_REFERENCE` times ``peak_excess`` (the reference's own most peaked
+    pixel): a cosmic
+    ray, or a hot pixel that the reference, taken at another exposure or temperature, does
+    not show (:func:`defect_pixels` finds the ones it does). One at 65535 in a 12-bit frame
+    took a narrow ray-traced bump from 0.185 to 3.1 % rms height error, 20 to 11.5 % (256^2,
+    5 Dec 2026). A camera's own hot pixels stop at its ceiling (4095 for 12 bits), under
+    ``level`` where the reference reaches 3693: 0.1 % of the frame's pixels there took
+    ``tirdeflect simulate``'s bump from 0.05 to 0.25 %, waves from 0.20 to 0.37 %, none
+    repaired until ``brightest`` was looked at (6 Dec 2026). A frame whose brightest pixel is
+    under ``brightest`` costs one maximum; pixels on the outer row and column are not judged."""
     a = np.asarray(image)
-    if a.size == 0 or float(a.max()) <= level:
+    if a.size == 0:
         return np.empty(0, np.int64)
+    row_top = a.max(axis=1)
+    first = level if brightest is None else min(level, brightest)
+    if float(row_top.max()) <= first:
+        return np.empty(0, np.int64)
+    r, c = _above(a, row_top, first)
+    few = first < level  # a few pixels brighter than the whole reference: the looser test
+    if r.size > HOT_CANDIDATES_MAX_FRACTION * a.size and few:
+        r, c = _above(a, row_top, level)
+        few = False
     rows, cols = a.shape
-    r, c = np.nonzero(a > level)
     inner = (r > 0) & (r < rows - 1) & (c > 0) & (c < cols - 1)
     r, c = r[inner], c[inner]
     near = _neighbours(a, r, c).astype(np.float32)
     high, low = near.max(axis=0, initial=-np.inf), near.min(axis=0, initial=np.inf)
-    margin = np.maximum(high - low, np.float32(contrast_fraction * contrast))
+    if few:  # above every neighbour by a tenth of the contrast, edges beside it or not
+        margin = np.float32(max(HOT_EXCESS_FRACTION * contrast, HOT_EXCESS_OVER_REFERENCE * peak_excess))
+    else:
+        margin = np.maximum(high - low, np.float32(contrast_fraction * contrast))
     hot = (a[r, c].astype(np.float32) - high) > margin
     return np.sort(np.ravel_multi_index((r[hot], c[hot]), a.shape))
+
+
+def _above(a, row_top, level):
+    """``(rows, cols)`` of the pixels of ``a`` above ``level``, searched in the rows whose
+    maximum ``row_top`` is (a tenth of a full pass where those are a few)."""
+    rows = np.flatnonzero(row_top > level)
+    r, c = np.nonzero(a[rows] > level)
+    return rows[r], c
 
 
 def repair_pixels(image, defects):

@@ -32,6 +32,7 @@ from processing.errors import (
     ShapeMismatchError,
     TirdeflectError,
 )
+from processing.live_view import reference_saturation
 from processing.pin import band_moved
 
 from app import version as _version
@@ -352,6 +353,10 @@ def run_process(args: ProcessJob) -> BatchReport:
         where = "the reference" if reference_given else f"the reference {str(args.reference)!r}"
         raise NoCarrierError(f"{where}: {exc}") from None
     reconstruct.reset_series()
+    reference_saturated = reference_saturation(reference)
+    if reference_saturated:
+        log.warning("%s", reference_saturated[1])
+        input_notes.append(reference_saturated[1])
 
     geometry_toml, geometry_info = geometry_attrs(geometry)
     attrs = {
@@ -378,6 +383,7 @@ def run_process(args: ProcessJob) -> BatchReport:
         "reference_bits": (_bits_of_counts(args.reference) if reference_given
                            else _bits_hint(args.reference, reference)),
         "stuck_pixels_repaired": int(reconstruct.defects.size),
+        "reference_saturated_pct": reference_saturated[0] if reference_saturated else 0.0,
         **timing,
     }
     for attempt in range(5):  # another run beside this one may take the name first

@@ -13,6 +13,8 @@ from typing import Optional
 import numpy as np
 from pyqtgraph.Qt import QtWidgets
 
+from processing.live_view import reference_saturation
+
 from . import state
 from .model.memory import live_device_for
 from .model.reference import capture_failed_label, capture_failed_message
@@ -136,6 +138,13 @@ def rebuild_reconstructor(w):
         if stuck:  # repaired in the reference and in every frame (processing.mask.defect_pixels)
             text += f" — {stuck} stuck sensor pixel{'s' if stuck > 1 else ''} repaired"
         w.pattern_problem = problem
+        saturated = reference_saturation(reference)
+        if saturated and not problem:  # measured, a little off: said where the user looks, no tick
+            w.geometry_panel.reference_label.setText(text + f" — {saturated[0]:.0f} % SATURATED")
+            w.geometry_panel.reference_label.setStyleSheet("color: #c00000; font-weight: bold")
+            w.show_error(saturated[1][0].upper() + saturated[1][1:])
+            state.reference_in_use(w)
+            return
         if problem:  # every height would be wrong: red where the user looks, not a tick
             w.geometry_panel.reference_label.setText(text + " — NOT the chosen pattern")
             w.geometry_panel.reference_label.setStyleSheet("color: #c00000; font-weight: bold")

@@ -726,3 +726,26 @@ def test_saturated_frames_are_named_in_the_summary_and_the_file(sim, tmp_path, c
 
     text, clean_export = describe_export(str(out))
     assert not clean_export and "1 with more than 1 % of their pixels saturated" in text and "frames 1)" in text
+    with h5py.File(out) as f:
+        assert f.attrs["reference_saturated_pct"] == 0.0 and "the reference has" not in err
+
+
+def test_an_over_exposed_reference_is_named_before_and_after_the_run(sim, tmp_path, capsys):
+    """The reference taken 1.5x too bright (its bright squares clipped at 255): every frame is measured
+    against clipped squares (ray-traced 12 bit, 42 % clipped: a bump 0.05 -> 0.18 %), and nothing said
+    so before 6 Dec 2026. The run warns at once and again in its closing notes, and OUT.h5 keeps the
+    percentage; the heights are still written."""
+    ref = imageio.read_image(sim / "reference.png")
+    bright = np.minimum(np.rint(ref.astype(np.float64) * 1.5), 255).astype(np.uint8)
+    pct = 100.0 * np.count_nonzero(bright == 255) / bright.size
+    assert pct > 10
+    imageio.write_image(tmp_path / "reference_bright.png", bright)
+    out = tmp_path / "out.h5"
+    code, err = _run(capsys, "process", tmp_path / "reference_bright.png", *_frames(sim),
+                     "--geometry", sim / "geometry.toml", "--out", out)
+    assert code == 0, err
+    said = f"the reference has {pct:.1f} % of its pixels saturated"
+    assert f"WARNING: {said}" in err or err.count(said) == 1, err  # (the warning goes to the log's own stream)
+    assert re.search(rf"note: {re.escape(said)}: its bright squares are clipped.*take the reference again", err), err
+    with h5py.File(out) as f:
+        assert f.attrs["reference_saturated_pct"] == pytest.approx(pct, abs=0.05) and f.attrs["frames_done"] == 2

@@ -381,6 +381,32 @@ def test_stuck_sensor_pixels_of_a_loaded_reference_are_named_beside_it(qtbot, wi
     assert window.last_error is None
 
 
+def test_an_over_exposed_reference_is_said_and_not_ticked(qtbot, window, scene, tmp_path):
+    """A reference taken 1.6x too bright (its bright squares clipped at 255 on 40 % or so of the frame):
+    heights come out, but every frame is measured against clipped squares (ray-traced: 0.05 -> 0.18 %
+    on a bump). Before 6 Dec 2026 the label gave it a tick. Loaded from a file as a user would, the label
+    says SATURATED in red with the percentage, the message says what to do, and heights still come."""
+    import tifffile
+
+    from processing.live_view import saturation_pct
+
+    window.use_camera(SyntheticCamera(Switchable(scene["flat"]), frame_rate_hz=100.0), geometry=scene["geometry"])
+    bright = np.minimum(np.rint(scene["flat"].astype(np.float64) * 1.6), 255).astype(np.uint8)
+    pct = saturation_pct(bright)
+    assert pct > 20
+    tifffile.imwrite(tmp_path / "bright.tif", bright)
+    window.load_reference(str(tmp_path / "bright.tif"))
+    label = window.geometry_panel.reference_label
+    qtbot.waitUntil(lambda: "SATURATED" in label.text(), timeout=30000)
+    assert "✓" not in label.text() and f"{pct:.0f} % SATURATED" in label.text(), label.text()
+    assert "c00000" in label.styleSheet()
+    assert any(f"The reference has {pct:.1f} % of its pixels saturated" in e and "take the reference again" in e
+               for e in window.errors), window.errors
+    seq = window.clock.last_raw_seq
+    qtbot.waitUntil(lambda: window.last_drawn is not None and window.last_drawn.result is not None
+                    and window.last_drawn.seq > seq, timeout=15000)  # measured all the same
+
+
 def test_bad_reference_is_explained_and_the_live_view_goes_on(qtbot, window, scene, tmp_path):
     """A reference without a pattern (noise) is refused with NoCarrierError's advice; streaming continues."""
     import tifffile
