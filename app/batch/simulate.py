@@ -44,6 +44,31 @@ SIM_PATTERN_PERIOD_PX = 20.0
 SIM_FPS = 100.0
 
 
+#: Fewest pixels a simulated board's square may span along either axis (2 per period's half: the
+#: board's carriers lie at periods of the square's diagonal, and below this the camera cannot resolve
+#: it), and fewest periods across the frame along its coarser axis (the default board's 20 px at the
+#: smallest --size, 96 px: 4.8).
+SIM_MIN_PERIOD_PX = 4.0
+SIM_MIN_PERIODS = 4
+
+
+def _check_period(period_mm: float, geometry, size_px: int) -> None:
+    """A clear error where the geometry's ``pattern_period_mm`` cannot be simulated on ``size_px``^2."""
+    along_x = period_mm / geometry.pixel_mm
+    along_y = along_x * (geometry.pattern_stretch_y or 1.0) * math.cos(math.radians(geometry.theta_deg)) \
+        if geometry.setup == "tir" else along_x * (geometry.pattern_stretch_y or 1.0)
+    finest, coarsest = min(along_x, along_y), max(along_x, along_y)
+    if finest < SIM_MIN_PERIOD_PX:
+        raise TirdeflectError(
+            f"pattern_period_mm = {period_mm:g} is {finest:.1f} px along the image's finer axis at pixel_mm = "
+            f"{geometry.pixel_mm:g}: below {SIM_MIN_PERIOD_PX:g} px the camera cannot resolve the board; "
+            f"give a longer period (at least {SIM_MIN_PERIOD_PX * period_mm / finest:.3g} mm)")
+    if coarsest * SIM_MIN_PERIODS > size_px:
+        raise TirdeflectError(
+            f"pattern_period_mm = {period_mm:g} is {coarsest:.1f} px: a {size_px} px frame holds fewer than "
+            f"{SIM_MIN_PERIODS} periods, too few for the carrier search; give a shorter period or a larger --size")
+
+
 #: Largest carrier phase |k . u| (rad) each --surface is scaled to reach (on any
 #: geometry): below pi for all but deep-dimple, which needs unwrapping, as the
 #: notes.md example (15 um deep at H = 300 mm, theta = 55 deg) does.
@@ -144,10 +169,12 @@ def run_simulate(args) -> None:
         geometry = load_geometry(args.geometry)
     else:
         geometry = Geometry.from_dict(dict(DEFAULT_SIM_GEOMETRY))
-    # the board the geometry describes (stretched along y where it says so), and the geometry written
-    # beside the frames names its period, so that it is checked
-    pattern = forward.Checkerboard(period_mm=SIM_PATTERN_PERIOD_PX * geometry.pixel_mm,
-                                   edge_softness_mm=geometry.pixel_mm, stretch_y=geometry.pattern_stretch_y or 1.0)
+    # the board the geometry describes (its pattern_period_mm, else 20 px; stretched along y where it
+    # says so), and the geometry written beside the frames names its period, so that it is checked
+    period_mm = geometry.pattern_period_mm or SIM_PATTERN_PERIOD_PX * geometry.pixel_mm
+    _check_period(period_mm, geometry, args.size)
+    pattern = forward.Checkerboard(period_mm=period_mm, edge_softness_mm=geometry.pixel_mm,
+                                   stretch_y=geometry.pattern_stretch_y or 1.0)
     geometry = dataclasses.replace(geometry, pattern_period_mm=pattern.period_mm)
     target = SIM_MAX_PHASE_RAD[args.surface] if args.max_phase is None else args.max_phase
     if not (math.isfinite(target) and target > 0):
@@ -225,7 +252,7 @@ def _write_simulation(out: Path, sim, geometry, args) -> tuple:
         f.attrs["bits"] = args.bits
         f.attrs["noise_rms"] = args.noise
         f.attrs["seed"] = args.seed
-        f.attrs["pattern_period_mm"] = SIM_PATTERN_PERIOD_PX * geometry.pixel_mm
+        f.attrs["pattern_period_mm"] = geometry.pattern_period_mm
         f.attrs["geometry_toml"] = geometry_text
         f.attrs["software_version"] = _version()
         f.attrs["created_utc"] = utc_now()

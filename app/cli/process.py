@@ -187,7 +187,8 @@ def add_simulate_parser(sub) -> None:
     p.add_argument("--noise", type=float, default=0.0, metavar="RMS",
                    help="camera noise, RMS in grey levels of the output bit depth")
     p.add_argument("--geometry", default=None, metavar="G.toml",
-                   help="optical geometry (default: a typical TIR set-up)")
+                   help="optical geometry (default: a typical TIR set-up); its pattern_period_mm is the "
+                   "board rendered (default: 20 px)")
     p.add_argument("--max-phase", type=float, default=None, metavar="RAD",
                    help="scale the heights so the largest carrier phase |k.u| is RAD radians "
                    "(default: 2.3 bump/dimple, 2.6 waves, 5.0 deep-dimple, which needs "

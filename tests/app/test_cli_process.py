@@ -614,6 +614,36 @@ def test_simulate_renders_the_stretched_board_its_geometry_names(tmp_path, capsy
     assert main(["compare", str(tmp_path / "out.h5"), str(d / "heights.h5"), "--max-error", "0.02"]) == 0
 
 
+def test_simulate_renders_the_board_period_its_geometry_names(tmp_path, capsys):
+    """A geometry whose board is 1.2 mm (the lab's, not the default 2 mm): before 6 Dec 2026 simulate
+    rendered 2 mm and wrote 2.0 into its geometry.toml with nothing said. Now it renders the period asked
+    (12 px along the columns at 0.1 mm pixels; the carriers at the diagonal's 12 / sqrt(1 + cos^2 55)),
+    writes it, and process and compare go through; a board the camera cannot resolve, or too coarse for
+    the frame, is refused with what to give."""
+    from processing import Geometry
+    from processing.carriers import find_carriers
+
+    text = 'setup = "tir"\ntheta_deg = 55.0\ndepth_mm = 300.0\npixel_mm = 0.1\nrows_toward_camera = false\n'
+    g = tmp_path / "board.toml"
+    g.write_text(text + "pattern_period_mm = 1.2\n")
+    d = tmp_path / "sim"
+    assert main(["simulate", "--out", str(d), "--surface", "bump", "--size", str(SIZE), "--frames", "1",
+                 "--geometry", str(g)]) == 0
+    assert Geometry.from_toml(d / "geometry.toml").pattern_period_mm == pytest.approx(1.2)
+    periods = find_carriers(imageio.read_image(d / "reference.png")).periods_px
+    cos55 = np.cos(np.radians(55.0))
+    np.testing.assert_allclose(periods, 12.0 * cos55 / np.sqrt(1 + cos55**2), rtol=0.02)
+    code, err = _run(capsys, "process", d / "reference.png", d / "frame_0000.png", "--geometry", d / "geometry.toml",
+                     "--out", tmp_path / "out.h5")
+    assert code == 0, err
+    assert main(["compare", str(tmp_path / "out.h5"), str(d / "heights.h5"), "--max-error", "0.02"]) == 0
+    for period, says in (("0.3", "below 4 px the camera cannot resolve the board"),
+                         ("9.0", "too few for the carrier search")):
+        g.write_text(text + f"pattern_period_mm = {period}\n")
+        code, err = _run(capsys, "simulate", "--out", tmp_path / f"sim{period}", "--geometry", g, "--size", SIZE)
+        assert code == 2 and f"pattern_period_mm = {float(period):g}" in err and says in err, err
+
+
 @pytest.mark.parametrize("workers", [1, 2])
 def test_frames_with_their_own_hot_pixels_are_repaired_counted_and_named(tmp_path, capsys, workers):
     """A reference taken at half the frames' exposure (12 bit), and a frame with six cosmic-ray hits at the
