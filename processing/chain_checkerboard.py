@@ -257,7 +257,8 @@ class CheckerboardChain(GridChain):
     def solve_height(self, u, valid, all_valid):
         """The decimated grid's heights and pin (:class:`processing.height.SurfaceResult`)."""
         o, hs = self.options, self.height_solver()
-        pin_kw = dict(pin_fallback=o.pin_fallback, region_name=self.region.name, near=self.region.near)
+        pin_kw = dict(pin_fallback=o.pin_fallback, region_name=self.region.name, near=self.region.near,
+                      shift_removal=o.shift_removal)
         if all_valid and hs.spectral_coefficients is not None and o.solver in ("auto", "spectral"):
             # what solve() picks for finite u, all valid
             return hs.solve_spectral(u, valid, self.plan.reference_region, **pin_kw)

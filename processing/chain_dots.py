@@ -86,7 +86,8 @@ class DotsChain(GridChain):
         u, turn = self.judge_turn(m.u, m.valid)  # a turn of camera or board since the reference is no surface's
         surf = self.height_solver().solve_at_tolerance(
             np.where(m.valid, u, np.nan), m.valid, o.solver, self.cg_tol, self.region.region,
-            pin_fallback=o.pin_fallback, region_name=self.region.name, near=self.region.near)
+            pin_fallback=o.pin_fallback, region_name=self.region.name, near=self.region.near,
+            shift_removal=o.shift_removal)
         valid = np.asarray(surf.valid, bool)
         u = np.where(valid, u, np.float32(np.nan)).astype(np.float32)
         m.timings["height"] = 1e3 * (time.perf_counter() - t1)

@@ -43,7 +43,7 @@ class _NodeRefinement:
         o = self.chain.options
         return hs.solve_at_tolerance(np.where(valid, u, np.nan), valid, o.solver, self.chain.cg_tol, self.reference_region,
                                      pin_fallback=o.pin_fallback, region_name=self.chain.region.name,
-                                     near=self.near)
+                                     near=self.near, shift_removal=o.shift_removal)
 
     def _refined(self, hs, u_nodes, valid, timings):
         """``(surface, valid_nodes, u_nodes, second_order)`` of image matching's node displacement:

@@ -396,7 +396,8 @@ def full_ifft(chain, wins, u, u_first, valid, amplitude, phase, timings, t3):
     surf = surface_from_displacement(uf, valid_full, chain.geometry, rows_px=np.arange(rows, dtype=float),
                                      cols_px=np.arange(cols, dtype=float), frame_shape=chain.shape,
                                      solver=o.solver, reference_mask=chain.full_reference_region(),
-                                     pin_fallback=o.pin_fallback, region_name=chain.region.name)
+                                     pin_fallback=o.pin_fallback, region_name=chain.region.name,
+                                     shift_removal=o.shift_removal)
     valid_full = np.asarray(surf.valid, bool)
     timings["height"] = 1e3 * (time.perf_counter() - t3)
     return Result(height=np.asarray(surf.height_mm, np.float32), valid=valid_full,

@@ -178,6 +178,8 @@ class BatchChain:
             self.reason = "full_interpolation other than 'spline' or 'lanczos' (the GPU resizes with those only)"
         elif recon.options.turn_removal != "none":
             self.reason = "turn_removal (the turn since the reference is measured and taken out on the CPU)"
+        elif recon.options.shift_removal:
+            self.reason = "shift_removal (a shift of the whole pattern is taken out on the CPU)"
         if self.reason is not None:
             return
         to = xp.asarray

@@ -80,7 +80,7 @@ from .height_kernels import cell_average, check_grid, div_T, neumann_eigenvalues
 from .height_masked import apply_AT, edge_data, solve_masked
 from .height_spectral import prepare_spectral, spectral_solve
 from .pin import (PIN_MIN_PIECE_SAMPLES, PinStatus, choose_pin_samples, frame_motion, level_of_shift_um, null_mode_offset,
-                  region_motion_px)
+                  pattern_shifted, region_motion_px)
 
 __all__ = [
     "SurfaceResult",
@@ -300,7 +300,8 @@ class HeightSolver:
 
     # ------------------------------------------------------------------ solve
     def solve(self, displacement_px, valid=None, *, solver: str = "auto", reference_mask=None,
-              pin_fallback: str = "nearest", region_name: str | None = None) -> SurfaceResult:
+              pin_fallback: str = "nearest", region_name: str | None = None,
+              shift_removal: bool = False) -> SurfaceResult:
         """Heights (mm) and slopes from a displacement field.
 
         Parameters
@@ -320,6 +321,9 @@ class HeightSolver:
             (:func:`choose_pin_samples`).
         region_name : str or None
             How :class:`PinStatus` names the region.
+        shift_removal : bool
+            Where the whole pattern shifted alike (:attr:`PinStatus.shifted`),
+            solve the displacement less that shift (``PinStatus.shift_removed``).
 
         Returns
         -------
@@ -327,34 +331,49 @@ class HeightSolver:
             with ``pin`` (:class:`PinStatus`) and ``pin_samples``.
         """
         return self._solve(displacement_px, valid, solver, self.tol, reference_mask,
-                           pin_fallback=pin_fallback, region_name=region_name)
+                           pin_fallback=pin_fallback, region_name=region_name, shift_removal=shift_removal)
 
     def solve_at_tolerance(self, displacement_px, valid, solver, tol, reference_mask=None, *,
-                           pin_fallback="nearest", region_name=None, near=None) -> SurfaceResult:
+                           pin_fallback="nearest", region_name=None, near=None, shift_removal=False) -> SurfaceResult:
         """:meth:`solve` with the conjugate-gradient tolerance ``tol`` and the
-        "nearest" fallback's box ``near`` given (what the Reconstructor's chains call)."""
+        "nearest" fallback's box ``near`` given (what the Reconstructor's chains call);
+        ``shift_removal``: :class:`processing.options.ReconstructOptions`' (:meth:`_shift_judged`)."""
         return self._solve(displacement_px, valid, solver, tol, reference_mask, pin_fallback=pin_fallback,
-                           region_name=region_name, near=near)
+                           region_name=region_name, near=near, shift_removal=shift_removal)
 
     def solve_spectral(self, displacement_px, valid, reference_mask=None, *, pin_fallback="nearest",
-                       region_name=None, near=None, judge_shift=True) -> SurfaceResult:
+                       region_name=None, near=None, judge_shift=True, shift_removal=False) -> SurfaceResult:
         """The spectral path of :meth:`solve` for a finite displacement valid
         everywhere (needs :attr:`spectral_coefficients`, uniform optics)."""
-        h, sx, sy, status, samples = spectral_solve(self, self._fast, displacement_px, valid, reference_mask,
+        u, motion = self._shift_judged(displacement_px, valid, judge_shift, shift_removal)
+        h, sx, sy, status, samples = spectral_solve(self, self._fast, u, valid, reference_mask,
                                                     pin_fallback=pin_fallback, region_name=region_name, near=near)
         status = dataclasses.replace(status, region_motion_px=region_motion_px(displacement_px, samples))
-        if judge_shift:  # (the whole pattern shifted alike since the reference?)
-            status = self.shift_status(status, *frame_motion(displacement_px, valid), valid, reference_mask,
-                                       pin_fallback=pin_fallback, region_name=region_name, near=near)
+        if motion is not None:  # (the whole pattern shifted alike since the reference?)
+            status = self.shift_status(status, *motion, valid, reference_mask, pin_fallback=pin_fallback,
+                                       region_name=region_name, near=near, removed=shift_removal)
         return SurfaceResult(h, sx, sy, self.x_mm.copy(), self.y_mm.copy(), valid, 0, self.surface_xy, status,
                              samples)
 
+    @staticmethod
+    def _shift_judged(u, valid, judge_shift, shift_removal):
+        """``(u to solve, motion)``: ``motion`` the frame's :func:`processing.pin.frame_motion` where
+        judged (else None), ``u`` less its median where ``shift_removal`` and the whole pattern shifted
+        (as a reference taken then would see it)."""
+        if not judge_shift:
+            return u, None
+        motion = frame_motion(u, valid)
+        if shift_removal and pattern_shifted(float(np.hypot(*motion[0])), motion[1]):
+            u = u - motion[0].astype(np.asarray(u).dtype)[:, None, None]
+        return u, motion
+
     def shift_status(self, status, median_px, share, valid, reference_mask=None, *, pin_fallback="nearest",
-                     region_name=None, near=None) -> PinStatus:
+                     region_name=None, near=None, removed=False) -> PinStatus:
         """``status`` with a frame's :func:`processing.pin.frame_motion` (``median_px`` (2,), ``share``); where
         the whole pattern shifted (:attr:`PinStatus.shifted`), also the RMS (um) of the heights that uniform
         displacement alone gives, solved on ``valid`` and pinned as the frame (linear: what the shift put
-        into them), and the water level that moves the pattern so (TIR's ``a = B kappa``, grid mean)."""
+        into them), and the water level that moves the pattern so (TIR's ``a = B kappa``, grid mean);
+        ``removed``: the option ``shift_removal`` took it out (``shift_removed``)."""
         status = dataclasses.replace(status, frame_motion_px=float(np.hypot(*median_px)), frame_shift_share=float(share))
         if not status.shifted:
             return status
@@ -364,13 +383,14 @@ class HeightSolver:
                                    region_name=region_name, near=near, judge_shift=False).height_mm, np.float64)
         effect_um = 1e3 * float(np.sqrt(np.nanmean(h[np.asarray(valid, bool)] ** 2)))
         a = np.linalg.solve(self.Binv, self.kappa[..., None])[..., 0].reshape(-1, 2).mean(axis=0)
-        return dataclasses.replace(status, shift_effect_um=effect_um, shift_level_um=level_of_shift_um(median_px, a))
+        return dataclasses.replace(status, shift_effect_um=effect_um, shift_level_um=level_of_shift_um(median_px, a),
+                                   shift_removed=bool(removed))
 
     def _solve(self, displacement_px, valid, solver, tol, reference_mask=None, *, pin_fallback="nearest",
-               region_name=None, near=None, judge_shift=True):
+               region_name=None, near=None, judge_shift=True, shift_removal=False):
         """:meth:`solve` with the conjugate-gradient tolerance given (the
         Reconstructor's is tied to the noise of measured displacements); ``judge_shift``: whether
-        the whole pattern shifted (:meth:`_judge_shift`; not for the uniform shift's own solve)."""
+        the whole pattern shifted (:meth:`shift_status`; not for the uniform shift's own solve)."""
         u = np.asarray(displacement_px)
         if u.ndim != 3 or u.shape[0] != 2 or u.shape[1:] != self.shape:
             raise ShapeMismatchError(
@@ -402,13 +422,14 @@ class HeightSolver:
         use_spectral = solver == "spectral" or (solver == "auto" and all_valid and self.constant)
         if use_spectral and self._fast is not None:
             return self.solve_spectral(u, v, reference_mask, pin_fallback=pin_fallback, region_name=region_name,
-                                       near=near, judge_shift=judge_shift)
+                                       near=near, judge_shift=judge_shift, shift_removal=shift_removal)
         samples, status, _ = self.pin_choice(v, all_valid, reference_mask, pin_fallback, region_name, near)
         status = dataclasses.replace(status, region_motion_px=region_motion_px(u, samples & v))
-        if judge_shift:
-            status = self.shift_status(status, *frame_motion(u, v), v, reference_mask, pin_fallback=pin_fallback,
-                                       region_name=region_name, near=near)
-        uz = np.where(v, u, 0.0) if not all_valid else u
+        u_solved, motion = self._shift_judged(u, v, judge_shift, shift_removal)
+        if motion is not None:
+            status = self.shift_status(status, *motion, v, reference_mask, pin_fallback=pin_fallback,
+                                       region_name=region_name, near=near, removed=shift_removal)
+        uz = np.where(v, u_solved, 0.0) if not all_valid else u_solved
         gr, gc = self.gradients(uz)
         iterations = 0
         if use_spectral:
@@ -510,7 +531,7 @@ def solver_for(geometry, rows_px, cols_px, frame_shape) -> HeightSolver:
 
 
 def surface_from_displacement(displacement_px, valid, geometry, *, rows_px, cols_px, frame_shape, solver="auto",
-                              reference_mask=None, pin_fallback="nearest", region_name=None):
+                              reference_mask=None, pin_fallback="nearest", region_name=None, shift_removal=False):
     """Surface heights and slopes from a displacement field (pixels).
 
     Parameters
@@ -528,9 +549,9 @@ def surface_from_displacement(displacement_px, valid, geometry, *, rows_px, cols
     frame_shape : (int, int)
         Shape of the camera frame (its centre is the optical axis).
     solver : {"auto", "spectral", "masked"}
-    reference_mask, pin_fallback, region_name :
+    reference_mask, pin_fallback, region_name, shift_removal :
         See :meth:`HeightSolver.solve` (default: ``geometry.reference_region``,
-        fallback to the valid samples nearest it).
+        fallback to the valid samples nearest it, a shift left in).
 
     Returns
     -------
@@ -561,4 +582,4 @@ def surface_from_displacement(displacement_px, valid, geometry, *, rows_px, cols
     """
     s = solver_for(geometry, rows_px, cols_px, frame_shape)
     return s.solve(displacement_px, valid, solver=solver, reference_mask=reference_mask,
-                   pin_fallback=pin_fallback, region_name=region_name)
+                   pin_fallback=pin_fallback, region_name=region_name, shift_removal=shift_removal)

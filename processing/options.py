@@ -143,6 +143,14 @@ class ReconstructOptions:
         (ray-traced 2 um bump, 1 mrad: the camera's turn 7.95 % left in, 0.29 %
         taken out as the camera's; the board's 1.82 % left in, 8.70 % taken out
         as the camera's), so only the user who knows what moved says so.
+    shift_removal : bool, optional
+        Where the whole pattern shifted alike since the reference
+        (:attr:`processing.pin.PinStatus.shifted`: a water level that changed,
+        or a camera or board that moved), solve the heights of the
+        displacement less that shift, as a reference taken at that moment
+        would (``Result.pin.shift_removed``); False (default): the shift's
+        tilt stays in the heights and is named.  Unshifted frames are the same
+        either way.
     pattern : {"checkerboard", "dots"} or None, optional
         What the reference shows (None, default: ``geometry.pattern``).  "dots": a random-dot pattern, displacement
         by PIV with window deformation (:class:`processing.piv.DotDisplacement`,
@@ -214,6 +222,7 @@ class ReconstructOptions:
     window_px: int = 16
     device: str = "cpu"
     turn_removal: str = "none"
+    shift_removal: bool = False
 
     def __post_init__(self):
         _one_of("grid", self.grid, GRIDS)
@@ -227,6 +236,8 @@ class ReconstructOptions:
         _one_of("full_interpolation", self.full_interpolation, _FULL_INTERPOLATIONS)
         _one_of("pin_fallback", self.pin_fallback, PIN_FALLBACKS)
         _one_of("turn_removal", self.turn_removal, TURN_REMOVALS)
+        if not isinstance(self.shift_removal, bool):
+            raise ValueError(f"shift_removal must be True or False; got {self.shift_removal!r}")
         _one_of("planner_effort", self.planner_effort, PLANNER_EFFORTS)
         _one_of("solver", self.solver, ("auto", "spectral", "masked"))
         if self.refine_iterations is not None:

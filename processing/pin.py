@@ -201,6 +201,10 @@ class PinStatus:
     shift_level_um : float
         Where :attr:`shifted`: the change of water level (um, up) that moves
         the pattern so (:func:`level_of_shift_um`; NaN: none does).
+    shift_removed : bool
+        The shift was taken out of the displacement before the heights were
+        solved (the option ``shift_removal``): :attr:`shift_effect_um` is then
+        what it would have put into them.
     """
 
     rule: str
@@ -215,6 +219,7 @@ class PinStatus:
     frame_shift_share: float = float("nan")
     shift_effect_um: float = float("nan")
     shift_level_um: float = float("nan")
+    shift_removed: bool = False
 
     @property
     def shifted(self) -> bool:
@@ -229,6 +234,12 @@ class PinStatus:
         level = ("" if not math.isfinite(self.shift_level_um) else
                  f"the water level is {abs(self.shift_level_um):.3g} um {'higher' if self.shift_level_um > 0 else 'lower'} "
                  f"than at the reference (evaporation, filling, displaced water), or ")
+        if self.shift_removed:
+            effect = ("; taken out of the heights" + ("" if not math.isfinite(self.shift_effect_um) else
+                                                     f" ({self.shift_effect_um:.2g} um RMS left in, a tilt)"))
+            return (f"the whole pattern SHIFTED by {self.frame_motion_px:.2g} px since the reference "
+                    f"({100 * self.frame_shift_share:.0f} % of the frame alike): {level}the camera or the board "
+                    f"moved{effect}")
         effect = ("" if not math.isfinite(self.shift_effect_um) else
                   f"; the heights carry {self.shift_effect_um:.2g} um RMS from it (a tilt, not the surface)")
         return (f"the whole pattern SHIFTED by {self.frame_motion_px:.2g} px since the reference "

@@ -140,6 +140,7 @@ def job_options(args, shape, geometry, effort: str):
     refine_method = batch_refine_method(args.refine_method, shape, pattern, args.grid, args.device)
     return ReconstructOptions(grid=args.grid, unwrap=not args.no_unwrap, pattern=args.pattern,
                               refine_method=refine_method, turn_removal=args.turn_removal,
+                              shift_removal=bool(args.shift_removal),
                               planner_effort="FFTW_MEASURE" if effort == "measure" else "FFTW_ESTIMATE",
                               threads=parallel.fft_threads(1))
 
@@ -165,6 +166,9 @@ class ProcessJob:
     turn_removal : {"none", "camera", "board"}
         A flagged turn since the reference left in, or taken out as the camera's or the board's
         (:class:`processing.ReconstructOptions`).
+    shift_removal : bool
+        A shift of the whole pattern since the reference (a water level that changed, a camera or
+        board that moved) taken out of the heights where flagged (:class:`processing.ReconstructOptions`).
     first, last, step : int
         Frame selection over the whole input sequence (``last`` inclusive, None = end).
     frame_range : slice or None
@@ -216,6 +220,7 @@ class ProcessJob:
     grid: str = "full"
     no_unwrap: bool = False
     turn_removal: str = "none"
+    shift_removal: bool = False
     first: int = 0
     last: int | None = None
     step: int = 1
@@ -375,6 +380,7 @@ def run_process(args: ProcessJob) -> BatchReport:
         "step": args.step,
         "unwrap": not args.no_unwrap,
         "turn_removal": args.turn_removal,
+        "shift_removal": bool(args.shift_removal),
         "grid_requested": args.grid,
         "refine_method": refine_method,
         "fft_effort": effort,
@@ -687,10 +693,16 @@ class _PinCounter:
                          f"would move it (evaporation, filling, displaced water), or a camera or board that moved")
             else:
                 text += ": the camera or the board moved"
-            if effect:
-                text += (f"; the heights carry {_span(effect)} um RMS from it, a tilt that is not the surface "
-                         f"(/pin_status shift_effect_um)")
-            out.append(text + ". Take the reference again as the set-up is now (after the level settled)")
+            removed = all(p.shift_removed for _, p in self.shifted)
+            if removed:
+                out.append(text + "; taken out of the heights (--shift-removal: heights as a reference taken at each "
+                           "frame would give, the level's change in /pin_status shift_level_um)")
+            else:
+                if effect:
+                    text += (f"; the heights carry {_span(effect)} um RMS from it, a tilt that is not the surface "
+                             f"(/pin_status shift_effect_um)")
+                out.append(text + ". Take the reference again as the set-up is now (after the level settled), or "
+                           "process with --shift-removal")
         if self.band_moving:
             moved = [m for _, m in self.band_moving]
             out.append(f"in {len(self.band_moving)} of {self.frames} frame(s) the pattern moved on the {self.name}, "

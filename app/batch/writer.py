@@ -56,6 +56,7 @@ _PIN_FIELDS = (
                           "board moved, or the water level changed)"),
     ("shift_effect_um", "where it shifted: RMS of the heights that shift alone gives (a tilt, not the surface), um"),
     ("shift_level_um", "where it shifted: the change of water level that moves the pattern so, um up (NaN: none)"),
+    ("shift_removed", "1: that shift was taken out before the heights were solved (--shift-removal)"),
     ("jump", "1: the result is not continuous with the previous frame's (see reason)"),
     ("unwrap_slip_fraction", "fraction of samples where the unwrapped phase change differs by 2 pi "
                              "from the images' wrapped one"),
@@ -72,6 +73,7 @@ def _pin_status_dtype():
                      ("needed", np.int32), ("used_samples", np.int32), ("unpinned_fraction", np.float32),
                      ("region_motion_px", np.float32), ("frame_motion_px", np.float32),
                      ("frame_shift_share", np.float32), ("shift_effect_um", np.float32), ("shift_level_um", np.float32),
+                     ("shift_removed", np.uint8),
                      ("jump", np.uint8), ("unwrap_slip_fraction", np.float32), ("pin_shift_um", np.float32),
                      ("reason", s)])
 
@@ -92,6 +94,7 @@ def _pin_status_row(result) -> np.ndarray:
         for name in ("region_samples", "valid_samples", "needed", "used_samples", "unpinned_fraction",
                      "region_motion_px") + shift_fields:
             row[name] = getattr(pin, name)
+        row["shift_removed"] = int(pin.shift_removed)
     series = getattr(result, "series", None)
     if series is not None:
         row["jump"] = int(series.flagged)

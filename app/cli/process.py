@@ -129,6 +129,11 @@ def add_process_parser(sub) -> None:
                         "as the camera's turn about its axis; board: as the board's turn in its plane. Taken out "
                         "as the wrong one it costs more than left in: say only what you know moved "
                         "(docs/processing.md section 5)")
+    p.add_argument("--shift-removal", action="store_true",
+                   help="where the whole pattern shifted alike since the reference (the water level changed, "
+                        "or the camera or the board moved: always measured and named, /pin_status), solve the "
+                        "heights of the displacement less that shift, as a reference taken at that frame "
+                        "would; by default the shift's tilt stays in the heights (docs/processing.md section 5)")
     p.add_argument("--first", type=_FRAME_INDEX, default=0, metavar="K",
                    help="first frame to process (0-based, counting every frame of every "
                    "input in order)")

@@ -240,6 +240,21 @@ def test_a_water_level_that_dropped_since_the_reference_is_named_with_what_it_do
 
     text, clean = describe_export(str(out))
     assert not clean and "1 where the whole pattern shifted since the reference" in text, text
+    # --shift-removal: the second frame's heights as a reference taken after the level fell would give
+    # them, the first frame's (the bump), within a twentieth of what the shift had put in
+    out2 = tmp_path / "out-removed.h5"
+    code, err = _run(capsys, "process", d / "reference.tif", d / "frame_0000.tif", d / "frame_0001.tif",
+                     "--geometry", d / "geometry.toml", "--out", out2, "--shift-removal")
+    assert code == 0, err
+    assert "taken out of the heights (--shift-removal" in err and "Take the reference again" not in err, err
+    with h5py.File(out2) as f:
+        assert f.attrs["shift_removal"] and list(f["pin_status"]["shift_removed"][:]) == [0, 1]
+        assert f["pin_status"]["shift_level_um"][1] == pytest.approx(st["shift_level_um"][1], rel=0.02)
+        removed = f["height"][()].astype(np.float64)
+    np.testing.assert_array_equal(removed[0], height[0])  # the unshifted frame: the same
+    both = np.isfinite(removed[0]) & np.isfinite(removed[1])
+    left_um = 1e3 * np.sqrt(np.mean((removed[1][both] - removed[0][both]) ** 2))
+    assert left_um < 0.05 * change_um, (left_um, change_um)
 
 
 def test_output_layout_matches_docs(sim, tmp_path, capsys):

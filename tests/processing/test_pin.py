@@ -358,6 +358,19 @@ def test_a_camera_or_board_that_moved_since_the_reference_is_seen_on_the_pin_sam
     assert shifted.pin.shift_effect_um == pytest.approx(change_um, rel=0.1)
     live = default(frames[0.03, 0.0], grid="decimated").pin  # what the live window's pin label shows
     assert live.shifted and live.shift_effect_um == pytest.approx(shifted.pin.shift_effect_um, rel=0.1)
+    # taken out (the option shift_removal): the heights of the frame with nothing moved, within a tenth of
+    # what the shift had put in, on every grid and refinement; the frame with nothing moved unchanged
+    for opts, grid in (({}, "full"), ({"refine_method": "fd"}, "full"), ({}, "decimated")):
+        g0 = dataclasses.replace(g, reference_region=None)
+        keep, take = (Reconstructor(F.quantize(ref, bits=8), g0, shift_removal=removal, **opts)
+                      for removal in (False, True))
+        still = keep(frames[0.0, 0.0], grid=grid)
+        np.testing.assert_array_equal(take(frames[0.0, 0.0], grid=grid).height, still.height)
+        out = take(frames[0.03, 0.0], grid=grid)
+        assert out.pin.shifted and out.pin.shift_removed and "taken out of the heights" in out.pin.describe()
+        both = out.valid & still.valid
+        left_um = 1e3 * np.sqrt(np.mean((out.height[both] - still.height[both]).astype(np.float64) ** 2))
+        assert left_um < 0.1 * out.pin.shift_effect_um, (opts, grid, left_um, out.pin.shift_effect_um)
     assert not band_moved(res.pin.region, res.pin.rule, res.pin.region_motion_px, "tir")
     # never the user's region (pattern_moved judges that one) nor a fallback's samples
     assert not band_moved("reference_region [0, 24, 0, 24]", "region", 1.0, "tir")
