@@ -103,9 +103,9 @@ def _assert_same(serial, other, complete=True):
             # (pin.STILL_REGION_MAX_MOTION_PX) and a 2 pi slip moves it by a period: 1e-4 px.
             np.testing.assert_allclose(b[name], a[name], rtol=0, atol=1e-4, equal_nan=True, err_msg=name)
         elif name == "frame_shift_share":
-            # a share of about 4,000 samples within 0.05 px of that median: one sample's side of the bound
-            # is 2.4e-4; read at 0.2 (pin.SHIFT_MIN_SHARE)
-            np.testing.assert_allclose(b[name], a[name], rtol=0, atol=1e-3, equal_nan=True, err_msg=name)
+            # a share of about 1,000 samples within 0.05 px of that median: one sample's side of the bound
+            # is 1e-3; read at 0.2 (pin.SHIFT_MIN_SHARE)
+            np.testing.assert_allclose(b[name], a[name], rtol=0, atol=2.5e-3, equal_nan=True, err_msg=name)
         elif a.dtype[name].kind == "f":
             np.testing.assert_allclose(b[name], a[name], rtol=1e-3, atol=1e-6, equal_nan=True, err_msg=name)
         else:
