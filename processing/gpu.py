@@ -543,8 +543,9 @@ class BatchChain:
         step = frame_motion_step(valid_dec.size)
         sub = u[:n, :, ::step, ::step].reshape(n, 2, -1)
         shift = xp.median(sub, axis=2)
+        tol = xp.maximum(SHIFT_TOL_PX, 0.5 * xp.hypot(shift[:, 0], shift[:, 1]))  # processing.pin.shift_tolerance_px
         share = to_host(xp, xp.mean(xp.hypot(sub[:, 0] - shift[:, 0, None], sub[:, 1] - shift[:, 1, None])
-                                    <= SHIFT_TOL_PX, axis=1))
+                                    <= tol[:, None], axis=1))
         shift = to_host(xp, shift)
         pins = [hs.shift_status(dataclasses.replace(self.pin, region_motion_px=float(motion[k])), shift[k], share[k],
                                 valid_dec, self.reference_region, pin_fallback=r.pin_fallback,

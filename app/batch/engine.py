@@ -699,10 +699,11 @@ class _PinCounter:
                            "frame would give, the level's change in /pin_status shift_level_um)")
             else:
                 if effect:
-                    text += (f"; the heights carry {_span(effect)} um RMS from it, a tilt that is not the surface "
+                    text += (f"; the heights carry {_span(effect, '.3g')} um RMS from it, a tilt that is not the surface "
                              f"(/pin_status shift_effect_um)")
-                out.append(text + ". Take the reference again as the set-up is now (after the level settled), or "
-                           "process with --shift-removal")
+                settled = " (once the level has settled)" if level else ""
+                out.append(text + f". Take the reference again as the set-up is now{settled}, or process with "
+                           f"--shift-removal")
         if self.band_moving:
             moved = [m for _, m in self.band_moving]
             out.append(f"in {len(self.band_moving)} of {self.frames} frame(s) the pattern moved on the {self.name}, "

@@ -130,7 +130,7 @@ def describe_export(out_path: str) -> tuple:
                                           for m, share in zip(st["frame_motion_px"], st["frame_shift_share"])])
                 if shifted.size:
                     effect = np.asarray(st["shift_effect_um"][shifted], np.float64)
-                    carry = (f"; the heights carry up to {np.nanmax(effect):.2g} um RMS from it, a tilt"
+                    carry = (f"; the heights carry up to {np.nanmax(effect):.3g} um RMS from it, a tilt"
                              if np.isfinite(effect).any() else "")
                     parts.append(f"{shifted.size} where the whole pattern shifted since the reference: the water "
                                  f"level changed, or the camera or the board moved{carry}; take the reference "

@@ -269,7 +269,10 @@ def test_movie_and_probe_on_a_running_then_killed_process_output(sim, recording,
     with h5py.File(partial) as f:
         done, expected = int(f.attrs["frames_done"]), int(f.attrs["frames_expected"])
         x_mm, y_mm = float(np.mean(f["x_mm"][()])), float(np.mean(f["y_mm"][()]))
-    assert 0 < done < expected == 240
+    # (the kill lands after the third frame's line is read; a fast machine has written them all by then,
+    # not yet finished the file: partial all the same; 'done < expected' failed two runs in three on
+    # 6 Dec 2026, at 4425550 as well)
+    assert 0 < done <= expected == 240
     needle = f"partial output (the run was killed before it ended): it holds {done} of the {expected}"
     r = _cli("movie", partial, "--out", tmp_path / "m.mp4")
     assert r.returncode == 0 and needle in r.stderr, r.stderr

@@ -7,6 +7,7 @@ trapped-modes TIFFs must read at their 10-bit scale and process end to end.
 """
 
 import importlib.util
+import re
 from pathlib import Path
 
 import h5py
@@ -81,20 +82,37 @@ def test_packed_10bit_camera_tiffs_process_end_to_end(tmp_path, fsss_toml, capsy
         assert f["source"][0].decode().endswith("C1S0001000211.tif")
 
 
-def test_the_needle_frames_overall_shift_is_named_in_a_region_at_rest(tmp_path, fsss_toml, capsys):
+def test_the_needle_frames_overall_shift_is_named_and_taken_out_when_asked(tmp_path, fsss_toml, capsys):
     """The real needle frame is shifted by about (0.8, 1.7) px overall against its reference (the data's
-    README): the camera or the board moved between the two. With a reference_region in the lower left
-    corner, far from the needle in the upper right, `tirdeflect process` measures that move there (1.88 px)
-    and says that the camera or the board moved."""
-    toml = tmp_path / "corner.toml"
-    toml.write_text(fsss_toml.read_text() + "reference_region = [900, 1024, 0, 120]\n")
-    out = tmp_path / "needle.h5"
-    code = main(["process", str(NEEDLE / "reference_2.png"), str(NEEDLE / "202406_1457001661.bmp"),
-                 "--geometry", str(toml), "--out", str(out)])
-    err = capsys.readouterr().err
-    assert code == 0, err
-    assert "the pattern moved in the reference_region [900, 1024, 0, 120]" in err
-    assert "the camera or the board moved since the reference" in err
-    with h5py.File(out) as f:
-        assert f["pin_status"]["region_motion_px"][0] == pytest.approx(np.hypot(0.8, 1.7), abs=0.15)
-        assert f.attrs["frames_pin_region_moving"] == 1
+    README): the camera or the board moved between the two. Its ring waves fill the frame, yet 57 % of it
+    lies within half the frame's median displacement (1.89 px) of it: the whole pattern moved. FS-SS reads
+    a uniform displacement as a uniform slope: by default the heights carried a tilt of 0.82 mm RMS, with
+    nothing said (6 Dec 2026; the ring waves are about 0.06 mm RMS). Now the run names it, with the tilt,
+    whether or not a reference_region at rest (the lower left corner, far from the needle) also sees it
+    move (1.88 px there); --shift-removal takes it out (the heights' RMS then the waves' own)."""
+    corner = tmp_path / "corner.toml"
+    corner.write_text(fsss_toml.read_text() + "reference_region = [900, 1024, 0, 120]\n")
+    rms_um = {}
+    for name, toml, extra in (("default", fsss_toml, []), ("corner", corner, []),
+                              ("removed", fsss_toml, ["--shift-removal"])):
+        out = tmp_path / f"needle-{name}.h5"
+        code = main(["process", str(NEEDLE / "reference_2.png"), str(NEEDLE / "202406_1457001661.bmp"),
+                     "--geometry", str(toml), "--out", str(out), *extra])
+        err = capsys.readouterr().err
+        assert code == 0, err
+        assert "the whole pattern shifted alike since the reference (1.9 px, e.g. frame 0): the camera or the " \
+               "board moved" in err, err
+        with h5py.File(out) as f:
+            assert f.attrs["frames_shifted"] == 1
+            st = f["pin_status"][0]
+            assert st["frame_motion_px"] == pytest.approx(np.hypot(0.8, 1.7), abs=0.15) and np.isnan(st["shift_level_um"])
+            h = f["height"][0].astype(np.float64)
+            rms_um[name] = 1e3 * np.sqrt(np.nanmean(h ** 2))
+            if name == "corner":  # the region's own motion is kept (its note gives way to the shift's)
+                assert st["region_motion_px"] == pytest.approx(np.hypot(0.8, 1.7), abs=0.15)
+                assert f.attrs["frames_pin_region_moving"] == 1
+        if name == "removed":
+            assert "taken out of the heights" in err and st["shift_removed"] == 1
+        else:
+            assert re.search(r"the heights carry (7|8|9)\d\d um RMS from it", err) and st["shift_removed"] == 0, err
+    assert rms_um["default"] > 500 and rms_um["removed"] < 0.1 * rms_um["default"], rms_um
