@@ -169,6 +169,11 @@ def run_simulate(args) -> None:
         geometry = load_geometry(args.geometry)
     else:
         geometry = Geometry.from_dict(dict(DEFAULT_SIM_GEOMETRY))
+    if getattr(geometry, "pattern", None) == "dots":
+        raise TirdeflectError(
+            f"{args.geometry}: pattern = \"dots\": simulate renders a checkerboard only (its heights are scaled "
+            f"by the board's carrier phase), and would write a geometry naming dots beside it; remove the "
+            f"pattern key (random dots are checked by benchmarks/bench_processing.py's dots table)")
     # the board the geometry describes (its pattern_period_mm, else 20 px; stretched along y where it
     # says so), and the geometry written beside the frames names its period, so that it is checked
     period_mm = geometry.pattern_period_mm or SIM_PATTERN_PERIOD_PX * geometry.pixel_mm

@@ -657,6 +657,11 @@ def test_simulate_renders_the_board_period_its_geometry_names(tmp_path, capsys):
         g.write_text(text + f"pattern_period_mm = {period}\n")
         code, err = _run(capsys, "simulate", "--out", tmp_path / f"sim{period}", "--geometry", g, "--size", SIZE)
         assert code == 2 and f"pattern_period_mm = {float(period):g}" in err and says in err, err
+    # a geometry naming random dots: simulate draws boards only (it wrote pattern = "dots" beside a board)
+    g.write_text(text + 'pattern = "dots"\n')
+    code, err = _run(capsys, "simulate", "--out", tmp_path / "simdots", "--geometry", g, "--size", SIZE)
+    assert code == 2 and 'pattern = "dots": simulate renders a checkerboard only' in err, err
+    assert not (tmp_path / "simdots" / "geometry.toml").exists()
 
 
 @pytest.mark.parametrize("workers", [1, 2])
