@@ -63,7 +63,9 @@ def compare_heights(out_path, truth_path, *, margin: float = 0.125) -> list:
         (RMS error / RMS true height), ``rms_error_mm``, ``rms_true_mm``,
         ``scale`` (least-squares factor estimate ~ scale * truth),
         ``valid_fraction`` (interior), ``region_rms_mm`` (the pinned truth's RMS on the
-        pin samples: 0 where the simulated surface is at rest there).
+        pin samples: 0 where the simulated surface is at rest there), ``shift_effect_um``
+        (``/pin_status``: the RMS a shift of the whole pattern since the reference put into the
+        heights, part of the error; NaN where none was flagged or it was taken out).
     """
     import h5py
     from processing import Geometry
@@ -77,6 +79,10 @@ def compare_heights(out_path, truth_path, *, margin: float = 0.125) -> list:
         est = f["height"][:n].astype(np.float64)
         index = f["frame_index"][:n]
         geometry = Geometry.from_toml_text(str(f.attrs["geometry_toml"]))
+        shift_um = np.full(n, np.nan)
+        if "pin_status" in f and "shift_effect_um" in (f["pin_status"].dtype.names or ()):
+            st = f["pin_status"][:n]
+            shift_um = np.where(st["shift_removed"] != 0, np.nan, st["shift_effect_um"]).astype(np.float64)
         pin_region = None
         if "pin_region" in f:
             ds = f["pin_region"]
@@ -120,6 +126,7 @@ def compare_heights(out_path, truth_path, *, margin: float = 0.125) -> list:
         scale = float(np.dot(e[ok], t[ok]) / np.dot(t[ok], t[ok])) if ok.any() and rms_true > 0 else float("nan")
         report.append(dict(frame=j, rel_rms=rms_err / rms_true if rms_true > 0 else float("nan"),
                            rms_error_mm=rms_err, rms_true_mm=rms_true, scale=scale,
-                           valid_fraction=float(ok.mean()), region_rms_mm=region_rms))
+                           valid_fraction=float(ok.mean()), region_rms_mm=region_rms,
+                           shift_effect_um=float(shift_um[k])))
     return report
 

@@ -315,6 +315,13 @@ def cmd_compare(args) -> int:
               "both maps were pinned alike (the null mode, exp(-T y/H) for TIR, fitted there and taken out), "
               "so the figures are the processing's; measured heights carry that region's motion as that mode: "
               "at the tank, give a reference_region where the water is still")
+    shifted = [r for r in report if np.isfinite(r["shift_effect_um"])]
+    if shifted:
+        top = max(shifted, key=lambda r: r["shift_effect_um"])
+        print(f"note: in {len(shifted)} of {len(report)} frame(s) the whole pattern shifted since the reference "
+              f"(/pin_status; up to {top['shift_effect_um']:.3g} um rms put into the heights, frame {top['frame']}), "
+              "part of the error above: a level or a set-up that moved, not the processing; "
+              "`tirdeflect process --shift-removal` takes it out")
     if args.max_error is not None and worst > args.max_error:
         print(f"tirdeflect: worst relative RMS error {worst:.2%} exceeds --max-error {args.max_error:.2%}",
               file=sys.stderr)
