@@ -374,17 +374,32 @@ class HeightSolver:
         displacement alone gives, solved on ``valid`` and pinned as the frame (linear: what the shift put
         into them), and the water level that moves the pattern so (TIR's ``a = B kappa``, grid mean);
         ``removed``: the option ``shift_removal`` took it out (``shift_removed``)."""
-        status = dataclasses.replace(status, frame_motion_px=float(np.hypot(*median_px)), frame_shift_share=float(share))
+        status = dataclasses.replace(status, frame_motion_px=float(np.hypot(*median_px)), frame_shift_share=float(share),
+                                     frame_motion_row_px=float(median_px[0]), frame_motion_col_px=float(median_px[1]))
         if not status.shifted:
             return status
-        uniform = np.empty((2,) + self.shape)
-        uniform[0], uniform[1] = median_px
-        h = np.asarray(self._solve(uniform, valid, "auto", self.tol, reference_mask, pin_fallback=pin_fallback,
-                                   region_name=region_name, near=near, judge_shift=False).height_mm, np.float64)
-        effect_um = 1e3 * float(np.sqrt(np.nanmean(h[np.asarray(valid, bool)] ** 2)))
-        a = np.linalg.solve(self.Binv, self.kappa[..., None])[..., 0].reshape(-1, 2).mean(axis=0)
-        return dataclasses.replace(status, shift_effect_um=effect_um, shift_level_um=level_of_shift_um(median_px, a),
+        effect_um = self.shift_effect_um(median_px, valid, reference_mask, pin_fallback=pin_fallback,
+                                         region_name=region_name, near=near)
+        return dataclasses.replace(status, shift_effect_um=effect_um, shift_level_um=self.shift_level_um(median_px),
                                    shift_removed=bool(removed))
+
+    def shift_effect_um(self, shift_px, valid=None, reference_mask=None, *, pin_fallback="nearest",
+                        region_name=None, near=None) -> float:
+        """RMS (um) over ``valid`` (None: every sample) of the heights that the uniform displacement
+        ``shift_px`` (2,) alone gives, solved and pinned as a frame: what a shift of the whole pattern
+        puts into them (linear)."""
+        v = np.ones(self.shape, bool) if valid is None else np.asarray(valid, bool)
+        uniform = np.empty((2,) + self.shape)
+        uniform[0], uniform[1] = shift_px
+        h = np.asarray(self._solve(uniform, v, "auto", self.tol, reference_mask, pin_fallback=pin_fallback,
+                                   region_name=region_name, near=near, judge_shift=False).height_mm, np.float64)
+        return 1e3 * float(np.sqrt(np.nanmean(h[v] ** 2)))
+
+    def shift_level_um(self, shift_px) -> float:
+        """:func:`processing.pin.level_of_shift_um` of the uniform displacement ``shift_px`` (2,) on this
+        grid (TIR's ``a = B kappa``, the grid's mean)."""
+        a = np.linalg.solve(self.Binv, self.kappa[..., None])[..., 0].reshape(-1, 2).mean(axis=0)
+        return level_of_shift_um(shift_px, a)
 
     def _solve(self, displacement_px, valid, solver, tol, reference_mask=None, *, pin_fallback="nearest",
                region_name=None, near=None, judge_shift=True, shift_removal=False):

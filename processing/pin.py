@@ -15,7 +15,8 @@ __all__ = ["PIN_MIN_SAMPLES", "PIN_MIN_FRACTION", "PIN_MIN_PIECE_SAMPLES", "PIN_
            "STILL_REGION_MAX_MOTION_PX", "BAND_MAX_MOTION_PX", "USER_REGION_PREFIX", "band_moved",
            "choose_pin_samples", "null_mode_offset", "pattern_moved",
            "pin_samples_needed", "region_motion_px", "SHIFT_MIN_PX", "SHIFT_TOL_PX", "SHIFT_MIN_SHARE",
-           "frame_motion", "frame_motion_step", "FRAME_MOTION_SAMPLES", "shift_tolerance_px", "pattern_shifted", "level_of_shift_um"]
+           "frame_motion", "frame_motion_step", "FRAME_MOTION_SAMPLES", "shift_tolerance_px", "steady_shift",
+           "STEADY_SHIFT_MIN_PX", "STEADY_SHIFT_MIN_RATIO", "STEADY_SHIFT_MIN_FRAMES", "pattern_shifted", "level_of_shift_um"]
 
 
 #: Fewest valid samples the pin of the null space needs (see the module docstring).
@@ -149,6 +150,38 @@ def pattern_shifted(motion_px: float, share: float) -> bool:
     return bool(motion_px >= SHIFT_MIN_PX and share >= SHIFT_MIN_SHARE)
 
 
+#: A recording whose frames' median displacements (:func:`frame_motion`) sit, on average, at least
+#: this far (px) from 0 ...
+STEADY_SHIFT_MIN_PX = 0.2
+#: ... by at least this many standard errors (the larger component's spread from frame to frame over
+#: the square root of the frames), over at least :data:`STEADY_SHIFT_MIN_FRAMES` frames, was shifted
+#: for its whole length: waves filling the frame hide a shift from the per-frame test
+#: (:func:`pattern_shifted`), but move the frame's median about 0 (simulate's and the tank's waves:
+#: 0.001-0.13 px either way, issue 22's held-out waves up to 0.11), while a camera, a board or a level
+#: that moved keeps it at the shift (simulate's waves, 10 frames shifted by 0.5 px: 0.41-0.64 px, mean
+#: 0.50, 22 standard errors; 8 frames of 6-12 mm waves on a 19 mm field, the board moved 0.5 px:
+#: 0.37-0.78 px, 12).  :func:`steady_shift`.
+STEADY_SHIFT_MIN_RATIO = 5.0
+STEADY_SHIFT_MIN_FRAMES = 8
+
+
+def steady_shift(medians_px):
+    """``(mean (2,), spread)`` (px; ``spread`` the larger component's standard deviation) of the frames'
+    median displacements ``medians_px`` (n, 2) where they sit away from 0 for the whole recording
+    (:data:`STEADY_SHIFT_MIN_PX`, :data:`STEADY_SHIFT_MIN_RATIO` standard errors,
+    :data:`STEADY_SHIFT_MIN_FRAMES`), else None."""
+    m = np.asarray(medians_px, np.float64).reshape(-1, 2)
+    m = m[np.all(np.isfinite(m), axis=1)]
+    if len(m) < STEADY_SHIFT_MIN_FRAMES:
+        return None
+    mean = m.mean(axis=0)
+    spread = float(m.std(axis=0).max())
+    length = float(np.hypot(*mean))
+    if length < STEADY_SHIFT_MIN_PX or length < STEADY_SHIFT_MIN_RATIO * spread / math.sqrt(len(m)):
+        return None
+    return mean, spread
+
+
 def level_of_shift_um(median_px, a_px_per_mm) -> float:
     """The change of water level (um, positive up) that moves a still surface's pattern by the
     uniform displacement ``median_px`` (2,): TIR's ``u = a h`` of a height ``h`` the same
@@ -205,6 +238,9 @@ class PinStatus:
         :func:`frame_motion` of the whole frame: the length of its median
         displacement (px) and the share of it that moved alike; both above
         their bounds (:func:`pattern_shifted`), :attr:`shifted` is True.
+    frame_motion_row_px, frame_motion_col_px : float
+        That median's components (px; a recording's frames together:
+        :func:`steady_shift`).
     shift_effect_um : float
         Where :attr:`shifted`: the RMS (um) of the heights that the uniform
         displacement alone gives, solved and pinned as the frame: the tilt
@@ -228,6 +264,8 @@ class PinStatus:
     region_motion_px: float = float("nan")
     frame_motion_px: float = float("nan")
     frame_shift_share: float = float("nan")
+    frame_motion_row_px: float = float("nan")
+    frame_motion_col_px: float = float("nan")
     shift_effect_um: float = float("nan")
     shift_level_um: float = float("nan")
     shift_removed: bool = False

@@ -33,7 +33,7 @@ from processing.errors import (
     TirdeflectError,
 )
 from processing.live_view import reference_saturation
-from processing.pin import band_moved
+from processing.pin import band_moved, steady_shift
 
 from app import version as _version
 from app.batch import parallel
@@ -591,6 +591,10 @@ class _PinCounter:
         self.setup = getattr(getattr(reconstruct, "geometry", None), "setup", "")
         self.band_moving = []  # (sequence index, PinStatus.region_motion_px)
         self.shifted = []  # (sequence index, PinStatus) where the whole pattern shifted (PinStatus.shifted)
+        # every frame's median displacement (row, col px) not flagged alone: a recording shifted for its
+        # whole length under waves that hide it frame by frame (processing.pin.steady_shift)
+        self.medians = []
+        self.height_solver = getattr(reconstruct, "height_solver", None)
         self.min_valid = None
 
     def write_region(self, writer) -> None:
@@ -618,6 +622,8 @@ class _PinCounter:
                 "frame %d (%s): %s", item.sequence_index, item.label, pin.describe())
         if self.min_valid is None or pin.valid_samples < self.min_valid[0]:
             self.min_valid = (pin.valid_samples, pin.region_samples)
+        if not pin.shifted:
+            self.medians.append((pin.frame_motion_row_px, pin.frame_motion_col_px))
         if pin.shifted:  # says more than the pin samples' motion, which it explains (their notes leave it out)
             self.shifted.append((item.sequence_index, pin))
             (log.warning if len(self.shifted) == 1 else log.debug)(
@@ -643,11 +649,30 @@ class _PinCounter:
                 "frame %d (%s) jumps against the previous frame: %s", item.sequence_index, item.label,
                 series.reason)
 
+    def _steady(self):
+        """``(mean, spread, level_um, effect_um)`` where the frames not flagged alone were shifted for the
+        whole recording (:func:`processing.pin.steady_shift`), else None."""
+        found = steady_shift(self.medians)
+        if found is None:
+            return None
+        mean, spread = found
+        level_um = effect_um = float("nan")
+        if self.height_solver is not None:
+            hs = self.height_solver()
+            level_um = hs.shift_level_um(mean)
+            region = self.region if self.region is not None and np.shape(self.region) == hs.shape else None
+            effect_um = hs.shift_effect_um(mean, None, region)
+        return mean, spread, level_um, effect_um
+
+    def _steady_px(self) -> float:
+        found = steady_shift(self.medians)
+        return float(np.hypot(*found[0])) if found is not None else 0.0
+
     def attrs(self) -> dict:
         return {"pin_region": self.name, "frames_pin_fallback": len(self.nearest),
                 "frames_flagged_jump": len(self.jumps), "frames_noted": len(self.noted),
                 "frames_pin_region_moving": len(self.moving), "frames_pin_band_moving": len(self.band_moving),
-                "frames_shifted": len(self.shifted)}
+                "frames_shifted": len(self.shifted), "steady_shift_px": self._steady_px()}
 
     def summary(self) -> str:
         if not self.frames:
@@ -704,6 +729,21 @@ class _PinCounter:
                 settled = " (once the level has settled)" if level else ""
                 out.append(text + f". Take the reference again as the set-up is now{settled}, or process with "
                            f"--shift-removal")
+        steady = self._steady()
+        if steady is not None:
+            mean, spread, level_um, effect_um = steady
+            text = (f"over {len(self.medians)} frame(s) the whole frame's median displacement sat at ({mean[0]:.2f}, "
+                    f"{mean[1]:.2f}) px (rows, columns), {spread:.2f} px apart from frame to frame: what fills the "
+                    f"frame moves it about 0, a shift since the reference keeps it there. ")
+            if np.isfinite(level_um):
+                text += (f"The water level is {abs(level_um):.3g} um {'higher' if level_um > 0 else 'lower'} than at "
+                         f"the reference (evaporation, filling), or the camera or the board moved, ")
+            else:
+                text += "The camera or the board moved, "
+            text += "or a wave longer than the frame tilted all of it for the whole recording"
+            if np.isfinite(effect_um):
+                text += f"; a shift puts {effect_um:.3g} um RMS into the heights, a tilt"
+            out.append(text + ". Take the reference again as the set-up is now (/pin_status frame_motion_row_px)")
         if self.band_moving:
             moved = [m for _, m in self.band_moving]
             out.append(f"in {len(self.band_moving)} of {self.frames} frame(s) the pattern moved on the {self.name}, "

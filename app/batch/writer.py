@@ -51,6 +51,8 @@ _PIN_FIELDS = (
                          "the surface there is not at rest or the camera or the board moved since the reference "
                          "(NaN: not measured)"),
     ("frame_motion_px", "median displacement over the whole frame's valid samples, px (NaN: not measured)"),
+    ("frame_motion_row_px", "its component along the rows, px"),
+    ("frame_motion_col_px", "its component along the columns, px"),
     ("frame_shift_share", "share of the frame's valid samples within 0.05 px of that median: from 0.5 on, with the "
                           "median at 0.03 px or more, the whole pattern shifted since the reference (camera or "
                           "board moved, or the water level changed)"),
@@ -72,6 +74,7 @@ def _pin_status_dtype():
     return np.dtype([("rule", s), ("region_samples", np.int32), ("valid_samples", np.int32),
                      ("needed", np.int32), ("used_samples", np.int32), ("unpinned_fraction", np.float32),
                      ("region_motion_px", np.float32), ("frame_motion_px", np.float32),
+                     ("frame_motion_row_px", np.float32), ("frame_motion_col_px", np.float32),
                      ("frame_shift_share", np.float32), ("shift_effect_um", np.float32), ("shift_level_um", np.float32),
                      ("shift_removed", np.uint8),
                      ("jump", np.uint8), ("unwrap_slip_fraction", np.float32), ("pin_shift_um", np.float32),
@@ -85,7 +88,8 @@ def _pin_status_row(result) -> np.ndarray:
     row["reason"] = ""
     row["pin_shift_um"] = np.nan
     row["unwrap_slip_fraction"] = np.nan
-    shift_fields = ("frame_motion_px", "frame_shift_share", "shift_effect_um", "shift_level_um")
+    shift_fields = ("frame_motion_px", "frame_motion_row_px", "frame_motion_col_px", "frame_shift_share",
+                    "shift_effect_um", "shift_level_um")
     for name in ("region_motion_px",) + shift_fields:
         row[name] = np.nan
     pin = getattr(result, "pin", None)

@@ -271,6 +271,46 @@ def test_a_water_level_that_dropped_since_the_reference_is_named_with_what_it_do
     assert errors["kept"][1] > 10 * errors["kept"][0] and errors["removed"][1] < 2 * errors["removed"][0], errors
 
 
+def test_a_board_moved_under_waves_that_fill_the_frame_is_named_over_the_recording(tmp_path, capsys):
+    """Waves filling the frame hide a shift of the whole pattern frame by frame (no still part), and the
+    pin band's note reads as the waves'. Over a recording the waves move the frame's median displacement
+    about 0 and a shift keeps it at the shift: ray traced (192^2, 8 frames of independent waves 6-12 mm,
+    12 bit), the board moved 0.05 mm along x (0.5 px) after the reference: named with the shift and the
+    tilt it puts in; the same waves with nothing moved: not."""
+    from processing import Geometry, forward as F
+
+    g = Geometry(theta_deg=55, depth_mm=300, pixel_mm=0.1, rows_toward_camera=False)
+    board = F.Checkerboard(period_mm=2.0, edge_softness_mm=0.1)
+    rng = np.random.default_rng(2)
+    shape = (192, 192)
+    (tmp_path / "geometry.toml").write_text(g.to_toml_text())
+    tifffile.imwrite(tmp_path / "reference.tif",
+                     F.quantize(F.render_tir(F.FlatSurface(), g, shape, board)[0], bits=12, noise_rms=1.0, rng=rng))
+    waves = [F.WaveField.random(6, amplitude_rms_mm=0.0003, wavelength_range_mm=(6, 12), seed=40 + k) for k in range(8)]
+    notes = {}
+    for name, offset in (("still", (0.0, 0.0)), ("moved", (0.05, 0.0))):
+        frames = []
+        for k, sf in enumerate(waves):
+            image, _ = F.render_tir(sf, g, shape, board, pattern_offset_mm=offset)
+            frames.append(tmp_path / f"{name}_{k}.tif")
+            tifffile.imwrite(frames[-1], F.quantize(image, bits=12, noise_rms=1.0, rng=rng))
+        out = tmp_path / f"{name}.h5"
+        code, err = _run(capsys, "process", tmp_path / "reference.tif", *frames, "--geometry", tmp_path / "geometry.toml",
+                         "--out", out)
+        assert code == 0, err
+        with h5py.File(out) as f:
+            notes[name] = (err, float(f.attrs["steady_shift_px"]), f["pin_status"]["frame_shift_share"][:],
+                           f["pin_status"]["frame_motion_col_px"][:])
+    err, steady, share, cols = notes["moved"]
+    assert np.all(share < 0.2)  # no frame is flagged alone
+    # (each frame's median 0.37-0.78 px: the waves move it about the shift by up to 0.3 px)
+    assert steady == pytest.approx(0.5, abs=0.15) and np.all(cols > 0.2), cols
+    assert re.search(r"note: over 8 frame\(s\) the whole frame's median displacement sat at \(-?0\.\d\d, 0\.[45]\d\) px "
+                     r"\(rows, columns\).*The camera or the board moved.*a shift puts \d", err), err
+    err, steady, share, cols = notes["still"]
+    assert steady == 0.0 and "median displacement sat at" not in err and np.all(np.abs(cols) < 0.3), cols
+
+
 def test_output_layout_matches_docs(sim, tmp_path, capsys):
     out = tmp_path / "out.h5"
     code, err = _run(capsys, "process", sim / "reference.png", _frames(sim)[1],

@@ -63,7 +63,7 @@ _NUMBER = re.compile(r"[-+]?(?:\d+\.\d*|\.\d+|\d+)(?:[eE][-+]?\d+)?")
 #: measures of the frame, not a change of the chain): left out of the comparison (the cases rewritten
 #: since hold some of them, the others do not)
 _NEWER_PIN_FIELD = re.compile(
-    r", '(?:region_motion_px|frame_motion_px|frame_shift_share|shift_effect_um|shift_level_um|shift_removed)': [^,}]*")
+    r", '(?:region_motion_px|frame_motion_px|frame_shift_share|frame_motion_row_px|frame_motion_col_px|shift_effect_um|shift_level_um|shift_removed)': [^,}]*")
 
 
 def _same_text(new: str, old: str) -> bool:

@@ -44,11 +44,14 @@ def _compare(cpu_results, other_results):
         # (the pattern's motion on the pin samples: float32 medians on the device, to 1e-4 px)
         # and over the whole frame, with its share that moved alike: the same; float32 medians and shares
         # on the device, to 1e-4 px and 1e-3)
-        motions = ("region_motion_px", "frame_motion_px", "frame_shift_share", "shift_effect_um", "shift_level_um")
+        motions = ("region_motion_px", "frame_motion_px", "frame_shift_share", "frame_motion_row_px",
+                   "frame_motion_col_px", "shift_effect_um", "shift_level_um")
         assert (dataclasses.replace(a.pin, **dict.fromkeys(motions, 0.0))
                 == dataclasses.replace(b.pin, **dict.fromkeys(motions, 0.0)))
         assert a.pin.region_motion_px == pytest.approx(b.pin.region_motion_px, abs=1e-4)
         assert a.pin.frame_motion_px == pytest.approx(b.pin.frame_motion_px, abs=1e-4)
+        assert a.pin.frame_motion_row_px == pytest.approx(b.pin.frame_motion_row_px, abs=1e-4)
+        assert a.pin.frame_motion_col_px == pytest.approx(b.pin.frame_motion_col_px, abs=1e-4)
         assert a.pin.frame_shift_share == pytest.approx(b.pin.frame_shift_share, abs=2.5e-3)  # (one of ~1,000 samples: 1e-3)
         assert a.pin.shifted == b.pin.shifted
         assert (a.series is None) == (b.series is None)
