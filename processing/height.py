@@ -79,8 +79,8 @@ from .geometry import Geometry
 from .height_kernels import cell_average, check_grid, div_T, neumann_eigenvalues, poisson_neumann, variable_optics
 from .height_masked import apply_AT, edge_data, solve_masked
 from .height_spectral import prepare_spectral, spectral_solve
-from .pin import (PIN_MIN_PIECE_SAMPLES, PinStatus, choose_pin_samples, frame_motion, level_of_shift_um, null_mode_offset,
-                  pattern_shifted, region_motion_px)
+from .pin import (PIN_MIN_PIECE_SAMPLES, PinStatus, choose_pin_samples, level_of_shift_um, null_mode_offset,
+                  region_motion_px, shift_judged)
 
 __all__ = [
     "SurfaceResult",
@@ -337,7 +337,8 @@ class HeightSolver:
                            pin_fallback="nearest", region_name=None, near=None, shift_removal=False) -> SurfaceResult:
         """:meth:`solve` with the conjugate-gradient tolerance ``tol`` and the
         "nearest" fallback's box ``near`` given (what the Reconstructor's chains call);
-        ``shift_removal``: :class:`processing.options.ReconstructOptions`' (:meth:`_shift_judged`)."""
+        ``shift_removal``: :class:`processing.options.ReconstructOptions`'
+        (:func:`processing.pin.shift_judged`)."""
         return self._solve(displacement_px, valid, solver, tol, reference_mask, pin_fallback=pin_fallback,
                            region_name=region_name, near=near, shift_removal=shift_removal)
 
@@ -345,7 +346,7 @@ class HeightSolver:
                        region_name=None, near=None, judge_shift=True, shift_removal=False) -> SurfaceResult:
         """The spectral path of :meth:`solve` for a finite displacement valid
         everywhere (needs :attr:`spectral_coefficients`, uniform optics)."""
-        u, motion = self._shift_judged(displacement_px, valid, judge_shift, shift_removal)
+        u, motion = shift_judged(displacement_px, valid, judge_shift, shift_removal)
         h, sx, sy, status, samples = spectral_solve(self, self._fast, u, valid, reference_mask,
                                                     pin_fallback=pin_fallback, region_name=region_name, near=near)
         status = dataclasses.replace(status, region_motion_px=region_motion_px(displacement_px, samples))
@@ -355,18 +356,6 @@ class HeightSolver:
         return SurfaceResult(h, sx, sy, self.x_mm.copy(), self.y_mm.copy(), valid, 0, self.surface_xy, status,
                              samples)
 
-    @staticmethod
-    def _shift_judged(u, valid, judge_shift, shift_removal):
-        """``(u to solve, motion)``: ``motion`` the frame's :func:`processing.pin.frame_motion` where
-        judged (else None), ``u`` less its median where ``shift_removal`` and the whole pattern shifted
-        (as a reference taken then would see it)."""
-        if not judge_shift:
-            return u, None
-        motion = frame_motion(u, valid)
-        if shift_removal and pattern_shifted(float(np.hypot(*motion[0])), motion[1]):
-            u = u - motion[0].astype(np.asarray(u).dtype)[:, None, None]
-        return u, motion
-
     def shift_status(self, status, median_px, share, valid, reference_mask=None, *, pin_fallback="nearest",
                      region_name=None, near=None, removed=False) -> PinStatus:
         """``status`` with a frame's :func:`processing.pin.frame_motion` (``median_px`` (2,), ``share``); where
@@ -374,8 +363,9 @@ class HeightSolver:
         displacement alone gives, solved on ``valid`` and pinned as the frame (linear: what the shift put
         into them), and the water level that moves the pattern so (TIR's ``a = B kappa``, grid mean);
         ``removed``: the option ``shift_removal`` took it out (``shift_removed``)."""
-        status = dataclasses.replace(status, frame_motion_px=float(np.hypot(*median_px)), frame_shift_share=float(share),
-                                     frame_motion_row_px=float(median_px[0]), frame_motion_col_px=float(median_px[1]))
+        status = dataclasses.replace(status, frame_motion_px=float(np.hypot(*median_px)),
+                                     frame_shift_share=float(share), frame_motion_row_px=float(median_px[0]),
+                                     frame_motion_col_px=float(median_px[1]))
         if not status.shifted:
             return status
         effect_um = self.shift_effect_um(median_px, valid, reference_mask, pin_fallback=pin_fallback,
@@ -440,7 +430,7 @@ class HeightSolver:
                                        near=near, judge_shift=judge_shift, shift_removal=shift_removal)
         samples, status, _ = self.pin_choice(v, all_valid, reference_mask, pin_fallback, region_name, near)
         status = dataclasses.replace(status, region_motion_px=region_motion_px(u, samples & v))
-        u_solved, motion = self._shift_judged(u, v, judge_shift, shift_removal)
+        u_solved, motion = shift_judged(u, v, judge_shift, shift_removal)
         if motion is not None:
             status = self.shift_status(status, *motion, v, reference_mask, pin_fallback=pin_fallback,
                                        region_name=region_name, near=near, removed=shift_removal)

@@ -16,7 +16,8 @@ __all__ = ["PIN_MIN_SAMPLES", "PIN_MIN_FRACTION", "PIN_MIN_PIECE_SAMPLES", "PIN_
            "choose_pin_samples", "null_mode_offset", "pattern_moved",
            "pin_samples_needed", "region_motion_px", "SHIFT_MIN_PX", "SHIFT_TOL_PX", "SHIFT_MIN_SHARE",
            "frame_motion", "frame_motion_step", "FRAME_MOTION_SAMPLES", "shift_tolerance_px", "steady_shift",
-           "STEADY_SHIFT_MIN_PX", "STEADY_SHIFT_MIN_RATIO", "STEADY_SHIFT_MIN_FRAMES", "pattern_shifted", "level_of_shift_um"]
+           "STEADY_SHIFT_MIN_PX", "STEADY_SHIFT_MIN_RATIO", "STEADY_SHIFT_MIN_FRAMES", "pattern_shifted",
+           "level_of_shift_um", "shift_judged"]
 
 
 #: Fewest valid samples the pin of the null space needs (see the module docstring).
@@ -182,6 +183,19 @@ def steady_shift(medians_px):
     return mean, spread
 
 
+def shift_judged(displacement_px, valid, judge_shift: bool, shift_removal: bool):
+    """``(u to solve, motion)``: ``motion`` the frame's :func:`frame_motion` where ``judge_shift``
+    (else None), ``u`` the displacement less its median where ``shift_removal`` and the whole pattern
+    shifted (:func:`pattern_shifted`; as a reference taken then would see it), else as given."""
+    u = displacement_px
+    if not judge_shift:
+        return u, None
+    motion = frame_motion(u, valid)
+    if shift_removal and pattern_shifted(float(np.hypot(*motion[0])), motion[1]):
+        u = u - motion[0].astype(np.asarray(u).dtype)[:, None, None]
+    return u, motion
+
+
 def level_of_shift_um(median_px, a_px_per_mm) -> float:
     """The change of water level (um, positive up) that moves a still surface's pattern by the
     uniform displacement ``median_px`` (2,): TIR's ``u = a h`` of a height ``h`` the same
@@ -280,9 +294,10 @@ class PinStatus:
         """What a shifted frame's heights carry, one sentence ("" when not :attr:`shifted`)."""
         if not self.shifted:
             return ""
+        up = "higher" if self.shift_level_um > 0 else "lower"
         level = ("" if not math.isfinite(self.shift_level_um) else
-                 f"the water level is {abs(self.shift_level_um):.3g} um {'higher' if self.shift_level_um > 0 else 'lower'} "
-                 f"than at the reference (evaporation, filling, displaced water), or ")
+                 f"the water level is {abs(self.shift_level_um):.3g} um {up} than at the reference (evaporation, "
+                 f"filling, displaced water), or ")
         if self.shift_removed:
             effect = ("; taken out of the heights" + ("" if not math.isfinite(self.shift_effect_um) else
                                                      f" ({self.shift_effect_um:.3g} um RMS left in, a tilt)"))

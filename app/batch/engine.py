@@ -622,12 +622,12 @@ class _PinCounter:
                 "frame %d (%s): %s", item.sequence_index, item.label, pin.describe())
         if self.min_valid is None or pin.valid_samples < self.min_valid[0]:
             self.min_valid = (pin.valid_samples, pin.region_samples)
-        if not pin.shifted:
-            self.medians.append((pin.frame_motion_row_px, pin.frame_motion_col_px))
         if pin.shifted:  # says more than the pin samples' motion, which it explains (their notes leave it out)
             self.shifted.append((item.sequence_index, pin))
             (log.warning if len(self.shifted) == 1 else log.debug)(
                 "frame %d (%s): %s", item.sequence_index, item.label, pin.shift_text())
+        elif np.isfinite(pin.frame_motion_row_px) and np.isfinite(pin.frame_motion_col_px):
+            self.medians.append((pin.frame_motion_row_px, pin.frame_motion_col_px))
         if not pin.still:
             self.moving.append((item.sequence_index, pin.region_motion_px, pin.shifted))
             first = not pin.shifted and sum(not shifted for _, _, shifted in self.moving) == 1
@@ -724,8 +724,8 @@ class _PinCounter:
                            "frame would give, the level's change in /pin_status shift_level_um)")
             else:
                 if effect:
-                    text += (f"; the heights carry {_span(effect, '.3g')} um RMS from it, a tilt that is not the surface "
-                             f"(/pin_status shift_effect_um)")
+                    text += (f"; the heights carry {_span(effect, '.3g')} um RMS from it, a tilt that is not the "
+                             f"surface (/pin_status shift_effect_um)")
                 settled = " (once the level has settled)" if level else ""
                 out.append(text + f". Take the reference again as the set-up is now{settled}, or process with "
                            f"--shift-removal")
