@@ -47,7 +47,7 @@ from typing import Optional
 import numpy as np
 
 from app.batch.interruptible import call_interruptibly
-from app.batch.shm_results import MAKING_BLOCK, ParentBlocks, SharedFrame, set_run_pid
+from app.batch.shm_results import MAKING_BLOCK, ParentBlocks, SharedFrame, set_run_pid, unlink_left_blocks
 from app.batch.writer import output_frame
 from app.files import imageio
 from processing.errors import TirdeflectError
@@ -906,6 +906,9 @@ class _Pool:
         if getattr(self._pool, "_broken", False):  # the run gives up after its last restart
             _release_feeder(self._pool)
         self._pool.shutdown(wait=True, cancel_futures=True)
+        left = unlink_left_blocks(os.getpid())  # the workers have ended: what a killed one left
+        if left:
+            log.debug("removed %d shared-memory block(s) a killed worker left in /dev/shm", left)
 
     def restart(self):
         broken, self._pool = self._pool, self._new()
