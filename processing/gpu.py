@@ -210,7 +210,7 @@ class BatchChain:
             np.ascontiguousarray(cc.T))
         self.F = {k: to(F[k]) for k in ("gc", "null", "inv_denom")}
         # the pin of a frame valid everywhere depends on the reference region only
-        self.reference_region, self.region_near = plan.reference_region, plan.region_near
+        self.plan = plan  # (its pin region, for a shifted frame's HeightSolver.shift_status)
         samples, self.pin, (w, nn) = hs.pin_choice(
             np.ones(hs.shape, bool), True, plan.reference_region, recon.pin_fallback,
             recon.reference_region_name, plan.region_near)
@@ -548,8 +548,8 @@ class BatchChain:
                                     <= tol[:, None], axis=1))
         shift = to_host(xp, shift)
         pins = [hs.shift_status(dataclasses.replace(self.pin, region_motion_px=float(motion[k])), shift[k], share[k],
-                                valid_dec, self.reference_region, pin_fallback=r.pin_fallback,
-                                region_name=r.reference_region_name, near=self.region_near) for k in range(n)]
+                                valid_dec, self.plan.reference_region, pin_fallback=r.pin_fallback,
+                                region_name=r.reference_region_name, near=self.plan.region_near) for k in range(n)]
         if grid == "full":
             rows, cols = r.shape
             disp = self._up(u)

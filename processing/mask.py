@@ -135,6 +135,16 @@ def _neighbours(a, r, c):
                      for dr in (-1, 0, 1) for dc in (-1, 0, 1) if dr or dc])
 
 
+#: The 8 neighbours of a pixel (a 3 x 3 kernel without its centre).
+_RING = np.ones((3, 3), np.uint8)
+_RING[1, 1] = 0
+
+
+def _ring_max(x):
+    """The largest of each pixel's 8 neighbours (float32 ``x``; mirrored at the border)."""
+    return cv2.dilate(x, _RING, borderType=cv2.BORDER_REFLECT_101)
+
+
 def defect_pixels(image, contrast_fraction: float = DEFECT_CONTRAST_FRACTION):
     """Flat indices (int64, sorted) of the isolated hot or dead pixels of ``image``: above the
     largest of its 8 neighbours, or below the smallest, by more than the neighbours' range and
@@ -146,10 +156,7 @@ def defect_pixels(image, contrast_fraction: float = DEFECT_CONTRAST_FRACTION):
     none (the noisy dimple, the sharp board and the dots included). Pixels on the frame's outer
     row and column are not judged."""
     x = np.asarray(image, np.float32)
-    ring = np.ones((3, 3), np.uint8)
-    ring[1, 1] = 0
-    high = cv2.dilate(x, ring, borderType=cv2.BORDER_REFLECT_101)  # the extremes of the 8 neighbours
-    low = cv2.erode(x, ring, borderType=cv2.BORDER_REFLECT_101)
+    high, low = _ring_max(x), cv2.erode(x, _RING, borderType=cv2.BORDER_REFLECT_101)  # the 8 neighbours' extremes
     margin = np.maximum(high - low, np.float32(contrast_fraction * _contrast(x)))
     found = ((x - high) > margin) | ((low - x) > margin)
     # the outer pixels are left alone: half their neighbours are missing, and a dot or a
@@ -184,9 +191,7 @@ def hot_pixel_limits(reference) -> tuple:
     pixels stands above all eight neighbours (grey levels: how peaked the pattern itself is)."""
     x = np.asarray(reference, np.float32)
     contrast = _contrast(x)
-    ring = np.ones((3, 3), np.uint8)
-    ring[1, 1] = 0
-    excess = (x - cv2.dilate(x, ring, borderType=cv2.BORDER_REFLECT_101))[1:-1, 1:-1]
+    excess = (x - _ring_max(x))[1:-1, 1:-1]
     return float(x.max()) + contrast, contrast, float(x.max()), float(max(excess.max(initial=0.0), 0.0))
 
 

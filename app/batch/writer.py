@@ -53,9 +53,9 @@ _PIN_FIELDS = (
     ("frame_motion_px", "median displacement over the whole frame's valid samples, px (NaN: not measured)"),
     ("frame_motion_row_px", "its component along the rows, px"),
     ("frame_motion_col_px", "its component along the columns, px"),
-    ("frame_shift_share", "share of the frame's valid samples within 0.05 px of that median: from 0.5 on, with the "
-                          "median at 0.03 px or more, the whole pattern shifted since the reference (camera or "
-                          "board moved, or the water level changed)"),
+    ("frame_shift_share", "share of the frame's valid samples within 0.05 px of that median, or half its length "
+                          "where that is more: from 0.2 on, with the median at 0.03 px or more, the whole pattern "
+                          "shifted since the reference (camera or board moved, or the water level changed)"),
     ("shift_effect_um", "where it shifted: RMS of the heights that shift alone gives (a tilt, not the surface), um"),
     ("shift_level_um", "where it shifted: the change of water level that moves the pattern so, um up (NaN: none)"),
     ("shift_removed", "1: that shift was taken out before the heights were solved (--shift-removal)"),
