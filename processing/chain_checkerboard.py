@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 
 from .carriers import check_board_period, check_pattern_match, find_reference_carriers
-from .demodulation import Demodulator
+from .demodulation import Demodulator, binned_bands_clear
 from .chain_base import GridChain
 from .errors import AllInvalidError
 from .fft import FFTPlanner
@@ -45,6 +45,9 @@ DEFAULT_ITERATIONS = {"decimated": 0, "full": 1}
 #: on the app's 1024^2 scene (measured), 30x below the best accuracy the method reaches on
 #: ray-traced frames (~0.1 % rms), and saves about a third of the iterations.
 CG_TOL = 1e-4
+#: The live grid bins frames of at least this many pixels (``options.live_binning``): below it the
+#: transform is a small part of a live frame, and tests and the golden file keep their numbers.
+LIVE_BINNING_MIN_PIXELS = 512 * 512
 
 
 class Measured(NamedTuple):
@@ -106,6 +109,7 @@ class CheckerboardChain(GridChain):
         self.turn_reference_mask = region
         self._smooth_ref, self._continued, self._tapered = {}, None, None
         self._g0_full = self._region_full = self._image = self._second_order = None
+        self._live = None
 
     # ------------------------------------------------------- built on first use
     def warp_reference(self, continued: bool = True):
@@ -123,6 +127,28 @@ class CheckerboardChain(GridChain):
         if self._continued is None:
             self._continued = ContinuedSignals(self.demod, self.ref_f32)
         return self._continued
+
+    def live_demodulation(self):
+        """``(Demodulator, ReferencePlan)`` of the decimated grid when nothing refines it (the live
+        grid): the frame binned 2 x 2 where ``options.live_binning``, the frame has at least
+        :data:`LIVE_BINNING_MIN_PIXELS` and the carriers' bands allow it
+        (:func:`processing.demodulation.binned_bands_clear`; the same grid, a quarter of the transform),
+        else the chain's own.  Built at the first such frame (batch runs never make one)."""
+        if self._live is None:
+            d = self.demod
+            if (self.options.live_binning and self.shape[0] * self.shape[1] >= LIVE_BINNING_MIN_PIXELS
+                    and binned_bands_clear(d.freq, d.radius, self.shape)):
+                o = self.options
+                b = Demodulator(self.ref_f32, self.carriers, planner=self.planner, filter_radius=o.filter_radius,
+                                filter_flat=o.filter_flat, filter_shape=o.filter_shape, oversample=o.oversample,
+                                border=o.border, subbin=o.subbin, binning=2)
+                plan = dataclasses.replace(self.plan, conj_g0=read_only(np.conj(b.g0)),
+                                           g0_amplitude=read_only(np.maximum(b.g0_abs, np.float32(1e-30))),
+                                           demodulation=b.plan)
+                self._live = (b, plan)
+            else:
+                self._live = (d, self.plan)
+        return self._live
 
     def image_refinement(self):
         """The image-domain refinement over this chain (:class:`processing.chain_image.ImageRefinement`)."""
@@ -163,11 +189,13 @@ class CheckerboardChain(GridChain):
             return True
         return False
 
-    def quality_mask(self, frame, g):
+    def quality_mask(self, frame, g, plan=None):
         """``(wrapped, amplitude, valid, all_valid)``: carrier phases against the
         reference, the smaller amplitude ratio, the samples that pass the
-        contrast test (scaled by :func:`processing.mask.exposure_gain`), dilated."""
-        o, plan = self.options, self.plan
+        contrast test (scaled by :func:`processing.mask.exposure_gain`), dilated.
+        ``plan``: the reference's of the demodulation that gave ``g`` (default :attr:`plan`)."""
+        o = self.options
+        plan = self.plan if plan is None else plan
         wrapped = np.angle(g * plan.conj_g0)
         ratio = np.abs(g)
         ratio /= plan.g0_amplitude
@@ -223,20 +251,21 @@ class CheckerboardChain(GridChain):
     def measure(self, frame, grid, state, t0):
         """``(Measured, state)``: demodulate, mask, unwrap (against ``state``)
         and refine one validated frame; ``state`` continued by its phase."""
-        o, d, timings = self.options, self.demod, {}
+        o, timings = self.options, {}
+        iterations = DEFAULT_ITERATIONS[grid] if o.refine_iterations is None else o.refine_iterations
+        d, plan = self.live_demodulation() if grid == "decimated" and iterations == 0 else (self.demod, self.plan)
         wins = d.frame_windows(frame)
         g = d.decimated_from_windows(wins)
         checked = self.cheap_pattern_check(wins, frame)
         t1 = time.perf_counter()
         timings["demodulate"] = 1e3 * (t1 - t0)
-        wrapped, amplitude, valid, all_valid = self.quality_mask(frame, g)
+        wrapped, amplitude, valid, all_valid = self.quality_mask(frame, g, plan)
         phase = unwrap_phase(wrapped, valid, all_valid, state, unwrap=o.unwrap, temporal=o.temporal,
                              ref_mask=self.plan.reference_region, ref_idx=self.plan.reference_region_index)
         u = d.phase_to_displacement(phase if all_valid else np.nan_to_num(phase))
         valid, all_valid = self.displacement_mask(frame, u, valid, all_valid, amplitude, checked)
         t2 = time.perf_counter()
         timings["unwrap_mask"] = 1e3 * (t2 - t1)
-        iterations = DEFAULT_ITERATIONS[grid] if o.refine_iterations is None else o.refine_iterations
         u_first = u
         if grid == "full" and o.refine_method == "image":
             if iterations > 0:  # image matching's start keeps the taper (refine.refine_fd_tapered)

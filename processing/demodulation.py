@@ -43,7 +43,60 @@ from .carriers import Carriers
 from .fft import FFTPlanner
 from .plan import DemodulationPlan, read_only
 
-__all__ = ["Demodulator", "nice_fft_size", "tukey"]
+__all__ = ["Demodulator", "binned_bands_clear", "nice_fft_size", "pyramid_gain", "tukey"]
+
+#: A binned Demodulator's carrier bands end at most this far from DC along each
+#: axis, cycles per pixel of the frame: the 2 x 2 pyramid (cv2.pyrDown) folds
+#: 0.5 - f onto f, and there passes 0.12 of what it passes at 0.2 (so white
+#: noise aliased into the band adds at most 8 % of its power at the band's edge).
+BINNED_BAND_EDGE = 0.2
+#: A harmonic of the pattern folded by the binning into a band is harmless when
+#: the pyramid has taken it, times the largest share a harmonic of that order
+#: can have (``1 / (i j)``, a checkerboard of any duty cycle), below this
+#: fraction of the carrier (the filter undoes the pyramid's gain in the band).
+BINNED_ALIAS_WEIGHT = 0.005
+#: ... or when it lands this many filter radii from both carriers (outside the
+#: band, beyond the roll-off: a 60 %-duty board's (1, 4) harmonic folded to 1.28
+#: radii leaves the binned phases within 0.16 % of the unbinned, as on a 50 % board).
+BINNED_ALIAS_CLEARANCE = 1.25
+
+
+def pyramid_gain(f) -> np.ndarray:
+    """Gain of cv2.pyrDown's 5-tap kernel ``[1 4 6 4 1] / 16`` along one axis at
+    frequency ``f`` (cycles per pixel of its input): 1 at DC, 0.25 at 0.25, 0 at 0.5."""
+    return np.cos(np.pi * np.asarray(f, np.float64)) ** 4  # ((1 + cos 2 pi f) / 2)^2
+
+
+def binned_bands_clear(freq, radius: float, shape) -> bool:
+    """Whether a frame of ``shape`` binned 2 x 2 (cv2.pyrDown) keeps both
+    carriers' bands (``freq`` (2, 2) cycles/px, filter ``radius`` cycles/px)
+    as they are: both sides even, every band within :data:`BINNED_BAND_EDGE`
+    of DC along each axis, and every harmonic of the pattern (the lattice
+    ``i a + j b``, ``a, b = (k1 +- k2) / 2``, ``|i|, |j| <= 7``) that the
+    binning folds either weak enough there (:data:`BINNED_ALIAS_WEIGHT`) or
+    clear of both bands (:data:`BINNED_ALIAS_CLEARANCE`).  A board of 8 px
+    period puts its 3rd harmonic at 0.375 cycles/px, which folds onto the
+    carrier at 0.125: not clear."""
+    rows, cols = shape
+    if rows % 2 or cols % 2 or min(rows, cols) < 64:
+        return False
+    k = np.asarray(freq, np.float64)
+    if np.any(np.abs(k) + radius > BINNED_BAND_EDGE):
+        return False
+    a, b = 0.5 * (k[0] + k[1]), 0.5 * (k[0] - k[1])
+    carriers = np.concatenate([k, -k])
+    for i in range(-7, 8):
+        for j in range(-7, 8):
+            p = i * a + j * b
+            folded = p - 0.5 * np.round(2.0 * p)
+            if np.allclose(folded, p):
+                continue  # not folded: the filter's own radius rule keeps it out
+            leak = float(np.prod(pyramid_gain(p))) / max(float(np.prod(pyramid_gain(folded))), 1e-12)
+            if leak / (max(1, abs(i)) * max(1, abs(j))) < BINNED_ALIAS_WEIGHT:
+                continue
+            if np.min(np.hypot(*(carriers - folded).T)) < BINNED_ALIAS_CLEARANCE * radius:
+                return False
+    return True
 
 
 def nice_fft_size(n: int) -> int:
@@ -89,6 +142,23 @@ def _check_options(ref, filter_shape, border, filter_radius, filter_flat, oversa
         raise ValueError(f"oversample must be >= 1; got {oversample}")
 
 
+def bin_pyramid(image) -> np.ndarray:
+    """``image`` low-passed and sampled every 2nd row and column (cv2.pyrDown:
+    ``[1 4 6 4 1] / 16`` each way, sample ``i`` centred on pixel ``2 i``, mirrored
+    border).  16-bit images stay 16-bit (rounded to the grey level: 1/12 of a
+    level squared of noise, under any camera's own); 8-bit ones are binned at
+    256x their levels and come back float32 (rounding them to a level would add
+    more noise than a noise-free 8-bit frame has: 0.0022 against 0.0014 rad
+    between binned and unbinned phases, ray traced); others float32 or float64."""
+    a = np.asarray(image)
+    if a.dtype == np.uint8:
+        wide = cv2.pyrDown(cv2.multiply(a, 256, dtype=cv2.CV_16U), borderType=cv2.BORDER_REFLECT101)
+        return cv2.multiply(wide, 1.0 / 256.0, dtype=cv2.CV_32F)
+    if a.dtype not in (np.uint16, np.int16, np.float32, np.float64):
+        a = a.astype(np.float32)
+    return cv2.pyrDown(a, borderType=cv2.BORDER_REFLECT101)
+
+
 class Demodulator:
     """Band-limited analytic signals of the two carriers, decimated or full grid.
 
@@ -125,6 +195,13 @@ class Demodulator:
         pattern's period change across the field (perspective, theta varying)
         and lens distortion does the same: with one global pair the
         displacement is off by that change (1.8 % at 1.5 m, theta 60 deg).
+    binning : {1, 2}, optional
+        2: transform the frame binned 2 x 2 by cv2.pyrDown (a quarter of the
+        samples), the filters divided by the pyramid's gain (:func:`pyramid_gain`)
+        so that the decimated signals are the same band; for the decimated grid
+        only (:meth:`full_from_windows` refuses), and only where
+        :func:`binned_bands_clear` (ValueError otherwise).  The same windows,
+        grid and sample positions as binning 1.
 
     Attributes
     ----------
@@ -147,9 +224,11 @@ class Demodulator:
                  filter_radius: float = 0.7, filter_flat: float = 0.8,
                  filter_shape: str = "flattop", oversample: float = 2.0,
                  border: str = "apodize", taper_px: float | None = None, subbin: bool = True,
-                 local_carriers: bool = True):
+                 local_carriers: bool = True, binning: int = 1):
         ref = np.asarray(reference)
         _check_options(ref, filter_shape, border, filter_radius, filter_flat, oversample)
+        if binning not in (1, 2):
+            raise ValueError(f"binning must be 1 or 2; got {binning!r}")
         self.shape = rows, cols = ref.shape
         if tuple(carriers.shape) != self.shape:
             raise ValueError(f"carriers were measured on shape {carriers.shape}, reference is {self.shape}")
@@ -172,17 +251,25 @@ class Demodulator:
         # it must never touch: at most half the distance to them.
         self.radius = float(min(filter_radius * dc_spacing, 0.5 * pair_spacing))  # cycles / px
         self.flat = float(filter_flat)
+        if binning == 2 and not binned_bands_clear(freq, self.radius, self.shape):
+            raise ValueError(
+                f"binning 2 would fold the pattern into its carrier bands (carriers at {np.round(freq, 4).tolist()} "
+                f"cycles/px, filter radius {self.radius:.4f}, frame {rows} x {cols}); use binning 1")
+        self.binning = int(binning)
+        #: (rows, cols) of what is transformed: the frame, or the frame binned 2 x 2
+        self.source_shape = (rows // binning, cols // binning)
+        s_rows, s_cols = self.source_shape
         # ---- border window
         period = float(np.max(1.0 / np.hypot(freq[:, 0], freq[:, 1])))
         self.taper_px = float(period if taper_px is None else taper_px)
         if border == "apodize":
-            t_r = tukey(rows, self.taper_px)
-            t_c = tukey(cols, self.taper_px)
+            t_r = tukey(s_rows, self.taper_px / binning)
+            t_c = tukey(s_cols, self.taper_px / binning)
             self._window2d = t_r[:, None] * t_c[None, :]
             # the window is 1 inside: prepare() converts the image once and
             # multiplies only the border strips (rows and columns below 1)
-            self._strip_r = int(np.count_nonzero(t_r[: (rows + 1) // 2] < 1.0))
-            self._strip_c = int(np.count_nonzero(t_c[: (cols + 1) // 2] < 1.0))
+            self._strip_r = int(np.count_nonzero(t_r[: (s_rows + 1) // 2] < 1.0))
+            self._strip_c = int(np.count_nonzero(t_c[: (s_cols + 1) // 2] < 1.0))
             self._taper_c = t_c
         else:
             self._window2d = None
@@ -200,6 +287,10 @@ class Demodulator:
         self._centres = np.round(freq * np.array([rows, cols])).astype(np.int64)
         q_r = np.fft.fftfreq(m_r, 1.0 / m_r).astype(np.int64)  # ifftshift order offsets
         q_c = np.fft.fftfreq(m_c, 1.0 / m_c).astype(np.int64)
+        # binned, bin k of the half-size transform is k / (rows / 2) cycles per
+        # binned pixel: k / rows per pixel, the same frequency as unbinned; and
+        # binned pixel i sits at pixel 2 i (the pyramid is centred), so the same
+        # phase ramps put the samples at the same rows_px, cols_px
         self._build_windows(freq, q_r, q_c, shift_r, shift_c)
         self._full_index = [((self._centres[s][0] + q_r)[:, None] % rows,
                              (self._centres[s][1] + q_c)[None, :] % cols) for s in range(2)]
@@ -209,7 +300,7 @@ class Demodulator:
         self._gather_mirror = mirror if mirror.any() else None
         self._filter_stack = np.stack(self._filters)
         # inverse FFT normalisation 1 / (m_r m_c) times the window-size scale m_r m_c / (rows cols)
-        self._dec_scale = np.float32(1.0 / (rows * cols))
+        self._dec_scale = np.float32(1.0 / (s_rows * s_cols))
         self.last_mean = 0.0
         self._dc_leak = None
         if self._window2d is not None:
@@ -217,7 +308,7 @@ class Demodulator:
         self.carrier_columns = self._carrier_columns()
         # the carriers' band only: the whole transform (alignment, the display spectrum) is
         # planned by its first call, which batch runs never make
-        self.planner.prepare("rfft2", (rows, cols), columns=self.carrier_columns)
+        self.planner.prepare("rfft2", self.source_shape, columns=self.carrier_columns)
         self.planner.prepare("ifft2", (2,) + self.window_shape)
         self.g0 = self.decimated(ref)
         self.g0_abs = np.abs(self.g0)
@@ -229,23 +320,24 @@ class Demodulator:
         FFT (mirrored half conjugated), its band-pass gain and the phase ramp
         that puts the samples at ``rows_px``, ``cols_px``."""
         rows, cols = self.shape
+        s_rows, s_cols = self.source_shape
         m_r, m_c = self.window_shape
         filter_shape = self.filter_shape
         self._gather = []
         self._filters = []
         self._gains = []
         self._ramps = []
-        half_cols = cols // 2 + 1
+        half_cols = s_cols // 2 + 1
         for s in range(2):
             cr, cc = self._centres[s]
             kr = (cr + q_r)[:, None] + np.zeros((1, m_c), np.int64)
             kc = np.zeros((m_r, 1), np.int64) + (cc + q_c)[None, :]
-            if np.any(np.abs(kc) >= half_cols) or np.any(np.abs(kr) > rows // 2):
+            if np.any(np.abs(kc) >= half_cols) or np.any(np.abs(kr) > s_rows // 2):
                 raise ValueError(
                     f"carrier {s} at {freq[s]} cycles/px is too close to the Nyquist "
                     "frequency for its filter; use a coarser pattern (period >= 3 px)")
             mirror = kc < 0
-            ridx = np.where(mirror, -kr, kr) % rows
+            ridx = np.where(mirror, -kr, kr) % s_rows
             cidx = np.where(mirror, -kc, kc)
             flat_idx = (ridx * half_cols + cidx).ravel()
             # frequency offset of each window bin from the exact carrier, cycles/px
@@ -264,7 +356,9 @@ class Demodulator:
             # (the common factor of the window centre cancels in g conj(g0))
             ramp = np.exp(2j * np.pi * (q_r[:, None] * shift_r / rows + q_c[None, :] * shift_c / cols))
             self._gather.append((flat_idx, mirror.ravel()))
-            self._filters.append((filt * ramp).astype(np.complex64))
+            # binned: the pyramid's gain undone within the band (where it is >= 0.2)
+            undo = 1.0 if self.binning == 1 else 1.0 / (pyramid_gain(kr / rows) * pyramid_gain(kc / cols))
+            self._filters.append((filt * ramp * undo).astype(np.complex64))
             self._gains.append(filt)
             self._ramps.append(np.conj(ramp).astype(np.complex64))
             # absolute bins for the full-grid variant (full complex spectrum)
@@ -273,7 +367,7 @@ class Demodulator:
         """How many of the real FFT's first columns (``0 .. n - 1`` of the half spectrum) the
         carrier windows gather from, or None where that is more than 3/4 of them (then the
         whole transform costs no more)."""
-        half_cols = self.shape[1] // 2 + 1
+        half_cols = self.source_shape[1] // 2 + 1
         used = max(int(np.max(g[0] % half_cols)) for g in self._gather) + 1
         return used if used <= 0.75 * half_cols else None
 
@@ -300,8 +394,10 @@ class Demodulator:
         out : ndarray, float32, optional
             Where to write (e.g. the FFT plan's input array).
         """
+        if self.binning == 2:
+            image = bin_pyramid(image)
         if out is None:
-            out = np.empty(self.shape, np.float32)
+            out = np.empty(self.source_shape, np.float32)
         # the mean of every 4th row and column is all the leakage correction needs
         self.last_mean = float(np.mean(image[::4, ::4], dtype=np.float64))
         if self._window2d is None:
@@ -309,7 +405,7 @@ class Demodulator:
             self.last_mean = 0.0
         else:
             a, b = self._strip_r, self._strip_c
-            rows, cols = self.shape
+            rows, cols = self.source_shape
             if 2 * a >= rows or 2 * b >= cols:
                 np.multiply(image, self._window2d, out=out, casting="unsafe")
                 return out
@@ -325,10 +421,10 @@ class Demodulator:
         return out
 
     def spectrum(self, image) -> np.ndarray:
-        """rfft2 of the prepared image: complex64, (rows, cols // 2 + 1), transient."""
-        inp = self.planner.input_array("rfft2", self.shape)
+        """rfft2 of the prepared image: complex64, (rows, cols // 2 + 1) of :attr:`source_shape`, transient."""
+        inp = self.planner.input_array("rfft2", self.source_shape)
         self.prepare(image, out=inp)
-        return self.planner.execute("rfft2", self.shape)
+        return self.planner.execute("rfft2", self.source_shape)
 
     def carrier_spectrum(self, image=None, *, write=None) -> np.ndarray:
         """What :meth:`windows` reads of :meth:`spectrum`: the same array, but
@@ -343,13 +439,15 @@ class Demodulator:
             Instead of ``image``: ``write(array)`` puts the image straight into
             the transform's float32 input array (saves a full-size copy).
         """
-        inp = self.planner.input_array("rfft2", self.shape)
+        inp = self.planner.input_array("rfft2", self.source_shape)
         if write is None:
             self.prepare(image, out=inp)
         else:
+            if self.binning != 1:
+                raise ValueError("write= puts a frame into the transform's input: not for a binned Demodulator")
             write(inp)
             self.prepare(inp, out=inp)
-        return self.planner.execute("rfft2", self.shape, columns=self.carrier_columns)
+        return self.planner.execute("rfft2", self.source_shape, columns=self.carrier_columns)
 
     def frame_windows(self, image=None, *, write=None) -> np.ndarray:
         """:meth:`windows` of ``image`` (or of what ``write`` puts into the
@@ -399,6 +497,8 @@ class Demodulator:
         -------
         ndarray, complex64, shape (2, rows, cols)
         """
+        if self.binning != 1:
+            raise ValueError("a binned Demodulator gives the decimated grid only; use binning 1 for the full grid")
         rows, cols = self.shape
         out = np.empty((2, rows, cols), np.complex64)
         for s in range(2):

@@ -86,7 +86,9 @@ def _resolved(ref, geometry, options, overrides):
         NodeGrid(ref.shape)  # frame sides must suit the node grid: say so now, not at the first frame
     elif refine_method == "auto":
         refine_method, _ = full_grid_refinement(opts, ref.shape, pattern, grid="full")
-    return opts.replace(pattern=pattern, refine_method=refine_method), pattern
+    # the GPU transforms whole frames: the frames it hands to the CPU are read the same way
+    live_binning = opts.live_binning and opts.device != "cuda"
+    return opts.replace(pattern=pattern, refine_method=refine_method, live_binning=live_binning), pattern
 
 
 class Reconstructor:
