@@ -21,7 +21,8 @@ import cv2
 import numpy as np
 
 from .carriers import check_board_period, check_pattern_match, find_reference_carriers
-from .demodulation import Demodulator, binned_bands_clear
+from .binning import binned_bands_clear
+from .demodulation import Demodulator
 from .chain_base import GridChain
 from .errors import AllInvalidError
 from .fft import FFTPlanner
@@ -132,7 +133,7 @@ class CheckerboardChain(GridChain):
         """``(Demodulator, ReferencePlan)`` of the decimated grid when nothing refines it (the live
         grid): the frame binned 2 x 2 where ``options.live_binning``, the frame has at least
         :data:`LIVE_BINNING_MIN_PIXELS` and the carriers' bands allow it
-        (:func:`processing.demodulation.binned_bands_clear`; the same grid, a quarter of the transform),
+        (:func:`processing.binning.binned_bands_clear`; the same grid, a quarter of the transform),
         else the chain's own.  Built at the first such frame (batch runs never make one)."""
         if self._live is None:
             d = self.demod

@@ -39,65 +39,12 @@ import math
 import cv2
 import numpy as np
 
+from .binning import bin_pyramid, check_binning, pyramid_gain
 from .carriers import Carriers
 from .fft import FFTPlanner
 from .plan import DemodulationPlan, read_only
 
-__all__ = ["Demodulator", "binned_bands_clear", "nice_fft_size", "pyramid_gain", "tukey"]
-
-#: A binned Demodulator's carrier bands end at most this far from DC along each
-#: axis, cycles per pixel of the frame: the 2 x 2 pyramid (cv2.pyrDown) folds
-#: 0.5 - f onto f, and there passes 0.12 of what it passes at 0.2 (so white
-#: noise aliased into the band adds at most 8 % of its power at the band's edge).
-BINNED_BAND_EDGE = 0.2
-#: A harmonic of the pattern folded by the binning into a band is harmless when
-#: the pyramid has taken it, times the largest share a harmonic of that order
-#: can have (``1 / (i j)``, a checkerboard of any duty cycle), below this
-#: fraction of the carrier (the filter undoes the pyramid's gain in the band).
-BINNED_ALIAS_WEIGHT = 0.005
-#: ... or when it lands this many filter radii from both carriers (outside the
-#: band, beyond the roll-off: a 60 %-duty board's (1, 4) harmonic folded to 1.28
-#: radii leaves the binned phases within 0.16 % of the unbinned, as on a 50 % board).
-BINNED_ALIAS_CLEARANCE = 1.25
-
-
-def pyramid_gain(f) -> np.ndarray:
-    """Gain of cv2.pyrDown's 5-tap kernel ``[1 4 6 4 1] / 16`` along one axis at
-    frequency ``f`` (cycles per pixel of its input): 1 at DC, 0.25 at 0.25, 0 at 0.5."""
-    return np.cos(np.pi * np.asarray(f, np.float64)) ** 4  # ((1 + cos 2 pi f) / 2)^2
-
-
-def binned_bands_clear(freq, radius: float, shape) -> bool:
-    """Whether a frame of ``shape`` binned 2 x 2 (cv2.pyrDown) keeps both
-    carriers' bands (``freq`` (2, 2) cycles/px, filter ``radius`` cycles/px)
-    as they are: both sides even, every band within :data:`BINNED_BAND_EDGE`
-    of DC along each axis, and every harmonic of the pattern (the lattice
-    ``i a + j b``, ``a, b = (k1 +- k2) / 2``, ``|i|, |j| <= 7``) that the
-    binning folds either weak enough there (:data:`BINNED_ALIAS_WEIGHT`) or
-    clear of both bands (:data:`BINNED_ALIAS_CLEARANCE`).  A board of 8 px
-    period puts its 3rd harmonic at 0.375 cycles/px, which folds onto the
-    carrier at 0.125: not clear."""
-    rows, cols = shape
-    if rows % 2 or cols % 2 or min(rows, cols) < 64:
-        return False
-    k = np.asarray(freq, np.float64)
-    if np.any(np.abs(k) + radius > BINNED_BAND_EDGE):
-        return False
-    a, b = 0.5 * (k[0] + k[1]), 0.5 * (k[0] - k[1])
-    carriers = np.concatenate([k, -k])
-    for i in range(-7, 8):
-        for j in range(-7, 8):
-            p = i * a + j * b
-            folded = p - 0.5 * np.round(2.0 * p)
-            if np.allclose(folded, p):
-                continue  # not folded: the filter's own radius rule keeps it out
-            leak = float(np.prod(pyramid_gain(p))) / max(float(np.prod(pyramid_gain(folded))), 1e-12)
-            if leak / (max(1, abs(i)) * max(1, abs(j))) < BINNED_ALIAS_WEIGHT:
-                continue
-            if np.min(np.hypot(*(carriers - folded).T)) < BINNED_ALIAS_CLEARANCE * radius:
-                return False
-    return True
-
+__all__ = ["Demodulator", "nice_fft_size", "tukey"]
 
 def nice_fft_size(n: int) -> int:
     """Smallest integer >= n whose prime factors are all 2, 3, 5 or 7 (fast FFTs)."""
@@ -140,23 +87,6 @@ def _check_options(ref, filter_shape, border, filter_radius, filter_flat, oversa
         raise ValueError(f"filter_flat must be within [0, 1); got {filter_flat}")
     if oversample < 1.0:
         raise ValueError(f"oversample must be >= 1; got {oversample}")
-
-
-def bin_pyramid(image) -> np.ndarray:
-    """``image`` low-passed and sampled every 2nd row and column (cv2.pyrDown:
-    ``[1 4 6 4 1] / 16`` each way, sample ``i`` centred on pixel ``2 i``, mirrored
-    border).  16-bit images stay 16-bit (rounded to the grey level: 1/12 of a
-    level squared of noise, under any camera's own); 8-bit ones are binned at
-    256x their levels and come back float32 (rounding them to a level would add
-    more noise than a noise-free 8-bit frame has: 0.0022 against 0.0014 rad
-    between binned and unbinned phases, ray traced); others float32 or float64."""
-    a = np.asarray(image)
-    if a.dtype == np.uint8:
-        wide = cv2.pyrDown(cv2.multiply(a, 256, dtype=cv2.CV_16U), borderType=cv2.BORDER_REFLECT101)
-        return cv2.multiply(wide, 1.0 / 256.0, dtype=cv2.CV_32F)
-    if a.dtype not in (np.uint16, np.int16, np.float32, np.float64):
-        a = a.astype(np.float32)
-    return cv2.pyrDown(a, borderType=cv2.BORDER_REFLECT101)
 
 
 class Demodulator:
@@ -227,8 +157,6 @@ class Demodulator:
                  local_carriers: bool = True, binning: int = 1):
         ref = np.asarray(reference)
         _check_options(ref, filter_shape, border, filter_radius, filter_flat, oversample)
-        if binning not in (1, 2):
-            raise ValueError(f"binning must be 1 or 2; got {binning!r}")
         self.shape = rows, cols = ref.shape
         if tuple(carriers.shape) != self.shape:
             raise ValueError(f"carriers were measured on shape {carriers.shape}, reference is {self.shape}")
@@ -251,28 +179,13 @@ class Demodulator:
         # it must never touch: at most half the distance to them.
         self.radius = float(min(filter_radius * dc_spacing, 0.5 * pair_spacing))  # cycles / px
         self.flat = float(filter_flat)
-        if binning == 2 and not binned_bands_clear(freq, self.radius, self.shape):
-            raise ValueError(
-                f"binning 2 would fold the pattern into its carrier bands (carriers at {np.round(freq, 4).tolist()} "
-                f"cycles/px, filter radius {self.radius:.4f}, frame {rows} x {cols}); use binning 1")
-        self.binning = int(binning)
+        self.binning = check_binning(binning, freq, self.radius, self.shape)
         #: (rows, cols) of what is transformed: the frame, or the frame binned 2 x 2
         self.source_shape = (rows // binning, cols // binning)
-        s_rows, s_cols = self.source_shape
         # ---- border window
         period = float(np.max(1.0 / np.hypot(freq[:, 0], freq[:, 1])))
         self.taper_px = float(period if taper_px is None else taper_px)
-        if border == "apodize":
-            t_r = tukey(s_rows, self.taper_px / binning)
-            t_c = tukey(s_cols, self.taper_px / binning)
-            self._window2d = t_r[:, None] * t_c[None, :]
-            # the window is 1 inside: prepare() converts the image once and
-            # multiplies only the border strips (rows and columns below 1)
-            self._strip_r = int(np.count_nonzero(t_r[: (s_rows + 1) // 2] < 1.0))
-            self._strip_c = int(np.count_nonzero(t_c[: (s_cols + 1) // 2] < 1.0))
-            self._taper_c = t_c
-        else:
-            self._window2d = None
+        self._window2d = self._border_window() if border == "apodize" else None
         # ---- decimated windows: same size for both carriers
         m_r = nice_fft_size(max(8, oversample * 2.0 * self.radius * rows + 2))
         m_c = nice_fft_size(max(8, oversample * 2.0 * self.radius * cols + 2))
@@ -300,7 +213,7 @@ class Demodulator:
         self._gather_mirror = mirror if mirror.any() else None
         self._filter_stack = np.stack(self._filters)
         # inverse FFT normalisation 1 / (m_r m_c) times the window-size scale m_r m_c / (rows cols)
-        self._dec_scale = np.float32(1.0 / (s_rows * s_cols))
+        self._dec_scale = np.float32(1.0 / (self.source_shape[0] * self.source_shape[1]))
         self.last_mean = 0.0
         self._dc_leak = None
         if self._window2d is not None:
@@ -314,6 +227,20 @@ class Demodulator:
         self.g0_abs = np.abs(self.g0)
         self.local_carriers = bool(local_carriers) and subbin
         self._local_inv = self._local_inverse() if self.local_carriers else None
+
+    def _border_window(self):
+        """The Tukey window of what is transformed (:attr:`source_shape`: the taper
+        ``taper_px / binning`` samples wide); the border strips' widths and the
+        column taper that :meth:`prepare` multiplies by."""
+        s_rows, s_cols = self.source_shape
+        t_r = tukey(s_rows, self.taper_px / self.binning)
+        t_c = tukey(s_cols, self.taper_px / self.binning)
+        # the window is 1 inside: prepare() converts the image once and
+        # multiplies only the border strips (rows and columns below 1)
+        self._strip_r = int(np.count_nonzero(t_r[: (s_rows + 1) // 2] < 1.0))
+        self._strip_c = int(np.count_nonzero(t_c[: (s_cols + 1) // 2] < 1.0))
+        self._taper_c = t_c
+        return t_r[:, None] * t_c[None, :]
 
     def _build_windows(self, freq, q_r, q_c, shift_r, shift_c):
         """Each carrier's window of bins: where it gathers them from the real

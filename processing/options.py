@@ -155,7 +155,7 @@ class ReconstructOptions:
         The decimated grid, when nothing refines it (the live window's), reads
         frames of 512^2 pixels or more binned 2 x 2 (cv2.pyrDown) where the
         carriers' bands stay clear of what the binning folds
-        (:func:`processing.demodulation.binned_bands_clear`): the same grid and
+        (:func:`processing.binning.binned_bands_clear`): the same grid and
         band from a quarter of the transform (default True; False: the whole
         frame; ``device="cuda"`` resolves it to False).  Measured (1024^2,
         ray-traced waves, 12 bit, one thread): 4.30 -> 3.40 ms a live frame

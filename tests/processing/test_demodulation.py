@@ -214,7 +214,7 @@ def test_binned_frame_gives_the_same_band_on_the_same_grid(dtype, noise_dn):
     # a frame binned 2 x 2 (cv2.pyrDown) carries the carriers' bands of a 20 px board whole: the
     # same grid, sample positions and displacement, within what the binning folds in (noise from
     # beyond half the sampling rate, 8-bit levels); a quarter of the transform
-    from processing.demodulation import binned_bands_clear
+    from processing.binning import binned_bands_clear
 
     ref, frame, u_true = _warp_512(20.0, noise_dn, dtype)
     carriers = find_carriers(ref)
@@ -239,7 +239,7 @@ def test_binned_frame_gives_the_same_band_on_the_same_grid(dtype, noise_dn):
 
 
 def test_binning_refused_where_the_pattern_would_fold_into_its_bands():
-    from processing.demodulation import binned_bands_clear
+    from processing.binning import binned_bands_clear
 
     # 8 px board along the axes: the 3rd harmonic at 0.375 cycles/px folds onto the carrier at 0.125
     ref, _, _ = _warp_512(8.0, rotation_deg=0.0)
