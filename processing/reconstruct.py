@@ -57,6 +57,7 @@ from .refine import (WARP_MAX_INTERPOLATION_ERROR_PX, band_limited_reference, li
 from .result import Result, SeriesCheck
 from .series import EMPTY, SERIES_MAX_PIN_SHIFT, SERIES_MAX_SLIP_FRACTION, SeriesState, copy_check
 from .series import check_series as _check_series
+from .mosaic import equalise_mosaic, equalised_reference
 from .series import unwrap_phase as _unwrap_phase
 
 __all__ = ["Reconstructor", "Result", "SeriesCheck", "SeriesState", "reference_pin_region", "PATTERNS",
@@ -131,7 +132,7 @@ class Reconstructor:
         chosen once from the reference: ``geometry.reference_region`` where the
         reference is valid, or by default :func:`reference_pin_region`.
     reference_region_name : str
-        How ``Result.pin`` names it.
+        How ``Result.pin`` names it.  ``mosaic``: see :mod:`processing.mosaic`.
     reference_region_valid_fraction : float
         Fraction of the candidate region (the user's box, or the frame's
         border band) where the reference is valid.
@@ -145,6 +146,7 @@ class Reconstructor:
     def __init__(self, reference_image, geometry, options: Optional[ReconstructOptions] = None, *,
                  carriers: Optional[Carriers] = None, **overrides):
         ref = validate_image(reference_image, "reference image")
+        self.mosaic, self._mosaic_maps, ref = equalised_reference(ref)  # a colour camera's raw mosaic, or None
         #: The sensor's hot and dead pixels found in the reference (flat indices), repaired in it and every frame.
         self.defects = defect_pixels(ref)
         ref = repair_pixels(ref, self.defects)
@@ -205,16 +207,15 @@ class Reconstructor:
         return self.checked_frame(frame)[0]
 
     def checked_frame(self, frame):
-        """``(frame, hot_pixels)``: ``frame`` as an array, checked: the reference's shape (ShapeMismatchError),
-        2-D, a grey dtype; the reference's :attr:`defects` and the frame's own isolated pixels beyond the
-        reference's reach (:func:`processing.mask.hot_pixels_above`: cosmic rays; ``hot_pixels`` of them)
-        repaired (a copy, if any)."""
+        """``(frame, hot_pixels)``: ``frame`` as an array, checked (the reference's shape, 2-D, a grey dtype), the
+        reference's :attr:`mosaic` equalised, its :attr:`defects` and the frame's own isolated pixels beyond its
+        reach (:func:`processing.mask.hot_pixels_above`: cosmic rays; ``hot_pixels`` of them) repaired (a copy)."""
         a = np.asarray(frame)
         if a.shape != self.shape:
             raise ShapeMismatchError(
                 f"reference and frame must have equal shapes; got {self.shape} and {a.shape}: "
                 "use the reference recorded with the same camera region of interest and binning")
-        a = repair_pixels(validate_image(a, "frame"), self.defects)
+        a = repair_pixels(equalise_mosaic(validate_image(a, "frame"), self._mosaic_maps), self.defects)
         hot = hot_pixels_above(a, *self._hot_limits)
         return repair_pixels(a, hot), int(hot.size)
 

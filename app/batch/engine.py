@@ -362,6 +362,8 @@ def run_process(args: ProcessJob) -> BatchReport:
     if reference_saturated:
         log.warning("%s", reference_saturated[1])
         input_notes.append(reference_saturated[1])
+    if reconstruct.mosaic is not None:  # a colour camera read raw: equalised, said once
+        input_notes.append(reconstruct.mosaic.describe())
 
     geometry_toml, geometry_info = geometry_attrs(geometry)
     attrs = {
@@ -390,6 +392,8 @@ def run_process(args: ProcessJob) -> BatchReport:
                            else _bits_hint(args.reference, reference)),
         "stuck_pixels_repaired": int(reconstruct.defects.size),
         "reference_saturated_pct": reference_saturated[0] if reference_saturated else 0.0,
+        "mosaic_gains": ([] if reconstruct.mosaic is None
+                         else [float(g) for g in reconstruct.mosaic.gains().ravel()]),
         **timing,
     }
     for attempt in range(5):  # another run beside this one may take the name first

@@ -853,3 +853,44 @@ def test_an_over_exposed_reference_is_named_before_and_after_the_run(sim, tmp_pa
     assert re.search(rf"note: {re.escape(said)}: its bright squares are clipped.*take the reference again", err), err
     with h5py.File(out) as f:
         assert f.attrs["reference_saturated_pct"] == pytest.approx(pct, abs=0.05) and f.attrs["frames_done"] == 2
+
+
+def test_a_colour_cameras_raw_mosaic_is_equalised_and_said(tmp_path, capsys):
+    """A colour camera read raw (a Bayer filter: under white light the four sub-grids at gains
+    1 / 0.6 / 0.6 / 0.4, other black levels on two of them), reference and frames alike. Before 7 Dec
+    2026 the reference's defect search took the bright sub-grid for 4,300 stuck pixels and repaired
+    them in every frame: simulate's bump 0.13 -> 14 %, waves 0.4 -> 29-34 % with exit 0 and no word.
+    Now the mosaic is equalised (the heights of the unmosaicked frames, within 0.02 points), the run
+    says so in its notes and OUT.h5 keeps the gains."""
+    d = tmp_path / "sim"
+    assert main(["simulate", "--out", str(d), "--surface", "bump", "--size", str(SIZE), "--frames", "2",
+                 "--bits", "12", "--noise", "2"]) == 0
+    capsys.readouterr()
+    gains = np.ones((SIZE, SIZE))
+    gains[0::2, 1::2], gains[1::2, 0::2], gains[1::2, 1::2] = 0.6, 0.6, 0.4
+    black = 64.0 * (np.indices((SIZE, SIZE)).sum(axis=0) % 2)
+    raw = tmp_path / "raw"
+    raw.mkdir()
+    names = ["reference.tif"] + sorted(p.name for p in d.glob("frame_*.tif"))
+    for name in names:
+        image = imageio.read_image(d / name).astype(np.float64)
+        tifffile.imwrite(raw / name, np.rint(image * gains + black).astype(np.uint16))
+    errors = {}
+    for label, folder in (("plain", d), ("raw", raw)):
+        out = tmp_path / f"{label}.h5"
+        code, err = _run(capsys, "process", folder / "reference.tif", *[folder / n for n in names[1:]],
+                         "--geometry", d / "geometry.toml", "--out", out, "--no-progress")
+        assert code == 0, err
+        assert main(["compare", str(out), str(d)]) == 0
+        errors[label] = [float(x) for x in re.findall(r"^\s*\d+\s+([\d.]+) %", capsys.readouterr().out, re.M)]
+        with h5py.File(out) as f:
+            measured = np.asarray(f.attrs["mosaic_gains"], np.float64)
+            stuck = int(f.attrs["stuck_pixels_repaired"])
+        if label == "plain":
+            assert measured.size == 0 and "mosaic" not in err
+        else:
+            assert "note: the reference shows a 2 x 2 mosaic of pixel gains" in err
+            np.testing.assert_allclose(measured, [1.538, 0.923, 0.923, 0.615], atol=0.02)
+        assert stuck == 0
+    assert len(errors["raw"]) == 2 and errors["plain"][0] < 0.5
+    np.testing.assert_allclose(errors["raw"], errors["plain"], atol=0.02)  # percentage points

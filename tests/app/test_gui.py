@@ -407,6 +407,31 @@ def test_an_over_exposed_reference_is_said_and_not_ticked(qtbot, window, scene, 
                     and window.last_drawn.seq > seq, timeout=15000)  # measured all the same
 
 
+def test_a_colour_cameras_raw_mosaic_is_equalised_and_named_on_the_reference_label(qtbot, window, scene, tmp_path):
+    """A colour camera read raw (its Bayer filter: sub-grids at gains 1 / 0.6 / 0.6 / 0.4 under white
+    light), the camera and the reference file alike: before 7 Dec 2026 the reference's defect search
+    repaired a sixteenth of its pixels as stuck ones in every frame (heights 14 % off on a bump) under a
+    tick. Loaded as a user does, the label says the mosaic was equalised, with its gains, no pixel is
+    taken for a stuck one, and heights come."""
+    import tifffile
+
+    gains = np.ones(SHAPE)
+    gains[0::2, 1::2], gains[1::2, 0::2], gains[1::2, 1::2] = 0.6, 0.6, 0.4
+    raw = np.rint(scene["flat"].astype(np.float64) * gains).astype(np.uint8)
+    window.use_camera(SyntheticCamera(Switchable(raw), frame_rate_hz=100.0), geometry=scene["geometry"])
+    tifffile.imwrite(tmp_path / "raw.tif", raw)
+    window.load_reference(str(tmp_path / "raw.tif"))
+    label = window.geometry_panel.reference_label
+    qtbot.waitUntil(lambda: "✓" in label.text(), timeout=30000)
+    assert "colour mosaic equalised (gains 1.54 / 0.92 / 0.92 / 0.62)" in label.text(), label.text()
+    assert "stuck" not in label.text()
+    seq = window.clock.last_raw_seq
+    qtbot.waitUntil(lambda: window.last_drawn is not None and window.last_drawn.result is not None
+                    and window.last_drawn.seq > seq, timeout=15000)
+    assert window.last_error is None
+    assert float(np.nanmax(np.abs(window.last_drawn.result.height))) < 1e-3  # flat water: under 1 um
+
+
 def test_bad_reference_is_explained_and_the_live_view_goes_on(qtbot, window, scene, tmp_path):
     """A reference without a pattern (noise) is refused with NoCarrierError's advice; streaming continues."""
     import tifffile
