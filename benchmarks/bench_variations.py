@@ -61,6 +61,23 @@ def _columns(a):
     return np.arange(a.shape[1])[None, :]
 
 
+def _bayer(a):
+    """A colour camera read raw under white light: its four sub-grids at gains 1 / 0.6 / 0.6 / 0.4."""
+    gains = np.ones(a.shape)
+    gains[0::2, 1::2], gains[1::2, 0::2], gains[1::2, 1::2] = 0.6, 0.6, 0.4
+    return a * gains
+
+
+def _gamma(a, g=0.6):
+    """A camera's gamma (its response a power of the light, as webcams deliver by default)."""
+    return FULL * (np.clip(a, 0, None) / FULL) ** g
+
+
+def _motion_blur(a, px=5):
+    """The pattern smeared ``px`` pixels along the rows' direction (across the columns) in the exposure."""
+    return cv2.blur(a.astype(np.float32), (px, 1), borderType=cv2.BORDER_REFLECT).astype(np.float64)
+
+
 #: name -> (change of the reference or None, change of frame i or None)
 VARIATIONS = {
     "as simulated": (None, None),
@@ -77,6 +94,9 @@ VARIATIONS = {
     "camera turned 0.3 deg": (None, lambda a, i, rng: _turn(a, 0.3)),
     "reference 1.3x (clipped)": (lambda a: a * 1.3, None),
     "reference defocused 1 px": (lambda a: cv2.GaussianBlur(a, (0, 0), 1.0), None),
+    "colour camera read raw (Bayer)": (_bayer, lambda a, i, rng: _bayer(a)),
+    "gamma 0.6 (reference and frames)": (_gamma, lambda a, i, rng: _gamma(a)),
+    "frames motion-blurred 5 px": (None, lambda a, i, rng: _motion_blur(a)),
 }
 
 
