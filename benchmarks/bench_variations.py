@@ -73,6 +73,12 @@ def _gamma(a, g=0.6):
     return FULL * (np.clip(a, 0, None) / FULL) ** g
 
 
+def _pwm_bands(a, i, period_px=64, depth=0.3):
+    """A rolling shutter under PWM-dimmed LEDs: bands of rows 30 % darker, sharp-edged, moving frame to frame."""
+    rows = np.arange(a.shape[0])[:, None]
+    return a * (1.0 - depth * (np.sin(2 * np.pi * (rows + 17 * i) / period_px) < 0))
+
+
 def _motion_blur(a, px=5):
     """The pattern smeared ``px`` pixels along the rows' direction (across the columns) in the exposure."""
     return cv2.blur(a.astype(np.float32), (px, 1), borderType=cv2.BORDER_REFLECT).astype(np.float64)
@@ -97,6 +103,7 @@ VARIATIONS = {
     "colour camera read raw (Bayer)": (_bayer, lambda a, i, rng: _bayer(a)),
     "gamma 0.6 (reference and frames)": (_gamma, lambda a, i, rng: _gamma(a)),
     "frames motion-blurred 5 px": (None, lambda a, i, rng: _motion_blur(a)),
+    "rolling shutter, PWM light bands": (None, lambda a, i, rng: _pwm_bands(a, i)),
 }
 
 
