@@ -46,6 +46,7 @@ from .plan import DemodulationPlan, read_only
 
 __all__ = ["Demodulator", "nice_fft_size", "tukey"]
 
+
 def nice_fft_size(n: int) -> int:
     """Smallest integer >= n whose prime factors are all 2, 3, 5 or 7 (fast FFTs)."""
     n = max(int(math.ceil(n)), 1)
@@ -130,7 +131,7 @@ class Demodulator:
         samples), the filters divided by the pyramid's gain (:func:`pyramid_gain`)
         so that the decimated signals are the same band; for the decimated grid
         only (:meth:`full_from_windows` refuses), and only where
-        :func:`binned_bands_clear` (ValueError otherwise).  The same windows,
+        :func:`processing.binning.binned_bands_clear` (ValueError otherwise).  The same windows,
         grid and sample positions as binning 1.
 
     Attributes

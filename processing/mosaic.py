@@ -27,7 +27,8 @@ from typing import NamedTuple, Optional
 
 import numpy as np
 
-__all__ = ["MOSAIC_MIN_SPREAD", "MOSAIC_MIN_SIDE", "MosaicResponse", "mosaic_response", "mosaic_maps", "equalise_mosaic", "equalised_reference"]
+__all__ = ["MOSAIC_MIN_SPREAD", "MOSAIC_MIN_SIDE", "MosaicResponse", "mosaic_response", "mosaic_maps",
+           "equalise_mosaic", "equalised_reference"]
 
 #: The four sub-grids differ (a mosaic) when both the largest of their
 #: standard deviations and the largest of their 10-90 % ranges (the board's

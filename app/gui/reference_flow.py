@@ -135,7 +135,8 @@ def rebuild_reconstructor(w):
         except Exception:  # noqa: BLE001 - information only
             pass
         if rec.mosaic is not None:  # a colour camera read raw: equalised in it and every frame (processing.mosaic)
-            text += " — colour mosaic equalised (gains " + " / ".join(f"{g:.2f}" for g in rec.mosaic.gains().ravel()) + ")"
+            gains = " / ".join(f"{g:.2f}" for g in rec.mosaic.gains().ravel())
+            text += f" — colour mosaic equalised (gains {gains})"
         stuck = int(rec.defects.size)
         if stuck:  # repaired in the reference and in every frame (processing.mask.defect_pixels)
             text += f" — {stuck} stuck sensor pixel{'s' if stuck > 1 else ''} repaired"
