@@ -529,8 +529,15 @@ def _frames_without_the_reference(args, paths: list) -> tuple:
 
 
 def _bit_depth_note(reference: np.ndarray, first_input) -> str:
-    """A note when the frames' sample depth cannot match the reference's levels (8-bit video
-    frames against a 12-bit reference read as 'no contrast' frame after frame), else ''."""
+    """A note when the frames' levels cannot match the reference's: 8-bit video frames against a
+    12-bit reference, or a reference whose levels sit 16x higher (12-bit data in the top bits of
+    16-bit words) than its frames', which read as 'no contrast' frame after frame; else ''."""
+    from processing.mask import MIN_EXPOSURE_GAIN
+    from processing.options import ReconstructOptions
+
+    # the darkest frames the quality mask still reads: contrast min_amplitude of the reference's, scaled
+    # down by the exposure's gain to at most MIN_EXPOSURE_GAIN (0.3 x 0.25: 13x darker)
+    readable = MIN_EXPOSURE_GAIN * ReconstructOptions().min_amplitude
     try:
         info = imageio.image_info(first_input)
     except TirdeflectError:
@@ -549,13 +556,23 @@ def _bit_depth_note(reference: np.ndarray, first_input) -> str:
         except Exception:  # noqa: BLE001 -- a first frame that cannot be read is reported as such later
             return ""
         top = float(np.nanmax(sample)) if sample.size else 0.0
-        if not (ref_top > 0 and top > 2 * 2 ** ref_bits):
+        brighter = top > 2 * 2 ** ref_bits
+        darker = top > 0 and ref_top * readable > top
+        if not (ref_top > 0 and (brighter or darker)):
             return ""
         ratio = ref_top / top
         frame_bits = _bits_of_counts(sample.astype(np.float64))
+        if darker:
+            return (f"the frames of {str(first_input)!r} reach only level {top:.0f} ({frame_bits}-bit) while "
+                    f"the reference's levels reach {ref_top:.0f} ({ref_bits}-bit): the frames are {ratio:.3g}x "
+                    f"darker, beyond the {1 / readable:.3g}x a dimmer exposure still reads, so they read as "
+                    f"low contrast; a reference stored with its levels shifted (12-bit data in the top bits "
+                    f"of 16-bit words: 16x) or taken at another exposure or gain? Take the reference from the "
+                    f"frames' own file or camera settings (e.g. --reference-frames 0:20)")
+    factor = ratio if ratio > 1 else 1.0 / ratio
     return (f"bit depths differ: the frames of {str(first_input)!r} are {frame_bits}-bit (levels up to "
             f"{2 ** frame_bits - 1}) while the reference's levels reach {ref_top:.0f} ({ref_bits}-bit): on one "
-            f"scale the frames are {ratio:.3g}x {'darker' if ratio > 1 else 'brighter'} than the reference, so "
+            f"scale the frames are {factor:.3g}x {'darker' if ratio > 1 else 'brighter'} than the reference, so "
             f"frames read as low contrast or saturated; take the reference from the frames' own file or camera "
             f"settings (e.g. --reference-frames 0:20), or convert both to one depth")
 

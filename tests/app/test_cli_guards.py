@@ -133,6 +133,36 @@ def test_eight_bit_frames_against_a_twelve_bit_reference_are_named_once(sim, tmp
     assert r.returncode == 0 and "bit depths differ" not in r.stderr, r.stderr
 
 
+def test_a_reference_stored_sixteen_times_higher_than_its_frames_is_named(sim, tmp_path):
+    """The reference saved with its 12-bit levels in the top bits of 16-bit words (x16), the frames not:
+    every frame read 'no contrast' (0.06 of the reference's), and the run said nothing of the levels
+    before 7 Dec 2026 (only 8-bit frames against a 12-bit reference were named). Now the run says the
+    frames are 16x darker than the reference, beyond what a dimmer exposure still reads (13.3x), and what
+    to do; frames 10x darker, within that, are measured with no word. The other way round (frames x16)
+    it said '0.0625x brighter': now 16x."""
+    ref = imageio.read_image(sim / "reference.tif")
+    tifffile.imwrite(tmp_path / "ref16.tif", (ref.astype(np.uint32) * 16).astype(np.uint16))
+    r = _cli("process", tmp_path / "ref16.tif", *_frames(sim), "--geometry", sim / "geometry.toml",
+             "--out", tmp_path / "o.h5", "--no-progress")
+    assert r.returncode == 2, r.stderr
+    assert re.search(r"the frames are 1[56](\.\d)?x darker, beyond the 13.3x a dimmer exposure still reads", r.stderr), r.stderr
+    assert "top bits of 16-bit words" in r.stderr
+    dim = tmp_path / "dim"
+    dim.mkdir()
+    for p in _frames(sim):
+        tifffile.imwrite(dim / p.name, np.rint(imageio.read_image(p) * 0.1).astype(np.uint16))
+    r = _cli("process", sim / "reference.tif", *sorted(dim.glob("*.tif")), "--geometry", sim / "geometry.toml",
+             "--out", tmp_path / "dim.h5", "--no-progress")
+    assert r.returncode == 0 and "darker" not in r.stderr, r.stderr
+    high = tmp_path / "high"
+    high.mkdir()
+    for p in _frames(sim):
+        tifffile.imwrite(high / p.name, (imageio.read_image(p).astype(np.uint32) * 16).astype(np.uint16))
+    r = _cli("process", sim / "reference.tif", *sorted(high.glob("*.tif")), "--geometry", sim / "geometry.toml",
+             "--out", tmp_path / "high.h5", "--no-progress")
+    assert r.returncode == 0 and re.search(r"the frames are 1[56](\.\d)?x brighter than the reference", r.stderr), r.stderr
+
+
 def test_workers_beyond_the_chunks_store_and_say_what_runs(sim, tmp_path):
     """--workers 1000 on 16 frames: two chunks of 8, so two processes run; it stored '16 processes'."""
     frame = imageio.read_image(_frames(sim)[0])
