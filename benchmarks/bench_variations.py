@@ -51,6 +51,13 @@ def _turn(a, deg):
                           borderMode=cv2.BORDER_REFLECT).astype(np.float64)
 
 
+def _zoom(a, scale):
+    """The image ``scale`` times as large about the frame's centre (cubic): the lens refocused."""
+    m = cv2.getRotationMatrix2D((a.shape[1] / 2 - 0.5, a.shape[0] / 2 - 0.5), 0.0, scale)
+    return cv2.warpAffine(a.astype(np.float32), m, a.shape[::-1], flags=cv2.INTER_CUBIC,
+                          borderMode=cv2.BORDER_REFLECT).astype(np.float64)
+
+
 def _hot(a, rng):
     b = a.copy()
     b.flat[rng.choice(b.size, b.size // 1000, replace=False)] = FULL  # 0.1 %: a camera's ceiling
@@ -98,6 +105,7 @@ VARIATIONS = {
     "sharp shadow, half at 0.5x": (None, lambda a, i, rng: a * np.where(_columns(a) < a.shape[1] // 2, 0.5, 1.0)),
     "camera moved 0.5 px": (None, lambda a, i, rng: _shift(a, 0.5, 0.0)),
     "camera turned 0.3 deg": (None, lambda a, i, rng: _turn(a, 0.3)),
+    "lens refocused (image 0.2 % larger)": (None, lambda a, i, rng: _zoom(a, 1.002)),
     "reference 1.3x (clipped)": (lambda a: a * 1.3, None),
     "reference defocused 1 px": (lambda a: cv2.GaussianBlur(a, (0, 0), 1.0), None),
     "colour camera read raw (Bayer)": (_bayer, lambda a, i, rng: _bayer(a)),

@@ -51,7 +51,7 @@ import numpy as np
 
 from .fullgrid import lanczos_matrix, spline_matrix
 from .gpu_device import host_empty, to_host, warp_kernel
-from .pin import SHIFT_TOL_PX, frame_motion_step
+from .pin import SHIFT_TOL_PX, frame_motion_step, motion_of
 from .refine import WarpReference, modulate
 from .second_order import SECOND_ORDER_MIN_EFFECT, SecondOrderOptics, batch_effects
 from .unwrap import TWO_PI
@@ -216,6 +216,7 @@ class BatchChain:
             recon.reference_region_name, plan.region_near)
         self.pin_samples = samples
         self.pin_index = to(np.flatnonzero(samples))  # where each frame's motion there is measured
+        self.pin_pos = np.stack([recon.rows_px[np.nonzero(samples)[0]], recon.cols_px[np.nonzero(samples)[1]]])
         self.F["w"] = to(w)
         self.nn = float(nn)
         self.sx, self.sy_u, self.sy_h = float(F["sx"]), float(F["sy_u"]), float(F["sy_h"])
@@ -534,9 +535,9 @@ class BatchChain:
         r = self.r
         hs = r.height_solver()
         timings = {"total": ms / max(n, 1), "batch": ms}
-        # processing.pin.region_motion_px of each frame's displacement on the pin samples (as the CPU's solve)
-        med = xp.median(u[:n].reshape(n, 2, -1)[:, :, self.pin_index], axis=2)
-        motion = to_host(xp, xp.hypot(med[:, 0], med[:, 1]))
+        # processing.pin.region_motion of each frame's displacement on the pin samples (as the CPU's solve)
+        pin_u = to_host(xp, u[:n].reshape(n, 2, -1)[:, :, self.pin_index])
+        moved = [motion_of(pin_u[k], self.pin_pos) for k in range(n)]
         valid_dec = np.ones(ph.shape[2:], bool)
         # processing.pin.frame_motion of each frame (every k-th row and column, as the CPU's), and where the
         # whole pattern shifted, what that puts into the heights (HeightSolver.shift_status, on the host)
@@ -547,7 +548,7 @@ class BatchChain:
         share = to_host(xp, xp.mean(xp.hypot(sub[:, 0] - shift[:, 0, None], sub[:, 1] - shift[:, 1, None])
                                     <= tol[:, None], axis=1))
         shift = to_host(xp, shift)
-        pins = [hs.shift_status(dataclasses.replace(self.pin, region_motion_px=float(motion[k])), shift[k], share[k],
+        pins = [hs.shift_status(dataclasses.replace(self.pin, **moved[k]), shift[k], share[k],
                                 valid_dec, self.plan.reference_region, pin_fallback=r.pin_fallback,
                                 region_name=r.reference_region_name, near=self.plan.region_near) for k in range(n)]
         if grid == "full":

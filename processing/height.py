@@ -80,7 +80,7 @@ from .height_kernels import cell_average, check_grid, div_T, neumann_eigenvalues
 from .height_masked import apply_AT, edge_data, solve_masked
 from .height_spectral import prepare_spectral, spectral_solve
 from .pin import (PIN_MIN_PIECE_SAMPLES, PinStatus, choose_pin_samples, level_of_shift_um, null_mode_offset,
-                  region_motion_px, shift_judged)
+                  region_motion, shift_judged)
 
 __all__ = [
     "SurfaceResult",
@@ -349,7 +349,8 @@ class HeightSolver:
         u, motion = shift_judged(displacement_px, valid, judge_shift, shift_removal)
         h, sx, sy, status, samples = spectral_solve(self, self._fast, u, valid, reference_mask,
                                                     pin_fallback=pin_fallback, region_name=region_name, near=near)
-        status = dataclasses.replace(status, region_motion_px=region_motion_px(displacement_px, samples))
+        status = dataclasses.replace(status, **region_motion(displacement_px, samples, self.grid.rows_px,
+                                                             self.grid.cols_px))
         if motion is not None:  # (the whole pattern shifted alike since the reference?)
             status = self.shift_status(status, *motion, valid, reference_mask, pin_fallback=pin_fallback,
                                        region_name=region_name, near=near, removed=shift_removal)
@@ -429,7 +430,7 @@ class HeightSolver:
             return self.solve_spectral(u, v, reference_mask, pin_fallback=pin_fallback, region_name=region_name,
                                        near=near, judge_shift=judge_shift, shift_removal=shift_removal)
         samples, status, _ = self.pin_choice(v, all_valid, reference_mask, pin_fallback, region_name, near)
-        status = dataclasses.replace(status, region_motion_px=region_motion_px(u, samples & v))
+        status = dataclasses.replace(status, **region_motion(u, samples & v, self.grid.rows_px, self.grid.cols_px))
         u_solved, motion = shift_judged(u, v, judge_shift, shift_removal)
         if motion is not None:
             status = self.shift_status(status, *motion, v, reference_mask, pin_fallback=pin_fallback,

@@ -17,7 +17,8 @@ __all__ = ["PIN_MIN_SAMPLES", "PIN_MIN_FRACTION", "PIN_MIN_PIECE_SAMPLES", "PIN_
            "pin_samples_needed", "region_motion_px", "SHIFT_MIN_PX", "SHIFT_TOL_PX", "SHIFT_MIN_SHARE",
            "frame_motion", "frame_motion_step", "FRAME_MOTION_SAMPLES", "shift_tolerance_px", "steady_shift",
            "STEADY_SHIFT_MIN_PX", "STEADY_SHIFT_MIN_RATIO", "STEADY_SHIFT_MIN_FRAMES", "pattern_shifted",
-           "level_of_shift_um", "shift_judged"]
+           "level_of_shift_um", "shift_judged", "region_motion", "region_scale", "pattern_scaled", "motion_of", "scale_of",
+           "SCALE_MIN_PX", "SCALE_MIN_EXPLAINED"]
 
 
 #: Fewest valid samples the pin of the null space needs (see the module docstring).
@@ -60,6 +61,95 @@ def region_motion_px(displacement_px, samples) -> float:
     if not sel.any():
         return float("nan")
     return float(math.hypot(float(np.median(u[0][sel])), float(np.median(u[1][sel]))))
+
+
+#: The image's scale changed since the reference (:func:`pattern_scaled`): the pin samples'
+#: displacement fits ``u = t + s (p - p_mean)`` with ``s`` moving their farthest (from their centre)
+#: by at least this much (px; the band's bound, :data:`BAND_MAX_MOTION_PX`, where waves reach it) ...
+SCALE_MIN_PX = 0.1
+#: ... and that fit explains at least this share of their displacement's spread about its mean, counted
+#: as far as their outward motion grows in proportion to their distance from the centre as a scale
+#: change's does (a feature centred in the frame sends its slopes' tail outward too, falling off with the
+#: distance: a deep dimple in FS-SS read -0.14 % at 0.6 of its band's motion before that was asked).
+#: Measured (7 Dec 2026, ``tirdeflect simulate``'s bump, dimple and waves at 512^2, the synthetic tank's
+#: scenes, the real needle frame; the default border band, full and live grid): with nothing changed
+#: 0.00-0.09 (the reach 0.000-0.34 px); the frames 0.1 / 0.2 % larger or 0.2 % smaller (a refocus after
+#: the reference, or the camera moved along its axis) 0.96-1.00 beside the bump and the dimple, with a
+#: reach of 0.42-0.74 px, their heights 120 % off at 0.2 % (the bump): a magnification reads as a curved
+#: surface (``u`` linear in position is the gradient of a paraboloid), in silence before; under waves
+#: that fill the frame 0.00 (there the band's own note speaks).
+SCALE_MIN_EXPLAINED = 0.5
+
+
+def region_scale(displacement_px, samples, rows_px, cols_px):
+    """``(s, reach_px, explained)``: the least-squares scale change ``s`` (a fraction: 0.002 is the
+    image 0.2 % larger than at the reference) of ``u = t + s (p - p_mean)`` fitted to the displacement
+    (2, n_rows, n_cols; px) on ``samples`` (bool, finite ones only) at pixel positions ``p`` (rows_px x
+    cols_px), how far it moves the samples farthest from their centre (px), and the share of the
+    displacement's spread about its mean that it explains; NaNs with fewer than 16 samples
+    (:func:`scale_of`)."""
+    u = np.asarray(displacement_px)
+    sel = np.asarray(samples, bool) & np.isfinite(u[0]) & np.isfinite(u[1])
+    r, c = np.nonzero(sel)
+    return scale_of(np.stack([u[0][sel], u[1][sel]]),
+                    np.stack([np.asarray(rows_px, np.float64)[r], np.asarray(cols_px, np.float64)[c]]))
+
+
+def scale_of(u_samples, p_samples):
+    """:func:`region_scale` of the displacement ``u_samples`` (2, m; px) at positions ``p_samples``
+    (2, m; px), finite ones."""
+    if np.shape(u_samples)[1] < 16:
+        return float("nan"), float("nan"), float("nan")
+    u = np.asarray(u_samples, np.float64)
+    p = np.asarray(p_samples, np.float64)
+    u = u - u.mean(axis=1, keepdims=True)
+    p = p - p.mean(axis=1, keepdims=True)
+    lever = float(np.sum(p * p))
+    spread = float(np.sum(u * u))
+    if not lever > 0:
+        return float("nan"), float("nan"), float("nan")
+    scale = float(np.sum(u * p)) / lever
+    rho = np.sqrt(np.sum(p * p, axis=0))
+    reach = abs(scale) * float(np.max(rho))
+    explained = 1.0 - float(np.sum((u - scale * p) ** 2)) / spread if spread > 0 else 0.0
+    # a scale change moves each sample outward in proportion to its distance from the centre; the slopes'
+    # tail of a feature centred in the frame points outward too but falls off with the distance (a deep
+    # dimple in FS-SS read -0.14 % so): only as far as that proportion holds better than a constant
+    # outward motion does is the motion a scale change's
+    outward = np.sum(u * p, axis=0) / np.maximum(rho, 1e-12)
+    rho_c = rho - rho.mean()
+    trend = float(np.sum(outward * rho_c)) / max(float(np.sum(rho_c * rho_c)), 1e-12)  # outward motion per px
+    mean_out = float(outward.mean())
+    grows = trend * float(rho.mean()) / mean_out if mean_out != 0 else 0.0  # 1: proportional to the distance
+    return scale, reach, explained * min(1.0, max(0.0, grows))
+
+
+def pattern_scaled(reach_px: float, explained: float) -> bool:
+    """Did the image's scale change since the reference (:func:`region_scale` on the pin samples)?  True
+    where it moves them by :data:`SCALE_MIN_PX` or more and explains :data:`SCALE_MIN_EXPLAINED` of
+    their motion (NaN: not measured)."""
+    return bool(reach_px >= SCALE_MIN_PX and explained >= SCALE_MIN_EXPLAINED)
+
+
+def region_motion(displacement_px, samples, rows_px, cols_px) -> dict:
+    """The :class:`PinStatus` fields of how the pattern moved on the pin ``samples``: ``region_motion_px``
+    (:func:`region_motion_px`) and ``region_scale``, ``region_scale_reach_px``,
+    ``region_scale_explained`` (:func:`region_scale`)."""
+    u = np.asarray(displacement_px)
+    sel = np.asarray(samples, bool) & np.isfinite(u[0]) & np.isfinite(u[1])
+    r, c = np.nonzero(sel)
+    return motion_of(np.stack([u[0][sel], u[1][sel]]),
+                     np.stack([np.asarray(rows_px, np.float64)[r], np.asarray(cols_px, np.float64)[c]]))
+
+
+def motion_of(u_samples, p_samples) -> dict:
+    """:func:`region_motion` of the pin samples' displacement ``u_samples`` (2, m; px, finite) at
+    positions ``p_samples`` (2, m; px)."""
+    u = np.asarray(u_samples)
+    scale, reach, explained = scale_of(u, p_samples)
+    motion = float(math.hypot(float(np.median(u[0])), float(np.median(u[1])))) if u.shape[1] else float("nan")
+    return dict(region_motion_px=motion, region_scale=scale, region_scale_reach_px=reach,
+                region_scale_explained=explained)
 
 
 def pattern_moved(region: str, rule: str, motion_px: float) -> bool:
@@ -266,6 +356,11 @@ class PinStatus:
         The shift was taken out of the displacement before the heights were
         solved (the option ``shift_removal``): :attr:`shift_effect_um` is then
         what it would have put into them.
+    region_scale, region_scale_reach_px, region_scale_explained : float
+        :func:`region_scale` of the displacement on the pin samples: the
+        image's scale change since the reference (a fraction), how far it
+        moves the farthest of them (px) and the share of their motion it
+        explains; both above their bounds, :attr:`scaled` is True.
     """
 
     rule: str
@@ -283,6 +378,27 @@ class PinStatus:
     shift_effect_um: float = float("nan")
     shift_level_um: float = float("nan")
     shift_removed: bool = False
+    region_scale: float = float("nan")
+    region_scale_reach_px: float = float("nan")
+    region_scale_explained: float = float("nan")
+
+    @property
+    def scaled(self) -> bool:
+        """The image's scale changed since the reference on the pin samples (:func:`pattern_scaled`): a
+        refocus, or the camera moved along its axis; the heights carry a curved surface that is not there."""
+        return pattern_scaled(self.region_scale_reach_px, self.region_scale_explained)
+
+    def scale_text(self) -> str:
+        """What a :attr:`scaled` frame's heights carry, one sentence ("" when not)."""
+        if not self.scaled:
+            return ""
+        return (f"the image's SCALE changed by {100 * self.region_scale:+.2g} % since the reference on the "
+                f"{self.region} (its samples moved {self.region_scale_reach_px:.2g} px "
+                f"{'outward' if self.region_scale > 0 else 'inward'} at the farthest, "
+                f"{100 * self.region_scale_explained:.0f} % of their motion alike): the lens refocused or "
+                "zoomed, or the camera moved along its axis, and the heights carry a curved surface that is not "
+                "there (a paraboloid: 0.2 % over a 512^2 frame put 120 % of a 4 um bump's heights into them; "
+                "take the reference again), unless a wave far longer than the frame curves all of it")
 
     @property
     def shifted(self) -> bool:
@@ -339,6 +455,8 @@ class PinStatus:
         elif not self.still:
             text += (f"; the pattern moved there by {self.region_motion_px:.3g} px since the reference (the surface "
                      "there is not at rest, or the camera or the board moved: the heights carry a tilt)")
+        if self.scaled:
+            text += "; " + self.scale_text()
         return text
 
 

@@ -59,6 +59,12 @@ _PIN_FIELDS = (
     ("shift_effect_um", "where it shifted: RMS of the heights that shift alone gives (a tilt, not the surface), um"),
     ("shift_level_um", "where it shifted: the change of water level that moves the pattern so, um up (NaN: none)"),
     ("shift_removed", "1: that shift was taken out before the heights were solved (--shift-removal)"),
+    ("region_scale", "the image's scale change since the reference fitted to the pin samples' displacement, a "
+                     "fraction (0.002: 0.2 % larger; NaN: not measured)"),
+    ("region_scale_reach_px", "how far that scale change moves the pin samples farthest from their centre, px"),
+    ("region_scale_explained", "share of the pin samples' motion it explains: from 0.5 on, with the reach at "
+                               "0.1 px or more, the image's scale changed (a refocus, or the camera moved along "
+                               "its axis): the heights carry a curved surface that is not there"),
     ("jump", "1: the result is not continuous with the previous frame's (see reason)"),
     ("unwrap_slip_fraction", "fraction of samples where the unwrapped phase change differs by 2 pi "
                              "from the images' wrapped one"),
@@ -76,7 +82,8 @@ def _pin_status_dtype():
                      ("region_motion_px", np.float32), ("frame_motion_px", np.float32),
                      ("frame_motion_row_px", np.float32), ("frame_motion_col_px", np.float32),
                      ("frame_shift_share", np.float32), ("shift_effect_um", np.float32), ("shift_level_um", np.float32),
-                     ("shift_removed", np.uint8),
+                     ("shift_removed", np.uint8), ("region_scale", np.float32),
+                     ("region_scale_reach_px", np.float32), ("region_scale_explained", np.float32),
                      ("jump", np.uint8), ("unwrap_slip_fraction", np.float32), ("pin_shift_um", np.float32),
                      ("reason", s)])
 
@@ -89,7 +96,8 @@ def _pin_status_row(result) -> np.ndarray:
     row["pin_shift_um"] = np.nan
     row["unwrap_slip_fraction"] = np.nan
     shift_fields = ("frame_motion_px", "frame_motion_row_px", "frame_motion_col_px", "frame_shift_share",
-                    "shift_effect_um", "shift_level_um")
+                    "shift_effect_um", "shift_level_um", "region_scale", "region_scale_reach_px",
+                    "region_scale_explained")
     for name in ("region_motion_px",) + shift_fields:
         row[name] = np.nan
     pin = getattr(result, "pin", None)

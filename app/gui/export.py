@@ -95,7 +95,8 @@ def describe_export(out_path: str) -> tuple:
 
     Names the frames stored invalid (``/frame_status`` non-zero), flagged as jumps (``/pin_status["jump"]``),
     whose pattern moved on the pin samples (``/pin_status["region_motion_px"]``) or shifted alike over the
-    whole frame (``/pin_status["frame_shift_share"]``, ``PinStatus.shifted``) and recorded INCOMPLETE
+    whole frame (``/pin_status["frame_shift_share"]``, ``PinStatus.shifted``), whose image's scale changed
+    (``/pin_status["region_scale_explained"]``, ``PinStatus.scaled``) and recorded INCOMPLETE
     (``/frame_flags``), saturated (``/saturated_pct`` above
     :data:`processing.live_view.SATURATION_MAX_PCT`) and turned since the reference (``/turn_mrad``
     above :data:`processing.turn.TURN_MAX_MRAD`), by index; ``clean`` is False when there is any.
@@ -106,7 +107,7 @@ def describe_export(out_path: str) -> tuple:
 
     from drivers.base import FrameFlags
     from processing.live_view import SATURATION_MAX_PCT
-    from processing.pin import band_moved, pattern_moved, pattern_shifted
+    from processing.pin import band_moved, pattern_moved, pattern_scaled, pattern_shifted
     from processing.turn import TURN_MAX_MRAD
 
     with h5py.File(out_path, "r") as f:
@@ -135,6 +136,16 @@ def describe_export(out_path: str) -> tuple:
                     parts.append(f"{shifted.size} where the whole pattern shifted since the reference: the water "
                                  f"level changed, or the camera or the board moved{carry}; take the reference "
                                  f"again (frames {frame_list(shifted)}, /pin_status shift_effect_um)")
+            if "region_scale_explained" in (st.dtype.names or ()):
+                scaled = np.flatnonzero([pattern_scaled(float(reach), float(share))  # PinStatus.scaled's judgement
+                                         for reach, share in zip(st["region_scale_reach_px"],
+                                                                 st["region_scale_explained"])])
+                if scaled.size:
+                    pct = 100 * np.asarray(st["region_scale"][scaled], np.float64)
+                    parts.append(f"{scaled.size} where the image's scale changed since the reference (up to "
+                                 f"{np.max(np.abs(pct)):.2g} %): the lens refocused or the camera moved along its "
+                                 f"axis, the heights carry a curved surface that is not there; take the reference "
+                                 f"again (frames {frame_list(scaled)}, /pin_status region_scale)")
             moved = np.setdiff1d(np.flatnonzero([pattern_moved(region, _text(rule), float(m))  # PinStatus.still's
                                                  for rule, m in zip(st["rule"], st["region_motion_px"])]),
                                  shifted)  # (where the whole frame shifted, that is said instead)

@@ -113,6 +113,9 @@ class PinRegionOverlay:
             text += (f" — the pattern MOVED here by {pin.region_motion_px:.2g} px since the reference: the surface "
                      "here is not at rest, or the camera or the board moved (the heights carry a tilt)")
             flags.append("MOVED")
+        if pin.scaled:  # the image's scale changed: a refocus or the camera moved along its axis
+            text += " — " + pin.scale_text()
+            flags.append("SCALE CHANGED")
         turn = getattr(result, "turn", None)
         if turn is not None and turn.flagged:
             text += (f" — the pattern TURNED by {abs(turn.turn_mrad):.2f} mrad since the reference (camera or board "

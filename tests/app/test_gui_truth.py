@@ -428,6 +428,16 @@ def test_a_red_pin_region_says_why_in_words_that_fit(qapp):  # qapp: a QApplicat
     assert "MOVED here" not in notes[-1]
     overlay.update(good)
     assert not overlay.bad and notes[-1] == ""
+    # the image's scale changed since the reference (a refocus: PinStatus.scaled, 7 Dec 2026)
+    scaled = types.SimpleNamespace(pin=PinStatus("region", name, 32, 32, 16, 32, region_motion_px=0.002,
+                                                 region_scale=0.002, region_scale_reach_px=0.73,
+                                                 region_scale_explained=0.99), series=None)
+    overlay.update(scaled)
+    assert overlay.bad and overlay.label.textItem.toPlainText() == "h = 0: SCALE CHANGED"
+    assert "the image's SCALE changed by +0.2 % since the reference" in notes[-1]
+    assert "the heights carry a curved surface that is not there" in notes[-1]
+    overlay.update(good)
+    assert not overlay.bad and notes[-1] == ""
 
 
 # --------------------------------------------------------------- menus, device

@@ -107,6 +107,10 @@ def _assert_same(serial, other, complete=True):
             # a share of about 1,000 samples within 0.05 px of that median: one sample's side of the bound
             # is 1e-3; read at 0.2 (pin.SHIFT_MIN_SHARE)
             np.testing.assert_allclose(b[name], a[name], rtol=0, atol=2.5e-3, equal_nan=True, err_msg=name)
+        elif name in ("region_scale", "region_scale_reach_px", "region_scale_explained"):
+            # the scale fitted to the pin samples (here ~1e-6, reach ~1e-3 px, explaining ~0.02 of their
+            # noise): the plans' rounding moved the share by 2.5e-5 (7 Dec 2026); read at 0.1 px and 0.5
+            np.testing.assert_allclose(b[name], a[name], rtol=0, atol=1e-3, equal_nan=True, err_msg=name)
         elif a.dtype[name].kind == "f":
             np.testing.assert_allclose(b[name], a[name], rtol=1e-3, atol=1e-6, equal_nan=True, err_msg=name)
         else:

@@ -59,11 +59,12 @@ WORST_DIFFERENCE_OF_RMS = 1e-3
 TEXT_NUMBER_RELATIVE = 1e-6
 _NUMBER = re.compile(r"[-+]?(?:\d+\.\d*|\.\d+|\d+)(?:[eE][-+]?\d+)?")
 #: PinStatus fields added after the golden file was made (5 Dec 2026: how far the pattern moved on the
-#: pin samples; 6 Dec 2026: how far the whole frame's moved alike, and what that does to the heights:
-#: measures of the frame, not a change of the chain): left out of the comparison (the cases rewritten
-#: since hold some of them, the others do not)
+#: pin samples; 6 Dec 2026: how far the whole frame's moved alike, and what that does to the heights;
+#: 7 Dec 2026: the image's scale change on the pin samples: measures of the frame, not a change of the
+#: chain): left out of the comparison (the cases rewritten since hold some of them, the others do not)
 _NEWER_PIN_FIELD = re.compile(
-    r", '(?:region_motion_px|frame_motion_px|frame_shift_share|frame_motion_row_px|frame_motion_col_px|shift_effect_um|shift_level_um|shift_removed)': [^,}]*")
+    r", '(?:region_motion_px|frame_motion_px|frame_shift_share|frame_motion_row_px|frame_motion_col_px|shift_effect_um"
+    r"|shift_level_um|shift_removed|region_scale|region_scale_reach_px|region_scale_explained)': [^,}]*")
 
 
 def _same_text(new: str, old: str) -> bool:

@@ -45,7 +45,8 @@ def _compare(cpu_results, other_results):
         # and over the whole frame, with its share that moved alike: the same; float32 medians and shares
         # on the device, to 1e-4 px and 1e-3)
         motions = ("region_motion_px", "frame_motion_px", "frame_shift_share", "frame_motion_row_px",
-                   "frame_motion_col_px", "shift_effect_um", "shift_level_um")
+                   "frame_motion_col_px", "shift_effect_um", "shift_level_um", "region_scale",
+                   "region_scale_reach_px", "region_scale_explained")
         assert (dataclasses.replace(a.pin, **dict.fromkeys(motions, 0.0))
                 == dataclasses.replace(b.pin, **dict.fromkeys(motions, 0.0)))
         assert a.pin.region_motion_px == pytest.approx(b.pin.region_motion_px, abs=1e-4)
@@ -54,6 +55,10 @@ def _compare(cpu_results, other_results):
         assert a.pin.frame_motion_col_px == pytest.approx(b.pin.frame_motion_col_px, abs=1e-4)
         assert a.pin.frame_shift_share == pytest.approx(b.pin.frame_shift_share, abs=2.5e-3)  # (one of ~1,000 samples: 1e-3)
         assert a.pin.shifted == b.pin.shifted
+        # the image's scale change fitted on the pin samples (float32 displacements on the device)
+        assert a.pin.region_scale == pytest.approx(b.pin.region_scale, abs=1e-7)  # 0.00001 % of scale
+        assert a.pin.region_scale_explained == pytest.approx(b.pin.region_scale_explained, abs=1e-3)
+        assert a.pin.scaled == b.pin.scaled
         assert (a.series is None) == (b.series is None)
         if a.series is not None:
             assert (a.series.flagged, a.series.compared_samples) == (b.series.flagged, b.series.compared_samples)

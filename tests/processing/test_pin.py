@@ -375,3 +375,23 @@ def test_a_camera_or_board_that_moved_since_the_reference_is_seen_on_the_pin_sam
     # never the user's region (pattern_moved judges that one) nor a fallback's samples
     assert not band_moved("reference_region [0, 24, 0, 24]", "region", 1.0, "tir")
     assert not band_moved(res.pin.region, "nearest", 1.0, "tir")
+
+
+def test_the_scale_change_on_the_pin_samples_is_fitted_and_only_where_it_explains_their_motion():
+    # u = t + s (p - p_mean): an image 0.2 % larger (and shifted) on a border band of a 160^2 grid every
+    # 6.4 px, with 0.01 px of noise: s to 1 %, explained 0.99; the noise alone: explained ~0, not scaled
+    from processing.pin import pattern_scaled, region_scale
+
+    rows = cols = np.arange(160) * 6.4 + 2.7
+    band = np.zeros((160, 160), bool)
+    band[:12], band[-12:], band[:, :12], band[:, -12:] = True, True, True, True
+    R, C = np.meshgrid(rows, cols, indexing="ij")
+    rng = np.random.default_rng(0)
+    noise = rng.normal(0, 0.01, (2, 160, 160))
+    u = np.stack([0.3 + 0.002 * (R - R.mean()), -0.1 + 0.002 * (C - C.mean())]) + noise
+    scale, reach, explained = region_scale(u, band, rows, cols)
+    assert scale == pytest.approx(0.002, rel=0.01) and explained > 0.99 and reach == pytest.approx(0.002 * 722, rel=0.02)
+    assert pattern_scaled(reach, explained)
+    scale, reach, explained = region_scale(noise, band, rows, cols)
+    assert abs(scale) < 1e-5 and explained < 0.01 and not pattern_scaled(reach, explained)
+    assert np.isnan(region_scale(u, np.zeros_like(band), rows, cols)[0])  # too few samples
