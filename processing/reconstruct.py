@@ -57,6 +57,7 @@ from .refine import (WARP_MAX_INTERPOLATION_ERROR_PX, band_limited_reference, li
 from .result import Result, SeriesCheck
 from .series import EMPTY, SERIES_MAX_PIN_SHIFT, SERIES_MAX_SLIP_FRACTION, SeriesState, copy_check
 from .series import check_series as _check_series
+from .banding import row_profile
 from .mosaic import equalise_mosaic, equalised_reference
 from .series import unwrap_phase as _unwrap_phase
 
@@ -132,10 +133,9 @@ class Reconstructor:
         chosen once from the reference: ``geometry.reference_region`` where the
         reference is valid, or by default :func:`reference_pin_region`.
     reference_region_name : str
-        How ``Result.pin`` names it.  ``mosaic``: see :mod:`processing.mosaic`.
+        How ``Result.pin`` names it.  ``mosaic``: :mod:`processing.mosaic`; ``row_profile``: :mod:`processing.banding`.
     reference_region_valid_fraction : float
-        Fraction of the candidate region (the user's box, or the frame's
-        border band) where the reference is valid.
+        Fraction of the candidate region (the user's box, or the frame's border band) where the reference is valid.
 
     Raises
     ------
@@ -151,6 +151,7 @@ class Reconstructor:
         self.defects = defect_pixels(ref)
         ref = repair_pixels(ref, self.defects)
         self._hot_limits = hot_pixel_limits(ref)  # a frame's pixels beyond the reference's reach
+        self.row_profile = row_profile(ref)  # its light along the rows, for a frame's bands (light_bands)
         geometry.check_frame(ref.shape)  # the field size is known here first: camera and rays vs the frame
         #: What this Reconstructor runs (pattern and refine_method resolved).
         self.options, self.pattern = opts, pattern = _resolved(ref, geometry, options, overrides)

@@ -27,6 +27,7 @@ from processing.errors import (
     TirdeflectError,
 )
 from processing.live_view import SATURATION_MAX_PCT, saturation_pct
+from processing.banding import LightBands, light_bands, row_profile
 from processing.turn import TURN_MAX_MRAD, TurnCheck
 
 __all__ = ["FrameStatus", "FrameOutcome", "FrameTally", "measure_frame", "outcome_of_error"]
@@ -74,6 +75,9 @@ class FrameOutcome:
     #: of a measured frame: how far its pattern turned since the reference (camera or board moved;
     #: :attr:`processing.result.Result.turn`); None where not judged
     turn: Optional[TurnCheck] = None
+    #: of a measured frame: its light along the rows against the reference's
+    #: (:func:`processing.banding.light_bands`: a rolling shutter under flickering light); None where not judged
+    light_bands: Optional[LightBands] = None
 
     @property
     def ok(self) -> bool:
@@ -140,7 +144,14 @@ def measure_frame(reconstruct, image: np.ndarray, ref_shape, grid: str):
             "no pixel of the frame could be measured (no pattern contrast: black, saturated or "
             "fully blurred frame); check exposure and that the pattern is in view")
     return result, FrameOutcome(saturated_pct=saturation_pct(image), hot_pixels=result.hot_pixels,
-                                turn=result.turn)
+                                turn=result.turn, light_bands=frame_bands(reconstruct, image))
+
+
+def frame_bands(reconstruct, image) -> Optional[LightBands]:
+    """:func:`processing.banding.light_bands` of ``image`` against ``reconstruct``'s reference (None where
+    it keeps no row profile)."""
+    reference = getattr(reconstruct, "row_profile", None)
+    return None if reference is None else light_bands(row_profile(image), reference)
 
 
 class FrameTally:
@@ -163,6 +174,7 @@ class FrameTally:
         self.saturated = []  # (sequence index, % of pixels saturated) above SATURATION_MAX_PCT
         self.hot = []  # (sequence index, hot pixels repaired) of frames with any
         self.turned = []  # (sequence index, |turn| mrad, TurnCheck) of frames whose pattern turned
+        self.banded = []  # (sequence index, LightBands.depth, LightBands) of frames with bands of light along rows
 
     def add(self, item, outcome: FrameOutcome) -> None:
         self.frames += 1
@@ -173,6 +185,11 @@ class FrameTally:
             if outcome.hot_pixels:
                 _add_row(self.hot, item, outcome.hot_pixels,
                          "%d isolated pixel(s) brighter than anything the reference's pattern shows repaired")
+            if outcome.light_bands is not None and outcome.light_bands.flagged:
+                _add_row(self.banded, item, 100 * outcome.light_bands.depth,
+                         "bands of light along the rows, %.2g %% RMS alike across the whole width, that the reference "
+                         "does not show (a rolling shutter under flickering light, or a shadow's edge along the rows)",
+                         outcome.light_bands)
             if outcome.turn is not None and outcome.turn.flagged:
                 _add_row(self.turned, item, abs(outcome.turn.turn_mrad),
                          "the pattern turned by %.2f mrad since the reference (the camera or the board moved)",
@@ -220,7 +237,8 @@ class FrameTally:
                 "frames_with_loss_before": len(self.gaps), "frames_saturated": len(self.saturated),
                 "saturated_pct_max": _worst(self.saturated, 0.0)[1],
                 "frames_with_hot_pixels": len(self.hot), "hot_pixels_max": _worst(self.hot, 0)[1],
-                "frames_turned": len(self.turned), "turn_mrad_max": _worst(self.turned, 0.0)[1]}
+                "frames_turned": len(self.turned), "turn_mrad_max": _worst(self.turned, 0.0)[1],
+                "frames_light_banded": len(self.banded), "light_bands_pct_max": _worst(self.banded, 0.0)[1]}
 
     def notes(self) -> list:
         out = []
@@ -244,6 +262,10 @@ class FrameTally:
                        f"pattern shows (up to {n}, frame {k}): repaired before measuring (cosmic rays, or hot "
                        f"pixels the reference does not have: take the reference at the frames' exposure); "
                        f"see /hot_pixels in the output")
+        if self.banded:
+            k, pct, bands = _worst(self.banded, 0.0)
+            out.append(f"{len(self.banded)} frame(s) show {bands.describe()} (the most at frame {k}, "
+                       f"{pct:.2g} %)")
         if self.turned:
             k, mrad, turn = _worst(self.turned, 0.0)
             first = self.turned[0][0]  # when it happened: a knock turns every frame after it

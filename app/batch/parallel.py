@@ -606,10 +606,12 @@ class _GpuBatches:
                 raise
             self._one_by_one(items)  # one frame at a time from the batch's start: each frame's own outcome
             return True
+        from app.batch.frame_status import frame_bands
         from processing.live_view import saturation_pct
 
         for it, r in zip(plain, results):
-            outcome = FrameOutcome(saturated_pct=saturation_pct(it.image), hot_pixels=r.hot_pixels)
+            outcome = FrameOutcome(saturated_pct=saturation_pct(it.image), hot_pixels=r.hot_pixels,
+                                   light_bands=frame_bands(self._recon, it.image))
             self._ready.append((it, functools.partial(_given, (r, outcome))))
         self._one_by_one(items[len(plain):])
         return True

@@ -896,6 +896,29 @@ def test_a_colour_cameras_raw_mosaic_is_equalised_and_said(tmp_path, capsys):
     np.testing.assert_allclose(errors["raw"], errors["plain"], atol=0.02)  # percentage points
 
 
+def _bump_and_changed_frames(tmp_path, capsys, change):
+    """``(sim, changed)``: ``tirdeflect simulate``'s bump (12 bit, 2 frames, 2 levels of noise) and a folder
+    of its frames as ``change(frame as float, index)`` makes them (rounded into 12 bits)."""
+    d = tmp_path / "sim"
+    assert main(["simulate", "--out", str(d), "--surface", "bump", "--size", str(SIZE), "--frames", "2",
+                 "--bits", "12", "--noise", "2"]) == 0
+    changed = tmp_path / "changed"
+    changed.mkdir()
+    for i, p in enumerate(sorted(d.glob("frame_*.tif"))):
+        a = change(imageio.read_image(p).astype(np.float64), i)
+        tifffile.imwrite(changed / p.name, np.clip(np.rint(a), 0, 4095).astype(np.uint16))
+    capsys.readouterr()
+    return d, changed
+
+
+def _process_frames_of(capsys, d, folder, out) -> str:
+    """``tirdeflect process`` of ``folder``'s frames against ``d``'s reference and geometry: its stderr."""
+    code, err = _run(capsys, "process", d / "reference.tif", *sorted(folder.glob("frame_*.tif")),
+                     "--geometry", d / "geometry.toml", "--out", out, "--no-progress")
+    assert code == 0, err
+    return err
+
+
 def test_a_changed_image_scale_since_the_reference_is_named(tmp_path, capsys):
     """The lens refocused after the reference (or the camera moved along its axis): the frames 0.2 %
     larger. Their displacement grows with the distance from the centre, the gradient of a paraboloid, so
@@ -907,22 +930,12 @@ def test_a_changed_image_scale_since_the_reference_is_named(tmp_path, capsys):
 
     from app.gui.export import describe_export
 
-    d = tmp_path / "sim"
-    assert main(["simulate", "--out", str(d), "--surface", "bump", "--size", str(SIZE), "--frames", "2",
-                 "--bits", "12", "--noise", "2"]) == 0
-    zoomed = tmp_path / "zoomed"
-    zoomed.mkdir()
-    for p in sorted(d.glob("frame_*.tif")):
-        a = imageio.read_image(p).astype(np.float32)
-        m = cv2.getRotationMatrix2D((SIZE / 2 - 0.5, SIZE / 2 - 0.5), 0.0, 1.002)
-        b = cv2.warpAffine(a, m, (SIZE, SIZE), flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
-        tifffile.imwrite(zoomed / p.name, np.clip(np.rint(b), 0, 4095).astype(np.uint16))
-    capsys.readouterr()
+    m = cv2.getRotationMatrix2D((SIZE / 2 - 0.5, SIZE / 2 - 0.5), 0.0, 1.002)
+    d, zoomed = _bump_and_changed_frames(tmp_path, capsys, lambda a, i: cv2.warpAffine(
+        a.astype(np.float32), m, (SIZE, SIZE), flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT))
     for label, folder in (("plain", d), ("zoomed", zoomed)):
         out = tmp_path / f"{label}.h5"
-        code, err = _run(capsys, "process", d / "reference.tif", *sorted(folder.glob("frame_*.tif")),
-                         "--geometry", d / "geometry.toml", "--out", out, "--no-progress")
-        assert code == 0, err
+        err = _process_frames_of(capsys, d, folder, out)
         text, _ = describe_export(str(out))
         with h5py.File(out) as f:
             scale = np.asarray(f["pin_status"]["region_scale"], np.float64)
@@ -936,3 +949,22 @@ def test_a_changed_image_scale_since_the_reference_is_named(tmp_path, capsys):
                              r"\(\+0\.2\d? %", err), err
             assert frames_scaled == 2 and "2 where the image's scale changed since the reference" in text
             np.testing.assert_allclose(scale, 0.002, atol=5e-4)  # measured 0.0023 here, at the frame's border
+
+
+def test_bands_of_light_along_the_rows_are_named(tmp_path, capsys):
+    """A rolling shutter under PWM-dimmed LEDs: bands of rows 30 % darker every 32 rows, sharp-edged,
+    moving from frame to frame. Their edges read as surface (simulate's bump 0.05 -> 1.9-2.1 % at 512^2)
+    and the run said nothing before 7 Dec 2026; now it warns, notes it and OUT.h5 counts the frames."""
+    rows = np.arange(SIZE)[:, None]
+    d, banded = _bump_and_changed_frames(
+        tmp_path, capsys, lambda a, i: a * (1.0 - 0.3 * (np.sin(2 * np.pi * (rows + 17 * i) / 64) < 0)))
+    for label, folder in (("plain", d), ("banded", banded)):
+        out = tmp_path / f"{label}.h5"
+        err = _process_frames_of(capsys, d, folder, out)
+        with h5py.File(out) as f:
+            n = int(f.attrs["frames_light_banded"])
+        if label == "plain":
+            assert n == 0 and "bands of light" not in err
+        else:
+            assert n == 2 and "note: 2 frame(s) show bands of light along the rows" in err, err
+            assert "a rolling shutter under light that flickers within a frame" in err

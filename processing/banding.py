@@ -1,0 +1,109 @@
+"""Bands of light along a frame's rows that its reference does not show: a
+rolling shutter under light that flickers within a frame (PWM-dimmed LEDs), or
+a shadow's edge along the rows.  Each row is exposed at its own moment, so the
+light, and with it the frame's grey levels, steps from row to row alike across
+the whole width; where the steps are sharp they read as surface, as a shadow's
+edge does (docs/processing.md section 10): ``tirdeflect simulate``'s bump and
+waves under bands 30 % darker every 32 rows 0.05 -> 1.9-2.1 % and 0.20 -> 1.9-2.0 %
+rel. RMS height error, with exit 0 and no word (7 Dec 2026).
+
+:func:`row_profile` low-passes an image along its rows only (one board period's
+box, the bands' edges kept) and samples it; :func:`light_bands` compares a
+frame's profile with the reference's: each quarter of the width gets its own
+row gain (the median over its columns of frame over reference) and that gain's
+departure from its smooth trend; per row the smallest of the four departures
+where all four agree in sign, else 0: what every part of the width shares, as
+bands do and an object in part of the view (a floating ring, a needle) does not.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import cv2
+import numpy as np
+from scipy.ndimage import uniform_filter1d
+
+__all__ = ["BANDS_MIN_DEPTH", "BANDS_MIN_AGREEMENT", "LightBands", "light_bands", "row_profile"]
+
+#: Box along the rows (px) of :func:`row_profile`; it samples every ``cols // COLUMNS_PER_STEP`` columns
+#: (2 to 16 px: 64 samples or more across, 16 to a quarter; at 256^2 every 16 px left bands 10 % deep at
+#: 0.51 of agreement, every 4 px 0.70).
+ROW_BOX_PX = 31
+COLUMNS_PER_STEP = 64
+#: The row gains' smooth trend (a Gaussian of this many rows): slow changes of light (vignetting, a
+#: dimmer frame) are not bands.
+TREND_ROWS = 64.0
+#: Bands are named where the shared departure's RMS reaches this fraction ...
+#: (measured at 512^2: bands 30 / 10 / 3 % deep, 0.15-0.17 / 0.041-0.049 / 0.008-0.013; a horizontal
+#: shadow edge at half the light 0.11; at most 0.0096 on simulate's bump and waves, the synthetic
+#: tank's scenes, random dots and the real needle and trapped-mode frames, 0.0035 / 0.0203 on the real
+#: floating ring and ellipse frames, where the objects move the quarters' gains one by one)
+BANDS_MIN_DEPTH = 0.02
+#: ... and the four quarters agree in sign on at least this share of the rows (bands 10-30 % deep
+#: 0.95-1.00, every scene without them at most 0.24, vignetting along the columns 0.51 at 0.0065).
+#: Smooth bands (200 rows long, 20 %: mains flicker) are named too (0.043-0.051, 0.91-0.95) though they
+#: cost nothing measurable: only sharp edges read as surface.  1.8 ms a 1024^2 frame.
+BANDS_MIN_AGREEMENT = 0.6
+
+
+@dataclasses.dataclass(frozen=True)
+class LightBands:
+    """How a frame's light varies along its rows against the reference's (:func:`light_bands`)."""
+
+    #: RMS of the row gain's departure shared by the whole width (a fraction of the light)
+    depth: float
+    #: share of the rows whose four quarters depart to the same side
+    agreement: float
+
+    @property
+    def flagged(self) -> bool:
+        return bool(self.depth >= BANDS_MIN_DEPTH and self.agreement >= BANDS_MIN_AGREEMENT)
+
+    def describe(self) -> str:
+        return (f"bands of light along the rows, {100 * self.depth:.2g} % RMS alike across the whole width, that "
+                f"the reference does not show: a rolling shutter under light that flickers within a frame "
+                f"(PWM-dimmed LEDs), or a shadow's edge along the rows; where their edges are sharp they read as "
+                f"surface (bands 30 % deep: about 2 % of the heights' RMS, ray traced; smooth ones cost nothing "
+                f"measurable). Use DC-driven light, a global shutter or an exposure of whole PWM periods")
+
+
+def row_profile(image) -> np.ndarray:
+    """``image`` (2-D) low-passed along its rows only (a box of :data:`ROW_BOX_PX`: blocks of 8 px
+    averaged, then 4 blocks) and sampled every 2-16 columns (:data:`COLUMNS_PER_STEP`): float32 (rows,
+    samples).  0.4 ms a 1024^2 frame."""
+    a = np.asarray(image)
+    if a.dtype not in (np.uint8, np.uint16, np.float32, np.float64):
+        a = a.astype(np.float32)
+    rows, cols = a.shape
+    block = 8 if cols >= 8 * ROW_BOX_PX // 4 * 2 else 1
+    small = cv2.resize(a, (cols // block, rows), interpolation=cv2.INTER_AREA) if block > 1 else a
+    box = max(1, ROW_BOX_PX // block)
+    lp = cv2.blur(np.asarray(small, np.float32), (box, 1), borderType=cv2.BORDER_REFLECT)
+    step = max(1, max(2, min(16, cols // COLUMNS_PER_STEP)) // block)
+    return np.ascontiguousarray(lp[:, box // 2::step])
+
+
+def light_bands(frame_profile, reference_profile) -> LightBands:
+    """:class:`LightBands` of a frame's :func:`row_profile` against its reference's (same shape)."""
+    f = np.asarray(frame_profile, np.float64)
+    r = np.asarray(reference_profile, np.float64)
+    ok = r > 0.05 * float(np.max(r)) if r.size else np.zeros(r.shape, bool)
+    ratio = np.where(ok, f / np.where(ok, r, 1.0), np.nan)
+    gains = []
+    for cols in np.array_split(np.arange(ratio.shape[1]), 4):
+        part = ratio[:, cols]
+        if cols.size == 0 or not np.isfinite(part).any():
+            return LightBands(0.0, 0.0)
+        with np.errstate(all="ignore"):
+            g = np.median(part, axis=1) if np.isfinite(part).all() else np.nanmedian(part, axis=1)
+        gains.append(np.where(np.isfinite(g), g, np.nanmedian(g)))
+    g = np.array(gains)
+    trend = g
+    for _ in range(3):  # three boxes of 2 TREND_ROWS: a Gaussian of TREND_ROWS, in O(rows)
+        trend = uniform_filter1d(trend, size=int(2 * TREND_ROWS) + 1, axis=1, mode="nearest")
+    departures = g / trend - 1.0
+    d = departures
+    same = np.all(d > 0, axis=0) | np.all(d < 0, axis=0)
+    shared = np.where(same, np.sign(d[0]) * np.min(np.abs(d), axis=0), 0.0)
+    return LightBands(float(np.sqrt(np.mean(shared ** 2))), float(np.mean(same)))

@@ -1,0 +1,64 @@
+"""Bands of light along the rows (processing.banding): a rolling shutter under flickering light is
+named, and nothing else is taken for it (surfaces, objects in part of the view, the real frames)."""
+
+import numpy as np
+import pytest
+
+from processing import forward as F
+from processing.banding import light_bands, row_profile
+from processing.geometry import Geometry
+
+G55 = Geometry(theta_deg=55, depth_mm=300, pixel_mm=0.1, rows_toward_camera=False)
+
+
+def _bands(image, depth, period_rows=64, phase=0):
+    rows = np.arange(image.shape[0])[:, None]
+    return image * (1.0 - depth * (np.sin(2 * np.pi * (rows + phase) / period_rows) < 0))
+
+
+@pytest.fixture(scope="module")
+def frames():
+    board = F.Checkerboard(period_mm=2.0, edge_softness_mm=0.1)
+    ref, _ = F.render_tir(F.FlatSurface(), G55, (256, 256), board, supersample=2)
+    waves = F.WaveField.random(6, amplitude_rms_mm=0.001, wavelength_range_mm=(12, 30), seed=11)
+    img, _ = F.render_tir(waves, G55, (256, 256), board, supersample=2)
+    return ref * 4000, img * 4000
+
+
+def test_bands_of_light_along_the_rows_are_named(frames):
+    # sharp bands 30 % and 15 % darker every 32 rows (a rolling shutter under PWM-dimmed LEDs; 30 %:
+    # simulate's bump and waves 0.05 / 0.20 -> about 2 % rel. RMS), over waves filling the frame (10 %:
+    # agreement 0.70 here at 256^2, 0.80-0.96 at 512^2)
+    ref, img = frames
+    clean = light_bands(row_profile(img), row_profile(ref))
+    assert not clean.flagged and clean.depth < 0.01
+    for depth in (0.3, 0.15):
+        found = light_bands(row_profile(_bands(img, depth, phase=17)), row_profile(ref))
+        assert found.flagged and found.agreement > 0.75, found
+        assert 0.3 * depth < found.depth < 0.7 * depth  # the RMS of a square wave of that depth: half of it
+        assert "rolling shutter under light that flickers" in found.describe()
+    # a reference taken under the bands, frames without them: the same, the other way round
+    assert light_bands(row_profile(img), row_profile(_bands(ref, 0.3))).flagged
+
+
+def test_what_lies_in_part_of_the_width_or_changes_slowly_is_not_taken_for_bands(frames):
+    ref, img = frames
+    cols = np.arange(img.shape[1])[None, :]
+    rows = np.arange(img.shape[0])[:, None]
+    for changed in (img * np.where(cols < 128, 0.5, 1.0),  # a shadow over the left half of every row
+                    img * (0.8 + 0.3 * rows / img.shape[0]),  # light falling off along the columns
+                    np.where((rows - 128) ** 2 + (cols - 128) ** 2 < 60 ** 2, 0.2 * img, img)):  # a dark disc
+        assert not light_bands(row_profile(changed), row_profile(ref)).flagged
+
+
+def test_the_real_frames_of_the_tests_data_show_no_bands():
+    from app.files import imageio
+    from tests.datapaths import NEEDLE, TRAPPED
+
+    pairs = [(NEEDLE / "reference_2.png", NEEDLE / "202406_1457001661.bmp"),
+             (TRAPPED / "prueba1_20250317_122608_C1S0001000001.tif", TRAPPED / "prueba1_20250317_122608_C1S0001000211.tif"),
+             (TRAPPED / "reference_df.tif", TRAPPED / "0_5mm_circular_100ms_20250529_141304_C1S0001000001.tif"),
+             (TRAPPED / "reference_df.tif", TRAPPED / "ellipse_10.tif")]  # a floating ring, an ellipse in view
+    for ref, frame in pairs:
+        found = light_bands(row_profile(imageio.read_image(frame)), row_profile(imageio.read_image(ref)))
+        assert not found.flagged, (frame.name, found)
