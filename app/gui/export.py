@@ -98,7 +98,8 @@ def describe_export(out_path: str) -> tuple:
     whole frame (``/pin_status["frame_shift_share"]``, ``PinStatus.shifted``), whose image's scale changed
     (``/pin_status["region_scale_explained"]``, ``PinStatus.scaled``) and recorded INCOMPLETE
     (``/frame_flags``), saturated (``/saturated_pct`` above
-    :data:`processing.live_view.SATURATION_MAX_PCT`) and turned since the reference (``/turn_mrad``
+    :data:`processing.live_view.SATURATION_MAX_PCT`), banded along their rows (the run's
+    ``frames_light_banded``: :mod:`processing.banding`) and turned since the reference (``/turn_mrad``
     above :data:`processing.turn.TURN_MAX_MRAD`), by index; ``clean`` is False when there is any.
     Frames whose own hot pixels were repaired (``/hot_pixels``) are named in a note that leaves
     ``clean`` as it is.
@@ -178,6 +179,11 @@ def describe_export(out_path: str) -> tuple:
                 parts.append(f"{turned.size} where the pattern turned since the reference (up to "
                              f"{turn[turned].max():.2f} mrad; frames {frame_list(turned)}): the camera or the board "
                              f"moved; capture a new reference on still water (/turn_mrad)")
+        banded = int(f.attrs.get("frames_light_banded", 0))  # (processing.banding: per run, not per frame)
+        if banded:
+            parts.append(f"{banded} with bands of light along the rows that the reference does not show (up to "
+                         f"{float(f.attrs.get('light_bands_pct_max', 0.0)):.2g} % RMS): a rolling shutter under "
+                         f"flickering light, or a shadow's edge; use DC-driven light or a global shutter")
         repaired = ""
         if "hot_pixels" in f:
             hot = np.asarray(f["hot_pixels"][:n], np.int64)

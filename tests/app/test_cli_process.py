@@ -954,7 +954,10 @@ def test_a_changed_image_scale_since_the_reference_is_named(tmp_path, capsys):
 def test_bands_of_light_along_the_rows_are_named(tmp_path, capsys):
     """A rolling shutter under PWM-dimmed LEDs: bands of rows 30 % darker every 32 rows, sharp-edged,
     moving from frame to frame. Their edges read as surface (simulate's bump 0.05 -> 1.9-2.1 % at 512^2)
-    and the run said nothing before 7 Dec 2026; now it warns, notes it and OUT.h5 counts the frames."""
+    and the run said nothing before 7 Dec 2026; now it warns, notes it, OUT.h5 counts the frames and the
+    GUI's export names them."""
+    from app.gui.export import describe_export
+
     rows = np.arange(SIZE)[:, None]
     d, banded = _bump_and_changed_frames(
         tmp_path, capsys, lambda a, i: a * (1.0 - 0.3 * (np.sin(2 * np.pi * (rows + 17 * i) / 64) < 0)))
@@ -963,8 +966,10 @@ def test_bands_of_light_along_the_rows_are_named(tmp_path, capsys):
         err = _process_frames_of(capsys, d, folder, out)
         with h5py.File(out) as f:
             n = int(f.attrs["frames_light_banded"])
+        text, clean = describe_export(str(out))  # what the GUI's export says of it
         if label == "plain":
-            assert n == 0 and "bands of light" not in err
+            assert n == 0 and "bands of light" not in err and "bands of light" not in text
         else:
             assert n == 2 and "note: 2 frame(s) show bands of light along the rows" in err, err
             assert "a rolling shutter under light that flickers within a frame" in err
+            assert not clean and "2 with bands of light along the rows" in text
