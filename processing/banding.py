@@ -7,8 +7,8 @@ edge does (docs/processing.md section 10): ``tirdeflect simulate``'s bump and
 waves under bands 30 % darker every 32 rows 0.05 -> 1.9-2.1 % and 0.20 -> 1.9-2.0 %
 rel. RMS height error, with exit 0 and no word (7 Dec 2026).
 
-:func:`row_profile` low-passes an image along its rows only (one board period's
-box, the bands' edges kept) and samples it; :func:`light_bands` compares a
+:func:`row_profile` low-passes an image along its rows only (a 31 px box, about
+a board's period; the bands' edges kept) and samples it; :func:`light_bands` compares a
 frame's profile with the reference's: each quarter of the width gets its own
 row gain (the median over its columns of frame over reference) and that gain's
 departure from its smooth trend; per row the smallest of the four departures

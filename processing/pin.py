@@ -17,8 +17,8 @@ __all__ = ["PIN_MIN_SAMPLES", "PIN_MIN_FRACTION", "PIN_MIN_PIECE_SAMPLES", "PIN_
            "pin_samples_needed", "region_motion_px", "SHIFT_MIN_PX", "SHIFT_TOL_PX", "SHIFT_MIN_SHARE",
            "frame_motion", "frame_motion_step", "FRAME_MOTION_SAMPLES", "shift_tolerance_px", "steady_shift",
            "STEADY_SHIFT_MIN_PX", "STEADY_SHIFT_MIN_RATIO", "STEADY_SHIFT_MIN_FRAMES", "pattern_shifted",
-           "level_of_shift_um", "shift_judged", "region_motion", "region_scale", "pattern_scaled", "motion_of", "scale_of",
-           "SCALE_MIN_PX", "SCALE_MIN_EXPLAINED"]
+           "level_of_shift_um", "shift_judged", "region_motion", "region_scale", "pattern_scaled", "motion_of",
+           "scale_of", "SCALE_MIN_PX", "SCALE_MIN_EXPLAINED"]
 
 
 #: Fewest valid samples the pin of the null space needs (see the module docstring).
@@ -86,8 +86,9 @@ def region_scale(displacement_px, samples, rows_px, cols_px):
     image 0.2 % larger than at the reference) of ``u = t + s (p - p_mean)`` fitted to the displacement
     (2, n_rows, n_cols; px) on ``samples`` (bool, finite ones only) at pixel positions ``p`` (rows_px x
     cols_px), how far it moves the samples farthest from their centre (px), and the share of the
-    displacement's spread about its mean that it explains; NaNs with fewer than 16 samples
-    (:func:`scale_of`)."""
+    displacement's spread about its mean that it explains, counted as far as the samples' outward motion
+    grows with their distance as a scale change's does (:data:`SCALE_MIN_EXPLAINED`); NaNs with fewer
+    than 16 samples (:func:`scale_of`)."""
     u = np.asarray(displacement_px)
     sel = np.asarray(samples, bool) & np.isfinite(u[0]) & np.isfinite(u[1])
     r, c = np.nonzero(sel)
@@ -114,8 +115,9 @@ def scale_of(u_samples, p_samples):
     explained = 1.0 - float(np.sum((u - scale * p) ** 2)) / spread if spread > 0 else 0.0
     # a scale change moves each sample outward in proportion to its distance from the centre; the slopes'
     # tail of a feature centred in the frame points outward too but falls off with the distance (a deep
-    # dimple in FS-SS read -0.14 % so): only as far as that proportion holds better than a constant
-    # outward motion does is the motion a scale change's
+    # dimple in FS-SS read -0.14 % so): the share counts as far as the outward motion's growth with the
+    # distance matches a scale change's (its slope times the mean distance over the mean outward motion:
+    # 1 for a scale change, 0 or less for such a tail)
     outward = np.sum(u * p, axis=0) / np.maximum(rho, 1e-12)
     rho_c = rho - rho.mean()
     trend = float(np.sum(outward * rho_c)) / max(float(np.sum(rho_c * rho_c)), 1e-12)  # outward motion per px
