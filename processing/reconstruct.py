@@ -146,12 +146,12 @@ class Reconstructor:
     def __init__(self, reference_image, geometry, options: Optional[ReconstructOptions] = None, *,
                  carriers: Optional[Carriers] = None, **overrides):
         ref = validate_image(reference_image, "reference image")
+        self.row_profile = row_profile(ref)  # its light along the rows as recorded, for a frame's bands (banding)
         self.mosaic, self._mosaic_maps, ref = equalised_reference(ref)  # a colour camera's raw mosaic, or None
         #: The sensor's hot and dead pixels found in the reference (flat indices), repaired in it and every frame.
         self.defects = defect_pixels(ref)
         ref = repair_pixels(ref, self.defects)
         self._hot_limits = hot_pixel_limits(ref)  # a frame's pixels beyond the reference's reach
-        self.row_profile = row_profile(ref)  # its light along the rows, for a frame's bands (light_bands)
         geometry.check_frame(ref.shape)  # the field size is known here first: camera and rays vs the frame
         #: What this Reconstructor runs (pattern and refine_method resolved).
         self.options, self.pattern = opts, pattern = _resolved(ref, geometry, options, overrides)

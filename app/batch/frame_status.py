@@ -27,7 +27,7 @@ from processing.errors import (
     TirdeflectError,
 )
 from processing.live_view import SATURATION_MAX_PCT, saturation_pct
-from processing.banding import LightBands, light_bands, row_profile
+from processing.banding import LightBands, even_rows, light_bands, row_profile
 from processing.turn import TURN_MAX_MRAD, TurnCheck
 
 __all__ = ["FrameStatus", "FrameOutcome", "FrameTally", "measure_frame", "outcome_of_error"]
@@ -131,8 +131,9 @@ def measure_frame(reconstruct, image: np.ndarray, ref_shape, grid: str):
             FrameStatus.BLANK,
             f"every pixel of the frame is {lo:g} (a {'black' if hi == 0 else 'uniform'} frame: "
             f"lost packets, no light or a saturated exposure)")
-    try:
-        result = reconstruct(image, grid=grid)
+    bands = frame_bands(reconstruct, image)
+    try:  # bands of light along the rows are evened out first (processing.banding.even_rows)
+        result = reconstruct(even_rows(image, bands) if bands is not None and bands.flagged else image, grid=grid)
     except TirdeflectError as exc:
         outcome = outcome_of_error(exc)
         if outcome is None:
@@ -144,7 +145,7 @@ def measure_frame(reconstruct, image: np.ndarray, ref_shape, grid: str):
             "no pixel of the frame could be measured (no pattern contrast: black, saturated or "
             "fully blurred frame); check exposure and that the pattern is in view")
     return result, FrameOutcome(saturated_pct=saturation_pct(image), hot_pixels=result.hot_pixels,
-                                turn=result.turn, light_bands=frame_bands(reconstruct, image))
+                                turn=result.turn, light_bands=bands)
 
 
 def frame_bands(reconstruct, image) -> Optional[LightBands]:

@@ -553,9 +553,14 @@ class _GpuBatches:
 
     def _plain(self, item) -> bool:
         """A frame the GPU can take with the others (read, right shape, not uniform)."""
+        from app.batch.frame_status import frame_bands
+
         image = item.image
-        return (item.error is None and image is not None and image.shape == self._shape
-                and image.min() != image.max())
+        if not (item.error is None and image is not None and image.shape == self._shape
+                and image.min() != image.max()):
+            return False
+        bands = frame_bands(self._recon, image)  # banded frames are evened out on the CPU (frame_status)
+        return bands is None or not bands.flagged
 
     def _one_by_one(self, items):
         for it in items:
@@ -606,12 +611,10 @@ class _GpuBatches:
                 raise
             self._one_by_one(items)  # one frame at a time from the batch's start: each frame's own outcome
             return True
-        from app.batch.frame_status import frame_bands
         from processing.live_view import saturation_pct
 
         for it, r in zip(plain, results):
-            outcome = FrameOutcome(saturated_pct=saturation_pct(it.image), hot_pixels=r.hot_pixels,
-                                   light_bands=frame_bands(self._recon, it.image))
+            outcome = FrameOutcome(saturated_pct=saturation_pct(it.image), hot_pixels=r.hot_pixels)
             self._ready.append((it, functools.partial(_given, (r, outcome))))
         self._one_by_one(items[len(plain):])
         return True

@@ -954,16 +954,20 @@ def test_a_changed_image_scale_since_the_reference_is_named(tmp_path, capsys):
 def test_bands_of_light_along_the_rows_are_named(tmp_path, capsys):
     """A rolling shutter under PWM-dimmed LEDs: bands of rows 30 % darker every 32 rows, sharp-edged,
     moving from frame to frame. Their edges read as surface (simulate's bump 0.05 -> 1.9-2.1 % at 512^2)
-    and the run said nothing before 7 Dec 2026; now it warns, notes it, OUT.h5 counts the frames and the
-    GUI's export names them."""
+    and the run said nothing before 7 Dec 2026; now each row is evened out against the reference before
+    measuring (the heights of the frames without bands, within 0.05 points), the run warns and notes it,
+    OUT.h5 counts the frames and the GUI's export names them."""
     from app.gui.export import describe_export
 
     rows = np.arange(SIZE)[:, None]
     d, banded = _bump_and_changed_frames(
         tmp_path, capsys, lambda a, i: a * (1.0 - 0.3 * (np.sin(2 * np.pi * (rows + 17 * i) / 64) < 0)))
+    errors = {}
     for label, folder in (("plain", d), ("banded", banded)):
         out = tmp_path / f"{label}.h5"
         err = _process_frames_of(capsys, d, folder, out)
+        assert main(["compare", str(out), str(d)]) == 0
+        errors[label] = [float(x) for x in re.findall(r"^\s*\d+\s+([\d.]+) %", capsys.readouterr().out, re.M)]
         with h5py.File(out) as f:
             n = int(f.attrs["frames_light_banded"])
         text, clean = describe_export(str(out))  # what the GUI's export says of it
@@ -973,3 +977,6 @@ def test_bands_of_light_along_the_rows_are_named(tmp_path, capsys):
             assert n == 2 and "note: 2 frame(s) show bands of light along the rows" in err, err
             assert "a rolling shutter under light that flickers within a frame" in err
             assert not clean and "2 with bands of light along the rows" in text
+            assert "evened out before measuring" in err
+    assert len(errors["banded"]) == 2
+    np.testing.assert_allclose(errors["banded"], errors["plain"], atol=0.05)  # percentage points
