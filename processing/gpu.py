@@ -216,7 +216,8 @@ class BatchChain:
             recon.reference_region_name, plan.region_near)
         self.pin_samples = samples
         self.pin_index = to(np.flatnonzero(samples))  # where each frame's motion there is measured
-        self.pin_pos = np.stack([recon.rows_px[np.nonzero(samples)[0]], recon.cols_px[np.nonzero(samples)[1]]])
+        pin_r, pin_c = np.nonzero(samples)
+        self.pin_pos = np.stack([recon.rows_px[pin_r], recon.cols_px[pin_c]])  # (for processing.pin.motion_of)
         self.F["w"] = to(w)
         self.nn = float(nn)
         self.sx, self.sy_u, self.sy_h = float(F["sx"]), float(F["sy_u"]), float(F["sy_h"])

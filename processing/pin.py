@@ -56,11 +56,29 @@ def region_motion_px(displacement_px, samples) -> float:
     """Length of the median displacement vector (pixels; componentwise medians) of
     ``displacement_px`` (2, n_rows, n_cols) over the pin ``samples`` (bool, its
     finite samples only); NaN when none is finite."""
+    return _median_length(_finite_on(displacement_px, samples)[0])
+
+
+def _finite_on(displacement_px, samples):
+    """``(u, sel)``: the displacement (2, m) on the ``samples`` (bool) where both components are
+    finite, and that selection (n_rows, n_cols)."""
     u = np.asarray(displacement_px)
     sel = np.asarray(samples, bool) & np.isfinite(u[0]) & np.isfinite(u[1])
-    if not sel.any():
-        return float("nan")
-    return float(math.hypot(float(np.median(u[0][sel])), float(np.median(u[1][sel]))))
+    return np.stack([u[0][sel], u[1][sel]]), sel
+
+
+def _median_length(u_samples) -> float:
+    """Length of the componentwise median of ``u_samples`` (2, m); NaN for none."""
+    u = np.asarray(u_samples)
+    return float(math.hypot(float(np.median(u[0])), float(np.median(u[1])))) if u.shape[1] else float("nan")
+
+
+def _pin_samples(displacement_px, samples, rows_px, cols_px):
+    """``(u, p)``: the displacement (2, m; px) on the finite ``samples`` and their positions (2, m; px)
+    on the grid ``rows_px`` x ``cols_px``."""
+    u, sel = _finite_on(displacement_px, samples)
+    r, c = np.nonzero(sel)
+    return u, np.stack([np.asarray(rows_px, np.float64)[r], np.asarray(cols_px, np.float64)[c]])
 
 
 #: The image's scale changed since the reference (:func:`pattern_scaled`): the pin samples'
@@ -89,11 +107,7 @@ def region_scale(displacement_px, samples, rows_px, cols_px):
     displacement's spread about its mean that it explains, counted as far as the samples' outward motion
     grows with their distance as a scale change's does (:data:`SCALE_MIN_EXPLAINED`); NaNs with fewer
     than 16 samples (:func:`scale_of`)."""
-    u = np.asarray(displacement_px)
-    sel = np.asarray(samples, bool) & np.isfinite(u[0]) & np.isfinite(u[1])
-    r, c = np.nonzero(sel)
-    return scale_of(np.stack([u[0][sel], u[1][sel]]),
-                    np.stack([np.asarray(rows_px, np.float64)[r], np.asarray(cols_px, np.float64)[c]]))
+    return scale_of(*_pin_samples(displacement_px, samples, rows_px, cols_px))
 
 
 def scale_of(u_samples, p_samples):
@@ -137,20 +151,14 @@ def region_motion(displacement_px, samples, rows_px, cols_px) -> dict:
     """The :class:`PinStatus` fields of how the pattern moved on the pin ``samples``: ``region_motion_px``
     (:func:`region_motion_px`) and ``region_scale``, ``region_scale_reach_px``,
     ``region_scale_explained`` (:func:`region_scale`)."""
-    u = np.asarray(displacement_px)
-    sel = np.asarray(samples, bool) & np.isfinite(u[0]) & np.isfinite(u[1])
-    r, c = np.nonzero(sel)
-    return motion_of(np.stack([u[0][sel], u[1][sel]]),
-                     np.stack([np.asarray(rows_px, np.float64)[r], np.asarray(cols_px, np.float64)[c]]))
+    return motion_of(*_pin_samples(displacement_px, samples, rows_px, cols_px))
 
 
 def motion_of(u_samples, p_samples) -> dict:
     """:func:`region_motion` of the pin samples' displacement ``u_samples`` (2, m; px, finite) at
     positions ``p_samples`` (2, m; px)."""
-    u = np.asarray(u_samples)
-    scale, reach, explained = scale_of(u, p_samples)
-    motion = float(math.hypot(float(np.median(u[0])), float(np.median(u[1])))) if u.shape[1] else float("nan")
-    return dict(region_motion_px=motion, region_scale=scale, region_scale_reach_px=reach,
+    scale, reach, explained = scale_of(u_samples, p_samples)
+    return dict(region_motion_px=_median_length(u_samples), region_scale=scale, region_scale_reach_px=reach,
                 region_scale_explained=explained)
 
 

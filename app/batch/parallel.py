@@ -573,7 +573,7 @@ class _GpuBatches:
         """Read up to a batch of frames and reconstruct them; False at the end of the frames."""
         from app.batch.frame_status import FrameOutcome
 
-        items = []
+        items, last_plain = [], True
         while len(items) < self._batch_size:
             try:
                 item = self._again.popleft() if self._again else next(self._frames)
@@ -583,11 +583,12 @@ class _GpuBatches:
                 self._read_error = exc
                 break
             items.append(item)
-            if not self._plain(item):
+            last_plain = self._plain(item)  # (its bands judged once)
+            if not last_plain:
                 break  # measured on its own after the ones before it
         if not items:
             return False
-        plain = items if self._plain(items[-1]) else items[:-1]
+        plain = items if last_plain else items[:-1]
         state = self._recon.series_state()
         try:
             results = self._recon.batch([it.image for it in plain], grid=self._grid, essentials=True)
