@@ -21,12 +21,14 @@ check, :mod:`app.batch.frame_status`, does so before measuring).
 from __future__ import annotations
 
 import dataclasses
+from typing import Optional
 
 import cv2
 import numpy as np
 from scipy.ndimage import uniform_filter1d
 
-__all__ = ["BANDS_MIN_DEPTH", "BANDS_MIN_AGREEMENT", "LightBands", "even_rows", "light_bands", "row_profile"]
+__all__ = ["BANDS_MIN_DEPTH", "BANDS_MIN_AGREEMENT", "LightBands", "even_rows", "frame_light_bands", "light_bands",
+           "row_profile"]
 
 #: Box along the rows (px) of :func:`row_profile`; it samples every ``cols // COLUMNS_PER_STEP`` columns
 #: (2 to 16 px: 64 samples or more across, 16 to a quarter; at 256^2 every 16 px left bands 10 % deep at
@@ -48,7 +50,7 @@ BANDS_MIN_DEPTH = 0.02
 #: ... and the four quarters agree in sign on at least this share of the rows (bands 10-30 % deep
 #: 0.95-1.00, every scene without them at most 0.24, vignetting along the columns 0.51 at 0.0065).
 #: Smooth bands (200 rows long, 20 %: mains flicker) are named too (0.043-0.051, 0.91-0.95) though they
-#: cost nothing measurable: only sharp edges read as surface.  1.8 ms a 1024^2 frame.
+#: cost nothing measurable: only sharp edges read as surface.
 BANDS_MIN_AGREEMENT = 0.6
 
 
@@ -90,7 +92,7 @@ def even_rows(image, bands: LightBands) -> np.ndarray:
 def row_profile(image) -> np.ndarray:
     """``image`` (2-D) low-passed along its rows only (a box of :data:`ROW_BOX_PX`: blocks of 8 px
     averaged, then 4 blocks) and sampled every 2-16 columns (:data:`COLUMNS_PER_STEP`): float32 (rows,
-    samples).  0.4 ms a 1024^2 frame."""
+    samples).  0.5 ms a 1024^2 frame (:func:`light_bands` 0.9 ms)."""
     a = np.asarray(image)
     if a.dtype not in (np.uint8, np.uint16, np.float32, np.float64):
         a = a.astype(np.float32)
@@ -115,8 +117,9 @@ def light_bands(frame_profile, reference_profile) -> LightBands:
         if cols.size == 0 or not np.isfinite(part).any():
             return LightBands(0.0, 0.0, np.ones(ratio.shape[0]))
         with np.errstate(all="ignore"):
-            g = np.median(part, axis=1) if np.isfinite(part).all() else np.nanmedian(part, axis=1)
-        gains.append(np.where(np.isfinite(g), g, np.nanmedian(g)))
+            g = _median_of_rows(part) if np.isfinite(part).all() else np.nanmedian(part, axis=1)
+        finite = np.isfinite(g)
+        gains.append(g if finite.all() else np.where(finite, g, np.nanmedian(g)))
     g = np.array(gains)
     # rows with almost no light (lost packets, a black object across the frame) are no bands of light
     lit = np.all(g > LIT_MIN_GAIN, axis=0)
@@ -127,4 +130,21 @@ def light_bands(frame_profile, reference_profile) -> LightBands:
     d = np.where(lit, g / trend - 1.0, 0.0)
     same = lit & (np.all(d > 0, axis=0) | np.all(d < 0, axis=0))
     shared = np.where(same, np.sign(d[0]) * np.min(np.abs(d), axis=0), 0.0)
-    return LightBands(float(np.sqrt(np.mean(shared ** 2))), float(np.mean(same)), 1.0 + np.median(d, axis=0))
+    return LightBands(float(np.sqrt(np.mean(shared ** 2))), float(np.mean(same)), 1.0 + _median_of_rows(d.T))
+
+
+def frame_light_bands(image, reference_profile) -> Optional[LightBands]:
+    """:func:`light_bands` of ``image`` (2-D) against ``reference_profile`` (the reference's
+    :func:`row_profile`; None: nothing to judge against, and None is returned).  What the batch and the
+    live window both judge each frame by: about 1.4 ms a 1024^2 frame."""
+    return None if reference_profile is None else light_bands(row_profile(image), reference_profile)
+
+
+def _median_of_rows(a):
+    """``np.median(a, axis=1)`` of a 2-D float array without NaN, the same numbers: the rows sorted (a
+    few dozen values each, where NumPy's vectorised sort is 5-7x faster than the median's partition of
+    each row: the live window judges every frame, 1024^2 1.85 -> 0.4 ms) and the middle one, or the
+    mean of the middle two."""
+    s = np.sort(a, axis=1)
+    m = s.shape[1] // 2
+    return s[:, m] if s.shape[1] % 2 else (s[:, m - 1] + s[:, m]) / 2

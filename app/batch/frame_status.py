@@ -27,7 +27,7 @@ from processing.errors import (
     TirdeflectError,
 )
 from processing.live_view import SATURATION_MAX_PCT, saturation_pct
-from processing.banding import LightBands, even_rows, light_bands, row_profile
+from processing.banding import LightBands, even_rows, frame_light_bands
 from processing.turn import TURN_MAX_MRAD, TurnCheck
 
 __all__ = ["FrameStatus", "FrameOutcome", "FrameTally", "measure_frame", "outcome_of_error"]
@@ -151,8 +151,7 @@ def measure_frame(reconstruct, image: np.ndarray, ref_shape, grid: str):
 def frame_bands(reconstruct, image) -> Optional[LightBands]:
     """:func:`processing.banding.light_bands` of ``image`` against ``reconstruct``'s reference (None where
     it keeps no row profile)."""
-    reference = getattr(reconstruct, "row_profile", None)
-    return None if reference is None else light_bands(row_profile(image), reference)
+    return frame_light_bands(image, getattr(reconstruct, "row_profile", None))
 
 
 class FrameTally:

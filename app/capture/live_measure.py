@@ -13,6 +13,8 @@ from typing import Optional
 
 import numpy as np
 
+from processing.banding import even_rows, frame_light_bands
+
 __all__ = ["LiveJob", "Measured", "WorkerStopped", "measure_live", "error_message", "thread_clock"]
 
 
@@ -21,12 +23,15 @@ class LiveJob:
     """What the worker asks of one frame (picklable: it is sent to the worker process).
 
     ``grid``: "decimated" or "full"; ``reset_series``: start the temporal unwrapping anew
-    (a new reconstructor or grid); ``alignment``: also compute the alignment metrics and spectrum.
+    (a new reconstructor or grid); ``alignment``: also compute the alignment metrics and spectrum;
+    ``bands``: judge the frame's bands of light along the rows against the reference
+    (:func:`processing.banding.frame_light_bands`) and even them out before measuring.
     """
 
     grid: str = "decimated"
     reset_series: bool = False
     alignment: bool = False
+    bands: bool = False
 
 
 @dataclasses.dataclass
@@ -39,7 +44,9 @@ class Measured:
     schedstat; 0 elsewhere): ``processing_s - cpu_s - queued_s`` is time it was blocked, above all
     waiting for its process's GIL,
     ``alignment_s`` wall time of alignment + spectrum, seconds; ``traceback_text``: the traceback of
-    an unexpected error (not a :class:`ValueError`), for the log.
+    an unexpected error (not a :class:`ValueError`), for the log; ``light_bands``: the frame's
+    :class:`processing.banding.LightBands` where the job asked and the reconstructor keeps the
+    reference's row profile (evened out before measuring where flagged), else None.
     """
 
     result: object = None
@@ -51,6 +58,7 @@ class Measured:
     queued_s: float = 0.0
     alignment_s: float = 0.0
     traceback_text: Optional[str] = None
+    light_bands: object = None
 
 
 def measure_live(reconstructor, image: np.ndarray, job: LiveJob) -> Measured:
@@ -74,7 +82,12 @@ def measure_live(reconstructor, image: np.ndarray, job: LiveJob) -> Measured:
     try:
         if job.reset_series and hasattr(reconstructor, "reset_series"):
             reconstructor.reset_series()
-        out.result = reconstructor(image, grid=job.grid)
+        measured = image
+        if job.bands:  # as the batch does (app.batch.frame_status.measure_frame): evened, then measured
+            out.light_bands = frame_light_bands(image, getattr(reconstructor, "row_profile", None))
+            if out.light_bands is not None and out.light_bands.flagged:
+                measured = even_rows(image, out.light_bands)
+        out.result = reconstructor(measured, grid=job.grid)
     except Exception as exc:  # TirdeflectError: show it, keep going
         out.error = error_message(exc)
         if not isinstance(exc, ValueError):

@@ -51,7 +51,7 @@ import numpy as np
 from .live_measure import LiveJob, Measured, WorkerStopped, error_message, measure_live
 
 __all__ = ["Processed", "ProcessingWorker", "LiveJob", "Measured", "WorkerStopped", "measure_live",
-           "saturation_percent", "ring_source"]
+           "saturation_percent", "ring_source", "BANDS_INTERVAL_S"]
 
 log = logging.getLogger(__name__)
 
@@ -97,6 +97,11 @@ class Processed:
         Time of the reconstruction that thread was runnable but waited for a core (other programs);
         ``processing_s - cpu_s - queued_s`` is time it was blocked: above all, in this process,
         waiting for the GIL that the GUI, camera and recorder threads hold.
+    light_bands : processing.banding.LightBands or None
+        Bands of light along the rows that the reference does not show (a rolling shutter under
+        PWM-dimmed light): judged every :data:`BANDS_INTERVAL_S` while none were found, on every frame
+        (each evened out before measuring) while they are; the last verdict in between; None without
+        a reference.
     """
 
     seq: int
@@ -112,6 +117,7 @@ class Processed:
     picked_ns: int = 0
     cpu_s: float = 0.0
     queued_s: float = 0.0
+    light_bands: object = None
 
 
 def saturation_percent(image: np.ndarray, bit_depth: Optional[int] = None, *, step: int = 2) -> float:
@@ -155,6 +161,12 @@ def ring_source(ring) -> FrameSource:
         return f.sequence, f.image, f.host_timestamp_ns
 
     return source
+
+
+#: Seconds between two judgements of a frame's bands of light (:func:`processing.banding.frame_light_bands`,
+#: 1.4 ms at 1024^2: a third of the live heights' time on every frame) while the last found none; flickering
+#: light is a state of the room, named within this long, and while it lasts every frame is judged and evened.
+BANDS_INTERVAL_S = 0.25
 
 
 @dataclasses.dataclass(frozen=True)
@@ -212,6 +224,8 @@ class ProcessingWorker:
         self._alignment = False
         self._alignment_interval_s = 0.1
         self._last_alignment_t = 0.0
+        self._bands = None  # the last frame's LightBands verdict (None: none yet on this reconstructor)
+        self._last_bands_t = -BANDS_INTERVAL_S
         self._poll_timeout_s = float(poll_timeout_s)
         self._nice = int(nice)
         self._latest: Optional[Processed] = None
@@ -251,6 +265,7 @@ class ProcessingWorker:
             self._reconstructor = reconstructor
             self._reference = None if reconstructor is None else reference
             self._reset_series = reconstructor is not None
+            self._bands, self._last_bands_t = None, -BANDS_INTERVAL_S  # judged anew against this reference
             self._latest = None if reconstructor is None else self._latest
             if reconstructor is None:
                 for published in self._waiting:
@@ -433,7 +448,11 @@ class ProcessingWorker:
             if do_alignment:
                 self._last_alignment_t = t_start  # until it ends (below): the next frame is not due as well
             reset, self._reset_series = self._reset_series, False
-            return _Plan(self._reconstructor, self._reference, LiveJob(self._grid, reset, do_alignment),
+            flagged = self._bands is not None and self._bands.flagged
+            do_bands = flagged or t_start - self._last_bands_t >= BANDS_INTERVAL_S
+            if do_bands:
+                self._last_bands_t = t_start
+            return _Plan(self._reconstructor, self._reference, LiveJob(self._grid, reset, do_alignment, do_bands),
                          self._bit_depth, self._alignment_fn, t_start)
 
     def _look_ahead(self):
@@ -483,11 +502,15 @@ class ProcessingWorker:
             alignment, spectrum = self._latest.alignment, self._latest.spectrum
         if m.result is not None:
             self.last_error = None
+        with self._lock:
+            if job.bands and rec is self._reconstructor:
+                self._bands = m.light_bands
+            bands = self._bands if rec is not None else None
         return Processed(seq=seq, host_timestamp_ns=host_ns, image=image, result=m.result, error=m.error,
                          alignment=alignment, spectrum=spectrum,
                          saturation_pct=saturation_percent(image, bit_depth),
                          processing_s=m.processing_s, done_ns=time.monotonic_ns(), picked_ns=picked_ns,
-                         cpu_s=m.cpu_s, queued_s=m.queued_s)
+                         cpu_s=m.cpu_s, queued_s=m.queued_s, light_bands=bands)
 
     def _measure(self, rec, reference, image: np.ndarray, job: LiveJob, token=None) -> Measured:
         """:func:`measure_live` in the worker process where there is one to use, else here."""

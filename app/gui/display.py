@@ -96,7 +96,7 @@ def draw_result(w, p, part: int = -1):
         for v in views:
             v.show_message(text, None if v is w.height_view else short)
         w.last_drawn = p
-        w.pin_overlay.update(r)
+        w.pin_overlay.update(r, p.light_bands)
         w._unmeasured = None
         w._maps_shown = w._shown_now(seq, p.host_timestamp_ns)
         height_um = np.multiply(r.height, 1e3, dtype=np.float32)

@@ -95,8 +95,9 @@ class PinRegionOverlay:
         self._show(f"{self.name} (h = 0): {pct:.0f} % valid in the reference, {self.samples} samples",
                    f"h = 0: {pct:.0f} % valid", bad=self.samples == 0)
 
-    def update(self, result) -> None:
-        """Label the region with the fraction of it valid in ``result`` (a Result)."""
+    def update(self, result, light_bands=None) -> None:
+        """Label the region with the fraction of it valid in ``result`` (a Result), and what is wrong with
+        the frame's heights; ``light_bands``: the live frame's :class:`processing.banding.LightBands`."""
         pin = getattr(result, "pin", None)
         if pin is None or not self.name:
             return
@@ -121,6 +122,9 @@ class PinRegionOverlay:
             text += (f" — the pattern TURNED by {abs(turn.turn_mrad):.2f} mrad since the reference (camera or board "
                      f"moved{'; taken out of the heights' if turn.removed else ''}): capture a new reference")
             flags.append("TURNED")
+        if light_bands is not None and light_bands.flagged:  # evened out before measuring: named all the same
+            text += " — LIGHT BANDS: " + light_bands.describe()
+            flags.append("LIGHT BANDS")
         series = getattr(result, "series", None)
         if series is not None and series.flagged:
             text += " — JUMP against the previous frame"
