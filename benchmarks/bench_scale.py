@@ -3,6 +3,7 @@
     python3 benchmarks/bench_scale.py [--size 1024] [--frames 96] [--max-workers N] [--no-dask]
     python3 benchmarks/bench_scale.py --writer [--baseline-rev REV] [--compression gzip] [--rounds 2] [--out-dir DIR]
     python3 benchmarks/bench_scale.py --default-vs [REV] [--frames 1000] [--rounds 1]
+    python3 benchmarks/bench_scale.py --refine-vs [--frames 200] [--rounds 2]
 
 One HDF5 recording (ray-traced travelling waves, full grid, FFTW_ESTIMATE so
 that planning does not blur the comparison) is processed by the batch engine
@@ -33,6 +34,10 @@ on --frames frames (1,000 for the issue's figure), with this tree and with
 the code of REV (default: DEFAULT_VS_REV, the code before issue 22's speed
 work), each in a fresh process, in turn: the wall time of the whole run and
 the ratio, same recording, same machine, same minutes.
+
+--refine-vs (issue 22) times that default against `tirdeflect process --refine fd` (the same
+but for FD's refinement), both on every core as the command runs them (one frame per worker
+process, one thread each), fresh processes in turn: the steady rates and their ratio.
 """
 
 from __future__ import annotations
@@ -88,9 +93,10 @@ def _run(path: Path, out: Path, **kw):
     from app.batch import ProcessJob, run_process
 
     stamps = []
-    kw = {"fft_effort": "estimate", **kw}
     if kw.pop("defaults", False):  # what `tirdeflect process IN -o OUT` runs: the job's own defaults
-        kw = {}
+        kw = {k: v for k, v in kw.items() if k == "refine_method"}  # (--refine-vs: but for the refinement)
+    else:
+        kw = {"fft_effort": "estimate", **kw}
     job = ProcessJob(reference=str(path), frames=[str(path)], out=str(out), overwrite=True,
                      on_progress=lambda done, total: stamps.append((time.perf_counter(), time.process_time())),
                      **kw)
@@ -172,6 +178,31 @@ def _default_vs(args, path: Path, tmp: Path) -> None:
           f"x{old / mine:.2f} faster (goal of issue 22: >= 3x)")
 
 
+def _refine_vs(args, path: Path, tmp: Path) -> None:
+    """Issue 22: `tirdeflect process` by default against `tirdeflect process --refine fd`, both as a user
+    runs them (every core: one frame per worker process, one thread each), fresh processes in turn."""
+    runs = [("default", dict(defaults=True)), ("--refine fd", dict(defaults=True, refine_method="fd"))]
+    print(f"`tirdeflect process` by default against `--refine fd` (every core, default FFT planning), "
+          f"{args.frames} frames, fresh processes in turn; steady: from the first frame written to the last")
+    steady = {}
+    for r in range(args.rounds):
+        for name, job in runs[r % 2:] + runs[:r % 2]:  # order alternates
+            load = os.getloadavg()[0]
+            t0 = time.perf_counter()
+            got = _in_child(str(ROOT), dict(path=str(path), out=str(tmp / "out.h5"), job=job))
+            wall = time.perf_counter() - t0
+            if isinstance(got, str):
+                print(f"{name}: failed\n{got}")
+                continue
+            steady.setdefault(name, []).append(got[1])
+            print(f"round {r}  {name:12s} load {load:5.2f}  wall {wall:7.1f} s (process start included)  "
+                  f"{got[0]:6.2f} frames/s whole run  {got[1]:6.2f} frames/s steady", flush=True)
+    best = {name: max(steady.get(name, [math.nan])) for name, _ in runs}
+    print(f"best steady rate: default {best['default']:.2f}, --refine fd {best['--refine fd']:.2f} frames/s: "
+          f"the default takes x{best['--refine fd'] / best['default']:.2f} FD's time "
+          f"(goal of issue 22: <= 2.5x)")
+
+
 def _writer_rounds(args, path: Path, tmp: Path) -> None:
     """The writer of OUT.h5: this tree, this tree flushing every frame, --baseline-rev."""
     trees = [("this tree", str(ROOT), False), ("flush every frame", str(ROOT), True)]
@@ -221,6 +252,8 @@ def main(argv=None) -> int:
     ap.add_argument("--compression", default="none", choices=("none", "gzip", "lzf"))
     ap.add_argument("--default-vs", nargs="?", const=DEFAULT_VS_REV, metavar="REV",
                     help=f"issue 22: default `process`, this tree against REV (default {DEFAULT_VS_REV})")
+    ap.add_argument("--refine-vs", action="store_true",
+                    help="issue 22: `process` by default against `process --refine fd`, every core (see above)")
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--out-dir", help="with --writer: write OUT.h5 there (e.g. /dev/shm: no disk "
                                       "write-back in the figures); default: a temporary directory")
@@ -238,6 +271,9 @@ def main(argv=None) -> int:
             return 0
         if args.default_vs:
             _default_vs(args, path, tmp)
+            return 0
+        if args.refine_vs:
+            _refine_vs(args, path, tmp)
             return 0
         rows = []
         base = None
