@@ -155,25 +155,33 @@ def _in_child(tree: str, spec: dict):
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
-def _default_vs(args, path: Path, tmp: Path) -> None:
-    """Issue 22: `tirdeflect process` by default, this tree against the code of ``args.default_vs``."""
-    trees = [("this tree", str(ROOT)), (f"rev {args.default_vs}", _tree_of(args.default_vs, tmp))]
-    print(f"`tirdeflect process` by default (every core, default refinement and FFT planning), "
-          f"{args.frames} frames; this tree against the code of {args.default_vs}, fresh processes in turn")
-    walls = {}
+def _alternating(args, path: Path, tmp: Path, runs) -> dict:
+    """``{name: [(wall s, frames/s whole run, frames/s steady), ...]}`` of ``runs`` (``(name, tree, job)``)
+    in fresh processes, ``args.rounds`` rounds in alternating order, each line printed."""
+    got_all = {}
     for r in range(args.rounds):
-        for name, tree in trees[r % 2:] + trees[:r % 2]:  # order alternates
+        for name, tree, job in runs[r % 2:] + runs[:r % 2]:  # order alternates
             load = os.getloadavg()[0]
             t0 = time.perf_counter()
-            got = _in_child(tree, dict(path=str(path), out=str(tmp / "out.h5"), job=dict(defaults=True)))
+            got = _in_child(tree, dict(path=str(path), out=str(tmp / "out.h5"), job=job))
             wall = time.perf_counter() - t0
             if isinstance(got, str):
                 print(f"{name}: failed\n{got}")
                 continue
-            walls.setdefault(name, []).append(wall)
+            got_all.setdefault(name, []).append((wall, got[0], got[1]))
             print(f"round {r}  {name:16s} load {load:5.2f}  wall {wall:7.1f} s (process start included)  "
                   f"{got[0]:6.2f} frames/s whole run  {got[1]:6.2f} frames/s steady", flush=True)
-    (mine, *_), (old, *_) = (sorted(walls.get(name, [math.nan])) for name, _ in trees)
+    return got_all
+
+
+def _default_vs(args, path: Path, tmp: Path) -> None:
+    """Issue 22: `tirdeflect process` by default, this tree against the code of ``args.default_vs``."""
+    runs = [("this tree", str(ROOT), dict(defaults=True)),
+            (f"rev {args.default_vs}", _tree_of(args.default_vs, tmp), dict(defaults=True))]
+    print(f"`tirdeflect process` by default (every core, default refinement and FFT planning), "
+          f"{args.frames} frames; this tree against the code of {args.default_vs}, fresh processes in turn")
+    got = _alternating(args, path, tmp, runs)
+    mine, old = (min([g[0] for g in got.get(name, [])], default=math.nan) for name, _, _ in runs)
     print(f"best wall time: this tree {mine:.1f} s, rev {args.default_vs} {old:.1f} s: "
           f"x{old / mine:.2f} faster (goal of issue 22: >= 3x)")
 
@@ -181,23 +189,12 @@ def _default_vs(args, path: Path, tmp: Path) -> None:
 def _refine_vs(args, path: Path, tmp: Path) -> None:
     """Issue 22: `tirdeflect process` by default against `tirdeflect process --refine fd`, both as a user
     runs them (every core: one frame per worker process, one thread each), fresh processes in turn."""
-    runs = [("default", dict(defaults=True)), ("--refine fd", dict(defaults=True, refine_method="fd"))]
+    runs = [("default", str(ROOT), dict(defaults=True)),
+            ("--refine fd", str(ROOT), dict(defaults=True, refine_method="fd"))]
     print(f"`tirdeflect process` by default against `--refine fd` (every core, default FFT planning), "
           f"{args.frames} frames, fresh processes in turn; steady: from the first frame written to the last")
-    steady = {}
-    for r in range(args.rounds):
-        for name, job in runs[r % 2:] + runs[:r % 2]:  # order alternates
-            load = os.getloadavg()[0]
-            t0 = time.perf_counter()
-            got = _in_child(str(ROOT), dict(path=str(path), out=str(tmp / "out.h5"), job=job))
-            wall = time.perf_counter() - t0
-            if isinstance(got, str):
-                print(f"{name}: failed\n{got}")
-                continue
-            steady.setdefault(name, []).append(got[1])
-            print(f"round {r}  {name:12s} load {load:5.2f}  wall {wall:7.1f} s (process start included)  "
-                  f"{got[0]:6.2f} frames/s whole run  {got[1]:6.2f} frames/s steady", flush=True)
-    best = {name: max(steady.get(name, [math.nan])) for name, _ in runs}
+    got = _alternating(args, path, tmp, runs)
+    best = {name: max([g[2] for g in got.get(name, [])], default=math.nan) for name, _, _ in runs}
     print(f"best steady rate: default {best['default']:.2f}, --refine fd {best['--refine fd']:.2f} frames/s: "
           f"the default takes x{best['--refine fd'] / best['default']:.2f} FD's time "
           f"(goal of issue 22: <= 2.5x)")

@@ -59,6 +59,24 @@ def _wait_reconstructor(qtbot, w, timeout=20000):
                     timeout=timeout)
 
 
+def _reference_by_hand_on(qtbot, window, frames, geometry):
+    """Stream ``frames`` (a Switchable) through a synthetic camera, capture the reference with the
+    button (5 frames averaged) as the user does, and wait for the first maps of ``frames.image``; returns
+    ``drawn(image)``: whether the newest maps on screen are those of ``image``."""
+    window.use_camera(SyntheticCamera(frames, frame_rate_hz=50.0), geometry=geometry)
+    qtbot.waitUntil(lambda: window.clock.last_raw_seq >= 0, timeout=10000)
+    window.geometry_panel.n_average.setValue(5)
+    window.geometry_panel.capture_button.click()
+    _wait_reconstructor(qtbot, window)
+
+    def drawn(image):
+        p = window.last_drawn
+        return p is not None and p.result is not None and np.array_equal(p.image, image)
+
+    qtbot.waitUntil(lambda: drawn(frames.image), timeout=15000)
+    return drawn
+
+
 def test_a_camera_knocked_after_the_reference_turns_the_pin_label_red(qtbot, window, scene):
     """The user captures a reference on still water; then the camera is knocked and turns by 1 mrad about
     its axis (0.06 deg: nothing a person sees on the raw image). Left unsaid, the heights carried a saddle
@@ -71,17 +89,7 @@ def test_a_camera_knocked_after_the_reference_turns_the_pin_label_red(qtbot, win
     turned_img, _ = forward.render_tir(forward.FlatSurface(), geometry, SHAPE, pattern, camera_turn_mrad=1.0)
     turned = forward.quantize(turned_img, bits=8, noise_rms=0.5, rng=np.random.default_rng(8))
     frames = Switchable(scene["flat"])
-    window.use_camera(SyntheticCamera(frames, frame_rate_hz=50.0), geometry=geometry)
-    qtbot.waitUntil(lambda: window.clock.last_raw_seq >= 0, timeout=10000)
-    window.geometry_panel.n_average.setValue(5)
-    window.geometry_panel.capture_button.click()
-    _wait_reconstructor(qtbot, window)
-
-    def drawn(image):
-        p = window.last_drawn
-        return p is not None and p.result is not None and np.array_equal(p.image, image)
-
-    qtbot.waitUntil(lambda: drawn(scene["flat"]), timeout=15000)
+    drawn = _reference_by_hand_on(qtbot, window, frames, geometry)
     assert not window.pin_overlay.bad and "TURNED" not in window.pin_overlay.short
     frames.image = turned
     qtbot.waitUntil(lambda: drawn(turned), timeout=15000)
@@ -110,17 +118,7 @@ def test_flickering_light_after_the_reference_is_named_and_evened_in_the_live_wi
     light = 1.0 - 0.3 * (np.sin(2 * np.pi * (rows + 17) / 64) < 0)
     banded = forward.quantize(bump_img * light, bits=8, noise_rms=0.5, rng=np.random.default_rng(9))
     frames = Switchable(scene["flat"])
-    window.use_camera(SyntheticCamera(frames, frame_rate_hz=50.0), geometry=geometry)
-    qtbot.waitUntil(lambda: window.clock.last_raw_seq >= 0, timeout=10000)
-    window.geometry_panel.n_average.setValue(5)
-    window.geometry_panel.capture_button.click()
-    _wait_reconstructor(qtbot, window)
-
-    def drawn(image):
-        p = window.last_drawn
-        return p is not None and p.result is not None and np.array_equal(p.image, image)
-
-    qtbot.waitUntil(lambda: drawn(scene["flat"]), timeout=15000)
+    drawn = _reference_by_hand_on(qtbot, window, frames, geometry)
     assert not window.pin_overlay.bad and "LIGHT BANDS" not in window.pin_overlay.short
     truth = forward.true_height(forward.GaussianBump(amplitude_mm=BUMP_AMPLITUDE_MM, sigma_mm=BUMP_SIGMA_MM,
                                                      x0_mm=0.0, y0_mm=0.0), geometry, SHAPE)
