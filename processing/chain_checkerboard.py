@@ -27,8 +27,8 @@ from .chain_base import GridChain
 from .errors import AllInvalidError
 from .fft import FFTPlanner
 from .fullgrid import Upsampler, full_ifft, interpolate_full
-from .mask import (POOR_FRAME_VALID_FRACTION, brightness_sample, choose_reference_region, dilate_invalid,
-                   drop_islands, exposure_gain, fold_ok, reference_contrast_ok)
+from .mask import (POOR_FRAME_VALID_FRACTION, brightness_sample, choose_reference_region, darker_than_reference,
+                   dilate_invalid, drop_islands, exposure_gain, fold_ok, reference_contrast_ok)
 from .plan import ReferencePlan, read_only
 from .continuation import ContinuedSignals
 from .refine import refine_fd, refine_fd_tapered, static_phase, warp_reference
@@ -226,11 +226,12 @@ class CheckerboardChain(GridChain):
             # a poor frame gets the full check, which names what is wrong
             check_pattern_match(self.carriers, frame)
         if not all_valid and not valid.any():
+            darker = darker_than_reference(frame, self.ref_mean)
             raise AllInvalidError(
                 f"no part of the frame could be measured: pattern contrast relative to the reference "
-                f"is {float(np.median(amplitude)):.2f} (median; need >= {o.min_amplitude}); check "
-                "that TIR holds (theta, water level), the light and the exposure, and that nothing "
-                "blocks the view")
+                f"is {float(np.median(amplitude)):.2f} (median; need >= {o.min_amplitude}); "
+                + (darker if darker else "check that TIR holds (theta, water level), the light and the exposure, "
+                   "and that nothing blocks the view"))
         return valid, all_valid
 
     def refine(self, frame, phase, u, valid, iterations):

@@ -21,7 +21,7 @@ from .geometry import DEFAULT_REFERENCE_BAND, default_reference_region_mask
 from .pin import USER_REGION_PREFIX
 
 __all__ = ["MIN_EXPOSURE_GAIN", "MAX_SAMPLE_MAGNITUDE", "POOR_FRAME_VALID_FRACTION", "DEFECT_CONTRAST_FRACTION",
-           "exposure_gain", "brightness_sample", "check_sample_range", "validate_image", "defect_pixels",
+           "exposure_gain", "darker_than_reference", "brightness_sample", "check_sample_range", "validate_image", "defect_pixels",
            "HOT_CANDIDATES_MAX_FRACTION", "HOT_EXCESS_FRACTION", "HOT_EXCESS_OVER_REFERENCE", "hot_pixel_limits",
            "hot_pixels_above", "repair_pixels", "dilate_invalid", "fold_ok",
            "drop_islands", "reference_contrast_ok", "reference_pin_region", "ReferenceRegion",
@@ -68,6 +68,25 @@ def exposure_gain(frame, reference_mean: float, amplitude) -> float:
     by_contrast = float(np.percentile(amplitude, 90)) if np.size(amplitude) else 1.0
     gain = max(by_mean, by_contrast)
     return float(min(1.0, max(MIN_EXPOSURE_GAIN, gain))) if math.isfinite(gain) else 1.0
+
+
+def darker_than_reference(frame, reference_mean: float) -> str:
+    """Why a frame with no sample left may read as "no contrast": where its mean brightness is below
+    :data:`MIN_EXPOSURE_GAIN` of the reference's (``reference_mean``, of :func:`brightness_sample`),
+    beyond what :func:`exposure_gain` makes up for, a sentence that says by how much and what may
+    cause it (a reference stored at another bit depth: 12-bit data in the top bits of 16-bit words
+    read 16x brighter than the camera's frames); else ""."""
+    if not reference_mean > 0:
+        return ""
+    level = float(np.mean(brightness_sample(frame), dtype=np.float64))
+    if not level < MIN_EXPOSURE_GAIN * reference_mean:
+        return ""
+    times = f"{reference_mean / level:.3g}x" if level > 0 else "infinitely"
+    return (f"the frame is {times} darker than the reference (mean level {level:.4g} against "
+            f"{reference_mean:.4g}): the light, "
+            f"exposure or gain changed since the reference, or the reference was stored at another bit depth "
+            f"(12-bit data in the top bits of 16-bit words reads 16x brighter); take the reference with this "
+            f"camera at these settings")
 
 
 def brightness_sample(image):

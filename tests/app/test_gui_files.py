@@ -128,3 +128,32 @@ def test_export_movie_from_the_file_menu(qtbot, window, tmp_path):
     qtbot.waitUntil(lambda: window.movie_result is not None, timeout=20000)
     assert window.movie_result[0] == "error" and "\n" not in window.movie_result[1]
     assert "Movie not written" in window.banner.text() and not (tmp_path / "bad.mp4").exists()
+
+
+def test_a_reference_file_16x_brighter_than_the_cameras_frames_is_named_on_the_maps(qtbot, window, tmp_path):
+    """A 12-bit camera streams still water; the user loads (Reference ▸ Load…) a reference that another
+    program stored with the 12-bit levels in the top bits of 16-bit words: 16x the frames' levels. Every
+    frame read as "no contrast" and the maps said to check TIR, the light and the exposure; now they say
+    the frame is 16x darker than the reference and what to do."""
+    import tifffile
+
+    from app.capture.scene import default_geometry
+    from drivers.synthetic import SyntheticCamera
+    from processing import forward
+
+    shape = (256, 256)
+    geometry = default_geometry(shape)
+    board = forward.Checkerboard(period_mm=12 * geometry.pixel_mm, edge_softness_mm=geometry.pixel_mm)
+    flat = forward.quantize(forward.render_tir(forward.FlatSurface(), geometry, shape, board)[0], bits=12,
+                            noise_rms=2.0, rng=np.random.default_rng(4))
+    path = tmp_path / "reference_16bit.tif"
+    tifffile.imwrite(path, (flat.astype(np.uint16) << 4))  # 12-bit data in the top bits of 16-bit words
+    window.use_camera(SyntheticCamera(flat, frame_rate_hz=30.0, bit_depth=12), geometry=geometry)
+    qtbot.waitUntil(lambda: window.clock.last_raw_seq >= 0, timeout=10000)
+    _answer_file_dialogs(qtbot, [path], [])  # the file typed into the dialog the button opens
+    window.geometry_panel.load_ref_button.click()
+    qtbot.waitUntil(lambda: "16x darker than the reference" in window.height_view.message.text(), timeout=30000)
+    text = window.height_view.message.text()
+    assert "no part of the frame could be measured" in text
+    assert "stored at another bit depth" in text and "take the reference with this camera" in text
+    assert "check that TIR holds" not in text
