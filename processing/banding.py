@@ -135,9 +135,13 @@ def light_bands(frame_profile, reference_profile) -> LightBands:
 
 def frame_light_bands(image, reference_profile) -> Optional[LightBands]:
     """:func:`light_bands` of ``image`` (2-D) against ``reference_profile`` (the reference's
-    :func:`row_profile`; None: nothing to judge against, and None is returned).  What the batch and the
-    live window both judge each frame by: about 1.4 ms a 1024^2 frame."""
-    return None if reference_profile is None else light_bands(row_profile(image), reference_profile)
+    :func:`row_profile`); None where there is none to judge against or the image is not the reference's
+    size (what measures it says so).  What the batch and the live window both judge each frame by:
+    about 1.4 ms a 1024^2 frame."""
+    if reference_profile is None:
+        return None
+    profile = row_profile(image)
+    return light_bands(profile, reference_profile) if profile.shape == np.shape(reference_profile) else None
 
 
 def _median_of_rows(a):

@@ -74,3 +74,14 @@ def test_the_row_medians_are_numpys_to_the_bit():
         a = rng.normal(1.0, 0.2, size=(300, cols))
         a[::7] = np.round(a[::7], 1)  # ties
         np.testing.assert_array_equal(_median_of_rows(a), np.median(a, axis=1))
+
+
+def test_a_frame_of_another_size_is_not_judged(frames):
+    """The live window judges a frame before the reconstructor measures it: a frame of another size (the
+    ROI changed before the reference followed) is left to the reconstructor's own shape message."""
+    from processing.banding import frame_light_bands
+
+    ref, img = frames
+    assert frame_light_bands(img, row_profile(ref)) is not None
+    assert frame_light_bands(img[:200], row_profile(ref)) is None
+    assert frame_light_bands(img, None) is None
