@@ -27,8 +27,10 @@ import cv2
 import numpy as np
 from scipy.ndimage import uniform_filter1d
 
-__all__ = ["BANDS_MIN_DEPTH", "BANDS_MIN_AGREEMENT", "LightBands", "even_rows", "frame_light_bands", "light_bands",
-           "row_profile"]
+from .live_view import SATURATION_MAX_PCT, saturation_level
+
+__all__ = ["BANDS_MIN_DEPTH", "BANDS_MIN_AGREEMENT", "LightBands", "RowLight", "clipped", "even_rows",
+           "frame_light_bands", "light_bands", "reference_light", "row_profile"]
 
 #: Box along the rows (px) of :func:`row_profile`; it samples every ``cols // COLUMNS_PER_STEP`` columns
 #: (2 to 16 px: 64 samples or more across, 16 to a quarter; at 256^2 every 16 px left bands 10 % deep at
@@ -133,15 +135,50 @@ def light_bands(frame_profile, reference_profile) -> LightBands:
     return LightBands(float(np.sqrt(np.mean(shared ** 2))), float(np.mean(same)), 1.0 + _median_of_rows(d.T))
 
 
-def frame_light_bands(image, reference_profile) -> Optional[LightBands]:
-    """:func:`light_bands` of ``image`` (2-D) against ``reference_profile`` (the reference's
-    :func:`row_profile`); None where there is none to judge against or the image is not the reference's
-    size (what measures it says so).  What the batch and the live window both judge each frame by:
-    about 1.4 ms a 1024^2 frame."""
-    if reference_profile is None:
+def clipped(image) -> bool:
+    """Are more than :data:`processing.live_view.SATURATION_MAX_PCT` % of ``image``'s pixels at its
+    saturation level (:func:`processing.live_view.saturation_level`)?  (A few glints change no row's light.)"""
+    a = np.asarray(image)
+    level, top = saturation_level(a)
+    return bool(top >= level and 100.0 * np.count_nonzero(a >= level) > SATURATION_MAX_PCT * a.size)
+
+
+@dataclasses.dataclass(frozen=True)
+class RowLight:
+    """A reference's light along its rows, as recorded: what frames' bands are judged against
+    (:func:`frame_light_bands`; :func:`reference_light`)."""
+
+    #: :func:`row_profile` of the reference
+    profile: np.ndarray = dataclasses.field(repr=False)
+    #: whether the reference is clipped (:func:`clipped`): then no frame is judged
+    clipped: bool = False
+
+
+def reference_light(reference) -> RowLight:
+    """The :class:`RowLight` of a reference image (2-D, as recorded)."""
+    return RowLight(row_profile(reference), clipped(reference))
+
+
+def frame_light_bands(image, reference: Optional[RowLight]) -> Optional[LightBands]:
+    """:func:`light_bands` of ``image`` (2-D) against ``reference`` (its :class:`RowLight`); None where
+    there is none to judge against, the image is not the reference's size (what measures it says so), or
+    either is clipped (:func:`clipped`, which the saturation check names).  What the batch and the live
+    window both judge each frame by: about 1.4 ms a 1024^2 frame.
+
+    Clipped, a checkerboard changes each row's mean with the row's place on the board (the bright
+    squares' share), alike across the width: ``tirdeflect simulate``'s bump and waves at 256^2 and 512^2,
+    the frames or the reference 1.25-1.6x as bright (35-47 % of the pixels clipped), read as bands 2-7 %
+    deep at 0.8-0.97 of agreement, and evened out, those false bands doubled to quintupled the heights'
+    error (the bump, frames 1.6x 1.46 -> 2.82 %, frames 1.3x 0.62 -> 1.48 %, the reference 1.3x 0.34 ->
+    1.76 %; 6 Dec 2026).  Profiling both over the pixels clipped in neither was tried: where the pattern
+    moves (waves filling the frame) the kept pixels are not the same part of the board in both, and
+    the rows' gains scattered by 0.1-0.2 (bands 30 % deep then went unnamed)."""
+    if reference is None or reference.clipped or np.shape(image)[0] != np.shape(reference.profile)[0]:
         return None
     profile = row_profile(image)
-    return light_bands(profile, reference_profile) if profile.shape == np.shape(reference_profile) else None
+    if profile.shape != np.shape(reference.profile) or clipped(image):
+        return None
+    return light_bands(profile, reference.profile)
 
 
 def _median_of_rows(a):

@@ -57,7 +57,7 @@ from .refine import (WARP_MAX_INTERPOLATION_ERROR_PX, band_limited_reference, li
 from .result import Result, SeriesCheck
 from .series import EMPTY, SERIES_MAX_PIN_SHIFT, SERIES_MAX_SLIP_FRACTION, SeriesState, copy_check
 from .series import check_series as _check_series
-from .banding import row_profile
+from .banding import reference_light
 from .mosaic import equalise_mosaic, equalised_reference
 from .series import unwrap_phase as _unwrap_phase
 
@@ -133,7 +133,7 @@ class Reconstructor:
         chosen once from the reference: ``geometry.reference_region`` where the
         reference is valid, or by default :func:`reference_pin_region`.
     reference_region_name : str
-        How ``Result.pin`` names it.  ``mosaic``: :mod:`processing.mosaic`; ``row_profile``: :mod:`processing.banding`.
+        How ``Result.pin`` names it.  ``mosaic``: :mod:`processing.mosaic`; ``row_light``: :mod:`processing.banding`.
     reference_region_valid_fraction : float
         Fraction of the candidate region (the user's box, or the frame's border band) where the reference is valid.
 
@@ -146,7 +146,7 @@ class Reconstructor:
     def __init__(self, reference_image, geometry, options: Optional[ReconstructOptions] = None, *,
                  carriers: Optional[Carriers] = None, **overrides):
         ref = validate_image(reference_image, "reference image")
-        self.row_profile = row_profile(ref)  # its light along the rows as recorded, for a frame's bands (banding)
+        self.row_light = reference_light(ref)  # its light along the rows as recorded, for a frame's bands (banding)
         self.mosaic, self._mosaic_maps, ref = equalised_reference(ref)  # a colour camera's raw mosaic, or None
         #: The sensor's hot and dead pixels found in the reference (flat indices), repaired in it and every frame.
         self.defects = defect_pixels(ref)

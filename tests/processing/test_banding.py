@@ -79,9 +79,38 @@ def test_the_row_medians_are_numpys_to_the_bit():
 def test_a_frame_of_another_size_is_not_judged(frames):
     """The live window judges a frame before the reconstructor measures it: a frame of another size (the
     ROI changed before the reference followed) is left to the reconstructor's own shape message."""
-    from processing.banding import frame_light_bands
+    from processing.banding import frame_light_bands, reference_light
 
     ref, img = frames
-    assert frame_light_bands(img, row_profile(ref)) is not None
-    assert frame_light_bands(img[:200], row_profile(ref)) is None
+    assert frame_light_bands(img, reference_light(ref)) is not None
+    assert frame_light_bands(img[:200], reference_light(ref)) is None
     assert frame_light_bands(img, None) is None
+
+
+def test_a_clipped_frame_or_reference_is_not_taken_for_bands():
+    """A checkerboard clipped in the frame or the reference (over-exposed: its bright squares flat) changes
+    each row's mean with the row's place on the board, alike across the width: simulate's bump read as
+    bands 2-7 % deep from 35 % of the pixels clipped on, and evened out, its heights' error doubled
+    (frames 1.6x 1.46 -> 2.82 %). A clipped frame or reference is not judged (its saturation is named)."""
+    from app.batch.simulate import DEFAULT_SIM_GEOMETRY, SIM_PATTERN_PERIOD_PX
+
+    from processing.banding import clipped, frame_light_bands, reference_light
+    from processing.live_view import saturation_pct
+
+    geometry = Geometry.from_dict(dict(DEFAULT_SIM_GEOMETRY))
+    board = F.Checkerboard(period_mm=SIM_PATTERN_PERIOD_PX * geometry.pixel_mm, edge_softness_mm=geometry.pixel_mm)
+    ref, _ = F.render_tir(F.FlatSurface(), geometry, (256, 256), board)
+    bump = F.GaussianBump(amplitude_mm=0.004, sigma_mm=2.0, x0_mm=0.0, y0_mm=0.0)
+    img, _ = F.render_tir(bump, geometry, (256, 256), board)
+    twelve_bit = lambda a: F.quantize(a, bits=12, rng=np.random.default_rng(2))  # noqa: E731
+    plain = frame_light_bands(twelve_bit(img), reference_light(twelve_bit(ref)))
+    assert plain is not None and not plain.flagged
+    for gain_ref, gain_frame in ((1.0, 1.6), (1.3, 1.0)):
+        r, f = twelve_bit(np.minimum(ref * gain_ref, 1.0)), twelve_bit(np.minimum(img * gain_frame, 1.0))
+        assert max(saturation_pct(r), saturation_pct(f)) > 30 and (clipped(r) or clipped(f))
+        assert light_bands(row_profile(f), row_profile(r)).flagged  # what judging them anyway said
+        assert frame_light_bands(f, reference_light(r)) is None
+    # a few glints are no clipping: still judged
+    glints = twelve_bit(img)
+    glints.flat[::997] = 4095
+    assert not clipped(glints) and frame_light_bands(glints, reference_light(twelve_bit(ref))) is not None
