@@ -110,6 +110,7 @@ VARIATIONS = {
     "reference defocused 1 px": (lambda a: cv2.GaussianBlur(a, (0, 0), 1.0), None),
     "colour camera read raw (Bayer)": (_bayer, lambda a, i, rng: _bayer(a)),
     "gamma 0.6 (reference and frames)": (_gamma, lambda a, i, rng: _gamma(a)),
+    "frames at gamma 1.5, reference linear": (None, lambda a, i, rng: _gamma(a, 1.5)),
     "frames motion-blurred 5 px": (None, lambda a, i, rng: _motion_blur(a)),
     "rolling shutter, PWM light bands": (None, lambda a, i, rng: _pwm_bands(a, i)),
 }

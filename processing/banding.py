@@ -21,6 +21,7 @@ check, :mod:`app.batch.frame_status`, does so before measuring).
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Optional
 
 import cv2
@@ -29,7 +30,8 @@ from scipy.ndimage import uniform_filter1d
 
 from .live_view import SATURATION_MAX_PCT, saturation_level
 
-__all__ = ["BANDS_MIN_DEPTH", "BANDS_MIN_AGREEMENT", "LightBands", "RowLight", "clipped", "even_rows",
+__all__ = ["BANDS_MIN_DEPTH", "BANDS_MIN_AGREEMENT", "BOARD_HARMONIC_ORDER", "BOARD_NOTCH_BINS", "LightBands",
+           "board_row_frequencies", "RowLight", "clipped", "even_rows",
            "frame_light_bands", "light_bands", "reference_light", "row_profile"]
 
 #: Box along the rows (px) of :func:`row_profile`; it samples every ``cols // COLUMNS_PER_STEP`` columns
@@ -107,8 +109,50 @@ def row_profile(image) -> np.ndarray:
     return np.ascontiguousarray(lp[:, box // 2::step])
 
 
-def light_bands(frame_profile, reference_profile) -> LightBands:
-    """:class:`LightBands` of a frame's :func:`row_profile` against its reference's (same shape)."""
+#: Harmonics ``i k1 + j k2`` of the board, ``|i|, |j|`` up to this, whose row frequencies
+#: :func:`board_row_frequencies` lists ...
+BOARD_HARMONIC_ORDER = 5
+#: ... and the half width (FFT bins of the rows) of the notch :func:`light_bands` puts at each.
+BOARD_NOTCH_BINS = 2
+
+
+def board_row_frequencies(carriers_freq, cols: int) -> tuple:
+    """Row frequencies (cycles/row, folded into (0, 0.5]) of the board's harmonics ``i k1 + j k2``
+    (``carriers_freq``: (2, 2) cycles/px, rows and columns; :data:`BOARD_HARMONIC_ORDER`) that stay alike
+    across a frame of ``cols`` columns (less than one cycle over its width): where a frame whose response
+    is not the reference's (a gamma, clipping: the board's bright and dark parts scaled apart) changes
+    each row's mean with the row's place on the board, alike across the width, as bands of light do.
+    On the square board seen square (carriers on the diagonals) ``k1 - k2`` and its multiples; on a board
+    turned by a few degrees none (there such changes vary along the rows, and the quarters disagree)."""
+    return _board_row_frequencies(tuple(np.round(np.asarray(carriers_freq, np.float64).ravel(), 9)), int(cols))
+
+
+@functools.lru_cache(maxsize=8)
+def _board_row_frequencies(freq: tuple, cols: int) -> tuple:
+    k1, k2 = np.reshape(freq, (2, 2))
+    found = set()
+    for i in range(-BOARD_HARMONIC_ORDER, BOARD_HARMONIC_ORDER + 1):
+        for j in range(-BOARD_HARMONIC_ORDER, BOARD_HARMONIC_ORDER + 1):
+            if (i or j) and abs(i * k1[1] + j * k2[1]) * cols < 1.0:
+                f = abs(i * k1[0] + j * k2[0]) % 1.0
+                f = min(f, 1.0 - f)
+                if f > 0.0:
+                    found.add(round(float(f), 6))
+    return tuple(sorted(found))
+
+
+def light_bands(frame_profile, reference_profile, notch=()) -> LightBands:
+    """:class:`LightBands` of a frame's :func:`row_profile` against its reference's (same shape).
+    ``notch``: row frequencies (cycles/row, :func:`board_row_frequencies`) taken out of each quarter's
+    departure (:data:`BOARD_NOTCH_BINS` either side) before it is judged.  Measured (6 Dec 2026,
+    ``tirdeflect simulate``'s board at 256^2 and 512^2, bump and waves): frames at gamma 0.6 / 1.5 against
+    a linear reference read as bands 0.017-0.042 deep at 0.58-0.79 of agreement (named at 512^2 and,
+    evened out, the bump's error 0.11 -> 0.52 / 1.38 %), notched 0.003-0.014 at 0.07-0.79 (none named);
+    bands of light 3-30 % deep (periods 20-200 rows, a gamma on top) within 0.006 of their depth either
+    way.  Harmonics to the 4th left 0.017 at 0.82 (the 5th-7th carry the rest), to the 8th took half the
+    depth of bands 20 rows apart at 256^2 (the 6th lies on their fundamental).  A board seen as diamonds
+    (carriers along the rows and columns) keeps 0.027-0.040 at gamma 1.5 / 0.6 (named): its fundamental
+    runs along the rows."""
     f = np.asarray(frame_profile, np.float64)
     r = np.asarray(reference_profile, np.float64)
     ok = r > 0.05 * float(np.max(r)) if r.size else np.zeros(r.shape, bool)
@@ -130,9 +174,23 @@ def light_bands(frame_profile, reference_profile) -> LightBands:
     for _ in range(3):  # three boxes of 2 TREND_ROWS: a Gaussian of TREND_ROWS, in O(rows)
         trend = uniform_filter1d(trend, size=int(2 * TREND_ROWS) + 1, axis=1, mode="nearest")
     d = np.where(lit, g / trend - 1.0, 0.0)
-    same = lit & (np.all(d > 0, axis=0) | np.all(d < 0, axis=0))
-    shared = np.where(same, np.sign(d[0]) * np.min(np.abs(d), axis=0), 0.0)
+    judged = _notched(d, notch, lit) if len(notch) else d
+    same = lit & (np.all(judged > 0, axis=0) | np.all(judged < 0, axis=0))
+    shared = np.where(same, np.sign(judged[0]) * np.min(np.abs(judged), axis=0), 0.0)
+    # the gains themselves are not notched: sharp bands have harmonics at every frequency, and one left in a
+    # frame evened out without it kept their edges (simulate's bump 0.13 -> 3.0 % instead of 0.13 %)
     return LightBands(float(np.sqrt(np.mean(shared ** 2))), float(np.mean(same)), 1.0 + _median_of_rows(d.T))
+
+
+def _notched(d, notch, lit):
+    """The departures ``d`` (quarters, rows) with the row frequencies ``notch`` (cycles/row) taken out,
+    :data:`BOARD_NOTCH_BINS` either side; 0 on the rows not ``lit``."""
+    n = d.shape[1]
+    spectrum = np.fft.rfft(d, axis=1)
+    bins = np.fft.rfftfreq(n)
+    for f in notch:
+        spectrum[:, np.abs(bins - f) <= BOARD_NOTCH_BINS / n] = 0.0
+    return np.where(lit, np.fft.irfft(spectrum, n=n, axis=1), 0.0)
 
 
 def clipped(image) -> bool:
@@ -159,11 +217,13 @@ def reference_light(reference) -> RowLight:
     return RowLight(row_profile(reference), clipped(reference))
 
 
-def frame_light_bands(image, reference: Optional[RowLight]) -> Optional[LightBands]:
+def frame_light_bands(image, reference: Optional[RowLight], carriers=None) -> Optional[LightBands]:
     """:func:`light_bands` of ``image`` (2-D) against ``reference`` (its :class:`RowLight`); None where
     there is none to judge against, the image is not the reference's size (what measures it says so), or
     either is clipped (:func:`clipped`, which the saturation check names).  What the batch and the live
-    window both judge each frame by: about 1.4 ms a 1024^2 frame.
+    window both judge each frame by: about 1.4 ms a 1024^2 frame.  ``carriers``: the board's
+    (:class:`processing.carriers.Carriers`; None for random dots): the row frequencies of its harmonics
+    are notched out (:func:`board_row_frequencies`).
 
     Clipped, a checkerboard changes each row's mean with the row's place on the board (the bright
     squares' share), alike across the width: ``tirdeflect simulate``'s bump and waves at 256^2 and 512^2,
@@ -178,7 +238,8 @@ def frame_light_bands(image, reference: Optional[RowLight]) -> Optional[LightBan
     profile = row_profile(image)
     if profile.shape != np.shape(reference.profile) or clipped(image):
         return None
-    return light_bands(profile, reference.profile)
+    notch = () if carriers is None else board_row_frequencies(carriers.freq, np.shape(image)[1])
+    return light_bands(profile, reference.profile, notch)
 
 
 def _median_of_rows(a):

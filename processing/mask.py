@@ -21,7 +21,8 @@ from .geometry import DEFAULT_REFERENCE_BAND, default_reference_region_mask
 from .pin import USER_REGION_PREFIX
 
 __all__ = ["MIN_EXPOSURE_GAIN", "MAX_SAMPLE_MAGNITUDE", "POOR_FRAME_VALID_FRACTION", "DEFECT_CONTRAST_FRACTION",
-           "exposure_gain", "darker_than_reference", "brightness_sample", "check_sample_range", "validate_image", "defect_pixels",
+           "exposure_gain", "darker_than_reference", "brightness_sample", "check_sample_range", "validate_image",
+           "defect_pixels",
            "HOT_CANDIDATES_MAX_FRACTION", "HOT_EXCESS_FRACTION", "HOT_EXCESS_OVER_REFERENCE", "hot_pixel_limits",
            "hot_pixels_above", "repair_pixels", "dilate_invalid", "fold_ok",
            "drop_islands", "reference_contrast_ok", "reference_pin_region", "ReferenceRegion",

@@ -151,7 +151,7 @@ def measure_frame(reconstruct, image: np.ndarray, ref_shape, grid: str):
 def frame_bands(reconstruct, image) -> Optional[LightBands]:
     """:func:`processing.banding.light_bands` of ``image`` against ``reconstruct``'s reference (None where
     it keeps no row profile)."""
-    return frame_light_bands(image, getattr(reconstruct, "row_light", None))
+    return frame_light_bands(image, getattr(reconstruct, "row_light", None), getattr(reconstruct, "carriers", None))
 
 
 class FrameTally:

@@ -84,7 +84,8 @@ def measure_live(reconstructor, image: np.ndarray, job: LiveJob) -> Measured:
             reconstructor.reset_series()
         measured = image
         if job.bands:  # as the batch does (app.batch.frame_status.measure_frame): evened, then measured
-            out.light_bands = frame_light_bands(image, getattr(reconstructor, "row_light", None))
+            out.light_bands = frame_light_bands(image, getattr(reconstructor, "row_light", None),
+                                               getattr(reconstructor, "carriers", None))
             if out.light_bands is not None and out.light_bands.flagged:
                 measured = even_rows(image, out.light_bands)
         out.result = reconstructor(measured, grid=job.grid)

@@ -114,3 +114,37 @@ def test_a_clipped_frame_or_reference_is_not_taken_for_bands():
     glints = twelve_bit(img)
     glints.flat[::997] = 4095
     assert not clipped(glints) and frame_light_bands(glints, reference_light(twelve_bit(ref))) is not None
+
+
+def test_frames_of_another_gamma_are_no_bands_but_bands_under_it_are():
+    """Frames whose response is not the reference's (a camera's gamma changed between them) scale the
+    board's bright and dark parts apart, which changes each row's mean with its place on the board, alike
+    across the width: on simulate's board at 512^2 read as bands 0.02-0.04 deep, and evened out the bump's
+    error went 0.11 -> 0.52 / 1.38 % (gamma 0.6 / 1.5). The board's row harmonics (k1 - k2 and its
+    multiples) are notched out of the judgement; bands of light keep their depth."""
+    from app.batch.simulate import DEFAULT_SIM_GEOMETRY, SIM_PATTERN_PERIOD_PX
+
+    from processing.banding import BANDS_MIN_DEPTH, board_row_frequencies, frame_light_bands, reference_light
+    from processing.carriers import find_reference_carriers
+
+    geometry = Geometry.from_dict(dict(DEFAULT_SIM_GEOMETRY))
+    board = F.Checkerboard(period_mm=SIM_PATTERN_PERIOD_PX * geometry.pixel_mm, edge_softness_mm=geometry.pixel_mm)
+    shape = (512, 512)
+    ref = F.quantize(F.render_tir(F.FlatSurface(), geometry, shape, board)[0], bits=12, rng=np.random.default_rng(3))
+    bump = F.GaussianBump(amplitude_mm=0.004, sigma_mm=3.0, x0_mm=0.0, y0_mm=0.0)
+    img = F.render_tir(bump, geometry, shape, board)[0]
+    carriers = find_reference_carriers(ref)
+    notch = board_row_frequencies(carriers.freq, shape[1])
+    k1_k2 = abs(float(carriers.freq[0, 0] - carriers.freq[1, 0]))  # k1 - k2: along the rows only
+    assert min(abs(f - k1_k2) for f in notch) < 1e-5, (notch, k1_k2)
+    twelve_bit = lambda a: F.quantize(a, bits=12, rng=np.random.default_rng(4))  # noqa: E731
+    for gamma in (0.6, 1.5):
+        frame = twelve_bit(img ** gamma)
+        assert light_bands(row_profile(frame), row_profile(ref)).flagged  # judged without the notch
+        found = frame_light_bands(frame, reference_light(ref), carriers)
+        assert not found.flagged and found.depth < BANDS_MIN_DEPTH, (gamma, found)
+        for depth in (0.1, 0.3):
+            plain = frame_light_bands(twelve_bit(_bands(img, depth, phase=17)), reference_light(ref), carriers)
+            under = frame_light_bands(twelve_bit(_bands(img ** gamma, depth, phase=17)), reference_light(ref), carriers)
+            assert plain.flagged and under.flagged, (gamma, depth, plain, under)
+            assert abs(under.depth - plain.depth) < 0.01 + 0.05 * depth, (gamma, depth, plain, under)
