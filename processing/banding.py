@@ -15,7 +15,12 @@ departure from its smooth trend; per row the smallest of the four departures
 where all four agree in sign, else 0: what every part of the width shares, as
 bands do and an object in part of the view (a floating ring, a needle) does not.
 :func:`even_rows` divides a named frame's rows by their gains (the batch's frame
-check, :mod:`app.batch.frame_status`, does so before measuring).
+check, :mod:`app.batch.frame_status`, and the live window's,
+:mod:`app.capture.live_measure`, do so before measuring).  Not taken for bands:
+what a frame's own response does to the board (a gamma other than the
+reference's: the row frequencies of the board's harmonics are left out of the
+judgement, :func:`board_row_frequencies`), and a clipped frame or reference
+(not judged, :func:`clipped`).
 """
 
 from __future__ import annotations
@@ -245,8 +250,8 @@ def frame_light_bands(image, reference: Optional[RowLight], carriers=None) -> Op
 def _median_of_rows(a):
     """``np.median(a, axis=1)`` of a 2-D float array without NaN, the same numbers: the rows sorted (a
     few dozen values each, where NumPy's vectorised sort is 5-7x faster than the median's partition of
-    each row: the live window judges every frame, 1024^2 1.85 -> 0.4 ms) and the middle one, or the
-    mean of the middle two."""
+    each row, so that the live window can judge its frames: :func:`light_bands` at 1024^2 1.85 -> 0.95
+    ms) and the middle one, or the mean of the middle two."""
     s = np.sort(a, axis=1)
     m = s.shape[1] // 2
     return s[:, m] if s.shape[1] % 2 else (s[:, m - 1] + s[:, m]) / 2
