@@ -206,7 +206,7 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
                   regularisation: float = 0.03, blur_px: float = BLUR_PX,
                   intensity_cell_px: float | None = INTENSITY_CELL_PX, period_px: float | None = None,
                   threads: int = 1, border_px: int = BORDER_PX, matrix_once: bool = False,
-                  offset_px=None):
+                  matrix_once_beside_masks: bool = False, offset_px=None):
     """Global Gauss-Newton image matching for the height on the node grid of ``nodes``.
 
     Minimises ``sum_r w [G*((I - b) / a) - G*I0(r - P L h)]^2 + lam (|D3r h|^2 + |D3c h|^2)``
@@ -236,8 +236,9 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
         Threads for each step's node sums (the result does not depend on it).
     border_px : int
         Pixels along each side left out of the match (:data:`BORDER_PX`).
-    matrix_once : bool
-        Keep the first step's Gauss-Newton matrix for the later steps (right-hand sides their own).
+    matrix_once, matrix_once_beside_masks : bool
+        Keep the first step's Gauss-Newton matrix for the later steps (right-hand sides their own) where
+        every pixel of ``valid_px`` counts, and with the second where some are masked (else each step's own).
     offset_px : ndarray (2, n_rows, n_cols) or None
         Node displacement (px) added to the warp, not solved for (a turn: :mod:`processing.turn`).
 
@@ -271,7 +272,9 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
         # per pixel that counts (how many do moves with the warp at the border)
         prev_cost = _check_cost(cost, float(wk.sum()) if outside else w_sum, prev_cost, k, w.size)
         step_operator = operator or _NormalOperator(nodes, stencils, regularisation, k)
-        operator = step_operator if matrix_once else None
+        # kept only where every pixel counts: beside a masked hole the first step's matrix led the later
+        # steps astray (processing.chain_image.MATRIX_ONCE)
+        operator = step_operator if matrix_once and (all_valid or matrix_once_beside_masks) else None
         x = step_operator.solve(rhs, h, n_cg)
         du = nodes.displacement(x)
         prev_step = _check_step(_rms(du), prev_step, k)
