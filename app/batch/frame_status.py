@@ -133,7 +133,7 @@ def measure_frame(reconstruct, image: np.ndarray, ref_shape, grid: str):
             f"lost packets, no light or a saturated exposure)")
     bands = frame_bands(reconstruct, image)
     try:  # bands of light along the rows are evened out first (processing.banding.even_rows)
-        result = reconstruct(even_rows(image, bands) if bands is not None and bands.flagged else image, grid=grid)
+        result = reconstruct(even_rows(image, bands) if bands is not None and bands.evened else image, grid=grid)
     except TirdeflectError as exc:
         outcome = outcome_of_error(exc)
         if outcome is None:

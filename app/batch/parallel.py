@@ -559,7 +559,7 @@ class _GpuBatches:
         if not (item.error is None and image is not None and image.shape == self._shape
                 and image.min() != image.max()):
             return False
-        bands = frame_bands(self._recon, image)  # banded frames are evened out on the CPU (frame_status)
+        bands = frame_bands(self._recon, image)  # banded frames are named (and evened) on the CPU (frame_status)
         return bands is None or not bands.flagged
 
     def _one_by_one(self, items):

@@ -46,7 +46,8 @@ class Measured:
     ``alignment_s`` wall time of alignment + spectrum, seconds; ``traceback_text``: the traceback of
     an unexpected error (not a :class:`ValueError`), for the log; ``light_bands``: the frame's
     :class:`processing.banding.LightBands` where the job asked and the reconstructor keeps the
-    reference's row profile (evened out before measuring where flagged), else None.
+    reference's row profile (evened out before measuring where :attr:`~processing.banding.LightBands.evened`),
+    else None.
     """
 
     result: object = None
@@ -86,7 +87,7 @@ def measure_live(reconstructor, image: np.ndarray, job: LiveJob) -> Measured:
         if job.bands:  # as the batch does (app.batch.frame_status.measure_frame): evened, then measured
             out.light_bands = frame_light_bands(image, getattr(reconstructor, "row_light", None),
                                                getattr(reconstructor, "carriers", None))
-            if out.light_bands is not None and out.light_bands.flagged:
+            if out.light_bands is not None and out.light_bands.evened:
                 measured = even_rows(image, out.light_bands)
         out.result = reconstructor(measured, grid=job.grid)
     except Exception as exc:  # TirdeflectError: show it, keep going

@@ -122,7 +122,7 @@ class PinRegionOverlay:
             text += (f" — the pattern TURNED by {abs(turn.turn_mrad):.2f} mrad since the reference (camera or board "
                      f"moved{'; taken out of the heights' if turn.removed else ''}): capture a new reference")
             flags.append("TURNED")
-        if light_bands is not None and light_bands.flagged:  # evened out before measuring: named all the same
+        if light_bands is not None and light_bands.flagged:  # named, evened out before measuring or not
             text += " — LIGHT BANDS: " + light_bands.describe()
             flags.append("LIGHT BANDS")
         series = getattr(result, "series", None)
