@@ -35,9 +35,8 @@ from scipy.ndimage import uniform_filter1d
 
 from .live_view import SATURATION_MAX_PCT, saturation_level
 
-__all__ = ["BANDS_MIN_DEPTH", "BANDS_MIN_AGREEMENT", "BOARD_HARMONIC_ORDER", "BOARD_NOTCH_BINS", "LightBands",
-           "MIN_CYCLES_PER_QUARTER",
-           "board_row_frequencies", "RowLight", "clipped", "even_rows",
+__all__ = ["BANDS_MIN_DEPTH", "BANDS_MIN_AGREEMENT", "BOARD_HARMONIC_ORDER", "BOARD_NOTCH_BINS",
+           "MIN_CYCLES_PER_QUARTER", "LightBands", "RowLight", "board_row_frequencies", "clipped", "even_rows",
            "frame_light_bands", "light_bands", "reference_light", "row_profile"]
 
 #: Box along the rows (px) of :func:`row_profile`; it samples every ``cols // COLUMNS_PER_STEP`` columns
