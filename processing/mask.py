@@ -82,8 +82,10 @@ def darker_than_reference(frame, reference_mean: float) -> str:
     level = float(np.mean(brightness_sample(frame), dtype=np.float64))
     if not level < MIN_EXPOSURE_GAIN * reference_mean:
         return ""
-    times = f"{reference_mean / level:.3g}x" if level > 0 else "infinitely"
-    return (f"the frame is {times} darker than the reference (mean level {level:.4g} against "
+    if not level > 0:
+        return (f"the frame is black (mean level {level:.4g} against the reference's {reference_mean:.4g}): the "
+                f"light is off, the lens covered or the exposure too short")
+    return (f"the frame is {reference_mean / level:.3g}x darker than the reference (mean level {level:.4g} against "
             f"{reference_mean:.4g}): the light, "
             f"exposure or gain changed since the reference, or the reference was stored at another bit depth "
             f"(12-bit data in the top bits of 16-bit words reads 16x brighter); take the reference with this "
