@@ -1,11 +1,12 @@
+"""processing.mask's messages for frames nothing of which could be measured."""
+
+import numpy as np
 
 
 def test_a_frame_far_darker_than_its_reference_says_by_how_much():
     """What an all-invalid frame's message adds (processing.mask.darker_than_reference): a reference with
     12-bit levels in the top bits of 16-bit words stands 16x above the camera's frames; a black frame says
     so; within the 4x that the exposure gain makes up for, nothing."""
-    import numpy as np
-
     from processing.mask import darker_than_reference
 
     reference_mean = 16 * 2000.0
