@@ -83,10 +83,10 @@ def darker_than_reference(frame, reference_mean: float) -> str:
     if not level < MIN_EXPOSURE_GAIN * reference_mean:
         return ""
     if not level > 0:
-        return (f"the frame is black (mean level {level:.4g} against the reference's {reference_mean:.4g}): the "
+        return (f"the frame is black (mean level {level:.5g} against the reference's {reference_mean:.5g}): the "
                 f"light is off, the lens covered or the exposure too short")
-    return (f"the frame is {reference_mean / level:.3g}x darker than the reference (mean level {level:.4g} against "
-            f"{reference_mean:.4g}): the light, "
+    return (f"the frame is {reference_mean / level:.3g}x darker than the reference (mean level {level:.5g} against "
+            f"{reference_mean:.5g}): the light, "
             f"exposure or gain changed since the reference, or the reference was stored at another bit depth "
             f"(12-bit data in the top bits of 16-bit words reads 16x brighter); take the reference with this "
             f"camera at these settings")
