@@ -33,11 +33,11 @@ import cv2
 import numpy as np
 from scipy.ndimage import uniform_filter1d
 
-from .live_view import SATURATION_MAX_PCT, saturation_level
+from .live_view import SATURATION_MAX_PCT, saturation_pct
 
 __all__ = ["BANDS_MIN_DEPTH", "BANDS_MIN_AGREEMENT", "BOARD_HARMONIC_ORDER", "BOARD_NOTCH_BINS",
            "MIN_CYCLES_PER_QUARTER", "LightBands", "RowLight", "board_row_frequencies", "clipped", "even_rows",
-           "frame_light_bands", "light_bands", "reference_light", "row_profile"]
+           "bands_of", "evened_frame", "frame_light_bands", "light_bands", "reference_light", "row_profile"]
 
 #: Box along the rows (px) of :func:`row_profile`; it samples every ``cols // COLUMNS_PER_STEP`` columns
 #: (2 to 16 px: 64 samples or more across, 16 to a quarter; at 256^2 every 16 px left bands 10 % deep at
@@ -218,12 +218,11 @@ def _notched(d, notch, lit):
     return np.where(lit, np.fft.irfft(spectrum, n=n, axis=1), 0.0)
 
 
-def clipped(image) -> bool:
-    """Are more than :data:`processing.live_view.SATURATION_MAX_PCT` % of ``image``'s pixels at its
-    saturation level (:func:`processing.live_view.saturation_level`)?  (A few glints change no row's light.)"""
-    a = np.asarray(image)
-    level, top = saturation_level(a)
-    return bool(top >= level and 100.0 * np.count_nonzero(a >= level) > SATURATION_MAX_PCT * a.size)
+def clipped(image, saturated_pct: Optional[float] = None) -> bool:
+    """Are more than :data:`processing.live_view.SATURATION_MAX_PCT` % of ``image``'s pixels saturated
+    (:func:`processing.live_view.saturation_pct`, or ``saturated_pct`` where the caller has it)?  (A few
+    glints change no row's light.)"""
+    return (saturation_pct(image) if saturated_pct is None else saturated_pct) > SATURATION_MAX_PCT
 
 
 @dataclasses.dataclass(frozen=True)
@@ -242,13 +241,15 @@ def reference_light(reference) -> RowLight:
     return RowLight(row_profile(reference), clipped(reference))
 
 
-def frame_light_bands(image, reference: Optional[RowLight], carriers=None) -> Optional[LightBands]:
+def frame_light_bands(image, reference: Optional[RowLight], carriers=None,
+                      saturated_pct: Optional[float] = None) -> Optional[LightBands]:
     """:func:`light_bands` of ``image`` (2-D) against ``reference`` (its :class:`RowLight`); None where
     there is none to judge against, the image is not the reference's size (what measures it says so), or
     either is clipped (:func:`clipped`, which the saturation check names).  What the batch and the live
     window both judge each frame by: about 1.4 ms a 1024^2 frame.  ``carriers``: the board's
     (:class:`processing.carriers.Carriers`; None for random dots): the row frequencies of its harmonics
-    are notched out (:func:`board_row_frequencies`).
+    are notched out (:func:`board_row_frequencies`).  ``saturated_pct``: the image's
+    (:func:`processing.live_view.saturation_pct`) where the caller has it already.
 
     Clipped, a checkerboard changes each row's mean with the row's place on the board (the bright
     squares' share), alike across the width: ``tirdeflect simulate``'s bump and waves at 256^2 and 512^2,
@@ -261,7 +262,7 @@ def frame_light_bands(image, reference: Optional[RowLight], carriers=None) -> Op
     if reference is None or reference.clipped or np.shape(image)[0] != np.shape(reference.profile)[0]:
         return None
     profile = row_profile(image)
-    if profile.shape != np.shape(reference.profile) or clipped(image):
+    if profile.shape != np.shape(reference.profile) or clipped(image, saturated_pct):
         return None
     if carriers is None:
         return light_bands(profile, reference.profile)
@@ -269,6 +270,19 @@ def frame_light_bands(image, reference: Optional[RowLight], carriers=None) -> Op
     found = light_bands(profile, reference.profile, board_row_frequencies(carriers.freq, cols))
     evenable = bool(np.all(np.abs(np.asarray(carriers.freq)[:, 1]) * cols / 4 >= MIN_CYCLES_PER_QUARTER))
     return found if evenable else dataclasses.replace(found, evenable=False)
+
+
+def bands_of(reconstruct, image, saturated_pct: Optional[float] = None) -> Optional[LightBands]:
+    """:func:`frame_light_bands` of ``image`` against ``reconstruct``'s reference (a
+    :class:`processing.Reconstructor`: its ``row_light`` and ``carriers``; None where it keeps no row light)."""
+    return frame_light_bands(image, getattr(reconstruct, "row_light", None), getattr(reconstruct, "carriers", None),
+                             saturated_pct)
+
+
+def evened_frame(image, bands: Optional[LightBands]):
+    """The frame to measure: ``image`` with its rows evened out (:func:`even_rows`) where ``bands`` says so
+    (:attr:`LightBands.evened`), else ``image`` itself."""
+    return even_rows(image, bands) if bands is not None and bands.evened else image
 
 
 def _median_of_rows(a):

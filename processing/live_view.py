@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 
-__all__ = ["LiveView", "saturation_level", "saturation_pct", "SATURATION_MAX_PCT", "reference_saturation"]
+__all__ = ["LiveView", "saturation_pct", "SATURATION_MAX_PCT", "reference_saturation"]
 
 
 #: Saturated pixels (% of a frame) above which it is not ready (the Alignment tab) and is named in
@@ -18,22 +18,20 @@ __all__ = ["LiveView", "saturation_level", "saturation_pct", "SATURATION_MAX_PCT
 SATURATION_MAX_PCT = 1.0
 
 
-def saturation_level(frame) -> tuple:
-    """``(level, top)``: the frame's saturation level and its largest sample.  For integer frames the
-    top code of the smallest bit depth that holds the largest sample (a 10-bit camera in uint16
-    saturates at 1023); float frames saturate at 1.0, or at their largest sample if above 1."""
+def saturation_pct(frame) -> float:
+    """Percentage of pixels at the top code of the frame's bit depth.
+
+    For integer frames the bit depth is the smallest that holds the frame's
+    maximum (a 10-bit camera in uint16 saturates at 1023); float frames
+    saturate at 1.0 or at their maximum if above 1.
+    """
     a = np.asarray(frame)
     top = float(a.max()) if a.size else 0.0
     if a.dtype.kind in "ui":
         bits = max(1, int(math.ceil(math.log2(top + 1)))) if top > 0 else 1
-        return 2 ** bits - 1, top
-    return (1.0 if top <= 1.0 else top), top
-
-
-def saturation_pct(frame) -> float:
-    """Percentage of pixels at the top code of the frame's bit depth (:func:`saturation_level`)."""
-    a = np.asarray(frame)
-    level, _ = saturation_level(a)
+        level = 2 ** bits - 1
+    else:
+        level = 1.0 if top <= 1.0 else top
     return float(100.0 * np.count_nonzero(a >= level) / max(a.size, 1))
 
 

@@ -57,9 +57,9 @@ from .refine import (WARP_MAX_INTERPOLATION_ERROR_PX, band_limited_reference, li
 from .result import Result, SeriesCheck
 from .series import EMPTY, SERIES_MAX_PIN_SHIFT, SERIES_MAX_SLIP_FRACTION, SeriesState, copy_check
 from .series import check_series as _check_series
+from .series import unwrap_phase as _unwrap_phase
 from .banding import reference_light
 from .mosaic import equalise_mosaic, equalised_reference
-from .series import unwrap_phase as _unwrap_phase
 
 __all__ = ["Reconstructor", "Result", "SeriesCheck", "SeriesState", "reference_pin_region", "PATTERNS",
            "exposure_gain", "check_sample_range", "saturation_pct", "warp_fine_factor", "band_limited_reference",

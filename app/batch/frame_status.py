@@ -27,7 +27,7 @@ from processing.errors import (
     TirdeflectError,
 )
 from processing.live_view import SATURATION_MAX_PCT, saturation_pct
-from processing.banding import LightBands, even_rows, frame_light_bands
+from processing.banding import LightBands, bands_of, evened_frame
 from processing.turn import TURN_MAX_MRAD, TurnCheck
 
 __all__ = ["FrameStatus", "FrameOutcome", "FrameTally", "measure_frame", "outcome_of_error"]
@@ -131,9 +131,10 @@ def measure_frame(reconstruct, image: np.ndarray, ref_shape, grid: str):
             FrameStatus.BLANK,
             f"every pixel of the frame is {lo:g} (a {'black' if hi == 0 else 'uniform'} frame: "
             f"lost packets, no light or a saturated exposure)")
-    bands = frame_bands(reconstruct, image)
+    saturated = saturation_pct(image)
+    bands = bands_of(reconstruct, image, saturated)
     try:  # bands of light along the rows are evened out first (processing.banding.even_rows)
-        result = reconstruct(even_rows(image, bands) if bands is not None and bands.evened else image, grid=grid)
+        result = reconstruct(evened_frame(image, bands), grid=grid)
     except TirdeflectError as exc:
         outcome = outcome_of_error(exc)
         if outcome is None:
@@ -144,14 +145,8 @@ def measure_frame(reconstruct, image: np.ndarray, ref_shape, grid: str):
             FrameStatus.NO_CONTRAST,
             "no pixel of the frame could be measured (no pattern contrast: black, saturated or "
             "fully blurred frame); check exposure and that the pattern is in view")
-    return result, FrameOutcome(saturated_pct=saturation_pct(image), hot_pixels=result.hot_pixels,
+    return result, FrameOutcome(saturated_pct=saturated, hot_pixels=result.hot_pixels,
                                 turn=result.turn, light_bands=bands)
-
-
-def frame_bands(reconstruct, image) -> Optional[LightBands]:
-    """:func:`processing.banding.light_bands` of ``image`` against ``reconstruct``'s reference (None where
-    it keeps no row profile)."""
-    return frame_light_bands(image, getattr(reconstruct, "row_light", None), getattr(reconstruct, "carriers", None))
 
 
 class FrameTally:

@@ -553,13 +553,13 @@ class _GpuBatches:
 
     def _plain(self, item) -> bool:
         """A frame the GPU can take with the others (read, right shape, not uniform)."""
-        from app.batch.frame_status import frame_bands
+        from processing.banding import bands_of
 
         image = item.image
         if not (item.error is None and image is not None and image.shape == self._shape
                 and image.min() != image.max()):
             return False
-        bands = frame_bands(self._recon, image)  # banded frames are named (and evened) on the CPU (frame_status)
+        bands = bands_of(self._recon, image)  # banded frames are named (and evened) on the CPU (frame_status)
         return bands is None or not bands.flagged
 
     def _one_by_one(self, items):

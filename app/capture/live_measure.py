@@ -13,7 +13,7 @@ from typing import Optional
 
 import numpy as np
 
-from processing.banding import even_rows, frame_light_bands
+from processing.banding import bands_of, evened_frame
 
 __all__ = ["LiveJob", "Measured", "WorkerStopped", "measure_live", "error_message", "thread_clock"]
 
@@ -25,7 +25,7 @@ class LiveJob:
     ``grid``: "decimated" or "full"; ``reset_series``: start the temporal unwrapping anew
     (a new reconstructor or grid); ``alignment``: also compute the alignment metrics and spectrum;
     ``bands``: judge the frame's bands of light along the rows against the reference
-    (:func:`processing.banding.frame_light_bands`) and even them out before measuring.
+    (:func:`processing.banding.bands_of`) and even them out before measuring.
     """
 
     grid: str = "decimated"
@@ -83,13 +83,9 @@ def measure_live(reconstructor, image: np.ndarray, job: LiveJob) -> Measured:
     try:
         if job.reset_series and hasattr(reconstructor, "reset_series"):
             reconstructor.reset_series()
-        measured = image
         if job.bands:  # as the batch does (app.batch.frame_status.measure_frame): evened, then measured
-            out.light_bands = frame_light_bands(image, getattr(reconstructor, "row_light", None),
-                                               getattr(reconstructor, "carriers", None))
-            if out.light_bands is not None and out.light_bands.evened:
-                measured = even_rows(image, out.light_bands)
-        out.result = reconstructor(measured, grid=job.grid)
+            out.light_bands = bands_of(reconstructor, image)
+        out.result = reconstructor(evened_frame(image, out.light_bands), grid=job.grid)
     except Exception as exc:  # TirdeflectError: show it, keep going
         out.error = error_message(exc)
         if not isinstance(exc, ValueError):
