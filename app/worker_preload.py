@@ -50,11 +50,12 @@ def warm_up(size_px: int = 96) -> bool:
         options = ReconstructOptions(threads=1, planner_effort="FFTW_ESTIMATE")
         shift = 0.3 * np.exp(-((rows - size_px / 2) ** 2 + (cols - size_px / 2) ** 2) / (2 * (size_px / 6) ** 2))
         Reconstructor(board(0.0), geometry, options)(board(shift))
-        # the unwrapper's compiled flood fill, growth and path following, which a frame this smooth does not
+        # the unwrapper's compiled fills, growth and path following, which a frame this smooth does not
         # reach (compiled on the first call after a checkout, 1.5 s; loaded from Numba's cache after)
-        from processing.unwrap_kernels import flood_fill, grow_into, path_follow
+        from processing.unwrap_kernels import flood_fill, grow_into, path_follow, scan_fill
 
         flood_fill(np.zeros((4, 4)), np.ones((4, 4), bool), np.zeros((4, 4)))
+        scan_fill(np.zeros((4, 4)), np.zeros((4, 4)))
         grow_into(np.zeros(16), np.zeros(16), np.ones(16, bool), np.array([5]), 4, 4, 16)
         path_follow(np.zeros((4, 4)), np.ones((4, 4), bool), np.zeros((4, 4)))
         # and the masked height solve's operator (a frame with invalid samples)

@@ -20,6 +20,7 @@ from typing import NamedTuple, Optional
 import cv2
 import numpy as np
 
+from .angle_kernels import angle_of_product
 from .carriers import check_board_period, check_pattern_match, find_reference_carriers
 from .binning import binned_bands_clear
 from .demodulation import Demodulator
@@ -197,7 +198,7 @@ class CheckerboardChain(GridChain):
         ``plan``: the reference's of the demodulation that gave ``g`` (default :attr:`plan`)."""
         o = self.options
         plan = self.plan if plan is None else plan
-        wrapped = np.angle(g * plan.conj_g0)
+        wrapped = angle_of_product(g, plan.conj_g0)
         ratio = np.abs(g)
         ratio /= plan.g0_amplitude
         amplitude = np.minimum(ratio[0], ratio[1])

@@ -11,6 +11,7 @@ import time
 import cv2
 import numpy as np
 
+from .angle_kernels import angle_of_product
 from .fill import nearest_fill_index
 from .fullgrid_kernels import sparse_rows, spline_prefilter
 from .pools import pool
@@ -383,7 +384,7 @@ def full_ifft(chain, wins, u, u_first, valid, amplitude, phase, timings, t3):
     up, d, o = chain.upsampler, chain.demod, chain.options
     valid_full = up.mask(valid)
     gf = d.full_from_windows(wins)
-    wrapped = np.angle(gf * np.conj(chain.full_reference_signal()))
+    wrapped = angle_of_product(gf, np.conj(chain.full_reference_signal()))
     guide = np.stack([up(np.nan_to_num(phase[s])) for s in range(2)])
     full_phase = wrapped + 2 * np.pi * np.round((guide - wrapped) / (2 * np.pi))
     uf = d.phase_to_displacement(full_phase)

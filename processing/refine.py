@@ -15,6 +15,7 @@ import cv2
 import numba
 import numpy as np
 
+from .angle_kernels import angle_of_product
 from .fill import nearest_fill_index
 from .fullgrid import resize_all, run_pair
 from .unwrap import wrap
@@ -391,6 +392,6 @@ def refine_fd_tapered(demod, plan: WarpReference, static, g, u, valid, iteration
 
     def correction(write):
         gw = d.decimated_from_windows(d.frame_windows(write=write))
-        return d.phase_to_displacement(wrap(np.angle(g * np.conj(gw)) - static))
+        return d.phase_to_displacement(wrap(angle_of_product(g, np.conj(gw)) - static))
 
     return _remove_bias(plan, u, valid, iterations, up, correction, interpolation=interpolation, threads=threads)

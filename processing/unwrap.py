@@ -37,7 +37,7 @@ import scipy.fft
 from scipy import ndimage
 from skimage.restoration import unwrap_phase
 
-from .unwrap_kernels import flood_fill, grow_into, jump_over_pi, jumps_off_residues, path_follow
+from .unwrap_kernels import flood_fill, grow_into, jump_over_pi, jumps_off_residues, path_follow, scan_fill
 
 __all__ = ["wrap", "median_turn", "unwrap_spatial", "unwrap_temporal", "has_wraps", "jumps_only_at_residues"]
 
@@ -325,7 +325,7 @@ def _unwrapped(phase, valid):
         # of the app's 1024^2 tank: 72 % of the calls).
         valid = np.ascontiguousarray(valid)
         out = np.zeros(phase.shape)
-        regions = int(flood_fill(work, valid, out))
+        regions = int(scan_fill(work, out) if valid.all() else flood_fill(work, valid, out))
         if regions < 0:
             regions = None
             out = _unwrap_path_following(work, valid)
