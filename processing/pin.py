@@ -10,6 +10,7 @@ import numpy as np
 from scipy import ndimage
 
 from .errors import GeometryError, TirdeflectError
+from .pin_kernels import gather_samples, scale_fit
 
 __all__ = ["PIN_MIN_SAMPLES", "PIN_MIN_FRACTION", "PIN_MIN_PIECE_SAMPLES", "PIN_FALLBACKS", "PinStatus",
            "STILL_REGION_MAX_MOTION_PX", "BAND_MAX_MOTION_PX", "USER_REGION_PREFIX", "band_moved",
@@ -75,10 +76,12 @@ def _median_length(u_samples) -> float:
 
 def _pin_samples(displacement_px, samples, rows_px, cols_px):
     """``(u, p)``: the displacement (2, m; px) on the finite ``samples`` and their positions (2, m; px)
-    on the grid ``rows_px`` x ``cols_px``."""
-    u, sel = _finite_on(displacement_px, samples)
-    r, c = np.nonzero(sel)
-    return u, np.stack([np.asarray(rows_px, np.float64)[r], np.asarray(cols_px, np.float64)[c]])
+    on the grid ``rows_px`` x ``cols_px`` (:func:`processing.pin_kernels.gather_samples`)."""
+    u = np.asarray(displacement_px)
+    if u.dtype not in (np.float32, np.float64):
+        u = u.astype(np.float64)
+    return gather_samples(u, np.asarray(samples, bool), np.asarray(rows_px, np.float64),
+                          np.asarray(cols_px, np.float64))
 
 
 #: The image's scale changed since the reference (:func:`pattern_scaled`): the pin samples'
@@ -115,29 +118,17 @@ def scale_of(u_samples, p_samples):
     (2, m; px), finite ones."""
     if np.shape(u_samples)[1] < 16:
         return float("nan"), float("nan"), float("nan")
-    u = np.asarray(u_samples, np.float64)
-    p = np.asarray(p_samples, np.float64)
-    u = u - u.mean(axis=1, keepdims=True)
-    p = p - p.mean(axis=1, keepdims=True)
-    lever = float(np.sum(p * p))
-    spread = float(np.sum(u * u))
-    if not lever > 0:
-        return float("nan"), float("nan"), float("nan")
-    scale = float(np.sum(u * p)) / lever
-    rho = np.sqrt(np.sum(p * p, axis=0))
-    reach = abs(scale) * float(np.max(rho))
-    explained = 1.0 - float(np.sum((u - scale * p) ** 2)) / spread if spread > 0 else 0.0
     # a scale change moves each sample outward in proportion to its distance from the centre; the slopes'
     # tail of a feature centred in the frame points outward too but falls off with the distance (a deep
     # dimple in FS-SS read -0.14 % so): the share counts as far as the outward motion's growth with the
-    # distance matches a scale change's (its slope times the mean distance over the mean outward motion:
-    # 1 for a scale change, 0 or less for such a tail)
-    outward = np.sum(u * p, axis=0) / np.maximum(rho, 1e-12)
-    rho_c = rho - rho.mean()
-    trend = float(np.sum(outward * rho_c)) / max(float(np.sum(rho_c * rho_c)), 1e-12)  # outward motion per px
-    mean_out = float(outward.mean())
-    grows = trend * float(rho.mean()) / mean_out if mean_out != 0 else 0.0  # 1: proportional to the distance
-    return scale, reach, explained * min(1.0, max(0.0, grows))
+    # distance matches a scale change's (its slope times the mean distance over the mean outward motion,
+    # ``grows``: 1 for a scale change, 0 or less for such a tail); one compiled pass (pin_kernels)
+    u, p = np.asarray(u_samples), np.asarray(p_samples)
+    scale, reach, explained, grows = scale_fit(u if u.dtype in (np.float32, np.float64) else u.astype(np.float64),
+                                               p if p.dtype == np.float64 else p.astype(np.float64))
+    if math.isnan(scale):
+        return float("nan"), float("nan"), float("nan")
+    return float(scale), float(reach), float(explained) * min(1.0, max(0.0, float(grows)))
 
 
 def pattern_scaled(reach_px: float, explained: float) -> bool:

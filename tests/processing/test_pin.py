@@ -395,3 +395,34 @@ def test_the_scale_change_on_the_pin_samples_is_fitted_and_only_where_it_explain
     scale, reach, explained = region_scale(noise, band, rows, cols)
     assert abs(scale) < 1e-5 and explained < 0.01 and not pattern_scaled(reach, explained)
     assert np.isnan(region_scale(u, np.zeros_like(band), rows, cols)[0])  # too few samples
+
+
+def test_the_pin_samples_are_gathered_finite_and_in_row_major_order():
+    """The compiled gathering (pin_kernels.gather_samples) takes the samples where both components
+    are finite, in the order NumPy's boolean indexing gives, with their grid positions; a tail that
+    falls off with the distance (the slopes of a feature centred in the frame) is not a scale change
+    however well the fit explains it (pin.scale_of's growth factor)."""
+    from processing.pin import region_motion, region_scale
+    from processing.pin_kernels import gather_samples
+
+    rng = np.random.default_rng(4)
+    u = rng.normal(0, 0.1, (2, 40, 50)).astype(np.float32)
+    u[0, rng.random((40, 50)) < 0.1] = np.nan
+    u[1, 3, 4] = np.inf
+    samples = rng.random((40, 50)) < 0.5
+    rows, cols = np.arange(40) * 3.0 + 1.0, np.arange(50) * 2.5
+    got_u, got_p = gather_samples(u, samples, rows, cols)
+    sel = samples & np.isfinite(u[0]) & np.isfinite(u[1])
+    r, c = np.nonzero(sel)
+    assert got_u.dtype == np.float32 and np.array_equal(got_u, np.stack([u[0][sel], u[1][sel]]))
+    assert np.array_equal(got_p, np.stack([rows[r], cols[c]]))
+    motion = region_motion(u, samples, rows, cols)
+    assert motion["region_motion_px"] == pytest.approx(np.hypot(np.median(u[0][sel]), np.median(u[1][sel])))
+
+    # outward motion 0.5 px / (1 + rho / 20 px): a tail, not a magnification
+    rr, cc = np.meshgrid(rows, cols, indexing="ij")
+    dr, dc = rr - rr.mean(), cc - cc.mean()
+    rho = np.hypot(dr, dc) + 1e-9
+    tail = (0.5 / (1 + rho / 20.0) / rho * np.stack([dr, dc])).astype(np.float32)
+    _, _, explained = region_scale(tail, np.ones((40, 50), bool), rows, cols)
+    assert explained == 0.0
