@@ -19,7 +19,7 @@ import numpy as np
 import pyqtgraph as pg
 from pyqtgraph.Qt import QtCore, QtGui, QtWidgets
 
-from .model.colour_range import CAMERA, ColourRule, data_levels, range_moves, robust_levels
+from .model.colour_range import CAMERA, ColourRule, data_levels, range_moves, robust_levels, without_spread
 
 __all__ = ["ImageView", "ProfileView", "HistogramView", "SpectrumView", "ProfileLine", "decimate_for_display",
            "room_for_the_last_tick"]
@@ -483,6 +483,8 @@ class ImageView(QtWidgets.QWidget):
                     or range_moves(self._levels, new_levels, due=due)):
                 self._apply_levels(new_levels)
                 self._levels_t = now
+                if without_spread(data):  # a stand-in range: the next map with a spread sets its own at once
+                    self._levels_set = False
         self.image.setImage(data, autoLevels=False, levels=self._levels)
         rect = self._rect_for(full_shape, x, y)
         # pyqtgraph scales an image to its rect when the rect is set: set it again when the

@@ -491,6 +491,22 @@ def test_the_colour_range_holds_a_deepening_dimple_a_few_samples_wide_and_not_a_
     assert np.isfinite(data_levels(noise, SURFACE, symmetric=True)).all()
 
 
+def test_a_map_without_spread_is_known_so_the_next_sets_its_range_at_once():
+    """The live frame that is the reference itself gives heights and slopes of exactly 0 (the phase of
+    g conj(g0) of one signal), whose range is robust_levels' stand-in +-1; from there the bump's +-0.4
+    mrad would move only when due, by 10 % steps (range_moves: 0.8 of the span is not a quarter).
+    without_spread says which maps give a stand-in, so the view lets the next one set its own."""
+    from app.gui.model.colour_range import SURFACE, data_levels, range_moves, without_spread
+
+    zeros = np.zeros((70, 70), np.float32)
+    assert data_levels(zeros, SURFACE, symmetric=True) == (-1.0, 1.0) and without_spread(zeros)
+    assert without_spread(np.full((70, 70), np.nan, np.float32)) and without_spread(np.full((8, 8), 3.0))
+    bump = np.zeros((70, 70), np.float32)
+    bump[30:40, 30:40] = 0.39
+    assert not without_spread(bump) and not without_spread(np.random.default_rng(0).normal(size=(70, 70)))
+    assert not range_moves((-1.0, 1.0), data_levels(bump, SURFACE, symmetric=True), due=False)  # why it matters
+
+
 # ------------------------------------------------------------------ recording (finding 7), memory
 def test_threshold_proposal_is_five_times_the_median_recent_rms_in_mrad():
     from app.gui.model.recording import RmsHistory, threshold_attrs

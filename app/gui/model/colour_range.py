@@ -19,7 +19,8 @@ from typing import Optional, Tuple
 
 import numpy as np
 
-__all__ = ["ColourRule", "CAMERA", "SURFACE", "robust_levels", "feature_levels", "data_levels", "range_moves"]
+__all__ = ["ColourRule", "CAMERA", "SURFACE", "robust_levels", "feature_levels", "data_levels", "range_moves",
+           "without_spread"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -122,6 +123,19 @@ def data_levels(data: np.ndarray, rule: ColourRule, *, symmetric: bool = False) 
         if held is not None:
             lo, hi = min(lo, held[0]), max(hi, held[1])
     return (lo, hi)
+
+
+def without_spread(data: np.ndarray, *, max_samples: int = 20000) -> bool:
+    """True where the finite samples of ``data`` (the subsample :func:`robust_levels` reads) are all one
+    value, or there are none: its levels are :func:`robust_levels`' stand-in (a width of 1), not the
+    data's.  A live frame that is the reference itself gives such maps (heights and slopes exactly 0):
+    the next map with a spread must set its own range at once, not a few times a second by 10 % steps
+    from +-1 (its bump of +-0.4 mrad stood under +-1 mrad after the frame was drawn)."""
+    flat = data.ravel()
+    sub = flat[::max(1, flat.size // max_samples)]
+    if sub.dtype.kind == "f":
+        sub = sub[np.isfinite(sub)]
+    return bool(sub.size == 0 or sub.min() == sub.max())
 
 
 def range_moves(old: Tuple[float, float], new: Tuple[float, float], *, due: bool) -> bool:
