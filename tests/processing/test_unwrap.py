@@ -203,6 +203,17 @@ def test_compiled_path_following_is_refused_where_its_jumps_are_not_at_residues(
     assert U._unwrap_path_following(wrap(truth), valid) is None
 
 
+def _smooth_field(rng):
+    """A phase field (rad) of 20-120 samples a side: three products of sines of 2-30 rad, periods of
+    6-40 samples, and noise of 0, 0.3 or 1 rad: with residues or without."""
+    rows, cols = (int(v) for v in rng.integers(20, 120, 2))
+    r, c = np.mgrid[:rows, :cols]
+    truth = np.zeros((rows, cols))
+    for _ in range(3):
+        truth += rng.uniform(2, 30) * np.sin(r / rng.uniform(6, 40) + rng.uniform(0, 6)) * np.cos(c / rng.uniform(6, 40))
+    return truth + rng.normal(0, rng.choice([0.0, 0.3, 1.0]), truth.shape)
+
+
 def test_the_plain_flood_fill_is_path_followings_unwrapping_wherever_it_accepts():
     """The flood fill that unwrap_spatial tries before path following (no reliability order, a few
     times cheaper) is accepted only when consistent, and then gives path following's result on every
@@ -216,12 +227,8 @@ def test_the_plain_flood_fill_is_path_followings_unwrapping_wherever_it_accepts(
     rng = np.random.default_rng(7)
     accepted = refused = 0
     for _ in range(60):
-        rows, cols = (int(v) for v in rng.integers(20, 120, 2))
-        r, c = np.mgrid[:rows, :cols]
-        truth = np.zeros((rows, cols))
-        for _ in range(3):
-            truth += rng.uniform(2, 30) * np.sin(r / rng.uniform(6, 40) + rng.uniform(0, 6)) * np.cos(c / rng.uniform(6, 40))
-        truth += rng.normal(0, rng.choice([0.0, 0.3, 1.0]), truth.shape)
+        truth = _smooth_field(rng)
+        rows, cols = truth.shape
         valid = rng.random(truth.shape) > rng.choice([0.0, 0.05, 0.3])
         valid[rows // 3: rows // 2] &= rng.random() < 0.5  # sometimes a masked stripe: two regions
         work = np.where(valid, wrap(truth), 0.0)
@@ -258,12 +265,8 @@ def test_the_scanline_fill_of_a_map_valid_everywhere_is_the_flood_fills_unwrappi
     rng = np.random.default_rng(17)
     accepted = refused = 0
     for _ in range(60):
-        rows, cols = (int(v) for v in rng.integers(20, 120, 2))
-        r, c = np.mgrid[:rows, :cols]
-        truth = np.zeros((rows, cols))
-        for _ in range(3):
-            truth += rng.uniform(2, 30) * np.sin(r / rng.uniform(6, 40) + rng.uniform(0, 6)) * np.cos(c / rng.uniform(6, 40))
-        truth += rng.normal(0, rng.choice([0.0, 0.3, 1.0]), truth.shape)
+        truth = _smooth_field(rng)
+        rows, cols = truth.shape
         work = wrap(truth)
         everywhere = np.ones(truth.shape, bool)
         flood, scan = np.zeros(truth.shape), np.zeros(truth.shape)
