@@ -297,7 +297,7 @@ def unwrap_spatial(phase, valid=None, *, ref_mask=None) -> np.ndarray:
     ndarray, float64, shape (rows, cols)
         Unwrapped phase, NaN outside ``valid``.
     """
-    if valid is not None and np.ndim(phase) == 2 and np.all(valid):
+    if valid is not None and np.ndim(phase) == 2 and np.size(phase) and np.all(valid):
         # valid everywhere (most live frames): the scanline fill straight from the wrapped map, no
         # copies; where it refuses (residues, a sample not finite) the general path below
         out = np.empty(np.shape(phase))

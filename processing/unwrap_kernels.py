@@ -163,6 +163,8 @@ def scan_fill(phase, out):  # pragma: no cover - compiled
     160 x 160 live map."""
     rows, cols = phase.shape
     pi = np.pi
+    if rows == 0 or cols == 0:
+        return 1
     out[0, 0] = phase[0, 0]
     for i in range(1, rows):
         out[i, 0] = out[i - 1, 0] + _wrap(np.float64(phase[i, 0]) - np.float64(phase[i - 1, 0]))
