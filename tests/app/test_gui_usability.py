@@ -414,6 +414,9 @@ def test_arm_trigger_by_keys_snapshot_and_close_while_recording_asks(qtbot, wind
         stored = {k: tuple(f.attrs[f"colour_levels.{k}"]) for k in ("height", "displacement", "slope_x", "slope_y")}
         assert f.attrs["colour_units.slope_x"] == f.attrs["colour_units.slope_y"] == "mrad"
     assert seq >= 0
+    # the maps on screen, whose colour ranges were stored, are the stored frame's (F12 may come between the
+    # drawing of a frame's height and of its slopes: the snapshot finishes drawing it first, as Pause does)
+    assert all(v.frame_id == seq for v in window.map_views), [v.frame_id for v in window.map_views]
     for name, view in (("height", window.height_view), ("displacement", window.disp_view),
                        ("slope_x", window.slope_x_view), ("slope_y", window.slope_y_view)):
         assert stored[name] == pytest.approx(view.levels, rel=1e-6), name
