@@ -62,8 +62,8 @@ def angle_of_product(a, b) -> np.ndarray:
 
     The product is formed in float64 (NumPy's complex64 product rounds it to float32 first), its
     angle within 6.3e-9 rad before rounding to float32: at most 1.3e-7 rad from the exact angle
-    (NumPy's complex64 ``np.angle(a * b)``: 2.6e-7).  Used for the wrapped phase of a frame's analytic signals against the
-    reference's, ``angle_of_product(g, conj_g0)``.
+    (NumPy's complex64 ``np.angle(a * b)``: 2.6e-7).  Used for the wrapped phase of a frame's
+    analytic signals against the reference's, ``angle_of_product(g, conj_g0)``.
     """
     a = np.ascontiguousarray(a)
     b = np.ascontiguousarray(b)
