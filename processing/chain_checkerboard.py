@@ -28,8 +28,8 @@ from .chain_base import GridChain
 from .errors import AllInvalidError
 from .fft import FFTPlanner
 from .fullgrid import Upsampler, full_ifft, interpolate_full
-from .mask import (POOR_FRAME_VALID_FRACTION, brightness_sample, choose_reference_region, darker_than_reference,
-                   dilate_invalid, drop_islands, exposure_gain, fold_ok, reference_contrast_ok)
+from .mask import (POOR_FRAME_VALID_FRACTION, choose_reference_region, darker_than_reference, dilate_invalid,
+                   drop_islands, exposure_gain, fold_ok, mean_level, reference_contrast_ok)
 from .plan import ReferencePlan, read_only
 from .continuation import ContinuedSignals
 from .refine import refine_fd, refine_fd_tapered, static_phase, warp_reference
@@ -85,7 +85,7 @@ class CheckerboardChain(GridChain):
                                      oversample=o.oversample, border=o.border, subbin=o.subbin)
         self.rows_px, self.cols_px = d.rows_px, d.cols_px
         self.ref_f32 = ref.astype(np.float32)
-        self.ref_mean = float(np.mean(brightness_sample(ref), dtype=np.float64))
+        self.ref_mean = mean_level(ref)
         self.reference_valid = reference_contrast_ok(d, self.shape)
         self.region = choose_reference_region(geometry, self.reference_valid, self.rows_px, self.cols_px,
                                               self.shape, skip=int(o.dilate))

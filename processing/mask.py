@@ -21,8 +21,8 @@ from .geometry import DEFAULT_REFERENCE_BAND, default_reference_region_mask
 from .pin import USER_REGION_PREFIX
 
 __all__ = ["MIN_EXPOSURE_GAIN", "MAX_SAMPLE_MAGNITUDE", "POOR_FRAME_VALID_FRACTION", "DEFECT_CONTRAST_FRACTION",
-           "exposure_gain", "darker_than_reference", "brightness_sample", "check_sample_range", "validate_image",
-           "defect_pixels",
+           "exposure_gain", "darker_than_reference", "brightness_sample", "mean_level", "check_sample_range",
+           "validate_image", "defect_pixels",
            "HOT_CANDIDATES_MAX_FRACTION", "HOT_EXCESS_FRACTION", "HOT_EXCESS_OVER_REFERENCE", "hot_pixel_limits",
            "hot_pixels_above", "repair_pixels", "dilate_invalid", "fold_ok",
            "drop_islands", "reference_contrast_ok", "reference_pin_region", "ReferenceRegion",
@@ -63,7 +63,7 @@ def exposure_gain(frame, reference_mean: float, amplitude) -> float:
     """
     if not reference_mean > 0:
         return 1.0
-    by_mean = float(np.mean(brightness_sample(frame), dtype=np.float64)) / reference_mean
+    by_mean = mean_level(frame) / reference_mean
     if not by_mean < 1.0:  # as bright or brighter (or NaN): nothing to make up for
         return 1.0
     by_contrast = upper_decile(amplitude) if np.size(amplitude) else 1.0
@@ -88,13 +88,13 @@ def upper_decile(values) -> float:
 
 def darker_than_reference(frame, reference_mean: float) -> str:
     """Why a frame with no sample left may read as "no contrast": where its mean brightness is below
-    :data:`MIN_EXPOSURE_GAIN` of the reference's (``reference_mean``, of :func:`brightness_sample`),
+    :data:`MIN_EXPOSURE_GAIN` of the reference's (``reference_mean``, its :func:`mean_level`),
     beyond what :func:`exposure_gain` makes up for, a sentence that says by how much and what may
     cause it (a reference stored at another bit depth: 12-bit data in the top bits of 16-bit words
     read 16x brighter than the camera's frames); else ""."""
     if not reference_mean > 0:
         return ""
-    level = float(np.mean(brightness_sample(frame), dtype=np.float64))
+    level = mean_level(frame)
     if not level < MIN_EXPOSURE_GAIN * reference_mean:
         return ""
     if not level > 0:
@@ -111,6 +111,12 @@ def brightness_sample(image):
     """Every 4th pixel of every 4th row, for the mean brightness at 1/16 of the cost (frame and
     reference sampled alike; the mask's threshold needs the ratio to a few per cent)."""
     return np.asarray(image)[::4, ::4]
+
+
+def mean_level(image) -> float:
+    """The mean grey level of :func:`brightness_sample` of ``image`` (float64 sum): what a frame's and
+    its reference's brightness are compared by (:func:`exposure_gain`, :func:`darker_than_reference`)."""
+    return float(np.mean(brightness_sample(image), dtype=np.float64))
 
 
 def check_sample_range(image, name: str = "frame") -> None:
