@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-import threading
-from collections import OrderedDict
-
 import numpy as np
+
+from .mask_memo import MaskMemo
 
 __all__ = ["nearest_fill_index", "FILL_CACHE_SIZE"]
 
@@ -16,8 +15,7 @@ __all__ = ["nearest_fill_index", "FILL_CACHE_SIZE"]
 #: number of invalid samples (9 ms of a 1024^2 frame's image refinement).
 FILL_CACHE_SIZE = 8
 
-_cache: "OrderedDict[tuple, tuple]" = OrderedDict()
-_lock = threading.Lock()
+_memo = MaskMemo(FILL_CACHE_SIZE)
 
 
 def nearest_fill_index(valid):
@@ -28,19 +26,12 @@ def nearest_fill_index(valid):
     valid = np.asarray(valid, bool)
     if valid.all() or not valid.any():
         return None
-    key = (valid.shape, np.packbits(valid).tobytes())  # the mask itself: no collision possible
-    with _lock:
-        hit = _cache.get(key)
-        if hit is not None:
-            _cache.move_to_end(key)
-            return hit
+    return _memo(valid, _fill_index)
+
+
+def _fill_index(valid):
     from scipy import ndimage
 
     _, idx = ndimage.distance_transform_edt(~valid, return_indices=True)
     idx.flags.writeable = False  # and so every view of it
-    fill = (idx[0], idx[1])
-    with _lock:
-        _cache[key] = fill
-        while len(_cache) > FILL_CACHE_SIZE:
-            _cache.popitem(last=False)
-    return fill
+    return idx[0], idx[1]

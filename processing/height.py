@@ -72,7 +72,6 @@ from types import MappingProxyType
 from typing import NamedTuple
 
 import numpy as np
-from scipy import ndimage
 
 from .errors import GeometryError, ShapeMismatchError, TirdeflectError
 from .geometry import Geometry
@@ -81,6 +80,7 @@ from .height_masked import apply_AT, edge_data, solve_masked
 from .height_spectral import prepare_spectral, spectral_solve
 from .pin import (PIN_MIN_PIECE_SAMPLES, PinStatus, choose_pin_samples, level_of_shift_um, null_mode_offset,
                   region_motion, shift_judged)
+from .regions import connected_regions
 
 __all__ = [
     "SurfaceResult",
@@ -444,7 +444,7 @@ class HeightSolver:
             pieces, n_pieces = None, 1
         else:
             f, iterations = solve_masked(self, gr, gc, v, tol)
-            pieces, n_pieces = ndimage.label(v)
+            pieces, n_pieces = connected_regions(v)
         h = f * self.null
         n_valid = int(np.count_nonzero(v))
         v = self._pin(h, v, pieces, n_pieces, samples)

@@ -19,6 +19,7 @@ import numpy as np
 from .errors import SampleRangeError
 from .geometry import DEFAULT_REFERENCE_BAND, default_reference_region_mask
 from .pin import USER_REGION_PREFIX
+from .regions import connected_regions
 
 __all__ = ["MIN_EXPOSURE_GAIN", "MAX_SAMPLE_MAGNITUDE", "POOR_FRAME_VALID_FRACTION", "DEFECT_CONTRAST_FRACTION",
            "exposure_gain", "darker_than_reference", "brightness_sample", "mean_level", "check_sample_range",
@@ -337,11 +338,9 @@ def drop_islands(valid, ref_mask, min_island):
     that do not reach the reference region ``ref_mask``."""
     if min_island <= 0:
         return valid
-    from scipy import ndimage
-
     if valid.all():
         return valid  # one region
-    labels, n = ndimage.label(valid)
+    labels, n = connected_regions(valid)
     if n <= 1:
         return valid
     sizes = np.bincount(labels.ravel(), minlength=n + 1)

@@ -16,6 +16,7 @@ from typing import Optional
 import numpy as np
 
 from .pin import PIN_MIN_PIECE_SAMPLES
+from .regions import connected_regions
 from .result import SeriesCheck
 from .unwrap import TWO_PI, has_wraps, jumps_only_at_residues, median_turn, unwrap_spatial, unwrap_temporal, wrap
 
@@ -139,7 +140,7 @@ def _heal_specks(phase, wrapped, valid, ref_mask):
 
     own = unwrap_spatial(np.where(valid, wrapped, 0.0), valid, ref_mask=ref_mask)
     turns = np.where(valid, np.round((work - np.where(valid, own, 0.0)) / TWO_PI), 0.0)
-    labels, _ = ndimage.label(valid)
+    labels, _ = connected_regions(valid)
     for lab, box in enumerate(ndimage.find_objects(labels), start=1):
         region = labels[box] == lab
         t = turns[box][region]
@@ -245,9 +246,7 @@ def _disagrees_with_spatial(phase, valid, ref_mask):
     multiple of 2 pi from this frame's own spatial unwrapping, on the valid
     islands that reach the reference region (elsewhere the frame alone
     cannot fix an island's 2 pi offset: the series is the only witness)."""
-    from scipy import ndimage
-
-    labels, count = ndimage.label(valid)
+    labels, count = connected_regions(valid)
     anchored = np.unique(labels[valid & ref_mask]) if ref_mask is not None else np.array([], int)
     anchored = anchored[anchored > 0]
     if not anchored.size and count:

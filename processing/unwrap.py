@@ -37,6 +37,7 @@ import scipy.fft
 from scipy import ndimage
 from skimage.restoration import unwrap_phase
 
+from .regions import connected_regions
 from .unwrap_kernels import flood_fill, grow_into, jump_over_pi, jumps_off_residues, path_follow, scan_fill
 
 __all__ = ["wrap", "median_turn", "unwrap_spatial", "unwrap_temporal", "has_wraps", "jumps_only_at_residues"]
@@ -255,7 +256,7 @@ def _align_components(phase, valid, ref_mask, regions=None):
     if regions == 1:
         labels, n = None, 1
     else:
-        labels, n = ndimage.label(valid)
+        labels, n = connected_regions(valid)
     if n == 0:
         return phase
     if n == 1:
