@@ -65,10 +65,15 @@ def draw_raw(w, image, tab, host_ns=0, seq=None):
         k = view.stride
         sub = image[::k, ::k] if k > 1 else image
         mask = (sub >= top).view(np.uint8)
-        w.saturation_overlay.setImage(mask, autoLevels=False, levels=(0, 1))
-        if w.saturation_overlay.width() != sub.shape[1] or not w._overlay_rect == (image.shape, k):
-            w.saturation_overlay.setRect(QtCore.QRectF(0, 0, image.shape[1], image.shape[0]))
-            w._overlay_rect = (image.shape, k)
+        # no saturated pixel: the overlay is hidden rather than drawn transparent (its alpha-blended
+        # image made every paint of the raw view 4.1 instead of 2.8 ms at 512^2, bench_gui.py)
+        saturated = bool(mask.any())
+        w.saturation_overlay.setVisible(saturated)
+        if saturated:
+            w.saturation_overlay.setImage(mask, autoLevels=False, levels=(0, 1))
+            if w.saturation_overlay.width() != sub.shape[1] or not w._overlay_rect == (image.shape, k):
+                w.saturation_overlay.setRect(QtCore.QRectF(0, 0, image.shape[1], image.shape[0]))
+                w._overlay_rect = (image.shape, k)
         p = w.session.worker.latest()
         sat = p.saturation_pct if p is not None else 0.0
         w._hist_count += 1

@@ -363,6 +363,25 @@ def test_camera_settings_show_what_the_camera_accepted(qtbot, window, scene):
     assert cp.width.value() == SHAPE[1]  # editors show the accepted values again
 
 
+def test_saturated_pixels_are_red_on_the_raw_view_and_the_overlay_goes_when_they_do(qtbot, window, scene):
+    """A camera frame with a clipped patch (pixels at 255 of 8 bits) shows them red on the raw view, the
+    overlay's samples set exactly where the drawn frame is clipped; when the light is turned down the
+    overlay is hidden (not drawn transparent over every paint: it cost the raw view a third of its paint)."""
+    frames = Switchable(scene["flat"])
+    window.use_camera(SyntheticCamera(frames, frame_rate_hz=100.0))
+    qtbot.waitUntil(lambda: window.clock.last_raw_seq >= 0, timeout=10000)
+    assert not window.saturation_overlay.isVisible()  # the flat frame has no clipped pixel
+    clipped = scene["flat"].copy()
+    clipped[40:90, 100:180] = 255
+    frames.image = clipped
+    overlay = window.saturation_overlay
+    qtbot.waitUntil(lambda: overlay.isVisible() and overlay.image is not None, timeout=10000)
+    k = window.raw_view.stride
+    np.testing.assert_array_equal(overlay.image.astype(bool), clipped[::k, ::k] >= 255)
+    frames.image = scene["flat"]
+    qtbot.waitUntil(lambda: not overlay.isVisible(), timeout=10000)
+
+
 def test_geometry_editor_and_toml_round_trip(qtbot, window, scene, tmp_path):
     """Edit theta in the panel, save TOML, load it back: the same Geometry; an unphysical theta is refused."""
     from processing import Geometry
