@@ -66,7 +66,7 @@ def draw_raw(w, image, tab, host_ns=0, seq=None):
         sub = image[::k, ::k] if k > 1 else image
         mask = (sub >= top).view(np.uint8)
         # no saturated pixel: the overlay is hidden rather than drawn transparent (its alpha-blended
-        # image made every paint of the raw view 4.1 instead of 2.8 ms at 512^2, bench_gui.py)
+        # image made every paint of the raw view 3.5-4.4 instead of 2.9 ms at 512^2: docs/acquisition.md)
         saturated = bool(mask.any())
         w.saturation_overlay.setVisible(saturated)
         if saturated:
