@@ -491,23 +491,6 @@ def test_the_colour_range_holds_a_deepening_dimple_a_few_samples_wide_and_not_a_
     assert np.isfinite(data_levels(noise, SURFACE, symmetric=True)).all()
 
 
-def test_the_colour_ranges_percentiles_are_numpys_own():
-    """percentiles (one partition, what every map's colour range takes on every frame) gives
-    np.percentile's floats for the percentiles the rules use, on every kind of sample the views show."""
-    from app.gui.model.colour_range import percentiles
-
-    rng = np.random.default_rng(12)
-    for trial in range(600):
-        n = int(rng.integers(1, 25000))
-        kind = trial % 4
-        if kind < 2:
-            values = (rng.normal(size=n) * rng.uniform(1e-3, 1e3)).astype((np.float32, np.float64)[kind])
-        else:
-            values = rng.integers(0, (255, 4095)[kind - 2], n).astype((np.uint8, np.uint16)[kind - 2])
-        for pcts in ([99.9], [0.1, 99.9], [1.0, 99.0], [50.0]):
-            assert percentiles(values, pcts) == [float(v) for v in np.percentile(values, pcts)], (trial, pcts)
-
-
 def test_a_map_without_spread_is_known_so_the_next_sets_its_range_at_once():
     """The live frame that is the reference itself gives heights and slopes of exactly 0 (the phase of
     g conj(g0) of one signal), whose range is robust_levels' stand-in +-1; from there the bump's +-0.4

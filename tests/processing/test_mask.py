@@ -17,10 +17,31 @@ def test_a_frame_far_darker_than_its_reference_says_by_how_much():
     assert darker_than_reference(np.full((64, 64), 10, np.uint16), 0.0) == ""  # no reference level
 
 
+def test_percentiles_are_numpys_own():
+    """percentiles (one partition each: the exposure gain's decile, and what every map's colour range in
+    the window takes on every frame) gives np.percentile's floats for the percentiles they use, on every
+    kind of sample the views show."""
+    from processing.mask import percentiles
+
+    rng = np.random.default_rng(12)
+    for trial in range(600):
+        n = int(rng.integers(1, 25000))
+        kind = trial % 4
+        if kind < 2:
+            values = (rng.normal(size=n) * rng.uniform(1e-3, 1e3)).astype((np.float32, np.float64)[kind])
+        else:
+            values = rng.integers(0, (255, 4095)[kind - 2], n).astype((np.uint8, np.uint16)[kind - 2])
+        for pcts in ([99.9], [0.1, 99.9], [1.0, 99.0], [50.0], [90.0]):
+            assert percentiles(values, pcts) == [float(v) for v in np.percentile(values, pcts)], (trial, pcts)
+
+
 def test_the_upper_decile_is_numpys_90th_percentile():
-    """exposure_gain's contrast decile through one partition (mask.upper_decile) is np.percentile(x, 90)
+    """exposure_gain's contrast decile through one partition (mask.percentiles) is np.percentile(x, 90)
     to float32 rounding, on 1 to 30,000 values, ties and constant arrays included."""
-    from processing.mask import upper_decile
+    from processing.mask import percentiles
+
+    def upper_decile(values):
+        return percentiles(values, [90])[0]
 
     rng = np.random.default_rng(5)
     for size in (1, 2, 3, 9, 10, 11, 100, 25600, 25601, 30000):
