@@ -21,8 +21,8 @@ import numpy as np
 
 from processing.mask import percentiles
 
-__all__ = ["ColourRule", "CAMERA", "SURFACE", "robust_levels", "feature_levels", "data_levels", "range_moves",
-           "without_spread"]
+__all__ = ["ColourRule", "CAMERA", "SURFACE", "finite_sample", "robust_levels", "feature_levels", "data_levels",
+           "range_moves", "without_spread"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -40,6 +40,14 @@ class ColourRule:
 
 CAMERA = ColourRule((1.0, 99.0), hold_features=False)
 SURFACE = ColourRule((0.1, 99.9), hold_features=True)
+
+
+def finite_sample(data: np.ndarray, max_samples: int = 20000) -> np.ndarray:
+    """Every k-th sample of ``data`` in memory order (about ``max_samples`` of them), the finite ones:
+    what :func:`robust_levels` takes its percentiles of and :func:`without_spread` looks at."""
+    flat = data.ravel()
+    sub = flat[::max(1, flat.size // max_samples)]
+    return sub[np.isfinite(sub)] if sub.dtype.kind == "f" else sub
 
 
 def robust_levels(data: np.ndarray, *, symmetric: bool = False, lo_pct: float = 1.0,
@@ -60,11 +68,7 @@ def robust_levels(data: np.ndarray, *, symmetric: bool = False, lo_pct: float = 
     (float, float)
         Low and high level, ``low < high`` always.
     """
-    flat = data.ravel()
-    step = max(1, flat.size // max_samples)
-    sub = flat[::step]
-    if sub.dtype.kind == "f":
-        sub = sub[np.isfinite(sub)]
+    sub = finite_sample(data, max_samples)
     if sub.size == 0:
         return (0.0, 1.0)
     if symmetric:
@@ -133,10 +137,7 @@ def without_spread(data: np.ndarray, *, max_samples: int = 20000) -> bool:
     data's.  A live frame that is the reference itself gives such maps (heights and slopes exactly 0):
     the next map with a spread must set its own range at once, not a few times a second by 10 % steps
     from +-1 (its bump of +-0.4 mrad stood under +-1 mrad after the frame was drawn)."""
-    flat = data.ravel()
-    sub = flat[::max(1, flat.size // max_samples)]
-    if sub.dtype.kind == "f":
-        sub = sub[np.isfinite(sub)]
+    sub = finite_sample(data, max_samples)
     return bool(sub.size == 0 or sub.min() == sub.max())
 
 
