@@ -298,6 +298,7 @@ def unwrap_spatial(phase, valid=None, *, ref_mask=None) -> np.ndarray:
     ndarray, float64, shape (rows, cols)
         Unwrapped phase, NaN outside ``valid``.
     """
+    scan_refused = False
     if valid is not None and np.ndim(phase) == 2 and np.size(phase) and np.all(valid):
         # valid everywhere (most live frames): the scanline fill straight from the wrapped map, no
         # copies; where it refuses (residues, a sample not finite) the general path below
@@ -306,22 +307,24 @@ def unwrap_spatial(phase, valid=None, *, ref_mask=None) -> np.ndarray:
             sel = ref_mask if ref_mask is not None and np.any(ref_mask) else Ellipsis
             out -= median_turn(out[sel].reshape(-1))
             return out
+        scan_refused = True
     phase = np.asarray(phase, dtype=np.float64)
     if valid is None:
         valid = np.isfinite(phase)
     valid = valid & np.isfinite(phase)
     if not valid.any():
         return np.full(phase.shape, np.nan)
-    out, regions = _unwrapped(phase, valid)
+    out, regions = _unwrapped(phase, valid, scan_refused=scan_refused)
     out = _align_components(out, valid, ref_mask, regions)
     return np.where(valid, out, np.nan)
 
 
-def _unwrapped(phase, valid):
+def _unwrapped(phase, valid, *, scan_refused=False):
     """``(out, regions)``: ``phase`` (float64) unwrapped on ``valid`` (bool, some True; 0 elsewhere)
     up to one 2 pi multiple per connected region, by the first of :func:`unwrap_spatial`'s methods
     that is accepted; ``regions`` the number of connected regions where the flood fill counted
-    them, else None."""
+    them, else None.  ``scan_refused``: the scanline fill already refused this map (valid everywhere
+    and finite, so the same fill would refuse it again)."""
     work = np.where(valid, phase, 0.0)
     regions = None
     if has_wraps(work, valid):
@@ -334,7 +337,10 @@ def _unwrapped(phase, valid):
         # of the app's 1024^2 tank: 72 % of the calls).
         valid = np.ascontiguousarray(valid)
         out = np.zeros(phase.shape)
-        regions = int(scan_fill(work, out) if valid.all() else flood_fill(work, valid, out))
+        if not valid.all():
+            regions = int(flood_fill(work, valid, out))
+        else:
+            regions = -1 if scan_refused else int(scan_fill(work, out))
         if regions < 0:
             regions = None
             out = _unwrap_path_following(work, valid)
