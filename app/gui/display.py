@@ -273,6 +273,14 @@ def update_staleness(w) -> None:
     state.update_truth(w)  # "vs truth" with the same mark as the maps, whoever refreshed it
 
 
+def finish_drawing(w) -> None:
+    """Draw the second half (displacement, slopes) of the result whose first half is on screen, if one
+    waits for its tick: Pause and a snapshot hold or store one frame's maps, each with its own range."""
+    pending = w.clock.take_second_half()
+    if pending is not None:
+        w._draw_result(pending, part=1)
+
+
 def pause_toggled(w, paused: bool) -> None:
     """Pause: finish drawing the maps of the frame on screen and show its raw frame, so all views show one frame."""
     views = (*w.map_views, w.raw_view, w.profile_view)
@@ -280,9 +288,7 @@ def pause_toggled(w, paused: bool) -> None:
         for v in views:
             v.show_paused(None)
         return
-    pending = w.clock.take_second_half()
-    if pending is not None:
-        w._draw_result(pending, part=1)
+    finish_drawing(w)
     p = w.last_drawn
     if p is not None and w.raw_view.frame_id != p.seq and p.image is not None \
             and not w.raw_view.is_stale:

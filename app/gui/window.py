@@ -518,11 +518,9 @@ class MainWindow(QtWidgets.QMainWindow):
 
         if folder is None:
             folder = os.path.join(self.recording_panel.folder.text().strip() or os.getcwd(), "snapshots")
-        # the maps stored are the last drawn frame's: finish drawing its second half (slopes, displacement),
-        # so that each map's colour range stored with them is its own, not the frame before's (as Pause does)
-        pending = self.clock.take_second_half()
-        if pending is not None:
-            self._draw_result(pending, part=1)
+        # the maps stored are the last drawn frame's: its second half drawn first, so that each map's colour
+        # range stored with them is its own, not the frame before's (as Pause does)
+        display.finish_drawing(self)
         meta = {"camera_id": self.session.camera_id or "", "paused": bool(self.pause_box.isChecked()),
                 "stale": self.height_view.stale_text or "",
                 "reference": self._reference_text,
