@@ -14,7 +14,7 @@ from pyqtgraph.Qt import QtCore, QtWidgets
 from .model.colour_range import SURFACE
 from .panels import CameraPanel, GeometryPanel, RecordingPanel
 from .replay import ReplayTab
-from .views import HistogramView, ImageView, ProfileLine, ProfileView, SpectrumView
+from .views import HistogramView, ImageView, ProfileLine, ProfileView, ScreenImageItem, SpectrumView
 from .widgets import ElidedLabel
 
 
@@ -99,7 +99,7 @@ def build_ui(w):
     grid.setRowStretch(1, 3)
     w.map_views = (w.height_view, w.disp_view, w.slope_x_view, w.slope_y_view, w.valid_view)
     # saturated pixels overlay on the raw view
-    w.saturation_overlay = pg.ImageItem(axisOrder="row-major")
+    w.saturation_overlay = ScreenImageItem(axisOrder="row-major")
     w.saturation_overlay.setLookupTable(np.array([[0, 0, 0, 0], [255, 0, 0, 255]], np.uint8))
     w.saturation_overlay.setZValue(10)
     w.raw_view.plot.addItem(w.saturation_overlay)

@@ -18,6 +18,8 @@ import numpy as np
 import pyqtgraph as pg
 from pyqtgraph.Qt import QtCore
 
+from .views import ScreenImageItem
+
 _LUT_OK = np.array([[0, 0, 0, 0], [0, 200, 0, 90]], np.uint8)
 _LUT_BAD = np.array([[0, 0, 0, 0], [220, 0, 0, 110]], np.uint8)
 
@@ -39,7 +41,7 @@ class PinRegionOverlay:
     """
 
     def __init__(self, plot, note=None):
-        self.image = pg.ImageItem(axisOrder="row-major")
+        self.image = ScreenImageItem(axisOrder="row-major")
         self.image.setLookupTable(_LUT_OK)
         self.image.setZValue(15)
         # anchored by a lower corner on the region's last row: drawn above it, inside the frame (below the

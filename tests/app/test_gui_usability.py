@@ -15,6 +15,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+import pyqtgraph as pg
 from pyqtgraph.Qt import QtCore, QtGui, QtTest, QtWidgets
 
 from app.gui.views import decimate_for_display
@@ -664,6 +665,41 @@ def test_a_map_with_a_line_and_no_data_yet_paints_once_not_forever(qtbot):
     (x0, x1), (y0, y1) = view.plot.getViewBox().viewRange()
     assert min(x1 - x0, y1 - y0) == pytest.approx(64, rel=0.05), (x0, x1, y0, y1)  # aspect 1:1
 
+
+@pytest.mark.parametrize("with_nan", [False, True])
+def test_a_map_is_drawn_in_its_colour_maps_colours_and_nan_samples_show_the_background(qtbot, with_nan):
+    """The maps' rendered image is converted once to the format Qt paints fastest (premultiplied ARGB,
+    views.ScreenImageItem) instead of at every paint: what reaches the screen must still be the
+    colour map's colour of each sample, and a NaN sample (masked) the white background. A 4 x 4 map
+    of known values on a 320 px tile, each sample's block read back from the painted widget."""
+    from app.gui.views import SCREEN_FORMAT, ImageView
+
+    view = ImageView("Height", "µm", cmap="viridis", pan=False, levels_controls=False)
+    qtbot.addWidget(view)
+    view.resize(320, 360)
+    view.show()
+    qtbot.waitExposed(view)
+    values = np.linspace(-1.0, 1.0, 16, dtype=np.float32).reshape(4, 4)
+    if with_nan:
+        values[1, 2] = np.nan
+    view.set_data(values, levels=(-1.0, 1.0))
+    shot = view.graphics.grab().toImage()
+    assert view.image.qimage.format() == SCREEN_FORMAT
+    lut = pg.colormap.get("viridis").getLookupTable(0.0, 1.0, 256, alpha=False)
+    scale = shot.width() / view.graphics.width()  # device pixels of the grab per widget pixel
+    for r in range(4):
+        for c in range(4):
+            centre = view.image.mapToScene(QtCore.QPointF(c + 0.5, r + 0.5))
+            at = view.graphics.mapFromScene(centre)
+            rgb = QtGui.QColor(shot.pixel(int(at.x() * scale), int(at.y() * scale)))
+            got = np.array([rgb.red(), rgb.green(), rgb.blue()])
+            if np.isnan(values[r, c]):
+                want = np.array([255, 255, 255])  # the view's background
+            else:
+                want = lut[int(np.clip(round((values[r, c] + 1.0) / 2.0 * 255), 0, 255))].astype(int)
+            # a level either side: pyqtgraph's rounding of the sample to its 256 levels
+            step = np.abs(lut[1:].astype(int) - lut[:-1].astype(int)).max()
+            assert np.abs(got - want).max() <= step, (r, c, values[r, c], got, want)
 
 def test_a_maps_right_click_menu_is_made_when_opened_and_fits_the_image_again(qtbot):
     """The views' right-click menus are made on the first right click (making all 25 with the window was a
