@@ -224,7 +224,7 @@ class ScreenImageItem(pg.ImageItem):
     ARGB at every paint, pixel by pixel of the screen area: a 500 x 500 px tile took 0.77 ms a
     paint from an indexed image against 0.19 ms from a premultiplied one, whatever the map's size.
     Here the image is converted once, when a new map is rendered; the colours on screen are the
-    same (tests/app/test_gui_views.py). docs/gui.md has the window's figures.
+    same (tests/app/test_gui_usability.py). docs/gui.md has the window's figures.
     """
 
     def render(self):

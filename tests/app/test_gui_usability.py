@@ -14,8 +14,8 @@ from pathlib import Path
 
 import h5py
 import numpy as np
-import pytest
 import pyqtgraph as pg
+import pytest
 from pyqtgraph.Qt import QtCore, QtGui, QtTest, QtWidgets
 
 from app.gui.views import decimate_for_display
@@ -686,6 +686,8 @@ def test_a_map_is_drawn_in_its_colour_maps_colours_and_nan_samples_show_the_back
     shot = view.graphics.grab().toImage()
     assert view.image.qimage.format() == SCREEN_FORMAT
     lut = pg.colormap.get("viridis").getLookupTable(0.0, 1.0, 256, alpha=False)
+    # a level either side: pyqtgraph's rounding of a sample to its 256 levels
+    step = np.abs(lut[1:].astype(int) - lut[:-1].astype(int)).max()
     scale = shot.width() / view.graphics.width()  # device pixels of the grab per widget pixel
     for r in range(4):
         for c in range(4):
@@ -697,9 +699,8 @@ def test_a_map_is_drawn_in_its_colour_maps_colours_and_nan_samples_show_the_back
                 want = np.array([255, 255, 255])  # the view's background
             else:
                 want = lut[int(np.clip(round((values[r, c] + 1.0) / 2.0 * 255), 0, 255))].astype(int)
-            # a level either side: pyqtgraph's rounding of the sample to its 256 levels
-            step = np.abs(lut[1:].astype(int) - lut[:-1].astype(int)).max()
             assert np.abs(got - want).max() <= step, (r, c, values[r, c], got, want)
+
 
 def test_a_maps_right_click_menu_is_made_when_opened_and_fits_the_image_again(qtbot):
     """The views' right-click menus are made on the first right click (making all 25 with the window was a
