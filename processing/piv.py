@@ -361,8 +361,13 @@ def sample_moved(coef, disp_rows, disp_cols, scale: float, threads: int = 1) -> 
                    threads)
 
 
+#: Bands of rows :func:`_sample` cuts its rows into, per thread.
+SAMPLE_BANDS_PER_THREAD = 4
+
+
 def _sample(coef, rows, cols, grid, scale, threads):
-    """:func:`processing.spline_kernels.sample_rows` over every row, split among ``threads`` threads."""
+    """:func:`processing.spline_kernels.sample_rows` over every row, in bands of rows taken one at a time by
+    ``threads`` workers (:data:`SAMPLE_BANDS_PER_THREAD` a worker: one set aside by the OS holds up one band)."""
     from .spline_kernels import sample_rows
 
     out = np.empty(rows.shape, np.float64)
@@ -371,7 +376,7 @@ def _sample(coef, rows, cols, grid, scale, threads):
     if threads <= 1 or n < 64:
         sample_rows(coef, rows, cols, out, 0, n, pad, grid, scale)
         return out
-    bounds = np.linspace(0, n, threads + 1).astype(int)
+    bounds = np.linspace(0, n, min(n // 16, SAMPLE_BANDS_PER_THREAD * threads) + 1).astype(int)
     thread_map(lambda lo, hi: sample_rows(coef, rows, cols, out, lo, hi, pad, grid, scale),
                list(zip(bounds[:-1], bounds[1:])), threads)
     return out

@@ -80,8 +80,8 @@ class WindowCorrelation:
         FFTW planner flag (``FFTW_ESTIMATE``, planned in milliseconds, measured
         as fast as ``FFTW_MEASURE`` here).
     threads : int
-        Threads the chunks are shared among (each its own plans); the result
-        does not depend on it.
+        Workers the chunks are shared among, each taking the next chunk on its
+        own plans; the result does not depend on it.
     """
 
     def __init__(self, image_shape, size: int, overlap: int, planner_effort: str = "FFTW_ESTIMATE",
@@ -97,12 +97,9 @@ class WindowCorrelation:
         self.rows_per_chunk = max(1, min(n_r, CHUNK_SAMPLES // (n_c * size * size)))
         self.starts = list(range(0, n_r, self.rows_per_chunk))
         self.threads = max(1, min(int(threads), len(self.starts)))
-        self._plans = [{} for _ in range(self.threads)]  # per thread: chunk rows -> plans
-        for t in range(self.threads):
-            for r0 in self.starts[t::self.threads]:
-                k = min(self.rows_per_chunk, n_r - r0)
-                if k not in self._plans[t]:
-                    self._plans[t][k] = _Plans(k * n_c, size, planner_effort)
+        # per worker (processing.pools.slot_map's slots): chunk rows -> plans; any worker may take any chunk
+        sizes = sorted({min(self.rows_per_chunk, n_r - r0) for r0 in self.starts})
+        self._plans = [{k: _Plans(k * n_c, size, planner_effort) for k in sizes} for _ in range(self.threads)]
         # fftshift of the map by size / 2 both ways = the spectrum times (-1)^(k_r + k_c); and the inverse
         # transform's 1 / size^2 (numpy's irfft2 normalisation) taken with it
         k = np.arange(size)
@@ -110,25 +107,25 @@ class WindowCorrelation:
 
     def _run(self, image_a, image_b, use):
         """``use(first window, plans)`` for each chunk once its maps are computed (zero shift at
-        ``[size // 2] * 2``), the chunks shared among :attr:`threads` threads."""
-        from .pools import thread_map
+        ``[size // 2] * 2``), the chunks taken one at a time by :attr:`threads` workers
+        (:func:`processing.pools.slot_map`)."""
+        from .pools import slot_map
 
         s, (n_r, n_c) = self.size, self.field_shape
         views = [window_view(x, s, s - self.step) for x in (image_a, image_b)]
 
-        def work(t):
-            for r0 in self.starts[t::self.threads]:
-                r1 = min(n_r, r0 + self.rows_per_chunk)
-                p = self._plans[t][r1 - r0]
-                np.copyto(p.a.reshape(r1 - r0, n_c, s, s), views[0][r0:r1])
-                np.copyto(p.b.reshape(r1 - r0, n_c, s, s), views[1][r0:r1])
-                p.forward_a.execute()
-                p.forward_b.execute()
-                _cross_spectrum(p.fa, p.fb, self._shift)
-                p.inverse.execute()
-                use(r0 * n_c, p)
+        def chunk(slot, r0):
+            r1 = min(n_r, r0 + self.rows_per_chunk)
+            p = self._plans[slot][r1 - r0]
+            np.copyto(p.a.reshape(r1 - r0, n_c, s, s), views[0][r0:r1])
+            np.copyto(p.b.reshape(r1 - r0, n_c, s, s), views[1][r0:r1])
+            p.forward_a.execute()
+            p.forward_b.execute()
+            _cross_spectrum(p.fa, p.fb, self._shift)
+            p.inverse.execute()
+            use(r0 * n_c, p)
 
-        thread_map(work, [(t,) for t in range(self.threads)], self.threads)
+        slot_map(chunk, [(r0,) for r0 in self.starts], self.threads)
 
     def maps(self, image_a, image_b) -> np.ndarray:
         """``(n_windows, size, size)`` float64: each window of ``image_b`` correlated

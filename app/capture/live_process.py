@@ -77,12 +77,17 @@ class Recipe:
         thread paints 45-70 % of the time), so that the FFTs' threads do not wait for each other:
         on 2 cores 1 thread (measured at load 6-11, docs/acquisition.md: 512^2 18.6-29.9 Hz in four
         runs against a median of 8.6 Hz over seven runs with 2). One thread's FFT plans sum in another
-        order: the heights agree to float32 rounding (tests/app/test_live_process.py).
+        order: the heights agree to float32 rounding (tests/app/test_live_process.py). Random dots keep
+        their threads: there they are PIV's workers (:func:`processing.pools.slot_map`, each taking the
+        next chunk of windows or rows, FFTW on one thread each), which wait for no one's fixed share
+        (512^2 in the window, four rounds alternated: 10.1-13.1 Hz on two threads, 9.8-10.7 on one).
         """
         from processing import fft
 
         options = reconstructor.options
-        threads = max(1, min(int(options.threads), (os.cpu_count() or 1) - 1))
+        threads = int(options.threads)
+        if reconstructor.pattern != "dots":
+            threads = max(1, min(threads, (os.cpu_count() or 1) - 1))
         if threads != options.threads:
             options = options.replace(threads=threads)
         return cls(np.asarray(reference), reconstructor.geometry, options,

@@ -335,3 +335,22 @@ def test_the_window_says_when_its_reconstruction_process_dies_and_records_every_
         ids = f["frame_table"][:n]["frame_id"]
     assert n == 10 + 300 and np.all(np.diff(ids) == 1)
     assert not pid_alive(pid)
+
+
+def test_the_worker_process_gets_the_cores_the_window_leaves_and_dots_keep_their_threads(scene):
+    """FFTW's threads wait for each other's share: a checkerboard's child gets all cores but the
+    window's one; PIV's workers take chunks one at a time (processing.pools.slot_map): dots keep theirs."""
+    from app.capture.live_process import Recipe
+    from processing import Reconstructor
+    from processing import forward as F
+
+    board = Reconstructor(scene["reference"], scene["geometry"], threads=2)
+    assert board.pattern == "checkerboard"
+    assert Recipe.of(board, scene["reference"]).options.threads == max(1, min(2, (os.cpu_count() or 1) - 1))
+    dots_image, _ = F.render_tir(F.FlatSurface(), scene["geometry"], SHAPE, F.RandomDots(0.4, 0.5, seed=3),
+                                 supersample=1)
+    dots_reference = F.quantize(dots_image, bits=8, noise_rms=1.0, rng=np.random.default_rng(1))
+    dots = Reconstructor(dots_reference, scene["geometry"], pattern="dots", threads=2)
+    recipe = Recipe.of(dots, dots_reference)
+    assert recipe.options.threads == 2
+    assert recipe.build().chain.piv.threads == 2
