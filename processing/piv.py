@@ -226,16 +226,15 @@ class DotDisplacement:
 
         s, pp = self.settings, self._pyprocess
         # the frame's spline coefficients (serial, 4 ms at 512^2) beside the first pass's correlation
-        coef_img = pool(self.threads).submit(spline_coefficients, img) if (
+        coef_job = pool(self.threads).submit(spline_coefficients, img) if (
             self.threads > 1 and s.num_iterations > 1) else None
         u, v, _s2n = self._correlate(self._ref, img, 0)
         y, x = self._pass_grid(0)
         flags = np.zeros(u.shape, bool)
+        coef_img = None
         for it in range(1, s.num_iterations):
             if coef_img is None:
-                coef_img = spline_coefficients(img)
-            elif not isinstance(coef_img, np.ndarray):
-                coef_img = coef_img.result()
+                coef_img = spline_coefficients(img) if coef_job is None else coef_job.result()
             y_new, x_new = self._pass_grid(it)
             u_pre = RectBivariateSpline(y, x, np.nan_to_num(np.ma.filled(u, 0.0)))(y_new, x_new)
             v_pre = RectBivariateSpline(y, x, np.nan_to_num(np.ma.filled(v, 0.0)))(y_new, x_new)
