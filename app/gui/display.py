@@ -6,6 +6,7 @@ Functions take the :class:`app.gui.window.MainWindow` (``w``); it forwards its m
 
 from __future__ import annotations
 
+import logging
 import time
 
 import numpy as np
@@ -19,6 +20,8 @@ from .model.region import profile_line_for
 from .model.schedule import LIVE_TAB
 from .model.staleness import derived_text, unmeasured_messages, view_staleness
 from .model.status import camera_problem, status_texts
+
+log = logging.getLogger(__name__)
 
 
 
@@ -51,6 +54,35 @@ def line_profile(data: np.ndarray, x: np.ndarray, y: np.ndarray, p0, p1):
     values[(rows < -0.5) | (rows > data.shape[0] - 0.5) | (cols < -0.5) | (cols > data.shape[1] - 0.5)] = np.nan
     length = float(np.hypot(p1[0] - p0[0], p1[1] - p0[1]))
     return t * length, values
+
+
+def show_raw(w, frame, tab) -> None:
+    """Camera frame ``frame`` (``(seq, image, host_ns)``, :meth:`LiveSession.latest_frame`) on tab ``tab``'s raw
+    view, its latency noted (and the first frame's time after the window was created)."""
+    seq, image, host_ns = frame
+    if w.first_frame_s is None:
+        w.first_frame_s = time.monotonic() - w._t_created
+        log.info("first camera frame on screen %.2f s after the window was created", w.first_frame_s)
+    w._draw_raw(image, tab, host_ns, seq)
+    w.latency_ms = (time.monotonic_ns() - host_ns) / 1e6 if host_ns else float("nan")
+
+
+def look_again(w) -> None:
+    """Between two ticks, after one that found no camera frame newer than the one on screen
+    (:meth:`DrawClock.retry_s`): the newest frame if one has come meanwhile; then the timer to the next tick."""
+    w._retry_armed = False
+    try:
+        seq = w.session.newest_seq()
+        if not (w.pause_box.isChecked() or w.frozen) and seq is not None and seq != w.clock.last_raw_seq:
+            frame = w.session.latest_frame()  # copied only when newer
+            if frame is not None and w.clock.plan_retry(frame[0]):
+                show_raw(w, frame, w.tabs.currentIndex())
+                w.shown_rate.add(time.monotonic())
+    except Exception:  # noqa: BLE001 - a drawing bug must not stop the display
+        log.exception("display of a late camera frame failed")
+    finally:
+        if not w._closing:
+            w._display_timer.start(max(1, int(round(1e3 * w.clock.wait_s(time.perf_counter())))))
 
 
 def draw_raw(w, image, tab, host_ns=0, seq=None):

@@ -138,6 +138,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self._build_ui()
         self.session.worker.set_alignment_fn(self._frame_alignment)
         self._display_timer = QtCore.QTimer(self)
+        self._retry_armed = False  # its next timeout is a look again for a late camera frame, not a tick
         self._display_timer.setSingleShot(True)
         self._display_timer.setTimerType(QtCore.Qt.PreciseTimer)
         self._display_timer.timeout.connect(self._refresh)
@@ -403,6 +404,8 @@ class MainWindow(QtWidgets.QMainWindow):
         now = time.perf_counter()
         if self.export.state == "running":  # an export is running in the background
             self.replay.progress.setValue(int(100 * self.export.fraction))
+        if self._retry_armed:  # not a tick: one look again for a late camera frame (DrawClock.retry_s)
+            return self._look_again()
         self.clock.tick(now)  # <= 60 Hz at a fixed cadence; a late tick never piles up (model/schedule.py)
         try:
             if not (self.pause_box.isChecked() or self.frozen):
@@ -411,8 +414,10 @@ class MainWindow(QtWidgets.QMainWindow):
             log.exception("display refresh failed")
         finally:
             if not self._closing:
-                wait_ms = 1e3 * self.clock.wait_s(time.perf_counter())
-                self._display_timer.start(max(1, int(round(wait_ms))))
+                now = time.perf_counter()
+                retry = self.clock.retry_s(now)
+                self._retry_armed = retry is not None
+                self._display_timer.start(max(1, int(round(1e3 * (retry or self.clock.wait_s(now))))))
 
     def _draw(self):
         """One display tick: what :meth:`DrawClock.plan` says (the newest camera frame, maps in one tick or two)."""
@@ -421,12 +426,7 @@ class MainWindow(QtWidgets.QMainWindow):
         p = self.session.worker.latest()
         plan = self.clock.plan(time.monotonic(), tab, None if frame is None else frame[0], p)
         if plan.raw:
-            seq, image, host_ns = frame
-            if self.first_frame_s is None:
-                self.first_frame_s = time.monotonic() - self._t_created
-                log.info("first camera frame on screen %.2f s after the window was created", self.first_frame_s)
-            self._draw_raw(image, tab, host_ns, seq)
-            self.latency_ms = (time.monotonic_ns() - host_ns) / 1e6 if host_ns else float("nan")
+            self._show_raw(frame, tab)
         self._draw_maps(plan, p)
         self.shown_rate.add(time.monotonic(), int(plan.raw))
 
@@ -469,6 +469,8 @@ class MainWindow(QtWidgets.QMainWindow):
 
     # display.py
     _draw_raw = display.draw_raw
+    _show_raw = display.show_raw
+    _look_again = display.look_again
     _draw_result = display.draw_result
     _draw_profile = display.draw_profile
     _draw_alignment = display.draw_alignment

@@ -212,6 +212,36 @@ def test_draw_clock_keeps_its_cadence_and_never_piles_up_late_ticks():
     assert c.take_second_half() == "result" and c.take_second_half() is None
 
 
+def test_a_tick_without_a_newer_camera_frame_looks_again_once_a_quarter_period_later():
+    """Frames reach the ring in bursts: a tick of a camera tab that finds none newer than the one on screen
+    looks again once (DrawClock.retry_s), which draws a frame that came meanwhile and is no tick of the cadence."""
+    from types import SimpleNamespace as R
+
+    from app.gui.model.schedule import LIVE_TAB, RAW_RETRY_FRACTION, DrawClock
+
+    c = DrawClock()  # 60 Hz
+    period = 1 / 60
+    c.tick(0.0)
+    assert c.plan(0.0, LIVE_TAB, 3, None).raw and c.retry_s(0.0) is None  # a new frame: no look again
+    c.tick(period)
+    assert not c.plan(period, LIVE_TAB, 3, None).raw  # none newer: look again a quarter period later, once
+    assert c.retry_s(period + 0.001) == pytest.approx(RAW_RETRY_FRACTION * period)
+    assert c.retry_s(period + 0.001) is None
+    assert not c.plan_retry(3) and not c.plan_retry(None)  # still none newer: nothing drawn
+    assert c.plan_retry(4) and c.last_raw_seq == 4 and not c.plan_retry(4)  # a late frame: drawn once
+    assert c.next_due == pytest.approx(2 * period)  # the cadence is the ticks' alone
+    c.tick(2 * period)
+    assert not c.plan(2 * period, LIVE_TAB, 4, R(seq=1)).raw  # the tick does not draw the late frame again
+    # the next tick is nearer than twice the look again's wait (a late tick): no look again
+    assert c.retry_s(3 * period - RAW_RETRY_FRACTION * period) is None
+    c.tick(3 * period)
+    c.plan(3 * period, 2, 9, None)  # the Replay tab shows no camera: nothing to look again for
+    assert c.retry_s(3 * period) is None
+    c.tick(4 * period)
+    c.plan(4 * period, LIVE_TAB, None, None)  # no camera
+    assert c.retry_s(4 * period) is None
+
+
 def test_tick_plan_draws_each_new_frame_and_a_result_in_two_halves_at_most_at_the_maps_rate():
     from types import SimpleNamespace as R
 

@@ -749,3 +749,35 @@ def test_a_maps_colour_bar_shows_its_colour_map(qtbot):
     y = rect.center().y()
     colours = {image.pixelColor(x, y).name() for x in range(rect.left() + 1, rect.right() - 1)}
     assert rect.width() > 100 and len(colours) >= 30, (rect, len(colours))
+
+
+def test_a_camera_frame_that_comes_just_after_a_tick_is_shown_before_the_next_tick(qtbot, window):
+    """The raw view ticks at 60 Hz, and frames reach the ring in bursts: a tick that finds no camera frame
+    newer than the one on screen looks again a quarter period later (DrawClock.retry_s). A software-triggered
+    camera gives one frame right after such a tick (the GUI thread held until it is in the ring): the look
+    again draws it, before the next tick."""
+    rng = np.random.default_rng(5)
+    cam = SyntheticCamera(rng.integers(0, 255, (4, 96, 128), dtype=np.uint8), frame_rate_hz=1000.0)
+    cam.open()
+    cam.configure(trigger_mode="On", trigger_source="Software")
+    window.use_camera(cam, camera_id="triggered")
+    qtbot.waitUntil(lambda: window.session.acquisition is not None, timeout=20000)
+    cam.trigger_software()
+    qtbot.waitUntil(lambda: window.raw_view.frame_id is not None, timeout=20000)
+    seen = {"phase": "tick"}
+
+    def after_timeout():  # the display timer's timeout, right after the window's own handler of it
+        ring = window.session.acquisition.ring
+        if seen["phase"] == "tick" and window._retry_armed:  # a tick that found no newer frame
+            seen["shown"] = window.raw_view.frame_id
+            head = ring.head
+            cam.trigger_software()
+            assert ring.wait_for(head, 20.0), "the triggered frame never reached the ring"  # hang detector
+            seen.update(phase="look again", seq=window.session.newest_seq())
+        elif seen["phase"] == "look again":  # the timer was armed for the look again, not for a tick
+            seen.update(phase="done", on_screen=window.raw_view.frame_id)
+
+    window._display_timer.timeout.connect(after_timeout)
+    qtbot.waitUntil(lambda: seen["phase"] == "done", timeout=20000)
+    assert seen["seq"] == seen["shown"] + 1
+    assert seen["on_screen"] == seen["seq"]

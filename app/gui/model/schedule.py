@@ -9,8 +9,9 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, Dict, Hashable, Optional, Tuple
 
-__all__ = ["DISPLAY_MAX_HZ", "MAPS_MAX_HZ", "MAPS_WHOLE_MAX_FRACTION", "EARLY_MIN_WAIT", "LIVE_TAB", "ALIGNMENT_TAB",
-           "TickPlan", "DrawClock", "RateCounter", "LiveRates", "ReplayQueue", "ExportProgress"]
+__all__ = ["DISPLAY_MAX_HZ", "MAPS_MAX_HZ", "MAPS_WHOLE_MAX_FRACTION", "EARLY_MIN_WAIT", "RAW_RETRY_FRACTION",
+           "LIVE_TAB", "ALIGNMENT_TAB", "TickPlan", "DrawClock", "RateCounter", "LiveRates", "ReplayQueue",
+           "ExportProgress"]
 
 DISPLAY_MAX_HZ = 60.0  # the raw camera view refreshes at most this often
 MAPS_MAX_HZ = 60.0  # processed maps at most this often (and never more than one result per display tick)
@@ -22,6 +23,11 @@ MAPS_WHOLE_MAX_FRACTION = 0.35
 # A result that arrives between two ticks is drawn at once (DrawClock.plan_early) when the next tick is at
 # least this fraction of a display period away, after its drawing too; else it waits for the tick
 EARLY_MIN_WAIT = 0.25
+# A tick of a camera tab that found no camera frame newer than the one on screen looks again this fraction of a
+# display period later, once (DrawClock.retry_s): frames reach the ring in bursts (the synthetic camera at 100 Hz
+# left 2.4 of 60 ticks a second without a newer frame at 1024^2 beside the window's other threads, 7 Dec 2026), and
+# a frame that comes just after a tick is then shown a few ms late instead of a whole period later
+RAW_RETRY_FRACTION = 0.25
 LIVE_TAB, ALIGNMENT_TAB = 0, 1  # the tabs that show the camera (the window's tab indices)
 
 
@@ -61,6 +67,7 @@ class DrawClock:
     second_half: Any = None
     ticks_lost: int = 0
     last_raw_seq: int = -1  # the camera frame on screen (-1: none yet)
+    raw_retry: bool = False  # the last tick of a camera tab found no newer camera frame (retry_s looks again)
     last_result_seq: int = -1  # the worker's result whose maps were last begun (-1: none yet)
 
     def tick(self, now: float) -> float:
@@ -117,6 +124,7 @@ class DrawClock:
         """
         camera_tab = tab in (LIVE_TAB, ALIGNMENT_TAB)
         raw = camera_tab and raw_seq is not None and raw_seq != self.last_raw_seq
+        self.raw_retry = camera_tab and raw_seq is not None and not raw
         if raw:
             self.last_raw_seq = raw_seq
         pending = self.take_second_half()
@@ -125,6 +133,22 @@ class DrawClock:
         if result is None or result.seq == self.last_result_seq or not camera_tab or not self.maps_due(now):
             return TickPlan(raw)
         return self._begin_maps(now, tab, raw, result)
+
+    def retry_s(self, now: float) -> Optional[float]:
+        """After a tick: seconds from ``now`` to one look again for a late camera frame (:data:`RAW_RETRY_FRACTION`
+        of a period), where the tick found none newer than the one on screen and the next tick is more than twice
+        that away; else None.  Once a tick: the look again (:meth:`plan_retry`) is not a tick of the cadence."""
+        wait = RAW_RETRY_FRACTION / self.display_hz
+        retry, self.raw_retry = self.raw_retry, False
+        return wait if retry and self.wait_s(now) > 2 * wait else None
+
+    def plan_retry(self, raw_seq: Optional[int]) -> bool:
+        """The look again: True, and noted as drawn, when camera frame ``raw_seq`` (None: none) is newer than the
+        one on screen; no maps (they keep the ticks' schedule)."""
+        if raw_seq is None or raw_seq == self.last_raw_seq:
+            return False
+        self.last_raw_seq = raw_seq
+        return True
 
     def _begin_maps(self, now: float, tab: int, raw: bool, result) -> TickPlan:
         self.last_result_seq = result.seq
