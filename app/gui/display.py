@@ -24,7 +24,6 @@ from .model.status import camera_problem, status_texts
 log = logging.getLogger(__name__)
 
 
-
 def line_profile(data: np.ndarray, x: np.ndarray, y: np.ndarray, p0, p1):
     """Values of ``data`` along the segment ``p0 -> p1`` (both ``(x_mm, y_mm)``), bilinear.
 

@@ -300,13 +300,6 @@ class LiveSession:
             return None
         return self._base_of.get(acq, 0) + acq.ring.head - 1
 
-    def newest_seq(self):
-        """The number :meth:`latest_frame` would give the newest frame now (None: none), without copying it."""
-        acq = self.acquisition
-        if acq is None or acq.ring.head == 0:
-            return None
-        return self._base_of.get(acq, 0) + acq.ring.head - 1
-
     def latest_frame(self):
         """``(seq, image, host_ns)`` of the newest frame in the ring, copied; None if none. Never blocks.
 
