@@ -441,7 +441,9 @@ class MainWindow(QtWidgets.QMainWindow):
             return
         try:
             p = self.session.worker.latest()
-            to_tick_s = self._display_timer.remainingTime() / 1e3  # negative: no tick armed (one is drawing)
+            # the timer may be armed for a look again for a late frame (DrawClock.retry_s): the clock knows the tick
+            to_tick_s = (self.clock.wait_s(time.perf_counter()) if self._retry_armed
+                         else self._display_timer.remainingTime() / 1e3)  # negative: no tick armed (one is drawing)
             self._draw_maps(self.clock.plan_early(time.monotonic(), self.tabs.currentIndex(), p, to_tick_s), p)
         except Exception:  # noqa: BLE001 - a drawing bug must not stop the display
             log.exception("display of a new result failed")
