@@ -656,6 +656,14 @@ def test_scaled_axes_have_no_si_prefix(qtbot, window):
         assert "x1e" not in axis.labelString() and "µm" in axis.labelString(), axis.labelString()
 
 
+def _core(image) -> float:
+    """The largest |value| that two neighbouring samples (in a row or a column) of ``image`` both reach."""
+    magnitude = np.abs(np.asarray(image, dtype=np.float64))
+    along_rows = np.fmin(magnitude[:, :-1], magnitude[:, 1:])
+    along_cols = np.fmin(magnitude[:-1], magnitude[1:])
+    return float(max(np.nanmax(along_rows), np.nanmax(along_cols)))
+
+
 def test_the_colour_range_holds_the_core_of_a_small_dimple(qtbot):
     """By-hand look of 5 Dec 2026 (docs/screenshots.py, 512^2): on the tank's impact the disc's dimple, about
     1.5 % of the field, was drawn flat in the end colour: the automatic range spanned the 1st-99th percentile
@@ -669,7 +677,12 @@ def test_the_colour_range_holds_the_core_of_a_small_dimple(qtbot):
     neighbouring samples reach (app.gui.model.colour_range, tested alone in test_gui_model.py) and moves at
     once 10 % of its half past its end (was 20 %), eight runs beside stress-ng --cpu 4 (load about 4): slopes at
     least 0.78, median 1.0, heights at least 0.85; six runs before the change: slopes at least 0.80, median
-    0.94-0.98, heights at least 0.84 (the 0.52 was not seen again in either)."""
+    0.94-0.98, heights at least 0.84 (the 0.52 was not seen again in either).
+
+    The largest value a map reaches is not its core: beside four busy loops (7 Dec 2026) a slope map whose
+    corner sample stood at 4.3 mrad, 2.8 mrad elsewhere, gave 0.478 of it with the range at 1.001 of what two
+    neighbouring samples reach. The range is held to that core (:func:`_core`, written here apart from the
+    range's own code): the old 1st-99th percentile range, which drew the dimple flat, fails it as before."""
     w = _window(qtbot)
     _capture_reference_by_keys(qtbot, w, n_average=3)
     _choose_scene_by_hand(qtbot, w, "impact (approaching disc)")
@@ -686,10 +699,10 @@ def test_the_colour_range_holds_the_core_of_a_small_dimple(qtbot):
         if float(np.nanmax(np.abs(w.height_view.image.image))) < 0.5:  # um: the clip's first frames, where a
             return False  # few noisy samples are the largest values and rightly stay out of the range
         for name, view in views.items():
-            held[name].append(view.levels[1] / float(np.nanmax(np.abs(view.image.image))))
+            held[name].append(view.levels[1] / _core(view.image.image))
         return min(len(r) for r in held.values()) >= 30  # more than two loops of the 12-frame clip
 
     qtbot.waitUntil(sample, timeout=120000)
     for name, ratios in held.items():
         shown = np.round(ratios, 2)
-        assert min(ratios) >= 0.6 and np.median(ratios) >= 0.9, f"{name}: upper level / largest value {shown}"
+        assert min(ratios) >= 0.6 and np.median(ratios) >= 0.9, f"{name}: upper level / its core {shown}"
