@@ -17,7 +17,7 @@ from app.capture.trigger import rms_slope
 from . import state
 from .model.reference import pattern_mismatch_messages
 from .model.region import profile_line_for
-from .model.schedule import LIVE_TAB
+from .model.schedule import LIVE_TAB, timer_ms
 from .model.staleness import derived_text, unmeasured_messages, view_staleness
 from .model.status import camera_problem, status_texts
 
@@ -81,7 +81,7 @@ def look_again(w) -> None:
         log.exception("display of a late camera frame failed")
     finally:
         if not w._closing:
-            w._display_timer.start(max(1, int(round(1e3 * w.clock.wait_s(time.perf_counter())))))
+            w._display_timer.start(timer_ms(w.clock.wait_s(time.perf_counter())))
 
 
 def draw_raw(w, image, tab, host_ns=0, seq=None):

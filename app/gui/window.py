@@ -26,7 +26,8 @@ from . import display, layout, recording_flow, reference_flow, replay_flow, stat
 from .collector import GuiThreadCollector
 from .model.memory import SessionMemory
 from .model.recording import RmsHistory
-from .model.schedule import ALIGNMENT_TAB, LIVE_TAB, DrawClock, ExportProgress, LiveRates, RateCounter, ReplayQueue
+from .model.schedule import (ALIGNMENT_TAB, LIVE_TAB, DrawClock, ExportProgress, LiveRates, RateCounter, ReplayQueue,
+                             timer_ms)
 from .model.staleness import STALE_AFTER_S, ReferenceEpochs, Shown, Staleness
 from .replay import Recording
 from .session import LiveSession
@@ -417,7 +418,7 @@ class MainWindow(QtWidgets.QMainWindow):
                 now = time.perf_counter()
                 retry = self.clock.retry_s(now)
                 self._retry_armed = retry is not None
-                self._display_timer.start(max(1, int(round(1e3 * (retry or self.clock.wait_s(now))))))
+                self._display_timer.start(timer_ms(retry or self.clock.wait_s(now)))
 
     def _draw(self):
         """One display tick: what :meth:`DrawClock.plan` says (the newest camera frame, maps in one tick or two)."""

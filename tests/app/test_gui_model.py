@@ -217,10 +217,12 @@ def test_a_tick_without_a_newer_camera_frame_looks_again_once_a_quarter_period_l
     looks again once (DrawClock.retry_s), which draws a frame that came meanwhile and is no tick of the cadence."""
     from types import SimpleNamespace as R
 
-    from app.gui.model.schedule import LIVE_TAB, RAW_RETRY_FRACTION, DrawClock
+    from app.gui.model.schedule import LIVE_TAB, RAW_RETRY_FRACTION, DrawClock, timer_ms
 
     c = DrawClock()  # 60 Hz
     period = 1 / 60
+    # the timer's interval for a wait, the tick's and the look again's alike: whole ms, never 0 (a spin)
+    assert (timer_ms(period), timer_ms(RAW_RETRY_FRACTION * period), timer_ms(0.0), timer_ms(-0.003)) == (17, 4, 1, 1)
     c.tick(0.0)
     assert c.plan(0.0, LIVE_TAB, 3, None).raw and c.retry_s(0.0) is None  # a new frame: no look again
     c.tick(period)

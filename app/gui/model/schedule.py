@@ -11,7 +11,7 @@ from typing import Any, Dict, Hashable, Optional, Tuple
 
 __all__ = ["DISPLAY_MAX_HZ", "MAPS_MAX_HZ", "MAPS_WHOLE_MAX_FRACTION", "EARLY_MIN_WAIT", "RAW_RETRY_FRACTION",
            "LIVE_TAB", "ALIGNMENT_TAB", "TickPlan", "DrawClock", "RateCounter", "LiveRates", "ReplayQueue",
-           "ExportProgress"]
+           "ExportProgress", "timer_ms"]
 
 DISPLAY_MAX_HZ = 60.0  # the raw camera view refreshes at most this often
 MAPS_MAX_HZ = 60.0  # processed maps at most this often (and never more than one result per display tick)
@@ -41,6 +41,11 @@ class TickPlan:
     raw: bool = False
     maps: Optional[str] = None
     result: Any = None
+
+
+def timer_ms(seconds: float) -> int:
+    """The display timer's interval (ms, at least 1) for a wait of ``seconds``: what every re-arming of it uses."""
+    return max(1, int(round(1e3 * seconds)))
 
 
 @dataclasses.dataclass
