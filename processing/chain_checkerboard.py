@@ -227,13 +227,19 @@ class CheckerboardChain(GridChain):
             # a poor frame gets the full check, which names what is wrong
             check_pattern_match(self.carriers, frame)
         if not all_valid and not valid.any():
-            darker = darker_than_reference(frame, self.ref_mean)
-            raise AllInvalidError(
-                f"no part of the frame could be measured: pattern contrast relative to the reference "
-                f"is {float(np.median(amplitude)):.2f} (median; need >= {o.min_amplitude}); "
-                + (darker if darker else "check that TIR holds (theta, water level), the light and the exposure, "
-                   "and that nothing blocks the view"))
+            raise self.nothing_measured(frame, amplitude)
         return valid, all_valid
+
+    def nothing_measured(self, frame, amplitude) -> AllInvalidError:
+        """The error of a frame no part of which could be measured, with its pattern contrast against the
+        reference's (``amplitude``, the decimated grid's) and what to check (darker than the reference: by how
+        much)."""
+        darker = darker_than_reference(frame, self.ref_mean)
+        return AllInvalidError(
+            f"no part of the frame could be measured: pattern contrast relative to the reference "
+            f"is {float(np.median(amplitude)):.2f} (median; need >= {self.options.min_amplitude}); "
+            + (darker if darker else "check the focus (a blurred pattern loses its contrast), that TIR holds "
+               "(theta, water level), the light and the exposure, and that nothing blocks the view"))
 
     def refine(self, frame, phase, u, valid, iterations):
         """FD's displacement on the continued frame and its bias removal

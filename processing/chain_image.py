@@ -119,14 +119,17 @@ class ImageRefinement(_NodeRefinement):
         _NodeRefinement.__init__(self, chain)
         self.ref_fine = dic.fine_reference(chain.ref_f32, dic.fine_factor(chain.demod.freq, chain.shape))
 
-    def start(self, u, valid, hs):
-        """``(valid_px, valid_nodes, FD's surface at the nodes)``: the start."""
+    def start(self, u, valid, hs, frame, amplitude):
+        """``(valid_px, valid_nodes, FD's surface at the nodes)``: the start; AllInvalidError where no node
+        has all its pixels valid (``frame`` and its decimated ``amplitude`` name the contrast)."""
         up, ng = self.chain.upsampler, self.node_grid
         all_valid = bool(valid.all())
         fill = None if all_valid else nearest_fill_index(valid)
         uf = u if fill is None else u[:, fill[0], fill[1]]
         valid_px = np.ones(self.chain.shape, bool) if all_valid else up.mask(valid)
         valid_nodes = ng.down(valid_px.astype(np.float32)) > 0.999
+        if not valid_nodes.any():  # specks of valid samples, none a node's cell across (a blurred frame)
+            raise self.chain.nothing_measured(frame, amplitude)
         u_start = np.stack([up.cell_means(np.nan_to_num(uf[i]), ng.s) for i in range(2)])
         return valid_px, valid_nodes, self._solve(hs, u_start, valid_nodes)
 
@@ -135,7 +138,7 @@ class ImageRefinement(_NodeRefinement):
         series check and pin carried over), ``m`` its :class:`processing.chain_checkerboard.Measured`."""
         chain, ng, timings = self.chain, self.node_grid, fd.timings_ms
         hs = solver_for(chain.geometry, ng.rows_px, ng.cols_px, chain.shape)
-        valid_px, valid_nodes, start = self.start(fd.displacement, fd.valid, hs)
+        valid_px, valid_nodes, start = self.start(fd.displacement, fd.valid, hs, m.frame, m.amplitude)
         periods = np.asarray(chain.carriers.periods_px, np.float64)
         args = (self.ref_fine, m.frame, np.asarray(start.height_mm, np.float64), valid_px, self.height_nodes)
         kw = dict(outer=chain.options.image_iterations, period_px=float(periods.min()),

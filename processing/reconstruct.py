@@ -55,6 +55,7 @@ from .options import PATTERNS, ReconstructOptions, full_grid_refinement
 from .refine import (WARP_MAX_INTERPOLATION_ERROR_PX, band_limited_reference, linear_interpolation_shift_px,
                      warp_fine_factor)
 from .result import Result, SeriesCheck
+from .plan import read_only
 from .series import EMPTY, SERIES_MAX_PIN_SHIFT, SERIES_MAX_SLIP_FRACTION, SeriesState, copy_check
 from .series import check_series as _check_series
 from .series import unwrap_phase as _unwrap_phase
@@ -126,7 +127,8 @@ class Reconstructor:
     checkerboards; dots run no unwrapping, series memory or refinement).
     ``options`` and its resolved fields (``grid``, ``pattern``, ``unwrap``,
     ``temporal``, ``refine_iterations``, ``refine_method``, ...),
-    ``geometry``, ``shape``, ``rows_px``, ``cols_px`` (the decimated grid), and:
+    ``geometry``, ``shape``, ``rows_px``, ``cols_px`` (the decimated grid), ``reference_valid`` (bool on that
+    grid: where the reference's pattern has the contrast to be measured; all of it for dots), and:
 
     reference_region : ndarray bool (n_rows, n_cols)
         The reference region on the decimated grid (``rows_px``, ``cols_px``),
@@ -170,8 +172,7 @@ class Reconstructor:
         self.carriers, self.demod = (None, None) if dots else (c.carriers, c.demod)
         self.planner, self.piv = (None, c.piv) if dots else (c.planner, None)
         self.warp_interpolation = None if dots else c.warp_interpolation
-        self.rows_px, self.cols_px = c.rows_px, c.cols_px
-        self._ref_ok = c.reference_valid
+        self.rows_px, self.cols_px, self.reference_valid = c.rows_px, c.cols_px, read_only(c.reference_valid)
         self.reference_region, self.reference_region_name = c.region.region, c.region.name
         self.reference_region_valid_fraction = c.region.valid_fraction
         self._view = LiveView(c, pattern)

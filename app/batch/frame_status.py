@@ -30,7 +30,8 @@ from processing.live_view import SATURATION_MAX_PCT, saturation_pct
 from processing.banding import LightBands, bands_of, evened_frame
 from processing.turn import TURN_MAX_MRAD, TurnCheck
 
-__all__ = ["FrameStatus", "FrameOutcome", "FrameTally", "measure_frame", "outcome_of_error"]
+__all__ = ["FrameStatus", "FrameOutcome", "FrameTally", "measure_frame", "outcome_of_error", "coverage",
+           "unmeasured_cause", "PARTLY_MEASURED_PCT"]
 
 log = logging.getLogger(__name__)
 
@@ -78,6 +79,10 @@ class FrameOutcome:
     #: of a measured frame: its light along the rows against the reference's
     #: (:func:`processing.banding.light_bands`: a rolling shutter under flickering light); None where not judged
     light_bands: Optional[LightBands] = None
+    #: of a measured frame: the percentage of the area its reference covers that it measured (:func:`coverage`)
+    measured_pct: float = 100.0
+    #: of a frame measured on less than :data:`PARTLY_MEASURED_PCT`: why the rest was not (:func:`unmeasured_cause`)
+    unmeasured_cause: str = ""
 
     @property
     def ok(self) -> bool:
@@ -145,8 +150,56 @@ def measure_frame(reconstruct, image: np.ndarray, ref_shape, grid: str):
             FrameStatus.NO_CONTRAST,
             "no pixel of the frame could be measured (no pattern contrast: black, saturated or "
             "fully blurred frame); check exposure and that the pattern is in view")
-    return result, FrameOutcome(saturated_pct=saturated, hot_pixels=result.hot_pixels,
-                                turn=result.turn, light_bands=bands)
+    measured_pct, contrast = coverage(result, reconstruct.reference_valid, reconstruct.pattern == "checkerboard")
+    cause = unmeasured_cause(contrast, reconstruct.min_amplitude) if measured_pct < PARTLY_MEASURED_PCT else ""
+    return result, FrameOutcome(saturated_pct=saturated, hot_pixels=result.hot_pixels, turn=result.turn,
+                                light_bands=bands, measured_pct=measured_pct, unmeasured_cause=cause)
+
+
+#: A measured frame whose valid samples cover less than this percentage of the area its reference covers is
+#: named in the run's summary, with why (:func:`unmeasured_cause`): a blurred or hidden frame keeps a few
+#: specks that pass the contrast test, pinned on whatever is nearest (by-hand trial of 7 Dec 2026: a frame
+#: blurred by a Gaussian of 2.5 px, 0.4 % of it measured and 82 % off there, was stored as measured, and
+#: the only words were the pin's fallback and a jump).
+PARTLY_MEASURED_PCT = 50.0
+
+
+def coverage(result, reference_valid, judge_contrast: bool):
+    """``(measured_pct, contrast_unmeasured)`` of a frame's ``result``: the percentage of the area the
+    reference covers (``reference_valid``, bool on the decimated grid) that the frame measured, and, where
+    ``judge_contrast`` (checkerboards: ``result.amplitude`` is the pattern's contrast against the
+    reference's), the median of that contrast on the samples of that area it did not measure (NaN when it
+    measured all of it)."""
+    valid = np.asarray(result.valid, bool)
+    covered = np.asarray(reference_valid, bool)
+    if covered.shape != valid.shape:  # the full grid: the decimated samples' own pixels (cv2.resize's centres)
+        import cv2
+
+        covered = cv2.resize(covered.view(np.uint8), valid.shape[::-1], interpolation=cv2.INTER_NEAREST) > 0
+    n_covered = int(np.count_nonzero(covered))
+    if n_covered == 0:
+        return 100.0, float("nan")
+    measured_pct = min(100.0, 100.0 * np.count_nonzero(valid & covered) / n_covered)
+    unmeasured = covered & ~valid
+    contrast = float("nan")
+    if judge_contrast and unmeasured.any():
+        amplitude = np.asarray(result.amplitude, np.float64)[unmeasured]
+        amplitude = amplitude[np.isfinite(amplitude)]
+        contrast = float(np.median(amplitude)) if amplitude.size else float("nan")
+    return float(measured_pct), contrast
+
+
+def unmeasured_cause(contrast: float, min_contrast: float) -> str:
+    """Why a frame was not measured on part of its reference's area, from the pattern's ``contrast`` there
+    (:func:`coverage`; NaN: not judged) against the quality mask's ``min_contrast``."""
+    if not np.isfinite(contrast):
+        return "the pattern could not be matched there"
+    if contrast < min_contrast:
+        return (f"the pattern's contrast there is {contrast:.2f} of the reference's (median; the mask needs "
+                f"{min_contrast:.2f}): blurred (focus, motion blur), dimmed or washed out there, or hidden "
+                f"(a splash, a shadow, a drop or dirt on the glass)")
+    return (f"the pattern kept its contrast there ({contrast:.2f} of the reference's, median): it folded "
+            f"(caustics of steep slopes) or broke into islands too small to join the rest")
 
 
 class FrameTally:
@@ -170,6 +223,7 @@ class FrameTally:
         self.hot = []  # (sequence index, hot pixels repaired) of frames with any
         self.turned = []  # (sequence index, |turn| mrad, TurnCheck) of frames whose pattern turned
         self.banded = []  # (sequence index, LightBands.depth, LightBands) of frames with bands of light along rows
+        self.partial = []  # (sequence index, % measured, why not all) of frames measured on < PARTLY_MEASURED_PCT
 
     def add(self, item, outcome: FrameOutcome) -> None:
         self.frames += 1
@@ -185,6 +239,9 @@ class FrameTally:
                          "bands of light along the rows, %.2g %% RMS alike across the whole width, that the reference "
                          "does not show (a rolling shutter under flickering light, or a shadow's edge along the rows)",
                          outcome.light_bands)
+            if outcome.measured_pct < PARTLY_MEASURED_PCT:
+                _add_row(self.partial, item, outcome.measured_pct, "only %.1f %% of the area its reference covers "
+                         "could be measured: " + outcome.unmeasured_cause.replace("%", "%%"), outcome.unmeasured_cause)
             if outcome.turn is not None and outcome.turn.flagged:
                 _add_row(self.turned, item, abs(outcome.turn.turn_mrad),
                          "the pattern turned by %.2f mrad since the reference (the camera or the board moved)",
@@ -233,7 +290,8 @@ class FrameTally:
                 "saturated_pct_max": _worst(self.saturated, 0.0)[1],
                 "frames_with_hot_pixels": len(self.hot), "hot_pixels_max": _worst(self.hot, 0)[1],
                 "frames_turned": len(self.turned), "turn_mrad_max": _worst(self.turned, 0.0)[1],
-                "frames_light_banded": len(self.banded), "light_bands_pct_max": _worst(self.banded, 0.0)[1]}
+                "frames_light_banded": len(self.banded), "light_bands_pct_max": _worst(self.banded, 0.0)[1],
+                "frames_partly_measured": len(self.partial), "measured_pct_min": _least(self.partial, 100.0)[1]}
 
     def notes(self) -> list:
         out = []
@@ -261,6 +319,11 @@ class FrameTally:
             k, pct, bands = _worst(self.banded, 0.0)
             out.append(f"{len(self.banded)} frame(s) show {bands.describe()} (the most at frame {k}, "
                        f"{pct:.2g} %)")
+        if self.partial:
+            k, pct, cause = _least(self.partial, 100.0)
+            out.append(f"{len(self.partial)} frame(s) were measured on less than {PARTLY_MEASURED_PCT:g} % of the area "
+                       f"their reference covers (the least {pct:.1f} %, frame {k}: {cause}); their heights hold "
+                       f"there only, and their pin may be a fallback; see /valid and /pin_status in the output")
         if self.turned:
             k, mrad, turn = _worst(self.turned, 0.0)
             first = self.turned[0][0]  # when it happened: a knock turns every frame after it
@@ -274,6 +337,12 @@ def _add_row(rows: list, item, value, what: str, *more) -> None:
     (``what`` % ``value`` after the frame's name), the later ones at debug level (counted in the summary)."""
     rows.append((item.sequence_index, value, *more))
     (log.warning if len(rows) == 1 else log.debug)(f"frame %d (%s): {what}", item.sequence_index, item.label, value)
+
+
+def _least(rows: list, nothing):
+    """The row ``(sequence index, value, ...)`` of ``rows`` with the smallest value (the first of equals);
+    ``(None, nothing, "")`` when there is none."""
+    return min(rows, key=lambda row: row[1], default=(None, nothing, ""))
 
 
 def _worst(rows: list, nothing):

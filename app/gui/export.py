@@ -100,7 +100,8 @@ def describe_export(out_path: str) -> tuple:
     (``/frame_flags``), saturated (``/saturated_pct`` above
     :data:`processing.live_view.SATURATION_MAX_PCT`), banded along their rows (the run's
     ``frames_light_banded``: :mod:`processing.banding`) and turned since the reference (``/turn_mrad``
-    above :data:`processing.turn.TURN_MAX_MRAD`), by index; ``clean`` is False when there is any.
+    above :data:`processing.turn.TURN_MAX_MRAD`), by index, and measured on less than half of the reference's
+    area (the run's ``frames_partly_measured``); ``clean`` is False when there is any.
     Frames whose own hot pixels were repaired (``/hot_pixels``) are named in a note that leaves
     ``clean`` as it is.
     """
@@ -184,6 +185,11 @@ def describe_export(out_path: str) -> tuple:
             parts.append(f"{banded} with bands of light along the rows that the reference does not show (up to "
                          f"{float(f.attrs.get('light_bands_pct_max', 0.0)):.2g} % RMS): a rolling shutter under "
                          f"flickering light, or a shadow's edge; use DC-driven light or a global shutter")
+        partly = int(f.attrs.get("frames_partly_measured", 0))  # (app.batch.frame_status.coverage: per run)
+        if partly:
+            parts.append(f"{partly} measured on less than half of the area the reference covers (the least "
+                         f"{float(f.attrs.get('measured_pct_min', 0.0)):.1f} %): blurred, dimmed or hidden there, "
+                         f"the run's log says which (/valid)")
         repaired = ""
         if "hot_pixels" in f:
             hot = np.asarray(f["hot_pixels"][:n], np.int64)

@@ -980,3 +980,46 @@ def test_bands_of_light_along_the_rows_are_named(tmp_path, capsys):
             assert "evened out before measuring" in err
     assert len(errors["banded"]) == 2
     np.testing.assert_allclose(errors["banded"], errors["plain"], atol=0.05)  # percentage points
+
+
+def test_a_blurred_frame_is_named_with_its_contrast_whether_specks_of_it_are_measured_or_none(tmp_path, capsys):
+    """By-hand trial of 7 Dec 2026: simulate's bump (256^2, 12 bit), one frame blurred by a Gaussian of
+    2.5 px (focus lost, motion blur): the pattern's contrast falls to 0.29 of the reference's, under the
+    mask's 0.3, and 0.4 % of the frame kept specks that pass, 82 % off there and pinned on the nearest of
+    them; it was stored as measured, exit 0, and the words were the pin's fallback and a jump. Blurred by
+    3 px, none passed and the frame was invalid with "nothing to integrate; check the mask and the frame".
+    Now the first is named with how little of it was measured and its contrast (warned, noted, counted in
+    OUT.h5 and in the GUI's export), the second with its contrast and the focus to check; the sharp frame
+    is named in neither."""
+    import cv2
+
+    from app.gui.export import describe_export
+
+    for sigma_px, folder in ((2.5, "specks"), (3.0, "none")):
+        def blurred(a, i, sigma_px=sigma_px):
+            return a if i == 0 else cv2.GaussianBlur(a, (0, 0), sigma_px)
+
+        d, changed = _bump_and_changed_frames(tmp_path / folder, capsys, blurred)
+        out = tmp_path / f"{folder}.h5"
+        code, err = _run(capsys, "process", d / "reference.tif", *sorted(changed.glob("frame_*.tif")),
+                         "--geometry", d / "geometry.toml", "--out", out, "--no-progress")
+        if folder == "specks":
+            assert code == 0, err
+            m = re.search(r"note: 1 frame\(s\) were measured on less than 50 % of the area their reference covers "
+                          r"\(the least (\d+\.\d) %, frame 1: the pattern's contrast there is (0\.\d\d) of the "
+                          r"reference's \(median; the mask needs 0\.30\): blurred", err)
+            assert m and float(m.group(1)) < 5.0 and 0.2 < float(m.group(2)) < 0.3, err
+            with h5py.File(out) as f:
+                assert f.attrs["frames_partly_measured"] == 1 and f.attrs["measured_pct_min"] < 5.0
+                valid_share = np.asarray(f["valid"][()], np.float64).mean(axis=(1, 2))
+                assert valid_share[0] == 1.0 and valid_share[1] < 0.05  # what was said, as stored
+            text, clean = describe_export(str(out))
+            assert not clean and "1 measured on less than half of the area the reference covers" in text
+        else:
+            assert code != 0, err  # a frame stored invalid: the run says it in its exit status
+            # (the summary's first invalid frame; the warning itself goes to the log)
+            m = re.search(r"1 no contrast \(first: frame 1 \(\S+\): no part of the frame could be measured: "
+                          r"pattern contrast relative to the reference is (0\.\d\d) \(median; need >= 0\.3\); "
+                          r"check the focus", err)
+            assert m and float(m.group(1)) < 0.3, err
+            assert "nothing to integrate" not in err and "frame 0 (" not in err
