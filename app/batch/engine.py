@@ -642,7 +642,7 @@ class _PinCounter:
             # the first one loudly, the rest in the summary (a long series would flood the terminal)
             (log.warning if len(self.nearest) == 1 else log.debug)(
                 "frame %d (%s): %s", item.sequence_index, item.label, pin.describe())
-        if self.min_valid is None or pin.valid_samples < self.min_valid[0]:
+        elif self.min_valid is None or pin.valid_samples < self.min_valid[0]:  # of the frames pinned on the region
             self.min_valid = (pin.valid_samples, pin.region_samples)
         if pin.shifted:  # says more than the pin samples' motion, which it explains (their notes leave it out)
             self.shifted.append((item.sequence_index, pin))
@@ -708,8 +708,10 @@ class _PinCounter:
         n_region = 0 if self.region is None else int(np.count_nonzero(self.region))
         text = (f"height offset pinned on the {self.name} ({n_region} samples where the reference is valid) "
                 f"in {self.frames - len(self.nearest)} of {self.frames} frame(s)")
-        if self.min_valid is not None and n_region:
-            text += f", at least {self.min_valid[0]} of its samples valid"
+        if self.min_valid is not None and self.min_valid[1]:
+            # a share: each frame was pinned on its own grid (the image refinement's nodes: finer than /pin_region's)
+            valid, region = self.min_valid
+            text += f", at least {100 * valid / region:.0f} % of it measured in each"
         if self.nearest:
             text += (f"; {len(self.nearest)} frame(s) on the valid samples nearest it (fallback), "
                      f"e.g. frame {self.nearest[0]}")
