@@ -438,16 +438,27 @@ def _ordered(f1, f2, peak1, peak2, spec, rows, cols) -> Carriers:
     return Carriers(freq=freq, shape=(rows, cols), contrast=contrast, sharpness=sharp)
 
 
-def _no_clear_peak(contrast, min_contrast) -> NoCarrierError:
-    """The error for a best first peak of ``contrast`` (negative: not isolated)."""
+#: Below this many pixels along its smaller side, an image without a clear carrier peak is told how long a
+#: period was looked for: by-hand trial of 7 Dec 2026, a 40 x 256 region of interest over a 20 px board was
+#: refused as "a streak or smear ... if the water was moving", where 2 periods along its rows were the cause.
+NARROW_IMAGE_PX = 128
+
+
+def _no_clear_peak(contrast, min_contrast, max_period_px, shape) -> NoCarrierError:
+    """The error for a best first peak of ``contrast`` (negative: not isolated) in an image of ``shape``
+    (rows, cols) searched up to periods of ``max_period_px``."""
     if contrast >= 0 or -contrast < min_contrast:
         what = f"the strongest stands {abs(contrast):.1f}x above the background, need {min_contrast:.0f}x"
     else:
         what = (f"a candidate {-contrast:.1f}x above the background is a streak or smear, "
                 "not an isolated peak")
+    narrow = ""
+    if min(shape) < NARROW_IMAGE_PX:
+        narrow = (f"; in a {shape[0]} x {shape[1]} px image, periods up to {max_period_px:.0f} px (a quarter of its "
+                  f"smaller side) are looked for: a board whose period is longer needs a larger region of interest")
     return NoCarrierError(
         f"the image shows no clear carrier peak ({what}): check that the "
-        "checkerboard is in focus, lit, fills the view and that this is the pattern image")
+        f"checkerboard is in focus, lit, fills the view and that this is the pattern image{narrow}")
 
 
 def find_carriers(reference, *, min_period_px: float = 2.5, max_period_px: float | None = None,
@@ -511,7 +522,7 @@ def find_carriers(reference, *, min_period_px: float = 2.5, max_period_px: float
 
     r1, c1, contrast1 = _best_peak(excess, spec, rows, min_contrast)
     if not np.isfinite(contrast1) or contrast1 < min_contrast:
-        raise _no_clear_peak(contrast1, min_contrast)
+        raise _no_clear_peak(contrast1, min_contrast, max_period_px, (rows, cols))
     f1 = _refine(spec_c, r1, c1, rows, cols)
     # second carrier: not collinear with k1 (harmonics), not too different in length
     fr_b = np.broadcast_to(fr, spec.shape)

@@ -84,6 +84,22 @@ def test_no_carrier_refused(name):
         assert "uniform" in str(info.value)
 
 
+def test_a_region_of_interest_too_narrow_for_the_board_says_so():
+    """By-hand trial of 7 Dec 2026: a 40 x 256 px strip of a board of 20 px period (2 periods along its rows)
+    was refused as "a streak or smear" and, for a reference, "if the water was moving"; the message now says
+    which periods were looked for and that the region of interest is too small. A full-size image without a
+    pattern does not get that hint; the same board in 128 rows is found."""
+    strip = board((40, 256), 20.0)
+    with pytest.raises(NoCarrierError) as info:
+        find_carriers(strip)
+    assert "in a 40 x 256 px image, periods up to 10 px" in str(info.value)
+    assert "needs a larger region of interest" in str(info.value)
+    with pytest.raises(NoCarrierError) as info:
+        find_carriers(np.random.default_rng(1).normal(100, 10, (256, 256)))
+    assert "region of interest" not in str(info.value)
+    assert find_carriers(board((128, 256), 20.0)).periods_px == pytest.approx([20.0 / math.sqrt(2)] * 2, rel=0.02)
+
+
 def test_bad_input_messages():
     with pytest.raises(ValueError, match="2-D"):
         find_carriers(np.zeros((4, 64, 64)))
