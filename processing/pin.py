@@ -416,8 +416,9 @@ class PinStatus:
                  f"the water level is {abs(self.shift_level_um):.3g} um {up} than at the reference (evaporation, "
                  f"filling, displaced water), or ")
         if self.shift_removed:
-            effect = ("; taken out of the heights" + ("" if not math.isfinite(self.shift_effect_um) else
-                                                     f" ({self.shift_effect_um:.3g} um RMS left in, a tilt)"))
+            effect = "; taken out of the heights"
+            if math.isfinite(self.shift_effect_um):
+                effect += f" (left in, it put {self.shift_effect_um:.3g} um RMS there, a tilt)"
             return (f"the whole pattern SHIFTED by {self.frame_motion_px:.2g} px since the reference "
                     f"({100 * self.frame_shift_share:.0f} % of the frame alike): {level}the camera or the board "
                     f"moved{effect}")

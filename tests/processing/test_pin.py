@@ -426,3 +426,19 @@ def test_the_pin_samples_are_gathered_finite_and_in_row_major_order():
     tail = (0.5 / (1 + rho / 20.0) / rho * np.stack([dr, dc])).astype(np.float32)
     _, _, explained = region_scale(tail, np.ones((40, 50), bool), rows, cols)
     assert explained == 0.0
+
+
+def test_a_shift_taken_out_says_what_it_had_put_into_the_heights():
+    """By-hand trial of 7 Dec 2026: with --shift-removal the frame's warning read "taken out of the heights
+    (4.34 um RMS left in, a tilt)", as if 4.34 um stayed in; it is what the shift puts there left in."""
+    from processing.pin import PinStatus, pattern_shifted
+
+    status = PinStatus(rule="region", region="default border band", region_samples=320, valid_samples=320,
+                       needed=80, used_samples=320, frame_motion_px=3.0, frame_shift_share=0.95,
+                       frame_motion_row_px=3.0, frame_motion_col_px=0.0, shift_effect_um=4.34, shift_level_um=12.0)
+    assert pattern_shifted(status.frame_motion_px, status.frame_shift_share)
+    kept = status.shift_text()
+    assert "the heights carry 4.34 um RMS from it (a tilt, not the surface)" in kept and "take the reference" in kept
+    removed = dataclasses.replace(status, shift_removed=True).shift_text()
+    assert removed.endswith("taken out of the heights (left in, it put 4.34 um RMS there, a tilt)"), removed
+    assert "RMS left in" not in removed
