@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from app.batch.probe import frame_times, frames_done, open_output
+from app.files.h5safe import check_creatable
 from processing.errors import TirdeflectError
 
 __all__ = ["MovieReport", "make_movie", "QUANTITIES", "colour_range"]
@@ -178,6 +179,7 @@ def make_movie(out_h5, movie_path, *, quantity: str = "height", value_range=None
         raise TirdeflectError(f"{str(movie)!r} already exists; choose another --out or add --overwrite")
     if not (movie.parent if str(movie.parent) else Path(".")).is_dir():
         raise TirdeflectError(f"the folder of --out {str(movie)!r} does not exist; create it first")
+    check_creatable(movie, "choose another --out (a folder you can write to)")  # before any frame is drawn
     if not 0 <= percentile < 50:
         raise TirdeflectError(f"--percentile must be in [0, 50); got {percentile}")
     name, factor, unit, label = QUANTITIES[quantity]

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from app.files import imageio
+from app.files import h5safe, imageio
 from processing.errors import TirdeflectError
 from processing.probe import probe_cell, sample_cell
 
@@ -158,10 +158,9 @@ def write_probes(series: ProbeSeries, csv_path, h5_path=None, *, source: str = "
                  overwrite: bool = False) -> list:
     """Write the series as CSV (one row per frame) and, if ``h5_path``, as HDF5 datasets.
 
-    Returns the paths written.
+    Returns the paths written. An output that cannot be created is refused before either is
+    written (:func:`app.files.h5safe.check_creatable`), naming it and the option to change.
     """
-    import h5py
-
     written = []
     targets = [Path(csv_path)] + ([Path(h5_path)] if h5_path else [])
     for p in targets:
@@ -169,6 +168,8 @@ def write_probes(series: ProbeSeries, csv_path, h5_path=None, *, source: str = "
             raise TirdeflectError(f"{str(p)!r} already exists; choose another name or add --overwrite")
         if not (p.parent if str(p.parent) else Path(".")).is_dir():
             raise TirdeflectError(f"the folder of {str(p)!r} does not exist; create it first")
+    for p, option in zip(targets, ("--out", "--h5")):  # both, before the CSV is written
+        h5safe.check_creatable(p, f"choose another {option} (a folder you can write to)")
     names = [f"height_mm@x={x:g},y={y:g}" for x, y in zip(series.x_mm, series.y_mm)]
     with open(targets[0], "w", newline="", encoding="utf-8") as fh:
         fh.write(f"# tirdeflect probe of {source}: height in mm at surface points (x_mm, y_mm); "
@@ -180,7 +181,7 @@ def write_probes(series: ProbeSeries, csv_path, h5_path=None, *, source: str = "
                         *(f"{v:.9g}" for v in series.height_mm[k])])
     written.append(targets[0])
     if h5_path:
-        with h5py.File(targets[1], "w") as f:
+        with h5safe.create_h5(targets[1], "w", remedy="choose another --h5 (a folder you can write to)") as f:
             ds = f.create_dataset("height_mm", data=series.height_mm.astype(np.float64))
             ds.attrs["description"] = "height at each probe (column) for each frame (row), mm; NaN unmeasured"
             f.create_dataset("time_s", data=series.time_s).attrs["units"] = "s"

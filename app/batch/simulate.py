@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from app.files import imageio
+from app.files import h5safe, imageio
 from processing.errors import (
     TirdeflectError,
 )
@@ -160,6 +160,8 @@ def run_simulate(args) -> None:
             f"{str(out)!r} already holds a simulated data set; choose another --out or add --overwrite"
         )
     _check_outputs_are_not_inputs(out, args.geometry)
+    # before the ray tracing: a folder where nothing can be created failed only at the end
+    h5safe.check_creatable(out / "heights.h5", "choose another --out (a folder you can write to)")
     if not math.isfinite(args.noise) or args.noise < 0:
         raise TirdeflectError(f"--noise must be a finite RMS >= 0 grey levels; got {args.noise}")
     if args.size < 96:

@@ -122,6 +122,10 @@ class OutputExistsError(TirdeflectError):
 
 
 def check_output(out: Path, overwrite: bool) -> None:
+    """Refuse, before any input is read, an ``--out`` that cannot be written: a folder, an
+    existing file without ``overwrite``, a folder that does not exist, or one where no file can
+    be created (:func:`app.files.h5safe.check_creatable`: read-only, permission denied, ``/proc``;
+    the run used to fail there only at its first write, with HDF5's own text)."""
     if out.is_dir():
         raise TirdeflectError(
             f"--out {str(out)!r} is a directory; give a file name, e.g. {str(out / 'heights.h5')!r}"
@@ -136,7 +140,9 @@ def check_output(out: Path, overwrite: bool) -> None:
             f"the directory of --out {str(out)!r} does not exist; create {str(parent)!r} first"
         )
     if not os.access(parent, os.W_OK):
-        raise TirdeflectError(f"cannot write to {str(parent)!r}; choose another --out")
+        raise h5safe.OutputLocationError(f"cannot write to {str(parent)!r} (permission denied); "
+                                         f"choose another --out in a folder you can write to")
+    h5safe.check_creatable(out, "choose another --out (a folder you can write to)")
 
 
 
@@ -415,15 +421,14 @@ class ResultWriter:
                  geometry_toml: str, geometry_attrs: dict, carrier_attrs: dict,
                  reference: np.ndarray, expected: int, grid_coords: tuple, grid: str,
                  flush_interval_s: Optional[float] = None):
-        import h5py
-
         self.path = path
         self.compression = None if compression == "none" else compression
         self.flush_interval_s = FLUSH_INTERVAL_S if flush_interval_s is None else float(flush_interval_s)
         # no chunk cache: every frame is one chunk, written through at once, so a
         # failed write (disk full) raises here instead of being lost when h5py
         # closes a dataset handle and HDF5 flushes its cache (errors ignored there)
-        self.f = h5py.File(path, "x", rdcc_nbytes=0)
+        self.f = h5safe.create_h5(path, "x", rdcc_nbytes=0,
+                                  remedy="choose another --out (a folder you can write to)")
         self._fd = h5safe.descriptor_of(self.f)  # for dropping flushed pages (None: another driver)
         _hold_metadata_until_flush(self.f)
         self._reserve = SpaceReserve(path, RESERVE_BYTES)

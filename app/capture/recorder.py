@@ -239,17 +239,18 @@ class RecordingFile:
         self.path = p
         # "w-": fail if the file appeared since we looked (never overwrite)
         try:
-            self._f = h5py.File(p, "w-", libver="earliest")
+            self._f = h5safe.create_h5(p, "w-", libver="earliest",
+                                       remedy="free disk space or choose another folder (one you can write to)")
         except FileExistsError as exc:
             raise RecorderError(f"cannot create {str(p)!r}: {exc}; choose another file name or folder") from exc
-        except OSError as exc:
+        except h5safe.OutputLocationError as exc:  # says why from the errno, not HDF5's text
             # HDF5 created the file but could not write its first block (disk full): leave nothing behind
             try:
                 if p.exists() and p.stat().st_size < 4096:
                     p.unlink()
             except OSError:
                 pass
-            raise RecorderError(f"cannot create {str(p)!r}: {exc}; free disk space or choose another folder") from exc
+            raise RecorderError(str(exc)) from exc
         f = self._f
         cap = self.n_planned if self.n_planned is not None else 256
         self._capacity = cap

@@ -19,6 +19,9 @@ Errors the user can fix (:class:`processing.errors.TirdeflectError`,
 :class:`drivers.base.CameraError`, file errors) are printed as one line
 ``tirdeflect: error: <message>`` with exit status 2 and no traceback;
 ``--debug`` shows the traceback as well. Ctrl-C exits with status 130.
+A closed standard output (``tirdeflect compare ... | head -1``) ends the
+command quietly with status 141, as a command that SIGPIPE ended (no
+"[Errno 32] Broken pipe" line).
 ``process`` exits with 3 when it wrote its output but some frames could not
 be measured or were recorded INCOMPLETE (docs/reliability.md).
 """
@@ -38,6 +41,9 @@ __all__ = ["main", "build_parser", "version"]
 PROG = "tirdeflect"
 EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130
+#: status when the reader of stdout went away (``| head``): 128 + SIGPIPE, what the shell
+#: reports for a command that SIGPIPE ended
+EXIT_BROKEN_PIPE = 141
 
 
 def _add_gui(sub) -> None:
@@ -212,6 +218,10 @@ def main(argv=None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # argparse: --help, --version, usage errors
         return int(exc.code or 0) if not isinstance(exc.code, str) else EXIT_USAGE
+    except BrokenPipeError:  # `tirdeflect --help | head -3`
+        if _stdout_closed():
+            return _quiet_broken_pipe()
+        raise
     args._argv = list(argv)  # recorded in output files (process)
     level = logging.DEBUG if args.debug else logging.INFO if args.verbose else logging.WARNING
     logging.basicConfig(level=level, format=f"{PROG}: %(levelname)s: %(message)s")
@@ -254,10 +264,47 @@ def _exit_now_if_a_call_is_left_running() -> None:
         os._exit(EXIT_INTERRUPTED)
 
 
-def _guarded(run, debug: bool) -> int:
-    """Run a command; known errors become one line on stderr and exit status 2."""
+def _stdout_closed() -> bool:
+    """Whether the reader of stdout went away (``| head`` read what it wanted): poll reports an
+    error on the write end of such a pipe. False where that cannot be told (no poll, no
+    descriptor): a broken pipe elsewhere (a worker's, a camera's) stays an error."""
+    import select
+
     try:
-        return int(run() or 0)
+        poller = select.poll()
+        poller.register(sys.stdout.fileno(), select.POLLOUT)
+        return any(events & (select.POLLERR | select.POLLHUP) for _, events in poller.poll(0))
+    except (AttributeError, ValueError, OSError):
+        return False
+
+
+def _quiet_broken_pipe() -> int:
+    """After stdout's reader went away: point stdout at /dev/null, so that what is still
+    buffered is not written (a second BrokenPipeError at exit), and exit 141 quietly, as
+    ``grep ... | head`` does, instead of "error: [Errno 32] Broken pipe"."""
+    import os
+
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError, AttributeError):
+        pass
+    return EXIT_BROKEN_PIPE
+
+
+def _guarded(run, debug: bool) -> int:
+    """Run a command; known errors become one line on stderr and exit status 2; a closed
+    stdout (``| head``) exit status 141 and nothing more."""
+    try:
+        try:
+            code = int(run() or 0)
+            sys.stdout.flush()  # a closed pipe shows here, not in the interpreter's flush at exit
+            return code
+        except BrokenPipeError:
+            if _stdout_closed():
+                return _quiet_broken_pipe()
+            raise  # not stdout's: an error like any other (below)
     except KeyboardInterrupt:
         print(f"{PROG}: interrupted", file=sys.stderr)
         _exit_now_if_a_call_is_left_running()

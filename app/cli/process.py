@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from app.batch.compare import compare_heights
+from app.batch.compare import compare_heights, resolve_truth
 from app.batch.engine import MEASURE_MIN_FRAMES, ProcessJob, check_input_file, run_process
 from app.batch.simulate import run_simulate
 from app.stop_signals import STOP_SIGNALS
@@ -208,20 +208,25 @@ def add_compare_parser(sub) -> None:
     """Add the ``compare`` subcommand (processed heights against simulated truth)."""
     p = sub.add_parser(
         "compare",
-        help="compare processed heights (OUT.h5) with simulated truth (DIR/heights.h5)",
+        help="compare processed heights (OUT.h5) with simulated truth (DIR or DIR/heights.h5)",
         description="Print, per frame, the relative RMS height error of `tirdeflect process` "
         "output against the true heights written by `tirdeflect simulate`, in the interior "
         "of the field, both maps pinned alike on the reference region the heights were pinned on: "
         "each less its least-squares multiple there of the heights' null mode (exp(-T y/H) for TIR, "
-        "a constant for FS-SS), the part no deflectometry measures.",
+        "a constant for FS-SS), the part no deflectometry measures. Frames the output marks invalid "
+        "are skipped and named, as are the truth's frames the output does not hold. "
+        "Exit status: 0 compared (within --max-error if given); 1 the worst compared frame exceeds "
+        "--max-error; 2 refused: a file that is not a process output or simulate's truth, output and "
+        "truth not of one data set, or no frame that can be compared (every frame invalid).",
     )
     p.add_argument("out", metavar="OUT.h5", help="output of tirdeflect process")
-    p.add_argument("truth", metavar="heights.h5",
-                   help="heights.h5 of tirdeflect simulate (or the directory it wrote, which holds it)")
+    p.add_argument("truth", metavar="DIR|heights.h5",
+                   help="the folder tirdeflect simulate wrote (DIR), or its DIR/heights.h5")
     p.add_argument("--margin", type=float, default=0.125, metavar="F",
                    help="border left out on each side, as a fraction of the size (default 0.125)")
     p.add_argument("--max-error", type=float, default=None, metavar="REL",
-                   help="exit with status 1 if any frame's relative RMS error exceeds REL (e.g. 0.02)")
+                   help="exit with status 1 if a compared frame's relative RMS error exceeds REL (e.g. 0.02; "
+                   "frames the output marks invalid are skipped, not compared)")
     p.set_defaults(func=cmd_compare)
 
 
@@ -290,23 +295,77 @@ def cmd_simulate(args) -> int:
     return 0
 
 
+#: Exit status of ``compare`` when a compared frame's error exceeds --max-error.
+EXIT_COMPARE_OVER = 1
+
+
 def cmd_compare(args) -> int:
-    """Run ``tirdeflect compare``; 0, or 1 if --max-error is exceeded.  The truth may be given
-    as the directory ``tirdeflect simulate`` wrote (its ``heights.h5``)."""
-    truth = Path(args.truth)
-    if truth.is_dir() and (truth / "heights.h5").is_file():
-        args.truth = str(truth / "heights.h5")
+    """Run ``tirdeflect compare``: 0, or :data:`EXIT_COMPARE_OVER` (1) if the worst compared frame
+    exceeds --max-error; refusals (files that are not the output and truth of one data set, no
+    frame that can be compared) raise: exit 2. The truth may be given as the directory
+    ``tirdeflect simulate`` wrote (its ``heights.h5``). Frames the output marks invalid are
+    skipped and named, never counted as an "inf%" error."""
+    args.truth = resolve_truth(args.truth)
     for path, what in ((args.out, "processed file"), (args.truth, "truth file")):
         check_input_file(path, what)
     if not 0 <= args.margin < 0.5:
         raise TirdeflectError(f"--margin must be in [0, 0.5); got {args.margin}")
-    report = compare_heights(args.out, args.truth, margin=args.margin)
+    if args.max_error is not None and not (np.isfinite(args.max_error) and args.max_error > 0):
+        raise TirdeflectError(f"--max-error must be a relative error > 0 (0.02 is 2 %); got {args.max_error}")
+    result = compare_heights(args.out, args.truth, margin=args.margin)
+    worst = result.worst
+    if worst is None:
+        raise TirdeflectError(
+            f"no frame of {str(args.out)!r} can be compared with the truth: {_skipped_text(result.skipped)}; "
+            f"compare an output with measured frames (`tirdeflect process` names why each frame failed)")
+    report = result.frames
     print("frame  rel_rms_error  rms_error_um  rms_true_um  scale   valid")
-    worst = 0.0
     for r in report:
         print(f"{r['frame']:5d}  {r['rel_rms'] * 100:11.2f} %  {r['rms_error_mm'] * 1e3:12.4f}  "
               f"{r['rms_true_mm'] * 1e3:11.4f}  {r['scale']:.4f}  {r['valid_fraction']:.3f}")
-        worst = max(worst, r["rel_rms"] if np.isfinite(r["rel_rms"]) else np.inf)
+    print(f"worst relative RMS error {worst['rel_rms']:.2%} (frame {worst['frame']}) over the {len(report)} "
+          f"compared frame(s)" + (f"; {len(result.skipped)} skipped" if result.skipped else ""))
+    for line in _coverage_notes(result):
+        print(f"note: {line}")
+    _print_pin_notes(report)
+    if args.max_error is not None and worst["rel_rms"] > args.max_error:
+        print(f"tirdeflect: worst relative RMS error {worst['rel_rms']:.2%} (frame {worst['frame']}) exceeds "
+              f"--max-error {args.max_error:.2%}", file=sys.stderr)
+        return EXIT_COMPARE_OVER
+    return 0
+
+
+def _skipped_text(skipped: list, shown: int = 5) -> str:
+    """``frame 0 ('grey.tif'): the output marks it invalid (blank: ...)``, for the first ``shown``
+    skipped frames, and how many more (a run of 1000 dark frames is not 1000 reasons on a line)."""
+    parts = []
+    for s in skipped[:shown]:
+        where = f" ({Path(s['source']).name!r})" if s["source"] else ""
+        parts.append(f"frame {s['frame']}{where}: {s['reason']}")
+    if len(skipped) > shown:
+        parts.append(f"and {len(skipped) - shown} more (the reasons are in the output's /frame_status_text)")
+    return "; ".join(parts)
+
+
+def _coverage_notes(result) -> list:
+    """What was not compared: the frames skipped (with their reason) and the truth's frames the
+    output does not hold (a run that stopped, or frames not selected)."""
+    lines = []
+    if result.skipped:
+        lines.append(f"{len(result.skipped)} frame(s) skipped, not in the worst error: "
+                     f"{_skipped_text(result.skipped)}")
+    if result.missing:
+        shown = ", ".join(str(j) for j in result.missing[:10]) + (", ..." if len(result.missing) > 10 else "")
+        why = (result.stopped if result.stopped else
+               "not processed: --first/--last/--step/--frames, or not every frame file given")
+        lines.append(f"the output holds {result.truth_frames - len(result.missing)} of the truth's "
+                     f"{result.truth_frames} frame(s); missing from the output: frame(s) {shown} ({why})")
+    return lines
+
+
+def _print_pin_notes(report: list) -> None:
+    """The notes on what the pin left in the figures: a simulated surface not at rest on the
+    reference region, and a shift of the whole pattern since the reference."""
     moving = [r for r in report if r["rms_true_mm"] > 0 and r["region_rms_mm"] > 0.05 * r["rms_true_mm"]]
     if moving:
         top = max(moving, key=lambda r: r["region_rms_mm"])
@@ -322,9 +381,3 @@ def cmd_compare(args) -> int:
               f"(/pin_status; up to {top['shift_effect_um']:.3g} um rms put into the heights, frame {top['frame']}), "
               "part of the error above: a level or a set-up that moved, not the processing; "
               "`tirdeflect process --shift-removal` takes it out")
-    if args.max_error is not None and worst > args.max_error:
-        print(f"tirdeflect: worst relative RMS error {worst:.2%} exceeds --max-error {args.max_error:.2%}",
-              file=sys.stderr)
-        return 1
-    return 0
-

@@ -230,6 +230,17 @@ def _ring_frames(args, mode: str, pre: int, post: int, shape, dtype) -> int:
     return ring_frames
 
 
+def _check_out_creatable(out: Path) -> None:
+    """Refuse, before a camera is opened, an --out where no file can be created (read-only,
+    permission denied, ``/proc``): the recording failed only then, with HDF5's own text."""
+    from app.files.h5safe import OutputLocationError, check_creatable
+
+    try:
+        check_creatable(out, "choose another --out (a folder you can write to)")
+    except OutputLocationError as exc:
+        raise _UsageError(str(exc)) from None
+
+
 def _open_camera(args):
     """(camera, reference_image or None, geometry_toml or None)."""
     import drivers
@@ -383,6 +394,7 @@ def _record(args, prog: str) -> int:
                               "choose another --out or add --auto-name")
         if not out.parent.is_dir():
             raise _UsageError(f"folder {str(out.parent)!r} does not exist; create it or choose another --out")
+        _check_out_creatable(out)
         if args.camera == "synthetic":  # its frames are known before the (slow) scene is rendered
             size = int(args.synthetic_size)
             _ring_frames(args, mode, *_frame_counts(args, mode, args.frame_rate_hz or 100.0), (size, size), np.uint8)

@@ -24,6 +24,14 @@ full disk: the live recorder (:mod:`app.capture.recorder`) and the output of
   it to cover what was written, :func:`repair_eof` makes such a file open
   again (or leaves it as it was), :func:`fit_to_eoa` gives back preallocated
   space beyond the EOA after a normal close.
+* Creation: :func:`check_creatable` tries, before any work, whether a file
+  can be created where an output is asked for (a real file, made and
+  removed: ``os.access`` says yes for root in ``/proc`` and on a read-only
+  mount); :func:`create_h5` opens a new HDF5 file and turns HDF5's ``Unable
+  to synchronously create file (... errno = 2 ...)`` into
+  :class:`OutputLocationError`, whose message (:func:`cannot_create`) says
+  why from the errno (no such folder, permission denied, read-only, full)
+  and what to do.
 * :class:`DiskFullError` -- the one error for "no room for the next write";
   the recorder's and the batch writer's ``DiskFullError`` are this class (or
   a subclass of it), a :class:`~processing.errors.TirdeflectError`: front ends
@@ -50,6 +58,10 @@ from processing.errors import TirdeflectError
 
 __all__ = [
     "DiskFullError",
+    "OutputLocationError",
+    "cannot_create",
+    "check_creatable",
+    "create_h5",
     "FS_MAX_FILE_BYTES",
     "filesystem_type",
     "max_file_bytes",
@@ -78,6 +90,94 @@ class DiskFullError(TirdeflectError):
 
     The message names the file, what ran out and what to do.
     """
+
+
+class OutputLocationError(TirdeflectError):
+    """An output file cannot be created where it was asked for; the message names the file,
+    the reason (from the errno) and what to do, never HDF5's own text."""
+
+
+# ----------------------------------------------------------------------------- creation
+
+#: what an errno of a failed creation means to the user, ``{folder}`` the folder it was made in
+_CREATE_REASONS = {
+    errno.EACCES: "permission denied: you may not create files in {folder}",
+    errno.EPERM: "permission denied: you may not create files in {folder}",
+    errno.EROFS: "{folder} is on a read-only file system",
+    errno.ENOSPC: "the disk holding {folder} is full",
+    errno.EDQUOT: "your disk quota on {folder} is used up",
+    errno.ENOTDIR: "a part of its path is a file, not a folder",
+    errno.ENAMETOOLONG: "the name is too long for the file system",
+    errno.EISDIR: "it is a folder",
+    errno.EEXIST: "a file of that name is there already",
+}
+
+
+def cannot_create(path, exc: OSError, remedy: str = "choose another --out",
+                  folder=None) -> OutputLocationError:
+    """The error for an output ``path`` whose creation failed with ``exc``: why, in words, from
+    its errno, then ``remedy`` (what to do), e.g. ``cannot create the output file
+    '/proc/m.h5': the folder '/proc' takes no new files (No such file or directory); choose
+    another --out``. HDF5's ``Unable to synchronously create file (... flags = 15 ...)``
+    told the user nothing of that. ``folder``: where the creation was tried (default: the
+    folder of ``path``)."""
+    path = Path(path)
+    if folder is None:
+        folder = path.parent if str(path.parent) else Path(".")
+    folder = Path(folder)
+    code = getattr(exc, "errno", None)
+    if code == errno.ENOENT:
+        reason = (f"the folder {str(folder)!r} takes no new files (No such file or directory)"
+                  if folder.is_dir() else f"the folder {str(folder)!r} does not exist")
+    elif code in _CREATE_REASONS:
+        reason = _CREATE_REASONS[code].format(folder=repr(str(folder)))
+    else:
+        reason = os.strerror(code) if isinstance(code, int) else (str(exc) or type(exc).__name__)
+    return OutputLocationError(f"cannot create the output file {str(path)!r}: {reason}; {remedy}")
+
+
+def _nearest_folder(path: Path) -> Path:
+    """The nearest folder above ``path`` that exists (the folders below it are made with the output)."""
+    folder = path.parent if str(path.parent) else Path(".")
+    while not os.path.lexists(folder) and folder != folder.parent:
+        folder = folder.parent
+    return folder
+
+
+def check_creatable(path, remedy: str = "choose another --out") -> None:
+    """Refuse, before any frame is processed or recorded, an output ``path`` that cannot be
+    created: a hidden file is made beside it (in the nearest folder that exists) and removed
+    again. ``os.access`` is not enough: it says yes to root in ``/proc`` and on a read-only
+    mount, and the run then failed at its first write with HDF5's text. Raises
+    :class:`OutputLocationError` (:func:`cannot_create`)."""
+    import tempfile
+
+    path = Path(path)
+    folder = _nearest_folder(path)
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".tirdeflect-probe-", dir=folder)
+    except OSError as exc:
+        raise cannot_create(path, exc, remedy, folder) from None
+    os.close(fd)
+    try:
+        os.unlink(probe)
+    except OSError:  # pragma: no cover - made a moment ago
+        pass
+
+
+def create_h5(path, mode: str = "x", *, remedy: str = "choose another --out", **kwargs):
+    """``h5py.File(path, mode, **kwargs)`` for a new output file. An OSError HDF5 raises becomes
+    :class:`OutputLocationError` (:func:`cannot_create`) naming the file, why and ``remedy``;
+    :class:`FileExistsError` is raised as it is (the callers choose another name, or refuse:
+    never overwrite)."""
+    import h5py
+
+    try:
+        return h5py.File(path, mode, **kwargs)
+    except FileExistsError:
+        raise
+    except OSError as exc:
+        raise cannot_create(path, exc, remedy) from exc
 
 
 # ----------------------------------------------------------------------------- room
