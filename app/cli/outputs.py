@@ -199,6 +199,10 @@ def cmd_pattern(args) -> int:
                               "(or --suggest with --theta-deg, --depth-mm, --pixel-mm, --camera)")
     spec = PatternSpec(period, args.size_mm[0], args.size_mm[1], stretch_y=stretch,
                        margin_mm=args.margin_mm, note=note)
+    from app.files.h5safe import check_creatable
+
+    # where no file can be made (/proc, a read-only mount), why, not "does not exist; check the path"
+    check_creatable(args.out, "choose another --out (a folder you can write to)")
     path = write_pattern(spec, args.out, dpi=args.dpi, overwrite=args.overwrite)
     print(f"tirdeflect: wrote {spec.describe()} to {path}; print at 100 % and check the "
           f"100 mm ruler", file=sys.stderr)

@@ -150,3 +150,13 @@ def test_the_reason_comes_from_the_errno(tmp_path, code, reason):
     text = str(error)
     assert text.startswith(f"cannot create the output file {str(path)!r}: {reason.format(folder=tmp_path)}")
     assert text.endswith("; choose another --out") and "Unable to synchronously" not in text
+
+
+def test_pattern_into_a_folder_that_takes_no_files_says_why_and_a_good_place_still_works(tmp_path):
+    """`pattern --out /proc/b.pdf` said "file '/proc/b.pdf' does not exist; check the path"."""
+    code, text = _cli("pattern", "--period-mm", "2", "--size-mm", "150,150", "--out", NO_FILES_HERE / "b.pdf")
+    assert code == 2, text
+    _says_where_and_what_to_do(text, NO_FILES_HERE / "b.pdf")
+    code, text = _cli("pattern", "--period-mm", "2", "--size-mm", "150,150", "--out", tmp_path / "b.pdf")
+    assert code == 0 and (tmp_path / "b.pdf").stat().st_size > 0, text
+    assert not list(tmp_path.glob(".tirdeflect-probe-*"))  # the creation test leaves nothing behind
