@@ -314,7 +314,9 @@ def run_process(args: ProcessJob) -> BatchReport:
     if args.reference_frames is not None:
         _check_range_within(args.reference_frames, imageio.count_frames(imageio.expand_inputs([args.reference])),
                             "--reference-frames", f"the reference file {str(args.reference)!r}")
-    counts = [imageio.frame_count(path) for path in paths]
+    # an image or TIFF that cannot be opened (empty, header damaged) is one unreadable frame
+    # of the run, stored invalid with its reason (imageio.stands_for_one_frame)
+    counts = [imageio.frame_count(path, unreadable_as_frame=True) for path in paths]
     total = sum(counts)
     _apply_frame_range(args, total)
     selected = _selected_count(total, args.first, args.last, args.step)

@@ -6,7 +6,9 @@ Supported inputs
   OpenCV's luma weights and a log message says so),
 - TIFF of 8 to 16 bit per sample, including camera TIFFs with *packed* 10- or
   12-bit samples (tifffile decodes them through imagecodecs), float32/64 TIFF,
-  and multi-page TIFF stacks (each page one frame),
+  and multi-page TIFF stacks (each page one frame; a stack cut short by an
+  interrupted copy gives every frame it declares, those it lost as errors that
+  say it is truncated: :mod:`app.files.tiffpages`),
 - the app's HDF5 recordings (``docs/recording-format.md``): frames from the
   ``/frames`` dataset ``(n, rows, cols)``, the reference from ``/reference``
   when the recording holds one,
@@ -43,7 +45,7 @@ from typing import Iterator, Sequence
 
 import numpy as np
 
-from app.files import formats
+from app.files import formats, tiffpages
 from app.files.formats import ImageInfo, ImageReadError
 from processing.errors import TirdeflectError
 
@@ -60,6 +62,7 @@ __all__ = [
     "image_info",
     "count_frames",
     "frame_count",
+    "stands_for_one_frame",
     "iter_frames",
     "write_image",
     "recording_geometry_toml",
@@ -249,40 +252,22 @@ def _bits_of(dtype: np.dtype) -> int:
 def _tiff_open(p: Path):
     import tifffile
 
-    # tifffile logs what it cannot parse (e.g. "invalid offset to first page");
-    # the ImageReadError raised here says it in the user's terms instead
+    # tifffile logs what it cannot parse (e.g. "invalid offset to first page"); its
+    # records are kept from the user's log while it reads for us (tiffpages.quiet_tifffile)
+    # and the ImageReadError raised here says it in the user's terms instead
     logging.getLogger("tifffile").setLevel(logging.ERROR)
     try:
-        return tifffile.TiffFile(p)
+        with tiffpages.quiet_tifffile():
+            return tifffile.TiffFile(p)
     except Exception as exc:  # tifffile raises TiffFileError, ValueError, struct errors...
+        truncated = tiffpages.header_cut(p)
+        if truncated:
+            raise ImageReadError(f"{str(p)!r} is truncated: {truncated}; copy the file again "
+                                 f"from its source") from exc
         raise ImageReadError(
             f"{str(p)!r} is not a readable TIFF ({type(exc).__name__}: {exc}); "
             f"check that the file is complete and really a TIFF"
         ) from exc
-
-
-def _tiff_truncated(p: Path) -> str:
-    """Why the TIFF ``p`` is cut short (its first image directory lies beyond
-    its end), or "" if it is not."""
-    import struct
-
-    size = p.stat().st_size
-    with open(p, "rb") as fh:
-        head = fh.read(16)
-    if len(head) < 8 or head[:2] not in (b"II", b"MM"):
-        return ""
-    order = "<" if head[:2] == b"II" else ">"
-    magic = struct.unpack(order + "H", head[2:4])[0]
-    if magic == 42:
-        offset, entry = struct.unpack(order + "I", head[4:8])[0], 2 + 12
-    elif magic == 43 and len(head) >= 16:
-        offset, entry = struct.unpack(order + "Q", head[8:16])[0], 8 + 20
-    else:
-        return ""
-    if offset + entry > size:
-        return (f"it is {size} bytes long but its first image directory starts at byte {offset} "
-                f"(an interrupted copy or recording)")
-    return ""
 
 
 def _page_data_end(pages, i: int) -> int:
@@ -298,12 +283,17 @@ def _page_data_end(pages, i: int) -> int:
 def _tiff_layout(tif, p: Path):
     """Return (n_frames, shape, dtype, bits, reader) for a TIFF file.
 
+    ``n_frames`` is what the file declares (:func:`app.files.tiffpages.stack_extent`),
+    so that a stack cut short by an interrupted copy loses no frame in silence: each
+    frame it no longer holds is an ImageReadError of ``reader``, saying so.
     ``reader(i)`` returns frame ``i`` as a 2-D array.
     """
     pages = tif.pages
-    n_pages = len(pages)
-    if n_pages == 0:
-        truncated = _tiff_truncated(p)
+    with tiffpages.quiet_tifffile() as said:
+        listed = len(pages)
+        extent = tiffpages.stack_extent(tif, p, listed, bool(said))
+    if extent.pages == 0:
+        truncated = tiffpages.header_cut(p)
         if truncated:
             raise ImageReadError(f"{str(p)!r} is truncated: {truncated}; copy the file again "
                                  f"from its source")
@@ -331,10 +321,16 @@ def _tiff_layout(tif, p: Path):
 
     def reader(i: int) -> np.ndarray:
         try:
-            page = pages[i]
-            arr = page.asarray()
+            with tiffpages.quiet_tifffile():
+                if i >= extent.pages:  # declared, its directory lost: ImageReadError if cut off
+                    arr = tiffpages.frame_beyond_pages(p, extent, i, first, tif.byteorder)
+                else:
+                    arr = pages[i].asarray()
+        except ImageReadError:
+            raise
         except Exception as exc:
-            end = _page_data_end(pages, i)
+            with tiffpages.quiet_tifffile():
+                end = _page_data_end(pages, i)
             size = p.stat().st_size
             if end > size:
                 raise ImageReadError(
@@ -359,7 +355,7 @@ def _tiff_layout(tif, p: Path):
     out_dtype = np.dtype(np.float32) if dtype.kind == "f" else dtype
     if dtype.kind == "f":
         bits = _bits_of(dtype)
-    return n_pages, (rows, cols), out_dtype, bits, reader
+    return extent.declared, (rows, cols), out_dtype, bits, reader
 
 
 # --------------------------------------------------------------------------- HDF5
@@ -728,27 +724,53 @@ def read_reference(path, *, index: int | None = None, frames: slice | None = Non
     return read_image(p)
 
 
-def frame_count(path) -> int:
+def frame_count(path, *, unreadable_as_frame: bool = False) -> int:
     """Number of frames in one file, reading headers only (plain images count 1
-    without being decoded, so a broken PNG is only found when it is read).
+    without being decoded, so a broken PNG is only found when it is read; a TIFF
+    stack counts the frames it declares, also those an interrupted copy cut off).
+
+    With ``unreadable_as_frame`` an image or TIFF file that is empty or whose header
+    cannot be read counts 1: :func:`iter_frames` with ``errors="yield"`` gives it as
+    one unreadable frame, so that a run goes on past it (:func:`stands_for_one_frame`).
 
     Raises
     ------
     ImageReadError
-        Missing file, directory, empty file, unreadable TIFF/HDF5 header.
+        Missing file, directory, empty file, unreadable TIFF/HDF5 header (the last
+        two not for images and TIFFs with ``unreadable_as_frame``).
     """
-    p = _check_path(path)
-    kind = _kind(p)
-    if kind == "image":
-        return 1
-    if kind in _SOURCE_KINDS:
-        with _open_source(p) as src:
-            return src.n_frames
-    if kind == "tiff":
-        with _tiff_open(p) as tif:
-            return _tiff_layout(tif, p)[0]
-    with _h5_file(p) as f:
-        return _h5_frames(f, p)[1]
+    try:
+        p = _check_path(path)
+        kind = _kind(p)
+        if kind == "image":
+            return 1
+        if kind in _SOURCE_KINDS:
+            with _open_source(p) as src:
+                return src.n_frames
+        if kind == "tiff":
+            with _tiff_open(p) as tif:
+                return _tiff_layout(tif, p)[0]
+        with _h5_file(p) as f:
+            return _h5_frames(f, p)[1]
+    except ImageReadError:
+        if unreadable_as_frame and stands_for_one_frame(path):
+            return 1
+        raise
+
+
+def stands_for_one_frame(path) -> bool:
+    """Whether an input file that cannot be opened (empty, or its header unreadable)
+    stands for one unreadable frame of a run that goes on past it: an image or TIFF
+    file, whose frame is then stored invalid with the reason. Not a missing path or a
+    folder (a typing error: refused), nor a recording, video or camera file: how many
+    frames it held is unknown, so every frame number after it (``--frames``) would be
+    off by as many; those are refused before the run. (A TIFF stack whose first image
+    directory is lost counts one frame too: nothing in it says how many it held.)"""
+    p = Path(os.fspath(path))
+    try:
+        return p.is_file() and _kind(p) in ("image", "tiff")
+    except OSError:
+        return False
 
 
 def recording_has_reference(path) -> bool:
@@ -859,8 +881,12 @@ def iter_frames(
         What a frame that cannot be read (undecodable image, truncated page,
         NaN samples) does: "raise" ends the iteration with its
         ImageReadError; "yield" yields a FrameItem with ``image=None`` and
-        ``error`` set, and goes on with the next frame.  A file whose frames
-        cannot even be counted (its header is unreadable) raises either way.
+        ``error`` set, and goes on with the next frame. An image or TIFF file
+        that cannot be opened at all (empty, its header damaged) is with "yield"
+        one such frame (:func:`stands_for_one_frame`); a recording, video or
+        camera file whose frames cannot even be counted raises either way. A
+        TIFF stack gives every frame it declares: those an interrupted copy cut
+        off are such frames, saying the file is truncated.
 
     Yields
     ------
@@ -873,18 +899,7 @@ def iter_frames(
         yielded. Its ``sequence_index`` attribute is the failing frame's index.
         Also for bad ``first/last/step``.
     """
-    if step < 1:
-        raise ImageReadError(f"--step must be >= 1; got {step}")
-    if first < 0:
-        raise ImageReadError(f"--first must be >= 0; got {first}")
-    if last is not None and last < first:
-        raise ImageReadError(f"--last ({last}) is before --first ({first}); nothing to process")
-
-    def wanted(k: int) -> bool:
-        return k >= first and (last is None or k <= last) and (k - first) % step == 0
-
-    if errors not in ("raise", "yield"):
-        raise ValueError(f"errors must be 'raise' or 'yield'; got {errors!r}")
+    selection = _checked_selection(first, last, step, errors)
 
     def frame(read, path, i, seq, **fields):
         """The FrameItem of one frame; a read error raises or is yielded."""
@@ -898,56 +913,97 @@ def iter_frames(
 
     seq = 0
     try:
-        paths = expand_inputs(paths)
-        for path in paths:
+        for path in expand_inputs(paths):
             if last is not None and seq > last:
                 return
-            p = _check_path(path)
-            kind = _kind(p)
-            if kind == "image":
-                if wanted(seq):
-                    yield frame(lambda: _read_cv2(p), path, 0, seq)
+            try:
+                seq = yield from _file_frames(path, seq, selection, frame, errors)
+            except ImageReadError as exc:
+                if errors == "raise" or not stands_for_one_frame(path):
+                    raise
+                # an image or TIFF that cannot be opened (empty, header damaged): one unreadable
+                # frame, as frame_count(unreadable_as_frame=True) counts it, and the run goes on
+                exc.sequence_index = seq
+                if _wanted(seq, selection):
+                    yield FrameItem(None, str(path), 0, seq, error=exc)
                 seq += 1
-            elif kind in _SOURCE_KINDS:
-                with _open_source(p) as src:
-                    picked = _local_range(seq, src.n_frames, first, last, step)
-                    # every frame the header promises comes: read, or as its error (the file
-                    # ends before it, its decoder failed): formats.Source.frames
-                    i = picked.start
-                    try:
-                        for i, image, time_s in src.frames(picked, errors=errors):
-                            yield frame(lambda: _source_image(image, p), path, i, seq + i,
-                                        frames_in_source=src.n_frames, time_s=time_s)
-                    except ImageReadError as exc:
-                        exc.sequence_index = seq + getattr(exc, "index_in_source", i)
-                        raise
-                    seq += src.n_frames
-            elif kind == "tiff":
-                with _tiff_open(p) as tif:
-                    n, _, _, _, reader = _tiff_layout(tif, p)
-                    for i in range(n):
-                        if last is not None and seq > last:
-                            return
-                        if wanted(seq):
-                            yield frame(lambda: reader(i), path, i, seq, frames_in_source=n)
-                        seq += 1
-            else:
-                with _h5_file(p) as f:
-                    ds, n = _h5_frames(f, p)
-                    table, bad = _h5_frame_table(f, n, p)
-                    for i in range(n):
-                        if last is not None and seq > last:
-                            return
-                        if wanted(seq):
-                            crc = _row_checksum(table, i, bad)
-                            yield frame(lambda: _h5_read(ds, i, p, crc), path, i, seq, frames_in_source=n,
-                                        **_table_fields(table, i, bad))
-                        seq += 1
     except ImageReadError as exc:
         # say which frame of the sequence could not be read (the file is in the message)
         if getattr(exc, "sequence_index", None) is None:
             exc.sequence_index = seq
         raise
+
+
+def _checked_selection(first: int, last, step: int, errors: str) -> tuple:
+    """``(first, last, step)`` of :func:`iter_frames`, refused where they select nothing."""
+    if step < 1:
+        raise ImageReadError(f"--step must be >= 1; got {step}")
+    if first < 0:
+        raise ImageReadError(f"--first must be >= 0; got {first}")
+    if last is not None and last < first:
+        raise ImageReadError(f"--last ({last}) is before --first ({first}); nothing to process")
+    if errors not in ("raise", "yield"):
+        raise ValueError(f"errors must be 'raise' or 'yield'; got {errors!r}")
+    return first, last, step
+
+
+def _wanted(k: int, selection: tuple) -> bool:
+    """Whether sequence index ``k`` is picked by ``selection`` = (first, last, step),
+    last inclusive or None."""
+    first, last, step = selection
+    return k >= first and (last is None or k <= last) and (k - first) % step == 0
+
+
+def _file_frames(path, seq: int, selection: tuple, frame, errors: str):
+    """The FrameItems of one input file of :func:`iter_frames`, its first frame at sequence
+    index ``seq``; ``frame`` makes each (or its error item), ``selection`` picks them
+    (:func:`_wanted`). Returns the sequence index after the file's last frame, or one past
+    ``last`` where the selection ends inside the file.
+
+    Raises ImageReadError when the file itself cannot be opened (before any frame)."""
+    first, last, step = selection
+    p = _check_path(path)
+    kind = _kind(p)
+    if kind == "image":
+        if _wanted(seq, selection):
+            yield frame(lambda: _read_cv2(p), path, 0, seq)
+        return seq + 1
+    if kind in _SOURCE_KINDS:
+        with _open_source(p) as src:
+            picked = _local_range(seq, src.n_frames, first, last, step)
+            # every frame the header promises comes: read, or as its error (the file
+            # ends before it, its decoder failed): formats.Source.frames
+            i = picked.start
+            try:
+                for i, image, time_s in src.frames(picked, errors=errors):
+                    yield frame(lambda: _source_image(image, p), path, i, seq + i,
+                                frames_in_source=src.n_frames, time_s=time_s)
+            except ImageReadError as exc:
+                exc.sequence_index = seq + getattr(exc, "index_in_source", i)
+                raise
+            return seq + src.n_frames
+    if kind == "tiff":
+        with _tiff_open(p) as tif:
+            n, _, _, _, reader = _tiff_layout(tif, p)
+            for i in range(n):
+                if last is not None and seq > last:
+                    return seq
+                if _wanted(seq, selection):
+                    yield frame(lambda: reader(i), path, i, seq, frames_in_source=n)
+                seq += 1
+        return seq
+    with _h5_file(p) as f:
+        ds, n = _h5_frames(f, p)
+        table, bad = _h5_frame_table(f, n, p)
+        for i in range(n):
+            if last is not None and seq > last:
+                return seq
+            if _wanted(seq, selection):
+                crc = _row_checksum(table, i, bad)
+                yield frame(lambda: _h5_read(ds, i, p, crc), path, i, seq, frames_in_source=n,
+                            **_table_fields(table, i, bad))
+            seq += 1
+    return seq
 
 
 def _source_image(image, p: Path) -> np.ndarray:
@@ -1049,7 +1105,7 @@ def input_notes(paths: Sequence) -> list:
         if p.is_file() and formats.kind_of(p) is not None:
             with _open_source(_check_path(p)) as src:
                 notes.extend(src.notes)
-        elif p.is_file() and _kind(_check_path(p)) == "recording":
+        elif p.is_file() and _kind(p) == "recording":
             notes.extend(recording_notes(p))
     return notes
 
