@@ -334,8 +334,8 @@ def run_process(args: ProcessJob) -> BatchReport:
     if reference_given:
         reference = np.asarray(args.reference, dtype=np.float64)
     else:
-        reference = imageio.read_reference(args.reference, index=reference_index,
-                                           frames=args.reference_frames)
+        reference = imageio.read_reference(args.reference, index=reference_index, frames=args.reference_frames,
+                                           pattern=args.pattern or geometry.pattern or "checkerboard")
     input_notes = reference_notes + imageio.input_notes(paths)
     depth_note = _bit_depth_note(reference, paths[0])
     if depth_note:

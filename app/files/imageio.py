@@ -673,7 +673,8 @@ def _resolve_index(index, n: int, p: Path, *, what: str) -> int:
     return index % n
 
 
-def read_reference(path, *, index: int | None = None, frames: slice | None = None) -> np.ndarray:
+def read_reference(path, *, index: int | None = None, frames: slice | None = None,
+                   pattern: str = "checkerboard") -> np.ndarray:
     """Read the reference (undeformed) image.
 
     A plain image or single-page TIFF is the reference itself. An HDF5
@@ -687,8 +688,10 @@ def read_reference(path, *, index: int | None = None, frames: slice | None = Non
         Use this page of a TIFF stack / frame of a recording (``/frames``)
         as the reference, instead of the rules above.
     frames : slice, optional
-        Average these frames of the file (``--reference-frames 0:20``):
-        :func:`average_frames`. Not together with ``index``.
+        Average these frames of the file (``--reference-frames 0:20``), those that
+        agree with the first (:func:`average_frames`). Not together with ``index``.
+    pattern : str
+        "checkerboard" or "dots": how :func:`average_frames` compares the frames.
 
     Returns
     -------
@@ -698,7 +701,7 @@ def read_reference(path, *, index: int | None = None, frames: slice | None = Non
     if frames is not None:
         if index is not None:
             raise ImageReadError("give either --reference-index or --reference-frames, not both")
-        return average_frames(path, frames)
+        return average_frames(path, frames, pattern)
     p = _check_path(path)
     if index is not None:
         return read_image(p, index=index)
@@ -1179,15 +1182,24 @@ def parse_frame_range(text: str) -> slice:
     return slice(start, stop, step)
 
 
-def average_frames(path, frames: slice) -> np.ndarray:
+def average_frames(path, frames: slice, pattern: str = "checkerboard") -> np.ndarray:
     """Mean of the frames ``frames`` of one input (a file, or a folder / glob of
-    images counted as one sequence), float32 (an averaged reference).
+    images counted as one sequence), float32 (an averaged reference), of the frames
+    that agree with the first: :class:`processing.reference_average.ReferenceAverager`,
+    as the live window's Ctrl+R (``pattern``: "checkerboard" compares carrier phases,
+    "dots" grey levels). Frames of moving water averaged made a reference of a surface
+    that was never there (by-hand trial of 7 Dec 2026: waves of 1 rad, heights 100-116 %
+    off, exit 0).
 
     Raises
     ------
     ImageReadError
         Unreadable file, or a range that selects no frame.
+    processing.reference_average.WaterMovingError
+        More than a fifth of the frames disagree with the first: the water moved.
     """
+    from processing.reference_average import ReferenceAverager, first_frame_carriers
+
     p = expand_inputs([path])
     n = count_frames(p)
     picked = range(n)[frames]
@@ -1195,14 +1207,18 @@ def average_frames(path, frames: slice) -> np.ndarray:
         raise ImageReadError(
             f"the reference frames {frames.start}:{frames.stop}:{frames.step or 1} select no frame "
             f"of the {n} in {str(path)!r}; frames count from 0")
-    total = None
-    count = 0
+    averager, fed = None, []
     for item in iter_frames(p, first=picked.start, last=picked[-1], step=picked.step):
-        image = item.image.astype(np.float64)
-        total = image if total is None else total + image
-        count += 1
-    log.info("reference: mean of %d frame(s) %d..%d of %s", count, picked[0], picked[-1], path)
-    return (total / count).astype(np.float32)
+        if averager is None:
+            averager = ReferenceAverager(first_frame_carriers(item.image, pattern),
+                                         remedy=f"give --reference-frames of {str(path)!r} where it is still "
+                                                f"(the frames before the event)")
+        averager.add(item.image.astype(np.float64))
+        fed.append(item.sequence_index)
+    reference, report = averager.result(frame_numbers=fed)
+    (log.warning if report.n_averaged < report.n_frames else log.info)(
+        "reference: frames %d..%d of %s: %s", picked[0], picked[-1], path, report.text())
+    return reference
 
 
 def _local_range(seq: int, n: int, first: int, last: int | None, step: int) -> range:

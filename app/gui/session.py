@@ -325,10 +325,10 @@ class LiveSession:
         """Average the next ``n_frames`` frames that agree with the first; blocks up to ``timeout_s``.
 
         Returns ``(reference float32 counts, ReferenceReport)``. Raises
-        :class:`app.gui.model.reference.WaterMovingError` when the frames disagree (the water moves):
-        :class:`~app.gui.model.reference.ReferenceAverager` says by how much.
+        :class:`processing.reference_average.WaterMovingError` when the frames disagree (the water moves):
+        :class:`~processing.reference_average.ReferenceAverager` says by how much.
         """
-        from .model.reference import ReferenceAverager
+        from processing.reference_average import ReferenceAverager, first_frame_carriers
 
         acq = self.acquisition
         if acq is None:
@@ -354,22 +354,9 @@ class LiveSession:
             if f is None:
                 continue
             if averager is None:
-                averager = ReferenceAverager(self._carriers_of(f.image, pattern))
+                averager = ReferenceAverager(first_frame_carriers(f.image, pattern))
             averager.add(f.image)
         return averager.result()
-
-    @staticmethod
-    def _carriers_of(image, pattern: str):
-        """The first reference frame's carriers (None: random dots, or no checkerboard to find)."""
-        if pattern == "dots":
-            return None
-        from processing.carriers import find_carriers_live
-        from processing.errors import NoCarrierError
-
-        try:
-            return find_carriers_live(image)[0].freq
-        except NoCarrierError:
-            return None  # the reconstructor then refuses the reference with the reason
 
     # ------------------------------------------------------------- status
     def status(self) -> dict:

@@ -1023,3 +1023,39 @@ def test_a_blurred_frame_is_named_with_its_contrast_whether_specks_of_it_are_mea
                           r"check the focus", err)
             assert m and float(m.group(1)) < 0.3, err
             assert "nothing to integrate" not in err and "frame 0 (" not in err
+
+
+def test_reference_frames_of_moving_water_are_refused_and_of_still_water_averaged(tmp_path, capsys):
+    """By-hand trial of 7 Dec 2026: a reference of waves moving the carrier phase by up to 1 rad passed
+    (the pattern distorted, but one clear peak), heights 100-116 % off, exit 0. A single image cannot tell
+    such waves from a lens's distortion; frames can: ``--reference-frames`` now averages only the frames
+    that agree with the first, as the window's Ctrl+R does (processing.reference_average), and refuses
+    waves with the figure and the frames to give, before any output is made. Still frames (the reference
+    with fresh camera noise) are averaged and measured as flat."""
+    d = tmp_path / "waves"
+    assert main(["simulate", "--out", str(d), "--surface", "waves", "--size", "128", "--frames", "4",
+                 "--bits", "12", "--noise", "2", "--max-phase", "1.0"]) == 0
+    capsys.readouterr()
+    out = tmp_path / "waves.h5"
+    code, err = _run(capsys, "process", d / "frame_*.tif", "--reference-frames", "0:4", "--geometry",
+                     d / "geometry.toml", "--out", out, "--no-progress")
+    assert code == 2, err
+    m = re.search(r"the water is moving: give --reference-frames of '\S+' where it is still \(the frames before "
+                  r"the event\)\. (\d) of 4 frames differ from the first by more than 0\.05 rad of carrier phase "
+                  r"\(frame [1-3]: (\d\.\d\d) rad\)", err)
+    assert m and int(m.group(1)) >= 1 and float(m.group(2)) > 0.1, err
+    assert not out.exists()
+    still = tmp_path / "still"
+    still.mkdir()
+    reference = imageio.read_image(d / "reference.tif").astype(np.float64)
+    rng = np.random.default_rng(3)
+    for k in range(4):
+        tifffile.imwrite(still / f"frame_{k:04d}.tif",
+                         np.clip(np.rint(reference + rng.normal(0, 2, reference.shape)), 0, 4095).astype(np.uint16))
+    out = tmp_path / "still.h5"
+    code, err = _run(capsys, "process", still / "frame_*.tif", "--reference-frames", "0:4", "--geometry",
+                     d / "geometry.toml", "--out", out, "--no-progress")
+    assert code == 0, err
+    with h5py.File(out) as f:
+        height_um = 1e3 * f["height"][()]
+    assert np.nanmax(np.abs(height_um)) < 0.05  # still against still: noise (the waves: 0.4 um peak)

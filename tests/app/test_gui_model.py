@@ -420,7 +420,7 @@ def tank():
 
 
 def test_reference_of_still_water_agrees_and_of_waves_is_refused_with_the_figure(tank):
-    from app.gui.model.reference import PHASE_BOUND_RAD, ReferenceAverager, WaterMovingError
+    from processing.reference_average import PHASE_BOUND_RAD, ReferenceAverager, WaterMovingError
     from processing.carriers import find_carriers_live
 
     still = [tank._quantize(tank.flat) for _ in range(6)]
@@ -450,7 +450,8 @@ def test_a_refused_capture_says_refused_only_for_moving_water():
 def test_a_refused_first_capture_does_not_claim_a_previous_reference_is_kept(tank):
     """By-hand trial 2 Dec 2026: Ctrl+R on the waves before any reference said "The previous reference is
     kept." in the red banner: there was none, and no heights would come."""
-    from app.gui.model.reference import ReferenceAverager, WaterMovingError, capture_failed_message
+    from app.gui.model.reference import capture_failed_message
+    from processing.reference_average import ReferenceAverager, WaterMovingError
     from processing.carriers import find_carriers_live
 
     waves = tank._clips["waves"][0]
@@ -466,7 +467,7 @@ def test_a_refused_first_capture_does_not_claim_a_previous_reference_is_kept(tan
 
 
 def test_one_passing_glitch_is_left_out_not_averaged(tank):
-    from app.gui.model.reference import ReferenceAverager
+    from processing.reference_average import ReferenceAverager
     from processing.carriers import find_carriers_live
 
     still = [tank._quantize(tank.flat) for _ in range(10)]

@@ -1,155 +1,16 @@
-"""A reference averaged only from frames that agree: still water, or a refusal that says so.
+"""What the window says about a reference capture and the pattern its reference shows.
 
-A reference taken while the water moves holds the pattern displaced by that motion, and every
-height measured against it is wrong by it (issue 20: heights 31 % off after a reference on the
-waves). :class:`ReferenceAverager` is fed the frames one by one; each is compared with the first:
-
-* checkerboard: the carrier phase of the frame minus that of the first frame, at the first
-  frame's carriers (a band of the spectrum around each carrier, demodulated to baseband), RMS
-  over the field weighted by the carrier amplitude -- in radians of carrier phase (2 pi: one
-  pattern period of displacement);
-* random dots (no carriers): the RMS grey-level change over the first frame's RMS contrast,
-  which for a sinusoidal pattern is the same phase in radians to first order.
-
-Frames within :data:`PHASE_BOUND_RAD` are averaged. When more than :data:`MAX_DISAGREEING`
-of them disagree, :meth:`ReferenceAverager.result` raises :class:`WaterMovingError`:
-"the water is moving: wait and capture again", with the measured figure.
+The averaging of a capture's frames, and its refusal when they disagree (the water moves), is
+:mod:`processing.reference_average`, which ``tirdeflect process --reference-frames`` shares; here
+the label and banner the window shows after a refusal, and the maps' words when the reference does
+not show the chosen pattern.
 """
 
 from __future__ import annotations
 
-import dataclasses
-from typing import List, Optional
+from typing import Optional
 
-import numpy as np
-
-__all__ = ["PHASE_BOUND_RAD", "MAX_DISAGREEING", "WaterMovingError", "ReferenceReport", "ReferenceAverager",
-           "carrier_baseband", "capture_failed_label", "capture_failed_message", "pattern_mismatch_messages"]
-
-#: RMS carrier-phase change against the first frame (rad) above which a frame does not agree.
-#: Measured on the synthetic tank (256^2, 0.5 counts of noise): still water 0.0008 rad, the waves
-#: scene 0.6-1.3 rad. 0.05 rad is 0.8 % of a pattern period (0.1 px of a 12 px period).
-PHASE_BOUND_RAD = 0.05
-#: Fraction of the frames that may disagree (a passing glitch) before the capture is refused.
-MAX_DISAGREEING = 0.2
-
-
-class WaterMovingError(RuntimeError):
-    """The frames of a reference capture do not agree: the message names the figure and what to do."""
-
-
-@dataclasses.dataclass(frozen=True)
-class ReferenceReport:
-    """What a reference capture measured: frames averaged, refused, and their phase change (rad)."""
-
-    n_frames: int
-    n_averaged: int
-    max_change_rad: float
-    changes_rad: tuple
-    bound_rad: float
-    measure: str  # "carrier phase" or "grey level / contrast"
-
-    def text(self) -> str:
-        dropped = self.n_frames - self.n_averaged
-        return (f"{self.n_averaged} of {self.n_frames} frames averaged, {self.measure} within "
-                f"{self.max_change_rad:.3f} rad of the first (bound {self.bound_rad:g})"
-                + (f"; {dropped} disagreeing frames left out" if dropped else ""))
-
-
-def carrier_baseband(image: np.ndarray, freq, half_width: Optional[int] = None) -> np.ndarray:
-    """Complex baseband of ``image`` around carrier ``freq`` = (f_row, f_col) cycles/px, at low resolution.
-
-    The spectrum's bins within ``half_width`` of the carrier (default: a third of the carrier's distance
-    from 0, so neighbouring carriers and DC stay out), Gaussian-weighted, inverse-transformed: a
-    ``(2 half_width, 2 half_width)`` complex map whose angle is the carrier phase over the field.
-    """
-    img = np.asarray(image, np.float32)
-    rows, cols = img.shape
-    spec = np.fft.fft2(img - img.mean())
-    kr, kc = float(freq[0]) * rows, float(freq[1]) * cols  # carrier in bins
-    if half_width is None:
-        half_width = max(2, int(np.hypot(kr, kc) / 3))
-    half_width = int(min(half_width, rows // 4, cols // 4))
-    off = np.arange(-half_width, half_width)
-    rr = (int(round(kr)) + off) % rows
-    cc = (int(round(kc)) + off) % cols
-    sub = spec[np.ix_(rr, cc)]
-    g = np.exp(-0.5 * (off / (0.5 * half_width)) ** 2)
-    return np.fft.ifft2(np.fft.ifftshift(sub * np.outer(g, g)))
-
-
-class ReferenceAverager:
-    """Average reference frames that agree with the first one (see the module's docstring).
-
-    Parameters
-    ----------
-    carriers_freq : array (2, 2) or None
-        The pattern's carriers (``Carriers.freq``) measured on the first frame; None for random dots.
-    bound_rad : float
-        :data:`PHASE_BOUND_RAD`.
-    """
-
-    def __init__(self, carriers_freq=None, *, bound_rad: float = PHASE_BOUND_RAD,
-                 max_disagreeing: float = MAX_DISAGREEING):
-        self.carriers_freq = None if carriers_freq is None else np.asarray(carriers_freq, float)
-        self.bound_rad = float(bound_rad)
-        self.max_disagreeing = float(max_disagreeing)
-        self.changes: List[float] = []
-        self._first = None
-        self._first_base = None
-        self._total = None
-        self._n_sum = 0
-
-    def _baseband(self, image):
-        return [carrier_baseband(image, f) for f in self.carriers_freq]
-
-    def change_rad(self, image) -> float:
-        """RMS phase change of ``image`` against the first frame (rad); the first frame gives 0."""
-        if self.carriers_freq is None:
-            f = np.asarray(image, np.float64)
-            f0 = self._first
-            return float(np.sqrt(np.mean((f - f0) ** 2)) / max(float(f0.std()), 1e-12))
-        worst = 0.0
-        for z, z0 in zip(self._baseband(image), self._first_base):
-            w = np.abs(z0)
-            d = np.angle(z * np.conj(z0))
-            worst = max(worst, float(np.sqrt(np.sum(w * d * d) / max(float(w.sum()), 1e-30))))
-        return worst
-
-    def add(self, image) -> float:
-        """Feed one frame; returns its phase change against the first (rad)."""
-        if self._first is None:
-            self._first = np.asarray(image, np.float64)
-            if self.carriers_freq is not None:
-                self._first_base = self._baseband(image)
-            self._total = np.zeros(self._first.shape, np.float64)
-            change = 0.0
-        else:
-            change = self.change_rad(image)
-        self.changes.append(change)
-        if change <= self.bound_rad:
-            self._total += image
-            self._n_sum += 1
-        return change
-
-    def report(self) -> ReferenceReport:
-        return ReferenceReport(len(self.changes), self._n_sum, max(self.changes, default=0.0),
-                               tuple(self.changes), self.bound_rad,
-                               "carrier phase" if self.carriers_freq is not None else "grey level / contrast")
-
-    def result(self):
-        """``(reference float32, ReferenceReport)``; raises :class:`WaterMovingError` if too many disagree."""
-        rep = self.report()
-        if rep.n_frames == 0:
-            raise ValueError("no frame was fed to the reference average")
-        if rep.n_frames - rep.n_averaged > self.max_disagreeing * rep.n_frames:
-            worst = int(np.argmax(self.changes))
-            raise WaterMovingError(
-                f"the water is moving: wait and capture again. {rep.n_frames - rep.n_averaged} of "
-                f"{rep.n_frames} frames differ from the first by more than {self.bound_rad:g} rad of "
-                f"{rep.measure} (frame {worst + 1}: {self.changes[worst]:.2f} rad); a reference needs "
-                "still water.")
-        return (self._total / rep.n_averaged).astype(np.float32), rep
+__all__ = ["capture_failed_label", "capture_failed_message", "pattern_mismatch_messages"]
 
 
 def capture_failed_label(error: str, previous_kept: bool) -> str:
