@@ -312,6 +312,7 @@ def _tiff_layout(tif, p: Path):
             f"{str(p)!r} has {spp} samples per pixel; save grey (1) or RGB (3) images"
         )
     rows, cols = int(first.imagelength), int(first.imagewidth)
+    planes = _planes_of_a_stack(tif, first, extent.pages, spp, rows, cols, p)
     dtype = np.dtype(first.dtype) if first.dtype is not None else None
     if dtype is None:
         raise ImageReadError(
@@ -320,6 +321,11 @@ def _tiff_layout(tif, p: Path):
         )
 
     def reader(i: int) -> np.ndarray:
+        if planes:  # one frame per plane of the one page (see _planes_of_a_stack)
+            if not 0 <= i < planes:
+                raise IndexError(f"frame {i} of {str(p)!r}: it holds {planes}")
+            with tiffpages.quiet_tifffile():
+                return _check_dtype(np.ascontiguousarray(first.asarray()[i]), p)
         try:
             with tiffpages.quiet_tifffile():
                 if i >= extent.pages:  # declared, its directory lost: ImageReadError if cut off
@@ -355,7 +361,34 @@ def _tiff_layout(tif, p: Path):
     out_dtype = np.dtype(np.float32) if dtype.kind == "f" else dtype
     if dtype.kind == "f":
         bits = _bits_of(dtype)
-    return extent.declared, (rows, cols), out_dtype, bits, reader
+    return planes or extent.declared, (rows, cols), out_dtype, bits, reader
+
+
+#: TIFF files already said to be read plane by plane (:func:`_planes_of_a_stack`), with their size and mtime
+_PLANES_SAID: set = set()
+
+
+def _planes_of_a_stack(tif, first, pages: int, spp: int, rows: int, cols: int, p: Path) -> int:
+    """The number of grey frames (3 or 4) of a TIFF whose one page is an RGB(A) image of separate planes that
+    tifffile wrote from a ``(3 or 4, rows, cols)`` array (its description ``{"shape": [3, rows, cols]}``),
+    else 0. ``tifffile.imwrite(np.stack(frames))`` of 3 or 4 frames stores them so unless told
+    ``photometric="minisblack"`` (it warns that its next versions will store separate grey pages): read as
+    one colour image, two or three frames were lost in silence (by-hand trial of 7 Dec 2026: "wrote 1
+    frame(s)"). Said once per file as a warning."""
+    import tifffile
+
+    shaped = [m for m in (getattr(tif, "shaped_metadata", None) or ()) if isinstance(m, dict)]
+    if not (pages == 1 and spp in (3, 4) and int(getattr(first, "planarconfig", 1)) == int(
+            tifffile.PLANARCONFIG.SEPARATE) and shaped and list(shaped[0].get("shape", ())) == [spp, rows, cols]):
+        return 0
+    key = (str(p), p.stat().st_size, p.stat().st_mtime_ns)
+    if key not in _PLANES_SAID:
+        _PLANES_SAID.add(key)
+        log.warning("%s holds a (%d, %d, %d) array that tifffile stored as one colour image of separate planes "
+                    "(tifffile.imwrite without photometric='minisblack'): read as %d grey frames, as tifffile's "
+                    "next versions store it; a colour image is saved with its planes last (rows, cols, %d)",
+                    p.name, spp, rows, cols, spp, spp)
+    return spp
 
 
 # --------------------------------------------------------------------------- HDF5

@@ -97,6 +97,37 @@ def test_tiff_stack_iterates_page_by_page_with_selection(tmp_path, rng):
     assert items[0].label.endswith("s.tif[1]") and items[2].index_in_source == 0
 
 
+@pytest.mark.parametrize("n", [3, 4])
+def test_a_stack_of_3_or_4_frames_that_tifffile_stored_as_colour_planes_is_read_as_its_frames(tmp_path, rng, n,
+                                                                                             caplog):
+    """``tifffile.imwrite(np.stack(frames))`` of 3 or 4 grey frames stores one RGB(A) page of separate planes
+    (tifffile warns that its next versions will store grey pages): read as one colour image, converted to
+    grey, two or three frames were lost with exit 0 (by-hand trial of 7 Dec 2026). Now its frames, said
+    once; a colour image with its planes last, and separate planes without tifffile's shape, stay one frame."""
+    import warnings
+
+    frames = rng.integers(0, 4096, (n, 24, 32)).astype(np.uint16)
+    p = tmp_path / "stack.tif"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        tifffile.imwrite(p, frames)
+    with tifffile.TiffFile(p) as tif:
+        assert len(tif.pages) == 1  # (the layout this is about)
+    with caplog.at_level("WARNING", logger="app.files.imageio"):
+        got = [item.image for item in imageio.iter_frames([p])]
+        assert imageio.count_frames([p]) == n
+    np.testing.assert_array_equal(np.stack(got), frames)
+    said = [r.getMessage() for r in caplog.records if "separate planes" in r.getMessage()]
+    assert len(said) == 1 and f"read as {n} grey frames" in said[0], said
+    colour = rng.integers(0, 256, (24, 32, 3)).astype(np.uint8)
+    tifffile.imwrite(tmp_path / "colour.tif", colour)
+    tifffile.imwrite(tmp_path / "planar.tif", np.moveaxis(colour, -1, 0), photometric="rgb",
+                     planarconfig="separate", metadata=None)
+    for name in ("colour.tif", "planar.tif"):
+        assert imageio.count_frames([tmp_path / name]) == 1
+        assert imageio.read_image(tmp_path / name).shape == (24, 32)
+
+
 def test_stack_needs_an_index_to_be_read_as_one_image(tmp_path, rng):
     stack = rng.integers(0, 255, size=(3, 8, 8), dtype=np.uint8)
     tifffile.imwrite(tmp_path / "s.tif", stack, photometric="minisblack")
