@@ -581,7 +581,7 @@ def test_pin_region_is_drawn_from_the_reference_with_its_valid_fraction(qtbot, w
     # drawn where the reference is valid: the tinted samples are sharp-disk samples, none on the blurred border
     drawn = overlay.image.image.astype(bool)
     assert np.array_equal(drawn, rec.reference_region)
-    assert not (drawn & ~rec._ref_ok).any()
+    assert not (drawn & ~rec.reference_valid).any()
     rows_px, cols_px = rec.rows_px, rec.cols_px
     assert not drawn[(rows_px < 10) | (rows_px > SHAPE[0] - 10), :].any()
     assert not drawn[:, (cols_px < 10) | (cols_px > SHAPE[1] - 10)].any()
