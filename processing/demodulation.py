@@ -41,6 +41,7 @@ import numpy as np
 
 from .binning import bin_pyramid, check_binning, pyramid_gain
 from .carriers import Carriers
+from .errors import NoCarrierError
 from .fft import FFTPlanner
 from .plan import DemodulationPlan, read_only
 
@@ -261,9 +262,15 @@ class Demodulator:
             kr = (cr + q_r)[:, None] + np.zeros((1, m_c), np.int64)
             kc = np.zeros((m_r, 1), np.int64) + (cc + q_c)[None, :]
             if np.any(np.abs(kc) >= half_cols) or np.any(np.abs(kr) > s_rows // 2):
-                raise ValueError(
-                    f"carrier {s} at {freq[s]} cycles/px is too close to the Nyquist "
-                    "frequency for its filter; use a coarser pattern (period >= 3 px)")
+                # the pattern itself (a board too fine for the camera's pixels): the user's to fix, said in
+                # one line (a ValueError gave a traceback and exit 1: by-hand trial of 7 Dec 2026)
+                period_px = 1.0 / float(np.hypot(*freq[s]))
+                raise NoCarrierError(
+                    f"the pattern is too fine for the camera's pixels: carrier {s} has a period of "
+                    f"{period_px:.2f} px ({abs(freq[s][0]):.3f}, {abs(freq[s][1]):.3f} cycles/px along rows, "
+                    f"columns), too near the pixel grid's limit of 2 px for its filter; use a coarser board, "
+                    f"more pixels on it (a longer lens, the camera nearer) or a smaller theta (carrier "
+                    f"periods of 4 px or more)")
             mirror = kc < 0
             ridx = np.where(mirror, -kr, kr) % s_rows
             cidx = np.where(mirror, -kc, kc)

@@ -673,3 +673,18 @@ def test_image_matching_beside_a_ray_crossing_hole_on_a_turned_board_beats_fd():
     assert not default.note, default.note  # image matching ran to its end
     fd_err, default_err = rel_height_error(fd, bump, geometry), rel_height_error(default, bump, geometry)
     assert default_err < 0.85 * fd_err, (default_err, fd_err)
+
+
+def test_a_board_too_fine_for_the_pixels_is_refused_in_one_line_with_what_to_change():
+    """By-hand trial of 7 Dec 2026: a board of 3 px squares (0.6 mm at 0.1 mm/px, theta 55: carriers of
+    3.0 px) ended `tirdeflect process` with a ValueError's traceback and exit 1; it is the pattern's fault,
+    refused as such (NoCarrierError: exit 2, one line) with its period and what to change. 4 px squares
+    are measured."""
+    fine = F.Checkerboard(period_mm=0.6, edge_softness_mm=0.05)
+    ref, _ = F.render_tir(F.FlatSurface(), G55, (128, 128), fine, supersample=2)
+    with pytest.raises(NoCarrierError, match=r"the pattern is too fine for the camera's pixels: carrier \d has a "
+                                             r"period of [23]\.\d\d px .* use a coarser board"):
+        Reconstructor(F.quantize(ref, bits=8), G55)
+    coarser = F.Checkerboard(period_mm=0.8, edge_softness_mm=0.05)
+    ref, _ = F.render_tir(F.FlatSurface(), G55, (128, 128), coarser, supersample=2)
+    assert Reconstructor(F.quantize(ref, bits=8), G55).carriers.periods_px.min() > 3.5
