@@ -250,16 +250,37 @@ class CameraModel:
         two magnifications), which a pinhole camera sees smaller by ``D / (D +
         H / cos(theta))``.  NaN where the map is degenerate there (a camera
         that :meth:`check_frame` refuses)."""
+        f_pattern = self._pattern_frequencies(carrier_freq, frame_shape)
+        if f_pattern is None:
+            return float("nan")
+        stretch = float(self.pattern_stretch_y or 1.0)
+        return float(math.sqrt(1.0 + 1.0 / stretch ** 2) / np.mean(np.hypot(f_pattern[:, 0], f_pattern[:, 1])))
+
+    def board_cell_aspect(self, carrier_freq, frame_shape) -> float:
+        """How many times longer along its y than along its x the printed board's cells are, as carriers
+        ``carrier_freq`` show them through this setup at the image centre (what ``pattern_stretch_y`` should
+        be; 1 for a square board). The two diagonal carriers of cells ``p`` by ``p s`` sum and differ to
+        ``2 / p`` along the board's x and ``2 / (p s)`` along its y, however the board is turned (the one
+        nearer the pattern's x is taken as x). A ``theta_deg`` a few degrees off moves it by about
+        ``tan(theta) dtheta`` (5 % for 2 deg at 55 deg). NaN where the map is degenerate there."""
+        f_pattern = self._pattern_frequencies(carrier_freq, frame_shape)
+        if f_pattern is None:
+            return float("nan")
+        one, two = f_pattern[0] + f_pattern[1], f_pattern[0] - f_pattern[1]
+        along_x, along_y = (one, two) if abs(one[0]) * np.hypot(*two) >= abs(two[0]) * np.hypot(*one) else (two, one)
+        return float(np.hypot(*along_x) / max(float(np.hypot(*along_y)), 1e-300))
+
+    def _pattern_frequencies(self, carrier_freq, frame_shape):
+        """The carriers ``carrier_freq`` (``(2, 2)``, cycles per pixel) on the pattern plane (cycles per mm,
+        ``(x, y)`` each) through the flat-surface map's Jacobian at the image centre; None where degenerate."""
         rows, cols = frame_shape
         centre_r, centre_c = np.array([(rows - 1) / 2.0]), np.array([(cols - 1) / 2.0])
         with np.errstate(all="ignore"):
             jac = _pixel_jacobian(lambda r, c: np.stack(self.flat_pattern_point(r, c, frame_shape), axis=-1),
                                   centre_r, centre_c)[0]  # (pattern x, y) x (row, col), mm per pixel
         if not np.all(np.isfinite(jac)) or abs(np.linalg.det(jac)) < 1e-300:
-            return float("nan")
-        f_pattern = np.linalg.solve(jac.T, np.asarray(carrier_freq, np.float64).T).T  # cycles per mm
-        stretch = float(self.pattern_stretch_y or 1.0)
-        return float(math.sqrt(1.0 + 1.0 / stretch ** 2) / np.mean(np.hypot(f_pattern[:, 0], f_pattern[:, 1])))
+            return None
+        return np.linalg.solve(jac.T, np.asarray(carrier_freq, np.float64).T).T
 
     def pixel_of_pattern_point(self, px, py, frame_shape):
         """Inverse of :meth:`flat_pattern_point`: pixel ``(row, col)`` (float).

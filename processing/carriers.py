@@ -288,13 +288,54 @@ def check_board_period(geometry, carriers: Carriers, frame_shape) -> None:
     distance = geometry.camera_distance_mm if geometry.setup == "tir" else geometry.fsss_camera_distance_mm
     camera = "telecentric" if distance is None else f"camera {distance:g} mm away"
     angle = f", theta_deg = {geometry.theta_deg:g}" if geometry.setup == "tir" else ""
+    aspect, stretch = geometry.board_cell_aspect(carriers.freq, frame_shape), float(geometry.pattern_stretch_y or 1.0)
+    if math.isfinite(aspect) and abs(aspect / stretch - 1.0) > BOARD_ASPECT_TOLERANCE:
+        raise GeometryError(_aspect_message(geometry, carriers, aspect, stretch, f"pixel_mm = {geometry.pixel_mm:g}"
+                                            f"{angle}, {camera}"))
     raise GeometryError(
         f"the reference's checkerboard has a period of {c.period_mm:.4g} mm through this geometry (pixel_mm = "
         f"{geometry.pixel_mm:g}{angle}, {camera}), but pattern_period_mm = {c.printed_mm:g}: {100 * abs(c.off):.0f} % "
         f"apart (more than {100 * BOARD_PERIOD_TOLERANCE:.0f} %). Heights scale with pixel_mm squared and would "
         f"be about {100 * abs((1 + c.off) ** 2 - 1):.0f} % off. If the board is the one printed with that period, "
         f"pixel_mm should be {c.implied_pixel_mm:.4g}; otherwise correct pattern_period_mm"
-        f"{', theta_deg' if angle else ''} or the camera distance in the geometry")
+        f"{', theta_deg' if angle else ''} or the camera distance in the geometry" + _root_two_hint(c))
+
+
+def _root_two_hint(c) -> str:
+    """Where a board period is sqrt(2) off the printed one: the pattern is a grid of crossed lines or cosines
+    along x and y (its period P shows as a checkerboard of period P sqrt(2) turned by 45 deg), or the reverse
+    (by-hand trial of 7 Dec 2026: crossed cosines of 2 mm were told "pixel_mm should be 0.07071")."""
+    for factor, what in ((math.sqrt(2.0), "crossed lines or cosines along x and y"),
+                         (1.0 / math.sqrt(2.0), "a checkerboard where crossed lines or cosines are described")):
+        if abs(c.period_mm / (c.printed_mm * factor) - 1.0) <= BOARD_PERIOD_TOLERANCE:
+            return (f". The two are sqrt(2) apart: if the pattern is {what}, keep pixel_mm and set "
+                    f"pattern_period_mm = {c.period_mm:.4g} (the checkerboard it is equivalent to)")
+    return ""
+
+
+#: Where the period check fails and the board's cells look more than this much longer or shorter along y
+#: than ``pattern_stretch_y`` says (:meth:`processing.geometry.Geometry.board_cell_aspect`), the cause named is
+#: the board's shape or theta, not pixel_mm: by-hand trial of 7 Dec 2026, a stretched board not declared was
+#: told "pixel_mm should be 0.08152", and with that pixel_mm every height was 34 % off, exit 0. (A theta_deg
+#: 2 deg off moves the aspect by about 5 % at 55 deg; the period check itself allows that.)
+BOARD_ASPECT_TOLERANCE = 0.10
+
+
+def _aspect_message(geometry, carriers: Carriers, aspect: float, stretch: float, setup: str) -> str:
+    """The refusal of a reference whose board's cells are not of the shape ``pattern_stretch_y`` says."""
+    def cells(a):
+        return "square" if abs(a - 1.0) < 0.005 else f"{a:.3g} times as long along y as along x"
+
+    shape = cells(stretch)
+    text = (f"the reference's checkerboard is not the board the geometry describes: through this geometry "
+            f"({setup}) its cells are {cells(aspect)}, where pattern_stretch_y = {stretch:g} says {shape}. If "
+            f"the board's cells are so, set pattern_stretch_y = {aspect:.3g} (pattern_period_mm is its period "
+            f"along x)")
+    if geometry.setup == "tir" and geometry.camera_distance_mm is None:
+        theta = theta_from_carriers(carriers.freq, stretch)
+        if math.isfinite(theta):
+            text += f"; if they are {shape}, theta_deg is wrong: the carriers give {theta:.1f} deg"
+    return text + "; pixel_mm is not judged until the board's shape agrees"
 
 
 def check_pattern_match(carriers: Carriers, frame, *, period_tol: float = 0.04,

@@ -261,6 +261,46 @@ def test_a_wrong_pixel_size_is_refused_once_the_board_period_is_given():
     assert rms[0.15] / rms[0.1] == pytest.approx(1.5 ** 2, rel=0.05)  # what the message says
 
 
+@pytest.mark.parametrize("board_stretch, declared, told", [
+    (1 / math.cos(math.radians(55)), None, "set pattern_stretch_y = 1.74"),  # what `pattern --suggest` prints
+    (1 / 1.5, None, "set pattern_stretch_y = 0.667"),  # rectangles, longer along x
+    (1.0, 1 / math.cos(math.radians(55)), "set pattern_stretch_y = 1 "),  # a square board declared stretched
+])
+def test_a_board_of_another_shape_than_declared_is_told_its_shape_not_a_pixel_size(board_stretch, declared, told):
+    """By-hand trial of 7 Dec 2026: a board whose cells are not of the shape pattern_stretch_y says failed the
+    period check with "pixel_mm should be 0.08152"; with that pixel_mm the heights were 34 % off, exit 0. The
+    refusal now names the cells' shape through the geometry and the pattern_stretch_y (or theta) to set, and no
+    pixel_mm; with the shape declared, the same board passes and its aspect is the one declared."""
+    from processing import Geometry, Reconstructor, forward
+    from processing.errors import GeometryError
+
+    base = {**Geometry(theta_deg=55, depth_mm=300, pixel_mm=0.1, rows_toward_camera=False).to_dict(),
+            "pattern_period_mm": 2.0}
+    board = forward.Checkerboard(period_mm=2.0, edge_softness_mm=0.1, stretch_y=board_stretch)
+    g = Geometry.from_dict(base if declared is None else {**base, "pattern_stretch_y": declared})
+    ref, _ = forward.render_tir(forward.FlatSurface(), g, (256, 256), board, supersample=2)
+    with pytest.raises(GeometryError) as err:
+        Reconstructor(ref, g)
+    msg = str(err.value)
+    assert "is not the board the geometry describes" in msg and told in msg and "pixel_mm should be" not in msg, msg
+    right = Geometry.from_dict({**base, "pattern_stretch_y": board_stretch})
+    assert right.board_cell_aspect(find_carriers(ref).freq, ref.shape) == pytest.approx(board_stretch, rel=0.01)
+    Reconstructor(ref, right)  # declared as it is: passes
+
+
+def test_crossed_cosines_told_as_a_period_sqrt2_off_keep_their_pixel_size():
+    """Crossed cosines of period P along x and y are a checkerboard of P sqrt(2) turned by 45 deg: with
+    pattern_period_mm = P the check said "pixel_mm should be 0.07071" (by-hand trial of 7 Dec 2026)."""
+    from processing import Geometry, Reconstructor, forward
+    from processing.errors import GeometryError
+
+    g = Geometry(theta_deg=55, depth_mm=300, pixel_mm=0.1, rows_toward_camera=False, pattern_period_mm=2.0)
+    ref, _ = forward.render_tir(forward.FlatSurface(), g, (256, 256), forward.CrossedCosines(2.0), supersample=2)
+    with pytest.raises(GeometryError, match=r"sqrt\(2\) apart: if the pattern is crossed lines or cosines along x "
+                                            r"and y, keep pixel_mm and set pattern_period_mm = 2\.8"):
+        Reconstructor(ref, g)
+
+
 @pytest.mark.parametrize("n", [160, 192, 200, 256])
 @pytest.mark.parametrize("softness_px", [0.5, 1.0])
 def test_a_sharp_board_gives_its_fundamental_whatever_the_frame_size(n, softness_px):
