@@ -33,7 +33,7 @@ from processing.errors import (
     TirdeflectError,
 )
 from processing.live_view import reference_saturation
-from processing.pin import band_moved, steady_shift
+from processing.pin import band_moved, shift_alias_text, steady_shift
 
 from app import version as _version
 from app.batch import parallel
@@ -620,6 +620,8 @@ class _PinCounter:
         self.medians = []
         self.height_solver = getattr(reconstruct, "height_solver", None)
         self.min_valid = None
+        carriers = getattr(reconstruct, "carriers", None)  # None for random dots
+        self.carrier_freq = None if carriers is None else carriers.freq
 
     def write_region(self, writer) -> None:
         if self.region is None:
@@ -648,8 +650,10 @@ class _PinCounter:
             self.min_valid = (pin.valid_samples, pin.region_samples)
         if pin.shifted:  # says more than the pin samples' motion, which it explains (their notes leave it out)
             self.shifted.append((item.sequence_index, pin))
+            alias = self._alias(pin)
             (log.warning if len(self.shifted) == 1 else log.debug)(
-                "frame %d (%s): %s", item.sequence_index, item.label, pin.shift_text())
+                "frame %d (%s): %s%s", item.sequence_index, item.label, pin.shift_text(),
+                f" ({alias})" if alias else "")
         elif np.isfinite(pin.frame_motion_row_px) and np.isfinite(pin.frame_motion_col_px):
             self.medians.append((pin.frame_motion_row_px, pin.frame_motion_col_px))
         if pin.scaled:
@@ -704,6 +708,11 @@ class _PinCounter:
                 "frames_scaled": len(self.scaled),
                 "scale_pct_max": max((100 * abs(p.region_scale) for _, p in self.scaled), default=0.0)}
 
+    def _alias(self, pin) -> str:
+        """:func:`processing.pin.shift_alias_text` of a shifted frame's ``pin`` (PinStatus)."""
+        return shift_alias_text((pin.frame_motion_row_px, pin.frame_motion_col_px), self.carrier_freq,
+                                pin.shift_level_um)
+
     def summary(self) -> str:
         if not self.frames:
             return ""
@@ -750,6 +759,9 @@ class _PinCounter:
                          f"would move it (evaporation, filling, displaced water), or a camera or board that moved")
             else:
                 text += ": the camera or the board moved"
+            alias = self._alias(self.shifted[0][1])
+            if alias:
+                text += f" ({alias})"
             removed = all(p.shift_removed for _, p in self.shifted)
             if removed:
                 out.append(text + "; taken out of the heights (--shift-removal: heights as a reference taken at each "

@@ -220,6 +220,9 @@ def test_a_water_level_that_dropped_since_the_reference_is_named_with_what_it_do
     assert re.search(r"note: in 1 of 2 frame\(s\) the whole pattern shifted alike since the reference \(0\.3\d? px, "
                      r"e\.g\. frame 1\), as a water level (19|20|21)\.?\d* um lower would move it", err), err
     assert "Take the reference again" in err
+    # a level 0.72 mm further (a period of the pattern along the shift, 11.5 px at 16 px/mm) would read the same
+    assert re.search(r"measured only up to whole periods of the pattern, about 11\.\d px along this one, the level "
+                     r"by steps of about (6[5-9]\d|7[0-4]\d) um", err), err
     # the frame's own line, at the warning level (the first such frame of a run)
     loud = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING and "SHIFTED" in r.getMessage()]
     assert len(loud) == 1 and "frame 1 (" in loud[0], loud

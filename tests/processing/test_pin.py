@@ -442,3 +442,19 @@ def test_a_shift_taken_out_says_what_it_had_put_into_the_heights():
     removed = dataclasses.replace(status, shift_removed=True).shift_text()
     assert removed.endswith("taken out of the heights (left in, it put 4.34 um RMS there, a tilt)"), removed
     assert "RMS left in" not in removed
+
+
+def test_a_uniform_shift_says_it_is_known_only_up_to_whole_periods():
+    """By-hand trial of 7 Dec 2026: a level 1 mm higher moved the ray-traced pattern 16.3 px, one 11.5 px period
+    more than the 4.9 px measured, and the run said "300 um higher" as for a real 0.3 mm rise. Carrier phases
+    repeat every period: the shift and its level are now said to be known only up to whole periods, with the
+    period along the shift and the level's step (300 um + 700 um: the 1 mm)."""
+    from processing.pin import shift_alias_text
+
+    carriers = [[1 / 11.5, 1 / 20.0], [1 / 11.5, -1 / 20.0]]  # (f_row, f_col): the default TIR board at 55 deg
+    text = shift_alias_text((4.9, 0.0), carriers, 300.0)
+    assert "about 11.5 px along this one, the level by steps of about 704 um" in text, text
+    along_cols = shift_alias_text((0.0, 3.0), carriers)
+    assert "about 20 px along this one: a move that much larger" in along_cols and "level" not in along_cols
+    assert shift_alias_text((4.9, 0.0), None, 300.0) == ""  # random dots: no carriers
+    assert shift_alias_text((0.0, 0.0), carriers) == ""
