@@ -175,7 +175,8 @@ def find_reference_carriers(reference) -> Carriers:
         carriers, disturbed = find_carriers_live(reference)
     except NoCarrierError as exc:
         raise NoCarrierError(f"{exc}; if the water was moving when the reference was taken, take it again on "
-                             "still water") from None
+                             "still water; if the pattern is random dots, say so: pattern = \"dots\" in the "
+                             "geometry (tirdeflect process --pattern dots)") from None
     if disturbed:
         raise NoCarrierError(
             f"the reference shows the checkerboard distorted (periods {carriers.periods_px[0]:.1f} and "

@@ -688,3 +688,13 @@ def test_a_board_too_fine_for_the_pixels_is_refused_in_one_line_with_what_to_cha
     coarser = F.Checkerboard(period_mm=0.8, edge_softness_mm=0.05)
     ref, _ = F.render_tir(F.FlatSurface(), G55, (128, 128), coarser, supersample=2)
     assert Reconstructor(F.quantize(ref, bits=8), G55).carriers.periods_px.min() > 3.5
+
+
+def test_random_dots_taken_for_a_checkerboard_are_told_to_say_dots():
+    """By-hand trial of 7 Dec 2026: a random-dot reference under a checkerboard geometry was refused as "no clear
+    carrier peak ... check that the checkerboard is in focus"; the refusal now also names the dots' setting."""
+    dots = F.RandomDots(dot_diameter_mm=0.5, density=0.3, seed=1)
+    ref, _ = F.render_tir(F.FlatSurface(), G55, (256, 256), dots, supersample=2)
+    with pytest.raises(NoCarrierError, match=r'if the pattern is random dots, say so: pattern = "dots" in the '
+                                             r'geometry \(tirdeflect process --pattern dots\)'):
+        Reconstructor(F.quantize(ref, bits=8), G55)
