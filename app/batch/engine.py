@@ -33,6 +33,7 @@ from processing.errors import (
     TirdeflectError,
 )
 from processing.live_view import reference_saturation
+from processing.geometry import grazing_view_note
 from processing.pin import band_moved, shift_alias_text, steady_shift
 
 from app import version as _version
@@ -366,6 +367,10 @@ def run_process(args: ProcessJob) -> BatchReport:
         input_notes.append(reference_saturated[1])
     if reconstruct.mosaic is not None:  # a colour camera read raw: equalised, said once
         input_notes.append(reconstruct.mosaic.describe())
+    grazing = grazing_view_note(geometry)
+    if grazing:
+        log.warning("%s", grazing)
+        input_notes.append(grazing)
 
     geometry_toml, geometry_info = geometry_attrs(geometry)
     attrs = {
