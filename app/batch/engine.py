@@ -765,19 +765,18 @@ class _PinCounter:
             else:
                 text += ": the camera or the board moved"
             alias = self._alias(self.shifted[0][1])
-            if alias:
-                text += f" ({alias})"
+            alias = f" ({alias[0].upper()}{alias[1:]}.)" if alias else ""
             removed = all(p.shift_removed for _, p in self.shifted)
             if removed:
                 out.append(text + "; taken out of the heights (--shift-removal: heights as a reference taken at each "
-                           "frame would give, the level's change in /pin_status shift_level_um)")
+                           "frame would give, the level's change in /pin_status shift_level_um)" + alias)
             else:
                 if effect:
                     text += (f"; the heights carry {_span(effect, '.3g')} um RMS from it, a tilt that is not the "
                              f"surface (/pin_status shift_effect_um)")
                 settled = " (once the level has settled)" if level else ""
                 out.append(text + f". Take the reference again as the set-up is now{settled}, or process with "
-                           f"--shift-removal")
+                           f"--shift-removal" + alias)
         if self.scaled:
             pct = [100 * p.region_scale for _, p in self.scaled]
             out.append(f"in {len(self.scaled)} of {self.frames} frame(s) the image's SCALE changed since the reference "
