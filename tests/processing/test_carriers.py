@@ -312,3 +312,20 @@ def test_a_sharp_board_gives_its_fundamental_whatever_the_frame_size(n, softness
     board = (0.5 + 0.4 * np.tanh(np.sin(k * c) / eps) * np.tanh(np.sin(k * r) / eps)) * 255
     found = find_carriers(board.astype(np.uint8))
     np.testing.assert_allclose(found.periods_px, 20 / math.sqrt(2), rtol=0.002)
+
+
+def test_a_long_period_board_gives_its_fundamental_not_a_harmonic():
+    """By-hand trial of 7 Dec 2026: a board of 60 px period at 256^2 (about 4 periods across, rows compressed
+    at theta 55 deg): its two fundamentals lie 8.5 bins apart, each within the other's isolation ring, so each
+    stood only 3.1x above it and the (1, 3) harmonic (17.3 px) was taken: with pattern_period_mm the reference
+    was refused blaming pixel_mm, without it a bump came out 13.7 % off in silence. The ring's third-largest
+    bin is the measure now; streaks and ridges stay refused (test_no_carrier_refused)."""
+    from processing import Geometry, forward
+
+    g = Geometry(theta_deg=55, depth_mm=300, pixel_mm=0.1, rows_toward_camera=False, pattern_period_mm=6.0)
+    ref, _ = forward.render_tir(forward.FlatSurface(), g, (256, 256),
+                                forward.Checkerboard(period_mm=6.0, edge_softness_mm=0.1), supersample=2)
+    found = find_carriers(forward.quantize(ref, bits=8))
+    expected = 1.0 / math.hypot(1.0 / (60.0 * math.cos(math.radians(55))), 1.0 / 60.0)  # px: 29.9, the diagonal
+    np.testing.assert_allclose(found.periods_px, expected, rtol=0.01)
+    assert g.board_period_mm(found.freq, ref.shape) == pytest.approx(6.0, rel=0.01)
