@@ -18,6 +18,7 @@ from typing import Optional
 
 import numpy as np
 
+from processing.geometry import grazing_view_note
 from processing.live_view import SATURATION_MAX_PCT
 
 __all__ = ["frame_alignment", "display_spectrum", "modulation_map", "assess", "DOT_WINDOW_PX", "periodic_pattern"]
@@ -391,6 +392,9 @@ def assess(a: dict, saturation_pct: float, geometry=None, has_reference: bool = 
                 reasons.append(f"θ from the pattern differs by {diff:+.1f}° from the geometry's: check θ "
                                "(Controls ▸ Reference & geometry) or the camera's tilt")
         lines.append(("θ", th_text))
+    grazing = grazing_view_note(geometry) if geometry is not None else ""
+    if grazing:  # said while θ is set, not only when a run reports it (a note: it may be what the tank allows)
+        notes.append(grazing)
     _check_board_period(a.get("board_period_mm"), geometry, reasons, lines)
     mod = a.get("modulation")
     contrast = num("contrast", "modulation_median")

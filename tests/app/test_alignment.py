@@ -122,3 +122,13 @@ def test_a_reference_of_moving_water_is_refused_with_what_to_do(tank):
         Reconstructor(frame, tank.geometry)
     tank.set_scene("still")
     Reconstructor(tank(0), tank.geometry)  # still water: accepted
+
+
+def test_a_view_near_grazing_is_noted_while_theta_is_set(tank):
+    """The Alignment tab is where theta is set: a geometry at 78 deg gets the note a run prints (heights
+    10-20 % off near 80 deg, ray traced), as a note, not a refusal; 55 deg gets none."""
+    a, _ = frame_alignment(tank(0))
+    steep = Geometry.from_dict({**tank.geometry.to_dict(), "theta_deg": 78.0})
+    _, _, _, notes = assess(a, 0.0, steep)
+    assert any(n.startswith("theta_deg = 78 is near grazing") for n in notes), notes
+    assert not any("grazing" in n for n in assess(a, 0.0, tank.geometry)[3])
