@@ -323,7 +323,7 @@ def _tiff_layout(tif, p: Path):
     def reader(i: int) -> np.ndarray:
         if planes:  # one frame per plane of the one page (see _planes_of_a_stack)
             if not 0 <= i < planes:
-                raise IndexError(f"frame {i} of {str(p)!r}: it holds {planes}")
+                raise ImageReadError(f"{str(p)!r} holds {planes} frames (0 to {planes - 1}); there is no frame {i}")
             with tiffpages.quiet_tifffile():
                 return _check_dtype(np.ascontiguousarray(first.asarray()[i]), p)
         try:
