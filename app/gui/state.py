@@ -40,7 +40,8 @@ log = logging.getLogger(__name__)
 
 __all__ = ["map_views", "camera_to_open", "restore_early", "camera_opened", "save", "confirm_geometry",
            "geometry_in_use",
-           "reference_in_use", "remember_camera_settings", "save_experiment", "open_experiment", "update_truth"]
+           "reference_in_use", "remember_camera_settings", "save_experiment", "open_experiment", "update_truth",
+           "STILL_WATER_PROMPT"]
 
 
 
@@ -332,6 +333,10 @@ def open_experiment(w, path) -> bool:
 
 
 # ------------------------------------------------------------------ synthetic tank truth
+#: What the scene box says on still water before a reference is taken.
+STILL_WATER_PROMPT = "still water: capture the reference now"
+
+
 def update_truth(w) -> None:
     """Status bar: live heights vs the simulated tank's true heights; scene preparation progress."""
     from app.capture.scene import height_error
@@ -349,6 +354,12 @@ def update_truth(w) -> None:
         w.camera_panel.show_scene(w.scene_wanted or tank.scene, text)
         lab.setText(text)  # visible whichever Controls section is open
         return
+    said = w.camera_panel.scene_label.text()
+    if said.startswith("preparing ") or (said == STILL_WATER_PROMPT and w.reference is not None):
+        # nothing is being ray-traced (a scene passed on the way to another finished last) / the reference
+        # is taken: the words under the scene box go (by-hand trial of 7 Dec 2026: "preparing drop: 20/24"
+        # stood 12 s after the drop was ready while impact streamed, and the prompt after the reference)
+        w.camera_panel.show_scene(w.scene_wanted or tank.scene, "")
     p = w.last_drawn or w.session.worker.latest()  # the maps on screen (also paused)
     if p is None or p.result is None:
         lab.setText("")

@@ -275,8 +275,7 @@ class MainWindow(QtWidgets.QMainWindow):
         tank = self.session.tank
         self.camera_panel.set_synthetic(tank is not None)
         if tank is not None:
-            self.camera_panel.show_scene(tank.scene, "still water: capture the reference now" if tank.scene ==
-                                         "still" else "")
+            self.camera_panel.show_scene(tank.scene, state.STILL_WATER_PROMPT if tank.scene == "still" else "")
         self.camera_panel.show_settings(opened.settings)
         self.clear_error()
         # replaces "preparing…"/"opening…", which would otherwise stay up to 8 s over the new camera

@@ -706,3 +706,21 @@ def test_the_colour_range_holds_the_core_of_a_small_dimple(qtbot):
     for name, ratios in held.items():
         shown = np.round(ratios, 2)
         assert min(ratios) >= 0.6 and np.median(ratios) >= 0.9, f"{name}: upper level / its core {shown}"
+
+
+def test_the_scene_box_says_nothing_stale_after_a_scene_passed_on_the_way_and_the_reference(qtbot):
+    """By-hand trial of 7 Dec 2026: the reference taken, the prompt "still water: capture the reference now"
+    stayed under the scene box; choosing impact with the arrow keys passed drop, whose ray tracing finished
+    after impact's, and "preparing drop: 20/24 frames ray-traced…" stayed there while impact streamed."""
+    from app.gui import state
+
+    w = _window(qtbot)
+    label = w.camera_panel.scene_label
+    assert label.text() == state.STILL_WATER_PROMPT
+    _capture_reference_by_keys(qtbot, w, n_average=3)
+    _until(qtbot, lambda: label.text() == "", lambda: f"scene label {label.text()!r}", 10000)
+    _choose_scene_by_hand(qtbot, w, "impact (approaching disc)")  # down past the drop
+    qtbot.waitUntil(lambda: w.session.tank.scene == "impact", timeout=60000)
+    qtbot.waitUntil(lambda: not w.session.tank.progress, timeout=60000)  # every scene passed is ray-traced
+    _until(qtbot, lambda: not label.text().startswith("preparing"), lambda: f"scene label {label.text()!r}", 10000)
+    assert w.session.tank.ready("drop")  # (the drop was prepared on the way: what left its words)
