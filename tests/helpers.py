@@ -1,6 +1,7 @@
 """Small helpers that several test modules and tests/conftest.py share: whether a
 process still runs, which of a process's children are its multiprocessing workers,
-a machine-wide file lock with a bounded wait, and how much of a file the page cache holds."""
+a machine-wide file lock with a bounded wait, how much of a file the page cache holds, and a user's
+answers typed into the window's file dialogs."""
 
 from __future__ import annotations
 
@@ -81,3 +82,32 @@ def resident_bytes(path) -> int:
     finally:
         mapping.close()
     return int((resident & 1).sum()) * mmap.PAGESIZE
+
+
+def answer_file_dialogs(qtbot, answers, seen_filters):
+    """Fill each file dialog the window opens with the next path and accept it, as a user would
+    (again on the next poll if the dialog is still open: a busy machine may not have taken it)."""
+    from pathlib import Path
+
+    from pyqtgraph.Qt import QtCore, QtWidgets
+
+    answers = [Path(a) for a in answers]
+    state = {"dlg": None}
+
+    def poll():
+        dlg = next((d for d in QtWidgets.QApplication.topLevelWidgets()
+                    if isinstance(d, QtWidgets.QFileDialog) and d.isVisible()), None)
+        if state["dlg"] is not None and dlg is not state["dlg"]:
+            answers.pop(0)  # the dialog answered last time has closed
+            state["dlg"] = None
+        if dlg is not None and answers:
+            if state["dlg"] is None:
+                seen_filters.append(dlg.nameFilters())
+            name_edit = dlg.findChild(QtWidgets.QLineEdit, "fileNameEdit")
+            name_edit.setText(str(answers[0]))  # typed into the dialog's file name box, then Enter
+            qtbot.keyClick(name_edit, QtCore.Qt.Key_Return)
+            state["dlg"] = dlg
+        if answers:
+            QtCore.QTimer.singleShot(50, poll)
+
+    QtCore.QTimer.singleShot(50, poll)

@@ -119,7 +119,8 @@ def draw_result(w, p, part: int = -1):
     if r is None:
         if part in (0, -1):
             # the full text on the height map; the small maps say what happened in a few words
-            text, short = unmeasured_messages(p.error, w.session.worker.reconstructor is not None)
+            text, short = unmeasured_messages(p.error, w.session.worker.reconstructor is not None,
+                                              w.reference_refused)
             for v in views:
                 v.show_message(text, None if v is w.height_view else short)
             w._unmeasured = p  # the maps on screen (if any) are older than this frame: stale

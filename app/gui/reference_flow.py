@@ -13,6 +13,7 @@ from typing import Optional
 import numpy as np
 from pyqtgraph.Qt import QtWidgets
 
+from processing.errors import GeometryError
 from processing.live_view import reference_saturation
 
 from . import state
@@ -66,6 +67,7 @@ def _remove_reconstructor(w) -> None:
 def rebuild_reconstructor(w):
     request = w.references.request()  # any build still running is superseded (model/staleness.py)
     if w.reference is None or w.geometry is None:
+        w.reference_refused = ""  # nothing refused: nothing to measure against
         _remove_reconstructor(w)
         return
     reference, geometry, use_gpu = w.reference, w.geometry, w.memory.use_gpu
@@ -104,10 +106,16 @@ def rebuild_reconstructor(w):
         rec.device_text = text
         return rec
 
+    geometry_at_fault = []  # set when the geometry does not fit the reference (the error reaches done() as text)
+
     def build_checked():
         from .alignment import periodic_pattern
 
-        rec = build()
+        try:
+            rec = build()
+        except GeometryError:
+            geometry_at_fault.append(True)
+            raise
         return rec, (periodic_pattern(reference) if getattr(geometry, "pattern", "") == "dots" else None)
 
     def done(built, error):
@@ -117,10 +125,15 @@ def rebuild_reconstructor(w):
             return  # a newer reference/geometry is being built: this one (even failed) changes nothing
         if action == "remove":
             _remove_reconstructor(w)
+            w.reference_refused = str(error)  # the maps say it (model.staleness.unmeasured_messages)
             w.geometry_panel.reference_label.setText("reference NOT usable")
             w.geometry_panel.reference_label.setStyleSheet("color: #c00000; font-weight: bold")
+            if geometry_at_fault:  # the geometry does not fit this reference: not "geometry OK"
+                w.geometry_panel.geometry_label.setText("<span style='color:#c00'>the geometry does not fit the "
+                                                        "reference (see the banner)</span>")
             w.show_error(f"Bad reference: {error}")
             return
+        w.reference_refused = ""
         newest = w.session.newest_seq()  # later frames are measured against this reference
         w.references.install(request, newest if newest is not None else w.clock.last_raw_seq)
         w.session.worker.set_reconstructor(rec, reference=reference)  # the worker process builds its own

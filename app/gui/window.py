@@ -105,6 +105,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.reference_path: Optional[str] = None  # the file of the reference in use (None: captured)
         self.reference_roi = None  # (offset_x, offset_y, width, height) the reference was taken with
         self._reference_text = ""
+        self.reference_refused = ""  # why the newest reference could not be used ("": it is in use, or none)
         self.references = ReferenceEpochs()  # rebuild policy; which reference measured which frame
         self.scene_wanted: Optional[str] = None
         self.clock = DrawClock()  # what each display tick draws (model/schedule.py)

@@ -13,37 +13,13 @@ import pytest
 from pyqtgraph.Qt import QtCore, QtWidgets
 
 from app.gui.views import decimate_for_display
+from tests.helpers import answer_file_dialogs
 from tests.app.test_formats import write_mraw, write_video
 
 pytestmark = pytest.mark.gui
 av = pytest.importorskip("av")
 
 ROOT = Path(__file__).resolve().parents[2]
-
-
-def _answer_file_dialogs(qtbot, answers, seen_filters):
-    """Fill each file dialog the window opens with the next path and accept it, as a user would
-    (again on the next poll if the dialog is still open: a busy machine may not have taken it)."""
-    answers = [Path(a) for a in answers]
-    state = {"dlg": None}
-
-    def poll():
-        dlg = next((d for d in QtWidgets.QApplication.topLevelWidgets()
-                    if isinstance(d, QtWidgets.QFileDialog) and d.isVisible()), None)
-        if state["dlg"] is not None and dlg is not state["dlg"]:
-            answers.pop(0)  # the dialog answered last time has closed
-            state["dlg"] = None
-        if dlg is not None and answers:
-            if state["dlg"] is None:
-                seen_filters.append(dlg.nameFilters())
-            name_edit = dlg.findChild(QtWidgets.QLineEdit, "fileNameEdit")
-            name_edit.setText(str(answers[0]))  # typed into the dialog's file name box, then Enter
-            qtbot.keyClick(name_edit, QtCore.Qt.Key_Return)
-            state["dlg"] = dlg
-        if answers:
-            QtCore.QTimer.singleShot(50, poll)
-
-    QtCore.QTimer.singleShot(50, poll)
 
 
 def _frames(n=4, shape=(48, 64), hi=4096):
@@ -68,7 +44,7 @@ def test_file_open_lists_and_opens_camera_files_and_video(qtbot, window, tmp_pat
         frames = [item.image for item in imageio.iter_frames([path], last=3)]
     times_s = [item.time_s for item in imageio.iter_frames([path], last=3)]
     filters = []
-    _answer_file_dialogs(qtbot, [path], filters)
+    answer_file_dialogs(qtbot, [path], filters)
     window.actions_by_name["open_recording"].trigger()
     assert filters and any("*.mraw" in f and "*.avi" in f and "*.cine" in f for f in filters[0])
     assert window.replay_recording is not None and window.replay_recording.path == str(path)
@@ -105,7 +81,7 @@ def test_export_movie_from_the_file_menu(qtbot, window, tmp_path):
     movie = tmp_path / "heights.mp4"
     messages = []
     window.statusBar().messageChanged.connect(messages.append)
-    _answer_file_dialogs(qtbot, [out_h5, movie], [])
+    answer_file_dialogs(qtbot, [out_h5, movie], [])
     window.actions_by_name["export_movie"].trigger()
     qtbot.waitUntil(lambda: getattr(window, "movie_result", None) is not None, timeout=60000)
     state, report = window.movie_result
@@ -123,7 +99,7 @@ def test_export_movie_from_the_file_menu(qtbot, window, tmp_path):
     rec = tmp_path / "recording.h5"
     with h5py.File(rec, "w") as f:
         f["frames"] = np.stack(_frames())
-    _answer_file_dialogs(qtbot, [rec, tmp_path / "bad.mp4"], [])
+    answer_file_dialogs(qtbot, [rec, tmp_path / "bad.mp4"], [])
     window.actions_by_name["export_movie"].trigger()
     qtbot.waitUntil(lambda: window.movie_result is not None, timeout=20000)
     assert window.movie_result[0] == "error" and "\n" not in window.movie_result[1]
@@ -150,7 +126,7 @@ def test_a_reference_file_16x_brighter_than_the_cameras_frames_is_named_on_the_m
     tifffile.imwrite(path, (flat.astype(np.uint16) << 4))  # 12-bit data in the top bits of 16-bit words
     window.use_camera(SyntheticCamera(flat, frame_rate_hz=30.0, bit_depth=12), geometry=geometry)
     qtbot.waitUntil(lambda: window.clock.last_raw_seq >= 0, timeout=10000)
-    _answer_file_dialogs(qtbot, [path], [])  # the file typed into the dialog the button opens
+    answer_file_dialogs(qtbot, [path], [])  # the file typed into the dialog the button opens
     window.geometry_panel.load_ref_button.click()
     qtbot.waitUntil(lambda: "16x darker than the reference" in window.height_view.message.text(), timeout=30000)
     text = window.height_view.message.text()

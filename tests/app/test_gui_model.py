@@ -194,6 +194,14 @@ def test_an_unmeasured_frame_says_why_on_every_map():
     assert unmeasured_messages("AllInvalidError: no valid pixel", True) == ("AllInvalidError: no valid pixel",
                                                                              "AllInvalidError (see Height)")
     assert unmeasured_messages(None, True) == ("", None)
+    # a reference refused (by-hand trial 7 Dec 2026: its pixel_mm): said, not "no reference yet: capture one"
+    refused = ("the reference's checkerboard has a period of 2.4 mm through this geometry (pixel_mm = 0.12), but "
+               "pattern_period_mm = 2: 20 % apart. Heights scale with pixel_mm squared")
+    full, short = unmeasured_messages(None, False, refused)
+    assert full == ("the reference is NOT usable: the reference's checkerboard has a period of 2.4 mm through this "
+                    "geometry (pixel_mm = 0.12), but pattern_period_mm = 2: 20 % apart (the banner says what to "
+                    "change)") and short == "reference NOT usable (see Height)"
+    assert unmeasured_messages("AllInvalidError: no valid pixel", False, refused)[0] == "AllInvalidError: no valid pixel"
 
 
 # ------------------------------------------------------------------ schedule

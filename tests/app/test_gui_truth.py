@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 from pyqtgraph.Qt import QtCore, QtTest, QtWidgets
 
-from tests.app.test_gui_flow import _choose_scene_by_hand
+from tests.app.test_gui_flow import _choose_scene_by_hand, _open_section
+from tests.helpers import answer_file_dialogs
 
 pytestmark = pytest.mark.gui
 
@@ -724,3 +725,35 @@ def test_the_scene_box_says_nothing_stale_after_a_scene_passed_on_the_way_and_th
     qtbot.waitUntil(lambda: not w.session.tank.progress, timeout=60000)  # every scene passed is ray-traced
     _until(qtbot, lambda: not label.text().startswith("preparing"), lambda: f"scene label {label.text()!r}", 10000)
     assert w.session.tank.ready("drop")  # (the drop was prepared on the way: what left its words)
+
+
+def test_a_reference_refused_for_its_geometry_says_so_on_the_maps_and_the_geometry_label(qtbot, tmp_path):
+    """By-hand trial of 7 Dec 2026: a geometry loaded from a TOML file with pixel_mm 20 % off and the board's
+    period given refused the reference ("Bad reference: ... pixel_mm should be ..." in the banner), but the maps
+    said "no reference yet: capture one" (capturing again would be refused again) and the geometry label stayed
+    "geometry OK". Now the maps say the reference is NOT usable and why, the geometry label that it does not
+    fit; the tank's own geometry loaded back brings the reference and the maps back."""
+    from processing import Geometry
+
+    w = _window(qtbot)
+    _capture_reference_by_keys(qtbot, w, n_average=3)
+    good = Geometry.from_dict({**w.geometry.to_dict(), "pattern_period_mm": 12 * w.geometry.pixel_mm})
+    wrong = Geometry.from_dict({**good.to_dict(), "pixel_mm": 1.2 * good.pixel_mm})
+    (tmp_path / "wrong.toml").write_text(wrong.to_toml_text())
+    (tmp_path / "good.toml").write_text(good.to_toml_text())
+    _open_section(qtbot, w, "Reference & geometry")
+    answer_file_dialogs(qtbot, [tmp_path / "wrong.toml"], [])
+    qtbot.mouseClick(w.geometry_panel.load_geo_button, QtCore.Qt.LeftButton)
+    _until(qtbot, lambda: "NOT usable" in w.geometry_panel.reference_label.text(),
+           lambda: f"reference label {w.geometry_panel.reference_label.text()!r}", 30000)
+    assert "pixel_mm should be" in (w.last_error or "")
+    assert "does not fit the reference" in w.geometry_panel.geometry_label.text()
+    said = w.height_view.message.text
+    _until(qtbot, lambda: "the reference is NOT usable: the reference's checkerboard has a period of" in said(),
+           lambda: f"height map says {said()!r}", 15000)
+    assert "no reference yet" not in said()
+    answer_file_dialogs(qtbot, [tmp_path / "good.toml"], [])
+    qtbot.mouseClick(w.geometry_panel.load_geo_button, QtCore.Qt.LeftButton)
+    _until(qtbot, lambda: "✓" in w.geometry_panel.reference_label.text(),
+           lambda: f"reference label {w.geometry_panel.reference_label.text()!r}", 30000)
+    assert w.reference_refused == "" and "does not fit" not in w.geometry_panel.geometry_label.text()

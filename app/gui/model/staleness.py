@@ -235,9 +235,20 @@ def short_derived_text(text: str, maps_mark: Optional[str]) -> str:
     return f"{text} (STALE, {age})" if age.endswith(" ago") else f"{text} (STALE)"
 
 
-def unmeasured_messages(error: Optional[str], has_reconstructor: bool) -> tuple:
+def unmeasured_messages(error: Optional[str], has_reconstructor: bool, refused: str = "") -> tuple:
     """What the maps say over a frame the worker could not measure: ``(full, short)`` -- the full text on the
-    height map, a few words (or None) on the small maps. Without a reconstructor: "no reference yet"."""
-    text = error or ("no reference yet: capture one (Controls ▸ Reference & geometry)" if not has_reconstructor
-                     else "")
-    return text, (text.split(":")[0] + " (see Height)" if ":" in text else None)
+    height map, a few words (or None) on the small maps. Without a reconstructor: "no reference yet", or,
+    where the newest reference was refused (``refused``: why), that it is not usable and the first sentence
+    of why (by-hand trial of 7 Dec 2026: a reference refused for its pixel_mm left "no reference yet:
+    capture one" on the maps, and capturing again would be refused again)."""
+    if error:
+        text = error
+    elif has_reconstructor:
+        text = ""
+    elif refused:
+        text = ("the reference is NOT usable: " + refused.split(". ")[0].rstrip(".")
+                + " (the banner says what to change)")
+    else:
+        text = "no reference yet: capture one (Controls ▸ Reference & geometry)"
+    short = "reference NOT usable (see Height)" if (refused and not error and not has_reconstructor) else None
+    return text, short or (text.split(":")[0] + " (see Height)" if ":" in text else None)
