@@ -21,7 +21,8 @@ import numpy as np
 from processing.geometry import grazing_view_note
 from processing.live_view import SATURATION_MAX_PCT
 
-__all__ = ["frame_alignment", "display_spectrum", "modulation_map", "assess", "DOT_WINDOW_PX", "periodic_pattern"]
+__all__ = ["frame_alignment", "display_spectrum", "modulation_map", "assess", "DOT_WINDOW_PX", "periodic_pattern",
+           "theta_mismatch"]
 
 #: Final interrogation window (px) of the live random-dot Reconstructor; its
 #: dots per window are counted in windows of this size.
@@ -194,6 +195,24 @@ def frame_alignment(frame: np.ndarray, theta_configured_deg: Optional[float] = N
 PERIOD_TOL = 0.015  # relative period change since the reference that means "pattern or camera moved"
 ROTATION_TOL_DEG = 0.5  # rotation change since the reference, same meaning
 THETA_TOL_DEG = 1.0  # theta from the pattern vs the configured theta
+
+
+def theta_mismatch(carriers, geometry) -> str:
+    """What the Live tab must say when the reference's pattern shows another theta than the geometry's ("" when
+    within :data:`THETA_TOL_DEG`, or not judged: FS-SS, a camera at a finite distance, random dots): the maps'
+    y scale and slope along y follow the geometry's theta (by-hand trial of 7 Dec 2026: theta typed as 80 deg on
+    a 55 deg view, the y axis spanned +-115 instead of +-35 mm and dh/dy read 3.3x too small, flagged on the
+    Alignment tab only, the Live tab's maps and "vs truth" looking right)."""
+    from processing.carriers import theta_from_carriers
+
+    if carriers is None or getattr(geometry, "setup", "") != "tir" or geometry.camera_distance_mm is not None:
+        return ""
+    theta = theta_from_carriers(carriers.freq, float(geometry.pattern_stretch_y or 1.0))
+    if not np.isfinite(theta) or abs(theta - geometry.theta_deg) <= THETA_TOL_DEG:
+        return ""
+    return (f"θ from the pattern is {theta:.1f}°, the geometry says {geometry.theta_deg:g}°: the maps' y scale and "
+            f"∂h/∂y follow the geometry's θ; check θ (Controls ▸ Reference & geometry) or the board's "
+            f"pattern_stretch_y")
 
 
 def _nz(value, digits: int = 2) -> float:

@@ -17,6 +17,7 @@ from processing.errors import GeometryError
 from processing.live_view import reference_saturation
 
 from . import state
+from .alignment import theta_mismatch
 from .model.memory import live_device_for
 from .model.reference import capture_failed_label, capture_failed_message
 from .model.region import clamp_region, reference_crop, region_after_roi_change, region_problem, roi_of
@@ -154,6 +155,13 @@ def rebuild_reconstructor(w):
         if stuck:  # repaired in the reference and in every frame (processing.mask.defect_pixels)
             text += f" — {stuck} stuck sensor pixel{'s' if stuck > 1 else ''} repaired"
         w.pattern_problem = problem
+        mismatch = theta_mismatch(rec.carriers, geometry)
+        if mismatch and not problem:  # heights right, the y scale and dh/dy not: said on the Live tab too
+            w.geometry_panel.reference_label.setText(text + " — θ MISMATCH")
+            w.geometry_panel.reference_label.setStyleSheet("color: #c00000; font-weight: bold")
+            w.show_error(mismatch)
+            state.reference_in_use(w)
+            return
         saturated = reference_saturation(reference)
         if saturated and not problem:  # measured, a little off: said where the user looks, no tick
             w.geometry_panel.reference_label.setText(text + f" — {saturated[0]:.0f} % SATURATED")

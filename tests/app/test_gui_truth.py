@@ -757,3 +757,26 @@ def test_a_reference_refused_for_its_geometry_says_so_on_the_maps_and_the_geomet
     _until(qtbot, lambda: "✓" in w.geometry_panel.reference_label.text(),
            lambda: f"reference label {w.geometry_panel.reference_label.text()!r}", 30000)
     assert w.reference_refused == "" and "does not fit" not in w.geometry_panel.geometry_label.text()
+
+
+def test_a_theta_the_pattern_does_not_show_is_said_on_the_live_tab_too(qtbot):
+    """By-hand trial of 7 Dec 2026: theta typed as 80 deg on the tank's 55 deg view was flagged on the Alignment
+    tab only; the Live tab's maps (their y scale +-115 instead of +-35 mm, dh/dy 3.3x too small) and its "vs
+    truth" looked right. Typed in the geometry panel as a user does, it now marks the reference and says in the
+    banner which theta the pattern shows; typed back, the tick returns."""
+    w = _window(qtbot)
+    _capture_reference_by_keys(qtbot, w, n_average=3)
+    _open_section(qtbot, w, "Reference & geometry")
+    theta = w.geometry_panel.theta
+    theta.setFocus()
+    theta.selectAll()
+    qtbot.keyClicks(theta, "80")
+    qtbot.keyClick(theta, QtCore.Qt.Key_Return)
+    label = w.geometry_panel.reference_label
+    _until(qtbot, lambda: "θ MISMATCH" in label.text(), lambda: f"reference label {label.text()!r}", 30000)
+    assert "θ from the pattern is 55.0°, the geometry says 80°" in (w.last_error or ""), w.last_error
+    theta.selectAll()
+    qtbot.keyClicks(theta, "55")
+    qtbot.keyClick(theta, QtCore.Qt.Key_Return)
+    _until(qtbot, lambda: "✓" in label.text() and "MISMATCH" not in label.text(), lambda: f"label {label.text()!r}",
+           30000)
