@@ -301,7 +301,8 @@ def shift_alias_text(median_px, carrier_freq, level_um: float = float("nan")) ->
     along = np.abs(np.asarray(carrier_freq, np.float64) @ (m / length))
     if not np.any(along > 0):
         return ""
-    period_px = max(float(1.0 / a) for a in along if a > 0)
+    # a carrier (nearly) across the shift hardly moves with it: the others set the period
+    period_px = max(float(1.0 / a) for a in along if a >= 0.25 * along.max())
     step = (f", the level by steps of about {period_px * abs(level_um) / length:.3g} um"
             if math.isfinite(level_um) else "")
     return (f"a uniform shift is measured only up to whole periods of the pattern, about {period_px:.3g} px along "

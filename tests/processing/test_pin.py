@@ -456,5 +456,7 @@ def test_a_uniform_shift_says_it_is_known_only_up_to_whole_periods():
     assert "about 11.5 px along this one, the level by steps of about 704 um" in text, text
     along_cols = shift_alias_text((0.0, 3.0), carriers)
     assert "about 20 px along this one: a move that much larger" in along_cols and "level" not in along_cols
+    across = shift_alias_text((0.0, 3.0), [[1 / 11.5, 1 / 20.0], [1 / 11.5, 1e-5]])  # one carrier across it
+    assert "about 20 px along this one" in across, across  # set by the carrier that moves with it
     assert shift_alias_text((4.9, 0.0), None, 300.0) == ""  # random dots: no carriers
     assert shift_alias_text((0.0, 0.0), carriers) == ""
