@@ -168,8 +168,8 @@ def coverage(result, reference_valid, judge_contrast: bool):
     """``(measured_pct, contrast_unmeasured)`` of a frame's ``result``: the percentage of the area the
     reference covers (``reference_valid``, bool on the decimated grid) that the frame measured, and, where
     ``judge_contrast`` (checkerboards: ``result.amplitude`` is the pattern's contrast against the
-    reference's), the median of that contrast on the samples of that area it did not measure (NaN when it
-    measured all of it)."""
+    reference's) and the frame is named for it (under :data:`PARTLY_MEASURED_PCT`), the median of that
+    contrast on the samples of that area it did not measure (else NaN: not needed, not computed)."""
     valid = np.asarray(result.valid, bool)
     covered = np.asarray(reference_valid, bool)
     if covered.shape != valid.shape:  # the full grid: the decimated samples' own pixels (cv2.resize's centres)
@@ -180,9 +180,9 @@ def coverage(result, reference_valid, judge_contrast: bool):
     if n_covered == 0:
         return 100.0, float("nan")
     measured_pct = min(100.0, 100.0 * np.count_nonzero(valid & covered) / n_covered)
-    unmeasured = covered & ~valid
     contrast = float("nan")
-    if judge_contrast and unmeasured.any():
+    unmeasured = covered & ~valid if judge_contrast and measured_pct < PARTLY_MEASURED_PCT else None
+    if unmeasured is not None and unmeasured.any():
         amplitude = np.asarray(result.amplitude, np.float64)[unmeasured]
         amplitude = amplitude[np.isfinite(amplitude)]
         contrast = float(np.median(amplitude)) if amplitude.size else float("nan")
