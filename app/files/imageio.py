@@ -1246,7 +1246,7 @@ def average_frames(path, frames: slice, pattern: str = "checkerboard") -> np.nda
             averager = ReferenceAverager(first_frame_carriers(item.image, pattern),
                                          remedy=f"give --reference-frames of {str(path)!r} where it is still "
                                                 f"(the frames before the event)")
-        averager.add(item.image.astype(np.float64))
+        averager.add(item.image)  # (the averager sums in float64 itself)
         fed.append(item.sequence_index)
     reference, report = averager.result(frame_numbers=fed)
     (log.warning if report.n_averaged < report.n_frames else log.info)(
