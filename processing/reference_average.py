@@ -28,7 +28,7 @@ import numpy as np
 from .errors import NoCarrierError, TirdeflectError
 
 __all__ = ["PHASE_BOUND_RAD", "MAX_DISAGREEING", "WaterMovingError", "ReferenceReport", "ReferenceAverager",
-           "carrier_baseband", "first_frame_carriers"]
+           "carrier_baseband", "half_spectrum_baseband", "phase_change_rad", "grey_change", "first_frame_carriers"]
 
 #: RMS carrier-phase change against the first frame (rad) above which a frame does not agree.
 #: Measured on the synthetic tank (256^2, 0.5 counts of noise): still water 0.0008 rad, the waves
@@ -69,19 +69,63 @@ def carrier_baseband(image: np.ndarray, freq, half_width: Optional[int] = None, 
     ``spec``: the mean-free image's ``fft2``, where the caller has it (both carriers from one transform).
     """
     img = np.asarray(image, np.float32)
-    rows, cols = img.shape
     if spec is None:
         spec = np.fft.fft2(img - img.mean())
+    off, rr, cc = _band(freq, img.shape, half_width)
+    return _baseband(spec[np.ix_(rr, cc)], off)
+
+
+def half_spectrum_baseband(half_spectrum, shape, freq, half_width: Optional[int] = None) -> np.ndarray:
+    """:func:`carrier_baseband` from an ``rfft2`` half spectrum (rows, cols // 2 + 1) of an image of
+    ``shape`` (the bins of negative columns read from its Hermitian mirror): the live alignment's
+    windowed spectrum serves without another transform."""
+    rows, cols = shape
+    half = np.asarray(half_spectrum)
+    if half.shape != (rows, cols // 2 + 1):
+        raise ValueError(f"half spectrum of shape {half.shape} does not belong to a {rows} x {cols} image")
+    off, rr, cc = _band(freq, shape, half_width)
+    sub = np.empty((off.size, off.size), np.complex128)
+    direct = cc <= cols // 2
+    sub[:, direct] = half[np.ix_(rr, cc[direct])]
+    sub[:, ~direct] = np.conj(half[np.ix_((-rr) % rows, cols - cc[~direct])])
+    return _baseband(sub, off)
+
+
+def _band(freq, shape, half_width):
+    """``(offsets, rows, cols)``: the bins of :func:`carrier_baseband`'s band (indices modulo the shape)."""
+    rows, cols = shape
     kr, kc = float(freq[0]) * rows, float(freq[1]) * cols  # carrier in bins
     if half_width is None:
         half_width = max(2, int(np.hypot(kr, kc) / 3))
     half_width = int(min(half_width, rows // 4, cols // 4))
     off = np.arange(-half_width, half_width)
-    rr = (int(round(kr)) + off) % rows
-    cc = (int(round(kc)) + off) % cols
-    sub = spec[np.ix_(rr, cc)]
-    g = np.exp(-0.5 * (off / (0.5 * half_width)) ** 2)
+    return off, (int(round(kr)) + off) % rows, (int(round(kc)) + off) % cols
+
+
+def _baseband(sub, off):
+    """The band ``sub`` (bins ``off`` about the carrier along both axes), Gaussian-weighted, to baseband."""
+    g = np.exp(-0.5 * (off / (0.5 * max(1, off.size // 2))) ** 2)
     return np.fft.ifft2(np.fft.ifftshift(sub * np.outer(g, g)))
+
+
+def phase_change_rad(basebands, first_basebands) -> float:
+    """The carrier phase change between two frames (rad): per carrier the RMS of the phase of
+    ``z conj(z0)`` weighted by ``|z0|`` (:func:`carrier_baseband` of each frame at the same carriers and
+    width), the larger over the carriers (2 pi: a pattern period of displacement)."""
+    worst = 0.0
+    for z, z0 in zip(basebands, first_basebands):
+        w = np.abs(z0)
+        d = np.angle(z * np.conj(z0))
+        worst = max(worst, float(np.sqrt(np.sum(w * d * d) / max(float(w.sum()), 1e-30))))
+    return worst
+
+
+def grey_change(image, first) -> float:
+    """Random dots' change between two frames: the RMS grey-level difference over ``first``'s RMS
+    contrast (for a sinusoidal pattern the same as :func:`phase_change_rad` to first order)."""
+    f = np.asarray(image, np.float64)
+    f0 = np.asarray(first, np.float64)
+    return float(np.sqrt(np.mean((f - f0) ** 2)) / max(float(f0.std()), 1e-12))
 
 
 class ReferenceAverager:
@@ -117,15 +161,8 @@ class ReferenceAverager:
     def change_rad(self, image) -> float:
         """RMS phase change of ``image`` against the first frame (rad); the first frame gives 0."""
         if self.carriers_freq is None:
-            f = np.asarray(image, np.float64)
-            f0 = self._first
-            return float(np.sqrt(np.mean((f - f0) ** 2)) / max(float(f0.std()), 1e-12))
-        worst = 0.0
-        for z, z0 in zip(self._baseband(image), self._first_base):
-            w = np.abs(z0)
-            d = np.angle(z * np.conj(z0))
-            worst = max(worst, float(np.sqrt(np.sum(w * d * d) / max(float(w.sum()), 1e-30))))
-        return worst
+            return grey_change(image, self._first)
+        return phase_change_rad(self._baseband(image), self._first_base)
 
     def add(self, image) -> float:
         """Feed one frame; returns its phase change against the first (rad)."""

@@ -14,15 +14,17 @@ window, contrast, focus), judged against PIV practice (docs/gui.md).
 
 from __future__ import annotations
 
+import collections
 from typing import Optional
 
 import numpy as np
 
 from processing.geometry import grazing_view_note
 from processing.live_view import SATURATION_MAX_PCT
+from processing.reference_average import PHASE_BOUND_RAD, grey_change, half_spectrum_baseband, phase_change_rad
 
 __all__ = ["frame_alignment", "display_spectrum", "modulation_map", "assess", "DOT_WINDOW_PX", "periodic_pattern",
-           "theta_mismatch"]
+           "theta_mismatch", "FrameMotion", "MOTION_MEMORY"]
 
 #: Final interrogation window (px) of the live random-dot Reconstructor; its
 #: dots per window are counted in windows of this size.
@@ -123,8 +125,81 @@ def _looks_like_dots(frame: np.ndarray) -> bool:
                 and float(a.get("dots_per_window") or 0.0) >= DOTS_PER_WINDOW_MIN)
 
 
+#: Alignment updates (about 10 a second) whose frame-to-frame change :class:`FrameMotion` reports the
+#: largest of: moving water that looks still for one update is not READY for that instant.
+MOTION_MEMORY = 5
+
+
+class FrameMotion:
+    """How much the live image changes from one alignment update to the next, before a reference.
+
+    One frame of small waves shows the carriers of still water (the tank's waves at 256^2: READY TO
+    MEASURE, by-hand trial 7 Dec 2026), but two frames apart in time differ: for a checkerboard, the
+    carrier phase of each update's frame against the previous one's
+    (:func:`processing.reference_average.phase_change_rad`, rad; the bands taken from the windowed
+    spectrum the carriers' search made), at the carriers of the first frame of the run, so that an
+    estimate near a bin's edge does not restart it; for random dots, the grey-level change over the
+    contrast (:func:`processing.reference_average.grey_change`).  Beyond
+    :data:`~processing.reference_average.PHASE_BOUND_RAD`, what a reference capture refuses, it is
+    moving.  Carriers more than a bin away from the run's (the pattern or camera turned, another
+    period) or another frame size start a new run.  Qt-free: the window keeps one and
+    :func:`frame_alignment` feeds it, on the worker's thread alone."""
+
+    def __init__(self):
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the frames seen: the next update starts a run."""
+        self._freq = None
+        self._shape = None
+        self._last = None
+        self._recent = collections.deque(maxlen=MOTION_MEMORY)
+
+    def _changed(self, change: float) -> float:
+        self._recent.append(float(change))
+        return max(self._recent)
+
+    def carriers(self, half_spectrum, shape, freq) -> Optional[float]:
+        """The largest carrier phase change (rad) over the last :data:`MOTION_MEMORY` updates, this
+        frame's (``half_spectrum``: its windowed ``rfft2``; ``freq``: its carriers) included; None on
+        the first frame of a run."""
+        freq = np.asarray(freq, float)
+        if self._shape != tuple(shape) or self._freq is None or not _same_carriers(freq, self._freq, shape):
+            self.reset()
+            self._freq, self._shape = freq, tuple(shape)
+            self._last = [half_spectrum_baseband(half_spectrum, shape, f) for f in freq]
+            return None
+        bases = [half_spectrum_baseband(half_spectrum, shape, f) for f in self._freq]
+        change = phase_change_rad(bases, self._last)
+        self._last = bases
+        return self._changed(change)
+
+    def dots(self, frame) -> Optional[float]:
+        """Random dots: the largest grey-level change over the contrast (every other pixel) over the
+        last :data:`MOTION_MEMORY` updates, this frame's included; None on the first frame of a run."""
+        sample = np.asarray(frame, np.float32)[::2, ::2]
+        if self._freq is not None or self._last is None or self._last.shape != sample.shape:
+            self.reset()
+            self._last = sample
+            return None
+        change = grey_change(sample, self._last)
+        self._last = sample
+        return self._changed(change)
+
+
+def _same_carriers(freq, run_freq, shape) -> bool:
+    """Whether every carrier of the run (``run_freq``, (2, 2) cycles/px) lies within a bin of one of
+    ``freq``'s (either sign: a carrier and its mirror are one)."""
+    scale = np.asarray(shape, float)
+    for f in run_freq:
+        off = min(np.abs((g - s * f) * scale).max() for g in freq for s in (1.0, -1.0))
+        if off > 1.0:
+            return False
+    return True
+
+
 def frame_alignment(frame: np.ndarray, theta_configured_deg: Optional[float] = None,
-                    pattern: str = "checkerboard", geometry=None):
+                    pattern: str = "checkerboard", geometry=None, motion: Optional[FrameMotion] = None):
     """``(alignment_dict, spectrum_dict)`` of a live frame without reference.
 
     ``pattern="dots"``: :func:`processing.piv.dot_alignment` of the frame
@@ -140,6 +215,10 @@ def frame_alignment(frame: np.ndarray, theta_configured_deg: Optional[float] = N
     ``board_period_mm`` (the printed board's period that the carriers show
     through it) -- or ``error`` with the message of
     :class:`processing.errors.NoCarrierError`.
+
+    With a ``motion`` (:class:`FrameMotion`, fed this frame) also ``frame_change_rad`` (checkerboard)
+    or ``frame_change_contrast`` (dots): how much the image changed over the last updates (None on
+    the first).
     """
     from processing.alignment import carriers_without_reference
     from processing.carriers import windowed_spectrum
@@ -152,6 +231,8 @@ def frame_alignment(frame: np.ndarray, theta_configured_deg: Optional[float] = N
         mod, rows, cols = modulation_map(frame, window_px=DOT_WINDOW_PX, step_px=DOT_WINDOW_PX // 2)
         a.update(window_px=DOT_WINDOW_PX, modulation=mod, modulation_rows_px=rows, modulation_cols_px=cols,
                  periodic=periodic_pattern(frame))
+        if motion is not None:
+            a["frame_change_contrast"] = motion.dots(frame)
         return a, spectrum
     # one transform of the frame for the display and the carriers' search (the same window)
     half = windowed_spectrum(frame)
@@ -185,6 +266,8 @@ def frame_alignment(frame: np.ndarray, theta_configured_deg: Optional[float] = N
         "contrast": float(np.median(mod)),
         "disturbed": bool(disturbed),
     }
+    if motion is not None:
+        a["frame_change_rad"] = motion.carriers(half, frame.shape, c.freq)
     if theta_configured_deg is not None:
         a["theta_configured_deg"] = float(theta_configured_deg)
     if geometry is not None:
@@ -299,8 +382,7 @@ def _assess_dots(a: dict, saturation_pct: float, geometry, has_reference: bool, 
     _check_saturation(saturation_pct, reasons, lines)
     if geometry is None:
         reasons.append(NO_GEOMETRY)
-    if not has_reference:
-        notes.append("capture the reference on still water")
+    _judge_motion(a, has_reference, reasons, lines, notes)
     return (not reasons), reasons, lines, notes
 
 
@@ -431,12 +513,31 @@ def assess(a: dict, saturation_pct: float, geometry=None, has_reference: bool = 
         reasons.append("no carriers found")
     if geometry is None:
         reasons.append(NO_GEOMETRY)
+    _judge_motion(a, has_reference, reasons, lines, notes)
+    return (not reasons), reasons, lines, notes
+
+
+def _judge_motion(a: dict, has_reference: bool, reasons: list, lines: list, notes: list) -> None:
+    """The surface's rows of the metrics table: carriers smeared over the frame (``disturbed``), or the
+    image changing between updates (:class:`FrameMotion`'s ``frame_change_rad`` / ``_contrast`` beyond
+    :data:`~processing.reference_average.PHASE_BOUND_RAD`); before a reference either is a reason."""
+    change = a.get("frame_change_rad")
+    unit = "rad of carrier phase"
+    if change is None:
+        change, unit = a.get("frame_change_contrast"), "of the contrast (RMS grey-level change)"
+    shifting = change is not None and float(change) > PHASE_BOUND_RAD
+    if change is not None:
+        lines.append(("frame to frame", f"{float(change):.3f} {unit}"))
     if a.get("disturbed"):
         lines.append(("surface", "moving: carriers from local patches"))
+    elif shifting:
+        lines.append(("surface", "moving: the pattern shifts between frames"))
+    if a.get("disturbed") or shifting:
         if has_reference:
             notes.append("the surface is moving (as it should while measuring)")
         else:
-            reasons.append("the surface is moving: a reference needs still water; wait until it settles")
+            figure = (f" (the image changes by {float(change):.2f} {unit} between frames; a reference allows "
+                      f"{PHASE_BOUND_RAD:g}: water moving, or the camera or pattern)" if shifting else "")
+            reasons.append("the surface is moving: a reference needs still water; wait until it settles" + figure)
     elif not has_reference:
         notes.append("capture the reference on still water")
-    return (not reasons), reasons, lines, notes

@@ -23,6 +23,7 @@ from typing import Callable, Optional
 from pyqtgraph.Qt import QtCore, QtWidgets
 
 from . import display, layout, recording_flow, reference_flow, replay_flow, state
+from .alignment import FrameMotion
 from .collector import GuiThreadCollector
 from .model.memory import SessionMemory
 from .model.recording import RmsHistory
@@ -124,6 +125,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self._shown_camera_error: Optional[str] = None
         self.alignment_ready = False
         self.alignment_metrics: dict = {}
+        self.frame_motion = FrameMotion()  # the image's change between alignment updates (worker thread)
         self.profile_line_mm = None
         self.camera_fps_shown = 0.0
         self.last_snapshot = None
@@ -385,7 +387,8 @@ class MainWindow(QtWidgets.QMainWindow):
         from .alignment import frame_alignment
         geometry = self.geometry
         return frame_alignment(frame, getattr(geometry, "theta_deg", None),
-                               pattern=getattr(geometry, "pattern", "checkerboard"), geometry=geometry)
+                               pattern=getattr(geometry, "pattern", "checkerboard"), geometry=geometry,
+                               motion=self.frame_motion)
 
     # ------------------------------------------------------------- replay
     # replay_flow.py

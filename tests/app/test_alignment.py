@@ -68,6 +68,62 @@ def test_moving_water_gives_numbers_but_no_reference(tank):
     tank.set_scene("still")
 
 
+def _updates(frames, geometry, motion):
+    """frame_alignment of each frame in turn with one FrameMotion: the last update's dict."""
+    for frame in frames:
+        a, _ = frame_alignment(frame, geometry.theta_deg, geometry=geometry, motion=motion)
+    return a
+
+
+def test_small_waves_that_one_frame_cannot_show_are_seen_between_frames():
+    """By-hand trial 7 Dec 2026: the tank's waves at 256^2 before a reference read READY TO MEASURE (one
+    frame's carriers are those of still water at that size), and the reference capture then refused them.
+    Two frames a tenth of a second apart differ by a radian of carrier phase; still water with camera noise
+    (2 counts of 8 bits, four times the tank's) by under a hundredth of what a reference allows."""
+    from app.gui.alignment import FrameMotion
+    from processing.reference_average import PHASE_BOUND_RAD
+
+    small = TankScene((256, 256), n_frames=4, noise_rms=2.0)
+    small.prepare("waves")
+    small.set_scene("waves")
+    one, _ = frame_alignment(small(0), small.geometry.theta_deg)
+    assert not one["disturbed"] and assess(one, 0.0, small.geometry)[0]  # what the window showed before
+    motion = FrameMotion()
+    a = _updates([small(0), small(2)], small.geometry, motion)
+    assert a["frame_change_rad"] > 10 * PHASE_BOUND_RAD, a["frame_change_rad"]
+    ready, reasons, lines, _ = assess(a, 0.0, small.geometry, has_reference=False)
+    assert not ready and any("the surface is moving" in r and "rad of carrier phase" in r for r in reasons)
+    assert dict(lines)["surface"] == "moving: the pattern shifts between frames"
+    small.set_scene("still")
+    a = _updates([small(k) for k in range(6)], small.geometry, motion)  # the waves' updates leave its memory
+    assert a["frame_change_rad"] < PHASE_BOUND_RAD / 10, a["frame_change_rad"]
+    ready, reasons, lines, notes = assess(a, 0.0, small.geometry, has_reference=False)
+    assert ready, reasons
+    assert "capture the reference on still water" in notes
+
+
+def test_the_change_between_frames_is_the_carrier_phase_of_a_shift(tank):
+    """A still frame shifted by (0.06, -0.04) px (the camera nudged): the change is the larger carrier's
+    phase 2 pi |k . d| (0.05-0.06 rad on the tank's 5.97 px board), within 5 %; a turned pattern (carriers
+    a bin away) starts a new run instead of reading as motion."""
+    from scipy import ndimage
+
+    from app.gui.alignment import FrameMotion
+
+    frame = tank(0).astype(np.float32)
+    shift = np.array([0.06, -0.04])
+    moved = ndimage.shift(frame, shift, order=5, mode="reflect")
+    motion = FrameMotion()
+    a = _updates([frame, moved], tank.geometry, motion)
+    from processing.carriers import find_carriers
+
+    k = np.asarray(find_carriers(frame).freq)
+    expected = float(np.max(np.abs(2 * np.pi * k @ shift)))
+    assert a["frame_change_rad"] == pytest.approx(expected, rel=0.05), (a["frame_change_rad"], expected)
+    turned = ndimage.rotate(frame, 3.0, reshape=False, order=3, mode="reflect")
+    assert _updates([turned], tank.geometry, motion)["frame_change_rad"] is None
+
+
 def test_theta_and_pattern_changes_are_flagged(tank):
     a, _ = frame_alignment(tank(0))
     g57 = Geometry.from_dict({**tank.geometry.to_dict(), "theta_deg": 56.2})  # 1.2 deg off the pattern's 55

@@ -63,11 +63,20 @@ def _ctrl(w, key):
 
 
 def test_reference_on_moving_water_is_refused_and_still_water_accepted(qtbot):
-    """Finding 1: Ctrl+R on the waves says "the water is moving" with the figure, keeps no reference, no tick."""
+    """Finding 1: Ctrl+R on the waves says "the water is moving" with the figure, keeps no reference, no tick.
+    And before it the Alignment tab says the water moves (by-hand trial 7 Dec 2026: READY TO MEASURE on these
+    waves at 256^2, one frame's carriers being still water's), READY again once it is still."""
+    from tests.app.test_gui_flow import _click_tab
+
     w = _window(qtbot)
     w.geometry_panel.n_average.setValue(5)
     _choose_scene_by_hand(qtbot, w, "travelling waves")
     qtbot.waitUntil(lambda: w.session.tank.scene == "waves", timeout=60000)
+    _click_tab(qtbot, w, "Alignment")
+    _until(qtbot, lambda: "NOT READY: the surface is moving" in w.ready_label.text(), w.ready_label.text, 20000)
+    assert "rad of carrier phase between frames" in w.ready_label.text()
+    assert float(w.alignment_metrics["frame to frame"].split()[0]) > 0.2
+    _click_tab(qtbot, w, "Live")
     w.activateWindow()
     qtbot.waitUntil(w.isActiveWindow, timeout=3000)
     before = w.reference
@@ -79,9 +88,13 @@ def test_reference_on_moving_water_is_refused_and_still_water_accepted(qtbot):
     label = w.geometry_panel.reference_label.text()
     assert "REFUSED" in label and "✓" not in label
     assert w.reference is before  # nothing replaced, nothing half-built
-    # still water: accepted, with how well its frames agreed
+    # still water: ready, then accepted, with how well its frames agreed
     _choose_scene_by_hand(qtbot, w, "still water")
     qtbot.waitUntil(lambda: w.session.tank.scene == "still", timeout=10000)
+    _click_tab(qtbot, w, "Alignment")
+    _until(qtbot, lambda: w.ready_label.text() == "READY TO MEASURE", w.ready_label.text, 20000)
+    assert float(w.alignment_metrics["frame to frame"].split()[0]) < 0.01
+    _click_tab(qtbot, w, "Live")
     w.activateWindow()
     qtbot.waitUntil(w.isActiveWindow, timeout=3000)
     w.clear_error()
