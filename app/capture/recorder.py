@@ -990,6 +990,11 @@ def summary_rows(s: dict) -> List[Tuple[str, str]]:
          f"{s.get('recorder_backlog_max', 0)} of {s.get('ring_frames', 0)})"),
         ("data rate", f"{s.get('write_rate_mb_s', 0)} MB/s on average over {s.get('elapsed_s', 0)} s"),
     ]
+    pre, pre_available = s.get("pre_frames", 0), s.get("pre_available", -1)
+    pre_missing = pre - pre_available if 0 <= pre_available < pre else 0
+    if pre_missing:
+        rows.insert(1, ("pre-trigger", f"{pre_available} of {pre} frames: the trigger came before the other "
+                                       f"{pre_missing} were captured"))
     if "packets_resend_requests" in s:
         rows.insert(-1, ("network packets", f"{s.get('packets_resend_requests', 0)} resend requests, "
                                             f"{s.get('packets_resent', 0)} packets resent by the camera"))
@@ -1001,6 +1006,8 @@ def summary_rows(s: dict) -> List[Tuple[str, str]]:
     parts = []
     if total:
         parts.append(f"{total} frames missing")
+    if pre_missing:
+        parts.append(f"{pre_missing} pre-trigger frames missing (trigger too early)")
     if n_incomplete:
         parts.append(f"{n_incomplete} of {s.get('frames_written', 0)} frames incomplete")
     result = ("; ".join(parts) if parts else "no frame lost" if not s.get("error") else "incomplete recording")

@@ -422,6 +422,9 @@ class TriggeredCapture:
 
     def summary(self) -> dict:
         s = self.recorder.summary()
+        if self.pre_available is not None and self.pre_available < self.pre_frames:
+            # the recorder plans what existed; what was asked for is pre + post (the file's `complete` says so too)
+            s["frames_planned"] = self.pre_frames + self.post_frames
         s.update(pre_frames=self.pre_frames, post_frames=self.post_frames,
                  pre_available=-1 if self.pre_available is None else self.pre_available,
                  trigger_source=self.fired_by or self.source, burst=self.burst)

@@ -10,11 +10,14 @@ Exit codes of ``record`` (docs/reliability.md lists the cases):
 * 1 -- the file was written but frames are missing (camera frame-id gaps or
   ring overruns) or incomplete (packets lost on the network: the pixels that
   arrived are kept, the frame table says how many bytes are missing); the
-  summary says which ("12 of 200 frames incomplete"). Timestamp gaps alone
+  summary says which ("12 of 200 frames incomplete"); also when the trigger came
+  before all pre-trigger frames were captured. Timestamp gaps alone
   are reported as a suspicion, not counted, because a late frame makes one too;
 * 2 -- error: bad arguments (checked before a camera is opened), camera busy
   or lost, disk full ... One line on stderr saying what to do; a partial
-  file, if any, is valid up to the frame count the summary prints;
+  file, if any, is valid up to the frame count the summary prints (frames
+  captured before a trigger came are kept too); a file without a frame is
+  deleted;
 * 130 -- Ctrl-C, 143 -- SIGTERM, 129 -- SIGHUP: the frames already captured
   (burst frames in RAM too) are written, the file is closed with its summary.
 """
@@ -171,6 +174,9 @@ def _plan(args):
         return "frames"
     if args.post is None and args.post_s is None:
         raise _UsageError("say how much to record: --frames N, or --pre N --post M (--pre-s/--post-s in seconds)")
+    if args.trigger == "auto" and args.geometry is None and args.camera != "synthetic":
+        # only the synthetic scene brings its own optics; asked after the camera, a file was left behind
+        raise _UsageError("--trigger auto needs --geometry FILE.toml (slopes need the optics)")
     return "trigger"
 
 
@@ -276,6 +282,19 @@ def _configure(cam, args):
             values[name] = v
     if values:
         cam.configure(**values)
+
+
+def _check_pixel_format(settings, args) -> None:
+    """Refuse, before the file is created, a camera left in a pixel format that cannot be recorded (colour,
+    packed): the camera then failed to start with the driver's advice in API words (``configure(...)``)."""
+    from drivers.genicam_util import PIXEL_BITS
+
+    if settings.pixel_format in PIXEL_BITS:
+        return
+    how = ("the camera did not keep --pixel-format " + args.pixel_format if args.pixel_format
+           else "give --pixel-format")
+    raise _UsageError(f"camera {args.camera!r} is set to pixel format {settings.pixel_format!r}, which cannot be "
+                      f"recorded (mono only: {', '.join(PIXEL_BITS)}); {how}, e.g. --pixel-format Mono8")
 
 
 def _progress(args, total: int, desc: str):
@@ -416,6 +435,7 @@ def _record(args, prog: str) -> int:
         trig = args.trigger if mode == "trigger" else "software"
         configure_trigger(cam, trig, activation=args.activation)
         settings = cam.settings()
+        _check_pixel_format(settings, args)
         rate = settings.frame_rate_hz or args.frame_rate_hz
         if trig == "genicam" and not rate:
             raise _UsageError("--trigger genicam needs --frame-rate-hz (how often to send TriggerSoftware)")
@@ -488,7 +508,8 @@ def _record(args, prog: str) -> int:
         _say(format_summary(summary))
         if result is None:
             if rec.error:
-                _say(f"{prog}: error: {rec.error}", sys.stderr)
+                tail = _end_after_error(rec, cap, acq, rec.error) if rec.frames_written == 0 else ""
+                _say(f"{prog}: error: {rec.error}{tail}", sys.stderr)
                 result = 2
             else:
                 result = exit_status(summary)
@@ -503,22 +524,25 @@ def _record(args, prog: str) -> int:
         else:
             _say(f"{prog}: interrupted; {what}", sys.stderr)
             code = 130
+        if rec is not None and rec.state == "recording":
+            rec.stop(0.0, drain=True)  # before the camera stops: its end is then no error of the recording
         if acq is not None:
             try:
                 acq.stop(5.0)
             except AcquisitionError:
                 pass
         if rec is not None:
-            _close_on_stop(rec, cap)
-            _say(format_summary(rec.summary()))
-            _say(f"{prog}: stopped by {'Ctrl-C' if code == 130 else signal.Signals(code - 128).name}; "
-                 f"the file holds {rec.frames_written} frames", sys.stderr)
+            by = 'Ctrl-C' if code == 130 else signal.Signals(code - 128).name
+            _close_on_stop(rec, cap, f"stopped by {by}")
+            if rec.frames_written == 0 and _drop_empty_file(rec):
+                _say(f"{prog}: stopped by {by} before any frame was recorded; no file was written", sys.stderr)
+            else:
+                _say(format_summary(rec.summary()))
+                _say(f"{prog}: stopped by {by}; the file holds {rec.frames_written} frames", sys.stderr)
         return code
     except (_UsageError, CameraError, AcquisitionError, RecorderError, TriggerError, MemoryBudgetError,
             ValueError, OSError) as exc:
-        _say(f"{prog}: error: {exc}", sys.stderr)
-        if rec is not None and not rec.done:
-            rec.stop(30.0, drain=True)
+        _say(f"{prog}: error: {exc}{_end_after_error(rec, cap, acq, exc)}", sys.stderr)
         return 2
     finally:
         if acq is not None and acq.state == "running":
@@ -533,26 +557,74 @@ def _record(args, prog: str) -> int:
                 pass
 
 
-def _close_on_stop(rec, cap) -> None:
-    """After Ctrl-C/SIGTERM/SIGHUP: write every frame already captured, then close the file properly.
+def _close_on_stop(rec, cap, why: str) -> None:
+    """After Ctrl-C/SIGTERM/SIGHUP or an error: write every frame already captured, then close the file properly.
 
     Burst mode: the frames wait in RAM; they are written now. Before a
     trigger came, the pre-trigger frames in the ring are written (the stop
-    acts as the trigger, with no frame after it).
+    acts as the trigger, with no frame after it: their ``trigger_index`` is
+    -N .. -1, and a note in the file says ``why``); with none captured the
+    file is deleted (``rec.state`` "cancelled").
     """
     if rec.state == "armed" and cap is not None:
         ring = rec.ring
         start = max(ring.oldest, ring.head - cap.pre_frames)
-        if ring.head > start:
-            try:
-                rec.begin(start)
-            except Exception:
-                pass
+        if ring.head <= start:
+            cap.cancel()
+            return
+        try:
+            rec.begin(start, trigger_sequence=ring.head)
+            rec.file.add_event("note", f"{why} before the trigger: the file holds the {ring.head - start} frames "
+                                       "before it (trigger_index counts back from it; no trigger frame)",
+                               sequence=ring.head)
+        except Exception:
+            pass
     rec.stop(60.0, drain=True)
 
 
+def _end_after_error(rec, cap, acq, exc) -> str:
+    """Close the recording after an error: keep what was captured (pre-trigger frames in RAM too), delete a
+    file that holds no frame (it would block the name for the next try). Returns the tail of the error line
+    (what became of the file); "" when no file was begun."""
+    from app.capture.acquisition import AcquisitionError
+
+    if rec is None:
+        return ""
+    if not rec.done:
+        if acq is not None and rec.state == "armed":
+            try:  # no frame may come after the error: those already in the ring are the recording
+                acq.stop(5.0)
+            except AcquisitionError:
+                pass
+        if cap is not None:
+            _close_on_stop(rec, cap, f"error ({exc})")
+        else:
+            rec.stop(30.0, drain=True)
+    if rec.frames_written == 0:
+        if _drop_empty_file(rec):
+            return "; no frame was recorded, no file was written"
+        return f"; the file {str(rec.path)!r} holds no frame"
+    return f"; the file {str(rec.path)!r} holds the {rec.frames_written} frames captured before it"
+
+
+def _drop_empty_file(rec) -> bool:
+    """Delete the file of an ended recording that holds no frame; True when no such file is left."""
+    if not rec.done or rec.frames_written > 0:
+        return False
+    try:
+        Path(rec.path).unlink()
+    except FileNotFoundError:
+        pass
+    except OSError:
+        return False
+    return True
+
+
 def exit_status(summary: dict) -> int:
-    """0 all planned frames complete; 1 frames missing or incomplete (see the module docstring)."""
+    """0 all planned frames complete; 1 frames missing or incomplete (see the module docstring), pre-trigger
+    frames missing too (the trigger came before they were captured)."""
+    if 0 <= summary.get("pre_available", -1) < summary.get("pre_frames", 0):
+        return 1
     return 1 if summary.get("total_missing", 0) or summary.get("incomplete", 0) else 0
 
 

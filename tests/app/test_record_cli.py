@@ -88,6 +88,17 @@ def test_errors_are_one_line_and_exit_2(tmp_path, capsys, argv, message):
     assert len(err) == 1 and err[0].startswith("tirdeflect record: error: ") and message in err[0], err
 
 
+def test_a_recording_that_failed_before_its_first_frame_leaves_no_file(tmp_path, capsys):
+    """No line pulse came: the error says no file was written, and the same --out works for the next try."""
+    out = tmp_path / "l.h5"
+    argv = ("--out", str(out), *SMALL_SCENE, "--post", "5", "--trigger", "line1", "--trigger-timeout-s", "0.3")
+    assert record_cli.cmd_record(_parse(*argv)) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no pulse on Line1" in err[0] and "no file was written" in err[0], err
+    assert not out.exists()
+    assert record_cli.cmd_record(_parse("--out", str(out), *SMALL_SCENE, "--frames", "3")) == 0, capsys.readouterr()
+
+
 def test_existing_file_is_kept_or_numbered(tmp_path, capsys):
     out = tmp_path / "x.h5"
     out.write_bytes(b"keep")
@@ -136,3 +147,15 @@ def test_record_from_a_gentl_producer(tmp_path, capsys, viky_cti):
     assert np.all(np.diff(t["frame_id"]) == 1) and np.all(np.diff(t["host_timestamp_ns"]) > 0)
     # this producer gives no device timestamps: stored as -1 and flagged, never a silent 0
     assert np.all(t["device_timestamp_ns"] == -1) and np.all(t["flags"] & FrameFlags.NO_DEVICE_TIMESTAMP)
+
+
+@pytest.mark.gentl
+def test_camera_left_in_a_colour_format_is_refused_naming_the_option(tmp_path, capsys, viky_cti):
+    """viky.cti starts in RGBa8: refused before a file is made, with the option that fixes it."""
+    out = tmp_path / "c.h5"
+    rc = record_cli.cmd_record(_parse("--camera", f"gentl:{viky_cti}:1", "--frames", "3", "--out", str(out),
+                                      "--no-progress"))
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1, err
+    assert "'RGBa8'" in err[0] and "--pixel-format Mono8" in err[0] and "configure(" not in err[0], err
+    assert not out.exists()

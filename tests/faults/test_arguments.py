@@ -39,6 +39,7 @@ def _record(tmp_path, *args):
     (("--pre-s", "-1", "--post", "3"), "--pre-s must be >= 0 seconds"),
     (("--pre", "3", "--pre-s", "1", "--post", "3"), "either --pre (frames) or --pre-s"),
     (("--frames", "10", "--roi", "0,0,0,64"), "--roi needs"),
+    (("--pre", "5", "--post", "5", "--trigger", "auto"), "--trigger auto needs --geometry"),
 ])
 def test_argument_errors_come_before_the_camera(tmp_path, args, says):
     r, took = _record(tmp_path, "--camera", NOWHERE, *args)
