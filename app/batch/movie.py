@@ -198,7 +198,8 @@ def make_movie(out_h5, movie_path, *, quantity: str = "height", value_range=None
         index = np.asarray(f["frame_index"][:n])
         if fps is None:
             dt = np.diff(times)
-            fps = 1.0 / float(np.median(dt)) if n > 1 and np.all(np.isfinite(dt)) and np.median(dt) > 0 else 25.0
+            dt = dt[np.isfinite(dt)]  # between frames that both have a time (not the unreadable ones)
+            fps = 1.0 / float(np.median(dt)) if len(dt) and np.median(dt) > 0 else 25.0
         if not (fps > 0 and math.isfinite(fps)):
             raise TirdeflectError(f"--fps must be a positive number; got {fps}")
         fps = min(max(fps, 1.0), 240.0)  # players cope with 1..240 frames/s

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from app.batch.frame_status import FrameStatus
 from app.files import h5safe, imageio
 from processing.errors import TirdeflectError
 from processing.probe import probe_cell, sample_cell
@@ -105,13 +106,17 @@ def frame_times(f, n: int, fps: float | None = None) -> tuple:
     """Times (s) of the first ``n`` frames of an opened OUT.h5, and where they came from.
 
     The input files' own times (``/time_s``: trigger-relative for MRAW/CINE,
-    stream time for video, recording time for HDF5), else the camera clock
+    stream time for video, recording time for HDF5; NaN for a frame that could not
+    be read, whose heights are NaN too), else the camera clock
     (``/device_timestamp_ns``, relative to the first processed frame), else
     ``frame_index / fps`` when ``fps`` is given, else NaN.
     """
     if "time_s" in f:
         t = np.asarray(f["time_s"][:n], dtype=np.float64)
-        if n and np.all(np.isfinite(t)):
+        read = (np.asarray(f["frame_status"][:n]) != FrameStatus.UNREADABLE if "frame_status" in f
+                else np.ones(n, dtype=bool))
+        # every frame read has its time (an unreadable one, of a cut video say, has none)
+        if n and np.any(read) and np.all(np.isfinite(t[read])):
             return t, "/time_s"
     for name in ("device_timestamp_ns", "host_timestamp_ns"):
         if name in f:

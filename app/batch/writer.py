@@ -549,11 +549,13 @@ class ResultWriter:
         set_attrs(ds, attrs)
         self.f.flush()
 
-    def _resume_hint(self, next_index=None) -> str:
+    def _resume_hint(self, next_index=None, pending_kept: bool = False) -> str:
         """``--first K``: the first selected frame not yet safely in the file (the oldest
-        frame waiting for a flush, else ``next_index``, the frame being written)."""
+        frame waiting for a flush, else ``next_index``, the frame being written); with
+        ``pending_kept`` (the frames waiting for a flush are written at the close, in room
+        held for it) ``next_index``."""
         pending = self._rows["frame_index"]
-        k = pending[0] if pending else next_index
+        k = pending[0] if pending and not pending_kept else next_index
         if k is None:
             return "then resume with --first set to the first frame missing from the file (its /frame_index)"
         return f"then resume with --first {int(k)} (and the same --last and --step) into another --out"
@@ -567,7 +569,7 @@ class ResultWriter:
             raise DiskFullError(
                 f"{what} full: {room / 2**20:.1f} MiB left for {str(self.path)!r}, less than one "
                 f"more frame plus a reserve that keeps the file valid; free space or write --out "
-                f"to another disk, {self._resume_hint(next_index)}"
+                f"to another disk, {self._resume_hint(next_index, pending_kept=next_index is not None)}"
             )
 
     def append(self, item: imageio.FrameItem, result, outcome=None) -> None:

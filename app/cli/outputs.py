@@ -123,7 +123,27 @@ def cmd_probe(args) -> int:
     if series.time_source == "none":
         print("tirdeflect: note: the inputs had no time stamps (image files): time_s is NaN; "
               "give --fps to count time from the frame index", file=sys.stderr)
+    back = _time_goes_back(series)
+    if back:
+        print(f"tirdeflect: note: {back}", file=sys.stderr)
     return 0
+
+
+def _time_goes_back(series) -> str:
+    """Where the probe series' time_s does not increase (several input files, each counting
+    time from its own start or trigger), as a sentence; '' where it does."""
+    import numpy as np
+
+    known = np.flatnonzero(np.isfinite(series.time_s))
+    t = series.time_s[known]
+    back = np.flatnonzero(np.diff(t) <= 0)
+    if not len(back):
+        return ""
+    k = back[0]
+    return (f"time_s does not increase at {len(back)} place(s), first at frame "
+            f"{int(series.frame_index[known[k + 1]])} ({t[k]:.9g} s, then {t[k + 1]:.9g} s): each input file "
+            f"counts its times from its own start or trigger ({series.time_source}): plot against "
+            f"frame_index, or shift each file's times by its start (/source names the file of each frame)")
 
 
 # =========================================================================== pattern

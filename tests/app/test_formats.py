@@ -314,6 +314,30 @@ def test_same_heights_from_tiff_folder_avi_and_mraw(sim12, tmp_path):
     assert np.all(np.isnan(outputs["tiff"][2]))  # image files carry no time
 
 
+def test_reference_frames_of_an_8_bit_mraw_are_judged_saturated_at_its_top_code(sim12, tmp_path):
+    """--reference-frames 0:1 of an 8-bit MRAW whose bright squares peak at one level below
+    255 (many pixels at that level): not saturated, as the same image given as the reference
+    file is not; the same frames over-exposed (clipped at 255) are said saturated."""
+    images = [imageio.read_image(sim12 / "reference.tif")]
+    images += [imageio.read_image(sim12 / f"frame_{k:04d}.tif") for k in range(4)]
+    counts = [(np.asarray(image) >> 4).astype(np.uint8) for image in images]
+    top = int(counts[0].max())
+    assert top < 250 and np.mean(counts[0] == top) > 0.01  # a level many pixels share, far from 255
+    said = {}
+    for name, scale in (("exposed", 1.0), ("over", 1.6)):
+        frames = [np.clip(c * scale, 0, 255).astype(np.uint8) for c in counts]
+        cih = write_mraw(tmp_path / name / "rec.cih", frames, bits=8, fps=1000)
+        out = tmp_path / f"{name}.h5"
+        r = _cli("process", cih, "--reference-frames", "0:1", "--frames", "1:", "--workers", "1",
+                 "--geometry", sim12 / "geometry.toml", "--out", out, "--no-progress")
+        assert r.returncode == 0, r.stderr
+        with h5py.File(out, "r") as f:
+            said[name] = (float(f.attrs["reference_saturated_pct"]), "saturated" in r.stderr)
+            assert list(f["frame_index"][()]) == [1, 2, 3, 4]
+    assert said["exposed"] == (0.0, False)
+    assert said["over"][0] > 1.0 and said["over"][1]
+
+
 def test_workers_on_a_video_with_keyframes_give_serial_heights(sim12, tmp_path):
     """`process --workers 2` on an FFV1 AVI with a keyframe every 4 frames: chunks
     end on keyframes, each worker decodes from its own, and the heights are those

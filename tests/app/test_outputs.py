@@ -158,3 +158,62 @@ def test_movie_with_fixed_range_and_slope(processed, tmp_path):
         assert sum(1 for _ in c.decode(video=0)) == N_FRAMES
     r = _cli("movie", out_tif, "--out", movie, "--range", "1,0")
     assert r.returncode == 2 and "already exists" in r.stderr
+
+
+def test_probe_and_movie_keep_the_times_of_a_cut_video(processed, tmp_path):
+    """A 100 frames/s FFV1 video cut short: its last frames are UNREADABLE rows (no time,
+    no heights); the frames read keep their stream times in the probe series (not NaN
+    for all, said 'no time stamps'), and the movie runs at their 100 frames/s."""
+    sim = processed[0]
+    frames = [imageio.read_image(sim / f"frame_{k:04d}.tif") for k in range(N_FRAMES)]
+    whole = tmp_path / "whole.avi"
+    with av.open(str(whole), "w") as container:
+        stream = container.add_stream("ffv1", rate=100)
+        stream.width, stream.height, stream.pix_fmt = 256, 256, "gray16le"
+        for image in frames:
+            container.mux(stream.encode(av.VideoFrame.from_ndarray(image, format="gray16le")))
+        container.mux(stream.encode())
+    cut = tmp_path / "cut.avi"
+    cut.write_bytes(whole.read_bytes()[:int(whole.stat().st_size * 0.7)])
+    out = tmp_path / "out.h5"
+    r = _cli("process", sim / "reference.tif", cut, "--geometry", sim / "geometry.toml", "--out", out,
+             "--no-progress", "--workers", "1")
+    assert r.returncode == 3, r.stderr  # some frames unreadable
+    with h5py.File(out, "r") as f:
+        read = f["frame_status"][()] == 0
+    assert 2 <= read.sum() < N_FRAMES and read[:2].all()
+    csv_path = tmp_path / "probes.csv"
+    r = _cli("probe", out, "--at", "0,0", "--out", csv_path)
+    assert r.returncode == 0, r.stderr
+    assert "no time stamps" not in r.stderr and "time from /time_s" in r.stderr
+    _, body = _read_csv(csv_path)
+    np.testing.assert_allclose(body[read, 1], np.flatnonzero(read) / 100.0, atol=1e-9)
+    assert np.isnan(body[~read, 1:]).all()
+    movie = tmp_path / "cut.mp4"
+    r = _cli("movie", out, "--out", movie)
+    assert r.returncode == 0, r.stderr
+    with av.open(str(movie)) as c:
+        assert float(c.streams.video[0].average_rate) == pytest.approx(100.0)
+
+
+def test_probe_names_where_time_goes_back_over_two_camera_files(processed, tmp_path):
+    """Two MRAW files of one series, each counting time from its own first frame: the
+    probe's time_s goes back at the second file's first frame, which the run says."""
+    pyMRAW = pytest.importorskip("pyMRAW")
+    sim = processed[0]
+    frames = np.stack([imageio.read_image(sim / f"frame_{k:04d}.tif") for k in range(N_FRAMES)])
+    parts = []
+    for name, chunk in (("a", frames[:3]), ("b", frames[3:])):
+        _, cih = pyMRAW.save_mraw(chunk, str(tmp_path / f"{name}.cih"), bit_depth=16,
+                                  info_dict={"Record Rate(fps)": 100})
+        parts.append(cih)
+    out = tmp_path / "out.h5"
+    r = _cli("process", sim / "reference.tif", *parts, "--geometry", sim / "geometry.toml", "--out", out,
+             "--no-progress", "--workers", "1")
+    assert r.returncode == 0, r.stderr
+    r = _cli("probe", out, "--at", "0,0", "--out", tmp_path / "p.csv")
+    assert r.returncode == 0, r.stderr
+    _, body = _read_csv(tmp_path / "p.csv")
+    np.testing.assert_allclose(body[:, 1], [0, 0.01, 0.02, 0, 0.01, 0.02], atol=1e-9)
+    notes = [line for line in r.stderr.splitlines() if "does not increase" in line]
+    assert len(notes) == 1 and "first at frame 3 (0.02 s, then 0 s)" in notes[0], r.stderr

@@ -573,6 +573,40 @@ def test_disk_filled_by_another_process_leaves_a_valid_file(sim, tmp_path, reser
         subprocess.run(["umount", "-l", str(mnt)], capture_output=True, timeout=10)
 
 
+def test_disk_full_names_the_first_frame_not_kept_when_rows_wait_for_a_flush(sim, tmp_path, capsys, monkeypatch):
+    """The disk has room for 4 frames while the frame table's rows wait for the next flush:
+    the refusal keeps frames 0..3 (written at the close, in the reserve) and must say to
+    resume at frame 4, not at the oldest row waiting (0), which would measure them twice."""
+    import app.batch.writer as writer
+
+    monkeypatch.setattr(writer, "FLUSH_INTERVAL_S", 3600.0)  # every row waits for the close
+    checks = []
+
+    def room(path, *args, **kwargs):  # a disk that fills up after 4 frames
+        checks.append(path)
+        return (10 * 2**30 if len(checks) <= 4 else 64 * 1024), "disk"
+
+    monkeypatch.setattr(writer, "room_bytes", room)
+    out = tmp_path / "out.h5"
+    code, err = run(capsys, *process(sim, out, *frames_of(sim)), "--workers", "1")
+    assert code == 2, err
+    line = error_line(err)
+    assert "disk full" in line
+    resume = re.search(r"resume with --first (\d+) \(and the same --last and --step\)", line)
+    with h5py.File(tmp_path / "out.partial.h5", "r") as f:
+        kept = [int(k) for k in f["frame_index"][:]]
+        assert int(f.attrs["frames_done"]) == len(kept) == 4
+    assert kept == [0, 1, 2, 3]
+    assert resume and int(resume.group(1)) == 4, line
+    # resuming where the message says gives every frame once
+    monkeypatch.setattr(writer, "room_bytes", lambda path, *a, **kw: (10 * 2**30, "disk"))
+    code, err = run(capsys, *process(sim, tmp_path / "rest.h5", *frames_of(sim)), "--first", resume.group(1),
+                    "--workers", "1")
+    assert code == 0, err
+    with h5py.File(tmp_path / "rest.h5", "r") as f:
+        assert sorted(kept + [int(k) for k in f["frame_index"][:]]) == list(range(N_FRAMES))
+
+
 def test_superblock_whose_end_of_allocation_lags_is_repaired(sim, tmp_path, capsys):
     """The last resort of the writer's close (docs/reliability.md): metadata written
     beyond the end of allocation the superblock records ("addr overflow ... eoa",
