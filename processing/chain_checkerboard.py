@@ -35,7 +35,7 @@ from .continuation import ContinuedSignals
 from .refine import refine_fd, refine_fd_tapered, static_phase, warp_reference
 from .result import Result
 from .second_order import SecondOrderOptics, solved_again
-from .series import after_unwrap, check_series, unwrap_phase
+from .series import EMPTY, after_unwrap, check_series, series_slip, unwrap_phase
 from .turn import TURN_BAND_PERIODS
 
 __all__ = ["CheckerboardChain", "Measured", "CG_TOL", "DEFAULT_ITERATIONS"]
@@ -65,6 +65,7 @@ class Measured(NamedTuple):
     phase: np.ndarray
     timings: dict
     t0: float
+    slip: float = 0.0  # processing.series.unwrap_phase's: the series' slip (beyond its bound: unwrapped alone)
 
 
 class CheckerboardChain(GridChain):
@@ -210,6 +211,24 @@ class CheckerboardChain(GridChain):
             valid &= ~dilate_invalid(~valid, o.dilate)
         return wrapped, amplitude, valid, all_valid
 
+    def unwrapped(self, frame, d, wrapped, amplitude, valid, all_valid, checked, state):
+        """``(phase, u, valid, all_valid)``: the carrier phases unwrapped against ``state``
+        (:func:`processing.series.unwrap_phase`), the displacement of the demodulator ``d``, and the
+        samples that pass :meth:`displacement_mask`.  :meth:`measure` unwraps again against ``EMPTY``
+        (in space, as a series' first frame) where the series' count of 2 pi is no unwrapping of this
+        frame on any sample (:func:`processing.series.series_slip`: frames far apart in time, frames
+        lost, a surface too fast for the frame rate).  By-hand trial of 7 Dec 2026: every third frame of
+        ``simulate``'s waves came out 1500-3700 % off from the third frame on (slips on 30-47 % of the
+        samples), each flagged as a jump, kept and carried on to every later frame; two samples of 476
+        slipped (0.4 %, under the jump's bound) took a frame from 6.1 to 10.9 %; alone, each is as in
+        the consecutive run."""
+        o = self.options
+        phase = unwrap_phase(wrapped, valid, all_valid, state, unwrap=o.unwrap, temporal=o.temporal,
+                             ref_mask=self.plan.reference_region, ref_idx=self.plan.reference_region_index)
+        u = d.phase_to_displacement(phase if all_valid else np.nan_to_num(phase))
+        valid, all_valid = self.displacement_mask(frame, u, valid, all_valid, amplitude, checked)
+        return phase, u, valid, all_valid
+
     def displacement_mask(self, frame, u, valid, all_valid, amplitude, checked):
         """``(valid, all_valid)`` after the fold test, island removal and, for a
         poor frame, the full pattern check; AllInvalidError when nothing is left."""
@@ -269,10 +288,19 @@ class CheckerboardChain(GridChain):
         t1 = time.perf_counter()
         timings["demodulate"] = 1e3 * (t1 - t0)
         wrapped, amplitude, valid, all_valid = self.quality_mask(frame, g, plan)
-        phase = unwrap_phase(wrapped, valid, all_valid, state, unwrap=o.unwrap, temporal=o.temporal,
-                             ref_mask=self.plan.reference_region, ref_idx=self.plan.reference_region_index)
-        u = d.phase_to_displacement(phase if all_valid else np.nan_to_num(phase))
-        valid, all_valid = self.displacement_mask(frame, u, valid, all_valid, amplitude, checked)
+        in_series = o.unwrap and o.temporal and state.phase is not None
+        # (displacement_mask writes into valid: the quality mask's kept for unwrapping again)
+        masked = self.unwrapped(frame, d, wrapped, amplitude, valid.copy() if in_series else valid, all_valid,
+                                checked, state)
+        slip = 0.0
+        if in_series:
+            # against what the series check compares with (the previous frame's; at a join of chunks, the
+            # other chunk's own, which a slip in the memory handed over does not share)
+            prev_phase, prev_valid = state.check[:2] if state.check is not None else (state.phase, state.valid)
+            slip = series_slip(masked[0], masked[2], prev_phase, prev_valid, self.plan.reference_region)
+            if slip > 0.0:  # the series' count is no unwrapping of this frame there: the frame's own
+                masked = self.unwrapped(frame, d, wrapped, amplitude, valid, all_valid, checked, EMPTY)
+        phase, u, valid, all_valid = masked
         t2 = time.perf_counter()
         timings["unwrap_mask"] = 1e3 * (t2 - t1)
         u_first = u
@@ -290,7 +318,7 @@ class CheckerboardChain(GridChain):
             state = after_unwrap(state, phase, valid, all_valid)
         if not all_valid or u.dtype != np.float32:
             u = np.where(valid, u, np.nan).astype(np.float32)
-        return Measured(frame, wins, u, u_first, valid, all_valid, amplitude, phase, timings, t0), state
+        return Measured(frame, wins, u, u_first, valid, all_valid, amplitude, phase, timings, t0, slip), state
 
     def solve_height(self, u, valid, all_valid):
         """The decimated grid's heights and pin (:class:`processing.height.SurfaceResult`)."""
@@ -320,7 +348,7 @@ class CheckerboardChain(GridChain):
             valid = np.asarray(surf.valid, bool)
             all_valid = False
             u = np.where(valid, u, np.float32(np.nan)).astype(np.float32)
-        series, state = check_series(m.phase, valid, surf, state, self.plan.reference_region)
+        series, state = check_series(m.phase, valid, surf, state, self.plan.reference_region, slip=m.slip)
         m.timings["height"] = 1e3 * (time.perf_counter() - t3)
         res = Result(height=np.asarray(surf.height_mm, np.float32), valid=valid,
                      slope_x=np.asarray(surf.slope_x, np.float32),
@@ -329,7 +357,7 @@ class CheckerboardChain(GridChain):
                      grid="decimated", rows_px=self.rows_px, cols_px=self.cols_px,
                      carriers=self.carriers, phase=np.asarray(m.phase, np.float32),
                      valid_fraction=1.0 if all_valid else float(valid.mean()), timings_ms=m.timings,
-                     pin=surf.pin, series=series, turn=turn)
+                     pin=surf.pin, series=series, turn=turn, note="" if series is None else series.alone_text())
         return res, state
 
     def to_grid(self, m: Measured, res: Result, grid) -> Result:
@@ -343,9 +371,11 @@ class CheckerboardChain(GridChain):
             from .dic import RefinementDiverged
 
             try:
-                return self.image_refinement()(m, res, t4)
+                refined = self.image_refinement()(m, res, t4)
+                refined.note = res.note  # how the decimated grid was measured (unwrapped alone)
+                return refined
             except RefinementDiverged as exc:  # FD's heights below, and the reason with them
-                res.note = f"image refinement stopped: {exc}; FD's heights kept"
+                res.note = "; ".join(n for n in (res.note, f"image refinement stopped: {exc}; FD's heights kept") if n)
         if grid == "full":
             res, second = self.to_second_order(res)
             # the slopes of second-order heights are not the linear map of u and h: interpolated as they are

@@ -45,6 +45,11 @@ class SeriesCheck:
         NaN when none of them is valid now).
     compared_samples : int
         Samples valid in both frames.
+    unwrapped_alone : bool
+        The series' count of 2 pi slipped on some samples
+        (``unwrap_slip_fraction``), so this frame was unwrapped in space
+        alone, as a series' first (its heights are its own; the Result's
+        ``note`` says so).
     """
 
     flagged: bool
@@ -52,6 +57,15 @@ class SeriesCheck:
     unwrap_slip_fraction: float
     pin_shift_mm: float
     compared_samples: int
+    unwrapped_alone: bool = False
+
+    def alone_text(self) -> str:
+        """The note of a frame unwrapped alone ("" for one that was not)."""
+        if not self.unwrapped_alone:
+            return ""
+        return (f"unwrapped in space alone: since the previous frame the phase changed by more than half a carrier "
+                f"period and the series' count slipped on {100 * self.unwrap_slip_fraction:.1f} % of the samples "
+                f"(frames far apart in time, frames lost, or a surface too fast for the frame rate)")
 
 
 @dataclasses.dataclass

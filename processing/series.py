@@ -21,7 +21,7 @@ from .result import SeriesCheck
 from .unwrap import TWO_PI, has_wraps, jumps_only_at_residues, median_turn, unwrap_spatial, unwrap_temporal, wrap
 
 __all__ = ["SeriesState", "SERIES_MAX_SLIP_FRACTION", "SERIES_MAX_PIN_SHIFT", "EMPTY", "unwrap_phase",
-           "after_unwrap", "check_series", "copy_check"]
+           "after_unwrap", "check_series", "series_slip", "copy_check"]
 
 #: Series check: a frame is flagged when its phase changed by more than pi
 #: since the previous frame and temporal unwrapping's count of 2 pi disagrees
@@ -94,15 +94,14 @@ def unwrap_phase(wrapped, valid, all_valid, state: SeriesState, *, unwrap: bool,
     """Unwrapped carrier phases (2, m_rows, m_cols) of ``wrapped`` with mask
     ``valid``: against ``state`` (temporal) when it holds a frame, else in
     space, the reference region's (``ref_mask``, flat ``ref_idx``) median
-    nearest 0; NaN-free where ``all_valid``."""
+    nearest 0; NaN-free where ``all_valid``.  Where the series' count then
+    slips (:func:`series_slip`), the chain unwraps the frame again against
+    :data:`EMPTY` (:meth:`processing.chain_checkerboard.CheckerboardChain.unwrapped`)."""
     if not unwrap:
         return np.where(valid, wrapped, np.nan)
     prev = state.phase
     if not (temporal and prev is not None):
-        out = np.empty_like(wrapped)
-        for s in range(2):
-            out[s] = unwrap_spatial(wrapped[s], valid, ref_mask=ref_mask)
-        return out
+        return _unwrap_spatial_both(wrapped, valid, ref_mask)
     out = None
     if all_valid and state.all_valid:
         out = _unwrap_temporal_all_valid(wrapped, prev, ref_idx)
@@ -113,6 +112,27 @@ def unwrap_phase(wrapped, valid, all_valid, state: SeriesState, *, unwrap: bool,
     for s in range(2):
         _heal_specks(out[s], wrapped[s], valid, ref_mask)
     return out
+
+
+def _unwrap_spatial_both(wrapped, valid, ref_mask):
+    """Both carriers' phases unwrapped in space (:func:`processing.unwrap.unwrap_spatial`)."""
+    out = np.empty_like(wrapped)
+    for s in range(2):
+        out[s] = unwrap_spatial(wrapped[s], valid, ref_mask=ref_mask)
+    return out
+
+
+def series_slip(phase, valid, prev_phase, prev_valid, ref_mask) -> float:
+    """The share of the samples valid in this and the previous frame where, the unwrapped ``phase``
+    having changed by more than pi since ``prev_phase``, its count of 2 pi differs from this
+    frame's own spatial unwrapping (:func:`_disagrees_with_spatial`); 0.0 where the change stays
+    within pi everywhere (temporal unwrapping then adds nothing the images do not say) or no sample
+    is valid in both."""
+    both = valid & prev_valid
+    n = int(np.count_nonzero(both))
+    if n == 0 or float(np.nanmax(np.abs(phase - prev_phase), initial=0.0)) <= np.pi:
+        return 0.0
+    return float(np.count_nonzero(_disagrees_with_spatial(phase, valid, ref_mask) & both)) / n
 
 
 def _heal_specks(phase, wrapped, valid, ref_mask):
@@ -180,10 +200,13 @@ def after_unwrap(state: SeriesState, phase, valid, all_valid: bool) -> SeriesSta
     return dataclasses.replace(state, phase=kept, valid=valid.copy(), all_valid=all_valid)
 
 
-def check_series(phase, valid, surf, state: SeriesState, ref_mask):
+def check_series(phase, valid, surf, state: SeriesState, ref_mask, slip: Optional[float] = None):
     """``(SeriesCheck or None, state)``: this frame compared with the previous
     one (see :class:`SeriesCheck`; None for the first frame of a series), and
-    ``state`` with this frame as what the next is compared with."""
+    ``state`` with this frame as what the next is compared with.  ``slip``:
+    the series' slip the chain measured (:func:`series_slip`; above 0 it
+    unwrapped the frame alone, as a series' first), None: measured here
+    (the GPU chain's frames), flagged above :data:`SERIES_MAX_SLIP_FRACTION`."""
     prev = state.check
     height = np.asarray(surf.height_mm)
     pin_samples = surf.pin_samples
@@ -201,20 +224,17 @@ def check_series(phase, valid, surf, state: SeriesState, ref_mask):
     # unwrapping added nothing the images do not say.  Where it exceeds pi
     # (a fast surface), it is a slip only where the series' 2 pi count
     # disagrees with this frame's own spatial unwrapping; NaN compares False.
-    change = np.abs(phase - p_phase)
-    slip_fraction = 0.0
-    if float(np.nanmax(change, initial=0.0)) > np.pi:
-        slip = _disagrees_with_spatial(phase, valid, ref_mask)
-        slip_fraction = float(np.count_nonzero(slip & both)) / n
+    slip_fraction = series_slip(phase, valid, p_phase, p_valid, ref_mask) if slip is None else float(slip)
+    alone = slip is not None and slip_fraction > 0.0
     reasons = []
-    if slip_fraction > SERIES_MAX_SLIP_FRACTION:
+    if slip_fraction > SERIES_MAX_SLIP_FRACTION and not alone:
         reasons.append(
             f"the unwrapped phase changed by more than half a carrier period since the previous frame, and on "
             f"{100 * slip_fraction:.1f} % of the samples the series counts other periods than this frame's "
             f"own spatial unwrapping (temporal unwrapping slipped, or the surface moved too fast for the "
             f"frame rate)")
     shift = _pin_shift(height, valid, pin_samples, p_height, p_pin, both, reasons)
-    return SeriesCheck(bool(reasons), "; ".join(reasons), slip_fraction, shift, n), state
+    return SeriesCheck(bool(reasons), "; ".join(reasons), slip_fraction, shift, n, unwrapped_alone=alone), state
 
 
 def _pin_shift(height, valid, pin_samples, p_height, p_pin, both, reasons):

@@ -163,10 +163,13 @@ def test_a_fast_surface_whose_frame_unwraps_alone_is_not_flagged(series):
     assert float(np.nanmax(np.abs(res.height - fresh.height))) < 1e-4 * peak
 
 
-def test_a_series_that_counts_other_periods_than_the_frame_is_flagged(series):
+def test_a_series_that_counts_other_periods_than_the_frame_gives_the_frame_its_own(series):
     """The previous frame's unwrapped phase 2 pi off on a block (what a slipped
-    neighbouring chunk hands over at a join): this frame inherits the slip
-    there, its own spatial unwrapping does not, and the check says so."""
+    neighbouring chunk hands over at a join, or frames far apart in time): this
+    frame would inherit the slip there, its own spatial unwrapping does not; it
+    is unwrapped alone (the heights of the frame reconstructed by itself, to the
+    bit), with the slip's share and a note that says so (before 7 Dec 2026 the
+    slipped heights were kept and flagged as a jump)."""
     rec = Reconstructor(series.reference, FSSS, grid="decimated")  # where the check compares
     rec(series.frames[4])
     state = rec.series_state()
@@ -178,8 +181,13 @@ def test_a_series_that_counts_other_periods_than_the_frame_is_flagged(series):
     rec.restore_series(state)
     res = rec(series.frames[5])
     both = state.valid & res.valid
-    assert res.series.flagged and "half a carrier period" in res.series.reason
+    assert res.series.unwrapped_alone and not res.series.flagged
     assert res.series.unwrap_slip_fraction == pytest.approx(np.count_nonzero(block & both) / both.sum(), rel=0.1)
+    assert res.note.startswith("unwrapped in space alone") and "half a carrier period" in res.note
+    rec.reset_series()
+    alone = rec(series.frames[5])
+    np.testing.assert_array_equal(res.valid, alone.valid)
+    np.testing.assert_array_equal(res.height, alone.height)
 
 
 def test_default_region_follows_the_outer_edge_of_the_reference_valid_area_only():
@@ -259,9 +267,10 @@ def test_the_series_check_without_its_spatial_unwrapping_where_it_cannot_differ(
     monkeypatch.setattr(S, "jumps_only_at_residues", lambda *a, **k: False)
     full = run()
     assert len(skipped) - n_fast >= n_fast + 4  # the shortcut was taken (both carriers of two frames or more)
-    assert fast[-1].flagged and fast[-1].unwrap_slip_fraction > 0.01  # the handed-over slip is still seen
+    assert fast[-1].unwrapped_alone and fast[-1].unwrap_slip_fraction > 0.01  # the handed-over slip is still seen
     for a, b in zip(fast[1:], full[1:]):
-        assert (a.flagged, a.reason, a.compared_samples) == (b.flagged, b.reason, b.compared_samples)
+        assert (a.flagged, a.reason, a.compared_samples, a.unwrapped_alone) == (b.flagged, b.reason,
+                                                                               b.compared_samples, b.unwrapped_alone)
         assert a.unwrap_slip_fraction == b.unwrap_slip_fraction and a.pin_shift_mm == b.pin_shift_mm
 
 
@@ -269,7 +278,8 @@ def test_a_slipped_speck_is_given_back_to_the_frames_own_count(series, monkeypat
     """A 3 x 3 speck of the series' memory one carrier period off its neighbours (what a sample newly valid at
     a rim leaves when it is grown from a neighbour whose change was near pi): the next frame gives it back to
     the frame's own spatial count, so its heights are those of the frame reconstructed alone, and the series
-    check sees no slip.  Without the repair the speck stays in the phase and dents the heights."""
+    check sees no slip.  Without the repair the frame is unwrapped alone (the slip seen); without that too,
+    the speck stays in the phase and dents the heights."""
     import processing.series as S
 
     def next_frame_after_a_speck():
@@ -294,6 +304,12 @@ def test_a_slipped_speck_is_given_back_to_the_frames_own_count(series, monkeypat
     assert not res.series.flagged and res.series.unwrap_slip_fraction == 0.0
 
     monkeypatch.setattr(S, "_heal_specks", lambda *a, **k: None)
+    kept, _ = next_frame_after_a_speck()
+    # without the repair the series' count slips on the speck: the frame is unwrapped alone (the same phase)
+    assert kept.series.unwrapped_alone and np.abs(kept.phase[:, speck] - alone.phase[:, speck]).max() < 1e-3
+    import processing.chain_checkerboard as C
+
+    monkeypatch.setattr(C, "series_slip", lambda *a, **k: 0.0)  # ... and without that either:
     kept, _ = next_frame_after_a_speck()
     assert np.abs(kept.phase[0, speck] - alone.phase[0, speck]).min() > 6.0  # the speck stayed a period off
     vk = kept.valid & alone.valid
