@@ -204,7 +204,15 @@ def main(argv=None) -> int:
         3 ``process`` wrote its output but some frames are invalid or
         incomplete, 130 interrupted.
     """
-    argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        return _main(list(sys.argv[1:] if argv is None else argv))
+    except KeyboardInterrupt:  # Ctrl-C before a command began (its imports, the parser): nothing was written
+        print(f"{PROG}: interrupted before the command began; nothing was written", file=sys.stderr)
+        return EXIT_INTERRUPTED
+
+
+def _main(argv: list) -> int:
+    """:func:`main` on ``argv``; a command runs :func:`_guarded` (its own Ctrl-C handling)."""
     gui = _split_gui(argv)
     if gui is not None:
         flags, gui_argv = gui

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import signal
 import sys
 import time
@@ -54,6 +55,9 @@ def cmd_cameras(args) -> int:
     """Print one line per camera drivers.list_cameras() finds: id, backend, vendor, model, serial, address."""
     import drivers
 
+    if not (args.timeout_s > 0 and math.isfinite(args.timeout_s)):  # -1 listed nothing and said nothing of it
+        print(f"tirdeflect cameras: error: --timeout-s must be > 0 seconds; got {args.timeout_s:g}", file=sys.stderr)
+        return 2
     try:
         cams = drivers.list_cameras(timeout_s=args.timeout_s, include_fake=args.include_fake)
     except Exception as exc:  # list_cameras promises not to fail; be loud if it does

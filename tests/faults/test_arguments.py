@@ -59,3 +59,12 @@ def test_pre_trigger_frames_beyond_ram_are_refused_at_once_naming_the_ram(tmp_pa
     assert re.search(r"must be held in RAM \(262\.\d\d GB\)", r.stderr) and re.search(r"of the [\d.]+ GB available",
                                                                                       r.stderr), r.stderr
     assert "enlarge the ring" not in r.stderr
+
+
+@pytest.mark.parametrize("value", ["-1", "0", "nan"])
+def test_cameras_refuses_a_discovery_time_that_is_no_time(value):
+    """By-hand trial of 7 Dec 2026: `tirdeflect cameras --timeout-s -1` listed nothing and exited 0, as if no
+    camera were there. Refused in one line, exit 2."""
+    r = subprocess.run([sys.executable, "-m", "app.cli", "cameras", "--timeout-s", value], cwd=ROOT,
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "--timeout-s must be > 0 seconds" in r.stderr and "camera id" not in r.stdout, r

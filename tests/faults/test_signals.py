@@ -69,3 +69,28 @@ def test_sigterm_in_burst_mode_writes_the_frames_in_ram(tmp_path):
     assert code == 143, f"exit {code}\n{stdout}\n{stderr}"
     n = _check_closed(out, seen)  # every frame captured before the signal is in the file
     assert frames_written_line(stdout) == n < 2000
+
+
+def test_ctrl_c_before_the_command_began_is_one_line_not_a_traceback(tmp_path):
+    """By-hand trial of 7 Dec 2026: Ctrl-C 0.3 s after `tirdeflect record ...` started (while it imported and
+    parsed) printed a 65-line KeyboardInterrupt traceback and the process died by the signal. A real SIGINT
+    sent by the process to itself while it builds its parser: one line, exit 130, no file."""
+    import os
+    import subprocess
+    import sys
+
+    out = tmp_path / "x.h5"
+    script = ("import os, signal, sys\n"
+              "import importlib\n"
+              "m = importlib.import_module('app.cli.main')\n"
+              "build = m.build_parser\n"
+              "def interrupted_build():\n"
+              "    os.kill(os.getpid(), signal.SIGINT)\n"
+              "    return build()\n"
+              "m.build_parser = interrupted_build\n"
+              f"sys.exit(m.main(['record', *{list(SYNTHETIC)!r}, '--frames', '50', '--out', {str(out)!r}]))\n")
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    proc = subprocess.run([sys.executable, "-c", script], cwd=root, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 130, (proc.returncode, proc.stderr)
+    assert "Traceback" not in proc.stderr and "interrupted before the command began" in proc.stderr, proc.stderr
+    assert not out.exists()
