@@ -35,13 +35,21 @@ def saturation_pct(frame) -> float:
     return float(100.0 * np.count_nonzero(a >= level) / max(a.size, 1))
 
 
-def reference_saturation(reference):
+def reference_saturation(reference, *, averaged_counts: bool = False):
     """``(percent, sentence)`` where more than :data:`SATURATION_MAX_PCT` of the reference's pixels
     are saturated (:func:`saturation_pct`; every frame is measured against its clipped squares), else
     None: what ``tirdeflect process`` warns of and the window's reference label says.  Measured
     (6 Dec 2026, ``tirdeflect simulate`` 512^2, 12 bit): the reference 1.3x as bright, 42 % clipped,
-    the bump's rms height error 0.05 -> 0.18 %, the waves' 0.20 -> 0.29 %, with nothing said."""
-    pct = saturation_pct(reference)
+    the bump's rms height error 0.05 -> 0.18 %, the waves' 0.20 -> 0.29 %, with nothing said.
+
+    ``averaged_counts``: the reference is the float average of integer camera frames (Ctrl+R,
+    ``--reference-frames``), judged as those frames' counts (its floor) at the top code of the bit
+    depth that holds them: as a float its own maximum was its top, and an 8-bit reference whose
+    bright squares peak at 229 read 25 % saturated (7 Dec 2026)."""
+    a = np.asarray(reference)
+    if averaged_counts and a.dtype.kind == "f":
+        a = np.floor(np.clip(np.nan_to_num(a), 0, 65535)).astype(np.uint16)
+    pct = saturation_pct(a)
     if pct <= SATURATION_MAX_PCT:
         return None
     return pct, (f"the reference has {pct:.1f} % of its pixels saturated: its bright squares are clipped, and every "

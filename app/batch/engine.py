@@ -362,7 +362,7 @@ def run_process(args: ProcessJob) -> BatchReport:
         raise NoCarrierError(f"{where}: {exc}") from None
     reconstruct.reset_series()
     reference_saturated = reference_saturation(
-        reference if reference_given else _in_counts_of(reference, args.reference))
+        reference, averaged_counts=not reference_given and _integer_file(args.reference))
     if reference_saturated:
         log.warning("%s", reference_saturated[1])
         input_notes.append(reference_saturated[1])
@@ -893,20 +893,14 @@ def _bits_of_counts(image: np.ndarray) -> int:
     return next((b for b in (8, 10, 12, 14) if top < 2 ** b), 16)
 
 
-def _in_counts_of(reference: np.ndarray, path) -> np.ndarray:
-    """A float reference made of the integer frames of ``path`` (``--reference-frames``: their
-    average) as those frames' counts, whose saturation is judged at the top code of their
-    bit depth (:func:`processing.live_view.saturation_pct` takes a float image's own maximum
-    as its top: an 8-bit reference peaking at 229 read 25 % saturated); else as it is."""
-    if np.asarray(reference).dtype.kind != "f":
-        return reference
+def _integer_file(path) -> bool:
+    """Whether the reference file ``path`` holds integer camera frames (those ``--reference-frames``
+    averages into a float reference: :func:`processing.live_view.reference_saturation` judges it as
+    their counts); False where that cannot be told (the file's own errors are reported elsewhere)."""
     try:
-        integer = np.dtype(imageio.image_info(imageio.expand_inputs([path])[0]).dtype).kind in "ui"
-    except Exception:  # noqa: BLE001 -- judged as it is; the file's own errors are reported elsewhere
-        return reference
-    if not integer:
-        return reference
-    return np.floor(np.clip(np.nan_to_num(reference), 0, 65535)).astype(np.uint16)
+        return np.dtype(imageio.image_info(imageio.expand_inputs([path])[0]).dtype).kind in "ui"
+    except Exception:  # noqa: BLE001
+        return False
 
 
 def _bits_hint(path: str, image: np.ndarray) -> int:

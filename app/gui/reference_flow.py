@@ -162,7 +162,8 @@ def rebuild_reconstructor(w):
             w.show_error(mismatch)
             state.reference_in_use(w)
             return
-        saturated = reference_saturation(reference)
+        # captured (Ctrl+R: the float average of the camera's integer frames), else a file as it is
+        saturated = reference_saturation(reference, averaged_counts=w.reference_path is None)
         if saturated and not problem:  # measured, a little off: said where the user looks, no tick
             w.geometry_panel.reference_label.setText(text + f" — {saturated[0]:.0f} % SATURATED")
             w.geometry_panel.reference_label.setStyleSheet("color: #c00000; font-weight: bold")

@@ -20,10 +20,11 @@ pytestmark = pytest.mark.gui
 SHAPE = (256, 256)
 
 
-def _window(qtbot, **kw):
+def _window(qtbot, synthetic_options=None, **kw):
     from app.gui.window import MainWindow
 
-    w = MainWindow("synthetic", synthetic_options={"shape": SHAPE, "n_frames": 12, "frame_rate_hz": 30.0},
+    w = MainWindow("synthetic",
+                   synthetic_options=synthetic_options or {"shape": SHAPE, "n_frames": 12, "frame_rate_hz": 30.0},
                    planner_effort="FFTW_ESTIMATE", **kw)
     qtbot.addWidget(w, before_close_func=lambda widget: widget.shutdown())  # see tests/app/conftest.py
     w.resize(1600, 1000)
@@ -793,3 +794,16 @@ def test_a_theta_the_pattern_does_not_show_is_said_on_the_live_tab_too(qtbot):
     qtbot.keyClick(theta, QtCore.Qt.Key_Return)
     _until(qtbot, lambda: "✓" in label.text() and "MISMATCH" not in label.text(), lambda: f"label {label.text()!r}",
            30000)
+
+
+def test_a_reference_averaged_from_8_bit_frames_is_judged_at_their_top_code(qtbot):
+    """The sweep of 7 Dec 2026 (through `process --reference-frames`, here by Ctrl+R): a reference averaged from
+    integer frames is a float image, whose own maximum counted as its top code, so a noiseless 8-bit camera
+    whose bright squares peak at 229 of 255 (8 % of the pixels) read "8 % SATURATED", in red, no tick. Judged
+    as the camera's counts: a tick, no error."""
+    w = _window(qtbot, synthetic_options={"shape": SHAPE, "n_frames": 4, "frame_rate_hz": 30.0, "noise_rms": 0.0})
+    _capture_reference_by_keys(qtbot, w, n_average=2)
+    r = np.asarray(w.reference)
+    assert r.dtype.kind == "f" and r.max() < 255 and np.mean(r >= r.max()) > 0.05  # flat bright squares below 255
+    label = w.geometry_panel.reference_label.text()
+    assert "SATURATED" not in label and w.last_error is None, (label, w.last_error)
