@@ -65,7 +65,7 @@ class Measured(NamedTuple):
     phase: np.ndarray
     timings: dict
     t0: float
-    slip: float = 0.0  # processing.series.unwrap_phase's: the series' slip (beyond its bound: unwrapped alone)
+    slip: float = 0.0  # processing.series.series_slip of the series (above 0: the frame was unwrapped alone)
 
 
 class CheckerboardChain(GridChain):
