@@ -177,6 +177,60 @@ def _check_int(features, setting, name, value):
     return value
 
 
+#: offset setting -> (size setting, features that give the sensor's extent along it, first preferred)
+_SENSOR_EXTENT = {
+    "offset_x": ("width", ("WidthMax", "SensorWidth")),
+    "offset_y": ("height", ("HeightMax", "SensorHeight")),
+}
+
+
+def sensor_extent_px(features: Features, offset_setting: str) -> Tuple[Optional[int], str]:
+    """(pixels, where from): how wide (``offset_x``) or high (``offset_y``) a region may reach from offset 0,
+    the smallest of WidthMax/SensorWidth (HeightMax/SensorHeight) and the size feature's own maximum,
+    read while the offsets are 0. (None, "") when the camera tells none of them."""
+    size_setting, names = _SENSOR_EXTENT[offset_setting]
+    found = []
+    for name in names:
+        try:
+            if features.kind(name) == "int":
+                found.append((int(features.get(name)), name))
+        except Exception:
+            pass
+    size_name = feature_for(features, size_setting)
+    if size_name is not None:
+        try:
+            found.append((int(features.int_bounds(size_name)[1]), f"the largest {size_name}"))
+        except Exception:
+            pass
+    found = [(v, name) for v, name in found if v > 0]
+    return min(found, key=lambda f: f[0]) if found else (None, "")
+
+
+def _check_inside_sensor(features, setting, name, offset):
+    """Refuse an offset that puts the region past the sensor's edge (offset + size > the sensor's extent).
+
+    Cameras' offset bounds usually follow the size; some do not (Aravis' fake camera allows OffsetX 2000 with
+    Width 100 on its 2048-pixel sensor, and reads 2000 back): then the stored offset would be a window the
+    sensor does not have.
+    """
+    size_setting = _SENSOR_EXTENT[setting][0]
+    size_name = feature_for(features, size_setting)
+    if size_name is None:
+        return
+    size = int(features.get(size_name))
+    extent, source = sensor_extent_px(features, setting)
+    if extent is None or offset + size <= extent:
+        return
+    lo, _, inc = features.int_bounds(name)
+    inc = max(int(inc or 1), 1)
+    largest = lo + max(extent - size - lo, 0) // inc * inc
+    raise SettingError(
+        f"{setting}={offset} with {size_setting}={size} runs past the sensor's edge: it is {extent} pixels "
+        f"{'wide' if setting == 'offset_x' else 'high'} ({source}), so {setting} may be at most {largest} for "
+        f"{size_setting} {size} ({name} in steps of {inc}); give a smaller offset or {size_setting}"
+    )
+
+
 def _check_float(features, setting, name, value):
     try:
         value = float(value)
@@ -254,6 +308,8 @@ def apply_settings(features: Features, values: Dict, *, acquiring: bool = False)
                 if target is None:
                     continue
                 target = _check_int(features, k, n, target)
+                if k.startswith("offset"):
+                    _check_inside_sensor(features, k, n, target)
                 if int(features.get(n)) != target:
                     _write(features, k, n, target)
         except SettingError:

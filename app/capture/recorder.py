@@ -691,6 +691,7 @@ class Recorder:
         self._thread: Optional[threading.Thread] = None
         self._stop = threading.Event()
         self._stop_at: Optional[int] = None
+        self._stop_error: Optional[str] = None  # why stop() ended it early, when that is an error (see there)
         self._done = threading.Event()
         self._t_begin = None
         self._t_end = None
@@ -701,14 +702,19 @@ class Recorder:
 
     # ----------------------------------------------------------- commands
     def begin(self, start_sequence: Optional[int] = None, *, trigger_sequence: Optional[int] = None,
-              attrs: Optional[dict] = None) -> "Recorder":
+              attrs: Optional[dict] = None, stop_error: Optional[str] = None) -> "Recorder":
         """Start writing from ring sequence ``start_sequence`` (default: the next frame).
 
         The ring cursor takes hold of the start first; then the file's attributes (``trigger_sequence``,
         ``pre_available``, ``start_sequence`` and ``attrs``) are written, before the writing thread starts.
+        ``stop_error``: the recording begins only to keep what the ring holds after a failure (the camera
+        lost before the trigger); why, stored as the file's error as by :meth:`stop`, also when the writer
+        meets the ring's end before :meth:`stop` is called.
         """
         if self._thread is not None:
             raise RecorderError("this recorder already began; create a new one for another recording")
+        if stop_error and self._stop_error is None:
+            self._stop_error = str(stop_error)
         start = self.ring.head if start_sequence is None else int(start_sequence)
         if start < self.ring.oldest:
             raise RecorderError(
@@ -732,10 +738,17 @@ class Recorder:
         self.trigger_sequence = int(sequence)
         self.file.add_event("trigger", sequence=sequence, **event)
 
-    def stop(self, timeout_s: float = 10.0, *, drain: bool = True) -> bool:
-        """End the recording: write what is already in the ring (``drain``) and close; True if done in time."""
+    def stop(self, timeout_s: float = 10.0, *, drain: bool = True, error: Optional[str] = None) -> bool:
+        """End the recording: write what is already in the ring (``drain``) and close; True if done in time.
+
+        ``error``: why it ends before its planned length when that is a failure, not the user's stop (the
+        camera lost before the trigger, the time limit run out). It is stored as the file's ``error``
+        attribute and its end event (``complete`` 0), unless the writer met an error of its own first.
+        """
+        if error and self._stop_error is None:
+            self._stop_error = str(error)
         if self._thread is None:
-            self._finish(error=None)
+            self._finish(error=None)  # takes the stop's error
             return True
         self._stop_at = self.ring.head if drain else (self._cursor.next_sequence if self._cursor else 0)
         self._stop.set()
@@ -791,7 +804,9 @@ class Recorder:
                 try:
                     fr = cur.read(self.read_timeout_s, out=buf)
                 except RingClosed as exc:
-                    if exc.error:
+                    if self._stop_error is not None:
+                        pass  # the end of the frames is what the error given to stop()/begin() explains
+                    elif exc.error:
                         error = f"acquisition ended with an error: {exc.error}"
                     elif end is not None and self._stop_at is None:
                         error = (f"acquisition stopped after {self.frames_written} of {self.n_frames} frames "
@@ -881,6 +896,7 @@ class Recorder:
 
     def _finish(self, error: Optional[str]) -> None:
         self._t_end = time.monotonic()
+        error = error or self._stop_error  # the writer's own error first, else why stop() was called
         acq = self.acquisition
         if acq is not None and getattr(acq, "ending", False):
             # the camera stops after our last frame: wait (briefly) for its final transport counters

@@ -503,9 +503,9 @@ def _record(args, prog: str) -> int:
         if bar is not None:
             bar.close()
         if not finished:
-            rec.stop(10.0, drain=False)
-            _say(f"{prog}: error: recording did not finish within {timeout:g} s; the file holds "
-                 f"{rec.frames_written} frames", sys.stderr)
+            late = f"recording did not finish within {timeout:g} s (--timeout-s)"
+            rec.stop(10.0, drain=False, error=f"{late}; stopped there, the frames written until then are kept")
+            _say(f"{prog}: error: {late}; the file holds {rec.frames_written} frames", sys.stderr)
             result = 2
         acq.stop(10.0)
         summary = summary_src.summary()
@@ -561,14 +561,15 @@ def _record(args, prog: str) -> int:
                 pass
 
 
-def _close_on_stop(rec, cap, why: str) -> None:
+def _close_on_stop(rec, cap, why: str, error: Optional[str] = None) -> None:
     """After Ctrl-C/SIGTERM/SIGHUP or an error: write every frame already captured, then close the file properly.
 
     Burst mode: the frames wait in RAM; they are written now. Before a
     trigger came, the pre-trigger frames in the ring are written (the stop
     acts as the trigger, with no frame after it: their ``trigger_index`` is
     -N .. -1, and a note in the file says ``why``); with none captured the
-    file is deleted (``rec.state`` "cancelled").
+    file is deleted (``rec.state`` "cancelled"). ``error`` (None for the
+    user's own stop): what went wrong, stored as the file's ``error``.
     """
     if rec.state == "armed" and cap is not None:
         ring = rec.ring
@@ -576,14 +577,17 @@ def _close_on_stop(rec, cap, why: str) -> None:
         if ring.head <= start:
             cap.cancel()
             return
+        if error:
+            error = (f"{error}; it came before the trigger: the file holds only the {ring.head - start} "
+                     "frames captured before it, no trigger frame")
         try:
-            rec.begin(start, trigger_sequence=ring.head)
+            rec.begin(start, trigger_sequence=ring.head, stop_error=error)
             rec.file.add_event("note", f"{why} before the trigger: the file holds the {ring.head - start} frames "
                                        "before it (trigger_index counts back from it; no trigger frame)",
                                sequence=ring.head)
         except Exception:
             pass
-    rec.stop(60.0, drain=True)
+    rec.stop(60.0, drain=True, error=error)
 
 
 def _end_after_error(rec, cap, acq, exc) -> str:
@@ -601,9 +605,9 @@ def _end_after_error(rec, cap, acq, exc) -> str:
             except AcquisitionError:
                 pass
         if cap is not None:
-            _close_on_stop(rec, cap, f"error ({exc})")
+            _close_on_stop(rec, cap, f"error ({exc})", error=str(exc))
         else:
-            rec.stop(30.0, drain=True)
+            rec.stop(30.0, drain=True, error=str(exc))
     if rec.frames_written == 0:
         if _drop_empty_file(rec):
             return "; no frame was recorded, no file was written"

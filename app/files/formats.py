@@ -189,13 +189,17 @@ def _accounted(frames: Iterator[tuple], indices: range, source: Source, errors: 
 
     def missing(i: int):
         first_missing[:] = first_missing or [i]
-        if failure is not None and i == failure[0]:
-            return failure[1]
+        known = source.readable_frames
+        if failure is not None and i == failure[0] and (known is None or i < known):
+            return failure[1]  # the decoder's own words (not for a frame known to be cut off)
+        # the advice names the first frame the file lacks: known at open (readable_frames),
+        # else the first this reader missed (a later chunk cannot see the frames before it)
+        before = known if known is not None else first_missing[0]
         return FormatError(
             f"frame {i} of {str(source.path)!r} is missing: the file's header promises "
             f"{source.n_frames} frames but {_readable_text(source, failure)}; the file is "
             f"truncated (an interrupted copy or recording): copy it again from its source, "
-            f"or process the frames before it (--frames :{first_missing[0]})")
+            f"or process the frames before it (--frames :{before})")
 
     try:
         try:
@@ -386,6 +390,48 @@ def _index_from_entries(container, stream, n: int):
     return _PacketIndex(tuple(stamps), tuple(keys), True)
 
 
+def _video_readable_frames(container, stream, path: Path, n: int) -> int | None:
+    """How many of the ``n`` frames a video's header promises lie whole in the file (its
+    ``readable_frames``), None when all do."""
+    whole = _video_whole_frames(container, stream, path, n)
+    return whole if whole < n else None
+
+
+def _video_whole_frames(container, stream, path: Path, n: int) -> int:
+    """How many of the ``n`` frames a video's header promises lie whole in the file, in
+    order: from the container's own index when it lists ``n`` frames (MP4/MOV sample
+    tables, AVI idx1: the frames before the first that ends past the file's end; nothing
+    read), else (an AVI cut before its idx1) from one pass over the packets without
+    decoding (the frames before the first packet the demuxer found cut short, or ``n``)."""
+    try:
+        entries = list(stream.index_entries)
+    except AttributeError:  # PyAV before 14 has no index_entries
+        entries = []
+    if len(entries) == n and n > 0:
+        try:
+            size = path.stat().st_size
+        except OSError:
+            return n
+        ends = [e.pos + e.size if e.pos >= 0 and e.size > 0 else None for e in entries]
+        if None not in ends:
+            return next((k for k, end in enumerate(ends) if end > size), n)
+        return n
+    whole = 0
+    try:
+        container.seek(0)
+        for packet in container.demux(stream):
+            if not packet.size:
+                continue
+            if packet.is_corrupt:  # the file ends inside it
+                break
+            whole += 1
+    except Exception:  # an unreadable stretch: the frames before it are what the file holds
+        pass
+    finally:
+        container.seek(0)
+    return min(whole, n)
+
+
 def _frames_of_duration(container, stream, fps: float, counted: int) -> int:
     """The frame count a stream's duration promises (duration x rate) where its
     header stores no count (MKV, some MP4), or ``counted`` where that promise is
@@ -446,6 +492,8 @@ def _open_video(path: Path) -> Source:
         promised = _frames_of_duration(container, stream, fps, n)
         if promised > n:  # the container's duration promises more: the file is cut short
             n, readable = promised, n
+    else:  # a header count (AVI, MP4/MOV): the frames it promises may lie past the file's end
+        readable = _video_readable_frames(container, stream, path, n)
     lossless = codec in LOSSLESS_CODECS
     notes = []
     if readable is not None:

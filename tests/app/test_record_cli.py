@@ -88,6 +88,29 @@ def test_errors_are_one_line_and_exit_2(tmp_path, capsys, argv, message):
     assert len(err) == 1 and err[0].startswith("tirdeflect record: error: ") and message in err[0], err
 
 
+@pytest.mark.aravis
+def test_roi_past_the_sensor_edge_is_refused_before_recording(tmp_path, capsys, gv_fake_camera):
+    """--roi 2000,0,100,100 on the fake GigE camera's 2048-pixel-wide sensor: its OffsetX accepted 2000 (and read
+    it back) while it delivered 100 x 100 frames, and the file said offset_x 2000, a window the sensor does not
+    have. Refused before a file exists, naming the sensor's width and the largest offset for that width; the
+    largest allowed offset still records and is stored as such."""
+    out = tmp_path / "r.h5"
+    rc = record_cli.cmd_record(_parse("--camera", gv_fake_camera.camera_id, "--frames", "10", "--roi",
+                                      "2000,0,100,100", "--out", str(out), "--no-progress"))
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2, err
+    assert len(err) == 1 and err[0].startswith("tirdeflect record: error: offset_x=2000 with width=100"), err
+    assert "2048 pixels wide" in err[0] and "offset_x may be at most 1948" in err[0], err
+    assert not out.exists()
+    rc = record_cli.cmd_record(_parse("--camera", gv_fake_camera.camera_id, "--frames", "3", "--roi",
+                                      "1948,1948,100,100", "--out", str(out), "--no-progress"))
+    assert rc == 0, capsys.readouterr()
+    with h5py.File(out, "r") as f:
+        assert f["frames"].shape == (3, 100, 100)
+        cam = f["camera"].attrs
+        assert (cam["offset_x"], cam["offset_y"], cam["width"], cam["height"]) == (1948, 1948, 100, 100)
+
+
 def test_a_recording_that_failed_before_its_first_frame_leaves_no_file(tmp_path, capsys):
     """No line pulse came: the error says no file was written, and the same --out works for the next try."""
     out = tmp_path / "l.h5"

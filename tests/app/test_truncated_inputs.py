@@ -148,6 +148,30 @@ def test_truncated_video_reports_its_missing_frames(sim128, whole_heights, tmp_p
         assert np.nanmax(np.abs(h - w)) <= 1e-4 * np.nanmax(np.abs(w))
 
 
+def test_cut_video_gives_the_same_advice_serial_and_in_parallel_chunks(sim128, tmp_path):
+    """The FFV1 .avi (its header promises 20 frames) cut to 60 %: over two workers in
+    chunks of 4 frames, a chunk that starts past the cut cannot see the frames before it
+    missing; it used to advise --frames :16 (its own first frame) where the serial run
+    says :N (the first frame the file lacks). Every missing frame's text, and the advice
+    in it, must be the serial run's, and N must be the frames FFmpeg decodes."""
+    folder, frames = sim128
+    cut = _cut(_write_video(tmp_path / "whole.avi", frames, "ffv1", "gray16le"), 0.6, tmp_path / "cut.avi")
+    decodable = _decodable(cut)
+    assert 4 <= decodable <= len(frames) - 8  # a whole chunk of 4 starts past the cut
+    texts = {}
+    for workers in ("1", "2"):
+        out = tmp_path / f"out{workers}.h5"
+        r = _process(cut, folder / "geometry.toml", out, "--workers", workers, "--chunk-frames", "4")
+        assert r.returncode == 3, r.stderr
+        o = _read(out)
+        assert np.all(o["frame_status"][decodable:] == UNREADABLE)
+        assert np.all(o["frame_status"][:decodable] != UNREADABLE)
+        texts[workers] = o["text"][decodable:]
+    advice = {t[t.index("--frames"):] for t in texts["1"] + texts["2"] if "--frames" in t}
+    assert advice == {f"--frames :{decodable})"}, advice
+    assert texts["2"] == texts["1"]
+
+
 # --------------------------------------------------------------------------- Phantom CINE
 
 

@@ -78,6 +78,24 @@ def test_fake1_open_configure_stream_close():
         cam.fetch(0.1)
 
 
+def test_fake1_region_past_the_sensor_edge_is_refused_naming_the_largest_offset():
+    """Aravis' fake camera takes OffsetX 2000 with Width 100 on its 2048-pixel sensor (its bounds do not follow
+    the width) and reads it back: the driver refuses the region from SensorWidth, and keeps the previous one."""
+    cam = aravis.AravisCamera("Fake_1").open()
+    try:
+        before = cam.configure(width=256, height=128, offset_x=32, offset_y=16).roi
+        with pytest.raises(SettingError, match=r"offset_x=2000 with width=100 runs past the sensor's edge: it is "
+                                               r"2048 pixels wide \(SensorWidth\), so offset_x may be at most 1948"):
+            cam.configure(width=100, height=100, offset_x=2000)
+        assert cam.settings().roi == before
+        with pytest.raises(SettingError, match=r"offset_y=16 with height=2040 .* offset_y may be at most 8 "):
+            cam.configure(height=2040)  # the kept offset with a new size
+        assert cam.settings().roi == before
+        assert cam.configure(width=100, height=100, offset_x=1948, offset_y=1948).roi == (1948, 1948, 100, 100)
+    finally:
+        cam.close()
+
+
 def test_fake1_mono16_frames_are_uint16():
     with aravis.AravisCamera("Fake_1") as cam:
         s = cam.configure(pixel_format="Mono16", width=64, height=32, frame_rate_hz=500.0)

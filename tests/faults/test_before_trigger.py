@@ -75,18 +75,23 @@ def _after_frames(captures, action):
 
 
 def _pre_trigger_file(path):
+    """The events of a file that holds the PRE frames before a trigger that never came (checked)."""
     with h5py.File(path, "r") as f:
         n = int(f["frames"].attrs["frames_written"])
         table = f["frame_table"][:n]
         frames = f["frames"][:n]
         events = [json.loads(e) for e in f["events"][:]]
         assert f.attrs["complete"] == 0 and "summary" in f
+        error = f.attrs["error"]
+        assert json.loads(f["summary"].attrs["summary_json"])["error"] == error
+    # the file's error is why it ended, and its end event says the same (a user's stop is no error)
+    assert [e["message"] for e in events if e["kind"] == "end"] == [error or "ok"], events
     assert n == PRE, f"{n} frames kept, {PRE} pre-trigger frames asked for and captured"
     # the frames before the stop, counted back from it: none of them is (or follows) a trigger frame
     assert list(table["trigger_index"]) == list(range(-PRE, 0))
     assert not np.any(table["flags"] & FrameFlags.TRIGGER)
     assert np.all(np.diff(table["sequence"]) == 1) and np.all(frames.reshape(n, -1).max(axis=1) > 0)
-    return events
+    return events, error
 
 
 def test_stop_signal_before_the_trigger_keeps_the_pre_trigger_frames_as_such(tmp_path, captures, capsys):
@@ -99,8 +104,9 @@ def test_stop_signal_before_the_trigger_keeps_the_pre_trigger_frames_as_such(tmp
     text = capsys.readouterr()
     assert rc == 143, text
     assert f"stopped by SIGTERM; the file holds {PRE} frames" in text.err
-    events = _pre_trigger_file(out)
+    events, error = _pre_trigger_file(out)
     assert any(e["kind"] == "note" and "before the trigger" in e["message"] for e in events), events
+    assert error == "", error  # the user's own stop
 
 
 @pytest.mark.aravis
@@ -116,7 +122,9 @@ def test_camera_lost_before_the_trigger_keeps_the_frames_captured(tmp_path, capt
     assert rc == 2, err
     said = [line for line in err if line.startswith("tirdeflect record: error:")]
     assert len(said) == 1 and "lost" in said[0] and f"holds the {PRE} frames captured before it" in said[0], err
-    _pre_trigger_file(out)
+    _, error = _pre_trigger_file(out)
+    # a user opening the file later sees why it is incomplete: the camera was lost, before the trigger
+    assert "lost" in error and "before the trigger" in error and f"only the {PRE} frames" in error, error
 
 
 def test_trigger_before_the_pre_trigger_frames_exist_is_not_a_complete_recording(tmp_path, capsys):
@@ -135,6 +143,24 @@ def test_trigger_before_the_pre_trigger_frames_exist_is_not_a_complete_recording
     assert f"pre-trigger      {have} of 50 frames" in text and f"{50 - have} pre-trigger frames missing" in text
     assert "no frame lost" not in text
 
+
+
+def test_timeout_is_stored_as_the_files_error(tmp_path, capsys):
+    """--timeout-s 1 on a recording of 5000 frames at 50 frames/s (100 s): it stops after about 1 s with
+    exit 2, and the file's error and end event say that the time limit ended it."""
+    out = tmp_path / "late.h5"
+    rc = record_cli.cmd_record(_parse(*SYNTHETIC, "--frames", "5000", "--timeout-s", "1", "--out", str(out)))
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    assert "error: recording did not finish within 1 s" in err
+    with h5py.File(out, "r") as f:
+        n = int(f["frames"].attrs["frames_written"])
+        error = f.attrs["error"]
+        events = [json.loads(e) for e in f["events"][:]]
+        assert f.attrs["complete"] == 0 and 0 < n < 5000
+        assert json.loads(f["summary"].attrs["summary_json"])["error"] == error
+    assert error.startswith("recording did not finish within 1 s (--timeout-s)"), error
+    assert [e["message"] for e in events if e["kind"] == "end"] == [error], events
 
 
 @pytest.mark.aravis
