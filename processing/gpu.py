@@ -51,7 +51,7 @@ import numpy as np
 
 from .fullgrid import lanczos_matrix, spline_matrix
 from .gpu_device import host_empty, to_host, warp_kernel
-from .pin import SHIFT_TOL_PX, frame_motion_step, motion_of
+from .pin import SHIFT_TOL_PX, USER_REGION_PREFIX, frame_motion_step, motion_of
 from .refine import WarpReference, modulate
 from .second_order import SECOND_ORDER_MIN_EFFECT, SecondOrderOptics, batch_effects
 from .unwrap import TWO_PI
@@ -538,7 +538,8 @@ class BatchChain:
         timings = {"total": ms / max(n, 1), "batch": ms}
         # processing.pin.region_motion of each frame's displacement on the pin samples (as the CPU's solve)
         pin_u = to_host(xp, u[:n].reshape(n, 2, -1)[:, :, self.pin_index])
-        moved = [motion_of(pin_u[k], self.pin_pos) for k in range(n)]
+        user = str(self.pin.region).startswith(USER_REGION_PREFIX)
+        moved = [motion_of(pin_u[k], self.pin_pos, user_region=user) for k in range(n)]
         valid_dec = np.ones(ph.shape[2:], bool)
         # processing.pin.frame_motion of each frame (every k-th row and column, as the CPU's), and where the
         # whole pattern shifted, what that puts into the heights (HeightSolver.shift_status, on the host)

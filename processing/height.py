@@ -78,8 +78,8 @@ from .geometry import Geometry
 from .height_kernels import cell_average, check_grid, div_T, neumann_eigenvalues, poisson_neumann, variable_optics
 from .height_masked import apply_AT, edge_data, solve_masked
 from .height_spectral import prepare_spectral, spectral_solve
-from .pin import (PIN_MIN_PIECE_SAMPLES, PinStatus, choose_pin_samples, level_of_shift_um, null_mode_offset,
-                  region_motion, shift_judged)
+from .pin import (PIN_MIN_PIECE_SAMPLES, USER_REGION_PREFIX, PinStatus, choose_pin_samples, level_of_shift_um,
+                  null_mode_offset, region_motion, shift_judged)
 from .regions import connected_regions
 
 __all__ = [
@@ -88,6 +88,14 @@ __all__ = [
     "surface_from_displacement",
     "solver_for",
 ]
+
+
+def _with_motion(status, displacement_px, samples, grid):
+    """``status`` (a :class:`PinStatus`) with how the pattern moved on the pin ``samples``
+    (:func:`processing.pin.region_motion`; the user's ``reference_region`` judged by its spread too)."""
+    user = str(status.region).startswith(USER_REGION_PREFIX)
+    return dataclasses.replace(status, **region_motion(displacement_px, samples, grid.rows_px, grid.cols_px,
+                                                       user_region=user))
 
 
 class SurfaceResult(NamedTuple):
@@ -349,8 +357,7 @@ class HeightSolver:
         u, motion = shift_judged(displacement_px, valid, judge_shift, shift_removal)
         h, sx, sy, status, samples = spectral_solve(self, self._fast, u, valid, reference_mask,
                                                     pin_fallback=pin_fallback, region_name=region_name, near=near)
-        status = dataclasses.replace(status, **region_motion(displacement_px, samples, self.grid.rows_px,
-                                                             self.grid.cols_px))
+        status = _with_motion(status, displacement_px, samples, self.grid)
         if motion is not None:  # (the whole pattern shifted alike since the reference?)
             status = self.shift_status(status, *motion, valid, reference_mask, pin_fallback=pin_fallback,
                                        region_name=region_name, near=near, removed=shift_removal)
@@ -430,7 +437,7 @@ class HeightSolver:
             return self.solve_spectral(u, v, reference_mask, pin_fallback=pin_fallback, region_name=region_name,
                                        near=near, judge_shift=judge_shift, shift_removal=shift_removal)
         samples, status, _ = self.pin_choice(v, all_valid, reference_mask, pin_fallback, region_name, near)
-        status = dataclasses.replace(status, **region_motion(u, samples & v, self.grid.rows_px, self.grid.cols_px))
+        status = _with_motion(status, u, samples & v, self.grid)
         u_solved, motion = shift_judged(u, v, judge_shift, shift_removal)
         if motion is not None:
             status = self.shift_status(status, *motion, v, reference_mask, pin_fallback=pin_fallback,

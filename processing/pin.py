@@ -15,7 +15,8 @@ from .pin_kernels import gather_samples, scale_fit
 __all__ = ["PIN_MIN_SAMPLES", "PIN_MIN_FRACTION", "PIN_MIN_PIECE_SAMPLES", "PIN_FALLBACKS", "PinStatus",
            "STILL_REGION_MAX_MOTION_PX", "BAND_MAX_MOTION_PX", "USER_REGION_PREFIX", "band_moved",
            "choose_pin_samples", "null_mode_offset", "pattern_moved",
-           "pin_samples_needed", "region_motion_px", "SHIFT_MIN_PX", "SHIFT_TOL_PX", "SHIFT_MIN_SHARE",
+           "pin_samples_needed", "region_motion_px", "STILL_REGION_MAX_SPREAD_PX", "SHIFT_MIN_PX", "SHIFT_TOL_PX",
+           "SHIFT_MIN_SHARE",
            "frame_motion", "frame_motion_step", "FRAME_MOTION_SAMPLES", "shift_tolerance_px", "steady_shift",
            "STEADY_SHIFT_MIN_PX", "STEADY_SHIFT_MIN_RATIO", "STEADY_SHIFT_MIN_FRAMES", "pattern_shifted",
            "level_of_shift_um", "shift_judged", "region_motion", "region_scale", "pattern_scaled", "motion_of",
@@ -49,6 +50,14 @@ STILL_REGION_MAX_MOTION_PX = 0.03
 #: 1024^2); there the TIR heights' null mode ``exp(-T y/H)`` is set by the band's motion: at 1024^2
 #: up to 2.7 % of their RMS (0.10-0.20 % with that mode pinned alike, ``tirdeflect compare``).
 BAND_MAX_MOTION_PX = 0.1
+#: The user's ``reference_region`` also counts as moving where the median *length* of its samples'
+#: displacement exceeds this (px), whatever their median vector: a region laid on a feature centred in
+#: it (a bump's top) sees slopes of both signs whose median vector is nearly 0 (by-hand sweep, 7 Dec
+#: 2026: ``tirdeflect simulate``'s 2 um bump at 256^2, region [100, 156, 100, 156] on it, median
+#: vector 0.015 px, sample lengths' median 2.9-3.1 px; the heights pinned 1.5 um low, in silence).  At
+#: rest the lengths' median is the noise's: 0.0002-0.0006 px (8 / 12 bit, 1-2 DN), 0.019 px at 6 DN
+#: in 8 bit, 0.007 px on random dots.
+STILL_REGION_MAX_SPREAD_PX = 0.1
 #: How the name of the user's ``reference_region`` starts (:func:`processing.mask.choose_reference_region`).
 USER_REGION_PREFIX = "reference_region"
 
@@ -138,18 +147,25 @@ def pattern_scaled(reach_px: float, explained: float) -> bool:
     return bool(reach_px >= SCALE_MIN_PX and explained >= SCALE_MIN_EXPLAINED)
 
 
-def region_motion(displacement_px, samples, rows_px, cols_px) -> dict:
+def region_motion(displacement_px, samples, rows_px, cols_px, *, user_region: bool = False) -> dict:
     """The :class:`PinStatus` fields of how the pattern moved on the pin ``samples``: ``region_motion_px``
-    (:func:`region_motion_px`) and ``region_scale``, ``region_scale_reach_px``,
-    ``region_scale_explained`` (:func:`region_scale`)."""
-    return motion_of(*_pin_samples(displacement_px, samples, rows_px, cols_px))
+    (:func:`region_motion_px`; for the user's region ``user_region`` at least the median length of the
+    samples' displacement where that exceeds :data:`STILL_REGION_MAX_SPREAD_PX`) and ``region_scale``,
+    ``region_scale_reach_px``, ``region_scale_explained`` (:func:`region_scale`)."""
+    return motion_of(*_pin_samples(displacement_px, samples, rows_px, cols_px), user_region=user_region)
 
 
-def motion_of(u_samples, p_samples) -> dict:
+def motion_of(u_samples, p_samples, *, user_region: bool = False) -> dict:
     """:func:`region_motion` of the pin samples' displacement ``u_samples`` (2, m; px, finite) at
     positions ``p_samples`` (2, m; px)."""
     scale, reach, explained = scale_of(u_samples, p_samples)
-    return dict(region_motion_px=_median_length(u_samples), region_scale=scale, region_scale_reach_px=reach,
+    motion = _median_length(u_samples)
+    u = np.asarray(u_samples)
+    if user_region and u.shape[1]:
+        spread = float(np.median(np.hypot(u[0], u[1])))
+        if spread > STILL_REGION_MAX_SPREAD_PX:  # slopes of both signs: a feature inside the region
+            motion = max(motion, spread)
+    return dict(region_motion_px=motion, region_scale=scale, region_scale_reach_px=reach,
                 region_scale_explained=explained)
 
 

@@ -366,6 +366,13 @@ def run_process(args: ProcessJob) -> BatchReport:
     if reference_saturated:
         log.warning("%s", reference_saturated[1])
         input_notes.append(reference_saturated[1])
+    if reconstruct.pattern == "dots":  # too few dots a window: PIV's heights degrade, said once
+        from processing.piv import sparse_dots_note
+
+        sparse = sparse_dots_note(reference, window_px=options.window_px)
+        if sparse:
+            log.warning("%s", sparse)
+            input_notes.append(sparse)
     if reconstruct.mosaic is not None:  # a colour camera read raw: equalised, said once
         input_notes.append(reconstruct.mosaic.describe())
     grazing = grazing_view_note(geometry)

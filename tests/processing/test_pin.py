@@ -476,3 +476,33 @@ def test_a_uniform_shift_says_it_is_known_only_up_to_whole_periods():
     assert "about 20 px along this one" in across, across  # set by the carrier that moves with it
     assert shift_alias_text((4.9, 0.0), None, 300.0) == ""  # random dots: no carriers
     assert shift_alias_text((0.0, 0.0), carriers) == ""
+
+
+def test_a_reference_region_laid_on_a_centred_feature_is_named_though_its_median_does_not_move():
+    # by-hand sweep (7 Dec 2026): simulate's bump with reference_region on its top. The bump's slopes
+    # there point every way, so their componentwise median displacement is about 0 (0.015 px, under the
+    # 0.03 px bound) while every sample moved by about 3 px: the heights were pinned 1.5 um low (75 % of
+    # the 2 um bump) with exit 0 and no word. 256^2, 8 bit, 2 mm board, bump 2 um sigma 3.2 mm at the centre
+    from processing.pin import STILL_REGION_MAX_SPREAD_PX
+
+    board = F.Checkerboard(period_mm=2.0, edge_softness_mm=0.1)
+    bump = F.GaussianBump(0.002, 3.2)
+    shape = (256, 256)
+    on, off = (100, 156, 100, 156), (0, 32, 0, 32)
+    g = Geometry(theta_deg=55, depth_mm=300, pixel_mm=0.1, rows_toward_camera=False)
+    ref, _ = F.render_tir(F.FlatSurface(), g, shape, board, supersample=2)
+    img, info = F.render_tir(bump, g, shape, board, supersample=2)
+    ref, img = F.quantize(ref, bits=8), F.quantize(img, bits=8)
+    for grid, opts in (("full", {}), ("decimated", {}), ("full", {"refine_method": "fd"})):
+        res = Reconstructor(ref, dataclasses.replace(g, reference_region=on), **opts)(img, grid=grid)
+        rows, cols = res.rows_px.astype(int), res.cols_px.astype(int)
+        # what goes unseen without the name: the whole map about 1.5 um low, most of the bump's height
+        truth = info.height_mm[np.ix_(rows, cols)]
+        offset_um = 1e3 * float(np.nanmedian((truth - res.height)[res.valid]))
+        assert offset_um > 1.0, offset_um
+        assert not res.pin.still, (grid, opts, res.pin.region_motion_px)
+        assert res.pin.region_motion_px > 10 * STILL_REGION_MAX_SPREAD_PX, (grid, opts)
+        assert "moved there by" in res.pin.describe()
+        # a corner at rest is still, and the heights right there
+        res = Reconstructor(ref, dataclasses.replace(g, reference_region=off), **opts)(img, grid=grid)
+        assert res.pin.still and res.pin.region_motion_px < 0.01, (grid, opts, res.pin.region_motion_px)
