@@ -223,7 +223,8 @@ class BatchChain:
         self.sx, self.sy_u, self.sy_h = float(F["sx"]), float(F["sy_u"]), float(F["sy_h"])
         self.coef = hs.slope_coefficients()
         second = SecondOrderOptics(recon.geometry, recon.rows_px, recon.cols_px, recon.shape, hs.x_mm, hs.y_mm)
-        self.second = (to(second.t.astype(np.float32)), hs.y_mm, hs.x_mm) if second.applies else None
+        # TIR's hit-point effect; FS-SS's own (h / h_p, the slope's square) is not judged here: its heights linear
+        self.second = None if second.fsss else (to(second.t.astype(np.float32)), hs.y_mm, hs.x_mm)
         self.smooth = None
         self.staging = None  # page-locked host buffer the frames go up from (reused: each batch ends synchronised)
         self.rows_f = xp.arange(rows, dtype=xp.float32)[:, None]

@@ -1152,3 +1152,20 @@ def test_a_dots_reference_too_sparse_for_the_windows_is_named(tmp_path, capsys):
         assert said == named, err
         if named:
             assert "note:" in err and "denser or finer dot pattern" in err
+
+
+def test_fsss_over_shallow_water_gives_the_heights_of_deep_water(tmp_path, capsys):
+    """By-hand sweep of 7 Dec 2026: FS-SS over 10 mm of water, simulate's bump (1.1 mm high, a tenth of the
+    depth) came out 3.63 % off (scale 1.034), exit 0, no word: the linear model's water column does not rise
+    with the surface. With the FS-SS second order taken off (processing.second_order): under 0.5 %."""
+    g = tmp_path / "shallow.toml"
+    g.write_text('setup = "fsss"\npixel_mm = 0.1\nfsss_layers = [[10.0, 1.333]]\n', encoding="utf-8")
+    d = tmp_path / "sim"
+    code, err = _run(capsys, "simulate", "--out", d, "--geometry", g, "--surface", "bump", "--size", SIZE,
+                     "--frames", 1)
+    assert code == 0, err
+    code, err = _run(capsys, "process", d / "reference.png", d / "frame_0000.png", "--geometry",
+                     d / "geometry.toml", "--out", tmp_path / "o.h5")
+    assert code == 0, err
+    rel = _compared(capsys, tmp_path / "o.h5", d)
+    assert rel[0] < 0.5, rel
