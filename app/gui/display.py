@@ -292,6 +292,7 @@ def update_staleness(w) -> None:
         v.set_stale(w.stale.raw)
     for v in (*w.map_views, w.profile_view, w.probe_view):
         v.set_stale(w.stale.maps)
+    w.pin_overlay.set_stale(w.stale.maps is not None)  # its words on the live raw frame are the maps'
     for v in (w.spectrum_view, w.modulation_view):
         v.set_stale(w.stale.alignment)
     rp = w.recording_panel  # the auto-trigger's quantity, from the maps on screen: their age too

@@ -56,6 +56,7 @@ class PinRegionOverlay:
         self.text = ""
         self.short = ""
         self.bad = False
+        self.stale = False  # the maps the label was measured on are not the live frame's (model/staleness.py)
         self.set_reconstructor(None)
 
     def set_reconstructor(self, rec) -> None:
@@ -137,7 +138,26 @@ class PinRegionOverlay:
         bad = bool(flags)
         self._show(text, short, bad=bad)
 
+    def set_stale(self, stale: bool) -> None:
+        """The maps on screen are ``stale`` (another camera's, a lost camera's, older than the frames): the
+        label on the live raw frame says so in grey rather than the old maps' "100 % valid" in green. After a
+        switch from the synthetic camera to the GigE camera, the reference's green "h = 0: 100 % valid" stood
+        on the new camera's frames, which nothing measured (by-hand trial, 7 Dec 2026)."""
+        stale = bool(stale) and bool(self.short)
+        if stale == self.stale:
+            return
+        self.stale = stale
+        if stale:
+            self.label.setText("h = 0: no live maps", color="#808080")
+            self.label.setToolTip(f"{self.text} (of maps that are not the live frame's: see the Height map)")
+        else:
+            self.label.setText(self.short, color="#d00000" if self.bad else "#00a000")
+            self.label.setToolTip(self.text)
+
     def _show(self, text: str, short: str, *, bad: bool) -> None:
+        if self.stale:  # maps of a live frame are drawn: the label is theirs again
+            self.stale = False
+            self.text = ""
         if text != self.text or bad != self.bad or short != self.short:
             was_bad = self.bad
             self.text, self.short, self.bad = text, short, bad

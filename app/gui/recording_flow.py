@@ -90,7 +90,8 @@ def update_recording(w):
     state = rec["state"]
     if state != rp.state_label.text():
         rp.set_state(state)
-        rp.result_label.setText(progress_line(state, rec.get("path"), rp.result_label.text()))
+        rp.result_label.setText(progress_line(state, rec.get("path"), rp.result_label.text(),
+                                              rec.get("summary_text", "")))
     rp.progress.setValue(int(round(100 * rec.get("progress", 0.0))))
     if state in ("done", "error") and rec.get("summary_text") and not rec.get("_shown"):
         rec["_shown"] = True

@@ -328,7 +328,7 @@ class LiveSession:
         :class:`processing.reference_average.WaterMovingError` when the frames disagree (the water moves):
         :class:`~processing.reference_average.ReferenceAverager` says by how much.
         """
-        from processing.reference_average import ReferenceAverager, first_frame_carriers
+        from processing.reference_average import ReferenceAverager, WaterMovingError, first_frame_carriers
 
         acq = self.acquisition
         if acq is None:
@@ -356,7 +356,14 @@ class LiveSession:
             if averager is None:
                 averager = ReferenceAverager(first_frame_carriers(f.image, pattern))
             averager.add(f.image)
-        return averager.result()
+        try:
+            return averager.result()
+        except WaterMovingError as exc:
+            if averager.carriers_freq is None and pattern != "dots":  # frames of no checkerboard, changing
+                from .model.reference import no_pattern_error
+
+                raise WaterMovingError(no_pattern_error(str(exc))) from None
+            raise
 
     # ------------------------------------------------------------- status
     def status(self) -> dict:
@@ -367,7 +374,8 @@ class LiveSession:
             return out
         s = acq.stats()
         out["camera_fps"] = s["fps"]
-        out["dropped_camera"] = s["lost_upstream"] + s["lost_by_time"] + s["incomplete"]
+        out["dropped_camera"] = s["lost_upstream"] + s["lost_by_time"]
+        out["incomplete_camera"] = s["incomplete"]  # delivered with pixels missing (kept, stored as 0): not lost
         out["error"] = s["error"]
         rec = self.recording
         if rec is not None:
@@ -474,6 +482,13 @@ class LiveSession:
             return status
         from app.capture.recorder import format_summary
 
+        from .model.recording import armed_camera_lost_text
+
+        lost = getattr(capture.acquisition, "error", None)
+        if capture.state == "armed" and lost:  # nothing will ever trigger it: disarmed, and the panel says why
+            self.disarm()
+            status["summary_text"] = armed_camera_lost_text(lost)
+            return status
         rec = capture.recorder
         status["ring_lost"] = rec.lost_overrun
         status["backlog"] = rec.backlog

@@ -126,6 +126,9 @@ def camera_opened(w, opened) -> None:
     """Per-camera memory after a camera opened: geometry (and its banner), accepted settings, reference."""
     cid = opened.camera_id
     w.memory.remembered_camera = None
+    # a loss of this camera is a new problem: shown again even in the words of the last one (the camera
+    # killed, opened again and lost again was said only by the red LOST: by-hand trial, 7 Dec 2026)
+    w._shown_camera_error = None
     cam = _camera(w, cid)
     _memory(w)["camera_id"] = cid
     tank = w.session.tank

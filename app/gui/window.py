@@ -40,10 +40,6 @@ log = logging.getLogger(__name__)
 DISPLAY_PERIOD_MS = 16  # first tick
 
 
-
-
-
-
 class _Bridge(QtCore.QObject):
     """Carries results of background threads into the GUI thread (queued signal)."""
 
@@ -299,7 +295,9 @@ class MainWindow(QtWidgets.QMainWindow):
                 self._update_cost()
                 state.remember_camera_settings(self, settings)
                 reference_flow.follow_roi(self, settings)
-        self.run_background("configure", self.session.configure, done, values)
+        from .model.camera import settings_to_write  # the features the camera has (its greyed editors: none)
+        self.run_background("configure", self.session.configure, done,
+                            settings_to_write(values, self.session.camera_settings()))
 
     # ---------------------------------------------------------- reference
     # reference_flow.py

@@ -16,7 +16,7 @@ import math
 from typing import Deque, Optional
 
 __all__ = ["THRESHOLD_UNIT", "PROPOSE_FACTOR", "HISTORY_N", "mrad", "slope_of_mrad", "RmsHistory",
-           "threshold_attrs", "progress_line"]
+           "threshold_attrs", "progress_line", "armed_camera_lost_text"]
 
 #: The unit of the threshold the panel shows, the settings remember and the recording file states.
 THRESHOLD_UNIT = "mrad RMS slope"
@@ -73,11 +73,23 @@ def threshold_attrs(threshold_mrad: Optional[float]) -> dict:
             "auto_trigger_quantity": "sqrt(mean(slope_x^2 + slope_y^2)) over the live slope maps"}
 
 
-def progress_line(state: str, path: Optional[str], shown: str) -> str:
+def armed_camera_lost_text(error: str) -> str:
+    """The panel's line when the camera of an armed recording was lost before its trigger: the recording is
+    disarmed (nothing could ever trigger it) and its empty file removed. It used to stay "armed: will write
+    ..." with Trigger now enabled, and after the camera was opened again "idle" beside that same line (by-hand
+    trial with the fake GigE camera killed while armed, 7 Dec 2026)."""
+    return (f"disarmed: the camera was lost before the trigger ({error.splitlines()[0]}); nothing recorded, "
+            "no file written. Open the camera again and press Arm.")
+
+
+def progress_line(state: str, path: Optional[str], shown: str, summary: str = "") -> str:
     """The panel's line under the state for a recording in ``state`` writing ``path``; ``shown`` is the
     line on screen now. Once the trigger fired, "armed: will write ..." is no longer true (the by-hand trial
     of 2 Dec 2026 saw it beside "capturing"): the line says what is being written. The summary of a
-    recording that ended (done, error) is written by the window itself and is kept."""
+    recording that ended (done, error) is written by the window itself and is kept. ``summary``: what the
+    session says happened to a recording it disarmed itself (idle: the camera was lost or changed)."""
+    if state == "idle" and summary:
+        return summary
     if state == "capturing":
         return f"capturing: writing {path}"
     if state == "saving":

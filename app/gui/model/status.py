@@ -58,8 +58,10 @@ def status_texts(st: dict, *, camera_fps: float, processed_fps: float, shown_fps
         fps=f"camera {camera_fps:.1f} · processed {processed_fps:.1f} · shown {shown_fps:.1f} fps",
         drops=drops_text(st),
         drops_tip=(f"dropped: camera {st.get('dropped_camera', 0)} · ring→recorder {st.get('dropped_ring', 0)} · "
-                   f"recorder backlog {st.get('recorder_backlog', 0)} · display skipped {display_skipped} (by design)"),
-        drops_alarm=bool(st.get("dropped_camera", 0) or st.get("dropped_ring", 0)),
+                   f"recorder backlog {st.get('recorder_backlog', 0)} · display skipped {display_skipped} (by design)"
+                   + (f" · incomplete {st['incomplete_camera']} (delivered with network packets missing: kept, "
+                      "the missing pixels are 0)" if st.get("incomplete_camera") else "")),
+        drops_alarm=bool(st.get("dropped_camera", 0) or st.get("dropped_ring", 0) or st.get("incomplete_camera", 0)),
         ring=f"ring {100 * fill:.0f} %" if fill is not None else "",
         ring_tip=f"ring buffer {100 * fill:.0f} % full, {st.get('ring_frames', 0)} frames" if fill is not None else "",
         latency=f"latency {latency_ms:.0f} ms" if math.isfinite(latency_ms) else "",
@@ -76,9 +78,16 @@ def drops_text(st: dict) -> str:
     """The status bar's few words on lost frames: ``"dropped: none"`` while no frame was lost, else the
     losses per stage (``"DROPPED camera 2 · ring→recorder 0"``), and the recorder's backlog when it has
     one. The whole sentence, with the counters that are not losses, was cut to "dropped: ca…" at
-    1280x800 (by-hand trial 2 Dec 2026): the one number a user must see was the first to go."""
-    camera, ring = st.get("dropped_camera", 0), st.get("dropped_ring", 0)
+    1280x800 (by-hand trial 2 Dec 2026): the one number a user must see was the first to go.
+
+    Frames the camera delivered with pixels missing (GigE packets lost: kept, the missing pixels 0) are
+    ``"INCOMPLETE n"``, not dropped: counted as "DROPPED camera", a lossy link's 212 damaged frames read as
+    212 lost while the recording beside it said "lost upstream 0" (by-hand trial, fake GigE camera with
+    ``-r 20``, 7 Dec 2026)."""
+    camera, ring, incomplete = st.get("dropped_camera", 0), st.get("dropped_ring", 0), st.get("incomplete_camera", 0)
     text = f"DROPPED camera {camera} · ring→recorder {ring}" if camera or ring else "dropped: none"
+    if incomplete:
+        text = f"{text} · INCOMPLETE {incomplete}"
     backlog = st.get("recorder_backlog", 0)
     return f"{text} · backlog {backlog}" if backlog else text
 
