@@ -21,6 +21,7 @@ import numpy as np
 
 from processing.geometry import grazing_view_note
 from processing.live_view import SATURATION_MAX_PCT
+from processing.piv import DOTS_PER_WINDOW_MIN  # the one bound: `process` names a dots run below it too
 from processing.reference_average import PHASE_BOUND_RAD, grey_change, half_spectrum_baseband, phase_change_rad
 
 __all__ = ["frame_alignment", "display_spectrum", "modulation_map", "assess", "DOT_WINDOW_PX", "periodic_pattern",
@@ -309,8 +310,6 @@ def _nz(value, digits: int = 2) -> float:
 DOT_MIN_PX = 2.0
 #: Above this (either axis) fewer dots fit a window: a note, not a stop.
 DOT_LARGE_PX = 6.0
-#: Fewer dots than this per final interrogation window: correlation peaks become ambiguous.
-DOTS_PER_WINDOW_MIN = 4.0
 #: (p99 - p1) / (p99 + p1) of the grey levels below this: dots barely above the ground.
 DOT_CONTRAST_MIN = 0.2
 #: 1 - autocorrelation at 1 px below this: the image hardly changes from one pixel to the next
