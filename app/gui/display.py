@@ -15,7 +15,7 @@ from pyqtgraph.Qt import QtCore
 from app.capture.trigger import rms_slope
 
 from . import state
-from .model.reference import pattern_mismatch_messages
+from .model.reference import incomplete_frame_messages, maps_messages, pattern_mismatch_messages
 from .model.region import profile_line_for
 from .model.schedule import LIVE_TAB, timer_ms
 from .model.staleness import derived_text, unmeasured_messages, view_staleness
@@ -129,7 +129,9 @@ def draw_result(w, p, part: int = -1):
     x, y = r.x_mm, r.y_mm
     seq = p.seq
     if part in (0, -1):
-        text, short = pattern_mismatch_messages(w.pattern_problem)  # "" unless the pattern is not the one chosen
+        # "" unless the pattern is not the one chosen, or the frame came incomplete off the camera's link
+        text, short = maps_messages(pattern_mismatch_messages(w.pattern_problem),
+                                    incomplete_frame_messages(w.session.incomplete_pct_of(seq)))
         for v in views:
             v.show_message(text, None if v is w.height_view else short)
         w.last_drawn = p

@@ -86,6 +86,7 @@ class LiveSession:
         self._closed = False
         self.tank = None  # the synthetic camera's app.capture.scene.TankScene (scenes, true heights)
         self._frame_ids = {}  # worker seq -> camera frame id (recent frames; truth lookup)
+        self._incomplete_pct = {}  # worker seq -> % of the frame's bytes lost on the network (incomplete ones)
         self.worker = ProcessingWorker(self._newest_frame, grid="decimated", nice=worker_nice,
                                        separate_process=worker_process)
         self.worker.start()
@@ -165,6 +166,11 @@ class LiveSession:
     def frame_id_of(self, seq: int) -> Optional[int]:
         """Camera frame id of the worker's frame ``seq`` (recent frames only), or None."""
         return self._frame_ids.get(int(seq))
+
+    def incomplete_pct_of(self, seq: int) -> float:
+        """Percentage of the worker's frame ``seq``'s bytes that the camera's link lost (stored as 0: an
+        INCOMPLETE frame, :class:`drivers.base.FrameFlags`); 0.0 for a whole frame or one no longer known."""
+        return self._incomplete_pct.get(int(seq), 0.0)
 
     def use_camera(self, camera, *, camera_id: Optional[str] = None) -> Opened:
         """Stream from an already constructed camera (opened here if needed); the old one is closed."""
@@ -271,9 +277,12 @@ class LiveSession:
         seq = self._seq_base + f.sequence
         ids = self._frame_ids
         ids[seq] = int(f.frame_id)
-        if len(ids) > 512:
-            for old in list(ids)[:256]:
-                ids.pop(old, None)
+        if f.missing_bytes:
+            self._incomplete_pct[seq] = 100.0 * f.missing_bytes / max(1, f.image.nbytes)
+        for recent in (ids, self._incomplete_pct):
+            if len(recent) > 512:
+                for old in list(recent)[:256]:
+                    recent.pop(old, None)
         return seq, f.image, f.host_timestamp_ns
 
     def sensor_origin_of(self, seq: int) -> Optional[tuple]:

@@ -95,6 +95,12 @@ def test_incomplete_frames_of_a_lossy_link_are_not_called_dropped(qtbot, window,
     assert (f"DROPPED camera {lost} " in shown) if lost else shown.startswith("dropped: none"), (shown, s)
     assert "incomplete" in drops.text() and "packets missing" in drops.text()  # the tooltip says what it is
     assert "color: #c00000" in drops.styleSheet()  # damaged frames are still an alarm
+    # the frames the worker measures are known as incomplete, by how much: their maps say so
+    # (app.gui.model.reference.incomplete_frame_messages; 2 % of the packets, about 2 % of the bytes)
+    qtbot.waitUntil(lambda: window.session.worker.latest() is not None
+                    and window.session.incomplete_pct_of(window.session.worker.latest().seq) > 0, timeout=30000)
+    pct = window.session.incomplete_pct_of(window.session.worker.latest().seq)
+    assert 0.05 < pct < 20, pct
 
 
 def _arm(qtbot, w, folder):

@@ -706,3 +706,16 @@ def test_a_frame_committed_while_a_camera_stops_is_not_numbered_as_the_next_came
             assert session.newest_seq() > last_of_old
     finally:
         session.close()
+
+
+def test_the_maps_of_an_incomplete_frame_say_so_beside_a_wrong_pattern():
+    """An INCOMPLETE frame (bytes lost on the camera's link, stored as 0) is drawn with its loss named on the
+    maps; a whole frame says nothing; both problems at once are both said."""
+    from app.gui.model.reference import incomplete_frame_messages, maps_messages, pattern_mismatch_messages
+
+    assert maps_messages(pattern_mismatch_messages(None), incomplete_frame_messages(0.0)) == ("", None)
+    text, short = maps_messages(pattern_mismatch_messages(None), incomplete_frame_messages(1.93))
+    assert text.startswith("INCOMPLETE frame: 1.9 % of its pixels were lost") and short == "INCOMPLETE frame (see Height)"
+    text, short = maps_messages(pattern_mismatch_messages("stripes"), incomplete_frame_messages(0.4))
+    assert text.startswith("NOT the chosen pattern") and "INCOMPLETE frame: 0.4 %" in text
+    assert short == "NOT the chosen pattern (see Height)"

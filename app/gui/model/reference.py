@@ -12,7 +12,7 @@ import re
 from typing import Optional
 
 __all__ = ["capture_failed_label", "capture_failed_message", "pattern_mismatch_messages", "no_pattern_error",
-           "NO_PATTERN"]
+           "NO_PATTERN", "incomplete_frame_messages", "maps_messages"]
 
 #: what a refused capture of frames showing no checkerboard says first (and its label keys on)
 NO_PATTERN = "the camera image shows no checkerboard"
@@ -59,3 +59,23 @@ def pattern_mismatch_messages(problem: Optional[str]) -> tuple:
         return "", None
     return (f"NOT the chosen pattern, these heights are wrong: {problem}",
             "NOT the chosen pattern (see Height)")
+
+
+def incomplete_frame_messages(missing_pct: float) -> tuple:
+    """What the maps say over the heights of an INCOMPLETE frame (``missing_pct``: % of its bytes the camera's
+    link lost, stored as 0): ``(full, short)`` as :func:`pattern_mismatch_messages`, ``("", None)`` for a whole
+    frame. The status bar counted such frames, but the maps of one, wrong along the lost rows (stripes of
+    zeros in the raw frame, spread by the band-pass), were drawn as any others (by-hand trial with the fake
+    GigE camera dropping packets, 7 Dec 2026)."""
+    if not missing_pct > 0:
+        return "", None
+    return (f"INCOMPLETE frame: {missing_pct:.2g} % of its pixels were lost on the camera's link (stored as 0): "
+            "these heights are wrong along those rows", "INCOMPLETE frame (see Height)")
+
+
+def maps_messages(*messages: tuple) -> tuple:
+    """The ``(full, short)`` pairs that have something to say, joined (the first's short words kept)."""
+    said = [m for m in messages if m[0]]
+    if not said:
+        return "", None
+    return "; ".join(m[0] for m in said), next((m[1] for m in said if m[1]), None)
