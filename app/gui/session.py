@@ -155,10 +155,11 @@ class LiveSession:
             from .camera_messages import explain_open_error
 
             self.close_camera()  # let go of it at once
+            self.camera_id = None  # the status bar named it as open
 
             raise RuntimeError(explain_open_error(camera_id, exc)) from exc
         self.tank = tank
-        opened.cameras, opened.note = infos, note
+        opened.cameras, opened.note = infos, "; ".join(n for n in (opened.note, note) if n)
         opened.reference, opened.geometry = reference, geometry
         opened.use_scene_reference = False
         return opened
@@ -183,11 +184,12 @@ class LiveSession:
         self.tank = None
         if hasattr(camera, "open") and not getattr(camera, "_opened", False):
             camera.open()
+        note = _to_mono(camera)
         with self._lock:
             self.camera = camera
             self.camera_id = camera_id or getattr(camera, "camera_id", "camera")
         self._restart_acquisition()
-        return Opened(self.camera_id, self._settings, [], "")
+        return Opened(self.camera_id, self._settings, [], note)
 
     def _restart_acquisition(self):
         from app.capture.acquisition import Acquisition
@@ -528,3 +530,27 @@ class LiveSession:
             self.worker.stop(timeout_s=5.0)
         except TimeoutError:
             pass
+
+
+def _to_mono(camera) -> str:
+    """Set a camera left in a pixel format the app cannot measure (a colour or packed one, e.g. GenTL's
+    "RGBa8") to the first mono format it accepts, Mono8 first; returns what the camera panel says of it
+    ("" when it was mono).  The window refused such a camera with the driver's words for programmers
+    ("configure(pixel_format=...)"), had let go of it, and Apply then said "no camera is open" (by-hand trial
+    with the genicam wheel's GenTL camera, 7 Dec 2026): ``tirdeflect record`` names ``--pixel-format``."""
+    from drivers.genicam_util import PIXEL_BITS
+
+    try:
+        before = camera.settings().pixel_format
+    except Exception:  # noqa: BLE001 - a camera that cannot say: started as it is (its error says why)
+        return ""
+    if before in PIXEL_BITS:
+        return ""
+    for mono in PIXEL_BITS:
+        try:
+            camera.configure(pixel_format=mono)
+        except Exception:  # noqa: BLE001 - not one this camera has: the next
+            continue
+        return (f"the camera was set to {before}, which cannot be measured (colour or packed): set to {mono} "
+                "(Controls ▸ Camera ▸ Pixel format)")
+    return ""

@@ -276,6 +276,8 @@ class MainWindow(QtWidgets.QMainWindow):
         if tank is not None:
             self.camera_panel.show_scene(tank.scene, state.STILL_WATER_PROMPT if tank.scene == "still" else "")
         self.camera_panel.show_settings(opened.settings)
+        if opened.note:  # what opening it changed (a colour format set to mono): kept beside the list
+            self.camera_panel.found_label.setText(opened.note)
         self.clear_error()
         # replaces "preparing…"/"opening…", which would otherwise stay up to 8 s over the new camera
         self.info(opened.note or f"camera {opened.camera_id} streaming", 8000 if opened.note else 3000)

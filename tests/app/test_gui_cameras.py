@@ -17,7 +17,8 @@ from pyqtgraph.Qt import QtCore
 
 from tests.app.test_gui_flow import _open_section, _type_into
 from tests.app.test_gui_truth import _ctrl
-from tests.drivers.fixtures import FakeGvCamera, _aravis_or_skip, gv_fake_camera, gv_fake_camera_lossy  # noqa: F401
+from tests.drivers.fixtures import (FakeGvCamera, _aravis_or_skip, gv_fake_camera, gv_fake_camera_lossy,  # noqa: F401
+                                    viky_cti)
 
 pytestmark = [pytest.mark.gui, pytest.mark.aravis, pytest.mark.cameras]
 
@@ -171,10 +172,37 @@ def test_after_a_switch_to_the_gige_camera_the_raw_frame_does_not_say_100_percen
     qtbot.waitUntil(lambda: _pin_label(w).startswith("h = 0: ") and "% valid" in _pin_label(w), timeout=20000)
     _open_from_the_list(qtbot, w)
     qtbot.waitUntil(lambda: w.height_view.is_stale and "previous camera" in w.height_view.stale_text,
-                    timeout=15000)
-    qtbot.waitUntil(lambda: _pin_label(w) == "h = 0: no live maps", timeout=5000)
+                    timeout=30000)
+    qtbot.waitUntil(lambda: _pin_label(w) == "h = 0: no live maps", timeout=20000)
     assert "valid" not in _pin_label(w)
     box = w.camera_panel.camera_box
     box.setCurrentIndex(box.findData("synthetic"))
     qtbot.mouseClick(w.camera_panel.open_button, QtCore.Qt.LeftButton)
     qtbot.waitUntil(lambda: "% valid" in _pin_label(w) and not w.height_view.is_stale, timeout=30000)
+
+
+@pytest.mark.gentl
+def test_a_gentl_camera_left_in_a_colour_format_is_set_to_mono_and_streams(qtbot, window, monkeypatch,
+                                                                          viky_cti):  # noqa: F811
+    """The genicam wheel's GenTL camera (viky.cti) starts in RGBa8. Opened from the camera list, the window said
+    "did not start: pixel_format 'RGBa8' cannot be streamed as a mono image; configure(pixel_format=...)" (words
+    for programmers), had let go of the camera, Apply then said "no camera is open", and the status bar still
+    named it (by-hand trial, 7 Dec 2026). Now it is set to Mono8, streams, and the Camera section says so."""
+    monkeypatch.setenv("GENICAM_GENTL64_PATH", os.path.dirname(viky_cti))
+    window.resize(1600, 1000)
+    _open_section(qtbot, window, "Camera")
+    qtbot.mouseClick(window.camera_panel.refresh_button, QtCore.Qt.LeftButton)
+    box = window.camera_panel.camera_box
+
+    def gentl():
+        return next((i for i in range(box.count()) if str(box.itemData(i)).startswith("gentl:")), -1)
+    qtbot.waitUntil(lambda: gentl() >= 0, timeout=30000)
+    box.setCurrentIndex(gentl())
+    camera_id = box.itemData(gentl())
+    seq0 = window.clock.last_raw_seq
+    qtbot.mouseClick(window.camera_panel.open_button, QtCore.Qt.LeftButton)
+    qtbot.waitUntil(lambda: not window.busy("open") and window.session.camera_id == camera_id
+                    and window.clock.last_raw_seq > seq0 + 2, timeout=30000)
+    assert window.session.camera_settings().pixel_format == "Mono8"
+    assert window.last_error is None, window.last_error
+    assert "was set to RGBa8" in window.camera_panel.found_label.text(), window.camera_panel.found_label.text()
