@@ -519,16 +519,25 @@ def default_reference_region_mask(rows_px, cols_px, frame_shape) -> np.ndarray:
     """Default reference region: a border band of the frame.
 
     The band is ``ceil(0.04 * min(n_rows, n_cols))`` pixels wide (at least 1)
-    along all four edges of the frame; returns a bool mask of shape
+    along all four edges of the frame, and holds the grid's outermost samples
+    where they lie further in (:func:`_band`); returns a bool mask of shape
     ``(len(rows_px), len(cols_px))`` that is True on samples inside it.
     """
     n_rows, n_cols = frame_shape
     w = max(1, math.ceil(DEFAULT_REFERENCE_BAND * min(n_rows, n_cols)))
     rows_px = np.asarray(rows_px, dtype=np.float64)
     cols_px = np.asarray(cols_px, dtype=np.float64)
-    rb = (rows_px < w) | (rows_px > n_rows - 1 - w)
-    cb = (cols_px < w) | (cols_px > n_cols - 1 - w)
-    return rb[:, None] | cb[None, :]
+    return _band(rows_px, n_rows, w)[:, None] | _band(cols_px, n_cols, w)[None, :]
+
+
+def _band(px, n: int, w: int) -> np.ndarray:
+    """Which of the samples at ``px`` (one axis of ``n`` pixels) lie in the border band ``w`` px wide, the
+    outermost samples always: random dots' PIV grid starts half a window in (8 px), beyond the band of a
+    frame under 200 px, and every frame of 160^2 was refused ("reference region None contains no sample of
+    the grid"; by-hand sweep, 7 Dec 2026)."""
+    if not px.size:
+        return np.zeros(0, bool)
+    return (px < max(w, px.min() + 0.5)) | (px > min(n - 1 - w, px.max() - 0.5))
 
 
 def _toml_value(v) -> str:

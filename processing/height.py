@@ -228,7 +228,7 @@ class HeightSolver:
         self.ref = geometry.reference_mask(grid.rows_px, grid.cols_px, grid.frame_shape)
         if not self.ref.any():
             raise GeometryError(
-                f"reference region {geometry.reference_region!r} contains no sample of the grid "
+                f"{self.region_name()} contains no sample of the grid "
                 f"(rows {grid.rows_px[0]:g}..{grid.rows_px[-1]:g}, cols {grid.cols_px[0]:g}..{grid.cols_px[-1]:g}); "
                 f"choose a larger region inside the frame"
             )
