@@ -105,8 +105,14 @@ def pytest_configure(config):
     if _xdist_worker():  # one note per worker (tests/run.sh reads NOTE.gw0, NOTE.gw1, ...)
         path = f"{path}.{_xdist_worker()}"
         # every process this worker's tests start carries this in its environment: how the
-        # check at the end tells this worker's orphans from a sibling worker's (below)
-        os.environ[_RUN_TAG] = f"{_xdist_worker()}-{os.getpid()}"
+        # check at the end tells this worker's orphans from a sibling worker's (below); under its
+        # controller's tag, which the controller's check takes as its own
+        os.environ[_RUN_TAG] = f"{os.environ.get(_RUN_TAG, '')}/{_xdist_worker()}-{os.getpid()}"
+    else:
+        # a plain run or a controller tags its processes too: another pytest run on the same checkout
+        # (a second terminal) started after this one carries its own tag, and is not this run's to end
+        # (by-hand, 7 Dec 2026: two sessions' runs ended each other's background runs)
+        os.environ[_RUN_TAG] = f"run-{os.getpid()}"
     config._tirdeflect_watchdog_note = path
     config._tirdeflect_shm_seen = {}  # block of an ended run -> the test it was first seen after
     config._tirdeflect_shm_before = _blocks_of_ended_runs()  # left by something before this session
@@ -451,13 +457,21 @@ def _ours(pid: int, places: tuple[str, ...]) -> bool:
 _RUN_TAG = "TIRDEFLECT_TEST_WORKER"
 
 
-def _tagged(pid: int, tag: str) -> bool:
-    """Does ``pid``'s environment (as it was started) hold ``_RUN_TAG=tag``?"""
+def _tag_of(pid: int):
+    """``pid``'s ``_RUN_TAG`` as it was started ("" without one), or None where its environment cannot be read."""
     try:
         with open(f"/proc/{pid}/environ", "rb") as f:
-            return f"{_RUN_TAG}={tag}".encode() in f.read().split(b"\0")
+            entries = f.read().split(b"\0")
     except OSError:
-        return False
+        return None
+    key = f"{_RUN_TAG}=".encode()
+    return next((e[len(key):].decode(errors="replace") for e in entries if e.startswith(key)), "")
+
+
+def _tagged(pid: int, tag: str) -> bool:
+    """Was ``pid`` started by the run tagged ``tag``, or one of its xdist workers (``tag/gwN-pid``)?"""
+    found = _tag_of(pid)
+    return bool(found) and (found == tag or found.startswith(tag + "/"))
 
 
 def _left_running(session) -> list[int]:
@@ -469,13 +483,14 @@ def _left_running(session) -> list[int]:
     have been orphaned on purpose (a killed run's workers), and those are not
     ours to end. The orphans without a tag (started with an environment of
     their own) are left to the controller, whose check runs after every
-    worker has ended."""
+    worker has ended; orphans tagged by another run (:func:`_left_by_us`) are
+    nobody's here."""
     table = _processes()
     me = os.getpid()
     if me not in table:
         return []
     started = table[me][1]
-    tag = os.environ.get(_RUN_TAG, "") if _xdist_worker() else ""
+    tag = os.environ.get(_RUN_TAG, "")
     places = (str(session.config.rootpath),)
     try:
         places += (str(session.config._tmp_path_factory.getbasetemp()),)
@@ -488,8 +503,7 @@ def _left_running(session) -> list[int]:
     above = _ancestors(me, table)
     pids = [pid for pid, (parent, start) in table.items()
             if pid != me and pid not in above and pid_alive(pid)
-            and (pid in below or (parent == 1 and start >= started
-                                  and (_tagged(pid, tag) if tag else _ours(pid, places))))]
+            and (pid in below or (parent == 1 and start >= started and _left_by_us(pid, tag, places)))]
     # multiprocessing's resource tracker, and the app's fork server (app/worker_processes.py: its
     # workers are below it, and checked), end with this process, by design
     pids = [pid for pid in pids if "multiprocessing.resource_tracker" not in _cmdline(pid)
@@ -503,6 +517,15 @@ def _left_running(session) -> list[int]:
            and any((FORK_SERVER_COMMAND in _cmdline(pid) or not _cmdline(pid)) and pid_alive(pid) for pid in pids)):
         time.sleep(0.05)  # polling their state, bounded by the deadline
     return [pid for pid in pids if pid_alive(pid)]
+
+
+def _left_by_us(pid: int, tag: str, places: tuple[str, ...]) -> bool:
+    """Is the orphan ``pid`` one this run's tests left: started under this run's tag (or a worker's under
+    it); an xdist worker's, under its own alone. Untagged ones started in ``places`` (an environment of
+    their own) are the controller's or a plain run's; another run's tagged ones are never ours."""
+    if _tagged(pid, tag):
+        return True
+    return not _xdist_worker() and _tag_of(pid) == "" and _ours(pid, places)
 
 
 @pytest.hookimpl(trylast=True)  # in xdist's controller: after its workers are ended (xdist's own hook)

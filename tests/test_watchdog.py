@@ -143,3 +143,47 @@ def test_the_runs_own_wrapper_is_not_taken_for_a_process_the_tests_left(request,
     table[parent] = (1, real[me][1] + 1)  # the same process as a sibling, not an ancestor: still found
     table[me] = (real[me][0] + 10**9, real[me][1])
     assert parent in C._left_running(request.session)
+
+
+def test_orphans_of_another_run_on_the_same_checkout_are_not_ended(request, monkeypatch):
+    """Two pytest runs on one checkout (two terminals, or a background run): at the end of one, the other's
+    processes (orphaned, started from the checkout after it began) were taken for its own and ended (seen
+    7 Dec 2026: a run of test_formats.py ended mid-way by another's check). Every run now tags what it
+    starts; an orphan under another run's tag is left alone, one under this run's (or its workers') is
+    ended, an untagged one from the checkout is still this run's to end. Real processes (their environment
+    read from /proc), orphaned in the process table the check reads."""
+    import subprocess
+    import sys
+
+    import tests.conftest as C
+
+    real = C._processes()
+    me = os.getpid()
+    if me not in real:
+        pytest.skip("no /proc process table here")
+    mine = os.environ.get(C._RUN_TAG, "")
+    assert mine, "this run tags the processes its tests start"
+    tags = {"other": "run-1", "ours": mine, "our worker": f"{mine}/gw7-1", "untagged": None}
+    procs = {}
+    try:
+        for name, tag in tags.items():
+            env = {k: v for k, v in os.environ.items() if k != C._RUN_TAG}
+            if tag is not None:
+                env[C._RUN_TAG] = tag
+            procs[name] = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"], env=env)
+        table = C._processes()
+        for p in procs.values():
+            table[p.pid] = (1, real[me][1] + 1)  # orphans started after this run
+        monkeypatch.setattr(C, "_processes", lambda: table)
+        monkeypatch.setattr(C, "_xdist_worker", lambda: "")  # judged as a plain run's or a controller's check
+        monkeypatch.setattr(C, "_ours", lambda pid, places: pid in {p.pid for p in procs.values()})
+        left = set(C._left_running(request.session))
+        found = {name for name, p in procs.items() if p.pid in left}
+        if mine.startswith("run-"):
+            assert found == {"ours", "our worker", "untagged"}, found
+        else:  # this test runs in an xdist worker: its tag is a worker's, under the controller's
+            assert "other" not in found and "ours" in found, found
+    finally:
+        for p in procs.values():
+            p.kill()
+            p.wait(30)
