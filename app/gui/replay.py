@@ -10,6 +10,7 @@ import numpy as np
 from pyqtgraph.Qt import QtCore, QtWidgets
 
 from .model.colour_range import SURFACE
+from .model.replay import lost_before, recording_notes, table_times_s
 from .views import ImageView
 from .widgets import ElidedLabel
 
@@ -36,6 +37,11 @@ class Recording:
         self.path = os.fspath(path)
         self._source = None
         self.time_origin = None
+        self.notes: list = []  # what the Replay tab says beside the name: frames lost, ended early
+        self.lost_before = None  # camera frames lost before each frame (HDF5 recordings' frame-id gaps)
+        self._times_s = None
+        # (reference, geometry) the Replay tab measures this file with, chosen when it is opened (its export too)
+        self.inputs = (None, None)
         self.frame_time_s = math.nan  # time of the frame frame() returned last, where the file says
         if not self._is_hdf5():
             self._open_other()
@@ -54,6 +60,9 @@ class Recording:
         self.reference = self._read_reference()
         self.geometry_toml = self._read_text("geometry_toml", "geometry")
         self.table = self._file["frame_table"][: self.n_frames] if "frame_table" in self._file else None
+        self._times_s, self.time_origin = table_times_s(self.table)
+        self.lost_before = lost_before(self.table)
+        self.notes = recording_notes(dict(self._file.attrs), self.table, self.n_frames)
 
     def _is_hdf5(self) -> bool:
         try:
@@ -103,6 +112,7 @@ class Recording:
         if not 0 <= index < self.n_frames:
             raise IndexError(f"frame index {index} out of range 0..{self.n_frames - 1}")
         if self._file is not None:
+            self.frame_time_s = math.nan if self._times_s is None else float(self._times_s[index])
             return np.asarray(self.frames[index])
         if self._source is None:  # TIFF stack
             from app.files import imageio
@@ -199,7 +209,9 @@ class ReplayTab(QtWidgets.QWidget):
 
     def set_recording(self, rec: Recording) -> None:
         self.file_label.setText(f"{os.path.basename(rec.path)} — {rec.n_frames} frames"
-                                + ("" if rec.reference is not None else " (no reference stored)"))
+                                + ("" if rec.reference is not None else " (no reference stored)")
+                                + "".join(f"; {note.split(':')[0]}" for note in rec.notes))  # in full below
+        self.file_label.setStyleSheet("color: #b00000; font-weight: bold" if rec.notes else "")
         self.slider.blockSignals(True)
         self.slider.setRange(0, max(rec.n_frames - 1, 0))
         self.slider.setValue(0)

@@ -12,7 +12,7 @@ import os
 import numpy as np
 from pyqtgraph.Qt import QtWidgets
 
-from .model.replay import frame_label, replay_inputs
+from .model.replay import frame_label, height_mark, replay_inputs
 from .replay import RECORDING_FILTER, Recording
 
 log = logging.getLogger(__name__)
@@ -35,10 +35,18 @@ def open_recording(w, path: str) -> bool:
         w.replay_recording.close()
     w.replay_recording = rec
     w._replay_reconstructor = None
+    # nothing of the file opened before stays on the tab: its heights, their marks, its messages
+    w.replay_shown_index, w.replay_last_result = None, None
+    w.replay.height.image.clear()
+    w.replay.height.set_stale(None)
+    w.replay.height.show_message("")
     w.replay.set_recording(rec)
     reference, geometry, message = replay_inputs(rec.reference, w.reference, rec.geometry_toml, w.geometry)
-    if message:
-        w.replay.message.setText(message)
+    # the export measures with what the view does, even after the window's reference or geometry changed
+    rec.inputs = (reference, geometry)
+    # what the file says of itself (frames lost, ended early) first, in red: no frame is mislabelled in silence
+    w.replay.message.setText("\n".join(rec.notes + ([message] if message else [])))
+    w.replay.message.setStyleSheet("color: #b00000; font-weight: bold" if rec.notes else "")
     if reference is not None and geometry is not None:
         def build():
             from processing import Reconstructor
@@ -68,8 +76,11 @@ def show_replay_frame(w, index: int):
     frame = rec.frame(int(index))
     w.replay.raw.set_data(frame, levels=(0, float(frame.max()) or 1.0) if w.replay.raw.auto_levels else None)
     # the frame's time: NaN where the file has none (recordings, TIFF stacks)
+    lost = 0 if rec.lost_before is None else int(rec.lost_before[int(index)])
     w.replay.index_label.setText(frame_label(int(index), rec.n_frames, rec.trigger_index(int(index)),
-                                             rec.frame_time_s, rec.time_origin))
+                                             rec.frame_time_s, rec.time_origin, lost))
+    w.replay.index_label.setStyleSheet("color: #b00000; font-weight: bold" if lost else "")
+    w.replay.height.set_stale(height_mark(int(index), w.replay_shown_index))
     w.replay_queue.want(frame, int(index))
     w._process_replay_frame()
 
@@ -98,6 +109,9 @@ def process_replay_frame(w):
                                         x=result.x_mm, y=result.y_mm)
             w.replay_last_result = result
             w.replay_shown_index = index
+        # the map is of the frame on the slider, or says which frame it is of
+        w.replay.height.set_stale(height_mark(w.replay.slider.value(), w.replay_shown_index,
+                                              index if error else None))
         w._process_replay_frame()
     w.run_background("replay-frame", job, done)
 
@@ -124,12 +138,15 @@ def export_heights(w, out_path: str) -> None:
     w.export.start()
     progress = w.export.progress
 
-    geometry_toml = rec.geometry_toml or (w.geometry.to_toml_text() if w.geometry else None)
+    # the reference and geometry the Replay tab shows this recording's heights with (chosen when it was
+    # opened): not the window's of now, which a Ctrl+R or a geometry edit since may have changed
+    reference, geometry = rec.inputs
+    geometry_toml = None if geometry is None else geometry.to_toml_text()
 
     def job():
         from . import export
         return export.export_heights(rec.path, out_path, geometry_toml=geometry_toml,
-                                     reference=None if rec.reference is not None else w.reference,
+                                     reference=None if rec.reference is not None else reference,
                                      progress=progress)
 
     def done(result, error):

@@ -9,7 +9,9 @@ from __future__ import annotations
 import math
 from typing import Optional, Tuple
 
-__all__ = ["replay_inputs", "frame_label"]
+import numpy as np
+
+__all__ = ["replay_inputs", "frame_label", "height_mark", "recording_notes", "table_times_s", "lost_before"]
 
 
 def replay_inputs(file_reference, window_reference, file_geometry_toml: Optional[str], window_geometry
@@ -33,7 +35,73 @@ def replay_inputs(file_reference, window_reference, file_geometry_toml: Optional
     return reference, geometry, message
 
 
-def frame_label(index: int, n_frames: int, trigger_rel: Optional[int], time_s: float, time_origin: str) -> str:
-    """``"frame 3/60  (trigger -2)  t = +1.2345 ms from the trigger"`` (no time where the file has none: NaN)."""
+def frame_label(index: int, n_frames: int, trigger_rel: Optional[int], time_s: float, time_origin: str,
+                lost: int = 0) -> str:
+    """``"frame 3/60  (trigger -2)  t = +1.2345 ms from the trigger"`` (no time where the file has none: NaN);
+    ``lost`` camera frames missing just before this one (a frame-id gap) are said after it: the trigger index
+    counts recorded frames, so past a gap only the time tells how far from the trigger the frame is."""
     return (f"frame {index + 1}/{n_frames}" + (f"  (trigger {trigger_rel:+d})" if trigger_rel is not None else "")
-            + (f"  t = {time_s * 1e3:+.4f} ms from the {time_origin}" if math.isfinite(time_s) else ""))
+            + (f"  t = {time_s * 1e3:+.4f} ms from the {time_origin}" if math.isfinite(time_s) else "")
+            + (f"  — {lost} camera frame{'s' if lost > 1 else ''} LOST before it" if lost > 0 else ""))
+
+
+def table_times_s(table) -> Tuple[Optional[np.ndarray], str]:
+    """Each recorded frame's time (s) from the trigger frame (from the first frame where the trigger frame is
+    not in the file), from the camera's timestamps (the host's where the camera gave none); ``(None, "")``
+    where the file's frame table has no timestamps."""
+    names = () if table is None else (table.dtype.names or ())
+    if table is None or len(table) == 0 or "host_timestamp_ns" not in names:
+        return None, ""
+    ns = np.asarray(table["host_timestamp_ns"], np.int64)
+    if "device_timestamp_ns" in names:
+        device = np.asarray(table["device_timestamp_ns"], np.int64)
+        if np.all(device >= 0):
+            ns = device
+    origin, name = 0, "first frame"
+    if "trigger_index" in names:
+        at = np.flatnonzero(np.asarray(table["trigger_index"]) == 0)
+        if at.size:
+            origin, name = int(at[0]), "trigger"
+    return (ns - ns[origin]) * 1e-9, name
+
+
+def lost_before(table) -> Optional[np.ndarray]:
+    """Camera frames lost just before each recorded frame (frame-id gaps; 0 where the ids are unknown)."""
+    if table is None or "frame_id" not in (table.dtype.names or ()):
+        return None
+    ids = np.asarray(table["frame_id"], np.int64)
+    gaps = np.zeros(ids.size, np.int64)
+    if ids.size > 1:
+        step = np.diff(ids) - 1
+        known = (ids[1:] >= 0) & (ids[:-1] >= 0)
+        gaps[1:] = np.where(known & (step > 0), step, 0)
+    return gaps
+
+
+def recording_notes(attrs, table, n_frames: int) -> list:
+    """What the Replay tab says about a recording beside its name: frames lost (camera frame-id gaps), a
+    recording that ended before the trigger or early (``complete`` 0), and the error it ended with."""
+    notes = []
+    gaps = lost_before(table)
+    if gaps is not None and gaps.sum():
+        at = np.flatnonzero(gaps)
+        notes.append(f"{int(gaps.sum())} camera frame(s) LOST, before frame(s) "
+                     + ", ".join(str(int(i) + 1) for i in at[:8]) + (" …" if at.size > 8 else ""))
+    names = () if table is None else (table.dtype.names or ())
+    if "trigger_index" in names and n_frames and int(np.max(table["trigger_index"])) < 0:
+        notes.append(f"stopped BEFORE the trigger: only the {n_frames} frame(s) before it, no trigger frame")
+    if "complete" in attrs and not int(attrs["complete"]):
+        error = attrs.get("error", "")
+        error = error.decode() if isinstance(error, bytes) else str(error)
+        notes.append("INCOMPLETE recording" + (f": {error}" if error else ""))
+    return notes
+
+
+def height_mark(slider_index: int, shown_index: Optional[int], failed_index: Optional[int] = None
+                ) -> Optional[str]:
+    """What the Replay tab's height map says when it is not of the frame on the slider (None: it is):
+    the frame it is of, and whether the slider's frame is being measured or could not be."""
+    if shown_index is None or shown_index == slider_index:
+        return None
+    why = "could not be measured" if failed_index == slider_index else "is being measured"
+    return f"heights of frame {shown_index + 1}; frame {slider_index + 1} {why}"
