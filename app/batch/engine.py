@@ -482,11 +482,24 @@ def run_process(args: ProcessJob) -> BatchReport:
             except OSError:
                 pass
         else:
-            log.warning("the %d frame(s) written are kept in %s", writer.n, partial)
+            log.warning("the %d frame(s) written are kept in %s%s", writer.n, partial,
+                        _resume_text(args, writer.n, selected) if status.startswith("interrupted") else "")
         cache.store_fftw_wisdom()
     return BatchReport(out=out, frames_written=writer.n, notes=input_notes + tally.notes() + pins.notes(),
                        frames_invalid=tally.n_invalid, invalid_summary=tally.invalid_summary(),
                        frames_incomplete=len(tally.incomplete), pin=pins.summary())
+
+
+def _resume_text(args, written: int, selected: int) -> str:
+    """How to process the selected frames an interrupted run did not write: every selected
+    frame has its row in the output (an unmeasured one too), so the first missing one is
+    ``first + written * step``."""
+    if written >= selected:
+        return ""
+    last = "" if args.last is None else f" --last {args.last}"
+    step = "" if args.step == 1 else f" --step {args.step}"
+    return (f"; process the rest with `tirdeflect process ... --first {args.first + written * args.step}"
+            f"{last}{step}` into another --out")
 
 
 def _slice_text(s) -> str:

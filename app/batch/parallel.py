@@ -336,7 +336,7 @@ def process_chunk(spec: ReconstructorSpec, chunk: Chunk) -> ChunkOutcome:
         frames = iter(chunk.items)
     else:
         frames = imageio.iter_frames(list(chunk.paths), first=first, last=chunk.last, step=chunk.step,
-                                     errors="yield")
+                                     errors="yield", losses_from=chunk.overlap)
     out = []
     start = None
     try:
@@ -713,7 +713,7 @@ class _Chunked:
     def _read(self, chunk):
         first = chunk.first if (chunk.redo or chunk.overlap is None) else chunk.overlap
         return tuple(imageio.iter_frames(list(self.paths), first=first, last=chunk.last,
-                                         step=chunk.step, errors="yield"))
+                                         step=chunk.step, errors="yield", losses_from=chunk.overlap))
 
     def _result(self, chunk, future):
         """The chunk's outcome; after a worker process died, a fresh pool takes

@@ -20,7 +20,8 @@ from app.files import h5safe, imageio
 from processing.errors import TirdeflectError
 from processing.probe import probe_cell, sample_cell
 
-__all__ = ["ProbeSeries", "probe_series", "frame_times", "write_probes", "open_output", "partial_note"]
+__all__ = ["ProbeSeries", "probe_series", "frame_times", "write_probes", "open_output", "partial_note",
+           "trigger_note", "NO_TRIGGER_INDEX"]
 
 log = logging.getLogger(__name__)
 
@@ -41,6 +42,9 @@ class ProbeSeries:
         Where the times come from (``"/time_s"``, ``"/device_timestamp_ns"``, ``"--fps"``, ``"none"``).
     height_mm : numpy.ndarray
         ``(n, k)`` height at each probe, mm; NaN where not measured.
+    trigger_index : numpy.ndarray or None
+        ``(n,)`` frames from the trigger frame (0; negative before it) of a triggered
+        recording's frames, :data:`NO_TRIGGER_INDEX` where unknown; None when no frame has one.
     """
 
     x_mm: np.ndarray
@@ -49,6 +53,11 @@ class ProbeSeries:
     time_s: np.ndarray
     time_source: str
     height_mm: np.ndarray
+    trigger_index: np.ndarray | None = None
+
+
+#: ``/trigger_index`` of a frame whose source has none (image files): INT64_MIN, as OUT.h5 stores it
+NO_TRIGGER_INDEX = int(np.iinfo(np.int64).min)
 
 
 def open_output(path):
@@ -155,8 +164,30 @@ def probe_series(path, points_mm, *, fps: float | None = None) -> ProbeSeries:
                 out[k, j] = sample_cell(band, cell, row_offset=r_lo)
         times, source = frame_times(f, n, fps)
         index = np.asarray(f["frame_index"][:n], dtype=np.int64)
+        trigger = (np.asarray(f["trigger_index"][:n], dtype=np.int64) if "trigger_index" in f
+                   else np.full(n, NO_TRIGGER_INDEX, dtype=np.int64))
     return ProbeSeries(np.array([p[0] for p in points]), np.array([p[1] for p in points]),
-                       index, times, source, out)
+                       index, times, source, out,
+                       trigger if np.any(trigger != NO_TRIGGER_INDEX) else None)
+
+
+def trigger_note(series: ProbeSeries) -> str:
+    """Where the trigger frame lies in the series, as a sentence (time_s counts from each
+    recording's first frame, not from its trigger); "" where no frame has a trigger index."""
+    t = series.trigger_index
+    if t is None:
+        return ""
+    at = np.flatnonzero(t == 0)
+    if len(at):
+        k = at[0]
+        return (f"the trigger frame (trigger_index 0) is frame {int(series.frame_index[k])}, at time_s "
+                f"{series.time_s[k]:.9g} s (times count from the recording's first frame); "
+                f"trigger_index is in the CSV and the HDF5 file")
+    known = t[t != NO_TRIGGER_INDEX]
+    return (f"no processed frame is a trigger frame: trigger_index runs from {int(known.min())} to "
+            f"{int(known.max())}" + (" (every frame before the trigger: the recording stopped before it "
+                                     "came, or --last ended before it)" if known.max() < 0 else "")
+            + "; trigger_index is in the CSV and the HDF5 file")
 
 
 def write_probes(series: ProbeSeries, csv_path, h5_path=None, *, source: str = "",
@@ -176,13 +207,15 @@ def write_probes(series: ProbeSeries, csv_path, h5_path=None, *, source: str = "
     for p, option in zip(targets, ("--out", "--h5")):  # both, before the CSV is written
         h5safe.check_creatable(p, f"choose another {option} (a folder you can write to)")
     names = [f"height_mm@x={x:g},y={y:g}" for x, y in zip(series.x_mm, series.y_mm)]
+    trigger = series.trigger_index
     with open(targets[0], "w", newline="", encoding="utf-8") as fh:
         fh.write(f"# tirdeflect probe of {source}: height in mm at surface points (x_mm, y_mm); "
                  f"time in s from {series.time_source}\n")
         w = csv.writer(fh)
-        w.writerow(["frame_index", "time_s", *names])
+        w.writerow(["frame_index", "time_s", *(["trigger_index"] if trigger is not None else []), *names])
         for k in range(len(series.frame_index)):
-            w.writerow([int(series.frame_index[k]), f"{series.time_s[k]:.9g}",
+            tk = ([] if trigger is None else ["" if trigger[k] == NO_TRIGGER_INDEX else int(trigger[k])])
+            w.writerow([int(series.frame_index[k]), f"{series.time_s[k]:.9g}", *tk,
                         *(f"{v:.9g}" for v in series.height_mm[k])])
     written.append(targets[0])
     if h5_path:
@@ -192,6 +225,10 @@ def write_probes(series: ProbeSeries, csv_path, h5_path=None, *, source: str = "
             f.create_dataset("time_s", data=series.time_s).attrs["units"] = "s"
             f["time_s"].attrs["source"] = series.time_source
             f.create_dataset("frame_index", data=series.frame_index)
+            if trigger is not None:
+                ds = f.create_dataset("trigger_index", data=np.asarray(trigger, dtype=np.int64))
+                ds.attrs["description"] = ("frames from the trigger frame (0; negative before it); "
+                                           f"{NO_TRIGGER_INDEX} where the frame's source has none")
             f.create_dataset("x_mm", data=series.x_mm).attrs["units"] = "mm"
             f.create_dataset("y_mm", data=series.y_mm).attrs["units"] = "mm"
             f.attrs["source"] = source

@@ -107,7 +107,7 @@ def add_probe_parser(sub) -> None:
 
 
 def cmd_probe(args) -> int:
-    from app.batch.probe import probe_series, write_probes
+    from app.batch.probe import probe_series, trigger_note, write_probes
 
     src = Path(args.out_h5)
     csv_path = Path(args.out) if args.out else src.with_name(src.stem + "_probes.csv")
@@ -123,6 +123,9 @@ def cmd_probe(args) -> int:
     if series.time_source == "none":
         print("tirdeflect: note: the inputs had no time stamps (image files): time_s is NaN; "
               "give --fps to count time from the frame index", file=sys.stderr)
+    trigger = trigger_note(series)
+    if trigger:
+        print(f"tirdeflect: note: {trigger}", file=sys.stderr)
     back = _time_goes_back(series)
     if back:
         print(f"tirdeflect: note: {back}", file=sys.stderr)

@@ -896,6 +896,7 @@ def iter_frames(
     last: int | None = None,
     step: int = 1,
     errors: str = "raise",
+    losses_from: int | None = None,
 ) -> Iterator[FrameItem]:
     """Yield the frames of several files in order, one at a time.
 
@@ -912,17 +913,17 @@ def iter_frames(
         order) of the first and last frame to yield, both **inclusive**;
         ``last=None`` means to the end.
     step : int
-        Yield every ``step``-th frame from ``first``.
+        Yield every ``step``-th frame from ``first``; a recording's frame carries the loss flags of the
+        frames stepped over before it, from ``losses_from`` on (default ``first``; a chunk of a longer
+        selection gives the selection's frame before its own first): :func:`_stepped_over_losses`.
     errors : {"raise", "yield"}
-        What a frame that cannot be read (undecodable image, truncated page,
-        NaN samples) does: "raise" ends the iteration with its
-        ImageReadError; "yield" yields a FrameItem with ``image=None`` and
-        ``error`` set, and goes on with the next frame. An image or TIFF file
-        that cannot be opened at all (empty, its header damaged) is with "yield"
-        one such frame (:func:`stands_for_one_frame`); a recording, video or
-        camera file whose frames cannot even be counted raises either way. A
-        TIFF stack gives every frame it declares: those an interrupted copy cut
-        off are such frames, saying the file is truncated.
+        What a frame that cannot be read (undecodable image, truncated page, NaN samples) does:
+        "raise" ends the iteration with its ImageReadError; "yield" yields a FrameItem with
+        ``image=None`` and ``error`` set, and goes on with the next frame. An image or TIFF file that
+        cannot be opened at all (empty, its header damaged) is with "yield" one such frame
+        (:func:`stands_for_one_frame`); a recording, video or camera file whose frames cannot even be
+        counted raises either way. A TIFF stack gives every frame it declares: those an interrupted
+        copy cut off are such frames, saying the file is truncated.
 
     Yields
     ------
@@ -935,7 +936,7 @@ def iter_frames(
         yielded. Its ``sequence_index`` attribute is the failing frame's index.
         Also for bad ``first/last/step``.
     """
-    selection = _checked_selection(first, last, step, errors)
+    selection = _checked_selection(first, last, step, errors, losses_from)
 
     def frame(read, path, i, seq, **fields):
         """The FrameItem of one frame; a read error raises or is yielded."""
@@ -970,8 +971,8 @@ def iter_frames(
         raise
 
 
-def _checked_selection(first: int, last, step: int, errors: str) -> tuple:
-    """``(first, last, step)`` of :func:`iter_frames`, refused where they select nothing."""
+def _checked_selection(first: int, last, step: int, errors: str, losses_from=None) -> tuple:
+    """``(first, last, step, losses_from)`` of :func:`iter_frames`, refused where they select nothing."""
     if step < 1:
         raise ImageReadError(f"--step must be >= 1; got {step}")
     if first < 0:
@@ -980,13 +981,13 @@ def _checked_selection(first: int, last, step: int, errors: str) -> tuple:
         raise ImageReadError(f"--last ({last}) is before --first ({first}); nothing to process")
     if errors not in ("raise", "yield"):
         raise ValueError(f"errors must be 'raise' or 'yield'; got {errors!r}")
-    return first, last, step
+    return first, last, step, first if losses_from is None else int(losses_from)
 
 
 def _wanted(k: int, selection: tuple) -> bool:
-    """Whether sequence index ``k`` is picked by ``selection`` = (first, last, step),
+    """Whether sequence index ``k`` is picked by ``selection`` = (first, last, step, ...),
     last inclusive or None."""
-    first, last, step = selection
+    first, last, step = selection[:3]
     return k >= first and (last is None or k <= last) and (k - first) % step == 0
 
 
@@ -997,7 +998,7 @@ def _file_frames(path, seq: int, selection: tuple, frame, errors: str):
     ``last`` where the selection ends inside the file.
 
     Raises ImageReadError when the file itself cannot be opened (before any frame)."""
-    first, last, step = selection
+    first, last, step = selection[:3]
     p = _check_path(path)
     kind = _kind(p)
     if kind == "image":
@@ -1036,10 +1037,30 @@ def _file_frames(path, seq: int, selection: tuple, frame, errors: str):
                 return seq
             if _wanted(seq, selection):
                 crc = _row_checksum(table, i, bad)
-                yield frame(lambda: _h5_read(ds, i, p, crc), path, i, seq, frames_in_source=n,
-                            **_table_fields(table, i, bad))
+                fields = _table_fields(table, i, bad)
+                skipped = range(max(0, i - step + 1, i - (seq - selection[3])), i)
+                if "flags" in fields and len(skipped):
+                    fields["flags"] |= _stepped_over_losses(table, bad, skipped)
+                yield frame(lambda: _h5_read(ds, i, p, crc), path, i, seq, frames_in_source=n, **fields)
             seq += 1
     return seq
+
+
+def _stepped_over_losses(table, bad, rows: range) -> int:
+    """The loss flags (frames lost before them: camera id or time gaps, ring overruns) of the
+    recording's frames ``rows``, stepped over by ``--step``, OR-ed: the next frame processed
+    carries them, so that losses between two processed frames are never silent (a run with
+    --step 3 over 3 frames the camera lost: time steps 0.03, 0.06 s, every flag 0, exit 0)."""
+    from drivers.base import FrameFlags
+
+    if table is None or "flags" not in (table.dtype.names or ()):
+        return 0
+    loss = int(FrameFlags.ID_GAP_BEFORE | FrameFlags.TIME_GAP_BEFORE | FrameFlags.RING_OVERRUN_BEFORE)
+    flags = 0
+    for r in rows:
+        if r < len(table) and not (bad is not None and bad[r]):
+            flags |= int(table[r]["flags"]) & loss
+    return flags
 
 
 def _source_image(image, p: Path) -> np.ndarray:
@@ -1162,15 +1183,18 @@ def recording_notes(path) -> list:
             node = f.get("geometry_toml")
             heap_damage = _vlen_heap_damage(p, node) if node is not None else ""
             error = "" if heap_damage else str(attrs.get("error", "") or "")
+            table, bad = _h5_frame_table(f, n, p)
+            untriggered = _before_trigger_only(table, bad)
             if "summary" not in f:
                 notes.append(
                     f"{p.name} is a recording that did not end normally (complete = 0, no /summary: "
-                    f"the recorder was stopped hard, or this is a copy taken while it recorded): "
-                    f"it holds {n}{of} frames, and frames the camera sent may be missing; check "
-                    f"the original recording")
+                    f"the recorder was stopped hard, or this is a copy taken while it recorded"
+                    + (f"; its error: {error}" if error else "")
+                    + f"): it holds {n}{of} frames{untriggered}, and frames the camera sent may be "
+                    f"missing; check the original recording")
             else:
                 notes.append(f"{p.name} is a recording that ended early ({error or 'complete = 0'}): "
-                             f"it holds {n}{of} frames")
+                             f"it holds {n}{of} frames{untriggered}")
         table, bad = _h5_frame_table(f, n, p)
         if n and table is None and "frame_table" in f:
             notes.append(f"{p.name}: /frame_table cannot be read (the file is damaged there): "
@@ -1186,6 +1210,20 @@ def recording_notes(path) -> list:
                    if "crc32" in (table.dtype.names or ()) else "")
                 + "; copy the recording again")
     return notes
+
+
+def _before_trigger_only(table, bad) -> str:
+    """``", all before its trigger (trigger_index -8 to -1): ..."`` where every intact row of a
+    recording's frame table counts back from a trigger that never came (a triggered recording
+    stopped while it waited: the event is not in it); "" otherwise."""
+    if table is None or "trigger_index" not in (table.dtype.names or ()) or not len(table):
+        return ""
+    t = np.asarray(table["trigger_index"], dtype=np.int64)
+    t = t[~bad] if bad is not None else t
+    if not len(t) or np.any(t >= 0) or np.any(t == np.iinfo(np.int64).min):
+        return ""
+    return (f", all before its trigger (trigger_index {int(t.min())} to {int(t.max())}): it stopped "
+            f"before the trigger came, no frame is the trigger frame and the event is not in it")
 
 
 def parse_frame_range(text: str) -> slice:
