@@ -1192,6 +1192,9 @@ def recording_notes(path) -> list:
                     + (f"; its error: {error}" if error else "")
                     + f"): it holds {n}{of} frames{untriggered}, and frames the camera sent may be "
                     f"missing; check the original recording")
+            elif not error and _summary_losses(f):  # it ran to its end; the frames lost on the way are why
+                notes.append(f"{p.name} is a recording that lost frames on the way ({_summary_losses(f)}): "
+                             f"it holds {n}{of} frames{untriggered}")
             else:
                 notes.append(f"{p.name} is a recording that ended early ({error or 'complete = 0'}): "
                              f"it holds {n}{of} frames{untriggered}")
@@ -1210,6 +1213,25 @@ def recording_notes(path) -> list:
                    if "crc32" in (table.dtype.names or ()) else "")
                 + "; copy the recording again")
     return notes
+
+
+def _summary_losses(f) -> str:
+    """The frames a recording's ``/summary`` says were lost (camera frame-id gaps, ring overruns), as words
+    ("144 lost: 144 to ring overruns, the recorder behind the camera"); "" where none were or it cannot be
+    read. A recording whose ring overran ran to its end with frames missing: "ended early (complete = 0)"
+    said otherwise (sweep of 7 Dec 2026: 56 of 200 frames at 20 kHz through a 2-frame ring)."""
+    import json
+
+    try:
+        s = json.loads(f["summary"].attrs["summary_json"])
+    except Exception:  # noqa: BLE001 - no summary to read: nothing said here
+        return ""
+    upstream, overrun = int(s.get("lost_upstream_id_gaps", 0)), int(s.get("lost_ring_overrun", 0))
+    if upstream + overrun <= 0:
+        return ""
+    parts = ([f"{overrun} to ring overruns, the recorder behind the camera"] if overrun else []) + (
+        [f"{upstream} by the camera or its link (frame-id gaps)"] if upstream else [])
+    return f"{upstream + overrun} lost: " + ", ".join(parts)
 
 
 def _before_trigger_only(table, bad) -> str:

@@ -204,3 +204,22 @@ def test_camera_lost_error_of_a_recording_without_summary_is_named(recording, tm
     warning = [ln for ln in r.stderr.splitlines() if "WARNING" in ln and "lost.h5" in ln]
     assert len(warning) == 1 and f"its error: {error}" in warning[0], r.stderr
     assert "6 of the 12 planned frames" in warning[0]
+
+
+def test_a_recording_whose_ring_overran_is_said_to_have_lost_frames_not_to_have_ended_early(tmp_path):
+    """Sweep of 7 Dec 2026: 200 frames at 20 kHz through a 2-frame ring (the recorder behind the camera): the
+    recording ran to its end with 144 frames lost to ring overruns, and process's first note said "ended
+    early (complete = 0): it holds 56 of the 200 planned frames". Now it names the losses."""
+    rec = tmp_path / "ovr.h5"
+    r = _cli("record", "--camera", "synthetic", "--out", rec, "--frames", 200, "--frame-rate-hz", 20000,
+             "--ring-frames", 2, "--no-burst", "--synthetic-size", 128, "--synthetic-frames", 4, "--no-progress")
+    with h5py.File(rec) as f:
+        import json
+
+        summary = json.loads(f["summary"].attrs["summary_json"])
+    assert r.returncode == 1 and summary["lost_ring_overrun"] > 0, (r.returncode, summary, r.stderr)  # overrun
+    p = _cli("process", rec, "--out", tmp_path / "o.h5")
+    assert p.returncode in (0, 3), p.stderr
+    assert f"lost frames on the way ({summary['total_missing']} lost: {summary['lost_ring_overrun']} to ring " \
+           "overruns" in p.stderr, p.stderr
+    assert "ended early" not in p.stderr, p.stderr
