@@ -111,3 +111,28 @@ def answer_file_dialogs(qtbot, answers, seen_filters):
             QtCore.QTimer.singleShot(50, poll)
 
     QtCore.QTimer.singleShot(50, poll)
+
+
+def stderr_until_signalled(proc, act, timeout_s: float = 120.0):
+    """``(exit code, stderr text)`` of the subprocess ``proc`` (``stderr=PIPE``, text), whose stderr lines
+    are read one by one and given to ``act(line)`` until it returns True (it has sent its signal): then
+    the rest is read and the process awaited. ``proc`` is killed after ``timeout_s`` (a hang detector far
+    above need: a hung child must not hang the suite) and in any case before this returns."""
+    import threading
+
+    watchdog = threading.Timer(timeout_s, proc.kill)
+    watchdog.start()
+    lines = []
+    try:
+        for line in proc.stderr:
+            lines.append(line)
+            if act(line):
+                break
+        lines += proc.stderr.readlines()
+        code = proc.wait(timeout=60)
+    finally:
+        watchdog.cancel()
+        if proc.poll() is None:
+            proc.kill()
+        proc.stderr.close()
+    return code, "".join(lines)

@@ -23,7 +23,7 @@ from app.batch import parallel
 from app.cli import main
 from app.files import imageio
 from processing.errors import TirdeflectError
-from tests.helpers import worker_processes
+from tests.helpers import stderr_until_signalled, worker_processes
 
 SIZE = 256
 N_FRAMES = 12
@@ -261,25 +261,20 @@ def test_ctrl_c_stops_workers_and_keeps_written_frames(series, tmp_path):
         # as at a terminal (a test runner started in the background ignores SIGINT, and
         # its children would inherit that)
         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-    watchdog = threading.Timer(120.0, proc.kill)
-    watchdog.start()
     done = 0
     workers = []
-    try:
-        for line in proc.stderr:
-            if re.search(r"frame \d+ .* written", line):
-                done += 1
-                if done == 3:
-                    workers = [c.pid for c in worker_processes(psutil.Process(proc.pid))]
-                    os.killpg(proc.pid, signal.SIGINT)
-                    break
-        rest = proc.stderr.read()
-        code = proc.wait(timeout=60)
-    finally:
-        watchdog.cancel()
-        if proc.poll() is None:
-            proc.kill()
-        proc.stderr.close()
+
+    def interrupt_at_the_third_frame(line):  # Ctrl-C at a terminal: the whole process group
+        nonlocal done, workers
+        if re.search(r"frame \d+ .* written", line):
+            done += 1
+            if done == 3:
+                workers = [c.pid for c in worker_processes(psutil.Process(proc.pid))]
+                os.killpg(proc.pid, signal.SIGINT)
+                return True
+        return False
+
+    code, rest = stderr_until_signalled(proc, interrupt_at_the_third_frame)
     assert done == 3 and workers, "the run ended before three frames were written"
     assert code == 130, rest
     assert "Traceback" not in rest and rest.strip().endswith("tirdeflect: interrupted"), rest

@@ -9,7 +9,6 @@ import csv
 import signal
 import subprocess
 import sys
-import threading
 from pathlib import Path
 
 import h5py
@@ -17,6 +16,7 @@ import numpy as np
 import pytest
 
 from drivers.base import FrameFlags
+from tests.helpers import stderr_until_signalled
 
 ROOT = Path(__file__).resolve().parents[2]
 PRE, POST = 5, 35
@@ -113,23 +113,14 @@ def test_interrupted_run_says_where_to_resume_and_resuming_completes_it(recordin
     proc = subprocess.Popen([sys.executable, "-c", _STUCK_CHILD, "process", str(recording), "--out", str(out),
                              "--first", "1", "--step", "2", "--no-progress", "--workers", "1"],
                             cwd=ROOT, stderr=subprocess.PIPE, text=True)
-    watchdog = threading.Timer(120.0, proc.kill)
-    watchdog.start()
-    lines = []
-    try:
-        for line in proc.stderr:
-            lines.append(line)
-            if line.startswith("stuck at frame 9"):
-                proc.send_signal(signal.SIGINT)
-                break
-        lines += proc.stderr.readlines()
-        code = proc.wait(timeout=60)
-    finally:
-        watchdog.cancel()
-        if proc.poll() is None:
-            proc.kill()
-        proc.stderr.close()
-    err = "".join(lines)
+
+    def stop_at_frame_9(line):
+        if line.startswith("stuck at frame 9"):
+            proc.send_signal(signal.SIGINT)
+            return True
+        return False
+
+    code, err = stderr_until_signalled(proc, stop_at_frame_9)
     assert code == 130, err
     partial = tmp_path / "out.partial.h5"
     assert f"the 4 frame(s) written are kept in {partial}" in err, err

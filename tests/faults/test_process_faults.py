@@ -26,6 +26,7 @@ import tifffile
 from app.cli import main
 from app.files import imageio
 from tests.datapaths import NEEDLE, TRAPPED
+from tests.helpers import stderr_until_signalled
 
 ROOT = Path(__file__).resolve().parents[2]
 P1 = TRAPPED / "prueba1_20250317_122608_C1S0001000001.tif"
@@ -356,27 +357,20 @@ def test_interrupted_overwrite_keeps_the_old_file_and_names_the_partial_one(sim,
         [sys.executable, "-c", _SHORT_FLUSH_CHILD, "--debug",
          *map(str, process(sim, out, tmp_path / "long.tif")), "--overwrite"],
         cwd=ROOT, stderr=subprocess.PIPE, text=True)
-    watchdog = threading.Timer(120.0, proc.kill)  # a hung child must not hang the suite
-    watchdog.start()
-    lines, done = [], 0
-    try:
-        for line in proc.stderr:
-            lines.append(line)
-            if re.search(r"frame \d+ .* written", line):
-                done += 1
-                if done == 3:
-                    assert digest(out) == good  # still the old result while the run goes on
-                    proc.send_signal(sig)
-                    break
-        lines += proc.stderr.readlines()
-        code = proc.wait(timeout=60)
-    finally:
-        watchdog.cancel()
-        if proc.poll() is None:
-            proc.kill()
-        proc.stderr.close()
-    err = "".join(lines)
-    assert done == 3, err
+    done, old_kept = 0, []
+
+    def stop_at_the_third_frame(line):
+        nonlocal done
+        if re.search(r"frame \d+ .* written", line):
+            done += 1
+            if done == 3:
+                old_kept.append(digest(out) == good)  # still the old result while the run goes on
+                proc.send_signal(sig)
+                return True
+        return False
+
+    code, err = stderr_until_signalled(proc, stop_at_the_third_frame)
+    assert done == 3 and old_kept == [True], err
     assert code == 130, err
     assert "interrupted" in err and "Traceback" not in err
     partial = tmp_path / "out.partial.h5"
