@@ -115,8 +115,9 @@ def answer_file_dialogs(qtbot, answers, seen_filters):
 
 def stderr_until_signalled(proc, act, timeout_s: float = 120.0):
     """``(exit code, stderr text)`` of the subprocess ``proc`` (``stderr=PIPE``, text), whose stderr lines
-    are read one by one and given to ``act(line)`` until it returns True (it has sent its signal): then
-    the rest is read and the process awaited. ``proc`` is killed after ``timeout_s`` (a hang detector far
+    are read one by one and given to ``act(line)`` until it returns True (it has sent its signal; an
+    ``act`` that only does something on the way returns False): then the rest is read and the process
+    awaited. ``proc`` is killed after ``timeout_s`` (a hang detector far
     above need: a hung child must not hang the suite) and in any case before this returns."""
     import threading
 

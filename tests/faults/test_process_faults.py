@@ -15,7 +15,6 @@ import re
 import signal
 import subprocess
 import sys
-import threading
 from pathlib import Path
 
 import h5py
@@ -515,24 +514,18 @@ def test_disk_filled_by_another_process_leaves_a_valid_file(sim, tmp_path, reser
         proc = subprocess.Popen(
             [sys.executable, *head, "--debug", *map(str, process(sim, out, tmp_path / "long.tif"))],
             cwd=ROOT, stderr=subprocess.PIPE, text=True)
-        watchdog = threading.Timer(180.0, proc.kill)
-        watchdog.start()
-        lines, done, dd = [], 0, None
-        try:
-            for line in proc.stderr:
-                lines.append(line)
-                if re.search(r"frame \d+ .* written", line):
-                    done += 1
-                    if done == 2:  # another program takes all the space left
-                        dd = subprocess.run(["dd", "if=/dev/zero", f"of={mnt / 'ballast'}", "bs=1M"],
-                                            capture_output=True, text=True, timeout=60)
-            code = proc.wait(timeout=60)
-        finally:
-            watchdog.cancel()
-            if proc.poll() is None:
-                proc.kill()
-            proc.stderr.close()
-        err = "".join(lines)
+        done, dd = 0, None
+
+        def fill_the_disk_after_two_frames(line):
+            nonlocal done, dd
+            if re.search(r"frame \d+ .* written", line):
+                done += 1
+                if done == 2:  # another program takes all the space left
+                    dd = subprocess.run(["dd", "if=/dev/zero", f"of={mnt / 'ballast'}", "bs=1M"],
+                                        capture_output=True, text=True, timeout=60)
+            return False  # the run goes on to its end
+
+        code, err = stderr_until_signalled(proc, fill_the_disk_after_two_frames, timeout_s=180.0)
         assert dd is not None and "No space left" in dd.stderr, err
         assert code == 2, err
         # (--debug, for the per-frame lines, also prints the traceback)
