@@ -702,14 +702,18 @@ class Recorder:
 
     # ----------------------------------------------------------- commands
     def begin(self, start_sequence: Optional[int] = None, *, trigger_sequence: Optional[int] = None,
-              attrs: Optional[dict] = None, stop_error: Optional[str] = None) -> "Recorder":
+              attrs: Optional[dict] = None, stop_error: Optional[str] = None,
+              stop_at: Optional[int] = None) -> "Recorder":
         """Start writing from ring sequence ``start_sequence`` (default: the next frame).
 
         The ring cursor takes hold of the start first; then the file's attributes (``trigger_sequence``,
         ``pre_available``, ``start_sequence`` and ``attrs``) are written, before the writing thread starts.
         ``stop_error``: the recording begins only to keep what the ring holds after a failure (the camera
         lost before the trigger); why, stored as the file's error as by :meth:`stop`, also when the writer
-        meets the ring's end before :meth:`stop` is called.
+        meets the ring's end before :meth:`stop` is called. ``stop_at``: the ring sequence it ends before, known
+        when it begins (the frames a stopped capture keeps): the writer that reaches it first ends there, no
+        error (a fresh-clone CI run saw "acquisition stopped after 12 of 22 frames" stored for a user's SIGTERM
+        before the trigger, the writer at the ring's end before :meth:`stop` had said where it ends).
         """
         if self._thread is not None:
             raise RecorderError("this recorder already began; create a new one for another recording")
@@ -723,6 +727,8 @@ class Recorder:
             )
         self.start_sequence = start
         self.trigger_sequence = trigger_sequence
+        if stop_at is not None:
+            self._stop_at = int(stop_at)
         self._cursor = self.ring.cursor(start)
         if trigger_sequence is not None:  # how many pre-trigger frames the file holds
             self.file.set_attrs(trigger_sequence=trigger_sequence, pre_available=trigger_sequence - start)

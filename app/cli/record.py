@@ -581,7 +581,7 @@ def _close_on_stop(rec, cap, why: str, error: Optional[str] = None) -> None:
             error = (f"{error}; it came before the trigger: the file holds only the {ring.head - start} "
                      "frames captured before it, no trigger frame")
         try:
-            rec.begin(start, trigger_sequence=ring.head, stop_error=error)
+            rec.begin(start, trigger_sequence=ring.head, stop_error=error, stop_at=ring.head)
             rec.file.add_event("note", f"{why} before the trigger: the file holds the {ring.head - start} frames "
                                        "before it (trigger_index counts back from it; no trigger frame)",
                                sequence=ring.head)
