@@ -66,6 +66,7 @@ __all__ = [
     "iter_frames",
     "write_image",
     "recording_geometry_toml",
+    "pre_trigger_span",
     "expand_inputs",
     "natural_key",
     "input_notes",
@@ -1177,14 +1178,18 @@ def recording_notes(path) -> list:
     with _h5_file(p) as f:
         ds, n = _h5_frames(f, p)
         attrs = f.attrs
+        table, bad = _h5_frame_table(f, n, p)
         if "complete" in attrs and int(attrs["complete"]) == 0:
             planned = int(ds.attrs.get("frames_planned", -1))
             of = f" of the {planned} planned" if planned > n else ""
             node = f.get("geometry_toml")
             heap_damage = _vlen_heap_damage(p, node) if node is not None else ""
             error = "" if heap_damage else str(attrs.get("error", "") or "")
-            table, bad = _h5_frame_table(f, n, p)
-            untriggered = _before_trigger_only(table, bad)
+            span = pre_trigger_span(table, bad)
+            untriggered = ("" if span is None else
+                           f", all before its trigger (trigger_index {span[0]} to {span[1]}): it stopped before "
+                           f"the trigger came, no frame is the trigger frame and the event is not in it")
+            losses = "" if error or "summary" not in f else _summary_losses(f)
             if "summary" not in f:
                 notes.append(
                     f"{p.name} is a recording that did not end normally (complete = 0, no /summary: "
@@ -1192,13 +1197,12 @@ def recording_notes(path) -> list:
                     + (f"; its error: {error}" if error else "")
                     + f"): it holds {n}{of} frames{untriggered}, and frames the camera sent may be "
                     f"missing; check the original recording")
-            elif not error and _summary_losses(f):  # it ran to its end; the frames lost on the way are why
-                notes.append(f"{p.name} is a recording that lost frames on the way ({_summary_losses(f)}): "
+            elif losses:  # it ran to its end; the frames lost on the way are why
+                notes.append(f"{p.name} is a recording that lost frames on the way ({losses}): "
                              f"it holds {n}{of} frames{untriggered}")
             else:
                 notes.append(f"{p.name} is a recording that ended early ({error or 'complete = 0'}): "
                              f"it holds {n}{of} frames{untriggered}")
-        table, bad = _h5_frame_table(f, n, p)
         if n and table is None and "frame_table" in f:
             notes.append(f"{p.name}: /frame_table cannot be read (the file is damaged there): "
                          f"the frames' times, camera ids and flags are unknown")
@@ -1234,18 +1238,18 @@ def _summary_losses(f) -> str:
     return f"{upstream + overrun} lost: " + ", ".join(parts)
 
 
-def _before_trigger_only(table, bad) -> str:
-    """``", all before its trigger (trigger_index -8 to -1): ..."`` where every intact row of a
-    recording's frame table counts back from a trigger that never came (a triggered recording
-    stopped while it waited: the event is not in it); "" otherwise."""
+def pre_trigger_span(table, bad=None):
+    """``(lowest, highest)`` trigger index where every intact row of a recording's frame table
+    (``bad``: its damaged rows) counts back from a trigger that never came (a triggered recording
+    stopped while it waited: the event is not in it); None otherwise (a trigger frame, frames after
+    it, no trigger index). What ``process``'s note and the Replay tab both say."""
     if table is None or "trigger_index" not in (table.dtype.names or ()) or not len(table):
-        return ""
+        return None
     t = np.asarray(table["trigger_index"], dtype=np.int64)
     t = t[~bad] if bad is not None else t
     if not len(t) or np.any(t >= 0) or np.any(t == np.iinfo(np.int64).min):
-        return ""
-    return (f", all before its trigger (trigger_index {int(t.min())} to {int(t.max())}): it stopped "
-            f"before the trigger came, no frame is the trigger frame and the event is not in it")
+        return None
+    return int(t.min()), int(t.max())
 
 
 def parse_frame_range(text: str) -> slice:

@@ -87,8 +87,9 @@ def recording_notes(attrs, table, n_frames: int) -> list:
         at = np.flatnonzero(gaps)
         notes.append(f"{int(gaps.sum())} camera frame(s) LOST, before frame(s) "
                      + ", ".join(str(int(i) + 1) for i in at[:8]) + (" …" if at.size > 8 else ""))
-    names = () if table is None else (table.dtype.names or ())
-    if "trigger_index" in names and n_frames and int(np.max(table["trigger_index"])) < 0:
+    from app.files.imageio import pre_trigger_span  # what `process` says of such a recording too
+
+    if n_frames and pre_trigger_span(table) is not None:
         notes.append(f"stopped BEFORE the trigger: only the {n_frames} frame(s) before it, no trigger frame")
     if "complete" in attrs and not int(attrs["complete"]):
         error = attrs.get("error", "")
