@@ -53,6 +53,14 @@ class ReferenceReport:
     bound_rad: float
     measure: str  # "carrier phase" or "grey level / contrast"
 
+    def disagreement(self, frame_numbers=None) -> str:
+        """``"9 of 10 frames differ from the first by more than 0.05 rad of carrier phase (frame 10: 0.64 rad)"``,
+        the worst frame named by its place in ``frame_numbers`` (default: 1, 2, ... as fed)."""
+        worst = int(np.argmax(self.changes_rad))
+        number = worst + 1 if frame_numbers is None else list(frame_numbers)[worst]
+        return (f"{self.n_frames - self.n_averaged} of {self.n_frames} frames differ from the first by more than "
+                f"{self.bound_rad:g} rad of {self.measure} (frame {number}: {self.changes_rad[worst]:.2f} rad)")
+
     def text(self) -> str:
         dropped = self.n_frames - self.n_averaged
         return (f"{self.n_averaged} of {self.n_frames} frames averaged, {self.measure} within "
@@ -193,13 +201,8 @@ class ReferenceAverager:
         if rep.n_frames == 0:
             raise ValueError("no frame was fed to the reference average")
         if rep.n_frames - rep.n_averaged > self.max_disagreeing * rep.n_frames:
-            worst = int(np.argmax(self.changes))
-            number = worst + 1 if frame_numbers is None else list(frame_numbers)[worst]
-            raise WaterMovingError(
-                f"the water is moving: {self.remedy}. {rep.n_frames - rep.n_averaged} of "
-                f"{rep.n_frames} frames differ from the first by more than {self.bound_rad:g} rad of "
-                f"{rep.measure} (frame {number}: {self.changes[worst]:.2f} rad); a reference needs "
-                "still water.")
+            raise WaterMovingError(f"the water is moving: {self.remedy}. {rep.disagreement(frame_numbers)}; a "
+                                   "reference needs still water.")
         return (self._total / rep.n_averaged).astype(np.float32), rep
 
 

@@ -369,11 +369,11 @@ class LiveSession:
             averager.add(f.image)
         try:
             return averager.result()
-        except WaterMovingError as exc:
+        except WaterMovingError:
             if averager.carriers_freq is None and pattern != "dots":  # frames of no checkerboard, changing
                 from .model.reference import no_pattern_error
 
-                raise WaterMovingError(no_pattern_error(str(exc))) from None
+                raise WaterMovingError(no_pattern_error(averager.report().disagreement())) from None
             raise
 
     # ------------------------------------------------------------- status

@@ -8,7 +8,6 @@ not show the chosen pattern.
 
 from __future__ import annotations
 
-import re
 from typing import Optional
 
 __all__ = ["capture_failed_label", "capture_failed_message", "pattern_mismatch_messages", "no_pattern_error",
@@ -18,20 +17,14 @@ __all__ = ["capture_failed_label", "capture_failed_message", "pattern_mismatch_m
 NO_PATTERN = "the camera image shows no checkerboard"
 
 
-def no_pattern_error(moving: str) -> str:
+def no_pattern_error(disagreement: str) -> str:
     """The refusal of a capture whose first frame shows no checkerboard (no carrier peak) and whose frames
-    differ (``moving``: :class:`~processing.reference_average.WaterMovingError`'s words). It said only "the
-    water is moving: wait and capture again", on a camera that did not see the pattern at all (by-hand trial
-    with the fake GigE camera, whose frames are moving stripes, 7 Dec 2026): waiting would never help."""
+    differ (``disagreement``: :meth:`~processing.reference_average.ReferenceReport.disagreement`). It said only
+    "the water is moving: wait and capture again", on a camera that did not see the pattern at all (by-hand
+    trial with the fake GigE camera, whose frames are moving stripes, 7 Dec 2026): waiting would never help."""
     return (f"{NO_PATTERN} (no carrier peak in its first frame): point the camera at the pattern under the "
             "water, check its focus and light (the Alignment tab shows what it sees), then capture again. "
-            f"Its frames also differ from each other: {_figure(moving)}.")
-
-
-def _figure(moving: str) -> str:
-    """"9 of 10 frames differ from the first by ... (frame 10: 0.64 rad)" of a WaterMovingError's words."""
-    m = re.search(r"\d+ of \d+ frames differ[^;]*", moving)
-    return m.group(0) if m else moving
+            f"Its frames also differ from each other: {disagreement}.")
 
 
 def capture_failed_label(error: str, previous_kept: bool) -> str:
