@@ -20,13 +20,20 @@ check, :mod:`app.batch.frame_status`, and the live window's,
 what a frame's own response does to the board (a gamma other than the
 reference's: the row frequencies of the board's harmonics are left out of the
 judgement, :func:`board_row_frequencies`), and a clipped frame or reference
-(not judged, :func:`clipped`).
+(not judged, :func:`clipped`).  Nor is vignetting (:func:`vignette_of`): a frame darkened towards its edges and
+corners against its reference (the lens opened up, the light moved) makes each quarter's row gains bend alike,
+and the 64-row trend cannot follow the bend near the top and bottom rows, where the outer quarters also fall
+under :data:`LIT_MIN_GAIN`: simulate's board at 256^2 and 512^2 with corners at 50 / 20 / 5 % of the middle's
+light (falling as cos^4 or a Gaussian) read as bands 0.02-0.05 / 0.05-0.13 / 0.24-0.33 deep at 0.5-0.98 of
+agreement, and most were named and evened as banded.  A smooth fall-off towards every side is now
+named as what it is (:class:`Vignette`), bands are judged on the frame's light over it, and it is not evened.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
+import warnings
 from typing import Optional
 
 import cv2
@@ -36,8 +43,10 @@ from scipy.ndimage import uniform_filter1d
 from .live_view import SATURATION_MAX_PCT, saturation_pct
 
 __all__ = ["BANDS_MIN_DEPTH", "BANDS_MIN_AGREEMENT", "BOARD_HARMONIC_ORDER", "BOARD_NOTCH_BINS",
-           "MIN_CYCLES_PER_QUARTER", "LightBands", "RowLight", "board_row_frequencies", "clipped", "even_rows",
-           "bands_of", "evened_frame", "frame_light_bands", "light_bands", "reference_light", "row_profile"]
+           "MIN_CYCLES_PER_QUARTER", "VIGNETTE_DEGREE", "VIGNETTE_BLOCKS", "VIGNETTE_MAX_MISFIT", "VIGNETTE_MAX_EDGE",
+           "VIGNETTE_NAMED_CORNER",
+           "LightBands", "RowLight", "Vignette", "board_row_frequencies", "clipped", "even_rows", "bands_of",
+           "evened_frame", "frame_light_bands", "light_bands", "reference_light", "row_profile", "vignette_of"]
 
 #: Box along the rows (px) of :func:`row_profile`; it samples every ``cols // COLUMNS_PER_STEP`` columns
 #: (2 to 16 px: 64 samples or more across, 16 to a quarter; at 256^2 every 16 px left bands 10 % deep at
@@ -63,6 +72,149 @@ BANDS_MIN_DEPTH = 0.02
 BANDS_MIN_AGREEMENT = 0.6
 
 
+#: A frame's light against its reference's is taken for vignetting (:func:`vignette_of`), not bands, where a
+#: smooth surface, a polynomial of this degree in x and y fitted to the log of their ratio over blocks of the
+#: row profiles (this many rows and columns of blocks) ...
+VIGNETTE_DEGREE = 4
+VIGNETTE_BLOCKS = (32, 16)
+#: ... fits it within this RMS (of the log, after what whole rows of blocks share: bands on top of it) ...
+#: (measured 7 Dec 2026 on simulate's board, bump and waves, 256^2 / 512^2: vignettes falling like cos^4 or a
+#: Gaussian to 50-2 % at the corners 0.033-0.050 / 0.005-0.046, the same frames without them 0.033-0.042 /
+#: 0.005-0.009; a dark disc in the middle 0.23-0.28, a shadow over half of every row 0.09-0.11, the real needle
+#: frame 0.16, the real floating ring and ellipse 0.66-0.84)
+VIGNETTE_MAX_MISFIT = 0.07
+#: ... and falls towards all four sides: the mean of the fitted light along each side at most this fraction of
+#: its brightest row's and column's (or, the reference the darker, the same of the inverse).  Measured (the same
+#: frames): vignettes to 70 / 50 / 20 / 5 % at the corners 0.91-0.96 / 0.83-0.92 / 0.62-0.84 / 0.36-0.72; bands
+#: along the rows, smooth or sharp, a shadow's edge along them, light falling off along the columns, 0.99-1.00
+#: (what does not change along the rows leaves the columns' means flat).  Vignettes to 80 % and more at the
+#: corners (0.94-0.99) are not named, nor were they taken for bands.
+VIGNETTE_MAX_EDGE = 0.97
+#: A vignette is named (:attr:`Vignette.named`) where its darkest corner's light is at most this fraction of the
+#: brightest part's: where the light falls under about a third, the pattern's contrast is too low to be measured
+#: (ray traced, simulate's board, a 4 um bump and waves at 256^2 and 512^2: light under 0.2 of the brightest
+#: never measured, 0.2-0.35 in 5-69 %, above it all; vignettes to 5 % at the corners left 40-63 % of the frame
+#: measured). A milder one costs nothing: only its bands are judged over it, in silence.
+VIGNETTE_NAMED_CORNER = 0.35
+
+
+@dataclasses.dataclass(frozen=True)
+class Vignette:
+    """A frame's light against its reference's falling off smoothly from the middle towards every side and
+    corner (:func:`vignette_of`): vignetting in one of them, not bands along the rows."""
+
+    #: the darkest corner's light over the brightest part's: the frame's against the reference's, or (where
+    #: :attr:`in_reference`) the reference's against the frame's
+    corner: float
+    #: whether the reference is the one darker towards its corners
+    in_reference: bool = False
+    #: the fitted fall-off (frame over reference) on the grid of the row profiles (:func:`row_profile`)
+    model: np.ndarray = dataclasses.field(default=None, compare=False, repr=False)
+
+    @property
+    def named(self) -> bool:
+        """Dark enough at a corner to cost part of the frame (:data:`VIGNETTE_NAMED_CORNER`)."""
+        return bool(self.corner <= VIGNETTE_NAMED_CORNER)
+
+    def describe(self) -> str:
+        pct = f"{100 * self.corner:.2g} %"
+        if self.in_reference:
+            return (f"the reference darkens towards its edges and corners against this frame (vignetting when the "
+                    f"reference was taken: its darkest corner at about {pct} of the light of its brightest part, as "
+                    f"this frame is lit), a smooth fall-off, not bands along the rows, and not evened out. Where the "
+                    f"reference is darker than about a third of its brightest light, nothing is measured (masked). "
+                    f"Capture the reference again under the light of these frames")
+        return (f"the image darkens towards its edges and corners against the reference (vignetting: its darkest "
+                f"corner at about {pct} of the light of its brightest part, as the reference is lit), a smooth "
+                f"fall-off, not bands along the rows, and not evened out. Where the light falls under about a third "
+                f"of the brightest, the pattern's contrast is too low and the corners are not measured (masked); "
+                f"the heights elsewhere are as without it, a little noisier beside the masked corners (ray traced). "
+                f"The light changed since the reference: the lens was opened up (wide open, a lens darkens its "
+                f"corners), or the light moved or narrowed. Stop the lens down, or centre and widen the light on the "
+                f"board; a new reference under this light does not bring the corners back")
+
+
+def vignette_of(ratio) -> Optional[Vignette]:
+    """The :class:`Vignette` of ``ratio`` (rows, samples: a frame's :func:`row_profile` over its reference's, NaN
+    where the reference is dark), or None where its light does not fall off smoothly towards every side: the log
+    of its block means (:data:`VIGNETTE_BLOCKS`) fitted by a polynomial in x and y (:data:`VIGNETTE_DEGREE`),
+    within :data:`VIGNETTE_MAX_MISFIT` but for what whole rows of blocks share, and its means along each side at
+    most :data:`VIGNETTE_MAX_EDGE` of its brightest row's and column's (or of the inverse's: the reference the
+    darker).  0.3-1 ms a 1024^2 frame's profile, most of it the block means."""
+    ratio = np.asarray(ratio, np.float64)
+    rows, cols = ratio.shape
+    nr, nc = min(VIGNETTE_BLOCKS[0], rows // 4), min(VIGNETTE_BLOCKS[1], cols // 2)
+    if nr < 8 or nc < 6:
+        return None
+    blocks, y, x = _block_means(ratio[::max(1, rows // 256)], nr, nc)  # (every k-th row: as good, 4x faster)
+    ok = np.isfinite(blocks) & (blocks > 1e-3)
+    if ok.mean() < 0.5 or not (_falls_to_every_side(np.where(ok, blocks, np.nan), 0.99)
+                               or _falls_to_every_side(np.where(ok, 1.0 / np.where(ok, blocks, 1.0), np.nan), 0.99)):
+        return None  # (most frames: no fit)
+    terms = [(i, j) for i in range(VIGNETTE_DEGREE + 1) for j in range(VIGNETTE_DEGREE + 1 - i)]
+    grid_y, grid_x = np.meshgrid(y, x, indexing="ij")
+    basis = np.stack([grid_y[ok] ** i * grid_x[ok] ** j for i, j in terms], axis=1)
+    logs = np.log(blocks[ok])
+    coef = np.linalg.lstsq(basis, logs, rcond=None)[0]
+    misfit = np.full(blocks.shape, np.nan)
+    misfit[ok] = logs - basis @ coef
+    misfit -= _nanmedian_of_rows(misfit)[:, None]  # what whole rows share: bands on top of it
+    if not np.sqrt(np.nanmean(misfit ** 2)) <= VIGNETTE_MAX_MISFIT:
+        return None
+    power = np.zeros((VIGNETTE_DEGREE + 1, VIGNETTE_DEGREE + 1))
+    for (i, j), c in zip(terms, coef):
+        power[i, j] = c
+    fitted = np.exp(_powers(y) @ power @ _powers(x).T)  # on the blocks
+    in_reference = not _falls_to_every_side(fitted, VIGNETTE_MAX_EDGE)
+    if in_reference and not _falls_to_every_side(1.0 / fitted, VIGNETTE_MAX_EDGE):
+        return None
+    model = np.exp(_powers(np.linspace(-1.0, 1.0, rows)) @ power @ _powers(np.linspace(-1.0, 1.0, cols)).T)
+    light = 1.0 / model if in_reference else model
+    corner = float(np.min(light[[0, 0, -1, -1], [0, -1, 0, -1]]) / np.max(light))
+    return Vignette(corner, in_reference, model)
+
+
+def _block_means(a, nr: int, nc: int):
+    """Means of the finite values of ``a`` (2-D) over ``nr`` x ``nc`` blocks (NaN where fewer than half are),
+    the blocks' centres in -1 .. 1 along the rows and along the columns."""
+    rows, cols = a.shape
+    hr, hc = rows // nr, cols // nc
+    r0, c0 = (rows - hr * nr) // 2, (cols - hc * nc) // 2
+    part = a[r0:r0 + hr * nr, c0:c0 + hc * nc]
+    finite = np.isfinite(part)
+    # (summed along the rows first, then the columns: a sum over two strided axes at once took 5x as long)
+    count, total = (np.add.reduceat(np.add.reduceat(v, np.arange(0, hc * nc, hc), axis=1), np.arange(0, hr * nr, hr),
+                                    axis=0) for v in (finite.astype(np.float64), np.where(finite, part, 0.0)))
+    means = np.where(count > hr * hc / 2, total / np.maximum(count, 1), np.nan)
+    centres = [(2 * (start + size * (np.arange(n) + 0.5) - 0.5) - (length - 1)) / (length - 1)
+               for start, size, n, length in ((r0, hr, nr, rows), (c0, hc, nc, cols))]
+    return means, centres[0], centres[1]
+
+
+def _nanmedian_of_rows(a):
+    """``np.nanmedian(a, axis=1)`` of a 2-D float array, 0 for a row without a finite value (NumPy's took 0.6 ms
+    on 32 x 16 blocks, through masked arrays)."""
+    s = np.sort(a, axis=1)  # NaN last
+    k = np.isfinite(a).sum(axis=1)
+    at = np.arange(a.shape[0])
+    return np.where(k > 0, (s[at, np.maximum(k - 1, 0) // 2] + s[at, np.minimum(k // 2, a.shape[1] - 1)]) / 2, 0.0)
+
+
+def _powers(u):
+    """``u`` to the powers 0 .. :data:`VIGNETTE_DEGREE`, one per column."""
+    return np.stack([np.asarray(u, np.float64) ** k for k in range(VIGNETTE_DEGREE + 1)], axis=-1)
+
+
+def _falls_to_every_side(light, most: float) -> bool:
+    """Is the mean of ``light`` (2-D, NaN where unknown) along each of its four sides at most ``most`` of its
+    brightest row's mean (top and bottom) and column's (left and right)?"""
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a side with no known block (an incomplete frame's)
+        along_rows, along_cols = np.nanmean(light, axis=1), np.nanmean(light, axis=0)
+        return bool(max(along_rows[0], along_rows[-1]) <= most * np.nanmax(along_rows)
+                    and max(along_cols[0], along_cols[-1]) <= most * np.nanmax(along_cols))
+
+
 @dataclasses.dataclass(frozen=True)
 class LightBands:
     """How a frame's light varies along its rows against the reference's (:func:`light_bands`)."""
@@ -77,9 +229,13 @@ class LightBands:
     #: whether the row gains are the light's alone (False where the board's stripes run along the rows,
     #: :data:`MIN_CYCLES_PER_QUARTER`: there they hold the pattern's own motion, and are not divided by)
     evenable: bool = True
+    #: the frame darkened towards its edges and corners against the reference, or the reference against the
+    #: frame (:func:`vignette_of`); the other fields then judge the frame's light over that fall-off
+    vignette: Optional[Vignette] = None
 
     @property
     def flagged(self) -> bool:
+        """Bands of light along the rows (on top of a vignette, where there is one)."""
         return bool(self.depth >= BANDS_MIN_DEPTH and self.agreement >= BANDS_MIN_AGREEMENT)
 
     @property
@@ -87,7 +243,22 @@ class LightBands:
         """Named and evened out before measuring (:func:`even_rows`)."""
         return self.flagged and self.evenable
 
+    @property
+    def vignetted(self) -> bool:
+        """Darkened towards the corners enough to say so (:attr:`Vignette.named`)."""
+        return self.vignette is not None and self.vignette.named
+
+    @property
+    def named(self) -> bool:
+        """Bands, or a vignette worth naming: something to say of the frame's light (:meth:`describe`)."""
+        return self.flagged or self.vignetted
+
     def describe(self) -> str:
+        if self.vignetted and not self.flagged:
+            return self.vignette.describe()
+        return self._bands_text() + (f". Besides, {self.vignette.describe()}" if self.vignetted else "")
+
+    def _bands_text(self) -> str:
         what = (f"bands of light along the rows, {100 * self.depth:.2g} % RMS alike across the whole width, that "
                 f"the reference does not show: a rolling shutter under light that flickers within a frame "
                 f"(PWM-dimmed LEDs), or a shadow's edge along the rows; ")
@@ -177,11 +348,22 @@ def light_bands(frame_profile, reference_profile, notch=()) -> LightBands:
     way.  Harmonics to the 4th left 0.017 at 0.82 (the 5th-7th carry the rest), to the 8th took half the
     depth of bands 20 rows apart at 256^2 (the 6th lies on their fundamental).  A board seen as diamonds
     (carriers along the rows and columns) keeps 0.027-0.040 at gamma 1.5 / 0.6 (named): its fundamental
-    runs along the rows."""
+    runs along the rows.  Where the light falls off smoothly towards every side (:func:`vignette_of`), the
+    frame is named for that (:attr:`LightBands.vignette`) and its bands are judged over the fall-off."""
     f = np.asarray(frame_profile, np.float64)
     r = np.asarray(reference_profile, np.float64)
     ok = r > 0.05 * float(np.max(r)) if r.size else np.zeros(r.shape, bool)
     ratio = np.where(ok, f / np.where(ok, r, 1.0), np.nan)
+    vignette = vignette_of(ratio)
+    if vignette is None:
+        return _judged(ratio, notch)
+    # bands are what the light does over the vignette's smooth fall-off
+    return dataclasses.replace(_judged(ratio / vignette.model, notch), vignette=vignette)
+
+
+def _judged(ratio, notch) -> LightBands:
+    """:func:`light_bands` of a frame's row profile over its reference's (``ratio``, NaN where the reference is
+    dark)."""
     gains = []
     for cols in np.array_split(np.arange(ratio.shape[1]), 4):
         part = ratio[:, cols]

@@ -223,6 +223,7 @@ class FrameTally:
         self.hot = []  # (sequence index, hot pixels repaired) of frames with any
         self.turned = []  # (sequence index, |turn| mrad, TurnCheck) of frames whose pattern turned
         self.banded = []  # (sequence index, LightBands.depth, LightBands) of frames with bands of light along rows
+        self.vignetted = []  # (sequence index, darkest corner's light, LightBands) of frames darkened to the corners
         self.partial = []  # (sequence index, % measured, why not all) of frames measured on < PARTLY_MEASURED_PCT
 
     def add(self, item, outcome: FrameOutcome) -> None:
@@ -239,6 +240,9 @@ class FrameTally:
                          "bands of light along the rows, %.2g %% RMS alike across the whole width, that the reference "
                          "does not show (a rolling shutter under flickering light, or a shadow's edge along the rows)",
                          outcome.light_bands)
+            if outcome.light_bands is not None and outcome.light_bands.vignetted and not outcome.light_bands.flagged:
+                _add_row(self.vignetted, item, outcome.light_bands.vignette.corner,
+                         "vignetting: its darkest corner at %.2g of the light of its brightest part", outcome.light_bands)
             if outcome.measured_pct < PARTLY_MEASURED_PCT:
                 _add_row(self.partial, item, outcome.measured_pct, "only %.1f %% of the area its reference covers "
                          "could be measured: " + outcome.unmeasured_cause.replace("%", "%%"), outcome.unmeasured_cause)
@@ -291,6 +295,7 @@ class FrameTally:
                 "frames_with_hot_pixels": len(self.hot), "hot_pixels_max": _worst(self.hot, 0)[1],
                 "frames_turned": len(self.turned), "turn_mrad_max": _worst(self.turned, 0.0)[1],
                 "frames_light_banded": len(self.banded), "light_bands_pct_max": _worst(self.banded, 0.0)[1],
+                "frames_vignetted": len(self.vignetted),
                 "frames_partly_measured": len(self.partial), "measured_pct_min": _least(self.partial, 100.0)[1]}
 
     def notes(self) -> list:
@@ -319,6 +324,9 @@ class FrameTally:
             k, pct, bands = _worst(self.banded, 0.0)
             out.append(f"{len(self.banded)} frame(s) show {bands.describe()} (the most at frame {k}, "
                        f"{pct:.2g} %)")
+        if self.vignetted:
+            k, _, bands = _least(self.vignetted, 1.0)
+            out.append(f"{len(self.vignetted)} frame(s) show {bands.describe()} (the darkest corners at frame {k})")
         if self.partial:
             k, pct, cause = _least(self.partial, 100.0)
             out.append(f"{len(self.partial)} frame(s) were measured on less than {PARTLY_MEASURED_PCT:g} % of the area "

@@ -9,7 +9,8 @@ reference is valid until a frame arrives; red when the pin fell back to the
 samples nearest the region, the pattern moved in the user's region (a surface
 not at rest, or a camera or board that moved: ``PinStatus.still``), the whole
 pattern shifted alike (the water level changed, or the camera or the board
-moved: ``PinStatus.shifted``) or the frame jumps against the previous one.
+moved: ``PinStatus.shifted``), the frame shows bands of light along its rows or a vignette
+(:class:`processing.banding.LightBands`: "LIGHT BANDS", "VIGNETTING") or jumps against the previous one.
 """
 
 from __future__ import annotations
@@ -125,9 +126,10 @@ class PinRegionOverlay:
             text += (f" — the pattern TURNED by {abs(turn.turn_mrad):.2f} mrad since the reference (camera or board "
                      f"moved{'; taken out of the heights' if turn.removed else ''}): capture a new reference")
             flags.append("TURNED")
-        if light_bands is not None and light_bands.flagged:  # named, evened out before measuring or not
-            text += " — LIGHT BANDS: " + light_bands.describe()
-            flags.append("LIGHT BANDS")
+        if light_bands is not None and light_bands.named:  # bands (evened out before measuring or not), a vignette
+            flag = "LIGHT BANDS" if light_bands.flagged else "VIGNETTING"  # (bands on a vignette: both said)
+            text += f" — {flag}: " + light_bands.describe()
+            flags.append(flag)
         series = getattr(result, "series", None)
         if series is not None and series.flagged:
             text += " — JUMP against the previous frame"

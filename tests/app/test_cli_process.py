@@ -985,6 +985,27 @@ def test_bands_of_light_along_the_rows_are_named(tmp_path, capsys):
     np.testing.assert_allclose(errors["banded"], errors["plain"], atol=0.05)  # percentage points
 
 
+def test_a_vignette_after_the_reference_is_named_as_such_by_process(tmp_path, capsys):
+    """The lens opened up after the reference (cos^4 fall-off, corners at 5 %): the frame check once named it
+    "bands of light along the rows" and evened it; since 7 Dec 2026 processing.banding tells a vignette
+    from bands, and the run now says so in its summary and the file (``frames_vignetted``); frames lit as
+    the reference say nothing."""
+    from tests.processing.test_banding import _vignette
+
+    d, dim = _bump_and_changed_frames(tmp_path, capsys, lambda a, i: a * _vignette(a.shape, 0.05, "cos4"))
+    for label, folder in (("plain", d), ("vignetted", dim)):
+        out = tmp_path / f"{label}.h5"
+        err = _process_frames_of(capsys, d, folder, out)
+        with h5py.File(out) as f:
+            n, banded = int(f.attrs["frames_vignetted"]), int(f.attrs["frames_light_banded"])
+        assert banded == 0 and "bands of light" not in err, err
+        if label == "plain":
+            assert n == 0 and "vignetting" not in err, err
+        else:
+            assert n == 2 and "note: 2 frame(s) show the image darkens towards its edges and corners" in err, err
+            assert re.search(r"its darkest corner at about \d+(\.\d+)? % of the light", err), err
+
+
 def test_a_blurred_frame_is_named_with_its_contrast_whether_specks_of_it_are_measured_or_none(tmp_path, capsys):
     """By-hand trial of 7 Dec 2026: simulate's bump (256^2, 12 bit), one frame blurred by a Gaussian of
     2.5 px (focus lost, motion blur): the pattern's contrast falls to 0.29 of the reference's, under the

@@ -154,6 +154,40 @@ def test_flickering_light_after_the_reference_is_named_and_evened_in_the_live_wi
     qtbot.waitUntil(lambda: drawn(scene["flat"]) and not window.pin_overlay.bad, timeout=15000)
 
 
+def test_a_vignette_after_the_reference_is_named_vignetting_not_light_bands_in_the_live_window(qtbot, window, scene):
+    """The user captures a reference on still water; then the lens is opened up (or the light moved) and the
+    frames darken towards their corners to 5 % of the middle's light (a Gaussian). The frame check named that
+    "LIGHT BANDS: bands of light along the rows ... a rolling shutter" and evened the rows; now the pin label says
+    VIGNETTING, the whole sentence what it is and what to do, and the frames are measured as they are."""
+    from processing import forward
+
+    geometry = scene["geometry"]
+    pattern = forward.Checkerboard(period_mm=12 * geometry.pixel_mm, edge_softness_mm=geometry.pixel_mm)
+    bump_img, _ = forward.render_tir(forward.GaussianBump(amplitude_mm=BUMP_AMPLITUDE_MM, sigma_mm=BUMP_SIGMA_MM,
+                                                          x0_mm=0.0, y0_mm=0.0), geometry, SHAPE, pattern)
+    y, x = np.mgrid[:SHAPE[0], :SHAPE[1]] / ((np.array(SHAPE) - 1) / 2)[:, None, None] - 1.0
+    r2 = (x ** 2 + y ** 2) / 2  # 1 at the corners
+    light = np.exp(np.log(0.05) * r2)  # a Gaussian fall-off to 5 % at the corners
+    dark_corners = forward.quantize(bump_img * light, bits=8, noise_rms=0.5, rng=np.random.default_rng(9))
+    frames = Switchable(scene["flat"])
+    drawn = _reference_by_hand_on(qtbot, window, frames, geometry)
+    assert not window.pin_overlay.bad
+    frames.image = dark_corners
+    # judged every BANDS_INTERVAL_S: named within a few frames
+    qtbot.waitUntil(lambda: drawn(dark_corners) and any(flag in window.pin_overlay.short
+                                                        for flag in ("VIGNETTING", "LIGHT BANDS")), timeout=15000)
+    p = window.last_drawn
+    assert "LIGHT BANDS" not in window.pin_overlay.short, (window.pin_overlay.short, window.pin_overlay.text)
+    assert "VIGNETTING" in window.pin_overlay.short
+    assert p.light_bands is not None and p.light_bands.vignetted and not p.light_bands.flagged, p.light_bands
+    assert window.pin_overlay.bad
+    text = window.pin_overlay.text
+    assert "the image darkens towards its edges and corners against the reference (vignetting" in text, text
+    assert "rolling shutter" not in text
+    frames.image = scene["flat"]  # the lens and the light as for the reference: green again
+    qtbot.waitUntil(lambda: drawn(scene["flat"]) and not window.pin_overlay.bad, timeout=15000)
+
+
 def test_live_height_shows_the_bump_where_it_is(qtbot, window, scene, tmp_path):
     """Capture a reference through the window, then the live height map peaks at the bump, in um."""
     frames = Switchable(scene["flat"])
