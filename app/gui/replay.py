@@ -10,9 +10,9 @@ import numpy as np
 from pyqtgraph.Qt import QtCore, QtWidgets
 
 from .model.colour_range import SURFACE
-from .model.replay import lost_before, recording_notes, table_times_s
+from .model.replay import ReplayMessage, lost_before, recording_notes, table_times_s, without_untriggered_index
 from .views import ImageView
-from .widgets import ElidedLabel
+from .widgets import ElidedLabel, MessageArea
 
 __all__ = ["ReplayTab", "Recording", "RECORDING_FILTER"]
 
@@ -59,7 +59,8 @@ class Recording:
         self.n_frames = int(min(self.frames.shape[0], n_attr)) if n_attr is not None else self.frames.shape[0]
         self.reference = self._read_reference()
         self.geometry_toml = self._read_text("geometry_toml", "geometry")
-        self.table = self._file["frame_table"][: self.n_frames] if "frame_table" in self._file else None
+        table = self._file["frame_table"][: self.n_frames] if "frame_table" in self._file else None
+        self.table = without_untriggered_index(dict(self._file.attrs), table)
         self._times_s, self.time_origin = table_times_s(self.table)
         self.lost_before = lost_before(self.table)
         self.notes = recording_notes(dict(self._file.attrs), self.table, self.n_frames)
@@ -200,12 +201,20 @@ class ReplayTab(QtWidgets.QWidget):
         scrub.addWidget(self.slider, 1)
         scrub.addWidget(self.index_label)
         outer.addLayout(scrub)
-        self.message = QtWidgets.QLabel("")
-        self.message.setWordWrap(True)
+        # what the file says of itself (frames lost, stopped before the trigger), why there are no heights, the
+        # export's summary, why the slider's frame could not be measured: wrapped, up to 4 lines, scrolled beyond
+        # (a smallest window keeps its maps and the whole message; the full text is also the tooltip)
+        self.message = MessageArea("", max_lines=4)
+        self.said = ReplayMessage()  # what it says (refresh_message draws it)
         outer.addWidget(self.message)
         self.open_button.clicked.connect(self.open_requested.emit)
         self.export_button.clicked.connect(self.export_requested.emit)
         self.slider.valueChanged.connect(self.frame_changed.emit)
+
+    def refresh_message(self) -> None:
+        """Draw :attr:`said` in the message area: red where it warns."""
+        self.message.setText(self.said.text)
+        self.message.setStyleSheet("color: #b00000; font-weight: bold" if self.said.red else "")
 
     def set_recording(self, rec: Recording) -> None:
         self.file_label.setText(f"{os.path.basename(rec.path)} — {rec.n_frames} frames"

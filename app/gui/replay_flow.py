@@ -12,7 +12,7 @@ import os
 import numpy as np
 from pyqtgraph.Qt import QtWidgets
 
-from .model.replay import frame_label, height_mark, replay_inputs
+from .model.replay import ReplayMessage, frame_label, height_mark, replay_inputs, short_error
 from .replay import RECORDING_FILTER, Recording
 
 log = logging.getLogger(__name__)
@@ -45,8 +45,9 @@ def open_recording(w, path: str) -> bool:
     # the export measures with what the view does, even after the window's reference or geometry changed
     rec.inputs = (reference, geometry)
     # what the file says of itself (frames lost, ended early) first, in red: no frame is mislabelled in silence
-    w.replay.message.setText("\n".join(rec.notes + ([message] if message else [])))
-    w.replay.message.setStyleSheet("color: #b00000; font-weight: bold" if rec.notes else "")
+    w.replay.said = ReplayMessage()
+    w.replay.said.say("\n".join(rec.notes + ([message] if message else [])), warns=bool(rec.notes))
+    w.replay.refresh_message()
     if reference is not None and geometry is not None:
         def build():
             from processing import Reconstructor
@@ -58,7 +59,9 @@ def open_recording(w, path: str) -> bool:
 
         def done(r, error):
             if error:
-                w.replay.message.setText(f"cannot process this recording: {error}")
+                if w.replay_recording is rec:  # (the file's own notes stay)
+                    w.replay.said.say("\n".join(rec.notes + [f"cannot process this recording: {error}"]), warns=True)
+                    w.replay.refresh_message()
                 return
             if w.replay_recording is rec:
                 w._replay_reconstructor = r
@@ -101,8 +104,12 @@ def process_replay_frame(w):
     def done(result, error):
         if w.replay_recording is not rec:
             return
+        # why the frame could not be measured: a few words on its map (whose tooltip has all of them), in full
+        # in the message under the slider (a map of a small window has room for two or three lines)
+        w.replay.said.frame_measured(index, error or "")
+        w.replay.refresh_message()
         if error:
-            w.replay.height.show_message(error)
+            w.replay.height.show_message(error, short=f"{short_error(error)} (in full below)")
         else:
             w.replay.height.show_message("")
             w.replay.height.set_data(np.multiply(result.height, 1e3, dtype=np.float32),
@@ -134,7 +141,9 @@ def export_heights(w, out_path: str) -> None:
         return
     w.replay.progress.setRange(0, 100)  # the batch reports every frame written; _refresh shows it
     w.replay.progress.setValue(0)
-    w.replay.message.setText(f"exporting {rec.n_frames} frames to {out_path}…")
+    w.replay.said.say("\n".join(rec.notes + [f"exporting {rec.n_frames} frames to {out_path}…"]),
+                      warns=bool(rec.notes))
+    w.replay.refresh_message()
     w.export.start()
     progress = w.export.progress
 
@@ -159,7 +168,7 @@ def export_heights(w, out_path: str) -> None:
         from .export import describe_export
 
         text, clean = describe_export(out_path)
-        w.replay.message.setText(text)
-        w.replay.message.setStyleSheet("" if clean else "color: #b00000; font-weight: bold")
+        w.replay.said.say("\n".join(rec.notes + [text]), warns=bool(rec.notes) or not clean)  # the file's notes stay
+        w.replay.refresh_message()
         w.info(text, 20000)
     w.run_background("export", job, done)

@@ -6,7 +6,7 @@ from typing import Optional
 
 from pyqtgraph.Qt import QtCore, QtGui, QtWidgets
 
-__all__ = ["ElidedLabel"]
+__all__ = ["ElidedLabel", "MessageArea"]
 
 
 class ElidedLabel(QtWidgets.QLabel):
@@ -66,3 +66,67 @@ class ElidedLabel(QtWidgets.QLabel):
         shown = self.fontMetrics().elidedText(self._shown, QtCore.Qt.ElideRight, width)
         if shown != super().text():
             super().setText(shown)
+
+
+class MessageArea(QtWidgets.QScrollArea):
+    """A message of any length, wrapped to the width it gets: as tall as its lines up to ``max_lines``, and
+    scrolled beyond (a vertical scroll bar, the wheel), so that a long message never pushes the maps above
+    it off the window nor is cut at the bottom of a small one.  The text can be selected and copied, and the
+    full text is also the tooltip.  ``text()``, ``setText()``, ``styleSheet()`` and ``setStyleSheet()`` are
+    the message label's, as on a QLabel."""
+
+    def __init__(self, text: str = "", parent=None, *, max_lines: int = 4):
+        super().__init__(parent)
+        self.max_lines = int(max_lines)
+        self.label = QtWidgets.QLabel()
+        self.label.setTextFormat(QtCore.Qt.PlainText)  # "<= 8 %" in a message is no markup
+        self.label.setWordWrap(True)
+        self.label.setAlignment(QtCore.Qt.AlignLeft | QtCore.Qt.AlignTop)
+        self.label.setTextInteractionFlags(QtCore.Qt.TextSelectableByMouse)
+        self.setWidget(self.label)
+        self.setWidgetResizable(True)
+        self.setFrameShape(QtWidgets.QFrame.NoFrame)
+        self.setHorizontalScrollBarPolicy(QtCore.Qt.ScrollBarAlwaysOff)
+        self.setSizePolicy(QtWidgets.QSizePolicy.Preferred, QtWidgets.QSizePolicy.Fixed)
+        self.verticalScrollBar().setSingleStep(self.label.fontMetrics().lineSpacing())  # a line an arrow click
+        self.setText(text)
+
+    def setText(self, text: str) -> None:  # noqa: N802 - Qt name
+        text = str(text)
+        if text == self.label.text():
+            return  # (read where it was scrolled to)
+        self.label.setText(text)
+        self.setToolTip(text)
+        self.verticalScrollBar().setValue(0)  # a new message is read from its first line
+        self.updateGeometry()
+
+    def text(self) -> str:
+        return self.label.text()
+
+    def setStyleSheet(self, sheet: str) -> None:  # noqa: N802 - Qt name
+        self.label.setStyleSheet(sheet)
+        self.updateGeometry()  # a bold font needs more lines
+
+    def styleSheet(self) -> str:  # noqa: N802 - Qt name
+        return self.label.styleSheet()
+
+    def needed_height(self, width: Optional[int] = None) -> int:
+        """Height (px) the whole message takes wrapped to ``width`` (the area's own width by default)."""
+        return max(self.label.heightForWidth(max(self.width() if width is None else int(width), 1)), 0)
+
+    def _shown_height(self) -> int:
+        least = self.label.fontMetrics().lineSpacing()
+        most = self.max_lines * least  # whole lines: no half line at the bottom
+        needed = self.needed_height()
+        return min(max(needed, least), most)  # beyond ``most`` it scrolls
+
+    def sizeHint(self):
+        return QtCore.QSize(super().sizeHint().width(), self._shown_height())
+
+    def minimumSizeHint(self):
+        return QtCore.QSize(super().minimumSizeHint().width(), self._shown_height())
+
+    def resizeEvent(self, ev):
+        super().resizeEvent(ev)
+        if ev.oldSize().width() != ev.size().width():
+            self.updateGeometry()  # another width, another number of lines

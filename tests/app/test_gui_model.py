@@ -615,6 +615,31 @@ def test_replay_uses_the_recordings_reference_and_geometry_and_says_what_is_miss
     assert frame_label(0, 5, None, float("nan"), "trigger") == "frame 1/5"
 
 
+def test_the_replay_message_keeps_the_files_notes_and_says_in_full_why_a_frame_was_not_measured():
+    """The Replay tab's message: what was said of the file, then why the frame could not be measured, in full
+    (its map says a few words: short_error); a frame measured since clears it."""
+    from app.gui.model.replay import ReplayMessage, short_error
+
+    error = ("the frame's pattern does not match the reference: measured period about 4.9 px (the centroid of "
+             "its strongest, smeared spectral peak, at 57 deg)")
+    assert short_error(error) == "the frame's pattern does not match the reference"
+    assert short_error("no pixel of the frame could be measured (no contrast)") == (
+        "no pixel of the frame could be measured")
+    assert short_error("one two three four five six seven eight nine ten") == (
+        "one two three four five six seven eight …")
+    said = ReplayMessage()
+    said.say("2 camera frame(s) LOST, before frame(s) 5, 9", warns=True)
+    assert said.text == "2 camera frame(s) LOST, before frame(s) 5, 9" and said.red
+    said.frame_measured(0, error)
+    assert said.text == f"2 camera frame(s) LOST, before frame(s) 5, 9\nframe 1 could not be measured: {error}"
+    said.frame_measured(3)
+    assert said.text == "2 camera frame(s) LOST, before frame(s) 5, 9"
+    said.say("raw frames only: no reference")
+    assert not said.red and said.text == "raw frames only: no reference"
+    said.frame_measured(2, "boom")
+    assert said.red and said.text.endswith("frame 3 could not be measured: boom")
+
+
 # ------------------------------------------------------------------ region (finding 4)
 def test_a_region_dragged_off_the_frame_is_put_back_whole_and_one_typed_outside_is_refused():
     from app.gui.model.region import clamp_region, region_problem

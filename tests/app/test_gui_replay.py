@@ -13,7 +13,7 @@ import h5py
 import numpy as np
 import pytest
 import tifffile
-from pyqtgraph.Qt import QtCore
+from pyqtgraph.Qt import QtCore, QtWidgets
 
 from drivers.synthetic import SyntheticCamera
 from tests.app.test_gui import Switchable, _wait_reconstructor, scene  # noqa: F401 - the module's fixture
@@ -104,9 +104,9 @@ def test_frames_stepped_faster_than_measured_and_another_file_never_show_heights
     assert height.image.image is None and height.stale_text is None  # the first recording's heights are gone
 
 
-def test_a_recording_stopped_before_its_trigger_says_so_on_the_replay_tab(qtbot, window, tmp_path):
-    """``tirdeflect record`` with an auto trigger whose run ended before the trigger (here: its reference
-    is of another board): the file holds only pre-trigger frames; the Replay tab says it, in red."""
+def _record_stopped_before_its_trigger(tmp_path):
+    """``tirdeflect record`` with an auto trigger whose run ended before the trigger (its reference is of
+    another board): ``(path, frames written)``."""
     sim = tmp_path / "sim"
     cli = [sys.executable, "-m", "app.cli"]
     subprocess.run(cli + ["simulate", "--out", sim, "--size", "128", "--frames", "1"], check=True, cwd=ROOT,
@@ -121,6 +121,13 @@ def test_a_recording_stopped_before_its_trigger_says_so_on_the_replay_tab(qtbot,
     with h5py.File(out, "r") as f:
         n = int(f.attrs["frames_written"])
         assert n >= 1 and max(f["frame_table"]["trigger_index"][:n]) < 0, done.stderr
+    return out, n
+
+
+def test_a_recording_stopped_before_its_trigger_says_so_on_the_replay_tab(qtbot, window, tmp_path):
+    """``tirdeflect record`` with an auto trigger whose run ended before the trigger (here: its reference
+    is of another board): the file holds only pre-trigger frames; the Replay tab says it, in red."""
+    out, n = _record_stopped_before_its_trigger(tmp_path)
     _open_by_menu(qtbot, window, out)
     assert "stopped BEFORE the trigger" in window.replay.file_label.text()
     message = window.replay.message.text()
@@ -129,6 +136,52 @@ def test_a_recording_stopped_before_its_trigger_says_so_on_the_replay_tab(qtbot,
     window.replay.slider.setFocus()
     qtbot.keyClick(window.replay.slider, QtCore.Qt.Key_End)
     assert window.replay.index_label.text().startswith(f"frame {n}/{n}  (trigger -1)")
+
+
+def _unread_px(message) -> int:
+    """Pixels of the Replay tab's message that can be neither seen nor scrolled to: its wrapped text's height
+    at its width, less what is shown (not hidden by the window's edge) and what its scroll bar reaches."""
+    label = message.widget() if isinstance(message, QtWidgets.QScrollArea) else message
+    needed = label.heightForWidth(label.width())
+    shown = label.visibleRegion().boundingRect().height()
+    bar = message.verticalScrollBar() if isinstance(message, QtWidgets.QScrollArea) else None
+    scrolled = bar.maximum() - bar.value() if bar is not None and bar.isVisible() else 0
+    return max(needed - shown - scrolled, 0)
+
+
+def test_the_whole_message_can_be_read_at_the_smallest_window(qtbot, window, tmp_path):
+    """At the window's smallest size (its layout's minimum, 1002 x 423 px offscreen) a recording stopped before
+    its trigger, whose run ended with a long error and whose frames cannot be measured: the message under the
+    slider (the file's notes, and why the frame could not be measured) takes at most 4 lines of the maps'
+    room and scrolls beyond; the height map says why in a few words that fit it, the whole sentence in its
+    tooltip. Before, the message took 8 lines from the maps, and the map's own message (the whole sentence
+    over a map 110 px tall) was cut at half the map, its tooltip on a label the mouse passes through."""
+    out, n = _record_stopped_before_its_trigger(tmp_path)
+    window.resize(1, 1)
+    qtbot.waitUntil(lambda: window.size() == window.minimumSize(), timeout=3000)
+    _open_by_menu(qtbot, window, out)
+    height = window.replay.height
+    qtbot.waitUntil(lambda: height.message.text() != "", timeout=30000)  # the first frame could not be measured
+    qtbot.wait(50)
+    assert window.size() == window.minimumSize(), (window.size(), window.minimumSize())
+    overlay = height.message
+    assert overlay.heightForWidth(overlay.width()) <= overlay.height(), (
+        f"the height map's message is cut: needs {overlay.heightForWidth(overlay.width())} px, shown "
+        f"{overlay.height()}: {overlay.text()!r}")
+    error = height.graphics.toolTip()  # the whole sentence, where the mouse can show it
+    assert error.startswith(overlay.text().split(" (")[0]) and len(error) > len(overlay.text()), (error, overlay.text())
+    message = window.replay.message
+    text = message.text()
+    assert "stopped BEFORE the trigger" in text and "INCOMPLETE recording: " in text
+    assert f"frame 1 could not be measured: {error}" in text, text
+    label = message.widget() if isinstance(message, QtWidgets.QScrollArea) else message
+    line = label.fontMetrics().lineSpacing()
+    assert message.height() <= 4 * line + 2, f"the message takes {message.height()} px of the maps' room"
+    assert message.visibleRegion().boundingRect().height() == message.height()  # inside the window
+    assert _unread_px(message) == 0, f"{_unread_px(message)} px of the message can neither be seen nor scrolled to"
+    message.verticalScrollBar().setValue(message.verticalScrollBar().maximum())  # scrolled to its end
+    assert label.visibleRegion().boundingRect().bottom() == label.height() - 1
+    assert message.toolTip() == text
 
 
 def test_exported_heights_are_measured_with_the_reference_the_replay_shows_them_with(qtbot, window, scene,

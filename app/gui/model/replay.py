@@ -6,12 +6,15 @@ window's stand in for what the file lacks, and what is still missing is said wit
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import re
 from typing import Optional, Tuple
 
 import numpy as np
 
-__all__ = ["replay_inputs", "frame_label", "height_mark", "recording_notes", "table_times_s", "lost_before"]
+__all__ = ["replay_inputs", "frame_label", "height_mark", "recording_notes", "table_times_s", "lost_before",
+           "ReplayMessage", "short_error"]
 
 
 def replay_inputs(file_reference, window_reference, file_geometry_toml: Optional[str], window_geometry
@@ -43,6 +46,19 @@ def frame_label(index: int, n_frames: int, trigger_rel: Optional[int], time_s: f
     return (f"frame {index + 1}/{n_frames}" + (f"  (trigger {trigger_rel:+d})" if trigger_rel is not None else "")
             + (f"  t = {time_s * 1e3:+.4f} ms from the {time_origin}" if math.isfinite(time_s) else "")
             + (f"  — {lost} camera frame{'s' if lost > 1 else ''} LOST before it" if lost > 0 else ""))
+
+
+def without_untriggered_index(attrs, table):
+    """The frame table of a recording, without its ``trigger_index`` column where the recording had no
+    trigger (``trigger_source`` "none": ``record --frames`` counts that column from its first frame, which
+    the tab would show as "trigger +5" and take as the trigger's time)."""
+    source = attrs.get("trigger_source", "")
+    source = source.decode(errors="replace") if isinstance(source, bytes) else str(source)
+    if table is None or source != "none" or "trigger_index" not in (table.dtype.names or ()):
+        return table
+    from numpy.lib import recfunctions
+
+    return recfunctions.drop_fields(table, "trigger_index", usemask=False)
 
 
 def table_times_s(table) -> Tuple[Optional[np.ndarray], str]:
@@ -106,3 +122,42 @@ def height_mark(slider_index: int, shown_index: Optional[int], failed_index: Opt
         return None
     why = "could not be measured" if failed_index == slider_index else "is being measured"
     return f"heights of frame {shown_index + 1}; frame {slider_index + 1} {why}"
+
+
+def short_error(error: str, words: int = 8) -> str:
+    """A few words of why a frame could not be measured, for a map too small for all of them: ``error`` up to
+    its first ``:``, ``;`` or ``(`` and at most ``words`` words ("the frame's pattern does not match the
+    reference" of "the frame's pattern does not match the reference: measured period about 4.9 px ...")."""
+    head = re.split(r"[:;(]", str(error), maxsplit=1)[0].split()
+    return " ".join(head[:words]) + (" …" if len(head) > words else "")
+
+
+@dataclasses.dataclass
+class ReplayMessage:
+    """What the Replay tab's message says: what was said of the open file (what it says of itself: frames lost,
+    stopped before the trigger; why there are no heights; an export's progress or summary) and, after it, why
+    the frame on the slider could not be measured (in full: its map has room for a few words only)."""
+
+    said: str = ""
+    #: whether what was said is a warning (drawn red)
+    warns: bool = False
+    #: why the last frame measured could not be, and which frame (0-based); "" while it was measured
+    frame_error: str = ""
+    frame_index: Optional[int] = None
+
+    def say(self, text: str, warns: bool = False) -> None:
+        self.said, self.warns = str(text), bool(warns)
+
+    def frame_measured(self, index: int, error: str = "") -> None:
+        """The frame ``index`` was measured (``error`` "") or could not be (why)."""
+        self.frame_index, self.frame_error = int(index), str(error)
+
+    @property
+    def text(self) -> str:
+        frame = (f"frame {self.frame_index + 1} could not be measured: {self.frame_error}"
+                 if self.frame_error and self.frame_index is not None else "")
+        return "\n".join(part for part in (self.said, frame) if part)
+
+    @property
+    def red(self) -> bool:
+        return self.warns or bool(self.frame_error)
