@@ -177,7 +177,9 @@ if [ "$need_pip" = 1 ]; then
     # process would compile what it imports again, each start of the window and of its reconstruction
     # process. The modules the app imports are compiled once here instead (a few seconds), and
     # app.worker_preload's warm-up compiles the reconstruction's Numba kernels into the checkout's
-    # __pycache__ (about 15 s on a 2-core PC, once: else the first frames of the first run pay it).
+    # __pycache__ (15-60 s on a 2-core PC, 56 s measured beside other work; once: else the first frames
+    # of the first run pay it).
+    say "compiling the app and its reconstruction kernels ahead, once (up to about a minute on 2 cores)"
     env -u PYTHONDONTWRITEBYTECODE "$vpy" -c 'import app.gui.window, app.cli.process, app.batch.parallel
 import processing.reconstruct, processing.chain_image, processing.dic_kernels, app.worker_preload' >/dev/null 2>&1 ||
         say "could not import the app to compile it ahead (it compiles as it runs)"

@@ -475,19 +475,39 @@ def run_process(args: ProcessJob) -> BatchReport:
         writer.close(status, {**tally.attrs(), **pins.attrs(), **(frames.attrs if frames is not None else {})})
         if status.startswith("complete"):
             publish(partial, out, overwrite=args.overwrite)
-        elif tally.valid == 0:
-            # nothing measured, nothing worth keeping: no file that blocks the next attempt
-            try:
-                partial.unlink()
-            except OSError:
-                pass
         else:
-            log.warning("the %d frame(s) written are kept in %s%s", writer.n, partial,
-                        _resume_text(args, writer.n, selected) if status.startswith("interrupted") else "")
+            _keep_or_drop(args, status, writer, tally, selected, out)
         cache.store_fftw_wisdom()
     return BatchReport(out=out, frames_written=writer.n, notes=input_notes + tally.notes() + pins.notes(),
                        frames_invalid=tally.n_invalid, invalid_summary=tally.invalid_summary(),
                        frames_incomplete=len(tally.incomplete), pin=pins.summary())
+
+
+def _keep_or_drop(args, status: str, writer: ResultWriter, tally: FrameTally, selected: int, out: Path) -> None:
+    """After a run that did not complete: keep its partial file where it holds a measured frame,
+    and say where it is (after an interrupt, also where to go on); else remove it (no file that
+    blocks the next attempt) and, after an interrupt, say that none was kept. An error's own
+    message says the same (:func:`_frame_failed`). Alike for frames measured here and for frames
+    that come back from worker processes a chunk at a time."""
+    interrupted = status.startswith("interrupted")
+    if tally.valid:
+        log.warning("the %d frame(s) written are kept in %s%s", writer.n, writer.path,
+                    _resume_text(args, writer.n, selected) if interrupted else "")
+        return
+    try:
+        writer.path.unlink()
+    except OSError:
+        pass
+    if interrupted:
+        done = ("before any frame was written" if writer.n == 0
+                else f"after {writer.n} frame(s), none of them measured")
+        log.warning("interrupted %s: none is kept, %s; run the command again", done, _nothing_written(out))
+
+
+def _nothing_written(out: Path) -> str:
+    """What became of ``out`` when a run keeps nothing."""
+    return (f"nothing was written ({str(out)!r} left as it was)" if os.path.lexists(out)
+            else f"nothing was written ({str(out)!r} not created)")
 
 
 def _resume_text(args, written: int, selected: int) -> str:
@@ -835,7 +855,7 @@ class _PinCounter:
                        f"/pin_status region_motion_px")
         if self.noted:
             idx, note = self.noted[0]
-            out.append(f"{len(self.noted)} frame(s) were measured otherwise than asked, e.g. frame {idx}: "
+            out.append(f"{len(self.noted)} frame(s) carry a note on how they were measured, e.g. frame {idx}: "
                        f"{note}; see /frame_status_text")
         return out
 
@@ -888,8 +908,7 @@ def _frame_failed(exc: Exception, item, writer: ResultWriter, tally: FrameTally,
             saved += (f"; the {writer.lost} frame(s) written after the last flush are lost with the "
                       f"failed write")
     else:
-        saved = (f"nothing was written ({str(out)!r} left as it was)" if os.path.lexists(out)
-                 else f"nothing was written ({str(out)!r} not created)")
+        saved = _nothing_written(out)
     head = f"{where} failed: " if where else ""
     tail = " (--strict stops at the first bad frame)" if strict else ""
     message = f"{head}{exc}{tail}; {saved}"

@@ -2,7 +2,10 @@
 
 Each movie frame shows one map of OUT.h5 (height in micrometres, or a slope in
 milliradians) in a fixed colour range for the whole movie, a colour bar with
-its scale, and the frame number and time stamp. Unmeasured samples are grey.
+its scale, and the frame's stamp (:func:`frame_stamps`): its number, time and,
+for a triggered recording, its index from the trigger, and in red what makes it
+other than a plain measurement (invalid, recorded incomplete, frames lost before
+it). Unmeasured samples are grey.
 """
 
 from __future__ import annotations
@@ -13,11 +16,13 @@ from pathlib import Path
 
 import numpy as np
 
-from app.batch.probe import frame_times, frames_done, open_output
+from app.batch.frame_status import FrameStatus
+from app.batch.probe import NO_TRIGGER_INDEX, frame_times, frames_done, open_output
 from app.files.h5safe import check_creatable
+from drivers.base import FrameFlags
 from processing.errors import TirdeflectError
 
-__all__ = ["MovieReport", "make_movie", "QUANTITIES", "colour_range"]
+__all__ = ["MovieReport", "make_movie", "QUANTITIES", "colour_range", "frame_stamps"]
 
 #: quantity -> (dataset, factor from stored units to displayed, displayed unit, label)
 QUANTITIES = {
@@ -27,8 +32,11 @@ QUANTITIES = {
 }
 
 _BAR_W = 110   # colour bar panel, px
-_TOP_H = 34    # text band above the map, px
+_TOP_H = 52    # text band above the map, px: the stamp, and under it the mark
 _GREY = (96, 96, 96)
+_MARK_RGB = (200, 0, 0)
+#: flags of a recorded frame that say frames were lost just before it
+_LOST_BEFORE = FrameFlags.ID_GAP_BEFORE | FrameFlags.TIME_GAP_BEFORE | FrameFlags.RING_OVERRUN_BEFORE
 
 
 @dataclass
@@ -62,6 +70,61 @@ def colour_range(ds, n: int, factor: float, percentile: float, max_samples: int 
     return float(lo), float(hi)
 
 
+def frame_stamps(f, n: int, times=None) -> list:
+    """What each of the first ``n`` frames of an opened OUT.h5 is stamped with: ``(line, mark)``.
+
+    ``line``: ``frame K   t = T s`` (its index in the input sequence, ``/frame_index``, and its time
+    where known, ``times`` or :func:`app.batch.probe.frame_times`), then, for a frame of a triggered
+    recording, its index from the trigger frame, ``/trigger_index``: ``trigger -3`` before it,
+    ``trigger 0`` on it, ``trigger +12`` after it (a recording stopped before its trigger: counted
+    back from the stop). ``mark``: what makes the map other than a plain measurement, "" for none:
+    ``INVALID: <why>`` (``/frame_status``: no heights, the map all grey), ``INCOMPLETE`` (recorded
+    with pixels missing), ``frames lost before`` (camera id or time gap, ring overrun; with
+    ``--step`` also before the frames stepped over), from ``/frame_flags``; joined by "; ".
+    """
+    if times is None:
+        times, _ = frame_times(f, n)
+    index = np.asarray(f["frame_index"][:n])
+    trigger, status, flags = (np.asarray(f[name][:n], dtype=np.int64) if name in f else np.full(n, missing)
+                              for name, missing in (("trigger_index", NO_TRIGGER_INDEX), ("frame_status", 0),
+                                                    ("frame_flags", 0)))
+    stamps = []
+    for k in range(n):
+        line = f"frame {int(index[k])}" + (f"   t = {times[k]:.4f} s" if math.isfinite(times[k]) else "")
+        if trigger[k] != NO_TRIGGER_INDEX:
+            line += f"   trigger {int(trigger[k]):+d}" if trigger[k] else "   trigger 0"
+        stamps.append((line, _mark(int(status[k]), int(flags[k]))))
+    return stamps
+
+
+def _mark(status: int, flags: int) -> str:
+    """The red words of a frame's stamp (:func:`frame_stamps`); "" for a plain measurement."""
+    marks = []
+    if status != FrameStatus.OK:
+        try:
+            why = FrameStatus(status).label
+        except ValueError:  # a status this version does not know
+            why = f"status {status}"
+        marks.append(f"INVALID: {why}")
+    if flags & FrameFlags.INCOMPLETE:
+        marks.append("INCOMPLETE")
+    if flags & _LOST_BEFORE:
+        marks.append("frames lost before")
+    return "; ".join(marks)
+
+
+def _put_text(canvas, text: str, x: int, y: int, width: int, scale: float, rgb, thickness: int = 1) -> None:
+    """``text`` at ``(x, y)`` (its baseline's start), its font made smaller where it would be wider than
+    ``width`` px."""
+    import cv2
+
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    wide = cv2.getTextSize(text, font, scale, thickness)[0][0]
+    if wide > width > 0:
+        scale *= width / wide
+    cv2.putText(canvas, text, (x, y), font, scale, rgb, thickness, cv2.LINE_AA)
+
+
 def _colormap(values: np.ndarray, lo: float, hi: float) -> np.ndarray:
     import cv2
 
@@ -88,7 +151,8 @@ def _ticks(lo: float, hi: float, count: int = 5) -> list:
 
 
 def _compose(map_rgb, lo, hi, unit, label, stamp, scale, aspect):
-    """One movie frame (RGB, even width and height): text band, map, colour bar.
+    """One movie frame (RGB, even width and height): text band (``stamp``: the ``(line, mark)`` of
+    :func:`frame_stamps`, the mark in red under the line), map, colour bar.
 
     The map is magnified ``scale`` times along x and ``scale * aspect`` along y
     (``aspect`` = mm per row / mm per column), so the surface shows at its true shape."""
@@ -106,7 +170,10 @@ def _compose(map_rgb, lo, hi, unit, label, stamp, scale, aspect):
     canvas = np.full((height, width, 3), 255, np.uint8)
     canvas[_TOP_H:_TOP_H + rows, :cols] = map_rgb
     font = cv2.FONT_HERSHEY_SIMPLEX
-    cv2.putText(canvas, stamp, (6, _TOP_H - 11), font, 0.55, (0, 0, 0), 1, cv2.LINE_AA)
+    line, mark = stamp
+    _put_text(canvas, line, 6, _TOP_H - 31, cols - 12, 0.55, (0, 0, 0))
+    if mark:
+        _put_text(canvas, mark, 6, _TOP_H - 9, cols - 12, 0.55, _MARK_RGB, 2)
     # colour bar
     x0, x1 = cols + 14, cols + 34
     y0, y1 = _TOP_H + 8, _TOP_H + rows - 8
@@ -170,54 +237,24 @@ def make_movie(out_h5, movie_path, *, quantity: str = "height", value_range=None
     """
     import av
 
-    if quantity not in QUANTITIES:
-        raise TirdeflectError(f"unknown quantity {quantity!r}; choose {', '.join(QUANTITIES)}")
-    movie = Path(movie_path)
-    if movie.suffix.lower() not in (".mp4", ".mkv", ".mov", ".avi"):
-        raise TirdeflectError(f"--out {str(movie)!r}: give a .mp4, .mkv, .mov or .avi file name")
-    if movie.exists() and not overwrite:
-        raise TirdeflectError(f"{str(movie)!r} already exists; choose another --out or add --overwrite")
-    if not (movie.parent if str(movie.parent) else Path(".")).is_dir():
-        raise TirdeflectError(f"the folder of --out {str(movie)!r} does not exist; create it first")
-    check_creatable(movie, "choose another --out (a folder you can write to)")  # before any frame is drawn
-    if not 0 <= percentile < 50:
-        raise TirdeflectError(f"--percentile must be in [0, 50); got {percentile}")
+    movie = _checked_movie_path(movie_path, quantity, overwrite, percentile)
     name, factor, unit, label = QUANTITIES[quantity]
     with open_output(out_h5) as f:
         n = frames_done(f)
         if n == 0:
             raise TirdeflectError(f"{str(out_h5)!r} holds no processed frame (frames_done = 0)")
         ds = f[name]
-        if value_range is None:
-            lo, hi = colour_range(ds, n, factor, percentile)
-        else:
-            lo, hi = (float(v) for v in value_range)
-            if not hi > lo:
-                raise TirdeflectError(f"--range {lo:g},{hi:g}: the high end must exceed the low end")
+        lo, hi = _value_range(ds, n, factor, percentile, value_range)
         times, _ = frame_times(f, n)
-        index = np.asarray(f["frame_index"][:n])
-        if fps is None:
-            dt = np.diff(times)
-            dt = dt[np.isfinite(dt)]  # between frames that both have a time (not the unreadable ones)
-            fps = 1.0 / float(np.median(dt)) if len(dt) and np.median(dt) > 0 else 25.0
-        if not (fps > 0 and math.isfinite(fps)):
-            raise TirdeflectError(f"--fps must be a positive number; got {fps}")
-        fps = min(max(fps, 1.0), 240.0)  # players cope with 1..240 frames/s
-        rows, cols = ds.shape[1:]
-        x_mm, y_mm = f["x_mm"][()], f["y_mm"][()]
-        aspect = 1.0
-        if rows > 1 and cols > 1:
-            aspect = abs(float(y_mm[-1] - y_mm[0]) / (rows - 1)) / abs(float(x_mm[-1] - x_mm[0]) / (cols - 1))
-        if scale is None:
-            scale = max(1, int(math.ceil(480 / cols)))
+        fps = _movie_fps(times, fps)
+        stamps = frame_stamps(f, n, times)
+        scale, aspect = _magnification(f, ds.shape[1:], scale)
         container = av.open(str(movie), "w")
         try:
             stream = None
             for k in range(n):
                 values = np.asarray(ds[k], dtype=np.float64) * factor
-                t = times[k]
-                stamp = f"frame {int(index[k])}" + (f"   t = {t:.4f} s" if math.isfinite(t) else "")
-                image = _compose(_colormap(values, lo, hi), lo, hi, unit, label, stamp, scale, aspect)
+                image = _compose(_colormap(values, lo, hi), lo, hi, unit, label, stamps[k], scale, aspect)
                 if stream is None:
                     stream = _encoder(container, movie.suffix.lower(), fps)
                     stream.width, stream.height = image.shape[1], image.shape[0]
@@ -234,3 +271,54 @@ def make_movie(out_h5, movie_path, *, quantity: str = "height", value_range=None
         container.close()
     return MovieReport(movie, n, int(stream.width), int(stream.height), (lo, hi), unit,
                        stream.codec_context.name)
+
+
+def _checked_movie_path(movie_path, quantity: str, overwrite: bool, percentile: float) -> Path:
+    """The movie's path, once the arguments are checked (before any frame is drawn)."""
+    if quantity not in QUANTITIES:
+        raise TirdeflectError(f"unknown quantity {quantity!r}; choose {', '.join(QUANTITIES)}")
+    movie = Path(movie_path)
+    if movie.suffix.lower() not in (".mp4", ".mkv", ".mov", ".avi"):
+        raise TirdeflectError(f"--out {str(movie)!r}: give a .mp4, .mkv, .mov or .avi file name")
+    if movie.exists() and not overwrite:
+        raise TirdeflectError(f"{str(movie)!r} already exists; choose another --out or add --overwrite")
+    if not (movie.parent if str(movie.parent) else Path(".")).is_dir():
+        raise TirdeflectError(f"the folder of --out {str(movie)!r} does not exist; create it first")
+    check_creatable(movie, "choose another --out (a folder you can write to)")
+    if not 0 <= percentile < 50:
+        raise TirdeflectError(f"--percentile must be in [0, 50); got {percentile}")
+    return movie
+
+
+def _value_range(ds, n: int, factor: float, percentile: float, value_range) -> tuple:
+    """The colour range: ``value_range`` checked, else from the percentiles (:func:`colour_range`)."""
+    if value_range is None:
+        return colour_range(ds, n, factor, percentile)
+    lo, hi = (float(v) for v in value_range)
+    if not hi > lo:
+        raise TirdeflectError(f"--range {lo:g},{hi:g}: the high end must exceed the low end")
+    return lo, hi
+
+
+def _movie_fps(times, fps):
+    """``fps`` checked, else real time from the frames' ``times`` (25 without them); within 1..240."""
+    if fps is None:
+        dt = np.diff(times)
+        dt = dt[np.isfinite(dt)]  # between frames that both have a time (not the unreadable ones)
+        fps = 1.0 / float(np.median(dt)) if len(dt) and np.median(dt) > 0 else 25.0
+    if not (fps > 0 and math.isfinite(fps)):
+        raise TirdeflectError(f"--fps must be a positive number; got {fps}")
+    return min(max(fps, 1.0), 240.0)  # players cope with 1..240 frames/s
+
+
+def _magnification(f, shape, scale):
+    """``(scale, aspect)``: the map's magnification along x (``scale``, else enough for 480 px) and
+    the rows' stretch on top of it, (mm per row) / (mm per column)."""
+    rows, cols = shape
+    x_mm, y_mm = f["x_mm"][()], f["y_mm"][()]
+    aspect = 1.0
+    if rows > 1 and cols > 1:
+        aspect = abs(float(y_mm[-1] - y_mm[0]) / (rows - 1)) / abs(float(x_mm[-1] - x_mm[0]) / (cols - 1))
+    if scale is None:
+        scale = max(1, int(math.ceil(480 / cols)))
+    return scale, aspect

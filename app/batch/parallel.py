@@ -725,6 +725,9 @@ class _Chunked:
                 self._interrupt.check()
                 if not _wait(future, 0.25):
                     continue  # a Ctrl-C is seen within a quarter second
+                # and once more: a Ctrl-C that came before the chunk ended ends the run before its frames are
+                # written (it could be taken during that last wait, its handler run by the call below)
+                self._interrupt.check()
                 return future.result()
             except BrokenProcessPool as exc:
                 if self._restart is None or self.restarts >= MAX_POOL_RESTARTS:

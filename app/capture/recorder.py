@@ -687,6 +687,7 @@ class Recorder:
         self.backlog_warnings = 0
         self.start_sequence: Optional[int] = None
         self.trigger_sequence: Optional[int] = None
+        self._count_back_from: Optional[int] = None  # a stop before the trigger: trigger_index counts back from it
         self._cursor = None
         self._thread: Optional[threading.Thread] = None
         self._stop = threading.Event()
@@ -703,7 +704,7 @@ class Recorder:
     # ----------------------------------------------------------- commands
     def begin(self, start_sequence: Optional[int] = None, *, trigger_sequence: Optional[int] = None,
               attrs: Optional[dict] = None, stop_error: Optional[str] = None,
-              stop_at: Optional[int] = None) -> "Recorder":
+              stop_at: Optional[int] = None, count_back_from: Optional[int] = None) -> "Recorder":
         """Start writing from ring sequence ``start_sequence`` (default: the next frame).
 
         The ring cursor takes hold of the start first; then the file's attributes (``trigger_sequence``,
@@ -714,6 +715,9 @@ class Recorder:
         when it begins (the frames a stopped capture keeps): the writer that reaches it first ends there, no
         error (a fresh-clone CI run saw "acquisition stopped after 12 of 22 frames" stored for a user's SIGTERM
         before the trigger, the writer at the ring's end before :meth:`stop` had said where it ends).
+        ``count_back_from``: a triggered recording stopped before its trigger came (the frames the ring held are
+        kept): the frames' ``trigger_index`` count back from this sequence (-N .. -1) while the file claims no
+        trigger (no ``trigger_sequence`` nor ``pre_available`` attribute, no TRIGGER flag; docs/recording-format.md).
         """
         if self._thread is not None:
             raise RecorderError("this recorder already began; create a new one for another recording")
@@ -727,6 +731,7 @@ class Recorder:
             )
         self.start_sequence = start
         self.trigger_sequence = trigger_sequence
+        self._count_back_from = None if count_back_from is None else int(count_back_from)
         if stop_at is not None:
             self._stop_at = int(stop_at)
         self._cursor = self.ring.cursor(start)
@@ -778,6 +783,13 @@ class Recorder:
         return self._done.is_set()
 
     # -------------------------------------------------------------- thread
+    def _index_origin(self) -> int:
+        """The sequence whose frame has ``trigger_index`` 0: the trigger frame; else the stop a triggered
+        recording ended at before its trigger came (its frames -N .. -1); else the first frame."""
+        if self.trigger_sequence is not None:
+            return self.trigger_sequence
+        return self.start_sequence if self._count_back_from is None else self._count_back_from
+
     def _end_sequence(self) -> Optional[int]:
         ends = []
         if self.n_frames is not None:
@@ -827,13 +839,11 @@ class Recorder:
                 if fr.lost_before:
                     self._note_overrun(fr, None)
                 self._account(fr, prev)
-                trig = self.trigger_sequence
-                tidx = fr.sequence - trig if trig is not None else fr.sequence - self.start_sequence
                 flags = int(fr.flags)
-                if trig is not None and fr.sequence == trig:
+                if self.trigger_sequence is not None and fr.sequence == self.trigger_sequence:
                     flags |= FrameFlags.TRIGGER
                 row = (fr.sequence, fr.frame_id, -1 if fr.device_timestamp_ns is None else fr.device_timestamp_ns,
-                       fr.host_timestamp_ns, flags, tidx, fr.missing_bytes)
+                       fr.host_timestamp_ns, flags, fr.sequence - self._index_origin(), fr.missing_bytes)
                 rf.write(fr.image, row)
                 self.frames_written = rf.n_written
                 if fr.frame_id >= 0:  # -1: id unknown (lost GigE leader); gaps are counted between known ids

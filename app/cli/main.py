@@ -18,7 +18,11 @@
 Errors the user can fix (:class:`processing.errors.TirdeflectError`,
 :class:`drivers.base.CameraError`, file errors) are printed as one line
 ``tirdeflect: error: <message>`` with exit status 2 and no traceback;
-``--debug`` shows the traceback as well. Ctrl-C exits with status 130.
+``--debug`` shows the traceback as well. Ctrl-C exits with status 130, from the
+start of the command to the end of the process: one that comes after the
+command ended, while the process exits (``tirdeflect`` run as a program; see
+:class:`_Ending`), is one line and status 128 + the signal's number too, not a
+traceback or death by the signal.
 A closed standard output (``tirdeflect compare ... | head -1``) ends the
 command quietly with status 141, as a command that SIGPIPE ended (no
 "[Errno 32] Broken pipe" line).
@@ -29,12 +33,16 @@ be measured or were recorded INCOMPLETE (docs/reliability.md).
 from __future__ import annotations
 
 import argparse
+import atexit
 import logging
+import os
 import re
+import signal
 import sys
 import traceback
 
 from app import version
+from app.stop_signals import STOP_SIGNALS
 
 __all__ = ["main", "build_parser", "version"]
 
@@ -195,7 +203,11 @@ def main(argv=None) -> int:
     Parameters
     ----------
     argv : list of str, optional
-        Arguments without the program name; ``sys.argv[1:]`` when None.
+        Arguments without the program name; None: ``sys.argv[1:]``, and this
+        call is the program (the ``tirdeflect`` script, ``python3 -m app.cli``):
+        its exit is then covered too (:class:`_Ending`; not for the live window,
+        which ends its own way). A caller that passes ``argv`` (a test, a script)
+        gets the status back and keeps its own process.
 
     Returns
     -------
@@ -204,15 +216,17 @@ def main(argv=None) -> int:
         3 ``process`` wrote its output but some frames are invalid or
         incomplete, 130 interrupted.
     """
+    ending = _ENDING if argv is None else None
     try:
-        return _main(list(sys.argv[1:] if argv is None else argv))
+        return _main(list(sys.argv[1:] if argv is None else argv), ending)
     except KeyboardInterrupt:  # Ctrl-C before a command began (its imports, the parser): nothing was written
         print(f"{PROG}: interrupted before the command began; nothing was written", file=sys.stderr)
-        return EXIT_INTERRUPTED
+        return _ended(ending, EXIT_INTERRUPTED)
 
 
-def _main(argv: list) -> int:
-    """:func:`main` on ``argv``; a command runs :func:`_guarded` (its own Ctrl-C handling)."""
+def _main(argv: list, ending=None) -> int:
+    """:func:`main` on ``argv``; a command runs :func:`_guarded` (its own Ctrl-C handling).
+    ``ending``: the :class:`_Ending` that covers the process's exit, or None."""
     gui = _split_gui(argv)
     if gui is not None:
         flags, gui_argv = gui
@@ -225,15 +239,107 @@ def _main(argv: list) -> int:
     try:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # argparse: --help, --version, usage errors
-        return int(exc.code or 0) if not isinstance(exc.code, str) else EXIT_USAGE
+        return _ended(ending, int(exc.code or 0) if not isinstance(exc.code, str) else EXIT_USAGE)
     except BrokenPipeError:  # `tirdeflect --help | head -3`
         if _stdout_closed():
-            return _quiet_broken_pipe()
+            return _ended(ending, _quiet_broken_pipe())
         raise
     args._argv = list(argv)  # recorded in output files (process)
     level = logging.DEBUG if args.debug else logging.INFO if args.verbose else logging.WARNING
     logging.basicConfig(level=level, format=f"{PROG}: %(levelname)s: %(message)s")
-    return _guarded(lambda: args.func(args), args.debug)
+    return _guarded(lambda: args.func(args), args.debug, ending)
+
+
+class _Ending:
+    """The process's exit after its command, covered against Ctrl-C, SIGTERM and SIGHUP.
+
+    Once the command has returned (its files closed: ``process``'s output renamed into place,
+    ``record``'s file closed), the interpreter still tears itself down: it joins threads, runs
+    the exit callbacks and frees every module (0.5 s after a ``process`` run on a 2-core PC). A
+    Ctrl-C there raised KeyboardInterrupt inside that teardown (a traceback, "Exception ignored
+    ...") or, once Python 3.11 had put the default handlers back before freeing the modules
+    (``Py_FinalizeEx``: ``_PySignal_Fini``), killed the process by the signal (status -2 to the
+    caller, without the line and the 130 the convention promises).
+
+    :meth:`arm` (when the command returned) makes those signals only noted; :meth:`finish`, this
+    module's exit callback, registered when the command's modules were not yet imported and so
+    run after theirs, then ends the process with ``os._exit``: with the command's status, or,
+    when a signal came, one line on stderr and 128 + its number (130 for Ctrl-C). What Python
+    would still do after it (free the modules) holds nothing of the user's; C libraries' own
+    exit handlers are skipped too, HDF5's included, so an HDF5 file a caller left open is
+    flushed first. A second signal ends the process at once.
+    """
+
+    def __init__(self):
+        self.code = None  # the command's exit status, once it returned (None: not armed)
+        self.signum = None
+
+    def arm(self, code: int) -> int:
+        """The command ended with ``code``: from here to the process's end a stop signal is noted."""
+        self.code = int(code)
+        for sig in (signal.SIGINT, *STOP_SIGNALS):
+            try:
+                signal.signal(sig, self._noted)
+            except (ValueError, OSError):  # not the main thread: nothing to cover
+                pass
+        return self.code
+
+    def _noted(self, signum, frame) -> None:
+        again = self.signum is not None
+        self.signum = signum
+        if again:
+            self.finish()
+
+    def finish(self) -> None:
+        """End the process (after the other exit callbacks); nothing when not armed."""
+        if self.code is None:
+            return
+        code = self.code
+        if self.signum is not None:
+            name = "Ctrl-C" if self.signum == signal.SIGINT else signal.Signals(self.signum).name
+            code = 128 + self.signum
+            _say_quietly(f"{PROG}: interrupted ({name}) while exiting, after the command had ended (status "
+                         f"{self.code}) and closed its files; nothing was lost")
+        logging.shutdown()
+        _flush_hdf5_files()
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError, AttributeError):
+                pass
+        os._exit(code)
+
+
+def _say_quietly(line: str) -> None:
+    """One line on stderr; nothing when stderr is gone (a closed terminal after SIGHUP)."""
+    try:
+        print(line, file=sys.stderr, flush=True)
+    except (OSError, ValueError, AttributeError):
+        pass
+
+
+def _flush_hdf5_files() -> None:
+    """Flush every HDF5 file still open in this process (none, when the commands closed theirs):
+    ``os._exit`` skips the HDF5 library's own exit handler, which would."""
+    h5py = sys.modules.get("h5py")
+    if h5py is None:
+        return
+    try:
+        for file_id in h5py.h5f.get_obj_ids(h5py.h5f.OBJ_ALL, h5py.h5f.OBJ_FILE):
+            h5py.h5f.flush(file_id)
+    except Exception:  # noqa: BLE001 - a file that cannot be flushed now could not be at exit either
+        pass
+
+
+#: the exit of ``tirdeflect`` run as a program (:func:`main` without ``argv``); registered as this
+#: module is imported, before the commands' modules register theirs: Python runs it after them
+_ENDING = _Ending()
+atexit.register(_ENDING.finish)
+
+
+def _ended(ending, code: int) -> int:
+    """``code``, with the process's exit covered from here on when ``ending`` is given."""
+    return code if ending is None else ending.arm(code)
 
 
 #: Options whose value (a pair X,Y or a range START:STOP) may start with a minus sign.
@@ -263,9 +369,6 @@ def _exit_now_if_a_call_is_left_running() -> None:
     down beside a computation that may run for minutes."""
     interruptible = sys.modules.get("app.batch.interruptible")  # not imported: nothing left running
     if interruptible is not None and interruptible.abandoned_calls():
-        import logging
-        import os
-
         logging.shutdown()
         sys.stdout.flush()
         sys.stderr.flush()
@@ -290,8 +393,6 @@ def _quiet_broken_pipe() -> int:
     """After stdout's reader went away: point stdout at /dev/null, so that what is still
     buffered is not written (a second BrokenPipeError at exit), and exit 141 quietly, as
     ``grep ... | head`` does, instead of "error: [Errno 32] Broken pipe"."""
-    import os
-
     try:
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
@@ -301,27 +402,29 @@ def _quiet_broken_pipe() -> int:
     return EXIT_BROKEN_PIPE
 
 
-def _guarded(run, debug: bool) -> int:
+def _guarded(run, debug: bool, ending=None) -> int:
     """Run a command; known errors become one line on stderr and exit status 2; a closed
-    stdout (``| head``) exit status 141 and nothing more."""
+    stdout (``| head``) exit status 141 and nothing more. ``ending`` (an :class:`_Ending`):
+    armed with the status before this returns, still inside the handling of Ctrl-C (a
+    signal before it is the command's)."""
     try:
         try:
             code = int(run() or 0)
             sys.stdout.flush()  # a closed pipe shows here, not in the interpreter's flush at exit
-            return code
         except BrokenPipeError:
-            if _stdout_closed():
-                return _quiet_broken_pipe()
-            raise  # not stdout's: an error like any other (below)
+            if not _stdout_closed():
+                raise  # not stdout's: an error like any other (below)
+            code = _quiet_broken_pipe()
+        return _ended(ending, code)
     except KeyboardInterrupt:
         print(f"{PROG}: interrupted", file=sys.stderr)
         _exit_now_if_a_call_is_left_running()
-        return EXIT_INTERRUPTED
+        return _ended(ending, EXIT_INTERRUPTED)
     except _known_errors() as exc:
         if debug:
             traceback.print_exc()
         print(f"{PROG}: error: {_format_error(exc)}", file=sys.stderr)
-        return EXIT_USAGE
+        return _ended(ending, EXIT_USAGE)
 
 
 if __name__ == "__main__":  # python3 -m app.cli

@@ -243,10 +243,17 @@ def cmd_process(args) -> int:
     invalid or were recorded INCOMPLETE (the summary line counts them);
     errors raise (exit 2 in :func:`app.cli.main.main`, 130 interrupted).
     SIGTERM and SIGHUP stop the run like Ctrl-C: the frames written are kept
-    in the partial file the message names.
+    in the partial file the message names; also while the summary below
+    is printed (after "wrote N frame(s)": the output complete and in place),
+    and, once this returned, while the process exits (:func:`app.cli.main.main`).
     """
     with _signals_interrupt():
         report = run_process(ProcessJob.from_namespace(args))
+        return _print_report(report)
+
+
+def _print_report(report) -> int:
+    """The lines of a run that wrote its output, on stderr; returns the exit status (0 or 3)."""
     line = f"tirdeflect: wrote {report.frames_written} frame(s) to {report.out}"
     if report.frames_incomplete:
         line += f", {report.frames_incomplete} recorded INCOMPLETE"

@@ -565,9 +565,10 @@ def _close_on_stop(rec, cap, why: str, error: Optional[str] = None) -> None:
     """After Ctrl-C/SIGTERM/SIGHUP or an error: write every frame already captured, then close the file properly.
 
     Burst mode: the frames wait in RAM; they are written now. Before a
-    trigger came, the pre-trigger frames in the ring are written (the stop
-    acts as the trigger, with no frame after it: their ``trigger_index`` is
-    -N .. -1, and a note in the file says ``why``); with none captured the
+    trigger came, the pre-trigger frames in the ring are written (their
+    ``trigger_index`` counts back from the stop, -N .. -1, while the file
+    claims no trigger: no ``trigger_sequence``, no TRIGGER flag; a note in
+    the file says ``why``); with none captured the
     file is deleted (``rec.state`` "cancelled"). ``error`` (None for the
     user's own stop): what went wrong, stored as the file's ``error``.
     """
@@ -580,11 +581,13 @@ def _close_on_stop(rec, cap, why: str, error: Optional[str] = None) -> None:
         if error:
             error = (f"{error}; it came before the trigger: the file holds only the {ring.head - start} "
                      "frames captured before it, no trigger frame")
+        # the note first: the writer begun below may reach the stop and close the file (its events with it)
+        # before this thread runs again (a loaded machine's test run lost the note so)
+        rec.file.add_event("note", f"{why} before the trigger: the file holds the {ring.head - start} frames "
+                                   "before it (trigger_index counts back from it; no trigger frame)",
+                           sequence=ring.head)
         try:
-            rec.begin(start, trigger_sequence=ring.head, stop_error=error, stop_at=ring.head)
-            rec.file.add_event("note", f"{why} before the trigger: the file holds the {ring.head - start} frames "
-                                       "before it (trigger_index counts back from it; no trigger frame)",
-                               sequence=ring.head)
+            rec.begin(start, count_back_from=ring.head, stop_error=error, stop_at=ring.head)
         except Exception:
             pass
     rec.stop(60.0, drain=True, error=error)

@@ -1033,18 +1033,28 @@ def _file_frames(path, seq: int, selection: tuple, frame, errors: str):
     with _h5_file(p) as f:
         ds, n = _h5_frames(f, p)
         table, bad = _h5_frame_table(f, n, p)
+        # a recording made without a trigger counts its trigger_index from its first frame: no trigger to name
+        untriggered = _text_attr(f.attrs, "trigger_source") == "none"
         for i in range(n):
             if last is not None and seq > last:
                 return seq
             if _wanted(seq, selection):
                 crc = _row_checksum(table, i, bad)
                 fields = _table_fields(table, i, bad)
+                if untriggered:
+                    fields.pop("trigger_index", None)
                 skipped = range(max(0, i - step + 1, i - (seq - selection[3])), i)
                 if "flags" in fields and len(skipped):
                     fields["flags"] |= _stepped_over_losses(table, bad, skipped)
                 yield frame(lambda: _h5_read(ds, i, p, crc), path, i, seq, frames_in_source=n, **fields)
             seq += 1
     return seq
+
+
+def _text_attr(attrs, name: str) -> str:
+    """The string attribute ``name`` (str or bytes as stored), "" when absent."""
+    value = attrs.get(name, "")
+    return value.decode(errors="replace") if isinstance(value, bytes) else str(value)
 
 
 def _stepped_over_losses(table, bad, rows: range) -> int:

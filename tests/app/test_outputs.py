@@ -135,13 +135,14 @@ def test_movie_reopens_with_pyav(processed, tmp_path):
         aspect = np.diff(f["y_mm"][:2])[0] / np.diff(f["x_mm"][:2])[0]  # 1/cos(theta) for TIR
     map_rows = int(round(256 * 2 * aspect))
     # 256 px map magnified 2x to >= 480 px (rows at the true surface aspect), plus the
-    # colour-bar panel and the text band, rounded up to even sizes for yuv420p
-    assert (cols, rows) == (256 * 2 + 110, 34 + map_rows + 10 + (34 + map_rows + 10) % 2)
+    # colour-bar panel and the text band (two lines: the stamp, the mark), rounded up to even sizes for yuv420p
+    band = 52
+    assert (cols, rows) == (256 * 2 + 110, band + map_rows + 10 + (band + map_rows + 10) % 2)
     assert rate == pytest.approx(100.0)  # real time from the MRAW's 100 frames/s
     # one colour range for the whole movie: the colour bar is the same in every frame,
     # while the map (the deepening dimple) changes
-    bar = np.s_[40:34 + map_rows - 8, 256 * 2 + 14:256 * 2 + 34]
-    centre = np.s_[34 + map_rows // 2 - 40:34 + map_rows // 2 + 40, 216:296]
+    bar = np.s_[band + 8:band + map_rows - 8, 256 * 2 + 14:256 * 2 + 34]
+    centre = np.s_[band + map_rows // 2 - 40:band + map_rows // 2 + 40, 216:296]
     for k in range(1, N_FRAMES):
         assert np.abs(images[k][bar].astype(int) - images[0][bar]).mean() < 3
     assert np.abs(images[-1][centre].astype(int) - images[0][centre]).mean() > 20

@@ -40,9 +40,10 @@ def recording(tmp_path_factory):
     return path
 
 
-def _rewrite(src, dst, rows, *, planned=None, error=None, summary=None):
+def _rewrite(src, dst, rows, *, planned=None, error=None, summary=None, blank=()):
     """A recording of ``src``'s frames ``[i for i, ...]`` with the frame-table rows given:
-    ``rows`` = ``[(frame i of src, camera frame id, flags, trigger_index), ...]`` (10 ms apart by id)."""
+    ``rows`` = ``[(frame i of src, camera frame id, flags, trigger_index), ...]`` (10 ms apart by id);
+    the rows at the positions ``blank`` get an all-zero frame (every packet lost, no light)."""
     from app.capture.recorder import RecordingFile
 
     with h5py.File(src) as f:
@@ -52,7 +53,8 @@ def _rewrite(src, dst, rows, *, planned=None, error=None, summary=None):
                         check_space=False, camera_id="synthetic", reference_image=reference,
                         geometry_toml=geometry.decode() if isinstance(geometry, bytes) else geometry)
     for k, (i, frame_id, flags, trigger) in enumerate(rows):
-        rec.write(frames[i], (k, frame_id, 10_000_000 * frame_id, 10_000_000 * frame_id + 5, flags, trigger))
+        image = np.zeros_like(frames[i]) if k in blank else frames[i]
+        rec.write(image, (k, frame_id, 10_000_000 * frame_id, 10_000_000 * frame_id + 5, flags, trigger))
     rec.close(summary, error)
     return dst
 
@@ -162,6 +164,68 @@ def test_probe_series_carries_the_trigger_index(recording, tmp_path):
         assert f["height_mm"].shape == (9, 2)
 
 
+def _red_in_mark_line(movie):
+    """Per frame of ``movie``: how many pixels of the text band's second line (where the movie marks a
+    frame in red) are red."""
+    import av
+
+    with av.open(str(movie)) as c:
+        images = [frame.to_ndarray(format="rgb24").astype(int) for frame in c.decode(video=0)]
+    counts = []
+    for image in images:
+        band = image[30:52, :512]  # under the stamp line, above the map (512 px: 128 px magnified 4x)
+        counts.append(int(np.sum((band[..., 0] > 120) & (band[..., 0] - band[..., 1:].max(axis=-1) > 60))))
+    return counts
+
+
+def test_movie_stamps_the_trigger_index_and_marks_invalid_incomplete_and_lost_frames(recording, tmp_path):
+    """`tirdeflect movie` stamped "frame K   t = T s" alone: which frame is the trigger frame, and that a
+    map is grey because the frame is invalid, or came with pixels or frames before it lost, was not in
+    the movie. Now each frame of a triggered recording says its index from the trigger (the recording's
+    trigger_index), and the flagged frames are marked in red; a recording made without a trigger
+    (`record --frames`) claims no trigger index."""
+    from app.batch.movie import frame_stamps
+
+    out = tmp_path / "trig.h5"
+    r = _cli("process", recording, "--out", out, "--frames", "2:9", "--no-progress", "--workers", "1")
+    assert r.returncode == 0, r.stderr
+    with h5py.File(out) as f:
+        stamps = frame_stamps(f, 7)
+    assert stamps[0] == ("frame 2   t = 0.0200 s   trigger -3", "")
+    assert [line.split("   trigger ")[-1] for line, _ in stamps] == ["-3", "-2", "-1", "0", "+1", "+2", "+3"]
+    assert [mark for _, mark in stamps] == [""] * 7
+
+    # frame 3 recorded INCOMPLETE, frames lost (camera ids 5, 6) before frame 5, frame 6 black
+    rows = [(i, i if i < 5 else i + 2, {3: FrameFlags.INCOMPLETE, 5: LOSS}.get(i, 0), i - PRE) for i in range(9)]
+    flagged = _rewrite(recording, tmp_path / "flagged.h5", rows, blank=(6,))
+    out = tmp_path / "flagged_out.h5"
+    r = _cli("process", flagged, "--out", out, "--no-progress", "--workers", "1")
+    assert r.returncode == 3, r.stderr  # an invalid frame and an INCOMPLETE one
+    with h5py.File(out) as f:
+        stamps = frame_stamps(f, 9)
+    marks = {k: mark for k, (_, mark) in enumerate(stamps) if mark}
+    assert marks == {3: "INCOMPLETE", 5: "frames lost before", 6: "INVALID: blank"}, stamps
+    assert stamps[5][0] == "frame 5   t = 0.0700 s   trigger 0", stamps[5]  # the trigger frame
+    movie = tmp_path / "flagged.mp4"
+    r = _cli("movie", out, "--out", movie)
+    assert r.returncode == 0, r.stderr
+    red = _red_in_mark_line(movie)
+    assert len(red) == 9 and [k for k, count in enumerate(red) if count > 20] == [3, 5, 6], red
+    assert all(count == 0 for k, count in enumerate(red) if k not in (3, 5, 6)), red
+
+    plain = tmp_path / "plain.h5"  # no trigger: its frame table counts trigger_index from the first frame
+    r = _cli("record", "--camera", "synthetic", "--out", plain, "--frames", 3, "--synthetic-size", 128,
+             "--synthetic-frames", 4, "--no-progress")
+    assert r.returncode == 0, r.stderr
+    out = tmp_path / "plain_out.h5"
+    r = _cli("process", plain, "--out", out, "--no-progress", "--workers", "1")
+    assert r.returncode == 0, r.stderr
+    with h5py.File(out) as f:
+        lines = [line for line, _ in frame_stamps(f, 3)]
+    assert [line.split("   ")[0] for line in lines] == ["frame 0", "frame 1", "frame 2"]
+    assert not any("trigger" in line for line in lines), lines
+
+
 def test_recording_stopped_before_its_trigger_is_said_by_process_and_probe(recording, tmp_path):
     """Stopped (SIGTERM) while waiting for the trigger: 8 frames, trigger_index -8..-1, no trigger frame.
     process said only 'ended early, 8 of the 18 planned frames', as if the event were in them."""
@@ -214,3 +278,33 @@ def test_a_recording_whose_ring_overran_is_said_to_have_lost_frames_not_to_have_
     assert f"lost frames on the way ({summary['total_missing']} lost: {summary['lost_ring_overrun']} to ring " \
            "overruns" in p.stderr, p.stderr
     assert "ended early" not in p.stderr, p.stderr
+
+
+def test_the_replay_tab_names_no_trigger_in_a_recording_made_without_one(tmp_path):
+    """`record --frames` (no trigger) counts its frame table's trigger_index from the first frame: the
+    Replay tab showed such frames as "trigger +5" and their times "from the trigger". Now it names none:
+    no trigger index, times from the first frame; a triggered recording keeps both."""
+    pytest.importorskip("PySide6")
+    from app.gui.replay import Recording
+
+    plain = tmp_path / "plain.h5"
+    r = _cli("record", "--camera", "synthetic", "--out", plain, "--frames", 6, "--synthetic-size", 128,
+             "--synthetic-frames", 4, "--no-progress")
+    assert r.returncode == 0, r.stderr
+    with h5py.File(plain) as f:
+        assert list(f["frame_table"]["trigger_index"][:6]) == list(range(6))  # what the tab used to show
+    rec = Recording(str(plain))
+    try:
+        assert rec.trigger_index(5) is None and rec.time_origin == "first frame"
+    finally:
+        rec.close()
+    triggered = tmp_path / "triggered.h5"
+    r = _cli("record", "--camera", "synthetic", "--out", triggered, "--pre", 3, "--post", 4, "--trigger", "software",
+             "--synthetic-size", 128, "--synthetic-frames", 4, "--no-progress")
+    assert r.returncode == 0, r.stderr
+    rec = Recording(str(triggered))
+    try:
+        assert [rec.trigger_index(i) for i in range(rec.n_frames)] == list(range(-3, rec.n_frames - 3))
+        assert rec.time_origin == "trigger"
+    finally:
+        rec.close()

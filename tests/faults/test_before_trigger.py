@@ -24,6 +24,7 @@ import pytest
 
 from app.capture import trigger as trigger_mod
 from app.cli import record as record_cli
+from app.files import imageio
 from drivers.base import FrameFlags
 from tests.drivers.fixtures import gv_fake_camera  # noqa: F401  (pytest fixture)
 from tests.faults.tools import RecordProcess, wait_until
@@ -83,7 +84,17 @@ def _pre_trigger_file(path):
         events = [json.loads(e) for e in f["events"][:]]
         assert f.attrs["complete"] == 0 and "summary" in f
         error = f.attrs["error"]
-        assert json.loads(f["summary"].attrs["summary_json"])["error"] == error
+        summary = json.loads(f["summary"].attrs["summary_json"])
+        assert summary["error"] == error
+        # no trigger came: the file claims none (docs/recording-format.md); it stored the stop's
+        # sequence as `trigger_sequence` (and the frames kept as `pre_available`), a trigger frame it does not hold
+        claimed = {k: f.attrs[k] for k in ("trigger_sequence", "pre_available") if k in f.attrs}
+        assert claimed == {} and summary["trigger_sequence"] == -1, (claimed, summary["trigger_sequence"])
+    assert not any(e["kind"] == "trigger" for e in events), events
+    # what process (and the Replay tab) read of it: every frame before a trigger that never came
+    assert imageio.pre_trigger_span(table) == (-PRE, -1)
+    note = " ".join(imageio.recording_notes(path))
+    assert f"all before its trigger (trigger_index {-PRE} to -1)" in note, note
     # the file's error is why it ended, and its end event says the same (a user's stop is no error)
     assert [e["message"] for e in events if e["kind"] == "end"] == [error or "ok"], events
     assert n == PRE, f"{n} frames kept, {PRE} pre-trigger frames asked for and captured"

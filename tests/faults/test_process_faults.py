@@ -382,6 +382,62 @@ def test_interrupted_overwrite_keeps_the_old_file_and_names_the_partial_one(sim,
         assert np.isfinite(f["height"][:n]).mean() > 0.9
 
 
+#: ``sitecustomize`` of the run and of its worker processes (the fork server imports it as it starts): frame 0
+#: waits, in whichever process measures it, until the test has interrupted the run
+_FRAME_0_WAITS = """
+import os, sys, time
+import app.batch.parallel as parallel
+
+_measure = parallel.measure
+
+
+def measure(recon, item, *args, **kwargs):
+    if item.sequence_index == 0:
+        print("measuring frame 0", file=sys.stderr, flush=True)
+        while not os.path.exists(os.environ["TIRDEFLECT_TEST_RELEASE"]):
+            time.sleep(0.01)
+    return _measure(recon, item, *args, **kwargs)
+
+
+parallel.measure = measure
+"""
+
+
+@pytest.mark.parametrize("workers", ["1", "2"])
+def test_interrupted_before_a_frame_was_written_says_none_was_kept(sim, tmp_path, workers):
+    """Ctrl-C (a real SIGINT) while frame 0 is measured, before any frame is written: with --workers 2 (frames
+    come back a chunk at a time) the run said only "interrupted", as the serial run did; the serial run
+    with frames written says how many, where, and the --first to go on from. Both now say that none was
+    kept and what became of OUT, in the same words."""
+    stack = np.stack([imageio.read_image(p) for p in frames_of(sim)] * 3)
+    tifffile.imwrite(tmp_path / "long.tif", stack, photometric="minisblack")
+    site, release, out = tmp_path / "site", tmp_path / "release", tmp_path / "out.h5"
+    site.mkdir()
+    (site / "sitecustomize.py").write_text(_FRAME_0_WAITS)
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(site), str(ROOT)]), TIRDEFLECT_TEST_RELEASE=str(release))
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "app.cli", *map(str, process(sim, out, tmp_path / "long.tif")), "--workers", workers],
+        cwd=ROOT, env=env, stderr=subprocess.PIPE, text=True,
+        # as at a terminal: a test runner started in the background may ignore SIGINT
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+
+    def interrupt_at_frame_0(line):
+        if not line.startswith("measuring frame 0"):
+            return False
+        proc.send_signal(signal.SIGINT)
+        release.touch()  # frame 0 (and its chunk) may end now: the signal came before
+        return True
+
+    code, err = stderr_until_signalled(proc, interrupt_at_frame_0)
+    assert code == 130, err
+    assert "Traceback" not in err, err
+    lines = [ln for ln in err.splitlines() if ln.startswith("tirdeflect:")]
+    assert lines[-2:] == [f"tirdeflect: WARNING: interrupted before any frame was written: none is kept, nothing "
+                          f"was written ({str(out)!r} not created); run the command again",
+                          "tirdeflect: interrupted"], err
+    assert not out.exists() and not list(tmp_path.glob("*partial*")) and not list(tmp_path.glob(".*partial*"))
+
+
 def test_simulate_never_writes_over_its_geometry(sim, tmp_path, capsys):
     d = tmp_path / "set"
     assert main(["simulate", "--out", str(d), "--size", "128"]) == 0

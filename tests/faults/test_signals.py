@@ -1,4 +1,5 @@
-"""SIGTERM and SIGHUP end ``tirdeflect record`` like Ctrl-C (issue 7, case 4).
+"""SIGTERM and SIGHUP end ``tirdeflect record`` like Ctrl-C (issue 7, case 4); a stop signal after a command
+ended, while its process exits, is one line and 128 + its number too (``tirdeflect process``, last test).
 
 ``timeout``, systemd and a closing terminal send SIGTERM/SIGHUP, not SIGINT.
 A real signal goes to a real recording subprocess (synthetic camera, 50
@@ -94,3 +95,91 @@ def test_ctrl_c_before_the_command_began_is_one_line_not_a_traceback(tmp_path):
     assert proc.returncode == 130, (proc.returncode, proc.stderr)
     assert "Traceback" not in proc.stderr and "interrupted before the command began" in proc.stderr, proc.stderr
     assert not out.exists()
+
+
+#: ``tirdeflect`` as the program (``main()`` reads its own command line), with a thread that holds the
+#: interpreter's exit (threading's shutdown joins it) once the command has ended, until the test has sent its
+#: signal; and an object whose deletion says when the interpreter frees the modules, where Python 3.11 no longer
+#: handles signals (a Ctrl-C there killed the process: status -2)
+_EXIT_HELD_CHILD = """
+import os, sys, threading, time
+release = sys.argv.pop(1)
+
+
+def hold_the_exit():
+    while threading.main_thread().is_alive():  # the main thread stops as the interpreter begins to exit
+        time.sleep(0.01)
+    os.write(2, b"exit held\\n")
+    while not os.path.exists(release):
+        time.sleep(0.01)
+
+
+threading.Thread(target=hold_the_exit, name="hold the exit").start()
+
+
+class FreedWithTheModules:
+    def __del__(self, write=os.write):
+        write(2, b"modules freed\\n")
+
+
+freed_with_the_modules = FreedWithTheModules()
+from app.cli.main import main
+sys.exit(main())
+"""
+
+
+@pytest.fixture(scope="module")
+def sim(tmp_path_factory):
+    """Two ray-traced frames of 128 px and their reference and geometry."""
+    from app.cli import main
+
+    d = tmp_path_factory.mktemp("exit-sim")
+    assert main(["simulate", "--out", str(d), "--size", "128", "--frames", "2"]) == 0
+    return d
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_a_stop_signal_after_the_output_was_written_is_one_line_and_leaves_it_whole(sim, tmp_path, sig):
+    """Ctrl-C after `tirdeflect process` printed "wrote N frame(s)", while the process exits: it raised
+    KeyboardInterrupt inside the interpreter's teardown ("Exception ignored ..." and a traceback, exit 0) or,
+    later in it, killed the process (exit -2); SIGTERM killed it (-15). Now: one line, 128 + the signal's
+    number, and the output, complete before the signal, stays as it was written."""
+    import subprocess
+    import sys
+
+    from tests.faults.tools import ROOT
+    from tests.helpers import stderr_until_signalled
+
+    out, release = tmp_path / "out.h5", tmp_path / "release"
+    proc = subprocess.Popen(
+        [sys.executable, "-c", _EXIT_HELD_CHILD, str(release), "process", str(sim / "reference.png"),
+         str(sim / "frame_0000.png"), str(sim / "frame_0001.png"), "--geometry", str(sim / "geometry.toml"),
+         "--out", str(out), "--no-progress", "--workers", "1"],
+        cwd=ROOT, stderr=subprocess.PIPE, text=True,
+        # as at a terminal: a test runner started in the background may ignore SIGINT
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    seen = []
+
+    def signal_while_it_exits(line):
+        seen.append(line)
+        if line.strip() != "exit held":
+            return False
+        proc.send_signal(sig)
+        release.touch()  # the exit goes on once the signal is sent
+        return True
+
+    code, err = stderr_until_signalled(proc, signal_while_it_exits)
+    assert any(line.startswith("tirdeflect: wrote 2 frame(s) to") for line in seen), err
+    assert seen[-1].strip() == "exit held", err  # the signal came after the command had ended
+    name = "Ctrl-C" if sig == signal.SIGINT else signal.Signals(sig).name
+    assert code == 128 + sig, err
+    said = [line for line in err.splitlines() if "interrupted" in line]
+    assert said == [f"tirdeflect: interrupted ({name}) while exiting, after the command had ended (status 0) "
+                    "and closed its files; nothing was lost"], err
+    assert "Traceback" not in err and "Exception ignored" not in err, err
+    # ended before the interpreter frees its modules, where a signal ends the process outright
+    assert "modules freed" not in err, err
+    assert not list(tmp_path.glob("out.partial*")) and not list(tmp_path.glob(".out.partial*"))
+    with h5py.File(out, "r") as f:
+        assert f.attrs["status"] == "complete" and int(f.attrs["frames_done"]) == 2
+        assert f["height"].shape[0] == 2 and np.isfinite(f["height"][()]).mean() > 0.9
