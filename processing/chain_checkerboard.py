@@ -372,7 +372,8 @@ class CheckerboardChain(GridChain):
 
             try:
                 refined = self.image_refinement()(m, res, t4)
-                refined.note = res.note  # how the decimated grid was measured (unwrapped alone)
+                # how the decimated grid was measured (unwrapped alone), then image matching's own (specks)
+                refined.note = "; ".join(n for n in (res.note, refined.note) if n)
                 return refined
             except RefinementDiverged as exc:  # FD's heights below, and the reason with them
                 res.note = "; ".join(n for n in (res.note, f"image refinement stopped: {exc}; FD's heights kept") if n)

@@ -18,6 +18,7 @@ from .fullgrid import interpolate_full
 from .height import solver_for
 from .result import Result
 from .second_order import SecondOrderOptics, solved_again
+from .specks import SPECK_CONTRAST, speck_note
 
 __all__ = ["ImageRefinement", "DotsImageRefinement", "DOTS_BLUR_PX", "DOTS_BORDER_PX", "DOTS_FINE", "MATRIX_ONCE"]
 
@@ -144,15 +145,17 @@ class ImageRefinement(_NodeRefinement):
         kw = dict(outer=chain.options.image_iterations, period_px=float(periods.min()),
                   intensity_cell_px=max(dic.INTENSITY_CELL_PX, 1.6 * float(periods.max())),
                   threads=chain.planner.threads, matrix_once=MATRIX_ONCE,
-                  masked_cg_iterations=dic.MASKED_CG_ITERATIONS, offset_px=self.turn_offset(fd.turn))
+                  masked_cg_iterations=dic.MASKED_CG_ITERATIONS, offset_px=self.turn_offset(fd.turn),
+                  speck_contrast=SPECK_CONTRAST)
         try:
-            _, u_nodes, valid_nodes = dic.refine_height(*args, **kw)
+            match = dic.refine_height(*args, **kw)
         except dic.RefinementDiverged:
             if not MATRIX_ONCE or valid_px.all():
                 raise
             # beside masked pixels each step took its own matrix (MATRIX_ONCE); where those steps left the
             # range, the first step's kept for all is tried before FD's heights are
-            _, u_nodes, valid_nodes = dic.refine_height(*args, **kw, matrix_once_beside_masks=True)
+            match = dic.refine_height(*args, **kw, matrix_once_beside_masks=True)
+        u_nodes, valid_nodes = match.displacement_px, match.free
         t4 = time.perf_counter()
         timings["refine"] += 1e3 * (t4 - t3)
         surf, valid_nodes, u_nodes, second = self._refined(hs, u_nodes, valid_nodes, timings)
@@ -166,7 +169,7 @@ class ImageRefinement(_NodeRefinement):
         amp_nodes = chain.upsampler.cell_means(m.amplitude, ng.s)
         res = self._node_result(surf, valid_nodes, u_nodes, amplitude=amp_nodes, carriers=chain.carriers,
                                 phase=np.asarray(m.phase, np.float32), timings_ms=timings, pin=pin, series=fd.series,
-                                turn=fd.turn)
+                                turn=fd.turn, note=speck_note(match.speck_share))
         # the slopes of second-order heights are not the linear map of u and h: interpolated as they are
         res = chain.interpolate_full(res, solver=None if second else hs)
         timings["interpolate"] = 1e3 * (time.perf_counter() - t5)
@@ -241,7 +244,7 @@ class DotsImageRefinement(_NodeRefinement):
         t3 = time.perf_counter()
         valid_px, valid_nodes, start = self.start(piv.displacement, piv.valid)
         window = float(chain.options.window_px)
-        _, u_nodes, free = dic.refine_height(
+        _, u_nodes, free, _ = dic.refine_height(
             self.ref_fine, m.frame, np.asarray(start.height_mm, np.float64), valid_px, self.height_nodes,
             outer=chain.options.image_iterations, blur_px=DOTS_BLUR_PX, period_px=window / 2,
             intensity_cell_px=max(dic.INTENSITY_CELL_PX, window), threads=int(chain.options.threads),

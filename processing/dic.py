@@ -50,6 +50,7 @@ accuracy table at or below FD's.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -57,6 +58,7 @@ import numpy as np
 from .dic_nodes import BLUR_PX, NODE_PX, FineReference, HeightNodes, NodeGrid, fine_factor, fine_reference, fits
 from .fill import nearest_fill_index
 from .pools import thread_map
+from .specks import SPECK_STEP, specks_to_leave_out
 
 __all__ = ["NODE_PX", "BLUR_PX", "INTENSITY_CELL_PX", "FineReference", "NodeGrid", "HeightNodes", "RefinementDiverged",
            "fine_factor", "fine_reference", "fits", "intensity_fit", "refine_height"]
@@ -201,12 +203,8 @@ def _diverged(test: str, figures: str):
     return RefinementDiverged(f"{test} ({figures})")
 
 
-def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int = 3,
-                  cg_iterations: int = CG_ITERATIONS, masked_cg_iterations: int | None = None,
-                  regularisation: float = 0.03, blur_px: float = BLUR_PX,
-                  intensity_cell_px: float | None = INTENSITY_CELL_PX, period_px: float | None = None,
-                  threads: int = 1, border_px: int = BORDER_PX, matrix_once: bool = False,
-                  matrix_once_beside_masks: bool = False, offset_px=None):
+def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, speck_contrast: float | None = None,
+                  **options) -> "ImageMatch":
     """Global Gauss-Newton image matching for the height on the node grid of ``nodes``.
 
     Minimises ``sum_r w [G*((I - b) / a) - G*I0(r - P L h)]^2 + lam (|D3r h|^2 + |D3c h|^2)``
@@ -242,15 +240,38 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
     offset_px : ndarray (2, n_rows, n_cols) or None
         Node displacement (px) added to the warp, not solved for (a turn: :mod:`processing.turn`).
 
+    speck_contrast : float or None
+        After the first step, leave out the pixels of specks the reference lacks
+        (:func:`processing.specks.speck_pixels` with this contrast); None: look for none.
+
     Returns
     -------
-    h : ndarray float64 (n_rows, n_cols)
-        Node heights (mm; their null-space offset is not pinned: pass ``u`` to the height solver).
-    u : ndarray float32 (2, n_rows, n_cols)
-        The surface's displacement at the nodes (pixels; ``offset_px`` not included).
-    valid : ndarray bool (n_rows, n_cols)
-        Nodes whose cell is all valid.
+    ImageMatch
+        Node heights (mm, null space not pinned: pass the displacement to the height solver); the
+        displacement at the nodes (px, ``offset_px`` not included); the nodes whose cell is all
+        valid (specks aside); the share of the frame's pixels left out as specks.
     """
+    try:
+        return _refine(fine, frame, h0, valid_px, nodes, speck_contrast=speck_contrast, **options)
+    except _SpecksFound as specks:
+        again = _refine(fine, frame, h0, np.logical_and(valid_px, ~specks.pixels), nodes, **options)
+        return again._replace(free=specks.free, speck_share=float(np.count_nonzero(specks.pixels)) / specks.pixels.size)
+
+
+class _SpecksFound(Exception):
+    def __init__(self, pixels, free):
+        super().__init__("specks found")
+        self.pixels, self.free = pixels, free
+
+
+def _refine(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int = 3,
+                  cg_iterations: int = CG_ITERATIONS, masked_cg_iterations: int | None = None,
+                  regularisation: float = 0.03, blur_px: float = BLUR_PX,
+                  intensity_cell_px: float | None = INTENSITY_CELL_PX, period_px: float | None = None,
+                  threads: int = 1, border_px: int = BORDER_PX, matrix_once: bool = False,
+                  matrix_once_beside_masks: bool = False, offset_px=None, speck_contrast: float | None = None):
+    """:func:`refine_height`'s Gauss-Newton steps (its parameters); :class:`_SpecksFound` where specks are
+    found before step :data:`SPECK_STEP`."""
     grid = nodes.grid
     raw, img, w, all_valid, free = _frame_and_weights(frame, valid_px, grid, blur_px, border_px)
     n_cg = masked_cg_iterations if masked_cg_iterations and not all_valid else cg_iterations
@@ -268,6 +289,12 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
             # once, against the reference warped by FD's start (before every step: the same
             # heights, 10-20 % slower; weighted by wk at the border: the same, 3 ms more)
             img = _normalised_frame(raw, img, warped, None if all_valid else wk, intensity_cell_px, blur_px)
+        if k == 0 and speck_contrast:
+            start_warped = warped
+        if k == SPECK_STEP and speck_contrast and period_px:
+            found = specks_to_leave_out(img, start_warped, warped, wk, grid, period_px, speck_contrast)
+            if found is not None:  # matched again from the start without them (the first step bent to them)
+                raise _SpecksFound(found, free)
         cost, stencils, rhs = _node_sums(nodes, warped, img, wk, threads, matrix=operator is None)
         # per pixel that counts (how many do moves with the warp at the border)
         prev_cost = _check_cost(cost, float(wk.sum()) if outside else w_sum, prev_cost, k, w.size)
@@ -280,7 +307,14 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int =
         prev_step = _check_step(_rms(du), prev_step, k)
         h += x
         u = u + du  # the displacement is linear in the heights: one operator call a step, not two
-    return h, (u if offset_px is None else u - offset_px).astype(np.float32), free
+    return ImageMatch(h, (u if offset_px is None else u - offset_px).astype(np.float32), free, 0.0)
+
+
+class ImageMatch(NamedTuple):  # refine_height's answer
+    height_mm: np.ndarray
+    displacement_px: np.ndarray
+    free: np.ndarray
+    speck_share: float
 
 
 def _frame_and_weights(frame, valid_px, grid, blur_px, border_px):

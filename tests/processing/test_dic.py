@@ -433,8 +433,8 @@ def test_refine_height_is_invariant_to_a_gain_of_1e10_and_stops_on_what_diverges
     fine = dic.fine_reference(ref.astype(np.float32))
     h0 = _fd_start(ref, img, nodes)
     every = np.ones(ref.shape, bool)
-    _, u_clean, _ = dic.refine_height(fine, img, h0, every, nodes, period_px=10.0)
-    _, u_big, _ = dic.refine_height(fine, img.astype(np.float32) * np.float32(1e10), h0, every, nodes,
+    _, u_clean, _, _ = dic.refine_height(fine, img, h0, every, nodes, period_px=10.0)
+    _, u_big, _, _ = dic.refine_height(fine, img.astype(np.float32) * np.float32(1e10), h0, every, nodes,
                                     period_px=10.0)
     np.testing.assert_allclose(u_big, u_clean, atol=1e-3)  # px; the waves' u is up to about 1 px
     # matched in raw intensity the 1e10 frame sends the displacement to 1e11 px: before it
@@ -456,8 +456,8 @@ def test_refine_height_threads_give_the_same_displacement(wave_frames):
     # threads: the five node stencils of each step run side by side; no shared
     # buffer between them may change a bit of the answer (issue 22)
     fine, img, h0, every, nodes = _refine_inputs(wave_frames)
-    _, u_one, _ = dic.refine_height(fine, img, h0, every, nodes, period_px=10.0, threads=1)
-    _, u_three, _ = dic.refine_height(fine, img, h0, every, nodes, period_px=10.0, threads=3)
+    _, u_one, _, _ = dic.refine_height(fine, img, h0, every, nodes, period_px=10.0, threads=1)
+    _, u_three, _, _ = dic.refine_height(fine, img, h0, every, nodes, period_px=10.0, threads=3)
     np.testing.assert_array_equal(u_three, u_one)
 
 
