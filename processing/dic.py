@@ -61,7 +61,7 @@ from .pools import thread_map
 from .specks import SPECK_STEP, specks_to_leave_out
 
 __all__ = ["NODE_PX", "BLUR_PX", "INTENSITY_CELL_PX", "FineReference", "NodeGrid", "HeightNodes", "RefinementDiverged",
-           "fine_factor", "fine_reference", "fits", "intensity_fit", "refine_height"]
+           "fine_factor", "fine_reference", "fits", "intensity_fit", "refine_height", "ImageMatch"]
 
 
 # ------------------------------------------------------------------ intensity model
@@ -239,10 +239,10 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, speck_contra
         every pixel of ``valid_px`` counts, and with the second where some are masked (else each step's own).
     offset_px : ndarray (2, n_rows, n_cols) or None
         Node displacement (px) added to the warp, not solved for (a turn: :mod:`processing.turn`).
-
     speck_contrast : float or None
-        After the first step, leave out the pixels of specks the reference lacks
-        (:func:`processing.specks.speck_pixels` with this contrast); None: look for none.
+        Look for specks the reference lacks before step :data:`processing.specks.SPECK_STEP`
+        (:func:`processing.specks.speck_pixels` with this contrast) and, where there are, match again
+        from the start without their pixels; None: look for none.
 
     Returns
     -------
@@ -255,7 +255,9 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, speck_contra
         return _refine(fine, frame, h0, valid_px, nodes, speck_contrast=speck_contrast, **options)
     except _SpecksFound as specks:
         again = _refine(fine, frame, h0, np.logical_and(valid_px, ~specks.pixels), nodes, **options)
-        return again._replace(free=specks.free, speck_share=float(np.count_nonzero(specks.pixels)) / specks.pixels.size)
+        # the nodes beside them stay free: their displacement follows the pixels left and the regulariser
+        share = float(np.count_nonzero(specks.pixels)) / specks.pixels.size
+        return again._replace(free=specks.free, speck_share=share)
 
 
 class _SpecksFound(Exception):
@@ -264,12 +266,11 @@ class _SpecksFound(Exception):
         self.pixels, self.free = pixels, free
 
 
-def _refine(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int = 3,
-                  cg_iterations: int = CG_ITERATIONS, masked_cg_iterations: int | None = None,
-                  regularisation: float = 0.03, blur_px: float = BLUR_PX,
-                  intensity_cell_px: float | None = INTENSITY_CELL_PX, period_px: float | None = None,
-                  threads: int = 1, border_px: int = BORDER_PX, matrix_once: bool = False,
-                  matrix_once_beside_masks: bool = False, offset_px=None, speck_contrast: float | None = None):
+def _refine(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int = 3, cg_iterations: int = CG_ITERATIONS,
+            masked_cg_iterations: int | None = None, regularisation: float = 0.03, blur_px: float = BLUR_PX,
+            intensity_cell_px: float | None = INTENSITY_CELL_PX, period_px: float | None = None, threads: int = 1,
+            border_px: int = BORDER_PX, matrix_once: bool = False, matrix_once_beside_masks: bool = False,
+            offset_px=None, speck_contrast: float | None = None):
     """:func:`refine_height`'s Gauss-Newton steps (its parameters); :class:`_SpecksFound` where specks are
     found before step :data:`SPECK_STEP`."""
     grid = nodes.grid

@@ -66,7 +66,6 @@ START_RESIDUAL_MAX = 0.03
 CONFIRM = 0.0
 
 
-
 def local_change(frame_cells, warped, weight_cells, grid, period_px: float):
     """The local mean of the residual ``frame - warped`` over the warped reference's, on the node cells
     (a Gaussian of half the shorter carrier period; 0 where not judged: under 90 % of the pixels around
