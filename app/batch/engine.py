@@ -490,7 +490,8 @@ def _keep_or_drop(args, status: str, writer: ResultWriter, tally: FrameTally, se
     message says the same (:func:`_frame_failed`). Alike for frames measured here and for frames
     that come back from worker processes a chunk at a time."""
     interrupted = status.startswith("interrupted")
-    if tally.valid:
+    # the writer's own count: an interrupt can land between a frame's append and its tally
+    if tally.valid or writer.measured:
         log.warning("the %d frame(s) written are kept in %s%s", writer.n, writer.path,
                     _resume_text(args, writer.n, selected) if interrupted else "")
         return

@@ -52,7 +52,7 @@ from app.batch.writer import output_frame
 from app.files import imageio
 from processing.errors import TirdeflectError
 
-__all__ = ["available_cores", "fft_threads", "frame_results", "process_chunk", "plan_chunks",
+__all__ = ["available_cores", "fft_threads", "frame_results", "process_chunk", "plan_chunks", "stop_requested",
            "ReconstructorSpec", "Chunk", "ChunkOutcome", "AUTO_PARALLEL_MIN_FRAMES",
            "MEMORY_BUDGET_BYTES", "default_memory_budget_bytes"]
 
@@ -190,7 +190,9 @@ class ChunkOutcome:
     worker; items without their image), or ``(None, TirdeflectError)``: reading failed
     there, nothing after it;
     ``start``/``end`` the series states after the overlap frame (or the given start) and
-    after the last frame; ``pid`` and ``host`` of the worker that computed it."""
+    after the last frame; ``pid`` and ``host`` of the worker that computed it.
+    ``stopped``: the run was ending (:func:`stop_requested`), so the chunk ended after the frame it
+    was measuring, its ``frames`` short: nobody writes them (the run's process frees their memory)."""
 
     index: int
     start: object
@@ -198,9 +200,12 @@ class ChunkOutcome:
     end: object
     pid: int
     host: str
+    stopped: bool = False
 
 
 _RECONSTRUCTORS: dict = {}
+#: In a worker process of the local pool: the run's "stop" event (:func:`_init_worker`); None elsewhere (Dask)
+_STOP = None
 #: Runs (``ReconstructorSpec.key``) whose FFTW wisdom this process has stored.
 _WISDOM_STORED: set = set()
 
@@ -305,6 +310,12 @@ def _in_dask() -> bool:
         return False
 
 
+def stop_requested() -> bool:
+    """Is the run of this worker process ending (Ctrl-C, an error: :meth:`_Pool.shutdown`), so
+    that a chunk must end after the frame it is measuring? Always False outside the local pool."""
+    return _STOP is not None and _STOP.is_set()
+
+
 def measure(reconstruct, item, ref_shape, grid: str):
     """``(Result, OK)`` or ``(None, why the frame is invalid)`` of one input frame,
     as the engine's serial loop measures it (:mod:`app.batch.frame_status`)."""
@@ -323,6 +334,8 @@ def process_chunk(spec: ReconstructorSpec, chunk: Chunk) -> ChunkOutcome:
 
     Each frame is measured as in the engine's serial loop, and a frame that
     could not be measured ends the series (no temporal unwrapping across a hole).
+    Between two frames, a run that is ending (:func:`stop_requested`) ends the chunk
+    (``stopped``): its worker is free at once, not after the chunk's last frame.
     """
     recon = _reconstructor(spec)
     shape = tuple(np.shape(spec.reference))
@@ -339,13 +352,17 @@ def process_chunk(spec: ReconstructorSpec, chunk: Chunk) -> ChunkOutcome:
                                      errors="yield", losses_from=chunk.overlap)
     out = []
     start = None
+    stopped = stop_requested()
     try:
-        if first != chunk.first:  # the overlap frame: only its series state is kept
+        if first != chunk.first and not stopped:  # the overlap frame: only its series state is kept
             result, _ = measure(recon, next(frames), shape, "decimated")
             if result is None:
                 recon.reset_series()
         start = recon.series_state()
         for item in frames:
+            stopped = stopped or stop_requested()
+            if stopped:
+                break
             result, outcome = measure(recon, item, shape, spec.options.grid)
             if result is None:
                 recon.reset_series()
@@ -361,7 +378,7 @@ def process_chunk(spec: ReconstructorSpec, chunk: Chunk) -> ChunkOutcome:
             exc = type(exc)(f"{exc} (read on {socket.gethostname()}; workers that do not see the "
                             f"input files at this path need --dask-send-frames, docs/cluster.md)")
         out.append((None, exc))
-    if spec.options.planner_effort == "FFTW_MEASURE" and spec.key not in _WISDOM_STORED:
+    if spec.options.planner_effort == "FFTW_MEASURE" and spec.key not in _WISDOM_STORED and not stopped:
         from app.files import cache
 
         cache.store_fftw_wisdom()
@@ -369,7 +386,7 @@ def process_chunk(spec: ReconstructorSpec, chunk: Chunk) -> ChunkOutcome:
     import socket
 
     return ChunkOutcome(index=chunk.index, start=start, frames=out, end=recon.series_state(),
-                        pid=os.getpid(), host=socket.gethostname())
+                        pid=os.getpid(), host=socket.gethostname(), stopped=stopped)
 
 
 # ----------------------------------------------------------------- planning
@@ -834,7 +851,7 @@ def _frame_bytes(reconstruct, grid: str) -> int:
     return rows * cols * (3 * 4 + 1)
 
 
-def _init_worker(run_pid: int, parent):
+def _init_worker(run_pid: int, parent, stop=None):
     """Set up a worker process of the run whose process is ``run_pid``.
 
     The worker takes the run's environment and working directory (``parent``, an
@@ -845,11 +862,14 @@ def _init_worker(run_pid: int, parent):
     down (SIGKILL, a crash, the OOM killer), the worker ends too, within half a second, instead
     of waiting for work forever (and so does the fork server, once no worker holds it); with the
     workers gone, the resource tracker frees the shared-memory blocks still held. The worker
-    watches the run itself: its parent is the fork server, which lives as long as its workers."""
+    watches the run itself: its parent is the fork server, which lives as long as its workers.
+    ``stop``: the run's event, set when it ends (:func:`stop_requested`)."""
     import signal
 
     from app.worker_processes import adopt_parent_state
 
+    global _STOP
+    _STOP = stop
     set_run_pid(run_pid)
     adopt_parent_state(parent)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -886,10 +906,19 @@ def _process_alive(pid: int) -> bool:
 class _Pool:
     """``workers`` processes from the app's fork server (:mod:`app.worker_processes`: a fresh
     interpreter's state, safe from a Qt GUI or a threaded program, where a plain fork is not);
-    :meth:`restart` replaces a pool broken by a dead worker."""
+    :meth:`restart` replaces a pool broken by a dead worker.
+
+    :meth:`shutdown` first sets the run's stop event, which every worker sees between two frames
+    (:func:`stop_requested`): the chunks running end after the frame each worker is measuring, and
+    the shutdown waits for that frame only. Before, it waited for the chunks to end: Ctrl-C on
+    ``--workers 2`` took up to a chunk's time to stop (a 60-frame chunk of 512^2: 3 s; at 1024^2,
+    1,000 frames: about 25 s) while a serial run stops at once."""
 
     def __init__(self, workers: int):
+        from app.worker_processes import context
+
         self.workers = workers
+        self._stop = context().Event()
         self._pool = self._new()
 
     def _new(self):
@@ -897,8 +926,8 @@ class _Pool:
 
         from app.worker_processes import context, parent_state
 
-        return ProcessPoolExecutor(max_workers=self.workers, mp_context=context(),
-                                   initializer=_init_worker, initargs=(os.getpid(), parent_state()))
+        return ProcessPoolExecutor(max_workers=self.workers, mp_context=context(), initializer=_init_worker,
+                                   initargs=(os.getpid(), parent_state(), self._stop))
 
     def submit(self, fn, *args):
         from concurrent.futures import Future
@@ -912,6 +941,7 @@ class _Pool:
             return future
 
     def shutdown(self):
+        self._stop.set()  # the chunks running end after their current frame; those not started at once
         if getattr(self._pool, "_broken", False):  # the run gives up after its last restart
             _release_feeder(self._pool)
         self._pool.shutdown(wait=True, cancel_futures=True)

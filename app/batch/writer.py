@@ -447,6 +447,7 @@ class ResultWriter:
         ref = f.create_dataset("reference", data=reference, **self._filters)
         ref.attrs["description"] = "reference image as read (unscaled samples)"
         self.n = 0
+        self.measured = 0  # frames appended as measured (status OK): what the file holds worth keeping
         self.frames_done = 0
         self.lost = 0
         self.failed = False
@@ -619,6 +620,7 @@ class ResultWriter:
         if log.isEnabledFor(logging.DEBUG):
             self._labels.append((item.sequence_index, item.label))
         self.n = k + 1
+        self.measured += int(measured)
         if time.monotonic() - self._flushed_at >= self.flush_interval_s:
             self.flush()
 

@@ -438,6 +438,130 @@ def test_interrupted_before_a_frame_was_written_says_none_was_kept(sim, tmp_path
     assert not out.exists() and not list(tmp_path.glob("*partial*")) and not list(tmp_path.glob(".*partial*"))
 
 
+
+#: ``sitecustomize`` of the run and of its worker processes: every frame measured says so, and takes
+#: TIRDEFLECT_TEST_FRAME_S longer (chunks long enough that finishing them is seen)
+_EVERY_FRAME_SAYS_SO = """
+import os, sys, time
+import app.batch.parallel as parallel
+
+_measure = parallel.measure
+
+
+def measure(recon, item, *args, **kwargs):
+    print(f"measuring frame {item.sequence_index}", file=sys.stderr, flush=True)
+    time.sleep(float(os.environ["TIRDEFLECT_TEST_FRAME_S"]))
+    return _measure(recon, item, *args, **kwargs)
+
+
+parallel.measure = measure
+"""
+
+
+def test_ctrl_c_on_workers_stops_the_chunks_running_and_keeps_what_was_written(sim, tmp_path):
+    """Ctrl-C (a real SIGINT) on `--workers 2` once the first frames are written, with two 12-frame chunks
+    just started: the run waited for both to end (every frame of them measured after the signal, 3.0 s
+    for 60-frame chunks of 512^2, about 25 s for 1,000 frames of 1024^2) while a serial run stops at once.
+    Now each worker ends its chunk after the frame it is measuring; the frames written are kept, and
+    `--first N` from the message measures the rest as the uninterrupted run did."""
+    total, chunk = 48, 12
+    stack = np.stack([imageio.read_image(p) for p in frames_of(sim)] * (total // N_FRAMES))
+    tifffile.imwrite(tmp_path / "long.tif", stack, photometric="minisblack")
+    whole, out = tmp_path / "whole.h5", tmp_path / "out.h5"
+    assert main([str(a) for a in process(sim, whole, tmp_path / "long.tif")] + ["--workers", "1"]) == 0
+    site = tmp_path / "site"
+    site.mkdir()
+    (site / "sitecustomize.py").write_text(_EVERY_FRAME_SAYS_SO)
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(site), str(ROOT)]), TIRDEFLECT_TEST_FRAME_S="0.25")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "app.cli", "--debug", *map(str, process(sim, out, tmp_path / "long.tif")),
+         "--workers", "2", "--chunk-frames", str(chunk)],
+        cwd=ROOT, env=env, stderr=subprocess.PIPE, text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # as at a terminal
+    after = []  # frames measured after the signal
+
+    def interrupt_at_the_first_written_frame(line):
+        if after:
+            after.extend(re.findall(r"^measuring frame (\d+)", line))
+            return False
+        if re.search(r"frame \d+ .* written", line):
+            proc.send_signal(signal.SIGINT)
+            after.append("signal")
+        return False
+
+    code, err = stderr_until_signalled(proc, interrupt_at_the_first_written_frame, timeout_s=60)
+    assert code == 130 and after, err
+    assert "Traceback" not in err, err
+    # the chunks running at the signal (24 frames left) ended after the frame each worker was measuring
+    assert len(after) - 1 <= 4, (after, err)
+    hint = re.search(r"the (\d+) frame\(s\) written are kept in (.+); process the rest with "
+                     r"`tirdeflect process \.\.\. --first (\d+)` into another --out", err)
+    assert hint and hint[2] == str(tmp_path / "out.partial.h5") and hint[1] == hint[3], err
+    kept = int(hint[1])
+    assert 0 < kept <= total - chunk, err  # at most the two chunks that ended before the signal
+    assert err.splitlines()[-1] == "tirdeflect: interrupted", err
+    with h5py.File(whole) as w:
+        heights = w["height"][()]
+    # the same heights to FFT rounding (each run plans its FFTs anew): 2e-5 of their RMS measured
+    atol = 1e-4 * np.sqrt(np.nanmean(heights ** 2))
+    with h5py.File(tmp_path / "out.partial.h5") as f:
+        assert f.attrs["frames_done"] == kept and f["height"].shape[0] == kept
+        assert f.attrs["status"] == f"interrupted after {kept} frame(s)"
+        assert list(f["frame_index"][()]) == list(range(kept))
+        np.testing.assert_allclose(f["height"][()], heights[:kept], rtol=0, atol=atol)
+    rest = tmp_path / "rest.h5"
+    assert main([str(a) for a in process(sim, rest, tmp_path / "long.tif")] + ["--first", str(kept)]) == 0
+    with h5py.File(rest) as r:
+        assert list(r["frame_index"][()]) == list(range(kept, total))
+        np.testing.assert_allclose(r["height"][()], heights[kept:], rtol=0, atol=atol)
+
+
+_APPENDED_SAYS_SO = """
+import sys, time
+import app.batch.writer as writer
+
+_append = writer.ResultWriter.append
+
+
+def append(self, item, *args, **kwargs):
+    _append(self, item, *args, **kwargs)
+    print(f"appended frame {item.sequence_index}", file=sys.stderr, flush=True)
+    time.sleep(5.0)  # the signal lands here: after the frame is in the file, before the run counts it
+
+
+writer.ResultWriter.append = append
+"""
+
+
+def test_ctrl_c_just_after_a_frame_was_written_keeps_it(sim, tmp_path):
+    """By-hand trial of 7 Dec 2026: a serial run's SIGINT 0.03 s after frame 0 was written said "interrupted
+    after 1 frame(s), none of them measured: none is kept" and deleted the partial file that held it: the
+    signal fell between the writer's append and the run's tally of the frame. The keep decision now also
+    reads the writer's own count of measured frames: the frame is kept, with the --first to go on from."""
+    site = tmp_path / "site"
+    site.mkdir()
+    (site / "sitecustomize.py").write_text(_APPENDED_SAYS_SO)
+    out = tmp_path / "out.h5"
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(site), str(ROOT)]))
+    argv = [sys.executable, "-m", "app.cli", *map(str, process(sim, out, *frames_of(sim))), "--workers", "1"]
+    proc = subprocess.Popen(argv, cwd=ROOT, env=env, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # as at a terminal
+
+    def interrupt_after_the_first_append(line):
+        if line.startswith("appended frame 0"):
+            proc.send_signal(signal.SIGINT)
+        return False
+
+    code, err = stderr_until_signalled(proc, interrupt_after_the_first_append, timeout_s=120)
+    assert code == 130 and "Traceback" not in err, err
+    assert "none is kept" not in err, err
+    assert re.search(r"the 1 frame\(s\) written are kept in .*out\.partial\.h5; process the rest with "
+                     r"`tirdeflect process \.\.\. --first 1`", err), err
+    with h5py.File(tmp_path / "out.partial.h5") as f:
+        assert f.attrs["frames_done"] == 1 and list(f["frame_status"][()]) == [0]
+        assert np.isfinite(f["height"][0]).mean() > 0.5
+
+
 def test_simulate_never_writes_over_its_geometry(sim, tmp_path, capsys):
     d = tmp_path / "set"
     assert main(["simulate", "--out", str(d), "--size", "128"]) == 0
