@@ -59,6 +59,25 @@ def _wait_reconstructor(qtbot, w, timeout=20000):
                     timeout=timeout)
 
 
+def arm_and_trigger(qtbot, w, frames, image, folder, pre, post, *, settle, settle_ms=5000, end_ms=15000):
+    """The Record panel as a user drives it: folder, ``pre`` / ``post`` frames, Arm; once ``settle`` camera
+    frames have come after arming, the scene (``frames``, a Switchable) turns to ``image`` and Trigger is
+    pressed; waits for the recording to end (done or error). Returns the panel."""
+    rp = w.recording_panel
+    rp.folder.setText(str(folder))
+    rp.pre.setValue(pre)
+    rp.post.setValue(post)
+    rp.arm_button.click()
+    assert rp.state_label.text() == "armed", w.last_error
+    ring = w.session.acquisition.ring
+    armed_head = ring.head
+    qtbot.waitUntil(lambda: ring.head >= armed_head + settle, timeout=settle_ms)
+    frames.image = image
+    rp.trigger_button.click()
+    qtbot.waitUntil(lambda: rp.state_label.text() in ("done", "error"), timeout=end_ms)
+    return rp
+
+
 def _reference_by_hand_on(qtbot, window, frames, geometry):
     """Stream ``frames`` (a Switchable) through a synthetic camera, capture the reference with the
     button (5 frames averaged) as the user does, and wait for the first maps of ``frames.image``; returns
@@ -256,18 +275,8 @@ def test_record_pre_post_trigger_then_replay_and_export(qtbot, window, scene, tm
     window.use_camera(SyntheticCamera(frames, frame_rate_hz=100.0, n_buffers=64), geometry=scene["geometry"],
                       reference=scene["flat"])
     _wait_reconstructor(qtbot, window)
-    rp = window.recording_panel
-    rp.folder.setText(str(tmp_path))
-    rp.pre.setValue(12)
-    rp.post.setValue(20)
-    rp.arm_button.click()
-    assert rp.state_label.text() == "armed", window.last_error
-    ring = window.session.acquisition.ring
-    armed_head = ring.head
-    qtbot.waitUntil(lambda: ring.head >= armed_head + 15, timeout=5000)  # the pre-trigger frames exist
-    frames.image = scene["bump"]
-    rp.trigger_button.click()
-    qtbot.waitUntil(lambda: rp.state_label.text() in ("done", "error"), timeout=15000)
+    # (15 frames after arming: the pre-trigger frames exist)
+    rp = arm_and_trigger(qtbot, window, frames, scene["bump"], tmp_path, 12, 20, settle=15)
     assert rp.state_label.text() == "done", window.last_error
     assert "no frame lost" in rp.result_label.text()
     # the summary is a table (each row's name in a cell of its own, its value wrapping in the next),

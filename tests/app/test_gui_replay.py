@@ -16,7 +16,8 @@ import tifffile
 from pyqtgraph.Qt import QtCore, QtWidgets
 
 from drivers.synthetic import SyntheticCamera
-from tests.app.test_gui import Switchable, _wait_reconstructor, scene  # noqa: F401 - the module's fixture
+from tests.app.test_gui import (  # noqa: F401 - the module's fixture
+    Switchable, _wait_reconstructor, arm_and_trigger, scene)
 from tests.helpers import answer_file_dialogs
 
 pytestmark = pytest.mark.gui
@@ -36,17 +37,7 @@ def _record_with_lost_frames(qtbot, w, scene, folder, lost):
     w.use_camera(SyntheticCamera(frames, frame_rate_hz=50.0, n_buffers=64, drop_frames=lost),
                  geometry=scene["geometry"], reference=scene["flat"])
     _wait_reconstructor(qtbot, w)
-    rp = w.recording_panel
-    rp.folder.setText(str(folder))
-    rp.pre.setValue(10)
-    rp.post.setValue(20)
-    rp.arm_button.click()
-    ring = w.session.acquisition.ring
-    armed = ring.head
-    qtbot.waitUntil(lambda: ring.head >= armed + 12, timeout=20000)
-    frames.image = scene["bump"]
-    rp.trigger_button.click()
-    qtbot.waitUntil(lambda: rp.state_label.text() in ("done", "error"), timeout=30000)
+    arm_and_trigger(qtbot, w, frames, scene["bump"], folder, 10, 20, settle=12, settle_ms=20000, end_ms=30000)
     return w.session.recording["path"]
 
 

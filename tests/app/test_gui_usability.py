@@ -20,7 +20,8 @@ from pyqtgraph.Qt import QtCore, QtGui, QtTest, QtWidgets
 
 from app.gui.views import decimate_for_display
 from drivers.synthetic import SyntheticCamera
-from tests.app.test_gui import SHAPE, Switchable, _wait_reconstructor, scene  # noqa: F401  (window: tests/app/conftest.py)
+from tests.app.test_gui import (  # noqa: F401  (window: tests/app/conftest.py)
+    SHAPE, Switchable, _wait_reconstructor, arm_and_trigger, scene)
 from tests.drivers.fixtures import gv_fake_camera  # noqa: F401
 
 pytestmark = pytest.mark.gui
@@ -447,17 +448,7 @@ def test_arm_trigger_by_keys_snapshot_and_close_while_recording_asks(qtbot, wind
 def test_replay_shows_maps_as_live_and_export_is_compressed_with_trigger_index(qtbot, window, scene, tmp_path):
     frames = _live_with_maps(qtbot, window, scene, image_key="flat")
     live_rect = window.height_view._rect
-    rp = window.recording_panel
-    rp.folder.setText(str(tmp_path))
-    rp.pre.setValue(4)
-    rp.post.setValue(6)
-    rp.arm_button.click()
-    ring = window.session.acquisition.ring
-    head = ring.head
-    qtbot.waitUntil(lambda: ring.head >= head + 6, timeout=5000)
-    frames.image = scene["bump"]
-    rp.trigger_button.click()
-    qtbot.waitUntil(lambda: rp.state_label.text() in ("done", "error"), timeout=15000)
+    arm_and_trigger(qtbot, window, frames, scene["bump"], tmp_path, 4, 6, settle=6)
     path = window.session.recording["path"]
 
     assert window.open_recording(path)  # what File ▸ Open recording… does with the chosen file
