@@ -441,17 +441,17 @@ def run_process(args: ProcessJob) -> BatchReport:
             except StopIteration:
                 break
             except TirdeflectError as exc:  # a whole file became unreadable
-                raise _frame_failed(exc, None, writer, tally, out) from exc
+                raise _frame_failed(exc, None, writer, out) from exc
             result, outcome = measured()  # (Result, OK), or (None, why the frame is invalid)
             if outcome.status == FrameStatus.PATTERN_MISMATCH and tally.valid == 0:
                 # no frame has matched the reference yet: it is the reference that is wrong
-                raise _frame_failed(PatternMismatchError(outcome.reason), item, writer, tally, out)
+                raise _frame_failed(PatternMismatchError(outcome.reason), item, writer, out)
             if not outcome.ok and args.strict:
-                raise _frame_failed(_error_of(outcome), item, writer, tally, out, strict=True)
+                raise _frame_failed(_error_of(outcome), item, writer, out, strict=True)
             try:
                 writer.append(item, result, outcome)
             except (TirdeflectError, OSError) as exc:  # disk full while writing
-                raise _frame_failed(exc, item, writer, tally, out) from exc
+                raise _frame_failed(exc, item, writer, out) from exc
             if result is None and hasattr(reconstruct, "reset_series"):
                 reconstruct.reset_series()  # no temporal unwrapping across a hole
             tally.add(item, outcome)  # (the writer logs "frame K ... written" once it is flushed)
@@ -460,7 +460,7 @@ def run_process(args: ProcessJob) -> BatchReport:
             if on_progress is not None:
                 on_progress(writer.n, selected)
         if tally.valid == 0:
-            raise _frame_failed(_error_of_none_valid(tally), None, writer, tally, out, whole_run=True)
+            raise _frame_failed(_error_of_none_valid(tally), None, writer, out, whole_run=True)
         status = "complete" if tally.n_invalid == 0 else f"complete, {tally.n_invalid} frame(s) invalid"
     except KeyboardInterrupt:
         status = f"interrupted after {writer.n} frame(s)"
@@ -476,22 +476,22 @@ def run_process(args: ProcessJob) -> BatchReport:
         if status.startswith("complete"):
             publish(partial, out, overwrite=args.overwrite)
         else:
-            _keep_or_drop(args, status, writer, tally, selected, out)
+            _keep_or_drop(args, status, writer, selected, out)
         cache.store_fftw_wisdom()
     return BatchReport(out=out, frames_written=writer.n, notes=input_notes + tally.notes() + pins.notes(),
                        frames_invalid=tally.n_invalid, invalid_summary=tally.invalid_summary(),
                        frames_incomplete=len(tally.incomplete), pin=pins.summary())
 
 
-def _keep_or_drop(args, status: str, writer: ResultWriter, tally: FrameTally, selected: int, out: Path) -> None:
+def _keep_or_drop(args, status: str, writer: ResultWriter, selected: int, out: Path) -> None:
     """After a run that did not complete: keep its partial file where it holds a measured frame,
     and say where it is (after an interrupt, also where to go on); else remove it (no file that
     blocks the next attempt) and, after an interrupt, say that none was kept. An error's own
     message says the same (:func:`_frame_failed`). Alike for frames measured here and for frames
     that come back from worker processes a chunk at a time."""
     interrupted = status.startswith("interrupted")
-    # the writer's own count: an interrupt can land between a frame's append and its tally
-    if tally.valid or writer.measured:
+    # the writer's own count, not the run's tally: an interrupt can land between a frame's append and its tally
+    if writer.measured:
         log.warning("the %d frame(s) written are kept in %s%s", writer.n, writer.path,
                     _resume_text(args, writer.n, selected) if interrupted else "")
         return
@@ -891,7 +891,7 @@ def _error_of_none_valid(tally: FrameTally) -> TirdeflectError:
     return exc
 
 
-def _frame_failed(exc: Exception, item, writer: ResultWriter, tally: FrameTally, out: Path, *,
+def _frame_failed(exc: Exception, item, writer: ResultWriter, out: Path, *,
                   strict: bool = False, whole_run: bool = False) -> TirdeflectError:
     """The error to raise for a run that stops at ``item``: where, why, and what is kept."""
     if whole_run:
@@ -902,7 +902,7 @@ def _frame_failed(exc: Exception, item, writer: ResultWriter, tally: FrameTally,
         where = f"frame {exc.sequence_index}"
     else:
         where = "reading the next frame"
-    if tally.valid:
+    if writer.measured:
         saved = (f"the {writer.n} frame(s) before it are kept in {str(writer.path)!r} "
                  f"(valid up to frames_done; rename it to use it)")
         if writer.lost:
