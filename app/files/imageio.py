@@ -50,6 +50,7 @@ from app.files.formats import ImageInfo, ImageReadError
 from processing.errors import TirdeflectError
 
 __all__ = [
+    "attr_text",
     "ImageReadError",
     "ImageInfo",
     "FrameItem",
@@ -1034,7 +1035,7 @@ def _file_frames(path, seq: int, selection: tuple, frame, errors: str):
         ds, n = _h5_frames(f, p)
         table, bad = _h5_frame_table(f, n, p)
         # a recording made without a trigger counts its trigger_index from its first frame: no trigger to name
-        untriggered = _text_attr(f.attrs, "trigger_source") == "none"
+        untriggered = attr_text(f.attrs, "trigger_source") == "none"
         for i in range(n):
             if last is not None and seq > last:
                 return seq
@@ -1051,8 +1052,8 @@ def _file_frames(path, seq: int, selection: tuple, frame, errors: str):
     return seq
 
 
-def _text_attr(attrs, name: str) -> str:
-    """The string attribute ``name`` (str or bytes as stored), "" when absent."""
+def attr_text(attrs, name: str) -> str:
+    """The HDF5 string attribute ``name`` (str or bytes as stored) as str, "" when absent."""
     value = attrs.get(name, "")
     return value.decode(errors="replace") if isinstance(value, bytes) else str(value)
 

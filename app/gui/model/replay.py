@@ -52,9 +52,10 @@ def without_untriggered_index(attrs, table):
     """The frame table of a recording, without its ``trigger_index`` column where the recording had no
     trigger (``trigger_source`` "none": ``record --frames`` counts that column from its first frame, which
     the tab would show as "trigger +5" and take as the trigger's time)."""
-    source = attrs.get("trigger_source", "")
-    source = source.decode(errors="replace") if isinstance(source, bytes) else str(source)
-    if table is None or source != "none" or "trigger_index" not in (table.dtype.names or ()):
+    from app.files.imageio import attr_text
+
+    names = () if table is None else (table.dtype.names or ())
+    if "trigger_index" not in names or attr_text(attrs, "trigger_source") != "none":
         return table
     from numpy.lib import recfunctions
 
