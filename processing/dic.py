@@ -256,14 +256,13 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, speck_contra
     except _SpecksFound as specks:
         again = _refine(fine, frame, h0, np.logical_and(valid_px, ~specks.pixels), nodes, **options)
         # the nodes beside them stay free: their displacement follows the pixels left and the regulariser
-        share = float(np.count_nonzero(specks.pixels)) / specks.pixels.size
-        return again._replace(free=specks.free, speck_share=share)
+        return again._replace(free=specks.free, speck_share=specks.share)
 
 
 class _SpecksFound(Exception):
-    def __init__(self, pixels, free):
+    def __init__(self, found, free):
         super().__init__("specks found")
-        self.pixels, self.free = pixels, free
+        (self.pixels, self.share), self.free = found, free
 
 
 def _refine(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int = 3, cg_iterations: int = CG_ITERATIONS,

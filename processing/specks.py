@@ -148,11 +148,11 @@ SPECK_STEP = 1
 
 def specks_to_leave_out(frame, start_warped, after_warped, weight, grid, period_px: float,
                         contrast: float = SPECK_CONTRAST):
-    """:func:`speck_pixels` where their share of the frame lies within :data:`MIN_SPECK_SHARE` ..
-    :data:`MAX_SPECK_SHARE`, else None."""
+    """``(pixels, share of the frame)`` of :func:`speck_pixels` where the share lies within
+    :data:`MIN_SPECK_SHARE` .. :data:`MAX_SPECK_SHARE`, else None."""
     found = speck_pixels(frame, start_warped, after_warped, weight, grid, period_px, contrast)
     share = float(np.count_nonzero(found)) / found.size
-    return found if MIN_SPECK_SHARE <= share <= MAX_SPECK_SHARE else None
+    return (found, share) if MIN_SPECK_SHARE <= share <= MAX_SPECK_SHARE else None
 
 
 def speck_note(share: float) -> str:
