@@ -332,8 +332,10 @@ def run_process(args: ProcessJob) -> BatchReport:
 
     geometry, geometry_source = _resolve_geometry(args)
     reference_index = args.reference_index
-    if reference_given:
-        reference = np.asarray(args.reference, dtype=np.float64)
+    if reference_given:  # as given: stored as read, its saturation judged at its own depth (below)
+        reference = np.asarray(args.reference)
+        if reference.dtype.kind not in "uif":
+            reference = reference.astype(np.float64)
     else:
         reference = imageio.read_reference(args.reference, index=reference_index, frames=args.reference_frames,
                                            pattern=args.pattern or geometry.pattern or "checkerboard")
@@ -361,8 +363,10 @@ def run_process(args: ProcessJob) -> BatchReport:
         where = "the reference" if reference_given else f"the reference {str(args.reference)!r}"
         raise NoCarrierError(f"{where}: {exc}") from None
     reconstruct.reset_series()
+    # a float reference given (the window's: frames averaged) or averaged from an integer file is judged as the
+    # camera's counts; the window's 8-bit reference had read 20 % saturated (its 229 taken as the top code)
     reference_saturated = reference_saturation(
-        reference, averaged_counts=not reference_given and _integer_file(args.reference))
+        reference, averaged_counts=(reference.dtype.kind == "f") if reference_given else _integer_file(args.reference))
     if reference_saturated:
         log.warning("%s", reference_saturated[1])
         input_notes.append(reference_saturated[1])

@@ -23,7 +23,7 @@ from processing.errors import (
     ShapeMismatchError,
     TirdeflectError,
 )
-from processing.turn import TURN_MAX_MRAD
+from processing.turn import TURN_MAX_MRAD, TURN_MIN_SIGNIFICANCE
 
 __all__ = ["ResultWriter", "OutputFrame", "output_frame", "OutputExistsError", "DiskFullError",
            "OUTPUT_FORMAT_VERSION", "FLUSH_INTERVAL_S", "GZIP_LEVEL",
@@ -415,7 +415,7 @@ class ResultWriter:
     PER_FRAME_1D = ("frame_index", "source_index", "source", "camera_frame_id",
                     "device_timestamp_ns", "host_timestamp_ns", "frame_flags", "trigger_index",
                     "frame_status", "frame_status_text", "time_s", "saturated_pct", "hot_pixels",
-                    "turn_mrad", "pin_status")
+                    "turn_mrad", "turn_flagged", "pin_status")
 
     def __init__(self, path: Path, *, compression: str, attrs: dict,
                  geometry_toml: str, geometry_attrs: dict, carrier_attrs: dict,
@@ -524,8 +524,14 @@ class ResultWriter:
         per_frame("turn_mrad", np.float32,
              "how far the frame's pattern turned since the reference about the frame's centre (the camera or "
              "the board moved; positive clockwise as shown, rows down): a turn puts a saddle-shaped error into "
-             f"the heights; frames above {TURN_MAX_MRAD:g} mrad are named in the run's summary; NaN for a "
-             "frame not judged", units="mrad", fillvalue=np.nan)
+             f"the heights; frames above {TURN_MAX_MRAD:g} mrad and {TURN_MIN_SIGNIFICANCE:g} standard errors are "
+             "flagged (/turn_flagged) "
+             "and named in the run's summary; NaN for a frame not judged", units="mrad", fillvalue=np.nan)
+        per_frame("turn_flagged", np.uint8,
+             f"1 where the frame's turn (/turn_mrad) is flagged: above {TURN_MAX_MRAD:g} mrad and "
+             f"{TURN_MIN_SIGNIFICANCE:g} standard errors "
+             "of its estimate (processing.turn.TurnCheck.flagged; waves alone can read 0.1 mrad), else 0",
+             fillvalue=0)
         f.attrs["grid"] = str(grid)
         self._create_pin_status()
 
@@ -579,7 +585,7 @@ class ResultWriter:
         not be measured (all-NaN heights, ``valid`` 0, ``outcome``'s status and
         reason stored). An OutputFrame's maps are released once written. Flushes
         when :attr:`flush_interval_s` has passed since the last flush. ``/saturated_pct``
-        ``/hot_pixels`` and ``/turn_mrad`` are the outcome's (NaN, -1 and NaN when no outcome is
+        ``/hot_pixels``, ``/turn_mrad`` and ``/turn_flagged`` are the outcome's (NaN, -1, NaN and 0 when no outcome is
         given or the frame was not measured)."""
         from app.batch.frame_status import FrameOutcome
 
@@ -616,6 +622,7 @@ class ResultWriter:
         rows["saturated_pct"].append(outcome.saturated_pct if measured else np.nan)
         rows["hot_pixels"].append(outcome.hot_pixels if measured else -1)
         rows["turn_mrad"].append(outcome.turn.turn_mrad if measured and outcome.turn is not None else np.nan)
+        rows["turn_flagged"].append(int(measured and outcome.turn is not None and outcome.turn.flagged))
         rows["pin_status"].append(_pin_status_row(frame))
         if log.isEnabledFor(logging.DEBUG):
             self._labels.append((item.sequence_index, item.label))

@@ -175,7 +175,10 @@ def describe_export(out_path: str) -> tuple:
                              f"exposure or gain")
         if "turn_mrad" in f:
             turn = np.abs(np.asarray(f["turn_mrad"][:n], np.float64))
-            turned = np.flatnonzero(turn > TURN_MAX_MRAD)  # (NaN: not judged, not counted)
+            # the run's own judgement (processing.turn.TurnCheck.flagged: also 3 standard errors; plain waves read
+            # 0.11 mrad and were named here while the run flagged none); files before /turn_flagged: the bound
+            turned = (np.flatnonzero(np.asarray(f["turn_flagged"][:n]) != 0) if "turn_flagged" in f
+                      else np.flatnonzero(turn > TURN_MAX_MRAD))  # (NaN: not judged, not counted)
             if turned.size:
                 parts.append(f"{turned.size} where the pattern turned since the reference (up to "
                              f"{turn[turned].max():.2f} mrad; frames {frame_list(turned)}): the camera or the board "

@@ -858,6 +858,34 @@ def test_an_over_exposed_reference_is_named_before_and_after_the_run(sim, tmp_pa
         assert f.attrs["reference_saturated_pct"] == pytest.approx(pct, abs=0.05) and f.attrs["frames_done"] == 2
 
 
+def test_the_windows_reference_is_judged_and_kept_at_its_own_depth_by_the_export(sim, tmp_path):
+    """The window's export of a camera file that stores no reference measures it against the window's own
+    (``export_heights(..., reference=)``): an 8-bit reference loaded from a file, its bright squares at 229
+    and none clipped, was made float64 and judged at its own maximum: "20 % of its pixels saturated ...
+    take the reference again", and stored as float64 (7 Dec 2026). Now it is judged as the camera's counts
+    and stored as given; a clipped one, as loaded or as the window's float average of frames, still
+    warned."""
+    from app.gui.export import export_heights
+
+    ref = imageio.read_image(sim / "reference.png")
+    assert ref.dtype == np.uint8 and 0 < ref.max() < 255
+    stack = tmp_path / "frames.tif"
+    tifffile.imwrite(stack, np.stack([imageio.read_image(p) for p in _frames(sim)]), photometric="minisblack")
+    geometry_toml = (sim / "geometry.toml").read_text()
+    bright = np.minimum(np.rint(ref.astype(np.float64) * 1.5), 255).astype(np.uint8)
+    pct = 100.0 * np.count_nonzero(bright == 255) / bright.size
+    assert pct > 10
+    averaged = (bright.astype(np.float64) + bright) / 2.0  # Ctrl+R's average of two frames
+    for name, reference, expected_pct in (("as-loaded", ref, 0.0), ("clipped", bright, pct),
+                                          ("averaged", averaged, pct)):
+        out = tmp_path / f"{name}.h5"
+        export_heights(str(stack), str(out), geometry_toml=geometry_toml, reference=reference)
+        with h5py.File(out) as f:
+            assert f.attrs["reference_saturated_pct"] == pytest.approx(expected_pct, abs=0.05), name
+            assert f["reference"].dtype == reference.dtype and np.array_equal(f["reference"][()], reference)
+            assert f.attrs["frames_done"] == 2
+
+
 def test_a_colour_cameras_raw_mosaic_is_equalised_and_said(tmp_path, capsys):
     """A colour camera read raw (a Bayer filter: under white light the four sub-grids at gains
     1 / 0.6 / 0.6 / 0.4, other black levels on two of them), reference and frames alike. Before 7 Dec

@@ -164,6 +164,25 @@ def test_probe_series_carries_the_trigger_index(recording, tmp_path):
         assert f["height_mm"].shape == (9, 2)
 
 
+def test_the_export_message_names_only_the_turns_the_run_flagged(recording, tmp_path):
+    """The synthetic tank's waves read up to 0.35 mrad of turn on a 128^2 frame, within three standard errors of
+    their estimate: the run flags none (``frames_turned`` 0, no note), but the window's export message named
+    every frame above 0.1 mrad "where the pattern turned since the reference ... capture a new reference"
+    and showed the export as not clean (7 Dec 2026). Now it names the frames the run flagged (/turn_flagged)."""
+    from app.gui.export import describe_export
+    from processing.turn import TURN_MAX_MRAD
+
+    out = tmp_path / "out.h5"
+    r = _cli("process", recording, "--out", out, "--no-progress", "--workers", "1")
+    assert r.returncode == 0, r.stderr
+    with h5py.File(out) as f:
+        turn, flagged = np.abs(f["turn_mrad"][()]), f["turn_flagged"][()]
+        assert int(np.count_nonzero(turn > TURN_MAX_MRAD)) >= 5  # the waves' reading (what the message named)
+        assert f.attrs["frames_turned"] == int(np.count_nonzero(flagged)) == 0
+    text, _ = describe_export(str(out))
+    assert "turned" not in text, text
+
+
 def _red_in_mark_line(movie):
     """Per frame of ``movie``: how many pixels of the text band's second line (where the movie marks a
     frame in red) are red."""
