@@ -28,7 +28,8 @@ import numpy as np
 from .errors import NoCarrierError, TirdeflectError
 
 __all__ = ["PHASE_BOUND_RAD", "MAX_DISAGREEING", "WaterMovingError", "ReferenceReport", "ReferenceAverager",
-           "carrier_baseband", "half_spectrum_baseband", "phase_change_rad", "grey_change", "first_frame_carriers"]
+           "carrier_baseband", "half_spectrum_baseband", "phase_change_rad", "grey_change", "first_frame_carriers",
+           "DEPARTURE_MAX_PX", "reference_departure_px", "departure_note"]
 
 #: RMS carrier-phase change against the first frame (rad) above which a frame does not agree.
 #: Measured on the synthetic tank (256^2, 0.5 counts of noise): still water 0.0008 rad, the waves
@@ -218,3 +219,54 @@ def first_frame_carriers(image, pattern: str = "checkerboard"):
         return find_carriers_live(image)[0].freq
     except NoCarrierError:
         return None
+
+
+#: RMS displacement (px) of a reference's pattern from a smooth (flat-water) board beyond a cubic in the field
+#: (:func:`reference_departure_px`) above which the water was probably not still.  Measured 7 Dec 2026:
+#: ray-traced still water 0.014-0.018 px (256^2, 512^2); two real FS-SS references through real lenses
+#: (tests/data, 1024^2) 0.13 and 0.15 px; ``simulate``'s waves (256^2, 4 frames) averaged into the reference
+#: 0.53 px, every height measured against it 28-31 % off (0.46 % against the still reference); a single frame
+#: of those waves is refused by the carrier search already (:func:`processing.carriers.find_reference_carriers`).
+DEPARTURE_MAX_PX = 0.35
+
+
+def reference_departure_px(g0, wavevectors, valid, degree: int = 3, border: int = 3) -> float:
+    """RMS displacement (px) of a reference's pattern from the smooth one a board seen on still water gives.
+
+    ``g0``: the reference's two analytic signals on the decimated grid (complex, (2, m_rows, m_cols));
+    ``wavevectors``: their carriers' (2, 2) rad/px (row, col); ``valid``: the samples with the pattern's
+    contrast.  Each carrier's phase is unwrapped and a polynomial of ``degree`` in the field fitted to it
+    (the view's keystone and the lens's smooth distortion); what is left, as displacement (the 2 x 2 solve
+    of :meth:`processing.demodulation.Demodulator.phase_to_displacement`), RMS over the valid samples
+    ``border`` samples inside the grid.  Where the water moved while the reference was taken (frames
+    averaged over waves), that is their mean displacement: every frame's is measured against it."""
+    from .unwrap import unwrap_spatial
+
+    g0 = np.asarray(g0)
+    m_r, m_c = g0.shape[1:]
+    ok = np.array(valid, bool, copy=True)
+    ok[:border], ok[-border:], ok[:, :border], ok[:, -border:] = False, False, False, False
+    if np.count_nonzero(ok) < 4 * (degree + 1) ** 2:
+        return float("nan")
+    rr, cc = np.meshgrid(np.linspace(-1.0, 1.0, m_r), np.linspace(-1.0, 1.0, m_c), indexing="ij")
+    terms = np.stack([(rr ** i * cc ** j)[ok] for i in range(degree + 1) for j in range(degree + 1 - i)], axis=1)
+    left = np.empty((2, np.count_nonzero(ok)))
+    for s in range(2):
+        phase = unwrap_spatial(np.angle(g0[s]).astype(np.float64), ok)[ok]
+        coef = np.linalg.lstsq(terms, phase, rcond=None)[0]
+        left[s] = phase - terms @ coef
+    u = -np.linalg.inv(np.asarray(wavevectors, np.float64)) @ left
+    return float(np.sqrt(np.mean(np.sum(u ** 2, axis=0))))
+
+
+def departure_note(departure_px: float) -> str:
+    """What to tell of a reference whose pattern departs by ``departure_px`` (:func:`reference_departure_px`);
+    "" within :data:`DEPARTURE_MAX_PX` (or not measured)."""
+    if not departure_px > DEPARTURE_MAX_PX:
+        return ""
+    return (f"the reference's pattern departs from a board seen on still water by {departure_px:.2f} px RMS (beyond "
+            f"the view's smooth distortion; still water reads under {DEPARTURE_MAX_PX:g} px): the water was probably "
+            "moving when it was taken (a reference averaged over waves holds their mean displacement, and every "
+            "height is measured against it: ray-traced waves 0.46 -> 28 % off). Take it again on still water (the "
+            "Alignment tab says when the surface has settled), or average frames of still water with "
+            "--reference-frames, which refuses frames that disagree")

@@ -370,6 +370,10 @@ def run_process(args: ProcessJob) -> BatchReport:
     if reference_saturated:
         log.warning("%s", reference_saturated[1])
         input_notes.append(reference_saturated[1])
+    departure = reference_departure(reconstruct)
+    if departure:  # a reference taken while the water moved: every height is measured against its waves
+        log.warning("%s", departure)
+        input_notes.append(departure)
     if reconstruct.pattern == "dots":  # too few dots a window: PIV's heights degrade, said once
         from processing.piv import sparse_dots_note
 
@@ -920,6 +924,17 @@ def _frame_failed(exc: Exception, item, writer: ResultWriter, out: Path, *,
     if isinstance(exc, TirdeflectError):
         return type(exc)(message)
     return TirdeflectError(message)
+
+
+def reference_departure(reconstruct) -> str:
+    """:func:`processing.reference_average.departure_note` of a checkerboard reference (its pattern against
+    a board seen on still water); "" for random dots or a reference within the bound."""
+    from processing.reference_average import departure_note, reference_departure_px
+
+    if reconstruct.pattern != "checkerboard":
+        return ""
+    chain = reconstruct.chain
+    return departure_note(reference_departure_px(chain.demod.g0, chain.demod.wavevectors, chain.reference_valid))
 
 
 def _given_image(reference) -> bool:

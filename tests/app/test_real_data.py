@@ -41,7 +41,10 @@ def test_needle_rings_centred_near_the_needle(tmp_path, fsss_toml, capsys):
     out = tmp_path / "needle.h5"
     code = main(["process", str(NEEDLE / "reference_2.png"), str(NEEDLE / "202406_1457001661.bmp"),
                  "--geometry", str(fsss_toml), "--out", str(out)])
-    assert code == 0, capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert code == 0, err
+    # a real board through a real lens on still water: 0.13 px RMS beyond the smooth view, no word of moving water
+    assert "departs from a board seen on still water" not in err, err
     figures = _figures()
     with h5py.File(out) as f:
         height = f["height"][0].astype(np.float64)
