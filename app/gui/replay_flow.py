@@ -8,11 +8,12 @@ from __future__ import annotations
 
 import logging
 import os
+import time
 
 import numpy as np
-from pyqtgraph.Qt import QtWidgets
+from pyqtgraph.Qt import QtCore, QtWidgets
 
-from .model.replay import ReplayMessage, frame_label, height_mark, replay_inputs, short_error
+from .model.replay import ReplayMessage, frame_label, height_mark, height_title, replay_inputs, short_error
 from .replay import RECORDING_FILTER, Recording
 
 log = logging.getLogger(__name__)
@@ -89,17 +90,22 @@ def show_replay_frame(w, index: int):
 
 
 def process_replay_frame(w):
-    """Reconstruct the wanted replay frame in the background (newest request only; never in the GUI thread)."""
+    """Reconstruct the wanted replay frame in the background (newest request only; never in the GUI thread): on
+    the live grid at once, then on every pixel once the slider rested on it (:class:`ReplayQueue`)."""
     r = w._replay_reconstructor
-    wanted = w.replay_queue.take(ready=r is not None and not w.busy("replay-frame"))
+    ready = r is not None and not w.busy("replay-frame")
+    wanted = w.replay_queue.take(ready=ready, now=time.monotonic())
     if wanted is None:
-        return  # a running job picks up the newest wanted frame when it ends
-    frame, index = wanted
+        due = w.replay_queue.due_in_s(time.monotonic()) if ready else None
+        if due is not None:  # (a running job looks again when it ends)
+            QtCore.QTimer.singleShot(int(1e3 * due) + 1, w, lambda: None if w._closing else w._process_replay_frame())
+        return
+    frame, index, grid = wanted
     rec = w.replay_recording
 
     def job():
         r.reset_series()  # frames may be visited in any order: no temporal unwrapping across them
-        return r(frame, grid="decimated")
+        return r(frame, grid=grid)
 
     def done(result, error):
         if w.replay_recording is not rec:
@@ -114,8 +120,10 @@ def process_replay_frame(w):
             w.replay.height.show_message("")
             w.replay.height.set_data(np.multiply(result.height, 1e3, dtype=np.float32),
                                         x=result.x_mm, y=result.y_mm)
+            w.replay.height.set_title(height_title(result.grid, result.height.shape))
             w.replay_last_result = result
             w.replay_shown_index = index
+            w.replay_queue.measured(frame, index, grid, time.monotonic())
         # the map is of the frame on the slider, or says which frame it is of
         w.replay.height.set_stale(height_mark(w.replay.slider.value(), w.replay_shown_index,
                                               index if error else None))

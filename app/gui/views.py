@@ -355,8 +355,8 @@ class ImageView(QtWidgets.QWidget):
         layout.addWidget(self.graphics, 1)
         self.plot = self.graphics.addPlot(viewBox=LazyMenuViewBox(
             menu_actions=(("Auto levels", self.reset_levels), ("Fit image", self.fit))))
-        # the units go in the title: the colour bar under the map then needs no label of its own
-        self.plot.setTitle(f"<b>{title}</b> ({units})" if units else f"<b>{title}</b>", color="#111", size="10pt")
+        self._title_text: Optional[str] = None
+        self.set_title(title)
         self.plot.setAspectLocked(True)
         self.plot.invertY(True)  # row 0 at the top, like the camera image
         # The range is set explicitly (the image's rect, _refit), never by auto-range: before the first
@@ -567,6 +567,14 @@ class ImageView(QtWidgets.QWidget):
         super().resizeEvent(ev)
         self.message.place()
         self.stale_label.place()
+
+    def set_title(self, title: str) -> None:
+        """The map's title, with its units after it (the colour bar under the map then needs no label of its own)."""
+        if title == self._title_text:
+            return
+        self._title_text = title
+        units = self.units
+        self.plot.setTitle(f"<b>{title}</b> ({units})" if units else f"<b>{title}</b>", color="#111", size="10pt")
 
     def show_message(self, text: str, short: Optional[str] = None) -> None:
         """Overlay a (red) message, e.g. why there is no map; empty string hides it.

@@ -355,7 +355,30 @@ def test_replay_queue_keeps_only_the_newest_request():
     for k in range(5):
         q.want(f"frame{k}", k)
     assert q.take(ready=False) is None and q.wanted == ("frame4", 4)
-    assert q.take(ready=True) == ("frame4", 4) and q.take(ready=True) is None
+    assert q.take(ready=True) == ("frame4", 4, "decimated") and q.take(ready=True) is None
+
+
+def test_a_replay_frame_the_slider_rests_on_is_measured_on_every_pixel_after_its_live_grid():
+    """The live grid at once (scrubbing stays quick); every pixel, as the export measures it, only once the
+    slider rested on the frame; a newer request first, and the rest counted from the live grid's result."""
+    from app.gui.model.schedule import ReplayQueue
+
+    q = ReplayQueue(rest_s=0.4)
+    q.want("f3", 3)
+    assert q.take(ready=True, now=10.0) == ("f3", 3, "decimated")
+    q.measured("f3", 3, "decimated", now=10.1)
+    assert q.due_in_s(10.2) == pytest.approx(0.3)
+    assert q.take(ready=True, now=10.3) is None  # resting, not long enough
+    assert q.take(ready=False, now=10.6) is None  # due, but a job runs: it takes it when it ends
+    assert q.take(ready=True, now=10.6) == ("f3", 3, "full") and q.take(ready=True, now=11.0) is None
+    q.measured("f3", 3, "full", now=11.0)
+    assert q.due_in_s(12.0) is None  # measured on every pixel once
+    # the slider moved on while the live grid was measured: the newer frame first, no every-pixel turn
+    q.want("f4", 4)
+    assert q.take(ready=True, now=20.0) == ("f4", 4, "decimated")
+    q.want("f5", 5)
+    q.measured("f4", 4, "decimated", now=20.05)
+    assert q.due_in_s(20.1) is None and q.take(ready=True, now=30.0) == ("f5", 5, "decimated")
 
 
 def test_live_rate_falls_to_zero_when_the_counter_stops():

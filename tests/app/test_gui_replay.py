@@ -99,6 +99,37 @@ def test_frames_stepped_faster_than_measured_and_another_file_never_show_heights
     assert height.image.image is None and height.stale_text is None  # the first recording's heights are gone
 
 
+def test_the_frame_the_slider_rests_on_shows_the_exported_heights_on_every_pixel(qtbot, window, scene, tmp_path):
+    """The Replay tab measured only the live (decimated) grid: a physicist reading heights off it read values
+    1.7-2.4 % RMS away from the export's and `process`'s of the same frame, with nothing saying the map was
+    coarser (7 Dec 2026). Now the live grid comes first and says so in the map's title; once the slider rests
+    on the frame, its heights on every pixel replace it, those of the scripting interface and the export."""
+    from processing import Geometry, Reconstructor
+
+    path = _record_with_lost_frames(qtbot, window, scene, tmp_path, lost=())
+    _open_by_menu(qtbot, window, path)
+    height = window.replay.height
+    slider = window.replay.slider
+    slider.setFocus()
+    for _ in range(3):  # stepped on: each frame first on the live grid
+        qtbot.keyClick(slider, QtCore.Qt.Key_Right)
+    qtbot.waitUntil(lambda: window.replay_shown_index == 3, timeout=30000)
+    with h5py.File(path, "r") as f:
+        frame, reference = f["frames"][3], f["reference"][()]
+        geometry = Geometry.from_toml_text(f["geometry_toml"][()].decode())
+    qtbot.waitUntil(lambda: window.replay_last_result.grid == "full", timeout=60000)
+    assert window.replay_shown_index == 3 and "every pixel" in height.plot.titleLabel.text
+    expected = Reconstructor(reference, geometry)(frame)
+    shown_um = height.image.image
+    assert shown_um.shape == frame.shape
+    both = np.isfinite(shown_um) & np.isfinite(expected.height)
+    assert both.mean() > 0.9
+    np.testing.assert_allclose(shown_um[both], 1e3 * expected.height[both], atol=1e-4)  # um: 0.1 nm
+    qtbot.keyClick(slider, QtCore.Qt.Key_Right)  # moving on: the live grid again, titled as such
+    qtbot.waitUntil(lambda: window.replay_shown_index == 4, timeout=30000)
+    assert window.replay_last_result.grid == "decimated" and "live grid" in height.plot.titleLabel.text
+
+
 def _record_stopped_before_its_trigger(tmp_path):
     """``tirdeflect record`` with an auto trigger whose run ended before the trigger (its reference is of
     another board): ``(path, frames written)``."""

@@ -13,8 +13,8 @@ from typing import Optional, Tuple
 
 import numpy as np
 
-__all__ = ["replay_inputs", "frame_label", "height_mark", "recording_notes", "table_times_s", "lost_before",
-           "ReplayMessage", "short_error"]
+__all__ = ["replay_inputs", "frame_label", "height_mark", "height_title", "recording_notes", "table_times_s",
+           "lost_before", "ReplayMessage", "short_error"]
 
 
 def replay_inputs(file_reference, window_reference, file_geometry_toml: Optional[str], window_geometry
@@ -123,6 +123,14 @@ def height_mark(slider_index: int, shown_index: Optional[int], failed_index: Opt
         return None
     why = "could not be measured" if failed_index == slider_index else "is being measured"
     return f"heights of frame {shown_index + 1}; frame {slider_index + 1} {why}"
+
+
+def height_title(grid: str, shape) -> str:
+    """The Replay tab's height map's title for a result on ``grid`` of ``shape``: the live grid's coarser samples
+    (while the slider moves) or every pixel, as ``tirdeflect process`` and the export measure the frame."""
+    if grid == "full":
+        return "Height, every pixel (as exported)"
+    return f"Height, live grid {shape[1]} x {shape[0]} (every pixel once the slider rests)"
 
 
 def short_error(error: str, words: int = 8) -> str:
