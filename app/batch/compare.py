@@ -125,6 +125,10 @@ def _read_output(path) -> dict:
         if "pin_status" in f and "shift_effect_um" in (f["pin_status"].dtype.names or ()):
             st = f["pin_status"][:n]
             out["shift_um"] = np.where(st["shift_removed"] != 0, np.nan, st["shift_effect_um"]).astype(np.float64)
+        out["turn_mrad"] = np.full(n, np.nan)
+        if "turn_flagged" in f and "turn_mrad" in f and str(f.attrs.get("turn_removal", "none")) == "none":
+            # a turn the run flagged and left in the heights: its saddle is part of the error, not the processing's
+            out["turn_mrad"] = np.where(f["turn_flagged"][:n] != 0, f["turn_mrad"][:n], np.nan).astype(np.float64)
         if "pin_region" in f:
             ds = f["pin_region"]
             out["pin_region"] = (ds[()].astype(bool), ds.attrs["rows_px"], ds.attrs["cols_px"])
@@ -240,7 +244,8 @@ def compare_heights(out_path, truth_path, *, margin: float = 0.125) -> Compariso
     ``region_rms_mm`` (the pinned truth's RMS on the pin samples: 0 where the simulated surface
     is at rest there), ``shift_effect_um`` (``/pin_status``: the RMS a shift of the whole
     pattern since the reference put into the heights, part of the error; NaN where none was
-    flagged or it was taken out).
+    flagged or it was taken out), ``turn_mrad`` (``/turn_mrad`` where the run flagged the frame's turn and left
+    it in the heights, its saddle part of the error; else NaN).
     """
     out = _read_output(out_path)
     truth, names = _read_truth(truth_path)
@@ -263,5 +268,6 @@ def compare_heights(out_path, truth_path, *, margin: float = 0.125) -> Compariso
         if isinstance(figures, str):
             result.skipped.append(dict(frame=j, output_frame=k, source=out["source"][k], reason=figures))
         else:
-            result.frames.append(dict(frame=j, shift_effect_um=float(out["shift_um"][k]), **figures))
+            result.frames.append(dict(frame=j, shift_effect_um=float(out["shift_um"][k]),
+                                      turn_mrad=float(out["turn_mrad"][k]), **figures))
     return result

@@ -388,3 +388,10 @@ def _print_pin_notes(report: list) -> None:
               f"(/pin_status; up to {top['shift_effect_um']:.3g} um rms put into the heights, frame {top['frame']}), "
               "part of the error above: a level or a set-up that moved, not the processing; "
               "`tirdeflect process --shift-removal` takes it out")
+    turned = [r for r in report if np.isfinite(r.get("turn_mrad", np.nan))]
+    if turned:
+        top = max(turned, key=lambda r: abs(r["turn_mrad"]))
+        print(f"note: in {len(turned)} of {len(report)} frame(s) the pattern turned since the reference (/turn_mrad; "
+              f"up to {abs(top['turn_mrad']):.3g} mrad, frame {top['frame']}), a saddle in the heights that is part "
+              "of the error above: the camera or the board moved, not the processing; `tirdeflect process "
+              "--turn-removal camera` (or board) takes it out")

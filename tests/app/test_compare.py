@@ -245,3 +245,33 @@ def test_compare_into_a_closed_pipe_ends_quietly(sim_set):
     proc.stderr.close()
     assert proc.wait(timeout=300) == 141, err
     assert err == "", err
+
+
+def test_compare_says_that_a_turn_the_run_flagged_is_part_of_the_error(tmp_path, capsys):
+    """A frame whose pattern turned 0.2 deg since the reference (the camera knocked; its image turned about the
+    centre): `process` flags it and leaves the turn in the heights (a saddle); compare put its 40-50 % down to the
+    processing, saying nothing of the turn (7 Dec 2026). Now compare says the turn is part of the error and what
+    takes it out; the straight frame is not named."""
+    import cv2
+
+    from app.files import imageio
+
+    sim = tmp_path / "sim"
+    assert main(["simulate", "--out", str(sim), "--surface", "bump", "--size", "256", "--frames", "2",
+                 "--bits", "12"]) == 0
+    frame = imageio.read_image(sim / "frame_0001.tif").astype(np.float32)
+    turn = cv2.getRotationMatrix2D(((frame.shape[1] - 1) / 2, (frame.shape[0] - 1) / 2), 0.2, 1.0)
+    turned = cv2.warpAffine(frame, turn, frame.shape[::-1], flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+    tifffile.imwrite(sim / "frame_0001.tif", np.clip(np.rint(turned), 0, 4095).astype(np.uint16))
+    out = tmp_path / "out.h5"
+    assert main(["process", str(sim / "reference.tif"), str(sim / "frame_0000.tif"), str(sim / "frame_0001.tif"),
+                 "--geometry", str(sim / "geometry.toml"), "--out", str(out)]) == 0
+    with h5py.File(out) as f:
+        assert list(f["turn_flagged"][()]) == [0, 1]
+    capsys.readouterr()
+    assert main(["compare", str(out), str(sim)]) == 0
+    text = capsys.readouterr().out
+    said = re.search(r"note: in 1 of 2 frame\(s\) the pattern turned since the reference \(/turn_mrad; up to "
+                     r"([0-9.]+) mrad, frame 1\), a saddle in the heights that is part of the error above", text)
+    assert said is not None and float(said.group(1)) == pytest.approx(np.deg2rad(0.2) * 1e3, rel=0.15), text
+    assert "--turn-removal camera" in text
