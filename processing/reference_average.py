@@ -29,7 +29,7 @@ from .errors import NoCarrierError, TirdeflectError
 
 __all__ = ["PHASE_BOUND_RAD", "MAX_DISAGREEING", "WaterMovingError", "ReferenceReport", "ReferenceAverager",
            "carrier_baseband", "half_spectrum_baseband", "phase_change_rad", "grey_change", "first_frame_carriers",
-           "DEPARTURE_MAX_PX", "reference_departure_px", "departure_note"]
+           "DEPARTURE_MAX_PX", "reference_departure_px", "departure_note", "reconstructor_departure_px"]
 
 #: RMS carrier-phase change against the first frame (rad) above which a frame does not agree.
 #: Measured on the synthetic tank (256^2, 0.5 counts of noise): still water 0.0008 rad, the waves
@@ -257,6 +257,15 @@ def reference_departure_px(g0, wavevectors, valid, degree: int = 3, border: int 
         left[s] = phase - terms @ coef
     u = -np.linalg.inv(np.asarray(wavevectors, np.float64)) @ left
     return float(np.sqrt(np.mean(np.sum(u ** 2, axis=0))))
+
+
+def reconstructor_departure_px(reconstruct) -> float:
+    """:func:`reference_departure_px` of a :class:`processing.Reconstructor`'s checkerboard reference (NaN for
+    random dots): what ``tirdeflect process`` and the live window judge a reference by."""
+    if reconstruct.pattern != "checkerboard":
+        return float("nan")
+    chain = reconstruct.chain
+    return reference_departure_px(chain.demod.g0, chain.demod.wavevectors, chain.reference_valid)
 
 
 def departure_note(departure_px: float) -> str:

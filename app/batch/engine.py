@@ -35,6 +35,7 @@ from processing.errors import (
 from processing.live_view import reference_saturation
 from processing.geometry import grazing_view_note
 from processing.pin import band_moved, shift_alias_text, steady_shift
+from processing.reference_average import departure_note, reconstructor_departure_px
 
 from app import version as _version
 from app.batch import parallel
@@ -370,7 +371,7 @@ def run_process(args: ProcessJob) -> BatchReport:
     if reference_saturated:
         log.warning("%s", reference_saturated[1])
         input_notes.append(reference_saturated[1])
-    departure = reference_departure(reconstruct)
+    departure = departure_note(reconstructor_departure_px(reconstruct))
     if departure:  # a reference taken while the water moved: every height is measured against its waves
         log.warning("%s", departure)
         input_notes.append(departure)
@@ -924,17 +925,6 @@ def _frame_failed(exc: Exception, item, writer: ResultWriter, out: Path, *,
     if isinstance(exc, TirdeflectError):
         return type(exc)(message)
     return TirdeflectError(message)
-
-
-def reference_departure(reconstruct) -> str:
-    """:func:`processing.reference_average.departure_note` of a checkerboard reference (its pattern against
-    a board seen on still water); "" for random dots or a reference within the bound."""
-    from processing.reference_average import departure_note, reference_departure_px
-
-    if reconstruct.pattern != "checkerboard":
-        return ""
-    chain = reconstruct.chain
-    return departure_note(reference_departure_px(chain.demod.g0, chain.demod.wavevectors, chain.reference_valid))
 
 
 def _given_image(reference) -> bool:

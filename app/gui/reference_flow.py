@@ -110,6 +110,8 @@ def rebuild_reconstructor(w):
     geometry_at_fault = []  # set when the geometry does not fit the reference (the error reaches done() as text)
 
     def build_checked():
+        from processing.reference_average import departure_note, reconstructor_departure_px
+
         from .alignment import periodic_pattern
 
         try:
@@ -117,10 +119,12 @@ def rebuild_reconstructor(w):
         except GeometryError:
             geometry_at_fault.append(True)
             raise
-        return rec, (periodic_pattern(reference) if getattr(geometry, "pattern", "") == "dots" else None)
+        problem = periodic_pattern(reference) if getattr(geometry, "pattern", "") == "dots" else None
+        # a pattern that departs from a board on still water (a file averaged over waves): as process says it
+        return rec, problem, departure_note(reconstructor_departure_px(rec))
 
     def done(built, error):
-        rec, problem = built if built is not None else (None, None)
+        rec, problem, departure = built if built is not None else (None, None, "")
         action = w.references.outcome(request, error is None)
         if action == "superseded":
             return  # a newer reference/geometry is being built: this one (even failed) changes nothing
@@ -168,6 +172,12 @@ def rebuild_reconstructor(w):
             w.geometry_panel.reference_label.setText(text + f" — {saturated[0]:.0f} % SATURATED")
             w.geometry_panel.reference_label.setStyleSheet("color: #c00000; font-weight: bold")
             w.show_error(saturated[1][0].upper() + saturated[1][1:])
+            state.reference_in_use(w)
+            return
+        if departure and not problem:  # every height measured against the waves it holds: red, no tick
+            w.geometry_panel.reference_label.setText(text + " — WATER MOVING?")
+            w.geometry_panel.reference_label.setStyleSheet("color: #c00000; font-weight: bold")
+            w.show_error(departure[0].upper() + departure[1:])
             state.reference_in_use(w)
             return
         if problem:  # every height would be wrong: red where the user looks, not a tick

@@ -530,6 +530,34 @@ def test_an_over_exposed_reference_is_said_and_not_ticked(qtbot, window, scene, 
                     and window.last_drawn.seq > seq, timeout=15000)  # measured all the same
 
 
+def test_a_reference_file_averaged_over_moving_water_is_said_and_not_ticked(qtbot, window, scene, tmp_path):
+    """A reference file the user averaged from frames while waves still moved (4 frames of 0.7 um waves, ray-traced
+    on the window's geometry): it passes the carrier search, and loaded it got a tick while every height was
+    measured against the waves it holds. Loaded as a user does, the label says WATER MOVING? in red, the message
+    gives the figure and what to do (as `tirdeflect process` does), and heights still come."""
+    import tifffile
+
+    from processing import forward
+
+    geometry = scene["geometry"]
+    pattern = forward.Checkerboard(period_mm=12 * geometry.pixel_mm, edge_softness_mm=geometry.pixel_mm)
+    field_mm = SHAPE[0] * geometry.pixel_mm
+    waves = [forward.render_tir(forward.WaveField.random(4, amplitude_rms_mm=0.0007,
+                                                         wavelength_range_mm=(field_mm / 3, field_mm), seed=20 + k),
+                                geometry, SHAPE, pattern)[0] for k in range(4)]
+    tifffile.imwrite(tmp_path / "averaged.tif", forward.quantize(np.mean(waves, axis=0), bits=8))
+    window.use_camera(SyntheticCamera(Switchable(scene["flat"]), frame_rate_hz=100.0), geometry=geometry)
+    window.load_reference(str(tmp_path / "averaged.tif"))
+    label = window.geometry_panel.reference_label
+    qtbot.waitUntil(lambda: "WATER MOVING?" in label.text(), timeout=30000)
+    assert "✓" not in label.text() and "c00000" in label.styleSheet()
+    said = [e for e in window.errors if "The reference's pattern departs from a board seen on still water" in e]
+    assert said and "take it again on still water" in said[-1].lower(), window.errors
+    seq = window.clock.last_raw_seq
+    qtbot.waitUntil(lambda: window.last_drawn is not None and window.last_drawn.result is not None
+                    and window.last_drawn.seq > seq, timeout=15000)  # measured all the same
+
+
 def test_a_colour_cameras_raw_mosaic_is_equalised_and_named_on_the_reference_label(qtbot, window, scene, tmp_path):
     """A colour camera read raw (its Bayer filter: sub-grids at gains 1 / 0.6 / 0.6 / 0.4 under white
     light), the camera and the reference file alike: before 7 Dec 2026 the reference's defect search
