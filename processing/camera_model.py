@@ -330,6 +330,55 @@ class CameraModel:
             return S[..., 0], self.row_sign * S[..., 1]
         return S[..., 0], S[..., 1]
 
+    @property
+    def surface_separable(self) -> bool:
+        """Whether :meth:`surface_point`'s x depends on the column alone and its y on the row alone.
+
+        True for a telecentric TIR camera and for FS-SS (either camera: it looks straight down). False
+        for a TIR camera at a finite distance: the image is keystoned, the x of a column changes
+        along the rows, and the ``(x_mm, y_mm)`` of the central row and column do not say where the
+        other samples lie (:meth:`grid_surface_mm` does)."""
+        return not (self.setup == "tir" and self.camera_distance_mm is not None)
+
+    def grid_surface_mm(self, rows_px, cols_px, frame_shape):
+        """``(x_mm, y_mm)``, each ``(len(rows_px), len(cols_px))`` float64: the image-frame surface position
+        of every sample of the grid of ``rows_px`` x ``cols_px`` (pixel coordinates of a frame of
+        ``frame_shape``), where its ray meets the flat surface (:meth:`surface_point`); in blocks of rows
+        of about a million samples (the rays' temporaries of a 4096^2 grid would take 1 GB at once)."""
+        rows = np.asarray(rows_px, dtype=np.float64).ravel()[:, None]
+        cols = np.asarray(cols_px, dtype=np.float64).ravel()[None, :]
+        x_mm = np.empty((rows.shape[0], cols.shape[1]))
+        y_mm = np.empty_like(x_mm)
+        block = max(1, (1 << 20) // max(cols.shape[1], 1))
+        for start in range(0, rows.shape[0], block):
+            x_mm[start:start + block], y_mm[start:start + block] = self.surface_point(
+                rows[start:start + block], cols, frame_shape)
+        return x_mm, y_mm
+
+    def pixel_of_surface_point(self, x_mm, y_mm, frame_shape):
+        """Inverse of :meth:`surface_point`: pixel ``(row, col)`` (float) whose ray meets the flat surface
+        at image-frame ``(x_mm, y_mm)``. Exact: TIR at a finite distance is a central projection of the
+        surface plane; telecentric TIR and FS-SS (either camera) scale each axis alone."""
+        x_mm = np.asarray(x_mm, dtype=np.float64)
+        y_mm = np.asarray(y_mm, dtype=np.float64)
+        n_rows, n_cols = frame_shape
+        rc, cc = (n_rows - 1) / 2.0, (n_cols - 1) / 2.0
+        p = self.pixel_mm
+        if self.setup != "tir":
+            return rc + y_mm / p, cc + x_mm / p
+        y_c = self.row_sign * y_mm  # canonical
+        if self.camera_distance_mm is None:
+            du, dv = x_mm, y_c * math.cos(self.theta)
+        else:
+            D = self.camera_distance_mm
+            d0, ex, ev = self._basis()
+            # the surface point seen from the camera at -D d0
+            vx, vy, vz = x_mm + D * d0[0], y_c + D * d0[1], D * d0[2]
+            along = vx * d0[0] + vy * d0[1] + vz * d0[2]
+            du = D * (vx * ex[0] + vy * ex[1] + vz * ex[2]) / along
+            dv = D * (vx * ev[0] + vy * ev[1] + vz * ev[2]) / along
+        return rc + self.row_sign * dv / p, cc + du / p
+
     def linear_response(self, rows_px, cols_px, frame_shape) -> LinearResponse:
         """First-order displacement of each pixel per unit height and gradient.
 

@@ -17,9 +17,9 @@ from .fullgrid_kernels import sparse_rows, spline_prefilter
 from .pools import pool
 from .result import Result
 
-__all__ = ["Upsampler", "run_pair", "resize_all", "full_coordinates", "interpolate_full", "dots_full", "full_ifft",
-           "lanczos_matrix", "spline_weights", "spline_taps", "spline_taps_matrix", "spline_matrix_at",
-           "spline_matrix"]
+__all__ = ["Upsampler", "run_pair", "resize_all", "full_coordinates", "grid_surface_positions", "interpolate_full",
+           "dots_full", "full_ifft", "lanczos_matrix", "spline_weights", "spline_taps", "spline_taps_matrix",
+           "spline_matrix_at", "spline_matrix"]
 
 
 def spline_weights(n_out: int, n_in: int):
@@ -263,13 +263,28 @@ def resize_all(up, jobs, threads=2):
 def full_coordinates(geometry, shape):
     """x_mm (cols,), y_mm (rows,) of every pixel column and row: where the
     rays through the frame's central row / column meet the resting
-    surface (the convention of processing.height)."""
+    surface (the convention of processing.height). Every pixel's own where
+    the geometry is not separable (a keystoned TIR camera at a finite
+    distance): ``geometry.grid_surface_mm``."""
     rows, cols = shape
     rcen = np.array([[(rows - 1) / 2.0]])
     ccen = np.array([[(cols - 1) / 2.0]])
     x = np.asarray(geometry.surface_point(rcen, np.arange(cols, dtype=float)[None, :], shape)[0], float)
     y = np.asarray(geometry.surface_point(np.arange(rows, dtype=float)[:, None], ccen, shape)[1], float)
     return (np.broadcast_to(x.ravel(), (cols,)).copy(), np.broadcast_to(y.ravel(), (rows,)).copy())
+
+
+def grid_surface_positions(geometry, frame_shape, grid: str, rows_px, cols_px):
+    """``(x_mm, y_mm)``, each ``(rows, cols)`` float64: the surface position of every sample of a grid's
+    results (``grid`` "full": every pixel of a frame of ``frame_shape``; "decimated": the processing
+    grid's ``rows_px`` x ``cols_px``, e.g. a Reconstructor's): ``geometry.grid_surface_mm``;
+    None where the geometry is separable (``geometry.surface_separable``) and :func:`full_coordinates`'
+    1-D axes already say where every sample lies."""
+    if geometry.surface_separable:
+        return None
+    if grid == "full":
+        rows_px, cols_px = np.arange(frame_shape[0]), np.arange(frame_shape[1])
+    return geometry.grid_surface_mm(rows_px, cols_px, frame_shape)
 
 
 def _slopes_from(coef, disp, height, shape, threads):

@@ -32,6 +32,7 @@ from processing.errors import (
     ShapeMismatchError,
     TirdeflectError,
 )
+from processing.fullgrid import grid_surface_positions
 from processing.live_view import reference_saturation
 from processing.geometry import grazing_view_note
 from processing.pin import band_moved, shift_alias_text, steady_shift
@@ -429,6 +430,8 @@ def run_process(args: ProcessJob) -> BatchReport:
                 carrier_attrs=carrier_attrs(getattr(reconstruct, "carriers", None)),
                 reference=reference, expected=selected,
                 grid_coords=reconstruct.grid_coordinates(args.grid), grid=args.grid,
+                surface_positions=grid_surface_positions(reconstruct.geometry, reconstruct.shape, args.grid,
+                                                         reconstruct.rows_px, reconstruct.cols_px),
             )
             break
         except FileExistsError:

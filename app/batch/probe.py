@@ -4,6 +4,8 @@ A probe is a wave gauge you can move after the experiment: the height at a
 surface point ``(x_mm, y_mm)``, bilinearly interpolated between the four
 samples around it by :mod:`processing.probe` (the live window's probes use the
 same rule; NaN when any of them is invalid), one value per processed frame, with the frame's time.
+The samples are found in ``/surface_x_mm``, ``/surface_y_mm`` where OUT.h5 has them (a keystoned
+grid: a TIR camera at a finite distance), else in ``/x_mm``, ``/y_mm``.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ import numpy as np
 from app.batch.frame_status import FrameStatus
 from app.files import h5safe, imageio
 from processing.errors import TirdeflectError
-from processing.probe import probe_cell, sample_cell
+from processing.probe import probe_cell, probe_cell_2d, sample_cell
 
 __all__ = ["ProbeSeries", "probe_series", "frame_times", "write_probes", "open_output", "partial_note",
            "trigger_note", "NO_TRIGGER_INDEX"]
@@ -152,9 +154,13 @@ def probe_series(path, points_mm, *, fps: float | None = None) -> ProbeSeries:
         n = frames_done(f)
         if n == 0:
             raise TirdeflectError(f"{str(path)!r} holds no processed frame (frames_done = 0)")
-        x_mm, y_mm = f["x_mm"][()], f["y_mm"][()]
         height = f["height"]
-        cells = [probe_cell(x_mm, y_mm, x, y) for x, y in points]
+        if "surface_x_mm" in f and "surface_y_mm" in f:  # keystoned: each sample's own position
+            surface_x, surface_y = f["surface_x_mm"][()], f["surface_y_mm"][()]
+            cells = [probe_cell_2d(surface_x, surface_y, x, y) for x, y in points]
+        else:
+            x_mm, y_mm = f["x_mm"][()], f["y_mm"][()]
+            cells = [probe_cell(x_mm, y_mm, x, y) for x, y in points]
         out = np.empty((n, len(points)))
         r_lo = min(cell[0] for cell in cells)
         r_hi = max(cell[0] for cell in cells) + 2

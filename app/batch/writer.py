@@ -399,7 +399,9 @@ class ResultWriter:
     The file is created (never replaced: mode "x") at ``path``, which the
     engine chooses beside the final output (:func:`partial_path`) and renames
     into place with :func:`publish` only when the run succeeded. Per-frame
-    datasets are created with the file (``grid_coords`` fixes their shape).
+    datasets are created with the file (``grid_coords`` fixes their shape), and
+    with them ``surface_positions`` (each sample's ``(x_mm, y_mm)``, 2-D, where the
+    grid is not separable: :func:`processing.fullgrid.grid_surface_positions`).
     Each :meth:`append` writes a frame's maps at once; its row of the 1-D
     datasets waits for the next :meth:`flush`, which writes the rows, flushes
     and only then moves ``frames_done`` (the count that vouches for the file).
@@ -420,7 +422,7 @@ class ResultWriter:
     def __init__(self, path: Path, *, compression: str, attrs: dict,
                  geometry_toml: str, geometry_attrs: dict, carrier_attrs: dict,
                  reference: np.ndarray, expected: int, grid_coords: tuple, grid: str,
-                 flush_interval_s: Optional[float] = None):
+                 flush_interval_s: Optional[float] = None, surface_positions: Optional[tuple] = None):
         self.path = path
         self.compression = None if compression == "none" else compression
         self.flush_interval_s = FLUSH_INTERVAL_S if flush_interval_s is None else float(flush_interval_s)
@@ -456,6 +458,8 @@ class ResultWriter:
         self._labels = []  # (sequence index, label) of the frames written since the last flush
         x_mm, y_mm = grid_coords
         self._create(np.asarray(x_mm, np.float64), np.asarray(y_mm, np.float64), grid)
+        if surface_positions is not None:
+            self._create_surface_positions(*surface_positions)
         self._maps = [f[name] for name in MAPS]
         self._row_datasets = [f[name] for name in self.PER_FRAME_1D]
         f.flush()
@@ -483,8 +487,10 @@ class ResultWriter:
         y = f.create_dataset("y_mm", data=y_mm)
         x.attrs["units"] = "mm"
         y.attrs["units"] = "mm"
-        x.attrs["description"] = "surface x of each column (increasing column)"
-        y.attrs["description"] = "surface y of each row (increasing row)"
+        x.attrs["description"] = ("surface x of each column (increasing column) along the central row; "
+                                  "/surface_x_mm, where present, has each sample's own")
+        y.attrs["description"] = ("surface y of each row (increasing row) along the central column; "
+                                  "/surface_y_mm, where present, has each sample's own")
         x.make_scale("x_mm")
         y.make_scale("y_mm")
         for name in (*self.PER_FRAME, "valid"):
@@ -534,6 +540,24 @@ class ResultWriter:
              fillvalue=0)
         f.attrs["grid"] = str(grid)
         self._create_pin_status()
+
+    def _create_surface_positions(self, x_mm, y_mm) -> None:
+        """``/surface_x_mm``, ``/surface_y_mm`` ``(rows, cols)`` float32: each sample's own surface position,
+        where the grid is not separable (a TIR camera at a finite distance: the image is keystoned, and
+        ``/x_mm``, ``/y_mm`` hold the central row's and column's positions only)."""
+        f = self.f
+        for name, values, along in (("surface_x_mm", x_mm, "x"), ("surface_y_mm", y_mm, "y")):
+            values = np.asarray(values, dtype=np.float64)
+            if values.shape != self._shape:
+                raise ValueError(f"{name} has the shape {values.shape}, not the grid's {self._shape}")
+            ds = f.create_dataset(name, data=values.astype(np.float32), **self._filters)
+            ds.attrs["units"] = "mm"
+            ds.attrs["description"] = (
+                f"surface {along} of each sample (row, column), where its camera ray meets the resting surface: "
+                f"the camera at a finite distance sees the surface keystoned, and /x_mm, /y_mm give the "
+                f"positions along the central row and column only")
+            ds.dims[0].attach_scale(f["y_mm"])
+            ds.dims[1].attach_scale(f["x_mm"])
 
     # ------------------------------------------------------------------ pin (issue 13)
     def _create_pin_status(self) -> None:
