@@ -20,9 +20,24 @@ the discrete gradient the solver fits); a turn circulates ``omega`` times the
 same amount around every cell.  The least-squares ``omega`` of the cells'
 circulations is the turn.  FD's displacement is least true within a few carrier
 periods of the frame's border, so only the cells farther in count
-(:data:`TURN_BAND_PERIODS`).  A uniform shift of camera or board circulates
-nothing: that one is judged where the surface is at rest
-(:attr:`processing.pin.PinStatus.region_motion_px`).
+(:data:`TURN_BAND_PERIODS`).
+
+A uniform shift of camera or board is no turn, but it circulates in ``w``: ``exp(Phi)`` changes
+along the rows (the null space ``exp(-T y / H)``), so a shift along the columns circulates about
+``T/H`` times itself around every cell, as a turn does (a shift along the rows nothing where, as on
+a telecentric camera's grid, ``exp(Phi)`` is the same along a row).  Ray-traced, 256^2, theta 55 deg,
+H 300 mm, 0.1 mm pixels, flat water with the image shifted along the columns read 0.137 mrad per px
+(flagged from 0.73 px), and ``turn_removal`` then put a saddle into the heights (7 Dec 2026: shifted
+3 px beside a bump, 0.33 -> 0.80 % rms error).  So the frame's uniform displacement, its mean on the
+interior's samples (:meth:`TurnGauge.uniform_px`), is taken out before the circulations (on frames
+valid there: the fixed weights less their mean): a shift of either component reads no turn, and a
+turn about the frame's centre (mean 0 there) reads as before.  The shift itself is judged elsewhere
+(:func:`processing.pin.shift_judged`, :attr:`processing.pin.PinStatus.shifted`).  The price: water
+whose interior moves on average (a net slope across it) reads 0.137 mrad per px of that mean as a
+turn, where a shift did before.  Measured with nothing turned (256^2, FD's decimated displacement):
+26 random wave fields of 6-30 mm, 0.2-1.2 um rms moved by 0.07 mrad at most (the mean moved 0.5 px
+there; the median instead of the mean: 0.14), a 2-4 um bump crossing the band's edge by 0.025,
+features inside it and flat frames by less than 0.001.
 """
 
 from __future__ import annotations
@@ -76,7 +91,8 @@ class TurnCheck:
     ----------
     turn_mrad : float
         The image's turn about the frame's centre since the reference, mrad;
-        positive clockwise as the frame is shown (rows down). NaN where not
+        positive clockwise as the frame is shown (rows down); a uniform shift
+        of the image reads none (:meth:`TurnGauge.uniform_px`). NaN where not
         measured (fewer than :data:`MIN_CELLS` valid cells inside the band).
     saddle_um : float
         The rms height (um) that the turn alone puts into FD's heights (the
@@ -161,17 +177,24 @@ class TurnGauge:
         band = float(band_px)
         self.inner = (((rows_c >= band) & (rows_c <= n_rows - 1 - band))[:, None]
                       & ((cols_c >= band) & (cols_c <= n_cols - 1 - band))[None, :])
-        # the circulations of a turn by 1 mrad about the frame's centre
-        self._unit = self._circulations(self.field(1.0, rows, cols).astype(np.float64))
-        self._reference_mask = reference_mask
-        self._saddle_um_per_mrad = None
-        # frames valid everywhere (most): the turn is a fixed linear map of u, two dot products
-        self._all_cells = int(np.count_nonzero(self.inner))
-        self._per_u = self._weights(self.inner) if self._all_cells >= MIN_CELLS else None
         corners = np.zeros((self.inner.shape[0] + 1, self.inner.shape[1] + 1), bool)  # the samples they read
         for dr_, dc_ in ((0, 0), (1, 0), (0, 1), (1, 1)):
             corners[dr_:dr_ + self.inner.shape[0], dc_:dc_ + self.inner.shape[1]] |= self.inner
         self._corners = corners
+        # the circulations of a turn by 1 mrad about the frame's centre, less its uniform part (0 where the
+        # interior is symmetric about the centre, as the grids are): a turn about any point reads the same
+        turn = self.field(1.0, rows, cols).astype(np.float64)
+        self._unit = self._circulations(turn - self.uniform_px(turn, corners)[:, None, None])
+        self._reference_mask = reference_mask
+        self._saddle_um_per_mrad = None
+        # frames valid everywhere (most): the turn is a fixed linear map of u, two dot products
+        self._all_cells = int(np.count_nonzero(self.inner))
+        self._per_u = None
+        if self._all_cells >= MIN_CELLS:
+            # of u less its mean on the interior's samples (uniform_px): the weights less their own mean there
+            per_u = self._weights(self.inner)
+            mean = per_u.sum(axis=(1, 2)) / np.count_nonzero(corners)
+            self._per_u = per_u - np.where(corners, mean[:, None, None], 0.0)
 
     def field(self, turn_mrad: float, rows_px, cols_px, kind: str = "camera"):
         """The displacement (2, rows, cols), pixels, float32, at the pixel coordinates ``rows_px``,
@@ -232,6 +255,16 @@ class TurnGauge:
         b00, b01, b10, b11 = (b[..., 0, 0], b[..., 0, 1], b[..., 1, 0], b[..., 1, 1])
         return np.stack([wr * b00 + wc * b10, wr * b01 + wc * b11])
 
+    def uniform_px(self, displacement_px, valid):
+        """The frame's uniform displacement ``(u_row, u_col)`` (2,), px, taken out before the circulations:
+        the mean of ``displacement_px`` (2, rows, cols) on its ``valid`` samples that the interior's cells
+        read (the corners of the cells inside the band); zeros where there are none."""
+        sel = self._corners & np.asarray(valid, bool)
+        if not sel.any():
+            return np.zeros(2)
+        u = np.asarray(displacement_px)
+        return np.array([np.mean(u[0][sel], dtype=np.float64), np.mean(u[1][sel], dtype=np.float64)])
+
     def _circulations(self, displacement_px):
         gr, gc = self._solver.gradients(displacement_px)
         return _circulation(self._weight * gr, self._weight * gc, self._dr, self._dc)
@@ -248,11 +281,13 @@ class TurnGauge:
 
     def __call__(self, displacement_px, valid) -> TurnCheck:
         """The :class:`TurnCheck` of a frame's displacement (2, rows, cols), pixels, on the
-        grid's ``valid`` samples (a cell counts when its four corners are valid)."""
+        grid's ``valid`` samples (a cell counts when its four corners are valid), its uniform part
+        (:meth:`uniform_px`) taken out first."""
         v = np.asarray(valid, bool)
         u = np.asarray(displacement_px)
         if self._per_u is not None and (v.all() or v[self._corners].all()):
-            # every interior cell counts (invalid samples, if any, lie outside the band: weight 0)
+            # every interior cell counts (invalid samples, if any, lie outside the band: weight 0); the
+            # weights already take the uniform part out
             n = self._all_cells
             w = self._per_u
             if not v.all():
@@ -266,7 +301,7 @@ class TurnGauge:
             n = int(np.count_nonzero(cells))
             if n < MIN_CELLS:
                 return TurnCheck(math.nan, math.nan, False, n)
-            circ = self._circulations(np.where(v, u, np.float32(0.0)))
+            circ = self._circulations(np.where(v, u - self.uniform_px(u, v)[:, None, None], 0.0))
             unit = self._unit
             turn = float(np.sum(circ[cells] * unit[cells]) / np.sum(unit[cells] ** 2))
         if not math.isfinite(turn):
@@ -276,7 +311,7 @@ class TurnGauge:
         # large enough to matter: is it the same turn everywhere? (rare: the per-cell pass only here)
         if cells is None:
             cells = self.inner & v[:-1, :-1] & v[1:, :-1] & v[:-1, 1:] & v[1:, 1:]
-            circ = self._circulations(np.where(v, u, np.float32(0.0)))
+            circ = self._circulations(np.where(v, u - self.uniform_px(u, v)[:, None, None], 0.0))
         error = self._standard_error(circ, cells)
         flagged = abs(turn) >= TURN_MIN_SIGNIFICANCE * error  # (NaN: too few blocks, not flagged)
         saddle = abs(turn) * self.saddle_um_per_mrad() if flagged else math.nan

@@ -26,6 +26,25 @@ def _render(surface, turn_mrad=0.0, pattern=BOARD, noise_rms=0.0, seed=0):
     return F.quantize(image, bits=8, noise_rms=noise_rms, rng=np.random.default_rng(seed))
 
 
+def _camera_moved(surface, shift_px, turn_mrad=0.0, margin=8):
+    """The frame of the camera moved by whole pixels ``shift_px`` (rows, cols) since the reference: the N x N
+    crop that far off the centre of a larger ray-traced frame (G55's telecentric camera sees the same at
+    every pixel; unshifted, the crop is :func:`_render`'s frame). ``turn_mrad``: the larger frame's camera
+    turned about its centre, so the crop's image is turned about its own centre and shifted."""
+    n = N + 2 * margin
+    image, _ = F.render_tir(surface, G55, (n, n), BOARD, supersample=2, camera_turn_mrad=turn_mrad)
+    r, c = margin + shift_px[0], margin + shift_px[1]
+    return F.quantize(image[r:r + N, c:c + N], bits=8, rng=np.random.default_rng(0))
+
+
+def _board_moved(surface, offset_mm):
+    """The frame of the board moved on the tank bottom by ``offset_mm`` (x, y) since the reference: the
+    displacement's uniform part moves by fractions of a pixel (x: 10 px a mm along the columns, y: 5.7 px
+    a mm along the rows, foreshortened), the surface's own stays."""
+    image, _ = F.render_tir(surface, G55, (N, N), BOARD, supersample=2, pattern_offset_mm=offset_mm)
+    return F.quantize(image, bits=8, rng=np.random.default_rng(0))
+
+
 @pytest.fixture(scope="module")
 def board_reconstructor():
     return Reconstructor(_render(F.FlatSurface()), G55)
@@ -120,6 +139,49 @@ def test_nothing_turned_is_not_flagged_and_the_heights_are_untouched(board_recon
         assert res.turn.cells > 500
 
 
+SHIFTED_SURFACES = {
+    "flat": F.FlatSurface(),
+    "bump": F.GaussianBump(0.002, 4.0),
+    "waves": F.WaveField.random(6, amplitude_rms_mm=0.001, wavelength_range_mm=(12, 30), seed=3),
+}
+
+
+@pytest.mark.parametrize("case", sorted(SHIFTED_SURFACES))
+def test_an_image_shifted_since_the_reference_is_not_read_as_a_turn(board_reconstructor, case):
+    # The trial of 7 Dec 2026: flat water, the camera moved by 3 px along the columns, read "the pattern
+    # turned by 0.41 mrad" (0.137 mrad a px of column shift; along the rows nothing), flagged, and the
+    # advised --turn-removal camera took the heights from 0.33 to 0.80 % rms error. exp(Phi) changes along
+    # the rows: a column shift circulated in w = exp(Phi) B^-1 u as a turn does. The shift is pin.py's to
+    # judge; the gauge takes the frame's uniform part out first. Measured after: flat and bump 0.0005 mrad
+    # or less, these waves -0.037 to +0.029 (unmoved -0.036 / +0.017, decimated / full); the board moved
+    # (the surface's displacement as it was, plus a uniform one) within 0.002 of the unmoved frame's
+    surface = SHIFTED_SURFACES[case]
+    frames = {f"camera moved {d} px": _camera_moved(surface, d) for d in ((0, 3), (3, 0), (-2, 2))}
+    frames.update({f"board moved {o} mm": _board_moved(surface, o) for o in ((0.13, 0.0), (0.0, -0.25))})
+    bound = 0.5 * TURN_MAX_MRAD if case == "waves" else 0.05 * TURN_MAX_MRAD
+    for grid in ("full", "decimated"):
+        unmoved = board_reconstructor(_render(surface), grid=grid).turn.turn_mrad
+        for name, frame in frames.items():
+            res = board_reconstructor(frame, grid=grid)
+            assert abs(res.turn.turn_mrad) < bound, (name, grid, res.turn)
+            assert not res.turn.flagged and res.turn.describe() == "" and res.turn.cells > 500
+            if name.startswith("board"):
+                assert res.turn.turn_mrad == pytest.approx(unmoved, abs=0.1 * TURN_MAX_MRAD), (name, grid)
+
+
+@pytest.mark.parametrize("turn_mrad", [1.0, -1.0])
+def test_a_camera_turned_and_moved_reads_its_turn(board_reconstructor, turn_mrad):
+    # a turn about another point than the frame's centre is the turn about the centre plus a shift: the
+    # turn must read as about the centre (before the fix a 3 px column shift added 0.41 mrad: 1.41 / -0.59)
+    bump = F.GaussianBump(0.002, 4.0)
+    for shift in ((0, 0), (0, 3), (3, 0), (-3, 3)):
+        frame = _camera_moved(bump, shift, turn_mrad)
+        for grid in ("full", "decimated"):
+            t = board_reconstructor(frame, grid=grid).turn
+            assert t.flagged and t.turn_mrad == pytest.approx(turn_mrad, rel=0.1), (shift, grid, t)
+            assert t.uncertainty_mrad < 0.1 * abs(turn_mrad)
+
+
 def test_a_turned_camera_over_random_dots_is_flagged_too():
     dots = F.RandomDots(dot_diameter_mm=0.5, density=0.3, seed=1)
     rec = Reconstructor(_render(F.FlatSurface(), pattern=dots, noise_rms=1.0), G55, pattern="dots")
@@ -140,15 +202,22 @@ def test_a_frame_too_small_for_the_band_is_not_judged():
 
 def test_a_frame_valid_everywhere_is_judged_as_the_cells_circulations_say(board_reconstructor):
     # the gauge's fast path (a fixed linear map of u) against the definition, written out here: the
-    # least-squares turn of the circulations of w = exp(Phi) B^-1 u around the interior cells
+    # least-squares turn of the circulations of w = exp(Phi) B^-1 (u - u0) around the interior cells, u0 the
+    # mean of u on the valid samples those cells read (a uniform shift is no turn); blind to a uniform shift
     rec = board_reconstructor
     hs, chain = rec.height_solver(), rec.chain
     gauge = chain.turn_gauge()
     rng = np.random.default_rng(4)
     shape = (rec.rows_px.size, rec.cols_px.size)
     dr, dc = rec.rows_px[1] - rec.rows_px[0], rec.cols_px[1] - rec.cols_px[0]
+    read = np.zeros(shape, bool)  # the samples the interior cells read: their corners
+    for r0, c0 in ((0, 0), (1, 0), (0, 1), (1, 1)):
+        read[r0:r0 + shape[0] - 1, c0:c0 + shape[1] - 1] |= gauge.inner
 
-    def circulation(u):
+    def circulation(u, valid=None):
+        sel = read if valid is None else read & valid
+        u = np.asarray(u, np.float64)
+        u = u - np.array([u[0][sel].mean(), u[1][sel].mean()])[:, None, None]
         gr, gc = hs.gradients(u)
         wr, wc = np.exp(hs.phi) * gr, np.exp(hs.phi) * gc
         er = 0.5 * (wr[1:, :] + wr[:-1, :]) * dr
@@ -167,10 +236,15 @@ def test_a_frame_valid_everywhere_is_judged_as_the_cells_circulations_say(board_
         valid[shape[0] // 2, shape[1] // 2] = False
         cells = gauge.inner.copy()
         cells[shape[0] // 2 - 1:shape[0] // 2 + 1, shape[1] // 2 - 1:shape[1] // 2 + 1] = False
-        c = circulation(np.where(valid, u, 0.0))
+        c = circulation(np.where(valid, u, 0.0), valid)
         masked = gauge(np.where(valid, u, np.nan), valid)
         assert masked.turn_mrad == pytest.approx(np.sum((c * unit)[cells]) / np.sum((unit ** 2)[cells]), rel=1e-9)
         assert masked.cells == cells.sum()
+        # the whole frame shifted, along either component: the same turn, either way
+        for shift in ((0.0, 3.0), (-2.5, 0.0), (1.25, -0.75)):
+            moved = u + np.array(shift, np.float32)[:, None, None]
+            assert gauge(moved, np.ones(shape, bool)).turn_mrad == pytest.approx(got.turn_mrad, rel=1e-5)
+            assert gauge(np.where(valid, moved, np.nan), valid).turn_mrad == pytest.approx(masked.turn_mrad, rel=1e-5)
 
 
 ONE_THREAD = """
