@@ -7,6 +7,7 @@ same masked height solver and pin, then every pixel."""
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 
 import cv2
@@ -76,6 +77,53 @@ class _NodeRefinement:
         ng = self.node_grid
         return self.chain.turn_gauge().field(turn.turn_mrad, ng.rows_px, ng.cols_px, turn.removed)
 
+    @staticmethod
+    def start_shift(start):
+        """The uniform shift (2,; row, col px) that the start's height solve took out of its displacement
+        (``shift_removal`` where the whole pattern shifted: :attr:`processing.pin.PinStatus.shift_removed`),
+        else None.  The start's heights lack it: image matching from them alone began that far from the
+        frame and pulled a tilt of the heights toward it, short of it in its few steps, and the solve
+        then took out that tilt's median (simulate's bump, 512^2, shifted 3 px along the columns: 2.68 px
+        taken out, 18.4 % rms height error against FD's 0.33 %)."""
+        pin = start.pin
+        if pin is None or not pin.shift_removed:
+            return None
+        return np.array([pin.frame_motion_row_px, pin.frame_motion_col_px], np.float64)
+
+    def warp_offset(self, turn, shift):
+        """The node displacement (2, n_rows, n_cols) added to image matching's warp and not solved for: the
+        turn the chain took out of the start (:meth:`turn_offset`) and the start's uniform ``shift``
+        (:meth:`start_shift`); None when neither."""
+        offset = self.turn_offset(turn)
+        if shift is None:
+            return offset
+        uniform = np.zeros((2, *self.node_grid.shape), np.float64) + shift[:, None, None]
+        return uniform if offset is None else offset + uniform
+
+    @staticmethod
+    def shift_border(border_px: int, shift, blur_px: float):
+        """Image matching's pixels left out along the top, bottom, left and right: ``border_px`` each, and
+        where the start's uniform ``shift`` (:meth:`start_shift`) was taken out, along the sides from which
+        it brought the frame's pixels in, as many more as it is long and the blur (``blur_px``) reaches
+        (2.5 sigma), rounded up: the reference never saw what they show.  Counted, with the warp's start
+        short of the shift there, they matched the reference's border and pulled the border's nodes off by
+        pixels.  simulate's bump (512^2, 12 bit) shifted 2 / 2.5 / 3 px along the columns, 3 px along the
+        rows, rel. RMS height error (%): none left out 0.75 / 1.64 / 2.26 / 0.34 (the first node column 4 px
+        off at 3 px), the shift's 0.11 / 0.18 / 0.18 / 0.34, with the blur's 0.11 / 0.18 / 0.19 / 0.10
+        (FD 0.28 / 0.31 / 0.32 / 0.16)."""
+        if shift is None:
+            return border_px
+        reach = 2.5 * blur_px
+        more = [int(math.ceil(s + reach)) if s > 0 else 0 for s in (shift[0], -shift[0], shift[1], -shift[1])]
+        return tuple(border_px + m for m in more)
+
+    @staticmethod
+    def with_shift(u_nodes, shift):
+        """Image matching's node displacement ``u_nodes`` (without its warp's offset) with the start's uniform
+        ``shift`` (:meth:`start_shift`) put back, as FD's holds it: the height solve measures the shift
+        again on it and takes it out (``shift_removal``), and the output reports that one."""
+        return u_nodes if shift is None else (u_nodes + shift[:, None, None]).astype(np.float32)
+
     def _node_result(self, surf, valid_nodes, u_nodes, **fields) -> Result:
         """The node grid's :class:`Result` of a refined surface; ``fields``: the pattern's own
         (amplitude, carriers, phase, timings_ms, pin, series)."""
@@ -140,13 +188,13 @@ class ImageRefinement(_NodeRefinement):
         chain, ng, timings = self.chain, self.node_grid, fd.timings_ms
         hs = solver_for(chain.geometry, ng.rows_px, ng.cols_px, chain.shape)
         valid_px, valid_nodes, start = self.start(fd.displacement, fd.valid, hs, m.frame, m.amplitude)
-        periods = np.asarray(chain.carriers.periods_px, np.float64)
+        periods, shift = np.asarray(chain.carriers.periods_px, np.float64), self.start_shift(start)
         args = (self.ref_fine, m.frame, np.asarray(start.height_mm, np.float64), valid_px, self.height_nodes)
         kw = dict(outer=chain.options.image_iterations, period_px=float(periods.min()),
                   intensity_cell_px=max(dic.INTENSITY_CELL_PX, 1.6 * float(periods.max())),
                   threads=chain.planner.threads, matrix_once=MATRIX_ONCE,
-                  masked_cg_iterations=dic.MASKED_CG_ITERATIONS, offset_px=self.turn_offset(fd.turn),
-                  speck_contrast=SPECK_CONTRAST)
+                  masked_cg_iterations=dic.MASKED_CG_ITERATIONS, offset_px=self.warp_offset(fd.turn, shift),
+                  speck_contrast=SPECK_CONTRAST, border_px=self.shift_border(dic.BORDER_PX, shift, dic.BLUR_PX))
         try:
             match = dic.refine_height(*args, **kw)
         except dic.RefinementDiverged:
@@ -155,7 +203,7 @@ class ImageRefinement(_NodeRefinement):
             # beside masked pixels each step took its own matrix (MATRIX_ONCE); where those steps left the
             # range, the first step's kept for all is tried before FD's heights are
             match = dic.refine_height(*args, **kw, matrix_once_beside_masks=True)
-        u_nodes, valid_nodes = match.displacement_px, match.free
+        u_nodes, valid_nodes = self.with_shift(match.displacement_px, shift), match.free
         t4 = time.perf_counter()
         timings["refine"] += 1e3 * (t4 - t3)
         surf, valid_nodes, u_nodes, second = self._refined(hs, u_nodes, valid_nodes, timings)
@@ -243,12 +291,14 @@ class DotsImageRefinement(_NodeRefinement):
         chain, timings = self.chain, piv.timings_ms
         t3 = time.perf_counter()
         valid_px, valid_nodes, start = self.start(piv.displacement, piv.valid)
-        window = float(chain.options.window_px)
+        window, shift = float(chain.options.window_px), self.start_shift(start)
         _, u_nodes, free, _ = dic.refine_height(
             self.ref_fine, m.frame, np.asarray(start.height_mm, np.float64), valid_px, self.height_nodes,
             outer=chain.options.image_iterations, blur_px=DOTS_BLUR_PX, period_px=window / 2,
             intensity_cell_px=max(dic.INTENSITY_CELL_PX, window), threads=int(chain.options.threads),
-            border_px=DOTS_BORDER_PX, offset_px=self.turn_offset(piv.turn))
+            border_px=self.shift_border(DOTS_BORDER_PX, shift, DOTS_BLUR_PX),
+            offset_px=self.warp_offset(piv.turn, shift))
+        u_nodes = self.with_shift(u_nodes, shift)
         t4 = time.perf_counter()
         timings["refine"] = 1e3 * (t4 - t3)
         surf, valid_nodes, u_nodes, second = self._refined(self.solver, u_nodes, free & valid_nodes, timings)

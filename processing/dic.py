@@ -232,8 +232,8 @@ def refine_height(fine, frame, h0, valid_px, nodes: HeightNodes, *, speck_contra
         The pattern's shorter carrier period, px (None: no bound).
     threads : int
         Threads for each step's node sums (the result does not depend on it).
-    border_px : int
-        Pixels along each side left out of the match (:data:`BORDER_PX`).
+    border_px : int or (int, int, int, int)
+        Pixels along each side left out of the match (:data:`BORDER_PX`), or along the top, bottom, left, right.
     matrix_once, matrix_once_beside_masks : bool
         Keep the first step's Gauss-Newton matrix for the later steps (right-hand sides their own) where
         every pixel of ``valid_px`` counts, and with the second where some are masked (else each step's own).
@@ -268,7 +268,7 @@ class _SpecksFound(Exception):
 def _refine(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int = 3, cg_iterations: int = CG_ITERATIONS,
             masked_cg_iterations: int | None = None, regularisation: float = 0.03, blur_px: float = BLUR_PX,
             intensity_cell_px: float | None = INTENSITY_CELL_PX, period_px: float | None = None, threads: int = 1,
-            border_px: int = BORDER_PX, matrix_once: bool = False, matrix_once_beside_masks: bool = False,
+            border_px=BORDER_PX, matrix_once: bool = False, matrix_once_beside_masks: bool = False,
             offset_px=None, speck_contrast: float | None = None):
     """:func:`refine_height`'s Gauss-Newton steps (its parameters); :class:`_SpecksFound` where specks are
     found before step :data:`SPECK_STEP`."""
@@ -319,8 +319,8 @@ class ImageMatch(NamedTuple):  # refine_height's answer
 
 def _frame_and_weights(frame, valid_px, grid, blur_px, border_px):
     """``(raw, blurred frame, pixel weights, all valid, free nodes)`` of :func:`refine_height`
-    (the weights 0 on the outer ``border_px`` pixels of each side; ``all valid``: every pixel of
-    ``valid_px`` is)."""
+    (the weights 0 on the outer ``border_px`` pixels of each side, or of the top, bottom, left, right;
+    ``all valid``: every pixel of ``valid_px`` is)."""
     raw = img = np.asarray(frame, np.float32)
     if blur_px:
         img = cv2.GaussianBlur(img, (0, 0), blur_px)
@@ -332,9 +332,8 @@ def _frame_and_weights(frame, valid_px, grid, blur_px, border_px):
         # pixels whose blurred frame and warped reference see valid pixels alone count
         reach = int(math.ceil(2.5 * blur_px))
         w = cv2.erode(w, np.ones((2 * reach + 1, 2 * reach + 1), np.uint8), borderType=cv2.BORDER_REPLICATE)
-    b = int(border_px)
-    if b > 0:
-        w[:b], w[-b:], w[:, :b], w[:, -b:] = 0.0, 0.0, 0.0, 0.0
+    top, bottom, left, right = (int(b) for b in np.broadcast_to(border_px, 4))
+    w[:top], w[w.shape[0] - bottom:], w[:, :left], w[:, w.shape[1] - right:] = 0.0, 0.0, 0.0, 0.0
     return raw, img, w, all_valid, free
 
 

@@ -274,6 +274,50 @@ def test_a_water_level_that_dropped_since_the_reference_is_named_with_what_it_do
     assert errors["kept"][1] > 10 * errors["kept"][0] and errors["removed"][1] < 2 * errors["removed"][0], errors
 
 
+def test_a_camera_moved_by_pixels_is_taken_out_by_the_default_image_refinement_as_by_fd(tmp_path, capsys):
+    """--shift-removal with the default refinement (image matching): the camera moved by 3 px along the
+    columns, then along the rows, since the reference (ray traced, 12 bit: the crops of a larger frame,
+    the reference the centre's, each frame's that far off it). The heights are those of simulate's bump
+    under the moved camera (the larger frame's truth cropped alike) within 1 % RMS (0.54 / 0.62 %; the
+    unmoved camera's frame 0.47 %, FD's 1.7 %), and the shift reported is the one the camera made, to
+    0.05 px. Image matching began from FD's heights less the shift and was not told of it: 4.2 / 37 %
+    (simulate's 512^2 bump: 2.7 px of 3 reported and taken out, 18 %); told, the strip the shift brought
+    in from beyond the reference pulled the border's nodes off (2.3 % there)."""
+    from processing import Geometry, forward as F
+
+    g = Geometry(theta_deg=55, depth_mm=300, pixel_mm=0.1, rows_toward_camera=False)
+    board = F.Checkerboard(period_mm=2.0, edge_softness_mm=0.1)
+    bump, m = F.GaussianBump(0.004, 0.1 * SIZE / 8), 8  # simulate's: sigma an eighth of the field
+    big = (SIZE + 2 * m, SIZE + 2 * m)
+    rng = np.random.default_rng(7)
+    still, _ = F.render_tir(F.FlatSurface(), g, big, board, supersample=2)
+    moved, _ = F.render_tir(bump, g, big, board, supersample=2)
+    truth = F.true_height(bump, g, big)
+    tifffile.imwrite(tmp_path / "reference.tif",
+                     F.quantize(still[m:m + SIZE, m:m + SIZE], bits=12, noise_rms=1.0, rng=rng))
+    (tmp_path / "geometry.toml").write_text(g.to_toml_text())
+    for shift in ((0, 3), (3, 0)):
+        # frame pixel p sees what the reference saw at p - shift: the pattern moved by +shift
+        at = np.s_[m - shift[0]:m - shift[0] + SIZE, m - shift[1]:m - shift[1] + SIZE]
+        frame, out, heights = (tmp_path / f"{name}_{shift[0]}_{shift[1]}{ext}"
+                               for name, ext in (("frame", ".tif"), ("out", ".h5"), ("heights", ".h5")))
+        tifffile.imwrite(frame, F.quantize(moved[at], bits=12, noise_rms=1.0, rng=rng))
+        with h5py.File(heights, "w") as f:
+            f["height"] = truth[at][None].astype(np.float32)
+        code, err = _run(capsys, "process", tmp_path / "reference.tif", frame, "--geometry", tmp_path / "geometry.toml",
+                         "--out", out, "--shift-removal")
+        assert code == 0 and "taken out of the heights (--shift-removal" in err, err
+        with h5py.File(out) as f:
+            assert f.attrs["refine_method"] == "image"
+            st = f["pin_status"][0]
+        assert st["shift_removed"], st
+        assert st["frame_motion_row_px"] == pytest.approx(shift[0], abs=0.05), (shift, st)
+        assert st["frame_motion_col_px"] == pytest.approx(shift[1], abs=0.05), (shift, st)
+        assert main(["compare", str(out), str(heights)]) == 0
+        error = float(re.findall(r"^\s*0\s+([\d.]+) %", capsys.readouterr().out, re.M)[0])
+        assert error <= 1.0, (shift, error)
+
+
 def test_a_board_moved_under_waves_that_fill_the_frame_is_named_over_the_recording(tmp_path, capsys):
     """Waves filling the frame hide a shift of the whole pattern frame by frame (no still part), and the
     pin band's note reads as the waves'. Over a recording the waves move the frame's median displacement
