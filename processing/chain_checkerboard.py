@@ -252,7 +252,19 @@ class CheckerboardChain(GridChain):
     def nothing_measured(self, frame, amplitude) -> AllInvalidError:
         """The error of a frame no part of which could be measured, with its pattern contrast against the
         reference's (``amplitude``, the decimated grid's) and what to check (darker than the reference: by how
-        much)."""
+        much), or that the reference's own valid area is too small to measure on."""
+        rv, n_dilate = self.reference_valid, int(self.options.dilate)
+        kept = int(np.count_nonzero(rv & ~dilate_invalid(~rv, n_dilate)))
+        if kept < (2 * n_dilate + 1) ** 2:
+            period = float(np.max(self.carriers.periods_px))
+            return AllInvalidError(
+                f"no part of the frame could be measured: the reference shows the pattern on only "
+                f"{int(np.count_nonzero(rv))} of the {rv.size} samples of the grid "
+                f"({self.rows_px[1] - self.rows_px[0]:.1f} px apart) and {kept} are left once its edges are trimmed "
+                f"by {n_dilate} sample(s), a valid area too small for this frame and board; take a reference whose "
+                f"pattern is sharp and lit "
+                f"over the whole view, and a frame (or region of interest) that sees at least {10 * period:.0f} px "
+                f"(ten board periods of {period:.1f} px) of it across")
         darker = darker_than_reference(frame, self.ref_mean)
         return AllInvalidError(
             f"no part of the frame could be measured: pattern contrast relative to the reference "

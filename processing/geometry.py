@@ -54,11 +54,18 @@ __all__ = [
     "default_reference_region_mask",
     "GRAZING_THETA_DEG",
     "grazing_view_note",
+    "MAX_VIEW_DEPTH_GROWTH",
+    "checked_geometry",
 ]
 
 
 #: Width of the default reference band, as a fraction of the smaller frame side.
 DEFAULT_REFERENCE_BAND = 0.04
+#: TIR: largest ``T L / H`` (rows spanning L mm of surface, H = depth_mm) :meth:`Geometry.check_frame` accepts:
+#: the heights' null mode ``exp(-T y / H)`` grows ``exp(T L / H)``-fold across the frame, beyond e^16 (1 / float32's
+#: epsilon) past anything the height solve resolves.  By-hand trial of 7 Dec 2026: ``depth_mm = 0.3`` (T L / H = 70)
+#: gave heights of 1e289 mm, "the surface is too steep" and numpy's overflow warnings.
+MAX_VIEW_DEPTH_GROWTH = 16.0
 
 _SETUPS = ("tir", "fsss")
 #: What the pattern is: a checkerboard (Fourier demodulation) or random dots (PIV).
@@ -117,7 +124,8 @@ _NUMBER_UNITS = {
 
 
 def _is_number(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
+    """A real number: Python's or numpy's scalars (``np.float32(55)``, ``np.int64(300)``), never a bool."""
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
 
 
 def _missing(key: str) -> GeometryError:
@@ -348,6 +356,23 @@ class Geometry(CameraModel):
             )
         object.__setattr__(self, "fsss_layers", tuple(out))
 
+    def check_frame(self, frame_shape) -> None:
+        """:meth:`CameraModel.check_frame`; TIR: refused where the frame's rows span more than
+        :data:`MAX_VIEW_DEPTH_GROWTH` / T depths of surface (a wrong ``pixel_mm`` or ``depth_mm``)."""
+        CameraModel.check_frame(self, frame_shape)
+        if self.setup != "tir":
+            return
+        rows_mm = int(frame_shape[0]) * self.pixel_mm / math.cos(self.theta)
+        if self.T * rows_mm <= MAX_VIEW_DEPTH_GROWTH * self.depth_mm:
+            return
+        raise GeometryError(
+            f"the frame's {int(frame_shape[0])} rows span {rows_mm:.4g} mm of surface (pixel_mm = {self.pixel_mm:g}), "
+            f"{rows_mm / self.depth_mm:.3g} times depth_mm = {self.depth_mm:g}, a view no TIR set-up has: the heights "
+            f"would be lost in their null mode exp(-T y / H), which grows "
+            f"{math.exp(min(self.T * rows_mm / self.depth_mm, 700.0)):.1e}-fold across it; check pixel_mm (mm of "
+            f"surface per image column) and depth_mm (surface down to the board), both in mm (at this depth the "
+            f"rows can span at most {MAX_VIEW_DEPTH_GROWTH * self.depth_mm / self.T:.4g} mm)")
+
     # ------------------------------------------------------------------ I/O
     @classmethod
     def from_dict(cls, d: dict) -> "Geometry":
@@ -381,10 +406,16 @@ class Geometry(CameraModel):
     def from_toml_text(cls, text: str) -> "Geometry":
         """Parse TOML text (flat keys, or a ``[geometry]`` table)."""
         try:
-            d = tomllib.loads(text)
+            d = tomllib.loads(text.removeprefix("\ufeff"))  # a byte-order mark read as text (Windows editors)
         except tomllib.TOMLDecodeError as exc:
             raise GeometryError(f"geometry file is not valid TOML: {exc}") from None
-        if set(d) == {"geometry"} and isinstance(d["geometry"], dict):
+        if isinstance(d.get("geometry"), dict):
+            others = sorted(k for k in d if k != "geometry")
+            if others:
+                raise GeometryError(
+                    f"the file holds a [geometry] table and also {', '.join(others)}; a geometry file is its keys "
+                    f"either at the top of the file or in one [geometry] table alone: keep notes as # comments "
+                    f"and other tables in another file")
             d = d["geometry"]
         return cls.from_dict(d)
 
@@ -393,7 +424,7 @@ class Geometry(CameraModel):
         """Read a geometry TOML file (see ``resources/geometry-example.toml``)."""
         path = Path(path)
         try:
-            text = path.read_text(encoding="utf-8")
+            text = path.read_text(encoding="utf-8-sig")
         except OSError as exc:
             raise GeometryError(f"cannot read geometry file {str(path)!r}: {exc.strerror}") from None
         except UnicodeDecodeError as exc:
@@ -499,6 +530,21 @@ class Geometry(CameraModel):
 
 #: A TIR view at this theta or steeper is named before a run (:func:`grazing_view_note`).
 GRAZING_THETA_DEG = 75.0
+
+
+def checked_geometry(geometry, frame_shape) -> Geometry:
+    """``geometry`` (a :class:`Geometry`, a dict of its keys or a geometry TOML file's path) as a Geometry,
+    checked against a frame of ``frame_shape`` (:meth:`Geometry.check_frame`); TypeError for anything else."""
+    if isinstance(geometry, dict):
+        geometry = Geometry.from_dict(geometry)
+    elif isinstance(geometry, (str, Path)):
+        geometry = Geometry.from_toml(geometry)
+    elif not isinstance(geometry, Geometry):
+        raise TypeError(
+            f"geometry must be a processing.Geometry, a dict of its keys or the path of a geometry TOML file, got "
+            f"{type(geometry).__name__}; e.g. Geometry.from_toml(\"geometry.toml\")")
+    geometry.check_frame(frame_shape)
+    return geometry
 
 
 def grazing_view_note(geometry) -> str:

@@ -11,6 +11,7 @@ pixels (:func:`defect_pixels`, :func:`repair_pixels`).  Pure functions of arrays
 from __future__ import annotations
 
 import math
+import os
 from typing import NamedTuple, Optional
 
 import cv2
@@ -23,9 +24,9 @@ from .regions import connected_regions
 
 __all__ = ["MIN_EXPOSURE_GAIN", "MAX_SAMPLE_MAGNITUDE", "POOR_FRAME_VALID_FRACTION", "DEFECT_CONTRAST_FRACTION",
            "exposure_gain", "percentiles", "darker_than_reference", "brightness_sample", "mean_level",
-           "check_sample_range", "validate_image", "defect_pixels",
-           "HOT_CANDIDATES_MAX_FRACTION", "HOT_EXCESS_FRACTION", "HOT_EXCESS_OVER_REFERENCE", "hot_pixel_limits",
-           "hot_pixels_above", "repair_pixels", "dilate_invalid", "fold_ok",
+           "check_sample_range", "image_array", "validate_image", "defect_pixels",
+           "HOT_CANDIDATES_MAX_FRACTION", "HOT_EXCESS_FRACTION", "HOT_EXCESS_OVER_REFERENCE", "HOT_FRAME_SCALE",
+           "hot_pixel_limits", "hot_pixels_above", "repair_pixels", "dilate_invalid", "fold_ok",
            "drop_islands", "reference_contrast_ok", "reference_pin_region", "ReferenceRegion",
            "choose_reference_region"]
 
@@ -155,9 +156,17 @@ def check_sample_range(image, name: str = "frame") -> None:
         f"own values (or divide the scale back out)")
 
 
+def image_array(image, name):
+    """``np.asarray(image)``; TypeError for a file's path (a script that passed the name, not the image)."""
+    if isinstance(image, (str, os.PathLike)):
+        raise TypeError(f"{name} must be an image array (rows, cols), got the path {str(image)!r}; read it "
+                        f"first, e.g. app.files.imageio.read_image(path)")
+    return np.asarray(image)
+
+
 def validate_image(image, name):
     """``image`` as an array, checked: 2-D, a grey dtype, samples a camera gives (ValueError, SampleRangeError)."""
-    a = np.asarray(image)
+    a = image_array(image, name)
     if a.ndim != 2:
         raise ValueError(f"{name} must be a 2-D grey image (rows, cols); got shape {a.shape}. "
                          "Convert colour images to grey first")
@@ -234,6 +243,13 @@ HOT_EXCESS_FRACTION = 0.1
 HOT_EXCESS_OVER_REFERENCE = 1.5
 
 
+#: A frame whose contrast (1st to 99th percentile) is more than this many times the reference's is on
+#: another scale (frames' counts against a float 0..1 reference, 12-bit frames against an 8-bit one):
+#: :func:`hot_pixels_above` scales the reference's limits by it.  By-hand trial of 7 Dec 2026: a float 0..1
+#: reference against 12-bit frames "repaired" 38 pixels of noise as hot pixels a frame.
+HOT_FRAME_SCALE = 3.0
+
+
 def hot_pixel_limits(reference) -> tuple:
     """``(level, contrast, brightest, peak_excess)`` of :func:`hot_pixels_above` from the
     reference: its contrast (1st to 99th percentile, grey levels), its brightest pixel, the
@@ -272,6 +288,12 @@ def hot_pixels_above(image, level: float, contrast: float, brightest: float | No
     first = level if brightest is None else min(level, brightest)
     if float(row_top.max()) <= first:
         return np.empty(0, np.int64)
+    scale = _contrast(a) / contrast if float(row_top.max()) > level and contrast > 0 else 1.0
+    if scale > HOT_FRAME_SCALE:  # the limits on the frame's scale (counts against a float 0..1 reference...)
+        level, contrast, peak_excess = level * scale, contrast * scale, peak_excess * scale
+        first = level if brightest is None else min(level, brightest * scale)
+        if float(row_top.max()) <= first:
+            return np.empty(0, np.int64)
     r, c = _above(a, row_top, first)
     few = first < level  # a few pixels brighter than the whole reference: the looser test
     if r.size > HOT_CANDIDATES_MAX_FRACTION * a.size and few:
@@ -371,7 +393,12 @@ def reference_contrast_ok(demod, shape):
         taper = w[np.ix_(np.round(demod.rows_px).astype(int) % rows, np.round(demod.cols_px).astype(int) % cols)]
     g0_min = demod.g0_abs.min(axis=0) / np.maximum(taper, 1e-6)
     inside = taper >= 0.02
-    best = np.percentile(g0_min[inside], REF_CONTRAST_PERCENTILE) if inside.any() else 0.0
+    # the best contrast from where the taper is at least half: divided by a taper of 0.03 the outermost ring
+    # reads ~7x its contrast, and on a 64^2 frame (35^2 grid) that ring is 11 % of the samples, so its
+    # value was the 90th percentile and every sample inside it failed (by-hand trial of 7 Dec 2026)
+    core = inside & (taper >= 0.5)
+    core = core if core.any() else inside
+    best = np.percentile(g0_min[core], REF_CONTRAST_PERCENTILE) if core.any() else 0.0
     return (g0_min >= REF_CONTRAST_FRACTION * best) & inside
 
 

@@ -47,10 +47,11 @@ from .carriers import Carriers
 from .chain_checkerboard import CheckerboardChain
 from .chain_dots import DotsChain
 from .errors import ShapeMismatchError, TirdeflectError
+from .geometry import checked_geometry
 from .live_view import LiveView, saturation_pct
 from .mask import (MAX_SAMPLE_MAGNITUDE, MIN_EXPOSURE_GAIN, POOR_FRAME_VALID_FRACTION, check_sample_range,
                    defect_pixels, exposure_gain, hot_pixel_limits, hot_pixels_above, reference_pin_region,
-                   repair_pixels, validate_image)
+                   image_array, repair_pixels, validate_image)
 from .options import PATTERNS, ReconstructOptions, full_grid_refinement
 from .refine import (WARP_MAX_INTERPOLATION_ERROR_PX, band_limited_reference, linear_interpolation_shift_px,
                      warp_fine_factor)
@@ -154,7 +155,7 @@ class Reconstructor:
         self.defects = defect_pixels(ref)
         ref = repair_pixels(ref, self.defects)
         self._hot_limits = hot_pixel_limits(ref)  # a frame's pixels beyond the reference's reach
-        geometry.check_frame(ref.shape)  # the field size is known here first: camera and rays vs the frame
+        geometry = checked_geometry(geometry, ref.shape)  # also its dict or TOML path; camera and rays vs the frame
         #: What this Reconstructor runs (pattern and refine_method resolved).
         self.options, self.pattern = opts, pattern = _resolved(ref, geometry, options, overrides)
         dots = pattern == "dots"
@@ -212,7 +213,7 @@ class Reconstructor:
         """``(frame, hot_pixels)``: ``frame`` as an array, checked (the reference's shape, 2-D, a grey dtype), the
         reference's :attr:`mosaic` equalised, its :attr:`defects` and the frame's own isolated pixels beyond its
         reach (:func:`processing.mask.hot_pixels_above`: cosmic rays; ``hot_pixels`` of them) repaired (a copy)."""
-        a = np.asarray(frame)
+        a = image_array(frame, "frame")
         if a.shape != self.shape:
             raise ShapeMismatchError(
                 f"reference and frame must have equal shapes; got {self.shape} and {a.shape}: "

@@ -169,8 +169,11 @@ class SecondOrderOptics:
         """``(N(h), 1 + t . grad h)`` of the filled heights, their gradient taken once."""
         h = self._filled(height_mm, valid)
         gx, gy, move = self._hit_move(h)
-        linear = self._a * h + self._c[:, 0] * gy + self._c[:, 1] * gx
-        nonlinear = np.nan_to_num(self._trace(h, gx, gy) - linear)
+        # slopes the trace cannot follow end in forward's GeometryError; numpy's overflow warnings on the way
+        # say nothing more (by-hand trial of 7 Dec 2026: ten lines of them before it)
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            linear = self._a * h + self._c[:, 0] * gy + self._c[:, 1] * gx
+            nonlinear = np.nan_to_num(self._trace(h, gx, gy) - linear)
         return nonlinear, 1.0 + move
 
     def nonlinear_part(self, height_mm, valid) -> np.ndarray:

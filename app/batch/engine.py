@@ -590,9 +590,11 @@ def _frames_without_the_reference(args, paths: list) -> tuple:
 
 
 def _bit_depth_note(reference: np.ndarray, first_input) -> str:
-    """A note when the frames' levels cannot match the reference's: 8-bit video frames against a
-    12-bit reference, or a reference whose levels sit 16x higher (12-bit data in the top bits of
-    16-bit words) than its frames', which read as 'no contrast' frame after frame; else ''."""
+    """A note when the frames' levels cannot match the reference's: frames brighter than the reference's
+    depth holds (a 12-bit reference against 16-bit words, a float 0..1 reference), or a reference whose
+    levels sit 16x higher than a frame's (12-bit data in the top bits of 16-bit words); else ''.  Where
+    the frames' depth (their file's, or floats 0..1) keeps every frame darker than the quality mask reads
+    (8-bit video frames against a 12-bit reference), TirdeflectError once: each frame had read 'no contrast'."""
     from processing.mask import MIN_EXPOSURE_GAIN
     from processing.options import ReconstructOptions
 
@@ -603,39 +605,47 @@ def _bit_depth_note(reference: np.ndarray, first_input) -> str:
         info = imageio.image_info(first_input)
     except TirdeflectError:
         return ""  # the reader says what is wrong with the file, frame by frame
-    if np.dtype(info.dtype).kind == "f" or not info.bits:
-        return ""
-    frame_bits = int(info.bits)
-    frame_top = 2 ** frame_bits - 1
     ref_top = float(np.nanmax(reference)) if np.size(reference) else 0.0
     ref_bits = _bits_of_counts(np.asarray(reference, dtype=np.float64))
-    if ref_top > 2 * frame_top:  # frames cannot even hold the reference's level
-        ratio = ref_top / frame_top
+    ref_name = (f"holds floats from 0 to {ref_top:.3g} (no camera's counts)"
+                if np.asarray(reference).dtype.kind == "f" and 0 < ref_top <= 1.0 else
+                f"is {ref_bits}-bit (levels up to {ref_top:.0f})")
+    frame_float = np.dtype(info.dtype).kind == "f" or not info.bits
+    if not frame_float and ref_top > 2 * (2 ** int(info.bits) - 1):  # frames cannot even hold its level
+        top, frame_bits, known = 2.0 ** int(info.bits) - 1, int(info.bits), True
     else:
         try:
             sample = imageio.read_image(first_input, index=0 if info.n_frames > 1 else None)
         except Exception:  # noqa: BLE001 -- a first frame that cannot be read is reported as such later
             return ""
         top = float(np.nanmax(sample)) if sample.size else 0.0
-        brighter = top > 2 * 2 ** ref_bits
-        darker = top > 0 and ref_top * readable > top
-        if not (ref_top > 0 and (brighter or darker)):
+        frame_bits, known = _bits_of_counts(sample.astype(np.float64)), frame_float and 0 < top <= 1.0
+        if not (ref_top > 0 and top > 0 and (top > 2 * 2 ** ref_bits or ref_top * readable > top)):
             return ""
-        ratio = ref_top / top
-        frame_bits = _bits_of_counts(sample.astype(np.float64))
-        if darker:
-            return (f"the frames of {str(first_input)!r} reach only level {top:.0f} ({frame_bits}-bit) while "
-                    f"the reference's levels reach {ref_top:.0f} ({ref_bits}-bit): the frames are {ratio:.3g}x "
-                    f"darker, beyond the {1 / readable:.3g}x a dimmer exposure still reads, so they read as "
-                    f"low contrast; a reference stored with its levels shifted (12-bit data in the top bits "
-                    f"of 16-bit words: 16x) or taken at another exposure or gain? Take the reference from the "
-                    f"frames' own file or camera settings (e.g. --reference-frames 0:20)")
-    factor = ratio if ratio > 1 else 1.0 / ratio
-    return (f"bit depths differ: the frames of {str(first_input)!r} are {frame_bits}-bit (levels up to "
-            f"{2 ** frame_bits - 1}) while the reference's levels reach {ref_top:.0f} ({ref_bits}-bit): on one "
-            f"scale the frames are {factor:.3g}x {'darker' if ratio > 1 else 'brighter'} than the reference, so "
-            f"frames read as low contrast or saturated; take the reference from the frames' own file or camera "
-            f"settings (e.g. --reference-frames 0:20), or convert both to one depth")
+    ratio = ref_top / top
+    frame_name = (f"hold floats from 0 to {top:.3g} (no camera's counts)" if frame_float and top <= 1.0 else
+                  f"are {frame_bits}-bit (levels up to {top:.0f})")
+    depths = f"bit depths differ: the frames of {str(first_input)!r} {frame_name} while the reference {ref_name}"
+    if ratio < 1:
+        return (f"{depths}: on one scale the frames are {1 / ratio:.3g}x brighter than the reference; the heights "
+                f"(the pattern's phase) do not depend on it, but contrasts relative to the reference read "
+                f"{1 / ratio:.3g}x high; for one scale take the reference from the frames' own file or camera "
+                f"settings (e.g. --reference-frames 0:20)")
+    if ref_top * readable <= top:
+        return ""
+    if known:  # every frame of this depth is darker than the quality mask reads: said once, not per frame
+        scale = ("the frames as the camera's counts, or the reference scaled to 0..1 as well" if frame_float else
+                 f"the reference's levels divided by {2 ** (ref_bits - frame_bits)}" if ref_bits > frame_bits else
+                 "reference and frames at one depth")
+        raise TirdeflectError(
+            f"{depths}: on one scale the frames are {ratio:.3g}x darker than the reference, beyond the "
+            f"{1 / readable:.3g}x a dimmer exposure still reads, so no frame could be measured; take the reference "
+            f"from the frames' own file or camera settings (e.g. --reference-frames 0:20), or give {scale}")
+    return (f"the frames of {str(first_input)!r} reach only level {top:.0f} ({frame_bits}-bit) while the reference "
+            f"{ref_name}: the frames are {ratio:.3g}x darker, beyond the {1 / readable:.3g}x a dimmer exposure still "
+            f"reads, so they read as low contrast; a reference stored with its levels shifted (12-bit data in the "
+            f"top bits of 16-bit words: 16x) or taken at another exposure or gain? Take the reference from the "
+            f"frames' own file or camera settings (e.g. --reference-frames 0:20)")
 
 
 def _timing_attrs(path) -> dict:

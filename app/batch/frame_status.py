@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import enum
 import logging
+import zlib
 from typing import Optional
 
 import numpy as np
@@ -31,7 +32,7 @@ from processing.banding import LightBands, bands_of, evened_frame
 from processing.turn import TURN_MAX_MRAD, TurnCheck
 
 __all__ = ["FrameStatus", "FrameOutcome", "FrameTally", "measure_frame", "outcome_of_error", "coverage",
-           "unmeasured_cause", "PARTLY_MEASURED_PCT"]
+           "unmeasured_cause", "PARTLY_MEASURED_PCT", "frame_digest"]
 
 log = logging.getLogger(__name__)
 
@@ -83,6 +84,9 @@ class FrameOutcome:
     measured_pct: float = 100.0
     #: of a frame measured on less than :data:`PARTLY_MEASURED_PCT`: why the rest was not (:func:`unmeasured_cause`)
     unmeasured_cause: str = ""
+    #: of a measured frame: its samples' CRC-32 (:func:`frame_digest`), -1 where not taken: :class:`FrameTally`
+    #: counts the frames identical to the one before them (a camera that sent a frame twice)
+    digest: int = -1
 
     @property
     def ok(self) -> bool:
@@ -119,6 +123,11 @@ def outcome_of_error(exc: BaseException) -> FrameOutcome | None:
     return None
 
 
+def frame_digest(image: np.ndarray) -> int:
+    """CRC-32 of a frame's samples (0.6 ms a 1024^2 16-bit frame): equal for a frame sent twice."""
+    return zlib.crc32(memoryview(np.ascontiguousarray(image)).cast("B"))
+
+
 def measure_frame(reconstruct, image: np.ndarray, ref_shape, grid: str):
     """Reconstruct one frame: ``(Result, OK)`` or ``(None, FrameOutcome)`` for a bad frame.
 
@@ -153,7 +162,8 @@ def measure_frame(reconstruct, image: np.ndarray, ref_shape, grid: str):
     measured_pct, contrast = coverage(result, reconstruct.reference_valid, reconstruct.pattern == "checkerboard")
     cause = unmeasured_cause(contrast, reconstruct.min_amplitude) if measured_pct < PARTLY_MEASURED_PCT else ""
     return result, FrameOutcome(saturated_pct=saturated, hot_pixels=result.hot_pixels, turn=result.turn,
-                                light_bands=bands, measured_pct=measured_pct, unmeasured_cause=cause)
+                                light_bands=bands, measured_pct=measured_pct, unmeasured_cause=cause,
+                                digest=frame_digest(image))
 
 
 #: A measured frame whose valid samples cover less than this percentage of the area its reference covers is
@@ -225,9 +235,15 @@ class FrameTally:
         self.banded = []  # (sequence index, LightBands.depth, LightBands) of frames with bands of light along rows
         self.vignetted = []  # (sequence index, darkest corner's light, LightBands) of frames darkened to the corners
         self.partial = []  # (sequence index, % measured, why not all) of frames measured on < PARTLY_MEASURED_PCT
+        self.repeated = []  # (sequence index, the one before's) of measured frames identical to the frame before them
+        self._last_digest, self._last_index = -1, -1  # of the frame added last (digest -1: not measured)
 
     def add(self, item, outcome: FrameOutcome) -> None:
         self.frames += 1
+        if outcome.ok and outcome.digest != -1 and outcome.digest == self._last_digest:
+            _add_row(self.repeated, item, self._last_index,
+                     "identical to the frame before it (%d), sample for sample: the camera sent a frame twice")
+        self._last_digest, self._last_index = (outcome.digest if outcome.ok else -1), item.sequence_index
         if outcome.ok:
             self.valid += 1
             if outcome.saturated_pct > SATURATION_MAX_PCT:
@@ -296,7 +312,8 @@ class FrameTally:
                 "frames_turned": len(self.turned), "turn_mrad_max": _worst(self.turned, 0.0)[1],
                 "frames_light_banded": len(self.banded), "light_bands_pct_max": _worst(self.banded, 0.0)[1],
                 "frames_vignetted": len(self.vignetted),
-                "frames_partly_measured": len(self.partial), "measured_pct_min": _least(self.partial, 100.0)[1]}
+                "frames_partly_measured": len(self.partial), "measured_pct_min": _least(self.partial, 100.0)[1],
+                "frames_repeated": len(self.repeated)}
 
     def notes(self) -> list:
         out = []
@@ -332,6 +349,13 @@ class FrameTally:
             out.append(f"{len(self.partial)} frame(s) were measured on less than {PARTLY_MEASURED_PCT:g} % of the area "
                        f"their reference covers (the least {pct:.1f} %, frame {k}: {cause}); their heights hold "
                        f"there only, and their pin may be a fallback; see /valid and /pin_status in the output")
+        if self.repeated:
+            k, before = self.repeated[0]
+            out.append(f"{len(self.repeated)} frame(s) identical to the one before, sample for sample (first frame "
+                       f"{k}, as frame {before}): the camera repeated a frame (one dropped and filled in by the driver "
+                       f"or the grabber, or a trigger faster than the camera's frame rate), so their heights repeat "
+                       f"the frame's before and their time steps are not real; check the camera's frame rate, "
+                       f"exposure and trigger, and /frame_flags where the recording has them")
         if self.turned:
             k, mrad, turn = _worst(self.turned, 0.0)
             first = self.turned[0][0]  # when it happened: a knock turns every frame after it

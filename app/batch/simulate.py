@@ -52,21 +52,58 @@ SIM_MIN_PERIOD_PX = 4.0
 SIM_MIN_PERIODS = 4
 
 
+def _board_px(period_mm: float, geometry, size_px: int) -> tuple:
+    """The board's periods (px) along the image's columns and along its rows (two arrays) at the centre, corners
+    and edges of a ``size_px``^2 frame: a camera at a finite distance sees it smaller than ``pixel_mm`` says (its
+    rays spread on the way down), and smaller on the far side of the frame than on the near one."""
+    at = np.array([0.0, 0.5 * (size_px - 1), size_px - 2.0])
+    r, c = (np.repeat(at, 3), np.tile(at, 3))
+    px0, py0 = geometry.flat_pattern_point(r, c, (size_px, size_px))
+    px1, py1 = geometry.flat_pattern_point(r, c + 1.0, (size_px, size_px))
+    px2, py2 = geometry.flat_pattern_point(r + 1.0, c, (size_px, size_px))
+    return (period_mm / np.hypot(px1 - px0, py1 - py0),
+            period_mm * (geometry.pattern_stretch_y or 1.0) / np.hypot(px2 - px0, py2 - py0))
+
+
 def _check_period(period_mm: float, geometry, size_px: int) -> None:
-    """A clear error where the geometry's ``pattern_period_mm`` cannot be simulated on ``size_px``^2."""
-    along_x = period_mm / geometry.pixel_mm
-    along_y = along_x * (geometry.pattern_stretch_y or 1.0) * math.cos(math.radians(geometry.theta_deg)) \
-        if geometry.setup == "tir" else along_x * (geometry.pattern_stretch_y or 1.0)
-    finest, coarsest = min(along_x, along_y), max(along_x, along_y)
+    """A clear error where the geometry's ``pattern_period_mm`` cannot be simulated on ``size_px``^2: the board
+    too fine or too coarse for the frame, or (a camera at a finite distance) its period changing across the
+    frame more than the carrier search takes in one peak."""
+    from processing import forward
+    from processing.carriers import find_carriers
+    from processing.errors import NoCarrierError
+
+    along = _board_px(period_mm, geometry, size_px)
+    finest, coarsest = float(min(a.min() for a in along)), float(max(a.max() for a in along))
+    board = (f"pattern_period_mm = {period_mm:g}" if geometry.pattern_period_mm else
+             f"the default board ({SIM_PATTERN_PERIOD_PX:g} px at pixel_mm, {period_mm:g} mm)")
+    key = "camera_distance_mm" if geometry.setup == "tir" else "fsss_camera_distance_mm"
+    distance = getattr(geometry, key)
+    seen = "" if distance is None else f" and a camera {distance:g} mm away, which sees the board smaller"
     if finest < SIM_MIN_PERIOD_PX:
         raise TirdeflectError(
-            f"pattern_period_mm = {period_mm:g} is {finest:.1f} px along the image's finer axis at pixel_mm = "
-            f"{geometry.pixel_mm:g}: below {SIM_MIN_PERIOD_PX:g} px the camera cannot resolve the board; "
-            f"give a longer period (at least {SIM_MIN_PERIOD_PX * period_mm / finest:.3g} mm)")
+            f"{board} is {finest:.1f} px along the image's finer axis at pixel_mm = {geometry.pixel_mm:g}{seen}: "
+            f"below {SIM_MIN_PERIOD_PX:g} px the camera cannot resolve the board; give a longer period (at least "
+            f"{SIM_MIN_PERIOD_PX * period_mm / finest:.3g} mm as pattern_period_mm)"
+            + (" or a more distant camera" if distance is not None else ""))
     if coarsest * SIM_MIN_PERIODS > size_px:
         raise TirdeflectError(
-            f"pattern_period_mm = {period_mm:g} is {coarsest:.1f} px: a {size_px} px frame holds fewer than "
+            f"{board} is {coarsest:.1f} px: a {size_px} px frame holds fewer than "
             f"{SIM_MIN_PERIODS} periods, too few for the carrier search; give a shorter period or a larger --size")
+    if distance is None:
+        return
+    pattern = forward.Checkerboard(period_mm=period_mm, edge_softness_mm=geometry.pixel_mm,
+                                   stretch_y=geometry.pattern_stretch_y or 1.0)
+    flat, _ = forward.render(forward.FlatSurface(), geometry, (size_px, size_px), pattern, supersample=1)
+    try:
+        find_carriers(np.asarray(flat, np.float32))
+    except NoCarrierError:
+        axis = int(np.argmax([a.max() / a.min() for a in along]))
+        raise TirdeflectError(
+            f"a camera {distance:g} mm away sees {board} at {along[axis].min():.1f} to {along[axis].max():.1f} px "
+            f"along the image's {('columns', 'rows')[axis]} across the frame (perspective), a spread the carrier "
+            f"search cannot take as one peak; give a more distant camera ({key}), a longer period or a smaller "
+            f"--size") from None
 
 
 #: Rays a simulated frame traces per carrier period of its board, along each axis, at least
