@@ -21,6 +21,9 @@ class GridChain:
     turn_band_px = 0.0
     #: The pin region of the chain's grid for the turn check's saddle (set by the subclass; None: the geometry's).
     turn_reference_mask = None
+    #: What the reference's board says of the geometry short of refusing it (a period 2-4.5 % off the
+    #: geometry's: :func:`processing.carriers.check_board_period`); "" when nothing (set by the subclass).
+    board_note = ""
 
     def judge_turn(self, u, valid):
         """``(u, turn)``: the :class:`processing.turn.TurnCheck` of the grid's displacement ``u`` on its

@@ -80,7 +80,7 @@ class CheckerboardChain(GridChain):
         self.shape = ref.shape
         self.planner = FFTPlanner(threads=o.threads, planner_effort=o.planner_effort)
         self.carriers = carriers if carriers is not None else find_reference_carriers(ref)
-        check_board_period(geometry, self.carriers, ref.shape)
+        self.board_note = check_board_period(geometry, self.carriers, ref.shape, reference=ref)
         self.demod = d = Demodulator(ref, self.carriers, planner=self.planner, filter_radius=o.filter_radius,
                                      filter_flat=o.filter_flat, filter_shape=o.filter_shape,
                                      oversample=o.oversample, border=o.border, subbin=o.subbin)

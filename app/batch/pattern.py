@@ -50,7 +50,13 @@ more surface (features of 25-45 px lose ~4 % of their amplitude at 11-20 px
 periods, notes.md) and fewer periods fit the field. The period chosen puts
 the geometric mean of the two image periods at :data:`TARGET_PERIOD_PX`
 (14 px), rounded to 0.05 mm; for the stretched board (equal periods) both
-at 14 px.
+at 14 px. A camera at a finite distance ``D`` (``--camera-distance-mm``) sees
+the board, ``H / cos(theta)`` beyond the surface, smaller by ``m = D / (D +
+H / cos(theta))`` at the image centre (the geometry's two magnifications,
+notes.md): the periods above are divided by ``m``'s effect, ``s / m`` in place
+of ``s`` (by-hand trial of 7 Dec 2026: a suggestion of 18.8 / 10.8 px, made for
+a telecentric lens, showed 13.9 / 8.0 px to a camera 1500 mm away). Without it
+the suggestion says that it assumes a telecentric lens.
 """
 
 from __future__ import annotations
@@ -63,7 +69,7 @@ import numpy as np
 
 from processing.errors import TirdeflectError
 
-__all__ = ["PatternSpec", "Suggestion", "suggest_period", "write_pattern", "MM_TO_PT",
+__all__ = ["PatternSpec", "Suggestion", "suggest_period", "board_shrink", "write_pattern", "MM_TO_PT",
            "RULER_MM", "TARGET_PERIOD_PX", "MIN_PERIOD_PX", "MAX_PERIOD_PX", "MIN_SQUARE_MM",
            "MAX_SQUARES", "PDF_MAX_PAGE_MM", "PNG_MAX_BYTES", "png_bytes_needed"]
 
@@ -435,6 +441,26 @@ class Suggestion:
     board_mm: tuple  # suggested board size (x, y), mm
     wrap_slope_x: float  # largest |dh/dx| before the x-carrier phase wraps (no unwrapping)
     warnings: list = field(default_factory=list)
+    camera_distance_mm: float | None = None  # None: a telecentric lens
+
+    @property
+    def board_shrink(self) -> float:
+        """How much smaller the camera sees the board than the surface at the image centre: ``D / (D +
+        H / cos(theta))``, 1 for a telecentric lens."""
+        return board_shrink(self.theta_deg, self.depth_mm, self.camera_distance_mm)
+
+    def _camera_line(self) -> str:
+        beyond = self.depth_mm / math.cos(math.radians(self.theta_deg))
+        if self.camera_distance_mm is None:
+            example = board_shrink(self.theta_deg, self.depth_mm, 1500.0)
+            return (f"camera: this suggestion assumes a telecentric lens (no --camera-distance-mm); a camera at a "
+                    f"finite distance D sees the board, H / cos(theta) = {beyond:.4g} mm beyond the surface, "
+                    f"smaller by D / (D + {beyond:.4g} mm) ({example:.3f} at 1500 mm): give --camera-distance-mm D "
+                    f"(camera_distance_mm in the geometry) for its periods")
+        return (f"camera {self.camera_distance_mm:g} mm away: it sees the board, H / cos(theta) = {beyond:.4g} mm "
+                f"beyond the surface, smaller by {self.board_shrink:.4f} at the image centre, so the periods "
+                f"are for {self.pixel_mm / self.board_shrink:.4g} mm of board per column (pixel_mm / "
+                f"{self.board_shrink:.4f}); they change across the image (keystone)")
 
     def lines(self) -> list:
         sx, sy = self.period_px_square
@@ -442,7 +468,8 @@ class Suggestion:
         out = [
             f"rule: image periods between {MIN_PERIOD_PX:g} and {MAX_PERIOD_PX:g} px along both image "
             f"axes, geometric mean {TARGET_PERIOD_PX:g} px (square board: x-period P/s, y-period "
-            f"P cos(theta)/s; s = {self.pixel_mm:g} mm per column)",
+            f"P cos(theta)/s; s = {self.pixel_mm / self.board_shrink:.4g} mm "
+            f"{'per column' if self.camera_distance_mm is None else 'of board per column at the image centre'})",
             f"suggested period: {self.period_mm:g} mm (squares {self.period_mm / 2:g} mm); set "
             f"pattern_period_mm = {self.period_mm:g} in the geometry, and the reference is checked against pixel_mm",
             f"  square board:    {sx:.1f} px per period along x (columns), {sy:.1f} px along y (rows)",
@@ -457,27 +484,40 @@ class Suggestion:
             f"{self.board_mm[1]:g} mm (field + 20 %)",
             f"phase of the x-carrier wraps at |dh/dx| = {self.wrap_slope_x:.2e} (P / 4H at H = "
             f"{self.depth_mm:g} mm); steeper waves need unwrapping (on by default)",
+            self._camera_line(),
         ]
         return out + [f"warning: {w}" for w in self.warnings]
 
 
-def suggest_period(theta_deg: float, depth_mm: float, pixel_mm: float, camera: tuple) -> Suggestion:
+def board_shrink(theta_deg: float, depth_mm: float, camera_distance_mm: float | None) -> float:
+    """``D / (D + H / cos(theta))``: how much smaller a camera ``D`` mm away sees the board than the surface at
+    the image centre (1: a telecentric lens, ``D`` None)."""
+    if camera_distance_mm is None:
+        return 1.0
+    return camera_distance_mm / (camera_distance_mm + depth_mm / math.cos(math.radians(theta_deg)))
+
+
+def suggest_period(theta_deg: float, depth_mm: float, pixel_mm: float, camera: tuple,
+                   camera_distance_mm: float | None = None) -> Suggestion:
     """Period (mm) putting the geometric mean of the two image periods at
-    :data:`TARGET_PERIOD_PX`, rounded to 0.05 mm (rule in the module docstring)."""
+    :data:`TARGET_PERIOD_PX`, rounded to 0.05 mm (rule in the module docstring), for a telecentric lens
+    (``camera_distance_mm`` None) or a camera that far from the surface centre."""
     if not (N_CRITICAL_DEG < theta_deg < 90):
         raise TirdeflectError(f"--theta-deg must be above the critical angle {N_CRITICAL_DEG:.1f} deg "
                               f"(total internal reflection) and below 90; got {theta_deg:g}")
-    for name, value in (("--depth-mm", depth_mm), ("--pixel-mm", pixel_mm)):
+    for name, value in (("--depth-mm", depth_mm), ("--pixel-mm", pixel_mm)) + (
+            (("--camera-distance-mm", camera_distance_mm),) if camera_distance_mm is not None else ()):
         if not (math.isfinite(value) and value > 0):
             raise TirdeflectError(f"{name} must be a positive number of mm; got {value:g}")
     cols, rows = camera
     c = math.cos(math.radians(theta_deg))
+    board_px_mm = pixel_mm / board_shrink(theta_deg, depth_mm, camera_distance_mm)  # board mm per column
     # square board: x = P/s, y = P c/s; geometric mean P sqrt(c)/s = target
-    period = TARGET_PERIOD_PX * pixel_mm / math.sqrt(c)
+    period = TARGET_PERIOD_PX * board_px_mm / math.sqrt(c)
     period = max(0.05, round(period / 0.05) * 0.05)
-    square = (period / pixel_mm, period * c / pixel_mm)
-    period_st = max(0.05, round(TARGET_PERIOD_PX * pixel_mm / 0.05) * 0.05)
-    stretched = (period_st / pixel_mm, period_st / pixel_mm)
+    square = (period / board_px_mm, period * c / board_px_mm)
+    period_st = max(0.05, round(TARGET_PERIOD_PX * board_px_mm / 0.05) * 0.05)
+    stretched = (period_st / board_px_mm, period_st / board_px_mm)
     field_mm = (cols * pixel_mm, rows * pixel_mm / c)
     board = tuple(float(math.ceil(1.2 * v / 10.0) * 10) for v in field_mm)
     warnings = []
@@ -489,4 +529,4 @@ def suggest_period(theta_deg: float, depth_mm: float, pixel_mm: float, camera: t
         warnings.append("fewer than 10 periods fit across the image: the carrier search needs about ten; "
                         "use more pixels or a smaller pixel_mm")
     return Suggestion(period, theta_deg, pixel_mm, depth_mm, (cols, rows), square, period_st, stretched, 1 / c,
-                      field_mm, board, period / (4 * depth_mm), warnings)
+                      field_mm, board, period / (4 * depth_mm), warnings, camera_distance_mm)

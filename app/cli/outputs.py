@@ -194,6 +194,9 @@ def add_pattern_parser(sub) -> None:
     p.add_argument("--depth-mm", type=positive_number("mm"), default=None, help="pattern depth below the surface H, mm")
     p.add_argument("--pixel-mm", type=positive_number("mm"), default=None, help="surface mm per image column")
     p.add_argument("--camera", type=_camera, default=None, metavar="WxH", help="image size in pixels")
+    p.add_argument("--camera-distance-mm", type=positive_number("mm"), default=None, metavar="D",
+                   help="distance from the lens to the centre of the surface, mm (camera_distance_mm in the "
+                   "geometry); omitted: a telecentric lens, which the suggestion then says it assumes")
     p.set_defaults(func=cmd_pattern)
 
 
@@ -208,13 +211,14 @@ def cmd_pattern(args) -> int:
                    if value is None]
         if missing:
             raise TirdeflectError(f"--suggest needs {', '.join(missing)}")
-        s = suggest_period(args.theta_deg, args.depth_mm, args.pixel_mm, args.camera)
+        s = suggest_period(args.theta_deg, args.depth_mm, args.pixel_mm, args.camera, args.camera_distance_mm)
         for line in s.lines():
             print(line)
         if period is None:
             period = s.period_mm if stretch == 1.0 else s.period_stretched_mm
         note = (f"for theta {args.theta_deg:g} deg, H {args.depth_mm:g} mm, {args.pixel_mm:g} mm/px, "
-                f"{args.camera[0]}x{args.camera[1]} px")
+                f"{args.camera[0]}x{args.camera[1]} px, "
+                + ("telecentric" if args.camera_distance_mm is None else f"camera {args.camera_distance_mm:g} mm"))
         if args.out is None:
             return 0
     if period is None or args.size_mm is None or args.out is None:

@@ -174,6 +174,13 @@ def rebuild_reconstructor(w):
             w.show_error(saturated[1][0].upper() + saturated[1][1:])
             state.reference_in_use(w)
             return
+        board = rec.chain.board_note  # the board 2-4.5 % off the geometry's: heights off by what the note says
+        if board and not problem and not departure:
+            w.geometry_panel.reference_label.setText(text + " — BOARD PERIOD OFF")
+            w.geometry_panel.reference_label.setStyleSheet("color: #c00000; font-weight: bold")
+            w.show_error(board[0].upper() + board[1:])
+            state.reference_in_use(w)
+            return
         if departure and not problem:  # every height measured against the waves it holds: red, no tick
             w.geometry_panel.reference_label.setText(text + " — WATER MOVING?")
             w.geometry_panel.reference_label.setStyleSheet("color: #c00000; font-weight: bold")

@@ -138,7 +138,7 @@ def test_a_pixel_size_that_the_board_contradicts_is_refused(sim, tmp_path, capsy
     assert "pattern_period_mm = 2.0" in (sim / "geometry.toml").read_text()
     g = _edit_toml(sim, tmp_path, lambda t: _replace_key(t, "pixel_mm", "0.2"))
     code, err = run_cli(capsys, *process_args(sim, tmp_path, geometry=g))
-    line = assert_clean_error(code, err, "pattern_period_mm = 2", "period of 4 mm", "pixel_mm should be 0.1;")
+    line = assert_clean_error(code, err, "pattern_period_mm = 2", "period of 4 mm", "pixel_mm = 0.1 (the rest kept)")
     assert "300 % off" in line
     assert not (tmp_path / "out.h5").exists()
 

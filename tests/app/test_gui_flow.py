@@ -165,7 +165,7 @@ def test_a_scale_that_contradicts_the_board_period_makes_the_reference_unusable(
     _type_into(qtbot, gp.pixel, "0.1")
     qtbot.waitUntil(lambda: w.last_error is not None and "Bad reference" in w.last_error, timeout=30000)
     assert "pattern_period_mm = 0.9375" in w.last_error and "64 % off" in w.last_error
-    implied = float(w.last_error.split("pixel_mm should be ")[1].split(";")[0])
+    implied = float(w.last_error.split("that period: pixel_mm = ")[1].split(" (the rest kept)")[0])
     assert implied == pytest.approx(0.078125, rel=0.002)
     assert gp.reference_label.text() == "reference NOT usable"
     assert w.banner.isVisible()

@@ -760,7 +760,7 @@ def test_a_reference_refused_for_its_geometry_says_so_on_the_maps_and_the_geomet
     qtbot.mouseClick(w.geometry_panel.load_geo_button, QtCore.Qt.LeftButton)
     _until(qtbot, lambda: "NOT usable" in w.geometry_panel.reference_label.text(),
            lambda: f"reference label {w.geometry_panel.reference_label.text()!r}", 30000)
-    assert "pixel_mm should be" in (w.last_error or "")
+    assert "that period: pixel_mm = " in (w.last_error or "")
     assert "does not fit the reference" in w.geometry_panel.geometry_label.text()
     said = w.height_view.message.text
     _until(qtbot, lambda: "the reference is NOT usable: the reference's checkerboard has a period of" in said(),

@@ -282,3 +282,34 @@ def test_png_memory_is_what_png_bytes_needed_says(tmp_path):
     need = png_bytes_needed(PatternSpec(2.0, 420.0, 297.0), 600.0)
     _, _, base, _ = _cli_peak("pattern", "--period-mm", "2", "--size-mm", "420,297", "--out", tmp_path / "a.pdf")
     assert peak - base < 1.2 * need, (peak, base, need)
+
+
+@pytest.mark.parametrize("distance_mm", [None, 1500.0, 800.0])
+def test_suggest_knows_the_camera_distance_and_says_when_it_assumes_a_telecentric_lens(distance_mm):
+    """By-hand trial of 7 Dec 2026 (F5): --suggest had no camera distance and promised 18.8 / 10.8 px where a
+    camera 1500 mm away sees 13.9 / 8.0 px. With --camera-distance-mm the periods it states are the ones a
+    ray-traced view of its board shows at the image centre; without it, it says it assumes a telecentric lens."""
+    from processing import Geometry, forward
+    from processing.carriers import find_carriers
+
+    argv = ["pattern", "--suggest", "--theta-deg", "55", "--depth-mm", "300", "--pixel-mm", "0.08",
+            "--camera", "256x256"] + ([] if distance_mm is None else ["--camera-distance-mm", distance_mm])
+    r = _cli(*argv)
+    assert r.returncode == 0, r.stderr
+    assumes = "this suggestion assumes a telecentric lens (no --camera-distance-mm)"
+    assert (assumes in r.stdout) == (distance_mm is None), r.stdout
+    period_mm = float(re.search(r"suggested period: ([\d.]+) mm", r.stdout).group(1))
+    px_x, px_y = (float(v) for v in re.search(r"square board: +([\d.]+) px per period along x \(columns\), "
+                                              r"([\d.]+) px along y", r.stdout).groups())
+    assert math.sqrt(px_x * px_y) == pytest.approx(14.0, rel=0.05)
+    s = suggest_period(55.0, 300.0, 0.08, (256, 256), distance_mm)
+    assert s.period_mm == period_mm
+    geometry = Geometry.from_dict({"setup": "tir", "theta_deg": 55.0, "depth_mm": 300.0, "pixel_mm": 0.08,
+                                   "rows_toward_camera": False,
+                                   **({} if distance_mm is None else {"camera_distance_mm": distance_mm})})
+    image, _ = forward.render(forward.FlatSurface(), geometry, (256, 256),
+                              forward.Checkerboard(period_mm=period_mm, edge_softness_mm=0.08), supersample=3)
+    f_row, f_col = np.abs(np.asarray(find_carriers(image).freq)).max(axis=0)
+    assert 1 / f_col == pytest.approx(px_x, rel=0.02) and 1 / f_row == pytest.approx(px_y, rel=0.02)
+    r = _cli(*argv[:-2], "--camera-distance-mm", "-5") if distance_mm else None
+    assert r is None or (r.returncode == 2 and "--camera-distance-mm" in r.stderr)
