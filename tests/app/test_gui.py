@@ -558,6 +558,29 @@ def test_a_reference_file_averaged_over_moving_water_is_said_and_not_ticked(qtbo
                     and window.last_drawn.seq > seq, timeout=15000)  # measured all the same
 
 
+def test_a_board_a_few_per_cent_off_the_geometrys_is_said_beside_the_reference(qtbot, window, scene, tmp_path):
+    """The geometry's printed board 3 % longer than the one the reference shows through pixel_mm (a pixel size a
+    little off: heights about 6 % off): measured, but the label gets no tick; it says BOARD PERIOD OFF in red and
+    the message gives both periods and the keys that set the board's scale, as `tirdeflect process` notes it."""
+    import tifffile
+
+    from processing import Geometry
+
+    geometry = scene["geometry"]
+    printed = Geometry.from_dict(dict(geometry.to_dict(), pattern_period_mm=1.03 * 12 * geometry.pixel_mm))
+    window.use_camera(SyntheticCamera(Switchable(scene["flat"]), frame_rate_hz=100.0), geometry=printed)
+    tifffile.imwrite(tmp_path / "flat.tif", scene["flat"])
+    window.load_reference(str(tmp_path / "flat.tif"))
+    label = window.geometry_panel.reference_label
+    qtbot.waitUntil(lambda: "BOARD PERIOD OFF" in label.text(), timeout=30000)
+    assert "✓" not in label.text() and "c00000" in label.styleSheet()
+    said = [e for e in window.errors if "The reference's checkerboard has a period of" in e]
+    assert said and "3.0 % apart" in said[-1] and "pixel_mm" in said[-1], window.errors
+    seq = window.clock.last_raw_seq
+    qtbot.waitUntil(lambda: window.last_drawn is not None and window.last_drawn.result is not None
+                    and window.last_drawn.seq > seq, timeout=15000)  # measured all the same
+
+
 def test_a_colour_cameras_raw_mosaic_is_equalised_and_named_on_the_reference_label(qtbot, window, scene, tmp_path):
     """A colour camera read raw (its Bayer filter: sub-grids at gains 1 / 0.6 / 0.6 / 0.4 under white
     light), the camera and the reference file alike: before 7 Dec 2026 the reference's defect search
