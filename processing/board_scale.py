@@ -162,7 +162,8 @@ def _row_change(differences, carrier_freq) -> str:
 
 
 def keystone_message(geometry, keystone: Keystone, carrier_freq, frame_shape) -> str:
-    """The refusal of a reference whose keystone is not the declared camera's (TIR)."""
+    """The note on a reference whose keystone is not the declared camera's (TIR): the camera it implies, and that
+    a water surface not flat when it was taken does the same."""
     declared = ("a telecentric lens (no camera_distance_mm)" if geometry.camera_distance_mm is None
                 else f"camera_distance_mm = {geometry.camera_distance_mm:g}")
     side = "true" if geometry.rows_toward_camera else "false"
@@ -182,4 +183,7 @@ def keystone_message(geometry, keystone: Keystone, carrier_freq, frame_shape) ->
             f"or the rows the wrong way round puts every height off (by-hand trial of 7 Dec 2026: 3-4 % with "
             f"rows_toward_camera reversed, 26 % with a camera 1500 mm away declared telecentric, 232 % with "
             f"its distance typed in cm). Measure the distance from the lens to the centre of the surface in mm "
-            f"and {fix}, or check pixel_mm (the keystone measures pixel_mm / camera_distance_mm)")
+            f"and {fix}, or check pixel_mm (the keystone measures pixel_mm / camera_distance_mm); where the "
+            f"camera is as declared, the water was not flat when the reference was taken (still moving, or "
+            f"curved: a meniscus, a slow slosh), which changes the board's period across the image as a camera "
+            f"does: take the reference again on still water")

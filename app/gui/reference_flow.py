@@ -174,9 +174,9 @@ def rebuild_reconstructor(w):
             w.show_error(saturated[1][0].upper() + saturated[1][1:])
             state.reference_in_use(w)
             return
-        board = rec.chain.board_note  # the board 2-4.5 % off the geometry's: heights off by what the note says
+        board = rec.chain.board_note  # the board 2-4.5 % off the geometry's, or a keystone not its camera's
         if board and not problem and not departure:
-            w.geometry_panel.reference_label.setText(text + " — BOARD PERIOD OFF")
+            w.geometry_panel.reference_label.setText(text + " — CHECK THE GEOMETRY")
             w.geometry_panel.reference_label.setStyleSheet("color: #c00000; font-weight: bold")
             w.show_error(board[0].upper() + board[1:])
             state.reference_in_use(w)

@@ -76,10 +76,12 @@ def test_a_pixel_size_3_percent_off_goes_on_with_a_note(sims, tmp_path, capsys):
     (TIR.replace("false", "true") + "pixel_mm = 0.1\ncamera_distance_mm = 1500.0\n",
      r"set camera_distance_mm = 1[45]\d\d and rows_toward_camera = false"),  # silent 3.3-4.2 %
 ])
-def test_a_wrong_camera_is_refused_with_the_one_the_reference_shows(sims, tmp_path, capsys, toml, says):
-    """F6: the reference's keystone shows the camera; nothing checked it. (Needs the chain to pass the
-    reference to check_board_period.)"""
+def test_a_wrong_camera_is_named_with_the_one_the_reference_shows(sims, tmp_path, capsys, toml, says):
+    """F6: the reference's keystone shows the camera; nothing checked it. Named before the run and in its notes,
+    not refused: a water surface not flat at the reference changes the period across the image as a camera does
+    (frames averaged over waves read as a camera 3565 mm away), and the heights are measured all the same."""
     code, err = _process(capsys, tmp_path, sims["cam"], toml)
-    assert code == 2 and "the reference's perspective is not the declared camera's" in err and re.search(says, err), err
+    assert code == 0 and "note: the reference's perspective is not the declared camera's" in err, err
+    assert re.search(says, err), err
     code, err = _process(capsys, tmp_path, sims["cam"], TIR + "pixel_mm = 0.1\ncamera_distance_mm = 1500.0\n")
     assert code == 0, err

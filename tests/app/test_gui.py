@@ -560,7 +560,7 @@ def test_a_reference_file_averaged_over_moving_water_is_said_and_not_ticked(qtbo
 
 def test_a_board_a_few_per_cent_off_the_geometrys_is_said_beside_the_reference(qtbot, window, scene, tmp_path):
     """The geometry's printed board 3 % longer than the one the reference shows through pixel_mm (a pixel size a
-    little off: heights about 6 % off): measured, but the label gets no tick; it says BOARD PERIOD OFF in red and
+    little off: heights about 6 % off): measured, but the label gets no tick; it says CHECK THE GEOMETRY in red and
     the message gives both periods and the keys that set the board's scale, as `tirdeflect process` notes it."""
     import tifffile
 
@@ -572,7 +572,7 @@ def test_a_board_a_few_per_cent_off_the_geometrys_is_said_beside_the_reference(q
     tifffile.imwrite(tmp_path / "flat.tif", scene["flat"])
     window.load_reference(str(tmp_path / "flat.tif"))
     label = window.geometry_panel.reference_label
-    qtbot.waitUntil(lambda: "BOARD PERIOD OFF" in label.text(), timeout=30000)
+    qtbot.waitUntil(lambda: "CHECK THE GEOMETRY" in label.text(), timeout=30000)
     assert "✓" not in label.text() and "c00000" in label.styleSheet()
     said = [e for e in window.errors if "The reference's checkerboard has a period of" in e]
     assert said and "3.0 % apart" in said[-1] and "pixel_mm" in said[-1], window.errors

@@ -88,10 +88,9 @@ def camera_1500():
 def test_a_wrong_camera_is_named_with_the_one_the_reference_shows(camera_1500, change, says):
     g, image, carriers = camera_1500
     wrong = dataclasses.replace(g, **change)
-    with pytest.raises(GeometryError) as err:
-        check_board_period(wrong, carriers, image.shape, reference=image)
-    msg = str(err.value)
+    msg = check_board_period(wrong, carriers, image.shape, reference=image)  # a note: a curved surface does the same
     assert re.search(r"shows a camera about 1[45]\d\d mm away", msg) and re.search(says, msg), msg
+    assert "the water was not flat when the reference was taken" in msg, msg
     # without the reference (a caller that passes none), only the board period is judged
     if wrong.pattern_period_mm is None or "rows_toward_camera" in change:
         assert check_board_period(wrong, carriers, image.shape) == ""
@@ -129,8 +128,7 @@ def test_a_depth_in_cm_names_depth_among_the_keys(camera_1500):
     msg = str(err.value)
     assert "theta_deg, camera_distance_mm and depth_mm" in msg and "or depth_mm = 300 (the rest kept)" in msg, msg
     followed = dataclasses.replace(wrong, pixel_mm=0.1303)
-    with pytest.raises(GeometryError, match="shows a camera about 19"):
-        check_board_period(followed, carriers, image.shape, reference=image)
+    assert "shows a camera about 19" in check_board_period(followed, carriers, image.shape, reference=image)
 
 
 @pytest.mark.parametrize("pixel_mm, outcome", [(0.1, ""), (0.1015, ""), (0.103, "note"), (0.097, "note"),
