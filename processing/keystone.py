@@ -14,12 +14,13 @@ the carriers' length: :class:`Keystone`.
 The camera that the reference implies is the one whose predicted differences come nearest the measured
 ones: ``q = +-1 / camera_distance_mm`` (0: telecentric; the sign: ``rows_toward_camera``) searched over
 every distance :meth:`~processing.camera_model.CameraModel.check_frame` accepts (:func:`implied_camera`).
-A clear mismatch is refused (:func:`processing.carriers.check_board_period`), not noted: every one the
-bounds let through costs heights several % at least (by-hand trial of 7 Dec 2026: 3.3-4.2 % with
-rows_toward_camera reversed, 26 % with a camera 1500 mm away declared telecentric, 232 % with its distance
-typed in cm; measured on its 256^2 bump: 6.6 % with 1200 mm declared, 5.1 % with 1875 mm), while right
-geometries stay at a sixth of the bound (ray traced) and under half of it (real references,
-:data:`KEYSTONE_MIN_MISMATCH`).
+A clear mismatch is named (:func:`processing.carriers.check_board_period`'s note, not a refusal: a water
+surface not flat at the reference, frames averaged over waves, changes the period across the image as a camera
+does, read as a camera 3565 mm away); every one the bounds let through costs heights several % at least
+(by-hand trial of 7 Dec 2026: 3.3-4.2 % with rows_toward_camera reversed, 26 % with a camera 1500 mm away
+declared telecentric, 232 % with its distance typed in cm; measured on its 256^2 bump: 6.6 % with 1200 mm
+declared, 5.1 % with 1875 mm), while right geometries stay at a sixth of the bound (ray traced) and under half
+of it (real references, :data:`KEYSTONE_MIN_MISMATCH`).
 """
 
 from __future__ import annotations
