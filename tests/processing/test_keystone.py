@@ -13,7 +13,7 @@ import tifffile
 from processing import Geometry, forward
 from processing.carriers import BOARD_PERIOD_TOLERANCE, check_board_period, find_carriers
 from processing.errors import GeometryError
-from processing.keystone import KEYSTONE_MIN_MISMATCH, keystone_check
+from processing.keystone import KEYSTONE_MIN_MISMATCH, camera_of, implied_camera, keystone_check
 from tests.datapaths import NEEDLE, TRAPPED
 
 TIR = {"setup": "tir", "theta_deg": 55.0, "depth_mm": 300.0, "pixel_mm": 0.1, "rows_toward_camera": False}
@@ -48,7 +48,8 @@ def test_a_right_geometry_is_never_named_and_the_camera_is_found(n, distance_mm,
         image, carriers = _reference(g, n, period_mm, rotation_deg)
         k = keystone_check(g, image, carriers)
         assert k is not None and not k.wrong and k.mismatch < KEYSTONE_MIN_MISMATCH / 5, k
-        seen, rows = k.implied
+        assert k.implied == (distance_mm, rows_toward_camera)  # (the declared camera fits: taken without a search)
+        seen, rows = camera_of(g, implied_camera(g, k.measured, np.asarray(carriers.freq), image.shape)[0])
         if distance_mm is None:
             assert seen is None or seen > 20_000, seen
         else:
