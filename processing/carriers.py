@@ -434,15 +434,44 @@ def check_pattern_match(carriers: Carriers, frame, *, period_tol: float = 0.04,
     # The frame's two peaks may come in the other order.
     rel_a, ang_a = match_error(carriers, found.freq)
     rel_b, ang_b = match_error(carriers, found.freq[::-1])
-    rel, ang = (rel_a, ang_a) if max(rel_a, ang_a / 90) <= max(rel_b, ang_b / 90) else (rel_b, ang_b)
+    in_order = max(rel_a, ang_a / 90) <= max(rel_b, ang_b / 90)
+    rel, ang = (rel_a, ang_a) if in_order else (rel_b, ang_b)
     if rel > period_tol or ang > rotation_tol_deg:
         raise PatternMismatchError(
             f"the frame's pattern does not match the reference: measured {found.describe()}; "
             f"expected {carriers.describe()} (periods differ by {100 * rel:.1f} %, carrier "
             f"directions by {ang:.1f} deg; tolerance {100 * period_tol:.0f} % and "
             f"{rotation_tol_deg:.0f} deg). Record a new reference for this pattern, "
-            "camera position and zoom")
+            "camera position and zoom" + _zoom_words(carriers, found.freq if in_order else found.freq[::-1],
+                                                    rotation_tol_deg))
     return found
+
+
+def _zoom_words(expected: Carriers, measured_freq, rotation_tol_deg: float) -> str:
+    """The words a refused frame gets where its two carriers kept their directions (within ``rotation_tol_deg``)
+    and changed their periods alike (a zoom, or a stretch along the rows or columns, which changes both carriers of
+    a board seen at +-45 deg alike): then it may be no other pattern but the same one magnified, and the cause may
+    be the water.
+    By-hand trial of 7 Dec 2026: a gentle bump wider than a 128^2 field (5 um, sigma 10 mm) magnified the board
+    6.5 % and was refused as another pattern with only "record a new reference"."""
+    ratios = []
+    for s in range(2):
+        e, m = np.asarray(expected.freq[s]), np.asarray(measured_freq[s])
+        if np.dot(e, m) < 0:
+            m = -m
+        d = math.degrees(math.atan2(e[0] * m[1] - e[1] * m[0], float(np.dot(e, m))))
+        if abs(d) > rotation_tol_deg:
+            return ""
+        ratios.append(float(np.hypot(*m) / np.hypot(*e)))  # frequency measured / expected (match_error's)
+    change = 1.0 - 0.5 * (ratios[0] + ratios[1])  # above 0: longer periods, the board larger in the frame
+    if abs(ratios[0] - ratios[1]) > 0.25 * abs(change):
+        return ""
+    how = "magnified" if change > 0 else "shrunk"
+    return (f". Both periods changed alike, their directions within {rotation_tol_deg:g} deg: the same board {how} "
+            f"by {100 * abs(change):.1f} % (alike, or more along one axis), as the lens refocused or the camera "
+            "moved along its axis would, or as a water surface curved over the whole view does (a bump or dip wider "
+            "than the field acts as a lens, more along the rows than the columns in TIR, which no single frame "
+            "tells from a zoom): if the water is what curves, measure a field larger than the feature")
 
 
 def _tukey(n, taper):

@@ -136,6 +136,25 @@ def test_pattern_mismatch_rotated_synthetic():
         check_pattern_match(find_carriers(ref), board((256, 256), 16.0, 6.0))
 
 
+def test_a_board_magnified_alike_is_said_to_be_a_zoom_or_a_curved_surface_not_only_another_pattern():
+    """A frame whose board is the reference's magnified 6.5 % (both periods alike, directions kept): a lens refocused,
+    the camera moved along its axis, or a water surface curved over the whole view (by-hand trial of 7 Dec 2026: a 5 um
+    bump wider than a 128^2 field, told only "record a new reference"). Refused still (one frame cannot tell a
+    curved surface from a zoom), the message names both; so for a board stretched along one axis (what a surface
+    curved along the rows does in TIR); a board turned by 6 deg gets no such words."""
+    ref = board((256, 256), 16.0, 0.0)
+    with pytest.raises(PatternMismatchError, match=r"the same board magnified by 6\.\d %.* a water surface curved "
+                                                   r"over the whole view"):
+        check_pattern_match(find_carriers(ref), board((256, 256), 16.0 * 1.07, 0.0))
+    with pytest.raises(PatternMismatchError, match=r"the same board shrunk by 7\.0 %"):
+        check_pattern_match(find_carriers(ref), board((256, 256), 16.0 / 1.07, 0.0))
+    with pytest.raises(PatternMismatchError, match=r"the same board magnified by 4\.\d % \(alike, or more along one"):
+        check_pattern_match(find_carriers(ref), board((256, 256), 16.0, 0.0, aspect=1.1))
+    with pytest.raises(PatternMismatchError) as err:
+        check_pattern_match(find_carriers(ref), board((256, 256), 16.0, 6.0))
+    assert "same board" not in str(err.value), str(err.value)
+
+
 @pytest.mark.parametrize("cols", [300, 301])
 def test_display_spectrum_keeps_the_carrier_peak_where_it_is(cols):
     """A grating of known frequency peaks at that frequency in the display
