@@ -192,17 +192,21 @@ def match_error(expected: Carriers, measured_freq) -> tuple:
 
     ``measured_freq`` (2, 2) is matched carrier by carrier, up to sign.
     """
-    rel = 0.0
-    ang = 0.0
+    changes = _carrier_changes(expected, measured_freq)
+    return max(abs(ratio - 1.0) for ratio, _ in changes), max(abs(d) for _, d in changes)
+
+
+def _carrier_changes(expected: Carriers, measured_freq) -> list:
+    """Per carrier, ``(frequency ratio measured / expected, direction change deg)``, matched up to sign."""
+    out = []
     for s in range(2):
         e = np.asarray(expected.freq[s])
         m = np.asarray(measured_freq[s])
         if np.dot(e, m) < 0:
             m = -m
-        rel = max(rel, abs(np.hypot(*m) / np.hypot(*e) - 1.0))
-        d = math.degrees(math.atan2(e[0] * m[1] - e[1] * m[0], float(np.dot(e, m))))
-        ang = max(ang, abs(d))
-    return rel, ang
+        out.append((float(np.hypot(*m) / np.hypot(*e)),
+                    math.degrees(math.atan2(e[0] * m[1] - e[1] * m[0], float(np.dot(e, m))))))
+    return out
 
 
 #: A frame whose own carrier search fails (peaks smeared by strong deformation,
@@ -454,15 +458,10 @@ def _zoom_words(expected: Carriers, measured_freq, rotation_tol_deg: float) -> s
     be the water.
     By-hand trial of 7 Dec 2026: a gentle bump wider than a 128^2 field (5 um, sigma 10 mm) magnified the board
     6.5 % and was refused as another pattern with only "record a new reference"."""
-    ratios = []
-    for s in range(2):
-        e, m = np.asarray(expected.freq[s]), np.asarray(measured_freq[s])
-        if np.dot(e, m) < 0:
-            m = -m
-        d = math.degrees(math.atan2(e[0] * m[1] - e[1] * m[0], float(np.dot(e, m))))
-        if abs(d) > rotation_tol_deg:
-            return ""
-        ratios.append(float(np.hypot(*m) / np.hypot(*e)))  # frequency measured / expected (match_error's)
+    changes = _carrier_changes(expected, measured_freq)
+    if any(abs(d) > rotation_tol_deg for _, d in changes):
+        return ""
+    ratios = [ratio for ratio, _ in changes]  # frequency measured / expected
     change = 1.0 - 0.5 * (ratios[0] + ratios[1])  # above 0: longer periods, the board larger in the frame
     if abs(ratios[0] - ratios[1]) > 0.25 * abs(change):
         return ""
