@@ -38,7 +38,7 @@ __all__ = [
     "tile_origins",
     "hann",
     "check_pattern_match",
-    "check_board_period",
+    "check_board_period", "board_period_note", "keystone_note",
     "board_period_check",
     "BoardPeriodCheck",
     "BOARD_PERIOD_TOLERANCE", "BOARD_PERIOD_NOTE", "ROOT_TWO_BAND",
@@ -286,7 +286,44 @@ def board_period_check(geometry, period_mm: float) -> BoardPeriodCheck:
 
 def check_board_period(geometry, carriers: Carriers, frame_shape, reference=None) -> str:
     """Refuse a reference whose checkerboard is not the geometry's; return a note (or "") where the board is a
-    little off or, given the ``reference`` image, where its perspective is not the declared camera's.
+    little off or, given the ``reference`` image, where its perspective is not the declared camera's:
+    :func:`keystone_note` and :func:`board_period_note`, joined.
+
+    Raises
+    ------
+    GeometryError
+        As :func:`board_period_note`.
+    """
+    period = board_period_note(geometry, carriers, frame_shape, reference)  # (refuses first)
+    keystone = "" if reference is None else keystone_note(geometry, carriers, frame_shape, reference)
+    return "; ".join(n for n in (keystone, period) if n)
+
+
+def _keystone(geometry, reference, carriers: Carriers):
+    """:func:`processing.keystone.keystone_check` of a TIR reference; None for FS-SS, which looks straight down
+    (no key makes a keystone, nothing to judge)."""
+    from .keystone import keystone_check
+
+    return keystone_check(geometry, reference, carriers) if geometry.setup == "tir" else None
+
+
+def keystone_note(geometry, carriers: Carriers, frame_shape, reference) -> str:
+    """The note on a ``reference`` whose keystone is not the declared camera's
+    (:func:`processing.keystone.keystone_check`), "" where it is: a note, not a refusal, for a water surface
+    that was not flat when the reference was taken (frames averaged over waves: the board 1.9 % shorter in the
+    bottom third, read as a camera 3565 mm away) changes the board's period across the image as a camera
+    does.  0.02-0.12 s a reference (256^2-1024^2): only where the note is said, not in every chain built."""
+    from .board_scale import keystone_message
+
+    keystone = _keystone(geometry, reference, carriers)
+    if keystone is None or not keystone.wrong:
+        return ""
+    return keystone_message(geometry, keystone, carriers.freq, frame_shape)
+
+
+def board_period_note(geometry, carriers: Carriers, frame_shape, reference=None) -> str:
+    """Refuse a reference whose checkerboard is not the geometry's; return a note (or "") where the board is a
+    little off.
 
     Where ``geometry.pattern_period_mm`` is given, the period that the
     reference's ``carriers`` show through ``pixel_mm``, ``theta_deg`` and the
@@ -294,38 +331,25 @@ def check_board_period(geometry, carriers: Carriers, frame_shape, reference=None
     must agree with it within :data:`BOARD_PERIOD_TOLERANCE`
     (:func:`board_period_check`): heights scale with ``pixel_mm`` squared,
     and nothing else in a frame tells a wrong ``pixel_mm`` apart; from
-    :data:`BOARD_PERIOD_NOTE` up to it, a note says so. Given the
-    ``reference`` image, its keystone is compared with the declared camera's
-    (:func:`processing.keystone.keystone_check`), with or without
-    ``pattern_period_mm``: a mismatch is a note, not a refusal, for a water
-    surface that was not flat when the reference was taken (frames averaged over waves: the board 1.9 % shorter
-    in the bottom third, read as a camera 3565 mm away) changes the board's period across the image as a
-    camera does.
+    :data:`BOARD_PERIOD_NOTE` up to it, a note says so.
 
     Raises
     ------
     GeometryError
         Naming both periods, the keys that set the board's scale in the image
         (:func:`processing.board_scale.scale_keys`), the value of each that
-        would agree, and what the reference's keystone shows.
+        would agree, and, given the ``reference`` image, what its keystone shows.
     """
-    from .board_scale import keystone_message, scale_alternatives, scale_keys
-    from .keystone import keystone_check
+    from .board_scale import scale_alternatives, scale_keys
 
-    # FS-SS looks straight down: no key makes a keystone (processing.keystone), nothing to judge
-    keystone = keystone_check(geometry, reference, carriers) if reference is not None and geometry.setup == "tir" \
-        else None
-    notes = []
-    if keystone is not None and keystone.wrong:
-        notes.append(keystone_message(geometry, keystone, carriers.freq, frame_shape))
-    if geometry.pattern_period_mm is not None:
-        c = board_period_check(geometry, geometry.board_period_mm(carriers.freq, frame_shape))
-        if c.wrong:
-            _refuse_board(geometry, carriers, frame_shape, c, scale_keys(geometry) + ". " + scale_alternatives(
-                geometry, carriers.freq, frame_shape, c.printed_mm, c.implied_pixel_mm, keystone))
-        if c.noted:
-            notes.append(_board_note(geometry, c))
-    return "; ".join(notes)
+    if geometry.pattern_period_mm is None:
+        return ""
+    c = board_period_check(geometry, geometry.board_period_mm(carriers.freq, frame_shape))
+    if c.wrong:
+        keystone = None if reference is None else _keystone(geometry, reference, carriers)
+        _refuse_board(geometry, carriers, frame_shape, c, scale_keys(geometry) + ". " + scale_alternatives(
+            geometry, carriers.freq, frame_shape, c.printed_mm, c.implied_pixel_mm, keystone))
+    return _board_note(geometry, c) if c.noted else ""
 
 
 def _board_note(geometry, c) -> str:

@@ -22,7 +22,8 @@ class GridChain:
     #: The pin region of the chain's grid for the turn check's saddle (set by the subclass; None: the geometry's).
     turn_reference_mask = None
     #: What the reference's board says of the geometry short of refusing it (a period 2-4.5 % off the
-    #: geometry's: :func:`processing.carriers.check_board_period`); "" when nothing (set by the subclass).
+    #: geometry's, a keystone not its camera's: :func:`processing.carriers.check_board_period`); "" when nothing
+    #: (the checkerboard chain's; random dots say none).
     board_note = ""
 
     def judge_turn(self, u, valid):

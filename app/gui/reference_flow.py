@@ -120,11 +120,12 @@ def rebuild_reconstructor(w):
             geometry_at_fault.append(True)
             raise
         problem = periodic_pattern(reference) if getattr(geometry, "pattern", "") == "dots" else None
-        # a pattern that departs from a board on still water (a file averaged over waves): as process says it
-        return rec, problem, departure_note(reconstructor_departure_px(rec))
+        # a pattern that departs from a board on still water (a file averaged over waves), and what its board says
+        # of the geometry (judged here, off the GUI thread): as process says them
+        return rec, problem, departure_note(reconstructor_departure_px(rec)), rec.chain.board_note
 
     def done(built, error):
-        rec, problem, departure = built if built is not None else (None, None, "")
+        rec, problem, departure, board = built if built is not None else (None, None, "", "")
         action = w.references.outcome(request, error is None)
         if action == "superseded":
             return  # a newer reference/geometry is being built: this one (even failed) changes nothing
@@ -174,8 +175,7 @@ def rebuild_reconstructor(w):
             w.show_error(saturated[1][0].upper() + saturated[1][1:])
             state.reference_in_use(w)
             return
-        board = rec.chain.board_note  # the board 2-4.5 % off the geometry's, or a keystone not its camera's
-        if board and not problem and not departure:
+        if board and not problem and not departure:  # the board 2-4.5 % off the geometry's, a keystone not its camera's
             w.geometry_panel.reference_label.setText(text + " — CHECK THE GEOMETRY")
             w.geometry_panel.reference_label.setStyleSheet("color: #c00000; font-weight: bold")
             w.show_error(board[0].upper() + board[1:])
