@@ -369,29 +369,23 @@ def run_process(args: ProcessJob) -> BatchReport:
     # camera's counts; the window's 8-bit reference had read 20 % saturated (its 229 taken as the top code)
     reference_saturated = reference_saturation(
         reference, averaged_counts=(reference.dtype.kind == "f") if reference_given else _integer_file(args.reference))
-    if reference_saturated:
-        log.warning("%s", reference_saturated[1])
-        input_notes.append(reference_saturated[1])
-    departure = departure_note(reconstructor_departure_px(reconstruct))
-    if departure:  # a reference taken while the water moved: every height is measured against its waves
-        log.warning("%s", departure)
-        input_notes.append(departure)
+
+    def say(note: str) -> None:  # a note on the inputs: warned now, and again among the run's closing notes
+        if note:
+            log.warning("%s", note)
+            input_notes.append(note)
+
+    say(reference_saturated[1] if reference_saturated else "")
+    # a reference taken while the water moved: every height is measured against its waves
+    say(departure_note(reconstructor_departure_px(reconstruct)))
     if reconstruct.pattern == "dots":  # too few dots a window: PIV's heights degrade, said once
         from processing.piv import sparse_dots_note
 
-        sparse = sparse_dots_note(reference, window_px=options.window_px)
-        if sparse:
-            log.warning("%s", sparse)
-            input_notes.append(sparse)
+        say(sparse_dots_note(reference, window_px=options.window_px))
     if reconstruct.mosaic is not None:  # a colour camera read raw: equalised, said once
         input_notes.append(reconstruct.mosaic.describe())
-    if reconstruct.chain.board_note:  # the board 2-4.5 % off the geometry's: measured, with what it costs
-        log.warning("%s", reconstruct.chain.board_note)
-        input_notes.append(reconstruct.chain.board_note)
-    grazing = grazing_view_note(geometry)
-    if grazing:
-        log.warning("%s", grazing)
-        input_notes.append(grazing)
+    say(reconstruct.chain.board_note)  # the board 2-4.5 % off the geometry's, a keystone not its camera's
+    say(grazing_view_note(geometry))
 
     geometry_toml, geometry_info = geometry_attrs(geometry)
     attrs = {

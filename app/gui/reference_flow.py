@@ -160,44 +160,36 @@ def rebuild_reconstructor(w):
         if stuck:  # repaired in the reference and in every frame (processing.mask.defect_pixels)
             text += f" — {stuck} stuck sensor pixel{'s' if stuck > 1 else ''} repaired"
         w.pattern_problem = problem
-        mismatch = theta_mismatch(rec.carriers, geometry)
-        if mismatch and not problem:  # heights right, the y scale and dh/dy not: said on the Live tab too
-            w.geometry_panel.reference_label.setText(text + " — θ MISMATCH")
-            w.geometry_panel.reference_label.setStyleSheet("color: #c00000; font-weight: bold")
-            w.show_error(mismatch)
-            state.reference_in_use(w)
-            return
-        # captured (Ctrl+R: the float average of the camera's integer frames), else a file as it is
-        saturated = reference_saturation(reference, averaged_counts=w.reference_path is None)
-        if saturated and not problem:  # measured, a little off: said where the user looks, no tick
-            w.geometry_panel.reference_label.setText(text + f" — {saturated[0]:.0f} % SATURATED")
-            w.geometry_panel.reference_label.setStyleSheet("color: #c00000; font-weight: bold")
-            w.show_error(saturated[1][0].upper() + saturated[1][1:])
-            state.reference_in_use(w)
-            return
-        if board and not problem and not departure:  # the board 2-4.5 % off the geometry's, a keystone not its camera's
-            w.geometry_panel.reference_label.setText(text + " — CHECK THE GEOMETRY")
-            w.geometry_panel.reference_label.setStyleSheet("color: #c00000; font-weight: bold")
-            w.show_error(board[0].upper() + board[1:])
-            state.reference_in_use(w)
-            return
-        if departure and not problem:  # every height measured against the waves it holds: red, no tick
-            w.geometry_panel.reference_label.setText(text + " — WATER MOVING?")
-            w.geometry_panel.reference_label.setStyleSheet("color: #c00000; font-weight: bold")
-            w.show_error(departure[0].upper() + departure[1:])
-            state.reference_in_use(w)
-            return
-        if problem:  # every height would be wrong: red where the user looks, not a tick
-            w.geometry_panel.reference_label.setText(text + " — NOT the chosen pattern")
-            w.geometry_panel.reference_label.setStyleSheet("color: #c00000; font-weight: bold")
-            w.show_error(f"The reference does not show random dots: {problem}")
-            state.reference_in_use(w)
-            return
+        # what is wrong with a usable reference, the first that applies, is said where the user looks, in red and
+        # without a tick; the heights still come
+        if problem:  # every height would be wrong
+            findings = [("NOT the chosen pattern", f"The reference does not show random dots: {problem}")]
+        else:
+            # captured (Ctrl+R: the float average of the camera's integer frames), else a file as it is
+            saturated = reference_saturation(reference, averaged_counts=w.reference_path is None)
+            findings = [
+                ("θ MISMATCH", theta_mismatch(rec.carriers, geometry)),  # the y scale and dh/dy off, heights right
+                (f"{saturated[0]:.0f} % SATURATED" if saturated else "", _capital(saturated[1]) if saturated else ""),
+                ("WATER MOVING?", _capital(departure)),  # every height measured against the waves it holds
+                # the board 2-4.5 % off the geometry's, or a keystone not its camera's (moving water said above)
+                ("CHECK THE GEOMETRY", _capital(board))]
+        for label, message in findings:
+            if message:
+                w.geometry_panel.reference_label.setText(f"{text} — {label}")
+                w.geometry_panel.reference_label.setStyleSheet("color: #c00000; font-weight: bold")
+                w.show_error(message)
+                state.reference_in_use(w)
+                return
         w.geometry_panel.reference_label.setText(text + " ✓")
         w.geometry_panel.reference_label.setStyleSheet("")  # no longer red: a tick in red read as a warning
         w.clear_error()
         state.reference_in_use(w)
     w.run_background("reconstructor", build_checked, done)
+
+
+def _capital(text: str) -> str:
+    """``text`` with its first letter a capital (a note begun lower-case, said as a sentence)."""
+    return text[:1].upper() + text[1:]
 
 
 def choose_save_reference(w):
