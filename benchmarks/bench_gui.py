@@ -48,6 +48,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import types
 import time
 from pathlib import Path
 
@@ -229,7 +230,16 @@ def measure_window(app, size, rate_hz, seconds, n_frames, nice=0, worker_process
         height.latencies_ms.clear()
         acq = w.session.acquisition
         seen = []
-        w.session.worker.add_listener(seen.append)
+
+        # each result's timings only: holding the results held every frame and its maps (4.3 MB at 1024^2, a GB
+        # over a run), and the window's process then took fresh memory for every frame: 0.81-0.87 instead of
+        # 0.55-0.56 cores, 34-35 instead of 42-43 heights a second (docs/acquisition.md, 7 Dec 2026)
+        def note(p):
+            seen.append(types.SimpleNamespace(result=None if p.result is None else True, **{
+                k: getattr(p, k, 0) for k in ("host_timestamp_ns", "picked_ns", "done_ns", "processing_s", "cpu_s",
+                                               "queued_s")}))
+
+        w.session.worker.add_listener(note)
         p0, h0, k0, a0 = raw.painted, w.height_view.updates, w.session.worker.processed, acq.acquired
         lost0 = w.clock.ticks_lost
         gui0 = dict(clock.ms)
@@ -237,7 +247,7 @@ def measure_window(app, size, rate_hz, seconds, n_frames, nice=0, worker_process
         t0, cpu0 = time.monotonic(), os.times()
         _run_loop(app, seconds)
         dt, cpu1 = time.monotonic() - t0, os.times()
-        w.session.worker.remove_listener(seen.append)
+        w.session.worker.remove_listener(note)
         shown_new = len(raw.latencies_ms)  # paints that showed a new camera frame
         out = {
             "size": size,
