@@ -224,15 +224,17 @@ def bench_issue22(n, repeats, thread_counts):
     print()
 
 
-def interleaved_medians(fns, repeats, every=None, block=4):
+def interleaved_medians(fns, repeats, every=None, block=4, warm_ms=40.0):
     """Median ms of each fn(i).  Rounds visit every fn in turn, ``block``
     calls at a time, so that all see the same machine load (the machine may
-    be shared) while each runs with its own data in cache, as a live loop
-    or a batch does: each block begins with one call untimed (another
-    frame's), which takes the caches and memory back from the fn before it.
-    Timing that call too made a small, fast fn pay for a big one's traffic:
-    the live 1024^2 chain 6.6 ms a frame in the issue-22 table, after the
-    default's 141 ms, against 2.8 ms run on its own (7 Dec 2026).
+    be shared) while each runs in its steady state, as in a live loop or a
+    batch, where one chain runs frame after frame: each block begins with
+    untimed calls (other frames) for at least ``warm_ms``, which take the
+    caches and memory back from the fn before it.  Timing from the first
+    call made a small, fast fn pay for a big one's traffic: the live 1024^2
+    chain, one thread, after the default (7 Dec 2026): 3.6, 3.2, 3.0, 3.0,
+    2.8, 2.8, 2.8, 2.8 ms for the 1st to 8th call after one untimed call,
+    2.7 ms on its own; the issue-22 table said 6.6 ms timing every call.
     ``every[k]`` > 1 visits fn k only every that-many rounds."""
     every = every or [1] * len(fns)
     for fn in fns:
@@ -243,7 +245,12 @@ def interleaved_medians(fns, repeats, every=None, block=4):
         for k, fn in enumerate(fns):
             if r % every[k]:
                 continue
-            fn(r * block + block)  # untimed: the frame after the block's (another one, as in a series)
+            t_warm, w = time.perf_counter() + warm_ms / 1e3, 0
+            while True:  # untimed: frames after the block's (other ones, as in a series)
+                w += 1
+                fn(r * block + block + w)
+                if time.perf_counter() >= t_warm:
+                    break
             for j in range(block):
                 i = r * block + j
                 t = time.perf_counter()
