@@ -42,6 +42,7 @@ from app import version as _version
 from app.batch import parallel
 from app.batch.frame_status import FrameStatus, FrameTally
 from app.batch.writer import (
+    MAP_BYTES_PER_SAMPLE,
     OUTPUT_FORMAT_VERSION,
     ResultWriter,
     carrier_attrs,
@@ -434,6 +435,10 @@ def run_process(args: ProcessJob) -> BatchReport:
         except FileExistsError:
             if attempt == 4:
                 raise
+    room_note = output_room_note(writer, selected, args.grid, args.compression,
+                                 reconstruct.grid_coordinates("decimated"))
+    if room_note:  # said before the run, which will stop when the disk is full
+        log.warning("%s", room_note)
     pins = _PinCounter(reconstruct)
     pins.write_region(writer)
     status = "failed"
@@ -490,6 +495,36 @@ def run_process(args: ProcessJob) -> BatchReport:
     return BatchReport(out=out, frames_written=writer.n, notes=input_notes + tally.notes() + pins.notes(),
                        frames_invalid=tally.n_invalid, invalid_summary=tally.invalid_summary(),
                        frames_incomplete=len(tally.incomplete), pin=pins.summary())
+
+
+def output_room_note(writer: ResultWriter, selected: int, grid: str, compression: str, decimated_coords) -> str:
+    """What the output will take where that is more than its disk (or file size limit) has left, with
+    what to do; "" where it fits. The maps are stored on every sample of the grid (a full-grid
+    frame of 512^2 takes 3.4 MB, 13x a recorded 8-bit frame); the run itself stops, keeping what
+    it wrote, when the room is gone (:class:`app.batch.writer.DiskFullError`): this says so before
+    it starts, not after minutes of measuring."""
+    from app.files.h5safe import room_bytes
+    from app.sizes import format_bytes
+
+    frame = writer.frame_bytes
+    projected = frame * int(selected)
+    room, what = room_bytes(writer.path)
+    if projected <= room:
+        return ""
+    rows, cols = writer.grid_shape
+    packed = compression not in (None, "none")
+    smaller = []
+    if grid != "decimated":
+        n_dec = len(decimated_coords[0]) * len(decimated_coords[1])
+        smaller.append(f"--grid decimated ({format_bytes(n_dec * MAP_BYTES_PER_SAMPLE)} a frame)")
+    if not packed:
+        smaller.append("--compression gzip (a third smaller on the synthetic tank's maps)")
+    smaller.append("fewer frames (--step, --first, --last)")
+    return (f"the output will take {'up to ' if packed else ''}{format_bytes(projected)} ({selected} frame(s) of "
+            f"{format_bytes(frame)}: height, two slopes and the valid mask on the {rows} x {cols} samples of "
+            f"the {grid} grid), more than the {format_bytes(room)} left ({what}, {str(writer.path.parent)!r}): "
+            f"the run will stop when it is full, keeping the frames written and saying how to go on; write "
+            f"--out to a disk with room, or a smaller output: {', '.join(smaller)}")
 
 
 def _keep_or_drop(args, status: str, writer: ResultWriter, selected: int, out: Path) -> None:

@@ -26,7 +26,7 @@ from processing.errors import (
 from processing.turn import TURN_MAX_MRAD, TURN_MIN_SIGNIFICANCE
 
 __all__ = ["ResultWriter", "OutputFrame", "output_frame", "OutputExistsError", "DiskFullError",
-           "OUTPUT_FORMAT_VERSION", "FLUSH_INTERVAL_S", "GZIP_LEVEL",
+           "OUTPUT_FORMAT_VERSION", "FLUSH_INTERVAL_S", "GZIP_LEVEL", "MAP_BYTES_PER_SAMPLE",
            "check_output", "check_not_an_input", "is_same_file", "partial_path", "publish", "set_attrs", "carrier_attrs", "geometry_attrs", "utc_now",
            "flatten_attrs"]
 
@@ -281,6 +281,10 @@ def set_attrs(node, attrs: dict) -> None:
 
 #: Space kept free so that the output can still be closed validly after the last frame.
 RESERVE_BYTES = 2 * 1024 * 1024
+
+#: Bytes a frame's maps take per sample of the grid, uncompressed: height and two slopes (float32) and
+#: the valid mask (uint8).
+MAP_BYTES_PER_SAMPLE = 3 * 4 + 1
 
 #: Longest time between two flushes of OUT.h5, seconds. ``frames_done`` moves only at a
 #: flush, so a crash (SIGKILL, power cut) or a failed write loses at most the frames
@@ -591,10 +595,20 @@ class ResultWriter:
             return "then resume with --first set to the first frame missing from the file (its /frame_index)"
         return f"then resume with --first {int(k)} (and the same --last and --step) into another --out"
 
+    @property
+    def grid_shape(self) -> tuple:
+        """``(rows, cols)`` of the maps stored."""
+        return self._shape
+
+    @property
+    def frame_bytes(self) -> int:
+        """Bytes one frame's maps take in the file, uncompressed (:data:`MAP_BYTES_PER_SAMPLE` a sample)."""
+        return int(np.prod(self._shape)) * MAP_BYTES_PER_SAMPLE
+
     def _check_room(self, shape, next_index=None) -> None:
         """Refuse the next frame (DiskFullError) while the file can still be closed validly."""
         # the reserve is held in its own file while it can be: not counted twice
-        need = int(np.prod(shape)) * (3 * 4 + 1) + 4096 + (0 if self._reserve.held else RESERVE_BYTES)
+        need = int(np.prod(shape)) * MAP_BYTES_PER_SAMPLE + 4096 + (0 if self._reserve.held else RESERVE_BYTES)
         room, what = room_bytes(self.path)
         if room < need:
             raise DiskFullError(

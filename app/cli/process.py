@@ -20,6 +20,7 @@ The work is done by :mod:`app.batch`; this module parses arguments and prints.
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 
@@ -28,6 +29,7 @@ import numpy as np
 from app.batch.compare import compare_heights, resolve_truth
 from app.batch.engine import MEASURE_MIN_FRAMES, ProcessJob, check_input_file, run_process
 from app.batch.simulate import run_simulate
+from app.sizes import format_bytes
 from app.stop_signals import STOP_SIGNALS
 from processing.errors import TirdeflectError
 
@@ -255,6 +257,10 @@ def cmd_process(args) -> int:
 def _print_report(report) -> int:
     """The lines of a run that wrote its output, on stderr; returns the exit status (0 or 3)."""
     line = f"tirdeflect: wrote {report.frames_written} frame(s) to {report.out}"
+    try:
+        line += f" ({format_bytes(os.path.getsize(report.out))})"
+    except OSError:  # (gone already: another program)
+        pass
     if report.frames_incomplete:
         line += f", {report.frames_incomplete} recorded INCOMPLETE"
     if report.frames_invalid:

@@ -809,3 +809,46 @@ def test_superblock_whose_end_of_allocation_lags_is_repaired(sim, tmp_path, caps
     with h5py.File(out) as f:
         assert f.attrs["frames_done"] == 3 and f.attrs["status"] == "complete"
         np.testing.assert_array_equal(f["height"][()], before)
+
+
+def test_an_output_larger_than_its_disk_is_said_before_the_run(sim, tmp_path):
+    """A by-hand trial processed a 40 MB recording into a 513 MB output with no word of its size. Where
+    the output, uncompressed, will not fit what its disk has left, the run says so before its first
+    frame (the size, the room, and how to make it smaller), and then, as before, stops when the disk
+    is full with the frames written kept."""
+    mnt = tmp_path / "small_disk"
+    mnt.mkdir()
+    frame_bytes = SIZE * SIZE * 13  # three float32 maps and a uint8 mask
+    n = 40
+    why = _mount_tmpfs(mnt, 6 * 1024 * 1024 + 8 * frame_bytes)  # the reserve and about 8 frames
+    if why:
+        pytest.skip(why + "disk through RLIMIT_FSIZE)" if why.startswith("not root") else why)
+    try:
+        stack = np.stack([imageio.read_image(p) for p in frames_of(sim)] * 7)[:n]
+        tifffile.imwrite(tmp_path / "long.tif", stack, photometric="minisblack")
+        code, err = run_cli(*process(sim, mnt / "out.h5", tmp_path / "long.tif"), "--grid", "full")
+        warning = [ln for ln in err.splitlines() if "the output will take" in ln]
+        assert len(warning) == 1, err
+        w = warning[0]
+        mb = float(re.search(r"will take ([\d.]+) MB", w).group(1))
+        assert abs(mb - n * frame_bytes / 1e6) < 0.01, w  # what 40 frames of 192^2 take, to the 10 kB
+        assert f"{n} frame(s)" in w and f"{SIZE} x {SIZE} samples of the full grid" in w, w
+        room = float(re.search(r"more than the ([\d.]+) MB left \(disk", w).group(1))
+        assert 3 < room < 8, w  # the tmpfs less the reserve's file
+        assert "--grid decimated" in w and "--compression gzip" in w, w
+        assert err.index("the output will take") < err.index("tirdeflect: error:"), err  # before, not after
+        line = error_line(err)
+        assert code == 2 and "disk full" in line and "out.partial.h5" in line, err
+        with h5py.File(mnt / "out.partial.h5", "r") as f:
+            assert 2 <= int(f.attrs["frames_done"]) < n
+    finally:
+        subprocess.run(["umount", "-l", str(mnt)], capture_output=True, timeout=10)
+
+
+def test_an_output_that_fits_its_disk_is_not_warned_about_and_says_its_size(sim, tmp_path):
+    code, err = run_cli(*process(sim, tmp_path / "out.h5", *frames_of(sim)[:2]))
+    assert code == 0 and "the output will take" not in err, err
+    size = (tmp_path / "out.h5").stat().st_size
+    shown = re.search(r"wrote 2 frame\(s\) to .*out\.h5 \(([\d.]+) (kB|MB)\)", err)
+    assert shown, err
+    assert abs(float(shown.group(1)) * (1e3 if shown.group(2) == "kB" else 1e6) - size) <= 0.01 * size, err
