@@ -393,7 +393,7 @@ class LiveSession:
             out["dropped_ring"] = rec.get("ring_lost", 0)
             out["recorder_backlog"] = rec.get("backlog", 0)
         ring = acq.ring
-        out["ring_fill"] = min(ring.head, ring.n_frames) / ring.n_frames
+        out["ring_held"] = min(ring.head, ring.n_frames)  # frames of history (all of them once it wrapped)
         out["ring_frames"] = ring.n_frames
         return out
 
@@ -503,7 +503,6 @@ class LiveSession:
         rec = capture.recorder
         status["ring_lost"] = rec.lost_overrun
         status["backlog"] = rec.backlog
-        status["ring_fill"] = rec.backlog / max(rec.ring.n_frames, 1)
         if capture.state == "armed":
             status["state"] = "armed"
         elif rec.done or capture.state in ("done", "error"):

@@ -690,3 +690,21 @@ def test_pin_region_is_drawn_from_the_reference_with_its_valid_fraction(qtbot, w
     gp.region.editingFinished.emit()
     qtbot.waitUntil(lambda: "too few, pinned on the" in overlay.text, timeout=20000)
     assert overlay.bad and overlay.text.startswith("reference_region [0, 12, 0, 12] (h = 0): 0 % valid")
+
+
+def test_a_full_ring_reads_as_the_history_it_holds_not_as_an_alarm(qtbot, window, scene):
+    """By-hand trial (7 Dec 2026): once the ring had wrapped the status bar said "ring 100 %" (tooltip "ring buffer
+    100 % full") beside "dropped: none", which reads as an overflow; a ring is full as soon as it has wrapped,
+    the oldest frame making room. Now it says the history it holds, in seconds at the camera's rate."""
+    n_frames = 40
+    window.session.ring_bytes = n_frames * (SHAPE[0] * SHAPE[1] + 44)
+    window.use_camera(SyntheticCamera(Switchable(scene["flat"]), frame_rate_hz=100.0), geometry=scene["geometry"])
+    ring = window.session.acquisition.ring
+    assert ring.n_frames == n_frames
+    qtbot.waitUntil(lambda: ring.head >= 3 * n_frames, timeout=30000)  # wrapped twice over
+    label = window.status_labels["ring"]
+    qtbot.waitUntil(lambda: label.text().endswith(" s"), timeout=10000)
+    seconds = float(label.text().split()[1])
+    # 40 frames at the camera's measured rate (100 Hz asked; a loaded machine delivers fewer: more seconds)
+    assert 0.3 <= seconds <= 1.6 and "%" not in label.text(), label.text()
+    assert f"the last {n_frames} of {n_frames} frames" in label.toolTip() and "nothing is lost" in label.toolTip()

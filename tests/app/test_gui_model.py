@@ -394,7 +394,7 @@ def test_live_rate_falls_to_zero_when_the_counter_stops():
 def test_status_bar_says_lost_with_zero_rates_and_names_the_live_device():
     from app.gui.model.status import camera_problem, status_texts
 
-    st = {"camera_text": "synthetic 256×256", "camera_fps": 30.0, "ring_fill": 0.25, "ring_frames": 40,
+    st = {"camera_text": "synthetic 256×256", "camera_fps": 30.0, "ring_held": 40, "ring_frames": 40,
           "dropped_camera": 2, "dropped_ring": 0, "recorder_backlog": 1}
     t = status_texts(st, camera_fps=30.0, processed_fps=9.5, shown_fps=29.9, frozen=False, camera_open=True,
                      display_skipped=7, latency_ms=12.4, device_text="CPU (GPU not asked for: View ▸ ...)")
@@ -409,7 +409,15 @@ def test_status_bar_says_lost_with_zero_rates_and_names_the_live_device():
     ring = status_texts(dict(st, dropped_camera=0, dropped_ring=5), camera_fps=30.0, processed_fps=9.5,
                         shown_fps=29.9, frozen=False, camera_open=True, display_skipped=0, latency_ms=12.4)
     assert (ring.drops, ring.drops_alarm) == ("DROPPED camera 0 · ring→recorder 5 · backlog 1", True)
-    assert (t.ring, t.ring_tip) == ("ring 25 %", "ring buffer 25 % full, 40 frames")
+    # a full ring is no alarm (by-hand trial, 7 Dec 2026: "ring 100 %" beside "dropped: none"): the history it
+    # holds, and how far behind the camera the recorder is (1 of 40 frames)
+    assert t.ring == "ring 1.3 s · recorder 2 % behind", t.ring
+    assert t.ring_tip.startswith("ring buffer: the last 40 of 40 frames (1.3 s at 30 fps) in memory") and \
+        "nothing is lost" in t.ring_tip and "the recorder is 1 frames (2 % of the ring) behind" in t.ring_tip
+    assert calm.ring == "ring 1.3 s" and "recorder" not in calm.ring_tip
+    filling = status_texts(dict(st, ring_held=10, recorder_backlog=0), camera_fps=0.0, processed_fps=0.0,
+                           shown_fps=0.0, frozen=False, camera_open=True, display_skipped=0, latency_ms=12.4)
+    assert filling.ring == "ring 10 frames"  # no rate yet: frames
     assert t.device == "live on CPU" and t.device_tip.startswith("live reconstruction on the CPU (GPU not asked")
     lost = status_texts(dict(st, error="no frame for 3.0 s"), camera_fps=30.0, processed_fps=0.0, shown_fps=29.9,
                         frozen=True, camera_open=True, display_skipped=7, latency_ms=float("nan"))

@@ -51,7 +51,7 @@ def status_texts(st: dict, *, camera_fps: float, processed_fps: float, shown_fps
     err = st.get("error")
     camera_fps = 0.0 if err or not camera_open else float(camera_fps)
     shown_fps = 0.0 if frozen else float(shown_fps)
-    fill = st.get("ring_fill")
+    ring, ring_tip = ring_texts(st, camera_fps)
     return StatusTexts(
         camera=f"{st.get('camera_text', 'camera')} LOST" if err else st.get("camera_text", ""),
         camera_lost=bool(err), camera_fps=camera_fps,
@@ -62,8 +62,7 @@ def status_texts(st: dict, *, camera_fps: float, processed_fps: float, shown_fps
                    + (f" · incomplete {st['incomplete_camera']} (delivered with network packets missing: kept, "
                       "the missing pixels are 0)" if st.get("incomplete_camera") else "")),
         drops_alarm=bool(st.get("dropped_camera", 0) or st.get("dropped_ring", 0) or st.get("incomplete_camera", 0)),
-        ring=f"ring {100 * fill:.0f} %" if fill is not None else "",
-        ring_tip=f"ring buffer {100 * fill:.0f} % full, {st.get('ring_frames', 0)} frames" if fill is not None else "",
+        ring=ring, ring_tip=ring_tip,
         latency=f"latency {latency_ms:.0f} ms" if math.isfinite(latency_ms) else "",
         device=(f"live on {device_text.split(' (')[0]}"
                 + (" in the window's process (the reconstruction process died)" if process_error else "")
@@ -72,6 +71,29 @@ def status_texts(st: dict, *, camera_fps: float, processed_fps: float, shown_fps
                     + (f", {reconstructed_in}" if reconstructed_in else "")) if device_text else "",
         device_failed=bool(process_error),
         state="camera stopped" if err else "")
+
+
+def ring_texts(st: dict, camera_fps: float) -> tuple:
+    """``(text, tip)`` of the ring buffer: the history it holds (seconds at the camera's rate, else frames:
+    what a trigger can keep from before it) and, while a recording runs, how far behind the camera the
+    recorder is (its share of the ring: at 100 % frames would be lost). "ring 100 %" (full) read as an
+    alarm beside "dropped: none" in a by-hand trial, though a ring is full as soon as it has wrapped: the
+    oldest frame makes room, nothing is lost."""
+    held, n = st.get("ring_held"), int(st.get("ring_frames", 0) or 0)
+    if held is None or n <= 0:
+        return "", ""
+    span = f"{held / camera_fps:.1f} s" if camera_fps > 0 else f"{held} frames"
+    text, tip = f"ring {span}", (f"ring buffer: the last {held} of {n} frames" +
+                                 (f" ({held / camera_fps:.1f} s at {camera_fps:.0f} fps)" if camera_fps > 0 else "") +
+                                 " in memory, what a trigger keeps from before it; once full, the oldest frame "
+                                 "makes room for each new one: nothing is lost")
+    backlog = int(st.get("recorder_backlog", 0) or 0)
+    if backlog:
+        share = 100.0 * backlog / n
+        text += f" · recorder {share:.0f} % behind"
+        tip += (f"; the recorder is {backlog} frames ({share:.0f} % of the ring) behind the camera: at 100 % "
+                "it would lose frames (counted as ring→recorder)")
+    return text, tip
 
 
 def drops_text(st: dict) -> str:
