@@ -349,6 +349,12 @@ class TankScene:
         return None if entry is None else entry[1]
 
 
+#: "vs truth" is relative only where the truth's RMS reaches this (mm, 30 nm): below it the live grid's noise
+#: floor (about 0.3 nm on the synthetic tank) sets the ratio, and the quiet frames of the drop's loop (3.4 nm
+#: RMS) read 9.3 % beside 4-6 % on its rings (by-hand trial, 7 Dec 2026); there the error is given as it is.
+RELATIVE_MIN_TRUTH_MM = 3e-5
+
+
 def height_error(height_mm: np.ndarray, valid: np.ndarray, rows_px, cols_px, truth_mm: np.ndarray) -> dict:
     """Measured heights against the scene's truth on the measurement grid.
 
@@ -359,7 +365,8 @@ def height_error(height_mm: np.ndarray, valid: np.ndarray, rows_px, cols_px, tru
     -------
     dict
         ``rms_error_mm`` (RMS of the difference, offset removed), ``rms_truth_mm`` (RMS of the truth
-        about its mean), ``rel_rms`` (their ratio; NaN for still water), ``n`` samples compared.
+        about its mean), ``rel_rms`` (their ratio; NaN where the truth's RMS is below
+        :data:`RELATIVE_MIN_TRUTH_MM`: still or nearly still water), ``n`` samples compared.
     """
     ri = np.clip(np.round(np.asarray(rows_px)).astype(int), 0, truth_mm.shape[0] - 1)
     ci = np.clip(np.round(np.asarray(cols_px)).astype(int), 0, truth_mm.shape[1] - 1)
@@ -371,5 +378,6 @@ def height_error(height_mm: np.ndarray, valid: np.ndarray, rows_px, cols_px, tru
     tt = t[ok].astype(np.float64)
     err = float(np.sqrt(np.mean((d - d.mean()) ** 2)))
     scale = float(np.sqrt(np.mean((tt - tt.mean()) ** 2)))
-    return {"rms_error_mm": err, "rms_truth_mm": scale, "rel_rms": err / scale if scale > 1e-9 else float("nan"),
+    return {"rms_error_mm": err, "rms_truth_mm": scale,
+            "rel_rms": err / scale if scale >= RELATIVE_MIN_TRUTH_MM else float("nan"),
             "n": int(ok.sum())}

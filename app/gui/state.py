@@ -35,6 +35,7 @@ import numpy as np
 
 from .model.memory import SETTING_NAMES, threshold_mrad
 from .model.staleness import derived_text, short_derived_text
+from .model.status import truth_texts
 
 log = logging.getLogger(__name__)
 
@@ -382,11 +383,7 @@ def update_truth(w) -> None:
         e["scene"] = tank.scene_of(fid)
         e["seq"] = p.seq
         w.height_error = e
-    if np.isfinite(e["rel_rms"]):
-        text = f"vs truth {100 * e['rel_rms']:.1f} % rel. RMS ({e['scene']})"
-        brief = f"vs truth {100 * e['rel_rms']:.1f} % ({e['scene']})"  # the status bar's room at 1280x800
-    else:
-        text = brief = f"vs truth {1e3 * e['rms_error_mm']:.3f} µm RMS ({e['scene']})"
+    text, brief = truth_texts(e)
     # derived from the maps on screen: as old as they are, and greyed with them (app/gui/model/staleness.py)
     shown = w.maps_shown_seq()
     full, old = derived_text(text, w.stale.maps, measured_seq=p.seq, maps_seq=p.seq if shown is None else shown)
@@ -397,3 +394,4 @@ def update_truth(w) -> None:
     lab.setStyleSheet("padding: 0 4px; color: #888" if old else "padding: 0 4px")
     lab.setToolTip(full + "\n\nSynthetic tank: RMS of (measured − true height) on the live grid, offset removed, "
                    "over the RMS of the true height")
+

@@ -775,3 +775,32 @@ def test_the_maps_of_an_incomplete_frame_say_so_beside_a_wrong_pattern():
     text, short = maps_messages(pattern_mismatch_messages("stripes"), incomplete_frame_messages(0.4))
     assert text.startswith("NOT the chosen pattern") and "INCOMPLETE frame: 0.4 %" in text
     assert short == "NOT the chosen pattern (see Height)"
+
+
+def test_vs_truth_is_relative_only_where_the_truth_moves_enough_to_be_measured_against():
+    """By-hand trial (7 Dec 2026): the drop's quiet frames (3.4 nm RMS) read "vs truth 9.3 %" beside 4-6 % on its
+    rings, the live grid's noise floor over a near-zero truth. Below 30 nm of truth the error is given as it is."""
+    from app.capture.scene import RELATIVE_MIN_TRUTH_MM, height_error
+    from app.gui.model.status import truth_texts
+
+    rows = cols = np.arange(0, 64, 4)
+    yy, xx = np.meshgrid(np.arange(64.0), np.arange(64.0), indexing="ij")
+    shape_mm = np.sin(xx / 7.0) * np.cos(yy / 9.0)
+    noise = 3e-7 * np.random.default_rng(1).standard_normal((rows.size, cols.size))  # 0.3 nm, the floor
+    valid = np.ones((rows.size, cols.size), bool)
+
+    def measured(truth):
+        e = height_error(truth[np.ix_(rows, cols)] + noise, valid, rows, cols, truth)
+        e["scene"] = "drop"
+        return e
+
+    rings = measured(2e-4 * shape_mm / shape_mm.std())  # 0.2 um RMS
+    assert rings["rel_rms"] == pytest.approx(rings["rms_error_mm"] / rings["rms_truth_mm"])
+    assert truth_texts(rings)[0].startswith("vs truth 0.") and "% rel. RMS (drop)" in truth_texts(rings)[0]
+    quiet = measured(3.4e-6 * shape_mm / shape_mm.std())  # 3.4 nm RMS: the ratio would be the floor's, ~9 %
+    assert quiet["rms_truth_mm"] < RELATIVE_MIN_TRUTH_MM and np.isnan(quiet["rel_rms"])
+    text, brief = truth_texts(quiet)
+    assert text == brief == f"vs truth {1e6 * quiet['rms_error_mm']:.1f} nm RMS of 3.4 nm (drop)", text
+    assert "0.3 nm" in text or "0.2 nm" in text or "0.4 nm" in text
+    still = measured(np.zeros((64, 64)))
+    assert truth_texts(still)[0].startswith("vs truth 0.") and truth_texts(still)[0].endswith(" nm RMS (drop)")

@@ -7,7 +7,7 @@ import dataclasses
 import math
 from typing import Optional
 
-__all__ = ["StatusTexts", "status_texts", "drops_text", "camera_problem"]
+__all__ = ["StatusTexts", "status_texts", "drops_text", "ring_texts", "truth_texts", "camera_problem"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -124,3 +124,23 @@ def camera_problem(error: Optional[str], camera_id: Optional[str], already_shown
         return f"Camera problem: {explain_open_error(camera_id, error)}"
     return (f"Camera problem: {error}\nCheck the cable, power and network, then press Open in Controls ▸ Camera. "
             "The app keeps running; frames already recorded are kept.")
+
+
+def truth_texts(error: dict) -> tuple:
+    """``(text, brief)`` of the synthetic tank's "vs truth" (:func:`app.capture.scene.height_error`'s ``error``
+    with its ``scene``): the relative RMS error where the truth moves enough to be measured against
+    (``"vs truth 1.2 % rel. RMS (waves)"``, brief without "rel. RMS" for the status bar), else the error itself
+    and the truth's RMS (``"vs truth 0.3 nm RMS of 3.4 nm (drop)"``; still water: no truth's)."""
+    scene = error.get("scene", "")
+    if math.isfinite(error.get("rel_rms", float("nan"))):
+        pct = 100 * error["rel_rms"]
+        return f"vs truth {pct:.1f} % rel. RMS ({scene})", f"vs truth {pct:.1f} % ({scene})"
+    truth = error.get("rms_truth_mm", float("nan"))
+    of = f" of {_small_height(truth)}" if truth >= 1e-9 else ""
+    text = f"vs truth {_small_height(error.get('rms_error_mm', float('nan')))} RMS{of} ({scene})"
+    return text, text
+
+
+def _small_height(mm: float) -> str:
+    """A small height: nm below 10 nm ("0.000 µm" said nothing), else µm."""
+    return f"{1e6 * mm:.1f} nm" if mm < 1e-5 else f"{1e3 * mm:.3f} µm"
