@@ -42,7 +42,7 @@ log = logging.getLogger(__name__)
 __all__ = ["map_views", "camera_to_open", "restore_early", "camera_opened", "save", "confirm_geometry",
            "geometry_in_use",
            "reference_in_use", "remember_camera_settings", "save_experiment", "open_experiment", "update_truth",
-           "STILL_WATER_PROMPT"]
+           "STILL_WATER_PROMPT", "scene_loop_text"]
 
 
 
@@ -341,6 +341,15 @@ def open_experiment(w, path) -> bool:
 STILL_WATER_PROMPT = "still water: capture the reference now"
 
 
+def scene_loop_text(tank) -> str:
+    """What the scene box says under a moving scene of the synthetic tank: its clip loops (""
+    on still water)."""
+    if tank.scene == "still":
+        return ""
+    return (f"a clip of {tank.n_frames} frames ({tank.n_frames / tank.frame_rate_hz:.2f} s), "
+            f"ray-traced once and played in a loop")
+
+
 def update_truth(w) -> None:
     """Status bar: live heights vs the simulated tank's true heights; scene preparation progress."""
     from app.capture.scene import height_error
@@ -358,12 +367,15 @@ def update_truth(w) -> None:
         w.camera_panel.show_scene(w.scene_wanted or tank.scene, text)
         lab.setText(text)  # visible whichever Controls section is open
         return
-    said = w.camera_panel.scene_label.text()
-    if said.startswith("preparing ") or (said == STILL_WATER_PROMPT and w.reference is not None):
+    said, loop = w.camera_panel.scene_label.text(), scene_loop_text(tank)
+    if said != loop and (said.startswith(("preparing ", "a clip of ")) or (said == "" and loop)
+                         or (said == STILL_WATER_PROMPT and w.reference is not None)):
         # nothing is being ray-traced (a scene passed on the way to another finished last) / the reference
         # is taken: the words under the scene box go (by-hand trial of 7 Dec 2026: "preparing drop: 20/24"
-        # stood 12 s after the drop was ready while impact streamed, and the prompt after the reference)
-        w.camera_panel.show_scene(w.scene_wanted or tank.scene, "")
+        # stood 12 s after the drop was ready while impact streamed, and the prompt after the reference),
+        # but a moving scene says it is a loop (a second trial took the drop's clip, recorded six times
+        # over by a 150-frame recording, for an evolving event)
+        w.camera_panel.show_scene(w.scene_wanted or tank.scene, loop)
     p = w.last_drawn or w.session.worker.latest()  # the maps on screen (also paused)
     if p is None or p.result is None:
         lab.setText("")

@@ -274,7 +274,8 @@ class MainWindow(QtWidgets.QMainWindow):
         tank = self.session.tank
         self.camera_panel.set_synthetic(tank is not None)
         if tank is not None:
-            self.camera_panel.show_scene(tank.scene, state.STILL_WATER_PROMPT if tank.scene == "still" else "")
+            self.camera_panel.show_scene(tank.scene, state.STILL_WATER_PROMPT if tank.scene == "still"
+                                         else state.scene_loop_text(tank))
         self.camera_panel.show_settings(opened.settings)
         if opened.note:  # what opening it changed (a colour format set to mono): kept beside the list
             self.camera_panel.found_label.setText(opened.note)

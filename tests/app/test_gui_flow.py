@@ -123,6 +123,12 @@ def test_first_run_by_hand_alignment_reference_waves_heights(qtbot):
     qtbot.waitUntil(lambda: "% rel. RMS (waves)" in w.status_labels["truth"].text(), timeout=5000)
     shown = float(w.status_labels["truth"].text().split("vs truth ")[1].split(" %")[0])
     assert shown <= 2.0
+    # and the scene box says the waves are a loop (by-hand trial, 7 Dec 2026: a recording of the drop held its
+    # 24-frame clip six times over, unsaid), with the clip's frames and seconds
+    tank = w.session.tank
+    assert w.camera_panel.scene_label.text() == (
+        f"a clip of {tank.n_frames} frames ({tank.n_frames / tank.frame_rate_hz:.2f} s), ray-traced once and played "
+        "in a loop"), w.camera_panel.scene_label.text()
     # ... and where the maps were computed: the CPU unless the user asked for the GPU (a remembered setting)
     device = w.status_labels["device"]
     assert device.text() == "live on CPU" and "GPU not asked for" in device.toolTip()
