@@ -219,8 +219,10 @@ fi
 found="$(command -v tirdeflect || true)"
 if [ "$command_is" != "$link" ]; then
     :
-elif ! on_path "$bin"; then
+elif ! on_path "$bin" && [ "$bin" = "$HOME/.local/bin" ]; then  # a login shell's profile adds it when it exists
     say "$bin is not on PATH yet: open a new login shell, or run: export PATH=\"$bin:\$PATH\""
+elif ! on_path "$bin"; then  # a folder of the user's choosing: no profile adds it
+    say "$bin is not on PATH: run export PATH=\"$bin:\$PATH\" (and add that line to ~/.profile to keep it), or run $link"
 elif [ -n "$found" ] && [ "$found" != "$link" ]; then
     echo "install.sh: warning: 'tirdeflect' on PATH is $found, which comes before $link;" \
          "run $link or remove the other one" >&2

@@ -260,3 +260,19 @@ def test_install_script_passes_force_to_the_link_and_documents_it():
     r = subprocess.run(["bash", str(ROOT / "resources" / "install.sh"), "--help"], capture_output=True, text=True,
                        timeout=60)
     assert r.returncode == 0 and "--force" in r.stdout
+
+
+def test_install_into_a_folder_not_on_path_says_how_to_put_it_there(tmp_path):
+    """TIRDEFLECT_BIN_DIR, a folder of the user's choosing that is not on PATH: the script said "open a new login
+    shell, or run: export PATH=...", but no login shell adds such a folder (by-hand trial, 7 Dec 2026); it says the
+    export (and where to keep it), or to run the link itself. The checkout's environment is up to date here: the
+    script only checks it and makes the link."""
+    bin_dir = tmp_path / "my bin"
+    env = {**os.environ, "TIRDEFLECT_BIN_DIR": str(bin_dir), "PATH": "/usr/bin:/bin"}
+    r = subprocess.run(["bash", "resources/install.sh", "--test"], cwd=ROOT, env=env, capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr
+    link = bin_dir / "tirdeflect"
+    assert os.path.islink(link) and os.path.exists(link)
+    assert f'{bin_dir} is not on PATH: run export PATH="{bin_dir}:$PATH"' in r.stdout, r.stdout
+    assert "~/.profile" in r.stdout and f"or run {link}" in r.stdout and "login shell" not in r.stdout, r.stdout
