@@ -133,10 +133,22 @@ class LiveProcess:
         self._closed = False
         self._start_timeout_s = float(start_timeout_s)
         self._answered = False  # the child answered once (it started)
+        self._started_at = time.monotonic()
 
     @property
     def pid(self) -> Optional[int]:
         return None if self._closed else self._proc.pid
+
+    @property
+    def starting_s(self) -> Optional[float]:
+        """Seconds since the child was started while it has not answered yet (its imports and first
+        build), None once it has (or it was closed)."""
+        return None if self._answered or self._closed else time.monotonic() - self._started_at
+
+    @property
+    def start_timeout_s(self) -> float:
+        """The longest wait for the child's first answer before it is ended and reported."""
+        return self._start_timeout_s
 
     def measure(self, reconstructor, reference: np.ndarray, image: np.ndarray, job: LiveJob, stop,
                 token=None, ahead=None) -> Measured:

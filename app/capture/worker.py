@@ -376,6 +376,13 @@ class ProcessingWorker:
                 "sent_ahead": self.sent_ahead}
 
     @property
+    def process_starting(self) -> Optional[tuple]:
+        """``(seconds, timeout_s)`` while the worker process is starting (not answered yet), else None."""
+        process = self._live_process
+        s = process.starting_s if process is not None else None
+        return None if s is None else (s, process.start_timeout_s)
+
+    @property
     def reconstructed_in(self) -> str:
         """Where the live reconstruction runs now: "worker process (pid N)" or "this process"."""
         process = self._live_process

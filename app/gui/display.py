@@ -247,7 +247,7 @@ def update_status(w):
                      camera_open=w.session.acquisition is not None, display_skipped=worker.skipped,
                      latency_ms=w.latency_ms, device_text=getattr(rec, "device_text", "") if rec is not None else "",
                      reconstructed_in=worker.reconstructed_in, process_error=worker.process_error or "",
-                     last_on_gpu=_last_on_gpu(worker.latest()))
+                     last_on_gpu=_last_on_gpu(worker.latest()), process_starting=worker.process_starting)
     lab["camera"].setText(t.camera)
     lab["camera"].setStyleSheet("padding: 0 4px; color: #c00000; font-weight: bold" if t.camera_lost
                                 else "padding: 0 4px")

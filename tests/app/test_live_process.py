@@ -354,3 +354,34 @@ def test_the_worker_process_gets_the_cores_the_window_leaves_and_dots_keep_their
     recipe = Recipe.of(dots, dots_reference)
     assert recipe.options.threads == 2
     assert recipe.build().chain.piv.threads == 2
+
+
+def test_a_worker_process_not_answering_yet_is_said_to_be_starting(scene):
+    """While the worker process has not answered (its imports and first build) the worker says so, with the
+    seconds and the start timeout, and the status bar's device label reads "starting" rather than "live on CPU"
+    with 0 fps and no word (by-hand trial, 7 Dec 2026: a process that never answered looked healthy for the
+    three minutes of its timeout); once it has answered, nothing of it is left."""
+    import threading
+
+    from app.capture.live_process import LiveProcess
+    from app.gui.model.status import status_texts
+    from processing import Reconstructor
+
+    reference, geometry = scene["reference"], scene["geometry"]
+    process = LiveProcess(start_timeout_s=90.0)
+    try:
+        s = process.starting_s
+        assert s is not None and 0.0 <= s < 90.0 and process.start_timeout_s == 90.0
+        t = status_texts({}, camera_fps=30.0, processed_fps=0.0, shown_fps=30.0, frozen=False, camera_open=True,
+                         display_skipped=0, latency_ms=10.0, device_text="CPU", process_starting=(s, 90.0))
+        assert t.device == f"live on CPU: its process starting ({s:.0f} s)", t.device
+        assert "has not answered yet" in t.device_tip and "after 90 s it is ended" in t.device_tip
+        m = process.measure(Reconstructor(reference, geometry), reference, scene["frames"][0], LiveJob(),
+                            threading.Event())
+        assert m.error is None and m.result is not None
+        assert process.starting_s is None  # answered
+        t = status_texts({}, camera_fps=30.0, processed_fps=9.0, shown_fps=30.0, frozen=False, camera_open=True,
+                         display_skipped=0, latency_ms=10.0, device_text="CPU", process_starting=None)
+        assert t.device == "live on CPU"
+    finally:
+        process.close()

@@ -33,7 +33,7 @@ class StatusTexts:
 def status_texts(st: dict, *, camera_fps: float, processed_fps: float, shown_fps: float, frozen: bool,
                  camera_open: bool, display_skipped: int, latency_ms: float, device_text: str = "",
                  reconstructed_in: str = "", process_error: str = "",
-                 last_on_gpu: Optional[bool] = None) -> StatusTexts:
+                 last_on_gpu: Optional[bool] = None, process_starting: Optional[tuple] = None) -> StatusTexts:
     """The texts from ``st`` (``LiveSession.status()``) and the rates measured by the window.
 
     ``camera_fps``/``processed_fps``: :class:`~app.gui.model.schedule.LiveRates` (0 once nothing new came);
@@ -43,7 +43,11 @@ def status_texts(st: dict, *, camera_fps: float, processed_fps: float, shown_fps
     ``process_error``: why the reconstruction process died ("" while it lives): heights go on in the
     window's process, slower, and the label says so in red; ``last_on_gpu``: where the newest live
     result was computed (:func:`processing.gpu.ran_on_gpu`; None before the first): a GPU
-    reconstructor hands each frame it cannot do to the CPU, and the label says so rather than "GPU".
+    reconstructor hands each frame it cannot do to the CPU, and the label says so rather than "GPU";
+    ``process_starting``: ``(seconds, timeout_s)`` while the reconstruction process has not answered yet
+    (:attr:`app.capture.worker.ProcessingWorker.process_starting`): the label says it is starting, and for
+    how long (a process that never answered read "live on CPU", processed 0 fps, no maps and no word for
+    the three minutes of its start timeout: by-hand trial, 7 Dec 2026).
     """
     if last_on_gpu is False and device_text.startswith("GPU"):
         device_text = (f"CPU (asked for the {device_text}, which takes only frames valid everywhere: "
@@ -65,10 +69,15 @@ def status_texts(st: dict, *, camera_fps: float, processed_fps: float, shown_fps
         ring=ring, ring_tip=ring_tip,
         latency=f"latency {latency_ms:.0f} ms" if math.isfinite(latency_ms) else "",
         device=(f"live on {device_text.split(' (')[0]}"
-                + (" in the window's process (the reconstruction process died)" if process_error else "")
+                + (" in the window's process (the reconstruction process died)" if process_error else
+                   f": its process starting ({process_starting[0]:.0f} s)" if process_starting else "")
                 if device_text else ""),
-        device_tip=(process_error or f"live reconstruction on the {device_text}"
-                    + (f", {reconstructed_in}" if reconstructed_in else "")) if device_text else "",
+        device_tip=(process_error or (
+            f"the live reconstruction process has not answered yet ({process_starting[0]:.0f} s: its imports and "
+            f"first build, a few seconds; after {process_starting[1]:.0f} s it is ended and the heights go on in "
+            f"the window's process)" if process_starting else
+            f"live reconstruction on the {device_text}" + (f", {reconstructed_in}" if reconstructed_in else "")))
+            if device_text else "",
         device_failed=bool(process_error),
         state="camera stopped" if err else "")
 
