@@ -94,7 +94,7 @@ def ring_texts(st: dict, camera_fps: float) -> tuple:
     span = f"{held / camera_fps:.1f} s" if camera_fps > 0 else f"{held} frames"
     text, tip = f"ring {span}", (f"ring buffer: the last {held} of {n} frames" +
                                  (f" ({held / camera_fps:.1f} s at {camera_fps:.0f} fps)" if camera_fps > 0 else "") +
-                                 " in memory, what a trigger keeps from before it; once full, the oldest frame "
+                                 " in memory, the most a trigger can keep from before it; once full, the oldest frame "
                                  "makes room for each new one: nothing is lost")
     backlog = int(st.get("recorder_backlog", 0) or 0)
     if backlog:
