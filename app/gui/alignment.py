@@ -175,6 +175,27 @@ class FrameMotion:
         self._last = bases
         return self._changed(change)
 
+    def phases(self, phase, valid, run) -> Optional[float]:
+        """Once a reference exists: the largest change of the measured carrier phase (rad; ``phase``
+        (2, m, n), a live result's unwrapped phase against the reference, ``valid`` its samples) over the
+        last :data:`MOTION_MEMORY` updates, per carrier the RMS over the samples valid in both, the larger
+        carrier; None on the first result of a run (``run``: another reference or grid starts one). The
+        same figure as :meth:`carriers` before the reference: the "frame to frame" row went with the
+        reference (by-hand trial, 7 Dec 2026), though the water may still settle."""
+        phase = np.asarray(phase, np.float32)
+        valid = np.asarray(valid, bool)
+        last = self._last
+        if self._freq is not None or self._shape != (run, phase.shape) or last is None:
+            self.reset()
+            self._shape, self._last = (run, phase.shape), (phase, valid)
+            return None
+        both = valid & last[1]
+        self._last = (phase, valid)
+        if not both.any():
+            return None
+        d = phase[:, both] - last[0][:, both]
+        return self._changed(float(np.sqrt(np.mean(np.square(d, dtype=np.float64), axis=1)).max()))
+
     def dots(self, frame) -> Optional[float]:
         """Random dots: the largest grey-level change over the contrast (every other pixel) over the
         last :data:`MOTION_MEMORY` updates, this frame's included; None on the first frame of a run."""

@@ -173,6 +173,12 @@ def draw_alignment(w, p):
     a = p.alignment
     if a is None:
         return
+    r = p.result
+    if (isinstance(a, dict) and "frame_change_rad" not in a and r is not None
+            and np.shape(getattr(r, "phase", None))[1:] == np.shape(r.valid)):  # (dots: no carrier phase)
+        # against the reference: the measured carrier phase's change between alignment updates (model: FrameMotion)
+        change = w.result_motion.phases(r.phase, r.valid, run=id(w.reference))
+        a = a if change is None else dict(a, frame_change_rad=change)
     w._align_shown = w._shown_now(p.seq, p.host_timestamp_ns)
     for v in (w.spectrum_view, w.modulation_view):
         v.set_stale(None)

@@ -122,6 +122,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.alignment_ready = False
         self.alignment_metrics: dict = {}
         self.frame_motion = FrameMotion()  # the image's change between alignment updates (worker thread)
+        self.result_motion = FrameMotion()  # the same once a reference exists, from the results (GUI thread)
         self.profile_line_mm = None
         self.camera_fps_shown = 0.0
         self.last_snapshot = None

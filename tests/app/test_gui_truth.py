@@ -103,6 +103,19 @@ def test_reference_on_moving_water_is_refused_and_still_water_accepted(qtbot):
     qtbot.waitUntil(lambda: "✓" in w.geometry_panel.reference_label.text(), timeout=30000)
     assert w.last_error is None
     assert "5 of 5 frames averaged" in w.geometry_panel.reference_label.text()
+    # with the reference the Alignment tab still says whether the water moves (the row went with the reference:
+    # by-hand trial, 7 Dec 2026), now from the measured carrier phase: still water, then the waves
+    _click_tab(qtbot, w, "Alignment")
+    metrics = lambda: w.alignment_metrics or {}  # noqa: E731
+    _until(qtbot, lambda: "frame to frame" in metrics() and w.session.worker.reconstructor is not None,
+           metrics, 20000)
+    assert float(metrics()["frame to frame"].split()[0]) < 0.01, metrics()
+    _choose_scene_by_hand(qtbot, w, "travelling waves")
+    qtbot.waitUntil(lambda: w.session.tank.scene == "waves", timeout=60000)
+    _click_tab(qtbot, w, "Alignment")
+    _until(qtbot, lambda: float(metrics().get("frame to frame", "0").split()[0]) > 0.2, metrics, 20000)
+    assert "rad of carrier phase" in metrics()["frame to frame"]
+    assert w.alignment_metrics["surface"].startswith("moving") and w.ready_label.text() == "READY TO MEASURE"
 
 
 # --------------------------------------------------------------- recording tells the truth
