@@ -71,6 +71,13 @@ def warm_up(size_px: int = 96) -> bool:
         from processing.mask_kernels import fold_determinant
 
         fold_determinant(np.ones((2, 4, 4), f32), 1.0, 1.0, f32(1), np.empty((4, 4), f32))
+        # and the second-order correction's trace (slopes this small never call it)
+        from processing.trace_kernels import trace_planes_tir
+
+        one = np.ones(1)
+        trace_planes_tir(np.array([[0.0], [0.0], [1.0]]), np.array([[0.0], [0.5], [-1.0]]), 0 * one, 0 * one,
+                         0 * one, 0 * one, 0 * one, 1.0, 0.75, 300.0, 1e-9, 60, np.empty(1), np.empty(1),
+                         np.empty(1, bool), np.empty((6, 1)))
         return True
     except Exception as exc:  # noqa: BLE001 - a warm-up only: the workers load what they need themselves
         log.debug("worker warm-up skipped: %s", exc)

@@ -48,8 +48,10 @@ import time
 
 import numpy as np
 
+from .errors import GeometryError
 from .fill import nearest_fill_index
-from .forward import trace_fsss, trace_tir
+from .forward import trace_fsss
+from .trace_kernels import trace_planes_tir
 
 __all__ = ["SecondOrderOptics", "SECOND_ORDER_MIN_EFFECT", "FSSS_PASSES", "FSSS_SETTLED", "batch_effects",
            "solved_again"]
@@ -116,6 +118,12 @@ class SecondOrderOptics:
                 ray.flags.writeable = False
             d = self._rays[1]
             self.x0, self.y0 = geometry.surface_point(self.rows, self.cols, self.frame_shape)
+            # TIR's trace, compiled (processing.trace_kernels): the rays' components and the flat points in rows
+            shape = self.rows.shape + (3,)
+            self._components = [np.ascontiguousarray(np.moveaxis(np.broadcast_to(r, shape), -1, 0).reshape(3, -1))
+                                for r in self._rays]
+            self._flat_xy = [np.ascontiguousarray(np.broadcast_to(v, self.rows.shape), np.float64).ravel()
+                             for v in (self.x0, self.y0)]
             # the hit point's move per mm of height, image frame (x along the columns, y = row_sign * canonical y
             # for TIR; FS-SS's frame is the image's)
             y_sign = 1.0 if self.fsss else geometry.row_sign
@@ -154,16 +162,31 @@ class SecondOrderOptics:
     def _trace(self, h, gx, gy):
         """Exact displacement (px, (2, n_rows, n_cols)) of the local planes; NaN where TIR is lost (FS-SS:
         where a ray is totally reflected on its way down)."""
-        planes = _LocalPlanes(h, gx, gy, self.x0, self.y0)
         if self.fsss:
-            pat, lost, _, _ = trace_fsss(planes, self.geometry, self.rows, self.cols, self.frame_shape)
+            pat, lost, _, _ = trace_fsss(_LocalPlanes(h, gx, gy, self.x0, self.y0), self.geometry, self.rows,
+                                         self.cols, self.frame_shape)
+            pat_x, pat_y = pat[..., 0], pat[..., 1]
         else:
-            pat, lost, _, _, _ = trace_tir(planes, self.geometry, self.rows, self.cols, self.frame_shape,
-                                           rays=self._rays)
-        r0, c0 = self.geometry.pixel_of_pattern_point(pat[..., 0], pat[..., 1], self.frame_shape)
+            pat_x, pat_y, lost = self._trace_tir(h, gx, gy)
+        r0, c0 = self.geometry.pixel_of_pattern_point(pat_x, pat_y, self.frame_shape)
         u = np.stack([self.rows - r0, self.cols - c0])
         u[:, lost] = np.nan
         return u
+
+    def _trace_tir(self, h, gx, gy):
+        """``(pat_x, pat_y, lost)`` of :func:`processing.forward.trace_tir` of the local planes, to the bit,
+        by :func:`processing.trace_kernels.trace_planes_tir`."""
+        g, shape = self.geometry, self.rows.shape
+        n = self.rows.size
+        pat_x, pat_y, lost = np.empty(n), np.empty(n), np.empty(n, bool)
+        flat = [np.ascontiguousarray(v, np.float64).ravel() for v in (h, gx, gy)]
+        steps = trace_planes_tir(*self._components, *flat, *self._flat_xy, float(g.row_sign),
+                                 float(g.n_air / g.n_water), float(g.depth_mm), 1e-9, 60, pat_x, pat_y, lost,
+                                 np.empty((6, n)))
+        if steps < 0:  # (as forward.trace_tir)
+            raise GeometryError("ray-surface intersection did not converge; the surface is too steep for the "
+                                "camera rays")
+        return pat_x.reshape(shape), pat_y.reshape(shape), lost.reshape(shape)
 
     def _terms(self, height_mm, valid):
         """``(N(h), 1 + t . grad h)`` of the filled heights, their gradient taken once."""
