@@ -21,6 +21,10 @@ from processing.second_order import SECOND_ORDER_MIN_EFFECT, SecondOrderOptics
 
 N = 256
 G55 = Geometry(theta_deg=55, depth_mm=300, pixel_mm=0.1, rows_toward_camera=False)
+#: Telecentric either way round, and a camera at 1.5 m.
+GEOMETRIES = [G55, Geometry(theta_deg=55, depth_mm=300, pixel_mm=0.1, rows_toward_camera=True),
+              Geometry(theta_deg=60, depth_mm=300, pixel_mm=0.1, rows_toward_camera=False, camera_distance_mm=1500.0)]
+GEOMETRY_IDS = ["telecentric", "rows towards the camera", "camera at 1.5 m"]
 
 
 def _node_grid_error(geometry, surface):
@@ -42,11 +46,7 @@ def _node_grid_error(geometry, surface):
     return error(h1), error(h2), second.effect(h1, valid)
 
 
-@pytest.mark.parametrize("geometry", [
-    G55,
-    Geometry(theta_deg=55, depth_mm=300, pixel_mm=0.1, rows_toward_camera=True),
-    Geometry(theta_deg=60, depth_mm=300, pixel_mm=0.1, rows_toward_camera=False, camera_distance_mm=1500.0),
-], ids=["telecentric", "rows towards the camera", "camera at 1.5 m"])
+@pytest.mark.parametrize("geometry", GEOMETRIES, ids=GEOMETRY_IDS)
 def test_the_exact_displacement_of_a_deep_dimple_gives_its_heights_to_second_order(geometry):
     """15 um deep, sigma 9 mm (the accuracy table's deep dimple): first order 0.12-0.19 % off, with the two
     second-order terms taken off at most a tenth of that (measured 0.002-0.004 %)."""
@@ -155,11 +155,7 @@ def test_what_is_taken_off_is_second_order_in_the_heights():
         assert np.sqrt(np.mean((n2 - 4.0 * n1) ** 2)) < 0.05 * 4.0 * size
 
 
-@pytest.mark.parametrize("geometry", [
-    G55,
-    Geometry(theta_deg=55, depth_mm=300, pixel_mm=0.1, rows_toward_camera=True),
-    Geometry(theta_deg=60, depth_mm=300, pixel_mm=0.1, rows_toward_camera=False, camera_distance_mm=1500.0),
-], ids=["telecentric", "rows towards the camera", "camera at 1.5 m"])
+@pytest.mark.parametrize("geometry", GEOMETRIES, ids=GEOMETRY_IDS)
 def test_the_compiled_trace_of_the_local_planes_is_the_tracers_to_the_bit(geometry):
     """The correction's trace (processing.trace_kernels, 6 of the 15 ms of a 1024^2 default frame's correction in
     NumPy) against processing.forward.trace_tir of the same planes: every pattern point and lost ray the same bits,
