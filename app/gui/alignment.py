@@ -522,7 +522,11 @@ def assess(a: dict, saturation_pct: float, geometry=None, has_reference: bool = 
     if contrast is None and mod is not None:
         contrast = float(np.nanmedian(mod))
     if contrast is not None:
-        lines.append(("contrast (median modulation)", f"{float(contrast):.2f}"))
+        # two measures, named apart (by-hand trial, 7 Dec 2026: 0.67 before the reference and 0.61 after, on the
+        # same still water, read as the alignment getting worse): before a reference the frame's local std/mean
+        # over two periods (every harmonic), after it the carriers' band against the reference (what the mask uses)
+        measure = "carrier band" if "reference_periods_px" in a else "local std/mean"
+        lines.append((f"contrast ({measure}, median)", f"{float(contrast):.2f}"))
         if float(contrast) < 0.2:
             reasons.append("low contrast: light the pattern, focus, check TIR")
     focus = num("focus", "focus_metric")

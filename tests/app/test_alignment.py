@@ -60,7 +60,7 @@ def test_moving_water_gives_numbers_but_no_reference(tank):
     ready, reasons, lines, _ = assess(a, 0.0, tank.geometry, has_reference=False)
     assert not ready and any("a reference needs still water" in r for r in reasons)
     table = dict(lines)
-    assert {"pattern periods", "pattern rotation", "θ", "contrast (median modulation)",
+    assert {"pattern periods", "pattern rotation", "θ", "contrast (local std/mean, median)",
             "focus (carrier peak sharpness)", "saturation"} <= set(table)
     # with a reference, moving water is what is measured: ready
     ready, reasons, _, notes = assess(a, 0.0, tank.geometry, has_reference=True)

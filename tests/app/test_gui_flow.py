@@ -86,7 +86,7 @@ def test_first_run_by_hand_alignment_reference_waves_heights(qtbot):
     periods = [float(v.split()[0]) for v in m["pattern periods"].split(", ")]
     np.testing.assert_allclose(periods, 5.97, atol=0.03)  # 12-px board seen under 55 deg: 5.97 px diagonals
     assert m["θ"].startswith("55.0") or m["θ"].startswith("54.9")  # theta from the pattern's aspect
-    assert "configured" in m["θ"] and float(m["contrast (median modulation)"]) > 0.3
+    assert "configured" in m["θ"] and float(m["contrast (local std/mean, median)"]) > 0.3
     assert "focus (carrier peak sharpness)" in m and m["saturation"] == "0.00 %"
 
     _capture_reference_by_hand(qtbot, w)

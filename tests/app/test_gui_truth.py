@@ -107,9 +107,12 @@ def test_reference_on_moving_water_is_refused_and_still_water_accepted(qtbot):
     # by-hand trial, 7 Dec 2026), now from the measured carrier phase: still water, then the waves
     _click_tab(qtbot, w, "Alignment")
     metrics = lambda: w.alignment_metrics or {}  # noqa: E731
-    _until(qtbot, lambda: "frame to frame" in metrics() and w.session.worker.reconstructor is not None,
+    # (the table of the reconstructor's alignment: the periods beside the reference's)
+    _until(qtbot, lambda: "frame to frame" in metrics() and "reference" in metrics().get("pattern periods", ""),
            metrics, 20000)
     assert float(metrics()["frame to frame"].split()[0]) < 0.01, metrics()
+    # and its contrast is named as the other measure it is (the carriers' band against the reference)
+    assert "contrast (carrier band, median)" in metrics() and "contrast (local std/mean, median)" not in metrics()
     _choose_scene_by_hand(qtbot, w, "travelling waves")
     qtbot.waitUntil(lambda: w.session.tank.scene == "waves", timeout=60000)
     _click_tab(qtbot, w, "Alignment")
