@@ -21,6 +21,7 @@ from typing import Optional
 import numpy as np
 import scipy.optimize
 
+from .camera_model import nearest_camera_distance_mm
 from .errors import GeometryError
 from .keystone import KEYSTONE_MIN_MISMATCH, Keystone, predicted_keystone
 
@@ -71,13 +72,6 @@ def _solve(geometry, key: str, carrier_freq, frame_shape, printed_mm: float, lo:
     return None
 
 
-def _nearest_distance_mm(geometry, frame_shape) -> float:
-    """The nearest camera distance a rectilinear lens allows over the frame (:meth:`check_frame`), mm."""
-    rows, cols = frame_shape
-    return 0.5 * math.hypot((cols - 1) * geometry.pixel_mm, (rows - 1) * geometry.pixel_mm) / math.tan(
-        math.radians(60.0))
-
-
 def scale_alternatives(geometry, carrier_freq, frame_shape, printed_mm: float, implied_pixel_mm: float,
                        keystone: Optional[Keystone]) -> str:
     """The values that would each bring the board period to ``printed_mm``, in words: ``pixel_mm`` (always),
@@ -88,7 +82,7 @@ def scale_alternatives(geometry, carrier_freq, frame_shape, printed_mm: float, i
         return text + "; otherwise correct pattern_period_mm or " + (
             "fsss_camera_distance_mm or fsss_layers" if geometry.fsss_camera_distance_mm is not None
             else "declare the camera's distance, fsss_camera_distance_mm")
-    near = _nearest_distance_mm(geometry, frame_shape)
+    near = nearest_camera_distance_mm(geometry.pixel_mm, frame_shape)
     distance = _solve(geometry, "camera_distance_mm", carrier_freq, frame_shape, printed_mm, near, 1e6)
     if distance is not None:
         text += f", or camera_distance_mm = {distance:.4g} (pixel_mm and depth_mm kept)"
@@ -116,7 +110,7 @@ def scale_alternatives(geometry, carrier_freq, frame_shape, printed_mm: float, i
 def far_limit_mm(geometry, carrier_freq, frame_shape) -> float:
     """The camera distance beyond which its keystone stays below :data:`KEYSTONE_MIN_MISMATCH` over this frame
     (indistinguishable from a telecentric lens); inf where no keystone is predicted."""
-    probe_mm = 10.0 * _nearest_distance_mm(geometry, frame_shape)
+    probe_mm = 10.0 * nearest_camera_distance_mm(geometry.pixel_mm, frame_shape)
     try:
         g = dataclasses.replace(geometry, camera_distance_mm=probe_mm)
     except GeometryError:

@@ -25,11 +25,25 @@ import numpy as np
 from .errors import GeometryError
 from .fsss_flat import fsss_flat_trace, fsss_invert_radial, fsss_layers_from_surface
 
-__all__ = ["CameraModel", "LinearResponse", "MAX_FIELD_HALF_ANGLE_DEG"]
+__all__ = ["CameraModel", "LinearResponse", "MAX_FIELD_HALF_ANGLE_DEG", "field_half_diagonal_mm",
+           "nearest_camera_distance_mm"]
 
 #: Widest angle off the camera axis (deg) that the pinhole (rectilinear lens) model is
 #: trusted for; see :meth:`CameraModel.check_frame`.
 MAX_FIELD_HALF_ANGLE_DEG = 60.0
+
+
+def field_half_diagonal_mm(pixel_mm: float, frame_shape) -> float:
+    """Half the diagonal of a frame of ``frame_shape`` pixels ``pixel_mm`` apart, from the first pixel's centre to
+    the last's (mm): how far off the optical axis a finite-distance camera's corner pixels look."""
+    n_rows, n_cols = (int(v) for v in frame_shape)
+    return 0.5 * math.hypot((n_cols - 1) * pixel_mm, (n_rows - 1) * pixel_mm)
+
+
+def nearest_camera_distance_mm(pixel_mm: float, frame_shape, half_angle_deg: float = MAX_FIELD_HALF_ANGLE_DEG) -> float:
+    """The nearest camera distance (mm) at which no pixel of the frame is more than ``half_angle_deg`` off the
+    optical axis (:meth:`CameraModel.check_frame`'s bound by default)."""
+    return field_half_diagonal_mm(pixel_mm, frame_shape) / math.tan(math.radians(half_angle_deg))
 
 
 class LinearResponse(NamedTuple):
@@ -103,10 +117,9 @@ class CameraModel:
         field = (f"the {n_rows} x {n_cols} px frame spans {width_mm:.4g} x {height_mm:.4g} mm of surface "
                  f"(pixel_mm = {self.pixel_mm:g})")
         if distance is not None:
-            half_diag_mm = 0.5 * math.hypot((n_cols - 1) * self.pixel_mm, (n_rows - 1) * self.pixel_mm)
-            angle = math.degrees(math.atan2(half_diag_mm, distance))
+            angle = math.degrees(math.atan2(field_half_diagonal_mm(self.pixel_mm, frame_shape), distance))
             if angle > MAX_FIELD_HALF_ANGLE_DEG:
-                need = half_diag_mm / math.tan(math.radians(MAX_FIELD_HALF_ANGLE_DEG))
+                need = nearest_camera_distance_mm(self.pixel_mm, frame_shape)
                 raise GeometryError(
                     f"{key} = {distance:g} mm is too short for the field: {field}, so its corners would be "
                     f"{angle:.1f} deg off the camera's axis, beyond the {MAX_FIELD_HALF_ANGLE_DEG:g} deg of a "

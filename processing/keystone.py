@@ -32,6 +32,7 @@ from typing import NamedTuple, Optional
 import numpy as np
 import scipy.fft
 
+from .camera_model import field_half_diagonal_mm
 from .carrier_peaks import Carriers, as_float_image, hann
 from .errors import GeometryError
 
@@ -192,14 +193,13 @@ def _differences(local, whole) -> np.ndarray:
 def implied_camera(geometry, measured, carrier_freq, frame_shape, n_steps: int = 121) -> Optional[tuple]:
     """``(q, predicted)``: the TIR camera whose predicted differences come nearest ``measured``, the other keys
     kept, as ``q = +-1 / camera_distance_mm`` (0: telecentric; below 0: ``rows_toward_camera`` the other way
-    than declared), and its predicted differences. ``q`` is searched from the nearest distance
+    than declared), and its predicted differences. ``q`` is searched from about the nearest distance
     :meth:`check_frame` accepts, on both sides of telecentric, then on three finer grids (each a tenth: 0.2 %
     at 1500 mm on 256^2). None for FS-SS (its camera looks straight down: no keystone at any distance)."""
     if geometry.setup != "tir":
         return None
-    rows, cols = frame_shape
-    half_diag_mm = 0.5 * math.hypot((cols - 1) * geometry.pixel_mm, (rows - 1) * geometry.pixel_mm)
-    q_max = math.tan(math.radians(55.0)) / half_diag_mm
+    # from a little beyond the nearest distance check_frame accepts (55 of its 60 deg off the axis)
+    q_max = math.tan(math.radians(55.0)) / field_half_diagonal_mm(geometry.pixel_mm, frame_shape)
     best = (math.inf, 0.0, None)
     grid = np.linspace(-q_max, q_max, n_steps)
     for _ in range(4):
