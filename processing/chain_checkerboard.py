@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 
 from .angle_kernels import angle_of_product
-from .carriers import board_period_note, check_pattern_match, find_reference_carriers, keystone_note
+from .carriers import board_period_note, check_board_period, check_pattern_match, find_reference_carriers
 from .binning import binned_bands_clear
 from .demodulation import Demodulator
 from .chain_base import GridChain
@@ -80,7 +80,7 @@ class CheckerboardChain(GridChain):
         self.shape = ref.shape
         self.planner = FFTPlanner(threads=o.threads, planner_effort=o.planner_effort)
         self.carriers = carriers if carriers is not None else find_reference_carriers(ref)
-        self._period_note = board_period_note(geometry, self.carriers, ref.shape, reference=ref)  # (refuses)
+        board_period_note(geometry, self.carriers, ref.shape, reference=ref)  # refuses a board not the geometry's
         self.demod = d = Demodulator(ref, self.carriers, planner=self.planner, filter_radius=o.filter_radius,
                                      filter_flat=o.filter_flat, filter_shape=o.filter_shape,
                                      oversample=o.oversample, border=o.border, subbin=o.subbin)
@@ -118,13 +118,12 @@ class CheckerboardChain(GridChain):
     # ------------------------------------------------------- built on first use
     @property
     def board_note(self) -> str:
-        """What the reference's board says of the geometry short of refusing it: its perspective not the declared
-        camera's (:func:`processing.carriers.keystone_note`, judged at the first ask: the batch's and the
-        window's, not every worker's build) and its period 2-4.5 % off
-        (:func:`processing.carriers.board_period_note`)."""
+        """What the reference's board says of the geometry short of refusing it
+        (:func:`processing.carriers.check_board_period`: its perspective not the declared camera's, its period
+        2-4.5 % off), judged at the first ask: the batch's and the window's, not every worker's build (the
+        keystone costs 0.02-0.12 s; the build refused a board too far off already)."""
         if self._board_note is None:
-            keystone = keystone_note(self.geometry, self.carriers, self.shape, self.ref_f32)
-            self._board_note = "; ".join(n for n in (keystone, self._period_note) if n)
+            self._board_note = check_board_period(self.geometry, self.carriers, self.shape, reference=self.ref_f32)
         return self._board_note
 
     def warp_reference(self, continued: bool = True):
