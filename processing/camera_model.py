@@ -26,7 +26,7 @@ from .errors import GeometryError
 from .fsss_flat import fsss_flat_trace, fsss_invert_radial, fsss_layers_from_surface
 
 __all__ = ["CameraModel", "LinearResponse", "MAX_FIELD_HALF_ANGLE_DEG", "field_half_diagonal_mm",
-           "nearest_camera_distance_mm"]
+           "nearest_camera_distance_mm", "pixel_jacobian"]
 
 #: Widest angle off the camera axis (deg) that the pinhole (rectilinear lens) model is
 #: trusted for; see :meth:`CameraModel.check_frame`.
@@ -289,7 +289,7 @@ class CameraModel:
         rows, cols = frame_shape
         centre_r, centre_c = np.array([(rows - 1) / 2.0]), np.array([(cols - 1) / 2.0])
         with np.errstate(all="ignore"):
-            jac = _pixel_jacobian(lambda r, c: np.stack(self.flat_pattern_point(r, c, frame_shape), axis=-1),
+            jac = pixel_jacobian(lambda r, c: np.stack(self.flat_pattern_point(r, c, frame_shape), axis=-1),
                                   centre_r, centre_c)[0]  # (pattern x, y) x (row, col), mm per pixel
         if not np.all(np.isfinite(jac)) or abs(np.linalg.det(jac)) < 1e-300:
             return None
@@ -441,8 +441,8 @@ class CameraModel:
             x, y = self.surface_point(r, c, frame_shape)
             return np.stack([y, x], axis=-1)
 
-        J = _pixel_jacobian(pat, rows_px, cols_px)  # J[..., i, j] = d P_i / d pix_j
-        K = _pixel_jacobian(surf, rows_px, cols_px)
+        J = pixel_jacobian(pat, rows_px, cols_px)  # J[..., i, j] = d P_i / d pix_j
+        K = pixel_jacobian(surf, rows_px, cols_px)
         Jinv = np.linalg.inv(J)
         Kinv_T = np.swapaxes(np.linalg.inv(K), -1, -2)
         a = -np.einsum("...ij,...j->...i", Jinv, a_P)
@@ -499,8 +499,8 @@ class CameraModel:
             x, y = self.surface_point(r, c, frame_shape)
             return np.stack([y, x], axis=-1)
 
-        J = _pixel_jacobian(pat, rows_px, cols_px)
-        K = _pixel_jacobian(surf, rows_px, cols_px)
+        J = pixel_jacobian(pat, rows_px, cols_px)
+        K = pixel_jacobian(surf, rows_px, cols_px)
         Jinv = np.linalg.inv(J)
         Kinv_T = np.swapaxes(np.linalg.inv(K), -1, -2)
         a = -np.einsum("...ij,...j->...i", Jinv, a_P)
@@ -538,7 +538,7 @@ class CameraModel:
 
 
 
-def _pixel_jacobian(mapping, rows_px, cols_px, eps: float = 0.5) -> np.ndarray:
+def pixel_jacobian(mapping, rows_px, cols_px, eps: float = 0.5) -> np.ndarray:
     """Jacobian of ``mapping(rows_px, cols_px) -> (..., 2)`` with respect to (row, col), by central differences.
 
     Returns ``J[..., i, j] = d mapping_i / d pixel_j`` (j = 0: row, 1: column), in

@@ -32,7 +32,7 @@ from typing import NamedTuple, Optional
 import numpy as np
 import scipy.fft
 
-from .camera_model import field_half_diagonal_mm
+from .camera_model import field_half_diagonal_mm, pixel_jacobian
 from .carrier_peaks import Carriers, as_float_image, hann
 from .errors import GeometryError
 
@@ -159,13 +159,9 @@ def _vertex(left: float, centre: float, right: float) -> float:
 def _jacobians(geometry, points_px, frame_shape, step_px: float = 1.0) -> Optional[np.ndarray]:
     """``(n, 2, 2)``: ``d(pattern x, y) / d(row, col)`` (mm per pixel) at ``points_px`` (n, 2), central
     differences of :meth:`flat_pattern_point`; None where not finite (a camera ``check_frame`` refuses)."""
-    r, c = points_px[:, 0], points_px[:, 1]
     with np.errstate(all="ignore"):
-        dr = (np.stack(geometry.flat_pattern_point(r + step_px, c, frame_shape), -1)
-              - np.stack(geometry.flat_pattern_point(r - step_px, c, frame_shape), -1)) / (2 * step_px)
-        dc = (np.stack(geometry.flat_pattern_point(r, c + step_px, frame_shape), -1)
-              - np.stack(geometry.flat_pattern_point(r, c - step_px, frame_shape), -1)) / (2 * step_px)
-    jac = np.stack([dr, dc], axis=-1)
+        jac = pixel_jacobian(lambda r, c: np.stack(geometry.flat_pattern_point(r, c, frame_shape), -1),
+                             points_px[:, 0], points_px[:, 1], eps=step_px)
     return jac if np.all(np.isfinite(jac)) else None
 
 
