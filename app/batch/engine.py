@@ -435,8 +435,7 @@ def run_process(args: ProcessJob) -> BatchReport:
         except FileExistsError:
             if attempt == 4:
                 raise
-    room_note = output_room_note(writer, selected, args.grid, args.compression,
-                                 reconstruct.grid_coordinates("decimated"))
+    room_note = output_room_note(writer, selected, args.grid, args.compression, reconstruct)
     if room_note:  # said before the run, which will stop when the disk is full
         log.warning("%s", room_note)
     pins = _PinCounter(reconstruct)
@@ -497,9 +496,9 @@ def run_process(args: ProcessJob) -> BatchReport:
                        frames_incomplete=len(tally.incomplete), pin=pins.summary())
 
 
-def output_room_note(writer: ResultWriter, selected: int, grid: str, compression: str, decimated_coords) -> str:
+def output_room_note(writer: ResultWriter, selected: int, grid: str, compression: str, reconstruct) -> str:
     """What the output will take where that is more than its disk (or file size limit) has left, with
-    what to do; "" where it fits. The maps are stored on every sample of the grid (a full-grid
+    what to do (``reconstruct``: the run's Reconstructor, for the decimated grid's size); "" where it fits. The maps are stored on every sample of the grid (a full-grid
     frame of 512^2 takes 3.4 MB, 13x a recorded 8-bit frame); the run itself stops, keeping what
     it wrote, when the room is gone (:class:`app.batch.writer.DiskFullError`): this says so before
     it starts, not after minutes of measuring."""
@@ -515,7 +514,8 @@ def output_room_note(writer: ResultWriter, selected: int, grid: str, compression
     packed = compression not in (None, "none")
     smaller = []
     if grid != "decimated":
-        n_dec = len(decimated_coords[0]) * len(decimated_coords[1])
+        x_mm, y_mm = reconstruct.grid_coordinates("decimated")
+        n_dec = len(x_mm) * len(y_mm)
         smaller.append(f"--grid decimated ({format_bytes(n_dec * MAP_BYTES_PER_SAMPLE)} a frame)")
     if not packed:
         smaller.append("--compression gzip (a third smaller on the synthetic tank's maps)")
