@@ -405,5 +405,4 @@ def update_truth(w) -> None:
     lab.setText(full, short_derived_text(brief, w.stale.maps) if w.stale.maps else f"{brief} (STALE)" if old else brief)
     lab.setStyleSheet("padding: 0 4px; color: #888" if old else "padding: 0 4px")
     lab.setToolTip(full + "\n\nSynthetic tank: RMS of (measured − true height) on the live grid, offset removed, "
-                   "over the RMS of the true height")
-
+                   "over the RMS of the true height where that reaches 30 nm (else the two RMS as they are)")
