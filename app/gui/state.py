@@ -352,7 +352,7 @@ def scene_loop_text(tank) -> str:
 
 def update_truth(w) -> None:
     """Status bar: live heights vs the simulated tank's true heights; scene preparation progress."""
-    from app.capture.scene import height_error
+    from app.capture.scene import RELATIVE_MIN_TRUTH_MM, height_error
 
     tank = w.session.tank
     lab = w.status_labels["truth"]
@@ -405,4 +405,5 @@ def update_truth(w) -> None:
     lab.setText(full, short_derived_text(brief, w.stale.maps) if w.stale.maps else f"{brief} (STALE)" if old else brief)
     lab.setStyleSheet("padding: 0 4px; color: #888" if old else "padding: 0 4px")
     lab.setToolTip(full + "\n\nSynthetic tank: RMS of (measured − true height) on the live grid, offset removed, "
-                   "over the RMS of the true height where that reaches 30 nm (else the two RMS as they are)")
+                   f"over the RMS of the true height where that reaches {1e6 * RELATIVE_MIN_TRUTH_MM:.0f} nm (else "
+                   "the two RMS as they are)")
