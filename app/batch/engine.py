@@ -502,12 +502,11 @@ def output_room_note(writer: ResultWriter, selected: int, grid: str, compression
     frame of 512^2 takes 3.4 MB, 13x a recorded 8-bit frame); the run itself stops, keeping what
     it wrote, when the room is gone (:class:`app.batch.writer.DiskFullError`): this says so before
     it starts, not after minutes of measuring."""
-    from app.files.h5safe import room_bytes
     from app.sizes import format_bytes
 
     frame = writer.frame_bytes
     projected = frame * int(selected)
-    room, what = room_bytes(writer.path)
+    room, what = writer.frames_room()
     if projected <= room:
         return ""
     rows, cols = writer.grid_shape

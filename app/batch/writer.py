@@ -18,7 +18,7 @@ import numpy as np
 
 from app.files import imageio
 from app.files import h5safe
-from app.files.h5safe import DiskFullError, SpaceReserve, repair_eof, room_bytes
+from app.files.h5safe import DiskFullError, Preallocation, SpaceReserve, repair_eof, room_bytes
 from processing.errors import (
     ShapeMismatchError,
     TirdeflectError,
@@ -279,8 +279,13 @@ def set_attrs(node, attrs: dict) -> None:
 
 # =========================================================================== writer
 
-#: Space kept free so that the output can still be closed validly after the last frame.
+#: Space kept for closing the output validly after the last frame: allocated to the file itself ahead of
+#: its data (fallocate), so that another program filling the disk cannot take it; where the file system
+#: cannot allocate ahead, held in a hidden reserve file beside it and given back for the close.
 RESERVE_BYTES = 2 * 1024 * 1024
+
+#: The output's space is allocated ahead in steps of at least this (fewer calls), where the disk has it.
+ALLOCATE_STEP_BYTES = 32 * 1024 * 1024
 
 #: Bytes a frame's maps take per sample of the grid, uncompressed: height and two slopes (float32) and
 #: the valid mask (uint8).
@@ -437,7 +442,9 @@ class ResultWriter:
                                   remedy="choose another --out (a folder you can write to)")
         self._fd = h5safe.descriptor_of(self.f)  # for dropping flushed pages (None: another driver)
         _hold_metadata_until_flush(self.f)
-        self._reserve = SpaceReserve(path, RESERVE_BYTES)
+        fs_max = h5safe.max_file_bytes(path.parent)
+        self._alloc = Preallocation(self._fd, os.path.getsize(path), h5safe.file_size_limit(fs_max))
+        self._reserve = SpaceReserve(path, 0 if self._alloc.supported else RESERVE_BYTES)
         f = self.f
         set_attrs(f, attrs)
         f.attrs["frames_done"] = 0
@@ -605,12 +612,37 @@ class ResultWriter:
         """Bytes one frame's maps take in the file, uncompressed (:data:`MAP_BYTES_PER_SAMPLE` a sample)."""
         return int(np.prod(self._shape)) * MAP_BYTES_PER_SAMPLE
 
-    def _check_room(self, shape, next_index=None) -> None:
-        """Refuse the next frame (DiskFullError) while the file can still be closed validly."""
-        # the reserve is held in its own file while it can be: not counted twice
-        need = int(np.prod(shape)) * MAP_BYTES_PER_SAMPLE + 4096 + (0 if self._reserve.held else RESERVE_BYTES)
+    def frames_room(self) -> tuple:
+        """``(bytes, what)``: how much the frames may still take (what the disk or the file size limit
+        has left, less the room kept for the close) and what limits it (:func:`room_bytes`)."""
         room, what = room_bytes(self.path)
-        if room < need:
+        return room - (0 if self._reserve.held else RESERVE_BYTES), what
+
+    def _check_room(self, shape, next_index=None) -> None:
+        """Refuse the next frame (DiskFullError) while the file can still be closed validly.
+
+        The next frame and ``RESERVE_BYTES`` for the close are allocated to the
+        file ahead of HDF5 (:class:`~app.files.h5safe.Preallocation`): what was
+        allocated stays the file's, whoever fills the disk meanwhile. Where the
+        file system cannot allocate ahead, the free space is compared instead
+        and the reserve file holds the room to close.
+        """
+        frame = int(np.prod(shape)) * MAP_BYTES_PER_SAMPLE + 4096
+        alloc = self._alloc
+        if alloc.supported:
+            end = int(self.f.id.get_filesize())  # HDF5's end of allocation
+            if alloc.make_room(end, frame + RESERVE_BYTES, ALLOCATE_STEP_BYTES) and alloc.supported:
+                return
+            if alloc.supported:  # no room (refused below): what is free plus what the file holds ahead
+                room, what = room_bytes(self.path, alloc.allocated_bytes)
+                room, need = room + alloc.allocated_bytes - end, frame + RESERVE_BYTES
+            else:  # this file system cannot allocate ahead: a reserve file holds the room to close
+                log.info("%s: the file system cannot allocate ahead; checking free space instead", self.path)
+                self._reserve = SpaceReserve(self.path, RESERVE_BYTES)
+        if not alloc.supported:  # the reserve is held in its own file while it can be: not counted twice
+            need = frame + (0 if self._reserve.held else RESERVE_BYTES)
+            room, what = room_bytes(self.path)
+        if room < need or alloc.supported:
             raise DiskFullError(
                 f"{what} full: {room / 2**20:.1f} MiB left for {str(self.path)!r}, less than one "
                 f"more frame plus a reserve that keeps the file valid; free space or write --out "
@@ -773,7 +805,8 @@ class ResultWriter:
         ``frames_done``; a file HDF5 still left inconsistent is repaired."""
         if self.f is None:
             return
-        reserved = self._reserve.held
+        # room to record the status: the reserve file, or the file's own space allocated past its end
+        reserved = self._reserve.held or (self._alloc.supported and RESERVE_BYTES > 0)
         self._reserve.release()  # the room the last flush, the status and the close need
         if not self.failed and not self.abandoned:
             try:
@@ -809,6 +842,8 @@ class ResultWriter:
                 log.error("closing %s failed: %s (valid up to frame %d)", self.path, exc, self.frames_done)
             if self.failed:
                 repair_eof(self.path)
+            elif self._alloc.supported:  # closed normally: the space allocated ahead given back
+                h5safe.fit_to_eoa(self.path)
 
     def _record_status(self, status: str, attrs: dict | None) -> None:
         import h5py

@@ -314,7 +314,7 @@ class RecordingFile:
         self._fd = h5safe.descriptor_of(self._f)  # None: another HDF5 driver, no reservation
         self._alloc = Preallocation(self._fd, os.path.getsize(p), file_size_limit(self._fs_max_bytes))
         self._spare: Optional[SpaceReserve] = None  # the hidden reserve file (file systems without fallocate)
-        if self.planned_bytes is not None and not self._reserve(self.planned_bytes):
+        if self.planned_bytes is not None and not self._reserve(self.planned_bytes, step=0):
             if check_space:  # the disk filled between the check above and now
                 self._abandon()
                 raise DiskSpaceError(
@@ -323,8 +323,9 @@ class RecordingFile:
                 )
 
     # ------------------------------------------------------------ space
-    def _reserve(self, target: int) -> bool:
-        """Make sure the first ``target`` bytes of the file are allocated on disk; False when there is no room.
+    def _reserve(self, end: int, more: int = 0, step: int = RESERVE_STEP_BYTES) -> bool:
+        """Make sure the ``more`` bytes past ``end`` are allocated on disk (ahead in steps of
+        ``step`` bytes where it can); False when there is no room.
 
         Never asks for more than the file-size limit (that would raise SIGXFSZ).
         A file system without fallocate turns reservation off: then
@@ -332,7 +333,7 @@ class RecordingFile:
         reserve file is made (:meth:`_make_reserve_file`).
         """
         could = self._alloc.supported
-        ok = self._alloc.ensure(target)
+        ok = self._alloc.make_room(end, more, step)
         if could and not self._alloc.supported:
             log.info("recording %s: the file system cannot reserve space; checking free space instead", self.path)
             self._make_reserve_file()
@@ -438,12 +439,8 @@ class RecordingFile:
             except Exception:
                 end = alloc.allocated_bytes
             need = end + frame + RESERVE_BYTES
-            if need <= alloc.allocated_bytes:
+            if self._reserve(end, frame + RESERVE_BYTES):
                 return
-            if self._reserve(min(max(need, alloc.allocated_bytes + RESERVE_STEP_BYTES), alloc.limit_bytes)) or \
-                    self._reserve(need):
-                if need <= alloc.allocated_bytes or not alloc.supported:
-                    return
             room = alloc.allocated_bytes - end - RESERVE_BYTES
             what = "disk" if need <= alloc.limit_bytes else (
                 "file size limit (ulimit -f)" if self._fs_max_bytes is None or alloc.limit_bytes < self._fs_max_bytes

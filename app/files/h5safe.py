@@ -14,7 +14,8 @@ full disk: the live recorder (:mod:`app.capture.recorder`) and the output of
   disk ahead of the data (Linux ``fallocate``, :func:`fallocate`);
   :class:`SpaceReserve` holds spare bytes in a hidden file ``.NAME.reserve``
   beside the output, given back for the close (file systems without
-  ``fallocate``, or a writer that does not preallocate).
+  ``fallocate`` only: space given back can be taken by another program
+  before the close uses it).
 * Superblock: after a failed write HDF5 may leave the end-of-allocation
   address (EOA) of the superblock short of metadata it wrote, or record an
   end of file beyond what reached the disk; then the file does not open
@@ -386,6 +387,24 @@ class Preallocation:
                 self.supported = False
                 log.info("fd %d: the file system cannot reserve space (errno %d)", self.fd, err)
         return True
+
+    def make_room(self, end_bytes: int, more_bytes: int, step_bytes: int = 0) -> bool:
+        """Make sure the ``more_bytes`` past ``end_bytes`` (HDF5's end of allocation) are the file's on disk.
+
+        Allocates ahead in steps of at least ``step_bytes`` where the disk and
+        the size limit allow (fewer calls), else exactly what is asked. False
+        when there is no room: what was allocated before stays the file's, so
+        a writer that asks for its next write plus the room to close gets
+        False while it can still close. True also when the file system cannot
+        allocate ahead (:attr:`supported` turns False).
+        """
+        need = int(end_bytes) + int(more_bytes)
+        if not self.supported or need <= self.allocated_bytes:
+            return True
+        ahead = min(max(need, self.allocated_bytes + int(step_bytes)), self.limit_bytes)
+        if ahead > need and self.ensure(ahead):
+            return True
+        return self.ensure(need)
 
 
 def reserve_path(beside) -> Path:
