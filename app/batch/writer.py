@@ -442,7 +442,7 @@ class ResultWriter:
                                   remedy="choose another --out (a folder you can write to)")
         self._fd = h5safe.descriptor_of(self.f)  # for dropping flushed pages (None: another driver)
         _hold_metadata_until_flush(self.f)
-        fs_max = h5safe.max_file_bytes(path.parent)
+        fs_max = h5safe.max_file_bytes(Path(path).parent)
         self._alloc = Preallocation(self._fd, os.path.getsize(path), h5safe.file_size_limit(fs_max))
         self._reserve = SpaceReserve(path, 0 if self._alloc.supported else RESERVE_BYTES)
         f = self.f

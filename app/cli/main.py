@@ -246,7 +246,11 @@ def _main(argv: list, ending=None) -> int:
         raise
     args._argv = list(argv)  # recorded in output files (process)
     level = logging.DEBUG if args.debug else logging.INFO if args.verbose else logging.WARNING
-    logging.basicConfig(level=level, format=f"{PROG}: %(levelname)s: %(message)s")
+    # the handler filters too: libraries that set their own loggers' levels (Dask's distributed: INFO)
+    # would otherwise print through it (34 lines of cluster start and stop on every `--dask local` run)
+    handler = logging.StreamHandler()
+    handler.setLevel(level)
+    logging.basicConfig(level=level, format=f"{PROG}: %(levelname)s: %(message)s", handlers=[handler])
     return _guarded(lambda: args.func(args), args.debug, ending)
 
 

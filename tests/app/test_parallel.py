@@ -682,6 +682,26 @@ def test_dask_local_gives_serial_heights(series, serial, tmp_path, send_frames):
 
 
 @needs_dask
+def test_dask_local_from_the_console_says_only_what_the_run_says(series, serial, tmp_path):
+    """`tirdeflect process ... --dask local:2` as typed: the same heights as the serial run, and on the
+    terminal only tirdeflect's own lines. Dask's loggers are set to INFO by Dask itself and printed
+    through the CLI's handler: 34 lines of cluster start and stop on every run (a by-hand trial,
+    7 Dec 2026)."""
+    import subprocess
+    import sys
+
+    d, frames = series
+    out = tmp_path / "console.h5"
+    proc = subprocess.run([sys.executable, "-m", "app.cli", "process", str(d / "reference.png"), *frames,
+                           "--geometry", str(d / "geometry.toml"), "--out", str(out), "--fft-effort", "estimate",
+                           "--dask", "local:2", "--chunk-frames", "3"],
+                          cwd=Path(__file__).resolve().parents[2], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    assert not [ln for ln in proc.stderr.splitlines() if ": INFO:" in ln or ": DEBUG:" in ln], proc.stderr
+    _assert_same(serial, _read(out))
+
+
+@needs_dask
 def test_dask_reruns_the_chunk_of_a_killed_worker(series, serial, tmp_path):
     """A worker process is SIGKILLed while it computes a chunk: Dask's nanny
     restarts it, the scheduler gives the chunk to a worker again, and the
