@@ -67,6 +67,10 @@ DEFAULT_REFERENCE_BAND = 0.04
 #: gave heights of 1e289 mm, "the surface is too steep" and numpy's overflow warnings.
 MAX_VIEW_DEPTH_GROWTH = 16.0
 
+#: Lengths beyond any set-up, mm: a slip of units (um typed as mm: 300 m of water), or a camera telecentric
+#: to double precision (1e15 mm ended in a singular matrix; 1e13 already lost precision).  By-hand trial of 7 Dec 2026.
+_MAX_MM = {"depth_mm": 2e4, "camera_distance_mm": 1e7, "fsss_camera_distance_mm": 1e7}
+
 _SETUPS = ("tir", "fsss")
 #: What the pattern is: a checkerboard (Fourier demodulation) or random dots (PIV).
 _PATTERNS = ("checkerboard", "dots")
@@ -250,12 +254,13 @@ class Geometry(CameraModel):
                 f"pattern_stretch_y must be a positive ratio (cell height / width), got "
                 f"{self.pattern_stretch_y!r}; omit it for square cells")
         for key in ("depth_mm", "pixel_mm", "camera_distance_mm", "fsss_camera_distance_mm", "pattern_period_mm"):
-            value = getattr(self, key)
+            value, how = getattr(self, key), "omit it for a telecentric camera" if "distance" in key else \
+                "measure it on the setup"
             if value is not None and value <= 0:
-                raise GeometryError(
-                    f"{key} must be a positive length in mm, got {value!r}; "
-                    f"{'omit it for a telecentric camera' if 'distance' in key else 'measure it on the setup'}"
-                )
+                raise GeometryError(f"{key} must be a positive length in mm, got {value!r}; {how}")
+            if value is not None and value > _MAX_MM.get(key, math.inf):
+                raise GeometryError(f"{key} = {value:g} mm ({value / 1e3:g} m) is beyond any set-up (at most "
+                                    f"{_MAX_MM[key] / 1e3:g} m): lengths are in millimetres; {how}")
         if not self.n_air > 0 or not self.n_water > self.n_air:
             raise GeometryError(
                 f"refractive indices must satisfy 0 < n_air < n_water, got n_air={self.n_air!r}, "
@@ -280,9 +285,7 @@ class Geometry(CameraModel):
             theta = self.theta_deg
             crit = self.critical_angle_deg
             if not theta < 90.0:
-                raise GeometryError(
-                    f"theta_deg must be below 90 deg (grazing incidence), got {theta!r}"
-                )
+                raise GeometryError(f"theta_deg must be below 90 deg (grazing incidence), got {theta!r}")
             if not theta > crit:
                 raise GeometryError(
                     f"no total internal reflection at theta={theta:g} deg: the critical angle "
@@ -388,18 +391,14 @@ class Geometry(CameraModel):
         allowed = [f.name for f in dataclasses.fields(cls)]
         for key in d:
             if key not in allowed:
-                raise GeometryError(
-                    f"unknown key {key!r} in geometry; allowed keys: {', '.join(allowed)}"
-                )
+                raise GeometryError(f"unknown key {key!r} in geometry; allowed keys: {', '.join(allowed)}")
         kw = dict(d)
         if "setup" not in kw:
             raise _missing("setup")
         if "reference_region" in kw and isinstance(kw["reference_region"], list):
             kw["reference_region"] = tuple(kw["reference_region"])
         if "fsss_layers" in kw and isinstance(kw["fsss_layers"], list):
-            kw["fsss_layers"] = tuple(
-                tuple(x) if isinstance(x, list) else x for x in kw["fsss_layers"]
-            )
+            kw["fsss_layers"] = tuple(tuple(x) if isinstance(x, list) else x for x in kw["fsss_layers"])
         return cls(**kw)
 
     @classmethod
@@ -457,10 +456,7 @@ class Geometry(CameraModel):
 
     def to_toml_text(self) -> str:
         """TOML text that :meth:`from_toml_text` reads back to an equal Geometry."""
-        lines = []
-        for key, v in self.to_dict().items():
-            lines.append(f"{key} = {_toml_value(v)}")
-        return "\n".join(lines) + "\n"
+        return "".join(f"{key} = {_toml_value(v)}\n" for key, v in self.to_dict().items())
 
     # ------------------------------------------------------------------ derived
     def _need_tir(self, what: str) -> None:

@@ -120,6 +120,18 @@ def test_non_positive_lengths(key):
     assert f"{key} must be a positive length in mm, got -1.0" in msg
 
 
+@pytest.mark.parametrize("key, value, shown", [("depth_mm", 300000.0, "300 m"), ("depth_mm", 1e12, "1e+09 m"),
+                                                ("camera_distance_mm", 1e15, "1e+12 m")])
+def test_lengths_beyond_any_set_up_are_refused(key, value, shown):
+    """By-hand trial of 7 Dec 2026: 300 m of water (um typed as mm) gave heights 1000 times too small and
+    1e12 mm gave zero heights, both with exit 0; a camera at 1e15 mm ended in a singular matrix."""
+    with pytest.raises(GeometryError) as exc:
+        _tir(**{key: value})
+    msg = str(exc.value)
+    assert f"{key} = {value:g} mm ({shown})" in msg and "lengths are in millimetres" in msg, msg
+    _tir(depth_mm=2000.0, camera_distance_mm=5000.0)  # a deep tank, a far camera: accepted
+
+
 def test_bad_reference_region_layers_and_syntax():
     assert "four integers" in _err(TIR_TEXT.replace("[0, 40, 0, 512]", "[0, 40]"))
     assert "row0 < row1" in _err(TIR_TEXT.replace("[0, 40, 0, 512]", "[40, 0, 0, 512]"))
