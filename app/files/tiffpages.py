@@ -335,6 +335,41 @@ def frame_beyond_pages(p: Path, extent: StackExtent, k: int, page0, byteorder: s
         f"long and {reason} (an interrupted copy or recording); copy the file again from its source")
 
 
+def plane_of_page(p: Path, page, k: int, planes: int, byteorder: str) -> np.ndarray:
+    """Plane ``k`` of ``page``, a page of ``planes`` separate planes (one grey frame each: see
+    ``imageio._planes_of_a_stack``), read alone where its strips are stored uncompressed, so that
+    the planes an interrupted copy left whole stay readable (tifffile reads the page's planes together:
+    a cut in the last plane lost every frame of the file with a ValueError, by-hand trial of 7 Dec 2026).
+
+    Raises
+    ------
+    ImageReadError
+        The plane's pixels are not all in the file (it is truncated), or the page cannot be decoded.
+    """
+    offsets, counts = list(page.dataoffsets), list(page.databytecounts)
+    per = len(offsets) // planes if planes else 0
+    dtype = np.dtype(page.dtype).newbyteorder(byteorder)
+    rows, cols = int(page.imagelength), int(page.imagewidth)
+    if int(page.compression) != 1 or per * planes != len(offsets) or int(page.bitspersample) != 8 * dtype.itemsize:
+        try:
+            return np.asarray(page.asarray())[k]
+        except Exception as exc:  # noqa: BLE001 - tifffile's ValueError of a short read, or a codec's
+            raise ImageReadError(f"frame {k} of {str(p)!r} cannot be read ({exc}); the file may be truncated "
+                                 f"(an interrupted copy): copy it again from its source") from None
+    need = rows * cols * dtype.itemsize
+    data = bytearray()
+    with open(p, "rb") as fh:
+        for offset, count in zip(offsets[k * per:(k + 1) * per], counts[k * per:(k + 1) * per]):
+            fh.seek(int(offset))
+            data += fh.read(int(count))
+    if len(data) < need:
+        raise ImageReadError(
+            f"frame {k} of {str(p)!r} is missing: the file is truncated: it is {p.stat().st_size} bytes long and "
+            f"frame {k} (plane {k} of its one page) is cut off (an interrupted copy or recording); copy the file "
+            f"again from its source")
+    return np.frombuffer(bytes(data[:need]), dtype).reshape(rows, cols).astype(dtype.newbyteorder("="))
+
+
 def _not_found(p: Path, extent: StackExtent, k: int) -> ImageReadError:
     """The error for a declared frame past the last page of a file whose directories end
     as written and whose pixels are not stored back to back: it cannot be found."""

@@ -128,6 +128,38 @@ def test_a_stack_of_3_or_4_frames_that_tifffile_stored_as_colour_planes_is_read_
         assert imageio.read_image(tmp_path / name).shape == (24, 32)
 
 
+@pytest.mark.parametrize("compression", [None, "zlib"])
+def test_such_a_stack_cut_short_keeps_the_frames_before_the_cut(tmp_path, rng, compression):
+    """The same 4-frame stack cut in its third plane (an interrupted copy): tifffile reads the page's planes
+    together, and its short read ended `process` with a ValueError traceback, every frame lost (by-hand
+    trial of 7 Dec 2026). Now each plane is read alone: the two whole ones as written, the cut ones
+    unreadable frames that say the file is truncated. Compressed planes cannot be read alone: each frame
+    then says it cannot be read, none raises."""
+    import warnings
+
+    frames = rng.integers(0, 4096, (4, 24, 32)).astype(np.uint16)
+    whole, cut = tmp_path / "stack.tif", tmp_path / "cut.tif"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        tifffile.imwrite(whole, frames, compression=compression)
+    data = whole.read_bytes()
+    with tifffile.TiffFile(whole) as tif:
+        page = tif.pages[0]
+        end = int(page.dataoffsets[-1]) + int(page.databytecounts[-1])
+        plane_start = int(page.dataoffsets[2 * len(page.dataoffsets) // 4])
+    cut.write_bytes(data[:plane_start + (end - plane_start) // 4])  # in the third plane
+    items = list(imageio.iter_frames([cut], errors="yield"))
+    assert len(items) == 4
+    if compression is None:
+        for k in (0, 1):
+            np.testing.assert_array_equal(items[k].image, frames[k])
+        for k in (2, 3):
+            assert items[k].image is None and "is missing: the file is truncated" in str(items[k].error)
+            assert f"frame {k} (plane {k} of its one page) is cut off" in str(items[k].error)
+    else:
+        assert all(item.image is None and "may be truncated" in str(item.error) for item in items)
+
+
 def test_stack_needs_an_index_to_be_read_as_one_image(tmp_path, rng):
     stack = rng.integers(0, 255, size=(3, 8, 8), dtype=np.uint8)
     tifffile.imwrite(tmp_path / "s.tif", stack, photometric="minisblack")
