@@ -25,8 +25,47 @@ from .camera_model import nearest_camera_distance_mm
 from .errors import GeometryError
 from .keystone import KEYSTONE_MIN_MISMATCH, Keystone, predicted_keystone
 
-__all__ = ["scale_keys", "scale_alternatives", "keystone_words", "keystone_message", "heights_off_pct",
+__all__ = ["cell_shape_words", "root_two_hint", "setup_words", "scale_keys", "scale_alternatives", "keystone_words", "keystone_message", "heights_off_pct",
            "far_limit_mm", "seen_distance_mm"]
+
+
+def setup_words(geometry) -> str:
+    """The keys that set the board's scale and shape in the image, with their values: "pixel_mm = 0.1, theta_deg
+    = 55, telecentric"."""
+    distance = geometry.camera_distance_mm if geometry.setup == "tir" else geometry.fsss_camera_distance_mm
+    camera = "telecentric" if distance is None else f"camera {distance:g} mm away"
+    angle = f", theta_deg = {geometry.theta_deg:g}" if geometry.setup == "tir" else ""
+    return f"pixel_mm = {geometry.pixel_mm:g}{angle}, {camera}"
+
+
+def root_two_hint(period_mm: float, printed_mm: float, band: float) -> str:
+    """Where a board period is sqrt(2) off the printed one (within ``band``): the pattern is a grid of crossed
+    lines or cosines along x and y (its period P shows as a checkerboard of period P sqrt(2) turned by 45 deg),
+    or the reverse (by-hand trial of 7 Dec 2026: crossed cosines of 2 mm were told "pixel_mm should be
+    0.07071")."""
+    for factor, what in ((math.sqrt(2.0), "crossed lines or cosines along x and y"),
+                         (1.0 / math.sqrt(2.0), "a checkerboard where crossed lines or cosines are described")):
+        if abs(period_mm / (printed_mm * factor) - 1.0) <= band:
+            return (f". The two are sqrt(2) apart: if the pattern is {what}, keep pixel_mm and set "
+                    f"pattern_period_mm = {period_mm:.4g} (the checkerboard it is equivalent to)")
+    return ""
+
+
+def cell_shape_words(aspect: float, stretch: float, setup: str, theta: float) -> str:
+    """Words on a reference whose board's cells are ``aspect`` times as long along y as along x through the
+    geometry (``setup``: its keys, in words), where ``pattern_stretch_y = stretch`` says otherwise; ``theta``:
+    the theta_deg that a board of the declared shape implies (NaN: not said)."""
+    def cells(a):
+        return "square" if abs(a - 1.0) < 0.005 else f"{a:.3g} times as long along y as along x"
+
+    shape = cells(stretch)
+    text = (f"the reference's checkerboard is not the board the geometry describes: through this geometry "
+            f"({setup}) its cells are {cells(aspect)}, where pattern_stretch_y = {stretch:g} says {shape}. If "
+            f"the board's cells are so, set pattern_stretch_y = {aspect:.3g} (pattern_period_mm is its period "
+            f"along x)")
+    if math.isfinite(theta):
+        text += f"; if they are {shape}, theta_deg is wrong: the carriers give {theta:.1f} deg"
+    return text
 
 
 def heights_off_pct(ratio: float) -> float:

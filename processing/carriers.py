@@ -343,7 +343,7 @@ def board_period_note(geometry, carriers: Carriers, frame_shape, reference=None)
     from .board_scale import scale_alternatives, scale_keys
 
     if geometry.pattern_period_mm is None:
-        return ""
+        return _cell_shape_note(geometry, carriers, frame_shape)
     c = board_period_check(geometry, geometry.board_period_mm(carriers.freq, frame_shape))
     if c.wrong:
         keystone = None if reference is None else _keystone(geometry, reference, carriers)
@@ -366,34 +366,17 @@ def _board_note(geometry, c) -> str:
 
 def _refuse_board(geometry, carriers: Carriers, frame_shape, c: BoardPeriodCheck, keys: str) -> None:
     """Raise the period check's refusal (or its cells' shape's, where that is what is off)."""
-    from .board_scale import heights_off_pct
+    from .board_scale import heights_off_pct, root_two_hint, setup_words
 
-    distance = geometry.camera_distance_mm if geometry.setup == "tir" else geometry.fsss_camera_distance_mm
-    camera = "telecentric" if distance is None else f"camera {distance:g} mm away"
-    angle = f", theta_deg = {geometry.theta_deg:g}" if geometry.setup == "tir" else ""
     aspect, stretch = geometry.board_cell_aspect(carriers.freq, frame_shape), float(geometry.pattern_stretch_y or 1.0)
     if math.isfinite(aspect) and abs(aspect / stretch - 1.0) > BOARD_ASPECT_TOLERANCE:
-        raise GeometryError(_aspect_message(geometry, carriers, aspect, stretch, f"pixel_mm = {geometry.pixel_mm:g}"
-                                            f"{angle}, {camera}"))
+        raise GeometryError(_aspect_message(geometry, carriers, aspect, stretch, setup_words(geometry)))
     raise GeometryError(
-        f"the reference's checkerboard has a period of {c.period_mm:.4g} mm through this geometry (pixel_mm = "
-        f"{geometry.pixel_mm:g}{angle}, {camera}), but pattern_period_mm = {c.printed_mm:g}: {100 * c.apart:.0f} % "
+        f"the reference's checkerboard has a period of {c.period_mm:.4g} mm through this geometry "
+        f"({setup_words(geometry)}), but pattern_period_mm = {c.printed_mm:g}: {100 * c.apart:.0f} % "
         f"apart (more than {100 * BOARD_PERIOD_TOLERANCE:.1f} %). Heights scale with the board's scale in the image "
         f"squared: with pixel_mm the one off, they would be about {heights_off_pct(1.0 + c.off):.0f} % off. The "
-        f"board's scale in the image is set by {keys}" + _root_two_hint(c))
-
-
-def _root_two_hint(c) -> str:
-    """Where a board period is sqrt(2) off the printed one (within :data:`ROOT_TWO_BAND`): the pattern is a
-    grid of crossed lines or cosines along x and y (its period P shows as a checkerboard of period P sqrt(2)
-    turned by 45 deg), or the reverse (by-hand trial of 7 Dec 2026: crossed cosines of 2 mm were told
-    "pixel_mm should be 0.07071")."""
-    for factor, what in ((math.sqrt(2.0), "crossed lines or cosines along x and y"),
-                         (1.0 / math.sqrt(2.0), "a checkerboard where crossed lines or cosines are described")):
-        if abs(c.period_mm / (c.printed_mm * factor) - 1.0) <= ROOT_TWO_BAND:
-            return (f". The two are sqrt(2) apart: if the pattern is {what}, keep pixel_mm and set "
-                    f"pattern_period_mm = {c.period_mm:.4g} (the checkerboard it is equivalent to)")
-    return ""
+        f"board's scale in the image is set by {keys}" + root_two_hint(c.period_mm, c.printed_mm, ROOT_TWO_BAND))
 
 
 #: Where the period check fails and the board's cells look more than this much longer or shorter along y
@@ -406,19 +389,32 @@ BOARD_ASPECT_TOLERANCE = 0.10
 
 def _aspect_message(geometry, carriers: Carriers, aspect: float, stretch: float, setup: str) -> str:
     """The refusal of a reference whose board's cells are not of the shape ``pattern_stretch_y`` says."""
-    def cells(a):
-        return "square" if abs(a - 1.0) < 0.005 else f"{a:.3g} times as long along y as along x"
+    from .board_scale import cell_shape_words
 
-    shape = cells(stretch)
-    text = (f"the reference's checkerboard is not the board the geometry describes: through this geometry "
-            f"({setup}) its cells are {cells(aspect)}, where pattern_stretch_y = {stretch:g} says {shape}. If "
-            f"the board's cells are so, set pattern_stretch_y = {aspect:.3g} (pattern_period_mm is its period "
-            f"along x)")
+    return (cell_shape_words(aspect, stretch, setup, _carriers_theta(geometry, carriers, stretch))
+            + "; pixel_mm is not judged until the board's shape agrees")
+
+
+def _carriers_theta(geometry, carriers: Carriers, stretch: float) -> float:
+    """The theta a board of cells ``stretch`` long along y implies (NaN where it cannot be told: FS-SS, a finite camera)."""
     if geometry.setup == "tir" and geometry.camera_distance_mm is None:
-        theta = theta_from_carriers(carriers.freq, stretch)
-        if math.isfinite(theta):
-            text += f"; if they are {shape}, theta_deg is wrong: the carriers give {theta:.1f} deg"
-    return text + "; pixel_mm is not judged until the board's shape agrees"
+        return theta_from_carriers(carriers.freq, stretch)
+    return math.nan
+
+
+def _cell_shape_note(geometry, carriers: Carriers, frame_shape) -> str:
+    """Without ``pattern_period_mm``: the note on a board whose cells are not of the declared shape, more than
+    :data:`BOARD_ASPECT_TOLERANCE` (a note, not a refusal: a board printed so, which `tirdeflect pattern
+    --suggest` proposes, gives right heights; a wrong theta_deg or an image stretched along one axis does not:
+    1.3x along x, 31-40 % off with exit 0 and no word, by-hand trial of 7 Dec 2026)."""
+    from .board_scale import cell_shape_words, setup_words
+
+    aspect, stretch = geometry.board_cell_aspect(carriers.freq, frame_shape), float(geometry.pattern_stretch_y or 1.0)
+    if not math.isfinite(aspect) or abs(aspect / stretch - 1.0) <= BOARD_ASPECT_TOLERANCE:
+        return ""
+    return (cell_shape_words(aspect, stretch, setup_words(geometry), _carriers_theta(geometry, carriers, stretch))
+            + "; or the image is stretched along one axis (pixels not square). Heights are right in the first "
+            "case only")
 
 
 def check_pattern_match(carriers: Carriers, frame, *, period_tol: float = 0.04,
