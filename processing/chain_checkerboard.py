@@ -222,10 +222,11 @@ class CheckerboardChain(GridChain):
             valid &= ~dilate_invalid(~valid, o.dilate)
         return wrapped, amplitude, valid, all_valid
 
-    def unwrapped(self, frame, d, wrapped, amplitude, valid, all_valid, checked, state):
+    def unwrapped(self, frame, d, wrapped, amplitude, valid, all_valid, checked, state, judge=True):
         """``(phase, u, valid, all_valid)``: the carrier phases unwrapped against ``state``
         (:func:`processing.series.unwrap_phase`), the displacement of the demodulator ``d``, and the
-        samples that pass :meth:`displacement_mask`.  :meth:`measure` unwraps again against ``EMPTY``
+        samples that pass :meth:`displacement_mask` (``judge``: and :meth:`judge_measured`, raising where the frame
+        is refused).  :meth:`measure` unwraps again against ``EMPTY``
         (in space, as a series' first frame) where the series' count of 2 pi is no unwrapping of this
         frame on any sample (:func:`processing.series.series_slip`: frames far apart in time, frames
         lost, a surface too fast for the frame rate).  By-hand trial of 7 Dec 2026: every third frame of
@@ -237,12 +238,13 @@ class CheckerboardChain(GridChain):
         phase = unwrap_phase(wrapped, valid, all_valid, state, unwrap=o.unwrap, temporal=o.temporal,
                              ref_mask=self.plan.reference_region, ref_idx=self.plan.reference_region_index)
         u = d.phase_to_displacement(phase if all_valid else np.nan_to_num(phase))
-        valid, all_valid = self.displacement_mask(frame, u, valid, all_valid, amplitude, checked)
+        valid, all_valid = self.displacement_mask(u, valid, all_valid)
+        if judge:
+            self.judge_measured(frame, valid, all_valid, amplitude, checked)
         return phase, u, valid, all_valid
 
-    def displacement_mask(self, frame, u, valid, all_valid, amplitude, checked):
-        """``(valid, all_valid)`` after the fold test, island removal and, for a
-        poor frame, the full pattern check; AllInvalidError when nothing is left."""
+    def displacement_mask(self, u, valid, all_valid):
+        """``(valid, all_valid)`` after the fold test and island removal."""
         o = self.options
         fold = (fold_ok(u, self.rows_px, self.cols_px, o.min_fold, finite=True) if all_valid
                 else fold_ok(np.where(valid, u, 0.0), self.rows_px, self.cols_px, o.min_fold))
@@ -251,6 +253,15 @@ class CheckerboardChain(GridChain):
             all_valid = bool(valid.all())
         if not all_valid:
             valid = drop_islands(valid, self.plan.reference_region, o.min_island)
+        return valid, all_valid
+
+    def judge_measured(self, frame, valid, all_valid, amplitude, checked) -> None:
+        """For a poor frame (:data:`processing.mask.POOR_FRAME_VALID_FRACTION`) the full pattern check;
+        AllInvalidError when nothing is left.  Judged on the unwrapping :meth:`measure` keeps, never on a
+        series' count of 2 pi that it gives up: a frame given after one far from it in time was refused as
+        "no clear carrier peak" on the folds of that count, and measured on 57 % of its area alone or after
+        another (by-hand trial of 7 Dec 2026: a frame's verdict hung on the frame before it)."""
+        o = self.options
         if (o.check_pattern and not checked and not all_valid
                 and np.count_nonzero(valid) < POOR_FRAME_VALID_FRACTION * valid.size):
             # noise or another pattern leaves the windows' centroid in place;
@@ -258,7 +269,6 @@ class CheckerboardChain(GridChain):
             check_pattern_match(self.carriers, frame)
         if not all_valid and not valid.any():
             raise self.nothing_measured(frame, amplitude)
-        return valid, all_valid
 
     def nothing_measured(self, frame, amplitude) -> AllInvalidError:
         """The error of a frame no part of which could be measured, with its pattern contrast against the
@@ -314,7 +324,7 @@ class CheckerboardChain(GridChain):
         in_series = o.unwrap and o.temporal and state.phase is not None
         # (displacement_mask writes into valid: the quality mask's kept for unwrapping again)
         masked = self.unwrapped(frame, d, wrapped, amplitude, valid.copy() if in_series else valid, all_valid,
-                                checked, state)
+                                checked, state, judge=not in_series)
         slip = 0.0
         if in_series:
             # against what the series check compares with (the previous frame's; at a join of chunks, the
@@ -323,6 +333,8 @@ class CheckerboardChain(GridChain):
             slip = series_slip(masked[0], masked[2], prev_phase, prev_valid, self.plan.reference_region)
             if slip > 0.0:  # the series' count is no unwrapping of this frame there: the frame's own
                 masked = self.unwrapped(frame, d, wrapped, amplitude, valid, all_valid, checked, EMPTY)
+            else:
+                self.judge_measured(frame, masked[2], masked[3], amplitude, checked)
         phase, u, valid, all_valid = masked
         t2 = time.perf_counter()
         timings["unwrap_mask"] = 1e3 * (t2 - t1)
