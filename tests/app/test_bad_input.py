@@ -259,3 +259,21 @@ def test_disk_full_mid_batch_keeps_a_valid_file(sim, tmp_path):
         assert 1 <= n < 12
         assert f["height"].shape[0] == n  # the half-written frame was dropped
         assert np.isfinite(f["height"][n - 1]).mean() > 0.9
+
+
+def test_a_pattern_mismatch_before_any_frame_matched_says_why_it_stops_the_run(sim, tmp_path, capsys):
+    """By-hand trial of 7 Dec 2026: after blank frames, a frame of another pattern stopped the run ("nothing
+    was written") where after a measured frame the same frame is only stored invalid, and the message did
+    not say why. It says now that no frame before it was measured, and what they were."""
+    imageio.write_image(tmp_path / "grey.png", np.full((SIZE, SIZE), 128, np.uint8))
+    imageio.write_image(tmp_path / "black.png", np.zeros((SIZE, SIZE), np.uint8))
+    cols = np.arange(SIZE)
+    stripes = np.broadcast_to(128 + 100 * np.sin(2 * np.pi * cols / 3.4), (SIZE, SIZE)).astype(np.uint8)
+    imageio.write_image(tmp_path / "stripes.png", stripes)
+    good = sim / "frame_0000.png"
+    code, err = run_cli(capsys, *process_args(sim, tmp_path, tmp_path / "grey.png", tmp_path / "black.png",
+                                              tmp_path / "stripes.png", good))
+    assert_clean_error(code, err, "frame 2", "does not match the reference", "no frame before it was measured: 2 blank",
+                       "once a frame has matched, a frame that does not is only stored invalid", "nothing was written")
+    code, err = run_cli(capsys, *process_args(sim, tmp_path, good, tmp_path / "stripes.png"))
+    assert code == 3 and "1 pattern mismatch" in err, err  # after a measured frame: stored invalid, the run goes on
