@@ -40,7 +40,7 @@ from processing.reference_average import departure_note, reconstructor_departure
 
 from app import version as _version
 from app.batch import parallel
-from app.batch.frame_status import FrameStatus, FrameTally
+from app.batch.frame_status import FrameStatus, FrameTally, frame_digest
 from app.batch.writer import (
     MAP_BYTES_PER_SAMPLE,
     OUTPUT_FORMAT_VERSION,
@@ -441,7 +441,7 @@ def run_process(args: ProcessJob) -> BatchReport:
     pins = _PinCounter(reconstruct)
     pins.write_region(writer)
     status = "failed"
-    tally = FrameTally()
+    tally = FrameTally(reference_digest=frame_digest(reference))
     progress = _progress(selected, disable=args.no_progress)
     on_progress = args.on_progress
     frames = None

@@ -213,12 +213,14 @@ def unmeasured_cause(contrast: float, min_contrast: float) -> str:
 
 
 class FrameTally:
-    """Counts the outcomes of the processed frames and the recorder's flags (never silent)."""
+    """Counts the outcomes of the processed frames and the recorder's flags (never silent).
+    ``reference_digest``: the reference's :func:`frame_digest`, so that a frame that is the reference
+    itself is named (-1: not known)."""
 
     #: invalid frames logged one by one; the rest are counted in the summary
     LOG_FIRST = 10
 
-    def __init__(self):
+    def __init__(self, reference_digest: int = -1):
         from drivers.base import FrameFlags
 
         self._incomplete_flag = int(FrameFlags.INCOMPLETE)
@@ -237,9 +239,14 @@ class FrameTally:
         self.partial = []  # (sequence index, % measured, why not all) of frames measured on < PARTLY_MEASURED_PCT
         self.repeated = []  # (sequence index, the one before's) of measured frames identical to the frame before them
         self._last_digest, self._last_index = -1, -1  # of the frame added last (digest -1: not measured)
+        self.reference_digest = reference_digest
+        self.as_reference = []  # (sequence index, 0) of measured frames that are the reference, sample for sample
 
     def add(self, item, outcome: FrameOutcome) -> None:
         self.frames += 1
+        if outcome.ok and outcome.digest != -1 and outcome.digest == self.reference_digest:
+            _add_row(self.as_reference, item, 0, "the reference image itself, sample for sample: its heights are "
+                                                 "%d by definition")
         if outcome.ok and outcome.digest != -1 and outcome.digest == self._last_digest:
             _add_row(self.repeated, item, self._last_index,
                      "identical to the frame before it (%d), sample for sample: the camera sent a frame twice")
@@ -313,7 +320,7 @@ class FrameTally:
                 "frames_light_banded": len(self.banded), "light_bands_pct_max": _worst(self.banded, 0.0)[1],
                 "frames_vignetted": len(self.vignetted),
                 "frames_partly_measured": len(self.partial), "measured_pct_min": _least(self.partial, 100.0)[1],
-                "frames_repeated": len(self.repeated)}
+                "frames_repeated": len(self.repeated), "frames_as_reference": len(self.as_reference)}
 
     def notes(self) -> list:
         out = []
@@ -356,6 +363,10 @@ class FrameTally:
                        f"or the grabber, or a trigger faster than the camera's frame rate), so their heights repeat "
                        f"the frame's before and their time steps are not real; check the camera's frame rate, "
                        f"exposure and trigger, and /frame_flags where the recording has them")
+        if self.as_reference:
+            out.append(f"{len(self.as_reference)} frame(s) are the reference image itself, sample for sample (first "
+                       f"frame {self.as_reference[0][0]}): their heights are 0 by definition, not a measurement of "
+                       f"the surface; was the reference file given among the frames?")
         if self.turned:
             k, mrad, turn = _worst(self.turned, 0.0)
             first = self.turned[0][0]  # when it happened: a knock turns every frame after it

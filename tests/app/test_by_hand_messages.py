@@ -147,3 +147,21 @@ def test_a_frame_the_camera_sent_twice_is_counted_and_named(tmp_path, capsys):
     code, err = _run(capsys, "process", sim / "reference.png", sim / "frame_0000.png", sim / "frame_0001.png",
                      "--geometry", sim / "geometry.toml", "--out", tmp_path / "distinct.h5", "--no-progress")
     assert code == 0 and "identical" not in err, err
+
+
+def test_the_reference_given_among_the_frames_is_named(tmp_path, capsys):
+    """By-hand trial of 7 Dec 2026: the reference file given as a frame too came out as heights of exactly 0,
+    exit 0 and no word. Now counted (frames_as_reference) and said: 0 by definition, not a measurement."""
+    import h5py
+
+    sim = tmp_path / "sim"
+    assert _run(capsys, "simulate", "--out", sim, "--size", 128, "--frames", 1)[0] == 0
+    out = tmp_path / "out.h5"
+    code, err = _run(capsys, "process", sim / "reference.png", sim / "reference.png", sim / "frame_0000.png",
+                     "--geometry", sim / "geometry.toml", "--out", out, "--no-progress")
+    assert code == 0, err
+    assert "1 frame(s) are the reference image itself, sample for sample (first frame 0): their heights are 0 by " \
+           "definition" in err, err
+    with h5py.File(out) as f:
+        assert f.attrs["frames_as_reference"] == 1
+        assert np.nanmax(np.abs(f["height"][0])) < 1e-6 < np.nanmax(np.abs(f["height"][1]))  # mm: under 1 nm
