@@ -454,10 +454,10 @@ class HeightSolver:
             pieces, n_pieces = connected_regions(v)
         h = f * self.null
         n_valid = int(np.count_nonzero(v))
-        v = self._pin(h, v, pieces, n_pieces, samples)
+        v, pinned = self._pin(h, v, pieces, n_pieces, samples)
         dropped = n_valid - int(np.count_nonzero(v))
-        if dropped:
-            status = dataclasses.replace(status, unpinned_fraction=dropped / n_valid)
+        if dropped or pinned > 1:
+            status = dataclasses.replace(status, unpinned_fraction=dropped / n_valid, pieces=pinned)
         # slopes from the data: grad_px h = g - kappa h, then to surface units
         kr = self.kappa[..., 0]
         kc = self.kappa[..., 1]
@@ -481,7 +481,8 @@ class HeightSolver:
                              status, samples)
 
     def _pin(self, h, v, pieces, n_pieces, samples):
-        """Subtract alpha * null mode per connected piece (in place); returns the final validity.
+        """Subtract alpha * null mode per connected piece (in place); returns the final validity and how
+        many pieces were pinned.
 
         A piece is pinned by the least squares of ``alpha n`` on its pin
         samples; one with fewer than PIN_MIN_PIECE_SAMPLES of them is invalid."""
@@ -493,7 +494,7 @@ class HeightSolver:
         n = self.null
         if pieces is None:
             h -= null_mode_offset(h, n, ref) * n
-            return v
+            return v, 1
         v = v.copy()
         # per-piece sums over the pin samples alone (a tenth of the grid or so: 20x faster than
         # ndimage.sum_labels over every sample)
@@ -510,7 +511,7 @@ class HeightSolver:
         pinned = np.zeros(n_pieces + 1, dtype=bool)
         pinned[1:] = has_ref
         v &= pinned[pieces]
-        return v
+        return v, int(np.count_nonzero(has_ref))
 
 _CACHE: "OrderedDict[tuple, HeightSolver]" = OrderedDict()
 _CACHE_SIZE = 8

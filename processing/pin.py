@@ -369,6 +369,9 @@ class PinStatus:
     unpinned_fraction : float
         Fraction of the frame's valid samples dropped (NaN) because their
         connected piece held fewer than :data:`PIN_MIN_PIECE_SAMPLES` pin samples.
+    pieces : int
+        Connected pieces of valid samples pinned each on its own pin samples: their heights' offsets
+        are set apart, by what the surface does where each is pinned.
     region_motion_px : float
         :func:`region_motion_px` of the displacement on the samples the
         offset was measured on: how far the pattern moved there since the
@@ -409,6 +412,7 @@ class PinStatus:
     needed: int
     used_samples: int
     unpinned_fraction: float = 0.0
+    pieces: int = 1
     region_motion_px: float = float("nan")
     frame_motion_px: float = float("nan")
     frame_shift_share: float = float("nan")

@@ -714,6 +714,7 @@ class _PinCounter:
         # the same on the default border band (processing.pin.band_moved: TIR only)
         self.setup = getattr(getattr(reconstruct, "geometry", None), "setup", "")
         self.band_moving = []  # (sequence index, PinStatus.region_motion_px)
+        self.pieced = []  # (sequence index, PinStatus.pieces) of band_moving frames pinned in several pieces
         self.shifted = []  # (sequence index, PinStatus) where the whole pattern shifted (PinStatus.shifted)
         self.scaled = []  # (sequence index, PinStatus) where the image's scale changed (PinStatus.scaled)
         # every frame's median displacement (row, col px) not flagged alone: a recording shifted for its
@@ -768,6 +769,8 @@ class _PinCounter:
                 "frame %d (%s): %s", item.sequence_index, item.label, pin.describe())
         elif band_moved(pin.region, pin.rule, pin.region_motion_px, self.setup) and not pin.shifted:
             self.band_moving.append((item.sequence_index, pin.region_motion_px))
+            if pin.pieces > 1:
+                self.pieced.append((item.sequence_index, pin.pieces))
             log.debug("frame %d (%s): the pattern moved on the %s by %.3g px", item.sequence_index, item.label,
                       pin.region, pin.region_motion_px)
         note = getattr(result, "note", "")
@@ -805,6 +808,7 @@ class _PinCounter:
         return {"pin_region": self.name, "frames_pin_fallback": len(self.nearest),
                 "frames_flagged_jump": len(self.jumps), "frames_noted": len(self.noted),
                 "frames_pin_region_moving": len(self.moving), "frames_pin_band_moving": len(self.band_moving),
+                "frames_pin_band_pieces": len(self.pieced),
                 "frames_shifted": len(self.shifted), "steady_shift_px": self._steady_px(),
                 "frames_scaled": len(self.scaled),
                 "scale_pct_max": max((100 * abs(p.region_scale) for _, p in self.scaled), default=0.0)}
@@ -828,6 +832,17 @@ class _PinCounter:
             text += (f"; {len(self.nearest)} frame(s) on the valid samples nearest it (fallback), "
                      f"e.g. frame {self.nearest[0]}")
         return text
+
+    def _pieced_text(self) -> str:
+        """Of the frames whose band moved, those measured in pieces pinned apart (by-hand trial of 7 Dec 2026:
+        steep waves in 6-9 pieces each pinned on its own part of the moving band, 19-49 % off, said only as
+        "their heights hold there only")."""
+        if not self.pieced:
+            return ""
+        k, most = max(self.pieced, key=lambda row: row[1])
+        return (f". In {len(self.pieced)} of them the measured area fell into pieces (up to {most}, frame {k}), "
+                f"each pinned on its own part of the band: their heights are offset from each other by the water's "
+                f"motion there, besides that mode (/pin_status pieces)")
 
     def notes(self) -> list:
         out = []
@@ -907,7 +922,7 @@ class _PinCounter:
                        f"per cent of their RMS where waves reach it; where the set-up moved, a tilt that can be as "
                        f"large as the heights (waves filling the frame hide such a shift from the whole-frame test, "
                        f"/pin_status frame_shift_share). Give a reference_region where the water is still; see "
-                       f"/pin_status region_motion_px")
+                       f"/pin_status region_motion_px" + self._pieced_text())
         if self.noted:
             idx, note = self.noted[0]
             out.append(f"{len(self.noted)} frame(s) carry a note on how they were measured, e.g. frame {idx}: "

@@ -47,6 +47,8 @@ _PIN_FIELDS = (
     ("needed", "valid samples the pin needs: max(16, 25 % of the region)"),
     ("used_samples", "samples the offset was measured on"),
     ("unpinned_fraction", "fraction of the valid samples dropped: their piece held no pin sample"),
+    ("pieces", "connected pieces of valid samples, each pinned on its own pin samples (0: unknown): from 2 on, "
+               "their heights' offsets are apart by what the surface does where each is pinned"),
     ("region_motion_px", "median displacement on the pin samples, px: above 0.03 in the user's reference_region, "
                          "the surface there is not at rest or the camera or the board moved since the reference "
                          "(NaN: not measured)"),
@@ -79,7 +81,7 @@ def _pin_status_dtype():
     s = h5py.string_dtype()
     return np.dtype([("rule", s), ("region_samples", np.int32), ("valid_samples", np.int32),
                      ("needed", np.int32), ("used_samples", np.int32), ("unpinned_fraction", np.float32),
-                     ("region_motion_px", np.float32), ("frame_motion_px", np.float32),
+                     ("pieces", np.int32), ("region_motion_px", np.float32), ("frame_motion_px", np.float32),
                      ("frame_motion_row_px", np.float32), ("frame_motion_col_px", np.float32),
                      ("frame_shift_share", np.float32), ("shift_effect_um", np.float32), ("shift_level_um", np.float32),
                      ("shift_removed", np.uint8), ("region_scale", np.float32),
@@ -103,7 +105,7 @@ def _pin_status_row(result) -> np.ndarray:
     pin = getattr(result, "pin", None)
     if pin is not None:
         row["rule"] = pin.rule
-        for name in ("region_samples", "valid_samples", "needed", "used_samples", "unpinned_fraction",
+        for name in ("region_samples", "valid_samples", "needed", "used_samples", "unpinned_fraction", "pieces",
                      "region_motion_px") + shift_fields:
             row[name] = getattr(pin, name)
         row["shift_removed"] = int(pin.shift_removed)

@@ -785,6 +785,33 @@ def test_a_frame_is_judged_alike_whatever_frame_came_before_it(tmp_path, capsys)
     np.testing.assert_allclose(valid["after5"][1], valid["alone"][1], rtol=0, atol=1e-9, equal_nan=True)
 
 
+def test_steep_waves_measured_in_pieces_pinned_apart_are_said_so(tmp_path, capsys):
+    """By-hand trial of 7 Dec 2026: steep waves (`simulate --max-phase 6`, caustics) left 35 % of the frame
+    measured, in 6-9 pieces each pinned on its own part of the default border band, where the waves move the
+    water: 19-49 % off (3-7 % with each piece's offset fitted), and the notes said the heights "hold there".
+    Each frame's pieces are now in /pin_status, and the note on the moving band says what they mean."""
+    d = tmp_path / "sim"
+    assert main(["simulate", "--out", str(d), "--surface", "waves", "--size", "256", "--frames", "2",
+                 "--max-phase", "6"]) == 0
+    out = tmp_path / "out.h5"
+    code, err = _run(capsys, "process", d / "reference.png", d / "frame_0000.png", d / "frame_0001.png",
+                     "--geometry", d / "geometry.toml", "--out", out, "--workers", "1")
+    assert code == 0, err
+    with h5py.File(out) as f:
+        pieces = f["pin_status"]["pieces"]
+        assert pieces.min() >= 2 and f.attrs["frames_pin_band_pieces"] == 2, pieces
+    said = re.search(r"In 2 of them the measured area fell into pieces \(up to (\d+), frame \d\), each pinned on its "
+                     r"own part of the band: their heights are offset from each other", err)
+    assert said and int(said[1]) == pieces.max(), err
+    calm = tmp_path / "calm"  # the default waves: one piece, nothing said
+    assert main(["simulate", "--out", str(calm), "--surface", "waves", "--size", "256", "--frames", "1"]) == 0
+    code, err = _run(capsys, "process", calm / "reference.png", calm / "frame_0000.png", "--geometry",
+                     calm / "geometry.toml", "--out", tmp_path / "calm.h5")
+    assert code == 0 and "fell into pieces" not in err, err
+    with h5py.File(tmp_path / "calm.h5") as f:
+        assert list(f["pin_status"]["pieces"]) == [1]
+
+
 def test_simulate_renders_the_board_period_its_geometry_names(tmp_path, capsys):
     """A geometry whose board is 1.2 mm (the lab's, not the default 2 mm): before 6 Dec 2026 simulate
     rendered 2 mm and wrote 2.0 into its geometry.toml with nothing said. Now it renders the period asked

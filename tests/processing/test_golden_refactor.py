@@ -61,9 +61,10 @@ _NUMBER = re.compile(r"[-+]?(?:\d+\.\d*|\.\d+|\d+)(?:[eE][-+]?\d+)?")
 #: PinStatus fields added after the golden file was made (5 Dec 2026: how far the pattern moved on the
 #: pin samples; 6 Dec 2026: how far the whole frame's moved alike, and what that does to the heights;
 #: 7 Dec 2026: the image's scale change on the pin samples: measures of the frame, not a change of the
-#: chain): left out of the comparison (the cases rewritten since hold some of them, the others do not)
+#: chain; the connected pieces pinned apart, 7 Dec 2026): left out of the comparison (the cases rewritten since
+#: hold some of them, the others do not)
 _NEWER_PIN_FIELD = re.compile(
-    r", '(?:region_motion_px|frame_motion_px|frame_shift_share|frame_motion_row_px|frame_motion_col_px|shift_effect_um"
+    r", '(?:pieces|region_motion_px|frame_motion_px|frame_shift_share|frame_motion_row_px|frame_motion_col_px|shift_effect_um"
     r"|shift_level_um|shift_removed|region_scale|region_scale_reach_px|region_scale_explained)': [^,}]*")
 #: SeriesCheck's field added after (7 Dec 2026: the frame unwrapped in space alone where the series' count
 #: slipped), left out where it is False: a golden series frame measured alone now would still differ
