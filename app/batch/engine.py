@@ -1032,25 +1032,12 @@ def _bits_hint(path: str, image: np.ndarray) -> int:
 
 
 
-class _NoProgress:
-    def update(self, n=1):
-        pass
-
-    def close(self):
-        pass
-
-
 def _progress(total: int, *, disable: bool):
-    if disable:
-        return _NoProgress()
-    try:
-        from tqdm import tqdm
-    except ImportError:
-        return _NoProgress()
     import shutil
 
-    # disable=None: bar only when stderr is a terminal (log files stay clean);
-    # shutil falls back to 80 columns where the terminal reports a width of 0
-    return tqdm(total=total, unit="frame", file=sys.stderr, disable=None,
-                ncols=shutil.get_terminal_size().columns)
+    from app.progress import progress_bar
+
+    # a bar only when stderr is a terminal (log files stay clean); shutil falls back to 80 columns where the
+    # terminal reports a width of 0
+    return progress_bar(total, disable=disable, ncols=shutil.get_terminal_size().columns)
 

@@ -197,6 +197,24 @@ def _format_error(exc: BaseException) -> str:
     return " ".join(message.splitlines())
 
 
+def _fill_closed_std_descriptors() -> None:
+    """/dev/null on standard descriptors the caller closed (``2>&-``, some launchers): else the first file the
+    run opens takes descriptor 2, where C libraries (HDF5, Aravis's GLib) print their warnings, into a
+    recording or an output being written. (Python has then set ``sys.stderr`` to None, which the progress bar
+    and the messages allow for.)"""
+    for fd in (0, 1, 2):
+        try:
+            os.fstat(fd)
+        except OSError:
+            try:
+                null = os.open(os.devnull, os.O_RDWR)
+            except OSError:
+                return
+            if null != fd:
+                os.dup2(null, fd)
+                os.close(null)
+
+
 def main(argv=None) -> int:
     """Run the ``tirdeflect`` command.
 
@@ -217,6 +235,8 @@ def main(argv=None) -> int:
         incomplete, 130 interrupted.
     """
     ending = _ENDING if argv is None else None
+    if argv is None:
+        _fill_closed_std_descriptors()
     try:
         return _main(list(sys.argv[1:] if argv is None else argv), ending)
     except KeyboardInterrupt:  # Ctrl-C before a command began (its imports, the parser): nothing was written

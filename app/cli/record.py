@@ -302,25 +302,23 @@ def _check_pixel_format(settings, args) -> None:
 
 
 def _progress(args, total: int, desc: str):
-    if args.no_progress:
-        return None
+    """The bar, on stderr whatever it is (a terminal or a log the user reads as it grows); it turns itself off
+    when its stream goes away (:mod:`app.progress`): the recording never depends on it."""
+    from app.progress import progress_bar
+
     desc = desc + (" (captured into RAM)" if args.burst else "")
-    try:
-        from tqdm import tqdm
-    except ImportError:  # pragma: no cover - tqdm is a dependency
-        return None
-    return tqdm(total=total, desc=desc, unit="frame", file=sys.stderr, dynamic_ncols=True, leave=True)
+    return progress_bar(total, desc=desc, terminal_only=False, disable=args.no_progress, dynamic_ncols=True,
+                        leave=True)
 
 
 def _wait_with_bar(waitable, bar, counter, deadline: float, interval_s: float = 0.2) -> bool:
     shown = 0
     while True:
         done = waitable(interval_s)
-        if bar is not None:
-            n = counter()
-            if n > shown:
-                bar.update(n - shown)
-                shown = n
+        n = counter()
+        if n > shown:
+            bar.update(n - shown)
+            shown = n
         if done:
             return True
         if time.monotonic() > deadline:
@@ -500,8 +498,7 @@ def _record(args, prog: str) -> int:
                             "raise --trigger-timeout-s")
             finished = _wait_with_bar(cap.wait, bar, lambda: rec.frames_written, time.monotonic() + timeout)
             summary_src = cap
-        if bar is not None:
-            bar.close()
+        bar.close()
         if not finished:
             late = f"recording did not finish within {timeout:g} s (--timeout-s)"
             rec.stop(10.0, drain=False, error=f"{late}; stopped there, the frames written until then are kept")

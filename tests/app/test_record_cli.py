@@ -182,3 +182,30 @@ def test_camera_left_in_a_colour_format_is_refused_naming_the_option(tmp_path, c
     assert rc == 2 and len(err) == 1, err
     assert "'RGBa8'" in err[0] and "--pixel-format Mono8" in err[0] and "configure(" not in err[0], err
     assert not out.exists()
+
+
+@pytest.mark.parametrize("stderr_to", ["a pipe its reader quits", "closed"])
+def test_a_recording_goes_on_when_its_terminal_output_goes_away(tmp_path, stderr_to):
+    """By-hand trial of 7 Dec 2026: `tirdeflect record ... 2>&1 | head` stopped the recording at 9-11 of
+    50 frames with "[Errno 32] Broken pipe", said only to the pipe that had gone (the progress bar's write
+    failed and ended the recording); with stderr closed (`2>&-`) it ended at once, exit 1, no file. The
+    display is now never what stops a recording: every frame is written, exit 0."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    out = tmp_path / "r.h5"
+    cmd = [sys.executable, "-m", "app.cli", "record", "--camera", "synthetic", "--synthetic-size", "64",
+           "--synthetic-frames", "4", "--frames", "150", "--frame-rate-hz", "100", "--out", str(out)]
+    root = Path(__file__).resolve().parents[2]
+    if stderr_to == "closed":
+        proc = subprocess.Popen(cmd, cwd=root, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                preexec_fn=lambda: os.close(2))
+    else:
+        proc = subprocess.Popen(cmd, cwd=root, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        proc.stderr.read(20)  # the first characters of the bar, then the reader is gone
+        proc.stderr.close()
+    assert proc.wait(timeout=120) == 0
+    with h5py.File(out) as f:
+        assert f["frames"].shape[0] == 150 and not f.attrs.get("error")
