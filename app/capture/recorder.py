@@ -990,6 +990,9 @@ class Recorder:
             cs = a.get("camera_statistics", {})
             s["camera_statistics"] = cs
             s["acquisition_fps"] = round(a.get("fps", 0.0), 2)
+            if a.get("delivered_rate_hz") and a.get("set_rate_hz"):  # slower than set (app.capture.acquisition)
+                s["delivered_rate_hz"] = round(float(a["delivered_rate_hz"]), 3)
+                s["set_rate_hz"] = round(float(a["set_rate_hz"]), 3)
             for key, name in (("n_resend_requests", "packets_resend_requests"), ("n_resent_packets", "packets_resent"),
                               ("n_missing_packets", "packets_missing")):
                 if key in cs:
@@ -1019,6 +1022,11 @@ def summary_rows(s: dict) -> List[Tuple[str, str]]:
          f"{s.get('recorder_backlog_max', 0)} of {s.get('ring_frames', 0)})"),
         ("data rate", f"{s.get('write_rate_mb_s', 0)} MB/s on average over {s.get('elapsed_s', 0)} s"),
     ]
+    if s.get("delivered_rate_hz"):
+        rows.insert(1, ("frame rate", f"the camera delivered {s['delivered_rate_hz']:.4g} frames/s, not the "
+                                      f"{s.get('set_rate_hz', 0):.4g} it was set to (its exposure, the link's "
+                                      f"bandwidth or its own limit): the file's times are the camera's; its "
+                                      f"frame_rate_hz is the rate set"))
     pre, pre_available = s.get("pre_frames", 0), s.get("pre_available", -1)
     pre_missing = pre - pre_available if 0 <= pre_available < pre else 0
     if pre_missing:

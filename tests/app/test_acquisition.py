@@ -147,3 +147,30 @@ def test_driver_error_mid_stream_ends_the_thread_cleanly():
     assert acq.acquired == 20 and len(_read(cur, 20)) == 20
     with pytest.raises(RingClosed, match=r"frames\(20\)"):
         cur.read(1.0)
+
+
+def test_a_camera_slower_than_its_set_rate_is_named_not_counted_as_losses(caplog):
+    """By-hand trial of 7 Dec 2026: the fake GigE camera set to 1000 Hz delivered 228 Hz; 99 of 100 frames
+    were flagged as time gaps and the summary said "timestamp gaps suggest about 216 more", exit 0, with no
+    word of the real rate. The camera here is paced at 200 Hz while 800 Hz is what is expected: the rate it
+    delivers is measured and said, and its frames are no gaps; a real pause after it still is one."""
+    from app.capture.recorder import summary_rows
+
+    with SyntheticCamera(_frames(), frame_rate_hz=200) as cam:
+        cam.configure(trigger_mode="On", trigger_source="Software")
+        acq = Acquisition(cam, ring_frames=256, frame_rate_hz=800.0)
+        acq.set_software_trigger_rate(200.0)
+        cur = acq.ring.cursor(0)
+        with caplog.at_level("WARNING", logger="tirdeflect.acquisition"), acq:
+            steady = _read(cur, 40)
+            acq.set_software_trigger_rate(None)
+            time.sleep(0.1)  # the stimulus: 100 ms without triggers, 20 periods of the rate delivered
+            acq.set_software_trigger_rate(200.0)
+            after = _read(cur, 5)
+    assert not [g for g in steady if g[2] & FrameFlags.TIME_GAP_BEFORE]
+    assert acq.delivered_rate_hz == pytest.approx(200.0, rel=0.2)
+    said = [r.getMessage() for r in caplog.records if "not the 800 it is set to" in r.getMessage()]
+    assert len(said) == 1, [r.getMessage() for r in caplog.records]
+    assert [g for g in after if g[2] & FrameFlags.TIME_GAP_BEFORE] and acq.lost_by_time >= 10
+    rows = dict(summary_rows({"delivered_rate_hz": 201.3, "set_rate_hz": 800.0, "frames_written": 45}))
+    assert rows["frame rate"].startswith("the camera delivered 201.3 frames/s, not the 800 it was set to")
