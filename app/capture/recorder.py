@@ -890,6 +890,8 @@ class Recorder:
             st["missing_bytes"] += int(fr.missing_bytes)
         if flags & FrameFlags.NO_DEVICE_TIMESTAMP:
             st["no_timestamp"] += 1
+        if flags & FrameFlags.TIME_GAP_BEFORE:  # also before the first frame whose id is known (lost leaders)
+            st["time_gaps"] += 1
         if prev is None:
             return
         seq_gap = fr.sequence - prev.sequence - 1  # lost to ring overwrite
@@ -901,7 +903,6 @@ class Recorder:
             if seq_gap == 0:
                 st["missing_ids"].append([prev.frame_id + 1, upstream])
         if flags & FrameFlags.TIME_GAP_BEFORE:
-            st["time_gaps"] += 1
             period = getattr(self.acquisition, "period_s", None) if self.acquisition is not None else None
             if period and fr.device_timestamp_ns is not None and prev.device_timestamp_ns is not None:
                 n_periods = (fr.device_timestamp_ns - prev.device_timestamp_ns) * 1e-9 / period
@@ -1099,8 +1100,13 @@ def read_summary(path) -> Dict:
     # rows overwritten on disk (e.g. zeros) would count as huge gaps: only steps between
     # two intact neighbours count, and the damaged rows' flags are not known
     intact_step = ~(damaged[1:] | damaged[:-1])
-    d_id = (np.diff(t["frame_id"]) - 1)[intact_step]
-    d_seq = (np.diff(t["sequence"]) - 1)[intact_step]
+    ids = t["frame_id"].astype(np.int64)
+    # and only between two known ids: -1 is a frame whose id was lost with its GigE leader (a step from it
+    # to id 65402 was counted as 65402 frames lost, by-hand trial of 7 Dec 2026)
+    known_step = intact_step & (ids[1:] >= 0) & (ids[:-1] >= 0)
+    d_seq_all = np.diff(t["sequence"].astype(np.int64)) - 1
+    lost_upstream = int(np.clip(np.diff(ids) - 1 - d_seq_all, 0, None)[known_step].sum())
+    d_seq = d_seq_all[intact_step]
     t = t[~damaged]
     flags = t["flags"]
     error = ("no /summary: the recording did not end normally (crash or power loss); counts rebuilt from "
@@ -1111,7 +1117,7 @@ def read_summary(path) -> Dict:
         path=str(path),
         frames_written=n,
         frame_table_damaged_rows=int(damaged.sum()),
-        lost_upstream_id_gaps=int(np.clip(d_id - d_seq, 0, None).sum()),
+        lost_upstream_id_gaps=lost_upstream,
         lost_ring_overrun=int(d_seq.clip(0).sum()),
         time_gaps=int(((flags & FrameFlags.TIME_GAP_BEFORE) != 0).sum()),
         incomplete=int(((flags & FrameFlags.INCOMPLETE) != 0).sum()),

@@ -244,3 +244,18 @@ def test_recorded_frames_leave_the_page_cache_once_flushed(tmp_path):
     rf.close()
     assert written > 0.9 * frames_bytes, f"only {written} of the {frames_bytes} bytes written were in the page cache"
     assert flushed < 0.25 * frames_bytes, f"{flushed} bytes of the recording stayed in the page cache after the flush"
+
+
+def test_a_crashed_recording_counts_id_gaps_between_known_ids_only(tmp_path):
+    """By-hand trial of 7 Dec 2026 (`arv-fake-gv-camera -r 400`): the first frames' GigE leaders were lost,
+    so their ids are unknown (-1); a recording without /summary (a crash) had its counts rebuilt with the
+    step from -1 to 65402 as 65402 frames lost. Only steps between two known ids count: here the one frame
+    missing between 65403 and 65405."""
+    rf = RecordingFile(tmp_path / "r.h5", shape=(8, 8), dtype=np.uint8, n_frames=5)
+    for seq, fid in enumerate((-1, -1, 65402, 65403, 65405)):
+        rf.write(np.zeros((8, 8), np.uint8), (seq, fid, -1, seq, 0, seq))
+    rf.close()  # (no summary given: none written, as a crash leaves it)
+    with h5py.File(tmp_path / "r.h5", "r") as f:
+        assert "summary" not in f
+    s = read_summary(tmp_path / "r.h5")
+    assert s["frames_written"] == 5 and s["lost_upstream_id_gaps"] == 1 and s["lost_ring_overrun"] == 0
