@@ -236,21 +236,27 @@ class RecordingFile:
                     f"({free} bytes) are free {where}; free space, record fewer frames or "
                     "choose another disk"
                 )
-        self.path = p
-        # "w-": fail if the file appeared since we looked (never overwrite)
-        try:
-            self._f = h5safe.create_h5(p, "w-", libver="earliest",
-                                       remedy="free disk space or choose another folder (one you can write to)")
-        except FileExistsError as exc:
-            raise RecorderError(f"cannot create {str(p)!r}: {exc}; choose another file name or folder") from exc
-        except h5safe.OutputLocationError as exc:  # says why from the errno, not HDF5's text
-            # HDF5 created the file but could not write its first block (disk full): leave nothing behind
+        # "w-": fail if the file appeared since we looked (never overwrite); with "rename", the next free
+        # name then (by-hand trial of 7 Dec 2026: of three recordings started at once with --auto-name, one
+        # failed on the name another had just taken, told to add the --auto-name it had)
+        for attempt in range(1000):
             try:
-                if p.exists() and p.stat().st_size < 4096:
-                    p.unlink()
-            except OSError:
-                pass
-            raise RecorderError(str(exc)) from exc
+                self._f = h5safe.create_h5(p, "w-", libver="earliest",
+                                           remedy="free disk space or choose another folder (one you can write to)")
+                break
+            except FileExistsError as exc:
+                if on_exists != "rename" or attempt == 999:
+                    raise RecorderError(f"cannot create {str(p)!r}: {exc}; choose another file name or folder") from exc
+                p = unique_path(path)  # the first free name of the one asked for
+            except h5safe.OutputLocationError as exc:  # says why from the errno, not HDF5's text
+                # HDF5 created the file but could not write its first block (disk full): leave nothing behind
+                try:
+                    if p.exists() and p.stat().st_size < 4096:
+                        p.unlink()
+                except OSError:
+                    pass
+                raise RecorderError(str(exc)) from exc
+        self.path = p
         f = self._f
         cap = self.n_planned if self.n_planned is not None else 256
         self._capacity = cap

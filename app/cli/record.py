@@ -448,7 +448,10 @@ def _record(args, prog: str) -> int:
         ring_frames = _ring_frames(args, mode, pre, post, shape, dtype)
         acq = Acquisition(cam, ring_frames=ring_frames, frame_rate_hz=rate if trig == "genicam" else None,
                           stall_timeout_s=5.0)
-        file_options = dict(check_space=not args.no_space_check, on_exists="error",
+        # --auto-name: the name asked for, numbered when the file is made (another recording may take the
+        # first free name meanwhile: three started at once, one failed)
+        target = Path(args.out) if args.auto_name else out
+        file_options = dict(check_space=not args.no_space_check, on_exists="rename" if args.auto_name else "error",
                             geometry_toml=geometry_toml, reference_image=reference)
         bar = _progress(args, total, out.name)
         duration = total / rate if rate else 10.0
@@ -456,7 +459,7 @@ def _record(args, prog: str) -> int:
 
         if mode == "frames":
             burst = bool(args.burst) and total <= acq.ring.n_frames
-            rec = Recorder(acq.ring, out, n_frames=total, acquisition=acq, defer=burst,
+            rec = Recorder(acq.ring, target, n_frames=total, acquisition=acq, defer=burst,
                            attrs=dict(trigger_source="none", pre_frames=0, post_frames=total,
                                       frame_rate_hz=rate or -1.0, burst=int(burst)), **file_options)
             rec.begin(0)
@@ -467,7 +470,7 @@ def _record(args, prog: str) -> int:
             finished = _wait_with_bar(rec.wait, bar, counter, time.monotonic() + timeout)
             summary_src = rec
         else:
-            cap = TriggeredCapture(acq, out, pre_frames=pre, post_frames=post, source=trig, burst=args.burst,
+            cap = TriggeredCapture(acq, target, pre_frames=pre, post_frames=post, source=trig, burst=args.burst,
                                    **file_options)
             rec = cap.recorder
             if trig == "genicam":

@@ -209,3 +209,28 @@ def test_a_recording_goes_on_when_its_terminal_output_goes_away(tmp_path, stderr
     assert proc.wait(timeout=120) == 0
     with h5py.File(out) as f:
         assert f["frames"].shape[0] == 150 and not f.attrs.get("error")
+
+
+def test_recordings_started_together_with_auto_name_each_get_a_file(tmp_path):
+    """By-hand trial of 7 Dec 2026: three `record --auto-name --out same.h5` started at once: one failed,
+    "'same-001.h5' already exists ... (or let tirdeflect number it: --auto-name)": each chose the first free
+    name before opening its camera, and the first to create it won. A name taken meanwhile now moves the
+    recording to the next free one."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    (tmp_path / "same.h5").write_bytes(b"an earlier recording")
+    cmd = [sys.executable, "-m", "app.cli", "record", "--camera", "synthetic", "--synthetic-size", "64",
+           "--synthetic-frames", "4", "--frames", "20", "--no-progress", "--auto-name", "--out",
+           str(tmp_path / "same.h5")]
+    procs = [subprocess.Popen(cmd, cwd=Path(__file__).resolve().parents[2], stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True) for _ in range(3)]
+    results = [(p.wait(timeout=180), p.communicate()[1]) for p in procs]
+    assert [code for code, _ in results] == [0, 0, 0], results
+    made = sorted(p.name for p in tmp_path.glob("same-*.h5"))
+    assert made == ["same-001.h5", "same-002.h5", "same-003.h5"], made
+    for name in made:
+        with h5py.File(tmp_path / name) as f:
+            assert f["frames"].shape[0] == 20
+    assert (tmp_path / "same.h5").read_bytes() == b"an earlier recording"
