@@ -25,8 +25,8 @@ from .camera_model import nearest_camera_distance_mm
 from .errors import GeometryError
 from .keystone import KEYSTONE_MIN_MISMATCH, Keystone, predicted_keystone
 
-__all__ = ["cell_shape_words", "root_two_hint", "setup_words", "scale_keys", "scale_alternatives", "keystone_words", "keystone_message", "heights_off_pct",
-           "far_limit_mm", "seen_distance_mm"]
+__all__ = ["cell_shape_words", "root_two_hint", "setup_words", "scale_keys", "scale_alternatives", "keystone_words",
+           "keystone_message", "heights_off_pct", "far_limit_mm", "seen_distance_mm"]
 
 
 def setup_words(geometry) -> str:

@@ -396,7 +396,8 @@ def _aspect_message(geometry, carriers: Carriers, aspect: float, stretch: float,
 
 
 def _carriers_theta(geometry, carriers: Carriers, stretch: float) -> float:
-    """The theta a board of cells ``stretch`` long along y implies (NaN where it cannot be told: FS-SS, a finite camera)."""
+    """The theta a board of cells ``stretch`` long along y implies (NaN where it cannot be told: FS-SS, a
+    finite camera)."""
     if geometry.setup == "tir" and geometry.camera_distance_mm is None:
         return theta_from_carriers(carriers.freq, stretch)
     return math.nan

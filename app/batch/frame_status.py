@@ -355,7 +355,8 @@ class FrameTally:
             k, pct, cause = _least(self.partial, 100.0)
             out.append(f"{len(self.partial)} frame(s) were measured on less than {PARTLY_MEASURED_PCT:g} % of the area "
                        f"their reference covers (the least {pct:.1f} %, frame {k}: {cause}); their heights are "
-                       f"measured there only, and their pin may be a fallback; see /valid and /pin_status in the output")
+                       f"measured there only, and their pin may be a fallback; see /valid and /pin_status in the "
+                       f"output")
         if self.repeated:
             k, before = self.repeated[0]
             out.append(f"{len(self.repeated)} frame(s) identical to the one before, sample for sample (first frame "

@@ -422,11 +422,16 @@ class RecordingFile:
         return i
 
     def _disk_full(self, room: int, what: str) -> DiskFullError:
+        if what == "disk":
+            remedy = "free disk space or choose another disk"
+        elif what.startswith("file size limit"):
+            remedy = "raise the limit (ulimit -f) or record fewer frames"
+        else:
+            remedy = "record to a disk whose file system holds larger files, or fewer frames"
         return DiskFullError(
-            f"{what} full: only {format_bytes(max(room, 0))} left for {str(self.path)!r}, kept in reserve so "
-            f"the file stays valid; recording stopped after {self.n_written} frames"
-            + (f" of {self.n_planned}" if self.n_planned else "")
-            + "; free disk space or choose another disk"
+            f"{what} full: {format_bytes(max(room, 0))} left for {str(self.path)!r} beyond the "
+            f"{format_bytes(RESERVE_BYTES)} kept to close it validly; recording stopped after {self.n_written} frames"
+            + (f" of {self.n_planned}" if self.n_planned else "") + f"; {remedy}"
         )
 
     def _check_room(self) -> None:
@@ -871,6 +876,10 @@ class Recorder:
                         self.progress(rf.n_flushed, self.n_frames)
         except DiskFullError as exc:
             error = str(exc)
+            held = min(ring.head, self._end_sequence() or ring.head) - self.start_sequence - rf.n_written
+            if self.defer and held > 0:  # (by-hand trial of 7 Dec 2026: said only as "stopped after 23 frames")
+                error += (f"; the other {held} frames were captured into RAM (--burst) but there was no room to "
+                          "write them: they are lost")
         except OSError as exc:
             error = (f"writing {str(rf.path)!r} failed at frame {rf.n_written} ({exc}); free disk space or "
                      "choose another disk")

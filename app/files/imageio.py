@@ -327,7 +327,8 @@ def _tiff_layout(tif, p: Path):
             if not 0 <= i < planes:
                 raise ImageReadError(f"{str(p)!r} holds {planes} frames (0 to {planes - 1}); there is no frame {i}")
             with tiffpages.quiet_tifffile():
-                return _check_dtype(np.ascontiguousarray(tiffpages.plane_of_page(p, first, i, planes, tif.byteorder)), p)
+                plane = tiffpages.plane_of_page(p, first, i, planes, tif.byteorder)
+                return _check_dtype(np.ascontiguousarray(plane), p)
         try:
             with tiffpages.quiet_tifffile():
                 if i >= extent.pages:  # declared, its directory lost: ImageReadError if cut off
