@@ -1038,6 +1038,9 @@ def summary_rows(s: dict) -> List[Tuple[str, str]]:
          f"{s.get('recorder_backlog_max', 0)} of {s.get('ring_frames', 0)})"),
         ("data rate", f"{s.get('write_rate_mb_s', 0)} MB/s on average over {s.get('elapsed_s', 0)} s"),
     ]
+    if s.get("no_device_timestamp", 0) > 0:  # (by-hand trial of 7 Dec 2026: 31 of 150 frames, said nowhere)
+        rows.insert(-1, ("no timestamp", f"{s['no_device_timestamp']} frames without the camera's timestamp (their "
+                                         "leader packet lost): their times are the host's, less exact"))
     if s.get("delivered_rate_hz"):
         rows.insert(1, ("frame rate", f"the camera delivered {s['delivered_rate_hz']:.4g} frames/s, not the "
                                       f"{s.get('set_rate_hz', 0):.4g} it was set to (its exposure, the link's "

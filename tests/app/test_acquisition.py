@@ -174,3 +174,6 @@ def test_a_camera_slower_than_its_set_rate_is_named_not_counted_as_losses(caplog
     assert [g for g in after if g[2] & FrameFlags.TIME_GAP_BEFORE] and acq.lost_by_time >= 10
     rows = dict(summary_rows({"delivered_rate_hz": 201.3, "set_rate_hz": 800.0, "frames_written": 45}))
     assert rows["frame rate"].startswith("the camera delivered 201.3 frames/s, not the 800 it was set to")
+    assert "no timestamp" not in rows  # (every frame had the camera's)
+    rows = dict(summary_rows({"no_device_timestamp": 31, "frames_written": 150}))
+    assert rows["no timestamp"].startswith("31 frames without the camera's timestamp")
