@@ -546,7 +546,11 @@ class RecordingFile:
                     self.frames.resize(n, axis=0)
                     self.table.resize(n, axis=0)
                     self._capacity = n
-                f.attrs["complete"] = int(error is None and (self.n_planned is None or n == self.n_planned))
+                complete = error is None and (self.n_planned is None or n == self.n_planned)
+                f.attrs["complete"] = int(complete)
+                if summary is not None:  # complete and nothing lost on the way: what `record`'s exit 0 says
+                    f.attrs["lossless"] = int(complete and not summary.get("total_missing") and not
+                                              summary.get("incomplete"))
                 f.attrs["error"] = error or ""
                 if self.events:
                     f.create_dataset("events", data=[json.dumps(e, default=str) for e in self.events],

@@ -188,6 +188,8 @@ def test_injected_drops_summary_equals_the_injected_set(tmp_path):
     assert "lost upstream    7" in text and "17-18, 50-52, 99, 130" in text
     with h5py.File(tmp_path / "d.h5", "r") as f:  # the same summary is in the file
         assert json.loads(f["summary"].attrs["summary_json"])["lost_upstream_id_gaps"] == 7
+        # every planned frame written, but 7 lost on the way (by-hand trial of 7 Dec 2026: `complete` 1 alone)
+        assert f.attrs["complete"] == 1 and f.attrs["lossless"] == 0
 
 
 def test_recorder_lapped_by_camera_counts_every_lost_frame(tmp_path):

@@ -59,7 +59,7 @@ def test_round_trip_layout_and_metadata(tmp_path):
         assert f["geometry_toml"][()].decode() == geom
         np.testing.assert_array_equal(f["reference"][:], ref)
         assert f.attrs["format"] == "tirdeflect-recording" and f.attrs["software_version"]
-        assert f.attrs["note"] == "tank 2" and f.attrs["complete"] == 1
+        assert f.attrs["note"] == "tank 2" and f.attrs["complete"] == 1 and f.attrs["lossless"] == 1
         cam_attrs = f["camera"].attrs
         assert cam_attrs["pixel_format"] == "Mono12" and cam_attrs["frame_rate_hz"] == 400.0
         assert json.loads(cam_attrs["settings_json"])["width"] == 56
