@@ -48,6 +48,26 @@ class MovieReport:
     value_range: tuple
     unit: str
     codec: str
+    #: the values' extremes over every frame (displayed units), and the frame of each
+    extremes: tuple = (float("nan"), float("nan"))
+    extreme_frames: tuple = (-1, -1)
+
+    def beyond_range(self) -> str:
+        """Where the values reach far beyond the colour range (by half its width or more: a drop's or an
+        impact's peaks, under the percentiles of the many quiet samples, shown flat at the range's end), what
+        they reach and how to show them; "" where they do not (by-hand trial of 7 Dec 2026: the drop's peaks
+        clipped in silence)."""
+        lo, hi = self.value_range
+        low, high = self.extremes
+        margin = 0.5 * (hi - lo)
+        far = [(v, k) for v, k, out in ((low, self.extreme_frames[0], low < lo - margin),
+                                        (high, self.extreme_frames[1], high > hi + margin)) if out]
+        if not far:
+            return ""
+        where = " and ".join(f"{v:.4g} {self.unit} (frame {k})" for v, k in far)
+        return (f"the values reach {where}, beyond the colour range {lo:.4g} .. {hi:.4g} {self.unit} taken from "
+                f"the percentiles: there they show as its end colour; --range {low:.4g},{high:.4g} shows them "
+                f"whole")
 
 
 def colour_range(ds, n: int, factor: float, percentile: float, max_samples: int = 60) -> tuple:
@@ -252,8 +272,14 @@ def make_movie(out_h5, movie_path, *, quantity: str = "height", value_range=None
         container = av.open(str(movie), "w")
         try:
             stream = None
+            extremes, extreme_frames = [np.inf, -np.inf], [-1, -1]
             for k in range(n):
                 values = np.asarray(ds[k], dtype=np.float64) * factor
+                if np.isfinite(values).any():
+                    if np.nanmin(values) < extremes[0]:
+                        extremes[0], extreme_frames[0] = float(np.nanmin(values)), k
+                    if np.nanmax(values) > extremes[1]:
+                        extremes[1], extreme_frames[1] = float(np.nanmax(values)), k
                 image = _compose(_colormap(values, lo, hi), lo, hi, unit, label, stamps[k], scale, aspect)
                 if stream is None:
                     stream = _encoder(container, movie.suffix.lower(), fps)
@@ -270,7 +296,7 @@ def make_movie(out_h5, movie_path, *, quantity: str = "height", value_range=None
             raise
         container.close()
     return MovieReport(movie, n, int(stream.width), int(stream.height), (lo, hi), unit,
-                       stream.codec_context.name)
+                       stream.codec_context.name, tuple(extremes), tuple(extreme_frames))
 
 
 def _checked_movie_path(movie_path, quantity: str, overwrite: bool, percentile: float) -> Path:

@@ -81,6 +81,9 @@ def cmd_movie(args) -> int:
     print(f"tirdeflect: wrote {report.frames} frame(s), {report.width} x {report.height} px "
           f"({report.codec}), colour range {lo:.4g} .. {hi:.4g} {report.unit}, to {report.path}",
           file=sys.stderr)
+    beyond = report.beyond_range() if args.range is None else ""
+    if beyond:
+        print(f"tirdeflect: note: {beyond}", file=sys.stderr)
     return 0
 
 

@@ -161,6 +161,32 @@ def test_movie_with_fixed_range_and_slope(processed, tmp_path):
     assert r.returncode == 2 and "already exists" in r.stderr
 
 
+def test_movie_names_peaks_far_beyond_its_colour_range(processed, tmp_path):
+    """By-hand trial of 7 Dec 2026: a drop's peaks, a few samples among many quiet ones, lay beyond the colour
+    range the percentiles gave and showed as its end colour, in silence. The movie names what they reach, in
+    which frame, and the --range that shows them (so does the deepening dimple: its last frames' bottom lies
+    beyond the 1 % percentile of all the frames); with a --range given, nothing is said."""
+    import shutil
+
+    _, out_tif, _ = processed
+    r = _cli("movie", out_tif, "--out", tmp_path / "dimple.mp4")
+    assert r.returncode == 0 and f"(frame {N_FRAMES - 1}), beyond the colour range" in r.stderr, r.stderr
+    r = _cli("movie", out_tif, "--out", tmp_path / "whole.mp4", "--range", "-2.1,0.1")
+    assert r.returncode == 0 and "note:" not in r.stderr, r.stderr
+    dropped = tmp_path / "drop.h5"
+    shutil.copy(out_tif, dropped)
+    with h5py.File(dropped, "r+") as f:  # a drop's narrow peak in frame 3: 3 x 3 samples, 10x the dimple's depth
+        h = f["height"]
+        peak = 10 * float(np.nanmax(np.abs(h[()])))
+        frame = h[3]
+        frame[120:123, 120:123] = peak
+        h[3] = frame
+    r = _cli("movie", dropped, "--out", tmp_path / "drop.mp4")
+    assert r.returncode == 0, r.stderr
+    note = [ln for ln in r.stderr.splitlines() if ln.startswith("tirdeflect: note: the values reach")]
+    assert note and f"{1e3 * peak:.4g} um (frame 3)" in note[0] and "--range " in note[0], r.stderr
+
+
 def test_probe_and_movie_keep_the_times_of_a_cut_video(processed, tmp_path):
     """A 100 frames/s FFV1 video cut short: its last frames are UNREADABLE rows (no time,
     no heights); the frames read keep their stream times in the probe series (not NaN
