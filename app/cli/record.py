@@ -509,7 +509,8 @@ def _record(args, prog: str) -> int:
             result = 2
         acq.stop(10.0)
         summary = summary_src.summary()
-        _say(format_summary(summary))
+        if not (rec.error and rec.frames_written == 0):  # (then no file is kept: the error line says so)
+            _say(format_summary(summary))
         if result is None:
             if rec.error:
                 tail = _end_after_error(rec, cap, acq, rec.error) if rec.frames_written == 0 else ""
