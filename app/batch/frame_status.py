@@ -32,7 +32,7 @@ from processing.banding import LightBands, bands_of, evened_frame
 from processing.turn import TURN_MAX_MRAD, TurnCheck
 
 __all__ = ["FrameStatus", "FrameOutcome", "FrameTally", "measure_frame", "outcome_of_error", "coverage",
-           "unmeasured_cause", "PARTLY_MEASURED_PCT", "frame_digest"]
+           "unmeasured_cause", "PARTLY_MEASURED_PCT", "UNMEASURED_NOTE_PCT", "frame_digest"]
 
 log = logging.getLogger(__name__)
 
@@ -172,6 +172,10 @@ def measure_frame(reconstruct, image: np.ndarray, ref_shape, grid: str):
 #: blurred by a Gaussian of 2.5 px, 0.4 % of it measured and 82 % off there, was stored as measured, and
 #: the only words were the pin's fallback and a jump).
 PARTLY_MEASURED_PCT = 50.0
+#: From this percentage of the reference's area unmeasured (NaN) up to :data:`PARTLY_MEASURED_PCT`, a measured
+#: frame is counted in a note: by-hand trial of 7 Dec 2026, the impact's centre was NaN in 63 frames (up to 11 %
+#: of the field, where its depth lies) and the export said "every frame measured, none flagged".
+UNMEASURED_NOTE_PCT = 1.0
 
 
 def coverage(result, reference_valid, judge_contrast: bool):
@@ -237,6 +241,7 @@ class FrameTally:
         self.banded = []  # (sequence index, LightBands.depth, LightBands) of frames with bands of light along rows
         self.vignetted = []  # (sequence index, darkest corner's light, LightBands) of frames darkened to the corners
         self.partial = []  # (sequence index, % measured, why not all) of frames measured on < PARTLY_MEASURED_PCT
+        self.holed = []  # (sequence index, % not measured) of the others with UNMEASURED_NOTE_PCT or more unmeasured
         self.repeated = []  # (sequence index, the one before's) of measured frames identical to the frame before them
         self._last_digest, self._last_index = -1, -1  # of the frame added last (digest -1: not measured)
         self.reference_digest = reference_digest
@@ -269,6 +274,8 @@ class FrameTally:
             if outcome.measured_pct < PARTLY_MEASURED_PCT:
                 _add_row(self.partial, item, outcome.measured_pct, "only %.1f %% of the area its reference covers "
                          "could be measured: " + outcome.unmeasured_cause.replace("%", "%%"), outcome.unmeasured_cause)
+            elif 100.0 - outcome.measured_pct >= UNMEASURED_NOTE_PCT:
+                self.holed.append((item.sequence_index, 100.0 - outcome.measured_pct))
             if outcome.turn is not None and outcome.turn.flagged:
                 _add_row(self.turned, item, abs(outcome.turn.turn_mrad),
                          "the pattern turned by %.2f mrad since the reference (the camera or the board moved)",
@@ -320,7 +327,8 @@ class FrameTally:
                 "frames_light_banded": len(self.banded), "light_bands_pct_max": _worst(self.banded, 0.0)[1],
                 "frames_vignetted": len(self.vignetted),
                 "frames_partly_measured": len(self.partial), "measured_pct_min": _least(self.partial, 100.0)[1],
-                "frames_repeated": len(self.repeated), "frames_as_reference": len(self.as_reference)}
+                "frames_repeated": len(self.repeated), "frames_as_reference": len(self.as_reference),
+                "frames_partly_unmeasured": len(self.holed), "unmeasured_pct_max": _worst(self.holed, 0.0)[1]}
 
     def notes(self) -> list:
         out = []
@@ -357,6 +365,12 @@ class FrameTally:
                        f"their reference covers (the least {pct:.1f} %, frame {k}: {cause}); their heights are "
                        f"measured there only, and their pin may be a fallback; see /valid and /pin_status in the "
                        f"output")
+        if self.holed:
+            k, pct = _worst(self.holed, 0.0)[:2]
+            out.append(f"{len(self.holed)} measured frame(s) were not measured on part of their area (up to "
+                       f"{pct:.1f} %, frame {k}; from frame {self.holed[0][0]} to {self.holed[-1][0]}): their heights "
+                       f"are NaN there (/valid), where the surface was too steep, the pattern folded or was hidden; "
+                       f"what lies there, an impact's depth or a crest, is not in the heights")
         if self.repeated:
             k, before = self.repeated[0]
             out.append(f"{len(self.repeated)} frame(s) identical to the one before, sample for sample (first frame "

@@ -193,6 +193,11 @@ def describe_export(out_path: str) -> tuple:
             parts.append(f"{partly} measured on less than half of the area the reference covers (the least "
                          f"{float(f.attrs.get('measured_pct_min', 0.0)):.1f} %): blurred, dimmed or hidden there, "
                          f"the run's log says which (/valid)")
+        holed = ""
+        if int(f.attrs.get("frames_partly_unmeasured", 0)):  # (app.batch.frame_status.UNMEASURED_NOTE_PCT)
+            holed = (f"{int(f.attrs['frames_partly_unmeasured'])} frame(s) were not measured on part of their area "
+                     f"(up to {float(f.attrs.get('unmeasured_pct_max', 0.0)):.1f} %): heights NaN there (/valid), "
+                     f"where the surface was too steep, the pattern folded or was hidden")
         repaired = ""
         if "hot_pixels" in f:
             hot = np.asarray(f["hot_pixels"][:n], np.int64)
@@ -210,6 +215,9 @@ def describe_export(out_path: str) -> tuple:
     if repaired:  # a note, not a flag: the heights are measured as without them
         text += f". Note: {repaired}"
         log.info("%s", repaired)
+    if holed:  # a note: the frames are measured, but not all of their area
+        text += f". Note: {holed}"
+        log.info("%s", holed)
     if band_note:  # a note as well: the heights are as measured; what pins them is the user's to choose
         text += f". Note: {band_note}"
         log.info("%s", band_note)

@@ -3,6 +3,7 @@
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from app.cli import main
 from app.files import imageio
@@ -165,3 +166,32 @@ def test_the_reference_given_among_the_frames_is_named(tmp_path, capsys):
     with h5py.File(out) as f:
         assert f.attrs["frames_as_reference"] == 1
         assert np.nanmax(np.abs(f["height"][0])) < 1e-6 < np.nanmax(np.abs(f["height"][1]))  # mm: under 1 nm
+
+
+def test_frames_measured_on_all_but_part_of_their_area_are_named(tmp_path, capsys):
+    """By-hand trial of 7 Dec 2026 (the window's impact scene): the impact's centre was NaN in 63 frames, up to
+    11 % of the field where its depth lies, and the export said "every frame measured, none flagged" (the run
+    names frames measured on less than half of their area only). A frame with a blank patch (a splash, a
+    shadow) is now counted and said, by the run and by the window's export message."""
+    import h5py
+
+    from app.gui.export import describe_export
+
+    sim = tmp_path / "sim"
+    assert _run(capsys, "simulate", "--out", sim, "--size", 128, "--frames", 1)[0] == 0
+    frame = imageio.read_image(sim / "frame_0000.png").copy()
+    yy, xx = np.mgrid[:128, :128]
+    frame[np.hypot(yy - 64, xx - 64) < 14] = int(frame.mean())  # a blank disc, 3.8 % of the frame
+    imageio.write_image(tmp_path / "patch.png", frame)
+    out = tmp_path / "out.h5"
+    code, err = _run(capsys, "process", sim / "reference.png", tmp_path / "patch.png", "--geometry",
+                     sim / "geometry.toml", "--out", out, "--no-progress")
+    assert code == 0, err
+    with h5py.File(out) as f:
+        unmeasured = 100.0 * (1.0 - f["valid"][0].mean())
+        assert f.attrs["frames_partly_unmeasured"] == 1
+        assert f.attrs["unmeasured_pct_max"] == pytest.approx(unmeasured, abs=1.5)
+    assert 3 < unmeasured < 20
+    assert "1 measured frame(s) were not measured on part of their area (up to" in err, err
+    text, clean = describe_export(str(out))
+    assert "Note: 1 frame(s) were not measured on part of their area" in text and clean, text
