@@ -20,8 +20,13 @@ It behaves like a GenICam camera where that matters to the acquisition code:
   buffer benchmarks); the device timestamp is then the host time of the fetch.
 
 Frames are views on preallocated arrays (no per-frame copy); they are marked
-read-only. Exposure and gain are accepted and read back but do not change the
-images (the camera has no optics).
+read-only. The frames given are what the camera sees at its default exposure
+(:data:`REFERENCE_EXPOSURE_US`) and 0 dB of gain; other settings scale their
+light as a camera's do, ``exposure_us / 1000 * 10 ** (gain_db / 20)``, clipped at
+the top of the bit depth (then each frame is a scaled copy): darker or saturated
+frames, as at a tank. (Until 7 Dec 2026 exposure and gain were read back and
+ignored: the window said "accepted: exposure 5000 us, gain 12 dB" over
+unchanged frames.)
 """
 
 from __future__ import annotations
@@ -43,7 +48,7 @@ from .base import (
     SettingError,
 )
 
-__all__ = ["SyntheticCamera", "moving_checkerboard"]
+__all__ = ["SyntheticCamera", "moving_checkerboard", "REFERENCE_EXPOSURE_US"]
 
 _PIXEL_FORMATS_8 = ("Mono8",)
 _PIXEL_FORMATS_16 = ("Mono10", "Mono12", "Mono16")
@@ -51,6 +56,8 @@ _BITS = {"Mono8": 8, "Mono10": 10, "Mono12": 12, "Mono16": 16}
 _FRAME_RATE_RANGE_HZ = (0.01, 100000.0)
 _EXPOSURE_RANGE_US = (1.0, 10_000_000.0)
 _GAIN_RANGE_DB = (0.0, 48.0)
+#: The exposure (us, at 0 dB) the frames given were taken at: the camera's default setting.
+REFERENCE_EXPOSURE_US = 1000.0
 _TRIGGER_SOURCES = ("Software", "Line0", "Line1", "Line2", "Line3")
 _TRIGGER_ACTIVATIONS = ("RisingEdge", "FallingEdge")
 
@@ -188,7 +195,7 @@ class SyntheticCamera(Camera):
             width=self._sensor_cols,
             height=self._sensor_rows,
             pixel_format="Mono8" if bit_depth == 8 else f"Mono{bit_depth}",
-            exposure_us=1000.0,
+            exposure_us=REFERENCE_EXPOSURE_US,
             gain_db=0.0,
             frame_rate_hz=float(frame_rate_hz),
             trigger_mode="Off",
@@ -248,6 +255,10 @@ class SyntheticCamera(Camera):
         else:
             img = self._frames[frame_id % self._frames.shape[0]]
         view = img[s.offset_y : s.offset_y + s.height, s.offset_x : s.offset_x + s.width]
+        light = (s.exposure_us / REFERENCE_EXPOSURE_US) * 10.0 ** (s.gain_db / 20.0)
+        if light != 1.0:  # the exposure and gain set: the light scaled, clipped at the top of the bit depth
+            top = float((1 << s.bit_depth) - 1)
+            view = np.minimum(view * np.float32(light), np.float32(top)).astype(self._dtype)
         view.flags.writeable = False  # a new view object: the source stays writable
         return view
 

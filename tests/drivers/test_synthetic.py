@@ -160,10 +160,29 @@ def test_configure_reads_back_and_rejects_with_ranges():
         assert cam.settings().roi == (8, 4, 32, 16)  # refused writes changed nothing
         cam.start()
         f = cam.fetch(1.0)
-        np.testing.assert_array_equal(f.image, stack[0, 4:20, 8:40])
+        # twice the default exposure: twice the light, clipped at 255 (the frames given are the default's)
+        expect = np.minimum(stack[0, 4:20, 8:40].astype(np.float64) * 2, 255).astype(np.uint8)
+        np.testing.assert_array_equal(f.image, expect)
         with pytest.raises(SettingError, match="stop"):
             cam.configure(width=16)
         assert cam.configure(frame_rate_hz=60).frame_rate_hz == 60.0
+
+
+def test_exposure_and_gain_scale_the_light_as_a_camera_does():
+    """By-hand trial of 7 Dec 2026: the window said "accepted: exposure 5000 us, gain 12 dB" and the synthetic
+    camera's frames stayed the same to the byte, so darker or saturated frames could not be tried in it."""
+    stack = (np.arange(2 * 16 * 16) % 200 + 20).astype(np.uint16).reshape(2, 16, 16) * 16  # 12-bit levels
+    with SyntheticCamera(stack, bit_depth=12, max_rate=True) as cam:
+        for exposure_us, gain_db, light in ((1000, 0, 1.0), (250, 0, 0.25), (1000, 6, 10 ** 0.3), (5000, 12, None)):
+            cam.configure(exposure_us=exposure_us, gain_db=gain_db)
+            cam.start()
+            image = cam.fetch(1.0).image.astype(np.float64)
+            cam.stop()
+            frame = stack[0].astype(np.float64)  # (each start begins again at frame 0)
+            if light is None:  # 5 ms and 12 dB: 20x the light, saturated at the 12-bit top
+                assert (image == 4095).mean() > 0.99
+            else:
+                np.testing.assert_allclose(image, np.minimum(frame * light, 4095), atol=1.0)
 
 
 def test_loop_false_ends_with_timeout_and_close_is_idempotent():
