@@ -22,7 +22,8 @@ import numpy as np
 from processing.geometry import grazing_view_note
 from processing.live_view import SATURATION_MAX_PCT
 from processing.piv import DOTS_PER_WINDOW_MIN  # the one bound: `process` names a dots run below it too
-from processing.reference_average import PHASE_BOUND_RAD, grey_change, half_spectrum_baseband, phase_change_rad
+from processing.reference_average import (PHASE_BOUND_RAD, grey_change, half_spectrum_baseband, phase_change_rad,
+                                          worst_tile_rms)
 
 __all__ = ["frame_alignment", "display_spectrum", "modulation_map", "assess", "DOT_WINDOW_PX", "periodic_pattern",
            "theta_mismatch", "FrameMotion", "MOTION_MEMORY"]
@@ -178,8 +179,8 @@ class FrameMotion:
     def phases(self, phase, valid, run) -> Optional[float]:
         """Once a reference exists: the largest change of the measured carrier phase (rad; ``phase``
         (2, m, n), a live result's unwrapped phase against the reference, ``valid`` its samples) over the
-        last :data:`MOTION_MEMORY` updates, per carrier the RMS over the samples valid in both, the larger
-        carrier; None on the first result of a run (``run``: another reference or grid starts one). The
+        last :data:`MOTION_MEMORY` updates, per carrier the RMS over the samples valid in both in the worst
+        tile (:func:`processing.reference_average.worst_tile_rms`), the larger carrier; None on the first result of a run (``run``: another reference or grid starts one). The
         same figure as :meth:`carriers` before the reference: the "frame to frame" row went with the
         reference (by-hand trial, 7 Dec 2026), though the water may still settle."""
         phase = np.asarray(phase, np.float32)
@@ -193,8 +194,9 @@ class FrameMotion:
         self._last = (phase, valid)
         if not both.any():
             return None
-        d = phase[:, both] - last[0][:, both]
-        return self._changed(float(np.sqrt(np.mean(np.square(d, dtype=np.float64), axis=1)).max()))
+        # per carrier over the samples valid in both, in the worst tile (as a reference capture judges)
+        return self._changed(max(worst_tile_rms(np.where(both, phase[c] - last[0][c], 0.0), both)
+                                 for c in range(phase.shape[0])))
 
     def dots(self, frame) -> Optional[float]:
         """Random dots: the largest grey-level change over the contrast (every other pixel) over the

@@ -478,6 +478,32 @@ def test_reference_of_still_water_agrees_and_of_waves_is_refused_with_the_figure
         avg.result()
 
 
+def test_a_reference_capture_on_the_drops_fading_rings_is_refused():
+    """By-hand trial of 7 Dec 2026: Ctrl+R on the drop scene as its rings faded was accepted ("within 0.049 rad
+    of the first, bound 0.05") while the Alignment tab said the surface moved, and every later height map
+    carried the rings' negative (about a tenth of the drop's signal). The whole field's RMS diluted rings that
+    fill part of it; the capture judges the worst tile of the field now (still water: far below the bound)."""
+    from processing.carriers import find_carriers_live
+    from processing.reference_average import PHASE_BOUND_RAD, ReferenceAverager, WaterMovingError
+
+    from app.capture.scene import TankScene
+
+    tank = TankScene((256, 256), n_frames=24, frame_rate_hz=30.0)  # the window's drop at 256^2 and 30 Hz
+    tank.prepare("drop")
+    fading = tank._clips["drop"][0][10:20]  # as the rings fade (the whole field's RMS: 0.049 rad at most)
+    avg = ReferenceAverager(find_carriers_live(fading[0])[0].freq)
+    for f in fading:
+        avg.add(f)
+    assert max(avg.changes) > 2 * PHASE_BOUND_RAD
+    with pytest.raises(WaterMovingError):
+        avg.result()
+    still = [tank._quantize(tank.flat) for _ in range(10)]
+    avg = ReferenceAverager(find_carriers_live(still[0])[0].freq)
+    for f in still:
+        avg.add(f)
+    assert avg.result()[1].max_change_rad < PHASE_BOUND_RAD / 10
+
+
 def test_a_refused_capture_says_refused_only_for_moving_water():
     from app.gui.model.reference import capture_failed_label
 
