@@ -162,7 +162,15 @@ def rebuild_reconstructor(w):
         w.pattern_problem = problem
         # what is wrong with a usable reference, the first that applies, is said where the user looks, in red and
         # without a tick; the heights still come
-        if problem:  # every height would be wrong
+        camera = frame_shape(w)
+        if camera is not None and tuple(np.shape(reference)) != tuple(camera):  # no height at all, until one of
+            # them changes (by-hand trial of 7 Dec 2026: restored at 256^2 for a 512^2 camera, it kept its tick)
+            rows, cols = np.shape(reference)
+            findings = [("NOT the camera's size", f"The reference is {rows}×{cols} px but the camera gives "
+                                                  f"{camera[0]}×{camera[1]}: no height can be measured against it. "
+                                                  f"Capture a new reference (Ctrl+R), or set the camera's region "
+                                                  f"of interest and binning back to {rows}×{cols}.")]
+        elif problem:  # every height would be wrong
             findings = [("NOT the chosen pattern", f"The reference does not show random dots: {problem}")]
         else:
             # captured (Ctrl+R: the float average of the camera's integer frames), else a file as it is

@@ -263,6 +263,29 @@ def test_restart_restores_the_session_and_flags_unconfirmed_geometry(qtbot, tmp_
     assert w3.geometry_banner.isVisible()
 
 
+def test_a_restored_reference_of_another_size_than_the_camera_is_not_ticked(qtbot):
+    """By-hand trial of 7 Dec 2026: a session closed at 256^2 and opened at 512^2 said "Restored ... reference"
+    and "periods 5.97, 5.97 px ✓" while no height could come (the map said the shapes differ). The reference
+    line now says it in red, with what to do."""
+    from app.gui.window import MainWindow
+
+    w = _window(qtbot)
+    qtbot.waitUntil(lambda: w.first_frame_s is not None, timeout=20000)
+    _capture_reference_by_hand(qtbot, w)
+    rows, cols = w.reference.shape
+    w.close()
+    bigger = (2 * SHAPE[0], 2 * SHAPE[1])
+    w2 = MainWindow(None, synthetic_options={"shape": bigger, "n_frames": 12, "frame_rate_hz": 30.0},
+                    planner_effort="FFTW_ESTIMATE")
+    qtbot.addWidget(w2, before_close_func=lambda widget: widget.shutdown())
+    w2.resize(1600, 1000)
+    w2.show()
+    label = w2.geometry_panel.reference_label
+    qtbot.waitUntil(lambda: "NOT the camera's size" in label.text(), timeout=30000)
+    assert "✓" not in label.text()
+    assert f"The reference is {rows}×{cols} px but the camera gives {bigger[0]}×{bigger[1]}" in w2.last_error
+
+
 def test_experiment_file_round_trip_and_session_option(qtbot, tmp_path):
     """Save experiment: one TOML beside the reference, full precision; open it in a fresh window."""
     import tomllib
