@@ -407,8 +407,10 @@ class TriggeredCapture:
     def error(self) -> Optional[str]:
         return self.recorder.error
 
-    def cancel(self, timeout_s: float = 10.0) -> bool:
-        """Give up: before the trigger the file (no frame in it) is deleted; after it, closed with what it has.
+    def cancel(self, timeout_s: float = 10.0, why: str = "stopped by the user") -> bool:
+        """Give up: before the trigger the file (no frame in it) is deleted; after it, every frame already in the
+        ring is written (they were captured: a disarm just after the trigger kept 1 of them, by-hand trial of
+        7 Dec 2026) and the file closed, ``why`` in its ``/events`` (it read "ok" alone).
 
         Returns True when a file was kept.
         """
@@ -417,7 +419,10 @@ class TriggeredCapture:
                 self.state = "cancelled"
                 self.recorder.discard()
                 return False
-        self.recorder.stop(timeout_s, drain=False)
+        ring = self.acquisition.ring
+        self.recorder.file.add_event("note", f"{why}: the recording ends at the frames captured until then",
+                                     sequence=ring.head)
+        self.recorder.stop(timeout_s, drain=True)
         return True
 
     def summary(self) -> dict:

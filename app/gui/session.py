@@ -239,8 +239,8 @@ class LiveSession:
             self._restart_acquisition()
         return accepted
 
-    def close_camera(self):
-        self.disarm()
+    def close_camera(self, why: str = "the camera was closed (another one chosen)"):
+        self.disarm(why)
         with self._lock:
             acq, self.acquisition = self.acquisition, None
             cam, self.camera = self.camera, None
@@ -461,8 +461,9 @@ class LiveSession:
             raise RuntimeError("nothing armed: press Arm first")
         return capture.trigger_now(source="software")
 
-    def disarm(self) -> str:
-        """Cancel an armed capture: before its trigger no file is left; a running one keeps what it wrote.
+    def disarm(self, why: str = "disarmed in the window") -> str:
+        """Cancel an armed capture: before its trigger no file is left; a running one keeps the frames captured
+        (``why`` in its ``/events``).
 
         Returns what happened, for the panel.
         """
@@ -471,7 +472,7 @@ class LiveSession:
         text = "disarmed"
         if capture is not None:
             try:
-                kept = capture.cancel(timeout_s=10.0)
+                kept = capture.cancel(timeout_s=10.0, why=why)
             finally:
                 if self.recording is not None:
                     self.recording.update(state="idle")
@@ -524,7 +525,7 @@ class LiveSession:
     def close(self):
         """Stop everything (idempotent); a camera opened later by a background job is refused."""
         self._closed = True
-        self.close_camera()
+        self.close_camera("the window was closed")
         try:
             self.worker.stop(timeout_s=5.0)
         except TimeoutError:

@@ -823,3 +823,33 @@ def test_a_reference_averaged_from_8_bit_frames_is_judged_at_their_top_code(qtbo
     assert r.dtype.kind == "f" and r.max() < 255 and np.mean(r >= r.max()) > 0.05  # flat bright squares below 255
     label = w.geometry_panel.reference_label.text()
     assert "SATURATED" not in label and w.last_error is None, (label, w.last_error)
+
+
+def test_disarm_just_after_the_trigger_keeps_the_frames_captured_and_says_why(qtbot, window, scene, tmp_path):
+    """By-hand trial of 7 Dec 2026: Trigger now, then Disarm at once: the file held 1 frame (trigger index -10)
+    though 10 pre-trigger frames were in the ring, with `error` "" and its end event "ok". The frames captured
+    until the disarm are written, and the file says it was disarmed."""
+    import json
+
+    import h5py
+
+    _live(qtbot, window, scene, tmp_path)
+    rp = window.recording_panel
+    rp.pre.setValue(10)
+    rp.post.setValue(600)  # 12 s at 50 Hz: the disarm comes long before its end
+    rp.arm_button.click()
+    assert rp.state_label.text() == "armed", window.last_error
+    ring = window.session.acquisition.ring
+    head = ring.head
+    qtbot.waitUntil(lambda: ring.head >= head + 12, timeout=5000)
+    rp.trigger_button.click()
+    rp.disarm_button.click()
+    qtbot.waitUntil(lambda: rp.state_label.text() == "idle", timeout=15000)
+    path = window.session.recording["path"]
+    with h5py.File(path, "r") as f:
+        n = int(f["frames"].attrs["frames_written"])
+        index = f["frame_table"]["trigger_index"][:n]
+        events = [json.loads(e) for e in f["events"][()]]
+    assert n >= 11 and list(index[:11]) == list(range(-10, 1)), index  # the 10 before the trigger and it
+    assert any(e["kind"] == "note" and e["message"].startswith("disarmed in the window") for e in events), events
+    assert f"kept with {n} frames" in rp.result_label.text(), rp.result_label.text()
