@@ -401,7 +401,9 @@ def test_status_bar_says_lost_with_zero_rates_and_names_the_live_device():
     assert (t.camera, t.camera_lost, t.state) == ("synthetic 256×256", False, "")
     assert t.fps == "camera 30.0 · processed 9.5 · shown 29.9 fps" and t.latency == "latency 12 ms"
     # a few words that a laptop's status bar shows whole, red once a frame is lost; every counter in the tip
-    assert t.drops_tip == "dropped: camera 2 · ring→recorder 0 · recorder backlog 1 · display skipped 7 (by design)"
+    # (the worker's skipped frames are the live reconstruction's, not the display's: by-hand trial of 7 Dec 2026)
+    assert t.drops_tip == ("dropped: camera 2 · ring→recorder 0 · recorder backlog 1 · live heights skipped 7 (a "
+                           "newer frame was there; the recording keeps every frame)")
     assert (t.drops, t.drops_alarm) == ("DROPPED camera 2 · ring→recorder 0 · backlog 1", True)
     calm = status_texts(dict(st, dropped_camera=0, recorder_backlog=0), camera_fps=30.0, processed_fps=9.5,
                         shown_fps=29.9, frozen=False, camera_open=True, display_skipped=7, latency_ms=12.4)

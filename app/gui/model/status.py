@@ -62,7 +62,8 @@ def status_texts(st: dict, *, camera_fps: float, processed_fps: float, shown_fps
         fps=f"camera {camera_fps:.1f} · processed {processed_fps:.1f} · shown {shown_fps:.1f} fps",
         drops=drops_text(st),
         drops_tip=(f"dropped: camera {st.get('dropped_camera', 0)} · ring→recorder {st.get('dropped_ring', 0)} · "
-                   f"recorder backlog {st.get('recorder_backlog', 0)} · display skipped {display_skipped} (by design)"
+                   f"recorder backlog {st.get('recorder_backlog', 0)} · live heights skipped {display_skipped} "
+                   f"(a newer frame was there; the recording keeps every frame)"
                    + (f" · incomplete {st['incomplete_camera']} (delivered with network packets missing: kept, "
                       "the missing pixels are 0)" if st.get("incomplete_camera") else "")),
         drops_alarm=bool(st.get("dropped_camera", 0) or st.get("dropped_ring", 0) or st.get("incomplete_camera", 0)),
