@@ -12,7 +12,7 @@ from typing import Optional, Sequence
 
 from app.stop_signals import STOP_SIGNALS
 
-__all__ = ["main", "build_parser"]
+__all__ = ["main", "build_parser", "window_of"]
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -22,7 +22,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--geometry", default=None, help="geometry TOML to load at start")
     p.add_argument("--reference", default=None, help="reference image to load at start")
     p.add_argument("--size", type=int, default=512, help="synthetic camera frame size in pixels (square)")
-    p.add_argument("--rate", type=float, default=60.0, help="synthetic camera frame rate (Hz)")
+    p.add_argument("--rate", type=float, default=None,
+                   help="synthetic camera frame rate (Hz; default the one set last time, else 60)")
     p.add_argument("--frames", type=int, default=24,
                    help="frames per synthetic tank scene, ray-traced in the background when the scene is "
                         "chosen (it loops over them)")
@@ -96,6 +97,21 @@ class _CloseOnSignals:
         self._QtCore.QTimer.singleShot(0, lambda: (window.shutdown(), app.quit()))
 
 
+def window_of(args, window_class, **options):
+    """The window the parsed command line ``args`` asks for (``window_class``: MainWindow; ``options``: more of
+    its keyword arguments), before its session, geometry and reference are loaded."""
+    camera = args.camera
+    if camera is None and args.scene:
+        camera = "synthetic"
+    window = window_class(camera, synthetic_options={"shape": (args.size, args.size), "n_frames": args.frames,
+                                                     "frame_rate_hz": 60.0 if args.rate is None else args.rate},
+                          **options)
+    # what the command line sets wins over what the camera was set to last time (by-hand trial of 7 Dec 2026:
+    # --rate 100 ran at the remembered 30 Hz); read when the camera's settings are restored (app.gui.state)
+    window.command_line_settings = () if args.rate is None else ("frame_rate_hz",)
+    return window
+
+
 def main(argv: Optional[Sequence[str]] = None) -> int:
     """Open the live window; returns the exit status: 0 closed normally, 2 bad arguments, 128 + the signal's
     number when Ctrl-C (130), SIGTERM (143) or SIGHUP (129) closed it."""
@@ -124,11 +140,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         print(f"tirdeflect: error: experiment file {args.session} does not exist: give the TOML the window "
               "saved (File ▸ Save experiment)", file=sys.stderr)
         return 2
-    camera = args.camera
-    if camera is None and args.scene:
-        camera = "synthetic"
-    window = MainWindow(camera, synthetic_options={"shape": (args.size, args.size), "n_frames": args.frames,
-                                                        "frame_rate_hz": args.rate})
+    window = window_of(args, MainWindow)
     if args.session:
         window.open_experiment(args.session)
     if args.geometry:

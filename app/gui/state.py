@@ -165,6 +165,8 @@ def camera_opened(w, opened) -> None:
     # the settings this camera accepted last time
     now = opened.settings.as_dict() if opened.settings is not None and hasattr(opened.settings, "as_dict") else {}
     values = w.memory.settings_to_restore(cid, now, synthetic=tank is not None)
+    for name in w.command_line_settings if tank is not None else ():  # given now: they win
+        values.pop(name, None)
     if values:
         _restore_settings(w, cid, values)
     # the reference, if it belongs to this camera

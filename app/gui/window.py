@@ -80,6 +80,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self._bridge.done.connect(self._background_done)
         self.session = LiveSession(synthetic_options=synthetic_options, **(session_options or {}))
         self.planner_effort = planner_effort
+        self.command_line_settings: tuple = ()  # camera settings the command line gave (app.gui.main): they win
         self.geometry = None
         self.reference = None
         self.shown_rate = RateCounter()  # new camera frames put on screen per second (the status bar's "shown")

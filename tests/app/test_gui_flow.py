@@ -286,6 +286,34 @@ def test_a_restored_reference_of_another_size_than_the_camera_is_not_ticked(qtbo
     assert f"The reference is {rows}×{cols} px but the camera gives {bigger[0]}×{bigger[1]}" in w2.last_error
 
 
+def test_a_frame_rate_given_on_the_command_line_wins_over_the_remembered_one(qtbot):
+    """By-hand trial of 7 Dec 2026: `--rate 100` opened the synthetic camera at the 30 Hz set in the window the
+    time before (the restored settings overwrote it). The command line's rate is kept; without it, the one of
+    last time (now the command line's) comes back, not the default 60 Hz."""
+    from app.gui.main import build_parser, window_of
+    from app.gui.window import MainWindow
+
+    w = _window(qtbot)
+    qtbot.waitUntil(lambda: w.first_frame_s is not None, timeout=20000)
+    _open_section(qtbot, w, "Camera")
+    cp = w.camera_panel
+    cp.rate.selectAll()
+    qtbot.keyClicks(cp.rate, "25")
+    qtbot.keyClick(cp.rate, QtCore.Qt.Key_Enter)
+    qtbot.mouseClick(cp.apply_button, QtCore.Qt.LeftButton)
+    qtbot.waitUntil(lambda: w.session.camera_settings().frame_rate_hz == 25.0, timeout=10000)
+    w.close()
+    for argv, rate in ((["--rate", "40"], 40.0), ([], 40.0)):
+        args = build_parser().parse_args(["--camera", "synthetic", "--size", str(SHAPE[0]), "--frames", "12", *argv])
+        w2 = window_of(args, MainWindow, planner_effort="FFTW_ESTIMATE")
+        qtbot.addWidget(w2, before_close_func=lambda widget: widget.shutdown())
+        w2.show()
+        qtbot.waitUntil(lambda: w2.restored_bar.isVisible(), timeout=20000)  # the restore has been done
+        qtbot.waitUntil(lambda: w2.session.camera_settings() is not None
+                        and w2.session.camera_settings().frame_rate_hz == rate, timeout=10000)
+        w2.close()
+
+
 def test_experiment_file_round_trip_and_session_option(qtbot, tmp_path):
     """Save experiment: one TOML beside the reference, full precision; open it in a fresh window."""
     import tomllib
