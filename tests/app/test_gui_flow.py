@@ -50,6 +50,17 @@ def _open_section(qtbot, w, title):
     qtbot.waitUntil(lambda: w.side.itemText(w.side.currentIndex()).replace("&&", "&") == title, timeout=2000)
 
 
+def _set_rate_by_hand(qtbot, w, rate_hz):
+    """Camera ▸ frame rate, typed, Apply; returns once the camera runs at it."""
+    _open_section(qtbot, w, "Camera")
+    cp = w.camera_panel
+    cp.rate.selectAll()
+    qtbot.keyClicks(cp.rate, str(rate_hz))
+    qtbot.keyClick(cp.rate, QtCore.Qt.Key_Enter)
+    qtbot.mouseClick(cp.apply_button, QtCore.Qt.LeftButton)
+    qtbot.waitUntil(lambda: w.session.camera_settings().frame_rate_hz == float(rate_hz), timeout=10000)
+
+
 def _capture_reference_by_hand(qtbot, w):
     _open_section(qtbot, w, "Reference & geometry")
     qtbot.mouseClick(w.geometry_panel.capture_button, QtCore.Qt.LeftButton)
@@ -217,13 +228,7 @@ def test_restart_restores_the_session_and_flags_unconfirmed_geometry(qtbot, tmp_
         qtbot.keyClick(spin, QtCore.Qt.Key_Enter)
     assert (rp.pre.value(), rp.post.value()) == (17, 43)
     qtbot.mouseClick(rp.auto, QtCore.Qt.LeftButton)  # auto-trigger on
-    _open_section(qtbot, w, "Camera")
-    cp = w.camera_panel
-    cp.rate.selectAll()
-    qtbot.keyClicks(cp.rate, "25")
-    qtbot.keyClick(cp.rate, QtCore.Qt.Key_Enter)
-    qtbot.mouseClick(cp.apply_button, QtCore.Qt.LeftButton)
-    qtbot.waitUntil(lambda: w.session.camera_settings().frame_rate_hz == 25.0, timeout=10000)
+    _set_rate_by_hand(qtbot, w, 25)
     w.height_view.set_levels((-1.5, 1.5))  # what dragging the colour bar's ends does
     w.resize(1000, 560)  # fits the offscreen platform's 800x600 screen (Qt shrinks a restored window to its screen)
     w.close()
@@ -295,13 +300,7 @@ def test_a_frame_rate_given_on_the_command_line_wins_over_the_remembered_one(qtb
 
     w = _window(qtbot)
     qtbot.waitUntil(lambda: w.first_frame_s is not None, timeout=20000)
-    _open_section(qtbot, w, "Camera")
-    cp = w.camera_panel
-    cp.rate.selectAll()
-    qtbot.keyClicks(cp.rate, "25")
-    qtbot.keyClick(cp.rate, QtCore.Qt.Key_Enter)
-    qtbot.mouseClick(cp.apply_button, QtCore.Qt.LeftButton)
-    qtbot.waitUntil(lambda: w.session.camera_settings().frame_rate_hz == 25.0, timeout=10000)
+    _set_rate_by_hand(qtbot, w, 25)
     w.close()
     for argv, rate in ((["--rate", "40"], 40.0), ([], 40.0)):
         args = build_parser().parse_args(["--camera", "synthetic", "--size", str(SHAPE[0]), "--frames", "12", *argv])
