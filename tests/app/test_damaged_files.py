@@ -95,7 +95,8 @@ def _one_error_line(r, *needles):
 
 def test_clean_recording_processes_with_its_checksums(recording, tmp_path):
     """The undamaged recording: every frame's checksum matches, exit 0, no note but the pin's (its
-    waves fill the frame: they move the default border band the heights are pinned on)."""
+    waves fill the frame: they move the default border band the heights are pinned on) and the part of
+    each frame its steep waves leave unmeasured (28-41 %: app.batch.frame_status.UNMEASURED_NOTE_PCT)."""
     with h5py.File(recording) as f:
         assert f.attrs["format_version"] == "1.2"
         assert np.all(f["frame_table"]["crc32"][:N_FRAMES] != 0)
@@ -103,7 +104,8 @@ def test_clean_recording_processes_with_its_checksums(recording, tmp_path):
     r = _process(recording, out)
     assert r.returncode == 0, r.stderr
     notes = [ln for ln in r.stderr.splitlines() if "note" in ln]
-    assert all("moved on the default border band" in ln for ln in notes), r.stderr
+    assert all("moved on the default border band" in ln or "were not measured on part of their area" in ln
+               for ln in notes), r.stderr
     assert "damaged" not in r.stderr
     with h5py.File(out) as f:
         assert list(f["frame_status"][()]) == [0] * N_FRAMES
