@@ -187,7 +187,13 @@ def _accounted(frames: Iterator[tuple], indices: range, source: Source, errors: 
     failure = None  # (index, the decoder's own error): said for the frame it failed at
     first_missing: list = []
 
-    def missing(i: int):
+    def missing(i: int, later: int | None = None):
+        if later is not None:  # the reader went on to frame ``later``: a damaged stretch, not a cut
+            return FormatError(
+                f"frame {i} of {str(source.path)!r} is missing: the reader found no intact data "
+                f"for it (a damaged stretch of the file; frame {later} after it was read, each "
+                f"frame at its own index and time): copy the file again from its source if you "
+                f"need this frame")
         first_missing[:] = first_missing or [i]
         known = source.readable_frames
         if failure is not None and i == failure[0] and (known is None or i < known):
@@ -206,7 +212,7 @@ def _accounted(frames: Iterator[tuple], indices: range, source: Source, errors: 
             for item in frames:
                 i = item[0]
                 while pending is not None and pending < i:  # skipped by the decoder
-                    yield from _missing_item(missing(pending), pending, errors)
+                    yield from _missing_item(missing(pending, i), pending, errors)
                     pending = next(wanted, None)
                 if pending is not None and pending == i:
                     if isinstance(item[1], Exception):
@@ -280,10 +286,18 @@ def _missing(library: str, package: str, what: str) -> FormatError:
 
 
 def _bits_of_pix_fmt(name: str) -> int:
-    m = re.search(r"(\d+)(le|be)$", name)
-    if m and name.startswith(("gray", "yuv", "p0")):
-        return int(m.group(1))
-    return 8
+    """Significant bits of one sample of pixel format ``name`` (its deepest component:
+    16 for ``gbrp16le`` and ``rgb48le``, 10 for ``yuv420p10le``), from FFmpeg's own
+    description of the format; 8 where it is unknown."""
+    try:
+        import av
+
+        return max(int(c.bits) for c in av.VideoFormat(name).components)
+    except Exception:  # an unknown or empty name
+        m = re.search(r"(\d+)(le|be)$", name)
+        if m and name.startswith(("gray", "yuv", "p0")):
+            return int(m.group(1))
+        return 8
 
 
 def _video_plane0(frame, bits: int) -> np.ndarray:
@@ -310,6 +324,10 @@ class _PacketIndex:
     pts: tuple
     keyframes: tuple
     in_decode_order: bool
+    #: byte position of each frame's packet -> frame index, where the container's own
+    #: index lists it (AVI idx1: its demuxer numbers the packets it finds, so that a
+    #: packet lost to damage would shift every later packet's stamp); else None
+    pos_of: dict | None = field(default=None, repr=False, compare=False)
 
     frame_of: dict = field(init=False, repr=False, compare=False)  # stamp -> frame index
 
@@ -351,22 +369,87 @@ def _video_index(container, stream, path: Path, n: int | None, lossless: bool):
         return _INDEX_CACHE[key]
     index = _index_from_entries(container, stream, n) if n and lossless else None
     if index is None:
-        container.seek(0)
-        packets = [(p.pts, bool(p.is_keyframe)) for p in container.demux(stream) if p.size]
-        container.seek(0)
-        stamps = [t for t, _ in packets]
+        scan = _packet_scan(container, stream, path)
+        stamps = list(scan.stamps)
         if not stamps or any(t is None for t in stamps) or len(set(stamps)) != len(stamps):
             index = None
         else:
             order = sorted(stamps)
+            keys = set(t for t, key in zip(stamps, scan.keys) if key)
+            if stamps == order:
+                # a constant-rate stream whose packets left gaps in its grid of stamps (a
+                # damaged stretch): the missing frames keep their places, the later ones theirs
+                order = _grid_of_stamps(order, stream.time_base, stream.average_rate) or order
             frame_of = {t: k for k, t in enumerate(order)}
-            keys = sorted({0} | {frame_of[t] for t, key in packets if key})
-            index = _PacketIndex(tuple(order), tuple(keys), stamps == order)
+            keys = sorted({0} | {frame_of[t] for t in keys})
+            index = _PacketIndex(tuple(order), tuple(keys), stamps == sorted(stamps))
     if key is not None:
         while len(_INDEX_CACHE) >= _INDEX_CACHE_SIZE:
             _INDEX_CACHE.pop(next(iter(_INDEX_CACHE)))
         _INDEX_CACHE[key] = index
     return index
+
+
+@dataclass(frozen=True)
+class _Scan:
+    """One pass over a stream's packets without decoding: each packet's stamp and
+    keyframe flag in file order, the latest stamp (None where none is known) and the
+    duration of its packet (0 where the muxer stored none), in the stream's time base."""
+
+    stamps: tuple
+    keys: tuple
+    last: int | None
+    last_duration: int
+
+
+def _packet_scan(container, stream, path: Path, at_start: bool = False) -> _Scan:
+    """The :class:`_Scan` of ``stream`` (cached per file for this process). A
+    stretch the demuxer cannot read ends the scan: the packets before it are
+    what the file holds. ``at_start``: the container was just opened (after a
+    seek, FFmpeg's MKV demuxer fills in packet durations of its own guessing)."""
+    try:
+        st = path.stat()
+        key = ("scan", str(path.resolve()), st.st_size, st.st_mtime_ns, stream.index)
+    except OSError:
+        key = None
+    if key is not None and key in _INDEX_CACHE:
+        return _INDEX_CACHE[key]
+    import av
+
+    stamps, keys, last, last_duration = [], [], None, 0
+    if not at_start:
+        container.seek(0)
+    try:
+        for p in container.demux(stream):
+            if not p.size:
+                continue
+            stamps.append(p.pts)
+            keys.append(bool(p.is_keyframe))
+            if p.pts is not None and (last is None or p.pts >= last):
+                last, last_duration = p.pts, int(p.duration or 0)
+    except av.error.FFmpegError:  # an unreadable stretch: the packets before it
+        pass
+    container.seek(0)
+    scan = _Scan(tuple(stamps), tuple(keys), last, last_duration)
+    if key is not None:
+        _INDEX_CACHE[key] = scan
+    return scan
+
+
+def _grid_of_stamps(order: list, time_base, rate) -> list | None:
+    """The stamps of a constant-rate stream whose packets have ``order`` (increasing)
+    but with gaps: every stamp on the grid from the first to the last, the missing
+    ones included; None where the stamps are not on one grid of the stream's frame
+    period (variable frame rate, or no gap)."""
+    if len(order) < 2 or not time_base or not rate:
+        return None
+    step = min(b - a for a, b in zip(order, order[1:]))
+    if step <= 0 or any((b - a) % step for a, b in zip(order, order[1:])):
+        return None
+    if abs(float(step * time_base) * float(rate) - 1.0) > 0.01:  # not one frame period
+        return None
+    grid = list(range(order[0], order[-1] + step, step))
+    return grid if len(grid) > len(order) else None
 
 
 def _index_from_entries(container, stream, n: int):
@@ -387,7 +470,13 @@ def _index_from_entries(container, stream, n: int):
     if first is None or first.pts != stamps[0]:
         return None
     keys = sorted({0} | {k for k, e in enumerate(entries) if e.is_keyframe})
-    return _PacketIndex(tuple(stamps), tuple(keys), True)
+    pos_of = None
+    if first.pos is not None and first.pos >= 0 and entries[0].pos >= 0:
+        offset = first.pos - entries[0].pos  # AVI: the 8-byte chunk header before the data
+        pos_of = {e.pos + offset: k for k, e in enumerate(entries)}
+        if len(pos_of) != n:
+            pos_of = None
+    return _PacketIndex(tuple(stamps), tuple(keys), True, pos_of)
 
 
 def _video_readable_frames(container, stream, path: Path, n: int) -> int | None:
@@ -432,25 +521,44 @@ def _video_whole_frames(container, stream, path: Path, n: int) -> int:
     return min(whole, n)
 
 
-def _frames_of_duration(container, stream, fps: float, counted: int) -> int:
-    """The frame count a stream's duration promises (duration x rate) where its
-    header stores no count (MKV, some MP4), or ``counted`` where that promise is
-    within the duration's own resolution (one time-base tick of frames, and half a
-    frame of rounding) of the frames counted, or unknown."""
+def _frames_of_duration(container, stream, fps: float, counted: int, scan: _Scan | None = None) -> int:
+    """The frame count a stream's duration promises where its header stores no count
+    (MKV, some MP4), or ``counted`` where the packets reach the end of that duration
+    or it is unknown.
+
+    Where the packets' stamps are known (``scan``), the file is whole when its latest
+    stamp, plus its packet's duration (or one frame period where that is shorter or
+    not stored) and half a tick of rounding, reaches the container's duration (which
+    the muxer wrote from those same stamps): a variable frame rate does not make it
+    look cut, and a cut of fewer frames than one tick (4 frames of a 5000 frames/s
+    MKV with 1 ms stamps) is still seen. A cut file promises the duration x rate
+    (+ 1 where packets have no duration: the duration then ends at the last frame's
+    start), at least one frame more than it holds. Without stamps: the duration x
+    rate, beyond half a frame of rounding."""
     if not fps > 0:
         return counted
-    tick_s = float(stream.time_base) if stream.time_base else 1e-3
     if stream.duration:
         duration_s = float(stream.duration * stream.time_base)
     elif container.duration:
         duration_s = container.duration / 1e6  # AV_TIME_BASE: microseconds
-        tick_s = max(tick_s, 1e-6)
     else:
         return counted
     expected = duration_s * fps
-    if counted + 0.5 + fps * tick_s >= expected:
+    if scan is not None and scan.last is not None and stream.time_base:
+        tick_s = float(stream.time_base)
+        last_s = float(scan.last * stream.time_base)
+        if last_s + max(1.0 / fps, scan.last_duration * tick_s) + 0.5 * tick_s + 1e-6 >= duration_s:
+            return counted
+        return max(counted + 1, int(round(expected)) + (0 if scan.last_duration else 1))
+    if counted + 0.5 >= expected:
         return counted
     return int(round(expected))
+
+
+def _first_step_back(stamps) -> int | None:
+    """The first packet (in file order) whose stamp is below the one before it."""
+    known = [(k, t) for k, t in enumerate(stamps) if t is not None]
+    return next((k for (_, a), (k, b) in zip(known, known[1:]) if b < a), None)
 
 
 def _open_video(path: Path) -> Source:
@@ -481,21 +589,32 @@ def _open_video(path: Path) -> Source:
     fps = float(rate) if rate else math.nan
     n = int(stream.frames or 0)
     readable = None
-    if n <= 0:  # MKV and some MP4 do not store a frame count: count the packets
-        counted = _video_index(container, stream, path, None, False)
-        if counted is not None:
-            n = len(counted.pts)
-        else:
-            container.seek(0)
-            n = sum(1 for packet in container.demux(stream) if packet.size)
-        container.seek(0)
-        promised = _frames_of_duration(container, stream, fps, n)
-        if promised > n:  # the container's duration promises more: the file is cut short
-            n, readable = promised, n
-    else:  # a header count (AVI, MP4/MOV): the frames it promises may lie past the file's end
-        readable = _video_readable_frames(container, stream, path, n)
-    lossless = codec in LOSSLESS_CODECS
     notes = []
+    scan = None
+    try:
+        if n <= 0:  # MKV and some MP4 do not store a frame count: count the packets
+            scan = _packet_scan(container, stream, path, at_start=True)
+            counted = _video_index(container, stream, path, None, False)
+            n = len(counted.pts) if counted is not None else len(scan.stamps)
+            container.seek(0)
+            # (stamps that go back say nothing of where the duration ends)
+            promised = n if _first_step_back(scan.stamps) is not None else _frames_of_duration(
+                container, stream, fps, n, scan)
+            if promised > n:  # the container's duration promises more: the file is cut short
+                n, readable = promised, n
+        else:  # a header count (AVI, MP4/MOV): the frames it promises may lie past the file's end
+            readable = _video_readable_frames(container, stream, path, n)
+    except (av.error.FFmpegError, OSError) as exc:  # e.g. EPERM from a seek in a file cut in frame 0
+        container.close()
+        raise FormatError(
+            f"{str(path)!r} is truncated: it ends before its first frame is whole ({exc}); "
+            f"copy the file again from its source") from exc
+    if n <= 0:
+        container.close()
+        raise FormatError(f"{str(path)!r} holds no whole video frame (a truncated file?); "
+                          f"copy the file again from its source")
+    back = _first_step_back(scan.stamps) if scan is not None else None
+    lossless = codec in LOSSLESS_CODECS
     if readable is not None:
         notes.append(
             f"{path.name} is truncated: its container says {n / fps:.6g} s at {fps:g} frames/s "
@@ -507,12 +626,29 @@ def _open_video(path: Path) -> Source:
             f"smoothed edges bias Fourier demodulation (heights come out too small and "
             f"noisy); record losslessly (FFV1, raw, PNG) for measurements"
         )
+    if back is not None and lossless:  # (reordered frames of other codecs go back by design)
+        notes.append(
+            f"{path.name}: its time stamps go backwards at frame {back} (a damaged or spliced "
+            f"file); frames are numbered in file order and time_s is each frame's own stamp")
     direct = pix_fmt.startswith("gray")  # grey samples as stored, unscaled
-    bits = _bits_of_pix_fmt(pix_fmt) if direct else (16 if _bits_of_pix_fmt(pix_fmt) > 8 else 8)
+    depth = _bits_of_pix_fmt(pix_fmt)
+    bits = depth if direct else (16 if depth > 8 else 8)
     if not direct:
-        notes.append(f"{path.name} stores {pix_fmt or 'colour'} frames; they are converted to "
-                     f"grey by FFmpeg (luma, full range)")
+        notes.append(f"{path.name} stores {pix_fmt or 'colour'} frames ({depth} bits a sample); "
+                     f"they are converted to {bits}-bit grey by FFmpeg (luma, full range)")
     dtype = np.dtype(np.uint16 if bits > 8 else np.uint8)
+    time_base = stream.time_base
+    # a constant-rate stream whose stamps are coarser than half its frame period (MKV's
+    # 1 ms at 5000 frames/s): time_s is the frame's index / rate, not its rounded stamp
+    # (AVI's tick is the frame period itself: exact)
+    ticks_a_frame = float(time_base) * fps if time_base and fps > 0 else 0.0
+    coarse = ticks_a_frame > 0.5 and abs(ticks_a_frame - 1.0) > 1e-3
+    if coarse:
+        notes.append(
+            f"{path.name}: its time stamps ({float(time_base) * 1e3:g} ms) are coarser than "
+            f"its frames ({1e3 / fps:.4g} ms apart at {fps:g} frames/s); time_s is the frame's "
+            f"index / {fps:g} frames/s from the first frame's stamp")
+    start_s = float(stream.start_time * time_base) if coarse and stream.start_time is not None else 0.0
 
     def convert(frame) -> np.ndarray:
         if not direct:
@@ -535,23 +671,28 @@ def _open_video(path: Path) -> Source:
             index_box.append(_video_index(container, stream, path, n, lossless))
         return index_box[0]
 
-    def decode_from(first: int):
+    def decode_from(first: int, by_pts: bool = True):
         """(decoder, True when frames are identified by their time stamp): seek to the
-        keyframe at or before frame ``first`` (found by time stamp) when that saves
-        decoding; False means that frames are counted from the start of the stream."""
-        index = packet_index() if first > 0 else None
+        keyframe at or before frame ``first`` (found by time stamp) where the packet
+        index knows the stamps (also for frame 0, so that a frame the decoder drops
+        does not shift the later ones); False means that frames are counted from the
+        start of the stream."""
+        index = packet_index() if by_pts else None
         if index is not None:
-            target = index.pts[min(first, len(index.pts) - 1)]
-            container.seek(int(target), stream=stream, backward=True, any_frame=False)
+            if first > 0:
+                target = index.pts[min(first, len(index.pts) - 1)]
+                container.seek(int(target), stream=stream, backward=True, any_frame=False)
+            else:
+                container.seek(0)
             ctx.flush_buffers()
             return container.decode(stream), True
         container.seek(0)
         ctx.flush_buffers()
         return container.decode(stream), False
 
-    time_base = stream.time_base
-
     def time_of(frame, i: int) -> float:
+        if coarse:
+            return start_s + i / fps
         # frames drained from the decoder's threads at the end carry no time base
         if frame.pts is not None and (frame.time_base or time_base):
             return float(frame.pts * (frame.time_base or time_base))
@@ -563,65 +704,126 @@ def _open_video(path: Path) -> Source:
             f"truncated: process the frames before it with --frames :{i + 1}"
         )
 
+    def damaged(k: int, exc) -> FormatError:
+        return FormatError(
+            f"frame {k} of {str(path)!r} cannot be decoded: its data are damaged ({exc}); "
+            f"the frames after it are read from the next keyframe on: copy the file again "
+            f"from its source if you need this frame")
+
+    def corrupt(k: int) -> FormatError:
+        return FormatError(
+            f"frame {k} of {str(path)!r} was decoded with errors: its data are damaged (FFmpeg "
+            f"marks the frame corrupt); it is not measured: copy the file again from its source "
+            f"if you need it")
+
+    def orphan(k: int, lost: int) -> FormatError:
+        return FormatError(
+            f"frame {k} of {str(path)!r} cannot be decoded: it is coded as a change from the "
+            f"frames before it, and frame {lost} is damaged or missing; the next keyframe and "
+            f"the frames after it are read: copy the file again from its source if you need it")
+
     def frames_by_packet(indices: range, index) -> Iterator[tuple]:
         """Lossless streams (frames in decode order): demux, and send the decoder only
         the packets a wanted frame needs (from the keyframe at or before it), so that
         ``--frames 0::4`` of an intra-only stream decodes a quarter of the frames. One
-        seek (to the keyframe before the first frame), then packets in file order."""
-        frame_of = index.frame_of
-        i = indices.start - 1
+        seek (to the keyframe before the first frame), then packets in file order.
+
+        Each packet is identified by its place in the container's index (AVI) or its
+        stamp, and its frame by its stamp: a packet the damaged file lost is a frame
+        missing at its own index (:func:`_accounted` reports it), a packet the decoder
+        fails on costs its frame (yielded as an error), and a frame coded as a change
+        from a lost or failed one is an error too, up to the next keyframe."""
+        frame_of, pos_of = index.frame_of, index.pos_of
+        keyframes = frozenset(index.keyframes)
         first_packet = True
         start_key = index.keyframe_before(indices.start)
         container.seek(int(index.pts[start_key]), stream=stream, backward=True, any_frame=False)
         ctx.flush_buffers()
+        sent = None  # the frame of the last packet the decoder took without an error
+        lost = None  # a frame the ones after it, up to the next keyframe, lack
 
         def emit(frame):
             k = frame_of.get(frame.pts)
             if k is None:
                 raise _Unindexed
             if k in indices:
+                if getattr(frame, "is_corrupt", False):  # PyAV 18 on
+                    return k, corrupt(k), math.nan
                 return k, convert(frame), time_of(frame, k)
             return None
 
-        try:
-            packets = container.demux(stream)
-            while True:
+        def identify(packet) -> int | None:
+            if pos_of is not None and packet.pos is not None and packet.pos >= 0:
+                k = pos_of.get(packet.pos)
+                if k is None and first_packet:
+                    raise _Unindexed  # positions unlike the index's: decode in order
+                return k  # None: a stretch the index does not list (resynchronised)
+            k = frame_of.get(packet.pts)
+            if k is None:
+                raise _Unindexed
+            return k
+
+        packets = container.demux(stream)
+        while True:
+            try:
                 packet = next(packets, None)
-                if packet is None:
-                    break
-                if not packet.size:  # the demuxer's end marker: drained below
+            except av.error.FFmpegError as exc:  # the demuxer cannot go on
+                raise decode_error(exc, sent if sent is not None else indices.start - 1) from exc
+            if packet is None:
+                break
+            if not packet.size:  # the demuxer's end marker: drained below
+                continue
+            k = identify(packet)
+            if k is None:
+                continue
+            if first_packet:
+                first_packet = False
+                if k > start_key:  # the seek overshot the keyframe: go on from the start
+                    container.seek(0)
+                    ctx.flush_buffers()
+                    packets = container.demux(stream)
                     continue
-                k = frame_of.get(packet.pts)
-                if k is None:
-                    raise _Unindexed
-                if first_packet:
-                    first_packet = False
-                    if k > start_key:  # the seek overshot the keyframe: go on from the start
-                        container.seek(0)
-                        ctx.flush_buffers()
-                        packets = container.demux(stream)
-                        continue
-                if k >= indices.stop:
-                    break
-                if not index.needed(k, indices):
-                    continue
-                for frame in ctx.decode(packet):
-                    item = emit(frame)
-                    if item is not None:
-                        i = item[0]
-                        yield item
-            for frame in ctx.decode(None):  # frames still in the decoder's threads
+            if k >= indices.stop:
+                break
+            if not index.needed(k, indices):
+                continue
+            if k not in keyframes and sent != k - 1:  # what it is coded against is lost
+                if lost is None:
+                    lost = sent + 1 if sent is not None else k
+                if k in indices:
+                    yield k, orphan(k, lost), math.nan
+                continue
+            lost = None
+            if packet.pts != index.pts[k]:  # the demuxer's count, shifted by a lost packet
+                packet.pts = packet.dts = index.pts[k]
+            try:
+                decoded = ctx.decode(packet)
+            except av.error.FFmpegError as exc:
+                ctx.flush_buffers()
+                sent, lost = None, k
+                if k in indices:
+                    yield k, damaged(k, exc), math.nan
+                continue
+            sent = k
+            for frame in decoded:
                 item = emit(frame)
                 if item is not None:
-                    i = item[0]
                     yield item
+        try:
+            drained = ctx.decode(None)  # frames still in the decoder's threads
         except av.error.FFmpegError as exc:
-            raise decode_error(exc, i) from exc
+            raise decode_error(exc, sent if sent is not None else indices.start - 1) from exc
+        for frame in drained:
+            item = emit(frame)
+            if item is not None:
+                yield item
 
     def frames(indices: range) -> Iterator[tuple]:
+        if readable is not None and indices.stop > readable:  # the rest lie past the cut
+            indices = range(indices.start, max(indices.start, readable), indices.step)
         if not len(indices):
             return
-        index = packet_index() if (indices.start > 0 or indices.step > 1) else None
+        index = packet_index()
         if lossless and index is not None and index.in_decode_order:
             done = -1
             try:
@@ -635,7 +837,7 @@ def _open_video(path: Path) -> Source:
                                 indices.stop, indices.step)
                 if not len(indices):
                     return
-        decoded, by_pts = decode_from(indices.start)
+        decoded, by_pts = decode_from(indices.start, by_pts=index is not None and not lossless)
         i = -1
         try:
             while True:
@@ -644,10 +846,10 @@ def _open_video(path: Path) -> Source:
                     return
                 if by_pts:
                     k = packet_index().frame_of.get(frame.pts)
-                    if k is None or (i < 0 and k > indices.start):
+                    if k is None or (i < 0 and indices.start > 0 and k > indices.start):
                         # a stamp not in the index, or the seek overshot: count from the start
                         decoded.close()
-                        decoded, by_pts = decode_from(0)
+                        decoded, by_pts = decode_from(0, by_pts=False)
                         i = -1
                         continue
                     i = k
@@ -656,7 +858,10 @@ def _open_video(path: Path) -> Source:
                 if i >= indices.stop:
                     return
                 if i in indices:
-                    yield i, convert(frame), time_of(frame, i)
+                    if getattr(frame, "is_corrupt", False):
+                        yield i, corrupt(i), math.nan
+                    else:
+                        yield i, convert(frame), time_of(frame, i)
         except av.error.FFmpegError as exc:
             raise decode_error(exc, i) from exc
 
@@ -798,14 +1003,32 @@ def _open_mraw(path: Path) -> Source:
         start = _cihx_start_frame(header)
     start = int(start) if start is not None else None
     frame_bytes = rows * cols * color_bit // 8
+    pixels = rows * cols
+    described = -(-n * pixels * color_bit // 8)  # bytes of n frames (12 bit: 2 samples in 3 bytes)
     size = data.stat().st_size
-    if size < n * frame_bytes:
-        complete = size // frame_bytes
+    fits = [b for b in (8, 12, 16) if b != color_bit and n * pixels * b == 8 * size]
+    if size != described and fits:
+        raise FormatError(
+            f"{str(data)!r} is {size} bytes, but its header {header.name} describes {described} "
+            f"({n} frames of {rows} x {cols} x {color_bit} bit); the size fits {n} frames of "
+            f"{fits[0]} bit: the header's 'Color Bit' ({color_bit}) does not belong to this file"
+            + (f" (or its 'Total Frame : {n}' is not this file's)" if size > described else "")
+            + ": use the .cih saved with this recording")
+    if size < described:
+        complete = size * 8 // (pixels * color_bit)
         raise FormatError(
             f"{str(data)!r} holds {size} bytes, fewer than the {n} frames of {rows} x {cols} x "
             f"{color_bit} bit its header announces ({complete} complete); the copy is truncated: "
             f"copy it again, or set 'Total Frame : {complete}' in {header.name}")
-    raw = np.memmap(data, dtype=np.uint8, mode="r", shape=(n * frame_bytes,))
+    notes = []
+    beyond = size * 8 // (pixels * color_bit) - n
+    if beyond > 0:
+        notes.append(
+            f"{data.name} is {size} bytes, {size - described} more than the {n} frames its header "
+            f"{header.name} counts ('Total Frame : {n}')"
+            f"; it holds {beyond} whole frames beyond them, which are not read: if they belong to "
+            f"the recording, set 'Total Frame : {n + beyond}' in {header.name}")
+    raw = np.memmap(data, dtype=np.uint8, mode="r", shape=(described,))
     dtype = np.dtype(np.uint8 if color_bit == 8 else np.uint16)
 
     def frame(i: int) -> np.ndarray:
@@ -816,6 +1039,8 @@ def _open_mraw(path: Path) -> Source:
             # Photron writes 16-bit samples little-endian (pyMRAW reads them as native uint16)
             image = np.frombuffer(chunk, dtype="<u2").reshape(rows, cols).astype(np.uint16)
             return image >> shift if shift else image
+        if pixels % 2:  # frames start mid-byte every other frame (pyMRAW asserts an even count)
+            return _unpack12(raw, i * pixels, pixels).reshape(rows, cols)
         # 12 bit: two samples in three bytes, unpacked by pyMRAW's own decoder
         return pyMRAW.nb_read_uint12(np.ascontiguousarray(chunk)).reshape(rows, cols)
 
@@ -828,8 +1053,24 @@ def _open_mraw(path: Path) -> Source:
     trigger = -start if start is not None and 0 <= -start < n else None
     return Source(path, "mraw", n, (rows, cols), dtype, bits, frame_rate_hz=fps,
                   trigger_index=trigger, time_origin="trigger" if start is not None else "first frame",
-                  codec=f"MRAW {color_bit} bit", lossless=True, _frames=frames,
+                  codec=f"MRAW {color_bit} bit", lossless=True, notes=tuple(notes), _frames=frames,
                   _close=lambda: raw._mmap.close() if getattr(raw, "_mmap", None) else None)
+
+
+def _unpack12(raw: np.ndarray, first: int, count: int) -> np.ndarray:
+    """Samples ``first`` .. ``first + count - 1`` of a packed 12-bit Photron stream
+    (two samples in three bytes, big-endian nibbles, as pyMRAW unpacks them), for
+    frames of an odd pixel count, which start in the middle of a byte triple."""
+    pair0, pair1 = first // 2, (first + count + 1) // 2
+    b = np.zeros(3 * (pair1 - pair0), dtype=np.uint16)  # the file's last triple may lack a byte
+    part = raw[3 * pair0:3 * pair1]
+    b[:len(part)] = part
+    b = b.reshape(-1, 3)
+    out = np.empty((len(b), 2), dtype=np.uint16)
+    out[:, 0] = (b[:, 0] << 4) | (b[:, 1] >> 4)
+    out[:, 1] = ((b[:, 1] & 15) << 8) | b[:, 2]
+    skip = first - 2 * pair0
+    return out.ravel()[skip:skip + count]
 
 
 # =========================================================================== Phantom CINE (PIMS)
