@@ -167,7 +167,10 @@ def test_a_camera_slower_than_its_set_rate_is_named_not_counted_as_losses(caplog
             time.sleep(0.1)  # the stimulus: 100 ms without triggers, 20 periods of the rate delivered
             acq.set_software_trigger_rate(200.0)
             after = _read(cur, 5)
-    assert not [g for g in steady if g[2] & FrameFlags.TIME_GAP_BEFORE]
+    # judged by the 800 Hz set, every frame after the 8th was a gap; by the rate delivered, only a trigger the
+    # loaded machine sent late is (one of 40 in a CI run)
+    late = [g for g in steady if g[2] & FrameFlags.TIME_GAP_BEFORE]
+    assert len(late) <= 8, late  # (a fifth; the set rate flagged 32 of the 40)
     assert acq.delivered_rate_hz == pytest.approx(200.0, rel=0.2)
     said = [r.getMessage() for r in caplog.records if "not the 800 it is set to" in r.getMessage()]
     assert len(said) == 1, [r.getMessage() for r in caplog.records]

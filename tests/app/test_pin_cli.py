@@ -76,7 +76,9 @@ def test_process_names_the_default_pin_and_stores_its_status(series_dir, tmp_pat
     m = re.search(r"pinned on the default border band of the reference's valid area \((\d+) samples where the "
                   r"reference is valid\) in 6 of 6 frame\(s\), at least (\d+) % of it measured in each", line[0])
     assert m and int(m.group(2)) <= 100, line[0]  # was "at least 732 of its samples" beside "320 samples"
-    assert "note:" not in err  # no fallback, no jump
+    # no fallback, no jump (the part of each frame this disk's edge leaves unmeasured is said, 7 Dec 2026)
+    notes = [ln for ln in err.splitlines() if "note:" in ln]
+    assert all("were not measured on part of their area" in ln for ln in notes), err
     truth = np.load(series_dir / "truth.npy")
     heights, errs = _errors(out, truth)
     print("CLI per-frame relative RMS error (%):", np.round(100 * errs, 2).tolist())
