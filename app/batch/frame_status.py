@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import enum
 import logging
+import math
 import zlib
 from typing import Optional
 
@@ -245,10 +246,18 @@ class FrameTally:
         self.repeated = []  # (sequence index, the one before's) of measured frames identical to the frame before them
         self._last_digest, self._last_index = -1, -1  # of the frame added last (digest -1: not measured)
         self.reference_digest = reference_digest
+        # (sequence index, time before, time, file before, file) where /time_s went back; (time, file) of the last
+        self.time_back, self._last_time = [], (math.nan, "")
         self.as_reference = []  # (sequence index, 0) of measured frames that are the reference, sample for sample
 
     def add(self, item, outcome: FrameOutcome) -> None:
         self.frames += 1
+        t = float(getattr(item, "time_s", math.nan))
+        if math.isfinite(t):  # (by-hand trial of 7 Dec 2026: files given out of order, said by `probe` alone)
+            before, file_before = self._last_time
+            if t < before:
+                self.time_back.append((item.sequence_index, before, t, file_before, item.source))
+            self._last_time = (t, item.source)
         if outcome.ok and outcome.digest != -1 and outcome.digest == self.reference_digest:
             _add_row(self.as_reference, item, 0, "the reference image itself, sample for sample: its heights are "
                                                  "%d by definition")
@@ -328,7 +337,8 @@ class FrameTally:
                 "frames_vignetted": len(self.vignetted),
                 "frames_partly_measured": len(self.partial), "measured_pct_min": _least(self.partial, 100.0)[1],
                 "frames_repeated": len(self.repeated), "frames_as_reference": len(self.as_reference),
-                "frames_partly_unmeasured": len(self.holed), "unmeasured_pct_max": _worst(self.holed, 0.0)[1]}
+                "frames_partly_unmeasured": len(self.holed), "unmeasured_pct_max": _worst(self.holed, 0.0)[1],
+                "frames_time_back": len(self.time_back)}
 
     def notes(self) -> list:
         out = []
@@ -378,6 +388,13 @@ class FrameTally:
                        f"or the grabber, or a trigger faster than the camera's frame rate), so their heights repeat "
                        f"the frame's before and their time steps are not real; check the camera's frame rate, "
                        f"exposure and trigger, and /frame_flags where the recording has them")
+        if self.time_back:
+            k, before, t, file_before, file = self.time_back[0]
+            where = f"{file} after {file_before}" if file != file_before else f"within {file}"
+            out.append(f"the frames' time (/time_s) goes back at {len(self.time_back)} place(s), first at frame {k} "
+                       f"({before:.9g} s, then {t:.9g} s: {where}): files given out of order or twice, or each "
+                       f"counting its times from its own start or trigger; plot against /frame_index (/source "
+                       f"names each frame's file)")
         if self.as_reference:
             out.append(f"{len(self.as_reference)} frame(s) are the reference image itself, sample for sample (first "
                        f"frame {self.as_reference[0][0]}): their heights are 0 by definition, not a measurement of "

@@ -225,7 +225,8 @@ def test_probe_and_movie_keep_the_times_of_a_cut_video(processed, tmp_path):
 
 def test_probe_names_where_time_goes_back_over_two_camera_files(processed, tmp_path):
     """Two MRAW files of one series, each counting time from its own first frame: the
-    probe's time_s goes back at the second file's first frame, which the run says."""
+    probe's time_s goes back at the second file's first frame, which the probe says, and since
+    the by-hand trial of 7 Dec 2026 (files given out of order: only `probe` said it) the run too."""
     pyMRAW = pytest.importorskip("pyMRAW")
     sim = processed[0]
     frames = np.stack([imageio.read_image(sim / f"frame_{k:04d}.tif") for k in range(N_FRAMES)])
@@ -238,6 +239,11 @@ def test_probe_names_where_time_goes_back_over_two_camera_files(processed, tmp_p
     r = _cli("process", sim / "reference.tif", *parts, "--geometry", sim / "geometry.toml", "--out", out,
              "--no-progress", "--workers", "1")
     assert r.returncode == 0, r.stderr
+    said = [line for line in r.stderr.splitlines() if "goes back" in line]
+    assert len(said) == 1 and "first at frame 3 (0.02 s, then 0 s: " in said[0], r.stderr
+    assert f"{parts[1]} after {parts[0]}" in said[0], said[0]
+    with h5py.File(out) as f:
+        assert f.attrs["frames_time_back"] == 1
     r = _cli("probe", out, "--at", "0,0", "--out", tmp_path / "p.csv")
     assert r.returncode == 0, r.stderr
     _, body = _read_csv(tmp_path / "p.csv")
