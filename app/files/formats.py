@@ -1028,6 +1028,10 @@ def _open_mraw(path: Path) -> Source:
             f"{header.name} counts ('Total Frame : {n}')"
             f"; it holds {beyond} whole frames beyond them, which are not read: if they belong to "
             f"the recording, set 'Total Frame : {n + beyond}' in {header.name}")
+    if not fps > 0:  # (by-hand trial of 7 Dec 2026: time_s NaN with no word)
+        notes.append(f"{header.name} gives no frame rate ('Record Rate(fps)' is "
+                     f"{cih.get('Record Rate(fps)', 'missing')!r}): the frames have no times (/time_s NaN); "
+                     f"set the rate in the header to have them")
     raw = np.memmap(data, dtype=np.uint8, mode="r", shape=(described,))
     dtype = np.dtype(np.uint8 if color_bit == 8 else np.uint16)
 

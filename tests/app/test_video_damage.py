@@ -4,6 +4,7 @@ damaged with bytes zeroed or cut off, as a bad copy does."""
 
 from __future__ import annotations
 
+import math
 import re
 import struct
 from fractions import Fraction
@@ -239,6 +240,18 @@ def test_mraw_longer_than_its_header_says_is_noted(tmp_path):
         assert source.n_frames == 10
         assert any("6 whole frames beyond" in note and "Total Frame : 16" in note
                    for note in source.notes), source.notes
+
+
+def test_mraw_without_a_frame_rate_says_its_frames_have_no_times(tmp_path):
+    """By-hand trial of 7 Dec 2026: 'Record Rate(fps) : 0' gave /time_s NaN with no word."""
+    cih = _mraw(tmp_path, _frames(4))
+    _edit(cih, "Record Rate(fps) : 5000", "Record Rate(fps) : 0")
+    with formats.open_source(cih) as source:
+        assert any("gives no frame rate" in note and "/time_s NaN" in note for note in source.notes), source.notes
+        assert all(math.isnan(t) for _, _, t in source.frames(range(4)))
+    cih = _mraw(tmp_path, _frames(4), name="timed")
+    with formats.open_source(cih) as source:
+        assert not any("frame rate" in note for note in source.notes), source.notes
 
 
 @pytest.mark.parametrize("header_bits,data_bits", [(8, 16), (12, 16), (16, 12)])
