@@ -357,9 +357,10 @@ class Acquisition:
             return nominal
         if nominal is not None:
             if self.delivered_rate_hz is None:
-                log.warning("the camera delivers %.4g frames/s, not the %.4g it is set to (its exposure, the link's "
-                            "bandwidth or its own limit): time gaps are judged by the rate it delivers",
-                            1.0 / median, 1.0 / nominal)
+                why = ("it is triggered: its triggers set the rate" if self.settings.trigger_mode == "On" else
+                       "its exposure, the link's bandwidth or its own limit")
+                log.warning("the camera delivers %.4g frames/s, not the %.4g it is set to (%s): time gaps are judged "
+                            "by the rate it delivers", 1.0 / median, 1.0 / nominal, why)
             self.delivered_rate_hz = 1.0 / median
         return median
 

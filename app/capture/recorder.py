@@ -1048,8 +1048,8 @@ def summary_rows(s: dict) -> List[Tuple[str, str]]:
     if s.get("delivered_rate_hz"):
         rows.insert(1, ("frame rate", f"the camera delivered {s['delivered_rate_hz']:.4g} frames/s, not the "
                                       f"{s.get('set_rate_hz', 0):.4g} it was set to (its exposure, the link's "
-                                      f"bandwidth or its own limit): the file's times are the camera's; its "
-                                      f"frame_rate_hz is the rate set"))
+                                      f"bandwidth, its own limit, or its triggers): the file's times are the "
+                                      f"camera's; its frame_rate_hz is the rate set"))
     pre, pre_available = s.get("pre_frames", 0), s.get("pre_available", -1)
     pre_missing = pre - pre_available if 0 <= pre_available < pre else 0
     if pre_missing:

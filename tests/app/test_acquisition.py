@@ -174,6 +174,7 @@ def test_a_camera_slower_than_its_set_rate_is_named_not_counted_as_losses(caplog
     assert acq.delivered_rate_hz == pytest.approx(200.0, rel=0.2)
     said = [r.getMessage() for r in caplog.records if "not the 800 it is set to" in r.getMessage()]
     assert len(said) == 1, [r.getMessage() for r in caplog.records]
+    assert "it is triggered: its triggers set the rate" in said[0]  # (software triggers here)
     assert [g for g in after if g[2] & FrameFlags.TIME_GAP_BEFORE] and acq.lost_by_time >= 10
     rows = dict(summary_rows({"delivered_rate_hz": 201.3, "set_rate_hz": 800.0, "frames_written": 45}))
     assert rows["frame rate"].startswith("the camera delivered 201.3 frames/s, not the 800 it was set to")
