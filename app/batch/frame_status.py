@@ -252,7 +252,7 @@ class FrameTally:
 
     def add(self, item, outcome: FrameOutcome) -> None:
         self.frames += 1
-        t = float(getattr(item, "time_s", math.nan))
+        t = float(item.time_s)
         if math.isfinite(t):  # (by-hand trial of 7 Dec 2026: files given out of order, said by `probe` alone)
             before, file_before = self._last_time
             if t < before:

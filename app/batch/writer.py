@@ -633,23 +633,24 @@ class ResultWriter:
         alloc = self._alloc
         if alloc.supported:
             end = int(self.f.id.get_filesize())  # HDF5's end of allocation
-            if alloc.make_room(end, frame + RESERVE_BYTES, ALLOCATE_STEP_BYTES) and alloc.supported:
-                return
-            if alloc.supported:  # no room (refused below): what is free plus what the file holds ahead
+            if not alloc.make_room(end, frame + RESERVE_BYTES, ALLOCATE_STEP_BYTES):
+                # no room: what is free plus what the file holds ahead of its end
                 room, what = room_bytes(self.path, alloc.allocated_bytes)
-                room, need = room + alloc.allocated_bytes - end, frame + RESERVE_BYTES
-            else:  # this file system cannot allocate ahead: a reserve file holds the room to close
-                log.info("%s: the file system cannot allocate ahead; checking free space instead", self.path)
-                self._reserve = SpaceReserve(self.path, RESERVE_BYTES)
-        if not alloc.supported:  # the reserve is held in its own file while it can be: not counted twice
-            need = frame + (0 if self._reserve.held else RESERVE_BYTES)
-            room, what = room_bytes(self.path)
-        if room < need or alloc.supported:
-            raise DiskFullError(
-                f"{what} full: {room / 2**20:.1f} MiB left for {str(self.path)!r}, less than one "
-                f"more frame plus a reserve that keeps the file valid; free space or write --out "
-                f"to another disk, {self._resume_hint(next_index, pending_kept=next_index is not None)}"
-            )
+                raise self._disk_full(room + alloc.allocated_bytes - end, what, next_index)
+            if alloc.supported:
+                return
+            # this file system cannot allocate ahead: a reserve file holds the room to close
+            log.info("%s: the file system cannot allocate ahead; checking free space instead", self.path)
+            self._reserve = SpaceReserve(self.path, RESERVE_BYTES)
+        room, what = room_bytes(self.path)
+        if room < frame + (0 if self._reserve.held else RESERVE_BYTES):  # (the held reserve not counted twice)
+            raise self._disk_full(room, what, next_index)
+
+    def _disk_full(self, room: int, what: str, next_index) -> DiskFullError:
+        return DiskFullError(
+            f"{what} full: {room / 2**20:.1f} MiB left for {str(self.path)!r}, less than one "
+            f"more frame plus a reserve that keeps the file valid; free space or write --out "
+            f"to another disk, {self._resume_hint(next_index, pending_kept=next_index is not None)}")
 
     def append(self, item: imageio.FrameItem, result, outcome=None) -> None:
         """Append one frame: ``result`` (an :class:`OutputFrame`, made in the worker,

@@ -210,7 +210,7 @@ class Acquisition:
         self.first_frame_id: Optional[int] = None
         self.fps = 0.0
         self.delivered_rate_hz: Optional[float] = None
-        self._median_interval = (0, None)  # (intervals seen when taken, median interval s)
+        self._median_interval = (0, None)  # (frame sequence when taken, median interval s)
         self.camera_statistics: dict = {}
         self.started_host_ns: Optional[int] = None
         self.stopped_host_ns: Optional[int] = None
