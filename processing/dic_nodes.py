@@ -219,29 +219,27 @@ def _pair_sums(x, s, quadratic, axis):
     ``P[p, i]`` (nodes every ``s`` px at ``j s + (s - 1) / 2``, clamped outside).
 
     quadratic: ``(sum_p P[p,i]^2 x[p], sum_p P[p,i] P[p,i+1] x[p])``;
-    else ``sum_p P[p,i] x[p]`` (the exact transpose of the resize)."""
+    else ``sum_p P[p,i] x[p]`` (the exact transpose of the resize).  Along the
+    columns compiled (:func:`processing.dic_kernels.column_pairs`)."""
     n = x.shape[axis]
     m = n // s
     hs = s // 2
+    if axis == 1:
+        from .dic_kernels import column_pairs
+
+        out = np.empty((x.shape[0], m), np.float32)
+        off = np.empty((x.shape[0], m - 1), np.float32) if quadratic else out
+        column_pairs(np.ascontiguousarray(x, np.float32), s, quadratic, out, off)
+        return (out, off) if quadratic else out
     W = _tent_weights(s, quadratic)
-    if axis == 0:
-        parts = W.T @ x[hs:n - hs].reshape(m - 1, s, -1)  # (m - 1, k, cols)
-        parts = [parts[:, k] for k in range(W.shape[1])]
-        first, last = x[:hs].sum(axis=0), x[n - hs:].sum(axis=0)
-        out = np.zeros((m, x.shape[1]), np.float32)
-        out[:-1] += parts[0]
-        out[1:] += parts[1]
-        out[0] += first
-        out[-1] += last
-    else:
-        parts = x[:, hs:n - hs].reshape(x.shape[0], m - 1, s) @ W  # (rows, m - 1, k)
-        parts = [parts[:, :, k] for k in range(W.shape[1])]
-        first, last = x[:, :hs].sum(axis=1), x[:, n - hs:].sum(axis=1)
-        out = np.zeros((x.shape[0], m), np.float32)
-        out[:, :-1] += parts[0]
-        out[:, 1:] += parts[1]
-        out[:, 0] += first
-        out[:, -1] += last
+    parts = W.T @ x[hs:n - hs].reshape(m - 1, s, -1)  # (m - 1, k, cols)
+    parts = [parts[:, k] for k in range(W.shape[1])]
+    first, last = x[:hs].sum(axis=0), x[n - hs:].sum(axis=0)
+    out = np.zeros((m, x.shape[1]), np.float32)
+    out[:-1] += parts[0]
+    out[1:] += parts[1]
+    out[0] += first
+    out[-1] += last
     return (out, parts[2]) if quadratic else out
 
 
@@ -252,27 +250,28 @@ class Stencil9:
     (row-major) node index, each neighbour a contiguous shifted slice."""
 
     def __init__(self, dd, do, od, oo):
-        m_r, m_c = dd.shape
-        self.shape = (m_r, m_c)
-        m = m_r * m_c
+        self.shape = dd.shape
         self.parts = (dd, do, od, oo)
         self.dd = dd.ravel()
         self._mean_row_sum = float(np.mean(dd) + 2 * np.mean(do) + 2 * np.mean(od) + 4 * np.mean(oo))
-
-        def flat(x, r0, c0):  # coefficient between node k and k + offset, at k
-            out = np.zeros((m_r, m_c), np.float32)
-            out[:x.shape[0], c0:c0 + x.shape[1]] = x
-            return out.ravel()
-
-        self._links = []
-        for off, coef in ((1, flat(do, 0, 0)), (m_c, flat(od, 0, 0)), (m_c + 1, flat(oo, 0, 0)),
-                          (m_c - 1, flat(oo, 0, 1))):
-            self._links.append((off, coef[:m - off]))
+        self._links = None  # made by the first product (the compiled CG reads the parts)
 
     def mean_row_sum(self) -> float:
         return self._mean_row_sum
 
+    def _flat(self, x, c0):
+        """Coefficient between node k and k + offset, at k (flat, zero beyond ``x``)."""
+        out = np.zeros(self.shape, np.float32)
+        out[:x.shape[0], c0:c0 + x.shape[1]] = x
+        return out.ravel()
+
     def __matmul__(self, x):
+        if self._links is None:
+            m_c, m = self.shape[1], self.dd.size
+            _, do, od, oo = self.parts
+            self._links = [(off, coef[:m - off]) for off, coef in
+                           ((1, self._flat(do, 0)), (m_c, self._flat(od, 0)), (m_c + 1, self._flat(oo, 0)),
+                            (m_c - 1, self._flat(oo, 1)))]
         xf = x.ravel()
         y = self.dd * xf
         t = np.empty_like(y)
