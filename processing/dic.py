@@ -55,6 +55,7 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
+from .dic_intensity import INTENSITY_CELL_PX, intensity_fit, normalised_frame
 from .dic_nodes import BLUR_PX, NODE_PX, FineReference, HeightNodes, NodeGrid, fine_factor, fine_reference, fits
 from .fill import nearest_fill_index
 from .pools import thread_map
@@ -64,13 +65,7 @@ __all__ = ["NODE_PX", "BLUR_PX", "INTENSITY_CELL_PX", "FineReference", "NodeGrid
            "fine_factor", "fine_reference", "fits", "intensity_fit", "refine_height", "ImageMatch"]
 
 
-# ------------------------------------------------------------------ intensity model
-#: Cell of the frame's gain and offset fields (pixels, :func:`intensity_fit`).
-INTENSITY_CELL_PX = 16
-
-#: Smallest gain the frame is divided by, as a fraction of its median gain.
-MIN_GAIN = 0.1
-
+# ------------------------------------------------------------------ the match
 #: Pixels along each side of the frame left out of the match: on them the gradient of the blurred
 #: warped reference is a one-sided difference of OpenCV's mirror image, not the warp's response (its
 #: mirrored half moves the other way), and the Gauss-Newton steps of the border nodes overshot.
@@ -83,72 +78,6 @@ MIN_GAIN = 0.1
 #: 1.53, 1.94, 1.45 grey levels with 0 px (the border's steps from one side of the answer to the
 #: other), 2.81, 1.26, 1.11, 1.02, 1.02, 1.00 with 2 px, the steps shrinking 0.090 -> 0.004 px rms.
 BORDER_PX = 2
-
-
-def intensity_fit(frame, warped, weight=None, *, cell_px: float = INTENSITY_CELL_PX):
-    """Smooth gain and offset fields with ``frame ~ gain * warped + offset``.
-
-    The normalisation of ZNSSD in DIC, locally: ``gain = std(I) / std(W)``,
-    ``offset = mean(I) - gain mean(W)`` over windows of about ``3 cell_px``
-    (several pattern periods, so the pattern's own mean and variance are
-    steady there).  The ratio of standard deviations, not the regression
-    slope ``cov(I, W) / var(W)``: where the warp is still off (the first
-    steps, a fast-moving region) the slope shrinks towards 0 with the
-    correlation, and dividing the frame by it blew the residual up (3x on a
-    dimple of 8 px) and the steps with it.  The moments ``sum w``,
-    ``sum w I``, ``sum w W``, ``sum w I^2``, ``sum w W^2`` are averaged over
-    cells of about ``cell_px`` pixels, then over 3 x 3 cells, and each cell's
-    fit is interpolated bilinearly to every pixel.  Where a cell has no
-    weight or no contrast in ``warped`` its gain and offset are the whole
-    frame's.
-
-    Parameters
-    ----------
-    frame, warped : ndarray float32 (rows, cols)
-        The (blurred) frame and the (blurred) warped reference.
-    weight : ndarray float32 (rows, cols) or None
-        Pixel weights (None: all 1).
-    cell_px : float
-
-    Returns
-    -------
-    gain, offset : ndarray float32 (rows, cols)
-    """
-    rows, cols = frame.shape
-    m_r = max(1, int(round(rows / cell_px)))
-    m_c = max(1, int(round(cols / cell_px)))
-
-    def down(x):
-        return cv2.resize(x, (m_c, m_r), interpolation=cv2.INTER_AREA).astype(np.float64)
-
-    if weight is None:
-        w0 = np.ones((m_r, m_c))
-        fw, ww = frame, warped
-    else:
-        w0 = down(weight)
-        fw, ww = frame * weight, warped * weight
-    moments = [w0, down(fw), down(ww), down(fw * frame), down(ww * warped)]
-    total = [float(m.sum()) for m in moments]
-    if m_r >= 3 and m_c >= 3:
-        moments = [cv2.blur(m, (3, 3), borderType=cv2.BORDER_REFLECT) for m in moments]
-    n, si, sw, sii, sww = moments
-    var_i = n * sii - si * si  # n^2 times the variances
-    var_w = n * sww - sw * sw
-    tn, ti, tw, tii, tww = total
-    t_var_i = tn * tii - ti * ti
-    t_var_w = tn * tww - tw * tw
-    g_all = math.sqrt(t_var_i / t_var_w) if t_var_w > 0 and t_var_i > 0 else 1.0
-    o_all = (ti - g_all * tw) / tn if tn > 0 else 0.0
-    # a cell needs weight and contrast: at least a tenth of the frame's mean weight
-    # per cell and a tenth of the frame's variance of the warped reference
-    if tn > 0:
-        ok = (n > 0.1 * tn / n.size) & (var_w > 0.1 * (t_var_w / tn ** 2) * n ** 2) & (var_i > 0)
-    else:
-        ok = np.zeros_like(n, bool)
-    gain = np.where(ok, np.sqrt(np.where(ok, var_i, 1.0) / np.where(ok, var_w, 1.0)), g_all)
-    offset = np.where(ok, (si - gain * sw) / np.where(ok, n, 1.0), o_all)
-    up = [cv2.resize(x.astype(np.float32), (cols, rows), interpolation=cv2.INTER_LINEAR) for x in (gain, offset)]
-    return up[0], up[1]
 
 
 #: Conjugate-gradient iterations of each Gauss-Newton step (:func:`refine_height`): on frames whose
@@ -288,7 +217,7 @@ def _refine(fine, frame, h0, valid_px, nodes: HeightNodes, *, outer: int = 3, cg
         if intensity_cell_px and k == 0:
             # once, against the reference warped by FD's start (before every step: the same
             # heights, 10-20 % slower; weighted by wk at the border: the same, 3 ms more)
-            img = _normalised_frame(raw, img, warped, None if all_valid else wk, intensity_cell_px, blur_px)
+            img = normalised_frame(raw, img, warped, None if all_valid else wk, intensity_cell_px, blur_px)
         if k == 0 and speck_contrast:
             start_warped = warped
         if k == SPECK_STEP and speck_contrast and period_px:
@@ -466,23 +395,6 @@ def _check_displacement(u, u_start, k, frame_shape, period_px, free=None):
     if period_px is not None and move > 0.5 * float(period_px):
         raise _diverged("displacement moved by more than half the pattern's period",
                         f"{move:.3g} px rms from FD's, period {period_px:.3g} px, after {k} step(s)")
-
-
-def _normalised_frame(raw, blurred, warped, weight, cell_px, blur_px):
-    """The frame brought to the reference's intensities, ``G*((I - b) / a)``
-    (:func:`intensity_fit` of the blurred frame against the blurred warped
-    reference; the gain floored at :data:`MIN_GAIN` of its median): every
-    pixel then weighs the same whatever its gain.  Divided before the blur:
-    ``G*(a I0) = a G*I0 + sigma^2 grad a . grad I0 + ...``, so dividing the
-    blurred frame would leave a displacement of ``sigma^2 grad a / a``."""
-    gain, offset = intensity_fit(blurred, warped, weight, cell_px=cell_px)
-    floor = MIN_GAIN * float(np.median(gain[::8, ::8]))
-    np.maximum(gain, np.float32(floor if floor > 0 else 1e-30), out=gain)
-    img = raw - offset
-    img /= gain
-    if blur_px:
-        img = cv2.GaussianBlur(img, (0, 0), blur_px)
-    return img
 
 
 def _node_sums(nodes, warped, img, w, threads, matrix=True):

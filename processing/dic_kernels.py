@@ -43,7 +43,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["row_moments", "column_pairs", "normal_apply", "pad_stencil", "lanczos_columns", "warp_map_rows", "dot64"]
+__all__ = ["row_moments", "column_pairs", "area_taps", "cell_moments", "linear_taps", "normalise_rows", "normal_apply", "pad_stencil", "lanczos_columns", "warp_map_rows", "dot64"]
 
 
 @numba.njit(nogil=True, cache=True, inline="always")
@@ -187,6 +187,111 @@ def column_pairs(x, s, quadratic, d, o):  # pragma: no cover - compiled
                 o[r, t] = c
         dr[m - 1] = lo + last
 
+
+def area_taps(n_px: int, n_cells: int):
+    """``(index, weight_lo, weight_hi)`` of each of ``n_px`` pixels along one axis in OpenCV's area
+    resize (``cv2.INTER_AREA``) to ``n_cells`` cells: the pixel's share of cell ``index`` and of cell
+    ``index + 1`` (the overlap of ``[p, p + 1)`` with the cell's ``n_px / n_cells`` pixels, over that
+    width; float64, 0 where the pixel lies in one cell)."""
+    scale = n_px / n_cells
+    p = np.arange(n_px, dtype=np.float64)
+    index = np.minimum((p // scale).astype(np.int64), n_cells - 1)
+    edge = (index + 1) * scale  # the cell's upper edge
+    lo = np.minimum(edge - p, 1.0)
+    hi = np.where(index + 1 < n_cells, 1.0 - lo, 0.0)
+    return index, lo / scale, hi / scale
+
+
+@numba.njit(nogil=True, cache=True, inline="always")
+def _add_moments(acc, k, a, fp, wp, weight, p):  # pragma: no cover - compiled
+    """``a`` times pixel row ``p``'s five moments added to the accumulator rows ``acc[:, k]``."""
+    a0, a1, a2, a3, a4 = acc[0, k], acc[1, k], acc[2, k], acc[3, k], acc[4, k]
+    if weight.size > 0:
+        wr = weight[p]
+        for q in range(fp.size):
+            w = np.float64(wr[q])
+            wi, ww = w * np.float64(fp[q]), w * np.float64(wp[q])
+            a0[q] += a * w
+            a1[q] += a * wi
+            a2[q] += a * ww
+            a3[q] += a * wi * np.float64(fp[q])
+            a4[q] += a * ww * np.float64(wp[q])
+    else:
+        for q in range(fp.size):
+            i, wv = np.float64(fp[q]), np.float64(wp[q])
+            a0[q] += a
+            a1[q] += a * i
+            a2[q] += a * wv
+            a3[q] += a * i * i
+            a4[q] += a * wv * wv
+
+
+@numba.njit(nogil=True, cache=True)
+def cell_moments(frame, warped, weight, r_idx, r_lo, r_hi, c_idx, c_lo, c_hi, out):  # pragma: no cover - compiled
+    """The cell means (area weights of :func:`area_taps` along the rows and the columns) of
+    ``w``, ``w I``, ``w W``, ``w I^2``, ``w W^2`` into ``out`` (5, cell rows, cell cols) float64,
+    ``I`` the ``frame``, ``W`` the ``warped`` reference, ``w`` the ``weight`` (an empty array: 1
+    everywhere): the pixel rows summed to the cell rows in one pass, then the columns
+    (:func:`processing.dic.intensity_fit`'s moments, which were five OpenCV area resizes and
+    two products)."""
+    rows, cols = frame.shape
+    n_r, n_c = out.shape[1], out.shape[2]
+    acc = np.zeros((5, n_r, cols), np.float64)
+    for p in range(rows):
+        _add_moments(acc, r_idx[p], r_lo[p], frame[p], warped[p], weight, p)
+        if r_hi[p] != 0.0:
+            _add_moments(acc, r_idx[p] + 1, r_hi[p], frame[p], warped[p], weight, p)
+    for m in range(5):
+        for k in range(n_r):
+            src, dst = acc[m, k], out[m, k]
+            for q in range(cols):
+                j = c_idx[q]
+                dst[j] += c_lo[q] * src[q]
+                if c_hi[q] != 0.0:
+                    dst[j + 1] += c_hi[q] * src[q]
+
+def linear_taps(n_px: int, n_cells: int):
+    """``(index, weight)`` of each of ``n_px`` pixels along one axis in OpenCV's bilinear resize
+    (``cv2.INTER_LINEAR``) of ``n_cells`` cells to ``n_px``: the pixel takes ``1 - weight`` of cell
+    ``index`` and ``weight`` of cell ``index + 1`` (cell centres at ``(j + 0.5) n_px / n_cells - 0.5``,
+    clamped at the outer ones; float32 weights)."""
+    at = (np.arange(n_px, dtype=np.float64) + 0.5) * (n_cells / n_px) - 0.5
+    index = np.floor(at).astype(np.int64)
+    weight = at - index
+    low = index < 0
+    index[low], weight[low] = 0, 0.0
+    high = index >= n_cells - 1
+    index[high], weight[high] = n_cells - 1, 0.0
+    return index, weight.astype(np.float32)
+
+
+@numba.njit(nogil=True, cache=True, fastmath={"contract"})
+def normalise_rows(raw, gain, offset, floor, r_idx, r_w, c_idx, c_w, out):  # pragma: no cover - compiled
+    """``out = (raw - b) / max(a, floor)``, ``a`` and ``b`` the cell fields ``gain`` and ``offset``
+    (cell rows, cell cols) bilinear at every pixel (:func:`linear_taps` along the rows and the
+    columns: what ``cv2.resize(..., cv2.INTER_LINEAR)`` of them gives, to float rounding), in one
+    pass (:func:`processing.dic_intensity.normalised_frame`)."""
+    rows, cols = raw.shape
+    n_c = gain.shape[1]
+    g_row = np.empty(n_c, np.float32)
+    o_row = np.empty(n_c, np.float32)
+    g_px = np.empty(cols, np.float32)
+    o_px = np.empty(cols, np.float32)
+    one = np.float32(1.0)
+    for p in range(rows):
+        i, f = r_idx[p], r_w[p]
+        i1 = min(i + 1, gain.shape[0] - 1)
+        for j in range(n_c):
+            g_row[j] = (one - f) * gain[i, j] + f * gain[i1, j]
+            o_row[j] = (one - f) * offset[i, j] + f * offset[i1, j]
+        for q in range(cols):
+            j, f = c_idx[q], c_w[q]
+            j1 = min(j + 1, n_c - 1)
+            g_px[q] = max((one - f) * g_row[j] + f * g_row[j1], floor)
+            o_px[q] = (one - f) * o_row[j] + f * o_row[j1]
+        rp, op = raw[p], out[p]
+        for q in range(cols):
+            op[q] = (rp[q] - o_px[q]) / g_px[q]
 
 # ------------------------------------------------------------------ the CG's operator on the node grid
 _FAST = dict(nogil=True, cache=True, fastmath={"reassoc", "contract"})

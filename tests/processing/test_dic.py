@@ -418,6 +418,34 @@ def test_intensity_fit_recovers_a_smooth_gain_and_offset(wave_floats):
     assert np.abs(offset - 0.05)[inner].max() < 0.01  # of a full scale of 1
 
 
+
+@pytest.mark.parametrize("shape, cells", [((256, 256), (16, 16)), ((240, 200), (13, 11)), ((96, 64), (5, 4))])
+def test_compiled_intensity_moments_and_division_are_opencvs_resizes(shape, cells):
+    # the cells' moments: OpenCV's area means of w, w I, w W, w I^2, w W^2 (whole and fractional
+    # cells); the division: (raw - b) / max(a, floor) with a, b resized bilinearly by OpenCV
+    from processing.dic_kernels import area_taps, cell_moments, linear_taps, normalise_rows
+
+    rng = np.random.default_rng(3)
+    frame, warped = (cv2.GaussianBlur((rng.random(shape) * 4000).astype(np.float32), (0, 0), 2) for _ in range(2))
+    weight = (rng.random(shape) > 0.2).astype(np.float32)
+    for w in (None, weight):
+        got = np.zeros((5,) + cells)
+        cell_moments(frame, warped, np.empty((0, 0), np.float32) if w is None else w,
+                     *area_taps(shape[0], cells[0]), *area_taps(shape[1], cells[1]), got)
+        ww = np.ones(shape, np.float32) if w is None else w
+        for k, x in enumerate((ww, ww * frame, ww * warped, ww * frame * frame, ww * warped * warped)):
+            want = cv2.resize(x, cells[::-1], interpolation=cv2.INTER_AREA)
+            np.testing.assert_allclose(got[k], want, rtol=2e-6, atol=2e-6 * float(np.abs(want).max()))
+    gain = (0.5 + rng.random(cells)).astype(np.float32)
+    offset = (rng.random(cells) * 100).astype(np.float32)
+    out = np.empty_like(frame)
+    normalise_rows(frame, gain, offset, np.float32(0.8), *linear_taps(shape[0], cells[0]),
+                   *linear_taps(shape[1], cells[1]), out)
+    a, b = (cv2.resize(x, shape[::-1], interpolation=cv2.INTER_LINEAR) for x in (gain, offset))
+    want = (frame - b) / np.maximum(a, np.float32(0.8))
+    np.testing.assert_allclose(out, want, rtol=1e-5, atol=1e-5 * float(np.abs(want).max()))
+
+
 def _fd_start(ref, img, nodes):
     """FD's heights (the Reconstructor's default) at the nodes, the start refine_height is given."""
     res = Reconstructor(ref, G55, grid="full")(img)
