@@ -121,8 +121,8 @@ def normalised_frame(raw, blurred, warped, weight, cell_px, blur_px):
     raw = np.ascontiguousarray(raw, np.float32)
     rows, cols = raw.shape
     img = np.empty_like(raw)
-    normalise_rows(raw, gain, offset, np.float32(floor if floor > 0 else 1e-30), *linear_taps(rows, gain.shape[0]),
-                   *linear_taps(cols, gain.shape[1]), img)
+    normalise_rows(raw, np.stack([gain, offset]), np.float32(floor if floor > 0 else 1e-30),
+                   *linear_taps(rows, gain.shape[0]), *linear_taps(cols, gain.shape[1]), img)
     if blur_px:
         img = cv2.GaussianBlur(img, (0, 0), blur_px)
     return img

@@ -266,32 +266,48 @@ def linear_taps(n_px: int, n_cells: int):
 
 
 @numba.njit(nogil=True, cache=True, fastmath={"contract"})
-def normalise_rows(raw, gain, offset, floor, r_idx, r_w, c_idx, c_w, out):  # pragma: no cover - compiled
-    """``out = (raw - b) / max(a, floor)``, ``a`` and ``b`` the cell fields ``gain`` and ``offset``
-    (cell rows, cell cols) bilinear at every pixel (:func:`linear_taps` along the rows and the
+def _lerp_segments(lo_row, hi_row, f, c_idx, c_w, floor, g_row, o_row, g_inv, o_px):  # pragma: no cover
+    """One pixel row's fields: the cell rows ``lo_row``, ``hi_row`` ((2, cell cols): gain, offset)
+    mixed by ``f``, then to every pixel along the columns (cells of a run of pixels in turn: each
+    run's inner loop over contiguous pixels with its two cells' values fixed)."""
+    one = np.float32(1.0)
+    n_c = g_row.size
+    for j in range(n_c):
+        g_row[j] = (one - f) * lo_row[0, j] + f * hi_row[0, j]
+        o_row[j] = (one - f) * lo_row[1, j] + f * hi_row[1, j]
+    q, cols = 0, c_idx.size
+    while q < cols:
+        j = c_idx[q]
+        end = q
+        while end < cols and c_idx[end] == j:
+            end += 1
+        j1 = min(j + 1, n_c - 1)
+        g0, dg, o0, do = g_row[j], g_row[j1] - g_row[j], o_row[j], o_row[j1] - o_row[j]
+        for k in range(q, end):
+            g_inv[k] = one / max(g0 + c_w[k] * dg, floor)
+            o_px[k] = o0 + c_w[k] * do
+        q = end
+
+
+@numba.njit(nogil=True, cache=True, fastmath={"contract"})
+def normalise_rows(raw, fields, floor, r_idx, r_w, c_idx, c_w, out):  # pragma: no cover - compiled
+    """``out = (raw - b) / max(a, floor)``, ``a`` and ``b`` the cell fields ``fields`` (2, cell rows,
+    cell cols: gain, offset) bilinear at every pixel (:func:`linear_taps` along the rows and the
     columns: what ``cv2.resize(..., cv2.INTER_LINEAR)`` of them gives, to float rounding), in one
     pass (:func:`processing.dic_intensity.normalised_frame`)."""
     rows, cols = raw.shape
-    n_c = gain.shape[1]
+    n_r, n_c = fields.shape[1], fields.shape[2]
+    by_row = np.ascontiguousarray(fields.transpose(1, 0, 2))  # (cell rows, 2, cell cols)
     g_row = np.empty(n_c, np.float32)
     o_row = np.empty(n_c, np.float32)
-    g_px = np.empty(cols, np.float32)
+    g_inv = np.empty(cols, np.float32)
     o_px = np.empty(cols, np.float32)
-    one = np.float32(1.0)
     for p in range(rows):
-        i, f = r_idx[p], r_w[p]
-        i1 = min(i + 1, gain.shape[0] - 1)
-        for j in range(n_c):
-            g_row[j] = (one - f) * gain[i, j] + f * gain[i1, j]
-            o_row[j] = (one - f) * offset[i, j] + f * offset[i1, j]
-        for q in range(cols):
-            j, f = c_idx[q], c_w[q]
-            j1 = min(j + 1, n_c - 1)
-            g_px[q] = max((one - f) * g_row[j] + f * g_row[j1], floor)
-            o_px[q] = (one - f) * o_row[j] + f * o_row[j1]
+        i = r_idx[p]
+        _lerp_segments(by_row[i], by_row[min(i + 1, n_r - 1)], r_w[p], c_idx, c_w, floor, g_row, o_row, g_inv, o_px)
         rp, op = raw[p], out[p]
         for q in range(cols):
-            op[q] = (rp[q] - o_px[q]) / g_px[q]
+            op[q] = (rp[q] - o_px[q]) * g_inv[q]
 
 # ------------------------------------------------------------------ the CG's operator on the node grid
 _FAST = dict(nogil=True, cache=True, fastmath={"reassoc", "contract"})

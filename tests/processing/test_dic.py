@@ -439,7 +439,7 @@ def test_compiled_intensity_moments_and_division_are_opencvs_resizes(shape, cell
     gain = (0.5 + rng.random(cells)).astype(np.float32)
     offset = (rng.random(cells) * 100).astype(np.float32)
     out = np.empty_like(frame)
-    normalise_rows(frame, gain, offset, np.float32(0.8), *linear_taps(shape[0], cells[0]),
+    normalise_rows(frame, np.stack([gain, offset]), np.float32(0.8), *linear_taps(shape[0], cells[0]),
                    *linear_taps(shape[1], cells[1]), out)
     a, b = (cv2.resize(x, shape[::-1], interpolation=cv2.INTER_LINEAR) for x in (gain, offset))
     want = (frame - b) / np.maximum(a, np.float32(0.8))
