@@ -43,8 +43,9 @@ def intensity_cells(frame, warped, weight=None, *, cell_px: float = INTENSITY_CE
     correlation, and dividing the frame by it blew the residual up (3x on a
     dimple of 8 px) and the steps with it.  The moments ``sum w``,
     ``sum w I``, ``sum w W``, ``sum w I^2``, ``sum w W^2`` are averaged over
-    cells of about ``cell_px`` pixels, then over 3 x 3 cells, and each cell's
-    fit is interpolated bilinearly to every pixel.  Where a cell has no
+    cells of about ``cell_px`` pixels, then over 3 x 3 cells (:func:`intensity_fit`
+    and :func:`normalised_frame` interpolate each cell's fit bilinearly to every
+    pixel).  Where a cell has no
     weight or no contrast in ``warped`` its gain and offset are the whole
     frame's.
 
@@ -61,12 +62,11 @@ def intensity_cells(frame, warped, weight=None, *, cell_px: float = INTENSITY_CE
     gain, offset : ndarray float32 (cell rows, cell cols)
         Cells of ``rows / cell_px`` x ``cols / cell_px`` (rounded) spanning the frame.
     """
+    from .dic_kernels import area_taps, cell_moments
+
     rows, cols = frame.shape
     m_r = max(1, int(round(rows / cell_px)))
     m_c = max(1, int(round(cols / cell_px)))
-
-    from .dic_kernels import area_taps, cell_moments
-
     # the cell means of w, w I, w W, w I^2, w W^2 (OpenCV's area resize of each, in one compiled pass)
     moments = np.zeros((5, m_r, m_c))
     cell_moments(np.ascontiguousarray(frame, np.float32), np.ascontiguousarray(warped, np.float32),

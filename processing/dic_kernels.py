@@ -27,6 +27,12 @@ the node displacement to every pixel, in two passes of 8 taps each, written
 straight into ``cv2.remap``'s map (was a resize, a scaling and a subtraction
 of full-size two-channel arrays).
 
+:func:`cell_moments` and :func:`normalise_rows`, the intensity model
+(:mod:`processing.dic_intensity`): the five moments of its cells in one
+pass over the pixels (OpenCV's area means, :func:`area_taps`), and the
+division by the gain and offset fields, bilinear from those cells inside
+the same pass (OpenCV's bilinear resize, :func:`linear_taps`).
+
 :func:`dot64`, the conjugate gradients' dot products: float32 arrays summed
 in float64 without BLAS's threads (which spin on a loaded 2-core machine),
 9 us instead of NumPy's einsum's 49 at 256^2 (the einsum cast every sample
@@ -43,7 +49,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["row_moments", "column_pairs", "area_taps", "cell_moments", "linear_taps", "normalise_rows", "normal_apply", "pad_stencil", "lanczos_columns", "warp_map_rows", "dot64"]
+__all__ = ["row_moments", "column_pairs", "area_taps", "cell_moments", "linear_taps", "normalise_rows", "normal_apply",
+           "pad_stencil", "lanczos_columns", "warp_map_rows", "dot64"]
 
 
 @numba.njit(nogil=True, cache=True, inline="always")
