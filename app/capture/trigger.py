@@ -50,9 +50,24 @@ __all__ = [
     "AutoTrigger",
     "TriggeredCapture",
     "rms_slope",
+    "THRESHOLD_UNIT",
+    "threshold_attrs",
 ]
 
 TRIGGER_SOURCES = ("software", "genicam", "line0", "line1", "line2", "line3", "auto")
+
+#: The unit of the auto-trigger's threshold as the window shows it, the settings remember it and every
+#: recording file states it (``auto_trigger_threshold``), and of the RMS slope its trigger event stores
+#: (``rms_mrad``).
+THRESHOLD_UNIT = "mrad RMS slope"
+
+
+def threshold_attrs(threshold_mrad: Optional[float]) -> dict:
+    """What a recording file stores about its auto-trigger (the unit with the value); {} for none."""
+    if threshold_mrad is None:
+        return {}
+    return {"auto_trigger_threshold": float(threshold_mrad), "auto_trigger_threshold_unit": THRESHOLD_UNIT,
+            "auto_trigger_quantity": "sqrt(mean(slope_x^2 + slope_y^2)) over the live slope maps"}
 
 
 class TriggerError(RuntimeError):
@@ -389,7 +404,9 @@ class TriggeredCapture:
         """A callback for :class:`AutoTrigger` that triggers this capture on the frame that crossed."""
 
         def fire(sequence: int, rms: float) -> None:
-            self.trigger_at(sequence, rms=rms, source="auto")
+            # the event holds the RMS slope as compared (mm/mm) and in the threshold's unit: a file that
+            # said rms 5.47e-05 beside a threshold of 0.001 "mrad RMS slope" read as fired at 1/20 of it
+            self.trigger_at(sequence, rms=rms, rms_mrad=1e3 * float(rms), source="auto")
 
         return fire
 

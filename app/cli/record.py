@@ -398,7 +398,7 @@ def _record(args, prog: str) -> int:
     from app.capture.acquisition import Acquisition, AcquisitionError, dtype_for_bit_depth
     from app.capture.recorder import Recorder, RecorderError, format_summary
     from app.capture.ringbuffer import MemoryBudgetError
-    from app.capture.trigger import AutoTrigger, TriggerError, TriggeredCapture, configure_trigger
+    from app.capture.trigger import AutoTrigger, TriggerError, TriggeredCapture, configure_trigger, threshold_attrs
 
     cam = acq = rec = cap = None
     result = None
@@ -470,8 +470,10 @@ def _record(args, prog: str) -> int:
             finished = _wait_with_bar(rec.wait, bar, counter, time.monotonic() + timeout)
             summary_src = rec
         else:
+            # the auto-trigger's threshold with its unit, as the window's recordings state it (--threshold is mm/mm)
+            auto_attrs = threshold_attrs(1e3 * args.threshold) if trig == "auto" else {}
             cap = TriggeredCapture(acq, target, pre_frames=pre, post_frames=post, source=trig, burst=args.burst,
-                                   **file_options)
+                                   attrs=auto_attrs, **file_options)
             rec = cap.recorder
             if trig == "genicam":
                 acq.set_software_trigger_rate(rate)

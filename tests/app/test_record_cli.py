@@ -140,7 +140,9 @@ def test_main_entry_runs_record(tmp_path):
 
 def test_record_with_auto_trigger_on_the_growing_dimple(tmp_path, capsys):
     """The scene's dimple deepens frame by frame; the RMS slope the reconstruction measures crosses the
-    threshold and the trigger frame is stored with the RMS that fired it."""
+    threshold and the trigger frame is stored with the RMS that fired it, in the unit the file gives its
+    threshold (soak trial, 8 Dec 2026: the window's file said rms 5.47e-05 beside a threshold of 0.001
+    "mrad RMS slope", as if it had fired at 1/20 of it)."""
     import json
 
     out = tmp_path / "auto.h5"
@@ -152,7 +154,10 @@ def test_record_with_auto_trigger_on_the_growing_dimple(tmp_path, capsys):
     with h5py.File(out, "r") as f:
         ev = json.loads(f["events"][0])
         t = f["frame_table"][:]
+        threshold, unit = float(f.attrs["auto_trigger_threshold"]), str(f.attrs["auto_trigger_threshold_unit"])
     assert ev["kind"] == "trigger" and ev["source"] == "auto" and ev["rms"] > 0.0005
+    assert unit == "mrad RMS slope" and threshold == pytest.approx(0.5)  # --threshold 0.0005 (mm/mm)
+    assert ev["rms_mrad"] == pytest.approx(1e3 * ev["rms"]) and ev["rms_mrad"] > threshold
     assert list(t["trigger_index"]) == list(range(-5, 5)) and t["sequence"][5] == ev["sequence"]
 
 

@@ -15,11 +15,11 @@ import dataclasses
 import math
 from typing import Deque, Optional
 
+from app.capture.trigger import THRESHOLD_UNIT, threshold_attrs
+
 __all__ = ["THRESHOLD_UNIT", "PROPOSE_FACTOR", "HISTORY_N", "mrad", "slope_of_mrad", "RmsHistory",
            "threshold_attrs", "progress_line", "armed_camera_lost_text"]
 
-#: The unit of the threshold the panel shows, the settings remember and the recording file states.
-THRESHOLD_UNIT = "mrad RMS slope"
 #: "Set from now" proposes this many times the recent RMS slope.
 PROPOSE_FACTOR = 5.0
 #: Values of the recent RMS kept (the live maps' last few seconds).
@@ -63,14 +63,6 @@ class RmsHistory:
     def readout(self) -> str:
         """``"now 0.153 mrad"`` (the compared quantity) or ``"now: no slopes yet"``."""
         return f"now {mrad(self.latest):.3g} mrad" if self.values else "now: no slope maps yet"
-
-
-def threshold_attrs(threshold_mrad: Optional[float]) -> dict:
-    """What the recording file stores about its auto-trigger (the unit with the value)."""
-    if threshold_mrad is None:
-        return {}
-    return {"auto_trigger_threshold": float(threshold_mrad), "auto_trigger_threshold_unit": THRESHOLD_UNIT,
-            "auto_trigger_quantity": "sqrt(mean(slope_x^2 + slope_y^2)) over the live slope maps"}
 
 
 def armed_camera_lost_text(error: str) -> str:
