@@ -348,6 +348,37 @@ def test_a_result_arriving_between_ticks_is_drawn_at_once_when_the_next_tick_is_
     assert c.plan_early(0.300, LIVE_TAB, R(seq=7), to_tick_s=0.008).maps is None  # 8 - 5 ms < a quarter period
 
 
+
+@pytest.mark.parametrize("results_hz", [30.0, 100.0, 240.0])
+def test_maps_are_drawn_at_most_sixty_times_a_second_whatever_the_results_rate(results_hz):
+    """Ticks at 60 Hz and early draws together: at most ``maps_hz`` results drawn a second (soak trial,
+    8 Dec 2026: 68-80 a second with results at 100 Hz), and results slower than the ticks each drawn."""
+    from types import SimpleNamespace as R
+
+    from app.gui.model.schedule import LIVE_TAB, DrawClock
+
+    c = DrawClock()
+    c.maps_took("all", 0.002)
+    seconds, tick_period = 4.0, 1.0 / c.display_hz
+    ticks = [(k * tick_period, "tick") for k in range(int(seconds * c.display_hz))]
+    arrivals = [(0.003 + j / results_hz, "result") for j in range(int(seconds * results_hz))]
+    latest, drawn = None, []
+    for now, kind in sorted(ticks + arrivals):
+        if kind == "result":
+            latest = R(seq=int(round((now - 0.003) * results_hz)) + 1)
+            next_tick = (int(now / tick_period) + 1) * tick_period
+            plan = c.plan_early(now, LIVE_TAB, latest, to_tick_s=next_tick - now)
+        else:
+            plan = c.plan(now, LIVE_TAB, None, latest)
+        if plan.maps == "all":
+            drawn.append((now, plan.result.seq))
+    per_second = len(drawn) / seconds
+    assert per_second <= c.maps_hz + 0.5, per_second
+    assert len({seq for _, seq in drawn}) == len(drawn)  # each result once
+    if results_hz < c.display_hz:
+        assert per_second >= 0.97 * results_hz  # none skipped
+
+
 def test_replay_queue_keeps_only_the_newest_request():
     from app.gui.model.schedule import ReplayQueue
 

@@ -172,12 +172,15 @@ class DrawClock:
         at 60 Hz: a sixth of the live latency at 1024^2, benchmarks/bench_gui.py), so the Live tab's maps (all,
         or the first half) are drawn at once when the next tick is at least ``EARLY_MIN_WAIT`` of a period away
         and their drawing (the running estimate) ends before it with that much to spare; the rules of
-        :meth:`plan` otherwise hold (a result drawn once, at <= ``maps_hz``, its second half on the next tick).
+        :meth:`plan` otherwise hold (a result drawn once, its second half on the next tick), and a whole
+        ``1 / maps_hz`` since the last maps: :meth:`maps_due`'s half period of slack is for ticks that come a
+        little early or late; an early draw given it too drew 68-80 results a second beside 60 Hz ticks with
+        results at 100 Hz (soak trial, 8 Dec 2026), more than the screen shows.
         No camera frame is drawn early: the raw view keeps the tick's cadence."""
         period = 1.0 / self.display_hz
         draw_s = self.maps_draw_s if self.whole_maps() else self.maps_draw_s / 2
         if (tab != LIVE_TAB or result is None or result.seq == self.last_result_seq or self.second_half is not None
-                or not self.maps_due(now) or to_tick_s - draw_s < EARLY_MIN_WAIT * period):
+                or now - self.maps_t < 1.0 / self.maps_hz or to_tick_s - draw_s < EARLY_MIN_WAIT * period):
             return TickPlan()
         return self._begin_maps(now, tab, False, result)
 
