@@ -11,6 +11,9 @@ not at rest, or a camera or board that moved: ``PinStatus.still``), the whole
 pattern shifted alike (the water level changed, or the camera or the board
 moved: ``PinStatus.shifted``), the frame shows bands of light along its rows or a vignette
 (:class:`processing.banding.LightBands`: "LIGHT BANDS", "VIGNETTING") or jumps against the previous one.
+Green with "band moving" where the pattern moved on the default border band (TIR:
+:func:`processing.pin.band_moved`, what ``tirdeflect process`` says of such frames): no fault of
+the frame, but the heights' tilt is then set by that band.
 """
 
 from __future__ import annotations
@@ -18,6 +21,8 @@ from __future__ import annotations
 import numpy as np
 import pyqtgraph as pg
 from pyqtgraph.Qt import QtCore
+
+from processing.pin import band_moved
 
 from .views import ScreenImageItem
 
@@ -53,6 +58,7 @@ class PinRegionOverlay:
         plot.addItem(self.label)
         self.note = note
         self.name = ""
+        self.setup = ""
         self.samples = 0
         self.text = ""
         self.short = ""
@@ -77,6 +83,7 @@ class PinRegionOverlay:
         self.image.setImage(np.ascontiguousarray(region, dtype=np.uint8), autoLevels=False, levels=(0, 1))
         self.image.setRect(QtCore.QRectF(cols[0] - dc / 2, rows[0] - dr / 2, dc * cols.size, dr * rows.size))
         self.name = rec.reference_region_name
+        self.setup = getattr(getattr(rec, "geometry", None), "setup", "")  # band_moved judges TIR only
         self.samples = int(np.count_nonzero(region))
         r, c = np.nonzero(region)
         if r.size:
@@ -108,6 +115,7 @@ class PinRegionOverlay:
         frac = pin.valid_samples / pin.region_samples if pin.region_samples else 0.0
         text = f"{self.name} (h = 0): {100 * frac:.0f} % valid"
         flags = []  # the label's words for what is wrong; the tooltip and the raw view's message say why
+        words = []  # words to know that are no fault (the label stays green)
         if not pin.ok:
             text += f" — too few, pinned on the {pin.used_samples} nearest valid samples"
             flags.append("too few")
@@ -118,6 +126,13 @@ class PinRegionOverlay:
             text += (f" — the pattern MOVED here by {pin.region_motion_px:.2g} px since the reference: the surface "
                      "here is not at rest, or the camera or the board moved (the heights carry a tilt)")
             flags.append("MOVED")
+        elif band_moved(pin.region, pin.rule, pin.region_motion_px, self.setup):
+            # what `tirdeflect process` says of such frames (frames_pin_band_moving); not red: waves that fill
+            # the frame move the default band in every frame of a sound recording, but its tilt is the band's
+            text += (f" — the pattern moved on this band by {pin.region_motion_px:.2g} px (waves reaching it, or "
+                     "the camera or the board moved): it sets the heights' tilt; give a reference region on water at "
+                     "rest (Geometry) for h = 0")
+            words.append("band moving")
         if pin.scaled:  # the image's scale changed: a refocus or the camera moved along its axis
             text += " — " + pin.scale_text()
             flags.append("SCALE CHANGED")
@@ -136,7 +151,7 @@ class PinRegionOverlay:
             flags.append("JUMP")
         # a few words on a raw view that may be 150 px wide: "100 % valid" says nothing beside a flag
         valid = [] if flags and frac >= 1.0 else [f"{100 * frac:.0f} % valid"]
-        short = "h = 0: " + ", ".join(valid + flags)
+        short = "h = 0: " + ", ".join(valid + flags + words)
         bad = bool(flags)
         self._show(text, short, bad=bad)
 

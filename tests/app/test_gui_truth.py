@@ -402,6 +402,38 @@ def test_reference_region_cannot_leave_the_frame_and_never_discards_the_referenc
         assert w.pin_overlay.text in label.toolTip()  # the whole sentence, on hovering
 
 
+def test_the_default_band_moving_is_said_in_the_window_as_process_says_it(qapp):
+    """Soak trial 8 Dec 2026: on waves the window's label read a green "h = 0: 100 % valid" while `tirdeflect
+    process` of the same frames said the pattern moved 0.11-0.37 px on the default border band in 287 of 300
+    frames, setting the heights' tilt. The label now says it too (green: no fault of the frame), TIR only."""
+    import types
+
+    import pyqtgraph as pg
+
+    from app.gui.pinregion import PinRegionOverlay
+    from processing.pin import BAND_MAX_MOTION_PX, PinStatus
+
+    notes, plot = [], pg.PlotItem()  # (the plot kept: its items die with it)
+    overlay = PinRegionOverlay(plot, note=notes.append)
+    region = np.zeros((32, 32), bool)
+    region[:3], region[-3:], region[:, :3], region[:, -3:] = True, True, True, True
+    name = "default border band of the frame"
+    for setup, said in (("tir", True), ("fsss", False)):  # FS-SS: the band's motion only offsets the heights
+        rec = types.SimpleNamespace(reference_region=region, rows_px=np.arange(32) * 8.0, cols_px=np.arange(32) * 8.0,
+                                    reference_region_name=name, reference_region_valid_fraction=1.0,
+                                    geometry=types.SimpleNamespace(setup=setup))
+        overlay.set_reconstructor(rec)
+        for motion_px in (0.5 * BAND_MAX_MOTION_PX, 3 * BAND_MAX_MOTION_PX):
+            result = types.SimpleNamespace(pin=PinStatus("region", name, 336, 336, 16, 336,
+                                                         region_motion_px=motion_px), series=None)
+            overlay.update(result)
+            moving = said and motion_px > BAND_MAX_MOTION_PX
+            assert not overlay.bad
+            assert overlay.label.textItem.toPlainText() == ("h = 0: 100 % valid, band moving" if moving
+                                                             else "h = 0: 100 % valid")
+            assert ("sets the heights' tilt" in overlay.text) == moving, overlay.text
+
+
 def test_a_red_pin_region_says_why_in_words_that_fit(qapp):  # qapp: a QApplication when run alone
     """By-hand trial 2 Dec 2026: the sentence saying why the pin region is red ("too few, pinned on the N nearest
     valid samples") was the label on the image, cut at the raw view's edge. The label keeps a few words, the
