@@ -148,7 +148,11 @@ class SyntheticCamera(Camera):
         n_buffers: int = 16,
         shape=(1024, 1024),
         camera_id: str = "synthetic",
+        device_timestamps: bool = True,
     ):
+        # False: frames come without the camera's timestamp (a camera that has none, or a GigE frame whose
+        # leader packet was lost): the app then times them by the host's clock
+        self._device_timestamps = bool(device_timestamps)
         if frames is None:
             frames = moving_checkerboard(shape, bit_depth=bit_depth or 8)
         self._callable = None
@@ -493,7 +497,7 @@ class SyntheticCamera(Camera):
         return Frame(
             image=image,
             frame_id=frame_id,
-            timestamp_ns=int(ts),
+            timestamp_ns=int(ts) if self._device_timestamps else None,
             host_timestamp_ns=time.monotonic_ns(),
             incomplete=False,
             bit_depth=bit_depth,

@@ -506,8 +506,12 @@ class Acquisition:
                             flags |= FrameFlags.TIME_GAP_BEFORE
                             self.time_gaps += 1
                             self.time_gap_events.append((seq, n_periods))
-                            # only what the frame ids did not already show
-                            self.lost_by_time += max(0, int(round(n_periods)) - 1 - id_missing)
+                            # only what the frame ids did not already show, and only on the camera's clock,
+                            # as the recorder counts it: the host's clock jitters by tens of ms (a lossy GigE
+                            # link's frames without a leader: "DROPPED camera 3" in the window with every id
+                            # there and the file saying 0 lost, by-hand trial 8 Dec 2026)
+                            if is_device:
+                                self.lost_by_time += max(0, int(round(n_periods)) - 1 - id_missing)
                 last_ts = ts
                 last_ts_is_device = is_device
                 ring.commit(fid, dts, hts, flags, missing_bytes)
