@@ -45,10 +45,10 @@ def test_injected_drops_counted_exactly_with_flags():
     assert acq.stats()["state"] == "stopped"
 
 
-def test_timestamp_gap_with_contiguous_ids_is_flagged_and_estimated():
-    """GenICam software trigger paced by the camera thread; a 50 ms pause in the triggers keeps the
-    ids contiguous but makes the device clock jump: the gap detector must see it (about 10 periods)."""
-    with SyntheticCamera(_frames(), frame_rate_hz=200) as cam:
+def _triggers_paused_50_ms(device_timestamps):
+    """``(acquisition, 20 frames before, 5 after)``: the synthetic camera software-triggered at 200 Hz by the
+    camera thread, the triggers paused for 50 ms between (the ids stay contiguous, the clock jumps)."""
+    with SyntheticCamera(_frames(), frame_rate_hz=200, device_timestamps=device_timestamps) as cam:
         cam.configure(trigger_mode="On", trigger_source="Software")
         acq = Acquisition(cam, ring_frames=256)
         acq.set_software_trigger_rate(200.0)
@@ -59,6 +59,12 @@ def test_timestamp_gap_with_contiguous_ids_is_flagged_and_estimated():
             time.sleep(0.05)  # the pause *is* the stimulus (50 ms of no triggers), not a wait for a result
             acq.set_software_trigger_rate(200.0)
             after = _read(cur, 5)
+    return acq, before, after
+
+def test_timestamp_gap_with_contiguous_ids_is_flagged_and_estimated():
+    """GenICam software trigger paced by the camera thread; a 50 ms pause in the triggers keeps the
+    ids contiguous but makes the device clock jump: the gap detector must see it (about 10 periods)."""
+    acq, before, after = _triggers_paused_50_ms(device_timestamps=True)
     ids = [g[1] for g in before + after]
     assert ids == list(range(ids[0], ids[0] + 25))  # contiguous: ids alone cannot see anything
     gaps = [g for g in before + after if g[2] & FrameFlags.TIME_GAP_BEFORE]
@@ -73,17 +79,7 @@ def test_a_gap_on_the_hosts_clock_is_flagged_but_not_counted_as_lost_frames():
     there is flagged (the recorder's "timestamp gaps") but is no count of lost frames, as the recording file
     says too (by-hand trial 8 Dec 2026: GigE at 90 % packet loss, every id there, the window's status bar
     "DROPPED camera 3", the file 0 lost). The 50 ms pause of the test above, on a camera without timestamps."""
-    with SyntheticCamera(_frames(), frame_rate_hz=200, device_timestamps=False) as cam:
-        cam.configure(trigger_mode="On", trigger_source="Software")
-        acq = Acquisition(cam, ring_frames=256)
-        acq.set_software_trigger_rate(200.0)
-        cur = acq.ring.cursor(0)
-        with acq:
-            before = _read(cur, 20)
-            acq.set_software_trigger_rate(None)
-            time.sleep(0.05)  # the pause *is* the stimulus (50 ms of no triggers), not a wait for a result
-            acq.set_software_trigger_rate(200.0)
-            after = _read(cur, 5)
+    acq, before, after = _triggers_paused_50_ms(device_timestamps=False)
     ids = [g[1] for g in before + after]
     assert ids == list(range(ids[0], ids[0] + 25))
     assert all(g[2] & FrameFlags.NO_DEVICE_TIMESTAMP for g in before + after) and acq.no_timestamp >= 25
