@@ -151,25 +151,19 @@ def row_moments(W, img, w, s, t0, t1, xd, xo, xl, first, tmp, matrix=True):  # p
 
 
 @numba.njit(nogil=True, cache=True, fastmath={"reassoc", "contract"})
-def column_pairs(x, s, quadratic, d, o):  # pragma: no cover - compiled
+def column_pairs(x, W, d, o):  # pragma: no cover - compiled
     """Pixel columns -> node columns of each row of ``x`` (rows, n) through the bilinear
     node -> pixel weights ``P[p, j]`` (nodes every ``s`` px at ``j s + (s - 1) / 2``, the
-    outer ``s // 2`` pixels of each side all on the outer node): ``d`` (rows, n // s)
-    ``sum_p P[p, j]^2 x[p]`` and ``o`` (rows, n // s - 1) ``sum_p P[p, j] P[p, j + 1] x[p]``
-    where ``quadratic``; else ``d`` ``sum_p P[p, j] x[p]`` (``o`` not touched).
-    :func:`processing.dic_nodes._pair_sums` along the columns, float32."""
+    outer ``s // 2`` pixels of each side all on the outer node), ``W`` (s, k) the weights of
+    the ``s`` pixels between two nodes (:func:`processing.dic_nodes._tent_weights`): with
+    k = 3, ``d`` (rows, n // s) ``sum_p P[p, j]^2 x[p]`` and ``o`` (rows, n // s - 1)
+    ``sum_p P[p, j] P[p, j + 1] x[p]``; with k = 2, ``d`` ``sum_p P[p, j] x[p]`` (``o`` not
+    touched).  :func:`processing.dic_nodes._pair_sums` along the columns, float32."""
     rows, n = x.shape
+    s = W.shape[0]
+    quadratic = W.shape[1] == 3
     m = n // s
     hs = s // 2
-    w_lo = np.empty(s, np.float32)
-    w_hi = np.empty(s, np.float32)
-    w_lh = np.empty(s, np.float32)
-    for k in range(s):
-        f = (k + 0.5) / s
-        if quadratic:
-            w_lo[k], w_hi[k], w_lh[k] = (1.0 - f) ** 2, f * f, (1.0 - f) * f
-        else:
-            w_lo[k], w_hi[k], w_lh[k] = 1.0 - f, f, 0.0
     for r in range(rows):
         xr, dr = x[r], d[r]
         lo = np.float32(0.0)  # the lower node's share so far: the outer pixels' first
@@ -185,9 +179,10 @@ def column_pairs(x, s, quadratic, d, o):  # pragma: no cover - compiled
             c = np.float32(0.0)
             for k in range(s):
                 v = xr[base + k]
-                a += w_lo[k] * v
-                b += w_hi[k] * v
-                c += w_lh[k] * v
+                a += W[k, 0] * v
+                b += W[k, 1] * v
+                if quadratic:
+                    c += W[k, 2] * v
             dr[t] = lo + a
             lo = b
             if quadratic:

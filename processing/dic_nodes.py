@@ -224,14 +224,14 @@ def _pair_sums(x, s, quadratic, axis):
     n = x.shape[axis]
     m = n // s
     hs = s // 2
+    W = _tent_weights(s, quadratic)
     if axis == 1:
         from .dic_kernels import column_pairs
 
         out = np.empty((x.shape[0], m), np.float32)
         off = np.empty((x.shape[0], m - 1), np.float32) if quadratic else out
-        column_pairs(np.ascontiguousarray(x, np.float32), s, quadratic, out, off)
+        column_pairs(np.ascontiguousarray(x, np.float32), W, out, off)
         return (out, off) if quadratic else out
-    W = _tent_weights(s, quadratic)
     parts = W.T @ x[hs:n - hs].reshape(m - 1, s, -1)  # (m - 1, k, cols)
     parts = [parts[:, k] for k in range(W.shape[1])]
     first, last = x[:hs].sum(axis=0), x[n - hs:].sum(axis=0)
