@@ -22,13 +22,45 @@ import math
 import cv2
 import numpy as np
 
-__all__ = ["INTENSITY_CELL_PX", "MIN_GAIN", "intensity_cells", "intensity_fit", "normalised_frame"]
+__all__ = ["INTENSITY_CELL_PX", "MIN_GAIN", "area_taps", "linear_taps", "intensity_cells", "intensity_fit",
+           "normalised_frame"]
 
 #: Cell of the frame's gain and offset fields (pixels, :func:`intensity_cells`).
 INTENSITY_CELL_PX = 16
 
 #: Smallest gain the frame is divided by, as a fraction of its median gain.
 MIN_GAIN = 0.1
+
+
+def area_taps(n_px: int, n_cells: int):
+    """``(index, weight_lo, weight_hi)`` of each of ``n_px`` pixels along one axis in OpenCV's area
+    resize (``cv2.INTER_AREA``) to ``n_cells`` cells: the pixel's share of cell ``index`` and of cell
+    ``index + 1`` (the overlap of ``[p, p + 1)`` with the cell's ``n_px / n_cells`` pixels, over that
+    width; float64, 0 where the pixel lies in one cell)."""
+    scale = n_px / n_cells
+    p = np.arange(n_px, dtype=np.float64)
+    index = np.minimum((p // scale).astype(np.int64), n_cells - 1)
+    edge = (index + 1) * scale  # the cell's upper edge
+    lo = np.minimum(edge - p, 1.0)
+    hi = np.where(index + 1 < n_cells, 1.0 - lo, 0.0)
+    return index, lo / scale, hi / scale
+
+
+def linear_taps(n_px: int, n_cells: int):
+    """``(index, weight)`` of each of ``n_px`` pixels along one axis in OpenCV's bilinear resize
+    (``cv2.INTER_LINEAR``) of ``n_cells`` cells to ``n_px``: the pixel takes ``1 - weight`` of cell
+    ``index`` and ``weight`` of cell ``index + 1`` (cell centres by :func:`processing.fullgrid.pixel_centres`,
+    clamped at the outer ones; float32 weights)."""
+    from .fullgrid import pixel_centres
+
+    at = pixel_centres(n_px, n_cells)
+    index = np.floor(at).astype(np.int64)
+    weight = at - index
+    low = index < 0
+    index[low], weight[low] = 0, 0.0
+    high = index >= n_cells - 1
+    index[high], weight[high] = n_cells - 1, 0.0
+    return index, weight.astype(np.float32)
 
 
 def intensity_cells(frame, warped, weight=None, *, cell_px: float = INTENSITY_CELL_PX):
@@ -62,7 +94,7 @@ def intensity_cells(frame, warped, weight=None, *, cell_px: float = INTENSITY_CE
     gain, offset : ndarray float32 (cell rows, cell cols)
         Cells of ``rows / cell_px`` x ``cols / cell_px`` (rounded) spanning the frame.
     """
-    from .dic_kernels import area_taps, cell_moments
+    from .dic_kernels import cell_moments
 
     rows, cols = frame.shape
     m_r = max(1, int(round(rows / cell_px)))
@@ -114,7 +146,7 @@ def normalised_frame(raw, blurred, warped, weight, cell_px, blur_px):
     gain.  Divided before the blur: ``G*(a I0) = a G*I0 + sigma^2 grad a .
     grad I0 + ...``, so dividing the blurred frame would leave a displacement
     of ``sigma^2 grad a / a``."""
-    from .dic_kernels import linear_taps, normalise_rows
+    from .dic_kernels import normalise_rows
 
     gain, offset = intensity_cells(blurred, warped, weight, cell_px=cell_px)
     floor = MIN_GAIN * float(np.median(gain))

@@ -29,9 +29,9 @@ of full-size two-channel arrays).
 
 :func:`cell_moments` and :func:`normalise_rows`, the intensity model
 (:mod:`processing.dic_intensity`): the five moments of its cells in one
-pass over the pixels (OpenCV's area means, :func:`area_taps`), and the
+pass over the pixels (OpenCV's area means, :func:`processing.dic_intensity.area_taps`), and the
 division by the gain and offset fields, bilinear from those cells inside
-the same pass (OpenCV's bilinear resize, :func:`linear_taps`).
+the same pass (OpenCV's bilinear resize, :func:`processing.dic_intensity.linear_taps`).
 
 :func:`dot64`, the conjugate gradients' dot products: float32 arrays summed
 in float64 without BLAS's threads (which spin on a loaded 2-core machine),
@@ -49,8 +49,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["row_moments", "column_pairs", "area_taps", "cell_moments", "linear_taps", "normalise_rows", "normal_apply",
-           "pad_stencil", "lanczos_columns", "warp_map_rows", "dot64"]
+__all__ = ["row_moments", "column_pairs", "cell_moments", "normalise_rows", "normal_apply", "pad_stencil",
+           "lanczos_columns", "warp_map_rows", "dot64"]
 
 
 @numba.njit(nogil=True, cache=True, inline="always")
@@ -190,20 +190,6 @@ def column_pairs(x, W, d, o):  # pragma: no cover - compiled
         dr[m - 1] = lo + last
 
 
-def area_taps(n_px: int, n_cells: int):
-    """``(index, weight_lo, weight_hi)`` of each of ``n_px`` pixels along one axis in OpenCV's area
-    resize (``cv2.INTER_AREA``) to ``n_cells`` cells: the pixel's share of cell ``index`` and of cell
-    ``index + 1`` (the overlap of ``[p, p + 1)`` with the cell's ``n_px / n_cells`` pixels, over that
-    width; float64, 0 where the pixel lies in one cell)."""
-    scale = n_px / n_cells
-    p = np.arange(n_px, dtype=np.float64)
-    index = np.minimum((p // scale).astype(np.int64), n_cells - 1)
-    edge = (index + 1) * scale  # the cell's upper edge
-    lo = np.minimum(edge - p, 1.0)
-    hi = np.where(index + 1 < n_cells, 1.0 - lo, 0.0)
-    return index, lo / scale, hi / scale
-
-
 @numba.njit(nogil=True, cache=True, inline="always")
 def _add_moments(acc, k, a, fp, wp, weight, p):  # pragma: no cover - compiled
     """``a`` times pixel row ``p``'s five moments added to the accumulator rows ``acc[:, k]``."""
@@ -230,7 +216,7 @@ def _add_moments(acc, k, a, fp, wp, weight, p):  # pragma: no cover - compiled
 
 @numba.njit(nogil=True, cache=True)
 def cell_moments(frame, warped, weight, r_idx, r_lo, r_hi, c_idx, c_lo, c_hi, out):  # pragma: no cover - compiled
-    """The cell means (area weights of :func:`area_taps` along the rows and the columns) of
+    """The cell means (area weights of :func:`processing.dic_intensity.area_taps` along the rows and the columns) of
     ``w``, ``w I``, ``w W``, ``w I^2``, ``w W^2`` into ``out`` (5, cell rows, cell cols) float64,
     ``I`` the ``frame``, ``W`` the ``warped`` reference, ``w`` the ``weight`` (an empty array: 1
     everywhere): the pixel rows summed to the cell rows in one pass, then the columns
@@ -251,21 +237,6 @@ def cell_moments(frame, warped, weight, r_idx, r_lo, r_hi, c_idx, c_lo, c_hi, ou
                 dst[j] += c_lo[q] * src[q]
                 if c_hi[q] != 0.0:
                     dst[j + 1] += c_hi[q] * src[q]
-
-def linear_taps(n_px: int, n_cells: int):
-    """``(index, weight)`` of each of ``n_px`` pixels along one axis in OpenCV's bilinear resize
-    (``cv2.INTER_LINEAR``) of ``n_cells`` cells to ``n_px``: the pixel takes ``1 - weight`` of cell
-    ``index`` and ``weight`` of cell ``index + 1`` (cell centres at ``(j + 0.5) n_px / n_cells - 0.5``,
-    clamped at the outer ones; float32 weights)."""
-    at = (np.arange(n_px, dtype=np.float64) + 0.5) * (n_cells / n_px) - 0.5
-    index = np.floor(at).astype(np.int64)
-    weight = at - index
-    low = index < 0
-    index[low], weight[low] = 0, 0.0
-    high = index >= n_cells - 1
-    index[high], weight[high] = n_cells - 1, 0.0
-    return index, weight.astype(np.float32)
-
 
 @numba.njit(nogil=True, cache=True, fastmath={"contract"})
 def _lerp_segments(lo_row, hi_row, f, c_idx, c_w, floor, g_row, o_row, g_inv, o_px):  # pragma: no cover
@@ -294,8 +265,8 @@ def _lerp_segments(lo_row, hi_row, f, c_idx, c_w, floor, g_row, o_row, g_inv, o_
 @numba.njit(nogil=True, cache=True, fastmath={"contract"})
 def normalise_rows(raw, fields, floor, r_idx, r_w, c_idx, c_w, out):  # pragma: no cover - compiled
     """``out = (raw - b) / max(a, floor)``, ``a`` and ``b`` the cell fields ``fields`` (2, cell rows,
-    cell cols: gain, offset) bilinear at every pixel (:func:`linear_taps` along the rows and the
-    columns: what ``cv2.resize(..., cv2.INTER_LINEAR)`` of them gives, to float rounding), in one
+    cell cols: gain, offset) bilinear at every pixel (:func:`processing.dic_intensity.linear_taps` along the rows and
+    the columns: what ``cv2.resize(..., cv2.INTER_LINEAR)`` of them gives, to float rounding), in one
     pass (:func:`processing.dic_intensity.normalised_frame`)."""
     rows, cols = raw.shape
     n_r, n_c = fields.shape[1], fields.shape[2]

@@ -28,11 +28,12 @@ def spline_weights(n_out: int, n_in: int):
     position ``(j + 0.5) n_out / n_in - 0.5`` (cv2.resize's pixel-centre
     mapping); coefficients beyond the ends mirrored about the half sample
     (``scipy.ndimage``'s ``mode="reflect"``, which :func:`spline_coefficients` matches)."""
-    return spline_taps(_pixel_centres(n_out, n_in), n_in)
+    return spline_taps(pixel_centres(n_out, n_in), n_in)
 
 
-def _pixel_centres(n_out: int, n_in: int) -> np.ndarray:
-    """Where ``n_out`` output samples sit on a grid of ``n_in`` (cv2.resize's pixel-centre mapping), samples."""
+def pixel_centres(n_out: int, n_in: int) -> np.ndarray:
+    """Where ``n_out`` output samples sit on a grid of ``n_in`` (cv2.resize's pixel-centre mapping), samples
+    (float64)."""
     return (np.arange(n_out, dtype=np.float64) + 0.5) * (n_in / n_out) - 0.5
 
 
@@ -122,7 +123,7 @@ def spline_matrix(n_out: int, n_in: int) -> np.ndarray:
     """(n_out, n_in) float32: the cubic B-spline interpolation of :class:`Upsampler`
     along one axis (prefilter included), so that ``A @ f @ B.T`` is
     ``Upsampler(..., "spline")(f)`` (the GPU chain's two matrix products)."""
-    return spline_matrix_at(_pixel_centres(n_out, n_in), n_in)
+    return spline_matrix_at(pixel_centres(n_out, n_in), n_in)
 
 
 class _SplineResize:
@@ -131,7 +132,7 @@ class _SplineResize:
     taps per axis as two sparse products (built once per source shape)."""
 
     def __init__(self, shape, src_shape):
-        self.mats = [spline_taps_matrix(_pixel_centres(n_out, n_in), n_in, np.float32)
+        self.mats = [spline_taps_matrix(pixel_centres(n_out, n_in), n_in, np.float32)
                      for n_out, n_in in zip(shape, src_shape)]
 
     def __call__(self, field, out):
@@ -226,7 +227,7 @@ def _cell_taps(n_out: int, n_in: int, cell_px: int):
     along one axis, averaged over each cell of ``cell_px`` output samples."""
     from scipy import sparse
 
-    taps = spline_taps_matrix(_pixel_centres(n_out, n_in), n_in, np.float64)
+    taps = spline_taps_matrix(pixel_centres(n_out, n_in), n_in, np.float64)
     n_cells = n_out // cell_px
     box = sparse.csr_matrix((np.full(n_cells * cell_px, 1.0 / cell_px), np.arange(n_cells * cell_px),
                              np.arange(0, n_cells * cell_px + 1, cell_px)), shape=(n_cells, n_out))

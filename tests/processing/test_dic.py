@@ -423,7 +423,8 @@ def test_intensity_fit_recovers_a_smooth_gain_and_offset(wave_floats):
 def test_compiled_intensity_moments_and_division_are_opencvs_resizes(shape, cells):
     # the cells' moments: OpenCV's area means of w, w I, w W, w I^2, w W^2 (whole and fractional
     # cells); the division: (raw - b) / max(a, floor) with a, b resized bilinearly by OpenCV
-    from processing.dic_kernels import area_taps, cell_moments, linear_taps, normalise_rows
+    from processing.dic_intensity import area_taps, linear_taps
+    from processing.dic_kernels import cell_moments, normalise_rows
 
     rng = np.random.default_rng(3)
     frame, warped = (cv2.GaussianBlur((rng.random(shape) * 4000).astype(np.float32), (0, 0), 2) for _ in range(2))
