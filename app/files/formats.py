@@ -590,7 +590,7 @@ def _open_video(path: Path) -> Source:
     n = int(stream.frames or 0)
     readable = None
     notes = []
-    scan = None
+    scan = back = None
     try:
         if n <= 0:  # MKV and some MP4 do not store a frame count: count the packets
             scan = _packet_scan(container, stream, path, at_start=True)
@@ -598,8 +598,8 @@ def _open_video(path: Path) -> Source:
             n = len(counted.pts) if counted is not None else len(scan.stamps)
             container.seek(0)
             # (stamps that go back say nothing of where the duration ends)
-            promised = n if _first_step_back(scan.stamps) is not None else _frames_of_duration(
-                container, stream, fps, n, scan)
+            back = _first_step_back(scan.stamps)
+            promised = n if back is not None else _frames_of_duration(container, stream, fps, n, scan)
             if promised > n:  # the container's duration promises more: the file is cut short
                 n, readable = promised, n
         else:  # a header count (AVI, MP4/MOV): the frames it promises may lie past the file's end
@@ -613,7 +613,6 @@ def _open_video(path: Path) -> Source:
         container.close()
         raise FormatError(f"{str(path)!r} holds no whole video frame (a truncated file?); "
                           f"copy the file again from its source")
-    back = _first_step_back(scan.stamps) if scan is not None else None
     lossless = codec in LOSSLESS_CODECS
     if readable is not None:
         notes.append(
